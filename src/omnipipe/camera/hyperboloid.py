@@ -1,0 +1,149 @@
+"""Hyperboloid-mirror omni-directional camera (paper Eq. 1-3), single viewpoint.
+
+Geometry (rig frame, mm): the mirror focus is the origin; the hyperboloid
+(X^2+Y^2)/a^2 - (Z+c)^2/b^2 = -1 has its second focus, the camera lens centre, at
+(0, 0, -2c); the image plane is at distance f (px) from the lens towards the mirror.
+A pixel (col, row) with u = col - cx, v = row - cy sees the scene along the ray from
+the focus through the mirror point (s u, s v, s f - 2c) (Eq. 1).
+
+``project`` is the closed-form inverse: a direction d meets the mirror at
+t d with t = a^2 / (b - c d_z) (the root of the mirror equation on the mirror's
+sheet), and that mirror point images at f (x, y) / (z + 2c) through the lens.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from omnipipe.errors import ShapeError
+from omnipipe.rig import CameraIntrinsics, Mirror, Rig
+
+
+def _as_points(array: np.ndarray, dim: int, name: str) -> np.ndarray:
+    arr = np.asarray(array, dtype=float)
+    if arr.ndim == 1 and arr.shape[0] == dim:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        raise ShapeError(f"{name}: expected shape (N, {dim}), got {np.shape(array)}")
+    return arr
+
+
+class OmniCamera:
+    """The rangefinder's camera: hyperboloid mirror + perspective camera.
+
+    Args:
+        intrinsics: image size, principal point, f and the valid radii (px).
+        mirror: hyperboloid parameters a, b (mm).
+    """
+
+    # Pixels closer than this fraction of the asymptote radius a f / b are invalid:
+    # beyond it rays graze the mirror and the model is numerically meaningless.
+    _ASYMPTOTE_MARGIN = 0.995
+
+    def __init__(self, intrinsics: CameraIntrinsics, mirror: Mirror) -> None:
+        self.intrinsics = intrinsics
+        self.mirror = mirror
+        self.a = float(mirror.a)
+        self.b = float(mirror.b)
+        self.c = float(mirror.c)
+        self.f = float(intrinsics.f)
+        self.cx = float(intrinsics.cx)
+        self.cy = float(intrinsics.cy)
+        self.width = int(intrinsics.width)
+        self.height = int(intrinsics.height)
+        asymptote = self._ASYMPTOTE_MARGIN * self.a * self.f / self.b
+        rmax = intrinsics.radius_max
+        self.radius_max = asymptote if rmax is None else min(float(rmax), asymptote)
+        self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
+
+    @classmethod
+    def from_rig(cls, rig: Rig) -> OmniCamera:
+        """The camera of a calibrated rig."""
+        return cls(rig.camera, rig.mirror)
+
+    # -- Eq. (1)-(3) -------------------------------------------------------------
+    def unproject(self, pixels: np.ndarray) -> np.ndarray:
+        """Unit ray vectors of image pixels.
+
+        Args:
+            pixels: (N, 2) image coordinates (col, row) in px.
+
+        Returns:
+            rays_in_rig: (N, 3) unit vectors from the focus towards the scene
+            (NaN rows for pixels outside the mirror's asymptote).
+        """
+        px = _as_points(pixels, 2, "pixels")
+        u = px[:, 0] - self.cx
+        v = px[:, 1] - self.cy
+        a, b, c, f = self.a, self.b, self.c, self.f
+        rho2 = u * u + v * v
+        denom = a * a * f * f - b * b * rho2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # Eq. (3): scale of the lens ray at the mirror surface.
+            s = a * a * (f * c + b * np.sqrt(rho2 + f * f)) / denom
+            s = np.where(denom > 0, s, np.nan)
+            # Eq. (1): the mirror point seen from the focus (Eq. (2): c = sqrt(a^2+b^2)).
+            rays = np.stack([s * u, s * v, s * f - 2.0 * c], axis=1)
+            rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        return rays
+
+    def project(self, points_in_rig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Image coordinates of 3-D points (or directions) in the rig frame.
+
+        Args:
+            points_in_rig: (N, 3) points or ray vectors (mm; only the direction matters).
+
+        Returns:
+            pixels: (N, 2) (col, row) in px, NaN where the mirror cannot see the point.
+            valid: (N,) True where the pixel lies in the valid image region
+            (between radius_min and radius_max and inside the image).
+        """
+        pts = _as_points(points_in_rig, 3, "points_in_rig")
+        a, b, c, f = self.a, self.b, self.c, self.f
+        norm = np.linalg.norm(pts, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d = pts / norm[:, None]
+            # Mirror point t d: root of (t dxy)^2/a^2 - (t dz + c)^2/b^2 = -1 on the
+            # mirror's sheet; valid for d_z < b/c (above it the ray misses the mirror).
+            t = a * a / (b - c * d[:, 2])
+            mz = t * d[:, 2] + 2.0 * c  # mirror point seen from the lens centre
+            u = f * t * d[:, 0] / mz
+            v = f * t * d[:, 1] / mz
+        seen = (norm > 0) & (d[:, 2] < b / c) & (mz > 0)
+        pixels = np.stack([u + self.cx, v + self.cy], axis=1)
+        pixels[~seen] = np.nan
+        valid = seen & self.is_valid_pixel(np.where(seen[:, None], pixels, 0.0))
+        return pixels, valid
+
+    # -- valid image region -------------------------------------------------------
+    def is_valid_pixel(self, pixels: np.ndarray) -> np.ndarray:
+        """(N,) True for pixels inside the image and the mirror annulus."""
+        px = _as_points(pixels, 2, "pixels")
+        r = np.hypot(px[:, 0] - self.cx, px[:, 1] - self.cy)
+        inside = (
+            (px[:, 0] >= -0.5)
+            & (px[:, 0] <= self.width - 0.5)
+            & (px[:, 1] >= -0.5)
+            & (px[:, 1] <= self.height - 0.5)
+        )
+        return inside & (r >= self.radius_min) & (r <= self.radius_max)
+
+    def valid_mask(self) -> np.ndarray:
+        """(height, width) bool mask of the pixels that see the scene through the mirror."""
+        rows, cols = np.mgrid[0 : self.height, 0 : self.width]
+        r = np.hypot(cols - self.cx, rows - self.cy)
+        return (r >= self.radius_min) & (r <= self.radius_max)
+
+    def pixel_grid(self) -> np.ndarray:
+        """(height*width, 2) (col, row) coordinates of every pixel, row-major."""
+        rows, cols = np.mgrid[0 : self.height, 0 : self.width]
+        return np.stack([cols.ravel(), rows.ravel()], axis=1).astype(float)
+
+    def elevation_range(self) -> tuple[float, float]:
+        """(lowest, highest) ray elevation (rad, from the xy plane towards +z) of valid pixels."""
+        r = np.array(
+            [[self.cx + max(self.radius_min, 1e-6), self.cy], [self.cx + self.radius_max, self.cy]]
+        )
+        rays = self.unproject(r)
+        elev = np.arcsin(np.clip(rays[:, 2], -1.0, 1.0))
+        return float(elev[0]), float(elev[1])

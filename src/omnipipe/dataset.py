@@ -1,0 +1,174 @@
+"""Contract datasets (DATA_CONTRACT.md section 1) and TUM trajectories (section 3).
+
+I/O lives here, at the edge: stages receive arrays and data classes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from omnipipe.errors import DatasetError
+from omnipipe.geometry import transform_from_tum, tum_from_transform
+from omnipipe.rig import Rig, load_rig
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """An opened dataset directory.
+
+    Attributes:
+        root: the dataset directory.
+        rig: its validated calibration.
+        frame_paths: image files in time order (sorted by file name).
+        timestamps: (N,) seconds; frame index when timestamps.txt is absent.
+    """
+
+    root: Path
+    rig: Rig
+    frame_paths: tuple[Path, ...]
+    timestamps: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frame_paths)
+
+    def read_frame(self, index: int) -> np.ndarray:
+        """Frame ``index`` as an RGB (H, W, 3) or grey (H, W) array (uint8 or uint16)."""
+        return read_image(self.frame_paths[index], self.rig)
+
+    def frames(self) -> Iterator[np.ndarray]:
+        """Every frame in order."""
+        for i in range(len(self)):
+            yield self.read_frame(i)
+
+    @property
+    def ground_truth_dir(self) -> Path:
+        """Where simulators put ground truth (never read by reconstruction)."""
+        return self.root / "ground_truth"
+
+
+def read_image(path: Path, rig: Rig | None = None) -> np.ndarray:
+    """Read an image as RGB (H, W, 3) or grey (H, W), 8 or 16 bit.
+
+    Raises:
+        DatasetError: unreadable/corrupt file, or a size that differs from the rig's.
+    """
+    data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
+    if data is None:
+        raise DatasetError(f"{path}: image file not found")
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise DatasetError(f"{path}: not a readable image (corrupt or truncated?)")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = img[:, :, :3]
+        img = np.ascontiguousarray(img[:, :, ::-1])  # OpenCV's BGR -> RGB
+    if rig is not None and img.shape[:2] != (rig.camera.height, rig.camera.width):
+        raise DatasetError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]} but rig.yaml says "
+            f"{rig.camera.width}x{rig.camera.height}"
+        )
+    return img
+
+
+def write_image(path: Path, image: np.ndarray) -> None:
+    """Write an RGB (H, W, 3) or grey (H, W) array as PNG."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img[:, :, ::-1]
+    if not cv2.imwrite(str(path), img):
+        raise DatasetError(f"{path}: could not write image")
+
+
+def open_dataset(root: str | Path) -> Dataset:
+    """Open and validate a dataset directory (rig.yaml, frames/, timestamps.txt).
+
+    Raises:
+        DatasetError / ConfigError: naming the missing or invalid file or field.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset directory not found")
+    rig = load_rig(root / "rig.yaml")
+    frames_dir = root / "frames"
+    if not frames_dir.is_dir():
+        raise DatasetError(f"{frames_dir}: frames directory not found")
+    paths = tuple(
+        sorted(
+            p for p in frames_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        )
+    )
+    if not paths:
+        raise DatasetError(f"{frames_dir}: no PNG or JPEG frames")
+    stamps = np.arange(len(paths), dtype=float)
+    ts_file = root / "timestamps.txt"
+    if ts_file.is_file():
+        stamps = _read_timestamps(ts_file, paths)
+    return Dataset(root=root, rig=rig, frame_paths=paths, timestamps=stamps)
+
+
+def _read_timestamps(path: Path, frame_paths: tuple[Path, ...]) -> np.ndarray:
+    table: dict[str, float] = {}
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            if len(parts) != 2:
+                raise ValueError
+            table[parts[0]] = float(parts[1])
+        except ValueError:
+            raise DatasetError(
+                f"{path}:{n}: expected '<file name> <seconds>', got {line!r}"
+            ) from None
+    missing = [p.name for p in frame_paths if p.name not in table]
+    if missing:
+        raise DatasetError(f"{path}: no timestamp for frame {missing[0]}")
+    return np.array([table[p.name] for p in frame_paths])
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory.
+
+    Returns:
+        timestamps: (N,) seconds.
+        world_from_rig: (N, 4, 4) transforms (mm).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: trajectory file not found")
+    stamps, poses = [], []
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            values = [float(v) for v in line.split()]
+        except ValueError:
+            raise DatasetError(f"{path}:{n}: not numbers: {line!r}") from None
+        if len(values) != 8:
+            raise DatasetError(
+                f"{path}:{n}: expected 8 values 't tx ty tz qx qy qz qw', got {len(values)}"
+            )
+        q = np.array(values[4:8])
+        if not np.isfinite(values).all() or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise DatasetError(f"{path}:{n}: quaternion is not a finite unit quaternion")
+        stamps.append(values[0])
+        poses.append(transform_from_tum(np.array(values[1:])))
+    return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
+
+
+def write_tum(path: str | Path, timestamps: np.ndarray, world_from_rig: np.ndarray) -> None:
+    """Write (N,) timestamps and (N, 4, 4) world_from_rig transforms as TUM."""
+    lines = []
+    for t, T in zip(timestamps, world_from_rig, strict=True):
+        row = tum_from_transform(T)
+        lines.append(f"{t:.6f} " + " ".join(f"{v:.9g}" for v in row))
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")

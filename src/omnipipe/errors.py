@@ -1,0 +1,44 @@
+"""The single exception hierarchy of omnipipe.
+
+Every error that a user can cause (bad files, bad values, impossible requests)
+is an :class:`OmnipipeError`. The CLI prints its message on one line and exits
+with code 1; anything else escaping is a bug.
+"""
+
+from __future__ import annotations
+
+
+class OmnipipeError(Exception):
+    """Base class of every error omnipipe raises on purpose."""
+
+
+class ConfigError(OmnipipeError):
+    """A configuration or calibration value is missing or invalid.
+
+    Args:
+        field: dotted name of the offending field, e.g. ``"camera.f"``.
+        message: what is wrong with it.
+        source: the file it came from, if any.
+    """
+
+    def __init__(self, field: str, message: str, source: str | None = None) -> None:
+        self.field = field
+        self.source = source
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}{field}: {message}")
+
+
+class DatasetError(OmnipipeError):
+    """A dataset directory, frame or ground-truth file is missing or unreadable."""
+
+
+class ShapeError(OmnipipeError):
+    """An array handed to a public function has the wrong shape or type."""
+
+
+class ReconstructionError(OmnipipeError):
+    """A pipeline stage could not produce a usable result from valid input."""
+
+
+class OutputError(OmnipipeError):
+    """An output location cannot be written (exists, not writable, ...)."""
