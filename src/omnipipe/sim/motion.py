@@ -1,0 +1,128 @@
+"""Peristaltic (earthworm) locomotion of the robot's head, which carries the rangefinder.
+
+Paper Sec. II: a longitudinal contraction wave runs from the anterior unit to the
+rear. A unit moves forward only while it extends; while it is contracted it is
+anchored against the wall. The front unit therefore advances by one stroke during
+its own extension phase (1 / n_units of the gait cycle, with a smooth velocity
+profile) and stands still while the wave travels through the other units. The
+head's small lateral offset, tilt and roll change only while it moves: an anchored
+unit cannot drift, so stationary frames have exactly the same pose.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from omnipipe.errors import ConfigError
+from omnipipe.geometry import make_transform
+from omnipipe.sim.scene import Pipe
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Earthworm gait and the head's pose disturbances.
+
+    Attributes:
+        n_units: number of peristaltic units (paper: 4).
+        stroke_mm: head advance per gait cycle (mm).
+        frames_per_cycle: camera frames per gait cycle.
+        start_mm: centreline arc length of the rig origin at frame 0 (mm).
+        lateral_mm: amplitude of the head's lateral offset from the centreline (mm).
+        tilt_deg: amplitude of the head's pitch/yaw against the pipe axis (deg).
+        roll_drift_deg_per_m: slow roll drift as the robot twists along (deg per m).
+        roll_wobble_deg: amplitude of roll wobble (deg).
+        speed_jitter: relative random variation of each stroke (0.1 = +-10 %).
+    """
+
+    n_units: int = 4
+    stroke_mm: float = 24.0
+    frames_per_cycle: int = 8
+    start_mm: float = 200.0
+    lateral_mm: float = 2.0
+    tilt_deg: float = 0.8
+    roll_drift_deg_per_m: float = 6.0
+    roll_wobble_deg: float = 0.6
+    speed_jitter: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.n_units < 1:
+            raise ConfigError("motion.n_units", f"must be >= 1, got {self.n_units}")
+        if self.frames_per_cycle < 1:
+            raise ConfigError(
+                "motion.frames_per_cycle", f"must be >= 1, got {self.frames_per_cycle}"
+            )
+        if self.stroke_mm < 0:
+            raise ConfigError("motion.stroke_mm", f"must be >= 0, got {self.stroke_mm}")
+
+
+def head_travel(
+    config: MotionConfig, n_frames: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Head advance along the centreline for each frame.
+
+    Returns:
+        travel_mm: (n_frames,) distance travelled since frame 0 (mm), non-decreasing.
+        moving: (n_frames,) True where the head moved since the previous frame.
+    """
+    fpc = config.frames_per_cycle
+    n_cycles = n_frames // fpc + 2
+    strokes = config.stroke_mm * (1.0 + config.speed_jitter * rng.uniform(-1, 1, n_cycles))
+    # Gait phase of frame i in [0, 1); the front unit extends during the first 1/n_units.
+    phase = (np.arange(n_frames) % fpc) / fpc
+    cycle = np.arange(n_frames) // fpc
+    active = 1.0 / config.n_units
+    tau = np.clip(phase / active, 0.0, 1.0)
+    within = 0.5 * (1.0 - np.cos(np.pi * tau))  # smooth start and stop
+    done = np.concatenate([[0.0], np.cumsum(strokes)])
+    travel = done[cycle] + strokes[cycle] * within
+    moving = np.concatenate([[False], np.diff(travel) > 1e-9])
+    return travel, moving
+
+
+def _smooth_profile(
+    s: np.ndarray, rng: np.random.Generator, amplitude: float, n_terms: int = 4
+) -> np.ndarray:
+    """Sum of random sinusoids in travel distance s (wavelengths 150..800 mm)."""
+    out = np.zeros_like(s)
+    for _ in range(n_terms):
+        wavelength = rng.uniform(150.0, 800.0)
+        out += np.sin(2 * math.pi * s / wavelength + rng.uniform(0, 2 * math.pi))
+    return amplitude * out / math.sqrt(n_terms / 2.0)
+
+
+def simulate_trajectory(
+    pipe: Pipe, config: MotionConfig, n_frames: int, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """True rig poses of an earthworm-robot run along ``pipe``.
+
+    Returns:
+        world_from_rig: (n_frames, 4, 4) poses (mm); rig z along the direction of travel.
+        sigma_mm: (n_frames,) centreline arc length of each rig origin's station.
+        moving: (n_frames,) True where the rig moved since the previous frame.
+    """
+    if n_frames < 1:
+        raise ConfigError("frames", f"must be >= 1, got {n_frames}")
+    rng = np.random.default_rng(seed)
+    travel, moving = head_travel(config, n_frames, rng)
+    sigma = config.start_mm + travel
+    # Disturbances are functions of the distance travelled, so they freeze when anchored.
+    off_n = _smooth_profile(travel, rng, config.lateral_mm)
+    off_b = _smooth_profile(travel, rng, config.lateral_mm)
+    pitch = np.radians(_smooth_profile(travel, rng, config.tilt_deg))
+    yaw = np.radians(_smooth_profile(travel, rng, config.tilt_deg))
+    roll = np.radians(
+        config.roll_drift_deg_per_m * travel / 1000.0
+        + _smooth_profile(travel, rng, config.roll_wobble_deg)
+    )
+    centre, normal, binormal, tangent = pipe.frame_at(sigma)
+    poses = np.empty((n_frames, 4, 4))
+    for i in range(n_frames):
+        pipe_frame = np.stack([normal[i], binormal[i], tangent[i]], axis=1)  # columns N, B, T
+        wobble = Rotation.from_euler("xyz", [pitch[i], yaw[i], roll[i]]).as_matrix()
+        origin = centre[i] + off_n[i] * normal[i] + off_b[i] * binormal[i]
+        poses[i] = make_transform(pipe_frame @ wobble, origin)
+    return poses, sigma, moving

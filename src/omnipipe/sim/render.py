@@ -1,0 +1,426 @@
+"""Physically based rendering of the rangefinder's image inside a simulated pipe.
+
+For every valid pixel the ray of the hyperboloid camera (Eq. 1-3) is cast into
+the world and intersected with the true wall (defects included, first hit). The
+pixel's radiance is the wall albedo (mip-mapped to the pixel footprint) lit by the
+robot's LEDs (inverse-square falloff, Lambert cosine with the true surface
+normal), plus the laser sheet of Eq. (4): a Gaussian sheet of finite thickness
+whose image is drawn analytically from the sheet's distance to each pixel's wall
+point and its gradient across the image, convolved with the optical blur, so the
+thin line never aliases; it carries laser speckle. Optics blur the LED image,
+then the sensor adds shot and read noise and quantises to 8 bits.
+
+The robot body (camera housing and the front unit behind the laser) occludes
+the steepest backward rays: that is the image's blind centre.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from omnipipe.camera import OmniCamera
+from omnipipe.geometry import rotate
+from omnipipe.rig import Rig
+from omnipipe.sim.scene import Pipe
+from omnipipe.sim.texture import WallTexture
+
+_CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Light, optics and sensor of the simulated rangefinder.
+
+    Attributes:
+        exposure: image value (0..1 of full scale) of a white wall 100 mm from the LEDs,
+            facing them.
+        laser_power: image value (0..1) of the laser sheet's line integral on a white
+            wall 100 mm from the emitter (peak = power / (sqrt(2 pi) sigma_px)).
+        laser_sheet_sigma_mm: 1-sigma half thickness of the laser sheet (mm).
+        laser_crosstalk: fraction of the laser that leaks into the other channels.
+        speckle_contrast: std/mean of the laser speckle (0: none).
+        psf_sigma_px: optical blur of lens + mirror (px, Gaussian sigma).
+        full_well_e: electrons at full scale (shot noise).
+        read_noise_dn: read noise (8-bit digital numbers).
+        vignetting: relative brightness loss at the mirror rim.
+        housing_radius_mm, housing_top_mm: camera housing (cylinder around the axis,
+            occluding z < -housing_top_mm in the rig frame).
+        body_radius_mm, body_gap_mm: the robot's front unit, behind the laser plane by body_gap_mm.
+        led_z_mm: axial position of the LED ring in the rig frame; None: at the lens (z = -2c).
+    """
+
+    exposure: float = 0.9
+    laser_power: float = 2.5
+    laser_sheet_sigma_mm: float = 0.35
+    laser_crosstalk: float = 0.05
+    speckle_contrast: float = 0.25
+    psf_sigma_px: float = 0.7
+    full_well_e: float = 8000.0
+    read_noise_dn: float = 1.0
+    vignetting: float = 0.25
+    housing_radius_mm: float = 21.0
+    housing_top_mm: float = 70.0
+    body_radius_mm: float = 62.0
+    body_gap_mm: float = 20.0
+    led_z_mm: float | None = None
+
+
+def body_slope(rig: Rig, config: RenderConfig) -> float:
+    """Largest radial/axial slope of backward rays that the robot body occludes."""
+    body_top = rig.laser.distance_mm + config.body_gap_mm
+    return max(config.housing_radius_mm / config.housing_top_mm, config.body_radius_mm / body_top)
+
+
+def blind_radius_px(rig: Rig, config: RenderConfig, margin_px: float = 3.0) -> float:
+    """Image radius (px) of the robot body's silhouette plus a margin: rig.yaml's radius_min."""
+    slope = body_slope(rig, config)
+    direction = np.array([[slope, 0.0, -1.0]])
+    cam = OmniCamera(rig.camera, rig.mirror)
+    px, _ = cam.project(direction)
+    return float(px[0, 0] - cam.cx) + margin_px
+
+
+@dataclass
+class WallHits:
+    """Where rays meet the true wall.
+
+    Attributes:
+        points_in_rig: (M, 3) hit points in the rig frame (mm).
+        points_in_world: (M, 3) hit points in the world frame (mm).
+        sigma, theta: (M,) pipe coordinates (mm, rad).
+        normals_in_world: (M, 3) unit wall normals pointing into the pipe.
+    """
+
+    points_in_rig: np.ndarray
+    points_in_world: np.ndarray
+    sigma: np.ndarray
+    theta: np.ndarray
+    normals_in_world: np.ndarray
+
+
+class Renderer:
+    """Renders frames of one rig in one pipe.
+
+    Args:
+        rig: the rangefinder (its radius_min/max are the true silhouettes).
+        pipe: the true pipe.
+        texture: albedo of the wall.
+        config: light, optics and sensor.
+    """
+
+    def __init__(
+        self, rig: Rig, pipe: Pipe, texture: WallTexture, config: RenderConfig | None = None
+    ):
+        self.rig = rig
+        self.pipe = pipe
+        self.texture = texture
+        self.config = config or RenderConfig()
+        cam = OmniCamera(rig.camera, rig.mirror)
+        self.camera = cam
+        h, w = cam.height, cam.width
+        rows, cols = np.mgrid[0:h, 0:w]
+        r = np.hypot(cols - cam.cx, rows - cam.cy)
+        # Every pixel that sees the mirror (the true rim), body pixels included.
+        self.mirror_mask = r <= cam.radius_max
+        self.index = np.flatnonzero(self.mirror_mask)
+        pixels = np.stack([cols.ravel()[self.index], rows.ravel()[self.index]], axis=1).astype(
+            float
+        )
+        self.rays_in_rig = cam.unproject(pixels)
+        slope = np.hypot(self.rays_in_rig[:, 0], self.rays_in_rig[:, 1]) / np.maximum(
+            -self.rays_in_rig[:, 2], 1e-12
+        )
+        self.body = (self.rays_in_rig[:, 2] < 0) & (slope < body_slope(rig, self.config))
+        self.vignette = 1.0 - self.config.vignetting * (r.ravel()[self.index] / cam.radius_max) ** 2
+        self.laser_normal = rig.laser.normal_in_rig
+        self.laser_offset = rig.laser.offset_mm
+        self.laser_origin_in_rig = -self.laser_offset * self.laser_normal
+        led_z = -2.0 * rig.mirror.c if self.config.led_z_mm is None else self.config.led_z_mm
+        self.led_in_rig = np.array([0.0, 0.0, led_z])
+
+    # -- geometry ---------------------------------------------------------------------
+    def intersect(
+        self, origin_in_world: np.ndarray, rays_in_world: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """First wall hit along each unit ray.
+
+        Returns:
+            t: (M,) distance (mm) from the origin along each ray (capped at 5 m).
+            near_defect: (M,) True for rays whose hit may lie on a defect.
+        """
+        pipe = self.pipe
+        o = np.asarray(origin_in_world, float)
+        D = rays_in_world
+        t = self._solve_radius(o, D, pipe.radius_mm)
+        if pipe.ovality:
+            t = self._newton_wall(o, D, t)
+        cand = np.zeros(len(D), bool)
+        if pipe.defects:
+            inward, outward = pipe.max_deviation()
+            t_in = self._solve_radius(o, D, pipe.radius_mm - inward)
+            t_out = self._solve_radius(o, D, pipe.radius_mm + outward)
+            cand = self._near_defects(o, D, t_in, t_out)
+            if cand.any():
+                t[cand] = self._first_root(o, D[cand], t_in[cand], t_out[cand])
+        return t, cand
+
+    def _solve_radius(
+        self, o: np.ndarray, D: np.ndarray, radius: float, iters: int = 6
+    ) -> np.ndarray:
+        """Ray distance where the distance to the centreline equals ``radius``."""
+        pipe = self.pipe
+        sig_o, *_ = pipe.pipe_coordinates(o[None])
+        c_o, _, _, t_o = pipe.frame_at(sig_o)
+        w = o - c_o[0]
+        w_perp = w - (w @ t_o[0]) * t_o[0]
+        d_perp = D - np.outer(D @ t_o[0], t_o[0])
+        a = np.einsum("ij,ij->i", d_perp, d_perp)
+        b = d_perp @ w_perp
+        c = w_perp @ w_perp - radius * radius
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a
+        t = np.where(np.isfinite(t), np.minimum(t, 5000.0), 5000.0)
+        if not pipe.centreline.has_bend:
+            return t
+        for _ in range(iters):  # Newton on rho(t) = radius: d rho / dt = D . e_rho exactly
+            X = o + t[:, None] * D
+            _, rho, _, radial, *_ = pipe.pipe_coordinates(X)
+            slope = np.maximum(np.einsum("ij,ij->i", D, radial), 0.05)
+            t = np.clip(t - (rho - radius) / slope, 0.0, 5000.0)
+        return t
+
+    def _wall_residual(
+        self, o: np.ndarray, D: np.ndarray, t: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        X = o + t[:, None] * D
+        sigma, rho, theta, radial, *_ = self.pipe.pipe_coordinates(X)
+        return rho - self.pipe.wall_radius(sigma, theta), radial
+
+    def _newton_wall(
+        self, o: np.ndarray, D: np.ndarray, t: np.ndarray, iters: int = 4
+    ) -> np.ndarray:
+        for _ in range(iters):
+            g, radial = self._wall_residual(o, D, t)
+            slope = np.maximum(np.einsum("ij,ij->i", D, radial), 0.05)
+            t = t - g / slope
+        return t
+
+    def _near_defects(
+        self, o: np.ndarray, D: np.ndarray, t_in: np.ndarray, t_out: np.ndarray
+    ) -> np.ndarray:
+        pipe = self.pipe
+        s1, th1 = pipe.sigma_theta(o + t_in[:, None] * D)
+        s2, th2 = pipe.sigma_theta(o + t_out[:, None] * D)
+        lo, hi = np.minimum(s1, s2), np.maximum(s1, s2)
+        out = np.zeros(len(D), bool)
+        for dft in pipe.defects:
+            half_len = 0.5 * (dft.length_mm + dft.ramp_length_mm) + 1.0
+            half_ang = (0.5 * (dft.width_mm + dft.ramp_width_mm) + 1.0) / pipe.radius_mm
+            c_ang = math.radians(dft.angle_deg)
+            d1 = np.mod(th1 - c_ang + np.pi, 2 * np.pi) - np.pi
+            d2 = np.mod(th2 - c_ang + np.pi, 2 * np.pi) - np.pi
+            ang_hit = (np.minimum(d1, d2) <= half_ang) & (np.maximum(d1, d2) >= -half_ang)
+            ax_hit = (lo <= dft.axial_centre_mm + half_len) & (hi >= dft.axial_centre_mm - half_len)
+            out |= ang_hit & ax_hit
+        return out
+
+    def _first_root(
+        self, o: np.ndarray, D: np.ndarray, t_in: np.ndarray, t_out: np.ndarray
+    ) -> np.ndarray:
+        """First sign change of the wall residual in [t_in, t_out], refined by bisection."""
+        n_samples = 24
+        ts = t_in[:, None] + (t_out - t_in)[:, None] * np.linspace(0.0, 1.0, n_samples)[None, :]
+        g = np.stack([self._wall_residual(o, D, ts[:, k])[0] for k in range(n_samples)], axis=1)
+        crossing = (g[:, :-1] < 0) & (g[:, 1:] >= 0)
+        has = crossing.any(axis=1)
+        k = np.where(has, np.argmax(crossing, axis=1), n_samples - 2)
+        rows = np.arange(len(D))
+        lo, hi = ts[rows, k], ts[rows, k + 1]
+        for _ in range(22):  # bisection to ~ (t_out - t_in) / 24 / 4e6
+            mid = 0.5 * (lo + hi)
+            gm, _ = self._wall_residual(o, D, mid)
+            below = gm < 0
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        return 0.5 * (lo + hi)
+
+    def wall_normals(self, points_in_world: np.ndarray) -> np.ndarray:
+        """(M, 3) unit wall normals pointing into the pipe, from the true wall function."""
+        pipe = self.pipe
+        sigma, rho, theta, radial, tangent, _, _ = pipe.pipe_coordinates(points_in_world)
+        e_theta = np.cross(tangent, radial)
+        ds, dth = 0.05, 0.05 / pipe.radius_mm
+        dr_ds = (pipe.wall_radius(sigma + ds, theta) - pipe.wall_radius(sigma - ds, theta)) / (
+            2 * ds
+        )
+        dr_dth = (pipe.wall_radius(sigma, theta + dth) - pipe.wall_radius(sigma, theta - dth)) / (
+            2 * dth
+        )
+        grad = (
+            radial - dr_ds[:, None] * tangent - (dr_dth / np.maximum(rho, 1e-9))[:, None] * e_theta
+        )
+        return -grad / np.linalg.norm(grad, axis=1, keepdims=True)
+
+    # -- image ------------------------------------------------------------------------
+    def hit(self, world_from_rig: np.ndarray, rays_in_rig: np.ndarray) -> WallHits:
+        """Cast (M, 3) unit rays from the rig at ``world_from_rig`` onto the true wall."""
+        rays_world = rotate(world_from_rig, rays_in_rig)
+        origin = world_from_rig[:3, 3]
+        t, near_defect = self.intersect(origin, rays_world)
+        points_world = origin + t[:, None] * rays_world
+        sigma, _, theta, radial, *_ = self.pipe.pipe_coordinates(points_world)
+        normals = -radial
+        shaped = near_defect if not self.pipe.ovality else np.ones(len(t), bool)
+        if shaped.any():
+            normals[shaped] = self.wall_normals(points_world[shaped])
+        return WallHits(t[:, None] * rays_in_rig, points_world, sigma, theta, normals)
+
+    def shade(
+        self, world_from_rig: np.ndarray, hits: WallHits, footprint_mm: np.ndarray
+    ) -> np.ndarray:
+        """(M, 3) LED-lit wall radiance (0..1 of full scale) of wall hits.
+
+        Args:
+            footprint_mm: (M,) size of each pixel on the wall (mm), for texture filtering.
+        """
+        cfg = self.config
+        albedo = self.texture.sample(hits.sigma, hits.theta, np.minimum(footprint_mm, 50.0))
+        led_world = world_from_rig[:3, :3] @ self.led_in_rig + world_from_rig[:3, 3]
+        to_led = led_world - hits.points_in_world
+        dist = np.linalg.norm(to_led, axis=1)
+        cos_i = np.clip(np.einsum("ij,ij->i", hits.normals_in_world, to_led) / dist, 0.0, 1.0)
+        irradiance = cfg.exposure * cos_i * (100.0 / dist) ** 2
+        return albedo * irradiance[:, None].astype(np.float32)
+
+    @staticmethod
+    def footprint(points: np.ndarray, flat_index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """(M,) pixel footprint on the wall (mm/px) from image differences of hit points."""
+        h, w = shape
+        full = np.full((h * w, 3), np.nan, np.float32)
+        full[flat_index] = points
+        grid = full.reshape(h, w, 3)
+        gx = np.diff(grid, axis=1, append=np.nan)
+        gy = np.diff(grid, axis=0, append=np.nan)
+        step = np.fmax(np.linalg.norm(gx, axis=2), np.linalg.norm(gy, axis=2)).ravel()[flat_index]
+        return np.where(np.isfinite(step), step, 5.0)
+
+    def render(
+        self,
+        world_from_rig: np.ndarray,
+        seed: int,
+        led: bool = True,
+        laser: bool = True,
+        noise: bool = True,
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Render one 8-bit RGB frame (H, W, 3) seen from ``world_from_rig``.
+
+        Args:
+            world_from_rig: (4, 4) true pose of the rig (mm).
+            seed: noise and speckle seed of this frame.
+            led: LED illumination on (False: the paper's Fig. 19 laser-only frame).
+            laser: laser on.
+            noise: sensor noise on (False: the expected image, still quantised).
+
+        Returns:
+            image: (H, W, 3) uint8 RGB.
+            truth: ground truth of the wall pixels: "index" (flat pixel index),
+            "points_in_rig" (M, 3) mm, "sigma", "theta", "laser_h" (mm to the plane).
+        """
+        cfg = self.config
+        cam = self.camera
+        h, w = cam.height, cam.width
+        rng = np.random.default_rng(seed)
+        wall = ~self.body
+        flat = self.index[wall]
+        hits = self.hit(world_from_rig, self.rays_in_rig[wall])
+        points_rig = hits.points_in_rig
+
+        radiance = np.zeros((len(self.index), 3), np.float32)
+        if led:
+            radiance[wall] = self.shade(
+                world_from_rig, hits, self.footprint(points_rig, flat, (h, w))
+            )
+            radiance[self.body] = 0.04  # the robot body: dark anodised housing, faintly lit
+        radiance *= self.vignette[:, None]
+        image = np.zeros((h * w, 3), np.float32)
+        image[self.index] = radiance
+        image = image.reshape(h, w, 3)
+        if cfg.psf_sigma_px > 0:
+            image = cv2.GaussianBlur(image, (0, 0), cfg.psf_sigma_px)
+
+        laser_h = points_rig @ self.laser_normal + self.laser_offset
+        if laser:
+            image += self._laser_image(points_rig, laser_h, hits.sigma, hits.theta, wall, rng)
+
+        dn = np.clip(image, 0.0, None) * np.float32(255.0)
+        if noise:
+            # Sensor: shot noise (Poisson, Gaussian approximation) and read noise.
+            shot_dn = np.sqrt(dn * np.float32(255.0 / cfg.full_well_e))
+            dn = dn + shot_dn * rng.standard_normal(image.shape, dtype=np.float32)
+            dn = dn + np.float32(cfg.read_noise_dn) * rng.standard_normal(
+                image.shape, dtype=np.float32
+            )
+        frame = np.clip(np.round(dn), 0, 255).astype(np.uint8)  # 8-bit quantisation, saturation
+        truth = {
+            "index": flat,
+            "points_in_rig": points_rig,
+            "sigma": hits.sigma,
+            "theta": hits.theta,
+            "laser_h": laser_h,
+        }
+        return frame, truth
+
+    def _laser_image(
+        self,
+        points_rig: np.ndarray,
+        laser_h: np.ndarray,
+        sigma: np.ndarray,
+        theta: np.ndarray,
+        wall: np.ndarray,
+        rng: np.random.Generator,
+    ) -> np.ndarray:
+        """The laser line, drawn analytically with the blur (no aliasing)."""
+        cfg = self.config
+        cam = self.camera
+        h, w = cam.height, cam.width
+        hfull = np.full(h * w, np.nan, np.float64)
+        hfull[self.index[wall]] = laser_h
+        himg = hfull.reshape(h, w)
+        # Gradient of the sheet distance across the image (mm per px), central differences.
+        gy, gx = np.gradient(himg)
+        grad = np.hypot(gx, gy).ravel()[self.index[wall]]
+        near = np.isfinite(grad) & (np.abs(laser_h) < 8.0 * cfg.laser_sheet_sigma_mm + 8.0 * grad)
+        sel = np.flatnonzero(near)
+        g = np.maximum(grad[sel], 1e-6)
+        dist_px = laser_h[sel] / g
+        sheet_px = cfg.laser_sheet_sigma_mm / g
+        sig_px = np.sqrt(sheet_px**2 + cfg.psf_sigma_px**2)
+        # Power per unit length of the line: sheet fan spreads as 1/D; Lambert on the wall.
+        to_emitter = self.laser_origin_in_rig - points_rig[sel]
+        dist_e = np.linalg.norm(to_emitter, axis=1)
+        albedo = self.texture.sample(sigma[sel], theta[sel], np.full(len(sel), 0.5))
+        chan = _CHANNEL_INDEX.get(self.rig.laser.channel)
+        refl = albedo[:, chan] if chan is not None else albedo.mean(axis=1)
+        line = cfg.laser_power * (100.0 / dist_e) * np.clip(refl / 0.5, 0.2, 2.0) * 0.5
+        profile = np.exp(-0.5 * (dist_px / sig_px) ** 2) / (math.sqrt(2 * math.pi) * sig_px)
+        value = line * profile
+        if cfg.speckle_contrast > 0:
+            k = 1.0 / cfg.speckle_contrast**2
+            speckle = rng.gamma(k, 1.0 / k, size=len(sel)).astype(np.float32)
+            # Speckle grains span about a pixel: smooth a full-size field lightly.
+            field = np.ones(h * w, np.float32)
+            field[self.index[wall][sel]] = speckle
+            field = cv2.GaussianBlur(field.reshape(h, w), (0, 0), 0.6).ravel()
+            value = value * field[self.index[wall][sel]]
+        out = np.zeros((h * w, 3), np.float32)
+        flat = self.index[wall][sel]
+        if chan is None:
+            out[flat] = value[:, None]
+        else:
+            out[flat] = (cfg.laser_crosstalk * value)[:, None]
+            out[flat, chan] = value
+        return out.reshape(h, w, 3)

@@ -1,0 +1,251 @@
+"""Procedural wall texture (albedo) of a simulated pipe, deterministic from a seed.
+
+The texture lives on the unrolled wall: rows are arc length along the centreline
+(mm), columns the arc length around the nominal circumference (mm), periodic. It
+mixes what a corroded steel or cast-iron pipe shows: mill-scale grey, rust
+patches, stains, pits, scratches, a longitudinal weld seam and girth welds. The
+renderer samples it through a mip-map pyramid chosen from each pixel's footprint,
+so fine texture never aliases.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.fft as sfft
+
+
+@dataclass(frozen=True)
+class TextureConfig:
+    """Procedural texture knobs.
+
+    Attributes:
+        texel_mm: texture sample spacing on the wall (mm).
+        rust_cover: fraction of the wall covered by rust (0..1).
+        pit_density_per_cm2: small dark pits per square centimetre.
+        girth_weld_spacing_mm: distance between circumferential welds (0: none).
+        seam_angle_deg: angle of the longitudinal weld seam (None: no seam).
+    """
+
+    texel_mm: float = 0.25
+    rust_cover: float = 0.35
+    pit_density_per_cm2: float = 0.6
+    girth_weld_spacing_mm: float = 600.0
+    seam_angle_deg: float | None = 250.0
+
+
+def fractal_noise(
+    shape: tuple[int, int],
+    rng: np.random.Generator,
+    beta: float,
+    cutoff: float = 0.0,
+    coarse: int = 1,
+) -> np.ndarray:
+    """Periodic 1/f^beta noise of ``shape``, zero mean, unit standard deviation.
+
+    ``cutoff`` (cycles per sample) removes frequencies below it (large-scale trends).
+    ``coarse`` > 1 synthesises at 1/coarse resolution and upsamples (cubic, wrapping
+    around the columns): for smooth fields (beta >= 2) this loses nothing visible.
+    """
+    if coarse > 1:
+        small = (max(8, -(-shape[0] // coarse)), max(8, -(-shape[1] // coarse)))
+        low = fractal_noise(small, rng, beta, cutoff * coarse)
+        pad = 3
+        low = cv2.copyMakeBorder(low, pad, pad, pad, pad, cv2.BORDER_WRAP)
+        up = cv2.resize(low, None, fx=coarse, fy=coarse, interpolation=cv2.INTER_CUBIC)
+        off = pad * coarse
+        up = up[off : off + shape[0], off : off + shape[1]]
+        sx = small[1] * coarse / shape[1]
+        if abs(sx - 1.0) > 1e-9:  # make the column period exact
+            up = cv2.resize(up, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+        return (up - up.mean()) / max(float(up.std()), 1e-12)
+    white = rng.standard_normal(shape).astype(np.float32)
+    spec = sfft.rfft2(white, workers=1)
+    fy = np.fft.fftfreq(shape[0])[:, None]
+    fx = np.fft.rfftfreq(shape[1])[None, :]
+    freq = np.sqrt(fx * fx + fy * fy)
+    freq[0, 0] = 1.0
+    filt = freq ** (-beta / 2.0)
+    filt[0, 0] = 0.0
+    if cutoff > 0:
+        filt[freq < cutoff] = 0.0
+    field = sfft.irfft2(spec * filt.astype(np.float32), s=shape, workers=1).astype(np.float32)
+    field -= field.mean()
+    std = field.std()
+    return field / std if std > 0 else field
+
+
+def _smoothstep(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+class WallTexture:
+    """Albedo texture of the pipe wall with a mip-map pyramid.
+
+    Args:
+        circumference_mm: nominal inner circumference (mm), the period of columns.
+        sigma_range_mm: (start, end) arc length along the centreline covered (mm).
+        seed: random seed; the same seed gives the same texture.
+        config: texture knobs.
+    """
+
+    def __init__(
+        self,
+        circumference_mm: float,
+        sigma_range_mm: tuple[float, float],
+        seed: int,
+        config: TextureConfig | None = None,
+    ) -> None:
+        self.config = config or TextureConfig()
+        self.texel_mm = self.config.texel_mm
+        self.sigma0 = float(sigma_range_mm[0])
+        width = int(math.ceil(circumference_mm / self.texel_mm))
+        self.width = width - width % 2
+        self.texel_circ_mm = circumference_mm / self.width  # exact period
+        height = int(math.ceil((sigma_range_mm[1] - sigma_range_mm[0]) / self.texel_mm)) + 1
+        self.height = height + height % 2
+        rng = np.random.default_rng(seed)
+        self.albedo = self._generate(rng)
+        self.levels = self._pyramid(self.albedo)
+        # Each level padded by wrapped columns, so bilinear lookups wrap around the pipe.
+        self._padded = [cv2.copyMakeBorder(lv, 0, 0, 2, 2, cv2.BORDER_WRAP) for lv in self.levels]
+
+    # -- generation -------------------------------------------------------------------
+    def _generate(self, rng: np.random.Generator) -> np.ndarray:
+        cfg = self.config
+        shape = (self.height, self.width)
+        tex = self.texel_mm
+        # Large-scale stains and tone variation (features of ~20-100 mm).
+        stains = fractal_noise(shape, rng, beta=3.2, cutoff=tex / 400.0, coarse=8)
+        tone = fractal_noise(shape, rng, beta=2.4, coarse=4)
+        grain = fractal_noise(shape, rng, beta=0.8)
+        base = np.array([0.42, 0.40, 0.37], np.float32)
+        img = base[None, None, :] * (1.0 + 0.18 * tone[..., None] + 0.05 * grain[..., None])
+        img *= (1.0 - 0.25 * _smoothstep(stains, 0.3, 1.6))[..., None]
+        # Rust: patches from a thresholded fractal field, with their own detail.
+        rust_field = fractal_noise(shape, rng, beta=2.6, coarse=4)
+        thresh = float(np.quantile(rust_field, 1.0 - cfg.rust_cover))
+        rust_mask = _smoothstep(rust_field, thresh - 0.15, thresh + 0.25)
+        rust_detail = fractal_noise(shape, rng, beta=1.6, coarse=2)
+        rust_col = np.array([0.58, 0.31, 0.14], np.float32)
+        dark_rust = np.array([0.30, 0.15, 0.08], np.float32)
+        mix = _smoothstep(rust_detail, -1.0, 1.2)[..., None]
+        rust = rust_col * mix + dark_rust * (1.0 - mix)
+        img = img * (1.0 - rust_mask[..., None]) + rust * rust_mask[..., None]
+        # Pits: small dark round spots with a slightly bright rim (blob features).
+        area_cm2 = self.height * self.width * tex * tex / 100.0
+        n_pits = rng.poisson(cfg.pit_density_per_cm2 * area_cm2)
+        pits = np.zeros(shape, np.float32)
+        rims = np.zeros(shape, np.float32)
+        ys = rng.uniform(0, self.height, n_pits)
+        xs = rng.uniform(0, self.width, n_pits)
+        rs = rng.uniform(0.4, 2.2, n_pits) / tex
+        depth = rng.uniform(0.3, 0.8, n_pits)
+        for y, x, r, dpt in zip(ys, xs, rs, depth, strict=True):
+            for dx in (0.0, -self.width, self.width):
+                c = (int(round((x + dx) * 4)), int(round(y * 4)))
+                cv2.circle(rims, c, int(round(r * 1.5 * 4)), 0.15, -1, cv2.LINE_AA, shift=2)
+                cv2.circle(pits, c, int(round(r * 4)), float(dpt), -1, cv2.LINE_AA, shift=2)
+        pits = cv2.GaussianBlur(pits, (0, 0), 0.6)
+        img *= (1.0 + rims - pits)[..., None].clip(0.1, 2.0)
+        # Scratches: thin short lines in random directions.
+        scratches = np.zeros(shape, np.float32)
+        n_scr = rng.poisson(0.02 * area_cm2)
+        for _ in range(n_scr):
+            x0, y0 = rng.uniform(0, self.width), rng.uniform(0, self.height)
+            ang = rng.uniform(0, math.pi)
+            length = rng.uniform(5, 40) / tex
+            x1, y1 = x0 + length * math.cos(ang), y0 + length * math.sin(ang)
+            cv2.line(
+                scratches,
+                (int(x0), int(y0)),
+                (int(x1), int(y1)),
+                rng.uniform(0.1, 0.3),
+                1,
+                cv2.LINE_AA,
+            )
+        img *= (1.0 + scratches)[..., None]
+        # Welds: a longitudinal seam and girth welds (bright rippled beads, dark toes).
+        rows = self.sigma0 + np.arange(self.height) * tex
+        cols = np.arange(self.width) * self.texel_circ_mm
+        if cfg.seam_angle_deg is not None:
+            seam_c = math.radians(cfg.seam_angle_deg) % (2 * math.pi) * self.width / (2 * math.pi)
+            dist = np.abs(
+                ((np.arange(self.width) - seam_c + self.width / 2) % self.width) - self.width / 2
+            )
+            bead = np.exp(-0.5 * (dist * tex / 2.5) ** 2)[None, :]
+            ripple = 0.5 + 0.5 * np.sin(rows * 2 * math.pi / 1.8)[:, None]
+            img *= (
+                1.0
+                + (0.25 + 0.15 * ripple) * bead
+                - 0.3 * np.exp(-0.5 * ((dist * tex - 4) / 0.7) ** 2)[None, :]
+            )[..., None]
+        if cfg.girth_weld_spacing_mm > 0:
+            phase = (rows % cfg.girth_weld_spacing_mm) - 0.5 * cfg.girth_weld_spacing_mm
+            bead = np.exp(-0.5 * (phase / 3.0) ** 2)[:, None]
+            ripple = 0.5 + 0.5 * np.sin(cols * 2 * math.pi / 2.0)[None, :]
+            img *= (1.0 + (0.2 + 0.15 * ripple) * bead)[..., None]
+        return np.clip(img, 0.03, 0.95).astype(np.float32)
+
+    @staticmethod
+    def _pyramid(img: np.ndarray, levels: int = 6) -> list[np.ndarray]:
+        out = [img]
+        for _ in range(levels - 1):
+            prev = out[-1]
+            if min(prev.shape[:2]) < 8:
+                break
+            out.append(
+                cv2.resize(
+                    prev, (prev.shape[1] // 2, prev.shape[0] // 2), interpolation=cv2.INTER_AREA
+                )
+            )
+        return out
+
+    # -- sampling ---------------------------------------------------------------------
+    def sample(
+        self, sigma_mm: np.ndarray, theta_rad: np.ndarray, footprint_mm: np.ndarray
+    ) -> np.ndarray:
+        """Albedo (M, 3) at wall coordinates, filtered to a footprint (mm per pixel)."""
+        col = (np.mod(theta_rad, 2 * math.pi) * (self.width / (2 * math.pi))).astype(np.float32)
+        row = ((np.asarray(sigma_mm) - self.sigma0) / self.texel_mm).astype(np.float32)
+        level = np.log2(np.maximum(np.asarray(footprint_mm, np.float32), 1e-6) / self.texel_mm)
+        level = np.clip(level, 0.0, len(self.levels) - 1.0)
+        lo = np.floor(level).astype(int)
+        frac = (level - lo).astype(np.float32)
+        out = np.zeros((len(col), 3), np.float32)
+        for k in range(len(self.levels)):
+            sel_lo = lo == k
+            sel_hi = (lo == k - 1) & (frac > 0)
+            sel = sel_lo | sel_hi
+            if not sel.any():
+                continue
+            vals = self._sample_level(k, col[sel], row[sel])
+            weight = np.where(sel_lo[sel], 1.0 - frac[sel], frac[sel])[:, None]
+            out[sel] += weight * vals
+        return out
+
+    def _sample_level(self, k: int, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        padded = self._padded[k]
+        scale = 2.0**k
+        w = self.levels[k].shape[1]
+        pad = 2
+        c = ((col / scale - 0.5 * (1 - 1 / scale)) % w + pad).astype(np.float32)
+        r = (row / scale - 0.5 * (1 - 1 / scale)).astype(np.float32)
+        n = len(c)
+        # cv2.remap wants 2-D maps narrower than 32k: fold the samples into rows of 1024.
+        rows = -(-n // 1024)
+        mx = np.zeros(rows * 1024, np.float32)
+        my = np.zeros(rows * 1024, np.float32)
+        mx[:n], my[:n] = c, r
+        res = cv2.remap(
+            padded,
+            mx.reshape(rows, 1024),
+            my.reshape(rows, 1024),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
+        return res.reshape(-1, 3)[:n]
