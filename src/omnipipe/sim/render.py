@@ -37,7 +37,8 @@ class RenderConfig:
 
     Attributes:
         exposure: image value (0..1 of full scale) of a white wall 100 mm from the LEDs,
-            facing them.
+            facing them, in a pipe of 202 mm; the camera's auto exposure scales its gain
+            with (pipe radius / 101 mm)^2 so other pipe sizes are exposed alike.
         laser_power: image value (0..1) of the laser sheet's line integral on a white
             wall 100 mm from the emitter (peak = power / (sqrt(2 pi) sigma_px)).
         laser_sheet_sigma_mm: 1-sigma half thickness of the laser sheet (mm).
@@ -141,6 +142,8 @@ class Renderer:
         self.laser_origin_in_rig = -self.laser_offset * self.laser_normal
         led_z = -2.0 * rig.mirror.c if self.config.led_z_mm is None else self.config.led_z_mm
         self.led_in_rig = np.array([0.0, 0.0, led_z])
+        # Auto exposure: the gain that keeps the wall of this pipe as bright as in a 202 mm pipe.
+        self.gain = (pipe.radius_mm / 101.0) ** 2
 
     # -- geometry ---------------------------------------------------------------------
     def intersect(
@@ -161,37 +164,43 @@ class Renderer:
         cand = np.zeros(len(D), bool)
         if pipe.defects:
             inward, outward = pipe.max_deviation()
-            t_in = self._solve_radius(o, D, pipe.radius_mm - inward)
-            t_out = self._solve_radius(o, D, pipe.radius_mm + outward)
+            t_in = self._solve_radius(o, D, pipe.radius_mm - inward, start=t)
+            t_out = self._solve_radius(o, D, pipe.radius_mm + outward, start=t)
             cand = self._near_defects(o, D, t_in, t_out)
             if cand.any():
                 t[cand] = self._first_root(o, D[cand], t_in[cand], t_out[cand])
         return t, cand
 
     def _solve_radius(
-        self, o: np.ndarray, D: np.ndarray, radius: float, iters: int = 6
+        self,
+        o: np.ndarray,
+        D: np.ndarray,
+        radius: float,
+        start: np.ndarray | None = None,
+        iters: int = 8,
     ) -> np.ndarray:
-        """Ray distance where the distance to the centreline equals ``radius``."""
+        """Ray distance where the distance to the centreline equals ``radius``.
+
+        Starts from the hit of the locally straight pipe (exact for straight pipes) or
+        ``start``, then Newton on rho(t) = radius (d rho / dt = D . e_rho exactly),
+        iterating only the rays that have not converged.
+        """
         pipe = self.pipe
-        sig_o, *_ = pipe.pipe_coordinates(o[None])
-        c_o, _, _, t_o = pipe.frame_at(sig_o)
-        w = o - c_o[0]
-        w_perp = w - (w @ t_o[0]) * t_o[0]
-        d_perp = D - np.outer(D @ t_o[0], t_o[0])
-        a = np.einsum("ij,ij->i", d_perp, d_perp)
-        b = d_perp @ w_perp
-        c = w_perp @ w_perp - radius * radius
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a
-        t = np.where(np.isfinite(t), np.minimum(t, 5000.0), 5000.0)
-        if not pipe.centreline.has_bend:
-            return t
-        for _ in range(iters):  # Newton on rho(t) = radius: d rho / dt = D . e_rho exactly
-            X = o + t[:, None] * D
-            _, rho, _, radial, *_ = pipe.pipe_coordinates(X)
-            slope = np.maximum(np.einsum("ij,ij->i", D, radial), 0.05)
-            t = np.clip(t - (rho - radius) / slope, 0.0, 5000.0)
-        return t
+        if start is None or not pipe.centreline.has_bend:
+            sig_o, *_ = pipe.pipe_coordinates(o[None])
+            c_o, _, _, t_o = pipe.frame_at(sig_o)
+            w = o - c_o[0]
+            w_perp = w - (w @ t_o[0]) * t_o[0]
+            d_perp = D - np.outer(D @ t_o[0], t_o[0])
+            a = np.einsum("ij,ij->i", d_perp, d_perp)
+            b = d_perp @ w_perp
+            c = w_perp @ w_perp - radius * radius
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a
+            t = np.where(np.isfinite(t), np.minimum(t, 5000.0), 5000.0)
+        else:
+            t = start.copy()
+        return pipe.ray_distance_to_radius(o, D, radius, t)
 
     def _wall_residual(
         self, o: np.ndarray, D: np.ndarray, t: np.ndarray
@@ -232,7 +241,7 @@ class Renderer:
         self, o: np.ndarray, D: np.ndarray, t_in: np.ndarray, t_out: np.ndarray
     ) -> np.ndarray:
         """First sign change of the wall residual in [t_in, t_out], refined by bisection."""
-        n_samples = 24
+        n_samples = 16
         ts = t_in[:, None] + (t_out - t_in)[:, None] * np.linspace(0.0, 1.0, n_samples)[None, :]
         g = np.stack([self._wall_residual(o, D, ts[:, k])[0] for k in range(n_samples)], axis=1)
         crossing = (g[:, :-1] < 0) & (g[:, 1:] >= 0)
@@ -240,13 +249,19 @@ class Renderer:
         k = np.where(has, np.argmax(crossing, axis=1), n_samples - 2)
         rows = np.arange(len(D))
         lo, hi = ts[rows, k], ts[rows, k + 1]
-        for _ in range(22):  # bisection to ~ (t_out - t_in) / 24 / 4e6
-            mid = 0.5 * (lo + hi)
+        g_lo, g_hi = g[rows, k], g[rows, k + 1]
+        mid = lo
+        for _ in range(8):  # Illinois regula falsi: superlinear, keeps the bracket
+            mid = lo - g_lo * (hi - lo) / np.where(g_hi > g_lo, g_hi - g_lo, 1.0)
             gm, _ = self._wall_residual(o, D, mid)
             below = gm < 0
-            lo = np.where(below, mid, lo)
-            hi = np.where(below, hi, mid)
-        return 0.5 * (lo + hi)
+            lo, g_lo, g_hi = (
+                np.where(below, mid, lo),
+                np.where(below, gm, 0.5 * g_lo),
+                np.where(below, 0.5 * g_hi, g_hi),
+            )
+            hi, g_hi = np.where(below, hi, mid), np.where(below, g_hi, gm)
+        return mid
 
     def wall_normals(self, points_in_world: np.ndarray) -> np.ndarray:
         """(M, 3) unit wall normals pointing into the pipe, from the true wall function."""
@@ -339,11 +354,10 @@ class Renderer:
         hits = self.hit(world_from_rig, self.rays_in_rig[wall])
         points_rig = hits.points_in_rig
 
+        footprint = self.footprint(points_rig, flat, (h, w))
         radiance = np.zeros((len(self.index), 3), np.float32)
         if led:
-            radiance[wall] = self.shade(
-                world_from_rig, hits, self.footprint(points_rig, flat, (h, w))
-            )
+            radiance[wall] = self.shade(world_from_rig, hits, footprint)
             radiance[self.body] = 0.04  # the robot body: dark anodised housing, faintly lit
         radiance *= self.vignette[:, None]
         image = np.zeros((h * w, 3), np.float32)
@@ -354,9 +368,11 @@ class Renderer:
 
         laser_h = points_rig @ self.laser_normal + self.laser_offset
         if laser:
-            image += self._laser_image(points_rig, laser_h, hits.sigma, hits.theta, wall, rng)
+            image += self._laser_image(
+                points_rig, laser_h, hits.sigma, hits.theta, footprint, wall, rng
+            )
 
-        dn = np.clip(image, 0.0, None) * np.float32(255.0)
+        dn = np.clip(image, 0.0, None) * np.float32(255.0 * self.gain)
         if noise:
             # Sensor: shot noise (Poisson, Gaussian approximation) and read noise.
             shot_dn = np.sqrt(dn * np.float32(255.0 / cfg.full_well_e))
@@ -380,6 +396,7 @@ class Renderer:
         laser_h: np.ndarray,
         sigma: np.ndarray,
         theta: np.ndarray,
+        footprint: np.ndarray,
         wall: np.ndarray,
         rng: np.random.Generator,
     ) -> np.ndarray:
@@ -402,7 +419,7 @@ class Renderer:
         # Power per unit length of the line: sheet fan spreads as 1/D; Lambert on the wall.
         to_emitter = self.laser_origin_in_rig - points_rig[sel]
         dist_e = np.linalg.norm(to_emitter, axis=1)
-        albedo = self.texture.sample(sigma[sel], theta[sel], np.full(len(sel), 0.5))
+        albedo = self.texture.sample(sigma[sel], theta[sel], footprint[sel])
         chan = _CHANNEL_INDEX.get(self.rig.laser.channel)
         refl = albedo[:, chan] if chan is not None else albedo.mean(axis=1)
         line = cfg.laser_power * (100.0 / dist_e) * np.clip(refl / 0.5, 0.2, 2.0) * 0.5

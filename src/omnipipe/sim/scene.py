@@ -14,6 +14,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 
 from omnipipe.errors import ConfigError
@@ -164,53 +165,73 @@ class Pipe:
         s = np.atleast_1d(np.asarray(sigma, dtype=float))
         cl = self.centreline
         pts = s[:, None] * self._t0
-        tang = np.repeat(self._t0[None], len(s), axis=0)
-        nb_u = np.repeat(self._u_b[None], len(s), axis=0)  # transported bend direction
+        tang = np.empty((len(s), 3))
+        tang[:] = self._t0
+        nb_u = np.empty((len(s), 3))  # transported bend direction
+        nb_u[:] = self._u_b
         if cl.has_bend:
-            alpha = np.clip((s - cl.straight_mm) / self._rb, 0.0, self._big_phi)
-            ca, sa = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
-            arc_pts = self._cb - self._rb * self._u_b * ca + self._rb * self._t0 * sa
-            arc_t = self._u_b * sa + self._t0 * ca
-            arc_n = self._u_b * ca - self._t0 * sa
-            after = np.maximum(s - self._sigma2, 0.0)[:, None]
-            in_bend = (s > cl.straight_mm)[:, None]
-            pts = np.where(in_bend, arc_pts + after * arc_t, pts)
-            tang = np.where(in_bend, arc_t, tang)
-            nb_u = np.where(in_bend, arc_n, nb_u)
+            idx = np.flatnonzero(s > cl.straight_mm)
+            if len(idx):
+                alpha = np.minimum((s[idx] - cl.straight_mm) / self._rb, self._big_phi)
+                ca, sa = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
+                arc_t = self._u_b * sa + self._t0 * ca
+                after = np.maximum(s[idx] - self._sigma2, 0.0)[:, None]
+                pts[idx] = (
+                    self._cb - self._rb * self._u_b * ca + self._rb * self._t0 * sa + after * arc_t
+                )
+                tang[idx] = arc_t
+                nb_u[idx] = self._u_b * ca - self._t0 * sa
         cp, sp = math.cos(self._phi), math.sin(self._phi)
         normal = cp * nb_u - sp * self._w
         binormal = sp * nb_u + cp * self._w
         return pts, normal, binormal, tang
 
     def pipe_coordinates(self, points_in_world: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(sigma, rho, theta, radial_unit, frame_T) of (M, 3) world points.
+        """Pipe coordinates of (M, 3) world points.
 
         Returns:
             sigma, rho, theta: (M,) arc length (mm), radial distance (mm), angle (rad).
             radial: (M, 3) unit vectors from the centreline to the points.
-            tangent: (M, 3) centreline tangents at sigma.
-            normal, binormal: (M, 3) the transported frame at sigma.
+            tangent, normal, binormal: (M, 3) the transported frame at sigma.
         """
-        X = np.asarray(points_in_world, dtype=float)
+        X = np.ascontiguousarray(points_in_world, dtype=float).reshape(-1, 3)
         cl = self.centreline
-        sigma = X @ self._t0
         if cl.has_bend:
-            Y = X - self._cb
-            p = -(Y @ self._u_b)
-            q = Y @ self._t0
-            alpha = np.arctan2(q, p)
-            in_arc = (alpha > 0) & (alpha <= self._big_phi)
             end_pt, _, _, end_t = self.frame_at(np.array([self._sigma2]))
-            after = alpha > self._big_phi
-            sigma = np.where(in_arc, cl.straight_mm + self._rb * alpha, sigma)
-            sigma = np.where(after, self._sigma2 + (X - end_pt[0]) @ end_t[0], sigma)
-            sigma = np.where(~(in_arc | after), np.minimum(sigma, cl.straight_mm), sigma)
+            bend = np.array([self._rb, self._big_phi, cl.straight_mm, self._sigma2, self._phi])
+            return _pipe_coordinates_bent(
+                X, self._t0, self._u_b, self._w, self._cb, end_pt[0], end_t[0], bend
+            )
+        sigma = X @ self._t0
         centre, normal, binormal, tangent = self.frame_at(sigma)
         e = X - centre
-        rho = np.linalg.norm(e, axis=1)
+        rho = np.sqrt(np.einsum("ij,ij->i", e, e))
         radial = e / np.maximum(rho, 1e-12)[:, None]
-        theta = np.arctan2(np.sum(e * binormal, axis=1), np.sum(e * normal, axis=1))
+        theta = np.arctan2(np.einsum("ij,ij->i", e, binormal), np.einsum("ij,ij->i", e, normal))
         return sigma, rho, theta, radial, tangent, normal, binormal
+
+    def ray_distance_to_radius(
+        self,
+        origin_in_world: np.ndarray,
+        rays_in_world: np.ndarray,
+        radius: float,
+        start: np.ndarray,
+    ) -> np.ndarray:
+        """Distances along unit rays where the distance to the centreline is ``radius`` (mm).
+
+        Newton from ``start`` (M,), per ray; exact for straight pipes after one step.
+        """
+        o = np.asarray(origin_in_world, dtype=float)
+        D = np.ascontiguousarray(rays_in_world, dtype=float)
+        t = np.array(start, dtype=float)
+        if not self.centreline.has_bend:
+            return t
+        cl = self.centreline
+        end_pt, _, _, end_t = self.frame_at(np.array([self._sigma2]))
+        bend = np.array([self._rb, self._big_phi, cl.straight_mm, self._sigma2, self._phi])
+        return _ray_radius_bent(
+            o, D, t, float(radius), self._t0, self._u_b, self._cb, end_pt[0], end_t[0], bend
+        )
 
     def sigma_theta(self, points_in_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(sigma, theta) of (M, 3) world points; cheap for straight pipes."""
@@ -272,3 +293,136 @@ class Pipe:
             ovality=float(data.get("ovality", 0.0)),
             ovality_angle_deg=float(data.get("ovality_angle_deg", 0.0)),
         )
+
+
+@numba.njit(cache=True)
+def _pipe_coordinates_bent(X, t0, u_b, w, cb, end_pt, end_t, bend):  # pragma: no cover - compiled
+    """Pipe coordinates on a straight-bend-straight centreline (see Pipe.pipe_coordinates)."""
+    rb, big_phi, straight, sigma2, phi = bend[0], bend[1], bend[2], bend[3], bend[4]
+    cp, sp = math.cos(phi), math.sin(phi)
+    m = X.shape[0]
+    sigma = np.empty(m)
+    rho = np.empty(m)
+    theta = np.empty(m)
+    radial = np.empty((m, 3))
+    tangent = np.empty((m, 3))
+    normal = np.empty((m, 3))
+    binormal = np.empty((m, 3))
+    for i in range(m):
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        y0, y1, y2 = x0 - cb[0], x1 - cb[1], x2 - cb[2]
+        alpha = math.atan2(
+            y0 * t0[0] + y1 * t0[1] + y2 * t0[2], -(y0 * u_b[0] + y1 * u_b[1] + y2 * u_b[2])
+        )
+        if 0.0 < alpha <= big_phi:
+            s = straight + rb * alpha
+        elif alpha > big_phi:
+            s = (
+                sigma2
+                + (x0 - end_pt[0]) * end_t[0]
+                + (x1 - end_pt[1]) * end_t[1]
+                + (x2 - end_pt[2]) * end_t[2]
+            )
+        else:
+            s = min(x0 * t0[0] + x1 * t0[1] + x2 * t0[2], straight)
+        if s > straight:
+            a = min((s - straight) / rb, big_phi)
+            ca, sa = math.cos(a), math.sin(a)
+            after = max(s - sigma2, 0.0)
+        else:
+            ca, sa, after = 1.0, 0.0, 0.0
+        # Centreline point c, tangent g and transported bend direction q (straight: a = 0).
+        e0 = e1 = e2 = 0.0
+        en = eb = 0.0
+        for k in range(3):
+            g = u_b[k] * sa + t0[k] * ca
+            q = u_b[k] * ca - t0[k] * sa
+            if s > straight:
+                c = cb[k] - rb * u_b[k] * ca + rb * t0[k] * sa + after * g
+            else:
+                c = s * t0[k]
+            ek = X[i, k] - c
+            nk = cp * q - sp * w[k]
+            bk = sp * q + cp * w[k]
+            normal[i, k] = nk
+            binormal[i, k] = bk
+            tangent[i, k] = g
+            radial[i, k] = ek
+            en += ek * nk
+            eb += ek * bk
+            if k == 0:
+                e0 = ek
+            elif k == 1:
+                e1 = ek
+            else:
+                e2 = ek
+        r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        rr = max(r, 1e-12)
+        for k in range(3):
+            radial[i, k] /= rr
+        sigma[i] = s
+        rho[i] = r
+        theta[i] = math.atan2(eb, en)
+    return sigma, rho, theta, radial, tangent, normal, binormal
+
+
+@numba.njit(cache=True)
+def _rho_bent(x0, x1, x2, t0, u_b, cb, end_pt, end_t, bend):  # pragma: no cover - compiled
+    """Distance of one point from the bent centreline and its unit radial vector."""
+    rb, big_phi, straight, sigma2 = bend[0], bend[1], bend[2], bend[3]
+    y0, y1, y2 = x0 - cb[0], x1 - cb[1], x2 - cb[2]
+    alpha = math.atan2(
+        y0 * t0[0] + y1 * t0[1] + y2 * t0[2], -(y0 * u_b[0] + y1 * u_b[1] + y2 * u_b[2])
+    )
+    if 0.0 < alpha <= big_phi:
+        s = straight + rb * alpha
+    elif alpha > big_phi:
+        s = (
+            sigma2
+            + (x0 - end_pt[0]) * end_t[0]
+            + (x1 - end_pt[1]) * end_t[1]
+            + (x2 - end_pt[2]) * end_t[2]
+        )
+    else:
+        s = min(x0 * t0[0] + x1 * t0[1] + x2 * t0[2], straight)
+    if s > straight:
+        a = min((s - straight) / rb, big_phi)
+        ca, sa = math.cos(a), math.sin(a)
+        after = max(s - sigma2, 0.0)
+        c0 = cb[0] - rb * u_b[0] * ca + rb * t0[0] * sa + after * (u_b[0] * sa + t0[0] * ca)
+        c1 = cb[1] - rb * u_b[1] * ca + rb * t0[1] * sa + after * (u_b[1] * sa + t0[1] * ca)
+        c2 = cb[2] - rb * u_b[2] * ca + rb * t0[2] * sa + after * (u_b[2] * sa + t0[2] * ca)
+    else:
+        c0, c1, c2 = s * t0[0], s * t0[1], s * t0[2]
+    e0, e1, e2 = x0 - c0, x1 - c1, x2 - c2
+    r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    rr = max(r, 1e-12)
+    return r, e0 / rr, e1 / rr, e2 / rr
+
+
+@numba.njit(cache=True)
+def _ray_radius_bent(
+    o, D, t, radius, t0, u_b, cb, end_pt, end_t, bend
+):  # pragma: no cover - compiled
+    """Newton on rho(o + t D) = radius per ray, in place on t (d rho/dt = D . e_rho)."""
+    for i in range(D.shape[0]):
+        ti = t[i]
+        for _ in range(30):
+            r, q0, q1, q2 = _rho_bent(
+                o[0] + ti * D[i, 0],
+                o[1] + ti * D[i, 1],
+                o[2] + ti * D[i, 2],
+                t0,
+                u_b,
+                cb,
+                end_pt,
+                end_t,
+                bend,
+            )
+            g = r - radius
+            slope = max(D[i, 0] * q0 + D[i, 1] * q1 + D[i, 2] * q2, 0.05)
+            ti = min(max(ti - g / slope, 0.0), 5000.0)
+            if abs(g) < 1e-7:
+                break
+        t[i] = ti
+    return t

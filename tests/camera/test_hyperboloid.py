@@ -1,0 +1,116 @@
+"""The hyperboloid camera model (paper Eq. 1-3): round trips, geometry, single viewpoint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnipipe.camera import OmniCamera
+from omnipipe.errors import ShapeError
+from omnipipe.rig import CameraIntrinsics, Mirror
+
+
+@pytest.fixture(params=["paper", "off-centre"])
+def camera(request: pytest.FixtureRequest) -> OmniCamera:
+    if request.param == "paper":
+        intr = CameraIntrinsics(
+            1600, 1200, 799.5, 599.5, 1730.14, radius_min=90.0, radius_max=599.0
+        )
+        return OmniCamera(intr, Mirror(21.57, 32.49))
+    # Another mirror, focal length and an off-centre principal point.
+    intr = CameraIntrinsics(1280, 1024, 655.3, 498.1, 900.0, radius_min=60.0, radius_max=480.0)
+    return OmniCamera(intr, Mirror(20.0, 30.0))
+
+
+def _valid_pixels(camera: OmniCamera, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    px = rng.uniform([-0.5, -0.5], [camera.width - 0.5, camera.height - 0.5], size=(n, 2))
+    return px[camera.is_valid_pixel(px)]
+
+
+def test_round_trip_over_whole_valid_image(camera: OmniCamera) -> None:
+    pixels = _valid_pixels(camera, 200_000, seed=1)
+    rays = camera.unproject(pixels)
+    assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
+    depth = np.random.default_rng(2).uniform(5.0, 5000.0, size=(len(rays), 1))
+    back, valid = camera.project(rays * depth)
+    assert valid.all()
+    assert np.abs(back - pixels).max() < 1e-6
+
+
+def test_project_then_unproject_recovers_directions(camera: OmniCamera) -> None:
+    rng = np.random.default_rng(3)
+    dirs = rng.normal(size=(50_000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    px, valid = camera.project(dirs * 250.0)
+    assert valid.sum() > 1000
+    rays = camera.unproject(px[valid])
+    assert np.abs(rays - dirs[valid]).max() < 1e-9
+
+
+def test_image_centre_looks_along_minus_z(camera: OmniCamera) -> None:
+    ray = camera.unproject(np.array([[camera.cx, camera.cy]]))[0]
+    assert ray == pytest.approx([0.0, 0.0, -1.0], abs=1e-12)
+    # x along columns and y along rows, as the contract's rig frame says.
+    right = camera.unproject(np.array([[camera.cx + 200.0, camera.cy]]))[0]
+    down = camera.unproject(np.array([[camera.cx, camera.cy + 200.0]]))[0]
+    assert right[0] > 0 and abs(right[1]) < 1e-12
+    assert down[1] > 0 and abs(down[0]) < 1e-12
+
+
+def test_single_viewpoint_rays_pass_through_focus(camera: OmniCamera) -> None:
+    """Each pixel's lens ray hits the mirror at a point on the pixel's ray from the focus
+    (Eq. 1), and the reflection law holds there: the mirror normal bisects both rays."""
+    pixels = _valid_pixels(camera, 2000, seed=4)
+    a, b, c, f = camera.a, camera.b, camera.c, camera.f
+    u = pixels[:, 0] - camera.cx
+    v = pixels[:, 1] - camera.cy
+    lens_dir = np.stack([u, v, np.full_like(u, f)], axis=1)
+    lens_dir /= np.linalg.norm(lens_dir, axis=1, keepdims=True)
+    lens = np.array([0.0, 0.0, -2.0 * c])
+    # Intersect the lens ray with the mirror sheet (X^2+Y^2)/a^2 - (Z+c)^2/b^2 = -1 numerically.
+    ts = np.linspace(1.0, 400.0, 400001)
+    mirror_pts = []
+    for d in lens_dir[:50]:
+        p = lens + ts[:, None] * d
+        g = (p[:, 0] ** 2 + p[:, 1] ** 2) / a**2 - (p[:, 2] + c) ** 2 / b**2 + 1.0
+        k = np.flatnonzero((np.sign(g[:-1]) != np.sign(g[1:])) & (p[:-1, 2] + c > 0))[0]
+        t0 = ts[k] - g[k] * (ts[k + 1] - ts[k]) / (g[k + 1] - g[k])
+        mirror_pts.append(lens + t0 * d)
+    mirror_pts = np.array(mirror_pts)
+    rays = camera.unproject(pixels[:50])
+    cross = np.cross(mirror_pts / np.linalg.norm(mirror_pts, axis=1, keepdims=True), rays)
+    assert np.abs(cross).max() < 1e-6
+    # Reflection law: incoming scene direction -ray reflects into the lens direction.
+    grad = np.stack(
+        [
+            2 * mirror_pts[:, 0] / a**2,
+            2 * mirror_pts[:, 1] / a**2,
+            -2 * (mirror_pts[:, 2] + c) / b**2,
+        ],
+        axis=1,
+    )
+    n = grad / np.linalg.norm(grad, axis=1, keepdims=True)
+    incoming = -rays
+    reflected = incoming - 2 * np.sum(incoming * n, axis=1, keepdims=True) * n
+    to_lens = lens - mirror_pts
+    to_lens /= np.linalg.norm(to_lens, axis=1, keepdims=True)
+    assert np.abs(reflected - to_lens).max() < 1e-6
+
+
+def test_valid_region(camera: OmniCamera) -> None:
+    mask = camera.valid_mask()
+    assert mask.shape == (camera.height, camera.width)
+    assert not mask[int(round(camera.cy)), int(round(camera.cx))]  # blind centre
+    assert not mask[0, 0]  # outside the rim
+    px, valid = camera.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [1.0, 0.0, -0.5]]))
+    assert not valid[0]  # the camera's own reflection
+    assert np.isnan(px[1]).all() and not valid[1]  # straight ahead: no mirror there
+    assert valid[2]
+
+
+def test_shape_errors(camera: OmniCamera) -> None:
+    with pytest.raises(ShapeError, match=r"\(N, 2\)"):
+        camera.unproject(np.zeros((4, 3)))
+    with pytest.raises(ShapeError, match=r"\(N, 3\)"):
+        camera.project(np.zeros((4, 2)))
