@@ -136,6 +136,13 @@ class Renderer:
             -self.rays_in_rig[:, 2], 1e-12
         )
         self.body = (self.rays_in_rig[:, 2] < 0) & (slope < body_slope(rig, self.config))
+        # Angle between neighbouring pixels' rays (rad/px): the footprint per unit distance.
+        ang = np.zeros(len(pixels))
+        for step in ((1.0, 0.0), (0.0, 1.0)):
+            nb = cam.unproject(pixels + np.array(step))
+            cos = np.clip(np.einsum("ij,ij->i", nb, self.rays_in_rig), -1.0, 1.0)
+            ang = np.fmax(ang, np.arccos(cos))
+        self.pixel_angle = np.nan_to_num(ang, nan=1e-2)
         self.vignette = 1.0 - self.config.vignetting * (r.ravel()[self.index] / cam.radius_max) ** 2
         self.laser_normal = rig.laser.normal_in_rig
         self.laser_offset = rig.laser.offset_mm
@@ -354,7 +361,11 @@ class Renderer:
         hits = self.hit(world_from_rig, self.rays_in_rig[wall])
         points_rig = hits.points_in_rig
 
-        footprint = self.footprint(points_rig, flat, (h, w))
+        # Pixel footprint on the wall (mm/px): distance x pixel angle / cos(incidence).
+        rays_world = rotate(world_from_rig, self.rays_in_rig[wall])
+        cos_inc = np.abs(np.einsum("ij,ij->i", rays_world, hits.normals_in_world))
+        dist = np.linalg.norm(points_rig, axis=1)
+        footprint = dist * self.pixel_angle[wall] / np.maximum(cos_inc, 0.1)
         radiance = np.zeros((len(self.index), 3), np.float32)
         if led:
             radiance[wall] = self.shade(world_from_rig, hits, footprint)
