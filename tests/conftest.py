@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from omnipipe.camera import OmniCamera
 from omnipipe.rig import Rig
-from omnipipe.sim import paper_rig
+from omnipipe.sim import make_scenario, paper_rig, run
 
 
 @pytest.fixture(scope="session")
@@ -18,3 +20,11 @@ def small_rig() -> Rig:
 @pytest.fixture(scope="session")
 def small_camera(small_rig: Rig) -> OmniCamera:
     return OmniCamera.from_rig(small_rig)
+
+
+@pytest.fixture(scope="session")
+def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A paper-small simulated dataset (400x300, 24 frames) on disk, made once per session."""
+    out = tmp_path_factory.mktemp("datasets") / "paper-small"
+    run(make_scenario("paper-small", seed=3), out)
+    return out

@@ -15,7 +15,10 @@ from omnipipe import __version__
 from omnipipe.errors import OmnipipeError
 
 # Modules that add sub-commands, in the order they appear in --help.
-COMMAND_MODULES = ("omnipipe.sim.cli",)
+COMMAND_MODULES = (
+    "omnipipe.sim.cli",
+    "omnipipe.evaluation.cli",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -63,5 +63,4 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def rotation_angle(rotation: np.ndarray) -> float:
     """Angle (rad) of a (3, 3) rotation."""
-    cos = (np.trace(rotation) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return float(Rotation.from_matrix(rotation).magnitude())
