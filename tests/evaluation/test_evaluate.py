@@ -16,7 +16,9 @@ from omnipipe.geometry import apply, invert
 from omnipipe.sim.scene import Pipe
 
 
-def _fake_reconstruction(dataset: Path, out: Path, *, shift_mm: float, diameter_error: float) -> None:
+def _fake_reconstruction(
+    dataset: Path, out: Path, *, shift_mm: float, diameter_error: float
+) -> None:
     """A reconstruction made from ground truth: world = first rig frame, wall points
     on the true wall pushed outwards by ``shift_mm``."""
     out.mkdir()
@@ -33,7 +35,11 @@ def _fake_reconstruction(dataset: Path, out: Path, *, shift_mm: float, diameter_
     pts = centre + radius[:, None] * (np.cos(theta)[:, None] * n + np.sin(theta)[:, None] * b)
     trimesh.PointCloud(apply(first_from_world, pts)).export(out / "points.ply")
     defects = [dict(d, height_mm=d["height_mm"] + 0.2) for d in scene["defects"]]
-    report = {"frames": 24, "inner_diameter_mm": scene["inner_diameter_mm"] + diameter_error, "defects": defects}
+    report = {
+        "frames": 24,
+        "inner_diameter_mm": scene["inner_diameter_mm"] + diameter_error,
+        "defects": defects,
+    }
     (out / "report.json").write_text(json.dumps(report))
 
 
@@ -50,7 +56,9 @@ def test_evaluation_measures_known_errors(small_dataset: Path, tmp_path: Path) -
     assert res.defects[0]["errors"]["angle_deg"] == pytest.approx(0.0, abs=1e-9)
 
 
-def test_evaluate_cli(small_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_evaluate_cli(
+    small_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "rec"
     _fake_reconstruction(small_dataset, out, shift_mm=0.0, diameter_error=0.0)
     assert main(["evaluate", str(out), str(small_dataset), "--json"]) == 0
