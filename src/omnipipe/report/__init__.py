@@ -1,0 +1,302 @@
+"""Report stage: a self-contained report.html (opens offline, no CDN).
+
+It holds an interactive 3-D view of the textured model (a small WebGL viewer shipped
+with omnipipe), the inner diameter and ovality along the pipe, the unrolled wall
+image with the defects outlined, the trajectory, the defect table, and the
+measured-vs-true table (the paper's Table I) when ground truth exists.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """Report knobs.
+
+    Attributes:
+        max_faces: the 3-D view keeps at most this many triangles (the rest are thinned).
+        texture_max_px: longest side of the texture sent to the viewer (px).
+        title: page title.
+    """
+
+    max_faces: int = 250_000
+    texture_max_px: int = 4096
+    title: str = "omnipipe inspection report"
+
+
+@dataclass
+class ReportInputs:
+    """What the report shows.
+
+    Attributes:
+        summary: the report.json content (frames, inner_diameter_mm, defects, ...).
+        world_from_rig: (N, 4, 4) estimated poses (mm).
+        mesh_vertices: (V, 3) mm, world frame; None when there is no mesh.
+        mesh_faces: (F, 3) vertex indices.
+        mesh_uvs: (V, 2) texture coordinates in [0, 1] (v up), or None.
+        texture: (H, W, 3) uint8 texture image, or None.
+        unrolled: (H, W, 3) uint8 unrolled wall image (rows: along the pipe, columns: angle).
+        unrolled_extent: (angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of it.
+        stations_axial_mm, stations_diameter_mm, stations_ovality: per-station profile.
+        radius_mm: fitted wall radius, for drawing defect outlines on the unrolled image.
+        truth: rows of the measured-vs-true table: (name, measured, true, unit) or None.
+        evaluation: the evaluate result dict, when ground truth exists.
+    """
+
+    summary: dict[str, Any]
+    world_from_rig: np.ndarray
+    mesh_vertices: np.ndarray | None = None
+    mesh_faces: np.ndarray | None = None
+    mesh_uvs: np.ndarray | None = None
+    texture: np.ndarray | None = None
+    unrolled: np.ndarray | None = None
+    unrolled_extent: tuple[float, float, float, float] | None = None
+    stations_axial_mm: np.ndarray | None = None
+    stations_diameter_mm: np.ndarray | None = None
+    stations_ovality: np.ndarray | None = None
+    radius_mm: float | None = None
+    truth: list[tuple[str, float | None, float | None, str]] | None = None
+    evaluation: dict[str, Any] | None = field(default=None)
+
+
+def _png_data_uri(image: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", optimize=False)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _figure_data_uri(fig) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _plots(inputs: ReportInputs) -> dict[str, str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out: dict[str, str] = {}
+    if inputs.stations_axial_mm is not None and len(inputs.stations_axial_mm):
+        fig, ax1 = plt.subplots(figsize=(8, 3.2))
+        ax1.plot(inputs.stations_axial_mm, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
+        ax1.set_xlabel("distance along the pipe (mm)")
+        ax1.set_ylabel("inner diameter (mm)", color="#1f77b4")
+        if inputs.stations_ovality is not None:
+            ax2 = ax1.twinx()
+            ax2.plot(
+                inputs.stations_axial_mm,
+                100 * np.asarray(inputs.stations_ovality),
+                "s-",
+                color="#d62728",
+                ms=3,
+            )
+            ax2.set_ylabel("ovality (%)", color="#d62728")
+        ax1.grid(alpha=0.3)
+        out["profile"] = _figure_data_uri(fig)
+    poses = np.asarray(inputs.world_from_rig)
+    if poses.ndim == 3 and len(poses):
+        p = poses[:, :3, 3]
+        fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+        for ax, (i, j, name) in zip(
+            axes, ((2, 0, "top view: x"), (2, 1, "side view: y")), strict=True
+        ):
+            ax.plot(p[:, i], p[:, j], ".-", ms=3)
+            ax.set_xlabel("z: along the first rig axis (mm)")
+            ax.set_ylabel(f"{name} (mm)")
+            ax.grid(alpha=0.3)
+        fig.suptitle("estimated rig trajectory (world = first rig frame)")
+        out["trajectory"] = _figure_data_uri(fig)
+    if inputs.unrolled is not None and inputs.unrolled_extent is not None:
+        a0, a1, s0, s1 = inputs.unrolled_extent
+        fig, ax = plt.subplots(
+            figsize=(
+                9,
+                9 * (s1 - s0) / max(1.0, (a1 - a0) * (inputs.radius_mm or 100) * math.pi / 180) + 1,
+            )
+        )
+        ax.imshow(inputs.unrolled, extent=(a0, a1, s1, s0), aspect="auto", interpolation="bilinear")
+        radius = inputs.radius_mm or 100.0
+        for k, d in enumerate(inputs.summary.get("defects", [])):
+            half_w = math.degrees(0.5 * d["width_mm"] / radius)
+            rect = matplotlib.patches.Rectangle(
+                (d["angle_deg"] - half_w, d["axial_start_mm"]),
+                2 * half_w,
+                d["length_mm"],
+                fill=False,
+                ec="cyan" if d["kind"] == "bulge" else "yellow",
+                lw=1.5,
+            )
+            ax.add_patch(rect)
+            ax.text(
+                d["angle_deg"] + half_w + 2,
+                d["axial_start_mm"],
+                f"#{k + 1} {d['kind']}",
+                color="white",
+                fontsize=8,
+            )
+        ax.set_xlabel("angle around the axis from the first rig frame's x axis (deg)")
+        ax.set_ylabel("distance along the pipe (mm)")
+        out["unrolled"] = _figure_data_uri(fig)
+    return out
+
+
+def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
+    if inputs.mesh_vertices is None or inputs.mesh_faces is None or not len(inputs.mesh_faces):
+        return None
+    verts = np.asarray(inputs.mesh_vertices, float)
+    faces = np.asarray(inputs.mesh_faces, np.int64)
+    if len(faces) > config.max_faces:
+        faces = faces[:: math.ceil(len(faces) / config.max_faces)]
+    uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
+    texture = None
+    if inputs.texture is not None:
+        import cv2
+
+        tex = np.asarray(inputs.texture)
+        scale = config.texture_max_px / max(tex.shape[:2])
+        if scale < 1:
+            tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        texture = _png_data_uri(tex)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    data = {
+        "positions": np.round(verts, 2).ravel().tolist(),
+        # WebGL samples textures with v = 0 at the first uploaded row (the image top).
+        "uvs": np.round(np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]]), 5).ravel().tolist(),
+        "indices": faces.ravel().tolist(),
+        "texture": texture,
+        "centre": ((lo + hi) / 2).tolist(),
+        "radius": float(max(np.linalg.norm(hi - lo) / 2, 1.0)),
+    }
+    return json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return html.escape(str(value))
+
+
+def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str:
+    """The report page as one self-contained HTML string."""
+    config = config or ReportConfig()
+    s = inputs.summary
+    plots = _plots(inputs)
+    model = _model_json(inputs, config)
+    viewer_js = resources.files("omnipipe.report").joinpath("viewer.js").read_text(encoding="utf-8")
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        f"<title>{html.escape(config.title)}</title>",
+        "<style>body{font-family:system-ui,sans-serif;margin:0 auto;max-width:1100px;padding:1em;color:#222}"
+        "h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ccc}"
+        "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:.25em .6em;text-align:right}"
+        "th{background:#eee}td:first-child,th:first-child{text-align:left}"
+        "#model-view{width:100%;height:520px;background:#1e2126;border-radius:4px;display:block}"
+        ".note{color:#555;font-size:.9em}img{max-width:100%}.warn{color:#a40}</style></head><body>",
+        f"<h1>{html.escape(config.title)}</h1>",
+        "<h2>Summary</h2><table>",
+        f"<tr><td>frames</td><td>{_fmt(s.get('frames'))}</td></tr>",
+        f"<tr><td>frames registered</td><td>{_fmt(s.get('frames_registered'))}</td></tr>",
+        f"<tr><td>inner diameter</td><td>{_fmt(s.get('inner_diameter_mm'))} mm</td></tr>",
+    ]
+    if s.get("ovality_max") is not None:
+        parts.append(f"<tr><td>largest ovality</td><td>{_fmt(100 * s['ovality_max'])} %</td></tr>")
+    if s.get("timings_s"):
+        t = s["timings_s"]
+        parts.append(
+            "<tr><td>processing time</td><td>"
+            + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
+            + "</td></tr>"
+        )
+    parts.append("</table>")
+    for w in s.get("warnings", []):
+        parts.append(f"<p class='warn'>warning: {html.escape(str(w))}</p>")
+    if inputs.truth:
+        parts.append(
+            "<h2>Measured vs true (the paper's Table I)</h2><table><tr><th></th><th>measured</th><th>true</th><th>error</th></tr>"
+        )
+        for name, meas, true, unit in inputs.truth:
+            err = None if meas is None or true is None else meas - true
+            parts.append(
+                f"<tr><td>{html.escape(name)}</td><td>{_fmt(meas)} {unit}</td><td>{_fmt(true)} {unit}</td>"
+                f"<td>{'' if err is None else f'{err:+.2f} {unit}'}</td></tr>"
+            )
+        parts.append("</table>")
+    ev = inputs.evaluation
+    if ev and ev.get("trajectory"):
+        tr = ev["trajectory"]
+        parts.append(
+            "<p class='note'>Trajectory against ground truth: ATE "
+            f"{tr['ate_rmse_mm']:.3f} mm RMS, scale error {tr['scale_error_percent']:.3f} %, rotation "
+            f"{tr['rotation_rmse_deg']:.3f} deg RMS over {tr['path_length_mm']:.0f} mm.</p>"
+        )
+    parts.append("<h2>3-D model</h2>")
+    if model is not None:
+        parts.append(
+            "<canvas id='model-view'></canvas><p id='model-status' class='note'>loading…</p>"
+        )
+        parts.append(f"<script type='application/json' id='model-data'>{model}</script>")
+        parts.append(f"<script>{viewer_js}</script>")
+    else:
+        parts.append("<p class='note'>No mesh was built.</p>")
+    parts.append("<h2>Defects</h2>")
+    defects = s.get("defects", [])
+    if defects:
+        parts.append(
+            "<table><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
+            "<th>axial start (mm)</th><th>angle (deg)</th></tr>"
+        )
+        for k, d in enumerate(defects):
+            parts.append(
+                f"<tr><td>{k + 1}</td><td>{html.escape(d['kind'])}</td><td>{_fmt(d['height_mm'])}</td>"
+                f"<td>{_fmt(d['width_mm'])}</td><td>{_fmt(d['length_mm'])}</td>"
+                f"<td>{_fmt(d['axial_start_mm'])}</td><td>{_fmt(d['angle_deg'], 1)}</td></tr>"
+            )
+        parts.append("</table>")
+    else:
+        parts.append("<p>No bulges or dents above the detection threshold.</p>")
+    if "unrolled" in plots:
+        parts.append(
+            f"<h2>Unrolled wall</h2><img id='unrolled' alt='unrolled wall' src='{plots['unrolled']}'>"
+        )
+    if "profile" in plots:
+        parts.append(
+            f"<h2>Diameter and ovality along the pipe</h2><img id='profile' alt='diameter profile' src='{plots['profile']}'>"
+        )
+    if "trajectory" in plots:
+        parts.append(
+            f"<h2>Trajectory</h2><img id='trajectory' alt='trajectory' src='{plots['trajectory']}'>"
+        )
+    parts.append(
+        "<p class='note'>Lengths in mm; angles around the pipe axis from the first rig frame's x axis "
+        "towards y; axial positions along the centreline from the first frame's origin. "
+        "Generated by omnipipe.</p></body></html>"
+    )
+    return "".join(parts)
+
+
+def run(config: ReportConfig, inputs: ReportInputs, out_path: Path) -> Path:
+    """Write report.html to ``out_path`` and return it."""
+    out_path = Path(out_path)
+    out_path.write_text(render_html(inputs, config), encoding="utf-8")
+    return out_path
