@@ -17,29 +17,41 @@ from omnipipe.geometry import transform_from_tum, tum_from_transform
 from omnipipe.rig import Rig, load_rig
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 
 
 @dataclass(frozen=True)
 class Dataset:
-    """An opened dataset directory.
+    """An opened dataset: a contract directory, or a video file with rig.yaml beside it.
 
     Attributes:
-        root: the dataset directory.
+        root: the dataset directory (for a video: the directory holding it).
         rig: its validated calibration.
-        frame_paths: image files in time order (sorted by file name).
-        timestamps: (N,) seconds; frame index when timestamps.txt is absent.
+        frame_paths: image files in time order (sorted by file name); for a video,
+            one pseudo path ``VIDEO#index`` per frame.
+        timestamps: (N,) seconds; frame index when timestamps.txt is absent
+            (for a video: from its frame rate).
+        video: the video file, or None for an image folder.
     """
 
     root: Path
     rig: Rig
     frame_paths: tuple[Path, ...]
     timestamps: np.ndarray
+    video: Path | None = None
 
     def __len__(self) -> int:
         return len(self.frame_paths)
 
+    @property
+    def frame_names(self) -> list[str]:
+        """File names (or video frame labels) in order."""
+        return [p.name for p in self.frame_paths]
+
     def read_frame(self, index: int) -> np.ndarray:
         """Frame ``index`` as an RGB (H, W, 3) or grey (H, W) array (uint8 or uint16)."""
+        if self.video is not None:
+            return _video_frames(self.video, self.rig)[index]
         return read_image(self.frame_paths[index], self.rig)
 
     def frames(self) -> Iterator[np.ndarray]:
@@ -86,13 +98,70 @@ def write_image(path: Path, image: np.ndarray) -> None:
         raise DatasetError(f"{path}: could not write image")
 
 
+_VIDEO_CACHE: dict[tuple[str, float], list[np.ndarray]] = {}
+
+
+def _decode_video(path: Path) -> tuple[list[np.ndarray], float]:
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise DatasetError(f"{path}: not a readable video")
+    fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(np.ascontiguousarray(frame[:, :, ::-1]))
+    cap.release()
+    if not frames:
+        raise DatasetError(f"{path}: the video holds no decodable frame")
+    return frames, fps
+
+
+def _video_frames(path: Path, rig: Rig) -> list[np.ndarray]:
+    key = (str(path), path.stat().st_mtime)
+    if key not in _VIDEO_CACHE:
+        frames, _ = _decode_video(path)
+        h, w = frames[0].shape[:2]
+        if (h, w) != (rig.camera.height, rig.camera.width):
+            raise DatasetError(
+                f"{path}: video is {w}x{h} but rig.yaml says {rig.camera.width}x{rig.camera.height}"
+            )
+        _VIDEO_CACHE.clear()
+        _VIDEO_CACHE[key] = frames
+    return _VIDEO_CACHE[key]
+
+
+def open_video(path: Path) -> Dataset:
+    """Open a video file as a dataset; its rig.yaml lies in the same directory."""
+    rig = load_rig(path.parent / "rig.yaml")
+    frames, fps = _decode_video(path)
+    h, w = frames[0].shape[:2]
+    if (h, w) != (rig.camera.height, rig.camera.width):
+        raise DatasetError(
+            f"{path}: video is {w}x{h} but rig.yaml says {rig.camera.width}x{rig.camera.height}"
+        )
+    _VIDEO_CACHE.clear()
+    _VIDEO_CACHE[(str(path), path.stat().st_mtime)] = frames
+    names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(frames)))
+    stamps = np.arange(len(frames)) / fps if fps > 0 else np.arange(len(frames), dtype=float)
+    return Dataset(root=path.parent, rig=rig, frame_paths=names, timestamps=stamps, video=path)
+
+
 def open_dataset(root: str | Path) -> Dataset:
-    """Open and validate a dataset directory (rig.yaml, frames/, timestamps.txt).
+    """Open and validate a dataset: a directory (rig.yaml, frames/, timestamps.txt) or a
+    video file (MP4, AVI, MOV, MKV) with rig.yaml beside it.
 
     Raises:
         DatasetError / ConfigError: naming the missing or invalid file or field.
     """
     root = Path(root)
+    if root.is_file() and root.suffix.lower() in VIDEO_SUFFIXES:
+        return open_video(root)
+    if root.is_file():
+        raise DatasetError(
+            f"{root}: expected a dataset directory or a video ({', '.join(VIDEO_SUFFIXES)})"
+        )
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory not found")
     rig = load_rig(root / "rig.yaml")
@@ -172,3 +241,26 @@ def write_tum(path: str | Path, timestamps: np.ndarray, world_from_rig: np.ndarr
         row = tum_from_transform(T)
         lines.append(f"{t:.6f} " + " ".join(f"{v:.9g}" for v in row))
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def validate_frames(dataset: Dataset) -> None:
+    """Check every frame's header (format and size) without decoding the pixels.
+
+    Raises:
+        DatasetError: naming the first frame that is not an image or has the wrong size.
+    """
+    if dataset.video is not None:
+        return  # decoded and size-checked when opened
+    from PIL import Image, UnidentifiedImageError
+
+    cam = dataset.rig.camera
+    for path in dataset.frame_paths:
+        try:
+            with Image.open(path) as img:
+                size = img.size
+        except (UnidentifiedImageError, OSError):
+            raise DatasetError(f"{path}: not a readable image (corrupt or truncated?)") from None
+        if size != (cam.width, cam.height):
+            raise DatasetError(
+                f"{path}: image is {size[0]}x{size[1]} but rig.yaml says {cam.width}x{cam.height}"
+            )
