@@ -1,0 +1,84 @@
+"""Stop-and-go: which frames were taken while the rig stood still.
+
+An earthworm robot anchors its front unit for most of each gait cycle, so runs of
+consecutive frames show the same station. Two frames of one station differ only by
+sensor noise; any motion shifts the wall texture. The test compares the frames'
+smoothed difference with the difference that noise alone would give, estimated
+from the images themselves (Immerkaer's fast noise estimate), so no threshold
+depends on the camera, exposure or pipe.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StationConfig:
+    """Stationary-frame detection.
+
+    Attributes:
+        downsample: images are box-filtered by this factor before comparing (noise averages out).
+        noise_factor: a pair is stationary when its smoothed difference is below this many
+            times the difference noise alone gives.
+    """
+
+    downsample: int = 4
+    noise_factor: float = 4.0
+
+
+def noise_sigma(gray: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Sensor noise sigma of an image (Immerkaer 1996: Laplacian-difference operator)."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    resp = cv2.filter2D(gray.astype(np.float32), -1, kernel, borderType=cv2.BORDER_REFLECT)
+    if mask is not None:
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        resp = resp[inner]
+    # The operator's weights square-sum to 36: its response to noise has sigma 6 sigma.
+    # The median absolute response (robust to texture edges) is 0.6745 times that.
+    return float(np.median(np.abs(resp)) / (6.0 * 0.6745))
+
+
+def _small(gray: np.ndarray, factor: int) -> np.ndarray:
+    h, w = gray.shape
+    return cv2.resize(gray.astype(np.float32), (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+class StationTracker:
+    """Feeds frames one at a time; tells for each whether the rig moved since the previous.
+
+    Args:
+        mask: (H, W) bool, the pixels that see the wall (the camera's valid mask).
+        config: detection settings.
+    """
+
+    def __init__(self, mask: np.ndarray, config: StationConfig | None = None) -> None:
+        self.config = config or StationConfig()
+        f = self.config.downsample
+        small = _small(mask.astype(np.float32), f)
+        self.mask_small = small > 0.999
+        self.mask = mask
+        self._prev: np.ndarray | None = None
+
+    def update(self, gray: np.ndarray) -> tuple[bool, float]:
+        """Add the next frame (grey, not the laser channel); return (moved, ratio).
+
+        ``ratio`` is the smoothed difference over its noise-only expectation (inf for
+        the first frame, which counts as moved: it starts a station).
+        """
+        f = self.config.downsample
+        small = _small(gray, f)
+        prev, self._prev = self._prev, small
+        if prev is None:
+            return True, math.inf
+        sigma = max(noise_sigma(gray, self.mask), 0.3)
+        # Box-averaging f x f pixels divides the noise sigma by f; a difference of two
+        # frames multiplies it by sqrt(2); its mean absolute value is sigma sqrt(2/pi).
+        expected = sigma / f * math.sqrt(2.0) * math.sqrt(2.0 / math.pi)
+        diff = float(np.mean(np.abs(small - prev)[self.mask_small]))
+        ratio = diff / expected
+        return ratio > self.config.noise_factor, ratio
