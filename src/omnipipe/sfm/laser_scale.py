@@ -1,0 +1,207 @@
+"""Scale matching with the laser (paper Sec. V-D, Fig. 15, Eq. 17).
+
+Structure from motion gives the translation between two frames a and b only up to
+scale. The laser points of frame a are metric (light section, Eq. 5). Each is found
+again in frame b by template matching on perspective-converted patches (Sec. V-A):
+a small projection plane tangent to the wall at the laser point is drawn from frame
+a (the laser stripe itself masked out) and compared with the same plane drawn from
+frame b for every candidate translation length s along the SfM direction, i.e.
+along the epipolar curve. The best s of each point is the scale l at which the SfM
+point l p'_k meets the laser point p_k; Eq. (17) combines them with the log
+objective, whose minimiser over one scale is the median of the per-point log ratios.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from omnipipe.camera import OmniCamera
+
+
+@dataclass(frozen=True)
+class LaserScaleConfig:
+    """Template matching of laser points.
+
+    Attributes:
+        patch_radius: the patch has (2 r + 1)^2 samples.
+        stripe_half_width_mm: band around the laser stripe left out of the template.
+        scale_range_mm: (min, max) translation length searched (mm).
+        scale_steps: number of log-spaced candidates (then refined).
+        min_ncc: a point's match counts when its best NCC exceeds this.
+        min_template_std: templates flatter than this (grey levels) are skipped.
+        max_points: laser points tried per frame pair (evenly spread around the ring).
+    """
+
+    patch_radius: int = 6
+    stripe_half_width_mm: float = 1.2
+    scale_range_mm: tuple[float, float] = (0.2, 200.0)
+    scale_steps: int = 96
+    min_ncc: float = 0.8
+    min_template_std: float = 2.0
+    max_points: int = 120
+
+
+@dataclass
+class LaserMatches:
+    """Laser points of frame a found again in frame b.
+
+    Attributes:
+        index: (M,) indices into the laser points of frame a that matched.
+        scale_mm: (M,) translation length that puts each point on its match (mm).
+        pixels_b: (M, 2) their omni pixels in frame b.
+        ncc: (M,) best normalised cross-correlation.
+        scale: combined translation length (mm) by Eq. (17); NaN without matches.
+    """
+
+    index: np.ndarray
+    scale_mm: np.ndarray
+    pixels_b: np.ndarray
+    ncc: np.ndarray
+    scale: float
+
+
+def _sample(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    n = len(pixels)
+    rows = -(-n // 1024)
+    mx = np.full(rows * 1024, -10.0, np.float32)
+    my = np.full(rows * 1024, -10.0, np.float32)
+    mx[:n], my[:n] = pixels[:, 0], pixels[:, 1]
+    out = cv2.remap(
+        image,
+        mx.reshape(rows, 1024),
+        my.reshape(rows, 1024),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
+    return out.ravel()[:n]
+
+
+def _ncc(template: np.ndarray, patches: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """NCC of (N, K) templates with (N, S, K) patches, (N, K) sample weights."""
+    w = weight[:, None, :]
+    t = template[:, None, :]
+    valid = np.isfinite(patches) & np.isfinite(t)
+    ww = np.where(valid, w, 0.0)
+    wsum = np.maximum(ww.sum(axis=2), 1e-9)
+    p = np.where(valid, patches, 0.0)
+    tt = np.where(valid, t, 0.0)
+    mp = (ww * p).sum(axis=2) / wsum
+    mt = (ww * tt).sum(axis=2) / wsum
+    dp = p - mp[..., None]
+    dt = tt - mt[..., None]
+    num = (ww * dp * dt).sum(axis=2)
+    den = np.sqrt((ww * dp * dp).sum(axis=2) * (ww * dt * dt).sum(axis=2))
+    ncc = num / np.maximum(den, 1e-9)
+    return np.where(valid.mean(axis=2) > 0.8, ncc, -1.0)
+
+
+def match_laser_points(
+    gray_a: np.ndarray,
+    gray_b: np.ndarray,
+    camera: OmniCamera,
+    laser_points_in_a: np.ndarray,
+    b_from_a_rotation: np.ndarray,
+    b_from_a_direction: np.ndarray,
+    config: LaserScaleConfig | None = None,
+) -> LaserMatches:
+    """Find frame a's laser points in frame b along the epipolar curve; Eq. (17) scale.
+
+    Args:
+        gray_a, gray_b: (H, W) float32 images without the laser's channel (e.g. green).
+        camera: the omni camera.
+        laser_points_in_a: (N, 3) metric laser points in rig a (mm).
+        b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
+        b_from_a_direction: (3,) unit translation direction of rig_b_from_rig_a:
+            p_b = R p_a + s d for the unknown length s (mm).
+
+    Returns:
+        The matches and the combined scale (translation length, mm).
+    """
+    cfg = config or LaserScaleConfig()
+    pts = np.asarray(laser_points_in_a, float)
+    empty = LaserMatches(np.zeros(0, int), np.zeros(0), np.zeros((0, 2)), np.zeros(0), math.nan)
+    if len(pts) == 0:
+        return empty
+    if len(pts) > cfg.max_points:
+        pts_idx = np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)
+    else:
+        pts_idx = np.arange(len(pts))
+    P = pts[pts_idx]
+    # Tangent plane of the wall at each point: radial normal about the rig axis.
+    rho = np.hypot(P[:, 0], P[:, 1])
+    sx = np.stack([-P[:, 1] / rho, P[:, 0] / rho, np.zeros(len(P))], axis=1)  # around the pipe
+    sy = np.tile([0.0, 0.0, 1.0], (len(P), 1))  # along the pipe
+    # Sample spacing: about one pixel of frame a at the point.
+    px_a, ok_a = camera.project(P)
+    ray_a = camera.unproject(np.nan_to_num(px_a))
+    ray_a1 = camera.unproject(np.nan_to_num(px_a) + np.array([1.0, 0.0]))
+    step = np.linalg.norm(P, axis=1) * np.arccos(np.clip(np.sum(ray_a * ray_a1, axis=1), -1, 1))
+    step = np.clip(np.nan_to_num(step, nan=1.0), 0.05, 5.0)
+    r = cfg.patch_radius
+    grid = np.arange(-r, r + 1, dtype=float)
+    gu, gv = np.meshgrid(grid, grid)
+    gu, gv = gu.ravel(), gv.ravel()
+    offsets = (gu[None, :, None] * sx[:, None, :] + gv[None, :, None] * sy[:, None, :]) * step[
+        :, None, None
+    ]
+    plane = P[:, None, :] + offsets  # (N, K, 3) in rig a
+    K = plane.shape[1]
+    px, valid = camera.project(plane.reshape(-1, 3))
+    template = np.where(valid, _sample(gray_a, np.nan_to_num(px, nan=-10.0)), np.nan).reshape(
+        len(P), K
+    )
+    weight = (np.abs(gv)[None, :] * step[:, None] > cfg.stripe_half_width_mm).astype(
+        float
+    )  # stripe masked
+    # Candidate translation lengths: log-spaced, then a finer pass around each best.
+    s_lo, s_hi = cfg.scale_range_mm
+    R = np.asarray(b_from_a_rotation, float)
+    d = np.asarray(b_from_a_direction, float) / np.linalg.norm(b_from_a_direction)
+    plane_b0 = plane @ R.T  # (N, K, 3) rotated into rig b, before the translation
+
+    def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
+        pts_b = plane_b0[:, None, :, :] + scales[:, :, None, None] * d  # (N, S, K, 3)
+        pix, ok = camera.project(pts_b.reshape(-1, 3))
+        vals = np.where(ok, _sample(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
+        patches = vals.reshape(len(P), scales.shape[1], K)
+        return _ncc(template, patches, weight)
+
+    coarse = np.geomspace(s_lo, s_hi, cfg.scale_steps)
+    scales = np.tile(coarse, (len(P), 1))
+    ncc = score(scales)
+    best = np.argmax(ncc, axis=1)
+    ratio = coarse[1] / coarse[0]
+    fine_offsets = np.geomspace(1 / ratio, ratio, 21)
+    fine = coarse[best][:, None] * fine_offsets[None, :]
+    ncc_f = score(fine)
+    k = np.clip(np.argmax(ncc_f, axis=1), 1, fine.shape[1] - 2)
+    rows = np.arange(len(P))
+    y0, y1, y2 = ncc_f[rows, k - 1], ncc_f[rows, k], ncc_f[rows, k + 1]
+    denom = y0 - 2 * y1 + y2
+    off = np.where(np.abs(denom) > 1e-12, 0.5 * (y0 - y2) / denom, 0.0).clip(-0.5, 0.5)
+    log_s = np.log(fine[rows, k]) + off * np.log(fine_offsets[1] / fine_offsets[0])
+    best_ncc = y1
+    tmpl_std = np.nanstd(np.where(weight > 0, template, np.nan), axis=1)
+    good = ok_a & (best_ncc > cfg.min_ncc) & (tmpl_std > cfg.min_template_std) & np.isfinite(log_s)
+    if not good.any():
+        return empty
+    s_pt = np.exp(log_s[good])
+    pix_b, _ = camera.project(P[good] @ R.T + s_pt[:, None] * d)
+    # Eq. (17): min_l sum_k |log p_k - log l p'_k|, p'_k the unit-scale SfM point: the median.
+    log_ratio = np.log(s_pt)
+    med = float(np.median(log_ratio))
+    mad = float(np.median(np.abs(log_ratio - med))) * 1.4826 + 1e-6
+    inlier = np.abs(log_ratio - med) < 3.0 * mad + 0.02
+    scale = float(np.exp(np.median(log_ratio[inlier])))
+    return LaserMatches(
+        index=pts_idx[good][inlier],
+        scale_mm=s_pt[inlier],
+        pixels_b=pix_b[inlier],
+        ncc=best_ncc[good][inlier],
+        scale=scale,
+    )
