@@ -65,7 +65,9 @@ def _radial_peaks(image: np.ndarray, cam: OmniCamera, predicted: np.ndarray) -> 
     return np.array(out)
 
 
-@pytest.mark.parametrize(("name", "size"), [("paper", (800, 600)), ("bend-small", None)])
+@pytest.mark.parametrize(
+    ("name", "size"), [("paper", (800, 600)), ("bend-small", None), ("other-rig-small", None)]
+)
 def test_laser_ring_where_camera_model_predicts(name: str, size) -> None:
     scenario = make_scenario(name, frames=12, size=size, seed=5)
     renderer, poses, _, _ = build_renderer(scenario)

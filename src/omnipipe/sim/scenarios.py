@@ -1,8 +1,9 @@
 """Named simulation scenarios and the paper-like rig.
 
 ``paper`` reproduces the paper's experiment (Sec. VII, Table I); ``bend`` is a bent
-pipe of another size with a dent and a bulge; ``*-small`` are the same scenes at
-400x300 with short runs, for tests.
+pipe of another size with a dent and a bulge; ``other-rig`` has another mirror, an
+off-centre principal point and a smaller pipe; ``*-small`` are the same scenes
+400 px wide with short runs, for tests.
 """
 
 from __future__ import annotations
@@ -40,11 +41,16 @@ def paper_rig(
     baseline_mm: float = 82.0,
     render: RenderConfig | None = None,
     principal_offset_px: tuple[float, float] = (0.0, 0.0),
+    mirror: Mirror | None = None,
+    rim_radius_mm: float = HYPER70_RIM_RADIUS_MM,
 ) -> Rig:
-    """The paper's rangefinder: Hyper70-like mirror whose 70 mm rim fills the image height."""
-    mirror = Mirror(HYPER70_A_MM, HYPER70_B_MM)
-    rim_px = height / 2.0
-    f = rim_focal_px(mirror, HYPER70_RIM_RADIUS_MM, rim_px)
+    """The paper's rangefinder: Hyper70-like mirror whose 70 mm rim fills the image height.
+
+    ``mirror``, ``rim_radius_mm``, ``baseline_mm`` and ``principal_offset_px`` make other rigs.
+    """
+    mirror = mirror or Mirror(HYPER70_A_MM, HYPER70_B_MM)
+    rim_px = height / 2.0 - max(abs(principal_offset_px[0]), abs(principal_offset_px[1]))
+    f = rim_focal_px(mirror, rim_radius_mm, rim_px)
     cam = CameraIntrinsics(
         width=width,
         height=height,
@@ -133,8 +139,41 @@ def _bend(width: int, height: int, frames: int) -> Scenario:
     return Scenario("bend", paper_rig(width, height), pipe, motion, frames=frames)
 
 
-_BUILDERS = {"paper": (_paper, 1600, 1200, 100), "bend": (_bend, 1600, 1200, 120)}
-SCENARIOS = ("paper", "bend", "paper-small", "bend-small")
+def _other_rig(width: int, height: int, frames: int) -> Scenario:
+    """Another rig and pipe: the contract's example mirror, an off-centre principal
+    point, a 150 mm pipe, a 70 mm baseline and a dent: nothing tuned to the paper."""
+    s = width / 1280.0
+    rig = paper_rig(
+        width,
+        height,
+        baseline_mm=70.0,
+        principal_offset_px=(11.7 * s, -8.3 * s),
+        mirror=Mirror(20.0, 30.0),
+        rim_radius_mm=30.0,
+    )
+    pipe = Pipe(
+        inner_diameter_mm=150.0,
+        defects=[
+            Defect(
+                kind="dent",
+                height_mm=2.5,
+                width_mm=15.0,
+                length_mm=40.0,
+                axial_start_mm=170.0,
+                angle_deg=130.0,
+            )
+        ],
+    )
+    motion = MotionConfig(start_mm=220.0, stroke_mm=18.0, frames_per_cycle=6, n_units=3)
+    return Scenario("other-rig", rig, pipe, motion, frames=frames)
+
+
+_BUILDERS = {
+    "paper": (_paper, 1600, 1200, 100),
+    "bend": (_bend, 1600, 1200, 120),
+    "other-rig": (_other_rig, 1280, 1024, 90),
+}
+SCENARIOS = ("paper", "bend", "other-rig", "paper-small", "bend-small", "other-rig-small")
 
 
 def make_scenario(
@@ -152,7 +191,7 @@ def make_scenario(
         )
     builder, width, height, n = _BUILDERS[base]
     if name.endswith("-small"):
-        width, height, n = 400, 300, 24
+        width, height, n = 400, int(round(400 * height / width)), 24
     if size is not None:
         width, height = size
         if width < 64 or height < 48:
