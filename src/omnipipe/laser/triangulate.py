@@ -1,0 +1,56 @@
+"""Metric ring points: each ring pixel's ray meets the calibrated laser plane (Eq. 4-5)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from omnipipe.camera import OmniCamera
+from omnipipe.laser.extract import LaserRing
+from omnipipe.rig import LaserPlane
+
+
+def intersect_plane(rays_in_rig: np.ndarray, plane: LaserPlane) -> tuple[np.ndarray, np.ndarray]:
+    """Points where (N, 3) rays from the focus meet the laser plane.
+
+    Eq. (5): p = -k4 / (k . r) r, with r the (unit) ray of Eq. (1).
+
+    Returns:
+        points_in_rig: (N, 3) mm (NaN where the ray misses the plane).
+        valid: (N,) True where the ray meets the plane in front of the focus at an
+            angle steeper than ~3 deg.
+    """
+    k = np.asarray(plane.k[:3], float)
+    denom = rays_in_rig @ k
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lam = -plane.k[3] / denom  # Eq. (5)
+    valid = np.isfinite(lam) & (lam > 0) & (np.abs(denom) > 0.05 * np.linalg.norm(k))
+    pts = rays_in_rig * lam[:, None]
+    pts[~valid] = np.nan
+    return pts, valid
+
+
+def triangulate_ring(ring: LaserRing, camera: OmniCamera, plane: LaserPlane) -> LaserRing:
+    """Fill ``ring.points_in_rig`` and ``ring.sigma_mm`` (drops samples that miss the plane).
+
+    The uncertainty propagates each peak's radial sigma through the forward model:
+    sigma_mm = |d point / d radius| * sigma_px, by a central difference along the
+    radial direction.
+    """
+    if len(ring.pixels) == 0:
+        ring.points_in_rig = np.zeros((0, 3))
+        ring.sigma_mm = np.zeros(0)
+        return ring
+    centre = np.array([camera.cx, camera.cy])
+    radial = ring.pixels - centre
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+    pts, ok = intersect_plane(camera.unproject(ring.pixels), plane)
+    h = 0.25
+    p_plus, ok_p = intersect_plane(camera.unproject(ring.pixels + h * radial), plane)
+    p_minus, ok_m = intersect_plane(camera.unproject(ring.pixels - h * radial), plane)
+    deriv = np.linalg.norm(p_plus - p_minus, axis=1) / (2 * h)
+    ok &= ok_p & ok_m & np.isfinite(pts).all(axis=1)
+    for name in ("pixels", "angle_rad", "confidence", "radius_sigma_px"):
+        setattr(ring, name, getattr(ring, name)[ok])
+    ring.points_in_rig = pts[ok]
+    ring.sigma_mm = deriv[ok] * ring.radius_sigma_px
+    return ring

@@ -1,0 +1,113 @@
+"""Light section (Sec. III): sub-pixel ring extraction, Eq. (5), and bad frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnipipe.camera import OmniCamera
+from omnipipe.geometry import apply
+from omnipipe.laser import LaserConfig, RingExtractor, intersect_plane, run
+from omnipipe.rig import Rig
+from omnipipe.sim import make_scenario
+from omnipipe.sim.writer import build_renderer
+
+
+def _synthetic_ring(rig: Rig, radius_mm: float, rng: np.random.Generator, sigma_px: float = 1.0):
+    """An image with a Gaussian laser line through the true projection of a circle
+    of ``radius_mm`` on the laser plane, on a textured, noisy background."""
+    cam = OmniCamera.from_rig(rig)
+    ang = np.linspace(0, 2 * np.pi, 4000, endpoint=False)
+    z = -rig.laser.distance_mm
+    ring = np.stack(
+        [radius_mm * np.cos(ang), radius_mm * np.sin(ang), np.full_like(ang, z)], axis=1
+    )
+    px, _ = cam.project(ring)
+    centre = np.array([cam.cx, cam.cy])
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
+    pa = np.arctan2(rows - cam.cy, cols - cam.cx) % (2 * np.pi)
+    pr = np.hypot(cols - cam.cx, rows - cam.cy)
+    r_at = np.interp(pa, *_sorted(px, centre), period=2 * np.pi)
+    line = 150 * np.exp(-0.5 * ((pr - r_at) / sigma_px) ** 2)
+    tex = 60 + 25 * rng.standard_normal((cam.height, cam.width))
+    img = np.stack([tex + line, tex, tex * 0.9], axis=2) + rng.normal(
+        0, 2, (cam.height, cam.width, 3)
+    )
+    return np.clip(img, 0, 255).astype(np.uint8), cam
+
+
+def _sorted(px: np.ndarray, centre: np.ndarray):
+    a = np.arctan2(px[:, 1] - centre[1], px[:, 0] - centre[0]) % (2 * np.pi)
+    r = np.hypot(*(px - centre).T)
+    order = np.argsort(a)
+    return a[order], r[order]
+
+
+def test_subpixel_accuracy_on_a_synthetic_ring(small_rig: Rig) -> None:
+    rng = np.random.default_rng(0)
+    img, cam = _synthetic_ring(small_rig, 101.0, rng)
+    ring = RingExtractor(cam).extract(img, "red")
+    assert ring.fraction > 0.95
+    centre = np.array([cam.cx, cam.cy])
+    true_a, true_r = _sorted(
+        cam.project(
+            np.stack(
+                [
+                    101 * np.cos(t := np.linspace(0, 2 * np.pi, 4000)),
+                    101 * np.sin(t),
+                    np.full_like(t, -82.0),
+                ],
+                1,
+            )
+        )[0],
+        centre,
+    )
+    meas_r = np.hypot(*(ring.pixels - centre).T)
+    err = meas_r - np.interp(ring.angle_rad, true_a, true_r, period=2 * np.pi)
+    assert np.sqrt(np.mean(err**2)) < 0.1  # px
+    assert abs(np.mean(err)) < 0.03
+
+
+def test_rendered_rings_are_metric() -> None:
+    scenario = make_scenario("paper", frames=12, size=(800, 600))
+    renderer, poses, _, _ = build_renderer(scenario)
+    frames = [renderer.render(poses[i], seed=i)[0] for i in (0, 6)]
+    res = run(LaserConfig(), scenario.rig, frames)
+    errs = []
+    for i, ring in zip((0, 6), res.rings, strict=True):
+        assert ring.fraction > 0.85
+        s, rho, th, *_ = renderer.pipe.pipe_coordinates(apply(poses[i], ring.points_in_rig))
+        errs.append(rho - renderer.pipe.wall_radius(s, th))
+        # Every point lies on the laser plane (Eq. 5).
+        assert np.allclose(scenario.rig.laser.signed_distance(ring.points_in_rig), 0.0, atol=1e-9)
+        assert np.all(ring.sigma_mm > 0)
+    e = np.concatenate(errs)
+    assert (
+        np.sqrt(np.mean(e**2)) < 0.3
+    )  # mm at 800x600 (0.10 mm at full size: benchmarks/bench_laser.py)
+    assert abs(e.mean()) < 0.1
+
+
+def test_plane_intersection_round_trip(small_camera: OmniCamera, small_rig: Rig) -> None:
+    rng = np.random.default_rng(2)
+    ang = rng.uniform(0, 2 * np.pi, 100)
+    pts = np.stack([90 * np.cos(ang), 90 * np.sin(ang), np.full(100, -82.0)], axis=1)
+    px, ok = small_camera.project(pts)
+    back, valid = intersect_plane(small_camera.unproject(px), small_rig.laser)
+    assert ok.all() and valid.all() and np.abs(back - pts).max() < 1e-6
+
+
+@pytest.mark.parametrize("kind", ["dark", "saturated", "wrong_size", "grey16"])
+def test_bad_frames_give_empty_rings_and_warnings(small_rig: Rig, kind: str) -> None:
+    cam = OmniCamera.from_rig(small_rig)
+    ex = RingExtractor(cam)
+    if kind == "dark":
+        img = np.random.default_rng(0).integers(0, 4, (300, 400, 3), dtype=np.uint8)
+    elif kind == "saturated":
+        img = np.full((300, 400, 3), 255, np.uint8)
+    elif kind == "wrong_size":
+        img = np.zeros((100, 100, 3), np.uint8)
+    else:
+        img = np.zeros((300, 400), np.uint16)
+    ring = ex.extract(img, "red")
+    assert len(ring.pixels) == 0 and ring.warnings
