@@ -1,0 +1,174 @@
+"""SIFT features on perspective-projected views (paper Sec. V-A), as ray vectors.
+
+The omni image is converted to a ring of perspective views around the mirror axis
+(Fig. 11), free of the mirror's distortion; OpenCV's SIFT runs on each view; every
+keypoint becomes a unit ray in the rig frame (and an omni pixel). The laser band is
+masked out: the laser moves with the rig and would look like a static feature.
+Rays seen by two overlapping views are kept once.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from omnipipe.camera import OmniCamera, PerspectiveView
+
+_CHANNELS = {"red": 0, "green": 1, "blue": 2}
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Feature extraction.
+
+    Attributes:
+        views: perspective views around the axis.
+        elevation_deg: (low, high) elevation band the views cover (deg, + towards the mirror).
+        max_features: SIFT budget per frame (split over the views).
+        laser_margin_px: half width of the masked band around the laser ring (omni px).
+        ratio: Lowe's ratio test for matching.
+        contrast_threshold: SIFT's contrast threshold (OpenCV default 0.04).
+    """
+
+    views: int = 8
+    elevation_deg: tuple[float, float] = (-55.0, 15.0)
+    max_features: int = 3000
+    laser_margin_px: float = 6.0
+    ratio: float = 0.8
+    contrast_threshold: float = 0.01
+
+
+@dataclass
+class FrameFeatures:
+    """Features of one frame.
+
+    Attributes:
+        rays_in_rig: (N, 3) unit rays.
+        pixels: (N, 2) omni pixels (col, row).
+        descriptors: (N, 128) float32 SIFT descriptors.
+        view: (N,) index of the perspective view.
+    """
+
+    rays_in_rig: np.ndarray
+    pixels: np.ndarray
+    descriptors: np.ndarray
+    view: np.ndarray
+
+
+class FeatureExtractor:
+    """Builds the perspective views of one camera once and extracts features per frame."""
+
+    def __init__(self, camera: OmniCamera, config: FeatureConfig | None = None) -> None:
+        self.camera = camera
+        self.config = cfg = config or FeatureConfig()
+        lo, hi = (math.radians(v) for v in cfg.elevation_deg)
+        lo_cam, hi_cam = camera.elevation_range()
+        lo, hi = max(lo, lo_cam + 0.02), min(hi, hi_cam - 0.02)
+        mid = 0.5 * (lo + hi)
+        # Focal length matched to the omni image's angular resolution in the band.
+        probe = np.array([[camera.cx + 0.5 * (camera.radius_min + camera.radius_max), camera.cy]])
+        r0 = camera.unproject(probe)
+        r1 = camera.unproject(probe + np.array([[0.0, 1.0]]))
+        ang = float(np.arccos(np.clip(np.sum(r0 * r1), -1, 1)))
+        focal = 1.0 / max(ang, 1e-4)
+        half_h = math.pi / cfg.views * 1.15  # overlap between neighbouring views
+        half_v = 0.5 * (hi - lo)
+        width = int(2 * focal * math.tan(half_h))
+        height = int(2 * focal * math.tan(half_v))
+        self.views = []
+        self.maps = []
+        for k in range(cfg.views):
+            az = 2 * math.pi * k / cfg.views
+            d = np.array(
+                [math.cos(az) * math.cos(mid), math.sin(az) * math.cos(mid), math.sin(mid)]
+            )
+            view = PerspectiveView.looking_at(d, width=width, height=height, focal_px=focal)
+            mx, my, valid = view.omni_maps(camera)
+            self.views.append(view)
+            self.maps.append((mx, my, valid))
+        # Pipe walls are dim and low in contrast: a low SIFT contrast threshold, and
+        # local contrast equalisation (CLAHE) of each view before detection.
+        self.sift = cv2.SIFT_create(
+            nfeatures=max(1, cfg.max_features // cfg.views),
+            contrastThreshold=cfg.contrast_threshold,
+        )
+        self.clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
+
+    def extract(
+        self, image: np.ndarray, laser_channel: str, laser_pixels: np.ndarray | None = None
+    ) -> FrameFeatures:
+        """Features of one frame; ``laser_pixels`` (M, 2) are masked out."""
+        cfg, cam = self.config, self.camera
+        gray = _gray(image, laser_channel)
+        mask = cam.valid_mask().astype(np.uint8) * 255
+        if laser_pixels is not None and len(laser_pixels):
+            pts = np.round(laser_pixels * 4).astype(np.int32).reshape(-1, 1, 2)
+            cv2.polylines(
+                mask, [pts], False, 0, thickness=int(2 * cfg.laser_margin_px + 1), shift=2
+            )
+        rays, descs, views = [], [], []
+        for k, (view, (mx, my, valid)) in enumerate(zip(self.views, self.maps, strict=True)):
+            img = self.clahe.apply(cv2.remap(gray, mx, my, cv2.INTER_LINEAR))
+            vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
+            vmask[~valid] = 0
+            vmask = cv2.erode(vmask, np.ones((5, 5), np.uint8))
+            kps, desc = self.sift.detectAndCompute(img, vmask)
+            if desc is None or not kps:
+                continue
+            pts = np.array([kp.pt for kp in kps], float)
+            rays.append(view.rays(pts))
+            descs.append(desc)
+            views.append(np.full(len(kps), k))
+        if not rays:
+            return FrameFeatures(
+                np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, int)
+            )
+        r = np.concatenate(rays)
+        d = np.concatenate(descs).astype(np.float32)
+        v = np.concatenate(views)
+        # Overlapping views see some rays twice: keep the first of each pair closer than 0.05 deg.
+        pairs = cKDTree(r).query_pairs(math.radians(0.05), output_type="ndarray")
+        keep = np.ones(len(r), bool)
+        if len(pairs):
+            keep[np.maximum(pairs[:, 0], pairs[:, 1])] = False
+        r, d, v = r[keep], d[keep], v[keep]
+        px, _ = cam.project(r)
+        return FrameFeatures(r, px, d, v)
+
+
+def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
+    """8-bit grey image without the laser's channel."""
+    if image.ndim == 2:
+        g = image
+    elif laser_channel == "red":
+        g = image[..., 1]
+    else:
+        idx = _CHANNELS.get(laser_channel)
+        others = [c for c in range(3) if c != idx] if idx is not None else [0, 1, 2]
+        g = image[..., others].mean(axis=2)
+    if g.dtype != np.uint8:
+        g = cv2.normalize(g.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return np.ascontiguousarray(g)
+
+
+def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> np.ndarray:
+    """(M, 2) index pairs: Lowe's ratio test both ways and a mutual check."""
+    if len(f1.descriptors) < 2 or len(f2.descriptors) < 2:
+        return np.zeros((0, 2), int)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+
+    def one_way(a: np.ndarray, b: np.ndarray) -> dict[int, int]:
+        out = {}
+        for m in bf.knnMatch(a, b, k=2):
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                out[m[0].queryIdx] = m[0].trainIdx
+        return out
+
+    fwd = one_way(f1.descriptors, f2.descriptors)
+    bwd = one_way(f2.descriptors, f1.descriptors)
+    pairs = [(i, j) for i, j in fwd.items() if bwd.get(j) == i]
+    return np.array(pairs, int).reshape(-1, 2)

@@ -1,0 +1,221 @@
+"""Camera motion of a whole sequence (paper Sec. V): every frame's metric pose.
+
+1. Stations: frames taken while the earthworm robot stood still are found from the
+   images (:mod:`omnipipe.sfm.stations`); each stop is one station, its frames share
+   one pose and are flagged ``stationary``.
+2. Keyframes: the first frame of each station. SIFT features on perspective views
+   (:mod:`omnipipe.sfm.features`) are matched between consecutive keyframes
+   (and a few further back, for longer tracks).
+3. Relative motion: eight-point algorithm on ray vectors with RANSAC (Eq. 10-16);
+   near-pure rotations are recognised and keep a zero translation.
+4. Scale: the laser points of the earlier keyframe are found again in the later one
+   by template matching along the epipolar curve (Sec. V-D, Eq. 17), which makes
+   each step metric.
+5. Bundle adjustment over all keyframes: reprojection errors of the feature tracks in
+   pixels through the hyperboloid model, plus the laser points' matches as metric
+   anchors, which keep the scale from drifting.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from omnipipe.camera import OmniCamera
+from omnipipe.errors import ReconstructionError
+from omnipipe.geometry import invert
+from omnipipe.rig import Rig
+from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
+from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
+from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
+from omnipipe.sfm.stations import StationConfig, StationTracker
+
+_CHANNELS = {"red": 0, "green": 1, "blue": 2}
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """Camera-motion settings.
+
+    Attributes:
+        stations: stationary-frame detection.
+        laser_scale: template matching of laser points (scale, Eq. 17).
+        features: SIFT on perspective views.
+        ransac_threshold_px: RANSAC inlier threshold, in pixels of the omni image at the
+            middle of the mirror annulus (converted to an angle through the camera model).
+        ransac_iterations: upper bound of RANSAC iterations.
+        min_inliers: fewest inliers for a usable relative motion.
+        rotation_only_ratio: a step is a pure rotation when the rotation-only model
+            explains at least this fraction of the essential-matrix inliers.
+        seed: random seed (RANSAC).
+    """
+
+    stations: StationConfig = field(default_factory=StationConfig)
+    laser_scale: LaserScaleConfig = field(default_factory=LaserScaleConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    ransac_threshold_px: float = 1.0
+    ransac_iterations: int = 2000
+    min_inliers: int = 15
+    rotation_only_ratio: float = 0.9
+    seed: int = 0
+
+
+@dataclass
+class SfmInputs:
+    """What camera-motion estimation reads.
+
+    Attributes:
+        rig: the calibration.
+        read_frame: frame index -> RGB/grey image.
+        n_frames: number of frames.
+        rings: the light-section result (per-frame ring pixels and metric points).
+    """
+
+    rig: Rig
+    read_frame: Callable[[int], np.ndarray]
+    n_frames: int
+    rings: object
+
+
+@dataclass
+class SfmResult:
+    """Poses of every frame.
+
+    Attributes:
+        world_from_rig: (N, 4, 4) metric poses; world = rig frame of frame 0.
+        registered: (N,) True where the pose is valid.
+        keyframe: (N,) True for the keyframes (one per station).
+        stationary: (N,) True for frames that share the previous frame's station.
+        station: (N,) station index of each frame.
+        step_scale_mm: (K-1,) translation length between consecutive keyframes (mm).
+        warnings: what went wrong where (frames with few features, rotation-only steps).
+    """
+
+    world_from_rig: np.ndarray
+    registered: np.ndarray
+    keyframe: np.ndarray
+    stationary: np.ndarray
+    station: np.ndarray
+    step_scale_mm: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+
+
+def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
+    """Grey image without the laser's channel (float32)."""
+    if image.ndim == 2:
+        return image.astype(np.float32)
+    idx = _CHANNELS.get(laser_channel)
+    others = [c for c in range(3) if c != idx] if idx is not None else [0, 1, 2]
+    # Green alone has the best signal for a red laser; average the others otherwise.
+    if idx == 0:
+        return image[..., 1].astype(np.float32)
+    return image[..., others].astype(np.float32).mean(axis=2)
+
+
+def run(
+    config: SfmConfig, inputs: SfmInputs, progress: Callable[[int], None] | None = None
+) -> SfmResult:
+    """Estimate every frame's metric pose (world = rig frame of frame 0).
+
+    Raises:
+        ReconstructionError: no frame could be read.
+    """
+    rig = inputs.rig
+    camera = OmniCamera.from_rig(rig)
+    n = inputs.n_frames
+    if n < 1:
+        raise ReconstructionError("no frames")
+    rings = inputs.rings.rings  # type: ignore[attr-defined]
+    warnings: list[str] = []
+    tracker = StationTracker(camera.valid_mask(), config.stations)
+    extractor = FeatureExtractor(camera, config.features)
+    mid = np.array([[camera.cx + 0.5 * (camera.radius_min + camera.radius_max), camera.cy]])
+    px_angle = float(
+        np.arccos(
+            np.clip(
+                np.sum(camera.unproject(mid) * camera.unproject(mid + np.array([[0.0, 1.0]]))),
+                -1,
+                1,
+            )
+        )
+    )
+    ransac = RansacConfig(
+        threshold_rad=config.ransac_threshold_px * px_angle,
+        max_iterations=config.ransac_iterations,
+        min_inliers=config.min_inliers,
+        rotation_only_ratio=config.rotation_only_ratio,
+        seed=config.seed,
+    )
+    moved = np.zeros(n, bool)
+    world_from_kf: list[np.ndarray] = []
+    scales: list[float] = []
+    prev = None  # (frame index, features, grey)
+    for i in range(n):
+        img = inputs.read_frame(i)
+        gray = _gray(img, rig.laser.channel)
+        moved[i], _ = tracker.update(gray)
+        if moved[i]:
+            feats = extractor.extract(img, rig.laser.channel, rings[i].pixels)
+            if prev is None:
+                world_from_kf.append(np.eye(4))
+            else:
+                a, fa, ga = prev
+                b_from_a, scale = _step(
+                    a,
+                    i,
+                    fa,
+                    feats,
+                    ga,
+                    gray,
+                    camera,
+                    rings[a].points_in_rig,
+                    ransac,
+                    config,
+                    warnings,
+                )
+                if scales and not math.isfinite(scale):
+                    scale = scales[-1]
+                    warnings.append(
+                        f"frames {a}->{i}: laser points not found again; scale of the previous step used"
+                    )
+                scale = 0.0 if not math.isfinite(scale) else scale
+                scales.append(scale)
+                b_from_a[:3, 3] *= scale
+                world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
+            prev = (i, feats, gray)
+        if progress:
+            progress(i + 1)
+    station = np.cumsum(moved) - 1
+    world_from_rig = np.array(world_from_kf)[station]
+    return SfmResult(
+        world_from_rig=world_from_rig,
+        registered=np.ones(n, bool),
+        keyframe=moved.copy(),
+        stationary=~moved,
+        station=station,
+        step_scale_mm=np.array(scales),
+        warnings=warnings,
+    )
+
+
+def _step(
+    a, b, fa, fb, ga, gb, camera, laser_points_a, ransac, config, warnings
+) -> tuple[np.ndarray, float]:
+    """rig_b_from_rig_a with a unit translation, and the metric length of that translation."""
+    m = match_features(fa, fb, config.features.ratio)
+    try:
+        motion = estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ransac)
+    except ReconstructionError as exc:
+        warnings.append(f"frames {a}->{b}: {exc}; pose kept from frame {a}")
+        return np.eye(4), 0.0
+    if not motion.translation_reliable:
+        warnings.append(f"frames {a}->{b}: rotation only (no measurable translation)")
+        return motion.rig2_from_rig1.copy(), 0.0
+    b_from_a = motion.rig2_from_rig1.copy()
+    lm = match_laser_points(
+        ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale
+    )
+    return b_from_a, lm.scale
