@@ -1,0 +1,164 @@
+"""The pipe's centreline from the measured rings, and pipe coordinates on it.
+
+Each ring (one keyframe's light section) is a station. Around every station a
+cylinder is fitted to the rings within ``window_mm`` along the axis (the piecewise
+cylinder fit that follows bends); the station's centre is its ring centroid
+projected onto that axis and its tangent is the axis. Arc length runs through the
+station centres; the angle around the axis is measured from a frame (N, B, T)
+parallel-transported from the reference rig frame's x axis, so "angle" means the
+same thing all along a bent pipe, as the data contract asks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
+from omnipipe.errors import ReconstructionError
+
+
+@dataclass(frozen=True)
+class Centreline:
+    """Stations along the measured pipe (world frame, mm).
+
+    Attributes:
+        arc_mm: (K,) arc length of each station from the reference origin's
+            projection (the contract's axial origin: the first frame's origin).
+        centre: (K, 3) points on the axis.
+        tangent: (K, 3) unit axis directions, pointing the way the robot travelled.
+        normal, binormal: (K, 3) unit vectors; angle 0 along ``normal``, pi/2 along ``binormal``.
+        radius_mm: (K,) radius of the cylinder fitted around each station.
+        cylinders: the fitted cylinders.
+    """
+
+    arc_mm: np.ndarray
+    centre: np.ndarray
+    tangent: np.ndarray
+    normal: np.ndarray
+    binormal: np.ndarray
+    radius_mm: np.ndarray
+    cylinders: list[Cylinder]
+
+    def straightness_mm(self) -> float:
+        """Largest distance of a station centre from the best straight line through them."""
+        c = self.centre - self.centre.mean(axis=0)
+        if len(c) < 3:
+            return 0.0
+        _, _, vt = np.linalg.svd(c)
+        return float(np.max(np.linalg.norm(c - np.outer(c @ vt[0], vt[0]), axis=1)))
+
+    def coordinates(
+        self, points_in_world: np.ndarray, station: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pipe coordinates of points measured at known stations.
+
+        Args:
+            points_in_world: (N, 3) mm.
+            station: (N,) station index of each point (its ring).
+
+        Returns:
+            sigma_mm: (N,) arc length along the centreline.
+            rho_mm: (N,) distance from the axis.
+            theta_rad: (N,) angle around the axis in [-pi, pi), from N towards B.
+        """
+        q = points_in_world - self.centre[station]
+        t = self.tangent[station]
+        along = np.einsum("ij,ij->i", q, t)
+        perp = q - along[:, None] * t
+        rho = np.linalg.norm(perp, axis=1)
+        theta = np.arctan2(
+            np.einsum("ij,ij->i", perp, self.binormal[station]),
+            np.einsum("ij,ij->i", perp, self.normal[station]),
+        )
+        return self.arc_mm[station] + along, rho, theta
+
+
+def fit_centreline(
+    rings_in_world: list[np.ndarray],
+    axis_guess: np.ndarray,
+    reference_from_world: np.ndarray,
+    *,
+    window_mm: float,
+    loss_scale_mm: float,
+    max_points: int = 6000,
+) -> Centreline:
+    """Piecewise cylinder fit along the rings.
+
+    Args:
+        rings_in_world: K arrays (M_k, 3) of ring points in the world frame, in time order.
+        axis_guess: (K, 3) rough axis direction at each station (the rig's z axis in the world).
+        reference_from_world: (4, 4) pose whose origin is the axial origin and whose x axis
+            is angle 0 (the first registered frame's rig frame, inverted).
+        window_mm: axial length of the rings used for each station's cylinder.
+        loss_scale_mm: soft-L1 scale of the cylinder fits.
+        max_points: points per fit (evenly subsampled; the fit is linear in their number).
+
+    Raises:
+        ReconstructionError: fewer than 2 rings with enough points.
+    """
+    usable = [k for k, r in enumerate(rings_in_world) if len(r) >= 12]
+    if len(usable) < 2:
+        raise ReconstructionError(
+            f"only {len(usable)} ring(s) with enough laser points: cannot fit the pipe's axis"
+        )
+    centroid = np.array([rings_in_world[k].mean(axis=0) for k in usable])
+    axes = np.asarray(axis_guess, float)[usable]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    cylinders: list[Cylinder] = []
+    centres, tangents, radii = [], [], []
+    for i in range(len(usable)):
+        along = (centroid - centroid[i]) @ axes[i]
+        members = [usable[j] for j in np.flatnonzero(np.abs(along) <= 0.5 * window_mm)]
+        pts = np.concatenate([rings_in_world[j] for j in members])
+        if len(pts) > max_points:
+            pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
+        guess = (
+            axes[i]
+            if len(members) < 3
+            else np.mean(axes[[usable.index(j) for j in members]], axis=0)
+        )
+        cyl = fit_cylinder(pts, guess, loss_scale_mm=loss_scale_mm)
+        tangent = cyl.axis if cyl.axis @ axes[i] > 0 else -cyl.axis
+        centre = cyl.point + ((centroid[i] - cyl.point) @ tangent) * tangent
+        cylinders.append(cyl)
+        centres.append(centre)
+        tangents.append(tangent)
+        radii.append(cyl.radius_mm)
+    centre = np.array(centres)
+    tangent = np.array(tangents)
+    # Arc length through the centres, each step measured along the mean tangent.
+    steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
+    steps /= np.linalg.norm(tangent[1:] + tangent[:-1], axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(steps)])
+    world_from_reference = np.linalg.inv(reference_from_world)
+    origin, x_ref = world_from_reference[:3, 3], world_from_reference[:3, 0]
+    # Axial origin: the reference origin projected on the nearest station's axis.
+    nearest = int(np.argmin(np.linalg.norm(centre - origin, axis=1)))
+    arc = arc - (arc[nearest] + (origin - centre[nearest]) @ tangent[nearest])
+    # Angle 0: the reference x axis, transported along the stations.
+    normals = np.empty_like(tangent)
+    n = x_ref - (x_ref @ tangent[nearest]) * tangent[nearest]
+    normals[nearest] = n / np.linalg.norm(n)
+    for order in (range(nearest + 1, len(usable)), range(nearest - 1, -1, -1)):
+        prev = nearest
+        for k in order:
+            n = normals[prev] - (normals[prev] @ tangent[k]) * tangent[k]
+            normals[k] = n / np.linalg.norm(n)
+            prev = k
+    binormals = np.cross(tangent, normals)
+    full = len(rings_in_world)
+    # Rings too sparse for a station borrow their nearest neighbour's.
+    index = np.array([usable[int(np.argmin(np.abs(np.array(usable) - k)))] for k in range(full)])
+    slot = {k: i for i, k in enumerate(usable)}
+    pick = np.array([slot[k] for k in index])
+    return Centreline(
+        arc[pick],
+        centre[pick],
+        tangent[pick],
+        normals[pick],
+        binormals[pick],
+        np.array(radii)[pick],
+        [cylinders[i] for i in pick],
+    )

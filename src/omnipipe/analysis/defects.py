@@ -1,0 +1,279 @@
+"""Bulges and dents from the radial deviation map (the paper's future work, Sec. VIII).
+
+The deviation of a wall point is its distance from the axis minus the fitted wall
+radius at its station and angle: negative for a bulge (into the pipe), positive
+for a dent. Candidates are connected groups of points whose deviation exceeds a
+threshold (``min_height_mm`` and a multiple of the measured noise), linked across
+neighbouring rings and around the pipe's seam. Each candidate is then measured on
+a fine grid interpolated linearly between the points (rings are sparse along the
+axis, dense around it):
+
+* height: the largest deviation, each ring's peak refined by a parabola through
+  its neighbouring samples (the maximum of raw samples would be biased by noise),
+  then across the neighbouring rings (a crest may lie between two rings);
+* width: the longest circumferential run (arc length) of a cross-section near the
+  crest, at half that cross-section's height;
+* length: the longest axial run at half height; ``axial_start_mm`` is its start;
+* angle: the centre of the crest's cross-section.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.interpolate import LinearNDInterpolator
+from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class WallSamples:
+    """Wall points in unrolled pipe coordinates.
+
+    Attributes:
+        sigma_mm: (N,) axial position (contract convention).
+        arc_mm: (N,) arc length around the pipe, angle x reference radius, in [0, circumference).
+        deviation_mm: (N,) radial deviation from the fitted wall (+ out of the pipe).
+        ring: (N,) ring (station) index of each point.
+        circumference_mm: 2 pi x reference radius.
+    """
+
+    sigma_mm: np.ndarray
+    arc_mm: np.ndarray
+    deviation_mm: np.ndarray
+    ring: np.ndarray
+    circumference_mm: float
+
+
+def fit_wall_profile(
+    theta: np.ndarray, rho: np.ndarray, order: int, loss_scale_mm: float
+) -> np.ndarray:
+    """Robust Fourier fit rho(theta) = c0 + sum_k (a_k cos k theta + b_k sin k theta).
+
+    Order 1 absorbs a ring's offset from the fitted axis, order 2 an oval section.
+
+    Returns:
+        (1 + 2 order,) coefficients [c0, a1, b1, a2, b2, ...].
+    """
+    A = fourier_design(theta, order)
+    coef, *_ = np.linalg.lstsq(A, rho, rcond=None)
+    if len(rho) > A.shape[1] + 3:
+        coef = least_squares(lambda c: A @ c - rho, coef, loss="soft_l1", f_scale=loss_scale_mm).x
+    return coef
+
+
+def fourier_design(theta: np.ndarray, order: int) -> np.ndarray:
+    """(N, 1 + 2 order) design matrix of :func:`fit_wall_profile`."""
+    cols = [np.ones_like(theta)]
+    for k in range(1, order + 1):
+        cols += [np.cos(k * theta), np.sin(k * theta)]
+    return np.stack(cols, axis=1)
+
+
+def _ring_peak(arc: np.ndarray, value: np.ndarray) -> float:
+    """Peak of one ring's samples near its maximum: a parabola through the 5 nearest."""
+    i = int(np.argmax(value))
+    near = np.argsort(np.abs(arc - arc[i]))[:5]
+    if len(near) < 3:
+        return float(value[i])
+    x = arc[near] - arc[i]
+    c = np.polyfit(x, value[near], 2)
+    if c[0] >= 0:
+        return float(value[i])
+    peak = c[2] - c[1] ** 2 / (4 * c[0])
+    # A parabola through noise may overshoot: stay within the samples' plausible range.
+    return float(np.clip(peak, np.mean(value[near]), value[i] + 0.5 * np.ptp(value[near])))
+
+
+def _axial_peak(z: np.ndarray, peak: np.ndarray) -> float:
+    """Largest ring peak, refined by a parabola through it and its axial neighbours.
+
+    Rings sample the axis sparsely: a defect's crest may lie between two rings. The
+    refinement may raise the estimate by at most the drop to the lower neighbour.
+    """
+    order = np.argsort(z)
+    z, peak = z[order], peak[order]
+    i = int(np.argmax(peak))
+    if i == 0 or i == len(peak) - 1:
+        return float(peak[i])
+    (z0, z1, z2), (p0, p1, p2) = z[i - 1 : i + 2], peak[i - 1 : i + 2]
+    if not (z0 < z1 < z2):
+        return float(peak[i])
+    # Divided differences of the parabola through the three points.
+    d01, d12 = (p1 - p0) / (z1 - z0), (p2 - p1) / (z2 - z1)
+    a = (d12 - d01) / (z2 - z0)
+    if a >= 0:
+        return float(p1)
+    b = d01 - a * (z0 + z1)
+    zv = -b / (2 * a)
+    vertex = p1 + a * (zv - z1) ** 2 + (2 * a * z1 + b) * (zv - z1)
+    return float(np.clip(vertex, p1, p1 + (p1 - min(p0, p2))))
+
+
+def _runs(
+    mask_line: np.ndarray, values: np.ndarray, level: float, step: float
+) -> list[tuple[float, float]]:
+    """Sub-cell [start, end) of each True run in a grid line, crossing at ``level``."""
+    out = []
+    padded = np.concatenate([[False], mask_line, [False]])
+    edges = np.flatnonzero(np.diff(padded.astype(int)))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        start, end = float(a), float(b - 1)
+        if a > 0 and np.isfinite(values[a - 1]) and values[a] != values[a - 1]:
+            start = a - (values[a] - level) / (values[a] - values[a - 1])
+        if b < len(values) and np.isfinite(values[b]) and values[b - 1] != values[b]:
+            end = (b - 1) + (values[b - 1] - level) / (values[b - 1] - values[b])
+        out.append((start * step, end * step))
+    return out
+
+
+def find_defects(
+    samples: WallSamples,
+    *,
+    min_height_mm: float,
+    noise_factor: float,
+    min_points: int,
+    grid_mm: float,
+    max_width_fraction: float = 0.5,
+) -> tuple[list[dict], list[str]]:
+    """Detect and measure bulges and dents.
+
+    Args:
+        samples: the wall points.
+        min_height_mm: smallest deviation reported as a defect.
+        noise_factor: the threshold is also at least this many robust noise sigmas.
+        min_points: a candidate needs this many points beyond the threshold.
+        grid_mm: cell size of the measurement grid.
+        max_width_fraction: candidates wider than this fraction of the circumference are
+            a shape change (ovality, a fit problem), not a local defect: reported as warnings.
+
+    Returns:
+        defects: contract dicts (kind, height_mm, width_mm, length_mm, axial_start_mm,
+            angle_deg) plus ``points`` (how many samples exceed the threshold), largest first.
+        warnings: one line per rejected candidate.
+    """
+    dev, arc, sigma, circ = (
+        samples.deviation_mm,
+        samples.arc_mm,
+        samples.sigma_mm,
+        samples.circumference_mm,
+    )
+    warnings: list[str] = []
+    if len(dev) < 10:
+        return [], warnings
+    noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
+    threshold = max(min_height_mm, noise_factor * noise)
+    # Link scales: along the ring a few sample spacings, across rings 1.5 ring spacings.
+    ring_ids = np.unique(samples.ring)
+    ring_sigma = np.array([np.median(sigma[samples.ring == r]) for r in ring_ids])
+    spacing = float(np.median(np.diff(np.sort(ring_sigma)))) if len(ring_ids) > 1 else 10.0
+    ds = max(1.5 * spacing, 2.0)
+    counts = np.bincount(samples.ring)
+    du = max(3.0 * circ / max(float(np.median(counts[counts > 0])), 1.0), 1.0)
+    defects: list[dict] = []
+    for sign, kind in ((-1.0, "bulge"), (1.0, "dent")):
+        cand = np.flatnonzero(sign * dev > threshold)
+        if len(cand) < min_points:
+            continue
+        box = np.array([circ / du, (np.ptp(sigma) + 4 * ds) / ds])
+        xy = np.column_stack([arc[cand] / du % box[0], (sigma[cand] - sigma.min() + ds) / ds])
+        pairs = cKDTree(xy, boxsize=box).query_pairs(1.0, output_type="ndarray")
+        graph = coo_matrix(
+            (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cand),) * 2
+        )
+        n_comp, label = connected_components(graph, directed=False)
+        for c in range(n_comp):
+            members = cand[label == c]
+            if len(members) < min_points:
+                continue
+            d = _measure(samples, members, sign, kind, grid_mm, du, ds)
+            if d is None:
+                continue
+            if d["width_mm"] > max_width_fraction * circ:
+                warnings.append(
+                    f"{kind} candidate at {d['axial_start_mm']:.0f} mm spans {d['width_mm']:.0f} mm of the "
+                    "circumference: a shape change, not reported as a defect"
+                )
+                continue
+            d["points"] = len(members)
+            defects.append(d)
+    defects.sort(key=lambda d: -d["height_mm"])
+    return defects, warnings
+
+
+def _measure(
+    s: WallSamples, members: np.ndarray, sign: float, kind: str, grid: float, du: float, ds: float
+) -> dict | None:
+    circ = s.circumference_mm
+    # Unwrap the arc around the candidate's centre so it never straddles the seam.
+    ref = float(s.arc_mm[members[np.argmax(sign * s.deviation_mm[members])]])
+    u_all = (s.arc_mm - ref + 0.5 * circ) % circ - 0.5 * circ
+    u_m, z_m = u_all[members], s.sigma_mm[members]
+    lo_u, hi_u = u_m.min() - 3 * du, u_m.max() + 3 * du
+    lo_z, hi_z = z_m.min() - 2 * ds, z_m.max() + 2 * ds
+    near = (
+        (u_all >= lo_u - du)
+        & (u_all <= hi_u + du)
+        & (s.sigma_mm >= lo_z - ds)
+        & (s.sigma_mm <= hi_z + ds)
+    )
+    if near.sum() < 4:
+        return None
+    # Height: the largest of the rings' refined peaks.
+    value = sign * s.deviation_mm
+    peaks, peak_z = [], []
+    for r in np.unique(s.ring[near]):
+        on = near & (s.ring == r)
+        if on.sum() >= 3:
+            peaks.append(_ring_peak(u_all[on], value[on]))
+            peak_z.append(float(np.median(s.sigma_mm[on])))
+    if not peaks:
+        return None
+    height = _axial_peak(np.array(peak_z), np.array(peaks))
+    try:
+        interp = LinearNDInterpolator(np.column_stack([u_all[near], s.sigma_mm[near]]), value[near])
+    except Exception:  # degenerate (collinear) support: a single short ring segment
+        return None
+    gu = np.arange(lo_u, hi_u + grid, grid)
+    gz = np.arange(lo_z, hi_z + grid, grid)
+    field = interp(*np.meshgrid(gu, gz))  # rows: sigma, columns: arc
+    level = 0.5 * height
+    above = np.nan_to_num(field, nan=-np.inf) >= level
+    lab, _ = ndimage.label(above)
+    peak_cell = np.unravel_index(np.nanargmax(np.where(above, field, -np.inf)), field.shape)
+    region = lab == lab[peak_cell]
+    if not region.any():
+        return None
+    # Width: each cross-section near the crest at half its own height (the crest may
+    # lie between rings, where no cross-section was measured); angle: the crest row's centre.
+    best_w, best_w_centre, crest = 0.0, 0.0, -np.inf
+    for row in np.flatnonzero(region.any(axis=1)):
+        line = np.where(region[row], field[row], np.nan)
+        top = float(np.nanmax(line))
+        if top < 0.75 * height:
+            continue
+        j = int(np.nanargmax(line))
+        above_row = np.nan_to_num(field[row], nan=-np.inf) >= 0.5 * top
+        lab_row, _ = ndimage.label(above_row)
+        for a, b in _runs(lab_row == lab_row[j], field[row], 0.5 * top, grid):
+            best_w = max(best_w, b - a)
+            if top > crest:
+                crest, best_w_centre = top, lo_u + 0.5 * (a + b)
+    best_l, best_start = 0.0, 0.0
+    for col in np.flatnonzero(region.any(axis=0)):
+        for a, b in _runs(region[:, col], field[:, col], level, grid):
+            if b - a > best_l:
+                best_l, best_start = b - a, lo_z + a
+    angle = ((ref + best_w_centre) % circ) / circ * 360.0
+    return {
+        "kind": kind,
+        "height_mm": round(float(height), 3),
+        "width_mm": round(float(best_w), 3),
+        "length_mm": round(float(best_l), 3),
+        "axial_start_mm": round(float(best_start), 3),
+        "angle_deg": round(float(angle), 3),
+    }

@@ -1,0 +1,128 @@
+"""Analysis stage against analytic ground truth: cylinder fit, centreline, defects."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnipipe.analysis import AnalysisConfig, AnalysisInputs, fit_cylinder, run
+from omnipipe.analysis.defects import WallSamples, find_defects
+from omnipipe.geometry import make_transform
+from omnipipe.sim.scenarios import make_scenario
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_cylinder_fit_with_outliers() -> None:
+    rng = np.random.default_rng(1)
+    world_from_cyl = _random_rotation(rng)
+    axis_true, radius = world_from_cyl[:, 2], 87.3
+    point_true = np.array([5.0, -3.0, 2.0])
+    n = 5000
+    theta = rng.uniform(-np.pi, np.pi, n)
+    z = rng.uniform(-150, 150, n)
+    local = np.column_stack([radius * np.cos(theta), radius * np.sin(theta), z])
+    local[:, :2] *= (1 + rng.normal(0, 0.1, n) / radius)[:, None]  # 0.1 mm radial noise
+    outliers = rng.random(n) < 0.1
+    local[outliers, :2] *= rng.uniform(0.8, 0.97, outliers.sum())[:, None]  # stray points inside
+    pts = local @ world_from_cyl.T + point_true
+    guess = axis_true + rng.normal(0, 0.1, 3)  # ~6 deg off
+    cyl = fit_cylinder(pts, guess)
+    assert abs(cyl.radius_mm - radius) < 0.03
+    assert np.degrees(np.arccos(min(abs(cyl.axis @ axis_true), 1.0))) < 0.05
+    rel = cyl.point - point_true
+    assert np.linalg.norm(rel - (rel @ axis_true) * axis_true) < 0.05
+
+
+def _synthetic_rings(scenario: str, spacing: float, n_rings: int, seed: int, noise: float = 0.1):
+    """Rings of the true pipe wall every ``spacing`` mm, rig z along the centreline."""
+    pipe = make_scenario(scenario).pipe
+    rng = np.random.default_rng(seed)
+    sig = 100.0 + spacing * np.arange(n_rings) + rng.uniform(-1, 1, n_rings)
+    theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    centre, normal, binormal, tangent = pipe.frame_at(sig)
+    pts, frame, poses = [], [], []
+    for k in range(n_rings):
+        r = pipe.wall_radius(np.full_like(theta, sig[k]), theta) + rng.normal(0, noise, theta.size)
+        keep = rng.random(theta.size) > 0.05  # a few missed samples
+        p = (
+            centre[k]
+            + (r * np.cos(theta))[:, None] * normal[k]
+            + (r * np.sin(theta))[:, None] * binormal[k]
+        )
+        pts.append(p[keep])
+        frame.append(np.full(keep.sum(), k))
+        poses.append(
+            make_transform(
+                np.stack([normal[k], binormal[k], tangent[k]], axis=1), centre[k] + 82 * tangent[k]
+            )
+        )
+    return pipe, AnalysisInputs(np.concatenate(pts), np.concatenate(frame), np.array(poses))
+
+
+def test_paper_pipe_table_one_from_exact_rings() -> None:
+    """World = pipe frame at sigma 0: contract axial/angle equal the pipe's.
+
+    Rings every 6 mm: the axial half-height crossings are interpolated between rings,
+    so the length error grows with the ring spacing (about +-spacing/4 per end).
+    """
+    pipe, inputs = _synthetic_rings("paper", 6.0, 50, seed=2)
+    res = run(AnalysisConfig(), inputs)
+    assert res.straight
+    assert abs(res.inner_diameter_mm - pipe.inner_diameter_mm) < 0.05
+    assert np.nanmax(res.stations_ovality) < 0.002
+    assert len(res.defects) == 1
+    d, t = res.defects[0], pipe.defects[0]
+    assert d["kind"] == t.kind
+    assert abs(d["height_mm"] - t.height_mm) < 0.3
+    assert abs(d["width_mm"] - t.width_mm) < 0.5
+    assert abs(d["length_mm"] - t.length_mm) < 2.0
+    assert abs(d["axial_start_mm"] - t.axial_start_mm) < 2.0
+    assert abs((d["angle_deg"] - t.angle_deg + 180) % 360 - 180) < 1.0
+
+
+def test_bent_pipe_diameter_and_defects() -> None:
+    pipe, inputs = _synthetic_rings("bend", 11.0, 36, seed=4)
+    res = run(AnalysisConfig(), inputs)
+    assert not res.straight
+    assert abs(res.inner_diameter_mm - pipe.inner_diameter_mm) < 0.3
+    found = sorted(res.defects, key=lambda d: d["axial_start_mm"])
+    assert [d["kind"] for d in found] == [
+        t.kind for t in sorted(pipe.defects, key=lambda t: t.axial_start_mm)
+    ]
+    for d, t in zip(found, sorted(pipe.defects, key=lambda t: t.axial_start_mm), strict=True):
+        assert abs(d["height_mm"] - t.height_mm) < 0.3
+        assert abs(d["width_mm"] - t.width_mm) < 1.0
+        assert abs(d["length_mm"] - t.length_mm) < 3.0
+        assert abs((d["angle_deg"] - t.angle_deg + 180) % 360 - 180) < 2.0
+
+
+@pytest.mark.parametrize("centre_deg", [0.0, 359.0, 180.0])
+def test_defect_on_a_deviation_map_across_the_seam(centre_deg: float) -> None:
+    """A 2 mm dent, 12 mm wide, 30 mm long, on a map with 0.05 mm noise; also across angle 0."""
+    rng = np.random.default_rng(7)
+    radius, circ = 100.0, 2 * np.pi * 100.0
+    sig, ang = np.meshgrid(np.arange(0, 200, 5.0), np.arange(720) * circ / 720, indexing="ij")
+    sig, arc = sig.ravel(), ang.ravel()
+    du = (arc - np.radians(centre_deg) * radius + circ / 2) % circ - circ / 2
+    profile = np.clip(1 - np.abs(du) / 12.0, 0, 1) * np.clip(1 - np.abs(sig - 100) / 30.0, 0, 1) * 2
+    dev = 2 * np.minimum(profile, 1.0) + rng.normal(
+        0, 0.05, sig.size
+    )  # plateau 2 mm, half height at 6/15 mm
+    ring = (sig // 5).astype(int)
+    defects, _ = find_defects(
+        WallSamples(sig, arc, dev, ring, circ),
+        min_height_mm=1.0,
+        noise_factor=6,
+        min_points=4,
+        grid_mm=0.25,
+    )
+    assert len(defects) == 1
+    d = defects[0]
+    assert d["kind"] == "dent" and abs(d["height_mm"] - 2.0) < 0.15
+    assert abs(d["width_mm"] - 18.0) < 1.0  # |du| <= 9 where min(2 profile, ...) >= 1
+    assert abs(d["length_mm"] - 45.0) < 3.0
+    assert abs((d["angle_deg"] - centre_deg + 180) % 360 - 180) < 0.5
