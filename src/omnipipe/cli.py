@@ -17,6 +17,7 @@ from omnipipe.errors import OmnipipeError
 # Modules that add sub-commands, in the order they appear in --help.
 COMMAND_MODULES = (
     "omnipipe.sim.cli",
+    "omnipipe.pipeline.cli",
     "omnipipe.baseline.cli",
     "omnipipe.evaluation.cli",
 )

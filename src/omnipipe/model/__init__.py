@@ -1,19 +1,22 @@
-"""Model stage (paper Sec. VI): integrated wall points, mesh, colours, PLY files.
+"""Model stage (paper Sec. VI): integrated wall points, mesh, texture, model files.
 
 Integration: every frame's metric ring points go into the world frame with the
 frame's pose. Colour: the LED-lit image a few pixels off the ring along the radial
 direction (at the ring itself the laser dominates the red channel).
 
 Mesh: a Delaunay triangulation in the unrolled parameterisation of the pipe
-(arc length around the axis, distance along it). The wall is a tube, a developable
-surface: a 2-D Delaunay on its unrolling gives the wall's own topology, never a
-triangle across the pipe, which a 3-D Delaunay of a hollow cylinder would produce
-everywhere (its tetrahedra fill the inside). The angle wraps around: a margin of
-points is duplicated past 2 pi and each triangle is kept once. Triangles with an
-edge much longer than the spacing of the rings are dropped: holes stay holes.
+(arc length around the axis, distance along it; the analysis stage's centreline
+coordinates, so it follows bends). The wall is a tube, a developable surface: a
+2-D Delaunay on its unrolling gives the wall's own topology, never a triangle
+across the pipe, which a 3-D Delaunay of a hollow cylinder would produce everywhere
+(its tetrahedra fill the inside). The angle wraps around: a margin of points is
+duplicated past 2 pi and each triangle is kept once. Triangles with an edge much
+longer than the spacing of the rings are dropped: holes stay holes.
 
-Not yet here: the triangle optimisation of [25] and texture mapping / the textured
-GLB and the unrolled wall image (see the project's issue tracker).
+Texture (:mod:`.texture`): the unrolled wall image, each cell from the keyframe
+that sees it best; it is also the texture atlas of the textured model (GLB).
+
+Not here: the edge-flip optimisation of [25] (see the project's issue tracker).
 """
 
 from __future__ import annotations
@@ -27,7 +30,9 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from omnipipe.camera import OmniCamera
+from omnipipe.errors import ConfigError, OutputError
 from omnipipe.geometry import apply
+from omnipipe.model.texture import UnrolledImage, unrolled_image, wall_points_on_grid
 from omnipipe.rig import Rig
 
 
@@ -37,37 +42,69 @@ class ModelConfig:
 
     Attributes:
         mesher: "unrolled-delaunay" (the only one so far).
-        colour_offset_px: radial offset of the colour sample from the laser ring (px).
-        max_edge_factor: drop triangles whose longest edge exceeds this many times the
-            median longest edge (about one ring spacing).
+        colour_offset_px: point colours are sampled this far outside the laser ring.
+        max_edge_factor: triangles with an edge longer than this x the median are dropped.
+        texture: build the unrolled image, texture and GLB.
+        texture_mm_per_px: unrolled image cell size (mm).
+        laser_band_mm: texture is not taken within this distance of the laser plane.
     """
 
     mesher: str = "unrolled-delaunay"
     colour_offset_px: float = 4.0
     max_edge_factor: float = 2.0
+    texture: bool = True
+    texture_mm_per_px: float = 0.5
+    laser_band_mm: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.mesher != "unrolled-delaunay":
+            raise ConfigError(
+                "model.mesher", f"unknown mesher {self.mesher!r} (known: unrolled-delaunay)"
+            )
+        if not self.texture_mm_per_px > 0:
+            raise ConfigError(
+                "model.texture_mm_per_px", f"must be > 0, got {self.texture_mm_per_px}"
+            )
 
 
 @dataclass
 class ModelInputs:
-    """Per registered frame: pose, ring points and pixels, and the image."""
+    """Keyframes' rings and poses.
+
+    Attributes:
+        camera_rig: calibration.
+        world_from_rig: (K, 4, 4) poses of the keyframes.
+        ring_points_in_rig: K arrays (M_k, 3), mm.
+        ring_pixels: K arrays (M_k, 2), the rings' image positions (col, row).
+        read_frame: k -> image of keyframe k.
+        unrolled_mm: (N, 2) arc length around the axis in [0, circumference) and axial
+            position of the integrated points (in :func:`integrate` order); None: a
+            straight axis through the rig origins.
+        circumference_mm: of the unrolled view (2 pi x the fitted radius).
+    """
 
     camera_rig: Rig
     world_from_rig: np.ndarray
     ring_points_in_rig: list[np.ndarray]
     ring_pixels: list[np.ndarray]
     read_frame: Callable[[int], np.ndarray]
+    unrolled_mm: np.ndarray | None = None
+    circumference_mm: float | None = None
 
 
 @dataclass
 class ModelResult:
-    """The integrated model.
+    """The model.
 
     Attributes:
-        points_in_world: (N, 3) mm.
-        colours: (N, 3) uint8 RGB.
-        point_frame: (N,) registered-frame index of each point.
-        mesh_vertices: (N, 3) = points_in_world; mesh_faces: (F, 3).
-        mesh_uvs, texture, unrolled, unrolled_extent: None until texture mapping exists.
+        points_in_world: (N, 3) integrated ring points, mm.
+        colours: (N, 3) uint8 colour of each point.
+        point_frame: (N,) keyframe index of each point.
+        mesh_vertices, mesh_faces: the wall mesh on the points ((N, 3), (F, 3)).
+        textured_vertices, textured_faces, textured_uvs: the same mesh with the vertices
+            of triangles across angle 0 duplicated (their UVs differ); UVs v-up in [0, 1].
+        texture: (H, W', 3) uint8 atlas: the unrolled image plus a wrapped margin.
+        unrolled: the unrolled wall image (:class:`~omnipipe.model.texture.UnrolledImage`).
     """
 
     points_in_world: np.ndarray
@@ -75,19 +112,33 @@ class ModelResult:
     point_frame: np.ndarray
     mesh_vertices: np.ndarray
     mesh_faces: np.ndarray
-    mesh_uvs: np.ndarray | None = None
+    textured_vertices: np.ndarray | None = None
+    textured_faces: np.ndarray | None = None
+    textured_uvs: np.ndarray | None = None
     texture: np.ndarray | None = None
-    unrolled: np.ndarray | None = None
-    unrolled_extent: tuple[float, float, float, float] | None = None
+    unrolled: UnrolledImage | None = None
+
+
+def integrate(
+    world_from_rig: np.ndarray, ring_points_in_rig: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ring points into the world: (N, 3) points and (N,) keyframe index of each."""
+    pts = [apply(T, r) for T, r in zip(world_from_rig, ring_points_in_rig, strict=True) if len(r)]
+    idx = [np.full(len(r), k) for k, r in enumerate(ring_points_in_rig) if len(r)]
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    return np.concatenate(pts), np.concatenate(idx)
 
 
 def unrolled_coordinates(
     points_in_world: np.ndarray, world_from_rig: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """(angle_rad, axial_mm) of points around the path of the rig origins.
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Fallback unrolling around a straight axis through the rig origins.
 
-    The axis is the path's principal direction (straight pipes) with the angle
-    measured from the first rig frame's x axis towards y.
+    Returns:
+        arc_mm: (N,) in [0, circumference), from the first rig frame's x axis towards y.
+        axial_mm: (N,) along the axis from the first rig origin.
+        circumference_mm: 2 pi x the median distance from the axis.
     """
     origins = world_from_rig[:, :3, 3]
     axis = world_from_rig[0, :3, 2]
@@ -100,32 +151,34 @@ def unrolled_coordinates(
     centre = origins.mean(axis=0)
     rel = points_in_world - centre
     axial = rel @ axis + (centre - origins[0]) @ axis
-    angle = np.arctan2(rel @ y0, rel @ x0)
-    return angle, axial
+    perp = rel - np.outer(rel @ axis, axis)
+    radius = float(np.median(np.linalg.norm(perp, axis=1)))
+    circ = 2 * math.pi * radius
+    angle = np.arctan2(rel @ y0, rel @ x0) % (2 * math.pi)
+    return angle * radius, axial, circ
 
 
 def mesh_unrolled(
-    points_in_world: np.ndarray, world_from_rig: np.ndarray, max_edge_factor: float
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    points_in_world: np.ndarray,
+    circumference_mm: float,
+    max_edge_factor: float,
 ) -> np.ndarray:
     """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring)."""
     n = len(points_in_world)
     if n < 3:
         return np.zeros((0, 3), int)
-    angle, axial = unrolled_coordinates(points_in_world, world_from_rig)
-    radius = float(
-        np.median(np.linalg.norm(points_in_world - world_from_rig[:, :3, 3].mean(axis=0), axis=1))
-    )
-    u = angle * radius
-    margin = 0.1 * 2 * math.pi * radius
-    circ = 2 * math.pi * radius
-    wrap = np.flatnonzero(u < -math.pi * radius + margin)
-    uu = np.concatenate([u, u[wrap] + circ])
-    vv = np.concatenate([axial, axial[wrap]])
+    circ = circumference_mm
+    margin = 0.1 * circ
+    wrap = np.flatnonzero(arc_mm < margin)
+    uu = np.concatenate([arc_mm, arc_mm[wrap] + circ])
+    vv = np.concatenate([axial_mm, axial_mm[wrap]])
     ids = np.concatenate([np.arange(n), wrap])
     tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
     # Keep each triangle once: those whose centroid lies in the main period.
     cu = uu[tri].mean(axis=1)
-    tri = tri[(cu >= -math.pi * radius) & (cu < math.pi * radius)]
+    tri = tri[(cu >= 0.5 * margin) & (cu < circ + 0.5 * margin)]
     faces = ids[tri]
     faces = faces[
         (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
@@ -139,17 +192,54 @@ def mesh_unrolled(
     return faces[longest <= max_edge_factor * float(np.median(longest))]
 
 
+def textured_mesh(
+    faces: np.ndarray,
+    points_in_world: np.ndarray,
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    unrolled: UnrolledImage,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Seam-split mesh and its atlas: (vertices, faces, uvs v-up, texture image).
+
+    Triangles across angle 0 get copies of their small-arc vertices shifted by one
+    circumference; the atlas is the unrolled image plus a 10 % wrapped margin on the right.
+    """
+    circ = unrolled.circumference_mm
+    h, w = unrolled.image.shape[:2]
+    extra = int(np.ceil(0.1 * w))
+    atlas = np.concatenate([unrolled.image, unrolled.image[:, :extra]], axis=1)
+    u = arc_mm[faces]
+    crossing = np.ptp(u, axis=1) > 0.5 * circ
+    shift = crossing[:, None] & (u < 0.5 * circ)
+    n = len(points_in_world)
+    dup = np.unique(faces[shift])
+    new_id = np.full(n, -1)
+    new_id[dup] = n + np.arange(len(dup))
+    faces = faces.copy()
+    faces[shift] = new_id[faces[shift]]
+    verts = np.concatenate([points_in_world, points_in_world[dup]])
+    arc = np.concatenate([arc_mm, arc_mm[dup] + circ])
+    axial = np.concatenate([axial_mm, axial_mm[dup]])
+    uu = arc / (circ * (w + extra) / w)
+    vv = 1.0 - ((axial - unrolled.axial_min_mm) / unrolled.mm_per_px + 0.5) / h
+    return verts, faces, np.column_stack([uu, vv]), atlas
+
+
 def run(
     config: ModelConfig, inputs: ModelInputs, progress: Callable[[int], None] | None = None
 ) -> ModelResult:
-    """Integrate the rings, colour them and mesh the wall."""
+    """Integrate the rings, colour them, mesh the wall and texture it."""
     camera = OmniCamera.from_rig(inputs.camera_rig)
-    pts, cols, frame = [], [], []
+    points, frame = integrate(inputs.world_from_rig, inputs.ring_points_in_rig)
+    if not len(points):
+        empty = np.zeros((0, 3))
+        return ModelResult(
+            empty, np.zeros((0, 3), np.uint8), np.zeros(0, int), empty, np.zeros((0, 3), int)
+        )
+    cols = []
     centre = np.array([camera.cx, camera.cy])
-    for k, (T, ring_pts, ring_px) in enumerate(
-        zip(inputs.world_from_rig, inputs.ring_points_in_rig, inputs.ring_pixels, strict=True)
-    ):
-        if len(ring_pts):
+    for k, ring_px in enumerate(inputs.ring_pixels):
+        if len(ring_px):
             img = inputs.read_frame(k)
             radial = ring_px - centre
             radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
@@ -161,19 +251,38 @@ def run(
                 c = np.repeat(c[:, None], 3, axis=1)
             if c.dtype == np.uint16:
                 c = (c // 257).astype(np.uint8)
-            pts.append(apply(T, ring_pts))
             cols.append(c.astype(np.uint8))
-            frame.append(np.full(len(ring_pts), k))
         if progress:
             progress(k + 1)
-    if not pts:
-        empty = np.zeros((0, 3))
-        return ModelResult(
-            empty, np.zeros((0, 3), np.uint8), np.zeros(0, int), empty, np.zeros((0, 3), int)
+    colours = np.concatenate(cols)
+    if inputs.unrolled_mm is not None:
+        arc, axial = inputs.unrolled_mm[:, 0], inputs.unrolled_mm[:, 1]
+        circ = float(inputs.circumference_mm)
+    else:
+        arc, axial, circ = unrolled_coordinates(points, inputs.world_from_rig)
+    faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor)
+    result = ModelResult(points, colours, frame, points, faces)
+    if config.texture and len(faces):
+        # Holes stay holes: cells farther from the points than a typical triangle edge.
+        p = points[faces]
+        gap = 1.5 * float(np.median(np.linalg.norm(p[:, 0] - p[:, 1], axis=1)))
+        grid, z0 = wall_points_on_grid(
+            arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0)
         )
-    points = np.concatenate(pts)
-    faces = mesh_unrolled(points, inputs.world_from_rig, config.max_edge_factor)
-    return ModelResult(points, np.concatenate(cols), np.concatenate(frame), points, faces)
+        unrolled = unrolled_image(
+            inputs.camera_rig,
+            inputs.world_from_rig,
+            inputs.read_frame,
+            grid,
+            z0,
+            circ,
+            config.texture_mm_per_px,
+            config.laser_band_mm,
+        )
+        verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
+        result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
+        result.texture, result.unrolled = atlas, unrolled
+    return result
 
 
 def write_ply(
@@ -212,7 +321,45 @@ def write_ply(
 
 
 def write_outputs(result: ModelResult, out_dir: Path) -> None:
-    """points.ply and mesh.ply (vertex colours) into ``out_dir``."""
+    """points.ply, mesh.ply (vertex colours), model.glb (textured) and unrolled.png into ``out_dir``."""
     out_dir = Path(out_dir)
     write_ply(out_dir / "points.ply", result.points_in_world, result.colours)
     write_ply(out_dir / "mesh.ply", result.mesh_vertices, result.colours, result.mesh_faces)
+    if result.unrolled is not None:
+        from PIL import Image
+
+        rgba = np.dstack(
+            [result.unrolled.image, np.where(result.unrolled.alpha, 255, 0).astype(np.uint8)]
+        )
+        Image.fromarray(rgba).save(out_dir / "unrolled.png")
+    if (
+        result.texture is not None
+        and result.textured_faces is not None
+        and len(result.textured_faces)
+    ):
+        write_glb(
+            out_dir / "model.glb",
+            result.textured_vertices,
+            result.textured_faces,
+            result.textured_uvs,
+            result.texture,
+        )
+
+
+def write_glb(
+    path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray
+) -> None:
+    """Textured binary glTF (opens in Blender, three.js viewers, Windows 3D Viewer ...)."""
+    import trimesh
+    from PIL import Image
+
+    mesh = trimesh.Trimesh(
+        vertices=vertices,
+        faces=faces,
+        process=False,
+        visual=trimesh.visual.TextureVisuals(uv=uvs, image=Image.fromarray(texture)),
+    )
+    try:
+        Path(path).write_bytes(mesh.export(file_type="glb"))
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write ({exc.strerror})") from None

@@ -1,0 +1,309 @@
+"""The reconstruction pipeline: dataset in, contract outputs out.
+
+Stages, each a ``run(config, inputs)`` of its own subpackage: ``laser`` (light
+section: metric ring points per frame), ``sfm`` (camera motion, metric by the laser),
+``model`` (integration, mesh, texture, unrolled wall), ``analysis`` (inner diameter,
+ovality, defects) and ``report``. Outputs are written to a temporary directory next
+to OUT and moved into place at the end, so a failed or interrupted run never leaves
+OUT looking complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omnipipe.config import dataclass_from_dict, load_yaml_mapping
+from omnipipe.dataset import Dataset, validate_frames, write_tum
+from omnipipe.errors import OutputError, ReconstructionError
+
+ProgressFactory = Callable[[str, int], Callable[[int], None]]
+
+
+def _no_progress(stage: str, total: int) -> Callable[[int], None]:
+    return lambda done: None
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Settings of every stage; ``--config FILE.yaml`` overrides any of them by section."""
+
+    laser: Any = None
+    sfm: Any = None
+    model: Any = None
+    analysis: Any = None
+    report: Any = None
+
+    @staticmethod
+    def default() -> ReconstructConfig:
+        from omnipipe.analysis import AnalysisConfig
+        from omnipipe.laser import LaserConfig
+        from omnipipe.model import ModelConfig
+        from omnipipe.report import ReportConfig
+        from omnipipe.sfm.pipeline import SfmConfig
+
+        return ReconstructConfig(
+            LaserConfig(), SfmConfig(), ModelConfig(), AnalysisConfig(), ReportConfig()
+        )
+
+    @staticmethod
+    def from_yaml(
+        path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None
+    ) -> ReconstructConfig:
+        """Defaults, then the YAML file's sections, then ``overrides`` (CLI options)."""
+        base = ReconstructConfig.default()
+        data = load_yaml_mapping(path) if path is not None else {}
+        source = None if path is None else str(path)
+        merged: dict[str, dict[str, Any]] = {}
+        for section, values in data.items():
+            if section not in ("laser", "sfm", "model", "analysis", "report"):
+                from omnipipe.errors import ConfigError
+
+                raise ConfigError(
+                    str(section),
+                    "unknown section (known: laser, sfm, model, analysis, report)",
+                    source,
+                )
+            merged[section] = dict(values or {})
+        for section, values in (overrides or {}).items():
+            merged.setdefault(section, {}).update(values)
+        parts = {}
+        for section in ("laser", "sfm", "model", "analysis", "report"):
+            default = getattr(base, section)
+            values = merged.get(section)
+            if values:
+                from dataclasses import asdict
+
+                combined = {**asdict(default), **values}
+                # Nested dataclasses come back as dicts from asdict: rebuild the whole section.
+                parts[section] = dataclass_from_dict(type(default), combined, section, source)
+            else:
+                parts[section] = default
+        return ReconstructConfig(**parts)
+
+
+@dataclass
+class Reconstruction:
+    """Everything a run produced, before it is written.
+
+    Attributes:
+        summary: the report.json content.
+        timestamps: (N,) seconds of the registered frames.
+        world_from_rig: (N, 4, 4) poses of the registered frames.
+        model: the model stage result.
+        analysis: the analysis stage result.
+        report_inputs: what report.html shows.
+    """
+
+    summary: dict[str, Any]
+    timestamps: np.ndarray
+    world_from_rig: np.ndarray
+    model: Any
+    analysis: Any
+    report_inputs: Any = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def run(
+    config: ReconstructConfig, dataset: Dataset, progress: ProgressFactory = _no_progress
+) -> Reconstruction:
+    """Run every stage on ``dataset``.
+
+    Raises:
+        OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
+    """
+    from omnipipe import analysis, laser, model
+    from omnipipe.sfm import pipeline as sfm
+
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    t_start = time.perf_counter()
+    validate_frames(dataset)
+    rig = dataset.rig
+    n = len(dataset)
+
+    t0 = time.perf_counter()
+    tick = progress("laser", n)
+    rings = laser.run(config.laser, rig, (dataset.read_frame(i) for i in range(n)), progress=tick)
+    timings["laser"] = time.perf_counter() - t0
+    seen = sum(1 for r in rings.rings if len(r.pixels))
+    if seen == 0:
+        raise ReconstructionError(
+            f"no laser ring found in any of the {n} frames (laser channel '{rig.laser.channel}' of rig.yaml)"
+        )
+    if seen < n:
+        warnings.append(f"laser ring not found in {n - seen} of {n} frames")
+
+    t0 = time.perf_counter()
+    tick = progress("sfm", n)
+    motion = sfm.run(
+        config.sfm,
+        sfm.SfmInputs(rig=rig, read_frame=dataset.read_frame, n_frames=n, rings=rings),
+        progress=tick,
+    )
+    timings["sfm"] = time.perf_counter() - t0
+    warnings.extend(motion.warnings)
+    reg = np.flatnonzero(motion.registered)
+    if len(reg) == 0:
+        raise ReconstructionError("camera motion could not be estimated for any frame")
+    # One frame per station feeds the model: a stationary frame repeats its station's ring.
+    kf = np.flatnonzero(motion.registered & motion.keyframe)
+
+    # Analysis first: its centreline coordinates unroll the mesh and the texture.
+    t0 = time.perf_counter()
+    kf_poses = motion.world_from_rig[kf]
+    kf_rings = [rings.rings[i] for i in kf]
+    points, point_frame = model.integrate(kf_poses, [r.points_in_rig for r in kf_rings])
+    res = analysis.run(
+        config.analysis,
+        analysis.AnalysisInputs(
+            points_in_world=points,
+            frame_index=point_frame,
+            world_from_rig=kf_poses,
+            reference_from_world=np.linalg.inv(motion.world_from_rig[reg[0]]),
+        ),
+    )
+    timings["analysis"] = time.perf_counter() - t0
+    warnings.extend(res.warnings)
+
+    t0 = time.perf_counter()
+    tick = progress("model", len(kf))
+    circ = 2 * np.pi * res.radius_mm
+    mdl = model.run(
+        config.model,
+        model.ModelInputs(
+            camera_rig=rig,
+            world_from_rig=kf_poses,
+            ring_points_in_rig=[r.points_in_rig for r in kf_rings],
+            ring_pixels=[r.pixels for r in kf_rings],
+            read_frame=lambda k: dataset.read_frame(int(kf[k])),
+            unrolled_mm=np.column_stack(
+                [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
+            ),
+            circumference_mm=circ,
+        ),
+        progress=tick,
+    )
+    timings["model"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    summary = {
+        "frames": n,
+        "frames_registered": len(reg),
+        "inner_diameter_mm": round(res.inner_diameter_mm, 3),
+        "defects": res.defects,
+        "ovality_max": None if not np.isfinite(res.ovality_max) else round(res.ovality_max, 5),
+        "pipe_straight": res.straight,
+        "stations": [
+            {
+                "axial_mm": round(float(a), 2),
+                "diameter_mm": round(float(d), 3),
+                "ovality": None if not np.isfinite(o) else round(float(o), 5),
+            }
+            for a, d, o in zip(
+                res.stations_axial_mm, res.stations_diameter_mm, res.stations_ovality, strict=True
+            )
+        ],
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "warnings": warnings,
+        "stationary_frames": int(np.sum(motion.stationary)),
+        "keyframes": int(np.sum(motion.keyframe)),
+    }
+    return Reconstruction(
+        summary=summary,
+        timestamps=dataset.timestamps[reg],
+        world_from_rig=motion.world_from_rig[reg],
+        model=mdl,
+        analysis=res,
+    )
+
+
+def write(
+    rec: Reconstruction, out: str | Path, *, force: bool = False, evaluation: dict | None = None
+) -> Path:
+    """Write the contract outputs of ``rec`` to ``out`` atomically.
+
+    Raises:
+        OutputError: ``out`` exists (without ``force``) or cannot be written.
+    """
+    from omnipipe import model as model_stage
+    from omnipipe import report
+
+    out = Path(out)
+    if out.exists() and not force:
+        raise OutputError(f"{out}: already exists (use --force to replace it)")
+    parent = out.resolve().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
+    try:
+        write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
+        model_stage.write_outputs(rec.model, tmp)
+        (tmp / "report.json").write_text(json.dumps(rec.summary, indent=1), encoding="utf-8")
+        report.run(
+            rec.extras.get("report_config") or report.ReportConfig(),
+            report_inputs(rec, evaluation),
+            tmp / "report.html",
+        )
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def report_inputs(rec: Reconstruction, evaluation: dict | None = None):
+    """What report.html shows, from a reconstruction (and optional evaluation)."""
+    from omnipipe.report import ReportInputs
+
+    mdl, res = rec.model, rec.analysis
+    truth = None
+    if evaluation:
+        truth = table_one(rec.summary, evaluation)
+    return ReportInputs(
+        summary=rec.summary,
+        world_from_rig=rec.world_from_rig,
+        mesh_vertices=mdl.mesh_vertices if mdl.textured_vertices is None else mdl.textured_vertices,
+        mesh_faces=mdl.mesh_faces if mdl.textured_faces is None else mdl.textured_faces,
+        mesh_uvs=mdl.textured_uvs,
+        texture=mdl.texture,
+        unrolled=None if mdl.unrolled is None else mdl.unrolled.image,
+        unrolled_extent=None if mdl.unrolled is None else mdl.unrolled.extent,
+        stations_axial_mm=res.stations_axial_mm,
+        stations_diameter_mm=res.stations_diameter_mm,
+        stations_ovality=res.stations_ovality,
+        radius_mm=None if res.inner_diameter_mm is None else res.inner_diameter_mm / 2,
+        truth=truth,
+        evaluation=evaluation,
+    )
+
+
+def table_one(
+    summary: dict[str, Any], evaluation: dict[str, Any]
+) -> list[tuple[str, float | None, float | None, str]]:
+    """The paper's Table I rows (measured, true) from an evaluation."""
+    rows: list[tuple[str, float | None, float | None, str]] = []
+    d = evaluation.get("diameter", {})
+    rows.append(("inside diameter", d.get("measured_mm"), d.get("true_mm"), "mm"))
+    for k, row in enumerate(evaluation.get("defects", [])):
+        t = row.get("true")
+        if t is None:
+            continue
+        m = row.get("measured") or {}
+        name = f"{t['kind']} {k + 1}"
+        rows.append((f"height of {name}", m.get("height_mm"), t["height_mm"], "mm"))
+        rows.append((f"width of {name}", m.get("width_mm"), t["width_mm"], "mm"))
+        rows.append((f"length of {name}", m.get("length_mm"), t["length_mm"], "mm"))
+    return rows

@@ -1,0 +1,63 @@
+"""omnipipe reconstruct end to end on a small simulated dataset, and its refusals."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import trimesh
+
+from omnipipe.cli import main
+
+
+@pytest.fixture(scope="module")
+def reconstruction(small_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("rec") / "out"
+    assert main(["reconstruct", str(small_dataset), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_every_contract_output(reconstruction: Path, small_dataset: Path) -> None:
+    for name in ("trajectory.txt", "points.ply", "mesh.ply", "report.json", "report.html"):
+        assert (reconstruction / name).is_file(), name
+    report = json.loads((reconstruction / "report.json").read_text())
+    assert report["frames"] == 24 and report["frames_registered"] == 24
+    assert set(report["timings_s"]) >= {"laser", "sfm", "model", "analysis", "total"}
+    truth = json.loads((small_dataset / "ground_truth" / "scene.json").read_text())
+    # 400x300 images: the diameter within 1.5 mm (full size: see benchmarks).
+    assert abs(report["inner_diameter_mm"] - truth["inner_diameter_mm"]) < 1.5
+    mesh = trimesh.load(reconstruction / "mesh.ply", process=False)
+    assert len(mesh.faces) > 1000
+    lines = (reconstruction / "trajectory.txt").read_text().splitlines()
+    assert len(lines) == 24
+    assert [float(v) for v in lines[0].split()[1:4]] == [0.0, 0.0, 0.0]  # world = first rig frame
+
+
+def test_existing_output_is_refused(reconstruction: Path, small_dataset: Path, capsys) -> None:
+    assert main(["reconstruct", str(small_dataset), "--out", str(reconstruction), "--quiet"]) == 1
+    assert "already exists" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [("no_rig", "rig.yaml"), ("bad_field", "mirror.b"), ("corrupt", "000004.png"), ("no_laser", "no laser ring")],
+)
+def test_bad_input_one_line_and_nothing_written(small_dataset: Path, tmp_path: Path, capsys, damage, message) -> None:
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    if damage == "no_rig":
+        (ds / "rig.yaml").unlink()
+    elif damage == "bad_field":
+        (ds / "rig.yaml").write_text((ds / "rig.yaml").read_text().replace("b: 32.49", "b: 0"))
+    elif damage == "corrupt":
+        (ds / "frames" / "000004.png").write_bytes(b"\x89PNG garbage")
+    elif damage == "no_laser":
+        (ds / "rig.yaml").write_text((ds / "rig.yaml").read_text().replace("channel: red", "channel: blue"))
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(ds), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
