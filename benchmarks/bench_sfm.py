@@ -14,6 +14,7 @@ import time
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
+from omnipipe.sfm.bundle import BundleConfig
 from omnipipe.sfm.pipeline import SfmConfig, SfmInputs
 from omnipipe.sfm.pipeline import run as sfm_run
 from omnipipe.sim import make_scenario
@@ -26,6 +27,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--size", default=None, help="WxH (default: the scenario's)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-bundle", action="store_true", help="pairwise chain only (no bundle adjustment)")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x")) if args.size else None
     scenario = make_scenario(args.scenario, frames=args.frames, size=size, seed=args.seed)
@@ -37,7 +39,8 @@ def main() -> None:
     rings = laser_run(LaserConfig(), scenario.rig, frames)
     t_laser = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = sfm_run(SfmConfig(), SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
+    config = SfmConfig(bundle=BundleConfig(enabled=not args.no_bundle))
+    res = sfm_run(config, SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
     t_sfm = time.perf_counter() - t0
     errs = trajectory_errors(res.world_from_rig, poses)
     cam = scenario.rig.camera
@@ -54,6 +57,12 @@ def main() -> None:
         f"time: render {t_render:.1f} s, laser {t_laser:.1f} s, sfm {t_sfm:.1f} s "
         f"({len(frames) / t_sfm:.1f} frames/s)"
     )
+    if res.bundle is not None:
+        b = res.bundle
+        print(
+            f"bundle adjustment: {len(b.points_in_world)} tracks, reprojection RMS {b.rms_before_px:.2f} -> "
+            f"{b.rms_after_px:.2f} px, laser anchors {b.anchor_rms_px:.2f} px, {b.evaluations} evaluations"
+        )
     for w in res.warnings[:10]:
         print("warning:", w)
 

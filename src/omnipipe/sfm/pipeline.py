@@ -28,6 +28,7 @@ from omnipipe.camera import OmniCamera
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
 from omnipipe.rig import Rig
+from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
 from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
@@ -61,6 +62,7 @@ class SfmConfig:
     min_inliers: int = 15
     rotation_only_ratio: float = 0.9
     seed: int = 0
+    bundle: BundleConfig = field(default_factory=BundleConfig)
 
 
 @dataclass
@@ -101,6 +103,7 @@ class SfmResult:
     station: np.ndarray
     step_scale_mm: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    bundle: object = None
 
 
 def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
@@ -153,6 +156,9 @@ def run(
     world_from_kf: list[np.ndarray] = []
     scales: list[float] = []
     prev = None  # (frame index, features, grey)
+    kf_features = []
+    pair_matches: list[tuple[int, int, np.ndarray]] = []
+    anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     for i in range(n):
         img = inputs.read_frame(i)
         gray = _gray(img, rig.laser.channel)
@@ -163,7 +169,7 @@ def run(
                 world_from_kf.append(np.eye(4))
             else:
                 a, fa, ga = prev
-                b_from_a, scale = _step(
+                b_from_a, scale, inl, lm = _step(
                     a,
                     i,
                     fa,
@@ -185,11 +191,30 @@ def run(
                 scales.append(scale)
                 b_from_a[:3, 3] *= scale
                 world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
+                ka, kb = len(kf_features) - 1, len(kf_features)
+                if inl is not None:
+                    pair_matches.append((ka, kb, inl))
+                if lm is not None and len(lm.index):
+                    anchors.append((ka, kb, rings[a].points_in_rig[lm.index], lm.pixels_b))
+            kf_features.append(feats)
             prev = (i, feats, gray)
         if progress:
             progress(i + 1)
+    world_from_kf_arr = np.array(world_from_kf)
+    bundle_stats = None
+    if config.bundle.enabled and len(world_from_kf_arr) >= 3:
+        problem = build_problem(
+            camera, world_from_kf_arr, [f.pixels for f in kf_features], [f.rays_in_rig for f in kf_features],
+            pair_matches, anchors, config.bundle,
+        )
+        if len(problem.points_in_world) >= 10 and len(problem.anchor_a):
+            ba = bundle_adjust(camera, problem, config.bundle)
+            world_from_kf_arr = ba.world_from_rig
+            bundle_stats = ba
+        else:
+            warnings.append("bundle adjustment skipped: too few feature tracks or laser anchors")
     station = np.cumsum(moved) - 1
-    world_from_rig = np.array(world_from_kf)[station]
+    world_from_rig = world_from_kf_arr[station]
     return SfmResult(
         world_from_rig=world_from_rig,
         registered=np.ones(n, bool),
@@ -198,24 +223,27 @@ def run(
         station=station,
         step_scale_mm=np.array(scales),
         warnings=warnings,
+        bundle=bundle_stats,
     )
 
 
 def _step(
     a, b, fa, fb, ga, gb, camera, laser_points_a, ransac, config, warnings
 ) -> tuple[np.ndarray, float]:
-    """rig_b_from_rig_a with a unit translation, and the metric length of that translation."""
+    """rig_b_from_rig_a, the metric length of its translation, the inlier matches (M, 2)
+    and the laser matches (None where not available)."""
     m = match_features(fa, fb, config.features.ratio)
     try:
         motion = estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ransac)
     except ReconstructionError as exc:
         warnings.append(f"frames {a}->{b}: {exc}; pose kept from frame {a}")
-        return np.eye(4), 0.0
+        return np.eye(4), 0.0, None, None
+    inl = m[motion.inliers]
     if not motion.translation_reliable:
         warnings.append(f"frames {a}->{b}: rotation only (no measurable translation)")
-        return motion.rig2_from_rig1.copy(), 0.0
+        return motion.rig2_from_rig1.copy(), 0.0, inl, None
     b_from_a = motion.rig2_from_rig1.copy()
     lm = match_laser_points(
         ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale
     )
-    return b_from_a, lm.scale
+    return b_from_a, lm.scale, inl, lm

@@ -1,0 +1,263 @@
+"""Bundle adjustment [24] over the keyframes, metric through the laser.
+
+Unknowns: every keyframe's ``rig_from_world`` (rotation vector, translation; the
+first keyframe is fixed: it defines the world) and every feature track's point in
+the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
+
+* feature observations: ``project(rig_k_from_world @ point_in_world) - pixel``;
+* laser anchors (Sec. V-D in bundle form): a laser point measured in keyframe a is
+  metric in a's rig frame (Eq. 5); its template match in keyframe b is an
+  observation of that fixed point, ``project(rig_b_from_world @ world_from_rig_a @
+  laser_point_in_a) - pixel_b``. These tie the translation lengths to millimetres, so
+  the scale cannot drift along the run.
+
+Robust soft-L1 loss; SciPy ``least_squares`` (trf) with the sparse Jacobian
+structure (``jac_sparsity``): each residual touches one or two poses and one point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial.transform import Rotation
+
+from omnipipe.camera import OmniCamera
+from omnipipe.errors import ShapeError
+from omnipipe.geometry import invert
+
+
+@dataclass(frozen=True)
+class BundleConfig:
+    """Bundle adjustment settings.
+
+    Attributes:
+        enabled: run it (off: the pairwise chain is the result).
+        loss_scale_px: soft-L1 scale: residuals beyond a few of these count linearly.
+        laser_weight: weight of a laser anchor residual relative to a feature's.
+        max_reprojection_px: tracks worse than this at the start are dropped.
+        min_parallax_deg: tracks whose rays meet at a smaller angle are dropped
+            (their depth is unconstrained).
+        max_tracks: evenly chosen tracks kept (the cost grows with their number).
+        max_evaluations: cap on residual evaluations.
+    """
+
+    enabled: bool = True
+    loss_scale_px: float = 1.0
+    laser_weight: float = 1.0
+    max_reprojection_px: float = 4.0
+    min_parallax_deg: float = 1.0
+    max_tracks: int = 4000
+    max_evaluations: int = 50
+
+
+@dataclass
+class BundleProblem:
+    """Observations of a bundle adjustment.
+
+    Attributes:
+        world_from_rig: (K, 4, 4) initial keyframe poses (keyframe 0 stays fixed).
+        points_in_world: (P, 3) initial track points, mm.
+        obs_frame, obs_point: (M,) keyframe and point index of each observation.
+        obs_pixels: (M, 2) observed omni pixels (col, row).
+        anchor_a, anchor_b: (L,) keyframes where a laser point was measured / found again.
+        anchor_points_in_a: (L, 3) the laser points in rig a, mm.
+        anchor_pixels_b: (L, 2) their matched pixels in keyframe b.
+    """
+
+    world_from_rig: np.ndarray
+    points_in_world: np.ndarray
+    obs_frame: np.ndarray
+    obs_point: np.ndarray
+    obs_pixels: np.ndarray
+    anchor_a: np.ndarray
+    anchor_b: np.ndarray
+    anchor_points_in_a: np.ndarray
+    anchor_pixels_b: np.ndarray
+
+
+@dataclass
+class BundleResult:
+    """Adjusted poses and points, and the reprojection RMS before and after (px)."""
+
+    world_from_rig: np.ndarray
+    points_in_world: np.ndarray
+    rms_before_px: float
+    rms_after_px: float
+    anchor_rms_px: float
+    evaluations: int
+
+
+def _poses_to_params(world_from_rig: np.ndarray) -> np.ndarray:
+    rig_from_world = np.array([invert(T) for T in world_from_rig])
+    rv = Rotation.from_matrix(rig_from_world[:, :3, :3]).as_rotvec()
+    return np.concatenate([rv, rig_from_world[:, :3, 3]], axis=1)
+
+
+def _params_to_rig_from_world(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_rotvec(p[:, :3]).as_matrix(), p[:, 3:]
+
+
+def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConfig) -> BundleResult:
+    """Refine keyframe poses and track points (see the module docstring).
+
+    Raises:
+        ShapeError: inconsistent observation arrays.
+    """
+    K = len(problem.world_from_rig)
+    P = len(problem.points_in_world)
+    M, L = len(problem.obs_frame), len(problem.anchor_a)
+    if problem.obs_pixels.shape != (M, 2) or problem.obs_point.shape != (M,):
+        raise ShapeError(f"bundle_adjust: observations of inconsistent shapes {problem.obs_pixels.shape}")
+    if problem.anchor_points_in_a.shape != (L, 3) or problem.anchor_pixels_b.shape != (L, 2):
+        raise ShapeError(f"bundle_adjust: anchors of inconsistent shapes {problem.anchor_points_in_a.shape}")
+    pose0 = _poses_to_params(problem.world_from_rig)
+    fixed = pose0[0].copy()
+    n_pose = 6 * (K - 1)
+    x0 = np.concatenate([pose0[1:].ravel(), problem.points_in_world.ravel()])
+    w_laser = float(config.laser_weight)
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        poses = np.vstack([fixed, x[:n_pose].reshape(K - 1, 6)])
+        R, t = _params_to_rig_from_world(poses)
+        return R, t, x[n_pose:].reshape(P, 3)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        R, t, pts = unpack(x)
+        k, p = problem.obs_frame, problem.obs_point
+        q = np.einsum("nij,nj->ni", R[k], pts[p]) + t[k]
+        px, valid = camera.project(q)
+        r_obs = np.where(valid[:, None], px - problem.obs_pixels, 0.0)
+        a, b = problem.anchor_a, problem.anchor_b
+        # world point of the laser point: R_a^T (q_a - t_a)
+        w = np.einsum("nji,nj->ni", R[a], problem.anchor_points_in_a - t[a])
+        qb = np.einsum("nij,nj->ni", R[b], w) + t[b]
+        pxb, vb = camera.project(qb)
+        r_anc = np.where(vb[:, None], pxb - problem.anchor_pixels_b, 0.0) * w_laser
+        return np.nan_to_num(np.concatenate([r_obs.ravel(), r_anc.ravel()]), nan=0.0, posinf=0.0, neginf=0.0)
+
+    # Sparsity: observation rows touch their pose (unless fixed) and point; anchors two poses.
+    S = lil_matrix((2 * M + 2 * L, len(x0)), dtype=np.int8)
+    rows = np.arange(M)
+    for d in range(2):
+        for c in range(6):
+            has = problem.obs_frame > 0
+            S[2 * rows[has] + d, 6 * (problem.obs_frame[has] - 1) + c] = 1
+        for c in range(3):
+            S[2 * rows + d, n_pose + 3 * problem.obs_point + c] = 1
+        arow = 2 * M + 2 * np.arange(L) + d
+        for frames in (problem.anchor_a, problem.anchor_b):
+            has = frames > 0
+            for c in range(6):
+                S[arow[has], 6 * (frames[has] - 1) + c] = 1
+
+    r0 = residuals(x0)
+    sol = least_squares(
+        residuals, x0, jac_sparsity=S.tocsr(), loss="soft_l1", f_scale=config.loss_scale_px,
+        x_scale="jac", method="trf", tr_solver="lsmr", max_nfev=config.max_evaluations,
+    )
+    r1 = sol.fun
+    R, t, pts = unpack(sol.x)
+    world_from_rig = np.empty((K, 4, 4))
+    for k in range(K):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R[k], t[k]
+        world_from_rig[k] = invert(T)
+
+    def rms(r: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(r**2))) if len(r) else 0.0
+
+    return BundleResult(
+        world_from_rig, pts, rms(r0[: 2 * M]), rms(r1[: 2 * M]), rms(r1[2 * M :] / max(w_laser, 1e-9)), int(sol.nfev)
+    )
+
+
+def build_problem(
+    camera: OmniCamera,
+    world_from_rig: np.ndarray,
+    pixels: list[np.ndarray],
+    rays_in_rig: list[np.ndarray],
+    pair_matches: list[tuple[int, int, np.ndarray]],
+    anchors: list[tuple[int, int, np.ndarray, np.ndarray]],
+    config: BundleConfig,
+) -> BundleProblem:
+    """Feature tracks from pairwise matches, triangulated with the initial poses.
+
+    Args:
+        world_from_rig: (K, 4, 4) initial keyframe poses.
+        pixels, rays_in_rig: per keyframe, (N_k, 2) feature pixels and (N_k, 3) unit rays.
+        pair_matches: (a, b, (M, 2) feature indices in a and b) of RANSAC inliers.
+        anchors: (a, b, (L, 3) laser points in rig a, (L, 2) matched pixels in b).
+    """
+    offset = np.concatenate([[0], np.cumsum([len(p) for p in pixels])])
+    parent = np.arange(offset[-1])
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b, m in pair_matches:
+        for i, j in zip(offset[a] + m[:, 0], offset[b] + m[:, 1], strict=True):
+            ri, rj = find(int(i)), find(int(j))
+            if ri != rj:
+                parent[max(ri, rj)] = min(ri, rj)
+    roots = np.array([find(i) for i in range(offset[-1])], dtype=int)
+    frame_of = np.repeat(np.arange(len(pixels)), np.diff(offset))
+    local = np.arange(offset[-1]) - offset[frame_of]
+    # Tracks: roots with observations in at least two keyframes, at most one per keyframe.
+    order = np.lexsort((frame_of, roots))
+    roots_s, frames_s = roots[order], frame_of[order]
+    dup = np.r_[False, (roots_s[1:] == roots_s[:-1]) & (frames_s[1:] == frames_s[:-1])]
+    order = order[~dup]
+    roots_s = roots[order]
+    _, start, count = np.unique(roots_s, return_index=True, return_counts=True)
+    tracks = [(start[i], count[i]) for i in np.flatnonzero(count >= 2)]
+    if len(tracks) > config.max_tracks:
+        # Prefer long tracks, then spread evenly.
+        tracks.sort(key=lambda s: -s[1])
+        tracks = tracks[: config.max_tracks]
+    R = world_from_rig[:, :3, :3]
+    C = world_from_rig[:, :3, 3]
+    obs_f, obs_p, obs_px, pts = [], [], [], []
+    cos_min = np.cos(np.radians(config.min_parallax_deg))
+    for s, c in tracks:
+        idx = order[s : s + c]
+        f, li = frame_of[idx], local[idx]
+        d = np.array([R[k] @ rays_in_rig[k][j] for k, j in zip(f, li, strict=True)])
+        # Midpoint of the first and last rays (the widest baseline).
+        d1, d2, c1, c2 = d[0], d[-1], C[f[0]], C[f[-1]]
+        if d1 @ d2 > cos_min:
+            continue
+        A = np.stack([d1, -d2], axis=1)
+        lam, *_ = np.linalg.lstsq(A, c2 - c1, rcond=None)
+        if lam[0] <= 0 or lam[1] <= 0:
+            continue
+        X = 0.5 * (c1 + lam[0] * d1 + c2 + lam[1] * d2)
+        q = np.einsum("nji,nj->ni", R[f], X - C[f])
+        px, valid = camera.project(q)
+        obs = np.array([pixels[k][j] for k, j in zip(f, li, strict=True)])
+        if not valid.all() or np.max(np.linalg.norm(px - obs, axis=1)) > config.max_reprojection_px:
+            continue
+        obs_f.append(f)
+        obs_p.append(np.full(len(f), len(pts)))
+        obs_px.append(obs)
+        pts.append(X)
+    if anchors:
+        aa = np.concatenate([np.full(len(q), a) for a, _, q, _ in anchors])
+        ab = np.concatenate([np.full(len(q), b) for _, b, q, _ in anchors])
+        aq = np.concatenate([q for *_, q, _ in anchors])
+        apx = np.concatenate([p for *_, p in anchors])
+    else:
+        aa = ab = np.zeros(0, int)
+        aq, apx = np.zeros((0, 3)), np.zeros((0, 2))
+    if not pts:
+        return BundleProblem(world_from_rig, np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int),
+                             np.zeros((0, 2)), aa, ab, aq, apx)
+    return BundleProblem(
+        world_from_rig, np.array(pts), np.concatenate(obs_f), np.concatenate(obs_p),
+        np.concatenate(obs_px).astype(float), aa, ab, aq, apx,
+    )
