@@ -12,8 +12,9 @@ from omnipipe.sim.writer import build_renderer
 
 def test_laser_points_give_the_metric_translation() -> None:
     scenario = make_scenario("paper", frames=12, size=(800, 600), seed=4)
-    renderer, poses, _, _ = build_renderer(scenario)
-    a, b = 0, 2  # a full stroke apart (two moving frames)
+    renderer, poses, _, moving = build_renderer(scenario)
+    # A full stroke apart: frame 0 and the last frame of the first move.
+    a, b = 0, int(np.flatnonzero(moving)[: scenario.motion.frames_per_cycle // scenario.motion.n_units][-1])
     img_a, truth_a = renderer.render(poses[a], seed=1)
     img_b, _ = renderer.render(poses[b], seed=2)
     ring = truth_a["points_in_rig"][np.abs(truth_a["laser_h"]) < 0.3]

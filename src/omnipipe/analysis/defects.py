@@ -167,10 +167,11 @@ def find_defects(
         return [], warnings
     noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
     threshold = max(min_height_mm, noise_factor * noise)
-    # Link scales: along the ring a few sample spacings, across rings 1.5 ring spacings.
+    # Link scales: along the ring a few sample spacings, across rings 1.5 (wide) ring spacings.
     ring_ids = np.unique(samples.ring)
     ring_sigma = np.array([np.median(sigma[samples.ring == r]) for r in ring_ids])
-    spacing = float(np.median(np.diff(np.sort(ring_sigma)))) if len(ring_ids) > 1 else 10.0
+    # Ring spacing varies with the gait (slow start and stop): link across the wide gaps too.
+    spacing = float(np.percentile(np.diff(np.sort(ring_sigma)), 90)) if len(ring_ids) > 1 else 10.0
     ds = max(1.5 * spacing, 2.0)
     counts = np.bincount(samples.ring)
     du = max(3.0 * circ / max(float(np.median(counts[counts > 0])), 1.0), 1.0)

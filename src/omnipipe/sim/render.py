@@ -338,17 +338,27 @@ class Renderer:
         laser: bool = True,
         noise: bool = True,
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Render one 8-bit RGB frame (H, W, 3) seen from ``world_from_rig``.
+        """Render one 8-bit RGB frame: :meth:`irradiance` then :meth:`expose` (same arguments)."""
+        image, truth = self.irradiance(world_from_rig, seed, led=led, laser=laser)
+        return self.expose(image, seed, noise=noise), truth
+
+    def irradiance(
+        self,
+        world_from_rig: np.ndarray,
+        seed: int,
+        led: bool = True,
+        laser: bool = True,
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The image on the sensor (before noise) seen from ``world_from_rig``.
 
         Args:
             world_from_rig: (4, 4) true pose of the rig (mm).
-            seed: noise and speckle seed of this frame.
+            seed: speckle seed.
             led: LED illumination on (False: the paper's Fig. 19 laser-only frame).
             laser: laser on.
-            noise: sensor noise on (False: the expected image, still quantised).
 
         Returns:
-            image: (H, W, 3) uint8 RGB.
+            image: (H, W, 3) float32 irradiance (1 = full scale before the gain).
             truth: ground truth of the wall pixels: "index" (flat pixel index),
             "points_in_rig" (M, 3) mm, "sigma", "theta", "laser_h" (mm to the plane).
         """
@@ -383,6 +393,23 @@ class Renderer:
                 points_rig, laser_h, hits.sigma, hits.theta, footprint, wall, rng
             )
 
+        truth = {
+            "index": flat,
+            "points_in_rig": points_rig,
+            "sigma": hits.sigma,
+            "theta": hits.theta,
+            "laser_h": laser_h,
+        }
+        return image, truth
+
+    def expose(self, image: np.ndarray, seed: int, noise: bool = True) -> np.ndarray:
+        """The sensor: gain, shot and read noise, 8-bit quantisation of an irradiance image.
+
+        A robot standing still sees the same irradiance (the laser speckle too: same
+        geometry); only this sensor noise differs between its frames.
+        """
+        cfg = self.config
+        rng = np.random.default_rng([seed, 1])
         dn = np.clip(image, 0.0, None) * np.float32(255.0 * self.gain)
         if noise:
             # Sensor: shot noise (Poisson, Gaussian approximation) and read noise.
@@ -391,15 +418,7 @@ class Renderer:
             dn = dn + np.float32(cfg.read_noise_dn) * rng.standard_normal(
                 image.shape, dtype=np.float32
             )
-        frame = np.clip(np.round(dn), 0, 255).astype(np.uint8)  # 8-bit quantisation, saturation
-        truth = {
-            "index": flat,
-            "points_in_rig": points_rig,
-            "sigma": hits.sigma,
-            "theta": hits.theta,
-            "laser_h": laser_h,
-        }
-        return frame, truth
+        return np.clip(np.round(dn), 0, 255).astype(np.uint8)  # 8-bit quantisation, saturation
 
     def _laser_image(
         self,

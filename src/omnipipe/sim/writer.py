@@ -178,43 +178,59 @@ def run(
     return SimResult(out, poses, sigma, moving, scene)
 
 
-def _render_one(args: tuple) -> None:
-    renderer, scenario, pose, path, index = args
-    frame, _ = renderer.render(pose, seed=_frame_seed(scenario.seed, index))
-    write_image(path / "frames" / f"{index:06d}.png", frame)
+def _stations(poses: np.ndarray) -> list[list[int]]:
+    """Runs of consecutive frames with the same pose (the robot standing still)."""
+    runs: list[list[int]] = []
+    for i, pose in enumerate(poses):
+        if runs and np.array_equal(poses[runs[-1][0]], pose):
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    return runs
+
+
+def _render_station(args: tuple) -> int:
+    """Render one station's frames: the irradiance once, the sensor noise per frame."""
+    renderer, scenario, pose, path, indices = args
+    first = indices[0]
+    image, _ = renderer.irradiance(pose, seed=_frame_seed(scenario.seed, first))
+    dark = None
     if scenario.dark_frames:
-        dark, _ = renderer.render(pose, seed=_frame_seed(scenario.seed, index, True), led=False)
-        write_image(path / "frames_noled" / f"{index:06d}.png", dark)
+        dark, _ = renderer.irradiance(pose, seed=_frame_seed(scenario.seed, first, True), led=False)
+    for index in indices:
+        frame = renderer.expose(image, seed=_frame_seed(scenario.seed, index))
+        write_image(path / "frames" / f"{index:06d}.png", frame)
+        if dark is not None:
+            frame = renderer.expose(dark, seed=_frame_seed(scenario.seed, index, True))
+            write_image(path / "frames_noled" / f"{index:06d}.png", frame)
+    return len(indices)
 
 
 def _render_all(renderer, scenario, poses, tmp, names, workers, progress) -> None:
-    jobs = [(renderer, scenario, pose, tmp, i) for i, pose in enumerate(poses)]
+    stations = _stations(poses)
     done = 0
-    if workers > 1 and len(jobs) > 1:
+    if workers > 1 and len(stations) > 1:
         import multiprocessing as mp
 
         ctx = mp.get_context("fork")
         global _SHARED
         _SHARED = (renderer, scenario, tmp)
         with ctx.Pool(workers) as pool:
-            for _ in pool.imap_unordered(
-                _render_index, [(pose, i) for i, pose in enumerate(poses)]
-            ):
-                done += 1
+            for n in pool.imap_unordered(_render_shared, [(poses[st[0]], st) for st in stations]):
+                done += n
                 if progress:
-                    progress(done, len(jobs))
+                    progress(done, len(poses))
         return
-    for job in jobs:
-        _render_one(job)
-        done += 1
+    for st in stations:
+        done += _render_station((renderer, scenario, poses[st[0]], tmp, st))
         if progress:
-            progress(done, len(jobs))
+            progress(done, len(poses))
 
 
 _SHARED: tuple | None = None
 
 
-def _render_index(item: tuple) -> None:
+def _render_shared(item: tuple) -> int:
     renderer, scenario, tmp = _SHARED  # type: ignore[misc]
-    pose, index = item
-    _render_one((renderer, scenario, pose, tmp, index))
+    pose, indices = item
+    return _render_station((renderer, scenario, pose, tmp, indices))
