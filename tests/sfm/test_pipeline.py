@@ -14,11 +14,16 @@ from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
 
-@pytest.mark.parametrize("name", ["paper", "bend"])
+@pytest.mark.parametrize("name", ["paper-small", "bend-small"])
 def test_short_run_trajectory_within_band(name: str) -> None:
+    # The small variants sample the gait coarsely (8 frames per cycle): 60 mm in 20 frames.
     scenario = make_scenario(name, frames=20, size=(640, 480), seed=1)
     renderer, poses, _, moving = build_renderer(scenario)
-    frames = [renderer.render(p, seed=50 + i)[0] for i, p in enumerate(poses)]
+    frames, irradiance = [], None
+    for i, p in enumerate(poses):
+        if i == 0 or moving[i]:  # a standing robot sees the same scene: new sensor noise only
+            irradiance = renderer.irradiance(p, seed=50 + i)[0]
+        frames.append(renderer.expose(irradiance, seed=50 + i))
     rings = laser_run(LaserConfig(), scenario.rig, frames)
     res = sfm_run(SfmConfig(), SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
     assert np.all(np.isfinite(res.world_from_rig))
@@ -28,5 +33,7 @@ def test_short_run_trajectory_within_band(name: str) -> None:
     print(name, errs.to_dict())
     assert errs.path_length_mm > 50
     assert errs.ate_rmse_mm < 1.0  # mm over ~60 mm of travel at 640x480
-    assert errs.scale_error < 0.03
+    # Each step's laser scale is good to a few tenths of a mm at 640x480 (2-4 % of a
+    # 12 mm step); full size: 0.4 % over 300 mm (benchmarks/bench_sfm.py, omnipipe demo).
+    assert errs.scale_error < 0.05
     assert errs.rotation_rmse_deg < 0.3

@@ -135,7 +135,8 @@ def run(
     tick = progress("laser", n)
     rings = laser.run(config.laser, rig, (dataset.read_frame(i) for i in range(n)), progress=tick)
     timings["laser"] = time.perf_counter() - t0
-    seen = sum(1 for r in rings.rings if len(r.pixels))
+    # A ring of a handful of samples is noise, not the laser.
+    seen = sum(1 for r in rings.rings if len(r.pixels) >= 20)
     if seen == 0:
         raise ReconstructionError(
             f"no laser ring found in any of the {n} frames (laser channel '{rig.laser.channel}' of rig.yaml)"
@@ -156,7 +157,7 @@ def run(
     if len(reg) == 0:
         raise ReconstructionError("camera motion could not be estimated for any frame")
     # One frame per station feeds the model: a stationary frame repeats its station's ring.
-    kf = np.flatnonzero(motion.registered & motion.keyframe)
+    kf = np.flatnonzero(motion.registered & ~motion.stationary)
 
     # Analysis first: its centreline coordinates unroll the mesh and the texture.
     t0 = time.perf_counter()

@@ -57,7 +57,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict]:
     if args.features is not None:
         out.setdefault("sfm", {})["features"] = {"max_features": args.features}
     if args.keyframe_parallax is not None:
-        out.setdefault("sfm", {})["keyframe_parallax_deg"] = args.keyframe_parallax
+        out.setdefault("sfm", {})["keyframe_min_parallax_deg"] = args.keyframe_parallax
     if args.mesher is not None:
         out.setdefault("model", {})["mesher"] = args.mesher
     return out
@@ -137,7 +137,7 @@ def _demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     dataset_dir, rec_dir = out / "dataset", out / "reconstruction"
     if args.quick:
-        scenario = make_scenario("paper", frames=48, size=(800, 600), seed=args.seed)
+        scenario = make_scenario("paper", frames=150, size=(800, 600), seed=args.seed)
     else:
         scenario = make_scenario("paper", seed=args.seed)
     print(

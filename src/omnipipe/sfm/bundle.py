@@ -65,6 +65,7 @@ class BundleProblem:
         anchor_a, anchor_b: (L,) keyframes where a laser point was measured / found again.
         anchor_points_in_a: (L, 3) the laser points in rig a, mm.
         anchor_pixels_b: (L, 2) their matched pixels in keyframe b.
+        feature_point: per keyframe, (N_k,) the track point of each feature (-1: none).
     """
 
     world_from_rig: np.ndarray
@@ -76,6 +77,7 @@ class BundleProblem:
     anchor_b: np.ndarray
     anchor_points_in_a: np.ndarray
     anchor_pixels_b: np.ndarray
+    feature_point: list[np.ndarray] | None = None
 
 
 @dataclass
@@ -222,7 +224,7 @@ def build_problem(
         tracks = tracks[: config.max_tracks]
     R = world_from_rig[:, :3, :3]
     C = world_from_rig[:, :3, 3]
-    obs_f, obs_p, obs_px, pts = [], [], [], []
+    obs_f, obs_p, obs_px, obs_local, pts = [], [], [], [], []
     cos_min = np.cos(np.radians(config.min_parallax_deg))
     for s, c in tracks:
         idx = order[s : s + c]
@@ -243,6 +245,7 @@ def build_problem(
         if not valid.all() or np.max(np.linalg.norm(px - obs, axis=1)) > config.max_reprojection_px:
             continue
         obs_f.append(f)
+        obs_local.append(li)
         obs_p.append(np.full(len(f), len(pts)))
         obs_px.append(obs)
         pts.append(X)
@@ -254,10 +257,54 @@ def build_problem(
     else:
         aa = ab = np.zeros(0, int)
         aq, apx = np.zeros((0, 3)), np.zeros((0, 2))
+    feature_point = [np.full(len(p), -1) for p in pixels]
+    for f, pid, li in zip(obs_f, obs_p, obs_local, strict=True):
+        for k, j in zip(f, li, strict=True):
+            feature_point[k][j] = pid[0]
     if not pts:
         return BundleProblem(world_from_rig, np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int),
-                             np.zeros((0, 2)), aa, ab, aq, apx)
+                             np.zeros((0, 2)), aa, ab, aq, apx, feature_point)
     return BundleProblem(
         world_from_rig, np.array(pts), np.concatenate(obs_f), np.concatenate(obs_p),
-        np.concatenate(obs_px).astype(float), aa, ab, aq, apx,
+        np.concatenate(obs_px).astype(float), aa, ab, aq, apx, feature_point,
     )
+
+
+def resect_rays(
+    rays_in_rig: np.ndarray, points_in_world: np.ndarray, world_from_rig_init: np.ndarray,
+    max_angle_rad: float = np.radians(2.0),
+) -> np.ndarray:
+    """Pose of a rig whose rays see known world points (omni-directional resection).
+
+    Minimises the robust angle between each ray and the direction to its point, from
+    an initial pose (the nearest keyframe's). Works for rays in every direction.
+
+    Args:
+        rays_in_rig: (M, 3) unit rays of the rig's features.
+        points_in_world: (M, 3) the points they see, mm.
+        world_from_rig_init: (4, 4) start.
+        max_angle_rad: inlier bound of the final check (the soft-L1 scale is a fifth of it).
+
+    Returns:
+        world_from_rig: (4, 4).
+
+    Raises:
+        ReconstructionError: fewer than 6 consistent rays after the fit.
+    """
+    from omnipipe.errors import ReconstructionError
+
+    p0 = _poses_to_params(world_from_rig_init[None])[0]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        R = Rotation.from_rotvec(x[:3]).as_matrix()
+        q = points_in_world @ R.T + x[3:]
+        q /= np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-9)
+        return np.cross(q, rays_in_rig).ravel()  # |sin angle| per axis
+
+    sol = least_squares(residual, p0, loss="soft_l1", f_scale=0.2 * max_angle_rad, x_scale="jac")
+    ang = np.linalg.norm(sol.fun.reshape(-1, 3), axis=1)
+    if np.sum(ang < max_angle_rad) < 6:
+        raise ReconstructionError("resection: fewer than 6 consistent rays")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_rotvec(sol.x[:3]).as_matrix(), sol.x[3:]
+    return invert(T)

@@ -29,6 +29,9 @@ class LaserScaleConfig:
     Attributes:
         patch_radius: the patch has (2 r + 1)^2 samples.
         stripe_half_width_mm: band around the laser stripe left out of the template.
+        stripe_half_width_px: ... and at least this many template samples (about pixels):
+            the stripe's blur and colour crosstalk reach a few pixels whatever the size
+            in mm, and a template holding the stripe would pull matches to zero motion.
         scale_range_mm: (min, max) translation length searched (mm).
         scale_steps: number of log-spaced candidates (then refined).
         min_ncc: a point's match counts when its best NCC exceeds this.
@@ -38,6 +41,7 @@ class LaserScaleConfig:
 
     patch_radius: int = 6
     stripe_half_width_mm: float = 1.2
+    stripe_half_width_px: float = 2.5
     scale_range_mm: tuple[float, float] = (0.2, 200.0)
     scale_steps: int = 96
     min_ncc: float = 0.8
@@ -108,6 +112,7 @@ def match_laser_points(
     b_from_a_rotation: np.ndarray,
     b_from_a_direction: np.ndarray,
     config: LaserScaleConfig | None = None,
+    laser_plane_in_rig: tuple[np.ndarray, float] | None = None,
 ) -> LaserMatches:
     """Find frame a's laser points in frame b along the epipolar curve; Eq. (17) scale.
 
@@ -118,6 +123,10 @@ def match_laser_points(
         b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
         b_from_a_direction: (3,) unit translation direction of rig_b_from_rig_a:
             p_b = R p_a + s d for the unknown length s (mm).
+        laser_plane_in_rig: (unit normal, offset) of the laser plane n.p + o = 0; where
+            given, frame b's own stripe is left out of its patches too (else, at the true
+            length, b's stripe sits inside the patch, absent from the template, and biases
+            the match towards shorter translations).
 
     Returns:
         The matches and the combined scale (translation length, mm).
@@ -155,9 +164,8 @@ def match_laser_points(
     template = np.where(valid, _sample(gray_a, np.nan_to_num(px, nan=-10.0)), np.nan).reshape(
         len(P), K
     )
-    weight = (np.abs(gv)[None, :] * step[:, None] > cfg.stripe_half_width_mm).astype(
-        float
-    )  # stripe masked
+    half = np.maximum(cfg.stripe_half_width_mm / step, cfg.stripe_half_width_px)
+    weight = (np.abs(gv)[None, :] > half[:, None]).astype(float)  # stripe masked
     # Candidate translation lengths: log-spaced, then a finer pass around each best.
     s_lo, s_hi = cfg.scale_range_mm
     R = np.asarray(b_from_a_rotation, float)
@@ -167,6 +175,10 @@ def match_laser_points(
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
         pts_b = plane_b0[:, None, :, :] + scales[:, :, None, None] * d  # (N, S, K, 3)
         pix, ok = camera.project(pts_b.reshape(-1, 3))
+        if laser_plane_in_rig is not None:
+            n_l, o_l = laser_plane_in_rig
+            h = np.abs(pts_b @ n_l + o_l)  # (N, S, K) mm from b's laser plane
+            ok &= (h > (half * step)[:, None, None]).ravel()
         vals = np.where(ok, _sample(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
         patches = vals.reshape(len(P), scales.shape[1], K)
         return _ncc(template, patches, weight)

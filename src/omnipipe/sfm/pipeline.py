@@ -28,7 +28,7 @@ from omnipipe.camera import OmniCamera
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
 from omnipipe.rig import Rig
-from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust
+from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
 from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
@@ -52,6 +52,11 @@ class SfmConfig:
         rotation_only_ratio: a step is a pure rotation when the rotation-only model
             explains at least this fraction of the essential-matrix inliers.
         seed: random seed (RANSAC).
+        keyframe_min_parallax_deg: a moving frame becomes a keyframe when its matched rays
+            turned at least this much (median, rotation removed) since the last keyframe;
+            closer frames are resected against the adjusted tracks instead (short
+            baselines give poor translation directions and laser scales).
+        bundle: bundle adjustment settings.
     """
 
     stations: StationConfig = field(default_factory=StationConfig)
@@ -62,6 +67,7 @@ class SfmConfig:
     min_inliers: int = 15
     rotation_only_ratio: float = 0.9
     seed: int = 0
+    keyframe_min_parallax_deg: float = 4.0
     bundle: BundleConfig = field(default_factory=BundleConfig)
 
 
@@ -89,7 +95,8 @@ class SfmResult:
     Attributes:
         world_from_rig: (N, 4, 4) metric poses; world = rig frame of frame 0.
         registered: (N,) True where the pose is valid.
-        keyframe: (N,) True for the keyframes (one per station).
+        keyframe: (N,) True for the keyframes (bundle-adjusted; a subset of the stations'
+            first frames, the others are resected).
         stationary: (N,) True for frames that share the previous frame's station.
         station: (N,) station index of each frame.
         step_scale_mm: (K-1,) translation length between consecutive keyframes (mm).
@@ -153,12 +160,17 @@ def run(
         seed=config.seed,
     )
     moved = np.zeros(n, bool)
+    is_kf = np.zeros(n, bool)
     world_from_kf: list[np.ndarray] = []
+    kf_frames: list[int] = []
     scales: list[float] = []
     prev = None  # (frame index, features, grey)
     kf_features = []
     pair_matches: list[tuple[int, int, np.ndarray]] = []
     anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+    # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
+    pending: list[tuple[int, int, object, np.ndarray | None]] = []
+    min_parallax = math.radians(config.keyframe_min_parallax_deg)
     for i in range(n):
         img = inputs.read_frame(i)
         gray = _gray(img, rig.laser.channel)
@@ -169,18 +181,16 @@ def run(
                 world_from_kf.append(np.eye(4))
             else:
                 a, fa, ga = prev
+                m = match_features(fa, feats, config.features.ratio)
+                motion = _relative(a, i, fa, feats, m, ransac, warnings)
+                if motion is not None and _parallax(fa, feats, m, motion) < min_parallax and i < n - 1:
+                    # Too little baseline for a reliable step: resected after the adjustment.
+                    pending.append((i, len(kf_features) - 1, feats, m[motion.inliers]))
+                    if progress:
+                        progress(i + 1)
+                    continue
                 b_from_a, scale, inl, lm = _step(
-                    a,
-                    i,
-                    fa,
-                    feats,
-                    ga,
-                    gray,
-                    camera,
-                    rings[a].points_in_rig,
-                    ransac,
-                    config,
-                    warnings,
+                    a, i, ga, gray, camera, rings[a].points_in_rig, m, motion, config, warnings
                 )
                 if scales and not math.isfinite(scale):
                     scale = scales[-1]
@@ -197,11 +207,15 @@ def run(
                 if lm is not None and len(lm.index):
                     anchors.append((ka, kb, rings[a].points_in_rig[lm.index], lm.pixels_b))
             kf_features.append(feats)
+            kf_frames.append(i)
+            is_kf[i] = True
             prev = (i, feats, gray)
         if progress:
             progress(i + 1)
     world_from_kf_arr = np.array(world_from_kf)
     bundle_stats = None
+    feature_point: list[np.ndarray] | None = None
+    track_points = None
     if config.bundle.enabled and len(world_from_kf_arr) >= 3:
         problem = build_problem(
             camera, world_from_kf_arr, [f.pixels for f in kf_features], [f.rays_in_rig for f in kf_features],
@@ -211,14 +225,24 @@ def run(
             ba = bundle_adjust(camera, problem, config.bundle)
             world_from_kf_arr = ba.world_from_rig
             bundle_stats = ba
+            feature_point, track_points = problem.feature_point, ba.points_in_world
         else:
             warnings.append("bundle adjustment skipped: too few feature tracks or laser anchors")
+    # Every station gets a pose: keyframes from the adjustment, the others by resection.
     station = np.cumsum(moved) - 1
-    world_from_rig = world_from_kf_arr[station]
+    first = np.flatnonzero(moved)
+    world_from_station = np.empty((len(first), 4, 4))
+    kf_of = {f: k for k, f in enumerate(kf_frames)}
+    resected = {}
+    for i, k, feats, inl in pending:
+        resected[i] = _resect(i, k, feats, inl, world_from_kf_arr, feature_point, track_points, warnings)
+    for s_idx, f in enumerate(first):
+        world_from_station[s_idx] = world_from_kf_arr[kf_of[f]] if f in kf_of else resected[f]
+    world_from_rig = world_from_station[station]
     return SfmResult(
         world_from_rig=world_from_rig,
         registered=np.ones(n, bool),
-        keyframe=moved.copy(),
+        keyframe=is_kf,
         stationary=~moved,
         station=station,
         step_scale_mm=np.array(scales),
@@ -227,16 +251,44 @@ def run(
     )
 
 
-def _step(
-    a, b, fa, fb, ga, gb, camera, laser_points_a, ransac, config, warnings
-) -> tuple[np.ndarray, float]:
-    """rig_b_from_rig_a, the metric length of its translation, the inlier matches (M, 2)
-    and the laser matches (None where not available)."""
-    m = match_features(fa, fb, config.features.ratio)
+def _relative(a, b, fa, fb, m, ransac, warnings):
+    """Relative motion of frame b from keyframe a on matched rays, or None."""
     try:
-        motion = estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ransac)
+        return estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ransac)
     except ReconstructionError as exc:
         warnings.append(f"frames {a}->{b}: {exc}; pose kept from frame {a}")
+        return None
+
+
+def _parallax(fa, fb, m, motion) -> float:
+    """Median angle (rad) between matched rays once the rotation is removed."""
+    inl = m[motion.inliers]
+    if len(inl) == 0:
+        return 0.0
+    R = motion.rig2_from_rig1[:3, :3]
+    ra = fa.rays_in_rig[inl[:, 0]] @ R.T
+    rb = fb.rays_in_rig[inl[:, 1]]
+    return float(np.median(np.arccos(np.clip(np.sum(ra * rb, axis=1), -1.0, 1.0))))
+
+
+def _resect(i, k, feats, inl, world_from_kf, feature_point, track_points, warnings) -> np.ndarray:
+    """Pose of a non-keyframe from its matches to keyframe k's triangulated tracks."""
+    if feature_point is not None and inl is not None and len(inl):
+        pid = feature_point[k][inl[:, 0]]
+        ok = pid >= 0
+        if ok.sum() >= 12:
+            try:
+                return resect_rays(feats.rays_in_rig[inl[ok, 1]], track_points[pid[ok]], world_from_kf[k])
+            except ReconstructionError as exc:
+                warnings.append(f"frame {i}: {exc}")
+    warnings.append(f"frame {i}: too few tracked points to resect; pose of its keyframe used")
+    return world_from_kf[k].copy()
+
+
+def _step(a, b, ga, gb, camera, laser_points_a, m, motion, config, warnings, laser_plane=None):
+    """rig_b_from_rig_a, the metric length of its translation (Eq. 17), the inlier
+    matches (M, 2) and the laser matches (None where not available)."""
+    if motion is None:
         return np.eye(4), 0.0, None, None
     inl = m[motion.inliers]
     if not motion.translation_reliable:
@@ -244,6 +296,7 @@ def _step(
         return motion.rig2_from_rig1.copy(), 0.0, inl, None
     b_from_a = motion.rig2_from_rig1.copy()
     lm = match_laser_points(
-        ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale
+        ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale,
+        laser_plane_in_rig=laser_plane,
     )
     return b_from_a, lm.scale, inl, lm
