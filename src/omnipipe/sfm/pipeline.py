@@ -3,17 +3,18 @@
 1. Stations: frames taken while the earthworm robot stood still are found from the
    images (:mod:`omnipipe.sfm.stations`); each stop is one station, its frames share
    one pose and are flagged ``stationary``.
-2. Keyframes: the first frame of each station. SIFT features on perspective views
-   (:mod:`omnipipe.sfm.features`) are matched between consecutive keyframes
-   (and a few further back, for longer tracks).
+2. Keyframes: SIFT features on perspective views (:mod:`omnipipe.sfm.features`) of
+   each station's first frame are matched with the last keyframe; the station becomes
+   a keyframe once the rays turned ``keyframe_min_parallax_deg`` (rotation removed).
 3. Relative motion: eight-point algorithm on ray vectors with RANSAC (Eq. 10-16);
    near-pure rotations are recognised and keep a zero translation.
 4. Scale: the laser points of the earlier keyframe are found again in the later one
    by template matching along the epipolar curve (Sec. V-D, Eq. 17), which makes
    each step metric.
-5. Bundle adjustment over all keyframes: reprojection errors of the feature tracks in
-   pixels through the hyperboloid model, plus the laser points' matches as metric
-   anchors, which keep the scale from drifting.
+5. Bundle adjustment over all keyframes (:mod:`omnipipe.sfm.bundle`): reprojection
+   errors of the feature tracks in pixels through the hyperboloid model, plus the
+   laser points' matches as metric anchors, which keep the scale from drifting.
+6. The stations that are not keyframes are resected against the adjusted tracks.
 """
 
 from __future__ import annotations
