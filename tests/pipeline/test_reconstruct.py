@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -42,7 +43,17 @@ def test_existing_output_is_refused(reconstruction: Path, small_dataset: Path, c
 
 @pytest.mark.parametrize(
     ("damage", "message"),
-    [("no_rig", "rig.yaml"), ("bad_field", "mirror.b"), ("corrupt", "000004.png"), ("no_laser", "no laser ring")],
+    [
+        ("no_rig", "rig.yaml"),
+        ("no_frames", "frames"),
+        ("empty", "rig.yaml"),
+        ("bad_field", "mirror.b"),
+        ("missing_field", "camera.f"),
+        ("corrupt", "000004.png"),
+        ("truncated", "000007.png"),
+        ("other_size", "000009.png"),
+        ("no_laser", "no laser ring"),
+    ],
 )
 def test_bad_input_one_line_and_nothing_written(small_dataset: Path, tmp_path: Path, capsys, damage, message) -> None:
     ds = tmp_path / "ds"
@@ -51,6 +62,21 @@ def test_bad_input_one_line_and_nothing_written(small_dataset: Path, tmp_path: P
         (ds / "rig.yaml").unlink()
     elif damage == "bad_field":
         (ds / "rig.yaml").write_text((ds / "rig.yaml").read_text().replace("b: 32.49", "b: 0"))
+    elif damage == "no_frames":
+        shutil.rmtree(ds / "frames")
+    elif damage == "empty":
+        shutil.rmtree(ds)
+        ds.mkdir()
+    elif damage == "missing_field":
+        text = (ds / "rig.yaml").read_text()
+        (ds / "rig.yaml").write_text(re.sub(r"\bf: [0-9.]+,\s*", "", text))
+    elif damage == "truncated":
+        data = (ds / "frames" / "000007.png").read_bytes()
+        (ds / "frames" / "000007.png").write_bytes(data[: len(data) // 2])
+    elif damage == "other_size":
+        from PIL import Image
+
+        Image.new("RGB", (200, 150)).save(ds / "frames" / "000009.png")
     elif damage == "corrupt":
         (ds / "frames" / "000004.png").write_bytes(b"\x89PNG garbage")
     elif damage == "no_laser":
