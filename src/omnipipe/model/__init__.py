@@ -16,7 +16,7 @@ longer than the spacing of the rings are dropped: holes stay holes.
 Texture (:mod:`.texture`): the unrolled wall image, each cell from the keyframe
 that sees it best; it is also the texture atlas of the textured model (GLB).
 
-Not here: the edge-flip optimisation of [25] (see the project's issue tracker).
+Then the edge flips of [25] towards photo-consistency (:mod:`.flips`).
 """
 
 from __future__ import annotations
@@ -47,6 +47,8 @@ class ModelConfig:
         texture: build the unrolled image, texture and GLB.
         texture_mm_per_px: unrolled image cell size (mm).
         laser_band_mm: texture is not taken within this distance of the laser plane.
+        flips: edge-flip optimisation of [25] (:mod:`.flips`).
+        flip_passes: its rounds.
     """
 
     mesher: str = "unrolled-delaunay"
@@ -55,6 +57,8 @@ class ModelConfig:
     texture: bool = True
     texture_mm_per_px: float = 0.5
     laser_band_mm: float = 3.0
+    flips: bool = True
+    flip_passes: int = 3
 
     def __post_init__(self) -> None:
         if self.mesher != "unrolled-delaunay":
@@ -105,6 +109,7 @@ class ModelResult:
             of triangles across angle 0 duplicated (their UVs differ); UVs v-up in [0, 1].
         texture: (H, W', 3) uint8 atlas: the unrolled image plus a wrapped margin.
         unrolled: the unrolled wall image (:class:`~omnipipe.model.texture.UnrolledImage`).
+        flip_stats: what the edge flips did (:class:`~omnipipe.model.flips.FlipStats`).
     """
 
     points_in_world: np.ndarray
@@ -117,6 +122,7 @@ class ModelResult:
     textured_uvs: np.ndarray | None = None
     texture: np.ndarray | None = None
     unrolled: UnrolledImage | None = None
+    flip_stats: object = None
 
 
 def integrate(
@@ -261,7 +267,17 @@ def run(
     else:
         arc, axial, circ = unrolled_coordinates(points, inputs.world_from_rig)
     faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor)
-    result = ModelResult(points, colours, frame, points, faces)
+    flip_stats = None
+    if config.flips and len(faces):
+        from omnipipe.dataset import gray_without_laser
+        from omnipipe.model.flips import optimise_flips
+
+        channel = inputs.camera_rig.laser.channel
+        faces, flip_stats = optimise_flips(
+            faces, points, np.column_stack([arc, axial]), circ, camera, inputs.world_from_rig,
+            lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
+        )
+    result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if config.texture and len(faces):
         # Holes stay holes: cells farther from the points than a typical triangle edge.
         p = points[faces]

@@ -57,6 +57,22 @@ class UnrolledImage:
         return (0.0, 360.0, self.axial_min_mm, self.axial_min_mm + h * self.mm_per_px)
 
 
+def sample_bilinear(image: np.ndarray, pixels: np.ndarray, border: int = cv2.BORDER_CONSTANT) -> np.ndarray:
+    """Bilinear samples of ``image`` at (N, 2) pixels (col, row): (N,) or (N, C).
+
+    cv2.remap wants maps under 32767 px a side: the list is folded into rows of 4096.
+    Outside the image: NaN for float images with the constant border, else the border rule.
+    """
+    n = len(pixels)
+    rows = max(-(-n // 4096), 1)
+    m = np.full((rows * 4096, 2), -1.0, np.float32)
+    m[:n] = pixels
+    m = m.reshape(rows, 4096, 2)
+    fill = np.nan if image.dtype.kind == "f" else 0
+    out = cv2.remap(image, m[..., 0].copy(), m[..., 1].copy(), cv2.INTER_LINEAR, borderMode=border, borderValue=fill)
+    return out.reshape(rows * 4096, -1)[:n].squeeze(-1) if out.ndim == 2 else out.reshape(-1, out.shape[-1])[:n]
+
+
 def wall_points_on_grid(
     arc_mm: np.ndarray,
     axial_mm: np.ndarray,
@@ -147,14 +163,7 @@ def unrolled_image(
             img = np.repeat(img[:, :, None], 3, axis=2)
         if img.dtype == np.uint16:
             img = (img // 257).astype(np.uint8)
-        # remap wants maps under 32767 px a side: fold the list into rows of 4096.
-        n = len(sel)
-        rows = -(-n // 4096)
-        m = np.zeros((rows * 4096, 2), np.float32)
-        m[:n] = best_px[sel]
-        m = m.reshape(rows, 4096, 2)
-        c = cv2.remap(img, m[..., 0].copy(), m[..., 1].copy(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        image[idx[sel]] = c.reshape(-1, 3)[:n]
+        image[idx[sel]] = sample_bilinear(img, best_px[sel], border=cv2.BORDER_REPLICATE)
         if progress:
             progress(int(k) + 1)
     source = np.full(h * w, -1)

@@ -216,6 +216,13 @@ def run(
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "warnings": warnings,
         "stationary_frames": int(np.sum(motion.stationary)),
+        "mesh": {
+            "vertices": int(len(mdl.mesh_vertices)),
+            "faces": int(len(mdl.mesh_faces)),
+            "flips_per_pass": [] if mdl.flip_stats is None else mdl.flip_stats.flips,
+            "photo_inconsistency_before": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_before, 3),
+            "photo_inconsistency_after": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_after, 3),
+        },
         "keyframes": int(np.sum(motion.keyframe)),
     }
     return Reconstruction(

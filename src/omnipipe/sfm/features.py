@@ -17,8 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from omnipipe.camera import OmniCamera, PerspectiveView
-
-_CHANNELS = {"red": 0, "green": 1, "blue": 2}
+from omnipipe.dataset import gray_without_laser
 
 
 @dataclass(frozen=True)
@@ -142,17 +141,10 @@ class FeatureExtractor:
 
 def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
     """8-bit grey image without the laser's channel."""
-    if image.ndim == 2:
-        g = image
-    elif laser_channel == "red":
-        g = image[..., 1]
-    else:
-        idx = _CHANNELS.get(laser_channel)
-        others = [c for c in range(3) if c != idx] if idx is not None else [0, 1, 2]
-        g = image[..., others].mean(axis=2)
-    if g.dtype != np.uint8:
-        g = cv2.normalize(g.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    return np.ascontiguousarray(g)
+    g = gray_without_laser(image, laser_channel)
+    if image.dtype != np.uint8:
+        g = cv2.normalize(g, None, 0, 255, cv2.NORM_MINMAX)
+    return np.ascontiguousarray(g.astype(np.uint8))
 
 
 def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> np.ndarray:

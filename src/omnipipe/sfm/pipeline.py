@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omnipipe.camera import OmniCamera
+from omnipipe.dataset import gray_without_laser
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
 from omnipipe.rig import Rig
@@ -34,8 +35,6 @@ from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_feature
 from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
 from omnipipe.sfm.stations import StationConfig, StationTracker
-
-_CHANNELS = {"red": 0, "green": 1, "blue": 2}
 
 
 @dataclass(frozen=True)
@@ -114,18 +113,6 @@ class SfmResult:
     bundle: object = None
 
 
-def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
-    """Grey image without the laser's channel (float32)."""
-    if image.ndim == 2:
-        return image.astype(np.float32)
-    idx = _CHANNELS.get(laser_channel)
-    others = [c for c in range(3) if c != idx] if idx is not None else [0, 1, 2]
-    # Green alone has the best signal for a red laser; average the others otherwise.
-    if idx == 0:
-        return image[..., 1].astype(np.float32)
-    return image[..., others].astype(np.float32).mean(axis=2)
-
-
 def run(
     config: SfmConfig, inputs: SfmInputs, progress: Callable[[int], None] | None = None
 ) -> SfmResult:
@@ -174,7 +161,7 @@ def run(
     min_parallax = math.radians(config.keyframe_min_parallax_deg)
     for i in range(n):
         img = inputs.read_frame(i)
-        gray = _gray(img, rig.laser.channel)
+        gray = gray_without_laser(img, rig.laser.channel)
         moved[i], _ = tracker.update(gray)
         if moved[i]:
             feats = extractor.extract(img, rig.laser.channel, rings[i].pixels)
