@@ -47,7 +47,9 @@ class ModelConfig:
         texture: build the unrolled image, texture and GLB.
         texture_mm_per_px: unrolled image cell size (mm).
         laser_band_mm: texture is not taken within this distance of the laser plane.
-        flips: edge-flip optimisation of [25] (:mod:`.flips`).
+        flips: edge-flip optimisation of [25] (:mod:`.flips`); off by default: on the
+            simulated pipes it did not reduce the mesh's error against the true wall
+            (docs/pipeline.md).
         flip_passes: its rounds.
     """
 
@@ -57,7 +59,7 @@ class ModelConfig:
     texture: bool = True
     texture_mm_per_px: float = 0.5
     laser_band_mm: float = 3.0
-    flips: bool = True
+    flips: bool = False
     flip_passes: int = 3
 
     def __post_init__(self) -> None:

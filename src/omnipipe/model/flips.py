@@ -131,6 +131,11 @@ def optimise_flips(
         pa, pb, pc, pd = (_local(unrolled_mm, v, a, circumference_mm) for v in (a, b, c, d))
         # c and d on opposite sides of ab, a and b on opposite sides of cd: convex.
         convex = (_cross2(pa, pb, pc) * _cross2(pa, pb, pd) < 0) & (_cross2(pc, pd, pa) * _cross2(pc, pd, pb) < 0)
+        # The new diagonal may not be longer than the quad's longest side (no slivers
+        # reaching across rings).
+        P = points_in_world
+        side = np.max(np.stack([np.linalg.norm(P[x] - P[y], axis=1) for x, y in ((a, c), (c, b), (b, d), (d, a))]), axis=0)
+        convex &= np.linalg.norm(P[c] - P[d], axis=1) <= side
         better = convex & np.isfinite(cost_now) & np.isfinite(cost_alt) & (cost_alt < (1 - min_gain) * cost_now)
         # Independent flips: no two chosen edges share a face (greedy by gain).
         cand = np.flatnonzero(better)

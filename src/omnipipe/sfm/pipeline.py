@@ -33,6 +33,7 @@ from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
 from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
+from omnipipe.sfm.planes import PlaneRefineConfig, refine_matches
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
 from omnipipe.sfm.stations import StationConfig, StationTracker
 
@@ -56,6 +57,8 @@ class SfmConfig:
             turned at least this much (median, rotation removed) since the last keyframe;
             closer frames are resected against the adjusted tracks instead (short
             baselines give poor translation directions and laser scales).
+        planes: the paper's projection-plane refinement of correspondences (off by
+            default: see docs/pipeline.md for the measured comparison).
         bundle: bundle adjustment settings.
     """
 
@@ -68,6 +71,7 @@ class SfmConfig:
     rotation_only_ratio: float = 0.9
     seed: int = 0
     keyframe_min_parallax_deg: float = 4.0
+    planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
 
 
@@ -177,6 +181,8 @@ def run(
                     if progress:
                         progress(i + 1)
                     continue
+                if config.planes.enabled and motion is not None and motion.translation_reliable:
+                    motion = _refine(ga, gray, camera, fa, feats, m, motion, ransac, config, warnings, a, i)
                 b_from_a, scale, inl, lm = _step(
                     a, i, ga, gray, camera, rings[a].points_in_rig, m, motion, config, warnings
                 )
@@ -246,6 +252,18 @@ def _relative(a, b, fa, fb, m, ransac, warnings):
     except ReconstructionError as exc:
         warnings.append(f"frames {a}->{b}: {exc}; pose kept from frame {a}")
         return None
+
+
+def _refine(ga, gb, camera, fa, fb, m, motion, ransac, config, warnings, a, b):
+    """Paper Sec. V-A: refine frame b's matched rays on projection planes, re-estimate."""
+    inl = m[motion.inliers]
+    refined = refine_matches(
+        ga, gb, camera, fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], motion.rig2_from_rig1, config.planes
+    )
+    fb.rays_in_rig[inl[:, 1]] = refined
+    fb.pixels[inl[:, 1]] = camera.project(refined)[0]
+    again = _relative(a, b, fa, fb, m, ransac, warnings)
+    return again if again is not None else motion
 
 
 def _parallax(fa, fb, m, motion) -> float:
