@@ -126,3 +126,32 @@ def test_defect_on_a_deviation_map_across_the_seam(centre_deg: float) -> None:
     assert abs(d["width_mm"] - 18.0) < 1.0  # |du| <= 9 where min(2 profile, ...) >= 1
     assert abs(d["length_mm"] - 45.0) < 3.0
     assert abs((d["angle_deg"] - centre_deg + 180) % 360 - 180) < 0.5
+
+
+def test_oblique_rings_in_a_bend_stay_round() -> None:
+    """Real rings are cut by the laser plane of a rig 82 mm further on: oblique in a bend.
+
+    The stations' diameter and ovality must describe the pipe (round, 160 mm), not the
+    ellipse the oblique plane cuts from it.
+    """
+    pipe = make_scenario("bend").pipe
+    rng = np.random.default_rng(1)
+    sig_o = 180 + 6.0 * np.arange(50)
+    phi = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    centre, normal, binormal, tangent = pipe.frame_at(sig_o)
+    pts, frame, poses = [], [], []
+    for k in range(len(sig_o)):
+        c0 = centre[k] - 82 * tangent[k]  # the laser plane, orthogonal to the rig axis
+        d = np.cos(phi)[:, None] * normal[k] + np.sin(phi)[:, None] * binormal[k]
+        rho = np.full(len(phi), pipe.radius_mm)
+        for _ in range(6):  # where the plane meets the wall
+            s, r, th, *_ = pipe.pipe_coordinates(c0 + rho[:, None] * d)
+            rho += pipe.wall_radius(s, th) - r
+        pts.append(c0 + (rho + rng.normal(0, 0.1, len(phi)))[:, None] * d)
+        frame.append(np.full(len(phi), k))
+        poses.append(make_transform(np.stack([normal[k], binormal[k], tangent[k]], axis=1), centre[k]))
+    res = run(AnalysisConfig(), AnalysisInputs(np.concatenate(pts), np.concatenate(frame), np.array(poses)))
+    assert abs(res.inner_diameter_mm - 160.0) < 0.1
+    assert np.nanmax(res.stations_ovality) < 0.004  # the oblique section itself: 0.8 %
+    assert np.all(np.abs(res.stations_diameter_mm - 160.0) < 0.3)
+    assert sorted(d["kind"] for d in res.defects) == ["bulge", "dent"]

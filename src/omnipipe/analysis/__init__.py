@@ -33,8 +33,9 @@ class AnalysisConfig:
     """Analysis settings.
 
     Attributes:
-        window_mm: axial length of the piecewise cylinder fits; None: the pipe's
-            measured diameter (short enough to follow bends of radius >= 3 D).
+        window_mm: axial length of the piecewise cylinder fits; None: a quarter of the
+            pipe's diameter, at least three ring spacings (follows bends: the oblique
+            rings of a bend stay round to 0.2 % at bend radius 4 D).
         straight_tolerance_mm: station centres within this of one line: a straight
             pipe, measured by one cylinder over the whole run.
         loss_scale_mm: soft-L1 scale of the robust fits (about 3 x the point noise).
@@ -134,7 +135,14 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
     if len(sample) < 12:
         raise ReconstructionError(f"only {len(pts)} laser points in total: cannot fit the pipe")
     rough = fit_cylinder(sample, np.mean(axis_guess, axis=0), loss_scale_mm=config.loss_scale_mm)
-    window = config.window_mm or rough.diameter_mm
+    if config.window_mm:
+        window = config.window_mm
+    else:
+        # A quarter diameter follows bends (a chord's sagitta there is L^2 / 8 R_bend), but
+        # never fewer than about three rings.
+        cents = np.array([r.mean(axis=0) for r in rings if len(r) >= 12])
+        spacing = float(np.median(np.linalg.norm(np.diff(cents, axis=0), axis=1))) if len(cents) > 1 else 0.0
+        window = max(0.25 * rough.diameter_mm, 3.0 * spacing)
     line = fit_centreline(
         rings,
         axis_guess,

@@ -128,6 +128,9 @@ def fit_centreline(
         radii.append(cyl.radius_mm)
     centre = np.array(centres)
     tangent = np.array(tangents)
+    # In a bend a window's cylinder axis is a chord; the tangent at a station is better
+    # the direction of the station centres around it (a short line fit).
+    tangent = _local_tangents(centre, tangent, 0.25 * window_mm)
     # Arc length through the centres, each step measured along the mean tangent.
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.linalg.norm(tangent[1:] + tangent[:-1], axis=1)
@@ -162,3 +165,19 @@ def fit_centreline(
         np.array(radii)[pick],
         [cylinders[i] for i in pick],
     )
+
+
+def _local_tangents(centre: np.ndarray, fallback: np.ndarray, half_span_mm: float) -> np.ndarray:
+    """(K, 3) unit directions of the centres within ``half_span_mm`` of each station."""
+    out = fallback.copy()
+    for i in range(len(centre)):
+        near = np.linalg.norm(centre - centre[i], axis=1) <= half_span_mm
+        if near.sum() < 3:
+            continue
+        c = centre[near] - centre[near].mean(axis=0)
+        _, sv, vt = np.linalg.svd(c, full_matrices=False)
+        if sv[0] < 1e-6 or (len(sv) > 1 and sv[1] > 0.5 * sv[0]):
+            continue  # no clear direction: the stations are too close together
+        d = vt[0] if vt[0] @ fallback[i] > 0 else -vt[0]
+        out[i] = d
+    return out
