@@ -281,9 +281,11 @@ def run(
         )
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if config.texture and len(faces):
-        # Holes stay holes: cells farther from the points than a typical triangle edge.
+        # Holes stay holes: a cell counts as wall when it is no farther from a point than
+        # the inside of the largest kept triangle (0.6 x its longest edge).
         p = points[faces]
-        gap = 1.5 * float(np.median(np.linalg.norm(p[:, 0] - p[:, 1], axis=1)))
+        longest = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
+        gap = 0.6 * float(longest.max())
         grid, z0 = wall_points_on_grid(
             arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0)
         )

@@ -9,9 +9,10 @@ the keyframe that sees it best:
 * visible: the point projects into the valid image (mirror rim, blind centre);
 * not in the laser light: farther than ``laser_band_mm`` from the laser plane
   (there the red laser dominates the LED-lit colour);
-* sharpest and nearest: the largest image footprint in pixels per millimetre of
+* sharpest and brightest: the largest image footprint in pixels per millimetre of
   wall (a near, frontal view covers more pixels), from the camera model's
-  projection of two small steps on the wall.
+  projection of two small steps on the wall, over the squared distance (the LEDs'
+  light falls with it, and with it the signal to noise).
 
 The image is also the mesh's texture atlas: a vertex's UV is its unrolled position.
 """
@@ -151,7 +152,10 @@ def unrolled_image(
         px_z, _ = camera.project(q + step_z @ rig_from_world[:3, :3].T)
         a, b = px_u - px, px_z - px
         # Pixels per cell area, over the cell area in mm^2: the footprint's scale.
-        score = np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])) / mm_per_px
+        # Sharpness (pixels per mm of wall) times the LEDs' inverse-square light: the
+        # near view is both finer and brighter.
+        dist2 = np.maximum(np.sum(q * q, axis=1), 1e-6)
+        score = np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])) / mm_per_px / dist2
         score = np.where(valid & np.isfinite(score), score, 0.0)
         better = score > best_score
         best[better], best_score[better], best_px[better] = k, score[better], px[better]

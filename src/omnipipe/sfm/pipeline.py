@@ -57,6 +57,8 @@ class SfmConfig:
             turned at least this much (median, rotation removed) since the last keyframe;
             closer frames are resected against the adjusted tracks instead (short
             baselines give poor translation directions and laser scales).
+        anchor_reach: laser points are also matched up to this many keyframes ahead for
+            the bundle adjustment (1: consecutive keyframes only).
         planes: the paper's projection-plane refinement of correspondences (off by
             default: see docs/pipeline.md for the measured comparison).
         bundle: bundle adjustment settings.
@@ -71,6 +73,7 @@ class SfmConfig:
     rotation_only_ratio: float = 0.9
     seed: int = 0
     keyframe_min_parallax_deg: float = 4.0
+    anchor_reach: int = 1
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
 
@@ -158,6 +161,7 @@ def run(
     scales: list[float] = []
     prev = None  # (frame index, features, grey)
     kf_features = []
+    kf_gray: list[np.ndarray] = []
     pair_matches: list[tuple[int, int, np.ndarray]] = []
     anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
@@ -201,6 +205,7 @@ def run(
                 if lm is not None and len(lm.index):
                     anchors.append((ka, kb, rings[a].points_in_rig[lm.index], lm.pixels_b))
             kf_features.append(feats)
+            kf_gray.append(np.clip(gray, 0, 65535).astype(np.uint16))
             kf_frames.append(i)
             is_kf[i] = True
             prev = (i, feats, gray)
@@ -217,6 +222,14 @@ def run(
         )
         if len(problem.points_in_world) >= 10 and len(problem.anchor_a):
             ba = bundle_adjust(camera, problem, config.bundle)
+            if config.anchor_reach > 1:
+                # Longer baselines measure the scale better: laser points of keyframe k are
+                # also found in k + 2 ... k + reach with the adjusted motion, then adjust again.
+                extra = _far_anchors(camera, ba.world_from_rig, kf_gray, [rings[f] for f in kf_frames], config)
+                if extra:
+                    problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
+                    _append_anchors(problem, extra)
+                    ba = bundle_adjust(camera, problem, config.bundle)
             world_from_kf_arr = ba.world_from_rig
             bundle_stats = ba
             feature_point, track_points = problem.feature_point, ba.points_in_world
@@ -252,6 +265,34 @@ def _relative(a, b, fa, fb, m, ransac, warnings):
     except ReconstructionError as exc:
         warnings.append(f"frames {a}->{b}: {exc}; pose kept from frame {a}")
         return None
+
+
+def _far_anchors(camera, world_from_kf, grays, rings, config) -> list:
+    """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative poses)."""
+    out = []
+    for a in range(len(world_from_kf)):
+        pts = rings[a].points_in_rig
+        if len(pts) == 0:
+            continue
+        for b in range(a + 2, min(a + config.anchor_reach, len(world_from_kf) - 1) + 1):
+            b_from_a = invert(world_from_kf[b]) @ world_from_kf[a]
+            length = float(np.linalg.norm(b_from_a[:3, 3]))
+            if length < 1e-6:
+                continue
+            lm = match_laser_points(
+                grays[a].astype(np.float32), grays[b].astype(np.float32), camera, pts,
+                b_from_a[:3, :3], b_from_a[:3, 3] / length, config.laser_scale,
+            )
+            if len(lm.index):
+                out.append((a, b, pts[lm.index], lm.pixels_b))
+    return out
+
+
+def _append_anchors(problem, extra) -> None:
+    problem.anchor_a = np.concatenate([problem.anchor_a] + [np.full(len(q), a) for a, _, q, _ in extra])
+    problem.anchor_b = np.concatenate([problem.anchor_b] + [np.full(len(q), b) for _, b, q, _ in extra])
+    problem.anchor_points_in_a = np.concatenate([problem.anchor_points_in_a] + [q for *_, q, _ in extra])
+    problem.anchor_pixels_b = np.concatenate([problem.anchor_pixels_b] + [p for *_, p in extra])
 
 
 def _refine(ga, gb, camera, fa, fb, m, motion, ransac, config, warnings, a, b):
