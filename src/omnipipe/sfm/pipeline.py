@@ -73,7 +73,7 @@ class SfmConfig:
     rotation_only_ratio: float = 0.9
     seed: int = 0
     keyframe_min_parallax_deg: float = 4.0
-    anchor_reach: int = 1
+    anchor_reach: int = 3
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
 
