@@ -5,14 +5,18 @@ I/O lives here, at the edge: stages receive arrays and data classes.
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from omnipipe.errors import DatasetError
+from omnipipe.errors import DatasetError, OutputError
 from omnipipe.geometry import transform_from_tum, tum_from_transform
 from omnipipe.rig import Rig, load_rig
 
@@ -282,3 +286,33 @@ def gray_without_laser(image: np.ndarray, laser_channel: str) -> np.ndarray:
         return image[..., 1].astype(np.float32)
     others = [c for c in range(3) if c != idx] if idx is not None else [0, 1, 2]
     return image[..., others].astype(np.float32).mean(axis=2)
+
+
+@contextmanager
+def atomic_output_dir(out: str | Path, *, force: bool = False) -> Iterator[Path]:
+    """A temporary sibling directory that becomes ``out`` only when the block succeeds.
+
+    An interrupted or failed run leaves nothing that looks complete: the temporary
+    directory is removed, an existing ``out`` is kept. On success an existing ``out``
+    (allowed by ``force``) is replaced.
+
+    Raises:
+        OutputError: ``out`` exists without ``force``, or cannot be written.
+    """
+    out = Path(out)
+    if out.exists() and not force:
+        raise OutputError(f"{out}: already exists (use --force to replace it)")
+    parent = out.resolve().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
+    try:
+        yield tmp
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

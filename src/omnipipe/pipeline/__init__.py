@@ -11,9 +11,6 @@ OUT looking complete.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from omnipipe.config import dataclass_from_dict, load_yaml_mapping
-from omnipipe.dataset import Dataset, validate_frames, write_tum
-from omnipipe.errors import OutputError, ReconstructionError
+from omnipipe.dataset import Dataset, atomic_output_dir, validate_frames, write_tum
+from omnipipe.errors import ReconstructionError
 
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
@@ -246,15 +243,7 @@ def write(
     from omnipipe import report
 
     out = Path(out)
-    if out.exists() and not force:
-        raise OutputError(f"{out}: already exists (use --force to replace it)")
-    parent = out.resolve().parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
-    try:
+    with atomic_output_dir(out, force=force) as tmp:
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
         model_stage.write_outputs(rec.model, tmp)
         (tmp / "report.json").write_text(json.dumps(rec.summary, indent=1), encoding="utf-8")
@@ -263,12 +252,6 @@ def write(
             report_inputs(rec, evaluation),
             tmp / "report.html",
         )
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 

@@ -4,17 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from omnipipe.dataset import write_image, write_tum
-from omnipipe.errors import OutputError
+from omnipipe.dataset import atomic_output_dir, write_image, write_tum
 from omnipipe.rig import save_rig
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import Renderer
@@ -143,15 +139,7 @@ def run(
         OutputError: ``out_dir`` exists and ``force`` is False, or cannot be written.
     """
     out = Path(out_dir)
-    if out.exists() and not force:
-        raise OutputError(f"{out}: already exists (use --force to replace it)")
-    parent = out.resolve().parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot write ({exc.strerror})") from exc
-    try:
+    with atomic_output_dir(out, force=force) as tmp:
         renderer, poses, sigma, moving = build_renderer(scenario)
         (tmp / "frames").mkdir()
         (tmp / "ground_truth").mkdir()
@@ -169,12 +157,6 @@ def run(
         (tmp / "ground_truth" / "scene.json").write_text(
             json.dumps(scene, indent=1), encoding="utf-8"
         )
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return SimResult(out, poses, sigma, moving, scene)
 
 
