@@ -3,8 +3,9 @@
 The deviation of a wall point is its distance from the axis minus the fitted wall
 radius at its station and angle: negative for a bulge (into the pipe), positive
 for a dent. Candidates are connected groups of points whose deviation exceeds a
-threshold (``min_height_mm`` and a multiple of the measured noise), linked across
-neighbouring rings and around the pipe's seam. Each candidate is then measured on
+threshold (``min_height_mm`` and a multiple of the measured noise) with a neighbour on
+their ring at least half as far out (lone samples are extraction outliers), linked
+across neighbouring rings and around the pipe's seam. Each candidate is then measured on
 a fine grid interpolated linearly between the points (rings are sparse along the
 axis, dense around it):
 
@@ -176,8 +177,21 @@ def find_defects(
     counts = np.bincount(samples.ring)
     du = max(3.0 * circ / max(float(np.median(counts[counts > 0])), 1.0), 1.0)
     defects: list[dict] = []
+    # Neighbours along each ring (sorted by ring, then arc), for the support test below.
+    order = np.lexsort((arc, samples.ring))
+    prev_i, next_i = np.roll(order, 1), np.roll(order, -1)
+    same_prev = samples.ring[prev_i] == samples.ring[order]
+    same_next = samples.ring[next_i] == samples.ring[order]
+    near_gap = 2.5 * du / 3.0  # about 2.5 sample spacings along the ring
     for sign, kind in ((-1.0, "bulge"), (1.0, "dent")):
-        cand = np.flatnonzero(sign * dev > threshold)
+        value = sign * dev
+        # A lone sample beyond the threshold with no neighbour on its ring even half as far
+        # out is an extraction outlier (a blurred peak where the ring runs steeply), not wall.
+        supported = np.zeros(len(dev), bool)
+        for nb, same in ((prev_i, same_prev), (next_i, same_next)):
+            close = same & (np.abs((arc[nb] - arc[order] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap)
+            supported[order] |= close & (value[nb] > 0.5 * threshold)
+        cand = np.flatnonzero((value > threshold) & supported)
         if len(cand) < min_points:
             continue
         box = np.array([circ / du, (np.ptp(sigma) + 4 * ds) / ds])
