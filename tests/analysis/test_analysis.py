@@ -155,3 +155,19 @@ def test_oblique_rings_in_a_bend_stay_round() -> None:
     assert np.nanmax(res.stations_ovality) < 0.004  # the oblique section itself: 0.8 %
     assert np.all(np.abs(res.stations_diameter_mm - 160.0) < 0.3)
     assert sorted(d["kind"] for d in res.defects) == ["bulge", "dent"]
+
+
+def test_lone_outlier_samples_are_not_defects() -> None:
+    """Single samples 2-3 mm out (a blurred peak on a steep ring) on several rings at one angle."""
+    rng = np.random.default_rng(11)
+    circ = 2 * np.pi * 75.0
+    sig, arc = np.meshgrid(np.arange(0, 120, 9.0), np.arange(720) * circ / 720, indexing="ij")
+    sig, arc = sig.ravel(), arc.ravel()
+    dev = rng.normal(0, 0.05, sig.size)
+    ring = (sig // 9).astype(int)
+    spikes = np.flatnonzero(np.isclose(arc, 300 * circ / 720))  # the same angle on every ring
+    dev[spikes] = rng.uniform(2.0, 3.0, len(spikes))
+    defects, _ = find_defects(
+        WallSamples(sig, arc, dev, ring, circ), min_height_mm=1.0, noise_factor=6, min_points=4, grid_mm=0.25
+    )
+    assert defects == []
