@@ -24,7 +24,7 @@ from omnipipe.sim.writer import build_renderer
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenario", default="paper")
-    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--frames", type=int, default=None, help="default: the scenario's")
     parser.add_argument("--size", default=None, help="WxH (default: the scenario's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-bundle", action="store_true", help="pairwise chain only (no bundle adjustment)")
@@ -33,7 +33,11 @@ def main() -> None:
     scenario = make_scenario(args.scenario, frames=args.frames, size=size, seed=args.seed)
     renderer, poses, _, moving = build_renderer(scenario)
     t0 = time.perf_counter()
-    frames = [renderer.render(p, seed=1000 + i)[0] for i, p in enumerate(poses)]
+    frames, irradiance = [], None
+    for i, p in enumerate(poses):
+        if i == 0 or moving[i]:  # a standing robot sees the same scene: new sensor noise only
+            irradiance = renderer.irradiance(p, seed=1000 + i)[0]
+        frames.append(renderer.expose(irradiance, seed=1000 + i))
     t_render = time.perf_counter() - t0
     t0 = time.perf_counter()
     rings = laser_run(LaserConfig(), scenario.rig, frames)
