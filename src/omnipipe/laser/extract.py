@@ -36,6 +36,9 @@ class ExtractionConfig:
             at least this fraction of the first.
         separation_px: minimum distance of a competing peak (px).
         saturation: grey level treated as saturated (fraction of full scale).
+        tophat_px: half-width (samples) of the white top-hat that removes structures
+            broader than the ring before peak search (0: off); keep it several times the
+            ring's width.
     """
 
     angles: int = 720
@@ -45,6 +48,7 @@ class ExtractionConfig:
     ambiguity_ratio: float = 0.6
     separation_px: float = 3.0
     saturation: float = 0.98
+    tophat_px: int = 8
 
 
 @dataclass
@@ -143,6 +147,12 @@ class RingExtractor:
                 polar_img.astype(np.float32) if polar_img.ndim == 2 else polar_img.mean(axis=2)
             )
         polar = np.where(self.inside, polar, 0.0)
+        if cfg.tophat_px > 0:
+            # White top-hat along each line: keeps features narrower than the element (the
+            # ring), removes broad ones (red rust close to the LEDs), with no overshoot at
+            # their edges.
+            kernel = np.ones((1, 2 * int(cfg.tophat_px) + 1), np.uint8)
+            polar = cv2.morphologyEx(polar.astype(np.float32), cv2.MORPH_TOPHAT, kernel)
         # Background per line (median) and robust noise (MAD of the line's first
         # difference), both estimated on every 4th sample: robust statistics, 4x cheaper.
         bg = np.median(polar[:, ::4], axis=1, keepdims=True)
