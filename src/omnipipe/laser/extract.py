@@ -39,6 +39,7 @@ class ExtractionConfig:
         tophat_px: half-width (samples) of the white top-hat that removes structures
             broader than the ring before peak search (0: off); keep it several times the
             ring's width.
+        max_width_factor: reject peaks wider than this x the ring's median width (0: off).
     """
 
     angles: int = 720
@@ -49,6 +50,7 @@ class ExtractionConfig:
     separation_px: float = 3.0
     saturation: float = 0.98
     tophat_px: int = 8
+    max_width_factor: float = 0.0
 
 
 @dataclass
@@ -60,6 +62,7 @@ class LaserRing:
         angle_rad: (N,) angle of each sample's scan line around the principal point.
         confidence: (N,) peak height over the line noise (SNR).
         radius_sigma_px: (N,) 1-sigma radial uncertainty of each peak (px).
+        peak_width_px: (N,) Gaussian sigma of each peak along its scan line (px).
         points_in_rig: (N, 3) metric points on the laser plane (mm), set by triangulation.
         sigma_mm: (N,) 1-sigma depth uncertainty of each point (mm).
         scanned: number of scan lines.
@@ -70,6 +73,7 @@ class LaserRing:
     angle_rad: np.ndarray
     confidence: np.ndarray
     radius_sigma_px: np.ndarray
+    peak_width_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     points_in_rig: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     scanned: int = 0
@@ -201,6 +205,11 @@ class RingExtractor:
             width = np.sqrt(np.where(den < 0, -1.0 / den, np.nan))
         # Sub-pixel uncertainty of a Gaussian peak's centre ~ width / SNR.
         rad_sigma = np.where(ok, width / np.maximum(snr, 1e-6), np.nan)
+        if cfg.max_width_factor > 0 and np.sum(ok) > 10:
+            # A peak much wider than the ring's typical one is the sheet grazing a wall
+            # nearly parallel to it (a dent's or bulge's flank): its centre is off the plane.
+            typical = float(np.nanmedian(width[ok]))
+            ok &= width <= cfg.max_width_factor * typical
         ok &= radius <= cam.radius_max
         cx = cam.cx + radius * np.cos(self.angles)
         cy = cam.cy + radius * np.sin(self.angles)
@@ -210,6 +219,7 @@ class RingExtractor:
             angle_rad=self.angles[ok],
             confidence=snr[ok],
             radius_sigma_px=rad_sigma[ok],
+            peak_width_px=width[ok],
             scanned=n_lines,
         )
         if not ok.any():
