@@ -40,6 +40,8 @@ class ExtractionConfig:
             broader than the ring before peak search (0: off); keep it several times the
             ring's width.
         max_width_factor: reject peaks wider than this x the ring's median width (0: off).
+        min_ring_fraction: a frame whose peaks cover fewer scan lines than this has no
+            laser ring (measured: real rings 0.92-1.0; texture in a wrong channel 0.04-0.27).
     """
 
     angles: int = 720
@@ -51,6 +53,7 @@ class ExtractionConfig:
     saturation: float = 0.98
     tophat_px: int = 8
     max_width_factor: float = 0.0
+    min_ring_fraction: float = 0.4
 
 
 @dataclass
@@ -224,6 +227,12 @@ class RingExtractor:
         )
         if not ok.any():
             ring.warnings.append("no laser ring visible (no scan line with a clear peak)")
+        elif ok.mean() < cfg.min_ring_fraction:
+            # Scattered peaks on a few lines are texture (seams, pits), not a light ring.
+            empty.warnings.append(
+                f"no laser ring visible (peaks on only {100 * ok.mean():.0f} % of scan lines)"
+            )
+            return empty
         elif sat.mean() > 0.25:
             ring.warnings.append(f"laser saturated on {100 * sat.mean():.0f} % of scan lines")
         return ring
