@@ -300,8 +300,7 @@ def atomic_output_dir(out: str | Path, *, force: bool = False) -> Iterator[Path]
         OutputError: ``out`` exists without ``force``, or cannot be written.
     """
     out = Path(out)
-    if out.exists() and not force:
-        raise OutputError(f"{out}: already exists (use --force to replace it)")
+    check_output_dir(out, force=force)
     parent = out.resolve().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
@@ -310,9 +309,26 @@ def atomic_output_dir(out: str | Path, *, force: bool = False) -> Iterator[Path]
         raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
     try:
         yield tmp
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
+        check_output_dir(out, force=force)
+        try:
+            if out.exists():
+                shutil.rmtree(out)
+            os.replace(tmp, out)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot replace ({exc.strerror})") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_output_dir(out: str | Path, *, force: bool = False) -> None:
+    """Refuse an output path that exists (without ``force``) or is not a directory.
+
+    Raises:
+        OutputError: naming the path.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a directory")
+    if out.exists() and not force:
+        raise OutputError(f"{out}: already exists (use --force to replace it)")

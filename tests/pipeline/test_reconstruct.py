@@ -87,3 +87,12 @@ def test_bad_input_one_line_and_nothing_written(small_dataset: Path, tmp_path: P
     assert message in err and len(err.splitlines()) == 1
     assert not out.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+
+
+def test_output_path_that_is_a_file_is_refused(small_dataset: Path, tmp_path: Path, capsys) -> None:
+    target = tmp_path / "report.txt"
+    target.write_text("keep me")
+    assert main(["reconstruct", str(small_dataset), "--out", str(target), "--force", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "not a directory" in err and len(err.splitlines()) == 1
+    assert target.read_text() == "keep me"

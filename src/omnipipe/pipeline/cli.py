@@ -11,8 +11,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from omnipipe.dataset import open_dataset
-from omnipipe.errors import OutputError
+from omnipipe.dataset import check_output_dir, open_dataset
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
 
 
@@ -99,8 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise OutputError(f"{out}: already exists (use --force to replace it)")
+    check_output_dir(out, force=args.force)  # refuse before the long run, not after
     config = ReconstructConfig.from_yaml(args.config, _overrides(args))
     dataset = open_dataset(args.dataset)
     rec = run(config, dataset, _progress(args.quiet))
