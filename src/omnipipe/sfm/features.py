@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from omnipipe.camera import OmniCamera, PerspectiveView
 from omnipipe.dataset import gray_without_laser
+from omnipipe.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,16 @@ class FeatureConfig:
     laser_margin_px: float = 6.0
     ratio: float = 0.8
     contrast_threshold: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.views < 1:
+            raise ConfigError("sfm.features.views", f"must be >= 1, got {self.views}")
+        if self.max_features < self.views:
+            raise ConfigError(
+                "sfm.features.max_features", f"must be at least the number of views ({self.views}), got {self.max_features}"
+            )
+        if not 0 < self.ratio <= 1:
+            raise ConfigError("sfm.features.ratio", f"must be in (0, 1], got {self.ratio}")
 
 
 @dataclass

@@ -156,6 +156,7 @@ def run(
     )
     moved = np.zeros(n, bool)
     is_kf = np.zeros(n, bool)
+    lost = np.zeros(n, bool)
     world_from_kf: list[np.ndarray] = []
     kf_frames: list[int] = []
     scales: list[float] = []
@@ -179,6 +180,8 @@ def run(
                 a, fa, ga = prev
                 m = match_features(fa, feats, config.features.ratio)
                 motion = _relative(a, i, fa, feats, m, ransac, warnings)
+                if motion is None:
+                    lost[i] = True  # its pose (and the chain after it) lacks this step
                 if motion is not None and _parallax(fa, feats, m, motion) < min_parallax and i < n - 1:
                     # Too little baseline for a reliable step: resected after the adjustment.
                     pending.append((i, len(kf_features) - 1, feats, m[motion.inliers]))
@@ -248,7 +251,7 @@ def run(
     world_from_rig = world_from_station[station]
     return SfmResult(
         world_from_rig=world_from_rig,
-        registered=np.ones(n, bool),
+        registered=~lost[first[station]],
         keyframe=is_kf,
         stationary=~moved,
         station=station,
