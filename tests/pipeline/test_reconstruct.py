@@ -96,3 +96,20 @@ def test_output_path_that_is_a_file_is_refused(small_dataset: Path, tmp_path: Pa
     err = capsys.readouterr().err.strip()
     assert "not a directory" in err and len(err.splitlines()) == 1
     assert target.read_text() == "keep me"
+
+
+def test_a_black_frame_mid_run_is_not_registered(small_dataset: Path, tmp_path: Path) -> None:
+    """A frame with nothing to see (lights failed) keeps the run going, flagged, not faked."""
+    from PIL import Image
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    size = Image.open(ds / "frames" / "000012.png").size
+    Image.new("RGB", size).save(ds / "frames" / "000012.png")
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(ds), "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == 24 and report["frames_registered"] < 24
+    assert any("000012" in w or "frame 12" in w or "->12" in w for w in report["warnings"])
+    stamps = [float(line.split()[0]) for line in (out / "trajectory.txt").read_text().splitlines()]
+    assert 12.0 not in stamps

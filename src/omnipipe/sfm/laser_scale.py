@@ -195,7 +195,8 @@ def match_laser_points(
     rows = np.arange(len(P))
     y0, y1, y2 = ncc_f[rows, k - 1], ncc_f[rows, k], ncc_f[rows, k + 1]
     denom = y0 - 2 * y1 + y2
-    off = np.where(np.abs(denom) > 1e-12, 0.5 * (y0 - y2) / denom, 0.0).clip(-0.5, 0.5)
+    safe = np.abs(denom) > 1e-12
+    off = np.where(safe, 0.5 * (y0 - y2) / np.where(safe, denom, 1.0), 0.0).clip(-0.5, 0.5)
     log_s = np.log(fine[rows, k]) + off * np.log(fine_offsets[1] / fine_offsets[0])
     best_ncc = y1
     tmpl_std = np.nanstd(np.where(weight > 0, template, np.nan), axis=1)
