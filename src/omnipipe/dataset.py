@@ -270,24 +270,6 @@ def validate_frames(dataset: Dataset) -> None:
             )
 
 
-_CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
-
-
-def gray_without_laser(image: np.ndarray, laser_channel: str) -> np.ndarray:
-    """(H, W) float32 grey image of the LED-lit wall without the laser's colour channel.
-
-    Green alone for a red laser (the best signal of a Bayer sensor), the mean of the
-    other two for green or blue, all three for a grey laser (nothing to leave out).
-    """
-    if image.ndim == 2:
-        return image.astype(np.float32)
-    idx = _CHANNEL_INDEX.get(laser_channel)
-    if idx == 0:
-        return image[..., 1].astype(np.float32)
-    others = [c for c in range(3) if c != idx] if idx is not None else [0, 1, 2]
-    return image[..., others].astype(np.float32).mean(axis=2)
-
-
 @contextmanager
 def atomic_output_dir(out: str | Path, *, force: bool = False) -> Iterator[Path]:
     """A temporary sibling directory that becomes ``out`` only when the block succeeds.

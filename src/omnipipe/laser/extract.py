@@ -19,8 +19,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import OmniCamera
-
-_CHANNELS = {"red": 0, "green": 1, "blue": 2}
+from omnipipe.image import CHANNEL_INDEX
 
 
 @dataclass(frozen=True)
@@ -101,7 +100,7 @@ def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:
     if img.ndim == 2 or channel == "gray":
         grey = img.astype(np.float32) if img.ndim == 2 else img.astype(np.float32).mean(axis=2)
         return grey, full
-    idx = _CHANNELS[channel]
+    idx = CHANNEL_INDEX[channel]
     others = [c for c in range(img.shape[2]) if c != idx][:2]
     sig = img[..., idx].astype(np.float32) - img[..., others].astype(np.float32).max(axis=2)
     return sig, full
@@ -147,8 +146,8 @@ class RingExtractor:
             img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
         )
         polar, _ = laser_signal(polar_img, channel)
-        if polar_img.ndim == 3 and channel in _CHANNELS:
-            polar_raw = polar_img[..., _CHANNELS[channel]].astype(np.float32)
+        if polar_img.ndim == 3 and channel in CHANNEL_INDEX:
+            polar_raw = polar_img[..., CHANNEL_INDEX[channel]].astype(np.float32)
         else:
             polar_raw = (
                 polar_img.astype(np.float32) if polar_img.ndim == 2 else polar_img.mean(axis=2)

@@ -271,7 +271,7 @@ def run(
     faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor)
     flip_stats = None
     if config.flips and len(faces):
-        from omnipipe.dataset import gray_without_laser
+        from omnipipe.image import gray_without_laser
         from omnipipe.model.flips import optimise_flips
 
         channel = inputs.camera_rig.laser.channel

@@ -22,7 +22,7 @@ import numpy as np
 
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply, invert
-from omnipipe.model.texture import sample_bilinear
+from omnipipe.image import sample_bilinear
 
 # Barycentric sample points inside a triangle (all weights positive).
 _BARY = np.array(

@@ -28,6 +28,7 @@ from scipy.interpolate import LinearNDInterpolator
 
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply, invert
+from omnipipe.image import sample_bilinear
 from omnipipe.rig import Rig
 
 
@@ -56,22 +57,6 @@ class UnrolledImage:
         """(angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of the image."""
         h = self.image.shape[0]
         return (0.0, 360.0, self.axial_min_mm, self.axial_min_mm + h * self.mm_per_px)
-
-
-def sample_bilinear(image: np.ndarray, pixels: np.ndarray, border: int = cv2.BORDER_CONSTANT) -> np.ndarray:
-    """Bilinear samples of ``image`` at (N, 2) pixels (col, row): (N,) or (N, C).
-
-    cv2.remap wants maps under 32767 px a side: the list is folded into rows of 4096.
-    Outside the image: NaN for float images with the constant border, else the border rule.
-    """
-    n = len(pixels)
-    rows = max(-(-n // 4096), 1)
-    m = np.full((rows * 4096, 2), -1.0, np.float32)
-    m[:n] = pixels
-    m = m.reshape(rows, 4096, 2)
-    fill = np.nan if image.dtype.kind == "f" else 0
-    out = cv2.remap(image, m[..., 0].copy(), m[..., 1].copy(), cv2.INTER_LINEAR, borderMode=border, borderValue=fill)
-    return out.reshape(rows * 4096, -1)[:n].squeeze(-1) if out.ndim == 2 else out.reshape(-1, out.shape[-1])[:n]
 
 
 def wall_points_on_grid(

@@ -17,8 +17,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from omnipipe.camera import OmniCamera, PerspectiveView
-from omnipipe.dataset import gray_without_laser
 from omnipipe.errors import ConfigError
+from omnipipe.image import gray_without_laser
 
 
 @dataclass(frozen=True)

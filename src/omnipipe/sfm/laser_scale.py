@@ -16,10 +16,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from omnipipe.camera import OmniCamera
+from omnipipe.image import sample_bilinear
 
 
 @dataclass(frozen=True)
@@ -68,23 +68,6 @@ class LaserMatches:
     scale: float
 
 
-def _sample(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    n = len(pixels)
-    rows = -(-n // 1024)
-    mx = np.full(rows * 1024, -10.0, np.float32)
-    my = np.full(rows * 1024, -10.0, np.float32)
-    mx[:n], my[:n] = pixels[:, 0], pixels[:, 1]
-    out = cv2.remap(
-        image,
-        mx.reshape(rows, 1024),
-        my.reshape(rows, 1024),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=np.nan,
-    )
-    return out.ravel()[:n]
-
-
 def _ncc(template: np.ndarray, patches: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """NCC of (N, K) templates with (N, S, K) patches, (N, K) sample weights."""
     w = weight[:, None, :]
@@ -112,7 +95,6 @@ def match_laser_points(
     b_from_a_rotation: np.ndarray,
     b_from_a_direction: np.ndarray,
     config: LaserScaleConfig | None = None,
-    laser_plane_in_rig: tuple[np.ndarray, float] | None = None,
 ) -> LaserMatches:
     """Find frame a's laser points in frame b along the epipolar curve; Eq. (17) scale.
 
@@ -123,10 +105,6 @@ def match_laser_points(
         b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
         b_from_a_direction: (3,) unit translation direction of rig_b_from_rig_a:
             p_b = R p_a + s d for the unknown length s (mm).
-        laser_plane_in_rig: (unit normal, offset) of the laser plane n.p + o = 0; where
-            given, frame b's own stripe is left out of its patches too (else, at the true
-            length, b's stripe sits inside the patch, absent from the template, and biases
-            the match towards shorter translations).
 
     Returns:
         The matches and the combined scale (translation length, mm).
@@ -161,7 +139,7 @@ def match_laser_points(
     plane = P[:, None, :] + offsets  # (N, K, 3) in rig a
     K = plane.shape[1]
     px, valid = camera.project(plane.reshape(-1, 3))
-    template = np.where(valid, _sample(gray_a, np.nan_to_num(px, nan=-10.0)), np.nan).reshape(
+    template = np.where(valid, sample_bilinear(gray_a, np.nan_to_num(px, nan=-10.0)), np.nan).reshape(
         len(P), K
     )
     half = np.maximum(cfg.stripe_half_width_mm / step, cfg.stripe_half_width_px)
@@ -175,11 +153,7 @@ def match_laser_points(
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
         pts_b = plane_b0[:, None, :, :] + scales[:, :, None, None] * d  # (N, S, K, 3)
         pix, ok = camera.project(pts_b.reshape(-1, 3))
-        if laser_plane_in_rig is not None:
-            n_l, o_l = laser_plane_in_rig
-            h = np.abs(pts_b @ n_l + o_l)  # (N, S, K) mm from b's laser plane
-            ok &= (h > (half * step)[:, None, None]).ravel()
-        vals = np.where(ok, _sample(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
+        vals = np.where(ok, sample_bilinear(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
         patches = vals.reshape(len(P), scales.shape[1], K)
         return _ncc(template, patches, weight)
 

@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omnipipe.camera import OmniCamera
-from omnipipe.dataset import gray_without_laser
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
+from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
@@ -335,7 +335,7 @@ def _resect(i, k, feats, inl, world_from_kf, feature_point, track_points, warnin
     return world_from_kf[k].copy()
 
 
-def _step(a, b, ga, gb, camera, laser_points_a, m, motion, config, warnings, laser_plane=None):
+def _step(a, b, ga, gb, camera, laser_points_a, m, motion, config, warnings):
     """rig_b_from_rig_a, the metric length of its translation (Eq. 17), the inlier
     matches (M, 2) and the laser matches (None where not available)."""
     if motion is None:
@@ -346,7 +346,6 @@ def _step(a, b, ga, gb, camera, laser_points_a, m, motion, config, warnings, las
         return motion.rig2_from_rig1.copy(), 0.0, inl, None
     b_from_a = motion.rig2_from_rig1.copy()
     lm = match_laser_points(
-        ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale,
-        laser_plane_in_rig=laser_plane,
+        ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale
     )
     return b_from_a, lm.scale, inl, lm

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import OmniCamera
-from omnipipe.model.texture import sample_bilinear
+from omnipipe.image import sample_bilinear
 
 
 @dataclass(frozen=True)

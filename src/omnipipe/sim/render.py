@@ -24,11 +24,10 @@ import numpy as np
 
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import rotate
+from omnipipe.image import CHANNEL_INDEX
 from omnipipe.rig import Rig
 from omnipipe.sim.scene import Pipe
 from omnipipe.sim.texture import WallTexture
-
-_CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
 
 
 @dataclass(frozen=True)
@@ -450,7 +449,7 @@ class Renderer:
         to_emitter = self.laser_origin_in_rig - points_rig[sel]
         dist_e = np.linalg.norm(to_emitter, axis=1)
         albedo = self.texture.sample(sigma[sel], theta[sel], footprint[sel])
-        chan = _CHANNEL_INDEX.get(self.rig.laser.channel)
+        chan = CHANNEL_INDEX.get(self.rig.laser.channel)
         refl = albedo[:, chan] if chan is not None else albedo.mean(axis=1)
         line = cfg.laser_power * (100.0 / dist_e) * np.clip(refl / 0.5, 0.2, 2.0) * 0.5
         profile = np.exp(-0.5 * (dist_px / sig_px) ** 2) / (math.sqrt(2 * math.pi) * sig_px)
