@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -98,7 +98,7 @@ class Reconstruction:
         world_from_rig: (N, 4, 4) poses of the registered frames.
         model: the model stage result.
         analysis: the analysis stage result.
-        report_inputs: what report.html shows.
+        report_config: how report.html is drawn (the ``report`` section of the config).
     """
 
     summary: dict[str, Any]
@@ -106,8 +106,7 @@ class Reconstruction:
     world_from_rig: np.ndarray
     model: Any
     analysis: Any
-    report_inputs: Any = None
-    extras: dict[str, Any] = field(default_factory=dict)
+    report_config: Any = None
 
 
 def run(
@@ -154,19 +153,19 @@ def run(
     if len(reg) == 0:
         raise ReconstructionError("camera motion could not be estimated for any frame")
     # One frame per station feeds the model: a stationary frame repeats its station's ring.
-    kf = np.flatnonzero(motion.registered & ~motion.stationary)
+    stations = np.flatnonzero(motion.registered & ~motion.stationary)
 
     # Analysis first: its centreline coordinates unroll the mesh and the texture.
     t0 = time.perf_counter()
-    kf_poses = motion.world_from_rig[kf]
-    kf_rings = [rings.rings[i] for i in kf]
-    points, point_frame = model.integrate(kf_poses, [r.points_in_rig for r in kf_rings])
+    station_poses = motion.world_from_rig[stations]
+    station_rings = [rings.rings[i] for i in stations]
+    points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
     res = analysis.run(
         config.analysis,
         analysis.AnalysisInputs(
             points_in_world=points,
             frame_index=point_frame,
-            world_from_rig=kf_poses,
+            world_from_rig=station_poses,
             reference_from_world=np.linalg.inv(motion.world_from_rig[reg[0]]),
         ),
     )
@@ -174,16 +173,16 @@ def run(
     warnings.extend(res.warnings)
 
     t0 = time.perf_counter()
-    tick = progress("model", len(kf))
+    tick = progress("model", len(stations))
     circ = 2 * np.pi * res.radius_mm
     mdl = model.run(
         config.model,
         model.ModelInputs(
             camera_rig=rig,
-            world_from_rig=kf_poses,
-            ring_points_in_rig=[r.points_in_rig for r in kf_rings],
-            ring_pixels=[r.pixels for r in kf_rings],
-            read_frame=lambda k: dataset.read_frame(int(kf[k])),
+            world_from_rig=station_poses,
+            ring_points_in_rig=[r.points_in_rig for r in station_rings],
+            ring_pixels=[r.pixels for r in station_rings],
+            read_frame=lambda k: dataset.read_frame(int(stations[k])),
             unrolled_mm=np.column_stack(
                 [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
             ),
@@ -228,6 +227,7 @@ def run(
         world_from_rig=motion.world_from_rig[reg],
         model=mdl,
         analysis=res,
+        report_config=config.report,
     )
 
 
@@ -248,7 +248,7 @@ def write(
         model_stage.write_outputs(rec.model, tmp)
         (tmp / "report.json").write_text(json.dumps(rec.summary, indent=1), encoding="utf-8")
         report.run(
-            rec.extras.get("report_config") or report.ReportConfig(),
+            rec.report_config or report.ReportConfig(),
             report_inputs(rec, evaluation),
             tmp / "report.html",
         )
