@@ -108,6 +108,9 @@ class SfmResult:
         station: (N,) station index of each frame.
         step_scale_mm: (K-1,) translation length between consecutive keyframes (mm).
         warnings: what went wrong where (frames with few features, rotation-only steps).
+        scale_sigma_rel: 1-sigma relative uncertainty of lengths along the run (a length
+            L measured along the trajectory has sigma ``L * scale_sigma_rel``); NaN when
+            the run could not estimate it.
     """
 
     world_from_rig: np.ndarray
@@ -118,6 +121,7 @@ class SfmResult:
     step_scale_mm: np.ndarray
     warnings: list[str] = field(default_factory=list)
     bundle: object = None
+    scale_sigma_rel: float = math.nan
 
 
 def run(
