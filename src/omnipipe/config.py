@@ -2,20 +2,22 @@
 
 ``dataclass_from_dict(SomeConfig, {"key": value}, "section")`` returns a new
 ``SomeConfig`` with the given fields replaced; an unknown key or a value of the
-wrong type raises a :class:`ConfigError` naming ``section.key``.
+wrong type (a float must also be finite: nan and inf are refused) raises a
+:class:`ConfigError` naming ``section.key``. YAML is read by
+:func:`omnipipe.safe_yaml.load_yaml_file` (bounded size and alias expansion).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-
 from omnipipe.errors import ConfigError
+from omnipipe.safe_yaml import load_yaml_file
 
 T = TypeVar("T")
 
@@ -50,6 +52,8 @@ def _coerce(value: Any, annotation: Any, field: str, source: str | None) -> Any:
     if annotation is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(field, f"must be a number, got {value!r}", source)
+        if not math.isfinite(value):
+            raise ConfigError(field, f"must be a finite number, got {value}", source)
         return float(value)
     if annotation is str:
         if not isinstance(value, str):
@@ -92,17 +96,41 @@ def dataclass_from_dict(
 
 
 def load_yaml_mapping(path: str | Path) -> dict[str, Any]:
-    """Read a YAML file holding a mapping (empty file: empty mapping)."""
+    """Read a YAML file holding a mapping of sections (empty file: empty mapping).
+
+    Each section's value must be a mapping or empty (None), so that a section
+    written as a list or a number is refused here, naming it.
+
+    Raises:
+        ConfigError: the file is missing, too large, an alias bomb, not YAML, not a
+            mapping, or a section is not a mapping (field: the section's name).
+    """
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError("config", "file not found", str(path))
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError("config", f"not valid YAML ({first})", str(path)) from None
+    data = load_yaml_file(path, "config")
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise ConfigError("config", "must hold a mapping of sections", str(path))
+    for section, values in data.items():
+        if values is not None and not isinstance(values, dict):
+            raise ConfigError(
+                str(section),
+                f"must be a mapping of settings, got {type(values).__name__}",
+                str(path),
+            )
     return data
+
+
+def finite_option(value: float | None, option: str, *, positive: bool = False) -> float | None:
+    """A float command-line option checked to be finite (and > 0 with ``positive``).
+
+    argparse's ``type=float`` accepts ``nan`` and ``inf``; this turns them into a
+    one-line :class:`ConfigError` naming the option (exit code 1). None passes.
+    """
+    if value is None:
+        return None
+    if not math.isfinite(value):
+        raise ConfigError(option, f"must be a finite number, got {value}")
+    if positive and not value > 0:
+        raise ConfigError(option, f"must be > 0, got {value:g}")
+    return value

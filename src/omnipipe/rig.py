@@ -17,8 +17,15 @@ import numpy as np
 import yaml
 
 from omnipipe.errors import ConfigError
+from omnipipe.safe_yaml import load_yaml_file
 
 LASER_CHANNELS = ("red", "green", "blue", "gray")
+# Closest a laser plane may pass the focus (mm): the light section's range is
+# proportional to this distance (Eq. 5), and a real laser plane lies outside the mirror,
+# millimetres to centimetres away; anything closer is a calibration mistake.
+MIN_LASER_DISTANCE_MM = 1.0
+# Largest image side accepted (px): a bound, not a camera model.
+MAX_IMAGE_SIDE_PX = 100_000
 
 
 @dataclass(frozen=True)
@@ -243,35 +250,129 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
                 f"laser.plane[{i}]", f"must be a finite number, got {value!r}", source
             )
         k.append(float(value))
-    if math.hypot(*k[:3]) < 1e-12:
+    norm = math.hypot(*k[:3])
+    if not norm > 1e-12 or not math.isfinite(norm):
         raise ConfigError("laser.plane", "normal (k1, k2, k3) must not be zero", source)
-    if abs(k[3]) < 1e-9:
-        raise ConfigError("laser.plane", "k4 = 0 puts the laser plane through the focus", source)
+    distance = abs(k[3]) / norm
+    if not distance >= MIN_LASER_DISTANCE_MM:
+        raise ConfigError(
+            "laser.plane",
+            f"passes {distance:.3g} mm from the mirror focus; a laser plane must lie at least "
+            f"{MIN_LASER_DISTANCE_MM:g} mm from it (k4 / |k1 k2 k3| is that distance)",
+            source,
+        )
     channel = las.get("channel", "red")
     if not isinstance(channel, str) or channel.lower() not in LASER_CHANNELS:
         raise ConfigError(
             "laser.channel", f"must be one of {', '.join(LASER_CHANNELS)}, got {channel!r}", source
         )
     laser = LaserPlane(k=(k[0], k[1], k[2], k[3]), channel=channel.lower())
+    check_ring_visible(camera, mirror, laser, source)
     return Rig(camera=camera, mirror=mirror, laser=laser)
+
+
+def check_ring_visible(
+    camera: CameraIntrinsics, mirror: Mirror, laser: LaserPlane, source: str | None = None
+) -> None:
+    """Refuse a laser plane whose ring the mirror can never see whole.
+
+    The rule. On a pipe wall of radius R coaxial with the mirror, a plane that crosses
+    the mirror axis at z0 with its normal tilted by theta from the axis draws the ring
+    z(phi) = z0 - R tan(theta) cos(phi - phi0), seen from the focus at elevation
+    atan(z0 / R - tan(theta) cos(phi - phi0)). The camera sees a full ring between the
+    elevations e_lo (blind centre, ``radius_min``) and e_hi (the largest circle about
+    the principal point inside both the mirror rim and the image). The plane is
+    accepted when some pipe wider than the mirror itself (R above the mirror's radius
+    at the outer edge of that band) shows the whole ring in that band:
+    tan(theta) <= min((t_hi - t_lo) / 2, t_hi - z0/R_min, -t_lo) for z0 < 0 (and the
+    mirror image of it for z0 > 0), t = tan(e). A plane parallel to the axis
+    (k3 = 0, e.g. ``[1, 0, 0, 82]``) never is: its "ring" runs along the pipe without end.
+    For the paper's rig this allows a tilt of up to about 48 degrees.
+
+    Raises:
+        ConfigError: ``laser.plane``, with the tilt, where it crosses the axis and the
+            largest tilt this rig allows.
+    """
+    from omnipipe.camera.hyperboloid import OmniCamera
+
+    k = np.asarray(laser.k, dtype=float)
+    n = k[:3] / np.linalg.norm(k[:3])
+    tilt = math.degrees(math.acos(min(1.0, abs(float(n[2])))))
+    cam = OmniCamera(camera, mirror)
+    r_full = min(
+        cam.radius_max,
+        camera.cx + 0.5,
+        camera.width - 0.5 - camera.cx,
+        camera.cy + 0.5,
+        camera.height - 0.5 - camera.cy,
+    )
+    if not r_full > cam.radius_min:
+        raise ConfigError(
+            "camera",
+            f"no full circle of the mirror image fits between radius_min ({cam.radius_min:g} px) "
+            f"and the image border or radius_max ({r_full:g} px)",
+            source,
+        )
+    rays = cam.unproject(
+        np.array(
+            [[camera.cx + max(cam.radius_min, 1e-6), camera.cy], [camera.cx + r_full, camera.cy]]
+        )
+    )
+    if not np.isfinite(rays).all():
+        raise ConfigError("camera.radius_max", "lies beyond the mirror's asymptote", source)
+    t_lo, t_hi = (float(r[2] / math.hypot(r[0], r[1])) if r[0] > 0 else -math.inf for r in rays)
+    # Mirror radius at the outer edge of the full ring: the ray meets the mirror sheet
+    # (X^2+Y^2)/a^2 - (Z+c)^2/b^2 = -1 at t d, t = a^2 / (b - c d_z).
+    rim = rays[1]
+    a, b, c = mirror.a, mirror.b, mirror.c
+    t_rim = a * a / (b - c * float(rim[2]))
+    r_mirror = t_rim * math.hypot(rim[0], rim[1])
+    if abs(n[2]) < 1e-12:
+        tan_max, z0 = -1.0, math.nan
+    else:
+        z0 = -float(k[3] / k[2])
+        ratio = z0 / r_mirror  # z0 / R at the narrowest pipe the robot fits in
+        if z0 < 0:
+            tan_max = min((t_hi - t_lo) / 2.0, t_hi - ratio, -t_lo)
+        else:
+            tan_max = min((t_hi - t_lo) / 2.0, ratio - t_lo, t_hi)
+    tan_tilt = math.tan(math.radians(tilt)) if tilt < 90.0 else math.inf
+    if tan_tilt <= tan_max:
+        return
+    band = (
+        f"elevations {math.degrees(math.atan(t_lo)):.1f} to {math.degrees(math.atan(t_hi)):.1f} deg"
+    )
+    if tan_max < 0:
+        where = (
+            "parallel to the mirror axis"
+            if math.isnan(z0)
+            else f"crossing the axis at z = {z0:g} mm"
+        )
+        raise ConfigError(
+            "laser.plane",
+            f"the mirror can never see this laser's ring ({where}; the mirror sees {band})",
+            source,
+        )
+    raise ConfigError(
+        "laser.plane",
+        f"tilted {tilt:.1f} deg from the mirror axis: its ring on a pipe wider than the mirror "
+        f"(radius > {r_mirror:.0f} mm) never lies whole within the mirror's view ({band}); "
+        f"this rig allows at most {math.degrees(math.atan(tan_max)):.1f} deg",
+        source,
+    )
 
 
 def load_rig(path: str | Path) -> Rig:
     """Read and validate a rig.yaml file.
 
+    The file is parsed by :func:`omnipipe.safe_yaml.load_yaml_file` (bounded size and
+    alias expansion), then validated by :func:`rig_from_dict`.
+
     Raises:
-        ConfigError: the file is missing, not YAML, or a field is invalid.
+        ConfigError: the file is missing, not YAML, too large, or a field is invalid.
     """
     path = Path(path)
-    source = str(path)
-    if not path.is_file():
-        raise ConfigError("rig", "file not found", source)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError("rig", f"not valid YAML ({first})", source) from exc
-    return rig_from_dict(data, source)
+    return rig_from_dict(load_yaml_file(path, "rig"), str(path))
 
 
 def save_rig(rig: Rig, path: str | Path) -> None:
