@@ -5,19 +5,16 @@ I/O lives here, at the edge: stages receive arrays and data classes.
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from omnipipe.errors import DatasetError, OutputError
+from omnipipe.errors import DatasetError
 from omnipipe.geometry import transform_from_tum, tum_from_transform
+from omnipipe.output import atomic_output_dir, check_output_dir  # noqa: F401 (re-exported)
 from omnipipe.rig import Rig, load_rig
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -268,49 +265,3 @@ def validate_frames(dataset: Dataset) -> None:
             raise DatasetError(
                 f"{path}: image is {size[0]}x{size[1]} but rig.yaml says {cam.width}x{cam.height}"
             )
-
-
-@contextmanager
-def atomic_output_dir(out: str | Path, *, force: bool = False) -> Iterator[Path]:
-    """A temporary sibling directory that becomes ``out`` only when the block succeeds.
-
-    An interrupted or failed run leaves nothing that looks complete: the temporary
-    directory is removed, an existing ``out`` is kept. On success an existing ``out``
-    (allowed by ``force``) is replaced.
-
-    Raises:
-        OutputError: ``out`` exists without ``force``, or cannot be written.
-    """
-    out = Path(out)
-    check_output_dir(out, force=force)
-    parent = out.resolve().parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
-    try:
-        yield tmp
-        check_output_dir(out, force=force)
-        try:
-            if out.exists():
-                shutil.rmtree(out)
-            os.replace(tmp, out)
-        except OSError as exc:
-            raise OutputError(f"{out}: cannot replace ({exc.strerror})") from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def check_output_dir(out: str | Path, *, force: bool = False) -> None:
-    """Refuse an output path that exists (without ``force``) or is not a directory.
-
-    Raises:
-        OutputError: naming the path.
-    """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out}: exists and is not a directory")
-    if out.exists() and not force:
-        raise OutputError(f"{out}: already exists (use --force to replace it)")
