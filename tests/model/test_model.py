@@ -46,6 +46,10 @@ def test_rings_integrate_onto_the_wall_and_mesh_without_crossings(tmp_path: Path
     centroid = p.mean(axis=1)
     _, _, _, radial, *_ = pipe.pipe_coordinates(centroid)
     assert np.median(np.abs(np.sum(n * radial, axis=1))) > 0.9
+    # ... and wound so they face the axis (the wall is seen from inside); slivers within
+    # one ring lie in the laser plane (normal along the axis) and are left out.
+    d = np.sum(n * radial, axis=1)
+    assert np.mean(d[np.abs(d) > 0.5] < 0) > 0.95
     write_outputs(res, tmp_path)
     cloud = trimesh.load(tmp_path / "points.ply", process=False)
     mesh = trimesh.load(tmp_path / "mesh.ply", process=False)

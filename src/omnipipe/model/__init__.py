@@ -17,6 +17,9 @@ Texture (:mod:`.texture`): the unrolled wall image, each cell from the keyframe
 that sees it best; it is also the texture atlas of the textured model (GLB).
 
 Then the edge flips of [25] towards photo-consistency (:mod:`.flips`).
+
+Every triangle is wound so its normal (right-hand rule) points towards the pipe axis:
+the wall is seen from inside. Files in each format's unit and axes: :mod:`.export`.
 """
 
 from __future__ import annotations
@@ -24,16 +27,28 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import Delaunay
 
 from omnipipe.camera import OmniCamera
-from omnipipe.errors import ConfigError, OutputError
+from omnipipe.errors import ConfigError
 from omnipipe.geometry import apply
+from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
 from omnipipe.model.texture import UnrolledImage, unrolled_image, wall_points_on_grid
 from omnipipe.rig import Rig
+
+__all__ = [
+    "ModelConfig",
+    "ModelInputs",
+    "ModelResult",
+    "orient_towards_axis",
+    "run",
+    "write_glb",
+    "write_obj",
+    "write_outputs",
+    "write_ply",
+]
 
 
 @dataclass(frozen=True)
@@ -200,6 +215,51 @@ def mesh_unrolled(
     return faces[longest <= max_edge_factor * float(np.median(longest))]
 
 
+def orient_towards_axis(
+    faces: np.ndarray,
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    circumference_mm: float,
+    points_in_world: np.ndarray,
+    point_frame: np.ndarray,
+) -> np.ndarray:
+    """The faces wound so each normal ``(b - a) x (c - a)`` points towards the pipe axis.
+
+    All triangles get one winding in the unrolled plane (arc, axial; arc unwrapped per
+    triangle), which on the tube is one side of the wall everywhere, bends included.
+    Which side that is (it depends on the direction of travel) is decided by a vote
+    against the centre of each point's ring (mean of its keyframe's points).
+
+    Args:
+        faces: (F, 3) vertex indices into ``points_in_world``.
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, mm.
+        circumference_mm: period of ``arc_mm``.
+        points_in_world: (N, 3) mm.
+        point_frame: (N,) keyframe index of each point.
+
+    Returns:
+        (F, 3) the same triangles, some with two vertices swapped.
+    """
+    if not len(faces):
+        return faces
+    circ = circumference_mm
+    u = np.asarray(arc_mm, float)[faces]
+    u = (u - u[:, :1] + 0.5 * circ) % circ - 0.5 * circ
+    v = np.asarray(axial_mm, float)[faces]
+    area2 = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
+    faces = np.where(area2[:, None] < 0, faces[:, [0, 2, 1]], faces)
+    frames, inverse = np.unique(point_frame, return_inverse=True)
+    centres = np.zeros((len(frames), 3))
+    np.add.at(centres, inverse, points_in_world)
+    centres /= np.bincount(inverse, minlength=len(frames))[:, None]
+    p = points_in_world[faces]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    inward = centres[inverse[faces[:, 0]]] - p.mean(axis=1)
+    if np.count_nonzero(np.sum(normal * inward, axis=1) > 0) < 0.5 * len(faces):
+        faces = faces[:, [0, 2, 1]]
+    return faces
+
+
 def textured_mesh(
     faces: np.ndarray,
     points_in_world: np.ndarray,
@@ -279,6 +339,7 @@ def run(
             faces, points, np.column_stack([arc, axial]), circ, camera, inputs.world_from_rig,
             lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
         )
+    faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if config.texture and len(faces):
         # Holes stay holes: a cell counts as wall when it is no farther from a point than
@@ -303,83 +364,3 @@ def run(
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
         result.texture, result.unrolled = atlas, unrolled
     return result
-
-
-def write_ply(
-    path: Path, vertices: np.ndarray, colours: np.ndarray | None, faces: np.ndarray | None = None
-) -> None:
-    """Binary little-endian PLY: x y z float, red green blue uchar, optional triangles."""
-    n = len(vertices)
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        f"element vertex {n}",
-        "property float x",
-        "property float y",
-        "property float z",
-    ]
-    if colours is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    if faces is not None:
-        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
-    header.append("end_header")
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if colours is not None:
-        fields += [("r", "u1"), ("g", "u1"), ("b", "u1")]
-    rec = np.zeros(n, dtype=fields)
-    rec["x"], rec["y"], rec["z"] = vertices[:, 0], vertices[:, 1], vertices[:, 2]
-    if colours is not None:
-        rec["r"], rec["g"], rec["b"] = colours[:, 0], colours[:, 1], colours[:, 2]
-    with open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(rec.tobytes())
-        if faces is not None and len(faces):
-            frec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-            frec["n"] = 3
-            frec["i"] = faces
-            fh.write(frec.tobytes())
-
-
-def write_outputs(result: ModelResult, out_dir: Path) -> None:
-    """points.ply, mesh.ply (vertex colours), model.glb (textured) and unrolled.png into ``out_dir``."""
-    out_dir = Path(out_dir)
-    write_ply(out_dir / "points.ply", result.points_in_world, result.colours)
-    write_ply(out_dir / "mesh.ply", result.mesh_vertices, result.colours, result.mesh_faces)
-    if result.unrolled is not None:
-        from PIL import Image
-
-        rgba = np.dstack(
-            [result.unrolled.image, np.where(result.unrolled.alpha, 255, 0).astype(np.uint8)]
-        )
-        Image.fromarray(rgba).save(out_dir / "unrolled.png")
-    if (
-        result.texture is not None
-        and result.textured_faces is not None
-        and len(result.textured_faces)
-    ):
-        write_glb(
-            out_dir / "model.glb",
-            result.textured_vertices,
-            result.textured_faces,
-            result.textured_uvs,
-            result.texture,
-        )
-
-
-def write_glb(
-    path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray
-) -> None:
-    """Textured binary glTF (opens in Blender, three.js viewers, Windows 3D Viewer ...)."""
-    import trimesh
-    from PIL import Image
-
-    mesh = trimesh.Trimesh(
-        vertices=vertices,
-        faces=faces,
-        process=False,
-        visual=trimesh.visual.TextureVisuals(uv=uvs, image=Image.fromarray(texture)),
-    )
-    try:
-        Path(path).write_bytes(mesh.export(file_type="glb"))
-    except OSError as exc:
-        raise OutputError(f"{path}: cannot write ({exc.strerror})") from None

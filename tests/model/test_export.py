@@ -1,0 +1,177 @@
+"""Model files read back with maintained readers: units, bounds, axes and normals.
+
+A synthetic 200 mm pipe (radius 100 mm, 300 mm long) is meshed by the model stage's
+own mesher and orientation and written with :func:`omnipipe.model.write_outputs`;
+trimesh (GLB, OBJ, PLY), laspy (LAZ) and pye57 (E57) read the files back.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pye57
+import pytest
+import trimesh
+
+from omnipipe.model import (
+    ModelResult,
+    mesh_unrolled,
+    orient_towards_axis,
+    textured_mesh,
+    write_outputs,
+)
+from omnipipe.model.texture import UnrolledImage
+
+RADIUS_MM = 100.0
+LENGTH_MM = 300.0
+
+
+def synthetic_pipe(direction: float, seed: int = 0) -> ModelResult:
+    """Rings of a straight pipe along world z (direction +1 or -1 = direction of travel).
+
+    The arc is measured from world x towards y and the axial position grows along the
+    travel, as in the analysis stage; with direction -1 the unrolled winding is mirrored
+    against 3-D, which :func:`orient_towards_axis` must notice.
+    """
+    rng = np.random.default_rng(seed)
+    rings, per_ring = 61, 120
+    axial = np.repeat(np.linspace(0.0, LENGTH_MM, rings), per_ring)
+    theta = np.tile(np.linspace(0.0, 2 * math.pi, per_ring, endpoint=False), rings)
+    theta = (theta + rng.uniform(-0.01, 0.01, theta.size)) % (2 * math.pi)
+    r = RADIUS_MM + rng.normal(0.0, 0.05, theta.size)
+    pts = np.column_stack([r * np.cos(theta), r * np.sin(theta), direction * axial])
+    frame = np.repeat(np.arange(rings), per_ring)
+    colours = rng.integers(0, 256, (len(pts), 3), dtype=np.uint8)
+    circ = 2 * math.pi * RADIUS_MM
+    arc = theta * RADIUS_MM
+    faces = mesh_unrolled(arc, axial, pts, circ, 2.0)
+    faces = orient_towards_axis(faces, arc, axial, circ, pts, frame)
+    mm_per_px = 2.0
+    h, w = int(LENGTH_MM / mm_per_px) + 1, int(round(circ / mm_per_px))
+    image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    unrolled = UnrolledImage(
+        image, np.ones((h, w), bool), mm_per_px, 0.0, circ, np.zeros((h, w), int)
+    )
+    verts, tfaces, uvs, atlas = textured_mesh(faces, pts, arc, axial, unrolled)
+    return ModelResult(
+        pts, colours, frame, pts, faces, verts, tfaces, uvs, atlas, unrolled=unrolled
+    )
+
+
+def inward_fraction(vertices: np.ndarray, faces: np.ndarray, axis: int) -> float:
+    """Fraction of faces whose winding normal points towards the line along ``axis``."""
+    p = vertices[faces]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    inward = -p.mean(axis=1)
+    inward[:, axis] = 0.0
+    return float(np.mean(np.sum(n * inward, axis=1) > 0))
+
+
+def glb_json(path: Path) -> dict:
+    """The JSON chunk of a binary glTF file."""
+    data = path.read_bytes()
+    magic, _, _ = struct.unpack_from("<4sII", data, 0)
+    assert magic == b"glTF"
+    length, kind = struct.unpack_from("<I4s", data, 12)
+    assert kind == b"JSON"
+    return json.loads(data[20 : 20 + length])
+
+
+@pytest.fixture(scope="module", params=[1.0, -1.0], ids=["forward", "backward"])
+def written(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory):
+    res = synthetic_pipe(request.param)
+    out = tmp_path_factory.mktemp("export")
+    write_outputs(res, out)
+    return res, out, request.param
+
+
+def expected_gltf_m(world_mm: np.ndarray) -> np.ndarray:
+    """Documented mapping: glTF x = world z, y = -world y, z = world x; metres."""
+    return np.column_stack([world_mm[:, 2], -world_mm[:, 1], world_mm[:, 0]]) / 1000.0
+
+
+def test_faces_point_towards_the_axis_in_the_world(written) -> None:
+    res, _, _ = written
+    assert inward_fraction(res.mesh_vertices, res.mesh_faces, axis=2) > 0.95
+    assert inward_fraction(res.textured_vertices, res.textured_faces, axis=2) > 0.95
+
+
+def test_glb_is_in_metres_y_up_double_sided_with_inward_normals(written) -> None:
+    res, out, direction = written
+    mesh = trimesh.load(out / "model.glb", force="mesh", process=False)
+    v = np.asarray(mesh.vertices)
+    # Units: a 200 mm pipe has a radius of 0.1 (glTF metres) around the glTF x axis.
+    radial = np.hypot(v[:, 1], v[:, 2])
+    assert np.all(np.abs(radial - RADIUS_MM / 1000) < 0.5e-3)  # 0.5 mm: noise is 0.05 mm
+    lo, hi = sorted([0.0, direction * LENGTH_MM / 1000])
+    assert np.allclose(mesh.bounds[:, 0], [lo, hi], atol=1e-6)
+    assert np.allclose(v, expected_gltf_m(res.textured_vertices), atol=1e-6)
+    # Normals: the faces' winding and the stored vertex normals face the pipe axis (glTF x).
+    assert inward_fraction(v, np.asarray(mesh.faces), axis=0) > 0.95
+    vn = np.asarray(mesh.vertex_normals)
+    towards = -v.copy()
+    towards[:, 0] = 0.0
+    assert np.mean(np.sum(vn * towards, axis=1) > 0) > 0.95
+    tree = glb_json(out / "model.glb")
+    assert [m["doubleSided"] for m in tree["materials"]] == [True]
+    assert tree["asset"]["extras"]["unit"] == "metre"
+    assert "NORMAL" in tree["meshes"][0]["primitives"][0]["attributes"]
+    assert mesh.visual.material.baseColorTexture.size == res.texture.shape[1::-1]
+
+
+def test_ply_states_unit_and_frame_and_keeps_mm(written) -> None:
+    res, out, _ = written
+    for name in ("points.ply", "mesh.ply"):
+        head = (out / name).read_bytes().split(b"end_header")[0].decode("ascii")
+        assert "comment unit mm" in head.splitlines()
+        assert "comment frame world = first registered rig frame" in head
+    cloud = trimesh.load(out / "points.ply", process=False)
+    assert np.allclose(cloud.vertices, res.points_in_world, atol=1e-3)
+    mesh = trimesh.load(out / "mesh.ply", process=False)
+    assert np.array_equal(mesh.faces, res.mesh_faces)
+    assert inward_fraction(np.asarray(mesh.vertices), np.asarray(mesh.faces), axis=2) > 0.95
+
+
+def test_laz_holds_every_point_in_metres_to_a_hundredth_of_a_mm(written) -> None:
+    res, out, _ = written
+    las = laspy.read(out / "points.laz")
+    assert las.header.point_count == len(res.points_in_world)
+    assert np.allclose(las.header.scales, 1e-5)
+    xyz_mm = np.column_stack([las.x, las.y, las.z]) * 1000.0
+    assert np.max(np.abs(xyz_mm - res.points_in_world)) <= 0.01
+    rgb = np.column_stack([las.red, las.green, las.blue])
+    assert np.array_equal(rgb // 257, res.colours) and np.all(rgb % 257 == 0)
+    assert np.array_equal(las.point_source_id, res.point_frame)
+    assert "metre" in las.header.system_identifier
+    assert any("metre" in str(getattr(v, "string", "")) for v in las.header.vlrs)
+
+
+def test_e57_holds_every_point_in_metres(written) -> None:
+    res, out, _ = written
+    with pye57.E57(str(out / "points.e57")) as e57:
+        assert e57.scan_count == 1
+        data = e57.read_scan_raw(0)
+    xyz_mm = np.column_stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]]) * 1e3
+    assert len(xyz_mm) == len(res.points_in_world)
+    assert np.max(np.abs(xyz_mm - res.points_in_world)) < 1e-3  # single precision metres
+    rgb = np.column_stack([data["colorRed"], data["colorGreen"], data["colorBlue"]])
+    assert np.array_equal(rgb, res.colours)
+
+
+def test_obj_resolves_its_texture_and_matches_the_glb(written) -> None:
+    res, out, _ = written
+    text = (out / "model.obj").read_text(encoding="ascii")
+    assert "# unit: metre" in text.splitlines()
+    mesh = trimesh.load(out / "model.obj", process=False, maintain_order=True)
+    assert np.allclose(mesh.vertices, expected_gltf_m(res.textured_vertices), atol=1e-6)
+    assert np.array_equal(mesh.faces, res.textured_faces)
+    assert inward_fraction(np.asarray(mesh.vertices), np.asarray(mesh.faces), axis=0) > 0.95
+    image = mesh.visual.material.image
+    assert image is not None and image.size == res.texture.shape[1::-1]
+    assert np.array_equal(np.asarray(image.convert("RGB")), res.texture)
+    assert np.allclose(mesh.visual.uv, res.textured_uvs, atol=1e-6)
