@@ -2,14 +2,19 @@
 
 Each stage that has a command offers a module with ``register(subparsers)``; the
 parser it adds sets ``func(args) -> int``. Every :class:`OmnipipeError` becomes a
-one-line message on stderr and exit code 1.
+one-line message on stderr and exit code 1. Ctrl-C exits 130 and SIGTERM 143, after
+the ``with`` blocks have removed their temporary output folders (one line each).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from omnipipe import __version__
 from omnipipe.errors import OmnipipeError
@@ -36,6 +41,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds the stack like KeyboardInterrupt, so that every
+    ``with`` block (temporary output folders) cleans up."""
+
+
+@contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """SIGTERM raises :class:`Terminated` in this process during the block.
+
+    Forked worker processes inherit the handler; in them it falls back to the
+    default action (die), as before.
+    """
+    owner = os.getpid()
+
+    def handler(signum: int, frame: object) -> None:
+        if os.getpid() != owner:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``omnipipe`` console script; returns the exit code."""
     parser = build_parser()
@@ -44,13 +81,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        with _sigterm_raises():
+            return int(args.func(args) or 0)
     except OmnipipeError as exc:
         print(f"omnipipe {args.command}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"omnipipe {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"omnipipe {args.command}: terminated", file=sys.stderr)
+        return 143
 
 
 if __name__ == "__main__":

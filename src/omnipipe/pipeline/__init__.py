@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -232,18 +232,27 @@ def run(
 
 
 def write(
-    rec: Reconstruction, out: str | Path, *, force: bool = False, evaluation: dict | None = None
+    rec: Reconstruction,
+    out: str | Path,
+    *,
+    force: bool = False,
+    evaluation: dict | None = None,
+    protect: Sequence[str | Path] = (),
 ) -> Path:
-    """Write the contract outputs of ``rec`` to ``out`` atomically.
+    """Write the contract outputs of ``rec`` to ``out`` atomically, with a manifest.
+
+    ``force`` replaces only an earlier omnipipe output (see :mod:`omnipipe.output`);
+    ``protect`` lists inputs (dataset, config file) that ``out`` may not be or hold.
 
     Raises:
-        OutputError: ``out`` exists (without ``force``) or cannot be written.
+        OutputError: ``out`` exists (without ``force``), is not omnipipe's, or cannot be
+            written.
     """
     from omnipipe import model as model_stage
     from omnipipe import report
 
     out = Path(out)
-    with atomic_output_dir(out, force=force) as tmp:
+    with atomic_output_dir(out, force=force, protect=protect) as tmp:
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
         model_stage.write_outputs(rec.model, tmp)
         (tmp / "report.json").write_text(json.dumps(rec.summary, indent=1), encoding="utf-8")

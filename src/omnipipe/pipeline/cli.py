@@ -10,7 +10,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from omnipipe.dataset import check_output_dir, open_dataset
+from omnipipe.dataset import open_dataset
+from omnipipe.output import atomic_output_dir, prepare_output_dir
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
 
 
@@ -74,7 +75,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", required=True, help="output directory (refused if it exists, unless --force)"
     )
-    p.add_argument("--force", action="store_true", help="replace an existing output directory")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an earlier omnipipe output in OUT (never a folder holding other files)",
+    )
     _add_knobs(p)
     p.set_defaults(func=_reconstruct)
 
@@ -85,7 +90,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the paper's Table I against ground truth and writes the report.",
     )
     d.add_argument(
-        "--out", default="omnipipe-demo", help="output directory (default: ./omnipipe-demo)"
+        "--out",
+        default="omnipipe-demo",
+        help="output directory (default: ./omnipipe-demo); an earlier demo output there is "
+        "replaced, any other folder is refused",
     )
     d.add_argument(
         "--quick", action="store_true", help="smaller images and fewer frames (under 2 minutes)"
@@ -97,11 +105,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    check_output_dir(out, force=args.force)  # refuse before the long run, not after
+    protect = [args.dataset] + ([args.config] if args.config else [])
+    # Recover an interrupted earlier run and refuse before the long run, not after.
+    prepare_output_dir(out, force=args.force, protect=protect)
     config = ReconstructConfig.from_yaml(args.config, _overrides(args))
     dataset = open_dataset(args.dataset)
     rec = run(config, dataset, _progress(args.quiet))
-    write(rec, out, force=args.force)
+    write(rec, out, force=args.force, protect=protect)
     s = rec.summary
     print(
         f"wrote {out}: {s['frames_registered']}/{s['frames']} frames registered, inner diameter "
@@ -132,31 +142,35 @@ def _demo(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     out = Path(args.out)
-    dataset_dir, rec_dir = out / "dataset", out / "reconstruction"
+    # The demo replaces its own earlier output (it carries a manifest), nothing else.
+    prepare_output_dir(out, force=True)
     if args.quick:
         scenario = make_scenario("paper", frames=150, size=(800, 600), seed=args.seed)
     else:
         scenario = make_scenario("paper", seed=args.seed)
     print(
         f"simulating the paper's experiment: {scenario.frames} frames, "
-        f"{scenario.rig.camera.width}x{scenario.rig.camera.height} -> {dataset_dir}"
+        f"{scenario.rig.camera.width}x{scenario.rig.camera.height} -> {out / 'dataset'}"
     )
-    bar = tqdm(
-        total=scenario.frames, desc="render", unit="frame", disable=args.quiet, file=sys.stderr
-    )
-    simulate(
-        scenario, dataset_dir, force=True, workers=2, progress=lambda d, t: bar.update(d - bar.n)
-    )
-    bar.close()
-    config = ReconstructConfig.default()
-    dataset = open_dataset(dataset_dir)
-    rec = run(config, dataset, _progress(args.quiet))
-    write(rec, rec_dir, force=True)
-    # The evaluation reads the written outputs (as `omnipipe evaluate` does); the report
-    # is then rewritten with Table I in it.
-    result = evaluate(EvaluationConfig(), EvaluationInputs(rec_dir, dataset_dir))
-    ev = result.to_dict()
-    write(rec, rec_dir, force=True, evaluation=ev)
+    # OUT is built whole in a temporary sibling and swapped in at the end: an
+    # interrupted demo keeps the previous one.
+    with atomic_output_dir(out, force=True) as tmp:
+        dataset_dir, rec_dir = tmp / "dataset", tmp / "reconstruction"
+        bar = tqdm(
+            total=scenario.frames, desc="render", unit="frame", disable=args.quiet, file=sys.stderr
+        )
+        simulate(scenario, dataset_dir, workers=2, progress=lambda d, t: bar.update(d - bar.n))
+        bar.close()
+        config = ReconstructConfig.default()
+        dataset = open_dataset(dataset_dir)
+        rec = run(config, dataset, _progress(args.quiet))
+        write(rec, rec_dir)
+        # The evaluation reads the written outputs (as `omnipipe evaluate` does); the
+        # report is then rewritten with Table I in it.
+        result = evaluate(EvaluationConfig(), EvaluationInputs(rec_dir, dataset_dir))
+        ev = result.to_dict()
+        write(rec, rec_dir, force=True, evaluation=ev)
+    rec_dir = out / "reconstruction"
     print()
     print("Table I (paper Sec. VII) on the simulated pipe:")
     print(format_table_one(table_one(rec.summary, ev)))

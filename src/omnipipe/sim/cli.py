@@ -9,6 +9,7 @@ import time
 from tqdm import tqdm
 
 from omnipipe.errors import ConfigError
+from omnipipe.output import prepare_output_dir
 from omnipipe.sim.scenarios import SCENARIOS, make_scenario
 from omnipipe.sim.writer import run
 
@@ -50,7 +51,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--workers", type=int, default=None, help="render processes (default: all cores)"
     )
-    p.add_argument("--force", action="store_true", help="replace an existing output directory")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an earlier omnipipe output in OUT (never a folder holding other files)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_main)
 
@@ -61,6 +66,7 @@ def _main(args: argparse.Namespace) -> int:
     workers = args.workers or os.cpu_count() or 1
     if workers < 1:
         raise ConfigError("--workers", f"must be >= 1, got {workers}")
+    prepare_output_dir(args.out, force=args.force)  # refuse before rendering, not after
     start = time.perf_counter()
     bar = tqdm(total=scenario.frames, desc="render", unit="frame", disable=args.quiet)
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from omnipipe.dataset import atomic_output_dir, write_image, write_tum
+from omnipipe.dataset import write_image, write_tum
+from omnipipe.output import atomic_output_dir
 from omnipipe.rig import save_rig
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import Renderer
@@ -133,10 +134,13 @@ def run(
     """Render ``scenario`` into a contract dataset at ``out_dir``.
 
     The dataset is written to a temporary sibling directory and renamed into place
-    when complete, so an interrupted run never leaves a dataset that looks whole.
+    when complete, so an interrupted run never leaves a dataset that looks whole; it
+    carries omnipipe's manifest (:mod:`omnipipe.output`), and ``force`` replaces only
+    such an earlier output.
 
     Raises:
-        OutputError: ``out_dir`` exists and ``force`` is False, or cannot be written.
+        OutputError: ``out_dir`` exists and ``force`` is False, it is not omnipipe's
+            output, or it cannot be written.
     """
     out = Path(out_dir)
     with atomic_output_dir(out, force=force) as tmp:
