@@ -36,6 +36,12 @@ class MotionConfig:
         roll_drift_deg_per_m: slow roll drift as the robot twists along (deg per m).
         roll_wobble_deg: amplitude of roll wobble (deg).
         speed_jitter: relative random variation of each stroke (0.1 = +-10 %).
+        moving_frames: None: the front unit moves during 1 / n_units of each cycle
+            (the paper's gait, frames_per_cycle / n_units moving frames). Otherwise a
+            free rhythm: each stroke takes ``moving_frames`` frames and is followed by
+            ``frames_per_cycle - moving_frames`` frames at rest (>= 1), each stop's rest
+            varying by up to ``rest_jitter_frames`` frames (at least 1 frame at rest).
+        rest_jitter_frames: per-stop variation of the rest (frames, free rhythm only).
     """
 
     n_units: int = 4
@@ -47,6 +53,8 @@ class MotionConfig:
     roll_drift_deg_per_m: float = 6.0
     roll_wobble_deg: float = 0.6
     speed_jitter: float = 0.1
+    moving_frames: int | None = None
+    rest_jitter_frames: int = 0
 
     def __post_init__(self) -> None:
         if self.n_units < 1:
@@ -57,6 +65,16 @@ class MotionConfig:
             )
         if self.stroke_mm < 0:
             raise ConfigError("motion.stroke_mm", f"must be >= 0, got {self.stroke_mm}")
+        if self.moving_frames is not None and not 1 <= self.moving_frames < self.frames_per_cycle:
+            raise ConfigError(
+                "motion.moving_frames",
+                f"must be in [1, frames_per_cycle - 1 = {self.frames_per_cycle - 1}], "
+                f"got {self.moving_frames}",
+            )
+        if self.rest_jitter_frames < 0:
+            raise ConfigError(
+                "motion.rest_jitter_frames", f"must be >= 0, got {self.rest_jitter_frames}"
+            )
 
 
 def head_travel(
@@ -68,6 +86,8 @@ def head_travel(
         travel_mm: (n_frames,) distance travelled since frame 0 (mm), non-decreasing.
         moving: (n_frames,) True where the head moved since the previous frame.
     """
+    if config.moving_frames is not None:
+        return _free_rhythm_travel(config, n_frames, rng)
     fpc = config.frames_per_cycle
     n_cycles = n_frames // fpc + 2
     strokes = config.stroke_mm * (1.0 + config.speed_jitter * rng.uniform(-1, 1, n_cycles))
@@ -81,6 +101,32 @@ def head_travel(
     travel = done[cycle] + strokes[cycle] * within
     moving = np.concatenate([[False], np.diff(travel) > 1e-9])
     return travel, moving
+
+
+def _free_rhythm_travel(
+    config: MotionConfig, n_frames: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Head travel of the free rhythm: frame 0 at rest, then per stroke ``moving_frames``
+    moving frames (smooth velocity) and a rest of its own length (see MotionConfig)."""
+    m = int(config.moving_frames)  # type: ignore[arg-type]
+    rest0 = config.frames_per_cycle - m
+    n_cycles = n_frames // (m + 1) + 2  # enough strokes even with the shortest rests
+    strokes = config.stroke_mm * (1.0 + config.speed_jitter * rng.uniform(-1, 1, n_cycles))
+    jit = config.rest_jitter_frames
+    rests = rest0 + (rng.integers(-jit, jit + 1, n_cycles) if jit else np.zeros(n_cycles, int))
+    rests = np.maximum(rests, 1)
+    within = 0.5 * (1.0 - np.cos(np.pi * np.arange(1, m + 1) / m))  # smooth start and stop
+    travel = [0.0]
+    done = 0.0
+    for stroke, rest in zip(strokes, rests, strict=True):
+        if len(travel) >= n_frames:
+            break
+        travel.extend(done + stroke * within)
+        done += stroke
+        travel.extend([done] * int(rest))
+    out = np.array(travel[:n_frames])
+    moving = np.concatenate([[False], np.diff(out) > 1e-9])
+    return out, moving
 
 
 def _smooth_profile(

@@ -6,6 +6,13 @@ mixes what a corroded steel or cast-iron pipe shows: mill-scale grey, rust
 patches, stains, pits, scratches, a longitudinal weld seam and girth welds. The
 renderer samples it through a mip-map pyramid chosen from each pixel's footprint,
 so fine texture never aliases.
+
+Besides that default ``steel`` family, ``TextureConfig.family`` selects other walls
+(randomised scenarios, docs/simulator.md): ``brick`` (running bond with mortar
+joints), ``tiles`` (square glazed tiles with grout), ``joints`` (concrete or plastic
+pipe sections with circumferential joints, or corrugated metal), ``smooth`` (low
+contrast plastic or lined wall); any family can carry extra ``stains`` and a
+reduced ``contrast``.
 """
 
 from __future__ import annotations
@@ -17,6 +24,10 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 
+from omnipipe.errors import ConfigError
+
+TEXTURE_FAMILIES = ("steel", "brick", "tiles", "joints", "smooth")
+
 
 @dataclass(frozen=True)
 class TextureConfig:
@@ -24,10 +35,20 @@ class TextureConfig:
 
     Attributes:
         texel_mm: texture sample spacing on the wall (mm).
+        family: "steel" (the knobs below), "brick", "tiles", "joints" or "smooth".
         rust_cover: fraction of the wall covered by rust (0..1).
         pit_density_per_cm2: small dark pits per square centimetre.
         girth_weld_spacing_mm: distance between circumferential welds (0: none).
         seam_angle_deg: angle of the longitudinal weld seam (None: no seam).
+        period_mm: brick: brick length; tiles: tile size; joints: joint spacing (mm).
+        course_mm: brick: course height (mm).
+        joint_mm: width of mortar joints, grout lines or pipe joints (mm).
+        variant: brick: "along" (long side along the axis, courses around it) or
+            "around" (courses are rings along the axis); tiles: "grid" or "offset";
+            joints: "concrete", "plastic" or "corrugated"; smooth: "pvc" or "lined".
+        base_rgb: main colour of bricks, tiles or wall (None: the family's default).
+        contrast: scales the albedo's deviation from its mean (1: as generated).
+        stain_strength: extra dark stains and deposits (0: none .. 1: strong).
     """
 
     texel_mm: float = 0.25
@@ -35,6 +56,36 @@ class TextureConfig:
     pit_density_per_cm2: float = 0.6
     girth_weld_spacing_mm: float = 600.0
     seam_angle_deg: float | None = 250.0
+    family: str = "steel"
+    period_mm: float = 0.0
+    course_mm: float = 0.0
+    joint_mm: float = 0.0
+    variant: str = ""
+    base_rgb: tuple[float, float, float] | None = None
+    contrast: float = 1.0
+    stain_strength: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.family not in TEXTURE_FAMILIES:
+            raise ConfigError(
+                "texture.family",
+                f"must be one of {', '.join(TEXTURE_FAMILIES)}, got {self.family!r}",
+            )
+        if self.family in ("brick", "tiles", "joints") and not self.period_mm > 0:
+            raise ConfigError("texture.period_mm", f"must be > 0 for {self.family}")
+        if self.family == "brick" and not self.course_mm > 0:
+            raise ConfigError("texture.course_mm", "must be > 0 for brick")
+        if not self.contrast >= 0:
+            raise ConfigError("texture.contrast", f"must be >= 0, got {self.contrast}")
+
+    @property
+    def axial_period_mm(self) -> float | None:
+        """Period of the pattern along the pipe axis (mm), None for aperiodic walls."""
+        if self.family == "brick":
+            return self.period_mm if self.variant != "around" else self.course_mm
+        if self.family in ("tiles", "joints"):
+            return self.period_mm
+        return None
 
 
 def fractal_noise(
@@ -117,6 +168,30 @@ class WallTexture:
     # -- generation -------------------------------------------------------------------
     def _generate(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
+        if cfg.family == "steel":
+            img = self._steel(rng)
+        else:
+            rows = self.sigma0 + np.arange(self.height, dtype=np.float32) * self.texel_mm
+            cols = np.arange(self.width, dtype=np.float32) * np.float32(self.texel_circ_mm)
+            gen = {
+                "brick": self._brick,
+                "tiles": self._tiles,
+                "joints": self._joints,
+                "smooth": self._smooth,
+            }[cfg.family]
+            img = gen(rng, rows, cols)
+        if cfg.stain_strength > 0:
+            img = self._stains(img, rng, cfg.stain_strength)
+        if cfg.contrast != 1.0:
+            mean = img.reshape(-1, 3).mean(axis=0)
+            img = mean + cfg.contrast * (img - mean)
+        if cfg.family != "steel" or cfg.stain_strength > 0 or cfg.contrast != 1.0:
+            img = np.clip(img, 0.03, 0.95).astype(np.float32)
+        return img
+
+    def _steel(self, rng: np.random.Generator) -> np.ndarray:
+        """Mill scale, rust, pits, scratches, seam and girth welds (the default wall)."""
+        cfg = self.config
         shape = (self.height, self.width)
         tex = self.texel_mm
         # Large-scale stains and tone variation (features of ~20-100 mm).
@@ -190,6 +265,155 @@ class WallTexture:
             ripple = 0.5 + 0.5 * np.sin(cols * 2 * math.pi / 2.0)[None, :]
             img *= (1.0 + (0.2 + 0.15 * ripple) * bead)[..., None]
         return np.clip(img, 0.03, 0.95).astype(np.float32)
+
+    # -- other wall families (randomised scenarios) ------------------------------------
+    def _noise(self, rng: np.random.Generator, beta: float, coarse: int = 1) -> np.ndarray:
+        return fractal_noise((self.height, self.width), rng, beta=beta, coarse=coarse)
+
+    def _brick(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Running bond: bricks offset by half a brick from course to course, mortar joints.
+
+        "along": bricks' long side along the axis (axial period = brick length), courses
+        around the circumference; "around": courses are rings (axial period = course height).
+        Brick counts around the pipe are whole, so the pattern wraps seamlessly.
+        """
+        cfg = self.config
+        circ = self.width * self.texel_circ_mm
+        length, course_h, joint = cfg.period_mm, cfg.course_mm, cfg.joint_mm
+        u_axis = rows - self.sigma0 + np.float32(rng.uniform(0.0, 2.0 * length))
+        if cfg.variant != "around":
+            n_c = max(3, round(circ / course_h))
+            h_eff = circ / n_c
+            course = np.floor(cols / h_eff).astype(np.int64)  # (W,)
+            v = cols - course * h_eff
+            u = u_axis[:, None] + ((course % 2) * 0.5 * length)[None, :].astype(np.float32)
+            brick = np.floor(u / length)
+            uu = u - brick * length
+            d_bed = np.minimum(v, h_eff - v)[None, :]
+            d_head = np.minimum(uu, length - uu)
+            course_id = np.broadcast_to(course[None, :], u.shape)
+            brick_id = brick.astype(np.int64)
+            n_rows, n_cols = n_c, int(brick_id.max()) + 1
+            ids = (course_id, brick_id)
+        else:
+            n_b = max(3, round(circ / length))
+            l_eff = circ / n_b
+            course = np.floor(u_axis / course_h).astype(np.int64)  # (H,)
+            v = u_axis - course * course_h
+            u = cols[None, :] + ((course % 2) * 0.5 * l_eff)[:, None].astype(np.float32)
+            brick = np.floor(u / l_eff)
+            uu = u - brick * l_eff
+            d_bed = np.minimum(v, course_h - v)[:, None]
+            d_head = np.minimum(uu, l_eff - uu)
+            brick_id = brick.astype(np.int64) % n_b
+            course_id = np.broadcast_to(course[:, None], u.shape)
+            n_rows, n_cols = int(course.max()) + 1, n_b
+            ids = (course_id, brick_id)
+        # Chipped, irregular brick edges; each brick its own shade and hue.
+        dist = np.minimum(d_bed, d_head) + 0.7 * self._noise(rng, 1.8, coarse=2)
+        shade = 1.0 + 0.13 * rng.standard_normal((n_rows, n_cols, 1))
+        hue = 1.0 + 0.05 * rng.standard_normal((n_rows, n_cols, 3))
+        base = np.array(cfg.base_rgb or (0.55, 0.27, 0.18), np.float32)
+        colour = (base * shade * hue).astype(np.float32)[ids]
+        surface = 1.0 + 0.10 * self._noise(rng, 2.2, coarse=4) + 0.06 * self._noise(rng, 0.9)
+        edge = 1.0 - 0.15 * (1.0 - _smoothstep(dist, 0.5 * joint, 0.5 * joint + 3.0))
+        bricks = colour * (surface * edge)[..., None]
+        mortar_rgb = np.array(
+            (0.62, 0.60, 0.55) if rng.uniform() < 0.6 else (0.30, 0.29, 0.27), np.float32
+        )
+        recess = 1.0 - 0.35 * _smoothstep(dist, 0.15 * joint, 0.5 * joint)
+        grain = 1.0 + 0.12 * self._noise(rng, 0.7)
+        mortar = mortar_rgb * (recess * grain)[..., None]
+        m = (1.0 - _smoothstep(dist, 0.5 * joint - 0.4, 0.5 * joint + 0.4))[..., None]
+        return (bricks * (1.0 - m) + mortar * m).astype(np.float32)
+
+    def _tiles(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Square glazed tiles (a whole number around the pipe) with grout lines."""
+        cfg = self.config
+        circ = self.width * self.texel_circ_mm
+        size, grout = cfg.period_mm, cfg.joint_mm
+        n_a = max(3, round(circ / size))
+        s_c = circ / n_a
+        u = rows - self.sigma0 + np.float32(rng.uniform(0.0, 2.0 * size))
+        row_id = np.floor(u / size).astype(np.int64)  # (H,)
+        ua = u - row_id * size
+        d_ax = np.minimum(ua, size - ua)[:, None]
+        shift = (row_id % 2) * 0.5 * s_c if cfg.variant == "offset" else np.zeros_like(row_id)
+        w = cols[None, :] + shift[:, None].astype(np.float32)
+        col_f = np.floor(w / s_c)
+        wa = w - col_f * s_c
+        d_circ = np.minimum(wa, s_c - wa)
+        dist = np.minimum(d_ax, d_circ) + 0.15 * self._noise(rng, 1.5, coarse=2)
+        n_rows = int(row_id.max()) + 1
+        shade = 1.0 + 0.04 * rng.standard_normal((n_rows, n_a, 1))
+        base = np.array(cfg.base_rgb or (0.78, 0.76, 0.70), np.float32)
+        colour = (base * shade).astype(np.float32)[
+            np.broadcast_to(row_id[:, None], w.shape), col_f.astype(np.int64) % n_a
+        ]
+        glaze = 1.0 + 0.03 * self._noise(rng, 2.0, coarse=4) + 0.02 * self._noise(rng, 0.8)
+        tiles = colour * glaze[..., None]
+        grout_rgb = np.array(
+            (0.50, 0.49, 0.46) if rng.uniform() < 0.5 else (0.26, 0.25, 0.23), np.float32
+        )
+        grout_img = grout_rgb * (1.0 + 0.10 * self._noise(rng, 0.8))[..., None]
+        m = (1.0 - _smoothstep(dist, 0.5 * grout - 0.3, 0.5 * grout + 0.3))[..., None]
+        return (tiles * (1.0 - m) + grout_img * m).astype(np.float32)
+
+    def _joints(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Pipe sections with circumferential joints every ``period_mm`` (concrete, plastic)
+        or a corrugated metal pipe (shading of the corrugation, period ``period_mm``)."""
+        cfg = self.config
+        period, joint = cfg.period_mm, cfg.joint_mm
+        u = rows - self.sigma0 + np.float32(rng.uniform(0.0, period))
+        pos = u - np.floor(u / period) * period  # (H,) position within a section
+        d = np.minimum(pos, period - pos)[:, None]  # distance to the nearest joint
+        variant = cfg.variant or "concrete"
+        if variant == "corrugated":
+            base = np.array(cfg.base_rgb or (0.55, 0.56, 0.57), np.float32)
+            spangle = 1.0 + 0.08 * self._noise(rng, 0.8) + 0.08 * self._noise(rng, 2.4, coarse=4)
+            wave = (1.0 + 0.35 * np.cos(2.0 * math.pi * pos / period)).astype(np.float32)
+            return (base * (spangle * wave[:, None])[..., None]).astype(np.float32)
+        if variant == "plastic":
+            base = np.array(cfg.base_rgb or (0.72, 0.45, 0.22), np.float32)
+            streaks = fractal_noise((8, self.width), rng, beta=1.5)
+            streaks = cv2.resize(streaks, (self.width, 1), interpolation=cv2.INTER_AREA)
+            body = 1.0 + 0.04 * self._noise(rng, 2.4, coarse=4) + 0.03 * streaks
+            socket = (pos < 0.25 * period)[:, None] * np.float32(0.06)
+            wall = base * (body + socket)[..., None]
+        else:
+            base = np.array(cfg.base_rgb or (0.50, 0.49, 0.46), np.float32)
+            aggregate = 0.08 * self._noise(rng, 1.0) + 0.08 * self._noise(rng, 2.5, coarse=4)
+            pores = _smoothstep(self._noise(rng, 0.3), 2.4, 3.2)
+            wall = base * (1.0 + aggregate - 0.5 * pores)[..., None]
+        gap = 1.0 - _smoothstep(d, 0.5 * joint - 0.4, 0.5 * joint + 0.4)
+        chamfer = _smoothstep(d, 0.5 * joint, 0.5 * joint + 2.0) * (
+            1.0 - _smoothstep(d, 0.5 * joint + 2.0, 0.5 * joint + 5.0)
+        )
+        shade = 1.0 - 0.75 * gap + 0.12 * chamfer
+        return (wall * shade[..., None]).astype(np.float32)
+
+    def _smooth(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """A smooth wall (plastic, epoxy lining): gentle tone and fine grain; the scenario's
+        ``contrast`` makes it low contrast."""
+        cfg = self.config
+        base = np.array(cfg.base_rgb or (0.60, 0.58, 0.55), np.float32)
+        tone = self._noise(rng, 2.6, coarse=4)
+        grain = self._noise(rng, 0.9)
+        return (base * (1.0 + 0.15 * tone + 0.06 * grain)[..., None]).astype(np.float32)
+
+    def _stains(self, img: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
+        """Dark patchy deposits and a sediment band along the invert (a random angle)."""
+        field_ = self._noise(rng, 3.0, coarse=8)
+        patches = _smoothstep(field_, 0.3, 1.8)
+        angle = rng.uniform(0.0, 2.0 * math.pi)
+        theta = np.arange(self.width, dtype=np.float32) * (2.0 * math.pi / self.width)
+        dth = np.mod(theta - angle + math.pi, 2.0 * math.pi) - math.pi
+        band = np.exp(-0.5 * (dth / 0.35) ** 2)[None, :] * _smoothstep(
+            self._noise(rng, 2.4, coarse=4), -0.8, 0.8
+        )
+        mask = (np.clip(patches + band, 0.0, 1.0) * min(strength, 1.0))[..., None]
+        tint = np.array([0.22, 0.17, 0.10], np.float32)
+        return (img * (1.0 - mask) + tint * mask).astype(np.float32)
 
     @staticmethod
     def _pyramid(img: np.ndarray, levels: int = 6) -> list[np.ndarray]:

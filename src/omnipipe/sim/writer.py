@@ -120,6 +120,7 @@ def scene_description(
         "motion": asdict(scenario.motion),
         "render": asdict(scenario.render),
         "texture": asdict(scenario.texture),
+        **({"random": scenario.random} if scenario.random is not None else {}),
     }
 
 
