@@ -621,15 +621,18 @@ def atomic_output_dir(
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
-    with _deferred_signals(), _locked(parent):
-        recover_output_dir(target)
-        check_output_dir(out, force=force, protect=protect)
-        try:
-            tmp = _make_partial(parent, target.name)
-        except OSError as exc:
-            raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
-    _step("partial-created")
+    tmp: Path | None = None
     try:
+        # A signal arriving here is delivered when the block ends, by then ``tmp`` is
+        # known and removed by the handler below.
+        with _deferred_signals(), _locked(parent):
+            recover_output_dir(target)
+            check_output_dir(out, force=force, protect=protect)
+            try:
+                tmp = _make_partial(parent, target.name)
+            except OSError as exc:
+                raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
+        _step("partial-created")
         yield tmp
         _step("files-written")
         write_manifest(tmp, command)
@@ -649,6 +652,6 @@ def atomic_output_dir(
         _step("done")
     except BaseException:
         with _deferred_signals():
-            if tmp.is_dir():
+            if tmp is not None and tmp.is_dir():
                 _remove_partial(tmp)
         raise

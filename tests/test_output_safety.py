@@ -1,0 +1,392 @@
+"""Output safety: omnipipe never deletes what it did not write, and a kill at any step
+of the write phase leaves the previous or the new complete output (issue 15).
+
+Fast: a fake dataset folder (the refusals happen before the dataset is read) and the
+output functions driven directly; the kill tests run the swap in a subprocess that is
+SIGKILLed at a named step.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from omnipipe.cli import main
+from omnipipe.errors import OutputError
+from omnipipe.output import (
+    MANIFEST_NAME,
+    atomic_output_dir,
+    check_output_dir,
+    prepare_output_dir,
+    read_manifest,
+)
+
+
+def snapshot(root: Path) -> dict[str, bytes | None]:
+    """Every file (content) and folder (None) under root, hidden ones included."""
+    found: dict[str, bytes | None] = {}
+    for here, dirnames, filenames in os.walk(root):
+        for d in dirnames:
+            found[str(Path(here, d).relative_to(root))] = None
+        for f in filenames:
+            found[str(Path(here, f).relative_to(root))] = Path(here, f).read_bytes()
+    return found
+
+
+def fake_dataset(root: Path) -> Path:
+    """A folder that looks like a dataset; never read (refusals come first)."""
+    root.mkdir(parents=True)
+    (root / "rig.yaml").write_text("camera: {}\n")
+    (root / "frames").mkdir()
+    (root / "frames" / "000000.png").write_bytes(b"\x89PNG not really")
+    (root / "ground_truth").mkdir()
+    (root / "ground_truth" / "poses.txt").write_text("0 0 0 0 0 0 0 1\n")
+    return root
+
+
+def write_own(out: Path, version: str, *, force: bool = True) -> None:
+    """An omnipipe output (with manifest) whose every file says ``version``."""
+    with atomic_output_dir(out, force=force, command=f"test {version}") as tmp:
+        for i in range(4):
+            (tmp / f"f{i}.txt").write_text(version)
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "g.txt").write_text(version)
+
+
+def versions(out: Path) -> set[str]:
+    return {
+        p.read_text() for p in out.rglob("*") if p.is_file() and p.name != MANIFEST_NAME
+    }
+
+
+def refused(capsys, argv: list[str], expected: str) -> None:
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert expected in err, err
+    assert len(err.splitlines()) == 1, err
+
+
+# --- refusals through the CLI: file lists before and after ---------------------------
+
+
+def test_out_equal_to_dataset_is_refused(tmp_path: Path, capsys) -> None:
+    ds = fake_dataset(tmp_path / "D")
+    before = snapshot(tmp_path)
+    refused(capsys, ["reconstruct", str(ds), "--out", str(ds), "--force", "--quiet"], "is the input")
+    assert snapshot(tmp_path) == before
+
+
+def test_out_dot_from_the_folder_holding_the_dataset_is_refused(
+    tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fake_dataset(tmp_path / "D")
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "x.csv").write_text("1,2")
+    before = snapshot(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    refused(capsys, ["reconstruct", "D", "--out", ".", "--force", "--quiet"], "current folder")
+    assert snapshot(tmp_path) == before
+
+
+def test_out_parent_of_the_dataset_is_refused(tmp_path: Path, capsys) -> None:
+    ds = fake_dataset(tmp_path / "work" / "D")
+    (tmp_path / "work" / "notes.txt").write_text("mine")
+    before = snapshot(tmp_path)
+    argv = ["reconstruct", str(ds), "--out", f"{ds}/..", "--force", "--quiet"]
+    refused(capsys, argv, "holds the input")
+    assert snapshot(tmp_path) == before
+
+
+def test_out_symlink_to_the_dataset_is_refused(tmp_path: Path, capsys) -> None:
+    ds = fake_dataset(tmp_path / "D")
+    (tmp_path / "link").symlink_to(ds, target_is_directory=True)
+    before = snapshot(tmp_path)
+    argv = ["reconstruct", str(ds), "--out", str(tmp_path / "link"), "--force", "--quiet"]
+    refused(capsys, argv, "is the input")
+    assert snapshot(tmp_path) == before
+
+
+def test_out_holding_the_config_file_is_refused(tmp_path: Path, capsys) -> None:
+    ds = fake_dataset(tmp_path / "D")
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "c.yaml").write_text("sfm: {}\n")
+    before = snapshot(tmp_path)
+    argv = ["reconstruct", str(ds), "--out", str(tmp_path / "cfg"), "--force", "--quiet",
+            "--config", str(tmp_path / "cfg" / "c.yaml")]
+    refused(capsys, argv, "holds the input")
+    assert snapshot(tmp_path) == before
+
+
+def test_force_onto_a_user_folder_is_refused(tmp_path: Path, capsys) -> None:
+    ds = fake_dataset(tmp_path / "D")
+    user = tmp_path / "results"
+    user.mkdir()
+    (user / "thesis.tex").write_text("years of work")
+    before = snapshot(tmp_path)
+    argv = ["reconstruct", str(ds), "--out", str(user), "--force", "--quiet"]
+    refused(capsys, argv, "was not written by omnipipe")
+    assert snapshot(tmp_path) == before
+    # Without --force it is not suggested: the folder is not omnipipe's.
+    refused(capsys, [*argv[:-2], "--quiet"], "choose another output folder")
+    assert snapshot(tmp_path) == before
+
+
+def test_force_onto_own_output_with_an_added_user_file_is_refused(tmp_path: Path, capsys) -> None:
+    ds = fake_dataset(tmp_path / "D")
+    out = tmp_path / "out"
+    write_own(out, "v1")
+    (out / "sub" / "my notes.txt").write_text("mine")
+    before = snapshot(tmp_path)
+    argv = ["reconstruct", str(ds), "--out", str(out), "--force", "--quiet"]
+    refused(capsys, argv, "holds 'sub/my notes.txt', which omnipipe did not write")
+    assert snapshot(tmp_path) == before
+    with pytest.raises(OutputError, match=r"sub/my notes\.txt"):
+        write_own(out, "v2")
+    assert snapshot(tmp_path) == before
+
+
+def test_simulate_force_replaces_only_its_own_output(tmp_path: Path, capsys) -> None:
+    user = tmp_path / "data"
+    user.mkdir()
+    (user / "frames").mkdir()
+    (user / "frames" / "recorded.png").write_bytes(b"real data")
+    before = snapshot(tmp_path)
+    argv = ["simulate", "--scenario", "paper-small", "--frames", "2", "--out", str(user),
+            "--force", "--quiet", "--workers", "1"]
+    refused(capsys, argv, "was not written by omnipipe")
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("which", ["home", "root"])
+def test_home_and_root_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, which) -> None:
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    target = home if which == "home" else Path("/")
+    with pytest.raises(OutputError, match=which if which == "home" else "filesystem root"):
+        check_output_dir(target, force=True)
+
+
+# --- the manifest and --force ---------------------------------------------------------
+
+
+def test_force_replaces_own_output_and_the_manifest_lists_everything(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    write_own(out, "v1")
+    manifest = read_manifest(out)
+    assert manifest is not None and manifest.command == "test v1"
+    assert manifest.files == {"f0.txt", "f1.txt", "f2.txt", "f3.txt", "sub/g.txt"}
+    assert manifest.dirs == {"sub"}
+    with pytest.raises(OutputError, match="already exists"):
+        write_own(out, "v2", force=False)
+    write_own(out, "v2")
+    assert versions(out) == {"v2"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no debris
+
+
+def test_force_onto_an_empty_folder_is_allowed(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    write_own(out, "v1")
+    assert versions(out) == {"v1"}
+
+
+@pytest.mark.parametrize(
+    "manifest",
+    [
+        "not json",
+        json.dumps({"tool": "other", "files": ["f0.txt"]}),
+        json.dumps({"tool": "omnipipe", "files": ["../outside.txt"]}),
+        json.dumps({"tool": "omnipipe", "files": "f0.txt"}),
+    ],
+)
+def test_damaged_or_forged_manifest_is_refused(tmp_path: Path, manifest: str) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "f0.txt").write_text("user")
+    (out / MANIFEST_NAME).write_text(manifest)
+    before = snapshot(tmp_path)
+    with pytest.raises(OutputError, match="refusing to replace it"):
+        check_output_dir(out, force=True)
+    with pytest.raises(OutputError):
+        write_own(out, "v2")
+    assert snapshot(tmp_path) == before
+
+
+def test_a_symlink_inside_own_output_is_foreign(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    write_own(out, "v1")
+    keep = tmp_path / "keep"
+    keep.mkdir()
+    (keep / "k.txt").write_text("keep")
+    (out / "sub" / "link").symlink_to(keep, target_is_directory=True)
+    with pytest.raises(OutputError, match="sub/link"):
+        write_own(out, "v2")
+    assert (keep / "k.txt").read_text() == "keep"
+
+
+def test_failure_inside_the_block_keeps_previous_output_and_leaves_no_partial(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "out"
+    write_own(out, "v1")
+    with pytest.raises(RuntimeError), atomic_output_dir(out, force=True) as tmp:
+        (tmp / "f0.txt").write_text("v2")
+        raise RuntimeError("stage failed")
+    assert versions(out) == {"v1"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+# --- kills at each step of the write phase -------------------------------------------
+
+KILL_SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys
+    from omnipipe import output
+
+    out, version, kill_at = sys.argv[1:4]
+
+    def hook(step):
+        if step == kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    output._step_hook = hook
+    with output.atomic_output_dir(out, force=True) as tmp:
+        for i in range(4):
+            (tmp / f"f{i}.txt").write_text(version)
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "g.txt").write_text(version)
+    """
+)
+
+# step -> which output the next run must find (before "new-in": the previous one).
+STEPS = {
+    "partial-created": "v1",
+    "files-written": "v1",
+    "manifest-written": "v1",
+    "pid-removed": "v1",
+    "old-aside": "v1",
+    "new-in": "v2",
+    "synced": "v2",
+    "old-marked": "v2",
+    "old-partly-deleted": "v2",
+}
+
+
+def run_killed(tmp_path: Path, out: Path, version: str, step: str) -> None:
+    script = tmp_path / "kill.py"
+    script.write_text(KILL_SCRIPT)
+    proc = subprocess.run(
+        [sys.executable, str(script), str(out), version, step],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+
+
+@pytest.mark.parametrize("step", list(STEPS))
+def test_kill_at_any_step_keeps_a_complete_output(tmp_path: Path, step: str) -> None:
+    work = tmp_path / "work"
+    work.mkdir()
+    out = work / "out"
+    write_own(out, "v1")
+    run_killed(tmp_path, out, "v2", step)
+    # Right after the kill OUT is either missing (being swapped) or complete.
+    if out.exists():
+        assert versions(out) in ({"v1"}, {"v2"})
+        assert len(versions(out)) == 1 and len(list(out.rglob("*.txt"))) == 5
+    # The next run's start-up finishes or rolls back the swap and removes the debris.
+    prepare_output_dir(out, force=True)
+    assert versions(out) == {STEPS[step]}
+    assert len(list(out.rglob("*.txt"))) == 5
+    assert read_manifest(out) is not None
+    assert sorted(p.name for p in work.iterdir()) == ["out"]
+    write_own(out, "v3")
+    assert versions(out) == {"v3"}
+    assert sorted(p.name for p in work.iterdir()) == ["out"]
+
+
+def test_kill_during_a_first_write_leaves_nothing_after_the_next_run(tmp_path: Path) -> None:
+    work = tmp_path / "work"
+    work.mkdir()
+    out = work / "out"
+    run_killed(tmp_path, out, "v1", "files-written")
+    assert [p.name.split("-")[0] for p in work.iterdir()] == [".out.partial"]
+    prepare_output_dir(out)
+    assert list(work.iterdir()) == []
+
+
+def test_a_live_runs_partial_and_foreign_lookalikes_are_left_alone(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    foreign = tmp_path / ".out.partial-user"
+    foreign.mkdir()
+    (foreign / "data.txt").write_text("not omnipipe's")
+    with atomic_output_dir(out) as tmp:
+        prepare_output_dir(tmp_path / "out")  # a second run starting meanwhile
+        assert tmp.is_dir()
+        (tmp / "a.txt").write_text("v1")
+    assert (foreign / "data.txt").read_text() == "not omnipipe's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.partial-user", "out"]
+
+
+# --- SIGTERM / SIGINT through the real CLI --------------------------------------------
+
+SIGNAL_SCRIPT = textwrap.dedent(
+    """
+    import sys, time
+    import omnipipe.sim.writer as writer
+    from omnipipe.cli import main
+
+    original = writer._render_all
+
+    def render_all(renderer, scenario, poses, tmp, names, workers, progress):
+        def slow(done, total):
+            if done == 1 or done == total:
+                print("ready", flush=True)
+                time.sleep(60)
+        original(renderer, scenario, poses, tmp, names, workers, slow)
+
+    writer._render_all = render_all
+    sys.exit(main(["simulate", "--scenario", "paper-small", "--frames", "3", "--quiet",
+                   "--workers", sys.argv[2], "--out", sys.argv[1]]))
+    """
+)
+
+
+@pytest.mark.parametrize(
+    ("sig", "code", "word", "workers"),
+    [(signal.SIGTERM, 143, "terminated", "2"), (signal.SIGINT, 130, "interrupted", "1")],
+)
+def test_signal_during_the_run_removes_the_temporary_folder(
+    tmp_path: Path, sig: int, code: int, word: str, workers: str
+) -> None:
+    work = tmp_path / "work"
+    work.mkdir()
+    script = tmp_path / "sig.py"
+    script.write_text(SIGNAL_SCRIPT)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(work / "ds"), workers],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        assert [p.name.split("-")[0] for p in work.iterdir()] == [".ds.partial"]
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err
+    assert err.strip() == f"omnipipe simulate: {word}"
+    assert list(work.iterdir()) == []
