@@ -315,15 +315,15 @@ class WallTexture:
         hue = 1.0 + 0.05 * rng.standard_normal((n_rows, n_cols, 3))
         base = np.array(cfg.base_rgb or (0.55, 0.27, 0.18), np.float32)
         colour = (base * shade * hue).astype(np.float32)[ids]
-        surface = 1.0 + 0.10 * self._noise(rng, 2.2, coarse=4) + 0.06 * self._noise(rng, 0.9)
+        grain = self._noise(rng, 0.8)
+        surface = 1.0 + 0.10 * self._noise(rng, 2.2, coarse=4) + 0.06 * grain
         edge = 1.0 - 0.15 * (1.0 - _smoothstep(dist, 0.5 * joint, 0.5 * joint + 3.0))
         bricks = colour * (surface * edge)[..., None]
         mortar_rgb = np.array(
             (0.62, 0.60, 0.55) if rng.uniform() < 0.6 else (0.30, 0.29, 0.27), np.float32
         )
         recess = 1.0 - 0.35 * _smoothstep(dist, 0.15 * joint, 0.5 * joint)
-        grain = 1.0 + 0.12 * self._noise(rng, 0.7)
-        mortar = mortar_rgb * (recess * grain)[..., None]
+        mortar = mortar_rgb * (recess * (1.0 + 0.12 * grain))[..., None]
         m = (1.0 - _smoothstep(dist, 0.5 * joint - 0.4, 0.5 * joint + 0.4))[..., None]
         return (bricks * (1.0 - m) + mortar * m).astype(np.float32)
 
