@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from omnipipe.baseline import BaselineConfig, plot_fig9, run
-from omnipipe.errors import ConfigError
+from omnipipe.config import finite_option
+from omnipipe.errors import ConfigError, OutputError
 from omnipipe.rig import load_rig
+
+# Largest wall distance accepted (mm): 1 km, far beyond any pipe; beyond ~1e300 the
+# optimisation overflows.
+MAX_DISTANCE_MM = 1e6
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,13 +38,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
-    rig = load_rig(args.rig)
     for d in args.distance:
-        if not d > 0:
-            raise ConfigError("--distance", f"must be > 0, got {d:g}")
+        finite_option(d, "--distance", positive=True)
+        if d > MAX_DISTANCE_MM:
+            raise ConfigError("--distance", f"must be at most {MAX_DISTANCE_MM:g} mm, got {d:g}")
+    if args.plot:
+        folder = Path(args.plot).parent
+        if not folder.is_dir():
+            raise ConfigError("--plot", f"folder {folder} does not exist")
+        if Path(args.plot).is_dir():
+            raise ConfigError("--plot", f"{args.plot} is a directory, not a PNG file name")
+    rig = load_rig(args.rig)
     result = run(BaselineConfig(rig.mirror, rig.camera.f, tuple(args.distance)))
     if args.plot:
-        plot_fig9(result, args.plot)
+        try:
+            plot_fig9(result, args.plot)
+        except OSError as exc:
+            raise OutputError(f"{args.plot}: cannot write ({exc.strerror or exc})") from None
     if args.json:
         print(
             json.dumps(

@@ -64,6 +64,10 @@ def format_result(res: EvaluationResult) -> str:
             f"{head}: height {e['height_mm']:+.2f}, width {e['width_mm']:+.2f}, length {e['length_mm']:+.2f}, "
             f"start {e['axial_start_mm']:+.2f} mm, angle {e['angle_deg']:+.2f} deg"
         )
+    if res.not_evaluated:
+        lines.append(f"not evaluated: {', '.join(res.not_evaluated)}")
+    for w in res.warnings:
+        lines.append(f"warning: {w}")
     return "\n".join(lines)
 
 

@@ -10,13 +10,31 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from omnipipe.config import finite_option
 from omnipipe.dataset import open_dataset
 from omnipipe.output import atomic_output_dir, prepare_output_dir
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
 
+# Progress bars that are drawn and not yet finished, oldest first.
+_OPEN_BARS: list[tqdm] = []
+
+
+def close_progress_bars() -> None:
+    """Close every unfinished progress bar, so that the next line on stderr (an error
+    message) starts on a line of its own instead of after a half-drawn bar."""
+    while _OPEN_BARS:
+        _OPEN_BARS.pop().close()
+
 
 def _progress(quiet: bool):
+    """Progress factory ``(stage, total) -> tick(done)`` drawing one tqdm bar per stage.
+
+    A new stage's bar first closes any bar still open (a stage that stopped early);
+    :func:`close_progress_bars` closes the rest when a run fails.
+    """
+
     def factory(stage: str, total: int) -> Callable[[int], None]:
+        close_progress_bars()
         bar = tqdm(
             total=total,
             desc=f"{stage:>6}",
@@ -25,11 +43,14 @@ def _progress(quiet: bool):
             leave=True,
             file=sys.stderr,
         )
+        _OPEN_BARS.append(bar)
 
         def tick(done: int) -> None:
             bar.update(done - bar.n)
             if done >= total:
                 bar.close()
+                if bar in _OPEN_BARS:
+                    _OPEN_BARS.remove(bar)
 
         return tick
 
@@ -56,7 +77,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict]:
     if args.features is not None:
         out.setdefault("sfm", {})["features"] = {"max_features": args.features}
     if args.keyframe_parallax is not None:
-        out.setdefault("sfm", {})["keyframe_min_parallax_deg"] = args.keyframe_parallax
+        parallax = finite_option(args.keyframe_parallax, "--keyframe-parallax", positive=True)
+        out.setdefault("sfm", {})["keyframe_min_parallax_deg"] = parallax
     if args.mesher is not None:
         out.setdefault("model", {})["mesher"] = args.mesher
     return out
