@@ -5,7 +5,12 @@ I/O lives here, at the edge: stages receive arrays and data classes.
 
 from __future__ import annotations
 
+import math
+import os
+import sys
+import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +38,9 @@ class Dataset:
         timestamps: (N,) seconds; frame index when timestamps.txt is absent
             (for a video: from its frame rate).
         video: the video file, or None for an image folder.
+        warnings: problems found while opening that do not stop a run (e.g. a video
+            with fewer decodable frames than its container announces); the pipeline
+            copies them into report.json ``warnings``.
     """
 
     root: Path
@@ -40,6 +48,7 @@ class Dataset:
     frame_paths: tuple[Path, ...]
     timestamps: np.ndarray
     video: Path | None = None
+    warnings: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.frame_paths)
@@ -66,6 +75,48 @@ class Dataset:
         return self.root / "ground_truth"
 
 
+_STDERR_LOCK = threading.Lock()
+_STDERR_STATE: dict[str, int] = {"depth": 0, "saved": -1}
+
+
+@contextmanager
+def quiet_native_stderr() -> Iterator[None]:
+    """Silence what C libraries write to file descriptor 2 inside the block.
+
+    libpng, libjpeg, FFmpeg and OpenCV's logger print their own complaints straight to
+    the process's stderr (e.g. "libpng error: Read Error"), ahead of omnipipe's one-line
+    error. Inside the block fd 2 points at the null device; it is restored on every
+    exit path. Python's ``sys.stderr`` is flushed first so nothing of ours is lost.
+    Re-entrant and thread-safe (the outermost block owns the redirection).
+    """
+    with _STDERR_LOCK:
+        if _STDERR_STATE["depth"] == 0:
+            try:
+                sys.stderr.flush()
+            except (AttributeError, OSError, ValueError):
+                pass
+            try:
+                saved = os.dup(2)
+                null = os.open(os.devnull, os.O_WRONLY)
+                try:
+                    os.dup2(null, 2)
+                finally:
+                    os.close(null)
+            except OSError:
+                saved = -1  # no usable fd 2: nothing to silence
+            _STDERR_STATE["saved"] = saved
+        _STDERR_STATE["depth"] += 1
+    try:
+        yield
+    finally:
+        with _STDERR_LOCK:
+            _STDERR_STATE["depth"] -= 1
+            if _STDERR_STATE["depth"] == 0 and _STDERR_STATE["saved"] >= 0:
+                os.dup2(_STDERR_STATE["saved"], 2)
+                os.close(_STDERR_STATE["saved"])
+                _STDERR_STATE["saved"] = -1
+
+
 def read_image(path: Path, rig: Rig | None = None) -> np.ndarray:
     """Read an image as RGB (H, W, 3) or grey (H, W), 8 or 16 bit.
 
@@ -75,7 +126,8 @@ def read_image(path: Path, rig: Rig | None = None) -> np.ndarray:
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
     if data is None:
         raise DatasetError(f"{path}: image file not found")
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    with quiet_native_stderr():
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise DatasetError(f"{path}: not a readable image (corrupt or truncated?)")
     if img.ndim == 3:
@@ -102,27 +154,37 @@ def write_image(path: Path, image: np.ndarray) -> None:
 _VIDEO_CACHE: dict[tuple[str, float], list[np.ndarray]] = {}
 
 
-def _decode_video(path: Path) -> tuple[list[np.ndarray], float]:
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise DatasetError(f"{path}: not a readable video")
-    fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-    frames = []
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        frames.append(np.ascontiguousarray(frame[:, :, ::-1]))
-    cap.release()
+def _decode_video(path: Path) -> tuple[list[np.ndarray], float, int]:
+    """Every decodable frame (RGB), the frame rate (0 if unknown) and the frame count
+    the container announces (0 if unknown). Decoding stops at the first frame that
+    cannot be read; the decoder's own messages are silenced."""
+    with quiet_native_stderr():
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                raise DatasetError(f"{path}: not a readable video (not a video, or damaged)")
+            fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+            announced = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)
+            frames = []
+            while True:
+                ok, frame = cap.read()
+                if not ok or frame is None:
+                    break
+                frames.append(np.ascontiguousarray(frame[:, :, ::-1]))
+        finally:
+            cap.release()
     if not frames:
         raise DatasetError(f"{path}: the video holds no decodable frame")
-    return frames, fps
+    if not math.isfinite(fps) or fps < 0:
+        fps = 0.0
+    count = int(announced) if math.isfinite(announced) and 0 < announced < 1e9 else 0
+    return frames, fps, count
 
 
 def _video_frames(path: Path, rig: Rig) -> list[np.ndarray]:
     key = (str(path), path.stat().st_mtime)
     if key not in _VIDEO_CACHE:
-        frames, _ = _decode_video(path)
+        frames, _, _ = _decode_video(path)
         h, w = frames[0].shape[:2]
         if (h, w) != (rig.camera.height, rig.camera.width):
             raise DatasetError(
@@ -136,7 +198,7 @@ def _video_frames(path: Path, rig: Rig) -> list[np.ndarray]:
 def open_video(path: Path) -> Dataset:
     """Open a video file as a dataset; its rig.yaml lies in the same directory."""
     rig = load_rig(path.parent / "rig.yaml")
-    frames, fps = _decode_video(path)
+    frames, fps, announced = _decode_video(path)
     h, w = frames[0].shape[:2]
     if (h, w) != (rig.camera.height, rig.camera.width):
         raise DatasetError(
@@ -146,7 +208,20 @@ def open_video(path: Path) -> Dataset:
     _VIDEO_CACHE[(str(path), path.stat().st_mtime)] = frames
     names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(frames)))
     stamps = np.arange(len(frames)) / fps if fps > 0 else np.arange(len(frames), dtype=float)
-    return Dataset(root=path.parent, rig=rig, frame_paths=names, timestamps=stamps, video=path)
+    warnings: tuple[str, ...] = ()
+    if announced > len(frames):
+        warnings = (
+            f"{path.name}: the container announces {announced} frames but only the first "
+            f"{len(frames)} could be decoded (truncated or damaged video); using those",
+        )
+    return Dataset(
+        root=path.parent,
+        rig=rig,
+        frame_paths=names,
+        timestamps=stamps,
+        video=path,
+        warnings=warnings,
+    )
 
 
 def open_dataset(root: str | Path) -> Dataset:
@@ -184,24 +259,53 @@ def open_dataset(root: str | Path) -> Dataset:
 
 
 def _read_timestamps(path: Path, frame_paths: tuple[Path, ...]) -> np.ndarray:
-    table: dict[str, float] = {}
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        line = line.strip()
+    """(N,) timestamps of ``frame_paths`` from timestamps.txt.
+
+    Lines are ``<file name> <seconds>``; blank lines and ``#`` comments are skipped
+    (comments may hold any bytes). Every frame needs exactly one finite timestamp, and
+    timestamps must increase strictly in frame (file name) order: otherwise a
+    DatasetError names the file and line.
+    """
+    table: dict[str, tuple[float, int]] = {}
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
+    for n, raw_line in enumerate(raw.splitlines(), start=1):
+        line = raw_line.decode("utf-8", errors="replace").strip()
         if not line or line.startswith("#"):
             continue
+        if "\ufffd" in line:
+            raise DatasetError(f"{path}:{n}: not UTF-8 text")
         parts = line.split()
         try:
             if len(parts) != 2:
                 raise ValueError
-            table[parts[0]] = float(parts[1])
+            value = float(parts[1])
         except ValueError:
             raise DatasetError(
-                f"{path}:{n}: expected '<file name> <seconds>', got {line!r}"
+                f"{path}:{n}: expected '<file name> <seconds>', got {line[:80]!r}"
             ) from None
+        if not math.isfinite(value):
+            raise DatasetError(f"{path}:{n}: timestamp must be a finite number, got {parts[1]}")
+        if parts[0] in table:
+            raise DatasetError(
+                f"{path}:{n}: second timestamp for {parts[0]} (first on line {table[parts[0]][1]})"
+            )
+        table[parts[0]] = (value, n)
     missing = [p.name for p in frame_paths if p.name not in table]
     if missing:
         raise DatasetError(f"{path}: no timestamp for frame {missing[0]}")
-    return np.array([table[p.name] for p in frame_paths])
+    stamps = np.array([table[p.name][0] for p in frame_paths])
+    for i in range(1, len(frame_paths)):
+        if not stamps[i] > stamps[i - 1]:
+            name, prev = frame_paths[i].name, frame_paths[i - 1].name
+            raise DatasetError(
+                f"{path}:{table[name][1]}: timestamp {stamps[i]:g} s of {name} is not after "
+                f"{stamps[i - 1]:g} s of the frame before it ({prev}); timestamps must "
+                "increase strictly in frame order"
+            )
+    return stamps
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -215,14 +319,18 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise DatasetError(f"{path}: trajectory file not found")
     stamps, poses = [], []
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        line = line.strip()
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
+    for n, raw_line in enumerate(raw.splitlines(), start=1):
+        line = raw_line.decode("utf-8", errors="replace").strip()
         if not line or line.startswith("#"):
-            continue
+            continue  # comments may hold any bytes
         try:
             values = [float(v) for v in line.split()]
         except ValueError:
-            raise DatasetError(f"{path}:{n}: not numbers: {line!r}") from None
+            raise DatasetError(f"{path}:{n}: not numbers: {line[:80]!r}") from None
         if len(values) != 8:
             raise DatasetError(
                 f"{path}:{n}: expected 8 values 't tx ty tz qx qy qz qw', got {len(values)}"
