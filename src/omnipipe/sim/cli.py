@@ -31,7 +31,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "pipe of known shape, and write it as a contract dataset with ground_truth/.",
     )
     p.add_argument(
-        "--scenario", default="paper", choices=SCENARIOS, help="scene to simulate (default: paper)"
+        "--scenario",
+        default="paper",
+        choices=SCENARIOS,
+        help="scene to simulate (default: paper); random draws pipe, wall, gait, rig and defects "
+        "from --seed (docs/simulator.md)",
     )
     p.add_argument("--out", required=True, help="dataset directory to create")
     p.add_argument(
@@ -44,7 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="WxH",
         help="image size (default: the scenario's)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed (texture, motion, noise)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed (texture, motion, noise; the whole scene of random)",
+    )
     p.add_argument(
         "--dark-frames", action="store_true", help="also write LED-off frames to frames_noled/"
     )

@@ -399,7 +399,11 @@ class WallTexture:
         base = np.array(cfg.base_rgb or (0.60, 0.58, 0.55), np.float32)
         tone = self._noise(rng, 2.6, coarse=4)
         grain = self._noise(rng, 0.9)
-        return (base * (1.0 + 0.15 * tone + 0.06 * grain)[..., None]).astype(np.float32)
+        shade = 1.0 + 0.15 * tone + 0.06 * grain
+        if cfg.variant == "pvc":  # extrusion streaks along the pipe
+            streaks = fractal_noise((8, self.width), rng, beta=1.2)
+            shade = shade + 0.08 * cv2.resize(streaks, (self.width, 1), interpolation=cv2.INTER_AREA)
+        return (base * shade[..., None]).astype(np.float32)
 
     def _stains(self, img: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
         """Dark patchy deposits and a sediment band along the invert (a random angle)."""
