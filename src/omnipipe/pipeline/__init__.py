@@ -148,7 +148,13 @@ def run(
         progress=tick,
     )
     timings["sfm"] = time.perf_counter() - t0
+    quality = trajectory_quality(motion)
+    _refuse_untrusted_motion(motion)
     warnings.extend(motion.warnings)
+    warnings.extend(
+        f"frames {u['first_frame']}-{u['last_frame']}: motion unreliable ({u['reason']})"
+        for u in quality["unreliable"]
+    )
     reg = np.flatnonzero(motion.registered)
     if len(reg) == 0:
         raise ReconstructionError("camera motion could not be estimated for any frame")
@@ -192,23 +198,15 @@ def run(
     )
     timings["model"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
+    # Every measurement with its 1-sigma (lengths along the pipe: the motion's scale sigma).
+    measured, measure_warnings = analysis.report_fields(
+        res, getattr(motion, "scale_sigma_rel", float("nan")), config.analysis
+    )
+    warnings.extend(measure_warnings)
     summary = {
         "frames": n,
         "frames_registered": len(reg),
-        "inner_diameter_mm": round(res.inner_diameter_mm, 3),
-        "defects": res.defects,
-        "ovality_max": None if not np.isfinite(res.ovality_max) else round(res.ovality_max, 5),
-        "pipe_straight": res.straight,
-        "stations": [
-            {
-                "axial_mm": round(float(a), 2),
-                "diameter_mm": round(float(d), 3),
-                "ovality": None if not np.isfinite(o) else round(float(o), 5),
-            }
-            for a, d, o in zip(
-                res.stations_axial_mm, res.stations_diameter_mm, res.stations_ovality, strict=True
-            )
-        ],
+        **measured,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "warnings": warnings,
         "stationary_frames": int(np.sum(motion.stationary)),
@@ -220,6 +218,7 @@ def run(
             "photo_inconsistency_after": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_after, 3),
         },
         "keyframes": int(np.sum(motion.keyframe)),
+        "trajectory_quality": quality,
     }
     return Reconstruction(
         summary=summary,
@@ -229,6 +228,33 @@ def run(
         analysis=res,
         report_config=config.report,
     )
+
+
+def trajectory_quality(motion: Any) -> dict[str, Any]:
+    """report.json's ``trajectory_quality`` (DATA_CONTRACT): steps checked, unreliable
+    stretches, and (extension) every keyframe step's evidence in ``keyframe_steps``."""
+    from omnipipe.sfm.scale_check import steps_checked
+
+    return {
+        "steps_checked": steps_checked(motion.step_checks, motion.stationary),
+        "unreliable": [u.to_dict() for u in motion.unreliable],
+        "keyframe_steps": [c.to_dict() for c in motion.step_checks],
+    }
+
+
+def _refuse_untrusted_motion(motion: Any) -> None:
+    """A run that moved but whose scale could not be trusted at any step is refused."""
+    checks = motion.step_checks
+    if checks and not any(c.reliable for c in checks):
+        reasons: dict[str, int] = {}
+        for c in checks:
+            key = c.reason.split(" (")[0].split(":")[0] if c.reason else c.confidence
+            reasons[key] = reasons.get(key, 0) + 1
+        top = max(reasons, key=lambda k: reasons[k])
+        raise ReconstructionError(
+            f"camera motion could not be trusted at any of the {len(checks)} steps "
+            f"(most often: {top}); too little usable wall texture or laser ring?"
+        )
 
 
 def write(
@@ -292,18 +318,33 @@ def report_inputs(rec: Reconstruction, evaluation: dict | None = None):
 
 def table_one(
     summary: dict[str, Any], evaluation: dict[str, Any]
-) -> list[tuple[str, float | None, float | None, str]]:
-    """The paper's Table I rows (measured, true) from an evaluation."""
-    rows: list[tuple[str, float | None, float | None, str]] = []
+) -> list[tuple[str, float | None, float | None, float | None, str]]:
+    """The paper's Table I rows (name, measured, its 1-sigma, true, unit) from an evaluation."""
+    rows: list[tuple[str, float | None, float | None, float | None, str]] = []
     d = evaluation.get("diameter", {})
-    rows.append(("inside diameter", d.get("measured_mm"), d.get("true_mm"), "mm"))
+    rows.append(
+        (
+            "inside diameter",
+            d.get("measured_mm"),
+            summary.get("inner_diameter_sigma_mm"),
+            d.get("true_mm"),
+            "mm",
+        )
+    )
     for k, row in enumerate(evaluation.get("defects", [])):
         t = row.get("true")
         if t is None:
             continue
         m = row.get("measured") or {}
         name = f"{t['kind']} {k + 1}"
-        rows.append((f"height of {name}", m.get("height_mm"), t["height_mm"], "mm"))
-        rows.append((f"width of {name}", m.get("width_mm"), t["width_mm"], "mm"))
-        rows.append((f"length of {name}", m.get("length_mm"), t["length_mm"], "mm"))
+        for what in ("height", "width", "length"):
+            rows.append(
+                (
+                    f"{what} of {name}",
+                    m.get(f"{what}_mm"),
+                    m.get(f"{what}_sigma_mm"),
+                    t[f"{what}_mm"],
+                    "mm",
+                )
+            )
     return rows

@@ -134,24 +134,49 @@ def _reconstruct(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
     rec = run(config, dataset, _progress(args.quiet))
     write(rec, out, force=args.force, protect=protect)
-    s = rec.summary
-    print(
-        f"wrote {out}: {s['frames_registered']}/{s['frames']} frames registered, inner diameter "
-        f"{s['inner_diameter_mm']:.2f} mm, {len(s['defects'])} defect(s), {s['timings_s']['total']:.1f} s"
-    )
-    for w in s["warnings"]:
-        print(f"warning: {w}")
+    print(closing_line(rec.summary, out))
     return 0
 
 
+def closing_line(s: dict, out: Path) -> str:
+    """The CLI's last line: where, what was measured, and what cannot be trusted.
+
+    Warnings come first (one line each), so the last line always carries the verdict.
+    """
+    lines = [f"warning: {w}" for w in s["warnings"]]
+    q = s.get("trajectory_quality") or {}
+    bad = q.get("unreliable") or []
+    if bad:
+        frames = sum(u["last_frame"] - u["first_frame"] for u in bad)
+        verdict = (
+            f"UNRELIABLE motion in {len(bad)} stretch(es), {frames} of {s['frames'] - 1} "
+            "frame steps: lengths and positions there are not trustworthy (see report.json "
+            "trajectory_quality)"
+        )
+    else:
+        verdict = f"motion checked ({q.get('steps_checked', 0)} of {s['frames'] - 1} frame steps verified)"
+    lines.append(
+        f"wrote {out}: {s['frames_registered']}/{s['frames']} frames registered, inner diameter "
+        f"{s['inner_diameter_mm']:.2f} mm, {len(s['defects'])} defect(s), "
+        f"{s['timings_s']['total']:.1f} s; {verdict}"
+    )
+    return "\n".join(lines)
+
+
 def format_table_one(rows) -> str:
-    """Table I as aligned text."""
-    lines = [f"{'':28s} {'measured':>10s} {'true':>10s} {'error':>8s}"]
-    for name, meas, true, unit in rows:
-        m = "-" if meas is None else f"{meas:.2f}"
+    """Table I as aligned text: measured +- 1 sigma, true, error and error / sigma.
+
+    ``rows``: (name, measured, sigma, true, unit); sigma may be None.
+    """
+    from omnipipe.report import value_pm
+
+    lines = [f"{'':28s} {'measured':>18s} {'true':>10s} {'error':>8s} {'err/sigma':>9s}"]
+    for name, meas, sig, true, unit in rows:
+        m = value_pm(meas, sig, plain="+-")
         t = "-" if true is None else f"{true:.2f}"
         e = "" if meas is None or true is None else f"{meas - true:+.2f}"
-        lines.append(f"{name:28s} {m:>10s} {t:>10s} {e:>8s}  {unit}")
+        z = "" if meas is None or true is None or not sig else f"{(meas - true) / sig:+.1f}"
+        lines.append(f"{name:28s} {m:>18s} {t:>10s} {e:>8s} {z:>9s}  {unit}")
     return "\n".join(lines)
 
 

@@ -14,7 +14,7 @@ objective, whose minimiser over one scale is the median of the per-point log rat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -59,6 +59,10 @@ class LaserMatches:
         pixels_b: (M, 2) their omni pixels in frame b.
         ncc: (M,) best normalised cross-correlation.
         scale: combined translation length (mm) by Eq. (17); NaN without matches.
+        peak_scales_mm: (P,) translation lengths where the consensus of all points
+            (mean of their clipped NCC curves along the epipolar curves) peaks, best
+            first. A periodic wall (brick courses, joints) gives several peaks.
+        peak_scores: (P,) the consensus value of each peak (0..1).
     """
 
     index: np.ndarray
@@ -66,6 +70,45 @@ class LaserMatches:
     pixels_b: np.ndarray
     ncc: np.ndarray
     scale: float
+    peak_scales_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    peak_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def ambiguity(self) -> float:
+        """Second consensus peak over the best (0: one clear answer, 1: a tie)."""
+        if len(self.peak_scores) < 2 or self.peak_scores[0] <= 0:
+            return 0.0
+        return float(self.peak_scores[1] / self.peak_scores[0])
+
+
+def consensus_peaks(
+    scales: np.ndarray, ncc: np.ndarray, min_separation: float = 0.15
+) -> tuple[np.ndarray, np.ndarray]:
+    """Peaks of the points' consensus along the epipolar curve.
+
+    Args:
+        scales: (S,) increasing candidate translation lengths (mm), log-spaced.
+        ncc: (N, S) each point's NCC at each candidate (-1 where not comparable).
+        min_separation: peaks closer than this in log scale count as one.
+
+    Returns:
+        (P,) peak lengths (mm) and (P,) consensus scores, best first. The consensus is
+        the mean over points of max(NCC, 0)^2: a point votes where its patch matches.
+    """
+    if ncc.size == 0:
+        return np.zeros(0), np.zeros(0)
+    c = np.mean(np.clip(ncc, 0.0, 1.0) ** 2, axis=0)
+    padded = np.concatenate([[-np.inf], c, [-np.inf]])
+    is_peak = (padded[1:-1] >= padded[:-2]) & (padded[1:-1] > padded[2:])
+    idx = np.flatnonzero(is_peak)
+    idx = idx[np.argsort(-c[idx])]
+    logs = np.log(scales)
+    kept: list[int] = []
+    for i in idx:
+        if all(abs(logs[i] - logs[j]) > min_separation for j in kept):
+            kept.append(int(i))
+    kept_arr = np.array(kept, int)
+    return scales[kept_arr], c[kept_arr]
 
 
 def _ncc(template: np.ndarray, patches: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -95,6 +138,7 @@ def match_laser_points(
     b_from_a_rotation: np.ndarray,
     b_from_a_direction: np.ndarray,
     config: LaserScaleConfig | None = None,
+    scale_window_mm: tuple[float, float] | None = None,
 ) -> LaserMatches:
     """Find frame a's laser points in frame b along the epipolar curve; Eq. (17) scale.
 
@@ -105,6 +149,10 @@ def match_laser_points(
         b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
         b_from_a_direction: (3,) unit translation direction of rig_b_from_rig_a:
             p_b = R p_a + s d for the unknown length s (mm).
+        config: matching settings.
+        scale_window_mm: (min, max) translation lengths searched instead of the
+            config's full range (used once the length is known roughly, so that a
+            periodic wall cannot pull a point to the next course).
 
     Returns:
         The matches and the combined scale (translation length, mm).
@@ -145,7 +193,9 @@ def match_laser_points(
     half = np.maximum(cfg.stripe_half_width_mm / step, cfg.stripe_half_width_px)
     weight = (np.abs(gv)[None, :] > half[:, None]).astype(float)  # stripe masked
     # Candidate translation lengths: log-spaced, then a finer pass around each best.
-    s_lo, s_hi = cfg.scale_range_mm
+    s_lo, s_hi = cfg.scale_range_mm if scale_window_mm is None else scale_window_mm
+    if not (0 < s_lo < s_hi):
+        return empty
     R = np.asarray(b_from_a_rotation, float)
     d = np.asarray(b_from_a_direction, float) / np.linalg.norm(b_from_a_direction)
     plane_b0 = plane @ R.T  # (N, K, 3) rotated into rig b, before the translation
@@ -157,9 +207,15 @@ def match_laser_points(
         patches = vals.reshape(len(P), scales.shape[1], K)
         return _ncc(template, patches, weight)
 
-    coarse = np.geomspace(s_lo, s_hi, cfg.scale_steps)
+    steps = cfg.scale_steps
+    if scale_window_mm is not None:  # same density per log unit as the full search
+        full = math.log(cfg.scale_range_mm[1] / cfg.scale_range_mm[0])
+        steps = max(9, int(math.ceil(cfg.scale_steps * math.log(s_hi / s_lo) / full)) + 1)
+    coarse = np.geomspace(s_lo, s_hi, steps)
     scales = np.tile(coarse, (len(P), 1))
     ncc = score(scales)
+    tmpl_ok = np.nanstd(np.where(weight > 0, template, np.nan), axis=1) > cfg.min_template_std
+    peak_s, peak_c = consensus_peaks(coarse, ncc[ok_a & tmpl_ok])
     best = np.argmax(ncc, axis=1)
     ratio = coarse[1] / coarse[0]
     fine_offsets = np.geomspace(1 / ratio, ratio, 21)
@@ -176,7 +232,9 @@ def match_laser_points(
     tmpl_std = np.nanstd(np.where(weight > 0, template, np.nan), axis=1)
     good = ok_a & (best_ncc > cfg.min_ncc) & (tmpl_std > cfg.min_template_std) & np.isfinite(log_s)
     if not good.any():
-        return empty
+        return LaserMatches(
+            empty.index, empty.scale_mm, empty.pixels_b, empty.ncc, math.nan, peak_s, peak_c
+        )
     s_pt = np.exp(log_s[good])
     pix_b, _ = camera.project(P[good] @ R.T + s_pt[:, None] * d)
     # Eq. (17): min_l sum_k |log p_k - log l p'_k|, p'_k the unit-scale SfM point: the median.
@@ -191,4 +249,6 @@ def match_laser_points(
         pixels_b=pix_b[inlier],
         ncc=best_ncc[good][inlier],
         scale=scale,
+        peak_scales_mm=peak_s,
+        peak_scores=peak_c,
     )

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -35,6 +35,16 @@ from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_feature
 from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
 from omnipipe.sfm.planes import PlaneRefineConfig, refine_matches
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
+from omnipipe.sfm.scale_check import (
+    ScaleCheckConfig,
+    StepCheck,
+    UnreliableStretch,
+    decide,
+    feature_log_scales,
+    feature_scale,
+    merge_stretches,
+    wall_cylinder,
+)
 from omnipipe.sfm.stations import StationConfig, StationTracker
 
 
@@ -62,6 +72,8 @@ class SfmConfig:
         planes: the paper's projection-plane refinement of correspondences (off by
             default: see docs/pipeline.md for the measured comparison).
         bundle: bundle adjustment settings.
+        scale_check: when a step's laser length is trusted (feature depth scale,
+            consensus peaks; :mod:`omnipipe.sfm.scale_check`).
     """
 
     stations: StationConfig = field(default_factory=StationConfig)
@@ -76,6 +88,7 @@ class SfmConfig:
     anchor_reach: int = 3
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
+    scale_check: ScaleCheckConfig = field(default_factory=ScaleCheckConfig)
 
 
 @dataclass
@@ -111,6 +124,9 @@ class SfmResult:
         scale_sigma_rel: 1-sigma relative uncertainty of lengths along the run (a length
             L measured along the trajectory has sigma ``L * scale_sigma_rel``); NaN when
             the run could not estimate it.
+        step_checks: (K-1,) the evidence and confidence of every keyframe step, in order.
+        unreliable: stretches of frames whose motion could not be trusted (merged,
+            in frame order).
     """
 
     world_from_rig: np.ndarray
@@ -122,6 +138,8 @@ class SfmResult:
     warnings: list[str] = field(default_factory=list)
     bundle: object = None
     scale_sigma_rel: float = math.nan
+    step_checks: list[StepCheck] = field(default_factory=list)
+    unreliable: list[UnreliableStretch] = field(default_factory=list)
 
 
 def run(
@@ -171,6 +189,8 @@ def run(
     anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
     pending: list[tuple[int, int, object, np.ndarray | None]] = []
+    checks: list[StepCheck] = []
+    anchor_logs: list[tuple[float, np.ndarray]] = []  # (length, per-point log lengths)
     min_parallax = math.radians(config.keyframe_min_parallax_deg)
     for i in range(n):
         img = inputs.read_frame(i)
@@ -194,14 +214,22 @@ def run(
                     continue
                 if config.planes.enabled and motion is not None and motion.translation_reliable:
                     motion = _refine(ga, gray, camera, fa, feats, m, motion, ransac, config, warnings, a, i)
-                b_from_a, scale, inl, lm = _step(
-                    a, i, ga, gray, camera, rings[a].points_in_rig, m, motion, config, warnings
+                b_from_a, scale, inl, lm, check = _step(
+                    a, i, ga, gray, camera, rings[a].points_in_rig, fa, feats, m, motion, config,
+                    warnings,
+                )
+                checks.append(
+                    check
+                    if check is not None
+                    else StepCheck(
+                        a, i, math.nan, 0.0, math.nan, 0, 0.0 if motion is not None else math.nan,
+                        "high" if motion is not None else "none",
+                        "" if motion is not None else "relative motion not found",
+                    )
                 )
                 if scales and not math.isfinite(scale):
-                    scale = scales[-1]
-                    warnings.append(
-                        f"frames {a}->{i}: laser points not found again; scale of the previous step used"
-                    )
+                    # A placeholder length keeps the chain going; the step is flagged.
+                    scale = float(np.median([s for s in scales if s > 0] or [0.0]))
                 scale = 0.0 if not math.isfinite(scale) else scale
                 scales.append(scale)
                 b_from_a[:3, 3] *= scale
@@ -211,6 +239,7 @@ def run(
                     pair_matches.append((ka, kb, inl))
                 if lm is not None and len(lm.index):
                     anchors.append((ka, kb, rings[a].points_in_rig[lm.index], lm.pixels_b))
+                    anchor_logs.append((scale, np.log(lm.scale_mm)))
             kf_features.append(feats)
             kf_gray.append(np.clip(gray, 0, 65535).astype(np.uint16))
             kf_frames.append(i)
@@ -242,14 +271,23 @@ def run(
             feature_point, track_points = problem.feature_point, ba.points_in_world
         else:
             warnings.append("bundle adjustment skipped: too few feature tracks or laser anchors")
+    checks = _check_adjusted(checks, world_from_kf_arr, config.scale_check, warnings)
     # Every station gets a pose: keyframes from the adjustment, the others by resection.
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
     world_from_station = np.empty((len(first), 4, 4))
     kf_of = {f: k for k, f in enumerate(kf_frames)}
     resected = {}
+    stretches = [
+        UnreliableStretch(c.first_frame, c.last_frame, c.reason or c.confidence)
+        for c in checks
+        if not c.reliable
+    ]
     for i, k, feats, inl in pending:
+        n_warn = len(warnings)
         resected[i] = _resect(i, k, feats, inl, world_from_kf_arr, feature_point, track_points, warnings)
+        if len(warnings) > n_warn and warnings[-1].endswith("pose of its keyframe used"):
+            stretches.append(UnreliableStretch(kf_frames[k], i, "frame could not be resected"))
     for s_idx, f in enumerate(first):
         world_from_station[s_idx] = world_from_kf_arr[kf_of[f]] if f in kf_of else resected[f]
     world_from_rig = world_from_station[station]
@@ -262,7 +300,48 @@ def run(
         step_scale_mm=np.array(scales),
         warnings=warnings,
         bundle=bundle_stats,
+        scale_sigma_rel=_scale_sigma_rel(anchor_logs),
+        step_checks=checks,
+        unreliable=merge_stretches(stretches),
     )
+
+
+def _check_adjusted(
+    checks: list[StepCheck], world_from_kf: np.ndarray, config: ScaleCheckConfig, warnings: list[str]
+) -> list[StepCheck]:
+    """Flag keyframe steps whose adjusted length left their checked length."""
+    out = []
+    for k, c in enumerate(checks):
+        if k + 1 >= len(world_from_kf) or not c.reliable or not math.isfinite(c.scale_mm):
+            out.append(c)
+            continue
+        length = float(np.linalg.norm(world_from_kf[k + 1][:3, 3] - world_from_kf[k][:3, 3]))
+        if c.scale_mm > 0 and abs(math.log(max(length, 1e-9) / c.scale_mm)) > config.adjusted_agree_log:
+            reason = (
+                f"bundle adjustment moved the step from {c.scale_mm:.1f} mm to {length:.1f} mm "
+                "(feature tracks disagree with the laser)"
+            )
+            warnings.append(f"frames {c.first_frame}->{c.last_frame}: {reason}")
+            c = replace(c, confidence="none", reason=reason)
+        out.append(c)
+    return out
+
+
+def _scale_sigma_rel(anchor_logs: list[tuple[float, np.ndarray]]) -> float:
+    """Relative 1-sigma of lengths along the run from the spread of the laser matches.
+
+    Each step's length is the median of its points' log lengths: sigma_k from their
+    robust spread over sqrt(n); independent steps add in quadrature.
+    """
+    var, total = 0.0, 0.0
+    for length, logs in anchor_logs:
+        if len(logs) < 3 or length <= 0:
+            continue
+        spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs))))
+        sig = 1.2533 * spread / math.sqrt(len(logs))  # the median's efficiency
+        var += (length * sig) ** 2
+        total += length
+    return math.sqrt(var) / total if total > 0 else math.nan
 
 
 def _relative(a, b, fa, fb, m, ransac, warnings):
@@ -286,9 +365,13 @@ def _far_anchors(camera, world_from_kf, grays, rings, config) -> list:
             length = float(np.linalg.norm(b_from_a[:3, 3]))
             if length < 1e-6:
                 continue
+            # The adjusted length is known to a few per cent: search only around it, so
+            # that a periodic wall cannot offer the next course.
+            w = math.exp(config.scale_check.agree_log)
             lm = match_laser_points(
                 grays[a].astype(np.float32), grays[b].astype(np.float32), camera, pts,
                 b_from_a[:3, :3], b_from_a[:3, 3] / length, config.laser_scale,
+                (length / w, length * w),
             )
             if len(lm.index):
                 out.append((a, b, pts[lm.index], lm.pixels_b))
@@ -339,17 +422,46 @@ def _resect(i, k, feats, inl, world_from_kf, feature_point, track_points, warnin
     return world_from_kf[k].copy()
 
 
-def _step(a, b, ga, gb, camera, laser_points_a, m, motion, config, warnings):
-    """rig_b_from_rig_a, the metric length of its translation (Eq. 17), the inlier
-    matches (M, 2) and the laser matches (None where not available)."""
+def _step(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, warnings):
+    """rig_b_from_rig_a, the metric length of its translation (Eq. 17, checked against
+    the feature depth scale), the inlier matches (M, 2), the laser matches (None where
+    not available) and the step's check (None for a lost or rotation-only step)."""
     if motion is None:
-        return np.eye(4), 0.0, None, None
+        return np.eye(4), 0.0, None, None, None
     inl = m[motion.inliers]
     if not motion.translation_reliable:
         warnings.append(f"frames {a}->{b}: rotation only (no measurable translation)")
-        return motion.rig2_from_rig1.copy(), 0.0, inl, None
+        return motion.rig2_from_rig1.copy(), 0.0, inl, None, None
     b_from_a = motion.rig2_from_rig1.copy()
-    lm = match_laser_points(
-        ga, gb, camera, laser_points_a, b_from_a[:3, :3], b_from_a[:3, 3], config.laser_scale
+    R, d = b_from_a[:3, :3], b_from_a[:3, 3]
+    lm = match_laser_points(ga, gb, camera, laser_points_a, R, d, config.laser_scale)
+    wall = wall_cylinder(laser_points_a)
+    log_s = feature_log_scales(
+        fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], R, d, wall, config.scale_check
     )
-    return b_from_a, lm.scale, inl, lm
+    s_feat, n_feat = feature_scale(log_s, config.scale_check)
+    check = decide(
+        a, b, lm.scale, lm.peak_scales_mm, lm.peak_scores, s_feat, n_feat, config.scale_check
+    )
+    scale = check.scale_mm
+    if check.confidence == "resolved" or (
+        check.confidence == "low" and not math.isfinite(lm.scale)
+    ):
+        # Re-match the laser around the chosen length: no point may pick another course.
+        w = math.exp(config.scale_check.agree_log)
+        again = match_laser_points(
+            ga, gb, camera, laser_points_a, R, d, config.laser_scale, (scale / w, scale * w)
+        )
+        if math.isfinite(again.scale):
+            lm, scale = again, again.scale
+        elif check.confidence == "resolved":
+            lm = None
+    elif not check.reliable and check.confidence == "none":
+        lm = None  # its laser matches would pull the adjustment to a wrong length
+    if math.isfinite(scale):
+        # Drop matches whose own depth ratio contradicts the length (a wrong course).
+        bad = np.isfinite(log_s) & (np.abs(log_s - math.log(scale)) > config.scale_check.keep_match_log)
+        inl = inl[~bad]
+    if check.confidence != "high":
+        warnings.append(f"frames {a}->{b}: {check.reason}")
+    return b_from_a, scale, inl, lm, check

@@ -1,0 +1,345 @@
+"""A second, independent scale for every step, and the decision which length to trust.
+
+The laser's template matching along the epipolar curve (Eq. 17) measures a step's
+length from the wall's appearance. On a periodic wall (brick courses, tiles, joints)
+the next course looks like the right one, and the best-scoring length can be a whole
+course off. This module gives each step a second length from other evidence and
+decides, step by step, what the trajectory may use:
+
+* **Feature depth scale**: the light section measures the wall (a cylinder around the
+  rig, from the ring points of the earlier keyframe). Every matched feature ray of
+  that keyframe meets the wall at a metric depth; triangulating the same match with
+  a unit-length translation gives its depth in step units. Their ratio, over all
+  matches (median), is the step length in mm, without any template matching. A
+  feature matched to the wrong course lands off the wall and gives another ratio, so
+  the per-match ratios also tell which matches to keep.
+* **Laser consensus peaks**: every length at which the laser points' patches agree
+  (:func:`omnipipe.sfm.laser_scale.consensus_peaks`), not only the best one.
+
+A step is trusted when the two agree. When the laser's best peak disagrees but
+another of its peaks agrees with the feature scale, that peak is chosen (the step is
+resolved and says so). When nothing agrees, or one source is missing and the other is
+ambiguous, the step is unreliable: the trajectory keeps a pose but the report marks
+the stretch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Confidence levels of a step, best first.
+CONFIDENCE = ("high", "resolved", "low", "none")
+
+
+@dataclass(frozen=True)
+class ScaleCheckConfig:
+    """When two scale estimates agree, and when a laser answer is ambiguous.
+
+    Attributes:
+        agree_log: largest |log(s1 / s2)| for two lengths to agree (0.12: 12 %).
+        ambiguous_ratio: the laser is ambiguous when its second consensus peak
+            reaches this fraction of the best.
+        alternative_min_ratio: a non-best laser peak may be chosen (because the
+            features agree with it) only if it reaches this fraction of the best.
+        min_feature_matches: fewest usable matches for a feature depth scale.
+        min_parallax_deg: matches whose rays meet at less are not triangulated.
+        max_feature_spread_log: the feature scale is unusable when its per-match log
+            ratios scatter more than this (MAD, robust sigma) around the median.
+        keep_match_log: matches whose own depth ratio is further than this from the
+            chosen length are dropped from the tracks (a wrong course, a mismatch).
+        adjusted_agree_log: after bundle adjustment a keyframe step must stay this
+            close to its checked length, or it is flagged.
+    """
+
+    agree_log: float = 0.12
+    ambiguous_ratio: float = 0.8
+    alternative_min_ratio: float = 0.5
+    min_feature_matches: int = 12
+    min_parallax_deg: float = 1.0
+    max_feature_spread_log: float = 0.35
+    keep_match_log: float = 0.25
+    adjusted_agree_log: float = 0.1
+
+
+@dataclass(frozen=True)
+class WallCylinder:
+    """The wall around a keyframe, in its rig frame: a cylinder parallel to rig z.
+
+    Attributes:
+        centre_xy: (2,) axis position in the rig's x-y plane (mm).
+        radius_mm: wall radius (mm).
+    """
+
+    centre_xy: np.ndarray
+    radius_mm: float
+
+
+@dataclass(frozen=True)
+class StepCheck:
+    """The evidence behind one keyframe step and what was decided.
+
+    Attributes:
+        first_frame, last_frame: frame indices of the two keyframes.
+        laser_scale_mm: the laser's best length (NaN: no laser match).
+        laser_ambiguity: second laser consensus peak over the best (0..1).
+        feature_scale_mm: the feature depth scale (NaN: not measurable).
+        feature_matches: matches behind it.
+        scale_mm: the length used (NaN: none could be trusted).
+        confidence: one of :data:`CONFIDENCE`.
+        reason: why the step is not ``high`` (empty when it is).
+    """
+
+    first_frame: int
+    last_frame: int
+    laser_scale_mm: float
+    laser_ambiguity: float
+    feature_scale_mm: float
+    feature_matches: int
+    scale_mm: float
+    confidence: str
+    reason: str = ""
+
+    @property
+    def reliable(self) -> bool:
+        """True when the step's length rests on agreeing evidence."""
+        return self.confidence in ("high", "resolved")
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (lengths rounded to 0.01 mm)."""
+
+        def r(x: float, nd: int = 2) -> float | None:
+            return None if not math.isfinite(x) else round(float(x), nd)
+
+        return {
+            "first_frame": int(self.first_frame),
+            "last_frame": int(self.last_frame),
+            "confidence": self.confidence,
+            "laser_scale_mm": r(self.laser_scale_mm),
+            "laser_ambiguity": r(self.laser_ambiguity, 3),
+            "feature_scale_mm": r(self.feature_scale_mm),
+            "feature_matches": int(self.feature_matches),
+            "scale_mm": r(self.scale_mm),
+            "reason": self.reason,
+        }
+
+
+@dataclass(frozen=True)
+class UnreliableStretch:
+    """Frames whose motion could not be trusted (DATA_CONTRACT ``trajectory_quality``).
+
+    Attributes:
+        first_frame, last_frame: 0-based frame indices, inclusive.
+        reason: why, in words.
+    """
+
+    first_frame: int
+    last_frame: int
+    reason: str
+
+    def to_dict(self) -> dict:
+        """The contract's form."""
+        return {
+            "first_frame": int(self.first_frame),
+            "last_frame": int(self.last_frame),
+            "reason": self.reason,
+        }
+
+
+def merge_stretches(stretches: list[UnreliableStretch]) -> list[UnreliableStretch]:
+    """Sorted stretches, overlapping or touching ones merged (reasons joined once each)."""
+    out: list[UnreliableStretch] = []
+    for s in sorted(stretches, key=lambda s: (s.first_frame, s.last_frame)):
+        if out and s.first_frame <= out[-1].last_frame:
+            last = out[-1]
+            reasons = last.reason.split("; ")
+            reason = last.reason if s.reason in reasons else f"{last.reason}; {s.reason}"
+            out[-1] = UnreliableStretch(
+                last.first_frame, max(last.last_frame, s.last_frame), reason
+            )
+        else:
+            out.append(s)
+    return out
+
+
+def steps_checked(checks: list[StepCheck], stationary: np.ndarray) -> int:
+    """Frame-to-frame steps whose motion was verified: standstills (frames found
+    identical to their predecessor) and steps inside keyframe steps whose length two
+    sources confirmed."""
+    ok = np.asarray(stationary, bool)[1:].copy()
+    for c in checks:
+        if c.reliable:
+            ok[c.first_frame : c.last_frame] = True
+    return int(ok.sum())
+
+
+def wall_cylinder(points_in_rig: np.ndarray) -> WallCylinder | None:
+    """Least-squares circle (Kasa) of the ring points' x-y: the wall around the rig.
+
+    Args:
+        points_in_rig: (N, 3) metric ring points (mm) of one frame.
+
+    Returns:
+        The cylinder, or None with fewer than 20 points or a degenerate fit.
+    """
+    p = np.asarray(points_in_rig, float)
+    if len(p) < 20:
+        return None
+    x, y = p[:, 0], p[:, 1]
+    A = np.column_stack([2 * x, 2 * y, np.ones(len(x))])
+    sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+    cx, cy, c = sol
+    r2 = c + cx * cx + cy * cy
+    if not np.isfinite(r2) or r2 <= 0:
+        return None
+    return WallCylinder(np.array([cx, cy]), float(math.sqrt(r2)))
+
+
+def wall_depth(rays_in_rig: np.ndarray, wall: WallCylinder) -> np.ndarray:
+    """(N,) distance (mm) from the rig origin along each unit ray to the wall (NaN: misses)."""
+    r = np.asarray(rays_in_rig, float)
+    cx, cy = wall.centre_xy
+    a = r[:, 0] ** 2 + r[:, 1] ** 2
+    b = -2.0 * (r[:, 0] * cx + r[:, 1] * cy)
+    c = cx * cx + cy * cy - wall.radius_mm**2
+    disc = b * b - 4 * a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-b + np.sqrt(disc)) / (2 * a)
+    return np.where((disc > 0) & (a > 1e-6) & (t > 0), t, np.nan)
+
+
+def unit_depths(
+    rays_a: np.ndarray, rays_b: np.ndarray, b_from_a_rotation: np.ndarray, direction: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth along each ray of frame a for a translation of length 1 (midpoint method).
+
+    Args:
+        rays_a, rays_b: (N, 3) matched unit rays in rig a and rig b.
+        b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
+        direction: (3,) unit translation of rig_b_from_rig_a (p_b = R p_a + s d).
+
+    Returns:
+        (N,) depths in units of the step length (NaN behind either camera) and (N,)
+        parallax angles (rad) between the rays.
+    """
+    R = np.asarray(b_from_a_rotation, float)
+    d = np.asarray(direction, float)
+    u = np.asarray(rays_a, float) @ R.T  # ray a expressed in rig b
+    v = np.asarray(rays_b, float)
+    # t u + d = w v  ->  least squares in (t, w).
+    uu = np.sum(u * u, axis=1)
+    vv = np.sum(v * v, axis=1)
+    uv = np.sum(u * v, axis=1)
+    ud = u @ d
+    vd = v @ d
+    det = uu * vv - uv * uv
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-ud * vv + uv * vd) / det
+        w = (uu * vd - uv * ud) / det
+    parallax = np.arccos(np.clip(uv / np.sqrt(uu * vv), -1.0, 1.0))
+    t = np.where((det > 1e-12) & (t > 0) & (w > 0), t, np.nan)
+    return t, parallax
+
+
+def feature_log_scales(
+    rays_a: np.ndarray,
+    rays_b: np.ndarray,
+    b_from_a_rotation: np.ndarray,
+    direction: np.ndarray,
+    wall: WallCylinder | None,
+    config: ScaleCheckConfig,
+) -> np.ndarray:
+    """(N,) log of each match's implied step length (mm): wall depth / unit depth.
+
+    NaN where the match cannot say (no wall, too little parallax, behind a camera).
+    """
+    n = len(rays_a)
+    if wall is None or n == 0:
+        return np.full(n, np.nan)
+    t_unit, parallax = unit_depths(rays_a, rays_b, b_from_a_rotation, direction)
+    t_wall = wall_depth(rays_a, wall)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ls = np.log(t_wall / t_unit)
+    ok = np.isfinite(ls) & (parallax >= math.radians(config.min_parallax_deg))
+    return np.where(ok, ls, np.nan)
+
+
+def feature_scale(log_scales: np.ndarray, config: ScaleCheckConfig) -> tuple[float, int]:
+    """Robust step length (mm) from per-match log lengths, and the matches behind it.
+
+    NaN when too few matches or when they scatter too much to mean anything.
+    """
+    ls = log_scales[np.isfinite(log_scales)]
+    if len(ls) < config.min_feature_matches:
+        return math.nan, len(ls)
+    med = float(np.median(ls))
+    spread = 1.4826 * float(np.median(np.abs(ls - med)))
+    inl = np.abs(ls - med) < max(3 * spread, 0.05)
+    if spread > config.max_feature_spread_log or inl.sum() < config.min_feature_matches:
+        return math.nan, int(inl.sum())
+    return float(math.exp(np.median(ls[inl]))), int(inl.sum())
+
+
+def decide(
+    first_frame: int,
+    last_frame: int,
+    laser_scale_mm: float,
+    peak_scales_mm: np.ndarray,
+    peak_scores: np.ndarray,
+    feature_scale_mm: float,
+    feature_matches: int,
+    config: ScaleCheckConfig,
+) -> StepCheck:
+    """Which length a step may use, from the laser's peaks and the feature scale.
+
+    Returns:
+        A :class:`StepCheck`. ``scale_mm`` is a consensus peak's length when one was
+        chosen (the caller re-matches the laser around it for precision); NaN when no
+        length could be trusted.
+    """
+    amb = (
+        float(peak_scores[1] / peak_scores[0])
+        if len(peak_scores) >= 2 and peak_scores[0] > 0
+        else 0.0
+    )
+    has_laser = math.isfinite(laser_scale_mm) and laser_scale_mm > 0
+    has_feat = math.isfinite(feature_scale_mm)
+
+    def check(scale: float, confidence: str, reason: str = "") -> StepCheck:
+        return StepCheck(
+            first_frame, last_frame, laser_scale_mm, amb, feature_scale_mm, feature_matches,
+            scale, confidence, reason,
+        )
+
+    if has_laser and has_feat:
+        if abs(math.log(laser_scale_mm / feature_scale_mm)) <= config.agree_log:
+            return check(laser_scale_mm, "high")
+        # Another consensus peak may be the right course.
+        for s, c in zip(peak_scales_mm[1:], peak_scores[1:], strict=True):
+            if (
+                c >= config.alternative_min_ratio * peak_scores[0]
+                and abs(math.log(s / feature_scale_mm)) <= config.agree_log
+            ):
+                return check(
+                    float(s), "resolved",
+                    f"laser peak {s:.1f} mm chosen over {laser_scale_mm:.1f} mm: it agrees with "
+                    f"the feature depth scale {feature_scale_mm:.1f} mm",
+                )
+        return check(
+            math.nan, "none",
+            f"laser scale {laser_scale_mm:.1f} mm and feature depth scale "
+            f"{feature_scale_mm:.1f} mm disagree",
+        )
+    if has_laser:
+        if amb >= config.ambiguous_ratio:
+            return check(
+                math.nan, "none",
+                f"ambiguous laser scale (peaks at {', '.join(f'{s:.1f}' for s in peak_scales_mm[:3])} mm) "
+                "and no feature depth scale to decide",
+            )
+        return check(laser_scale_mm, "low", "laser scale not confirmed by feature depths")
+    if has_feat:
+        return check(feature_scale_mm, "low", "laser points not found again; feature depth scale used")
+    return check(math.nan, "none", "no laser scale and no feature depth scale")
