@@ -13,6 +13,7 @@ import pytest
 from scipy.optimize import brentq
 
 from omnipipe.camera import OmniCamera
+from omnipipe.errors import ConfigError
 from omnipipe.geometry import apply
 from omnipipe.sim import make_scenario
 from omnipipe.sim.motion import MotionConfig, head_travel, simulate_trajectory
@@ -71,6 +72,8 @@ def test_deterministic_per_seed_and_size_independent() -> None:
     assert c.rig.camera.width == 400 and c.frames == 24 and d.frames == 10
     assert d.rig.camera.width == 800
     assert make_scenario("random", seed=43).random != a.random
+    with pytest.raises(ConfigError, match="seed"):
+        make_scenario("random", seed=-1)
 
 
 def test_every_family_appears_and_a_third_are_periodic() -> None:

@@ -520,6 +520,8 @@ def _make_random(
             raise ConfigError("size", f"must be at least 64x48, got {width}x{height}")
     if frames is not None and frames < 1:
         raise ConfigError("frames", f"must be >= 1, got {frames}")
+    if seed < 0:
+        raise ConfigError("seed", f"must be >= 0 for {name}, got {seed}")
     if frames is None and name.endswith("-small"):
         frames = 24
     scenario = _random(width, height, frames, seed)
