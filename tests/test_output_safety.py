@@ -81,6 +81,10 @@ def test_out_equal_to_dataset_is_refused(tmp_path: Path, capsys) -> None:
     before = snapshot(tmp_path)
     refused(capsys, ["reconstruct", str(ds), "--out", str(ds), "--force", "--quiet"], "is the input")
     assert snapshot(tmp_path) == before
+    # Inside the dataset only a fresh folder (or omnipipe's own output) may be written.
+    argv = ["reconstruct", str(ds), "--out", str(ds / "frames"), "--force", "--quiet"]
+    refused(capsys, argv, "was not written by omnipipe")
+    assert snapshot(tmp_path) == before
 
 
 def test_out_dot_from_the_folder_holding_the_dataset_is_refused(
@@ -346,6 +350,7 @@ SIGNAL_SCRIPT = textwrap.dedent(
     import omnipipe.sim.writer as writer
     from omnipipe.cli import main
 
+    out, workers, render = sys.argv[1:4]
     original = writer._render_all
 
     def render_all(renderer, scenario, poses, tmp, names, workers, progress):
@@ -355,26 +360,36 @@ SIGNAL_SCRIPT = textwrap.dedent(
                 time.sleep(60)
         original(renderer, scenario, poses, tmp, names, workers, slow)
 
+    def no_render(scenario):
+        print("ready", flush=True)
+        time.sleep(60)
+
     writer._render_all = render_all
+    if render == "no":
+        writer.build_renderer = no_render
     sys.exit(main(["simulate", "--scenario", "paper-small", "--frames", "3", "--quiet",
-                   "--workers", sys.argv[2], "--out", sys.argv[1]]))
+                   "--workers", workers, "--out", out]))
     """
 )
 
 
 @pytest.mark.parametrize(
-    ("sig", "code", "word", "workers"),
-    [(signal.SIGTERM, 143, "terminated", "2"), (signal.SIGINT, 130, "interrupted", "1")],
+    ("sig", "code", "word", "workers", "render"),
+    [
+        # SIGTERM while render worker processes run: they die quietly, one line.
+        (signal.SIGTERM, 143, "terminated", "2", "yes"),
+        (signal.SIGINT, 130, "interrupted", "1", "no"),
+    ],
 )
 def test_signal_during_the_run_removes_the_temporary_folder(
-    tmp_path: Path, sig: int, code: int, word: str, workers: str
+    tmp_path: Path, sig: int, code: int, word: str, workers: str, render: str
 ) -> None:
     work = tmp_path / "work"
     work.mkdir()
     script = tmp_path / "sig.py"
     script.write_text(SIGNAL_SCRIPT)
     proc = subprocess.Popen(
-        [sys.executable, str(script), str(work / "ds"), workers],
+        [sys.executable, str(script), str(work / "ds"), workers, render],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
