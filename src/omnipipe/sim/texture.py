@@ -309,23 +309,31 @@ class WallTexture:
             course_id = np.broadcast_to(course[:, None], u.shape)
             n_rows, n_cols = int(course.max()) + 1, n_b
             ids = (course_id, brick_id)
+        del u, brick, uu
         # Chipped, irregular brick edges; each brick its own shade and hue.
-        dist = np.minimum(d_bed, d_head) + 0.7 * self._noise(rng, 1.8, coarse=2)
+        dist = np.minimum(d_bed, d_head)
+        del d_head
+        dist += 0.7 * self._noise(rng, 1.8, coarse=2)
         shade = 1.0 + 0.13 * rng.standard_normal((n_rows, n_cols, 1))
         hue = 1.0 + 0.05 * rng.standard_normal((n_rows, n_cols, 3))
         base = np.array(cfg.base_rgb or (0.55, 0.27, 0.18), np.float32)
-        colour = (base * shade * hue).astype(np.float32)[ids]
+        img = (base * shade * hue).astype(np.float32)[ids]
+        del ids, brick_id
         grain = self._noise(rng, 0.8)
         surface = 1.0 + 0.10 * self._noise(rng, 2.2, coarse=4) + 0.06 * grain
-        edge = 1.0 - 0.15 * (1.0 - _smoothstep(dist, 0.5 * joint, 0.5 * joint + 3.0))
-        bricks = colour * (surface * edge)[..., None]
+        surface *= 1.0 - 0.15 * (1.0 - _smoothstep(dist, 0.5 * joint, 0.5 * joint + 3.0))
         mortar_rgb = np.array(
             (0.62, 0.60, 0.55) if rng.uniform() < 0.6 else (0.30, 0.29, 0.27), np.float32
         )
-        recess = 1.0 - 0.35 * _smoothstep(dist, 0.15 * joint, 0.5 * joint)
-        mortar = mortar_rgb * (recess * (1.0 + 0.12 * grain))[..., None]
-        m = (1.0 - _smoothstep(dist, 0.5 * joint - 0.4, 0.5 * joint + 0.4))[..., None]
-        return (bricks * (1.0 - m) + mortar * m).astype(np.float32)
+        m = 1.0 - _smoothstep(dist, 0.5 * joint - 0.4, 0.5 * joint + 0.4)
+        surface *= 1.0 - m
+        img *= surface[..., None]
+        del surface
+        # Mortar, recessed: darker towards the brick edges.
+        m *= 1.0 - 0.35 * _smoothstep(dist, 0.15 * joint, 0.5 * joint)
+        m *= 1.0 + 0.12 * grain
+        img += mortar_rgb * m[..., None]
+        return img
 
     def _tiles(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Square glazed tiles (a whole number around the pipe) with grout lines."""
