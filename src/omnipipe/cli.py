@@ -84,14 +84,24 @@ def main(argv: list[str] | None = None) -> int:
         with _sigterm_raises():
             return int(args.func(args) or 0)
     except OmnipipeError as exc:
+        _close_bars()
         print(f"omnipipe {args.command}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        _close_bars()
         print(f"omnipipe {args.command}: interrupted", file=sys.stderr)
         return 130
     except Terminated:
+        _close_bars()
         print(f"omnipipe {args.command}: terminated", file=sys.stderr)
         return 143
+
+
+def _close_bars() -> None:
+    """End open progress bars' lines, so the error starts a line of its own."""
+    progress = sys.modules.get("omnipipe.pipeline.cli")
+    if progress is not None:
+        progress.close_progress_bars()
 
 
 if __name__ == "__main__":

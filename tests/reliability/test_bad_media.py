@@ -109,11 +109,6 @@ def test_reconstruct_truncated_png_prints_exactly_one_line(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs omnipipe.cli.main to call omnipipe.pipeline.cli.close_progress_bars() "
-    "before printing an error (hook for the lead); remove this marker once wired",
-)
 def test_error_line_starts_on_its_own_line_with_progress_bars(
     tiny_dataset: Path, tmp_path: Path
 ) -> None:
