@@ -7,6 +7,7 @@ import pytest
 
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, fit_cylinder, run
 from omnipipe.analysis.defects import WallSamples, find_defects
+from omnipipe.analysis.sizing import plateau
 from omnipipe.geometry import make_transform
 from omnipipe.sim.scenarios import make_scenario
 
@@ -102,16 +103,14 @@ def test_bent_pipe_diameter_and_defects() -> None:
 
 @pytest.mark.parametrize("centre_deg", [0.0, 359.0, 180.0])
 def test_defect_on_a_deviation_map_across_the_seam(centre_deg: float) -> None:
-    """A 2 mm dent, 12 mm wide, 30 mm long, on a map with 0.05 mm noise; also across angle 0."""
+    """A 2 mm dent, 18 mm wide, 45 mm long (half height), 0.05 mm noise; also across angle 0."""
     rng = np.random.default_rng(7)
     radius, circ = 100.0, 2 * np.pi * 100.0
     sig, ang = np.meshgrid(np.arange(0, 200, 5.0), np.arange(720) * circ / 720, indexing="ij")
     sig, arc = sig.ravel(), ang.ravel()
     du = (arc - np.radians(centre_deg) * radius + circ / 2) % circ - circ / 2
-    profile = np.clip(1 - np.abs(du) / 12.0, 0, 1) * np.clip(1 - np.abs(sig - 100) / 30.0, 0, 1) * 2
-    dev = 2 * np.minimum(profile, 1.0) + rng.normal(
-        0, 0.05, sig.size
-    )  # plateau 2 mm, half height at 6/15 mm
+    dev = 2.0 * plateau(du, 18.0, 6.0) * plateau(sig - 100.0, 45.0, 15.0)
+    dev += rng.normal(0, 0.05, sig.size)
     ring = (sig // 5).astype(int)
     defects, _ = find_defects(
         WallSamples(sig, arc, dev, ring, circ),
@@ -122,10 +121,11 @@ def test_defect_on_a_deviation_map_across_the_seam(centre_deg: float) -> None:
     )
     assert len(defects) == 1
     d = defects[0]
-    assert d["kind"] == "dent" and abs(d["height_mm"] - 2.0) < 0.15
-    assert abs(d["width_mm"] - 18.0) < 1.0  # |du| <= 9 where min(2 profile, ...) >= 1
-    assert abs(d["length_mm"] - 45.0) < 3.0
-    assert abs((d["angle_deg"] - centre_deg + 180) % 360 - 180) < 0.5
+    assert d["kind"] == "dent" and abs(d["height_mm"] - 2.0) < 0.05
+    assert abs(d["width_mm"] - 18.0) < 0.3
+    assert abs(d["length_mm"] - 45.0) < 1.0
+    assert abs(d["axial_start_mm"] - 77.5) < 0.5
+    assert abs((d["angle_deg"] - centre_deg + 180) % 360 - 180) < 0.2
 
 
 def test_oblique_rings_in_a_bend_stay_round() -> None:

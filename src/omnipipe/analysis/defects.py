@@ -5,21 +5,20 @@ radius at its station and angle: negative for a bulge (into the pipe), positive
 for a dent. Candidates are connected groups of points whose deviation exceeds a
 threshold (``min_height_mm`` and a multiple of the measured noise) with a neighbour on
 their ring at least half as far out (lone samples are extraction outliers), linked
-across neighbouring rings and around the pipe's seam. Each candidate is then measured on
-a fine grid interpolated linearly between the points (rings are sparse along the
-axis, dense around it):
+across neighbouring rings and around the pipe's seam.
 
-* height: the largest deviation, each ring's peak refined by a parabola through
-  its neighbouring samples (the maximum of raw samples would be biased by noise),
-  then across the neighbouring rings (a crest may lie between two rings);
-* width: the longest circumferential run (arc length) of a cross-section near the
-  crest, at half that cross-section's height;
-* length: the longest axial run at half height; ``axial_start_mm`` is its start;
-* angle: the centre of the crest's cross-section.
+Each candidate is first measured roughly on a grid interpolated linearly between the
+points (largest deviation, half-height runs); that is only the starting point of the
+model fit of :mod:`.sizing` (a raised-cosine plateau bump in arc length and axial
+position, least squares over the defect and the wall around it), which gives the
+reported height, width, length, axial start and angle and their standard
+uncertainties. A fitted defect lower than the run's detection limit
+(:func:`.sizing.detection_limit`) is not reported.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +28,8 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+from omnipipe.analysis.sizing import detection_limit, fit_bump, plateau
 
 
 @dataclass(frozen=True)
@@ -132,6 +133,39 @@ def _runs(
     return out
 
 
+@dataclass
+class DefectSearch:
+    """What :func:`find_defects` found.
+
+    Attributes:
+        defects: contract dicts (kind, height_mm, width_mm, length_mm, axial_start_mm,
+            angle_deg, each with its ``*_sigma_*`` 1-sigma uncertainty; ``points``: samples
+            beyond the threshold), largest first. The axial sigmas hold the fit and the
+            ring sampling only (not the camera motion's scale).
+        warnings: one line per rejected candidate.
+        noise_mm: robust sigma of the deviation map.
+        threshold_mm: sample threshold of the detector.
+        detection_limit_mm: smallest height of the reference defect detected with >= 95 %
+            probability (:func:`.sizing.detection_limit`); no reported defect is lower.
+        ring_spacing_mm: median axial distance between consecutive rings.
+        sample_spacing_mm: median arc length between samples along a ring.
+        masks: (N,) bool per reported defect: the samples its fitted bump covers
+            (model above 1 % of its height), for refitting the wall without it.
+    """
+
+    defects: list[dict]
+    warnings: list[str]
+    noise_mm: float = float("nan")
+    threshold_mm: float = float("nan")
+    detection_limit_mm: float = float("nan")
+    ring_spacing_mm: float = float("nan")
+    sample_spacing_mm: float = float("nan")
+    masks: list[np.ndarray] | None = None
+
+    def __iter__(self):  # (defects, warnings) = find_defects(...) keeps working
+        return iter((self.defects, self.warnings))
+
+
 def find_defects(
     samples: WallSamples,
     *,
@@ -140,7 +174,9 @@ def find_defects(
     min_points: int,
     grid_mm: float,
     max_width_fraction: float = 0.5,
-) -> tuple[list[dict], list[str]]:
+    limit_width_mm: float = 10.0,
+    limit_length_mm: float = 20.0,
+) -> DefectSearch:
     """Detect and measure bulges and dents.
 
     Args:
@@ -148,14 +184,10 @@ def find_defects(
         min_height_mm: smallest deviation reported as a defect.
         noise_factor: the threshold is also at least this many robust noise sigmas.
         min_points: a candidate needs this many points beyond the threshold.
-        grid_mm: cell size of the measurement grid.
+        grid_mm: cell size of the rough measurement grid (the fit's starting point).
         max_width_fraction: candidates wider than this fraction of the circumference are
             a shape change (ovality, a fit problem), not a local defect: reported as warnings.
-
-    Returns:
-        defects: contract dicts (kind, height_mm, width_mm, length_mm, axial_start_mm,
-            angle_deg) plus ``points`` (how many samples exceed the threshold), largest first.
-        warnings: one line per rejected candidate.
+        limit_width_mm, limit_length_mm: the reference defect of the detection limit.
     """
     dev, arc, sigma, circ = (
         samples.deviation_mm,
@@ -165,18 +197,31 @@ def find_defects(
     )
     warnings: list[str] = []
     if len(dev) < 10:
-        return [], warnings
+        return DefectSearch([], warnings, masks=[])
     noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
     threshold = max(min_height_mm, noise_factor * noise)
     # Link scales: along the ring a few sample spacings, across rings 1.5 (wide) ring spacings.
     ring_ids = np.unique(samples.ring)
     ring_sigma = np.array([np.median(sigma[samples.ring == r]) for r in ring_ids])
     # Ring spacing varies with the gait (slow start and stop): link across the wide gaps too.
-    spacing = float(np.percentile(np.diff(np.sort(ring_sigma)), 90)) if len(ring_ids) > 1 else 10.0
+    gaps = np.diff(np.sort(ring_sigma))
+    spacing = float(np.percentile(gaps, 90)) if len(ring_ids) > 1 else 10.0
+    typical_spacing = float(np.median(gaps)) if len(ring_ids) > 1 else 10.0
     ds = max(1.5 * spacing, 2.0)
     counts = np.bincount(samples.ring)
-    du = max(3.0 * circ / max(float(np.median(counts[counts > 0])), 1.0), 1.0)
+    sample_spacing = circ / max(float(np.median(counts[counts > 0])), 1.0)
+    du = max(3.0 * sample_spacing, 1.0)
+    limit = detection_limit(
+        noise_mm=noise,
+        threshold_mm=threshold,
+        sample_spacing_mm=sample_spacing,
+        ring_spacing_mm=typical_spacing,
+        min_points=min_points,
+        width_mm=limit_width_mm,
+        length_mm=limit_length_mm,
+    )
     defects: list[dict] = []
+    masks: list[np.ndarray] = []
     # Neighbours along each ring (sorted by ring, then arc), for the support test below.
     order = np.lexsort((arc, samples.ring))
     prev_i, next_i = np.roll(order, 1), np.roll(order, -1)
@@ -205,19 +250,92 @@ def find_defects(
             members = cand[label == c]
             if len(members) < min_points:
                 continue
-            d = _measure(samples, members, sign, kind, grid_mm, du, ds)
-            if d is None:
+            d0 = _measure(samples, members, sign, kind, grid_mm, du, ds)
+            if d0 is None:
                 continue
+            d, mask = _fit(samples, d0, sign, sample_spacing, typical_spacing)
             if d["width_mm"] > max_width_fraction * circ:
                 warnings.append(
                     f"{kind} candidate at {d['axial_start_mm']:.0f} mm spans {d['width_mm']:.0f} mm of the "
                     "circumference: a shape change, not reported as a defect"
                 )
                 continue
+            if not d["height_mm"] >= limit:
+                warnings.append(
+                    f"{kind} candidate at {d['axial_start_mm']:.0f} mm, {d['angle_deg']:.0f} deg: fitted "
+                    f"height {d['height_mm']:.2f} mm is below the detection limit {limit:.2f} mm, not reported"
+                )
+                continue
             d["points"] = len(members)
             defects.append(d)
-    defects.sort(key=lambda d: -d["height_mm"])
-    return defects, warnings
+            masks.append(mask)
+    order_h = np.argsort([-d["height_mm"] for d in defects], kind="stable")
+    return DefectSearch(
+        [defects[i] for i in order_h],
+        warnings,
+        noise_mm=noise,
+        threshold_mm=threshold,
+        detection_limit_mm=limit,
+        ring_spacing_mm=typical_spacing,
+        sample_spacing_mm=sample_spacing,
+        masks=[masks[i] for i in order_h],
+    )
+
+
+def _fit(
+    s: WallSamples, d0: dict, sign: float, sample_spacing: float, ring_spacing: float
+) -> tuple[dict, np.ndarray]:
+    """Model fit around a roughly measured defect ``d0``: the reported dict and its mask."""
+    circ = s.circumference_mm
+    w0, l0 = max(d0["width_mm"], sample_spacing), max(d0["length_mm"], 0.5 * ring_spacing)
+    uc = d0["angle_deg"] / 360.0 * circ
+    zc = d0["axial_start_mm"] + 0.5 * l0
+    u = (s.arc_mm - uc + 0.5 * circ) % circ - 0.5 * circ
+    z = s.sigma_mm - zc
+    hu = min(max(1.5 * w0, 0.5 * w0 + 10.0 * sample_spacing, 6.0), 0.45 * circ)
+    hz = max(1.5 * l0, 0.5 * l0 + 3.0 * ring_spacing, 6.0)
+    win = (np.abs(u) <= hu) & (np.abs(z) <= hz)
+    value = sign * s.deviation_mm
+    fit = fit_bump(
+        u[win],
+        z[win],
+        value[win],
+        s.ring[win],
+        (d0["height_mm"], 0.0, 0.0, w0, l0),
+        bounds_u=(-0.5 * w0 - 2 * sample_spacing, 0.5 * w0 + 2 * sample_spacing),
+        bounds_z=(-0.5 * l0 - ring_spacing, 0.5 * l0 + ring_spacing),
+    )
+    if fit is None:
+        # No usable fit: the rough measurement, with its scale of error as the sigma.
+        d = dict(d0)
+        d.update(
+            height_sigma_mm=None,
+            width_sigma_mm=None,
+            length_sigma_mm=None,
+            axial_start_sigma_mm=None,
+            angle_sigma_deg=None,
+        )
+        support = win & (value > 0.5 * d0["height_mm"])
+        return d, support
+    cover = (
+        plateau(u - fit.u0, fit.width, fit.ramp_u * fit.width)
+        * plateau(z - fit.z0, fit.length, fit.ramp_z * fit.length)
+    ) > 0.01
+    angle = ((uc + fit.u0) % circ) / circ * 360.0
+    return {
+        "kind": d0["kind"],
+        "height_mm": round(fit.height, 3),
+        "width_mm": round(fit.width, 3),
+        "length_mm": round(fit.length, 3),
+        "axial_start_mm": round(zc + fit.z0 - 0.5 * fit.length, 3),
+        "angle_deg": round(angle, 3),
+        "height_sigma_mm": round(fit.height_sigma, 4),
+        "width_sigma_mm": round(fit.width_sigma, 4),
+        "length_sigma_mm": round(fit.length_sigma, 4),
+        "axial_start_sigma_mm": round(fit.start_sigma, 4),
+        "angle_sigma_deg": round(math.degrees(fit.u0_sigma / (circ / (2 * math.pi))), 5),
+        "fit_noise_mm": round(fit.noise, 4),
+    }, cover
 
 
 def _measure(

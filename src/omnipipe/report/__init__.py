@@ -97,7 +97,20 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     out: dict[str, str] = {}
     if inputs.stations_axial_mm is not None and len(inputs.stations_axial_mm):
         fig, ax1 = plt.subplots(figsize=(8, 3.2))
-        ax1.plot(inputs.stations_axial_mm, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
+        sig = [st.get("diameter_sigma_mm") for st in inputs.summary.get("stations", [])]
+        if len(sig) == len(inputs.stations_axial_mm) and all(v is not None for v in sig):
+            ax1.errorbar(
+                inputs.stations_axial_mm,
+                inputs.stations_diameter_mm,
+                yerr=2 * np.asarray(sig, float),
+                fmt="o-",
+                color="#1f77b4",
+                ms=3,
+                capsize=2,
+                label="diameter ± 2 sigma",
+            )
+        else:
+            ax1.plot(inputs.stations_axial_mm, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
         ax1.set_xlabel("distance along the pipe (mm)")
         ax1.set_ylabel("inner diameter (mm)", color="#1f77b4")
         if inputs.stations_ovality is not None:
@@ -189,6 +202,18 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     return json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
 
 
+def value_pm(value: float | None, sigma: float | None, *, plain: str = "±", digits: int = 2) -> str:
+    """``value ± sigma`` with as many decimals as the sigma needs (at least ``digits``
+    when it is large, 3 when it is under 0.1); "-" without a value, the value alone
+    without a sigma."""
+    if value is None or not isinstance(value, int | float) or not math.isfinite(value):
+        return "-"
+    if sigma is None or not isinstance(sigma, int | float) or not math.isfinite(sigma):
+        return f"{value:.{digits}f}"
+    nd = max(digits, 3 if sigma < 0.1 else 2) if sigma < 1 else max(1, digits - 1)
+    return f"{value:.{nd}f} {plain} {sigma:.{nd}f}"
+
+
 def _fmt(value: Any, digits: int = 2) -> str:
     if value is None:
         return "–"
@@ -217,8 +242,26 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         "<h2>Summary</h2><table>",
         f"<tr><td>frames</td><td>{_fmt(s.get('frames'))}</td></tr>",
         f"<tr><td>frames registered</td><td>{_fmt(s.get('frames_registered'))}</td></tr>",
-        f"<tr><td>inner diameter</td><td>{_fmt(s.get('inner_diameter_mm'))} mm</td></tr>",
+        "<tr><td>inner diameter</td><td>"
+        f"{value_pm(s.get('inner_diameter_mm'), s.get('inner_diameter_sigma_mm'))} mm</td></tr>",
     ]
+    if s.get("run_length_mm") is not None:
+        parts.append(
+            "<tr><td>measured length of pipe</td><td>"
+            f"{value_pm(s['run_length_mm'], s.get('run_length_sigma_mm'), digits=1)} mm</td></tr>"
+        )
+    if s.get("detection_limit_mm") is not None:
+        ref = s.get("detection_limit_reference_mm") or {}
+        size = (
+            f" (a defect {ref['width']:g} mm wide, {ref['length']:g} mm long, found with 95 % probability)"
+            if ref.get("width") and ref.get("length")
+            else ""
+        )
+        parts.append(
+            f"<tr><td>detection limit</td><td>{_fmt(s['detection_limit_mm'])} mm high{size}</td></tr>"
+        )
+    if s.get("wall_noise_mm") is not None:
+        parts.append(f"<tr><td>wall noise (1 sigma)</td><td>{_fmt(s['wall_noise_mm'], 3)} mm</td></tr>")
     if s.get("ovality_max") is not None:
         parts.append(f"<tr><td>largest ovality</td><td>{_fmt(100 * s['ovality_max'])} %</td></tr>")
     if s.get("timings_s"):
@@ -233,13 +276,17 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         parts.append(f"<p class='warn'>warning: {html.escape(str(w))}</p>")
     if inputs.truth:
         parts.append(
-            "<h2>Measured vs true (the paper's Table I)</h2><table><tr><th></th><th>measured</th><th>true</th><th>error</th></tr>"
+            "<h2>Measured vs true (the paper's Table I)</h2><table><tr><th></th>"
+            "<th>measured ± 1 sigma</th><th>true</th><th>error</th><th>error / sigma</th></tr>"
         )
-        for name, meas, true, unit in inputs.truth:
+        for row in inputs.truth:
+            name, meas, sig, true, unit = row if len(row) == 5 else (row[0], row[1], None, *row[2:])
             err = None if meas is None or true is None else meas - true
+            z = "" if err is None or not sig else f"{err / sig:+.1f}"
             parts.append(
-                f"<tr><td>{html.escape(name)}</td><td>{_fmt(meas)} {unit}</td><td>{_fmt(true)} {unit}</td>"
-                f"<td>{'' if err is None else f'{err:+.2f} {unit}'}</td></tr>"
+                f"<tr><td>{html.escape(name)}</td><td>{value_pm(meas, sig)} {unit}</td>"
+                f"<td>{_fmt(true)} {unit}</td>"
+                f"<td>{'' if err is None else f'{err:+.2f} {unit}'}</td><td>{z}</td></tr>"
             )
         parts.append("</table>")
     ev = inputs.evaluation
@@ -267,14 +314,35 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
             "<th>axial start (mm)</th><th>angle (deg)</th></tr>"
         )
         for k, d in enumerate(defects):
+            cells = [
+                value_pm(d.get(key), d.get(skey), digits=nd)
+                for key, skey, nd in (
+                    ("height_mm", "height_sigma_mm", 2),
+                    ("width_mm", "width_sigma_mm", 2),
+                    ("length_mm", "length_sigma_mm", 2),
+                    ("axial_start_mm", "axial_start_sigma_mm", 2),
+                    ("angle_deg", "angle_sigma_deg", 1),
+                )
+            ]
             parts.append(
-                f"<tr><td>{k + 1}</td><td>{html.escape(d['kind'])}</td><td>{_fmt(d['height_mm'])}</td>"
-                f"<td>{_fmt(d['width_mm'])}</td><td>{_fmt(d['length_mm'])}</td>"
-                f"<td>{_fmt(d['axial_start_mm'])}</td><td>{_fmt(d['angle_deg'], 1)}</td></tr>"
+                f"<tr><td>{k + 1}</td><td>{html.escape(d['kind'])}</td>"
+                + "".join(f"<td>{c}</td>" for c in cells)
+                + "</tr>"
             )
         parts.append("</table>")
     else:
-        parts.append("<p>No bulges or dents above the detection threshold.</p>")
+        limit = s.get("detection_limit_mm")
+        parts.append(
+            "<p>No bulges or dents"
+            + ("" if limit is None else f" {_fmt(limit)} mm high or more")
+            + " were found.</p>"
+        )
+    parts.append(
+        "<p class='note'>± values are standard uncertainties (1 sigma): the fit of each defect's "
+        "model to the wall's deviation map, the spacing of the rings along the pipe, and the "
+        "camera motion's scale uncertainty for lengths along the pipe. No defect lower than the "
+        "detection limit is reported.</p>"
+    )
     if "unrolled" in plots:
         parts.append(
             f"<h2>Unrolled wall</h2><img id='unrolled' alt='unrolled wall' src='{plots['unrolled']}'>"

@@ -1,0 +1,261 @@
+"""Defect sizing by a model fitted to the deviation map, with standard uncertainties.
+
+The largest of noisy samples overestimates a defect's height (the more so the smaller
+the defect), and half-height crossings taken from it inherit the bias. Instead every
+detected defect is measured by least squares of a smooth bump to all samples around
+it (the defect and the wall beside it):
+
+    value(u, z) = b + h * P(u - u0; W, f_u W) * P(z - z0; L, f_z L)
+
+with ``value`` the deviation signed so that the defect is positive, ``u`` the arc
+length around the pipe and ``z`` the axial position (mm), and ``P(x; full, ramp)`` the
+raised-cosine plateau (1 inside, cosine ramps of length ``ramp``, exactly 0.5 at
+|x| = full / 2). The parameters are therefore directly the contract's quantities:
+height ``h``, width ``W`` and length ``L`` at half height, centre (u0, z0); f_u, f_z in
+[0.05, 1] shape the flanks (1: a raised cosine without plateau) and ``b`` absorbs a
+local offset of the wall.
+
+Uncertainty: the covariance (J^T J)^-1 s^2 of the fit, with ``s`` the RMS residual of
+the fit (noise and model mismatch), is the statistical part. Rings sample the axis
+sparsely: where no ring crosses one end's flank (all rings read 0 or the plateau
+there), that end may lie anywhere between its two rings, a uniform spread of
+variance spacing^2 / 12 added to the length and axial start. Lengths along the
+run also carry the camera motion's scale uncertainty (added by the caller).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+__all__ = ["BumpFit", "bump_model", "detection_limit", "fit_bump", "plateau"]
+
+
+@dataclass(frozen=True)
+class BumpFit:
+    """A fitted defect (mm; u around the pipe, z along it, both in the caller's frame).
+
+    Attributes:
+        height, width, length: h, W, L of the model (half-height extents).
+        u0, z0: centre.
+        ramp_u, ramp_z: flank fractions f_u, f_z.
+        offset: local wall offset b.
+        height_sigma, width_sigma, length_sigma, u0_sigma, z0_sigma, start_sigma:
+            1-sigma uncertainties (start = z0 - L / 2).
+        noise: RMS residual of the fit.
+        n: samples used.
+    """
+
+    height: float
+    width: float
+    length: float
+    u0: float
+    z0: float
+    ramp_u: float
+    ramp_z: float
+    offset: float
+    height_sigma: float
+    width_sigma: float
+    length_sigma: float
+    u0_sigma: float
+    z0_sigma: float
+    start_sigma: float
+    noise: float
+    n: int
+
+
+def plateau(x: np.ndarray, full_width: float, ramp: float) -> np.ndarray:
+    """Raised-cosine plateau: 1 inside, 0 outside, 0.5 exactly at |x| = full_width / 2.
+
+    Args:
+        x: offsets from the centre (mm), any shape.
+        full_width: extent at half height (mm).
+        ramp: length of each cosine flank (mm), 0 < ramp <= full_width.
+    """
+    ax = np.abs(x)
+    inner = 0.5 * (full_width - ramp)
+    phase = np.clip((ax - inner) / max(ramp, 1e-9), 0.0, 1.0)
+    return 0.5 * (1.0 + np.cos(np.pi * phase))
+
+
+def bump_model(params: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Model value at (u, z) for params [h, u0, z0, W, L, f_u, f_z, b] (see module doc)."""
+    h, u0, z0, w, length, fu, fz, b = params
+    return b + h * plateau(u - u0, w, fu * w) * plateau(z - z0, length, fz * length)
+
+
+def _unsampled_end_var(z_rings: np.ndarray, z_edge: float, ramp: float) -> float:
+    """Variance of one end's position when no ring samples its flank informatively (else 0).
+
+    A ring is informative where the cosine flank reads between 15 % and 85 % of the
+    height: within 0.25 ramp of the half-height point ``z_edge``. Otherwise the end may
+    lie anywhere between the rings on either side: variance gap^2 / 12.
+    """
+    if np.any(np.abs(z_rings - z_edge) < 0.25 * ramp):
+        return 0.0
+    before = z_rings[z_rings <= z_edge]
+    after = z_rings[z_rings > z_edge]
+    if not len(before) or not len(after):
+        return 0.0
+    gap = float(after.min() - before.max())
+    return gap * gap / 12.0
+
+
+def fit_bump(
+    u: np.ndarray,
+    z: np.ndarray,
+    value: np.ndarray,
+    ring: np.ndarray,
+    start: tuple[float, float, float, float, float],
+    *,
+    bounds_u: tuple[float, float],
+    bounds_z: tuple[float, float],
+) -> BumpFit | None:
+    """Least-squares bump fit to the samples around one defect.
+
+    Args:
+        u: (N,) arc length around the pipe, unwrapped around the defect (mm).
+        z: (N,) axial position (mm).
+        value: (N,) deviation, signed so that the defect is positive (mm).
+        ring: (N,) ring index of each sample (for the axial sampling term).
+        start: initial (height, u0, z0, width, length).
+        bounds_u, bounds_z: the window; the centre stays inside it.
+
+    Returns:
+        The fit, or None when it does not converge to a positive bump.
+    """
+    u, z, value = (np.asarray(a, float) for a in (u, z, value))
+    if len(value) < 12:
+        return None
+    h0, u00, z00, w0, l0 = start
+    span_u = bounds_u[1] - bounds_u[0]
+    span_z = bounds_z[1] - bounds_z[0]
+    lower = [1e-3, bounds_u[0], bounds_z[0], 0.2, 0.2, 0.05, 0.05, -5.0]
+    upper = [
+        max(3.0 * h0, h0 + 2.0),
+        bounds_u[1],
+        bounds_z[1],
+        max(span_u, 0.3),
+        max(span_z, 0.3),
+        1.0,
+        1.0,
+        5.0,
+    ]
+
+    # A weak prior (worth one sample at the noise level) pulls flank shapes that no
+    # sample constrains (a flank between two rings) to the middle of their range.
+    prior_scale = [0.05]
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        prior = prior_scale[0] * (np.asarray(p[5:7]) - 0.5) / 0.5
+        return np.concatenate([bump_model(p, u[keep], z[keep]) - value[keep], prior])
+
+    keep = np.ones(len(value), bool)
+    best = None
+    for fu, fz in ((0.5, 0.5), (1.0, 1.0), (0.15, 0.3)):
+        x0 = np.clip(
+            [h0, u00, z00, max(w0, 0.5), max(l0, 0.5), fu, fz, 0.0],
+            np.array(lower) + 1e-9,
+            np.array(upper) - 1e-9,
+        )
+        sol = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", max_nfev=400)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    # One pass of outlier rejection (extraction outliers, a neighbouring defect's edge).
+    res = best.fun[:-2]
+    scale = 1.4826 * float(np.median(np.abs(res))) + 1e-9
+    prior_scale[0] = scale
+    keep = np.abs(bump_model(best.x, u, z) - value) <= max(5.0 * scale, 1e-6)
+    if keep.sum() < 12:
+        return None
+    sol = least_squares(residual, best.x, bounds=(lower, upper), x_scale="jac", max_nfev=400)
+    p = sol.x
+    n, k = int(keep.sum()), len(p)
+    res = sol.fun[:-2]
+    noise = float(np.sqrt(np.sum(res**2) / max(n - k, 1)))
+    J = sol.jac[:-2]
+    # Directions the samples do not constrain keep a broad prior variance instead of the
+    # zero a pseudo-inverse would give them (a defect end between two rings).
+    prior_sigma = np.array([max(h0, 1.0), w0, l0, w0, l0, 0.5, 0.5, 1.0])
+    info = J.T @ J / max(noise, 1e-9) ** 2 + np.diag(1.0 / prior_sigma**2)
+    cov = np.linalg.inv(info)
+    var = np.clip(np.diag(cov), 0.0, None)
+    h, u0, z0, w, length, fu, fz, _ = p
+    if not h > 0:
+        return None
+    # Ends of the defect along the axis that no ring sampled: uniform between rings.
+    zr = np.array([float(np.median(z[keep & (ring == r)])) for r in np.unique(ring[keep])])
+    near_u = np.abs(u - u0) <= 0.5 * w
+    if near_u.any():
+        zr = np.array(
+            [float(np.median(z[keep & near_u & (ring == r)])) for r in np.unique(ring[keep & near_u])]
+        )
+    ramp = fz * length
+    v_lo = _unsampled_end_var(zr, z0 - 0.5 * length, ramp)
+    v_hi = _unsampled_end_var(zr, z0 + 0.5 * length, ramp)
+    # Each end (z0 -+ L / 2): the fit's variance where a ring samples its flank, the
+    # uniform spread between the bracketing rings where none does.
+    var_lo = max(var[2] + 0.25 * var[4] - cov[2, 4], 0.0) if v_lo == 0.0 else v_lo
+    var_hi = max(var[2] + 0.25 * var[4] + cov[2, 4], 0.0) if v_hi == 0.0 else v_hi
+    cov_ends = 0.0 if (v_lo or v_hi) else var[2] - 0.25 * var[4]
+    var_length = max(var_lo + var_hi - 2.0 * cov_ends, 0.0)
+    var_centre = max(0.25 * (var_lo + var_hi + 2.0 * cov_ends), 0.0)
+    return BumpFit(
+        height=float(h),
+        width=float(w),
+        length=float(length),
+        u0=float(u0),
+        z0=float(z0),
+        ramp_u=float(fu),
+        ramp_z=float(fz),
+        offset=float(p[7]),
+        height_sigma=float(math.sqrt(var[0])),
+        width_sigma=float(math.sqrt(var[3])),
+        length_sigma=float(math.sqrt(var_length)),
+        u0_sigma=float(math.sqrt(var[1])),
+        z0_sigma=float(math.sqrt(var_centre)),
+        start_sigma=float(math.sqrt(var_lo)),
+        noise=noise,
+        n=n,
+    )
+
+
+def detection_limit(
+    *,
+    noise_mm: float,
+    threshold_mm: float,
+    sample_spacing_mm: float,
+    ring_spacing_mm: float,
+    min_points: int,
+    width_mm: float,
+    length_mm: float,
+    z_score: float = 1.645,
+) -> float:
+    """Smallest height of a reference defect the detector finds with high probability.
+
+    The reference defect is a raised cosine (no plateau) ``width_mm`` wide and
+    ``length_mm`` long at half height, placed in the worst way between the rings (its
+    crest half a ring spacing from the nearest ring) and between samples. It is found when
+    at least ``min_points`` samples exceed the threshold; a sample whose expected value is
+    ``z_score`` noise sigmas above the threshold does so with probability >= 95 %.
+
+    Returns:
+        The height (mm); inf when the reference defect fits between the rings.
+    """
+    need = threshold_mm + z_score * noise_mm
+    du = max(sample_spacing_mm, 1e-3)
+    n_u = int(math.ceil(2.0 * width_mm / du)) + 2
+    us = (np.arange(-n_u, n_u + 1) + 0.5) * du  # samples straddling the crest
+    pu = plateau(us, width_mm, width_mm)
+    ds = max(ring_spacing_mm, 1e-3)
+    n_z = int(math.ceil(2.0 * length_mm / ds)) + 2
+    zs = (np.arange(-n_z, n_z + 1) + 0.5) * ds  # rings straddling the crest
+    pz = plateau(zs, length_mm, length_mm)
+    profile = np.sort(np.outer(pz, pu).ravel())[::-1]
+    if len(profile) < min_points or profile[min_points - 1] <= 0:
+        return math.inf
+    # The min_points-th largest sample must reach ``need``.
+    return float(need / profile[min_points - 1])
