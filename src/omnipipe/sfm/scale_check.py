@@ -90,6 +90,7 @@ class StepCheck:
         scale_mm: the length used (NaN: none could be trusted).
         confidence: one of :data:`CONFIDENCE`.
         reason: why the step is not ``high`` (empty when it is).
+        laser_peaks_mm: up to three laser consensus peaks (mm), best first.
     """
 
     first_frame: int
@@ -101,6 +102,7 @@ class StepCheck:
     scale_mm: float
     confidence: str
     reason: str = ""
+    laser_peaks_mm: tuple[float, ...] = ()
 
     @property
     def reliable(self) -> bool:
@@ -122,6 +124,7 @@ class StepCheck:
             "feature_scale_mm": r(self.feature_scale_mm),
             "feature_matches": int(self.feature_matches),
             "scale_mm": r(self.scale_mm),
+            "laser_peaks_mm": [r(p) for p in self.laser_peaks_mm],
             "reason": self.reason,
         }
 
@@ -310,7 +313,7 @@ def decide(
     def check(scale: float, confidence: str, reason: str = "") -> StepCheck:
         return StepCheck(
             first_frame, last_frame, laser_scale_mm, amb, feature_scale_mm, feature_matches,
-            scale, confidence, reason,
+            scale, confidence, reason, tuple(float(p) for p in peak_scales_mm[:3]),
         )
 
     if has_laser and has_feat:

@@ -1,0 +1,110 @@
+"""Camera motion on walls that fool it: periodic courses and no texture at all (rendered)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnipipe import laser
+from omnipipe.cli import main
+from omnipipe.dataset import open_dataset, read_tum
+from omnipipe.pipeline import ReconstructConfig
+from omnipipe.sfm import pipeline as sfm
+from omnipipe.sfm.laser_scale import LaserMatches
+from omnipipe.sim import TextureConfig, make_scenario
+from omnipipe.sim import run as simulate
+
+COURSE_MM = 14.0
+
+
+@pytest.fixture(scope="module")
+def brick_rings(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A brick sewer laid in rings every 14 mm; the robot steps about 4 mm, so the
+    next course lies where a step 4-5 times too long would put it (the field failure)."""
+    sc = make_scenario("paper-small", frames=20, seed=3)
+    sc.texture = TextureConfig(
+        family="brick", variant="around", period_mm=70.0, course_mm=COURSE_MM, joint_mm=2.5,
+        base_rgb=(0.55, 0.27, 0.18),
+    )
+    sc.motion = replace(sc.motion, frames_per_cycle=6, stroke_mm=9.0, n_units=3)
+    out = tmp_path_factory.mktemp("brick") / "ds"
+    simulate(sc, out, workers=2)
+    return out
+
+
+def _motion(ds_dir: Path, monkeypatch: pytest.MonkeyPatch | None = None, trap: bool = False):
+    ds = open_dataset(ds_dir)
+    cfg = ReconstructConfig.from_yaml(None, {"sfm": {"keyframe_min_parallax_deg": 0.0}})
+    frames = [ds.read_frame(i) for i in range(len(ds))]
+    rings = laser.run(cfg.laser, ds.rig, iter(frames))
+    if trap and monkeypatch is not None:
+        original = sfm.match_laser_points
+
+        def wrong_course_scores_best(*args, **kwargs) -> LaserMatches:
+            lm = original(*args, **kwargs)
+            if len(args) > 7 or "scale_window_mm" in kwargs or not np.isfinite(lm.scale):
+                return lm  # a search around a known length: left alone
+            alias = lm.scale + COURSE_MM  # the next course along the pipe
+            return replace(
+                lm,
+                scale=alias,
+                peak_scales_mm=np.concatenate([[alias], lm.peak_scales_mm]),
+                peak_scores=np.concatenate([[1.0], lm.peak_scores]),
+            )
+
+        monkeypatch.setattr(sfm, "match_laser_points", wrong_course_scores_best)
+    result = sfm.run(
+        cfg.sfm, sfm.SfmInputs(rig=ds.rig, read_frame=lambda i: frames[i], n_frames=len(ds), rings=rings)
+    )
+    _, true = read_tum(ds_dir / "ground_truth" / "poses.txt")
+    return result, true
+
+
+def _right_or_flagged(result, true: np.ndarray) -> np.ndarray:
+    """Per frame step: True where its length is right (1 mm / 20 %) or it is flagged."""
+    est = np.linalg.norm(np.diff(result.world_from_rig[:, :3, 3], axis=0), axis=1)
+    ref = np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1)
+    right = np.abs(est - ref) <= np.maximum(1.0, 0.2 * ref)
+    flagged = np.zeros(len(ref), bool)
+    for u in result.unreliable:
+        flagged[u.first_frame : max(u.last_frame, u.first_frame + 1)] = True
+    return right | flagged
+
+
+def test_periodic_wall_steps_are_right_or_flagged(brick_rings: Path) -> None:
+    result, true = _motion(brick_rings)
+    # The trap is real: the laser consensus also peaks at a wrong course.
+    assert any(
+        any(p > 2.5 * c.laser_scale_mm for p in c.laser_peaks_mm) for c in result.step_checks
+    )
+    ok = _right_or_flagged(result, true)
+    assert ok.all(), f"silent wrong steps at {np.flatnonzero(~ok)}"
+    assert sum(c.reliable for c in result.step_checks) >= len(result.step_checks) // 2
+
+
+def test_wrong_course_scoring_best_is_resolved_or_flagged(
+    brick_rings: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Inject the field failure: at every step the wrong course scores best."""
+    result, true = _motion(brick_rings, monkeypatch, trap=True)
+    moving = [c for c in result.step_checks if np.isfinite(c.laser_scale_mm)]
+    assert moving and all(c.confidence != "high" for c in moving)  # never trusted blindly
+    ok = _right_or_flagged(result, true)
+    assert ok.all(), f"silent wrong steps at {np.flatnonzero(~ok)}"
+    assert any(c.confidence == "resolved" for c in moving)  # the features found the course
+
+
+def test_wall_without_texture_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sc = make_scenario("paper-small", frames=12, seed=4)
+    sc.texture = TextureConfig(family="smooth", variant="pvc", contrast=0.0)
+    simulate(sc, tmp_path / "ds", workers=2)
+    code = main(["reconstruct", str(tmp_path / "ds"), "--out", str(tmp_path / "rec"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and "could not be trusted" in err[0]
+    assert not (tmp_path / "rec").exists()

@@ -1,0 +1,132 @@
+"""The second scale source and the step decision (omnipipe.sfm.scale_check), no rendering."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from omnipipe.geometry import make_transform
+from omnipipe.sfm.laser_scale import consensus_peaks
+from omnipipe.sfm.scale_check import (
+    ScaleCheckConfig,
+    UnreliableStretch,
+    decide,
+    feature_log_scales,
+    feature_scale,
+    merge_stretches,
+    steps_checked,
+    wall_cylinder,
+    wall_depth,
+)
+
+CFG = ScaleCheckConfig()
+
+
+def _wall_points(rng: np.random.Generator, n: int, centre, radius: float, z: tuple[float, float]):
+    phi = rng.uniform(0, 2 * np.pi, n)
+    zz = rng.uniform(*z, n)
+    return np.column_stack([centre[0] + radius * np.cos(phi), centre[1] + radius * np.sin(phi), zz])
+
+
+def test_wall_cylinder_recovers_the_ring_circle() -> None:
+    rng = np.random.default_rng(0)
+    ring = _wall_points(rng, 400, (1.5, -2.0), 101.0, (-82.0, -82.0))
+    ring[:, :2] += rng.normal(0, 0.1, (400, 2))
+    wall = wall_cylinder(ring)
+    assert wall is not None
+    assert np.allclose(wall.centre_xy, [1.5, -2.0], atol=0.05)
+    assert wall.radius_mm == pytest.approx(101.0, abs=0.05)
+    assert wall_cylinder(ring[:5]) is None
+
+
+def test_wall_depth_round_trip() -> None:
+    rng = np.random.default_rng(1)
+    pts = _wall_points(rng, 200, (2.0, 1.0), 80.0, (-150.0, 150.0))
+    depth = np.linalg.norm(pts, axis=1)
+    rays = pts / depth[:, None]
+    wall = wall_cylinder(_wall_points(rng, 100, (2.0, 1.0), 80.0, (-82.0, -82.0)))
+    assert np.allclose(wall_depth(rays, wall), depth, rtol=1e-6)
+
+
+@pytest.mark.parametrize("length_mm", [2.0, 11.0, 37.0])
+def test_feature_scale_is_the_true_step(length_mm: float) -> None:
+    """Matched rays of points on the wall give the step length without any laser match."""
+    rng = np.random.default_rng(int(length_mm))
+    centre, radius = (1.0, -0.5), 100.0
+    pts_a = _wall_points(rng, 150, centre, radius, (-200.0, 200.0))
+    R = Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix()
+    direction = np.array([0.05, -0.02, -1.0])
+    direction /= np.linalg.norm(direction)
+    b_from_a = make_transform(R, length_mm * direction)
+    pts_b = pts_a @ R.T + length_mm * direction
+    rays_a = pts_a / np.linalg.norm(pts_a, axis=1)[:, None]
+    rays_b = pts_b / np.linalg.norm(pts_b, axis=1)[:, None]
+    rays_b += rng.normal(0, 2e-4, rays_b.shape)  # about 0.2 px of noise
+    rays_b /= np.linalg.norm(rays_b, axis=1)[:, None]
+    ring = _wall_points(rng, 300, centre, radius, (-82.0, -82.0))
+    ls = feature_log_scales(rays_a, rays_b, b_from_a[:3, :3], direction, wall_cylinder(ring), CFG)
+    s, n = feature_scale(ls, CFG)
+    assert n >= CFG.min_feature_matches
+    assert s == pytest.approx(length_mm, rel=0.03)
+    # A match to the wrong course (shifted along the pipe) implies another length.
+    shifted = pts_a + np.array([0.0, 0.0, -14.0])
+    wrong_b = shifted @ R.T + length_mm * direction
+    wrong_b /= np.linalg.norm(wrong_b, axis=1)[:, None]
+    ls_wrong = feature_log_scales(rays_a, wrong_b, b_from_a[:3, :3], direction, wall_cylinder(ring), CFG)
+    assert np.nanmedian(np.abs(ls_wrong - math.log(length_mm))) > CFG.keep_match_log
+
+
+def test_consensus_peaks_finds_every_course() -> None:
+    scales = np.geomspace(0.2, 200.0, 96)
+    rng = np.random.default_rng(2)
+
+    def bump(centre: float, height: float) -> np.ndarray:
+        return height * np.exp(-0.5 * (np.log(scales / centre) / 0.08) ** 2)
+
+    ncc = np.stack([bump(4.4, 0.9) + bump(18.4, 0.85) + rng.normal(0, 0.02, 96) for _ in range(40)])
+    peaks, scores = consensus_peaks(scales, ncc)
+    assert len(peaks) >= 2
+    for true in (4.4, 18.4):  # within the 7.5 % candidate spacing
+        assert np.min(np.abs(np.log(peaks[:2] / true))) < 0.075
+    assert scores[1] / scores[0] > 0.8
+
+
+def test_decide_agreeing_sources_are_trusted() -> None:
+    c = decide(3, 9, 4.4, np.array([4.4, 18.4]), np.array([0.8, 0.3]), 4.5, 40, CFG)
+    assert c.confidence == "high" and c.reliable and c.scale_mm == 4.4
+
+
+def test_decide_wrong_best_peak_is_resolved_by_the_features() -> None:
+    """The field failure: the wrong brick course scores best (4x too long)."""
+    c = decide(3, 9, 18.4, np.array([18.4, 4.4]), np.array([0.9, 0.85]), 4.5, 40, CFG)
+    assert c.confidence == "resolved" and c.reliable
+    assert c.scale_mm == pytest.approx(4.4)
+
+
+def test_decide_disagreement_without_an_alternative_is_flagged() -> None:
+    c = decide(3, 9, 18.4, np.array([18.4]), np.array([0.9]), 4.5, 40, CFG)
+    assert c.confidence == "none" and not c.reliable and math.isnan(c.scale_mm)
+    assert "disagree" in c.reason
+
+
+def test_decide_ambiguous_laser_without_features_is_flagged() -> None:
+    c = decide(3, 9, 18.4, np.array([18.4, 4.4]), np.array([0.9, 0.85]), math.nan, 3, CFG)
+    assert not c.reliable and "ambiguous" in c.reason
+    c = decide(3, 9, 4.4, np.array([4.4, 18.4]), np.array([0.9, 0.2]), math.nan, 3, CFG)
+    assert c.confidence == "low" and not c.reliable  # one unconfirmed source is flagged
+
+
+def test_stretches_merge_and_steps_checked() -> None:
+    merged = merge_stretches(
+        [UnreliableStretch(9, 12, "b"), UnreliableStretch(3, 9, "a"), UnreliableStretch(20, 21, "a")]
+    )
+    assert [(m.first_frame, m.last_frame, m.reason) for m in merged] == [(3, 12, "a; b"), (20, 21, "a")]
+    checks = [
+        decide(0, 2, 4.4, np.array([4.4]), np.array([0.9]), 4.4, 30, CFG),
+        decide(2, 5, 18.0, np.array([18.0]), np.array([0.9]), 4.4, 30, CFG),
+    ]
+    stationary = np.array([False, False, False, False, False, False, True, True])
+    assert steps_checked(checks, stationary) == 2 + 2  # frames 0->2 and two standstills
