@@ -304,7 +304,7 @@ def _draw_texture(rng: np.random.Generator, diameter_mm: float) -> TextureConfig
     if family == "joints":
         variant = str(rng.choice(["concrete", "plastic", "corrugated"]))
         if variant == "corrugated":
-            period, colour = float(rng.uniform(50.0, 150.0)), None
+            period, colour = float(rng.uniform(10.0, 70.0)), None  # HDPE/culvert pitch
         else:
             period = float(rng.uniform(50.0, 500.0))
             colour = pick(_PLASTIC_COLOURS) if variant == "plastic" else None
