@@ -118,6 +118,7 @@ def run(
         OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
     """
     from omnipipe import analysis, laser, model
+    from omnipipe.pipeline import quality
     from omnipipe.sfm import pipeline as sfm
 
     timings: dict[str, float] = {}
@@ -126,6 +127,7 @@ def run(
     validate_frames(dataset)
     rig = dataset.rig
     n = len(dataset)
+    warnings.extend(dataset.warnings)  # e.g. a truncated video
 
     t0 = time.perf_counter()
     tick = progress("laser", n)
@@ -148,12 +150,11 @@ def run(
         progress=tick,
     )
     timings["sfm"] = time.perf_counter() - t0
-    quality = trajectory_quality(motion)
-    _refuse_untrusted_motion(motion)
+    quality.refuse_untrusted_motion(motion)
     warnings.extend(motion.warnings)
     warnings.extend(
-        f"frames {u['first_frame']}-{u['last_frame']}: motion unreliable ({u['reason']})"
-        for u in quality["unreliable"]
+        f"frames {u.first_frame}-{u.last_frame}: motion unreliable ({u.reason})"
+        for u in motion.unreliable
     )
     reg = np.flatnonzero(motion.registered)
     if len(reg) == 0:
@@ -177,6 +178,9 @@ def run(
     )
     timings["analysis"] = time.perf_counter() - t0
     warnings.extend(res.warnings)
+    traj_quality = quality.trajectory_quality(
+        motion, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
+    )
 
     t0 = time.perf_counter()
     tick = progress("model", len(stations))
@@ -203,6 +207,7 @@ def run(
         res, getattr(motion, "scale_sigma_rel", float("nan")), config.analysis
     )
     warnings.extend(measure_warnings)
+    warnings.extend(quality.flag_defects(measured.get("defects", []), traj_quality))
     summary = {
         "frames": n,
         "frames_registered": len(reg),
@@ -218,7 +223,7 @@ def run(
             "photo_inconsistency_after": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_after, 3),
         },
         "keyframes": int(np.sum(motion.keyframe)),
-        "trajectory_quality": quality,
+        "trajectory_quality": traj_quality,
     }
     return Reconstruction(
         summary=summary,
@@ -228,33 +233,6 @@ def run(
         analysis=res,
         report_config=config.report,
     )
-
-
-def trajectory_quality(motion: Any) -> dict[str, Any]:
-    """report.json's ``trajectory_quality`` (DATA_CONTRACT): steps checked, unreliable
-    stretches, and (extension) every keyframe step's evidence in ``keyframe_steps``."""
-    from omnipipe.sfm.scale_check import steps_checked
-
-    return {
-        "steps_checked": steps_checked(motion.step_checks, motion.stationary),
-        "unreliable": [u.to_dict() for u in motion.unreliable],
-        "keyframe_steps": [c.to_dict() for c in motion.step_checks],
-    }
-
-
-def _refuse_untrusted_motion(motion: Any) -> None:
-    """A run that moved but whose scale could not be trusted at any step is refused."""
-    checks = motion.step_checks
-    if checks and not any(c.reliable for c in checks):
-        reasons: dict[str, int] = {}
-        for c in checks:
-            key = c.reason.split(" (")[0].split(":")[0] if c.reason else c.confidence
-            reasons[key] = reasons.get(key, 0) + 1
-        top = max(reasons, key=lambda k: reasons[k])
-        raise ReconstructionError(
-            f"camera motion could not be trusted at any of the {len(checks)} steps "
-            f"(most often: {top}); too little usable wall texture or laser ring?"
-        )
 
 
 def write(

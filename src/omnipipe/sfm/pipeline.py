@@ -271,7 +271,7 @@ def run(
             feature_point, track_points = problem.feature_point, ba.points_in_world
         else:
             warnings.append("bundle adjustment skipped: too few feature tracks or laser anchors")
-    checks = _check_adjusted(checks, world_from_kf_arr, config.scale_check, warnings)
+    checks = _check_adjusted(checks, world_from_kf_arr, config.scale_check)
     # Every station gets a pose: keyframes from the adjustment, the others by resection.
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
@@ -307,7 +307,7 @@ def run(
 
 
 def _check_adjusted(
-    checks: list[StepCheck], world_from_kf: np.ndarray, config: ScaleCheckConfig, warnings: list[str]
+    checks: list[StepCheck], world_from_kf: np.ndarray, config: ScaleCheckConfig
 ) -> list[StepCheck]:
     """Flag keyframe steps whose adjusted length left their checked length."""
     out = []
@@ -321,7 +321,6 @@ def _check_adjusted(
                 f"bundle adjustment moved the step from {c.scale_mm:.1f} mm to {length:.1f} mm "
                 "(feature tracks disagree with the laser)"
             )
-            warnings.append(f"frames {c.first_frame}->{c.last_frame}: {reason}")
             c = replace(c, confidence="none", reason=reason)
         out.append(c)
     return out
@@ -462,6 +461,6 @@ def _step(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, warni
         # Drop matches whose own depth ratio contradicts the length (a wrong course).
         bad = np.isfinite(log_s) & (np.abs(log_s - math.log(scale)) > config.scale_check.keep_match_log)
         inl = inl[~bad]
-    if check.confidence != "high":
+    if check.confidence == "resolved":  # the unreliable ones become stretches with a warning
         warnings.append(f"frames {a}->{b}: {check.reason}")
     return b_from_a, scale, inl, lm, check

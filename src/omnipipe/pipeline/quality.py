@@ -1,0 +1,104 @@
+"""What the user is told about the camera motion: report.json's ``trajectory_quality``.
+
+DATA_CONTRACT defines ``steps_checked`` and ``unreliable`` (first/last frame, reason).
+omnipipe adds, compatibly: per unreliable stretch its extent along the pipe
+(``axial_start_mm``, ``axial_end_mm``, the defects' axial convention) so that
+report.html can mark it on the unrolled wall, and ``keyframe_steps``: every keyframe
+step's evidence (laser length and consensus peaks, feature depth length, confidence).
+Defects whose axial extent touches an unreliable stretch get ``"motion_unreliable":
+true`` and a warning: their length and position rest on untrusted motion.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from omnipipe.errors import ReconstructionError
+from omnipipe.sfm.pipeline import SfmResult
+from omnipipe.sfm.scale_check import steps_checked
+
+
+def station_axial_mm(
+    point_axial_mm: np.ndarray, point_station: np.ndarray, n_stations: int
+) -> np.ndarray:
+    """(K,) axial position (mm) of each station: the median of its ring points' positions."""
+    out = np.full(n_stations, np.nan)
+    if len(point_station) == 0:
+        return out
+    order = np.argsort(point_station, kind="stable")
+    ids, starts = np.unique(point_station[order], return_index=True)
+    for k, chunk in zip(ids, np.split(point_axial_mm[order], starts[1:]), strict=True):
+        out[int(k)] = float(np.median(chunk))
+    return out
+
+
+def trajectory_quality(
+    motion: SfmResult, station_frames: np.ndarray, station_axial: np.ndarray
+) -> dict[str, Any]:
+    """report.json's ``trajectory_quality``.
+
+    Args:
+        motion: the camera-motion result.
+        station_frames: (K,) first frame of each station that fed the model, increasing.
+        station_axial: (K,) their axial positions (mm; NaN unknown).
+    """
+    unreliable = []
+    for u in motion.unreliable:
+        row = u.to_dict()
+        if len(station_frames):
+            k = np.clip(
+                np.searchsorted(station_frames, [u.first_frame, u.last_frame], side="right") - 1,
+                0,
+                len(station_frames) - 1,
+            )
+            ax = station_axial[k]
+            if np.all(np.isfinite(ax)):
+                row["axial_start_mm"] = round(float(ax.min()), 1)
+                row["axial_end_mm"] = round(float(ax.max()), 1)
+        unreliable.append(row)
+    return {
+        "steps_checked": steps_checked(motion.step_checks, motion.stationary),
+        "unreliable": unreliable,
+        "keyframe_steps": [c.to_dict() for c in motion.step_checks],
+    }
+
+
+def flag_defects(defects: list[dict[str, Any]], quality: dict[str, Any]) -> list[str]:
+    """Mark defects lying across an unreliable stretch; returns one warning per defect."""
+    warnings = []
+    for k, d in enumerate(defects):
+        start = float(d.get("axial_start_mm", np.nan))
+        end = start + float(d.get("length_mm", 0.0))
+        for u in quality["unreliable"]:
+            if "axial_start_mm" not in u:
+                continue
+            if start <= u["axial_end_mm"] and end >= u["axial_start_mm"]:
+                d["motion_unreliable"] = True
+                warnings.append(
+                    f"defect {k + 1} ({d.get('kind')}, at {start:.0f} mm) lies across frames "
+                    f"{u['first_frame']}-{u['last_frame']}, whose motion is unreliable: its "
+                    "length and position are not trustworthy"
+                )
+                break
+    return warnings
+
+
+def refuse_untrusted_motion(motion: SfmResult) -> None:
+    """A run that moved but whose scale could not be trusted at any step is refused.
+
+    Raises:
+        ReconstructionError: one line with the most frequent reason.
+    """
+    checks = motion.step_checks
+    if checks and not any(c.reliable for c in checks):
+        reasons: dict[str, int] = {}
+        for c in checks:
+            key = c.reason.split(" (")[0].split(":")[0] if c.reason else c.confidence
+            reasons[key] = reasons.get(key, 0) + 1
+        top = max(reasons, key=lambda k: reasons[k])
+        raise ReconstructionError(
+            f"camera motion could not be trusted at any of the {len(checks)} steps "
+            f"(most often: {top}); too little usable wall texture or laser ring?"
+        )
