@@ -19,25 +19,71 @@ from contextlib import contextmanager
 from omnipipe import __version__
 from omnipipe.errors import OmnipipeError
 
-# Modules that add sub-commands, in the order they appear in --help.
-COMMAND_MODULES = (
-    "omnipipe.sim.cli",
-    "omnipipe.pipeline.cli",
-    "omnipipe.baseline.cli",
-    "omnipipe.evaluation.cli",
+# Sub-commands in the order they appear in --help: (name, module that registers it,
+# one-line help). The help lines are repeated here so that ``omnipipe --help`` answers
+# without importing any stage (NumPy, SciPy, OpenCV, numba take ~1-2 s to load);
+# tests/test_cli_imports.py checks that they match what each module registers.
+COMMANDS: tuple[tuple[str, str, str], ...] = (
+    (
+        "simulate",
+        "omnipipe.sim.cli",
+        "render a simulated dataset (with ground truth) of a named scenario",
+    ),
+    ("reconstruct", "omnipipe.pipeline.cli", "build the measured, textured pipe model from a dataset"),
+    ("demo", "omnipipe.pipeline.cli", "simulate the paper's experiment, reconstruct it and print Table I"),
+    (
+        "baseline",
+        "omnipipe.baseline.cli",
+        "optimal baseline (camera-to-laser distance) for given wall distances",
+    ),
+    ("evaluate", "omnipipe.evaluation.cli", "compare a reconstruction with the dataset's ground truth"),
 )
 
+# Modules that add sub-commands (each offers ``register(subparsers)``), in --help order.
+COMMAND_MODULES = tuple(dict.fromkeys(module for _, module, _ in COMMANDS))
 
-def build_parser() -> argparse.ArgumentParser:
-    """The full argument parser with every registered sub-command."""
+
+def _chosen_command(argv: list[str]) -> str | None:
+    """The sub-command named on the command line (first token that is one), or None."""
+    names = {name for name, _, _ in COMMANDS}
+    for token in argv:
+        if token in names:
+            return token
+        if not token.startswith("-"):
+            return None  # an unknown command: argparse reports it
+    return None
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The argument parser.
+
+    Only the module of the sub-command named in ``argv`` is imported and registers its
+    full parser; the others appear as stubs with their one-line help (enough for
+    ``omnipipe --help``). ``argv=None`` registers every sub-command in full.
+    """
     parser = argparse.ArgumentParser(
         prog="omnipipe",
         description="3-D pipe models from an omni-directional rangefinder (camera + hyperboloid mirror + laser ring).",
     )
     parser.add_argument("--version", action="version", version=f"omnipipe {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    if argv is None:
+        for name in COMMAND_MODULES:
+            importlib.import_module(name).register(sub)
+        return parser
+    chosen = _chosen_command(argv)
+    module = next((m for n, m, _ in COMMANDS if n == chosen), None)
+    registered: set[str] = set()
+    for name, mod, help_line in COMMANDS:
+        if name in registered:
+            continue
+        if mod == module:
+            before = set(sub.choices)
+            importlib.import_module(mod).register(sub)
+            registered |= set(sub.choices) - before
+        else:
+            sub.add_parser(name, help=help_line)
+            registered.add(name)
     return parser
 
 
@@ -75,7 +121,8 @@ def _sigterm_raises() -> Iterator[None]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``omnipipe`` console script; returns the exit code."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

@@ -15,13 +15,15 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from omnipipe.config import dataclass_from_dict, load_yaml_mapping
-from omnipipe.dataset import Dataset, atomic_output_dir, validate_frames, write_tum
 from omnipipe.errors import ReconstructionError
+
+if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
+    import numpy as np
+
+    from omnipipe.dataset import Dataset
 
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
@@ -117,7 +119,10 @@ def run(
     Raises:
         OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
     """
+    import numpy as np
+
     from omnipipe import analysis, laser, model
+    from omnipipe.dataset import validate_frames
     from omnipipe.pipeline import quality
     from omnipipe.sfm import pipeline as sfm
 
@@ -143,12 +148,23 @@ def run(
         warnings.append(f"laser ring not found in {n - seen} of {n} frames")
 
     t0 = time.perf_counter()
-    tick = progress("sfm", n)
+    sfm_tick = progress("sfm", n)
+    # After its last frame, sfm adjusts the bundle and checks the scale: a bar of its own.
+    after_frames: list[Callable[[int], None]] = []
+
+    def tick(done: int) -> None:
+        sfm_tick(done)
+        if done >= n and not after_frames:
+            after_frames.append(progress("bundle", 1))
+
     motion = sfm.run(
         config.sfm,
         sfm.SfmInputs(rig=rig, read_frame=dataset.read_frame, n_frames=n, rings=rings),
         progress=tick,
     )
+    if not after_frames:
+        after_frames.append(progress("bundle", 1))
+    after_frames[0](1)
     timings["sfm"] = time.perf_counter() - t0
     quality.refuse_untrusted_motion(motion)
     warnings.extend(motion.warnings)
@@ -164,9 +180,11 @@ def run(
 
     # Analysis first: its centreline coordinates unroll the mesh and the texture.
     t0 = time.perf_counter()
+    tick = progress("analysis", 2)
     station_poses = motion.world_from_rig[stations]
     station_rings = [rings.rings[i] for i in stations]
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
+    tick(1)
     res = analysis.run(
         config.analysis,
         analysis.AnalysisInputs(
@@ -177,6 +195,7 @@ def run(
         ),
     )
     timings["analysis"] = time.perf_counter() - t0
+    tick(2)
     warnings.extend(res.warnings)
     traj_quality = quality.trajectory_quality(
         motion, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
@@ -242,11 +261,13 @@ def write(
     force: bool = False,
     evaluation: dict | None = None,
     protect: Sequence[str | Path] = (),
+    progress: ProgressFactory = _no_progress,
 ) -> Path:
     """Write the contract outputs of ``rec`` to ``out`` atomically, with a manifest.
 
     ``force`` replaces only an earlier omnipipe output (see :mod:`omnipipe.output`);
     ``protect`` lists inputs (dataset, config file) that ``out`` may not be or hold.
+    ``progress`` draws a bar ``output`` over the files written.
 
     Raises:
         OutputError: ``out`` exists (without ``force``), is not omnipipe's, or cannot be
@@ -254,17 +275,22 @@ def write(
     """
     from omnipipe import model as model_stage
     from omnipipe import report
+    from omnipipe.dataset import atomic_output_dir, write_tum
 
     out = Path(out)
     with atomic_output_dir(out, force=force, protect=protect) as tmp:
+        tick = progress("output", 3)
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
         model_stage.write_outputs(rec.model, tmp)
+        tick(1)
         (tmp / "report.json").write_text(json.dumps(rec.summary, indent=1), encoding="utf-8")
         report.run(
             rec.report_config or report.ReportConfig(),
             report_inputs(rec, evaluation),
             tmp / "report.html",
         )
+        tick(2)
+        tick(3)
     return out
 
 

@@ -11,7 +11,6 @@ from pathlib import Path
 from tqdm import tqdm
 
 from omnipipe.config import finite_option
-from omnipipe.dataset import open_dataset
 from omnipipe.output import atomic_output_dir, prepare_output_dir
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
 
@@ -37,8 +36,8 @@ def _progress(quiet: bool):
         close_progress_bars()
         bar = tqdm(
             total=total,
-            desc=f"{stage:>6}",
-            unit="frame",
+            desc=f"{stage:>8}",
+            unit={"laser": "frame", "sfm": "frame", "model": "station"}.get(stage, "step"),
             disable=quiet,
             leave=True,
             file=sys.stderr,
@@ -130,10 +129,13 @@ def _reconstruct(args: argparse.Namespace) -> int:
     protect = [args.dataset] + ([args.config] if args.config else [])
     # Recover an interrupted earlier run and refuse before the long run, not after.
     prepare_output_dir(out, force=args.force, protect=protect)
+    from omnipipe.dataset import open_dataset
+
     config = ReconstructConfig.from_yaml(args.config, _overrides(args))
     dataset = open_dataset(args.dataset)
-    rec = run(config, dataset, _progress(args.quiet))
-    write(rec, out, force=args.force, protect=protect)
+    bars = _progress(args.quiet)
+    rec = run(config, dataset, bars)
+    write(rec, out, force=args.force, protect=protect, progress=bars)
     print(closing_line(rec.summary, out))
     return 0
 
@@ -181,6 +183,7 @@ def format_table_one(rows) -> str:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from omnipipe.dataset import open_dataset
     from omnipipe.evaluation import EvaluationConfig, EvaluationInputs
     from omnipipe.evaluation import run as evaluate
     from omnipipe.evaluation.cli import format_result
