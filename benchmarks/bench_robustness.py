@@ -58,7 +58,8 @@ def evaluate_seed(seed: int, size: tuple[int, int] | None, frames: int | None, r
     scenario = make_scenario("random", seed=seed, size=size, frames=frames)
     info = scenario.random or {}
     ds, out = root / f"seed{seed}" / "dataset", root / f"seed{seed}" / "reconstruction"
-    simulate(scenario, ds, force=True, workers=2)
+    if not (ds / "ground_truth" / "poses.txt").is_file():  # --keep DIR reuses datasets
+        simulate(scenario, ds, force=True, workers=2)
     row: dict = {
         "seed": seed,
         "family": info.get("wall_family", info.get("family", "?")),

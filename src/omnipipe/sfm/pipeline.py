@@ -25,14 +25,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
 from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
-from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points
+from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.planes import PlaneRefineConfig, refine_matches
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
 from omnipipe.sfm.scale_check import (
@@ -151,7 +151,7 @@ def run(
         ReconstructionError: no frame could be read.
     """
     rig = inputs.rig
-    camera = OmniCamera.from_rig(rig)
+    camera = camera_from_rig(rig)
     n = inputs.n_frames
     if n < 1:
         raise ReconstructionError("no frames")
@@ -190,6 +190,7 @@ def run(
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
     pending: list[tuple[int, int, object, np.ndarray | None]] = []
     checks: list[StepCheck] = []
+    evidence: list[_StepEvidence] = []
     anchor_logs: list[tuple[float, np.ndarray]] = []  # (length, per-point log lengths)
     min_parallax = math.radians(config.keyframe_min_parallax_deg)
     for i in range(n):
@@ -214,32 +215,9 @@ def run(
                     continue
                 if config.planes.enabled and motion is not None and motion.translation_reliable:
                     motion = _refine(ga, gray, camera, fa, feats, m, motion, ransac, config, warnings, a, i)
-                b_from_a, scale, inl, lm, check = _step(
-                    a, i, ga, gray, camera, rings[a].points_in_rig, fa, feats, m, motion, config,
-                    warnings,
+                evidence.append(
+                    _evidence(a, i, ga, gray, camera, rings[a].points_in_rig, fa, feats, m, motion, config, warnings)
                 )
-                checks.append(
-                    check
-                    if check is not None
-                    else StepCheck(
-                        a, i, math.nan, 0.0, math.nan, 0, 0.0 if motion is not None else math.nan,
-                        "high" if motion is not None else "none",
-                        "" if motion is not None else "relative motion not found",
-                    )
-                )
-                if scales and not math.isfinite(scale):
-                    # A placeholder length keeps the chain going; the step is flagged.
-                    scale = float(np.median([s for s in scales if s > 0] or [0.0]))
-                scale = 0.0 if not math.isfinite(scale) else scale
-                scales.append(scale)
-                b_from_a[:3, 3] *= scale
-                world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
-                ka, kb = len(kf_features) - 1, len(kf_features)
-                if inl is not None:
-                    pair_matches.append((ka, kb, inl))
-                if lm is not None and len(lm.index):
-                    anchors.append((ka, kb, rings[a].points_in_rig[lm.index], lm.pixels_b))
-                    anchor_logs.append((scale, np.log(lm.scale_mm)))
             kf_features.append(feats)
             kf_gray.append(np.clip(gray, 0, 65535).astype(np.uint16))
             kf_frames.append(i)
@@ -247,6 +225,39 @@ def run(
             prev = (i, feats, gray)
         if progress:
             progress(i + 1)
+    # Every step decided with the whole run's evidence (the two sources' systematic
+    # offset), then chained.
+    offset = _source_offset(evidence, config.scale_check)
+    if offset == 0.0 and len(evidence) >= 3:
+        raw = _source_offset(evidence, replace(config.scale_check, max_source_offset_log=math.inf))
+        if raw != 0.0:
+            warnings.append(
+                f"laser and feature-depth step lengths differ by {100 * (math.exp(raw) - 1):+.0f} % "
+                "throughout the run: too much for a bias, every step is judged as measured"
+            )
+    if abs(offset) > 0.05:
+        warnings.append(
+            f"laser and feature-depth step lengths differ by {100 * (math.exp(offset) - 1):+.0f} % "
+            "throughout the run: one source is biased on this rig and pipe; the bundle "
+            "adjustment settles the scale from both"
+        )
+    for k, ev in enumerate(evidence):
+        b_from_a, scale, inl, lm, check = _decide_step(
+            ev, offset, kf_gray[k], kf_gray[k + 1], camera, rings[ev.a].points_in_rig, config, warnings
+        )
+        checks.append(check)
+        if scales and not math.isfinite(scale):
+            # A placeholder length keeps the chain going; the step is flagged.
+            scale = float(np.median([s for s in scales if s > 0] or [0.0]))
+        scale = 0.0 if not math.isfinite(scale) else scale
+        scales.append(scale)
+        b_from_a[:3, 3] *= scale
+        world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
+        if inl is not None:
+            pair_matches.append((k, k + 1, inl))
+        if lm is not None and len(lm.index):
+            anchors.append((k, k + 1, rings[ev.a].points_in_rig[lm.index], lm.pixels_b))
+            anchor_logs.append((scale, np.log(lm.scale_mm)))
     world_from_kf_arr = np.array(world_from_kf)
     bundle_stats = None
     feature_point: list[np.ndarray] | None = None
@@ -309,20 +320,42 @@ def run(
 def _check_adjusted(
     checks: list[StepCheck], world_from_kf: np.ndarray, config: ScaleCheckConfig
 ) -> list[StepCheck]:
-    """Flag keyframe steps whose adjusted length left their checked length."""
-    out = []
-    for k, c in enumerate(checks):
-        if k + 1 >= len(world_from_kf) or not c.reliable or not math.isfinite(c.scale_mm):
-            out.append(c)
-            continue
-        length = float(np.linalg.norm(world_from_kf[k + 1][:3, 3] - world_from_kf[k][:3, 3]))
-        if c.scale_mm > 0 and abs(math.log(max(length, 1e-9) / c.scale_mm)) > config.adjusted_agree_log:
+    """Flag keyframe steps whose adjusted length left what their sources measured.
+
+    Each source is compared after removing its run-wide ratio to the adjusted lengths
+    (a consistent bias is not a jump); a step that left either by more than
+    ``adjusted_agree_log`` is flagged.
+    """
+    lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
+    ok = [
+        k for k, c in enumerate(checks)
+        if k < len(lengths) and c.reliable and lengths[k] > 1e-9 and math.isfinite(c.scale_mm)
+    ]
+
+    def offsets(values: list[float]) -> tuple[np.ndarray, float]:
+        v = np.array(values, float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.log(lengths[ok] / v) if ok else np.zeros(0)
+        good = r[np.isfinite(r)]
+        return r, float(np.median(good)) if len(good) >= 3 else 0.0
+
+    r_laser, m_laser = offsets([checks[k].laser_scale_mm for k in ok])
+    r_feat, m_feat = offsets([checks[k].feature_scale_mm for k in ok])
+    out = list(checks)
+    for j, k in enumerate(ok):
+        c = checks[k]
+        off = [
+            (name, float(r - m))
+            for name, r, m in (("laser", r_laser[j], m_laser), ("feature depth", r_feat[j], m_feat))
+            if np.isfinite(r) and abs(r - m) > config.adjusted_agree_log
+        ]
+        if off:
+            name, dev = off[0]
             reason = (
-                f"bundle adjustment moved the step from {c.scale_mm:.1f} mm to {length:.1f} mm "
-                "(feature tracks disagree with the laser)"
+                f"bundle adjustment moved the step to {lengths[k]:.1f} mm, {100 * dev:+.0f} % "
+                f"from its {name} length"
             )
-            c = replace(c, confidence="none", reason=reason)
-        out.append(c)
+            out[k] = replace(c, confidence="none", reason=reason)
     return out
 
 
@@ -421,46 +454,100 @@ def _resect(i, k, feats, inl, world_from_kf, feature_point, track_points, warnin
     return world_from_kf[k].copy()
 
 
-def _step(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, warnings):
-    """rig_b_from_rig_a, the metric length of its translation (Eq. 17, checked against
-    the feature depth scale), the inlier matches (M, 2), the laser matches (None where
-    not available) and the step's check (None for a lost or rotation-only step)."""
+@dataclass
+class _StepEvidence:
+    """What one keyframe step measured, before the run-level decision."""
+
+    a: int
+    b: int
+    b_from_a: np.ndarray  # (4, 4), unit translation (or zero)
+    inliers: np.ndarray | None  # (M, 2) feature matches
+    laser: LaserMatches | None
+    log_scales: np.ndarray  # (M,) feature depth log lengths per match (NaN: none)
+    feature_scale_mm: float
+    feature_matches: int
+    status: str  # "ok", "rotation", "lost"
+
+
+def _evidence(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, warnings) -> _StepEvidence:
+    """Both scale sources of one keyframe step (laser Eq. 17 with its peaks, feature depths)."""
     if motion is None:
-        return np.eye(4), 0.0, None, None, None
+        return _StepEvidence(a, b, np.eye(4), None, None, np.zeros(0), math.nan, 0, "lost")
     inl = m[motion.inliers]
     if not motion.translation_reliable:
         warnings.append(f"frames {a}->{b}: rotation only (no measurable translation)")
-        return motion.rig2_from_rig1.copy(), 0.0, inl, None, None
+        return _StepEvidence(a, b, motion.rig2_from_rig1.copy(), inl, None, np.zeros(0), math.nan, 0, "rotation")
     b_from_a = motion.rig2_from_rig1.copy()
     R, d = b_from_a[:3, :3], b_from_a[:3, 3]
     lm = match_laser_points(ga, gb, camera, laser_points_a, R, d, config.laser_scale)
-    wall = wall_cylinder(laser_points_a)
     log_s = feature_log_scales(
-        fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], R, d, wall, config.scale_check
+        fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], R, d, wall_cylinder(laser_points_a),
+        config.scale_check,
     )
     s_feat, n_feat = feature_scale(log_s, config.scale_check)
+    return _StepEvidence(a, b, b_from_a, inl, lm, log_s, s_feat, n_feat, "ok")
+
+
+def _source_offset(evidence: list[_StepEvidence], config: ScaleCheckConfig) -> float:
+    """Median log(laser / feature depth) over the run's steps (0 with fewer than 3).
+
+    A consistent offset is a bias of one source on this rig and pipe (e.g. the laser
+    patches' coarse sampling in a large pipe), not an aliased step: the per-step
+    check compares the sources after removing it, so it catches jumps (a wrong course)
+    without flagging every step of a run whose sources disagree by a few per cent.
+    """
+    r = [
+        math.log(ev.laser.scale / ev.feature_scale_mm)
+        for ev in evidence
+        if ev.laser is not None
+        and math.isfinite(ev.laser.scale)
+        and ev.laser.scale > 0
+        and math.isfinite(ev.feature_scale_mm)
+    ]
+    offset = float(np.median(r)) if len(r) >= 3 else 0.0
+    return offset if abs(offset) <= config.max_source_offset_log else 0.0
+
+
+def _decide_step(ev: _StepEvidence, offset, gray_a, gray_b, camera, laser_points_a, config, warnings):
+    """rig_b_from_rig_a (unit translation), the length to chain (mm, NaN: none trusted),
+    the inlier matches to keep (wrong-course ones dropped), the laser matches to use as
+    anchors (None: untrusted) and the step's check."""
+    if ev.status != "ok":
+        check = StepCheck(
+            ev.a, ev.b, math.nan, 0.0, math.nan, 0, 0.0 if ev.status == "rotation" else math.nan,
+            "high" if ev.status == "rotation" else "none",
+            "" if ev.status == "rotation" else "relative motion not found",
+        )
+        return ev.b_from_a.copy(), 0.0, ev.inliers, None, check
+    lm = ev.laser
+    gain = math.exp(offset)  # laser length = gain x feature depth length, run-wide
     check = decide(
-        a, b, lm.scale, lm.peak_scales_mm, lm.peak_scores, s_feat, n_feat, config.scale_check
+        ev.a, ev.b, lm.scale, lm.peak_scales_mm, lm.peak_scores, ev.feature_scale_mm,
+        ev.feature_matches, config.scale_check, gain,
     )
     scale = check.scale_mm
-    if check.confidence == "resolved" or (
-        check.confidence == "low" and not math.isfinite(lm.scale)
-    ):
+    R, d = ev.b_from_a[:3, :3], ev.b_from_a[:3, 3]
+    if check.confidence == "resolved" or (check.confidence == "low" and not math.isfinite(lm.scale)):
         # Re-match the laser around the chosen length: no point may pick another course.
         w = math.exp(config.scale_check.agree_log)
         again = match_laser_points(
-            ga, gb, camera, laser_points_a, R, d, config.laser_scale, (scale / w, scale * w)
+            gray_a.astype(np.float32), gray_b.astype(np.float32), camera, laser_points_a, R, d,
+            config.laser_scale, (scale / w, scale * w),
         )
         if math.isfinite(again.scale):
             lm, scale = again, again.scale
         elif check.confidence == "resolved":
             lm = None
-    elif not check.reliable and check.confidence == "none":
+    elif check.confidence == "none":
         lm = None  # its laser matches would pull the adjustment to a wrong length
-    if math.isfinite(scale):
+    inl = ev.inliers
+    if math.isfinite(scale) and inl is not None:
         # Drop matches whose own depth ratio contradicts the length (a wrong course).
-        bad = np.isfinite(log_s) & (np.abs(log_s - math.log(scale)) > config.scale_check.keep_match_log)
+        expected = math.log(scale / gain)
+        bad = np.isfinite(ev.log_scales) & (
+            np.abs(ev.log_scales - expected) > config.scale_check.keep_match_log
+        )
         inl = inl[~bad]
     if check.confidence == "resolved":  # the unreliable ones become stretches with a warning
-        warnings.append(f"frames {a}->{b}: {check.reason}")
-    return b_from_a, scale, inl, lm, check
+        warnings.append(f"frames {ev.a}->{ev.b}: {check.reason}")
+    return ev.b_from_a.copy(), scale, inl, lm, check

@@ -52,6 +52,10 @@ class ScaleCheckConfig:
             chosen length are dropped from the tracks (a wrong course, a mismatch).
         adjusted_agree_log: after bundle adjustment a keyframe step must stay this
             close to its checked length, or it is flagged.
+        max_source_offset_log: a run-wide laser / feature-depth ratio up to this is
+            treated as a bias of one source and removed before the per-step check;
+            beyond it (a course or more: every step aliased alike) it is not, and the
+            steps are judged as measured.
     """
 
     agree_log: float = 0.12
@@ -62,6 +66,7 @@ class ScaleCheckConfig:
     max_feature_spread_log: float = 0.35
     keep_match_log: float = 0.25
     adjusted_agree_log: float = 0.1
+    max_source_offset_log: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -294,8 +299,12 @@ def decide(
     feature_scale_mm: float,
     feature_matches: int,
     config: ScaleCheckConfig,
+    feature_gain: float = 1.0,
 ) -> StepCheck:
     """Which length a step may use, from the laser's peaks and the feature scale.
+
+    ``feature_gain`` is the run's systematic laser / feature-depth ratio: the feature
+    length is compared with the laser's after multiplying by it.
 
     Returns:
         A :class:`StepCheck`. ``scale_mm`` is a consensus peak's length when one was
@@ -316,14 +325,15 @@ def decide(
             scale, confidence, reason, tuple(float(p) for p in peak_scales_mm[:3]),
         )
 
+    expected = feature_scale_mm * feature_gain  # the feature length in laser units
     if has_laser and has_feat:
-        if abs(math.log(laser_scale_mm / feature_scale_mm)) <= config.agree_log:
+        if abs(math.log(laser_scale_mm / expected)) <= config.agree_log:
             return check(laser_scale_mm, "high")
         # Another consensus peak may be the right course.
         for s, c in zip(peak_scales_mm[1:], peak_scores[1:], strict=True):
             if (
                 c >= config.alternative_min_ratio * peak_scores[0]
-                and abs(math.log(s / feature_scale_mm)) <= config.agree_log
+                and abs(math.log(s / expected)) <= config.agree_log
             ):
                 return check(
                     float(s), "resolved",
@@ -344,5 +354,5 @@ def decide(
             )
         return check(laser_scale_mm, "low", "laser scale not confirmed by feature depths")
     if has_feat:
-        return check(feature_scale_mm, "low", "laser points not found again; feature depth scale used")
+        return check(expected, "low", "laser points not found again; feature depth scale used")
     return check(math.nan, "none", "no laser scale and no feature depth scale")
