@@ -144,6 +144,7 @@ def main() -> None:
     parser.add_argument("--defects", type=int, default=4, help="random defects per run")
     parser.add_argument("--cache", default=None, help="keep datasets and analysis inputs here")
     parser.add_argument("--reuse", action="store_true", help="re-run only the analysis on --cache")
+    parser.add_argument("--verbose", action="store_true", help="print every defect's errors")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x"))
     base = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="omnipipe-metro-"))
@@ -169,6 +170,13 @@ def main() -> None:
                 false.append(m)
                 continue
             found += 1
+            if args.verbose:
+                print(
+                    "  " + t["kind"][:5] + " " + " ".join(
+                        f"{key[:-3]} {t[key]:.2f}{m[key] - t[key]:+.2f}/{m.get(skey) or math.nan:.2f}"
+                        for _, key, skey in QUANTITIES[3:]
+                    )
+                )
             for name, key, skey in QUANTITIES[3:]:
                 err = m[key] - t[key]
                 if key == "angle_deg":

@@ -71,7 +71,13 @@ class AnalysisConfig:
             camera motion stage could not state it (the measured scale errors of the
             scenarios reach 0.4 % at full size and 1.1 % at 800x600: conservative).
         angle_pose_sigma_deg: 1-sigma of the angle reference along the run (rotation
-            drift of the trajectory; measured RMS 0.04-0.09 deg), added to each defect's angle.
+            drift of the trajectory), added to each defect's angle.
+        systematic_radius_factor: radial errors shared by a whole ring or run (sub-pixel
+            bias of the laser peak on a blurred, sampled ring), as a fraction of the wall
+            noise: added to every diameter (x 2) and defect height. One run cannot observe
+            them; the factors are set from ``benchmarks/bench_metrology.py``.
+        width_resolution_samples: lateral resolution of the light section in samples along
+            the ring (the imaged ring is blurred over about a sample): added to widths.
     """
 
     window_mm: float | None = None
@@ -86,7 +92,9 @@ class AnalysisConfig:
     limit_width_mm: float = 10.0
     limit_length_mm: float = 20.0
     fallback_scale_sigma_rel: float = 0.01
-    angle_pose_sigma_deg: float = 0.1
+    angle_pose_sigma_deg: float = 0.3
+    systematic_radius_factor: float = 0.25
+    width_resolution_samples: float = 0.5
 
 
 @dataclass
@@ -244,6 +252,13 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
         exclude = new_exclude
     defects, w = search.defects, search.warnings
     warnings.extend(w)
+    # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
+    radial_sys = config.systematic_radius_factor * search.noise_mm
+    width_res = config.width_resolution_samples * search.sample_spacing_mm
+    for d in defects:
+        if d.get("height_sigma_mm") is not None:
+            d["height_sigma_mm"] = round(math.hypot(d["height_sigma_mm"], radial_sys), 4)
+            d["width_sigma_mm"] = round(math.hypot(d["width_sigma_mm"], width_res), 4)
     st_axial, st_diam, st_oval = stations["axial"], stations["diameter"], stations["ovality"]
     st_diam_arr = np.array(st_diam)
     if straight:
@@ -257,6 +272,8 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
         # The median of the piecewise fits: 1.25 x the standard error of a mean.
         radii = 2.0 * np.asarray(line.radius_mm)
         diameter_sigma = 1.2533 * float(np.std(radii)) / math.sqrt(max(len(radii), 1))
+    diameter_sigma = math.hypot(diameter_sigma, 2.0 * radial_sys)
+    st_dsig = np.hypot(np.array(stations["diameter_sigma"]), 2.0 * radial_sys)
     st_oval_arr = np.array(st_oval)
     finite = st_oval_arr[np.isfinite(st_oval_arr)]
     return AnalysisResult(
@@ -274,7 +291,7 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
         radius_mm=float(radius),
         warnings=warnings,
         inner_diameter_sigma_mm=float(diameter_sigma),
-        stations_diameter_sigma_mm=np.array(stations["diameter_sigma"]),
+        stations_diameter_sigma_mm=st_dsig,
         stations_ovality_sigma=np.array(stations["ovality_sigma"]),
         detection_limit_mm=float(search.detection_limit_mm),
         noise_mm=float(search.noise_mm),

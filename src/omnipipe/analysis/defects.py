@@ -250,7 +250,7 @@ def find_defects(
             members = cand[label == c]
             if len(members) < min_points:
                 continue
-            d0 = _measure(samples, members, sign, kind, grid_mm, du, ds)
+            d0 = _rough(samples, members, sign, kind, sample_spacing, typical_spacing)
             if d0 is None:
                 continue
             d, mask = _fit(samples, d0, sign, sample_spacing, typical_spacing)
@@ -280,6 +280,34 @@ def find_defects(
         sample_spacing_mm=sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _rough(
+    s: WallSamples,
+    members: np.ndarray,
+    sign: float,
+    kind: str,
+    sample_spacing: float,
+    ring_spacing: float,
+) -> dict | None:
+    """Rough extent of a candidate from its samples beyond the threshold: the fit's start."""
+    circ = s.circumference_mm
+    value = sign * s.deviation_mm[members]
+    ref = float(s.arc_mm[members[np.argmax(value)]])
+    u = (s.arc_mm[members] - ref + 0.5 * circ) % circ - 0.5 * circ
+    z = s.sigma_mm[members]
+    w = value / value.sum()
+    uc, zc = float(w @ u), float(w @ z)
+    width = float(np.ptp(u)) + 2.0 * sample_spacing
+    length = float(np.ptp(z)) + ring_spacing
+    return {
+        "kind": kind,
+        "height_mm": round(float(value.max()), 3),
+        "width_mm": round(width, 3),
+        "length_mm": round(length, 3),
+        "axial_start_mm": round(zc - 0.5 * length, 3),
+        "angle_deg": round(((ref + uc) % circ) / circ * 360.0, 3),
+    }
 
 
 def _fit(

@@ -161,7 +161,7 @@ def fit_bump(
             np.array(lower) + 1e-9,
             np.array(upper) - 1e-9,
         )
-        sol = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", max_nfev=400)
+        sol = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", max_nfev=400, tr_solver="lsmr")
         if best is None or sol.cost < best.cost:
             best = sol
     # One pass of outlier rejection (extraction outliers, a neighbouring defect's edge).
