@@ -98,13 +98,75 @@ class LaserPlane:
         return np.asarray(points_in_rig) @ self.normal_in_rig + self.offset_mm
 
 
+CAMERA_MODELS = ("hyperboloid", "unified", "ocam")
+
+
+@dataclass(frozen=True)
+class UnifiedParams:
+    """Mei's unified (sphere) model, the OpenCV ``omnidir`` / Kalibr ``omni`` convention.
+
+    A direction X in the model frame goes to the unit sphere, is shifted by ``xi``
+    along z and projected: m = (x, y) / (z + xi); radial-tangential distortion
+    (k1, k2, p1, p2) acts on m; then col = fx mx + skew my + cx, row = fy my + cy
+    (cx, cy in :class:`CameraIntrinsics`). The model frame is the rig frame with z
+    reversed (the image centre sees +z there, -z in the rig frame): a reflection,
+    see docs/camera_models.md.
+    """
+
+    xi: float
+    fx: float
+    fy: float
+    skew: float = 0.0
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    name = "unified"
+
+
+@dataclass(frozen=True)
+class OcamParams:
+    """Scaramuzza's polynomial model as OCamCalib writes it (calib_results.txt).
+
+    A pixel's offset from the centre, in OCamCalib's row-first order and through the
+    inverse of the affine matrix [[c, d], [e, 1]], is (xp, yp) (px); its ray in
+    OCamCalib's frame is (xp, yp, sum_i polynomial[i] r^i), r = |(xp, yp)|.
+    ``inverse_polynomial`` (rho as a polynomial of the elevation theta = atan(z / |xy|))
+    is OCamCalib's fast world2cam; it only seeds the exact inverse here.
+    The centre (OCamCalib's xc = row, yc = col) is :class:`CameraIntrinsics` (cy, cx).
+    """
+
+    polynomial: tuple[float, ...]
+    inverse_polynomial: tuple[float, ...] | None = None
+    c: float = 1.0
+    d: float = 0.0
+    e: float = 0.0
+
+    name = "ocam"
+
+
 @dataclass(frozen=True)
 class Rig:
-    """A calibrated omni-directional rangefinder: camera, mirror and laser plane."""
+    """A calibrated omni-directional rangefinder: camera, mirror and laser plane.
+
+    Attributes:
+        camera: image size, principal point, valid radii (and f for the hyperboloid).
+        mirror: the hyperboloid (required for ``model`` None, optional otherwise).
+        laser: the laser plane, or None for a camera-only rig (``reconstruct`` refuses it).
+        model: the camera model's parameters: None for the hyperboloid of Eq. (1)-(3),
+            :class:`UnifiedParams` or :class:`OcamParams`.
+    """
 
     camera: CameraIntrinsics
-    mirror: Mirror
-    laser: LaserPlane
+    mirror: Mirror | None
+    laser: LaserPlane | None
+    model: UnifiedParams | OcamParams | None = None
+
+    @property
+    def camera_model(self) -> str:
+        """``hyperboloid``, ``unified`` or ``ocam``."""
+        return "hyperboloid" if self.model is None else self.model.name
 
     def with_image_size(self, width: int, height: int) -> Rig:
         """The same rig with its image scaled to ``width`` x ``height`` pixels.
@@ -127,38 +189,78 @@ class Rig:
             ),
             mirror=self.mirror,
             laser=self.laser,
+            model=_scaled_model(self.model, s),
         )
 
     def to_dict(self) -> dict[str, Any]:
         """The rig as the contract's rig.yaml mapping (optional keys only when set)."""
         cam = self.camera
-        camera: dict[str, Any] = {
-            "width": cam.width,
-            "height": cam.height,
-            "cx": float(cam.cx),
-            "cy": float(cam.cy),
-            "f": float(cam.f),
-        }
+        camera: dict[str, Any] = {}
+        if self.model is not None:
+            camera["model"] = self.model.name
+        camera.update(
+            {"width": cam.width, "height": cam.height, "cx": float(cam.cx), "cy": float(cam.cy)}
+        )
+        if self.model is None:
+            camera["f"] = float(cam.f)
         for key in ("pixel_pitch", "radius_min", "radius_max"):
             value = getattr(cam, key)
             if value is not None:
                 camera[key] = float(value)
-        return {
-            "camera": camera,
-            "mirror": {"a": float(self.mirror.a), "b": float(self.mirror.b)},
-            "laser": {
+        if isinstance(self.model, UnifiedParams):
+            m = self.model
+            camera["unified"] = {
+                "xi": float(m.xi),
+                "fx": float(m.fx),
+                "fy": float(m.fy),
+                "skew": float(m.skew),
+                "distortion": [float(m.k1), float(m.k2), float(m.p1), float(m.p2)],
+            }
+        elif isinstance(self.model, OcamParams):
+            m = self.model
+            block: dict[str, Any] = {"polynomial": [float(v) for v in m.polynomial]}
+            if m.inverse_polynomial is not None:
+                block["inverse_polynomial"] = [float(v) for v in m.inverse_polynomial]
+            block["affine"] = [float(m.c), float(m.d), float(m.e)]
+            camera["ocam"] = block
+        out: dict[str, Any] = {"camera": camera}
+        if self.mirror is not None:
+            out["mirror"] = {"a": float(self.mirror.a), "b": float(self.mirror.b)}
+        if self.laser is not None:
+            out["laser"] = {
                 "plane": [float(v) for v in self.laser.k],
                 "channel": self.laser.channel,
-            },
-        }
+            }
+        return out
 
 
-def _section(data: dict[str, Any], name: str, source: str | None) -> dict[str, Any]:
+def _scaled_model(
+    model: UnifiedParams | OcamParams | None, s: float
+) -> UnifiedParams | OcamParams | None:
+    """The model parameters of an image scaled by ``s`` (pixel lengths times s)."""
+    if isinstance(model, UnifiedParams):
+        return UnifiedParams(
+            xi=model.xi, fx=model.fx * s, fy=model.fy * s, skew=model.skew * s,
+            k1=model.k1, k2=model.k2, p1=model.p1, p2=model.p2,
+        )
+    if isinstance(model, OcamParams):
+        # ray (xp, yp, P(r)) keeps its direction when xp, yp, r and P scale by s.
+        poly = tuple(a * s ** (1 - i) for i, a in enumerate(model.polynomial))
+        inv = None
+        if model.inverse_polynomial is not None:
+            inv = tuple(a * s for a in model.inverse_polynomial)
+        return OcamParams(poly, inv, model.c, model.d, model.e)
+    return model
+
+
+def _section(
+    data: dict[str, Any], name: str, source: str | None, prefix: str = ""
+) -> dict[str, Any]:
     value = data.get(name)
     if value is None:
-        raise ConfigError(name, "missing section", source)
+        raise ConfigError(prefix + name, "missing section", source)
     if not isinstance(value, dict):
-        raise ConfigError(name, f"must be a mapping, got {type(value).__name__}", source)
+        raise ConfigError(prefix + name, f"must be a mapping, got {type(value).__name__}", source)
     return value
 
 
@@ -190,8 +292,60 @@ def _number(
     return value
 
 
+def _number_list(
+    section: dict[str, Any], field: str, key: str, source: str | None, *, length: int | None = None
+) -> list[float] | None:
+    """An optional list of finite numbers ``section[key]`` (None when absent)."""
+    value = section.get(key)
+    if value is None:
+        return None
+    name = f"{field}.{key}"
+    if not isinstance(value, list | tuple) or (length is not None and len(value) != length):
+        what = f"{length} numbers" if length is not None else "numbers"
+        raise ConfigError(name, f"must be a list of {what}, got {value!r}", source)
+    out = []
+    for i, v in enumerate(value):
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise ConfigError(f"{name}[{i}]", f"must be a finite number, got {v!r}", source)
+        out.append(float(v))
+    return out
+
+
+def _unified_params(cam: dict[str, Any], source: str | None) -> UnifiedParams:
+    block = _section(cam, "unified", source, prefix="camera.")
+    xi = _number(block, "camera.unified", "xi", source, non_negative=True)
+    fx = _number(block, "camera.unified", "fx", source, positive=True)
+    fy = _number(block, "camera.unified", "fy", source, positive=True)
+    skew = _number(block, "camera.unified", "skew", source, required=False) or 0.0
+    dist = _number_list(block, "camera.unified", "distortion", source, length=4) or [0.0] * 4
+    return UnifiedParams(xi, fx, fy, skew, *dist)  # type: ignore[arg-type]
+
+
+def _ocam_params(cam: dict[str, Any], source: str | None) -> OcamParams:
+    block = _section(cam, "ocam", source, prefix="camera.")
+    poly = _number_list(block, "camera.ocam", "polynomial", source)
+    if poly is None:
+        raise ConfigError("camera.ocam.polynomial", "missing", source)
+    if len(poly) < 2 or not poly[0] < 0.0:
+        raise ConfigError(
+            "camera.ocam.polynomial",
+            "needs at least 2 coefficients a0, a1, ... with a0 < 0 (OCamCalib: the centre sees -z)",
+            source,
+        )
+    inv = _number_list(block, "camera.ocam", "inverse_polynomial", source)
+    affine = _number_list(block, "camera.ocam", "affine", source, length=3) or [1.0, 0.0, 0.0]
+    c, d, e = affine
+    if abs(c - d * e) < 1e-9:
+        raise ConfigError("camera.ocam.affine", "matrix [[c, d], [e, 1]] is singular", source)
+    return OcamParams(tuple(poly), None if inv is None else tuple(inv), c, d, e)
+
+
 def rig_from_dict(data: Any, source: str | None = None) -> Rig:
     """Validate a rig.yaml mapping and build a :class:`Rig`.
+
+    ``camera.model`` selects the camera model (``hyperboloid`` when absent: the
+    contract's rig.yaml). A rig without a ``laser`` section loads with ``laser`` None
+    (camera-only work: calibration, ``import-ocam``).
 
     Raises:
         ConfigError: naming the first missing or invalid field.
@@ -199,6 +353,12 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
     if not isinstance(data, dict):
         raise ConfigError("rig", "the file must hold a mapping with camera, mirror, laser", source)
     cam = _section(data, "camera", source)
+    model_name = cam.get("model", "hyperboloid")
+    if not isinstance(model_name, str) or model_name.lower() not in CAMERA_MODELS:
+        raise ConfigError(
+            "camera.model", f"must be one of {', '.join(CAMERA_MODELS)}, got {model_name!r}", source
+        )
+    model_name = model_name.lower()
     width = _number(cam, "camera", "width", source, positive=True)
     height = _number(cam, "camera", "height", source, positive=True)
     for key, value in (("width", width), ("height", height)):
@@ -206,12 +366,21 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
             raise ConfigError(
                 f"camera.{key}", f"must be a whole number of pixels, got {value}", source
             )
+    params: UnifiedParams | OcamParams | None = None
+    if model_name == "unified":
+        params = _unified_params(cam, source)
+        f_value = 0.5 * (params.fx + params.fy)
+    elif model_name == "ocam":
+        params = _ocam_params(cam, source)
+        f_value = abs(params.polynomial[0])
+    else:
+        f_value = _number(cam, "camera", "f", source, positive=True)  # type: ignore[assignment]
     camera = CameraIntrinsics(
         width=int(width),  # type: ignore[arg-type]
         height=int(height),  # type: ignore[arg-type]
         cx=_number(cam, "camera", "cx", source),  # type: ignore[arg-type]
         cy=_number(cam, "camera", "cy", source),  # type: ignore[arg-type]
-        f=_number(cam, "camera", "f", source, positive=True),  # type: ignore[arg-type]
+        f=float(f_value),
         pixel_pitch=_number(cam, "camera", "pixel_pitch", source, required=False, positive=True),
         radius_min=_number(cam, "camera", "radius_min", source, required=False, non_negative=True),
         radius_max=_number(cam, "camera", "radius_max", source, required=False, positive=True),
@@ -226,11 +395,15 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
             f"must be < camera.radius_max ({camera.radius_min:g} >= {camera.radius_max:g})",
             source,
         )
-    mir = _section(data, "mirror", source)
-    mirror = Mirror(
-        a=_number(mir, "mirror", "a", source, positive=True),  # type: ignore[arg-type]
-        b=_number(mir, "mirror", "b", source, positive=True),  # type: ignore[arg-type]
-    )
+    mirror: Mirror | None = None
+    if model_name == "hyperboloid" or data.get("mirror") is not None:
+        mir = _section(data, "mirror", source)
+        mirror = Mirror(
+            a=_number(mir, "mirror", "a", source, positive=True),  # type: ignore[arg-type]
+            b=_number(mir, "mirror", "b", source, positive=True),  # type: ignore[arg-type]
+        )
+    if data.get("laser") is None:
+        return Rig(camera=camera, mirror=mirror, laser=None, model=params)
     las = _section(data, "laser", source)
     plane = las.get("plane")
     if plane is None:
@@ -267,12 +440,17 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
             "laser.channel", f"must be one of {', '.join(LASER_CHANNELS)}, got {channel!r}", source
         )
     laser = LaserPlane(k=(k[0], k[1], k[2], k[3]), channel=channel.lower())
-    check_ring_visible(camera, mirror, laser, source)
-    return Rig(camera=camera, mirror=mirror, laser=laser)
+    check_ring_visible(camera, mirror, laser, source, model=params)
+    return Rig(camera=camera, mirror=mirror, laser=laser, model=params)
 
 
 def check_ring_visible(
-    camera: CameraIntrinsics, mirror: Mirror, laser: LaserPlane, source: str | None = None
+    camera: CameraIntrinsics,
+    mirror: Mirror | None,
+    laser: LaserPlane,
+    source: str | None = None,
+    *,
+    model: UnifiedParams | OcamParams | None = None,
 ) -> None:
     """Refuse a laser plane whose ring the mirror can never see whole.
 
@@ -287,18 +465,20 @@ def check_ring_visible(
     tan(theta) <= min((t_hi - t_lo) / 2, t_hi - z0/R_min, -t_lo) for z0 < 0 (and the
     mirror image of it for z0 > 0), t = tan(e). A plane parallel to the axis
     (k3 = 0, e.g. ``[1, 0, 0, 82]``) never is: its "ring" runs along the pipe without end.
-    For the paper's rig this allows a tilt of up to about 48 degrees.
+    For the paper's rig this allows a tilt of up to about 48 degrees. Without a
+    hyperboloid (``unified``/``ocam`` models and no ``mirror`` section) the mirror's
+    size is unknown and the z0 / R_min term is left out.
 
     Raises:
         ConfigError: ``laser.plane``, with the tilt, where it crosses the axis and the
             largest tilt this rig allows.
     """
-    from omnipipe.camera.hyperboloid import OmniCamera
+    from omnipipe.camera.factory import camera_from_parts
 
     k = np.asarray(laser.k, dtype=float)
     n = k[:3] / np.linalg.norm(k[:3])
     tilt = math.degrees(math.acos(min(1.0, abs(float(n[2])))))
-    cam = OmniCamera(camera, mirror)
+    cam = camera_from_parts(camera, mirror, model)
     r_full = min(
         cam.radius_max,
         camera.cx + 0.5,
@@ -321,12 +501,15 @@ def check_ring_visible(
     if not np.isfinite(rays).all():
         raise ConfigError("camera.radius_max", "lies beyond the mirror's asymptote", source)
     t_lo, t_hi = (float(r[2] / math.hypot(r[0], r[1])) if r[0] > 0 else -math.inf for r in rays)
-    # Mirror radius at the outer edge of the full ring: the ray meets the mirror sheet
-    # (X^2+Y^2)/a^2 - (Z+c)^2/b^2 = -1 at t d, t = a^2 / (b - c d_z).
-    rim = rays[1]
-    a, b, c = mirror.a, mirror.b, mirror.c
-    t_rim = a * a / (b - c * float(rim[2]))
-    r_mirror = t_rim * math.hypot(rim[0], rim[1])
+    if model is None and mirror is not None:
+        # Mirror radius at the outer edge of the full ring: the ray meets the mirror
+        # sheet (X^2+Y^2)/a^2 - (Z+c)^2/b^2 = -1 at t d, t = a^2 / (b - c d_z).
+        rim = rays[1]
+        a, b, c = mirror.a, mirror.b, mirror.c
+        t_rim = a * a / (b - c * float(rim[2]))
+        r_mirror = t_rim * math.hypot(rim[0], rim[1])
+    else:
+        r_mirror = math.inf
     if abs(n[2]) < 1e-12:
         tan_max, z0 = -1.0, math.nan
     else:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from omnipipe.camera.base import CameraModel
 from omnipipe.errors import ShapeError
 from omnipipe.rig import CameraIntrinsics, Mirror, Rig
 
@@ -28,7 +29,7 @@ def _as_points(array: np.ndarray, dim: int, name: str) -> np.ndarray:
     return arr
 
 
-class OmniCamera:
+class OmniCamera(CameraModel):
     """The rangefinder's camera: hyperboloid mirror + perspective camera.
 
     Args:
@@ -39,6 +40,7 @@ class OmniCamera:
     # Pixels closer than this fraction of the asymptote radius a f / b are invalid:
     # beyond it rays graze the mirror and the model is numerically meaningless.
     _ASYMPTOTE_MARGIN = 0.995
+    model_name = "hyperboloid"
 
     def __init__(self, intrinsics: CameraIntrinsics, mirror: Mirror) -> None:
         self.intrinsics = intrinsics

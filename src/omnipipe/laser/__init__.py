@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import camera_from_rig
 from omnipipe.laser.extract import ExtractionConfig, LaserRing, RingExtractor
 from omnipipe.laser.triangulate import intersect_plane, triangulate_ring
 from omnipipe.rig import Rig
@@ -49,7 +49,7 @@ def run(
     progress: Callable[[int], None] | None = None,
 ) -> LaserResult:
     """Extract and triangulate the laser ring of every frame."""
-    camera = OmniCamera.from_rig(rig)
+    camera = camera_from_rig(rig)
     extractor = RingExtractor(camera, config.extraction)
     rings, warnings = [], []
     for i, frame in enumerate(frames):

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import Delaunay
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ConfigError
 from omnipipe.geometry import apply
 from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
@@ -297,7 +297,7 @@ def run(
     config: ModelConfig, inputs: ModelInputs, progress: Callable[[int], None] | None = None
 ) -> ModelResult:
     """Integrate the rings, colour them, mesh the wall and texture it."""
-    camera = OmniCamera.from_rig(inputs.camera_rig)
+    camera = camera_from_rig(inputs.camera_rig)
     points, frame = integrate(inputs.world_from_rig, inputs.ring_points_in_rig)
     if not len(points):
         empty = np.zeros((0, 3))

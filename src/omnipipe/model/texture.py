@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import camera_from_rig
 from omnipipe.geometry import apply, invert
 from omnipipe.image import sample_bilinear
 from omnipipe.rig import Rig
@@ -114,7 +114,7 @@ def unrolled_image(
         read_frame: k -> (H, W, 3) or (H, W) image of keyframe k.
         grid_points: (H, W, 3) wall point of each cell (NaN: none).
     """
-    camera = OmniCamera.from_rig(rig)
+    camera = camera_from_rig(rig)
     h, w = grid_points.shape[:2]
     flat = grid_points.reshape(-1, 3)
     ok = np.isfinite(flat).all(axis=1)

@@ -119,6 +119,11 @@ def run(
     Raises:
         OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
     """
+    if dataset.rig.laser is None:  # a camera-only rig (rig.yaml without a laser section)
+        raise ReconstructionError(
+            "rig.yaml has no laser section: a camera-only rig cannot reconstruct "
+            "(add laser.plane, e.g. from omnipipe calibrate laser)"
+        )
     import numpy as np
 
     from omnipipe import analysis, laser, model

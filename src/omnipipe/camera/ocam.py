@@ -1,0 +1,105 @@
+"""Scaramuzza's polynomial omni-directional model, as OCamCalib calibrates it.
+
+OCamCalib's conventions: a pixel is (row, col) (rows first), 0-based in
+calib_results.txt; the centre is (xc, yc) = (row, col); with the affine matrix
+A = [[c, d], [e, 1]], (xp, yp) = A^-1 (row - xc, col - yc) and the ray in OCamCalib's
+frame is (xp, yp, P(r)), P(r) = sum_i a_i r^i, r = |(xp, yp)| (P(0) = a0 < 0: the
+image centre sees -z). So OCamCalib's x runs along rows and its y along columns.
+
+Rig frame (DATA_CONTRACT.md section 2): x along columns, y along rows, the image centre
+sees -z. Hence ``rig = (y_ocam, x_ocam, z_ocam)``: a swap of two axes, a reflection
+(determinant -1); see docs/camera_models.md.
+
+``project`` inverts P exactly (Newton on the elevation, seeded from a monotone table);
+OCamCalib's own inverse polynomial is kept for writing its file back but not used.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from omnipipe.camera.base import CameraModel, as_points
+from omnipipe.rig import CameraIntrinsics, OcamParams
+
+_TABLE_SIZE = 4096
+_NEWTON_ITERATIONS = 6
+
+
+class OcamCamera(CameraModel):
+    """OCamCalib's model behind the rig-frame ``project`` / ``unproject`` interface.
+
+    Args:
+        intrinsics: image size, centre (cx = OCamCalib's yc, cy = its xc) and valid
+            radii (px); ``radius_max`` None: the largest circle inside the image.
+        params: the polynomial a0, a1, ... (lowest order first) and the affine c, d, e.
+    """
+
+    model_name = "ocam"
+
+    def __init__(self, intrinsics: CameraIntrinsics, params: OcamParams) -> None:
+        self.intrinsics = intrinsics
+        self.params = params
+        self.poly = np.asarray(params.polynomial, dtype=float)
+        self.c, self.d, self.e = float(params.c), float(params.d), float(params.e)
+        self.cx = float(intrinsics.cx)
+        self.cy = float(intrinsics.cy)
+        self.width = int(intrinsics.width)
+        self.height = int(intrinsics.height)
+        inscribed = min(
+            self.cx + 0.5, self.width - 0.5 - self.cx, self.cy + 0.5, self.height - 0.5 - self.cy
+        )
+        rmax = intrinsics.radius_max
+        self.radius_max = max(inscribed, 1.0) if rmax is None else float(rmax)
+        self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
+        # Monotone table of the elevation atan2(P(r), r) over r, for project's seed.
+        r_far = 1.5 * float(np.hypot(self.width, self.height)) / min(1.0, abs(self.c - self.d * self.e))
+        r = np.linspace(0.0, r_far, _TABLE_SIZE)
+        theta = np.arctan2(self._p(r), r)
+        rising = np.diff(theta) > 0
+        stop = int(np.argmin(rising)) + 1 if not rising.all() else len(r)
+        self._r_table = r[:stop]
+        self._theta_table = theta[:stop]
+
+    def _p(self, r: np.ndarray) -> np.ndarray:
+        return np.polynomial.polynomial.polyval(r, self.poly)
+
+    def _dp(self, r: np.ndarray) -> np.ndarray:
+        return np.polynomial.polynomial.polyval(r, np.polynomial.polynomial.polyder(self.poly))
+
+    def unproject(self, pixels: np.ndarray) -> np.ndarray:
+        """Unit rays in the rig frame of (N, 2) pixels (col, row)."""
+        px = as_points(pixels, 2, "pixels")
+        drow = px[:, 1] - self.cy
+        dcol = px[:, 0] - self.cx
+        inv = 1.0 / (self.c - self.d * self.e)
+        xp = inv * (drow - self.d * dcol)
+        yp = inv * (-self.e * drow + self.c * dcol)
+        z = self._p(np.hypot(xp, yp))
+        rays = np.stack([yp, xp, z], axis=1)  # rig = (y_ocam, x_ocam, z_ocam)
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def project(self, points_in_rig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels of (N, 3) rig-frame points/directions: ((N, 2) (col, row), (N,) valid)."""
+        pts = as_points(points_in_rig, 3, "points_in_rig")
+        xo, yo, zo = pts[:, 1], pts[:, 0], pts[:, 2]
+        nxy = np.hypot(xo, yo)
+        theta = np.arctan2(zo, nxy)
+        t_lo, t_hi = self._theta_table[0], self._theta_table[-1]
+        seen = (np.linalg.norm(pts, axis=1) > 0) & (theta >= t_lo) & (theta <= t_hi)
+        rho = np.interp(theta, self._theta_table, self._r_table)
+        for _ in range(_NEWTON_ITERATIONS):
+            p = self._p(rho)
+            g = np.arctan2(p, rho) - theta
+            dg = (self._dp(rho) * rho - p) / (rho * rho + p * p)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                step = np.where(dg != 0, g / dg, 0.0)
+            rho = np.clip(rho - step, 0.0, self._r_table[-1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = np.where(nxy > 0, xo / nxy, 0.0) * rho
+            y = np.where(nxy > 0, yo / nxy, 0.0) * rho
+        row = x * self.c + y * self.d + self.cy
+        col = x * self.e + y + self.cx
+        px = np.stack([col, row], axis=1)
+        px[~seen] = np.nan
+        valid = seen & self.is_valid_pixel(np.where(seen[:, None], px, 0.0))
+        return px, valid

@@ -1,0 +1,158 @@
+"""Camera models behind one interface: round trips, rig.yaml, conversion, reconstruction."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnipipe.camera import OcamCamera, OmniCamera, UnifiedCamera, camera_from_rig
+from omnipipe.camera.convert import rig_in_model
+from omnipipe.cli import main
+from omnipipe.errors import ConfigError
+from omnipipe.rig import OcamParams, Rig, UnifiedParams, load_rig, rig_from_dict, save_rig
+from omnipipe.sim import make_scenario, paper_rig, run
+
+
+def _unified_rig() -> Rig:
+    base = paper_rig(400, 300)
+    cam = replace(base.camera, cx=201.3, cy=148.2, f=79.6)  # f: (fx + fy) / 2
+    params = UnifiedParams(0.97, 80.0, 79.2, 0.3, -0.05, 0.01, 0.002, -0.001)
+    return Rig(camera=cam, mirror=None, laser=base.laser, model=params)
+
+
+def _ocam_rig() -> Rig:
+    base = paper_rig(400, 300)
+    cam = replace(base.camera, cx=198.7, cy=151.1, f=39.4)  # f: |a0|
+    params = OcamParams((-39.4, 0.0, 6.3e-3, 1e-7, -9.6e-9), None, 1.002, 0.001, -0.0007)
+    return Rig(camera=cam, mirror=None, laser=base.laser, model=params)
+
+
+@pytest.mark.parametrize("make", [lambda: paper_rig(400, 300), _unified_rig, _ocam_rig])
+def test_round_trip_and_interface(make) -> None:
+    rig = make()
+    cam = camera_from_rig(rig)
+    px = cam.pixel_grid()[cam.valid_mask().ravel()][::7]
+    rays = cam.unproject(px)
+    assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
+    back, valid = cam.project(rays)
+    assert valid.mean() > 0.99
+    np.testing.assert_allclose(back[valid], px[valid], atol=1e-6)  # px
+    # points at any range project like their direction
+    back2, _ = cam.project(rays * 123.0)
+    np.testing.assert_allclose(back2[valid], px[valid], atol=1e-6)
+    # rig frame: column grows with x, row with y, the centre sees -z
+    centre = cam.unproject(np.array([[cam.cx, cam.cy + 1e-3]]))[0]
+    assert centre[2] < -0.99
+    right = cam.unproject(np.array([[cam.cx + 0.6 * cam.radius_max, cam.cy]]))[0]
+    down = cam.unproject(np.array([[cam.cx, cam.cy + 0.6 * cam.radius_max]]))[0]
+    assert right[0] > 0.3 and abs(right[1]) < 0.05 and down[1] > 0.3 and abs(down[0]) < 0.05
+    lo, hi = cam.elevation_range()
+    assert -np.pi / 2 < lo < hi < np.pi / 2
+    assert cam.valid_mask().shape == (300, 400)
+
+
+def test_factory_picks_the_model() -> None:
+    assert isinstance(camera_from_rig(paper_rig(400, 300)), OmniCamera)
+    assert isinstance(camera_from_rig(_unified_rig()), UnifiedCamera)
+    assert isinstance(camera_from_rig(_ocam_rig()), OcamCamera)
+
+
+@pytest.mark.parametrize("make", [lambda: paper_rig(400, 300), _unified_rig, _ocam_rig])
+def test_rig_yaml_round_trip_and_scaling(make, tmp_path: Path) -> None:
+    rig = make()
+    save_rig(rig, tmp_path / "rig.yaml")
+    loaded = load_rig(tmp_path / "rig.yaml")
+    assert loaded == rig
+    # a scaled image keeps every pixel's ray (pixel centres at integers)
+    big = rig.with_image_size(800, 600)
+    a, b = camera_from_rig(rig), camera_from_rig(big)
+    px = np.array([[250.0, 180.0], [120.0, 90.0]])
+    np.testing.assert_allclose(a.unproject(px), b.unproject((px + 0.5) * 2.0 - 0.5), atol=1e-9)
+
+
+def test_rig_without_laser_loads_and_reconstruct_refuses(small_dataset: Path, tmp_path: Path, capsys) -> None:
+    data = paper_rig(400, 300).to_dict()
+    del data["laser"]
+    rig = rig_from_dict(data)
+    assert rig.laser is None and rig.camera_model == "hyperboloid"
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    save_rig(rig, ds / "rig.yaml")
+    assert main(["reconstruct", str(ds), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no laser section" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda d: d["camera"].update(model="fisheye"), "camera.model"),
+        (lambda d: d["camera"]["unified"].pop("xi"), "camera.unified.xi"),
+        (lambda d: d["camera"]["unified"].update(distortion=[0, 0]), "camera.unified.distortion"),
+        (lambda d: d["camera"]["unified"].update(fy=-1.0), "camera.unified.fy"),
+        (lambda d: d["camera"].pop("unified"), "camera.unified"),
+    ],
+)
+def test_bad_unified_fields_are_named(edit, field: str) -> None:
+    data = _unified_rig().to_dict()
+    edit(data)
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        rig_from_dict(data)
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda d: d["camera"]["ocam"].update(polynomial=[39.0, 0.0, 1e-3]), "camera.ocam.polynomial"),
+        (lambda d: d["camera"]["ocam"].update(affine=[1.0, 1.0, 1.0]), "camera.ocam.affine"),
+        (lambda d: d["camera"]["ocam"].update(polynomial=[-39.0, "x"]), r"camera.ocam.polynomial\[1\]"),
+    ],
+)
+def test_bad_ocam_fields_are_named(edit, field: str) -> None:
+    data = _ocam_rig().to_dict()
+    edit(data)
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        rig_from_dict(data)
+
+
+def test_conversion_reproduces_the_hyperboloid_rays() -> None:
+    rig = paper_rig(400, 300)
+    src = camera_from_rig(rig)
+    px = src.pixel_grid()[src.valid_mask().ravel()][::5]
+    for model, tol_px in (("unified", 1e-6), ("ocam", 1e-3)):
+        converted, rms = rig_in_model(rig, model)
+        assert converted.camera_model == model and rms < tol_px
+        dst = camera_from_rig(converted)
+        # every valid pixel sees the same ray (0.001 px at the rim's ~0.5 deg/px)
+        cos = np.sum(src.unproject(px) * dst.unproject(px), axis=1)
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1e-3
+        back, valid = dst.project(src.unproject(px))
+        np.testing.assert_allclose(back[valid], px[valid], atol=10 * tol_px)
+
+
+def test_every_model_reconstructs_alike(tmp_path: Path) -> None:
+    """A paper-small run written in each model: diameters within 0.3 mm of each other."""
+    base = tmp_path / "hyperboloid"
+    run(make_scenario("paper-small", frames=12, seed=5), base)
+    diam = {}
+    for model in ("hyperboloid", "unified", "ocam"):
+        ds = base
+        if model != "hyperboloid":
+            ds = tmp_path / model
+            shutil.copytree(base, ds)
+            converted, _ = rig_in_model(load_rig(base / "rig.yaml"), model)
+            save_rig(converted, ds / "rig.yaml")
+            assert load_rig(ds / "rig.yaml").camera_model == model
+        out = tmp_path / f"out-{model}"
+        assert main(["reconstruct", str(ds), "--out", str(out), "--quiet"]) == 0
+        diam[model] = json.loads((out / "report.json").read_text())["inner_diameter_mm"]
+    truth = json.loads((base / "ground_truth" / "scene.json").read_text())["inner_diameter_mm"]
+    assert abs(diam["hyperboloid"] - truth) < 1.5  # the small-image band of test_reconstruct
+    for model in ("unified", "ocam"):
+        assert abs(diam[model] - diam["hyperboloid"]) < 0.3, diam
