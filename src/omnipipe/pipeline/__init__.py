@@ -101,6 +101,8 @@ class Reconstruction:
         model: the model stage result.
         analysis: the analysis stage result.
         report_config: how report.html is drawn (the ``report`` section of the config).
+        frame_index: (N,) 0-based frame index of each registered pose.
+        survey: the :class:`omnipipe.survey.Survey` header (survey.yaml), or None.
     """
 
     summary: dict[str, Any]
@@ -109,6 +111,8 @@ class Reconstruction:
     model: Any
     analysis: Any
     report_config: Any = None
+    frame_index: np.ndarray | None = None
+    survey: Any = None
 
 
 def run(
@@ -231,6 +235,9 @@ def run(
         res, getattr(motion, "scale_sigma_rel", float("nan")), config.analysis
     )
     warnings.extend(measure_warnings)
+    if len(measured.get("stations", [])) == len(stations):
+        for entry, frame in zip(measured["stations"], stations, strict=True):
+            entry["frame"] = int(frame)  # the frame whose ring this station is
     warnings.extend(quality.flag_defects(measured.get("defects", []), traj_quality))
     summary = {
         "frames": n,
@@ -256,6 +263,7 @@ def run(
         model=mdl,
         analysis=res,
         report_config=config.report,
+        frame_index=reg,
     )
 
 
@@ -272,7 +280,8 @@ def write(
 
     ``force`` replaces only an earlier omnipipe output (see :mod:`omnipipe.output`);
     ``protect`` lists inputs (dataset, config file) that ``out`` may not be or hold.
-    ``progress`` draws a bar ``output`` over the files written.
+    ``progress`` draws a bar ``output`` over the files written. Besides the contract's
+    files: defects.csv and defects/*.png (:mod:`omnipipe.report.deliverable`).
 
     Raises:
         OutputError: ``out`` exists (without ``force``), is not omnipipe's, or cannot be
@@ -281,6 +290,7 @@ def write(
     from omnipipe import model as model_stage
     from omnipipe import report
     from omnipipe.dataset import atomic_output_dir, write_tum
+    from omnipipe.report.deliverable import write_deliverable
 
     out = Path(out)
     with atomic_output_dir(out, force=force, protect=protect) as tmp:
@@ -295,6 +305,13 @@ def write(
             tmp / "report.html",
         )
         tick(2)
+        write_deliverable(
+            tmp,
+            rec.summary,
+            rec.model.unrolled,
+            rec.survey,
+            travel_along_rig_z=float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]),
+        )
         tick(3)
     return out
 
@@ -322,6 +339,7 @@ def report_inputs(rec: Reconstruction, evaluation: dict | None = None):
         radius_mm=None if res.inner_diameter_mm is None else res.inner_diameter_mm / 2,
         truth=truth,
         evaluation=evaluation,
+        frame_index=rec.frame_index,
     )
 
 

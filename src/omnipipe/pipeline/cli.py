@@ -101,6 +101,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="replace an earlier omnipipe output in OUT (never a folder holding other files)",
     )
+    p.add_argument(
+        "--survey",
+        metavar="FILE",
+        help="survey header YAML (site, asset_id, start_node, direction, ...; default: "
+        "survey.yaml beside the dataset if there is one; docs/inspection_coding.md)",
+    )
     _add_knobs(p)
     p.set_defaults(func=_reconstruct)
 
@@ -126,15 +132,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    from omnipipe.dataset import open_dataset
+    from omnipipe.survey import find_survey
+
     protect = [args.dataset] + ([args.config] if args.config else [])
+    protect += [args.survey] if args.survey else []
     # Recover an interrupted earlier run and refuse before the long run, not after.
     prepare_output_dir(out, force=args.force, protect=protect)
-    from omnipipe.dataset import open_dataset
-
     config = ReconstructConfig.from_yaml(args.config, _overrides(args))
+    survey = find_survey(args.dataset, args.survey)
     dataset = open_dataset(args.dataset)
     bars = _progress(args.quiet)
     rec = run(config, dataset, bars)
+    if survey is not None:
+        rec.survey = survey
+        rec.summary["survey"] = survey.to_dict()
     write(rec, out, force=args.force, protect=protect, progress=bars)
     print(closing_line(rec.summary, out))
     return 0
