@@ -53,6 +53,8 @@ class ReportInputs:
         radius_mm: fitted wall radius, for drawing defect outlines on the unrolled image.
         truth: rows of the measured-vs-true table: (name, measured, true, unit) or None.
         evaluation: the evaluate result dict, when ground truth exists.
+        frame_index: (N,) 0-based frame index of each pose in ``world_from_rig`` (to
+            mark the summary's unreliable stretches on the trajectory), or None.
     """
 
     summary: dict[str, Any]
@@ -69,6 +71,7 @@ class ReportInputs:
     radius_mm: float | None = None
     truth: list[tuple[str, float | None, float | None, str]] | None = None
     evaluation: dict[str, Any] | None = field(default=None)
+    frame_index: np.ndarray | None = None
 
 
 def _png_data_uri(image: np.ndarray) -> str:
@@ -133,6 +136,14 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
             axes, ((2, 0, "top view: x"), (2, 1, "side view: y")), strict=True
         ):
             ax.plot(p[:, i], p[:, j], ".-", ms=3)
+            for n, (lo, hi) in enumerate(_unreliable_frames(inputs)):
+                sel = (inputs.frame_index >= lo) & (inputs.frame_index <= hi)
+                ax.plot(
+                    p[sel, i], p[sel, j], "o", ms=4, color="#d62728",
+                    label="unreliable motion" if n == 0 else None,
+                )
+            if _unreliable_frames(inputs):
+                ax.legend(fontsize=7)
             ax.set_xlabel("z: along the first rig axis (mm)")
             ax.set_ylabel(f"{name} (mm)")
             ax.grid(alpha=0.3)
@@ -166,10 +177,23 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
                 color="white",
                 fontsize=8,
             )
+        quality = inputs.summary.get("trajectory_quality") or {}
+        for u in quality.get("unreliable", []):
+            if u.get("axial_start_mm") is not None:
+                ax.axhspan(u["axial_start_mm"], u["axial_end_mm"], color="#d62728", alpha=0.3, lw=0)
+                ax.text(a0 + 2, u["axial_start_mm"], "unreliable motion", color="white", fontsize=7, va="top")
         ax.set_xlabel("angle around the axis from the first rig frame's x axis (deg)")
         ax.set_ylabel("distance along the pipe (mm)")
         out["unrolled"] = _figure_data_uri(fig)
     return out
+
+
+def _unreliable_frames(inputs: ReportInputs) -> list[tuple[int, int]]:
+    """(first, last) frame of each unreliable stretch, when poses carry frame indices."""
+    if inputs.frame_index is None:
+        return []
+    q = inputs.summary.get("trajectory_quality") or {}
+    return [(int(u["first_frame"]), int(u["last_frame"])) for u in q.get("unreliable", [])]
 
 
 def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
@@ -271,6 +295,21 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
             + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
             + "</td></tr>"
         )
+    q = s.get("trajectory_quality")
+    if q is not None:
+        bad = q.get("unreliable", [])
+        steps = max(int(s.get("frames") or 1) - 1, 0)
+        verdict = (
+            f"<span class='warn'>UNRELIABLE in {len(bad)} stretch(es): frames "
+            + ", ".join(f"{u['first_frame']}-{u['last_frame']}" for u in bad)
+            + " (marked red on the unrolled wall and the trajectory)</span>"
+            if bad
+            else "every moving step confirmed by two scale sources"
+        )
+        parts.append(
+            f"<tr><td>camera motion check</td><td>{_fmt(q.get('steps_checked'))} of {steps} frame "
+            f"steps verified; {verdict}</td></tr>"
+        )
     parts.append("</table>")
     for w in s.get("warnings", []):
         parts.append(f"<p class='warn'>warning: {html.escape(str(w))}</p>")
@@ -324,8 +363,13 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
                     ("angle_deg", "angle_sigma_deg", 1),
                 )
             ]
+            kind = html.escape(d["kind"]) + (
+                " <span class='warn'>(across unreliable motion)</span>"
+                if d.get("motion_unreliable")
+                else ""
+            )
             parts.append(
-                f"<tr><td>{k + 1}</td><td>{html.escape(d['kind'])}</td>"
+                f"<tr><td>{k + 1}</td><td>{kind}</td>"
                 + "".join(f"<td>{c}</td>" for c in cells)
                 + "</tr>"
             )
