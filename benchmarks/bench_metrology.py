@@ -153,6 +153,9 @@ def main() -> None:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         scenario = random_scenario(seed, size, args.frames, args.defects)
         root = base / f"seed{seed}"
+        if args.reuse and not (root / "analysis_inputs.npz").is_file():
+            print(f"seed {seed}: not in the cache, skipped")
+            continue
         summary, scene = _reconstruct(scenario, root, args.reuse)
         d_true = scene["inner_diameter_mm"]
         errors["inner diameter"].append(
@@ -188,7 +191,7 @@ def main() -> None:
             f"limit {summary.get('detection_limit_mm')} mm",
             flush=True,
         )
-    print(f"\n{args.seeds} runs at {args.size}, {args.frames} frames, {args.defects} defects each")
+    print(f"\n{len(errors['inner diameter'])} runs at {args.size}, {args.frames} frames, {args.defects} defects each")
     print(f"{'quantity':18s} {'n':>5s} {'bias':>9s} {'RMS':>9s} {'med sigma':>10s} {'cover 2s':>9s}")
     for name, key, _ in QUANTITIES:
         e = np.array(errors[name], float).reshape(-1, 2)

@@ -37,6 +37,11 @@ def _inputs() -> ReportInputs:
         "frames": 8,
         "frames_registered": 8,
         "inner_diameter_mm": 202.2,
+        "inner_diameter_sigma_mm": 0.031,
+        "run_length_mm": 310.0,
+        "run_length_sigma_mm": 1.9,
+        "detection_limit_mm": 1.31,
+        "detection_limit_reference_mm": {"width": 10.0, "length": 20.0},
         "defects": [
             {
                 "kind": "bulge",
@@ -45,6 +50,11 @@ def _inputs() -> ReportInputs:
                 "length_mm": 99.0,
                 "axial_start_mm": 40.0,
                 "angle_deg": 60.0,
+                "height_sigma_mm": 0.04,
+                "width_sigma_mm": 0.21,
+                "length_sigma_mm": 0.9,
+                "axial_start_sigma_mm": 0.6,
+                "angle_sigma_deg": 0.3,
             }
         ],
     }
@@ -61,7 +71,7 @@ def _inputs() -> ReportInputs:
         stations_diameter_mm=202.2 + rng.normal(0, 0.1, 8),
         stations_ovality=np.abs(rng.normal(0, 0.002, 8)),
         radius_mm=101.1,
-        truth=[("inner diameter", 202.2, 202.0, "mm")],
+        truth=[("inner diameter", 202.2, 0.031, 202.0, "mm"), ("height of bulge 1", 5.1, 0.04, 5.0, "mm")],
     )
 
 
@@ -78,6 +88,19 @@ def test_report_is_self_contained() -> None:
         "Trajectory",
     ):
         assert key in page
+
+
+def test_report_shows_each_value_with_its_uncertainty() -> None:
+    page = render_html(_inputs())
+    assert "202.200 ± 0.031 mm" in page  # inner diameter
+    assert "310.0 ± 1.9 mm" in page  # measured length of pipe
+    assert "5.100 ± 0.040" in page  # defect height, in the defect table and Table I
+    assert "99.00 ± 0.90" in page and "60.00 ± 0.30" in page
+    assert "detection limit" in page and "1.31 mm" in page
+    # Table I rows without a sigma (4-tuples) still render.
+    old = _inputs()
+    old.truth = [("inner diameter", 202.2, 202.0, "mm")]
+    assert "202.00 mm" in render_html(old)
 
 
 def _chromium() -> str | None:

@@ -74,8 +74,10 @@ class AnalysisConfig:
             drift of the trajectory), added to each defect's angle.
         systematic_radius_factor: radial errors shared by a whole ring or run (sub-pixel
             bias of the laser peak on a blurred, sampled ring), as a fraction of the wall
-            noise: added to every diameter (x 2) and defect height. One run cannot observe
-            them; the factors are set from ``benchmarks/bench_metrology.py``.
+            noise: added to every diameter (x 2). One run cannot observe them; the factors
+            are set from ``benchmarks/bench_metrology.py``.
+        systematic_height_factor: the same for a defect's height against the wall beside
+            it (the blurred ring on the defect's flanks), as a fraction of the wall noise.
         width_resolution_samples: lateral resolution of the light section in samples along
             the ring (the imaged ring is blurred over about a sample): added to widths.
     """
@@ -93,7 +95,8 @@ class AnalysisConfig:
     limit_length_mm: float = 20.0
     fallback_scale_sigma_rel: float = 0.01
     angle_pose_sigma_deg: float = 0.3
-    systematic_radius_factor: float = 0.25
+    systematic_radius_factor: float = 0.15
+    systematic_height_factor: float = 0.5
     width_resolution_samples: float = 0.5
 
 
@@ -257,7 +260,9 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
     width_res = config.width_resolution_samples * search.sample_spacing_mm
     for d in defects:
         if d.get("height_sigma_mm") is not None:
-            d["height_sigma_mm"] = round(math.hypot(d["height_sigma_mm"], radial_sys), 4)
+            d["height_sigma_mm"] = round(
+                math.hypot(d["height_sigma_mm"], config.systematic_height_factor * search.noise_mm), 4
+            )
             d["width_sigma_mm"] = round(math.hypot(d["width_sigma_mm"], width_res), 4)
     st_axial, st_diam, st_oval = stations["axial"], stations["diameter"], stations["ovality"]
     st_diam_arr = np.array(st_diam)
