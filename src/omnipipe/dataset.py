@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -41,6 +42,8 @@ class Dataset:
         warnings: problems found while opening that do not stop a run (e.g. a video
             with fewer decodable frames than its container announces); the pipeline
             copies them into report.json ``warnings``.
+        source: for a ROS bag / MCAP file, its :class:`omnipipe.inputs.rosbag.BagImages`
+            (``read(index)`` decodes a frame); None otherwise.
     """
 
     root: Path
@@ -49,6 +52,7 @@ class Dataset:
     timestamps: np.ndarray
     video: Path | None = None
     warnings: tuple[str, ...] = ()
+    source: Any = None
 
     def __len__(self) -> int:
         return len(self.frame_paths)
@@ -62,6 +66,15 @@ class Dataset:
         """Frame ``index`` as an RGB (H, W, 3) or grey (H, W) array (uint8 or uint16)."""
         if self.video is not None:
             return _video_frames(self.video, self.rig)[index]
+        if self.source is not None:
+            img = self.source.read(index)
+            cam = self.rig.camera
+            if img.shape[:2] != (cam.height, cam.width):
+                raise DatasetError(
+                    f"{self.frame_paths[index]}: image is {img.shape[1]}x{img.shape[0]} but "
+                    f"rig.yaml says {cam.width}x{cam.height}"
+                )
+            return img
         return read_image(self.frame_paths[index], self.rig)
 
     def frames(self) -> Iterator[np.ndarray]:
@@ -154,9 +167,10 @@ def write_image(path: Path, image: np.ndarray) -> None:
 _VIDEO_CACHE: dict[tuple[str, float], list[np.ndarray]] = {}
 
 
-def _decode_video(path: Path) -> tuple[list[np.ndarray], float, int]:
-    """Every decodable frame (RGB), the frame rate (0 if unknown) and the frame count
-    the container announces (0 if unknown). Decoding stops at the first frame that
+def _decode_video(path: Path) -> tuple[list[np.ndarray], float, int, list[float]]:
+    """Every decodable frame (RGB), the frame rate (0 if unknown), the frame count
+    the container announces (0 if unknown) and each frame's container timestamp
+    (CAP_PROP_POS_MSEC, seconds; NaN if unknown). Decoding stops at the first frame that
     cannot be read; the decoder's own messages are silenced."""
     with quiet_native_stderr():
         cap = cv2.VideoCapture(str(path))
@@ -165,12 +179,14 @@ def _decode_video(path: Path) -> tuple[list[np.ndarray], float, int]:
                 raise DatasetError(f"{path}: not a readable video (not a video, or damaged)")
             fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
             announced = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)
-            frames = []
+            frames, times = [], []
             while True:
                 ok, frame = cap.read()
                 if not ok or frame is None:
                     break
                 frames.append(np.ascontiguousarray(frame[:, :, ::-1]))
+                msec = cap.get(cv2.CAP_PROP_POS_MSEC)
+                times.append(float(msec) / 1000.0 if msec is not None else math.nan)
         finally:
             cap.release()
     if not frames:
@@ -178,13 +194,13 @@ def _decode_video(path: Path) -> tuple[list[np.ndarray], float, int]:
     if not math.isfinite(fps) or fps < 0:
         fps = 0.0
     count = int(announced) if math.isfinite(announced) and 0 < announced < 1e9 else 0
-    return frames, fps, count
+    return frames, fps, count, times
 
 
 def _video_frames(path: Path, rig: Rig) -> list[np.ndarray]:
     key = (str(path), path.stat().st_mtime)
     if key not in _VIDEO_CACHE:
-        frames, _, _ = _decode_video(path)
+        frames, _, _, _ = _decode_video(path)
         h, w = frames[0].shape[:2]
         if (h, w) != (rig.camera.height, rig.camera.width):
             raise DatasetError(
@@ -198,7 +214,7 @@ def _video_frames(path: Path, rig: Rig) -> list[np.ndarray]:
 def open_video(path: Path) -> Dataset:
     """Open a video file as a dataset; its rig.yaml lies in the same directory."""
     rig = load_rig(path.parent / "rig.yaml")
-    frames, fps, announced = _decode_video(path)
+    frames, fps, announced, times = _decode_video(path)
     h, w = frames[0].shape[:2]
     if (h, w) != (rig.camera.height, rig.camera.width):
         raise DatasetError(
@@ -207,7 +223,11 @@ def open_video(path: Path) -> Dataset:
     _VIDEO_CACHE.clear()
     _VIDEO_CACHE[(str(path), path.stat().st_mtime)] = frames
     names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(frames)))
-    stamps = np.arange(len(frames)) / fps if fps > 0 else np.arange(len(frames), dtype=float)
+    # The container's presentation times when they are usable (frame-accurate, also for
+    # variable frame rates); else frame index / frame rate.
+    stamps = np.array(times, dtype=float)
+    if len(stamps) < 2 or not np.isfinite(stamps).all() or not (np.diff(stamps) > 0).all():
+        stamps = np.arange(len(frames)) / fps if fps > 0 else np.arange(len(frames), dtype=float)
     warnings: tuple[str, ...] = ()
     if announced > len(frames):
         warnings = (
@@ -224,19 +244,29 @@ def open_video(path: Path) -> Dataset:
     )
 
 
-def open_dataset(root: str | Path) -> Dataset:
-    """Open and validate a dataset: a directory (rig.yaml, frames/, timestamps.txt) or a
-    video file (MP4, AVI, MOV, MKV) with rig.yaml beside it.
+def open_dataset(root: str | Path, topic: str | None = None) -> Dataset:
+    """Open and validate a dataset: a directory (rig.yaml, frames/, timestamps.txt), a
+    video file (MP4, AVI, MOV, MKV) with rig.yaml beside it, or a ROS 1 bag, ROS 2 bag
+    folder or MCAP file (image ``topic``, default: its only image topic) with rig.yaml
+    beside it (:mod:`omnipipe.inputs.rosbag`).
 
     Raises:
         DatasetError / ConfigError: naming the missing or invalid file or field.
     """
+    from omnipipe.errors import ConfigError
+    from omnipipe.inputs.rosbag import is_bag, open_bag
+
     root = Path(root)
+    if is_bag(root):
+        return open_bag(root, topic)
+    if topic is not None:
+        raise ConfigError("--topic", "applies only to ROS bags and MCAP files")
     if root.is_file() and root.suffix.lower() in VIDEO_SUFFIXES:
         return open_video(root)
     if root.is_file():
         raise DatasetError(
-            f"{root}: expected a dataset directory or a video ({', '.join(VIDEO_SUFFIXES)})"
+            f"{root}: expected a dataset directory, a video ({', '.join(VIDEO_SUFFIXES)}) or "
+            "a ROS bag / MCAP file (.bag, .mcap, .db3)"
         )
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory not found")
@@ -358,8 +388,8 @@ def validate_frames(dataset: Dataset) -> None:
     Raises:
         DatasetError: naming the first frame that is not an image or has the wrong size.
     """
-    if dataset.video is not None:
-        return  # decoded and size-checked when opened
+    if dataset.video is not None or dataset.source is not None:
+        return  # decoded and size-checked when opened (and when read)
     from PIL import Image, UnidentifiedImageError
 
     cam = dataset.rig.camera

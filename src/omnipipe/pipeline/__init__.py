@@ -132,6 +132,7 @@ def run(
 
     from omnipipe import analysis, laser, model
     from omnipipe.dataset import validate_frames
+    from omnipipe.inputs.lossy import assess_input
     from omnipipe.pipeline import quality
     from omnipipe.sfm import pipeline as sfm
 
@@ -142,6 +143,9 @@ def run(
     rig = dataset.rig
     n = len(dataset)
     warnings.extend(dataset.warnings)  # e.g. a truncated video
+    input_quality = assess_input(dataset)  # lossy (JPEG/MPEG) input degrades everything
+    if input_quality.warning:
+        warnings.append(input_quality.warning)
 
     t0 = time.perf_counter()
     tick = progress("laser", n)
@@ -255,6 +259,7 @@ def run(
         },
         "keyframes": int(np.sum(motion.keyframe)),
         "trajectory_quality": traj_quality,
+        "input_quality": input_quality.to_dict(),
     }
     return Reconstruction(
         summary=summary,

@@ -92,7 +92,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "directory, or a video with rig.yaml beside it); writes trajectory.txt, points.ply, mesh.ply, "
         "model.glb, unrolled.png, report.json and report.html to OUT.",
     )
-    p.add_argument("dataset", help="dataset directory or video file")
+    p.add_argument(
+        "dataset",
+        help="dataset directory, video file, ROS 1/2 bag or MCAP file (rig.yaml beside it)",
+    )
+    p.add_argument(
+        "--topic",
+        help="image topic of a ROS bag / MCAP file (sensor_msgs/Image or CompressedImage; "
+        "default: its only image topic)",
+    )
     p.add_argument(
         "--out", required=True, help="output directory (refused if it exists, unless --force)"
     )
@@ -141,7 +149,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     prepare_output_dir(out, force=args.force, protect=protect)
     config = ReconstructConfig.from_yaml(args.config, _overrides(args))
     survey = find_survey(args.dataset, args.survey)
-    dataset = open_dataset(args.dataset)
+    dataset = open_dataset(args.dataset, topic=args.topic)
     bars = _progress(args.quiet)
     rec = run(config, dataset, bars)
     if survey is not None:

@@ -1,0 +1,7 @@
+"""Readers of recorded inputs beyond the contract's image folder: ROS 1/2 bags and MCAP
+files (:mod:`omnipipe.inputs.rosbag`, optional extra ``omnipipe[ros]``), and the check
+for lossy (JPEG/MPEG-compressed) input (:mod:`omnipipe.inputs.lossy`).
+
+:func:`omnipipe.dataset.open_dataset` dispatches to them; video files are read by
+:mod:`omnipipe.dataset` itself (OpenCV, container timestamps).
+"""

@@ -1,0 +1,257 @@
+"""Images from ROS 1 bags, ROS 2 bags (SQLite or MCAP storage) and MCAP files.
+
+Read with the pure-Python ``rosbags`` package (optional extra: ``pip install
+'omnipipe[ros]'``). One image topic is read: ``--topic``, or the only topic of type
+``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage`` in the bag. Frames are in the
+bag's message order; their timestamps are the messages' ``header.stamp`` (seconds),
+or, when a header stamp is unset (0) or the stamps do not increase strictly, the times
+the messages were recorded (with a warning).
+
+The messages' payloads are kept in memory and decoded on demand (a compressed image
+is a few hundred kB; raw images take what a decoded video takes).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omnipipe.errors import ConfigError, DatasetError
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+MISSING = (
+    "reading ROS bags and MCAP files needs the optional package 'rosbags': "
+    "pip install 'omnipipe[ros]'"
+)
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 bag, an MCAP/SQLite ROS 2 storage file, or a ROS 2 bag folder."""
+    if path.is_file():
+        return path.suffix.lower() in BAG_SUFFIXES
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+@dataclass(frozen=True)
+class BagImages:
+    """The image messages of one topic.
+
+    Attributes:
+        path: the bag.
+        topic: the topic read.
+        msgtype: ``sensor_msgs/msg/Image`` or ``sensor_msgs/msg/CompressedImage``.
+        timestamps: (N,) seconds, strictly increasing.
+        formats: per message, the CompressedImage ``format`` or the Image ``encoding``.
+        warnings: problems that do not stop a run.
+    """
+
+    path: Path
+    topic: str
+    msgtype: str
+    timestamps: np.ndarray
+    formats: tuple[str, ...]
+    warnings: tuple[str, ...]
+    _messages: tuple[Any, ...]
+
+    def __len__(self) -> int:
+        return len(self._messages)
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` as RGB (H, W, 3) or grey (H, W), uint8 or uint16.
+
+        Raises:
+            DatasetError: an undecodable message or an unsupported encoding.
+        """
+        msg = self._messages[index]
+        where = f"{self.path} topic {self.topic} message {index}"
+        if self.msgtype.endswith("CompressedImage"):
+            return decode_compressed(np.asarray(msg.data, dtype=np.uint8), where)
+        return decode_raw(msg, where)
+
+
+def decode_compressed(data: np.ndarray, where: str) -> np.ndarray:
+    """A sensor_msgs/CompressedImage payload (JPEG, PNG, ...) as RGB or grey."""
+    import cv2
+
+    from omnipipe.dataset import quiet_native_stderr
+
+    with quiet_native_stderr():
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise DatasetError(f"{where}: not a decodable compressed image")
+    if img.ndim == 3:
+        img = img[:, :, :3][:, :, ::-1]  # OpenCV's BGR(A) -> RGB
+    return np.ascontiguousarray(img)
+
+
+_BAYER = {"bayer_rggb8": "RG", "bayer_bggr8": "BG", "bayer_gbrg8": "GB", "bayer_grbg8": "GR"}
+
+
+def decode_raw(msg: Any, where: str) -> np.ndarray:
+    """A sensor_msgs/Image as RGB (H, W, 3) or grey (H, W).
+
+    Encodings: rgb8, bgr8, rgba8, bgra8, mono8, 8UC1, 8UC3 (as bgr8), mono16, 16UC1,
+    bayer_{rggb,bggr,gbrg,grbg}8.
+    """
+    import cv2
+
+    enc = str(msg.encoding).lower()
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    channels, dtype = {
+        "rgb8": (3, np.uint8), "bgr8": (3, np.uint8), "8uc3": (3, np.uint8),
+        "rgba8": (4, np.uint8), "bgra8": (4, np.uint8),
+        "mono8": (1, np.uint8), "8uc1": (1, np.uint8),
+        "mono16": (1, np.uint16), "16uc1": (1, np.uint16),
+        **{k: (1, np.uint8) for k in _BAYER},
+    }.get(enc, (0, None))
+    if not channels:
+        raise DatasetError(f"{where}: unsupported image encoding {msg.encoding!r}")
+    item = np.dtype(dtype).itemsize
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if h <= 0 or w <= 0 or step < w * channels * item or data.size < step * h:
+        raise DatasetError(f"{where}: image data does not match {w}x{h}, step {step}")
+    rows = data[: step * h].reshape(h, step)[:, : w * channels * item]
+    dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
+    img = rows.copy().view(dt).reshape(h, w, channels).astype(dtype)
+    if enc in _BAYER:
+        code = getattr(cv2, f"COLOR_Bayer{_BAYER[enc]}2RGB")
+        return np.ascontiguousarray(cv2.cvtColor(img[:, :, 0], code))
+    if channels == 1:
+        return np.ascontiguousarray(img[:, :, 0])
+    if enc in ("bgr8", "bgra8", "8uc3"):
+        img = img[:, :, 2::-1]
+    return np.ascontiguousarray(img[:, :, :3])
+
+
+def _reader_class() -> Callable[..., Any]:
+    try:
+        from rosbags.highlevel import AnyReader
+    except ImportError:
+        raise DatasetError(MISSING) from None
+    return AnyReader
+
+
+def read_bag(path: Path, topic: str | None = None) -> BagImages:
+    """Read the image messages of ``topic`` (or of the bag's only image topic).
+
+    Raises:
+        DatasetError: rosbags missing, unreadable bag, no or several image topics, an
+            empty topic, or timestamps that do not increase.
+        ConfigError: ``--topic`` names a topic that is not an image topic of the bag.
+    """
+    AnyReader = _reader_class()
+    from rosbags.highlevel import AnyReaderError
+
+    path = Path(path)
+    try:
+        reader = AnyReader([path])
+        reader.open()
+    except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+        raise DatasetError(f"{path}: not a readable ROS bag or MCAP file ({exc})") from None
+    try:
+        images = sorted({c.topic for c in reader.connections if c.msgtype in IMAGE_TYPES})
+        if topic is None:
+            if not images:
+                all_topics = sorted({c.topic for c in reader.connections})
+                raise DatasetError(
+                    f"{path}: no sensor_msgs/Image or CompressedImage topic (topics: "
+                    f"{', '.join(all_topics) or 'none'})"
+                )
+            if len(images) > 1:
+                raise DatasetError(
+                    f"{path}: several image topics ({', '.join(images)}); choose one with --topic"
+                )
+            topic = images[0]
+        elif topic not in images:
+            raise ConfigError(
+                "--topic",
+                f"{topic!r} is not an image topic of {path} (image topics: "
+                f"{', '.join(images) or 'none'})",
+            )
+        conns = [c for c in reader.connections if c.topic == topic]
+        msgtype = conns[0].msgtype
+        messages, header_t, log_t, formats = [], [], [], []
+        for conn, log_ns, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            messages.append(msg)
+            stamp = msg.header.stamp
+            header_t.append(int(stamp.sec) + 1e-9 * int(stamp.nanosec))
+            log_t.append(1e-9 * log_ns)
+            formats.append(str(getattr(msg, "format", None) or getattr(msg, "encoding", "")))
+    except (AnyReaderError, OSError, ValueError, KeyError, AttributeError) as exc:
+        raise DatasetError(f"{path}: cannot read topic {topic} ({exc})") from None
+    finally:
+        reader.close()
+    if not messages:
+        raise DatasetError(f"{path}: topic {topic} holds no message")
+    warnings: list[str] = []
+    stamps = np.array(header_t)
+    if (stamps <= 0).any() or (np.diff(stamps) <= 0).any():
+        stamps = np.array(log_t)
+        warnings.append(
+            f"{path.name} {topic}: header stamps unset or not increasing; using the times "
+            "the messages were recorded"
+        )
+        if (np.diff(stamps) <= 0).any():
+            raise DatasetError(
+                f"{path}: topic {topic}: neither header stamps nor record times increase "
+                "strictly; cannot order the frames"
+            )
+    return BagImages(
+        path=path,
+        topic=topic,
+        msgtype=msgtype,
+        timestamps=stamps,
+        formats=tuple(formats),
+        warnings=tuple(warnings),
+        _messages=tuple(messages),
+    )
+
+
+def find_rig(path: Path) -> Path:
+    """rig.yaml of a bag: inside a ROS 2 bag folder or beside it; beside a bag file, or
+    beside the ROS 2 bag folder that holds the file."""
+    bag_dir = path if path.is_dir() else path.parent
+    for candidate in (bag_dir / "rig.yaml", bag_dir.parent / "rig.yaml"):
+        if candidate.is_file() and (candidate.parent == bag_dir or (bag_dir / "metadata.yaml").is_file()):
+            return candidate
+    return bag_dir / "rig.yaml"
+
+
+def open_bag(path: str | Path, topic: str | None = None):
+    """Open a bag's image topic as a :class:`omnipipe.dataset.Dataset`.
+
+    rig.yaml lies inside a ROS 2 bag folder or beside the bag. Frames are named
+    ``BAG#000000`` ...; the first is decoded here to check its size against the rig.
+
+    Raises:
+        DatasetError / ConfigError: as :func:`read_bag`, a missing rig.yaml, or frames of
+            another size than the rig's.
+    """
+    from omnipipe.dataset import Dataset
+    from omnipipe.rig import load_rig
+
+    path = Path(path)
+    rig = load_rig(find_rig(path))
+    images = read_bag(path, topic)
+    first = images.read(0)
+    cam = rig.camera
+    if first.shape[:2] != (cam.height, cam.width):
+        raise DatasetError(
+            f"{path}: topic {images.topic} images are {first.shape[1]}x{first.shape[0]} but "
+            f"rig.yaml says {cam.width}x{cam.height}"
+        )
+    names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(images)))
+    return Dataset(
+        root=find_rig(path).parent,
+        rig=rig,
+        frame_paths=names,
+        timestamps=images.timestamps,
+        warnings=images.warnings,
+        source=images,
+    )
