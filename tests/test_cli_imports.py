@@ -62,11 +62,11 @@ def test_static_help_lines_match_the_registered_ones() -> None:
 
 
 def test_lazy_parser_parses_like_the_full_one() -> None:
-    argv = ["reconstruct", "ds", "--out", "o", "--quiet"]
+    argv = ["reconstruct", "ds", "--out", "o", "--survey", "s.yaml", "--topic", "/cam"]
     lazy = build_parser(argv).parse_args(argv)
     full = build_parser().parse_args(argv)
-    assert vars(lazy).keys() == vars(full).keys()
-    assert (lazy.dataset, lazy.out, lazy.quiet) == ("ds", "o", True)
+    assert vars(lazy) == vars(full)
+    assert (lazy.dataset, lazy.survey, lazy.topic) == ("ds", "s.yaml", "/cam")
 
 
 def test_unknown_command_is_refused(capsys) -> None:

@@ -79,3 +79,24 @@ def test_lossless_video_codec_not_flagged(small_dataset: Path, tmp_path: Path) -
     shutil.copy(small_dataset / "rig.yaml", tmp_path / "rig.yaml")
     q = assess_input(open_dataset(video))
     assert not q.lossy, q
+
+
+def test_cli_warns_about_jpeg_frames_and_lists_the_deliverable(
+    small_dataset: Path, tmp_path: Path, capsys
+) -> None:
+    import json
+
+    from omnipipe.cli import main
+    from omnipipe.output import read_manifest
+
+    data = _copy(small_dataset, tmp_path / "jpg", 8, 30)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(data), "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert any(line.startswith("warning: lossy input: 8x8 block") for line in printed)
+    assert printed[-1].startswith(f"wrote {out}")
+    report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    assert report["input_quality"]["lossy"] is True
+    assert any(w.startswith("lossy input") for w in report["warnings"])
+    assert [s["frame"] for s in report["stations"]] == sorted({s["frame"] for s in report["stations"]})
+    assert "defects.csv" in read_manifest(out).files
