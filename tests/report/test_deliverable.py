@@ -192,3 +192,30 @@ def test_bad_survey_is_one_line_on_the_cli(tmp_path: Path, capsys) -> None:
     assert code == 1
     assert len(err) == 1 and "direction" in err[0] and str(path) in err[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_report_html_has_survey_header_clock_crops_and_print_css() -> None:
+    from omnipipe.report import ReportInputs, render_html
+
+    summary = _summary()
+    summary["survey"] = survey_from_dict(
+        {"site": "Main St", "asset_id": "SW-1", "start_node": "MH-12", "start_offset_m": 1.5}
+    ).to_dict()
+    poses = np.repeat(np.eye(4)[None], 2, axis=0)
+    poses[1, 2, 3] = 300.0  # travel along +z
+    image = np.full((800, 1257, 3), 90, np.uint8)
+    html_text = render_html(
+        ReportInputs(
+            summary=summary,
+            world_from_rig=poses,
+            unrolled=image,
+            unrolled_extent=(0.0, 360.0, -100.0, 300.0),
+            radius_mm=100.0,
+        )
+    )
+    assert "<h2>Survey</h2>" in html_text and "SW-1" in html_text and "MH-12" in html_text
+    assert "03:00 (90.0°)" in html_text and "12:00 (0.0°)" in html_text
+    assert "1.5400 – 1.6400" in html_text  # distance of the bulge from the start node, m
+    assert html_text.count("class='crop'") == 2
+    assert "@media print" in html_text and "break-inside:avoid" in html_text
+    assert "<div class='screen-only'><h2>3-D model</h2>" in html_text

@@ -114,7 +114,18 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
             )
         else:
             ax1.plot(inputs.stations_axial_mm, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
+        survey = inputs.summary.get("survey") or {}
         ax1.set_xlabel("distance along the pipe (mm)")
+        if survey:
+            # A second axis: distance from the survey's start node, metres.
+            off = float(survey.get("start_offset_m") or 0.0)
+            top = ax1.secondary_xaxis(
+                "top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0)
+            )
+            top.set_xlabel(f"distance from start node {survey.get('start_node') or ''} (m)")
+        nominal = survey.get("nominal_diameter_mm")
+        if nominal:
+            ax1.axhline(nominal, color="#888", ls="--", lw=1, label="nominal")
         ax1.set_ylabel("inner diameter (mm)", color="#1f77b4")
         if inputs.stations_ovality is not None:
             ax2 = ax1.twinx()
@@ -246,6 +257,76 @@ def _fmt(value: Any, digits: int = 2) -> str:
     return html.escape(str(value))
 
 
+_SURVEY_LABELS = (
+    ("site", "site"),
+    ("asset_id", "asset ID"),
+    ("pipe_material", "pipe material"),
+    ("nominal_diameter_mm", "nominal diameter (mm)"),
+    ("start_node", "start node"),
+    ("end_node", "end node"),
+    ("direction", "direction"),
+    ("start_offset_m", "start node to first frame (m)"),
+    ("operator", "operator"),
+    ("date", "date"),
+)
+
+
+def _survey_html(survey: dict[str, Any] | None) -> str:
+    """The survey header (survey.yaml) as a two-column table, or '' without one."""
+    if not survey:
+        return ""
+    rows = [
+        f"<tr><td>{label}</td><td>{_fmt(survey.get(key))}</td></tr>"
+        for key, label in _SURVEY_LABELS
+        if survey.get(key) is not None
+    ]
+    return "<h2>Survey</h2><table class='survey'>" + "".join(rows) + "</table>" if rows else ""
+
+
+def _survey_of(summary: dict[str, Any]):
+    from omnipipe.survey import FIELDS, Survey
+
+    data = summary.get("survey")
+    if not data:
+        return None
+    return Survey(**{k: v for k, v in data.items() if k in FIELDS})
+
+
+def _travel_sign(inputs: ReportInputs) -> float:
+    poses = np.asarray(inputs.world_from_rig)
+    if poses.ndim != 3 or len(poses) < 2:
+        return 1.0
+    return float(poses[-1][2, 3] - poses[0][2, 3])
+
+
+def _defect_extras(inputs: ReportInputs) -> list[list[str]]:
+    """Per defect: clock, distance from the start node, grade and a crop (HTML cells)."""
+    from omnipipe.report.deliverable import crop_unrolled, defect_rows
+
+    rows = defect_rows(inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs))
+    out = []
+    for row in rows:
+        v = row.values
+        img = ""
+        if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
+            ext = inputs.unrolled_extent
+            h = inputs.unrolled.shape[0]
+            crop = crop_unrolled(
+                inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / h, row.defect,
+                2 * math.pi * inputs.radius_mm,
+            )
+            img = f"<img class='crop' alt='defect {v['defect']}' src='{_png_data_uri(crop)}'>"
+        out.append(
+            [
+                f"{v['clock']} ({v['clock_deg']}°)",
+                f"{v['distance_start_m']} – {v['distance_end_m']}",
+                v["severity_grade"],
+                img,
+            ]
+        )
+    return out
+
+
 def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str:
     """The report page as one self-contained HTML string."""
     config = config or ReportConfig()
@@ -261,8 +342,19 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:.25em .6em;text-align:right}"
         "th{background:#eee}td:first-child,th:first-child{text-align:left}"
         "#model-view{width:100%;height:520px;background:#1e2126;border-radius:4px;display:block}"
-        ".note{color:#555;font-size:.9em}img{max-width:100%}.warn{color:#a40}</style></head><body>",
+        ".note{color:#555;font-size:.9em}img{max-width:100%}.warn{color:#a40}"
+        "img.crop{max-height:110px;max-width:160px}"
+        # Print (A4 or Letter, whichever the printer uses): no 3-D view, headings kept with
+        # what follows them, tables and figures never split across pages.
+        "@page{margin:14mm}"
+        "@media print{body{max-width:none;padding:0;font-size:10pt}.screen-only{display:none}"
+        "h2{break-after:avoid;page-break-after:avoid}"
+        "table,img,figure,.keep{break-inside:avoid;page-break-inside:avoid}"
+        "tr{break-inside:avoid}thead{display:table-header-group}"
+        "img{max-height:120mm}a{color:inherit;text-decoration:none}}"
+        "</style></head><body>",
         f"<h1>{html.escape(config.title)}</h1>",
+        _survey_html(s.get("survey")),
         "<h2>Summary</h2><table>",
         f"<tr><td>frames</td><td>{_fmt(s.get('frames'))}</td></tr>",
         f"<tr><td>frames registered</td><td>{_fmt(s.get('frames_registered'))}</td></tr>",
@@ -336,7 +428,7 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
             f"{tr['ate_rmse_mm']:.3f} mm RMS, scale error {tr['scale_error_percent']:.3f} %, rotation "
             f"{tr['rotation_rmse_deg']:.3f} deg RMS over {tr['path_length_mm']:.0f} mm.</p>"
         )
-    parts.append("<h2>3-D model</h2>")
+    parts.append("<div class='screen-only'><h2>3-D model</h2>")
     if model is not None:
         parts.append(
             "<canvas id='model-view'></canvas><p id='model-status' class='note'>loading…</p>"
@@ -345,12 +437,15 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         parts.append(f"<script>{viewer_js}</script>")
     else:
         parts.append("<p class='note'>No mesh was built.</p>")
+    parts.append("</div>")
     parts.append("<h2>Defects</h2>")
     defects = s.get("defects", [])
     if defects:
+        extra = _defect_extras(inputs)
         parts.append(
-            "<table><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
-            "<th>axial start (mm)</th><th>angle (deg)</th></tr>"
+            "<table><thead><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
+            "<th>axial start (mm)</th><th>angle (deg)</th><th>clock</th><th>distance (m)</th>"
+            "<th>grade</th><th>view</th></tr></thead>"
         )
         for k, d in enumerate(defects):
             cells = [
@@ -368,12 +463,25 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
                 if d.get("motion_unreliable")
                 else ""
             )
+            cells += extra[k] if k < len(extra) else ["", "", "", ""]
             parts.append(
                 f"<tr><td>{k + 1}</td><td>{kind}</td>"
                 + "".join(f"<td>{c}</td>" for c in cells)
                 + "</tr>"
             )
         parts.append("</table>")
+        parts.append(
+            "<p class='note'>clock: looking in the direction of travel, clockwise; 12:00 = "
+            + (
+                "survey.yaml clock_reference_deg"
+                if (s.get("survey") or {}).get("clock_reference_deg") is not None
+                else "image up in the first frame (omnipipe has no gravity reference)"
+            )
+            + ". distance: from the start node to the defect's start and end. grade: height as % "
+            "of the inner diameter, omnipipe's bands (docs/inspection_coding.md), not an official "
+            "PACP / EN 13508-2 grade. view: the unrolled wall around the defect (defects/*.png; "
+            "defects.csv names the frame of its best view).</p>"
+        )
     else:
         limit = s.get("detection_limit_mm")
         parts.append(
