@@ -172,5 +172,10 @@ def find_survey(dataset: str | Path, explicit: str | Path | None = None) -> Surv
     # A dataset directory holds it; a video, bag file or ROS 2 bag folder has it beside.
     is_bag_dir = (root / "metadata.yaml").is_file()
     folder = root if root.is_dir() and not is_bag_dir else root.parent
-    candidate = folder / SURVEY_FILE
-    return load_survey(candidate) if candidate.is_file() else None
+    candidates = [folder / SURVEY_FILE]
+    if root.is_file() and (folder / "metadata.yaml").is_file():
+        candidates.append(folder.parent / SURVEY_FILE)  # a storage file of a ROS 2 bag
+    for candidate in candidates:
+        if candidate.is_file():
+            return load_survey(candidate)
+    return None
