@@ -120,3 +120,35 @@ def test_detection_limit_grows_with_noise_and_ring_spacing() -> None:
     assert detection_limit(noise_mm=0.1, ring_spacing_mm=15.0, **base) > fine
     # A reference defect shorter than the gap between rings may fall between them.
     assert detection_limit(noise_mm=0.1, ring_spacing_mm=50.0, **base) == np.inf
+
+
+@pytest.mark.parametrize("ovality", [0.0, 0.002])
+def test_station_diameter_and_ovality_unbiased_with_stated_sigma(ovality: float) -> None:
+    """30 rings of a straight 150 mm pipe, 0.15 mm noise (the amplitude |(a2, b2)| of an
+    oval fit is biased upward by noise: about 0.0003 here if not corrected)."""
+    from omnipipe.analysis import AnalysisConfig, AnalysisInputs, run
+    from omnipipe.geometry import make_transform
+
+    rng = np.random.default_rng(5)
+    theta = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    pts, frame, poses = [], [], []
+    for k in range(30):
+        z = 8.0 * k
+        r = 75.0 * (1 + 0.5 * ovality * np.cos(2 * (theta - 0.3))) + rng.normal(0, 0.15, theta.size)
+        pts.append(np.column_stack([r * np.cos(theta), r * np.sin(theta), np.full(theta.size, z)]))
+        frame.append(np.full(theta.size, k))
+        poses.append(make_transform(np.eye(3), np.array([0.0, 0.0, z + 82.0])))
+    res = run(AnalysisConfig(), AnalysisInputs(np.concatenate(pts), np.concatenate(frame), np.array(poses)))
+    ov, ov_sigma = res.stations_ovality, res.stations_ovality_sigma
+    if ovality > 0:
+        assert abs(np.mean(ov) - ovality) < 0.0002
+        # The stated sigmas describe the scatter of the stations.
+        assert 0.6 < np.std(ov) / np.median(ov_sigma) < 1.5
+    else:
+        # A round pipe: the estimate is >= 0, so its mean stays a little above zero, but
+        # below the uncorrected amplitude's sqrt(pi / 2) sigma.
+        assert np.mean(ov) < 0.9 * np.median(ov_sigma)
+    d_err = res.stations_diameter_mm - 150.0
+    assert abs(np.mean(d_err)) < 0.03
+    assert np.mean(np.abs(d_err) <= 2 * res.stations_diameter_sigma_mm) >= 0.85
+    assert abs(res.inner_diameter_mm - 150.0) <= 2 * res.inner_diameter_sigma_mm
