@@ -113,6 +113,10 @@ def evaluate_seed(
         flagged[u["first_frame"] : max(u["last_frame"], u["first_frame"] + 1)] = True
     bad = (err > ABS_MM) | ((err > REL * lt) & (err > FLOOR_MM))
     silent = bad & ~flagged[frames_i]
+    row["silent_detail"] = [
+        (int(i), round(float(a), 2), round(float(b), 2))
+        for i, a, b in zip(frames_i[silent], le[silent], lt[silent], strict=True)
+    ]
     te = trajectory_errors(est, true[idx])
     row.update(
         ate_mm=te.ate_rmse_mm,
@@ -157,7 +161,7 @@ def main() -> None:
                     f"{seed:>4} {r['family']:>10} {r['diameter_mm']:>5.0f} {r['frames']:>6} "
                     f"{r['ate_mm']:>7.3f} {r['scale_err_pct']:>7.3f} {r['worst_step_mm']:>8.2f} "
                     f"{r['worst_unflagged_mm']:>9.2f} {r['steps_flagged']:>7d} {r['silent']:>6d} "
-                    f"{r['time_s']:>5.0f}",
+                    f"{r['time_s']:>5.0f}" + (f"  silent at {r['silent_steps']}" if r["silent"] else ""),
                     flush=True,
                 )
             if not args.keep:

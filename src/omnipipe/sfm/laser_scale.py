@@ -37,6 +37,10 @@ class LaserScaleConfig:
         min_ncc: a point's match counts when its best NCC exceeds this.
         min_template_std: templates flatter than this (grey levels) are skipped.
         max_points: laser points tried per frame pair (evenly spread around the ring).
+        detrend: remove a brightness plane from template and patches before the NCC.
+            Measured on two 580 mm random pipes: the consensus peaks become much
+            sharper (second/best 0.95 -> 0.2), but the 3-16 % over-length of the laser
+            scale there stays, so it is not the cause; off until measured on paper/bend.
     """
 
     patch_radius: int = 6
@@ -47,6 +51,7 @@ class LaserScaleConfig:
     min_ncc: float = 0.8
     min_template_std: float = 2.0
     max_points: int = 120
+    detrend: bool = False
 
 
 @dataclass
@@ -111,8 +116,19 @@ def consensus_peaks(
     return scales[kept_arr], c[kept_arr]
 
 
-def _ncc(template: np.ndarray, patches: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """NCC of (N, K) templates with (N, S, K) patches, (N, K) sample weights."""
+def _ncc(
+    template: np.ndarray,
+    patches: np.ndarray,
+    weight: np.ndarray,
+    basis: np.ndarray | None = None,
+) -> np.ndarray:
+    """NCC of (N, K) templates with (N, S, K) patches, (N, K) sample weights.
+
+    With ``basis`` ((B, K), e.g. the patch coordinates), template and patch each lose
+    their weighted least-squares fit of a constant plus those functions before the
+    correlation: a brightness gradient across the patch (the LEDs' fall-off, which
+    moves with the robot) then cannot pull the match along the epipolar curve.
+    """
     w = weight[:, None, :]
     t = template[:, None, :]
     valid = np.isfinite(patches) & np.isfinite(t)
@@ -120,10 +136,19 @@ def _ncc(template: np.ndarray, patches: np.ndarray, weight: np.ndarray) -> np.nd
     wsum = np.maximum(ww.sum(axis=2), 1e-9)
     p = np.where(valid, patches, 0.0)
     tt = np.where(valid, t, 0.0)
-    mp = (ww * p).sum(axis=2) / wsum
-    mt = (ww * tt).sum(axis=2) / wsum
-    dp = p - mp[..., None]
-    dt = tt - mt[..., None]
+    if basis is None:
+        dp = p - ((ww * p).sum(axis=2) / wsum)[..., None]
+        dt = tt - ((ww * tt).sum(axis=2) / wsum)[..., None]
+    else:
+        A = np.vstack([np.ones((1, basis.shape[1])), basis])  # (B+1, K)
+        M = np.einsum("nsk,ik,jk->nsij", ww, A, A) + 1e-9 * np.eye(len(A))
+
+        def detrend(v: np.ndarray) -> np.ndarray:
+            rhs = np.einsum("nsk,ik->nsi", ww * v, A)[..., None]
+            coef = np.linalg.solve(M, rhs)[..., 0]
+            return v - np.einsum("nsi,ik->nsk", coef, A)
+
+        dp, dt = detrend(p), detrend(np.broadcast_to(tt, p.shape))
     num = (ww * dp * dt).sum(axis=2)
     den = np.sqrt((ww * dp * dp).sum(axis=2) * (ww * dt * dt).sum(axis=2))
     ncc = num / np.maximum(den, 1e-9)
@@ -192,6 +217,7 @@ def match_laser_points(
     )
     half = np.maximum(cfg.stripe_half_width_mm / step, cfg.stripe_half_width_px)
     weight = (np.abs(gv)[None, :] > half[:, None]).astype(float)  # stripe masked
+    basis = np.vstack([gu, gv]) / max(r, 1) if cfg.detrend else None
     # Candidate translation lengths: log-spaced, then a finer pass around each best.
     s_lo, s_hi = cfg.scale_range_mm if scale_window_mm is None else scale_window_mm
     if not (0 < s_lo < s_hi):
@@ -205,7 +231,7 @@ def match_laser_points(
         pix, ok = camera.project(pts_b.reshape(-1, 3))
         vals = np.where(ok, sample_bilinear(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
         patches = vals.reshape(len(P), scales.shape[1], K)
-        return _ncc(template, patches, weight)
+        return _ncc(template, patches, weight, basis)
 
     steps = cfg.scale_steps
     if scale_window_mm is not None:  # same density per log unit as the full search

@@ -235,16 +235,20 @@ def run(
                 f"laser and feature-depth step lengths differ by {100 * (math.exp(raw) - 1):+.0f} % "
                 "throughout the run: too much for a bias, every step is judged as measured"
             )
-    if abs(offset) > 0.05:
-        warnings.append(
+    systematic = ""
+    if abs(offset) > config.scale_check.max_bias_log:
+        systematic = (
             f"laser and feature-depth step lengths differ by {100 * (math.exp(offset) - 1):+.0f} % "
-            "throughout the run: one source is biased on this rig and pipe; the bundle "
-            "adjustment settles the scale from both"
+            "throughout the run (one source is biased on this rig and pipe): lengths along "
+            "the pipe are uncertain by that much"
         )
+        warnings.append(systematic)
     for k, ev in enumerate(evidence):
         b_from_a, scale, inl, lm, check = _decide_step(
             ev, offset, kf_gray[k], kf_gray[k + 1], camera, rings[ev.a].points_in_rig, config, warnings
         )
+        if systematic and check.reliable:
+            check = replace(check, confidence="low", reason=systematic)
         checks.append(check)
         if scales and not math.isfinite(scale):
             # A placeholder length keeps the chain going; the step is flagged.
@@ -298,7 +302,9 @@ def run(
         n_warn = len(warnings)
         resected[i] = _resect(i, k, feats, inl, world_from_kf_arr, feature_point, track_points, warnings)
         if len(warnings) > n_warn and warnings[-1].endswith("pose of its keyframe used"):
-            stretches.append(UnreliableStretch(kf_frames[k], i, "frame could not be resected"))
+            # Its pose is its keyframe's: the steps into and out of it are both wrong.
+            end = kf_frames[k + 1] if k + 1 < len(kf_frames) else n - 1
+            stretches.append(UnreliableStretch(kf_frames[k], end, "frame could not be resected"))
     for s_idx, f in enumerate(first):
         world_from_station[s_idx] = world_from_kf_arr[kf_of[f]] if f in kf_of else resected[f]
     world_from_rig = world_from_station[station]

@@ -56,6 +56,8 @@ class ScaleCheckConfig:
             treated as a bias of one source and removed before the per-step check;
             beyond it (a course or more: every step aliased alike) it is not, and the
             steps are judged as measured.
+        max_bias_log: a run-wide offset beyond this (5 %) is more than the lengths may
+            be wrong by: every step of the run is flagged with the offset as reason.
     """
 
     agree_log: float = 0.12
@@ -67,6 +69,7 @@ class ScaleCheckConfig:
     keep_match_log: float = 0.25
     adjusted_agree_log: float = 0.1
     max_source_offset_log: float = 0.25
+    max_bias_log: float = 0.05
 
 
 @dataclass(frozen=True)
