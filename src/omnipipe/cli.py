@@ -37,6 +37,12 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
         "optimal baseline (camera-to-laser distance) for given wall distances",
     ),
     ("evaluate", "omnipipe.evaluation.cli", "compare a reconstruction with the dataset's ground truth"),
+    (
+        "calibrate",
+        "omnipipe.calibrate.cli",
+        "calibrate a real rig's camera or laser plane from checkerboard images",
+    ),
+    ("rig", "omnipipe.calibrate.cli", "convert calibrations from other tools into rig.yaml (import-ocam)"),
 )
 
 # Modules that add sub-commands (each offers ``register(subparsers)``), in --help order.

@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--scenario",
         default="paper",
-        choices=SCENARIOS,
+        choices=(*SCENARIOS, "calibration"),
         help="scene to simulate (default: paper); random draws pipe, wall, gait, rig and defects "
         "from --seed (docs/simulator.md)",
     )
@@ -70,6 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
+    if args.scenario == "calibration":  # checkerboard views for calibrate (sim/calibration.py)
+        from omnipipe.sim.calibration import simulate_main
+
+        return simulate_main(args)
     scenario = make_scenario(args.scenario, frames=args.frames, size=args.size, seed=args.seed)
     scenario.dark_frames = bool(args.dark_frames)
     workers = args.workers or os.cpu_count() or 1

@@ -1,0 +1,236 @@
+"""Laser-plane calibration: the laser line on a checkerboard at several poses.
+
+For each image: the board's corners give its pose through the rig's camera model
+(rays in the rig frame, any model); the laser line is extracted with the light-section
+extractor (sub-pixel peaks along radial scan lines) inside the board's image; each
+laser pixel's ray meets the board plane in a 3-D point (rig frame, mm). A robust
+plane fit (RANSAC, then least squares on the inliers) over all views gives k1..k4
+with its RMS residual and 1-sigma uncertainties of the normal (deg) and of the offset
+at the focus (mm). Boards at two or more distinct poses are needed (one board gives
+only a line).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from omnipipe.calibrate.camera import CalibrationError, Target, _rays_pose, detect_corners
+from omnipipe.camera import camera_from_rig
+from omnipipe.camera.base import CameraModel
+from omnipipe.rig import LaserPlane, Rig
+
+MIN_LASER_VIEWS = 2
+MIN_POINTS_PER_VIEW = 10
+
+
+@dataclass
+class LaserCalibration:
+    """Result of :func:`calibrate_laser`.
+
+    Attributes:
+        k: (4,) k1..k4, unit normal with k3 >= 0 (mm).
+        rms_mm: RMS distance of the inlier points to the plane (mm).
+        normal_sigma_deg: 1-sigma uncertainty of the normal's direction (deg).
+        offset_sigma_mm: 1-sigma uncertainty of the plane's distance from the focus (mm).
+        points: (N, 3) inlier laser points in the rig frame (mm).
+        per_view: image index -> (points used, RMS residual mm).
+        board_rms_px: image index -> corner reprojection RMS of the board pose (px).
+        rig_from_board: image index -> (4, 4) board pose in the rig frame (mm).
+    """
+
+    k: np.ndarray
+    rms_mm: float
+    normal_sigma_deg: float
+    offset_sigma_mm: float
+    points: np.ndarray
+    per_view: dict[int, tuple[int, float]]
+    board_rms_px: dict[int, float]
+    rig_from_board: dict[int, np.ndarray]
+
+
+def board_pose(camera: CameraModel, corners: np.ndarray, target: Target) -> tuple[np.ndarray, float]:
+    """(4, 4) rig_from_board of a detected board, refined on pixels, and its RMS (px).
+
+    Raises:
+        CalibrationError: the camera model does not see the corners.
+    """
+    obj = target.object_points()
+    rays = camera.unproject(corners)
+    sol = _rays_pose(rays, obj) if np.isfinite(rays).all() else None
+    if sol is None:
+        raise CalibrationError("the rig's camera model does not see the detected board")
+    v0 = np.concatenate(sol)
+
+    def residual(v: np.ndarray) -> np.ndarray:
+        pts = obj @ cv2.Rodrigues(v[:3])[0].T + v[3:]
+        px, _ = camera.project(pts)
+        return np.nan_to_num(px - corners, nan=1e3).ravel()
+
+    res = least_squares(residual, v0, method="lm")
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(res.x[:3])[0]
+    pose[:3, 3] = res.x[3:]
+    rms = float(np.sqrt(np.mean(res.fun.reshape(-1, 2) ** 2) * 2))
+    return pose, rms
+
+
+def laser_points_on_board(
+    image: np.ndarray, camera: CameraModel, pose: np.ndarray, target: Target, channel: str
+) -> np.ndarray:
+    """(N, 3) rig-frame points (mm) of the laser line on the board's printed area."""
+    from omnipipe.laser.extract import ExtractionConfig, RingExtractor
+
+    h, w = image.shape[:2]
+    # the board's outline (half a square beyond the outer corners) in the image
+    s = target.square_mm
+    u = np.linspace(-0.5, target.cols - 0.5, 60) * s
+    v = np.linspace(-0.5, target.rows - 0.5, 60) * s
+    outline = np.concatenate([
+        np.stack([u, np.full_like(u, v[0])], 1), np.stack([np.full_like(v, u[-1]), v], 1),
+        np.stack([u[::-1], np.full_like(u, v[-1])], 1), np.stack([np.full_like(v, u[0]), v[::-1]], 1),
+    ])
+    pts = np.concatenate([outline, np.zeros((len(outline), 1))], axis=1) @ pose[:3, :3].T + pose[:3, 3]
+    px, _ = camera.project(pts)
+    if not np.isfinite(px).all():
+        return np.zeros((0, 3))
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillPoly(mask, [np.round(px).astype(np.int32)], 1)
+    masked = image * mask[..., None] if image.ndim == 3 else image * mask
+    cfg = ExtractionConfig(min_ring_fraction=0.0, angles=1440)
+    ring = RingExtractor(camera, cfg).extract(masked, channel)  # type: ignore[arg-type]
+    if len(ring.pixels) == 0:
+        return np.zeros((0, 3))
+    rays = camera.unproject(ring.pixels)
+    n = pose[:3, 2]
+    d = float(n @ pose[:3, 3])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = d / (rays @ n)
+    p = rays * t[:, None]
+    local = (p - pose[:3, 3]) @ pose[:3, :3]
+    inside = (
+        np.isfinite(t) & (t > 0)
+        & (local[:, 0] > -0.3 * s) & (local[:, 0] < (target.cols - 0.7) * s)
+        & (local[:, 1] > -0.3 * s) & (local[:, 1] < (target.rows - 0.7) * s)
+    )
+    p, uv = p[inside], local[inside, :2]
+    if len(p) < MIN_POINTS_PER_VIEW:
+        return np.zeros((0, 3))
+    # The laser's trace on a flat board is a straight line: keep the points on the
+    # best line (RANSAC, 0.3 mm), and only a line that crosses at least two squares.
+    rng = np.random.default_rng(len(p))
+    best = np.zeros(len(p), bool)
+    for _ in range(200):
+        a, b = uv[rng.choice(len(uv), 2, replace=False)]
+        dvec = b - a
+        norm = float(np.hypot(*dvec))
+        if norm < 1e-6:
+            continue
+        nrm = np.array([-dvec[1], dvec[0]]) / norm
+        inl = np.abs((uv - a) @ nrm) < 0.3
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < MIN_POINTS_PER_VIEW:
+        return np.zeros((0, 3))
+    q = uv[best]
+    span = np.ptp(q @ np.linalg.svd(q - q.mean(axis=0), full_matrices=False)[2][0])
+    return p[best] if span >= 2.0 * s else np.zeros((0, 3))
+
+
+def fit_plane(points: np.ndarray, rng: np.random.Generator, threshold_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """Robust plane through (N, 3) points: RANSAC, then total least squares on inliers.
+
+    Returns:
+        (k, inliers, rms_mm, normal_sigma_rad, offset_sigma_mm); k has a unit normal with
+        k3 >= 0. Uncertainties from the residual variance and the points' spread.
+    """
+    n_pts = len(points)
+    best = np.zeros(n_pts, bool)
+    for _ in range(300):
+        sample = points[rng.choice(n_pts, 3, replace=False)]
+        nrm = np.cross(sample[1] - sample[0], sample[2] - sample[0])
+        if np.linalg.norm(nrm) < 1e-9:
+            continue
+        nrm /= np.linalg.norm(nrm)
+        inl = np.abs((points - sample[0]) @ nrm) < threshold_mm
+        if inl.sum() > best.sum():
+            best = inl
+    for _ in range(3):
+        q = points[best]
+        centre = q.mean(axis=0)
+        _, _, vt = np.linalg.svd(q - centre, full_matrices=False)
+        nrm = vt[2]
+        resid = (points - centre) @ nrm
+        sigma = 1.4826 * np.median(np.abs(resid[best]))
+        best = np.abs(resid) < max(3.0 * sigma, 1e-3)
+    q = points[best]
+    centre = q.mean(axis=0)
+    _, _, vt = np.linalg.svd(q - centre, full_matrices=False)
+    nrm = vt[2]
+    if nrm[2] < 0:
+        nrm = -nrm
+    off = -float(nrm @ centre)
+    resid = (q - centre) @ nrm
+    rms = float(np.sqrt(np.mean(resid**2)))
+    # z' = alpha x' + beta y' + gamma in the plane's own frame: cov = s^2 (A^T A)^-1
+    a_mat = np.stack([(q - centre) @ vt[0], (q - centre) @ vt[1], np.ones(len(q))], axis=1)
+    s2 = float(np.sum(resid**2) / max(len(q) - 3, 1))
+    cov = s2 * np.linalg.inv(a_mat.T @ a_mat)
+    normal_sigma = float(math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
+    origin = -centre  # the focus in the plane's frame: offset at (x0', y0')
+    g = np.array([origin @ vt[0], origin @ vt[1], 1.0])
+    offset_sigma = float(math.sqrt(max(g @ cov @ g, 0.0)))
+    return np.array([*nrm, off]), best, rms, normal_sigma, offset_sigma
+
+
+def calibrate_laser(
+    images: list[np.ndarray], rig: Rig, target: Target, channel: str = "red", seed: int = 0
+) -> LaserCalibration:
+    """The laser plane from images of a checkerboard cut by the laser line.
+
+    Raises:
+        CalibrationError: too few boards found, or too few views with laser points on
+            the board, or all boards in one plane.
+    """
+    camera = camera_from_rig(rig)
+    per_pts: dict[int, np.ndarray] = {}
+    board_rms: dict[int, float] = {}
+    poses: dict[int, np.ndarray] = {}
+    normals = []
+    for i, img in enumerate(images):
+        corners = detect_corners(img, target)
+        if corners is None:
+            continue
+        pose, rms = board_pose(camera, corners, target)
+        board_rms[i] = rms
+        poses[i] = pose
+        pts = laser_points_on_board(img, camera, pose, target, channel)
+        if len(pts) >= MIN_POINTS_PER_VIEW:
+            per_pts[i] = pts
+            normals.append(pose[:3, 2])
+    if not board_rms:
+        raise CalibrationError(f"no {target} found in any of the {len(images)} images")
+    if len(per_pts) < MIN_LASER_VIEWS:
+        raise CalibrationError(
+            f"the laser line ({channel}) crosses the board in {len(per_pts)} of {len(board_rms)} "
+            f"views with the target; at least {MIN_LASER_VIEWS} are needed"
+        )
+    nn = np.array(normals)
+    if np.linalg.svd(nn - nn.mean(axis=0), compute_uv=False)[0] < 0.05:
+        raise CalibrationError("every board faces the same way: the laser lines give no plane")
+    points = np.concatenate(list(per_pts.values()))
+    k, inl, rms, ns, os_ = fit_plane(points, np.random.default_rng(seed))
+    per_view = {}
+    for i, pts in per_pts.items():
+        r = pts @ k[:3] + k[3]
+        per_view[i] = (len(pts), float(np.sqrt(np.mean(r**2))))
+    return LaserCalibration(k, rms, math.degrees(ns), os_, points[inl], per_view, board_rms, poses)
+
+
+def laser_plane(cal: LaserCalibration, channel: str) -> LaserPlane:
+    """The calibrated plane for rig.yaml."""
+    return LaserPlane(k=tuple(float(v) for v in cal.k), channel=channel)  # type: ignore[arg-type]
