@@ -118,5 +118,7 @@ def load_yaml_file(path: str | Path, field: str) -> Any:
     except yaml.YAMLError as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ConfigError(field, f"not valid YAML ({first})", source) from None
+    except (ValueError, OverflowError) as exc:  # e.g. an impossible date: 2024-13-45
+        raise ConfigError(field, f"not valid YAML (a value cannot be read: {exc})", source) from None
     finally:
         loader.dispose()

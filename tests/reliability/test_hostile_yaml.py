@@ -141,8 +141,9 @@ def test_aliases_within_the_budget_are_read(tmp_path: Path) -> None:
         ("x: " + "[" * 200 + "]" * 200 + "\n", "nested deeper"),
         ("x: " + "[" * 5000 + "]" * 5000 + "\n", "nested deeper"),
         ("x: [" + ", ".join(["1"] * 12000) + "]\n", "more than"),
+        ("date: 2024-13-45\n", "cannot be read"),
     ],
-    ids=["recursive", "deep", "very-deep", "too-many-values"],
+    ids=["recursive", "deep", "very-deep", "too-many-values", "impossible-date"],
 )
 def test_degenerate_documents_are_refused(tmp_path: Path, text: str, reason: str) -> None:
     p = tmp_path / "rig.yaml"
