@@ -16,6 +16,9 @@ import numpy as np
 from omnipipe.errors import ConfigError, OutputError
 from omnipipe.rig import LASER_CHANNELS, Mirror, Rig, load_rig, rig_from_dict, save_rig
 
+# A calibration worse than this (px RMS) is refused: wrong target size or bad detections.
+MAX_RMS_PX = 1.0
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``calibrate`` and ``rig`` sub-commands."""
@@ -68,7 +71,7 @@ def _check_out(out: str, force: bool, inputs: list[str]) -> Path:
     if not path.parent.is_dir():
         raise OutputError(f"{out}: folder {path.parent} does not exist")
     for p in inputs:
-        if Path(p).exists() and path.exists() and os.path.samefile(p, path):
+        if p and Path(p).exists() and path.exists() and os.path.samefile(p, path):
             raise OutputError(f"{out}: is one of the inputs")
     if path.exists() and not force:
         raise OutputError(f"{out}: already exists (use --force to replace it)")
@@ -124,6 +127,12 @@ def _camera(args: argparse.Namespace) -> int:
     hyper = args.model == "hyperboloid"
     cal = calibrate_unified(corners, target, (w, h), init=seed, init_centre=centre,
                             distortion=not hyper)
+    if cal.rms_px > MAX_RMS_PX:
+        raise CalibrationError(
+            f"reprojection RMS {cal.rms_px:.2f} px (> {MAX_RMS_PX:g}): the corners do not fit one "
+            f"camera; is the board really {target.cols}x{target.rows} inner corners (a smaller "
+            "--target matches part of a bigger board)? nothing written"
+        )
     radii = mirror_annulus(images, cal.cx, cal.cy)
     pitch = init.camera.pixel_pitch if init is not None else None
     rig = calibrated_rig(cal, (w, h), radii, pixel_pitch=pitch)
