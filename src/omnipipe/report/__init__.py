@@ -369,7 +369,8 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
     if s.get("detection_limit_mm") is not None:
         ref = s.get("detection_limit_reference_mm") or {}
         size = (
-            f" (a defect {ref['width']:g} mm wide, {ref['length']:g} mm long, found with 95 % probability)"
+            f" (smallest height reported; a defect {ref['width']:g} mm wide and {ref['length']:g} mm "
+            "long this high rises above the detector's threshold with 95 % probability)"
             if ref.get("width") and ref.get("length")
             else ""
         )
