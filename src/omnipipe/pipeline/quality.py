@@ -86,19 +86,26 @@ def flag_defects(defects: list[dict[str, Any]], quality: dict[str, Any]) -> list
 
 
 def refuse_untrusted_motion(motion: SfmResult) -> None:
-    """A run that moved but whose scale could not be trusted at any step is refused.
+    """A run that moved but has no step with a usable length is refused.
+
+    Steps of confidence ``low`` (one unconfirmed source, or both sources offset
+    throughout the run) are flagged in the report but still give the run its shape;
+    a run whose every step is ``none`` (no relative motion, sources that contradict
+    each other, an ambiguous laser without features) has no scale anywhere.
 
     Raises:
         ReconstructionError: one line with the most frequent reason.
     """
     checks = motion.step_checks
-    if checks and not any(c.reliable for c in checks):
+    if checks and all(c.confidence == "none" for c in checks):
         reasons: dict[str, int] = {}
         for c in checks:
-            key = c.reason.split(" (")[0].split(":")[0] if c.reason else c.confidence
+            key = c.reason.split(" (")[0] if c.reason else c.confidence
+            key = key.split(" mm")[0].rstrip("0123456789. ") if "scale" in key else key
             reasons[key] = reasons.get(key, 0) + 1
         top = max(reasons, key=lambda k: reasons[k])
         raise ReconstructionError(
             f"camera motion could not be trusted at any of the {len(checks)} steps "
-            f"(most often: {top}); too little usable wall texture or laser ring?"
+            f"(most often: {top}): too little usable wall texture for features, or no laser "
+            "ring to scale them"
         )
