@@ -97,7 +97,7 @@ class AnalysisConfig:
     angle_pose_sigma_deg: float = 0.3
     systematic_radius_factor: float = 0.15
     systematic_height_factor: float = 0.5
-    width_resolution_samples: float = 0.5
+    width_resolution_samples: float = 0.35
 
 
 @dataclass
