@@ -250,6 +250,10 @@ def find_defects(
             members = cand[label == c]
             if len(members) < min_points:
                 continue
+            if len(np.unique(samples.ring[members])) == 1 and len(members) < 2 * min_points:
+                # A speck on one ring, narrower than a few samples: an extraction outlier
+                # cluster (seen beside deep, steep defects), below any size the run resolves.
+                continue
             d0 = _rough(samples, members, sign, kind, sample_spacing, typical_spacing)
             if d0 is None:
                 continue
@@ -333,6 +337,11 @@ def _fit(
         bounds_u=(-0.5 * w0 - 2 * sample_spacing, 0.5 * w0 + 2 * sample_spacing),
         bounds_z=(-0.5 * l0 - ring_spacing, 0.5 * l0 + ring_spacing),
     )
+    top = float(np.max(value[win])) if win.any() else 0.0
+    if fit is not None and fit.height > top + 3.0 * fit.noise + 0.25 * top:
+        # The bump rises far above every sample (a crest extrapolated between rings from a
+        # few points): not a measurement. The rough one is reported instead.
+        fit = None
     if fit is None:
         # No usable fit: the rough measurement, with its scale of error as the sigma.
         d = dict(d0)
