@@ -87,21 +87,21 @@ def bump_model(params: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
     return b + h * plateau(u - u0, w, fu * w) * plateau(z - z0, length, fz * length)
 
 
-def _unsampled_end_var(z_rings: np.ndarray, z_edge: float, ramp: float) -> float:
-    """Variance of one end's position when no ring samples its flank informatively (else 0).
+def _end_var(z_rings: np.ndarray, z_edge: float, ramp: float) -> tuple[bool, float]:
+    """Whether one end's flank is sampled, and the variance of a uniform spread over the
+    gap between the rings on either side of it (inf when it has no ring on one side).
 
     A ring is informative where the cosine flank reads between 15 % and 85 % of the
     height: within 0.25 ramp of the half-height point ``z_edge``. Otherwise the end may
     lie anywhere between the rings on either side: variance gap^2 / 12.
     """
-    if np.any(np.abs(z_rings - z_edge) < 0.25 * ramp):
-        return 0.0
+    sampled = bool(np.any(np.abs(z_rings - z_edge) < 0.25 * ramp))
     before = z_rings[z_rings <= z_edge]
     after = z_rings[z_rings > z_edge]
     if not len(before) or not len(after):
-        return 0.0
+        return sampled, math.inf
     gap = float(after.min() - before.max())
-    return gap * gap / 12.0
+    return sampled, gap * gap / 12.0
 
 
 def fit_bump(
@@ -194,13 +194,19 @@ def fit_bump(
             [float(np.median(z[keep & near_u & (ring == r)])) for r in np.unique(ring[keep & near_u])]
         )
     ramp = fz * length
-    v_lo = _unsampled_end_var(zr, z0 - 0.5 * length, ramp)
-    v_hi = _unsampled_end_var(zr, z0 + 0.5 * length, ramp)
+    sampled_lo, gap_lo = _end_var(zr, z0 - 0.5 * length, ramp)
+    sampled_hi, gap_hi = _end_var(zr, z0 + 0.5 * length, ramp)
     # Each end (z0 -+ L / 2): the fit's variance where a ring samples its flank, the
     # uniform spread between the bracketing rings where none does.
-    var_lo = max(var[2] + 0.25 * var[4] - cov[2, 4], 0.0) if v_lo == 0.0 else v_lo
-    var_hi = max(var[2] + 0.25 * var[4] + cov[2, 4], 0.0) if v_hi == 0.0 else v_hi
-    cov_ends = 0.0 if (v_lo or v_hi) else var[2] - 0.25 * var[4]
+    # The bracketing rings bound an end even where the fit constrains it poorly.
+    fit_lo = max(var[2] + 0.25 * var[4] - cov[2, 4], 0.0)
+    fit_hi = max(var[2] + 0.25 * var[4] + cov[2, 4], 0.0)
+    var_lo = min(fit_lo, gap_lo) if sampled_lo else gap_lo
+    var_hi = min(fit_hi, gap_hi) if sampled_hi else gap_hi
+    var_lo = fit_lo if not math.isfinite(var_lo) else var_lo
+    var_hi = fit_hi if not math.isfinite(var_hi) else var_hi
+    both_fit = var_lo == fit_lo and var_hi == fit_hi
+    cov_ends = var[2] - 0.25 * var[4] if both_fit else 0.0
     var_length = max(var_lo + var_hi - 2.0 * cov_ends, 0.0)
     var_centre = max(0.25 * (var_lo + var_hi + 2.0 * cov_ends), 0.0)
     return BumpFit(
