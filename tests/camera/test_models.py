@@ -156,3 +156,15 @@ def test_every_model_reconstructs_alike(tmp_path: Path) -> None:
     assert abs(diam["hyperboloid"] - truth) < 1.5  # the small-image band of test_reconstruct
     for model in ("unified", "ocam"):
         assert abs(diam[model] - diam["hyperboloid"]) < 0.3, diam
+
+
+def test_baseline_needs_the_hyperboloid_mirror(tmp_path: Path, capsys) -> None:
+    """A unified-model rig has no mirror a, b: the baseline command says so in one line."""
+    from dataclasses import replace
+
+    from omnipipe.cli import main
+
+    save_rig(replace(_unified_rig(), mirror=None), tmp_path / "rig.yaml")
+    assert main(["baseline", "--rig", str(tmp_path / "rig.yaml"), "--distance", "100"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mirror" in err[0]

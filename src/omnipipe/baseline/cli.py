@@ -49,6 +49,10 @@ def _main(args: argparse.Namespace) -> int:
         if Path(args.plot).is_dir():
             raise ConfigError("--plot", f"{args.plot} is a directory, not a PNG file name")
     rig = load_rig(args.rig)
+    if rig.mirror is None:
+        raise ConfigError(
+            "mirror", "the baseline optimisation (Sec. IV) needs the hyperboloid mirror's a and b", args.rig
+        )
     result = run(BaselineConfig(rig.mirror, rig.camera.f, tuple(args.distance)))
     if args.plot:
         try:
@@ -67,7 +71,8 @@ def _main(args: argparse.Namespace) -> int:
         )
         return 0
     print(
-        f"mirror a = {rig.mirror.a:g} mm, b = {rig.mirror.b:g} mm; current baseline {rig.laser.distance_mm:g} mm"
+        f"mirror a = {rig.mirror.a:g} mm, b = {rig.mirror.b:g} mm; current baseline "
+        + ("(no laser in rig.yaml)" if rig.laser is None else f"{rig.laser.distance_mm:g} mm")
     )
     print(f"{'wall distance d (mm)':>22s} {'optimal l (mm)':>15s} {'l/d':>6s} {'error rate':>11s}")
     for d, l in result.optimal_mm.items():
