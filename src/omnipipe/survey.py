@@ -152,10 +152,12 @@ def load_survey(path: str | Path) -> Survey:
     path = Path(path)
     try:
         data = load_yaml_file(path, "survey")
-    except (ValueError, OverflowError) as exc:
-        # PyYAML builds timestamps itself and raises ValueError for an impossible date
-        # (e.g. 2024-13-45); the date is the only such value in a survey.
-        raise ConfigError("date", f"not a valid date ({exc})", str(path)) from None
+    except ConfigError as exc:
+        if "cannot be read" not in str(exc):
+            raise
+        # PyYAML builds timestamps itself and fails on an impossible date (2024-13-45);
+        # the date is the only such value in a survey.
+        raise ConfigError("date", "not a valid date (YYYY-MM-DD)", str(path)) from None
     if data is None:
         return Survey(source=str(path))
     if not isinstance(data, dict):
