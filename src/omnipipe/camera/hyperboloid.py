@@ -15,18 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnipipe.camera.base import CameraModel
-from omnipipe.errors import ShapeError
+from omnipipe.camera.base import CameraModel, as_points
 from omnipipe.rig import CameraIntrinsics, Mirror, Rig
-
-
-def _as_points(array: np.ndarray, dim: int, name: str) -> np.ndarray:
-    arr = np.asarray(array, dtype=float)
-    if arr.ndim == 1 and arr.shape[0] == dim:
-        arr = arr[None, :]
-    if arr.ndim != 2 or arr.shape[1] != dim:
-        raise ShapeError(f"{name}: expected shape (N, {dim}), got {np.shape(array)}")
-    return arr
 
 
 class OmniCamera(CameraModel):
@@ -74,7 +64,7 @@ class OmniCamera(CameraModel):
             rays_in_rig: (N, 3) unit vectors from the focus towards the scene
             (NaN rows for pixels outside the mirror's asymptote).
         """
-        px = _as_points(pixels, 2, "pixels")
+        px = as_points(pixels, 2, "pixels")
         u = px[:, 0] - self.cx
         v = px[:, 1] - self.cy
         a, b, c, f = self.a, self.b, self.c, self.f
@@ -100,7 +90,7 @@ class OmniCamera(CameraModel):
             valid: (N,) True where the pixel lies in the valid image region
             (between radius_min and radius_max and inside the image).
         """
-        pts = _as_points(points_in_rig, 3, "points_in_rig")
+        pts = as_points(points_in_rig, 3, "points_in_rig")
         a, b, c, f = self.a, self.b, self.c, self.f
         norm = np.linalg.norm(pts, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -116,30 +106,6 @@ class OmniCamera(CameraModel):
         pixels[~seen] = np.nan
         valid = seen & self.is_valid_pixel(np.where(seen[:, None], pixels, 0.0))
         return pixels, valid
-
-    # -- valid image region -------------------------------------------------------
-    def is_valid_pixel(self, pixels: np.ndarray) -> np.ndarray:
-        """(N,) True for pixels inside the image and the mirror annulus."""
-        px = _as_points(pixels, 2, "pixels")
-        r = np.hypot(px[:, 0] - self.cx, px[:, 1] - self.cy)
-        inside = (
-            (px[:, 0] >= -0.5)
-            & (px[:, 0] <= self.width - 0.5)
-            & (px[:, 1] >= -0.5)
-            & (px[:, 1] <= self.height - 0.5)
-        )
-        return inside & (r >= self.radius_min) & (r <= self.radius_max)
-
-    def valid_mask(self) -> np.ndarray:
-        """(height, width) bool mask of the pixels that see the scene through the mirror."""
-        rows, cols = np.mgrid[0 : self.height, 0 : self.width]
-        r = np.hypot(cols - self.cx, rows - self.cy)
-        return (r >= self.radius_min) & (r <= self.radius_max)
-
-    def pixel_grid(self) -> np.ndarray:
-        """(height*width, 2) (col, row) coordinates of every pixel, row-major."""
-        rows, cols = np.mgrid[0 : self.height, 0 : self.width]
-        return np.stack([cols.ravel(), rows.ravel()], axis=1).astype(float)
 
     def elevation_range(self) -> tuple[float, float]:
         """(lowest, highest) ray elevation (rad, from the xy plane towards +z) of valid pixels."""

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from omnipipe.camera.hyperboloid import OmniCamera, _as_points
+from omnipipe.camera.base import as_points
+from omnipipe.camera.hyperboloid import OmniCamera
 from omnipipe.errors import ShapeError
 
 
@@ -78,7 +79,7 @@ class PerspectiveView:
 
     def plane_points(self, pixels: np.ndarray) -> np.ndarray:
         """(N, 3) rig-frame plane points of (N, 2) output pixels (col, row)."""
-        px = _as_points(pixels, 2, "pixels")
+        px = as_points(pixels, 2, "pixels")
         i = px[:, 0:1] - (self.width - 1) / 2.0
         j = px[:, 1:2] - (self.height - 1) / 2.0
         return self.center_in_rig[None, :] + i * self.axis_x_in_rig + j * self.axis_y_in_rig
@@ -90,7 +91,7 @@ class PerspectiveView:
 
     def pixels_of_rays(self, rays_in_rig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Output pixels where (N, 3) rays cross the plane, and (N,) True where in front."""
-        r = _as_points(rays_in_rig, 3, "rays_in_rig")
+        r = as_points(rays_in_rig, 3, "rays_in_rig")
         n = self.normal_in_rig
         depth = r @ n
         with np.errstate(invalid="ignore", divide="ignore"):
