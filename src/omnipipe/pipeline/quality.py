@@ -60,6 +60,8 @@ def trajectory_quality(
         unreliable.append(row)
     return {
         "steps_checked": steps_checked(motion.step_checks, motion.stationary),
+        "scale_source": motion.scale_source,
+        "laser_offset_pct": round(100 * motion.laser_offset, 2),
         "unreliable": unreliable,
         "keyframe_steps": [c.to_dict() for c in motion.step_checks],
     }

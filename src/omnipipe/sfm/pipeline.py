@@ -44,6 +44,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     merge_stretches,
     wall_cylinder,
+    wall_depth,
 )
 from omnipipe.sfm.stations import StationConfig, StationTracker
 
@@ -127,6 +128,12 @@ class SfmResult:
         step_checks: (K-1,) the evidence and confidence of every keyframe step, in order.
         unreliable: stretches of frames whose motion could not be trusted (merged,
             in frame order).
+        scale_source: what the bundle adjustment's metric anchors are: the laser's
+            template matches (Eq. 17), or, when those run systematically off the feature
+            depths by more than ``scale_check.max_bias_log``, features placed on the
+            light-section wall.
+        laser_offset: run-wide laser / feature-depth length ratio minus one (removed
+            before the per-step check).
     """
 
     world_from_rig: np.ndarray
@@ -140,6 +147,8 @@ class SfmResult:
     scale_sigma_rel: float = math.nan
     step_checks: list[StepCheck] = field(default_factory=list)
     unreliable: list[UnreliableStretch] = field(default_factory=list)
+    scale_source: str = "laser (Eq. 17)"
+    laser_offset: float = 0.0
 
 
 def run(
@@ -238,18 +247,19 @@ def run(
     systematic = ""
     if abs(offset) > config.scale_check.max_bias_log:
         systematic = (
-            f"laser and feature-depth step lengths differ by {100 * (math.exp(offset) - 1):+.0f} % "
-            "throughout the run (one source is biased on this rig and pipe): lengths along "
-            "the pipe are uncertain by that much"
+            f"laser template lengths (Eq. 17) run {100 * (math.exp(offset) - 1):+.0f} % off the "
+            "feature depths on the light-section wall throughout the run: the scale is taken "
+            "from the feature depths (steps still checked against the laser with that offset "
+            "removed)"
         )
         warnings.append(systematic)
     for k, ev in enumerate(evidence):
         b_from_a, scale, inl, lm, check = _decide_step(
             ev, offset, kf_gray[k], kf_gray[k + 1], camera, rings[ev.a].points_in_rig, config, warnings
         )
-        if systematic and check.reliable:
-            check = replace(check, confidence="low", reason=systematic)
         checks.append(check)
+        if systematic and math.isfinite(scale):
+            scale /= math.exp(offset)  # feature-depth units: the laser's bias removed
         if scales and not math.isfinite(scale):
             # A placeholder length keeps the chain going; the step is flagged.
             scale = float(np.median([s for s in scales if s > 0] or [0.0]))
@@ -259,7 +269,13 @@ def run(
         world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
         if inl is not None:
             pair_matches.append((k, k + 1, inl))
-        if lm is not None and len(lm.index):
+        if systematic:
+            # The laser's matches carry its bias: the wall itself anchors the scale.
+            wall = _wall_anchors(ev, kf_features[k], kf_features[k + 1], rings[ev.a].points_in_rig, scale, config)
+            if wall is not None:
+                anchors.append((k, k + 1, wall[0], wall[1]))
+                anchor_logs.append((scale, wall[2]))
+        elif lm is not None and len(lm.index):
             anchors.append((k, k + 1, rings[ev.a].points_in_rig[lm.index], lm.pixels_b))
             anchor_logs.append((scale, np.log(lm.scale_mm)))
     world_from_kf_arr = np.array(world_from_kf)
@@ -273,7 +289,7 @@ def run(
         )
         if len(problem.points_in_world) >= 10 and len(problem.anchor_a):
             ba = bundle_adjust(camera, problem, config.bundle)
-            if config.anchor_reach > 1:
+            if config.anchor_reach > 1 and not systematic:
                 # Longer baselines measure the scale better: laser points of keyframe k are
                 # also found in k + 2 ... k + reach with the adjusted motion, then adjust again.
                 extra = _far_anchors(camera, ba.world_from_rig, kf_gray, [rings[f] for f in kf_frames], config)
@@ -320,6 +336,8 @@ def run(
         scale_sigma_rel=_scale_sigma_rel(anchor_logs),
         step_checks=checks,
         unreliable=merge_stretches(stretches),
+        scale_source="feature depths on the light-section wall" if systematic else "laser (Eq. 17)",
+        laser_offset=math.exp(offset) - 1.0,
     )
 
 
@@ -492,6 +510,28 @@ def _evidence(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, w
     )
     s_feat, n_feat = feature_scale(log_s, config.scale_check)
     return _StepEvidence(a, b, b_from_a, inl, lm, log_s, s_feat, n_feat, "ok")
+
+
+def _wall_anchors(ev, fa, fb, ring_points_a, scale, config, max_points: int = 120):
+    """Matched features of keyframe a placed on the light-section wall: (M, 3) points in
+    rig a (mm), (M, 2) their pixels in keyframe b and (M,) log lengths; None if too few.
+
+    Only matches whose own depth ratio agrees with the step (``keep_match_log``).
+    """
+    if ev.inliers is None or not math.isfinite(scale) or scale <= 0 or len(ev.log_scales) == 0:
+        return None
+    wall = wall_cylinder(ring_points_a)
+    keep = np.isfinite(ev.log_scales) & (
+        np.abs(ev.log_scales - math.log(scale)) <= config.scale_check.keep_match_log
+    )
+    idx = np.flatnonzero(keep)
+    if wall is None or len(idx) < config.scale_check.min_feature_matches:
+        return None
+    idx = idx[np.linspace(0, len(idx) - 1, min(max_points, len(idx))).round().astype(int)]
+    rays = fa.rays_in_rig[ev.inliers[idx, 0]]
+    depth = wall_depth(rays, wall)
+    ok = np.isfinite(depth)
+    return rays[ok] * depth[ok, None], fb.pixels[ev.inliers[idx[ok], 1]], ev.log_scales[idx[ok]]
 
 
 def _source_offset(evidence: list[_StepEvidence], config: ScaleCheckConfig) -> float:

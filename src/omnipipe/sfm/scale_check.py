@@ -56,8 +56,9 @@ class ScaleCheckConfig:
             treated as a bias of one source and removed before the per-step check;
             beyond it (a course or more: every step aliased alike) it is not, and the
             steps are judged as measured.
-        max_bias_log: a run-wide offset beyond this (5 %) is more than the lengths may
-            be wrong by: every step of the run is flagged with the offset as reason.
+        max_bias_log: a run-wide offset beyond this (5 %) means the laser's template
+            lengths are biased on this rig and pipe: the metric anchors of the bundle
+            adjustment are then features placed on the light-section wall instead.
     """
 
     agree_log: float = 0.12
