@@ -44,6 +44,20 @@ class CameraModel:
     radius_min: float
     radius_max: float
 
+    def _set_image(self, intrinsics) -> None:
+        """Principal point, image size and valid annulus (px) from ``CameraIntrinsics``;
+        without ``radius_max`` the annulus is the largest circle inside the image."""
+        self.cx = float(intrinsics.cx)
+        self.cy = float(intrinsics.cy)
+        self.width = int(intrinsics.width)
+        self.height = int(intrinsics.height)
+        inscribed = min(
+            self.cx + 0.5, self.width - 0.5 - self.cx, self.cy + 0.5, self.height - 0.5 - self.cy
+        )
+        rmax = intrinsics.radius_max
+        self.radius_max = max(inscribed, 1.0) if rmax is None else float(rmax)
+        self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
+
     def unproject(self, pixels: np.ndarray) -> np.ndarray:
         """(N, 2) pixels (col, row) -> (N, 3) unit rays in the rig frame (NaN where none)."""
         raise NotImplementedError

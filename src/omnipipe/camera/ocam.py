@@ -41,16 +41,7 @@ class OcamCamera(CameraModel):
         self.params = params
         self.poly = np.asarray(params.polynomial, dtype=float)
         self.c, self.d, self.e = float(params.c), float(params.d), float(params.e)
-        self.cx = float(intrinsics.cx)
-        self.cy = float(intrinsics.cy)
-        self.width = int(intrinsics.width)
-        self.height = int(intrinsics.height)
-        inscribed = min(
-            self.cx + 0.5, self.width - 0.5 - self.cx, self.cy + 0.5, self.height - 0.5 - self.cy
-        )
-        rmax = intrinsics.radius_max
-        self.radius_max = max(inscribed, 1.0) if rmax is None else float(rmax)
-        self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
+        self._set_image(intrinsics)
         # Monotone table of the elevation atan2(P(r), r) over r, for project's seed.
         r_far = 1.5 * float(np.hypot(self.width, self.height)) / min(1.0, abs(self.c - self.d * self.e))
         r = np.linspace(0.0, r_far, _TABLE_SIZE)

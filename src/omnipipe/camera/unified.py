@@ -98,16 +98,7 @@ class UnifiedCamera(CameraModel):
         self.fy = float(params.fy)
         self.skew = float(params.skew)
         self.k = (float(params.k1), float(params.k2), float(params.p1), float(params.p2))
-        self.cx = float(intrinsics.cx)
-        self.cy = float(intrinsics.cy)
-        self.width = int(intrinsics.width)
-        self.height = int(intrinsics.height)
-        inscribed = min(
-            self.cx + 0.5, self.width - 0.5 - self.cx, self.cy + 0.5, self.height - 0.5 - self.cy
-        )
-        rmax = intrinsics.radius_max
-        self.radius_max = max(inscribed, 1.0) if rmax is None else float(rmax)
-        self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
+        self._set_image(intrinsics)
 
     def unproject(self, pixels: np.ndarray) -> np.ndarray:
         """Unit rays in the rig frame of (N, 2) pixels (col, row); NaN rows where none."""
