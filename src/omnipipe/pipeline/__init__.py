@@ -21,6 +21,8 @@ from omnipipe.config import dataclass_from_dict, load_yaml_mapping
 from omnipipe.errors import ReconstructionError
 
 if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
+    from concurrent.futures import Executor
+
     import numpy as np
 
     from omnipipe.dataset import Dataset
@@ -34,13 +36,20 @@ def _no_progress(stage: str, total: int) -> Callable[[int], None]:
 
 @dataclass(frozen=True)
 class ReconstructConfig:
-    """Settings of every stage; ``--config FILE.yaml`` overrides any of them by section."""
+    """Settings of every stage; ``--config FILE.yaml`` overrides any of them by section.
+
+    ``workers`` (local processes, None: every core, 1: serial) and ``scheduler`` (a Dask
+    scheduler address ``tcp://HOST:PORT``, or None) choose the executor of the
+    frame-parallel work (:mod:`omnipipe.executor`; ``--workers``, ``--scheduler``).
+    """
 
     laser: Any = None
     sfm: Any = None
     model: Any = None
     analysis: Any = None
     report: Any = None
+    workers: int | None = None
+    scheduler: str | None = None
 
     @staticmethod
     def default() -> ReconstructConfig:
@@ -116,13 +125,24 @@ class Reconstruction:
 
 
 def run(
-    config: ReconstructConfig, dataset: Dataset, progress: ProgressFactory = _no_progress
+    config: ReconstructConfig,
+    dataset: Dataset,
+    progress: ProgressFactory = _no_progress,
+    executor: Executor | None = None,
 ) -> Reconstruction:
     """Run every stage on ``dataset``.
+
+    ``executor`` does the frame-parallel work (default: one opened from
+    ``config.workers`` / ``config.scheduler`` for this run, :mod:`omnipipe.executor`).
 
     Raises:
         OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
     """
+    if executor is None:
+        from omnipipe.executor import open_executor
+
+        with open_executor(config.workers, config.scheduler) as pool:
+            return run(config, dataset, progress, pool)
     if dataset.rig.laser is None:  # a camera-only rig (rig.yaml without a laser section)
         raise ReconstructionError(
             "rig.yaml has no laser section: a camera-only rig cannot reconstruct "
@@ -132,6 +152,7 @@ def run(
 
     from omnipipe import analysis, laser, model
     from omnipipe.dataset import validate_frames
+    from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
     from omnipipe.pipeline import quality
     from omnipipe.sfm import pipeline as sfm
@@ -149,7 +170,7 @@ def run(
 
     t0 = time.perf_counter()
     tick = progress("laser", n)
-    rings = laser.run(config.laser, rig, (dataset.read_frame(i) for i in range(n)), progress=tick)
+    rings = laser.run_dataset(config.laser, dataset, executor, progress=tick)
     timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
     seen = sum(1 for r in rings.rings if len(r.pixels) >= 20)
@@ -248,6 +269,9 @@ def run(
         "frames_registered": len(reg),
         **measured,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        # Frames of the run per second of each stage (and of the whole run).
+        "frames_per_s": {k: round(n / v, 3) if v > 0 else None for k, v in timings.items()},
+        "executor": describe_executor(executor),
         "warnings": warnings,
         "stationary_frames": int(np.sum(motion.stationary)),
         "mesh": {

@@ -71,6 +71,33 @@ def _add_knobs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+def add_execution_options(p: argparse.ArgumentParser) -> None:
+    """``--workers N`` and ``--scheduler ADDR`` (:mod:`omnipipe.executor`)."""
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="local worker processes for frame-parallel work (default: every core; 1: serial)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDR",
+        help="run the parallel work on the Dask cluster whose scheduler is at ADDR "
+        "(tcp://HOST:PORT; needs pip install 'omnipipe[dask]')",
+    )
+
+
+def with_execution(config: ReconstructConfig, args: argparse.Namespace) -> ReconstructConfig:
+    """``config`` with ``--workers`` / ``--scheduler`` applied (checked: one-line errors)."""
+    from dataclasses import replace
+
+    from omnipipe.executor import check_scheduler_address, check_workers
+
+    workers = None if args.workers is None else check_workers(args.workers)
+    scheduler = None if args.scheduler is None else check_scheduler_address(args.scheduler)
+    return replace(config, workers=workers, scheduler=scheduler)
+
+
 def _overrides(args: argparse.Namespace) -> dict[str, dict]:
     out: dict[str, dict] = {}
     if args.features is not None:
@@ -116,6 +143,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "survey.yaml beside the dataset if there is one; docs/inspection_coding.md)",
     )
     _add_knobs(p)
+    add_execution_options(p)
     p.set_defaults(func=_reconstruct)
 
     d = sub.add_parser(
@@ -147,7 +175,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     protect += [args.survey] if args.survey else []
     # Recover an interrupted earlier run and refuse before the long run, not after.
     prepare_output_dir(out, force=args.force, protect=protect)
-    config = ReconstructConfig.from_yaml(args.config, _overrides(args))
+    config = with_execution(ReconstructConfig.from_yaml(args.config, _overrides(args)), args)
     survey = find_survey(args.dataset, args.survey)
     dataset = open_dataset(args.dataset, topic=args.topic)
     bars = _progress(args.quiet)
