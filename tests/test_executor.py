@@ -1,0 +1,162 @@
+"""The executor: inline, local processes and a Dask LocalCluster give the same results, in
+submission order; the frame-parallel laser stage equals the serial one."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnipipe.cli import main
+from omnipipe.errors import ConfigError, DatasetError
+from omnipipe.executor import (
+    InlineExecutor,
+    chunks,
+    describe,
+    open_executor,
+    ordered_map,
+    parallelism,
+)
+
+
+def _late_square(x: int) -> int:
+    """x^2, finishing in the reverse order of submission (earlier items sleep longer)."""
+    time.sleep(0.002 * (10 - x))
+    return x * x
+
+
+def _fail_on_three(x: int) -> int:
+    if x == 3:
+        raise DatasetError(f"frame {x}: broken")
+    return x
+
+
+@pytest.fixture(scope="module")
+def dask_address():
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(
+        host="127.0.0.1",
+        protocol="tcp",
+        processes=False,
+        n_workers=1,
+        threads_per_worker=2,
+        dashboard_address=None,
+    )
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from omnipipe.sim import make_scenario, run
+
+    out = tmp_path_factory.mktemp("exec") / "ds"
+    run(make_scenario("paper-small", frames=7, seed=8), out, workers=1)
+    return out
+
+
+def _executors(dask_address: str):
+    return [
+        {"workers": 1},
+        {"workers": 2},
+        {"scheduler": dask_address},
+    ]
+
+
+def test_results_in_submission_order_on_every_executor(dask_address: str) -> None:
+    for kwargs in _executors(dask_address):
+        with open_executor(**kwargs) as ex:
+            got = list(ordered_map(ex, _late_square, range(10), max_pending=4))
+        assert got == [x * x for x in range(10)], kwargs
+
+
+def test_a_task_error_is_raised_in_its_turn(dask_address: str) -> None:
+    for kwargs in _executors(dask_address):
+        seen = []
+        with open_executor(**kwargs) as ex, pytest.raises(DatasetError, match="frame 3: broken"):
+            for value in ordered_map(ex, _fail_on_three, range(8)):
+                seen.append(value)
+        assert seen == [0, 1, 2], kwargs
+
+
+def test_kinds_and_parallelism(dask_address: str) -> None:
+    with open_executor(workers=1) as ex:
+        assert isinstance(ex, InlineExecutor) and describe(ex) == {"kind": "inline", "workers": 1}
+    with open_executor(workers=3) as ex:
+        assert describe(ex) == {"kind": "processes", "workers": 3}
+    with open_executor(scheduler=dask_address) as ex:
+        assert describe(ex) == {"kind": "dask", "workers": 2}
+        parts = chunks(37, ex)
+    assert [i for part in parts for i in part] == list(range(37))
+    assert max(len(p) for p in parts) <= 16 and parallelism(InlineExecutor()) == 1
+
+
+def _assert_same_rings(a, b) -> None:
+    assert len(a.rings) == len(b.rings) and a.warnings == b.warnings
+    for ra, rb in zip(a.rings, b.rings, strict=True):
+        for name in ("pixels", "angle_rad", "confidence", "radius_sigma_px", "points_in_rig", "sigma_mm"):
+            assert np.array_equal(getattr(ra, name), getattr(rb, name), equal_nan=True), name
+        assert ra.scanned == rb.scanned and ra.warnings == rb.warnings
+
+
+def test_parallel_laser_stage_equals_serial(tiny_dataset: Path, dask_address: str) -> None:
+    from omnipipe import laser
+    from omnipipe.dataset import open_dataset
+
+    dataset = open_dataset(tiny_dataset)
+    serial = laser.run(laser.LaserConfig(), dataset.rig, dataset.frames())
+    assert sum(len(r.pixels) > 100 for r in serial.rings) == len(dataset)  # rings were found
+    for kwargs in _executors(dask_address):
+        done: list[int] = []
+        with open_executor(**kwargs) as ex:
+            result = laser.run_dataset(laser.LaserConfig(), dataset, ex, progress=done.append)
+        _assert_same_rings(serial, result)
+        assert done[-1] == len(dataset) and done == sorted(done), kwargs
+
+
+def test_unreadable_frame_named_from_a_worker(tiny_dataset: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from omnipipe import laser
+    from omnipipe.dataset import open_dataset
+
+    ds = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, ds)
+    data = (ds / "frames" / "000005.png").read_bytes()
+    (ds / "frames" / "000005.png").write_bytes(data[: len(data) // 2])
+    with open_executor(workers=2) as ex, pytest.raises(DatasetError, match=r"000005\.png"):
+        laser.run_dataset(laser.LaserConfig(), open_dataset(ds), ex)
+
+
+def test_scheduler_without_dask_is_one_line(
+    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed fails
+    with pytest.raises(ConfigError, match=r"pip install 'omnipipe\[dask\]'"):
+        with open_executor(scheduler="tcp://127.0.0.1:8786"):
+            pass
+    out = tmp_path / "out"
+    args = ["reconstruct", str(tiny_dataset), "--out", str(out), "--quiet"]
+    assert main([*args, "--scheduler", "tcp://127.0.0.1:8786"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--scheduler" in err[0] and "omnipipe[dask]" in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [("--workers", "0", "--workers: must be a whole number >= 1"), ("--scheduler", "localhost", "tcp://HOST:PORT")],
+)
+def test_bad_execution_options_are_one_line(
+    tiny_dataset: Path, tmp_path: Path, capsys, option: str, value: str, message: str
+) -> None:
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(tiny_dataset), "--out", str(out), "--quiet", option, value]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not out.exists()
