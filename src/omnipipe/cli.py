@@ -32,6 +32,11 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("reconstruct", "omnipipe.pipeline.cli", "build the measured, textured pipe model from a dataset"),
     ("demo", "omnipipe.pipeline.cli", "simulate the paper's experiment, reconstruct it and print Table I"),
     (
+        "batch",
+        "omnipipe.pipeline.batch",
+        "reconstruct many inspection runs over one executor, with an index.html",
+    ),
+    (
         "baseline",
         "omnipipe.baseline.cli",
         "optimal baseline (camera-to-laser distance) for given wall distances",
