@@ -128,7 +128,7 @@ def run_names(datasets: Sequence[str | Path]) -> list[str]:
             base = Path(p.resolve()).name
         base = re.sub(r"[^A-Za-z0-9._-]+", "_", base).lstrip(".") or "run"
         name, k = base, 2
-        while name in names or name.startswith("index."):
+        while name in names or name in ("index.html", "index.json"):
             name, k = f"{base}-{k}", k + 1
         names.append(name)
     return names

@@ -1,0 +1,124 @@
+"""omnipipe batch: two tiny simulated runs and a broken one, on local processes and on a
+Dask LocalCluster: same report.json values, the failure listed, exit code 1."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from omnipipe.cli import main
+from omnipipe.output import MANIFEST_NAME
+from omnipipe.pipeline.batch import run_names
+
+# Wall-clock values and how they were obtained: the only keys allowed to differ.
+_VOLATILE = ("timings_s", "frames_per_s")
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    from omnipipe.sim import make_scenario
+    from omnipipe.sim import run as simulate
+
+    root = tmp_path_factory.mktemp("batch")
+    out = []
+    for seed in (3, 4):
+        path = root / f"pipe-{seed}"
+        simulate(make_scenario("paper-small", frames=6, size=(320, 240), seed=seed), path, workers=1)
+        out.append(path)
+    broken = root / "broken"
+    shutil.copytree(out[0], broken)
+    (broken / "rig.yaml").unlink()
+    return [out[0], broken, out[1]]
+
+
+@pytest.fixture(scope="module")
+def local_batch(runs: list[Path], tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
+    out = tmp_path_factory.mktemp("local") / "batch"
+    code = main(["batch", *map(str, runs), "--out", str(out), "--workers", "2", "--quiet"])
+    return out, code
+
+
+def _reports(out: Path) -> dict[str, dict]:
+    reports = {}
+    for row in json.loads((out / "index.json").read_text())["runs"]:
+        if row["status"] == "ok":
+            report = json.loads((out / row["name"] / "report.json").read_text())
+            reports[row["name"]] = {k: v for k, v in report.items() if k not in _VOLATILE}
+    return reports
+
+
+def test_every_run_listed_and_the_failure_does_not_stop_the_others(
+    local_batch: tuple[Path, int], runs: list[Path]
+) -> None:
+    out, code = local_batch
+    assert code == 1  # one run failed
+    rows = json.loads((out / "index.json").read_text())["runs"]
+    assert [r["name"] for r in rows] == ["pipe-3", "broken", "pipe-4"]
+    assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
+    assert "rig.yaml" in rows[1]["error"] and "\n" not in rows[1]["error"]
+    assert not (out / "broken").exists()
+    for row, path in zip(rows, runs, strict=True):
+        if row["status"] != "ok":
+            continue
+        truth = json.loads((path / "ground_truth" / "scene.json").read_text())
+        report = json.loads((out / row["name"] / "report.json").read_text())
+        # 320x240, 6 frames: the diameter within 1.5 mm (as tests/pipeline/test_reconstruct.py).
+        assert abs(row["inner_diameter_mm"] - truth["inner_diameter_mm"]) < 1.5
+        assert row["inner_diameter_mm"] == report["inner_diameter_mm"]
+        assert row["defects"] == len(report["defects"]) and row["warnings"] == len(report["warnings"])
+        assert set(report["frames_per_s"]) == set(report["timings_s"])
+        assert report["frames_per_s"]["total"] == pytest.approx(
+            report["frames"] / report["timings_s"]["total"], rel=0.01
+        )
+        for name in ("report.html", "mesh.ply", "trajectory.txt", MANIFEST_NAME):
+            assert (out / row["name"] / name).is_file(), name
+    page = (out / "index.html").read_text()
+    assert 'href="pipe-3/report.html"' in page and "FAILED" in page and "rig.yaml" in page
+    assert (out / MANIFEST_NAME).is_file()
+
+
+def test_dask_cluster_gives_the_same_reports(
+    local_batch: tuple[Path, int], runs: list[Path], tmp_path: Path
+) -> None:
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(
+        host="127.0.0.1", processes=True, n_workers=1, threads_per_worker=2, dashboard_address=None
+    )
+    try:
+        out = tmp_path / "dask"
+        code = main(
+            ["batch", *map(str, runs), "--out", str(out), "--scheduler", cluster.scheduler_address, "--quiet"]
+        )
+    finally:
+        cluster.close()
+    assert code == 1
+    local = _reports(local_batch[0])
+    assert sorted(local) == ["pipe-3", "pipe-4"]
+    assert _reports(out) == local
+    for name in local:  # the trajectory is the same to the last digit written
+        assert (out / name / "trajectory.txt").read_text() == (
+            local_batch[0] / name / "trajectory.txt"
+        ).read_text()
+
+
+def test_force_replaces_only_a_batch_output(local_batch: tuple[Path, int], runs: list[Path], capsys) -> None:
+    out, _ = local_batch
+    args = ["batch", str(runs[1]), "--out", str(out), "--workers", "1", "--quiet"]
+    assert main(args) == 1
+    assert "already exists" in capsys.readouterr().err
+    (out / "notes.txt").write_text("mine")
+    assert main([*args, "--force"]) == 1
+    assert "notes.txt" in capsys.readouterr().err
+    assert (out / "pipe-3" / "report.json").is_file()  # untouched
+
+
+def test_run_names_are_distinct_and_safe(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    video = tmp_path / "b c.mp4"
+    video.write_bytes(b"")
+    (tmp_path / "index.json").mkdir()  # would collide with the batch's own index.json
+    names = run_names([tmp_path / "a", tmp_path / "a", video, tmp_path / "index.json"])
+    assert names == ["a", "a-2", "b_c", "index.json-2"]
