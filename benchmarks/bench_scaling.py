@@ -1,0 +1,124 @@
+"""Does reconstruct's cost grow with the length of the run? frames/s and peak RSS per run length.
+
+    python benchmarks/bench_scaling.py [--frames 150 600 2400] [--scenario paper]
+        [--size 400x300] [--workers N] [--cache DIR]
+
+Simulates one run per length (small images; ``--cache`` keeps them for the next call),
+reconstructs each in a fresh process (``omnipipe.pipeline.run``, nothing written) and
+prints, per run: frames, wall time, frames/s of the whole run and of each stage, and
+the peak resident memory of the reconstructing process and of its largest worker.
+The last lines compare the two longest runs (issue 13's acceptance: frames/s within
+20 %, peak RSS within 30 % from 600 to 2400 frames). It only measures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _child(dataset: str, workers: int | None) -> None:
+    """Reconstruct ``dataset`` in this process and print one JSON line of measurements."""
+    from dataclasses import replace
+
+    from omnipipe.dataset import open_dataset
+    from omnipipe.pipeline import ReconstructConfig, run
+
+    config = replace(ReconstructConfig.default(), workers=workers)
+    t0 = time.perf_counter()
+    rec = run(config, open_dataset(dataset))
+    wall = time.perf_counter() - t0
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB -> MiB (Linux)
+    workers_rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    s = rec.summary
+    print(
+        json.dumps(
+            {
+                "frames": s["frames"],
+                "wall_s": wall,
+                "timings_s": s["timings_s"],
+                "frames_per_s": s["frames_per_s"],
+                "keyframes": s["keyframes"],
+                "rss_mb": own,
+                "worker_rss_mb": workers_rss,
+                "executor": s.get("executor"),
+            }
+        )
+    )
+
+
+def _dataset(cache: Path, scenario: str, frames: int, size: tuple[int, int], seed: int) -> Path:
+    from omnipipe.sim import make_scenario
+    from omnipipe.sim import run as simulate
+
+    path = cache / f"{scenario}-{frames}-{size[0]}x{size[1]}-s{seed}"
+    if not (path / "rig.yaml").is_file():
+        t0 = time.perf_counter()
+        simulate(make_scenario(scenario, frames=frames, size=size, seed=seed), path, force=True, workers=2)
+        print(f"simulated {path.name} in {time.perf_counter() - t0:.0f} s", flush=True)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, nargs="+", default=[150, 600, 2400])
+    parser.add_argument("--scenario", default="paper")
+    parser.add_argument("--size", default="400x300", help="WxH")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=None, help="local processes (default: every core)")
+    parser.add_argument("--cache", default=None, help="keep the simulated runs here")
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        _child(args.child, args.workers)
+        return
+    size = tuple(int(v) for v in args.size.split("x"))
+    cache = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="omnipipe-scaling-"))
+    cache.mkdir(parents=True, exist_ok=True)
+    rows = []
+    try:
+        for n in args.frames:
+            path = _dataset(cache, args.scenario, n, size, args.seed)  # type: ignore[arg-type]
+            cmd = [sys.executable, __file__, "--child", str(path)]
+            if args.workers is not None:
+                cmd += ["--workers", str(args.workers)]
+            done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            if done.returncode != 0:
+                print(f"{n} frames: reconstruct failed: {done.stderr.strip().splitlines()[-1:]}")
+                continue
+            row = json.loads(done.stdout.strip().splitlines()[-1])
+            rows.append(row)
+            fps = row["frames_per_s"]
+            print(
+                f"{row['frames']:5d} frames ({row['keyframes']} keyframes): {row['wall_s']:7.1f} s, "
+                f"{fps['total']:6.2f} frames/s (laser {fps['laser']:.1f}, sfm {fps['sfm']:.2f}, "
+                f"analysis {fps['analysis']:.1f}, model {fps['model']:.2f}); peak RSS "
+                f"{row['rss_mb']:.0f} MB (largest worker {row['worker_rss_mb']:.0f} MB); "
+                f"{row['executor']}",
+                flush=True,
+            )
+        if len(rows) >= 2:
+            a, b = rows[-2], rows[-1]
+            dfps = b["frames_per_s"]["total"] / a["frames_per_s"]["total"] - 1
+            drss = b["rss_mb"] / a["rss_mb"] - 1
+            print(
+                f"{a['frames']} -> {b['frames']} frames: frames/s {100 * dfps:+.0f} % "
+                f"(acceptance: within 20 %), peak RSS {100 * drss:+.0f} % (within 30 %)"
+            )
+            for stage in ("laser", "sfm", "analysis", "model"):
+                fa, fb = a["frames_per_s"][stage], b["frames_per_s"][stage]
+                print(f"  {stage:9s} frames/s {fa:8.2f} -> {fb:8.2f} ({100 * (fb / fa - 1):+.0f} %)")
+    finally:
+        if not args.cache:
+            shutil.rmtree(cache, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
