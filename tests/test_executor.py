@@ -160,3 +160,21 @@ def test_bad_execution_options_are_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not out.exists()
+
+
+def _checksums(source) -> list[tuple[int, int]]:
+    return [(int(source.frames[k]), int(source.read(k).sum())) for k in range(len(source))]
+
+
+def test_map_frames_on_a_subset_keeps_its_order(tiny_dataset: Path) -> None:
+    from omnipipe.dataset import open_dataset
+    from omnipipe.executor import map_frames
+
+    dataset = open_dataset(tiny_dataset)
+    truth = [(i, int(dataset.read_frame(i).sum())) for i in range(len(dataset))]
+    done: list[int] = []
+    with open_executor(workers=2) as ex:
+        subset = map_frames(ex, _checksums, dataset, progress=done.append, frames=[5, 1, 4, 6])
+        everything = map_frames(ex, _checksums, dataset)
+    assert subset == [truth[5], truth[1], truth[4], truth[6]] and done[-1] == 4
+    assert everything == truth

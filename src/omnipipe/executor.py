@@ -22,7 +22,7 @@ from __future__ import annotations
 import os
 import sys
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -221,12 +221,12 @@ class FrameSource:
     """
 
     rig: Any
-    frames: range
+    frames: Sequence[int]
     paths: tuple[Path, ...] | None = None
     arrays: tuple[Any, ...] | None = None
 
     @staticmethod
-    def take(dataset: Any, frames: range) -> FrameSource:
+    def take(dataset: Any, frames: Sequence[int]) -> FrameSource:
         """The ``frames`` of an opened :class:`omnipipe.dataset.Dataset`."""
         if dataset.video is None and dataset.source is None:
             paths = tuple(dataset.frame_paths[i] for i in frames)
@@ -256,23 +256,28 @@ def map_frames(
     fn: Callable[[FrameSource], list[R]],
     dataset: Any,
     progress: Callable[[int], None] | None = None,
+    frames: Sequence[int] | None = None,
 ) -> list[R]:
     """Frame-parallel helper for any stage: ``fn(source)`` on consecutive chunks of the
     frames of ``dataset`` (:class:`FrameSource`), one result per frame, in frame order.
 
-    ``fn`` must be a module-level function (picklable) that decodes its frames with
-    ``source.read(k)`` and returns one result per frame; ``progress(done)`` is called
-    after each chunk. Chunks are cut lazily, so a video's frames are decoded only as
+    ``fn`` must be a picklable callable (a module-level function or an instance of a
+    module-level class) that decodes its frames with ``source.read(k)`` and returns one
+    result per frame; ``progress(done)`` is called after each chunk with the number of
+    frames done. ``frames``: a subset of the dataset's indices (default: all), e.g. only
+    the moving frames. Chunks are cut lazily, so a video's frames are decoded only as
     their chunk is submitted. E.g. SIFT features per frame:
-    ``map_frames(executor, features_of_chunk, dataset)``.
+    ``map_frames(executor, features_of_chunk, dataset, frames=moving)``.
     """
+    order = list(range(len(dataset))) if frames is None else [int(i) for i in frames]
     out: list[R] = []
-    parts = chunks(len(dataset), executor)
+    size = len(chunks(len(order), executor)[0]) if order else 1
+    parts = [order[i : i + size] for i in range(0, len(order), size)]
     sources = (FrameSource.take(dataset, part) for part in parts)
     for part, result in zip(parts, ordered_map(executor, fn, sources), strict=True):
         if len(result) != len(part):
             raise RuntimeError(f"{fn!r} returned {len(result)} results for {len(part)} frames")
         out.extend(result)
         if progress is not None:
-            progress(part.stop)
+            progress(len(out))
     return out
