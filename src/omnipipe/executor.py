@@ -142,11 +142,20 @@ def open_executor(workers: int | None = None, scheduler: str | None = None) -> I
     import multiprocessing as mp
 
     ctx = mp.get_context("fork") if sys.platform.startswith("linux") else None
-    pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
+    # Ctrl-C reaches the whole process group: the workers ignore it and the parent
+    # (which owns the output folder) stops the pool, so one line is printed, not N
+    # tracebacks.
+    pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_ignore_sigint)
     try:
         yield pool
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _ignore_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def parallelism(executor: Executor) -> int:
