@@ -90,6 +90,17 @@ def _pair(true: list[dict], measured: list[dict]) -> list[tuple[dict, dict | Non
     return out
 
 
+def _near_defect(axial_mm: float, defects: list[dict], margin_mm: float = 2.0) -> bool:
+    """Whether a ring at ``axial_mm`` crosses a true defect (its flanks included: the
+    simulator's axial ramp is min(length, 2 width) long, centred on each half-height end)."""
+    for d in defects:
+        ramp = min(d["length_mm"], 2.0 * d["width_mm"])
+        half = 0.5 * d["length_mm"] + 0.5 * ramp + margin_mm
+        if abs(axial_mm - (d["axial_start_mm"] + 0.5 * d["length_mm"])) <= half:
+            return True
+    return False
+
+
 def _reconstruct(scenario, root: Path, reuse: bool) -> tuple[dict, dict]:
     """Simulate (unless cached) and reconstruct; returns (summary, scene)."""
     from omnipipe import analysis
@@ -162,8 +173,9 @@ def main() -> None:
             (summary["inner_diameter_mm"] - d_true, summary["inner_diameter_sigma_mm"])
         )
         for st in summary["stations"]:
-            # Stations away from the defects measure the round pipe.
-            if st.get("diameter_sigma_mm") is not None and not st.get("near_defect", False):
+            # Stations away from the defects measure the round pipe (a ring crossing a
+            # defect has no single true diameter): outside every defect's flanks.
+            if st.get("diameter_sigma_mm") is not None and not _near_defect(st["axial_mm"], scene["defects"]):
                 errors["station diameter"].append((st["diameter_mm"] - d_true, st["diameter_sigma_mm"]))
         for t, m in _pair(scene["defects"], summary["defects"]):
             if m is None:

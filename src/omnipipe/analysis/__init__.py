@@ -223,6 +223,9 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
     circ = 2 * np.pi * radius
     # Pass 1: wall profiles of all points; pass 2: without the samples of the defects found.
     exclude = np.zeros(len(pts), bool)
+    # The robot's travel from the first frame to each ring's frame (path along the poses).
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    travel = np.concatenate([[0.0], np.cumsum(steps)])
     for _ in range(2):
         stations = _station_profiles(config, frame, theta, rho, sigma, ok_station, exclude)
         deviation = stations.pop("deviation")
@@ -233,6 +236,7 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
             deviation_mm=deviation[ok],
             ring=frame[ok],
             circumference_mm=circ,
+            ring_travel_mm=travel,
         )
         search = find_defects(
             samples,
@@ -360,8 +364,11 @@ def report_fields(
     """The analysis keys of report.json, each value with its 1-sigma uncertainty.
 
     Lengths along the pipe (defect length and axial start, run length) get the camera
-    motion's relative scale uncertainty ``scale_sigma_rel`` added in quadrature (NaN:
-    ``config.fallback_scale_sigma_rel``, with a warning); angles get
+    motion's relative scale uncertainty ``scale_sigma_rel`` (NaN:
+    ``config.fallback_scale_sigma_rel``, with a warning) added in quadrature: over a
+    stretch x of a run of length T, ``rel * sqrt(x T)`` (step errors add like a random
+    walk; ``rel * T`` over the whole run); a defect's axial start takes x = the robot's
+    travel from the first frame to the rings at its start. Angles get
     ``config.angle_pose_sigma_deg``.
 
     Returns:
@@ -381,18 +388,26 @@ def report_fields(
     def r(x: float | None, nd: int = 3) -> float | None:
         return None if x is None or not math.isfinite(x) else round(float(x), nd)
 
+    ax = np.asarray(res.stations_axial_mm, float)
+    run_length = float(np.ptp(ax)) if len(ax) else 0.0
+
+    def position_sigma(x: float) -> float:
+        # Lengths from the steps' spread add like a random walk: a stretch x of a run of
+        # length T carries rel * sqrt(x T) (rel * T is the sigma over the whole run); a
+        # run-wide scale error gives rel * x, never more than that.
+        x = abs(x)
+        return rel * math.sqrt(x * max(run_length, x))
+
     defects = []
     for d in res.defects:
         d = dict(d)
+        travel = d.pop("travel_mm", None)
+        travel = abs(d["axial_start_mm"]) if travel is None else float(travel)
         if d.get("length_sigma_mm") is not None:
-            d["length_sigma_mm"] = r(math.hypot(d["length_sigma_mm"], rel * d["length_mm"]), 4)
-            d["axial_start_sigma_mm"] = r(
-                math.hypot(d["axial_start_sigma_mm"], rel * abs(d["axial_start_mm"])), 4
-            )
+            d["length_sigma_mm"] = r(math.hypot(d["length_sigma_mm"], position_sigma(d["length_mm"])), 4)
+            d["axial_start_sigma_mm"] = r(math.hypot(d["axial_start_sigma_mm"], position_sigma(travel)), 4)
             d["angle_sigma_deg"] = r(math.hypot(d["angle_sigma_deg"], config.angle_pose_sigma_deg), 4)
         defects.append(d)
-    ax = np.asarray(res.stations_axial_mm, float)
-    run_length = float(np.ptp(ax)) if len(ax) else 0.0
     # Ends of the run: a ring position is known to about the point noise along the axis.
     run_sigma = math.hypot(rel * run_length, math.sqrt(2.0) * (res.noise_mm if math.isfinite(res.noise_mm) else 0.0))
     n = len(res.stations_diameter_mm)

@@ -42,6 +42,9 @@ class WallSamples:
         deviation_mm: (N,) radial deviation from the fitted wall (+ out of the pipe).
         ring: (N,) ring (station) index of each point.
         circumference_mm: 2 pi x reference radius.
+        ring_travel_mm: (R,) distance the robot travelled from the first frame to the
+            frame of ring r (indexed by ring), or None: the axial position's distance from
+            the origin stands in. Position errors of the camera motion grow with it.
     """
 
     sigma_mm: np.ndarray
@@ -49,6 +52,7 @@ class WallSamples:
     deviation_mm: np.ndarray
     ring: np.ndarray
     circumference_mm: float
+    ring_travel_mm: np.ndarray | None = None
 
 
 def fit_wall_profile(
@@ -140,7 +144,8 @@ class DefectSearch:
     Attributes:
         defects: contract dicts (kind, height_mm, width_mm, length_mm, axial_start_mm,
             angle_deg, each with its ``*_sigma_*`` 1-sigma uncertainty; ``points``: samples
-            beyond the threshold), largest first. The axial sigmas hold the fit and the
+            beyond the threshold; ``travel_mm``: the robot's travel from the first frame
+            to the rings at the defect's start), largest first. The axial sigmas hold the fit and the
             ring sampling only (not the camera motion's scale).
         warnings: one line per rejected candidate.
         noise_mm: robust sigma of the deviation map.
@@ -271,6 +276,7 @@ def find_defects(
                 )
                 continue
             d["points"] = len(members)
+            d["travel_mm"] = round(_travel(samples, d["axial_start_mm"], ring_ids, ring_sigma), 2)
             defects.append(d)
             masks.append(mask)
     order_h = np.argsort([-d["height_mm"] for d in defects], kind="stable")
@@ -284,6 +290,16 @@ def find_defects(
         sample_spacing_mm=sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _travel(s: WallSamples, axial_mm: float, ring_ids: np.ndarray, ring_sigma: np.ndarray) -> float:
+    """Distance travelled from the first frame to the frames whose rings measured the
+    axial position ``axial_mm`` (interpolated between rings; |axial_mm| without travels)."""
+    if s.ring_travel_mm is None or not len(ring_ids):
+        return abs(float(axial_mm))
+    travel = np.asarray(s.ring_travel_mm, float)[ring_ids]
+    order = np.argsort(ring_sigma)
+    return float(np.interp(axial_mm, ring_sigma[order], travel[order]))
 
 
 def _rough(

@@ -16,7 +16,9 @@ height ``h``, width ``W`` and length ``L`` at half height, centre (u0, z0); f_u,
 local offset of the wall.
 
 Uncertainty: the covariance (J^T J)^-1 s^2 of the fit, with ``s`` the RMS residual of
-the fit (noise and model mismatch), is the statistical part. Rings sample the axis
+the fit (noise and model mismatch), is the statistical part; errors shared by the samples
+of one ring (its pose, its laser frame) widen it to the ring-clustered sandwich where
+that is larger. Rings sample the axis
 sparsely: where no ring crosses one end's flank (all rings read 0 or the plateau
 there), that end may lie anywhere between its two rings, a uniform spread of
 variance spacing^2 / 12 added to the length and axial start. Lengths along the
@@ -104,6 +106,76 @@ def _end_var(z_rings: np.ndarray, z_edge: float, ramp: float) -> tuple[bool, flo
     return sampled, gap * gap / 12.0
 
 
+def _ring_clustered(
+    cov: np.ndarray, J: np.ndarray, res: np.ndarray, ring: np.ndarray, noise: float
+) -> np.ndarray:
+    """The fit's covariance with errors shared by the samples of one ring.
+
+    ``cov`` = (J^T J / s^2 + prior)^-1 treats the samples as independent. A ring's
+    samples share its pose and laser-frame errors (an axial shift of the whole ring moves
+    every sample on a flank the same way), so the ring is the independent unit: the
+    cluster-robust sandwich B (sum_r g_r g_r^T) B with g_r = J_r^T e_r over the rings and
+    B = cov / s^2, times G / (G - 1) for G rings. Each parameter's variance is the larger
+    of the two (correlations kept from ``cov``).
+
+    Args:
+        cov: (K, K) model-based covariance.
+        J: (N, K) Jacobian of the residuals; res: (N,) residuals (mm).
+        ring: (N,) ring index of each residual; noise: RMS residual s (mm).
+    """
+    ids, inv = np.unique(ring, return_inverse=True)
+    g_count = len(ids)
+    if g_count < 3:
+        return cov
+    scores = np.zeros((g_count, J.shape[1]))
+    np.add.at(scores, inv, J * res[:, None])
+    bread = cov / max(noise, 1e-9) ** 2
+    sandwich = bread @ (scores.T @ scores) @ bread * (g_count / (g_count - 1.0))
+    d_model = np.clip(np.diag(cov), 1e-30, None)
+    ratio = np.sqrt(np.clip(np.diag(sandwich) / d_model, 1.0, None))
+    return cov * np.outer(ratio, ratio)
+
+
+def _profile_height_sigma(residual, p: np.ndarray, cost: float, noise: float, lower, upper) -> float:
+    """Half of the larger side of the height's 2-sigma profile-likelihood interval.
+
+    Steps the height outward from the fit ``p`` (factors 0.85-0.5 and 1.15-2.5, each refit
+    of the other parameters warm-started from the previous step and from a rounded flank) until chi-square exceeds
+    the best by 4, interpolating the crossing; a side that never exceeds it ends at its
+    last step.
+    """
+    h = float(p[0])
+    limit = 4.0 * max(noise, 1e-9) ** 2
+    half = 0.0
+    for factors in ((0.85, 0.7, 0.5), (1.15, 1.35, 1.7, 2.5)):
+        x, prev_h, prev_d = np.array(p, float), h, 0.0
+        edge = h
+        for f in factors:
+            hv = h * f
+            if not lower[0] < hv < upper[0]:
+                break
+            lo_f, hi_f = list(lower), list(upper)
+            lo_f[0], hi_f[0] = hv - 1e-6 * h, hv + 1e-6 * h
+            sol = None
+            # The flank shape has local minima: warm start, and a rounded flank.
+            for fz in (None, 1.0):
+                x0 = np.array(x, float)
+                x0[0] = hv
+                if fz is not None:
+                    x0[6] = fz
+                x0 = np.clip(x0, np.array(lo_f) + 1e-12, np.array(hi_f) - 1e-12)
+                trial = least_squares(residual, x0, bounds=(lo_f, hi_f), x_scale="jac", max_nfev=80)
+                if sol is None or trial.cost < sol.cost:
+                    sol = trial
+            d = 2.0 * (sol.cost - cost)
+            if d > limit:
+                edge = prev_h + (hv - prev_h) * (limit - prev_d) / max(d - prev_d, 1e-12)
+                break
+            x, prev_h, prev_d, edge = sol.x, hv, d, hv
+        half = max(half, abs(edge - h))
+    return 0.5 * half
+
+
 def fit_bump(
     u: np.ndarray,
     z: np.ndarray,
@@ -181,7 +253,7 @@ def fit_bump(
     # zero a pseudo-inverse would give them (a defect end between two rings).
     prior_sigma = np.array([max(h0, 1.0), w0, l0, w0, l0, 0.5, 0.5, 1.0])
     info = J.T @ J / max(noise, 1e-9) ** 2 + np.diag(1.0 / prior_sigma**2)
-    cov = np.linalg.inv(info)
+    cov = _ring_clustered(np.linalg.inv(info), J, res, ring[keep], noise)
     var = np.clip(np.diag(cov), 0.0, None)
     h, u0, z0, w, length, fu, fz, _ = p
     if not h > 0:
@@ -194,6 +266,13 @@ def fit_bump(
             [float(np.median(z[keep & near_u & (ring == r)])) for r in np.unique(ring[keep & near_u])]
         )
     ramp = fz * length
+    # A crest between rings: with fewer than 3 rings across the half-height length, a low
+    # flat bump and a taller, shorter or rounder one fit the samples alike, and the
+    # linearised covariance misses that. The height's profile likelihood gives its 2-sigma
+    # interval instead (heights whose best fit of the other parameters stays within
+    # chi-square 4 of the best); its larger half, halved, is the sigma where that is larger.
+    if np.sum(np.abs(zr - z0) < 0.5 * length) < 3:
+        var[0] = max(var[0], _profile_height_sigma(residual, p, sol.cost, noise, lower, upper) ** 2)
     sampled_lo, gap_lo = _end_var(zr, z0 - 0.5 * length, ramp)
     sampled_hi, gap_hi = _end_var(zr, z0 + 0.5 * length, ramp)
     # Each end (z0 -+ L / 2): the fit's variance where a ring samples its flank, the
