@@ -234,3 +234,42 @@ def calibrate_laser(
 def laser_plane(cal: LaserCalibration, channel: str) -> LaserPlane:
     """The calibrated plane for rig.yaml."""
     return LaserPlane(k=tuple(float(v) for v in cal.k), channel=channel)  # type: ignore[arg-type]
+
+
+def ring_section_axes(camera: CameraModel, k: np.ndarray, pixels: np.ndarray) -> tuple[float, float]:
+    """(minor, major) axes (mm) of the laser ring seen at (N, 2) ``pixels`` through a rig.
+
+    Each pixel's ray meets the laser plane ``k`` (k1..k4, Eq. 4, rig frame); an ellipse
+    is fitted (algebraic least squares) to the points in the plane. A plane cuts a
+    straight pipe in an ellipse whose minor axis is the pipe's diameter, whatever the
+    plane's tilt: with the ring of a pipe of known diameter this checks a calibrated
+    camera and laser together.
+
+    Raises:
+        CalibrationError: fewer than 6 pixels whose rays meet the plane, or no ellipse.
+    """
+    kk = np.asarray(k, float)
+    nrm = kk[:3] / np.linalg.norm(kk[:3])
+    rays = camera.unproject(np.asarray(pixels, float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = -kk[3] / np.linalg.norm(kk[:3]) / (rays @ nrm)
+    pts = rays * t[:, None]
+    pts = pts[np.isfinite(t) & (t > 0)]
+    if len(pts) < 6:
+        raise CalibrationError(f"only {len(pts)} ring pixels meet the laser plane; 6 are needed")
+    c = pts.mean(axis=0)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(nrm[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(nrm, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(nrm, u)
+    x, y = (pts - c) @ u, (pts - c) @ v
+    a_mat = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
+    a, b, cc, d, e, f = np.linalg.svd(a_mat, full_matrices=False)[2][-1]
+    m = np.array([[a, b / 2.0], [b / 2.0, cc]])
+    ev = np.linalg.eigvalsh(m)
+    if not (ev[0] * ev[1] > 0):
+        raise CalibrationError("the ring's points do not form an ellipse")
+    x0 = np.linalg.solve(2.0 * m, [-d, -e])
+    f0 = f + 0.5 * (d * x0[0] + e * x0[1])
+    axes = np.sqrt(-f0 / ev)
+    return float(2.0 * axes.min()), float(2.0 * axes.max())

@@ -72,13 +72,19 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     return cv2.Rodrigues((np.asarray(axis, float) / np.linalg.norm(axis) * angle).reshape(3, 1))[0]
 
 
-def draw_truth(seed: int, size: tuple[int, int] = DEFAULT_SIZE, views: int = DEFAULT_VIEWS) -> CalibrationTruth:
+def draw_truth(
+    seed: int, size: tuple[int, int] = DEFAULT_SIZE, views: int = DEFAULT_VIEWS, design: bool = False
+) -> CalibrationTruth:
     """Random true parameters around the paper rig, and board poses.
 
     Camera pinhole up to 0.3 mm off the focus per axis, mirror tilted 0-1 deg, principal
-    point +-2 % of the image height off centre... (+-6 px at 600 rows), f +-1 %, laser
+    point +-1 % of the image height off centre (+-6 px at 600 rows), f +-1 %, laser
     normal tilted 0-2 deg, its distance 82 +- 3 mm. Half the boards straddle the laser
     plane (laser calibration), the rest spread over the mirror's view.
+
+    ``design``: the paper rig exactly as designed (``paper_rig(width, height)``: camera
+    at the focus, no tilt, laser plane z = -82 mm), the rig of ``simulate --scenario
+    paper``; only the board poses are random (the same draws as without it).
     """
     from omnipipe.sim.scenarios import paper_rig
 
@@ -100,6 +106,10 @@ def draw_truth(seed: int, size: tuple[int, int] = DEFAULT_SIZE, views: int = DEF
     q = rng.uniform(0, 2 * math.pi)
     n = np.array([math.sin(laser_tilt) * math.cos(q), math.sin(laser_tilt) * math.sin(q), math.cos(laser_tilt)])
     laser_k = np.array([*n, 82.0 + rng.uniform(-3.0, 3.0)])
+    if design:
+        offset, rig_from_camera, pp, f_px = np.zeros(3), np.eye(3), np.zeros(2), cam.f
+        laser = paper_rig(width, height).laser
+        n, laser_k = np.array([0.0, 0.0, 1.0]), np.array(laser.k, float)  # type: ignore[union-attr]
     boards = []
     cols, rows, square = TARGET
     for i in range(views):
@@ -162,12 +172,72 @@ def trace_rays(truth: CalibrationTruth, pixels: np.ndarray) -> tuple[np.ndarray,
     return p, r, hit
 
 
-def render_view(truth: CalibrationTruth, view: int, rng: np.random.Generator) -> np.ndarray:
-    """(H, W, 3) uint8 RGB image of board ``view`` with the laser line."""
+def ring_pixels(
+    truth: CalibrationTruth, diameter_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0),
+    angles: int = 720,
+) -> np.ndarray:
+    """(N, 2) pixels (col, row) of the true laser ring in a straight pipe, noise-free.
+
+    The pipe (inner diameter ``diameter_mm``) has its axis along the rig's z axis through
+    (x, y) = ``centre_mm``; along each of ``angles`` image rays from the principal point
+    the physical rays are traced (:func:`trace_rays`) to the wall and the pixel where the
+    wall point crosses the laser plane is interpolated (0.25 px steps). For measuring a
+    calibrated rig against the truth without the image chain.
+    """
+    cam = truth.nominal.camera
+    radius = diameter_mm / 2.0
+    radii = np.arange(cam.radius_min or 5.0, cam.radius_max or min(cam.cx, cam.cy), 0.25)
+    out = []
+    k = truth.laser_k
+    for phi in np.linspace(0.0, 2.0 * math.pi, angles, endpoint=False):
+        px = np.stack([truth.cx + radii * math.cos(phi), truth.cy + radii * math.sin(phi)], axis=1)
+        o, d, hit = trace_rays(truth, px)
+        oc = o[:, :2] - np.asarray(centre_mm, float)
+        qa = d[:, 0] ** 2 + d[:, 1] ** 2
+        qb = 2.0 * np.sum(oc * d[:, :2], axis=1)
+        qc = np.sum(oc * oc, axis=1) - radius**2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (-qb + np.sqrt(qb * qb - 4.0 * qa * qc)) / (2.0 * qa)
+        s = (o + t[:, None] * d) @ k[:3] + k[3]
+        s[~hit] = np.nan
+        i = np.flatnonzero(np.isfinite(s[:-1]) & np.isfinite(s[1:]) & (np.sign(s[:-1]) != np.sign(s[1:])))
+        f = s[i] / (s[i] - s[i + 1])
+        out.append(px[i] + f[:, None] * (px[i + 1] - px[i]))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+Traced = list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def trace_image(truth: CalibrationTruth, supersample: int = 2) -> Traced:
+    """The physical rays of every image sample: per sub-pixel offset (row-major over
+    ``supersample`` x ``supersample``), :func:`trace_rays` of every pixel (H*W rows).
+    The same for every view of a set: traced once, rendered many times."""
+    cam = truth.nominal.camera
+    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
+    out = []
+    for dy in offs:
+        for dx in offs:
+            px = np.stack([cols.ravel() + dx, rows.ravel() + dy], axis=1).astype(float)
+            out.append(trace_rays(truth, px))
+    return out
+
+
+def render_view(
+    truth: CalibrationTruth, view: int, rng: np.random.Generator, supersample: int = 2,
+    traced: Traced | None = None,
+) -> np.ndarray:
+    """(H, W, 3) uint8 RGB image of board ``view`` with the laser line.
+
+    ``traced``: :func:`trace_image` of ``truth`` with this ``supersample`` (computed here
+    when None; pass it to render several views of one set).
+    """
     cam = truth.nominal.camera
     w, h = cam.width, cam.height
-    ss = 2
-    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    ss = supersample
+    if traced is None:
+        traced = trace_image(truth, ss)
     rows, cols = np.mgrid[0:h, 0:w]
     gray = np.zeros(h * w)
     laser = np.zeros(h * w)
@@ -177,27 +247,24 @@ def render_view(truth: CalibrationTruth, view: int, rng: np.random.Generator) ->
     k = truth.laser_k
     r_centre = np.hypot(cols.ravel() - cam.cx, rows.ravel() - cam.cy)
     blind = r_centre < (cam.radius_min or 0.0)
-    for dy in offs:
-        for dx in offs:
-            px = np.stack([cols.ravel() + dx, rows.ravel() + dy], axis=1).astype(float)
-            o, d, hit = trace_rays(truth, px)
-            ob = o @ board_from_rig[:3, :3].T + board_from_rig[:3, 3]
-            db = d @ board_from_rig[:3, :3].T
-            with np.errstate(invalid="ignore", divide="ignore"):
-                t = -ob[:, 2] / db[:, 2]
-            on = hit & (t > 0)
-            q = ob + np.where(on, t, 0.0)[:, None] * db
-            u, v = q[:, 0] / square, q[:, 1] / square
-            inside = on & (u >= 0) & (u <= n_cols + 1) & (v >= 0) & (v <= n_rows + 1)
-            margin = on & (u >= -0.6) & (u <= n_cols + 1.6) & (v >= -0.6) & (v <= n_rows + 1.6)
-            checker = (np.floor(u) + np.floor(v)) % 2 == 0
-            val = np.where(hit, 0.25, 0.02)
-            val = np.where(margin, 0.85, val)
-            val = np.where(inside & checker, 0.08, val)
-            gray += np.where(blind, 0.03, val) / ss**2
-            p_rig = o + np.where(on, t, 0.0)[:, None] * d
-            dist = p_rig @ k[:3] + k[3]
-            laser += np.where(margin & ~blind, np.exp(-0.5 * (dist / LASER_SIGMA_MM) ** 2), 0.0) / ss**2
+    for o, d, hit in traced:
+        ob = o @ board_from_rig[:3, :3].T + board_from_rig[:3, 3]
+        db = d @ board_from_rig[:3, :3].T
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = -ob[:, 2] / db[:, 2]
+        on = hit & (t > 0)
+        q = ob + np.where(on, t, 0.0)[:, None] * db
+        u, v = q[:, 0] / square, q[:, 1] / square
+        inside = on & (u >= 0) & (u <= n_cols + 1) & (v >= 0) & (v <= n_rows + 1)
+        margin = on & (u >= -0.6) & (u <= n_cols + 1.6) & (v >= -0.6) & (v <= n_rows + 1.6)
+        checker = (np.floor(u) + np.floor(v)) % 2 == 0
+        val = np.where(hit, 0.25, 0.02)
+        val = np.where(margin, 0.85, val)
+        val = np.where(inside & checker, 0.08, val)
+        gray += np.where(blind, 0.03, val) / ss**2
+        p_rig = o + np.where(on, t, 0.0)[:, None] * d
+        dist = p_rig @ k[:3] + k[3]
+        laser += np.where(margin & ~blind, np.exp(-0.5 * (dist / LASER_SIGMA_MM) ** 2), 0.0) / ss**2
     gray = cv2.GaussianBlur(gray.reshape(h, w), (0, 0), 0.5)
     laser = cv2.GaussianBlur(laser.reshape(h, w), (0, 0), 0.5)
     img = np.stack([0.7 * gray + 0.8 * laser, gray, gray], axis=2)
@@ -211,8 +278,12 @@ def write_calibration_set(
     size: tuple[int, int] | None = None,
     views: int | None = None,
     force: bool = False,
+    design: bool = False,
 ) -> CalibrationTruth:
     """Render a calibration set (module docstring) into ``out``, atomically.
+
+    ``design``: the paper rig as designed instead of random true parameters
+    (:func:`draw_truth`).
 
     Raises:
         ConfigError: bad seed, size or view count. OutputError: ``out`` may not be written.
@@ -223,18 +294,20 @@ def write_calibration_set(
         raise ConfigError("--frames", f"a calibration set needs at least 3 views, got {views}")
     if size[0] < 200 or size[1] < 150:
         raise ConfigError("--size", f"calibration views need at least 200x150 px, got {size[0]}x{size[1]}")
-    truth = draw_truth(seed, size, views)
+    truth = draw_truth(seed, size, views, design=design)
     rng = np.random.default_rng(seed + 1_000_003)
     with atomic_output_dir(Path(out), force=force) as tmp:
         (tmp / "images").mkdir()
         (tmp / "ground_truth").mkdir()
+        traced = trace_image(truth)
         for i in range(views):
-            img = render_view(truth, i, rng)
+            img = render_view(truth, i, rng, traced=traced)
             cv2.imwrite(str(tmp / "images" / f"view_{i:02d}.png"), img[:, :, ::-1])
         save_rig(truth.nominal, tmp / "nominal_rig.yaml")
         cols, rows, square = TARGET
         (tmp / "target.txt").write_text(f"checkerboard:{cols}x{rows}:{square:g}\n", encoding="utf-8")
         gt = {
+            "design": design,
             "mirror": {"a": truth.a, "b": truth.b},
             "camera": {
                 "f_px": truth.f_px,
@@ -274,6 +347,7 @@ def simulate_main(args: Any) -> int:
         size=getattr(args, "size", None),
         views=getattr(args, "frames", None),
         force=bool(getattr(args, "force", False)),
+        design=bool(getattr(args, "design", False)),
     )
     cam = truth.nominal.camera
     print(
