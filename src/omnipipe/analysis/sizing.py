@@ -33,6 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+# Fewer rings than this across a defect's half-height length: its height's sigma is also
+# taken from the profile likelihood (the linearised covariance misses a crest between rings).
+PROFILE_RINGS = 4
+
 __all__ = ["BumpFit", "bump_model", "detection_limit", "fit_bump", "plateau"]
 
 
@@ -169,7 +173,9 @@ def _profile_height_sigma(residual, p: np.ndarray, cost: float, noise: float, lo
                     sol = trial
             d = 2.0 * (sol.cost - cost)
             if d > limit:
-                edge = prev_h + (hv - prev_h) * (limit - prev_d) / max(d - prev_d, 1e-12)
+                # chi-square grows about quadratically with the height: interpolate its root.
+                r0, r1 = math.sqrt(max(prev_d, 0.0)), math.sqrt(d)
+                edge = prev_h + (hv - prev_h) * (math.sqrt(limit) - r0) / max(r1 - r0, 1e-12)
                 break
             x, prev_h, prev_d, edge = sol.x, hv, d, hv
         half = max(half, abs(edge - h))
@@ -266,12 +272,12 @@ def fit_bump(
             [float(np.median(z[keep & near_u & (ring == r)])) for r in np.unique(ring[keep & near_u])]
         )
     ramp = fz * length
-    # A crest between rings: with fewer than 3 rings across the half-height length, a low
+    # A crest between rings: with few rings across the half-height length, a low
     # flat bump and a taller, shorter or rounder one fit the samples alike, and the
     # linearised covariance misses that. The height's profile likelihood gives its 2-sigma
     # interval instead (heights whose best fit of the other parameters stays within
     # chi-square 4 of the best); its larger half, halved, is the sigma where that is larger.
-    if np.sum(np.abs(zr - z0) < 0.5 * length) < 3:
+    if np.sum(np.abs(zr - z0) < 0.5 * length) < PROFILE_RINGS:
         var[0] = max(var[0], _profile_height_sigma(residual, p, sol.cost, noise, lower, upper) ** 2)
     sampled_lo, gap_lo = _end_var(zr, z0 - 0.5 * length, ramp)
     sampled_hi, gap_hi = _end_var(zr, z0 + 0.5 * length, ramp)
