@@ -207,7 +207,8 @@ def main() -> None:
             f"limit {summary.get('detection_limit_mm')} mm",
             flush=True,
         )
-    print(f"\n{len(errors['inner diameter'])} runs at {args.size}, {args.frames} frames, {args.defects} defects each")
+    n_true = found + len(missed)
+    print(f"\n{len(errors['inner diameter'])} runs at {args.size}, {args.frames} frames, {n_true} true defects")
     print(f"{'quantity':18s} {'n':>5s} {'bias':>9s} {'RMS':>9s} {'med sigma':>10s} {'cover 2s':>9s}")
     for name, key, _ in QUANTITIES:
         e = np.array(errors[name], float).reshape(-1, 2)
