@@ -93,7 +93,7 @@ def one_set(seed: int, size: tuple[int, int], views: int, root: Path, design: bo
     aligned = errors(np.array([*n, k_true[3] - n @ t]))
     frame_deg = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
     camera = camera_from_rig(rig)
-    ring = max((abs(ring_section_axes(camera, k, ring_pixels(truth, PIPE_MM, c))[0] - PIPE_MM)
+    ring = max((ring_section_axes(camera, k, ring_pixels(truth, PIPE_MM, c))[0] - PIPE_MM
                 for c in ((0.0, 0.0), (5.0, 0.0))), key=abs)
     if save is not None:
         save.mkdir(parents=True, exist_ok=True)
