@@ -127,3 +127,24 @@ def test_import_ocam(tmp_path: Path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "image size" in err[0] and not out2.exists()
     shutil.rmtree(tmp_path / "nothing", ignore_errors=True)
+
+
+def test_ring_diameter_through_a_rig() -> None:
+    """The true ring of a known pipe, seen through the exact rig, has the pipe's diameter
+    (ellipse minor axis, tilted plane, off-centre pipe); a 1 % wrong laser offset shows."""
+    from dataclasses import replace
+
+    from omnipipe.calibrate.laser import ring_section_axes
+    from omnipipe.sim.calibration import draw_truth, ring_pixels
+
+    tilt = np.radians(1.5)
+    k = np.array([np.sin(tilt), 0.0, np.cos(tilt), 82.0])
+    truth = replace(draw_truth(4, (400, 300), 3, design=True), laser_k=k)
+    cam = camera_from_rig(paper_rig(400, 300))  # the design rig is the exact hyperboloid
+    for diameter, centre in ((202.0, (0.0, 0.0)), (160.0, (6.0, -4.0))):
+        px = ring_pixels(truth, diameter, centre, angles=180)
+        assert len(px) > 150
+        minor, major = ring_section_axes(cam, k, px)
+        assert abs(minor - diameter) < 0.02 and major >= minor  # mm
+        k_far = k * np.array([1, 1, 1, 1.01])
+        assert abs(ring_section_axes(cam, k_far, px)[0] - 1.01 * diameter) < 0.03

@@ -103,13 +103,26 @@ def board_gray(image: np.ndarray) -> np.ndarray:
     return g
 
 
-def detect_corners(image: np.ndarray, target: Target) -> np.ndarray | None:
-    """(cols*rows, 2) sub-pixel corners (col, row) of ``target`` in ``image``, or None."""
+DETECT_UPSCALE = 1  # 2 measured: corners 0.15 -> 0.10 px, ring error -0.24 -> -0.23 mm only
+
+
+def detect_corners(image: np.ndarray, target: Target, upscale: int = DETECT_UPSCALE) -> np.ndarray | None:
+    """(cols*rows, 2) sub-pixel corners (col, row) of ``target`` in ``image``, or None.
+
+    ``upscale`` > 1 runs the detector on the image enlarged that many times (bicubic)
+    and maps the corners back to the image's pixel centres. On the omni image's small,
+    curved squares the corners are off by 0.15 px RMS against the exact projection (the
+    simulator's design-rig set), 0.10 px at 2x, 0.09 px at 3x; the calibrated ring
+    diameter barely changes (docs/calibration.md), so the default stays 1 (faster).
+    """
     flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    ok, corners = cv2.findChessboardCornersSB(board_gray(image), (target.cols, target.rows), flags=flags)
+    gray = board_gray(image)
+    if upscale > 1:
+        gray = cv2.resize(gray, None, fx=upscale, fy=upscale, interpolation=cv2.INTER_CUBIC)
+    ok, corners = cv2.findChessboardCornersSB(gray, (target.cols, target.rows), flags=flags)
     if not ok or corners is None:
         return None
-    return corners.reshape(-1, 2).astype(float)
+    return (corners.reshape(-1, 2).astype(float) + 0.5) / upscale - 0.5
 
 
 def _rays_pose(rays: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
