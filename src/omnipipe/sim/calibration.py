@@ -21,6 +21,11 @@ axis (the mirror tilted in its mount), so the image is only approximately centra
 Each pixel's ray (2x2 supersampled) is reflected exactly at the mirror and meets the
 board plane. The laser plane ``laser_plane`` (k1..k4 in the rig frame, Eq. 4) is tilted
 up to 2 deg; its line on the board is a Gaussian sheet of 0.35 mm sigma.
+
+``design=True`` (:func:`write_calibration_set`; ``design`` in calibration.json) renders
+the paper rig exactly as designed instead, the rig of ``simulate --scenario paper``.
+:func:`ring_pixels` gives the true laser ring of a pipe of known diameter, to check a
+calibrated rig without the image chain (benchmarks/bench_calibration.py).
 """
 
 from __future__ import annotations
