@@ -62,9 +62,9 @@ def step_errors(
     return idx[:-1][consecutive], le[consecutive], lt[consecutive]
 
 
-def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Light section and camera motion as reconstruct runs them; registered poses and
-    the unreliable stretches (report.json form)."""
+def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict], float]:
+    """Light section and camera motion as reconstruct runs them; registered poses,
+    the unreliable stretches (report.json form) and the stated relative scale sigma."""
     from omnipipe import laser
     from omnipipe.pipeline.quality import refuse_untrusted_motion
     from omnipipe.sfm import pipeline as sfm
@@ -77,7 +77,8 @@ def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     )
     refuse_untrusted_motion(motion)
     reg = np.flatnonzero(motion.registered)
-    return dataset.timestamps[reg], motion.world_from_rig[reg], [u.to_dict() for u in motion.unreliable]
+    unreliable = [u.to_dict() for u in motion.unreliable]
+    return dataset.timestamps[reg], motion.world_from_rig[reg], unreliable, motion.scale_sigma_rel
 
 
 def evaluate_seed(
@@ -101,8 +102,9 @@ def evaluate_seed(
             write(rec, out, force=True)
             unreliable = rec.summary["trajectory_quality"]["unreliable"]
             ts_est, est = read_tum(out / "trajectory.txt")
+            sigma_rel = float(rec.summary.get("scale_sigma_rel", float("nan")))
         else:
-            ts_est, est, unreliable = _motion_only(open_dataset(ds))
+            ts_est, est, unreliable, sigma_rel = _motion_only(open_dataset(ds))
     except OmnipipeError as exc:
         row.update(refused=str(exc), time_s=time.perf_counter() - t0)
         return row
@@ -126,6 +128,7 @@ def evaluate_seed(
     row.update(
         ate_mm=te.ate_rmse_mm,
         scale_err_pct=100 * te.scale_error,
+        scale_sigma_pct=100 * sigma_rel,
         travel_mm=te.path_length_mm,
         worst_step_mm=float(err.max()) if len(err) else 0.0,
         steps=len(err),
@@ -152,7 +155,7 @@ def main() -> None:
     rows = []
     head = (
         f"{'seed':>4} {'family':>10} {'D mm':>5} {'frames':>6} {'ATE mm':>7} {'scale %':>7} "
-        f"{'worst mm':>8} {'unflag mm':>9} {'flagged':>7} {'silent':>6} {'s':>5}"
+        f"{'sigma %':>7} {'worst mm':>8} {'unflag mm':>9} {'flagged':>7} {'silent':>6} {'s':>5}"
     )
     print(head)
     try:
@@ -164,7 +167,8 @@ def main() -> None:
             else:
                 print(
                     f"{seed:>4} {r['family']:>10} {r['diameter_mm']:>5.0f} {r['frames']:>6} "
-                    f"{r['ate_mm']:>7.3f} {r['scale_err_pct']:>7.3f} {r['worst_step_mm']:>8.2f} "
+                    f"{r['ate_mm']:>7.3f} {r['scale_err_pct']:>7.3f} {r['scale_sigma_pct']:>7.3f} "
+                    f"{r['worst_step_mm']:>8.2f} "
                     f"{r['worst_unflagged_mm']:>9.2f} {r['steps_flagged']:>7d} {r['silent']:>6d} "
                     f"{r['time_s']:>5.0f}" + (f"  silent at {r['silent_steps']}" if r["silent"] else ""),
                     flush=True,
@@ -185,6 +189,15 @@ def main() -> None:
             f"{sum(r['silent_strict'] for r in done)} steps in {sum(r['silent_strict'] > 0 for r in done)} runs"
         )
         print(f"median scale error {np.median([r['scale_err_pct'] for r in done]):.3f} %")
+        # Runs whose scale is trusted (fewer than half the steps flagged): does the stated
+        # sigma cover the true scale error?
+        trusted = [r for r in done if r["steps_flagged"] < 0.5 * r["steps"] and np.isfinite(r["scale_sigma_pct"])]
+        if trusted:
+            cover = np.mean([abs(r["scale_err_pct"]) <= 2 * r["scale_sigma_pct"] for r in trusted])
+            print(
+                f"scale error within 2 stated sigma: {100 * cover:.0f} % of {len(trusted)} runs "
+                "with fewer than half their steps flagged"
+            )
         per300 = [r["ate_mm"] * 300.0 / max(r["travel_mm"], 1.0) for r in clean]
         if per300:
             print(f"ATE per 300 mm on runs with no flagged step: max {max(per300):.3f} mm, median {np.median(per300):.3f} mm")

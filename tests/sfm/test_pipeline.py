@@ -37,3 +37,20 @@ def test_short_run_trajectory_within_band(name: str) -> None:
     # 12 mm step); full size: 0.4 % over 300 mm (benchmarks/bench_sfm.py, omnipipe demo).
     assert errs.scale_error < 0.05
     assert errs.rotation_rmse_deg < 0.3
+
+
+def test_combine_scales_weights_and_widens_on_disagreement() -> None:
+    from omnipipe.sfm.pipeline import combine_scales
+
+    # Agreeing sources of equal sigma: the mean, sigma / sqrt(2).
+    mean, sigma = combine_scales(0.001, 0.001, 0.001, wall_anchored=False)
+    assert mean == pytest.approx(0.0005) and sigma == pytest.approx(0.001 / np.sqrt(2))
+    # A precise wall against a vague laser: mostly the wall.
+    mean, _ = combine_scales(-0.004, 0.001, 0.004, wall_anchored=False)
+    assert -0.004 < mean < -0.0035
+    # Disagreement beyond both sigmas widens the stated sigma (never hides it): the
+    # gap between the sources is then within 3 combined sigmas of either source.
+    mean, sigma = combine_scales(-0.02, 0.001, 0.001, wall_anchored=False)
+    assert sigma > 0.001 and abs(mean - 0.0) < 3 * sigma and abs(mean + 0.02) < 3 * sigma
+    # A wall-anchored run: one source, taken as is.
+    assert combine_scales(0.003, 0.002, 0.0005, wall_anchored=True) == (0.003, 0.002)

@@ -11,7 +11,9 @@ from scipy.spatial.transform import Rotation
 from omnipipe.geometry import make_transform
 from omnipipe.sfm.laser_scale import consensus_peaks
 from omnipipe.sfm.scale_check import (
+    WALL_SCALE_SIGMA_FLOOR,
     ScaleCheckConfig,
+    StepCheck,
     UnreliableStretch,
     decide,
     feature_log_scales,
@@ -20,6 +22,7 @@ from omnipipe.sfm.scale_check import (
     steps_checked,
     wall_cylinder,
     wall_depth,
+    wall_scale_correction,
 )
 
 CFG = ScaleCheckConfig()
@@ -130,3 +133,45 @@ def test_stretches_merge_and_steps_checked() -> None:
     ]
     stationary = np.array([False, False, False, False, False, False, True, True])
     assert steps_checked(checks, stationary) == 2 + 2  # frames 0->2 and two standstills
+
+
+def _reliable(k: int) -> StepCheck:
+    return StepCheck(k, k + 1, 4.0, 0.0, 4.0, 50, 4.0, "high")
+
+
+@pytest.mark.parametrize("wrong_scale", [0.97, 1.0, 1.05])
+def test_wall_scale_correction_recovers_the_true_scale(wrong_scale: float) -> None:
+    """Keyframes in a 200 mm pipe whose adjusted run is `wrong_scale` too long: the wall
+    seen by the matched features gives the factor back, and a sigma that covers it."""
+    rng = np.random.default_rng(7)
+    centre, radius = np.array([1.5, -1.0]), 100.0
+    n_kf = 8
+    world_from_kf = np.stack([
+        make_transform(Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix(), [0.3 * k, 0.0, 6.0 * k])
+        for k in range(n_kf)
+    ])
+    wall_world = _wall_points(rng, 3000, centre, radius, (-250.0, 300.0))
+    rays, rings, matches = [], [], []
+    for k in range(n_kf):
+        kf_from_world = np.linalg.inv(world_from_kf[k])
+        p = wall_world @ kf_from_world[:3, :3].T + kf_from_world[:3, 3]
+        r = p / np.linalg.norm(p, axis=1)[:, None]
+        r += rng.normal(0, 2e-4, r.shape)  # about 0.2 px
+        rays.append(r / np.linalg.norm(r, axis=1)[:, None])
+        phi = rng.uniform(0, 2 * np.pi, 300)  # its laser ring on the wall, 82 mm ahead
+        ring_w = np.column_stack([centre[0] + radius * np.cos(phi), centre[1] + radius * np.sin(phi),
+                                  np.full(300, 6.0 * k - 82.0)])
+        rings.append(ring_w @ kf_from_world[:3, :3].T + kf_from_world[:3, 3])
+    idx = np.arange(len(wall_world))
+    for k in range(n_kf - 1):
+        matches.append((k, k + 1, np.column_stack([idx, idx])[::10]))
+    wrong = world_from_kf.copy()
+    wrong[:, :3, 3] *= wrong_scale
+    got = wall_scale_correction(wrong, matches, rays, rings, [_reliable(k) for k in range(n_kf - 1)], CFG)
+    assert got is not None
+    log_gain, sigma = got
+    assert abs(log_gain + math.log(wrong_scale)) < 0.003  # 0.3 %
+    assert abs(log_gain + math.log(wrong_scale)) < 3 * math.hypot(sigma, WALL_SCALE_SIGMA_FLOOR)
+    # Unreliable steps do not count: too few left, no correction.
+    few = [_reliable(k) if k < 2 else StepCheck(k, k + 1, 4.0, 0, 9.0, 50, 4.0, "low") for k in range(n_kf - 1)]
+    assert wall_scale_correction(wrong, matches, rays, rings, few, CFG) is None

@@ -11,6 +11,7 @@ true`` and a warning: their length and position rest on untrusted motion.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -62,9 +63,19 @@ def trajectory_quality(
         "steps_checked": steps_checked(motion.step_checks, motion.stationary),
         "scale_source": motion.scale_source,
         "laser_offset_pct": round(100 * motion.laser_offset, 2),
+        # After the adjustment: how far the wall's lengths were from the laser-anchored
+        # run's, and the correction applied (both NaN -> null when not measured).
+        "wall_scale_gap_pct": _pct(motion.wall_scale_log),
+        "scale_correction_pct": _pct(motion.scale_correction_log),
+        "scale_sigma_pct": _pct(math.log1p(motion.scale_sigma_rel)),
         "unreliable": unreliable,
         "keyframe_steps": [c.to_dict() for c in motion.step_checks],
     }
+
+
+def _pct(log_value: float) -> float | None:
+    """A log factor as a rounded percentage, None when not finite (JSON null)."""
+    return round(100 * math.expm1(log_value), 3) if math.isfinite(log_value) else None
 
 
 def flag_defects(defects: list[dict[str, Any]], quality: dict[str, Any]) -> list[str]:
