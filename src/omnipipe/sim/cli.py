@@ -65,6 +65,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="replace an earlier omnipipe output in OUT (never a folder holding other files)",
     )
+    p.add_argument(
+        "--design",
+        action="store_true",
+        help="calibration scenario only: render the paper rig as designed, not a random rig",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_main)
 
