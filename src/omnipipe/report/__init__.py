@@ -403,6 +403,15 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
             f"<tr><td>camera motion check</td><td>{_fmt(q.get('steps_checked'))} of {steps} frame "
             f"steps verified; {verdict}</td></tr>"
         )
+        if q.get("scale_source"):
+            gap = q.get("wall_scale_gap_pct")
+            sigma = q.get("scale_sigma_pct")
+            parts.append(
+                f"<tr><td>metric scale</td><td>{html.escape(str(q['scale_source']))}"
+                + (f"; 1-sigma {sigma:.2f} % of every length along the pipe" if sigma is not None else "")
+                + (f"; wall vs laser before combining {gap:+.2f} %" if gap is not None else "")
+                + "</td></tr>"
+            )
     parts.append("</table>")
     for w in s.get("warnings", []):
         parts.append(f"<p class='warn'>warning: {html.escape(str(w))}</p>")
