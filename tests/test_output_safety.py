@@ -346,9 +346,13 @@ def test_a_live_runs_partial_and_foreign_lookalikes_are_left_alone(tmp_path: Pat
 
 SIGNAL_SCRIPT = textwrap.dedent(
     """
-    import sys, time
+    import signal, sys, time
     import omnipipe.sim.writer as writer
     from omnipipe.cli import main
+
+    # As from a terminal: a shell's background job (e.g. CI started with &) inherits
+    # SIGINT ignored, and Python would then never raise KeyboardInterrupt.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     out, workers, render = sys.argv[1:4]
     original = writer._render_all
