@@ -59,6 +59,9 @@ class ScaleCheckConfig:
         max_bias_log: a run-wide offset beyond this (5 %) means the laser's template
             lengths are biased on this rig and pipe: the metric anchors of the bundle
             adjustment are then features placed on the light-section wall instead.
+        anchor_agree_log: a ``high`` step whose two lengths differ by more than this
+            (offset removed) takes the feature-depth length, and its laser matches do
+            not anchor the bundle adjustment (a partial wrong-course laser match).
     """
 
     agree_log: float = 0.12
@@ -71,6 +74,7 @@ class ScaleCheckConfig:
     adjusted_agree_log: float = 0.1
     max_source_offset_log: float = 0.25
     max_bias_log: float = 0.05
+    anchor_agree_log: float = 0.05
 
 
 @dataclass(frozen=True)
