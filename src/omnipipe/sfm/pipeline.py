@@ -43,6 +43,7 @@ from omnipipe.sfm.scale_check import (
     decide,
     feature_log_scales,
     feature_scale,
+    median_with_sigma,
     merge_stretches,
     wall_cylinder,
     wall_depth,
@@ -76,9 +77,7 @@ class SfmConfig:
             the matched features placed on the light-section wall (each keyframe step's
             adjusted motion re-triangulates its matches; their depth over the wall
             depth along the same ray gives the step's length): the laser anchors keep
-            the shape, the wall gives the scale. Measured (800x600 random rigs, true
-            scale error of laser-anchored vs wall-scaled runs): seed 28 1.11 -> 0.02 %,
-            seed 1 0.28 -> 0.09 %, seed 20 0.30 -> 0.07 %; bend 0.43 -> 0.02 %.
+            the shape, the two are combined by :func:`combine_scales`.
         planes: the paper's projection-plane refinement of correspondences (off by
             default: see docs/pipeline.md for the measured comparison).
         bundle: bundle adjustment settings.
@@ -446,8 +445,9 @@ def combine_scales(
     anchored on the wall (``wall_anchored``) takes the wall's value: the two are one
     source then.
 
-    Measured (true scale error, laser alone -> combined): paper 0.01 -> about 0.04 %,
-    bend 0.41 -> about 0.07 %, random seed 28 1.11 -> about 0.3 %.
+    Measured (path-length error, laser alone -> combined, full-size datasets): paper
+    -0.01 -> +0.05 %, bend +0.41 -> +0.07 % (docs/pipeline.md); bench_robustness
+    seeds 0-29: median scale error 0.29 % (0.31 % before the stripe fix and this).
 
     Returns:
         (log correction to apply to every length, relative 1-sigma of the result).
@@ -483,8 +483,7 @@ def _scale_sigma_rel(anchor_logs: list[tuple[float, np.ndarray]]) -> float:
     for length, logs in anchor_logs:
         if len(logs) < 3 or length <= 0:
             continue
-        spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs))))
-        sig = 1.2533 * spread / math.sqrt(len(logs))  # the median's efficiency
+        _, sig = median_with_sigma(logs)
         var += (length * sig) ** 2
         total += length
     return math.sqrt(var) / total if total > 0 else math.nan

@@ -420,7 +420,12 @@ def wall_scale_correction(
             logs.append(math.log(s_feat / length))
     if len(logs) < WALL_SCALE_MIN_STEPS:
         return None
-    r = np.array(logs)
-    med = float(np.median(r))
-    spread = 1.4826 * float(np.median(np.abs(r - med)))
-    return med, 1.2533 * spread / math.sqrt(len(r))
+    return median_with_sigma(np.array(logs))
+
+
+def median_with_sigma(values: np.ndarray) -> tuple[float, float]:
+    """Median of (N,) values and its 1-sigma: the robust spread (1.4826 MAD) times the
+    median's efficiency factor 1.2533, over sqrt(N)."""
+    med = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - med)))
+    return med, 1.2533 * spread / math.sqrt(len(values))
