@@ -80,3 +80,25 @@ def test_resection_from_rays_to_known_points() -> None:
     rays[wrong] /= np.linalg.norm(rays[wrong], axis=1, keepdims=True)
     est = resect_rays(rays, pts[ok], poses[2])  # start: the previous keyframe, 12 mm back
     assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.1
+
+
+def test_resection_refits_without_unverified_matches() -> None:
+    # A frame between keyframes: few tracked points, and the next keyframe's descriptor
+    # matches (not verified by RANSAC) bring many wrong ones; the refit on the consistent
+    # rays keeps the position as good as the verified ones alone would give.
+    rng, camera, poses, pts, *_ = _scene(11)
+    truth = poses[3] @ make_transform(np.eye(3), np.array([0.3, -0.2, 4.0]))
+    q = apply(invert(truth), pts)
+    _, ok = camera.project(q)
+    idx = rng.choice(np.flatnonzero(ok), 60, replace=False)
+    rays = q[idx] / np.linalg.norm(q[idx], axis=1, keepdims=True)
+    rays = rays + rng.normal(0, 0.003, rays.shape)  # ~0.17 deg, as measured on wall features
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    wrong = np.arange(60) >= 36  # 40 % wrong
+    rays[wrong] = rng.normal(size=(int(wrong.sum()), 3))
+    rays[wrong] /= np.linalg.norm(rays[wrong], axis=1, keepdims=True)
+    clean = resect_rays(rays[~wrong], pts[idx][~wrong], poses[3])
+    est = resect_rays(rays, pts[idx], poses[3])
+    err_clean = np.linalg.norm(clean[:3, 3] - truth[:3, 3])
+    err = np.linalg.norm(est[:3, 3] - truth[:3, 3])
+    assert err < max(1.5 * err_clean, 0.1), (err, err_clean)

@@ -277,7 +277,8 @@ def resect_rays(
     """Pose of a rig whose rays see known world points (omni-directional resection).
 
     Minimises the robust angle between each ray and the direction to its point, from
-    an initial pose (the nearest keyframe's). Works for rays in every direction.
+    an initial pose (the nearest keyframe's), then once more on the rays within
+    ``max_angle_rad`` (unverified matches, wrong tracks). Works for rays in every direction.
 
     Args:
         rays_in_rig: (M, 3) unit rays of the rig's features.
@@ -301,8 +302,21 @@ def resect_rays(
         q /= np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-9)
         return np.cross(q, rays_in_rig).ravel()  # |sin angle| per axis
 
-    sol = least_squares(residual, p0, loss="soft_l1", f_scale=0.2 * max_angle_rad, x_scale="jac")
-    ang = np.linalg.norm(sol.fun.reshape(-1, 3), axis=1)
+    def solve(keep: np.ndarray, x0: np.ndarray):
+        def res(x: np.ndarray) -> np.ndarray:
+            return residual(x).reshape(-1, 3)[keep].ravel()
+
+        return least_squares(res, x0, loss="soft_l1", f_scale=0.2 * max_angle_rad, x_scale="jac")
+
+    keep = np.ones(len(points_in_world), bool)
+    sol = solve(keep, p0)
+    ang = np.linalg.norm(residual(sol.x).reshape(-1, 3), axis=1)
+    inl = ang < max_angle_rad
+    if inl.sum() >= 6 and not inl.all():
+        # Refit on the consistent rays only (unverified matches, a wrong track).
+        keep = inl
+        sol = solve(keep, sol.x)
+        ang = np.linalg.norm(residual(sol.x).reshape(-1, 3), axis=1)
     if np.sum(ang < max_angle_rad) < 6:
         raise ReconstructionError("resection: fewer than 6 consistent rays")
     T = np.eye(4)
