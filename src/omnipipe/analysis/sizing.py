@@ -40,6 +40,9 @@ from scipy.optimize import least_squares
 # Fewer rings than this across a defect's half-height length: its height's sigma is also
 # taken from the profile likelihood (the linearised covariance misses a crest between rings).
 PROFILE_RINGS = 4
+# Parameters of the fit that absorb part of the rings' cross-section errors (height,
+# centre, length, axial flank): the moment estimate of those errors is scaled by G / (G - 4).
+CROSS_SECTION_DOF = 4.0
 
 __all__ = ["BumpFit", "bump_model", "detection_limit", "fit_bump", "plateau"]
 
@@ -122,6 +125,7 @@ def _correlated_cov(
     noise: float,
     prior_info: np.ndarray,
     max_lag: int = 12,
+    profile: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The fit's covariance with the noise correlated along each ring and ring offsets.
 
@@ -134,8 +138,11 @@ def _correlated_cov(
     pipe, give the correlation rho_k at lag k samples (pooled over the rings, summed up to
     the first lag where it is no longer positive), and whatever the ring means scatter
     beyond that is a ring offset shared by all its samples (its pose, its wall profile):
-    variance tau^2. With S the noise covariance so modelled, the estimate's covariance is
-    the sandwich
+    variance tau^2. Likewise each ring's residual along the defect's cross-section
+    ``profile`` (errors correlated over the defect's width, an axial shift of a ring on
+    a flank) gives a ring-wide error of that shape (on the simulated runs about 0.1 mm
+    beyond the correlated noise, beside the defects as on them). With S the noise
+    covariance so modelled, the estimate's covariance is the sandwich
 
         A^-1 (J^T S J / s^4 + P) A^-1,   A = J^T J / s^2 + P,
 
@@ -148,6 +155,7 @@ def _correlated_cov(
         noise: RMS residual s (mm).
         prior_info: (K, K) prior information P.
         max_lag: largest lag (samples) considered.
+        profile: (N,) the defect's cross-section at each sample (0-1), or None.
 
     Returns:
         (covariance with correlation, covariance as if the samples were independent).
@@ -159,6 +167,11 @@ def _correlated_cov(
     Js, es, rs = J[order], res[order], ring[order]
     total = float(es @ es)
     meat = J.T @ J
+    ids, inv, counts = np.unique(rs, return_inverse=True, return_counts=True)
+    g = np.asarray(profile, float)[order] if profile is not None else np.zeros(len(es))
+    # Per ring: q.q and q^T R q (R: the noise correlation).
+    gg = np.bincount(inv, weights=g * g, minlength=len(ids))
+    grg = gg.copy()
     rho_sum = 0.0
     for k in range(1, max_lag + 1):
         same = rs[k:] == rs[:-k]
@@ -170,9 +183,9 @@ def _correlated_cov(
         m = Js[:-k][same].T @ Js[k:][same]
         meat += rho * (m + m.T)
         rho_sum += rho
-    # Ring offsets: the ring means' scatter beyond what the correlated noise explains.
-    ids, inv, counts = np.unique(rs, return_inverse=True, return_counts=True)
+        grg += 2.0 * rho * np.bincount(inv[k:][same], weights=g[k:][same] * g[:-k][same], minlength=len(ids))
     if len(ids) >= 3:
+        # Ring offsets: the ring means' scatter beyond what the correlated noise explains.
         means = np.bincount(inv, weights=es) / counts
         expected = s2 * (1.0 + 2.0 * rho_sum) / counts
         tau2 = max(float(np.mean(means**2 - expected)), 0.0)
@@ -180,39 +193,61 @@ def _correlated_cov(
             sums = np.zeros((len(ids), J.shape[1]))
             np.add.at(sums, inv, Js)
             meat += tau2 / s2 * (sums.T @ sums)
+    if profile is not None and len(ids) >= 3 and np.sum(gg**2) > 0:
+        # Errors of a whole ring with the defect's cross-section q (noise correlated along
+        # the ring over the defect's width, a ring's axial shift on the flanks): each ring's
+        # residual along q beyond what the correlated noise explains, pooled over all the
+        # window's rings (those beside the defect measure it as well).
+        ge = np.bincount(inv, weights=g * es, minlength=len(ids))
+        g_eff = float(np.sum(gg) ** 2 / np.sum(gg**2))
+        excess = float(np.sum(ge**2 - s2 * grg)) / float(np.sum(gg**2))
+        amp2 = max(excess, 0.0) * g_eff / max(g_eff - CROSS_SECTION_DOF, 1.0)
+        if amp2 > 0:
+            v = np.zeros((len(ids), J.shape[1]))
+            np.add.at(v, inv, Js * g[:, None])
+            meat += amp2 / s2 * (v.T @ v)
     cov = cov_iid @ (meat / s2 + prior_info) @ cov_iid
     return cov, cov_iid
 
 
-def _profile_height_sigma(
-    residual, p: np.ndarray, cost: float, noise: float, lower, upper, inflation: float = 1.0
+def _profile_sigma(
+    residual,
+    p: np.ndarray,
+    index: int,
+    factors: tuple[tuple[float, ...], tuple[float, ...]],
+    cost: float,
+    noise: float,
+    lower,
+    upper,
+    inflation: float = 1.0,
 ) -> float:
-    """Half of the larger side of the height's 2-sigma profile-likelihood interval.
+    """Half of the larger side of one parameter's 2-sigma profile-likelihood interval.
 
-    Steps the height outward from the fit ``p`` (factors 0.85-0.5 and 1.15-2.5, each refit
-    of the other parameters warm-started from the previous step and from a rounded flank)
-    until chi-square exceeds the best by 4 x ``inflation``, interpolating the crossing; a
-    side that never exceeds it ends at its last step. ``inflation`` is the ratio of the
-    height's variance with correlated noise to its variance with independent samples (the
-    chi-square of correlated samples counts each error that many times).
+    Steps parameter ``index`` (0: height, 4: length) outward from the fit ``p`` by the
+    ``factors`` (a downward and an upward sequence), each step refitting the other
+    parameters warm-started from the previous step and from a rounded flank, until
+    chi-square exceeds the best by 4 x ``inflation``, interpolating the crossing; a side
+    that never exceeds it ends at its last step. ``inflation`` is the ratio of the
+    parameter's variance with correlated noise to its variance with independent samples
+    (the chi-square of correlated samples counts each error that many times).
     """
-    h = float(p[0])
+    v0 = float(p[index])
     limit = 4.0 * max(inflation, 1.0) * max(noise, 1e-9) ** 2
     half = 0.0
-    for factors in ((0.85, 0.7, 0.5), (1.15, 1.35, 1.7, 2.5)):
-        x, prev_h, prev_d = np.array(p, float), h, 0.0
-        edge = h
-        for f in factors:
-            hv = h * f
-            if not lower[0] < hv < upper[0]:
+    for steps in factors:
+        x, prev_v, prev_d = np.array(p, float), v0, 0.0
+        edge = v0
+        for f in steps:
+            vv = v0 * f
+            if not lower[index] < vv < upper[index]:
                 break
             lo_f, hi_f = list(lower), list(upper)
-            lo_f[0], hi_f[0] = hv - 1e-6 * h, hv + 1e-6 * h
+            lo_f[index], hi_f[index] = vv - 1e-6 * v0, vv + 1e-6 * v0
             sol = None
             # The flank shape has local minima: warm start, and a rounded flank.
             for fz in (None, 1.0):
                 x0 = np.array(x, float)
-                x0[0] = hv
+                x0[index] = vv
                 if fz is not None:
                     x0[6] = fz
                 x0 = np.clip(x0, np.array(lo_f) + 1e-12, np.array(hi_f) - 1e-12)
@@ -221,12 +256,12 @@ def _profile_height_sigma(
                     sol = trial
             d = 2.0 * (sol.cost - cost)
             if d > limit:
-                # chi-square grows about quadratically with the height: interpolate its root.
+                # chi-square grows about quadratically with the parameter: interpolate its root.
                 r0, r1 = math.sqrt(max(prev_d, 0.0)), math.sqrt(d)
-                edge = prev_h + (hv - prev_h) * (math.sqrt(limit) - r0) / max(r1 - r0, 1e-12)
+                edge = prev_v + (vv - prev_v) * (math.sqrt(limit) - r0) / max(r1 - r0, 1e-12)
                 break
-            x, prev_h, prev_d, edge = sol.x, hv, d, hv
-        half = max(half, abs(edge - h))
+            x, prev_v, prev_d, edge = sol.x, vv, d, vv
+        half = max(half, abs(edge - v0))
     return 0.5 * half
 
 
@@ -306,7 +341,9 @@ def fit_bump(
     # Directions the samples do not constrain keep a broad prior variance instead of the
     # zero a pseudo-inverse would give them (a defect end between two rings).
     prior_sigma = np.array([max(h0, 1.0), w0, l0, w0, l0, 0.5, 0.5, 1.0])
-    cov, cov_iid = _correlated_cov(J, res, ring[keep], u[keep], noise, np.diag(1.0 / prior_sigma**2))
+    cov, cov_iid = _correlated_cov(
+        J, res, ring[keep], u[keep], noise, np.diag(1.0 / prior_sigma**2), profile=plateau(u[keep] - p[1], p[3], p[5] * p[3])
+    )
     var = np.clip(np.diag(cov), 0.0, None)
     h, u0, z0, w, length, fu, fz, _ = p
     if not h > 0:
@@ -324,10 +361,16 @@ def fit_bump(
     # linearised covariance misses that. The height's profile likelihood gives its 2-sigma
     # interval instead (heights whose best fit of the other parameters stays within
     # chi-square 4 of the best); its larger half, halved, is the sigma where that is larger.
+    prof_length = 0.0
     if np.sum(np.abs(zr - z0) < 0.5 * length) < PROFILE_RINGS:
-        inflation = float(var[0] / max(cov_iid[0, 0], 1e-30))
-        prof = _profile_height_sigma(residual, p, sol.cost, noise, lower, upper, inflation)
-        var[0] = max(var[0], prof**2)
+        for index, steps in (
+            (0, ((0.85, 0.7, 0.5), (1.15, 1.35, 1.7, 2.5))),
+            (4, ((0.9, 0.8, 0.65, 0.5), (1.1, 1.25, 1.5, 2.0))),
+        ):
+            inflation = float(var[index] / max(cov_iid[index, index], 1e-30))
+            prof = _profile_sigma(residual, p, index, steps, sol.cost, noise, lower, upper, inflation)
+            var[index] = max(var[index], prof**2)
+        prof_length = math.sqrt(var[4])
     sampled_lo, gap_lo = _end_var(zr, z0 - 0.5 * length, ramp)
     sampled_hi, gap_hi = _end_var(zr, z0 + 0.5 * length, ramp)
     # Each end (z0 -+ L / 2): the fit's variance where a ring samples its flank, the
@@ -341,8 +384,10 @@ def fit_bump(
     var_hi = fit_hi if not math.isfinite(var_hi) else var_hi
     both_fit = var_lo == fit_lo and var_hi == fit_hi
     cov_ends = var[2] - 0.25 * var[4] if both_fit else 0.0
-    var_length = max(var_lo + var_hi - 2.0 * cov_ends, 0.0)
+    var_length = max(var_lo + var_hi - 2.0 * cov_ends, prof_length**2)
     var_centre = max(0.25 * (var_lo + var_hi + 2.0 * cov_ends), 0.0)
+    # The flank-shape ambiguity moves both ends: each by half the length's.
+    var_lo = max(var_lo, 0.25 * prof_length**2)
     return BumpFit(
         height=float(h),
         width=float(w),
