@@ -18,12 +18,14 @@ local offset of the wall.
 Uncertainty: the fit's covariance with ``s`` the RMS residual of the fit (noise and model
 mismatch), for noise that is correlated from sample to sample along each ring (a light
 section's sub-pixel peaks err alike over a few samples: on simulated runs the residual's
-correlation is 0.65 at one sample) plus an offset shared by each ring's samples (its
-pose, its wall profile), both estimated from the fit's own residuals
-(:func:`_correlated_cov`). Treating the samples as independent understated the length's
-sigma about twofold (76.9 % of true lengths within +-2 sigma on seeds 100-106 of
-``benchmarks/bench_metrology.py``, 94.9 % now). Rings sample the axis
-sparsely: where no ring crosses one end's flank (all rings read 0 or the plateau
+correlation is 0.65 at one sample) plus errors shared by each ring's samples (an
+offset: its pose, its wall profile; an error of the defect's cross-section's shape), all
+estimated from the fit's own residuals (:func:`_correlated_cov`). Treating the samples
+as independent understated the length's sigma about twofold (76.9 % of true lengths
+within +-2 sigma on seeds 100-106 of ``benchmarks/bench_metrology.py``). Where few rings
+cross a defect or an end's flank, the shape trades against height and length (a steep
+flank near a ring or a gentle one further out): their profile likelihoods then give
+the sigmas where larger. Rings sample the axis sparsely: where no ring crosses one end's flank (all rings read 0 or the plateau
 there), that end may lie anywhere between its two rings, a uniform spread of
 variance spacing^2 / 12 added to the length and axial start. Lengths along the
 run also carry the camera motion's scale uncertainty (added by the caller).
