@@ -25,9 +25,9 @@ as independent understated the length's sigma about twofold (76.9 % of true leng
 within +-2 sigma on seeds 100-106 of ``benchmarks/bench_metrology.py``). Where few rings
 cross a defect or an end's flank, the shape trades against height and length (a steep
 flank near a ring or a gentle one further out): their profile likelihoods then give
-the sigmas where larger. Rings sample the axis sparsely: where no ring crosses one end's flank (all rings read 0 or the plateau
-there), that end may lie anywhere between its two rings, a uniform spread of
-variance spacing^2 / 12 added to the length and axial start. Lengths along the
+the sigmas where larger. Rings sample the axis sparsely: where no ring crosses one end's
+flank (all rings read 0 or the plateau there), that end may lie anywhere between its two
+rings, a uniform spread of variance spacing^2 / 12 added to the length and axial start. Lengths along the
 run also carry the camera motion's scale uncertainty (added by the caller).
 """
 
@@ -138,7 +138,7 @@ def _correlated_cov(
     then varies about twice as much as independent noise would give, and so do the
     height, length and ends fitted from it. Each ring's residuals, in order around the
     pipe, give the correlation rho_k at lag k samples (pooled over the rings, summed up to
-    the first lag where it is no longer positive), and whatever the ring means scatter
+    the first lag where it falls below 0.02), and whatever the ring means scatter
     beyond that is a ring offset shared by all its samples (its pose, its wall profile):
     variance tau^2. Likewise each ring's residual along the defect's cross-section
     ``profile`` (errors correlated over the defect's width, an axial shift of a ring on
