@@ -27,8 +27,9 @@ cross a defect or an end's flank, the shape trades against height and length (a 
 flank near a ring or a gentle one further out): their profile likelihoods then give
 the sigmas where larger. Rings sample the axis sparsely: where no ring crosses one end's
 flank (all rings read 0 or the plateau there), that end may lie anywhere between its two
-rings, a uniform spread of variance spacing^2 / 12 added to the length and axial start. Lengths along the
-run also carry the camera motion's scale uncertainty (added by the caller).
+rings, a uniform spread of variance spacing^2 / 12 added to the length and axial start.
+Lengths along the run also carry the camera motion's scale uncertainty (added by the
+caller).
 """
 
 from __future__ import annotations
