@@ -264,6 +264,7 @@ def run(
         for entry, frame in zip(measured["stations"], stations, strict=True):
             entry["frame"] = int(frame)  # the frame whose ring this station is
     warnings.extend(quality.flag_defects(measured.get("defects", []), traj_quality))
+    warnings.extend(quality.widen_for_unreliable(measured, traj_quality))
     summary = {
         "frames": n,
         "frames_registered": len(reg),

@@ -98,6 +98,45 @@ def flag_defects(defects: list[dict[str, Any]], quality: dict[str, Any]) -> list
     return warnings
 
 
+def widen_for_unreliable(fields: dict[str, Any], quality: dict[str, Any]) -> list[str]:
+    """Lengths along the pipe that pass through unreliable motion get its length as sigma.
+
+    An unreliable stretch keeps the run going with a placeholder length (the median of
+    the trusted steps): the run length and the axial position of everything beyond it
+    rest on a length nobody measured. That length is added in quadrature (100 %, 1 sigma)
+    to ``run_length_sigma_mm`` and to each later defect's ``axial_start_sigma_mm``;
+    ``run_length_unreliable_mm`` says how much of the run it is, and a warning says so.
+    Defects lying across a stretch are flagged by :func:`flag_defects`.
+
+    Args:
+        fields: the analysis keys of report.json (modified in place).
+        quality: :func:`trajectory_quality`'s dict.
+
+    Returns:
+        The warnings (empty when every stretch was reliable).
+    """
+    spans = [
+        (float(u["axial_start_mm"]), float(u["axial_end_mm"]))
+        for u in quality.get("unreliable", [])
+        if "axial_start_mm" in u
+    ]
+    total = sum(b - a for a, b in spans)
+    fields["run_length_unreliable_mm"] = round(total, 1)
+    if not spans or total <= 0:
+        return []
+    if fields.get("run_length_sigma_mm") is not None:
+        fields["run_length_sigma_mm"] = round(math.hypot(fields["run_length_sigma_mm"], total), 3)
+    for d in fields.get("defects", []):
+        before = sum(b - a for a, b in spans if b <= float(d.get("axial_start_mm", -math.inf)))
+        if before > 0 and d.get("axial_start_sigma_mm") is not None:
+            d["axial_start_sigma_mm"] = round(math.hypot(d["axial_start_sigma_mm"], before), 4)
+    return [
+        f"the run length includes {total:.0f} mm of unreliable motion ({len(spans)} stretches): "
+        "their length is a placeholder, counted in run_length_sigma_mm and in the axial "
+        "positions beyond them"
+    ]
+
+
 def refuse_untrusted_motion(motion: SfmResult) -> None:
     """A run that moved but has no step with a usable length is refused.
 
