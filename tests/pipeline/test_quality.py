@@ -36,7 +36,7 @@ def test_unreliable_stretches_widen_run_length_and_later_positions() -> None:
     }
     fields = _fields()
     warnings = widen_for_unreliable(fields, quality)
-    assert len(warnings) == 1 and "30 mm of unreliable motion" in warnings[0]
+    assert len(warnings) == 1 and "about 30 mm" in warnings[0]
     assert fields["run_length_unreliable_mm"] == 30.0
     assert math.isclose(fields["run_length_sigma_mm"], math.hypot(0.8, 30.0), abs_tol=1e-3)
     before, middle, after = fields["defects"]
@@ -45,3 +45,24 @@ def test_unreliable_stretches_widen_run_length_and_later_positions() -> None:
     assert math.isclose(after["axial_start_sigma_mm"], math.hypot(0.5, 30.0), abs_tol=1e-3)
     # None of them lies across a stretch.
     assert flag_defects(fields["defects"], quality) == []
+
+
+def test_collapsed_stretch_counts_its_expected_length() -> None:
+    # Steps without any relative motion collapse in the adjustment (0.2 mm for 21 mm):
+    # the stretch counts as its unreliable steps times the median trusted step.
+    steps = [
+        {"first_frame": 0, "last_frame": 5, "confidence": "high", "scale_mm": 10.0},
+        {"first_frame": 5, "last_frame": 9, "confidence": "none", "scale_mm": None},
+        {"first_frame": 9, "last_frame": 14, "confidence": "none", "scale_mm": None},
+        {"first_frame": 14, "last_frame": 19, "confidence": "resolved", "scale_mm": 12.0},
+    ]
+    quality = {
+        "keyframe_steps": steps,
+        "unreliable": [
+            {"first_frame": 5, "last_frame": 14, "reason": "x", "axial_start_mm": 10.0, "axial_end_mm": 10.3},
+        ],
+    }
+    fields = _fields()
+    widen_for_unreliable(fields, quality)
+    assert fields["run_length_unreliable_mm"] == 22.0  # 2 steps x median(10, 12)
+    assert math.isclose(fields["run_length_sigma_mm"], math.hypot(0.8, 22.0), abs_tol=1e-3)

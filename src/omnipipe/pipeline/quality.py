@@ -99,14 +99,16 @@ def flag_defects(defects: list[dict[str, Any]], quality: dict[str, Any]) -> list
 
 
 def widen_for_unreliable(fields: dict[str, Any], quality: dict[str, Any]) -> list[str]:
-    """Lengths along the pipe that pass through unreliable motion get its length as sigma.
+    """Lengths along the pipe that pass through unreliable motion carry its length as sigma.
 
-    An unreliable stretch keeps the run going with a placeholder length (the median of
-    the trusted steps): the run length and the axial position of everything beyond it
-    rest on a length nobody measured. That length is added in quadrature (100 %, 1 sigma)
-    to ``run_length_sigma_mm`` and to each later defect's ``axial_start_sigma_mm``;
-    ``run_length_unreliable_mm`` says how much of the run it is, and a warning says so.
-    Defects lying across a stretch are flagged by :func:`flag_defects`.
+    An unreliable stretch keeps the run going with a placeholder length, and after the
+    adjustment (nothing anchors a step without matches) it may even collapse: the run
+    length and the axial position of everything beyond it rest on a length nobody
+    measured. Each stretch counts with the larger of its extent in the output and its
+    unreliable keyframe steps times the median trusted step (``keyframe_steps``), added
+    in quadrature (100 %, 1 sigma) to ``run_length_sigma_mm`` and to each later defect's
+    ``axial_start_sigma_mm``; ``run_length_unreliable_mm`` is their sum, and a warning
+    says so. Defects lying across a stretch are flagged by :func:`flag_defects`.
 
     Args:
         fields: the analysis keys of report.json (modified in place).
@@ -115,25 +117,38 @@ def widen_for_unreliable(fields: dict[str, Any], quality: dict[str, Any]) -> lis
     Returns:
         The warnings (empty when every stretch was reliable).
     """
-    spans = [
-        (float(u["axial_start_mm"]), float(u["axial_end_mm"]))
-        for u in quality.get("unreliable", [])
-        if "axial_start_mm" in u
+    steps = quality.get("keyframe_steps", [])
+    trusted = [
+        c["scale_mm"] for c in steps
+        if c.get("confidence") in ("high", "resolved") and c.get("scale_mm")
     ]
-    total = sum(b - a for a, b in spans)
+    typical = float(np.median(trusted)) if trusted else 0.0
+    spans = []
+    for u in quality.get("unreliable", []):
+        if "axial_start_mm" not in u:
+            continue
+        a, b = float(u["axial_start_mm"]), float(u["axial_end_mm"])
+        n_steps = sum(
+            1 for c in steps
+            if c.get("confidence") not in ("high", "resolved")
+            and c["first_frame"] < u["last_frame"] and c["last_frame"] > u["first_frame"]
+        )
+        spans.append((a, b, max(b - a, n_steps * typical)))
+    total = sum(w for *_, w in spans)
     fields["run_length_unreliable_mm"] = round(total, 1)
     if not spans or total <= 0:
         return []
     if fields.get("run_length_sigma_mm") is not None:
         fields["run_length_sigma_mm"] = round(math.hypot(fields["run_length_sigma_mm"], total), 3)
     for d in fields.get("defects", []):
-        before = sum(b - a for a, b in spans if b <= float(d.get("axial_start_mm", -math.inf)))
+        start = float(d.get("axial_start_mm", -math.inf))
+        before = sum(w for _, b, w in spans if b <= start)
         if before > 0 and d.get("axial_start_sigma_mm") is not None:
             d["axial_start_sigma_mm"] = round(math.hypot(d["axial_start_sigma_mm"], before), 4)
     return [
-        f"the run length includes {total:.0f} mm of unreliable motion ({len(spans)} stretches): "
-        "their length is a placeholder, counted in run_length_sigma_mm and in the axial "
-        "positions beyond them"
+        f"about {total:.0f} mm of the run is unreliable motion ({len(spans)} stretches): its "
+        "length is a placeholder, counted in run_length_sigma_mm and in the axial positions "
+        "beyond it"
     ]
 
 
