@@ -111,12 +111,16 @@ class AnalysisInputs:
         reference_from_world: (4, 4) the frame defining the axial origin and angle 0
             (the contract: the first registered frame's rig frame); identity when the
             world is that frame.
+        ring_blur_mm: Gaussian sigma (mm along the wall) of the light section's
+            smoothing along the ring (the imaged stripe's blur,
+            :func:`omnipipe.laser.extract.ring_blur_mm`); defect fits model it. 0: none.
     """
 
     points_in_world: np.ndarray
     frame_index: np.ndarray
     world_from_rig: np.ndarray
     reference_from_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    ring_blur_mm: float = 0.0
 
 
 @dataclass
@@ -246,6 +250,7 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
             grid_mm=config.grid_mm,
             limit_width_mm=config.limit_width_mm,
             limit_length_mm=config.limit_length_mm,
+            ring_blur_mm=inputs.ring_blur_mm,
         )
         if not search.defects:
             break

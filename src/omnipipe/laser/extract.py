@@ -235,3 +235,30 @@ class RingExtractor:
         elif sat.mean() > 0.25:
             ring.warnings.append(f"laser saturated on {100 * sat.mean():.0f} % of scan lines")
         return ring
+
+
+def ring_blur_mm(rings: list[LaserRing], max_rings: int = 50) -> float:
+    """Gaussian sigma (mm along the wall) of the light section's smoothing along the ring.
+
+    The imaged stripe's peak width (``peak_width_px``, Gaussian sigma across the
+    stripe) times the ring's scale along itself (mm of wall per px of ring, from
+    neighbouring samples): the crest of a narrow defect is seen through this blur
+    (:func:`omnipipe.analysis.sizing.seen_bump_model`). Median over up to
+    ``max_rings`` evenly chosen rings with triangulated points.
+
+    Returns:
+        The sigma (mm); 0.0 when no ring has enough samples.
+    """
+    usable = [r for r in rings if len(r.points_in_rig) >= 20 and len(r.peak_width_px) == len(r.pixels)]
+    if not usable:
+        return 0.0
+    pick = np.unique(np.linspace(0, len(usable) - 1, min(max_rings, len(usable))).round().astype(int))
+    values = []
+    for r in (usable[i] for i in pick):
+        dp = np.linalg.norm(np.diff(r.points_in_rig, axis=0), axis=1)
+        dx = np.linalg.norm(np.diff(r.pixels, axis=0), axis=1)
+        ok = (dx > 0.2) & (dx < 5.0)  # neighbours on the ring, not across a gap
+        if ok.sum() < 10:
+            continue
+        values.append(float(np.median(r.peak_width_px)) * float(np.median(dp[ok] / dx[ok])))
+    return float(np.median(values)) if values else 0.0

@@ -154,6 +154,7 @@ def run(
     from omnipipe.dataset import validate_frames
     from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
+    from omnipipe.laser.extract import ring_blur_mm
     from omnipipe.pipeline import quality
     from omnipipe.sfm import pipeline as sfm
 
@@ -226,6 +227,7 @@ def run(
             frame_index=point_frame,
             world_from_rig=station_poses,
             reference_from_world=np.linalg.inv(motion.world_from_rig[reg[0]]),
+            ring_blur_mm=ring_blur_mm(station_rings),
         ),
     )
     timings["analysis"] = time.perf_counter() - t0
