@@ -271,15 +271,13 @@ def _blurred(samples: WallSamples, defects: list[dict], blur_mm: float) -> WallS
         zc = d["axial_start_mm"] + 0.5 * d["length_mm"]
         sign = 1.0 if d["kind"] == "dent" else -1.0
         along = plateau(samples.sigma_mm - zc, d["length_mm"], d["ramp_z"] * d["length_mm"])
-        sharp = np.zeros_like(dev)
-        seen = np.zeros_like(dev)
-        for xi, wi in [(0.0, 1.0)] + list(zip(x, w, strict=True)):
-            u = (samples.arc_mm + blur_mm * xi - uc + 0.5 * CIRC) % CIRC - 0.5 * CIRC
-            val = sign * d["height_mm"] * plateau(u, d["width_mm"], d["ramp_u"] * d["width_mm"]) * along
-            if xi == 0.0 and wi == 1.0:
-                sharp = val
-            else:
-                seen += wi * val
+
+        def bump(shift: float, d=d, uc=uc, sign=sign, along=along) -> np.ndarray:
+            u = (samples.arc_mm + shift - uc + 0.5 * CIRC) % CIRC - 0.5 * CIRC
+            return sign * d["height_mm"] * plateau(u, d["width_mm"], d["ramp_u"] * d["width_mm"]) * along
+
+        sharp = bump(0.0)
+        seen = sum(wi * bump(blur_mm * xi) for xi, wi in zip(x, w, strict=True))
         dev += seen - sharp
     return WallSamples(samples.sigma_mm, samples.arc_mm, dev, samples.ring, samples.circumference_mm)
 
