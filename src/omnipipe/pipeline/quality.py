@@ -135,7 +135,7 @@ def widen_for_unreliable(fields: dict[str, Any], quality: dict[str, Any]) -> lis
         )
         spans.append((a, b, max(b - a, n_steps * typical)))
     total = sum(w for *_, w in spans)
-    fields["run_length_unreliable_mm"] = round(total, 1)
+    fields["run_length_unreliable_mm"] = round(float(total), 1)
     if not spans or total <= 0:
         return []
     if fields.get("run_length_sigma_mm") is not None:
