@@ -45,6 +45,23 @@ def _map(rng: np.random.Generator, defects: list[dict], smooth: int = 1) -> Wall
     return WallSamples(z, a, dev, ring, CIRC)
 
 
+def _random_defect(
+    rng: np.random.Generator, heights: tuple[float, float], lengths: tuple[float, float]
+) -> dict:
+    """A random bulge or dent of the simulator's shape (draws in a fixed order)."""
+    h = float(rng.uniform(*heights))
+    return {
+        "kind": str(rng.choice(["bulge", "dent"])),
+        "height_mm": h,
+        "width_mm": float(rng.uniform(max(6.0, 1.5 * h), 40.0)),
+        "length_mm": float(rng.uniform(*lengths)),
+        "axial_start_mm": float(rng.uniform(30.0, 50.0)),
+        "angle_deg": float(rng.uniform(0, 360)),
+        "ramp_u": float(rng.uniform(0.2, 1.0)),
+        "ramp_z": float(rng.uniform(0.3, 1.0)),
+    }
+
+
 def _search(samples: WallSamples):
     return find_defects(samples, min_height_mm=1.0, noise_factor=6.0, min_points=4, grid_mm=0.25)
 
@@ -55,17 +72,7 @@ def fitted() -> list[tuple[dict, dict]]:
     rng = np.random.default_rng(12)
     out = []
     for _ in range(16):
-        h = float(rng.uniform(1.5, 10.0))
-        t = {
-            "kind": str(rng.choice(["bulge", "dent"])),
-            "height_mm": h,
-            "width_mm": float(rng.uniform(max(6.0, 1.5 * h), 40.0)),
-            "length_mm": float(rng.uniform(20.0, 70.0)),
-            "axial_start_mm": float(rng.uniform(30.0, 50.0)),
-            "angle_deg": float(rng.uniform(0, 360)),
-            "ramp_u": float(rng.uniform(0.2, 1.0)),
-            "ramp_z": float(rng.uniform(0.3, 1.0)),
-        }
+        t = _random_defect(rng, (1.5, 10.0), (20.0, 70.0))
         found = _search(_map(rng, [t])).defects
         assert len(found) == 1, f"expected one defect for {t}, got {found}"
         assert found[0]["kind"] == t["kind"]
@@ -171,17 +178,8 @@ def test_crest_between_rings_height_sigma_covers_the_shape_ambiguity() -> None:
     saved, SPACING = SPACING, 9.0
     try:
         while len(inside) < 12:
-            h = float(rng.uniform(2.0, 10.0))
-            t = {
-                "kind": str(rng.choice(["bulge", "dent"])),
-                "height_mm": h,
-                "width_mm": float(rng.uniform(max(6.0, 1.5 * h), 40.0)),
-                "length_mm": float(rng.uniform(10.0, 16.0)),
-                "axial_start_mm": float(rng.uniform(30.0, 50.0)),
-                "angle_deg": float(rng.uniform(0, 360)),
-                "ramp_u": float(rng.uniform(0.2, 1.0)),
-                "ramp_z": float(rng.uniform(0.3, 1.0)),
-            }
+            t = _random_defect(rng, (2.0, 10.0), (10.0, 16.0))
+            h = t["height_mm"]
             found = _search(_map(rng, [t])).defects
             if len(found) != 1 or found[0]["height_sigma_mm"] is None:
                 continue
@@ -237,17 +235,8 @@ def test_sigmas_hold_with_noise_correlated_along_the_ring() -> None:
     rng = np.random.default_rng(33)
     z_len, z_h, err_len = [], [], []
     while len(z_len) < 16:
-        h = float(rng.uniform(1.5, 10.0))
-        t = {
-            "kind": str(rng.choice(["bulge", "dent"])),
-            "height_mm": h,
-            "width_mm": float(rng.uniform(max(6.0, 1.5 * h), 40.0)),
-            "length_mm": float(rng.uniform(20.0, 70.0)),
-            "axial_start_mm": float(rng.uniform(30.0, 50.0)),
-            "angle_deg": float(rng.uniform(0, 360)),
-            "ramp_u": float(rng.uniform(0.2, 1.0)),
-            "ramp_z": float(rng.uniform(0.3, 1.0)),
-        }
+        t = _random_defect(rng, (1.5, 10.0), (20.0, 70.0))
+        h = t["height_mm"]
         found = _search(_map(rng, [t], smooth=3)).defects
         if len(found) != 1 or found[0]["length_sigma_mm"] is None:
             continue
