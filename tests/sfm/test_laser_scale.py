@@ -10,16 +10,21 @@ from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
 
+def _pair(renderer, poses: np.ndarray, a: int, b: int):
+    """Frames a and b rendered, a's true laser points (rig a) and the step b_from_a, length."""
+    img_a, truth_a = renderer.render(poses[a], seed=1)
+    img_b, _ = renderer.render(poses[b], seed=2)
+    ring = truth_a["points_in_rig"][np.abs(truth_a["laser_h"]) < 0.3]
+    b_from_a = invert(poses[b]) @ poses[a]
+    return img_a, img_b, ring, b_from_a, float(np.linalg.norm(b_from_a[:3, 3]))
+
+
 def test_laser_points_give_the_metric_translation() -> None:
     scenario = make_scenario("paper", frames=12, size=(800, 600), seed=4)
     renderer, poses, _, moving = build_renderer(scenario)
     # A full stroke apart: frame 0 and the last frame of the first move.
     a, b = 0, int(np.flatnonzero(moving)[: scenario.motion.frames_per_cycle // scenario.motion.n_units][-1])
-    img_a, truth_a = renderer.render(poses[a], seed=1)
-    img_b, _ = renderer.render(poses[b], seed=2)
-    ring = truth_a["points_in_rig"][np.abs(truth_a["laser_h"]) < 0.3]
-    b_from_a = invert(poses[b]) @ poses[a]
-    length = float(np.linalg.norm(b_from_a[:3, 3]))
+    img_a, img_b, ring, b_from_a, length = _pair(renderer, poses, a, b)
     m = match_laser_points(
         img_a[..., 1].astype(np.float32),
         img_b[..., 1].astype(np.float32),
@@ -48,11 +53,7 @@ def test_leaking_stripe_does_not_pull_short_steps_to_zero() -> None:
     renderer, poses, _, moving = build_renderer(scenario)
     a = int(np.flatnonzero(moving)[0]) - 1  # at rest, then the first moving frame
     b = a + 1
-    img_a, truth_a = renderer.render(poses[a], seed=1)
-    img_b, _ = renderer.render(poses[b], seed=2)
-    ring = truth_a["points_in_rig"][np.abs(truth_a["laser_h"]) < 0.3]
-    b_from_a = invert(poses[b]) @ poses[a]
-    length = float(np.linalg.norm(b_from_a[:3, 3]))
+    img_a, img_b, ring, b_from_a, length = _pair(renderer, poses, a, b)
     assert 1.0 < length < 12.0, length  # a short step: a few pixels in the image
     m = match_laser_points(
         gray_without_laser(img_a, "red"),
