@@ -104,25 +104,86 @@ def board_gray(image: np.ndarray) -> np.ndarray:
 
 
 DETECT_UPSCALE = 1  # 2 measured: corners 0.15 -> 0.10 px, ring error -0.24 -> -0.23 mm only
+SADDLE_RADIUS_PX = 2  # half-size of the saddle fit's window (5 x 5 samples)
+SADDLE_SIGMA_PX = 1.0  # Gaussian smoothing before the fit
+SADDLE_MAX_SHIFT_PX = 1.0  # a refined corner further than this from the detector's is not trusted
 
 
-def detect_corners(image: np.ndarray, target: Target, upscale: int = DETECT_UPSCALE) -> np.ndarray | None:
+def refine_saddle(
+    gray: np.ndarray, corners: np.ndarray, radius: int = SADDLE_RADIUS_PX,
+    sigma: float = SADDLE_SIGMA_PX, iterations: int = 10,
+) -> np.ndarray:
+    """(N, 2) corners (col, row; pixel centres at integers) moved to the image's saddle point.
+
+    The image is smoothed (Gaussian, ``sigma`` px); around each corner a quadratic
+    surface z = a x^2 + b xy + c y^2 + d x + e y + f is fitted (Gaussian-weighted least
+    squares) to the (2 radius + 1)^2 bilinear samples centred on the current estimate,
+    and the estimate moves to the surface's saddle point until it stops (ROCHADE /
+    Lucchese-Barreto style). A blurred X-junction is point-symmetric about its corner,
+    so the fit centred on it is unbiased; the small window keeps the bias from the
+    squares' curvature through the mirror small. Corners whose fit is not a saddle, or
+    that move more than ``SADDLE_MAX_SHIFT_PX`` from the input, keep their input value.
+
+    Measured on the simulator's design-rig set (seed 0, 15 views, squares 5-13 px):
+    0.134 px RMS against the exact projection with ``findChessboardCornersSB`` alone,
+    0.056 px after this refinement (docs/calibration.md).
+    """
+    img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma) if sigma > 0 else gray.astype(np.float32)
+    yy, xx = np.mgrid[-radius : radius + 1, -radius : radius + 1].astype(float)
+    xs, ys = xx.ravel(), yy.ravel()
+    wts = np.exp(-0.5 * (xs**2 + ys**2) / (radius / 1.5) ** 2)
+    design = np.stack([xs * xs, xs * ys, ys * ys, xs, ys, np.ones_like(xs)], axis=1)
+    solve = np.linalg.pinv((design * wts[:, None]).T @ design) @ (design * wts[:, None]).T  # (6, n*n)
+    start = np.asarray(corners, float).reshape(-1, 2)
+    p = start.copy()
+    active = np.ones(len(p), bool)
+    ok = np.ones(len(p), bool)
+    for _ in range(iterations):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        mx = (p[idx, 0][:, None] + xs[None]).astype(np.float32)
+        my = (p[idx, 1][:, None] + ys[None]).astype(np.float32)
+        patch = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(float)
+        a, b, c, d, e, _ = solve @ patch.T  # each (M,)
+        det = 4.0 * a * c - b * b
+        saddle = det < 0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dx = (-2.0 * c * d + b * e) / det
+            dy = (b * d - 2.0 * a * e) / det
+        step = np.stack([dx, dy], axis=1)
+        good = saddle & np.all(np.isfinite(step), axis=1) & (np.abs(step).max(axis=1) <= radius)
+        ok[idx[~good]] = False
+        active[idx[~good]] = False
+        gi = idx[good]
+        p[gi] += step[good]
+        active[gi[np.abs(step[good]).max(axis=1) < 1e-4]] = False
+    ok &= np.linalg.norm(p - start, axis=1) <= SADDLE_MAX_SHIFT_PX
+    return np.where(ok[:, None], p, start)
+
+
+def detect_corners(
+    image: np.ndarray, target: Target, upscale: int = DETECT_UPSCALE, refine: bool = True
+) -> np.ndarray | None:
     """(cols*rows, 2) sub-pixel corners (col, row) of ``target`` in ``image``, or None.
 
+    OpenCV's ``findChessboardCornersSB`` finds and orders the corners; ``refine`` then
+    moves each to the image's saddle point (:func:`refine_saddle`). Against the exact
+    projection (simulator, design-rig set): 0.134 px RMS with the detector alone, with
+    per-view systematic parts that bend the fitted model; 0.056 px refined.
     ``upscale`` > 1 runs the detector on the image enlarged that many times (bicubic)
-    and maps the corners back to the image's pixel centres. On the omni image's small,
-    curved squares the corners are off by 0.15 px RMS against the exact projection (the
-    simulator's design-rig set), 0.10 px at 2x, 0.09 px at 3x; the calibrated ring
-    diameter barely changes (docs/calibration.md), so the default stays 1 (faster).
+    and maps the corners back to the image's pixel centres (0.10 px at 2x unrefined).
     """
     flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    gray = board_gray(image)
+    gray0 = board_gray(image)
+    gray = gray0
     if upscale > 1:
-        gray = cv2.resize(gray, None, fx=upscale, fy=upscale, interpolation=cv2.INTER_CUBIC)
+        gray = cv2.resize(gray0, None, fx=upscale, fy=upscale, interpolation=cv2.INTER_CUBIC)
     ok, corners = cv2.findChessboardCornersSB(gray, (target.cols, target.rows), flags=flags)
     if not ok or corners is None:
         return None
-    return (corners.reshape(-1, 2).astype(float) + 0.5) / upscale - 0.5
+    out = (corners.reshape(-1, 2).astype(float) + 0.5) / upscale - 0.5
+    return refine_saddle(gray0, out) if refine else out
 
 
 def _rays_pose(rays: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
