@@ -5,9 +5,9 @@ the world and intersected with the true wall (defects included, first hit). The
 pixel's radiance is the wall albedo (mip-mapped to the pixel footprint) lit by the
 robot's LEDs (inverse-square falloff, Lambert cosine with the true surface
 normal), plus the laser sheet of Eq. (4): a Gaussian sheet of finite thickness
-whose image is drawn analytically from the sheet's distance to each pixel's wall
-point and its gradient across the image, convolved with the optical blur, so the
-thin line never aliases; it carries laser speckle. Optics blur the LED image,
+whose radiance is integrated analytically over each pixel's area from the sheet's
+distance to the pixel's wall point and its gradient across the image (so the thin
+line never aliases), then blurred by the optics; it carries laser speckle. Optics blur the LED image,
 then the sensor adds shot and read noise and quantises to 8 bits.
 
 The robot body (camera housing and the front unit behind the laser) occludes
@@ -38,8 +38,9 @@ class RenderConfig:
         exposure: image value (0..1 of full scale) of a white wall 100 mm from the LEDs,
             facing them, in a pipe of 202 mm; the camera's auto exposure scales its gain
             with (pipe radius / 101 mm)^2 so other pipe sizes are exposed alike.
-        laser_power: image value (0..1) of the laser sheet's line integral on a white
-            wall 100 mm from the emitter (peak = power / (sqrt(2 pi) sigma_px)).
+        laser_power: image value (0..1) of the laser sheet's line integral across the
+            stripe (x px, at the frame's median footprint) on a white wall 100 mm from
+            the emitter.
         laser_sheet_sigma_mm: 1-sigma half thickness of the laser sheet (mm).
         laser_crosstalk: fraction of the laser that leaks into the other channels.
         speckle_contrast: std/mean of the laser speckle (0: none).
@@ -429,7 +430,21 @@ class Renderer:
         wall: np.ndarray,
         rng: np.random.Generator,
     ) -> np.ndarray:
-        """The laser line, drawn analytically with the blur (no aliasing)."""
+        """The laser line: the sheet's radiance on the wall, then the optics' blur.
+
+        Each pixel sees the wall point on its ray at distance ``h`` (mm) from the sheet's
+        centre plane; the sheet's radiance there is Gaussian in ``h`` (sigma
+        ``laser_sheet_sigma_mm``). Integrating over the pixel's area, which spans about
+        ``g`` mm of ``h`` (g: the gradient of ``h`` across the image, mm/px), widens that
+        Gaussian by ``g^2 / 12`` and lowers its peak alike, so a sheet thinner than a pixel
+        neither aliases nor disappears. The image of that radiance is then blurred by the
+        point spread function (an image convolution, exact for a curved, unevenly
+        magnified line) and carries laser speckle. The radiance does not depend on ``g``:
+        a pixel sees radiance, however much wall it covers (measured: an earlier model that
+        drew the blurred line with a peak of power / (sqrt(2 pi) sigma_px) per pixel tilted
+        the stripe's profile towards the larger footprint and biased the light section's
+        diameter by -0.025 mm at 800x600).
+        """
         cfg = self.config
         cam = self.camera
         h, w = cam.height, cam.width
@@ -441,10 +456,12 @@ class Renderer:
         grad = np.hypot(gx, gy).ravel()[self.index[wall]]
         near = np.isfinite(grad) & (np.abs(laser_h) < 8.0 * cfg.laser_sheet_sigma_mm + 8.0 * grad)
         sel = np.flatnonzero(near)
+        out = np.zeros((h * w, 3), np.float32)
+        if len(sel) == 0:
+            return out.reshape(h, w, 3)
         g = np.maximum(grad[sel], 1e-6)
-        dist_px = laser_h[sel] / g
-        sheet_px = cfg.laser_sheet_sigma_mm / g
-        sig_px = np.sqrt(sheet_px**2 + cfg.psf_sigma_px**2)
+        sheet = cfg.laser_sheet_sigma_mm
+        sheet_px_area = np.sqrt(sheet**2 + g**2 / 12.0)
         # Power per unit length of the line: sheet fan spreads as 1/D; Lambert on the wall.
         to_emitter = self.laser_origin_in_rig - points_rig[sel]
         dist_e = np.linalg.norm(to_emitter, axis=1)
@@ -452,12 +469,21 @@ class Renderer:
         chan = CHANNEL_INDEX.get(self.rig.laser.channel)
         refl = albedo[:, chan] if chan is not None else albedo.mean(axis=1)
         line = cfg.laser_power * (100.0 / dist_e) * np.clip(refl / 0.5, 0.2, 2.0) * 0.5
-        profile = np.exp(-0.5 * (dist_px / sig_px) ** 2) / (math.sqrt(2 * math.pi) * sig_px)
-        value = line * profile
+        # laser_power is the line integral across the stripe (image value x px) at the
+        # frame's median footprint: peak radiance = line / (sqrt(2 pi) sheet / g_ref).
+        g_ref = float(np.median(g))
+        peak = line * g_ref / (math.sqrt(2 * math.pi) * sheet)
+        radiance = peak * (sheet / sheet_px_area) * np.exp(-0.5 * (laser_h[sel] / sheet_px_area) ** 2)
+        img = np.zeros(h * w, np.float32)
+        img[self.index[wall][sel]] = radiance
+        img = img.reshape(h, w)
+        if cfg.psf_sigma_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), cfg.psf_sigma_px)
+        value = img.ravel()[self.index[wall][sel]]
         if cfg.speckle_contrast > 0:
+            # Speckle forms on the sensor (grains of about a pixel): it multiplies the image.
             k = 1.0 / cfg.speckle_contrast**2
             speckle = rng.gamma(k, 1.0 / k, size=len(sel)).astype(np.float32)
-            # Speckle grains span about a pixel: smooth a full-size field lightly.
             field = np.ones(h * w, np.float32)
             field[self.index[wall][sel]] = speckle
             field = cv2.GaussianBlur(field.reshape(h, w), (0, 0), 0.6).ravel()
