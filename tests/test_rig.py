@@ -52,6 +52,15 @@ def test_contract_example_loads_and_round_trips(tmp_path: Path) -> None:
     assert load_rig(tmp_path / "rig.yaml") == rig
 
 
+def test_laser_calibration_uncertainty_round_trips(tmp_path: Path) -> None:
+    rig = rig_from_dict(_with("laser.offset_sigma_mm", 0.08))
+    assert rig.laser.offset_sigma_mm == 0.08
+    assert rig.laser.scale_sigma_rel == pytest.approx(0.08 / 82.0)
+    save_rig(rig, tmp_path / "rig.yaml")
+    assert load_rig(tmp_path / "rig.yaml") == rig
+    assert rig_from_dict(GOOD).laser.scale_sigma_rel == 0.0  # not stated
+
+
 def test_optional_fields_may_be_absent() -> None:
     data = _with("camera.radius_min", _DELETE)
     del data["camera"]["radius_max"], data["camera"]["pixel_pitch"]
@@ -76,6 +85,8 @@ def test_optional_fields_may_be_absent() -> None:
         ("laser.plane", [0.0, 1.0, 82.0], "laser.plane"),
         ("laser.channel", "infrared", "laser.channel"),
         ("laser.plane", _DELETE, "laser.plane"),
+        ("laser.offset_sigma_mm", -0.1, "laser.offset_sigma_mm"),
+        ("laser.offset_sigma_mm", "small", "laser.offset_sigma_mm"),
     ],
 )
 def test_invalid_fields_are_named(path: str, value: object, field: str) -> None:

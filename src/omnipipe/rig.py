@@ -72,10 +72,21 @@ class LaserPlane:
     Attributes:
         k: (4,) the raw coefficients k1..k4 as calibrated (k4 in mm).
         channel: colour channel the laser shows in: red, green, blue or gray.
+        offset_sigma_mm: 1-sigma uncertainty of the plane's distance from the focus (mm)
+            as calibrated (rig.yaml ``laser.offset_sigma_mm``, written by ``omnipipe
+            calibrate laser``); 0: not stated. Every length the light section measures
+            scales with that distance, so it is a relative uncertainty of the whole metric
+            (:attr:`scale_sigma_rel`).
     """
 
     k: tuple[float, float, float, float]
     channel: str = "red"
+    offset_sigma_mm: float = 0.0
+
+    @property
+    def scale_sigma_rel(self) -> float:
+        """Relative 1-sigma of all metric lengths from the plane's calibrated distance."""
+        return self.offset_sigma_mm / self.distance_mm if self.distance_mm > 0 else 0.0
 
     @property
     def normal_in_rig(self) -> np.ndarray:
@@ -231,6 +242,8 @@ class Rig:
                 "plane": [float(v) for v in self.laser.k],
                 "channel": self.laser.channel,
             }
+            if self.laser.offset_sigma_mm > 0:
+                out["laser"]["offset_sigma_mm"] = float(self.laser.offset_sigma_mm)
         return out
 
 
@@ -439,7 +452,19 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
         raise ConfigError(
             "laser.channel", f"must be one of {', '.join(LASER_CHANNELS)}, got {channel!r}", source
         )
-    laser = LaserPlane(k=(k[0], k[1], k[2], k[3]), channel=channel.lower())
+    offset_sigma = las.get("offset_sigma_mm", 0.0)
+    if (
+        isinstance(offset_sigma, bool)
+        or not isinstance(offset_sigma, int | float)
+        or not math.isfinite(offset_sigma)
+        or offset_sigma < 0
+    ):
+        raise ConfigError(
+            "laser.offset_sigma_mm", f"must be a finite number >= 0 (mm), got {offset_sigma!r}", source
+        )
+    laser = LaserPlane(
+        k=(k[0], k[1], k[2], k[3]), channel=channel.lower(), offset_sigma_mm=float(offset_sigma)
+    )
     check_ring_visible(camera, mirror, laser, source, model=params)
     return Rig(camera=camera, mirror=mirror, laser=laser, model=params)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnipipe.analysis import AnalysisConfig, AnalysisInputs, fit_cylinder, run
+from omnipipe.analysis import AnalysisConfig, AnalysisInputs, fit_cylinder, report_fields, run
 from omnipipe.analysis.defects import WallSamples, find_defects
 from omnipipe.analysis.sizing import plateau
 from omnipipe.geometry import make_transform
@@ -171,3 +171,27 @@ def test_lone_outlier_samples_are_not_defects() -> None:
         WallSamples(sig, arc, dev, ring, circ), min_height_mm=1.0, noise_factor=6, min_points=4, grid_mm=0.25
     )
     assert defects == []
+
+
+def test_rig_calibration_uncertainty_covers_a_miscalibrated_laser() -> None:
+    """A laser plane calibrated 0.15 mm too far (1 sigma of 0.15 mm stated in rig.yaml)
+    scales every length by 82.15 / 82: the diameter's stated 2 sigma covers that error
+    only when the calibration's share is included; lengths along the pipe carry it too."""
+    pipe, inputs = _synthetic_rings("paper", 6.0, 40, seed=5, noise=0.05)
+    k = (82.0 + 0.15) / 82.0
+    poses = inputs.world_from_rig.copy()
+    poses[:, :3, 3] *= k
+    scaled = AnalysisInputs(inputs.points_in_world * k, inputs.frame_index, poses)
+    plain = run(AnalysisConfig(), scaled)
+    err = plain.inner_diameter_mm - pipe.inner_diameter_mm
+    assert abs(err - (k - 1) * pipe.inner_diameter_mm) < 0.05  # the miscalibration shows
+    assert abs(err) > 2 * plain.inner_diameter_sigma_mm  # and nothing states it
+    scaled.calibration_sigma_rel = 0.15 / 82.0
+    res = run(AnalysisConfig(), scaled)
+    assert abs(err) <= 2 * res.inner_diameter_sigma_mm <= 2 * abs(err) + 0.2
+    fields, _ = report_fields(res, 1e-4)
+    assert fields["calibration_sigma_rel"] == pytest.approx(0.15 / 82.0, rel=1e-3)
+    plain_fields, _ = report_fields(plain, 1e-4)
+    assert plain_fields["calibration_sigma_rel"] is None
+    assert fields["run_length_sigma_mm"] >= fields["run_length_mm"] * 0.15 / 82.0
+    assert fields["run_length_sigma_mm"] > 2 * plain_fields["run_length_sigma_mm"]

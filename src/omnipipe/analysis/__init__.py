@@ -114,6 +114,10 @@ class AnalysisInputs:
         ring_blur_mm: Gaussian sigma (mm along the wall) of the light section's
             smoothing along the ring (the imaged stripe's blur,
             :func:`omnipipe.laser.extract.ring_blur_mm`); defect fits model it. 0: none.
+        calibration_sigma_rel: relative 1-sigma of every length the light section
+            measures, from the rig's calibration (the laser plane's distance,
+            :attr:`omnipipe.rig.LaserPlane.scale_sigma_rel`); shared by all points of the
+            run, so no fit can see it: added to diameters and defect sizes. 0: none stated.
     """
 
     points_in_world: np.ndarray
@@ -121,6 +125,7 @@ class AnalysisInputs:
     world_from_rig: np.ndarray
     reference_from_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     ring_blur_mm: float = 0.0
+    calibration_sigma_rel: float = 0.0
 
 
 @dataclass
@@ -135,6 +140,7 @@ class AnalysisResult:
             (ovality corrected for the upward bias of an amplitude in noise).
         stations_diameter_sigma_mm, stations_ovality_sigma: (K,) their 1-sigma.
         inner_diameter_sigma_mm: 1-sigma of the inner diameter.
+        calibration_sigma_rel: the inputs' rig-calibration share of every length (relative).
         defects: contract dicts with ``*_sigma_*`` keys, largest first (axial sigmas
             without the camera motion's scale: :func:`report_fields` adds it).
         detection_limit_mm: height of the smallest reference defect the run detects
@@ -161,6 +167,7 @@ class AnalysisResult:
     point_deviation_mm: np.ndarray
     radius_mm: float
     warnings: list[str] = field(default_factory=list)
+    calibration_sigma_rel: float = 0.0
     inner_diameter_sigma_mm: float = math.nan
     stations_diameter_sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stations_ovality_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -288,6 +295,18 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
         diameter_sigma = 1.2533 * float(np.std(radii)) / math.sqrt(max(len(radii), 1))
     diameter_sigma = math.hypot(diameter_sigma, 2.0 * radial_sys)
     st_dsig = np.hypot(np.array(stations["diameter_sigma"]), 2.0 * radial_sys)
+    cal = float(inputs.calibration_sigma_rel)
+    if cal > 0:
+        # The rig's calibration scales every measured length alike (the lengths along the
+        # pipe too: report_fields).
+        diameter_sigma = math.hypot(diameter_sigma, cal * float(diameter))
+        st_dsig = np.hypot(st_dsig, cal * np.abs(st_diam_arr))
+        for d in defects:
+            for key in ("height", "width"):  # lengths: report_fields, with the motion's scale
+                if d.get(f"{key}_sigma_mm") is not None:
+                    d[f"{key}_sigma_mm"] = round(
+                        math.hypot(d[f"{key}_sigma_mm"], cal * d[f"{key}_mm"]), 4
+                    )
     st_oval_arr = np.array(st_oval)
     finite = st_oval_arr[np.isfinite(st_oval_arr)]
     return AnalysisResult(
@@ -305,6 +324,7 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
         radius_mm=float(radius),
         warnings=warnings,
         inner_diameter_sigma_mm=float(diameter_sigma),
+        calibration_sigma_rel=cal,
         stations_diameter_sigma_mm=st_dsig,
         stations_ovality_sigma=np.array(stations["ovality_sigma"]),
         detection_limit_mm=float(search.detection_limit_mm),
@@ -401,8 +421,9 @@ def report_fields(
         # length T carries rel * sqrt(x T) (rel * T is the sigma over the whole run); a
         # run-wide scale error gives rel * x, never more than that.
         x = abs(x)
-        return rel * math.sqrt(x * max(run_length, x))
+        return math.hypot(rel * math.sqrt(x * max(run_length, x)), cal * x)
 
+    cal = float(res.calibration_sigma_rel)
     defects = []
     for d in res.defects:
         d = dict(d)
@@ -414,7 +435,9 @@ def report_fields(
             d["angle_sigma_deg"] = r(math.hypot(d["angle_sigma_deg"], config.angle_pose_sigma_deg), 4)
         defects.append(d)
     # Ends of the run: a ring position is known to about the point noise along the axis.
-    run_sigma = math.hypot(rel * run_length, math.sqrt(2.0) * (res.noise_mm if math.isfinite(res.noise_mm) else 0.0))
+    run_sigma = math.hypot(
+        position_sigma(run_length), math.sqrt(2.0) * (res.noise_mm if math.isfinite(res.noise_mm) else 0.0)
+    )
     n = len(res.stations_diameter_mm)
     dsig = res.stations_diameter_sigma_mm if len(res.stations_diameter_sigma_mm) == n else np.full(n, np.nan)
     osig = res.stations_ovality_sigma if len(res.stations_ovality_sigma) == n else np.full(n, np.nan)
@@ -437,6 +460,8 @@ def report_fields(
         "run_length_mm": round(run_length, 2),
         "run_length_sigma_mm": r(run_sigma, 3),
         "scale_sigma_rel": r(rel, 5),
+        # The rig calibration's share (rig.yaml laser.offset_sigma_mm); None: not stated.
+        "calibration_sigma_rel": r(cal, 6) if cal > 0 else None,
         "detection_limit_mm": r(res.detection_limit_mm, 3),
         "detection_limit_reference_mm": {
             "width": config.limit_width_mm,

@@ -228,6 +228,7 @@ def run(
             world_from_rig=station_poses,
             reference_from_world=np.linalg.inv(motion.world_from_rig[reg[0]]),
             ring_blur_mm=ring_blur_mm(station_rings),
+            calibration_sigma_rel=rig.laser.scale_sigma_rel,
         ),
     )
     timings["analysis"] = time.perf_counter() - t0

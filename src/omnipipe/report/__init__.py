@@ -412,6 +412,17 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
                 + (f"; wall vs laser before combining {gap:+.2f} %" if gap is not None else "")
                 + "</td></tr>"
             )
+    cal = s.get("calibration_sigma_rel")
+    parts.append(
+        "<tr><td>rig calibration</td><td>"
+        + (
+            f"1-sigma {100 * cal:.3f} % of every length (rig.yaml laser.offset_sigma_mm), "
+            "included in every uncertainty"
+            if cal
+            else "rig.yaml states no calibration uncertainty: the uncertainties above exclude it"
+        )
+        + "</td></tr>"
+    )
     parts.append("</table>")
     for w in s.get("warnings", []):
         parts.append(f"<p class='warn'>warning: {html.escape(str(w))}</p>")
