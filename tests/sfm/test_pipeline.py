@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
-from omnipipe.sfm.pipeline import SfmConfig, SfmInputs
+from omnipipe.sfm.pipeline import SfmConfig, SfmInputs, _bridge_lost_steps, _StepEvidence
 from omnipipe.sfm.pipeline import run as sfm_run
+from omnipipe.sfm.scale_check import StepCheck
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
@@ -54,3 +57,27 @@ def test_combine_scales_weights_and_widens_on_disagreement() -> None:
     assert sigma > 0.001 and abs(mean - 0.0) < 3 * sigma and abs(mean + 0.02) < 3 * sigma
     # A wall-anchored run: one source, taken as is.
     assert combine_scales(0.003, 0.002, 0.0005, wall_anchored=True) == (0.003, 0.002)
+
+
+def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
+    """A lost step (no relative motion found) is chained with the median trusted step,
+    not as zero length: the positions after it are not shortened by a whole step."""
+    rng = np.random.default_rng(3)
+    steps, evidence, checks = [], [], []
+    for k in range(7):
+        lost = k in (3, 4)
+        t = np.eye(4)
+        if not lost:
+            t[:3, 3] = [rng.normal(0, 0.1), rng.normal(0, 0.1), -10.0 + rng.normal(0, 0.2)]
+        steps.append(t)
+        evidence.append(
+            _StepEvidence(k, k + 1, t, None, None, np.zeros(0), math.nan, 0, "lost" if lost else "ok")
+        )
+        checks.append(
+            StepCheck(k, k + 1, 10.0, 0.0, 10.0, 50, math.nan if lost else 10.0, "none" if lost else "high")
+        )
+    _bridge_lost_steps(steps, evidence, checks)
+    for k in (3, 4):
+        assert np.allclose(steps[k][:3, :3], np.eye(3))
+        assert abs(steps[k][2, 3] + 10.0) < 0.3 and np.hypot(*steps[k][:2, 3]) < 0.2
+    assert steps[0][2, 3] != steps[3][2, 3]  # trusted steps untouched

@@ -216,6 +216,7 @@ def run(
     pending: list[tuple[int, int, object, np.ndarray | None]] = []
     checks: list[StepCheck] = []
     evidence: list[_StepEvidence] = []
+    steps_b_from_a: list[np.ndarray] = []  # rig_b_from_rig_a of each keyframe step (mm)
     anchor_logs: list[tuple[float, np.ndarray]] = []  # (length, per-point log lengths)
     min_parallax = math.radians(config.keyframe_min_parallax_deg)
     for i in range(n):
@@ -282,7 +283,7 @@ def run(
         scale = 0.0 if not math.isfinite(scale) else scale
         scales.append(scale)
         b_from_a[:3, 3] *= scale
-        world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
+        steps_b_from_a.append(b_from_a)
         if inl is not None:
             pair_matches.append((k, k + 1, inl))
         if systematic:
@@ -294,6 +295,9 @@ def run(
         elif lm is not None and len(lm.index):
             anchors.append((k, k + 1, rings[ev.a].points_in_rig[lm.index], lm.pixels_b))
             anchor_logs.append((scale, np.log(lm.scale_mm)))
+    _bridge_lost_steps(steps_b_from_a, evidence, checks)
+    for b_from_a in steps_b_from_a:
+        world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
     world_from_kf_arr = np.array(world_from_kf)
     bundle_stats = None
     feature_point: list[np.ndarray] | None = None
@@ -662,6 +666,38 @@ def _source_offset(evidence: list[_StepEvidence], config: ScaleCheckConfig) -> f
     ]
     offset = float(np.median(r)) if len(r) >= 3 else 0.0
     return offset if abs(offset) <= config.max_source_offset_log else 0.0
+
+
+def _bridge_lost_steps(
+    steps_b_from_a: list[np.ndarray], evidence: list[_StepEvidence], checks: list[StepCheck]
+) -> None:
+    """Give steps whose relative motion was not found the run's typical step, in place.
+
+    Such a step has no measurement at all (its check says so and the stretch is reported
+    unreliable); chaining it as zero length would shorten everything after it. The robot
+    moves along its own axis, so the median step of the trusted ones (rotation none,
+    translation the median of their translations in the earlier keyframe's frame) is the
+    best guess; the report's run length already counts these steps at 100 % uncertainty
+    (:func:`omnipipe.pipeline.quality.widen_for_unreliable`).
+
+    Args:
+        steps_b_from_a: (4, 4) rig_b_from_rig_a of every keyframe step, mm; lost ones are
+            replaced.
+        evidence, checks: the steps' evidence and decisions, same order.
+    """
+    trusted = [
+        t[:3, 3]
+        for t, ev, c in zip(steps_b_from_a, evidence, checks, strict=True)
+        if ev.status == "ok" and c.confidence == "high" and np.linalg.norm(t[:3, 3]) > 0
+    ]
+    if len(trusted) < 3:
+        return
+    typical = np.median(np.array(trusted), axis=0)
+    for k, ev in enumerate(evidence):
+        if ev.status == "lost":
+            step = np.eye(4)
+            step[:3, 3] = typical
+            steps_b_from_a[k] = step
 
 
 def _decide_step(ev: _StepEvidence, offset, gray_a, gray_b, camera, laser_points_a, config, warnings):
