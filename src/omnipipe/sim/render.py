@@ -440,10 +440,12 @@ class Renderer:
         neither aliases nor disappears. The image of that radiance is then blurred by the
         point spread function (an image convolution, exact for a curved, unevenly
         magnified line) and carries laser speckle. The radiance does not depend on ``g``:
-        a pixel sees radiance, however much wall it covers (measured: an earlier model that
-        drew the blurred line with a peak of power / (sqrt(2 pi) sigma_px) per pixel tilted
-        the stripe's profile towards the larger footprint and biased the light section's
-        diameter by -0.025 mm at 800x600).
+        a pixel sees radiance, however much wall it covers. An earlier model drew the
+        blurred line per pixel with a peak of power / (sqrt(2 pi) sigma_px), which made
+        the brightness follow each pixel's ``g``; measured on bench_metrology's scenes at
+        800x600 (noise-free frames, seeds 100-102), its ring came out 0.007-0.013 px
+        inside the true one, this model's 0.004-0.006 px, and with true poses the
+        analysed diameter moved from -0.048 to -0.024 mm (4 seeds).
         """
         cfg = self.config
         cam = self.camera
