@@ -35,8 +35,10 @@ class LaserCalibration:
     Attributes:
         k: (4,) k1..k4, unit normal with k3 >= 0 (mm).
         rms_mm: RMS distance of the inlier points to the plane (mm).
-        normal_sigma_deg: 1-sigma uncertainty of the normal's direction (deg).
-        offset_sigma_mm: 1-sigma uncertainty of the plane's distance from the focus (mm).
+        normal_sigma_deg: 1-sigma uncertainty of the normal's direction (deg), from the
+            residuals with each board counted as two independent points.
+        offset_sigma_mm: 1-sigma uncertainty of the plane's distance from the focus (mm),
+            likewise. Neither includes the camera model's error (docs/calibration.md).
         points: (N, 3) inlier laser points in the rig frame (mm).
         per_view: image index -> (points used, RMS residual mm).
         board_rms_px: image index -> corner reprojection RMS of the board pose (px).
@@ -345,7 +347,13 @@ def calibrate_laser(
     for i, pts in per_pts.items():
         r = pts @ k[:3] + k[3]
         per_view[i] = (len(pts), float(np.sqrt(np.mean(r**2))))
-    return LaserCalibration(k, rms, math.degrees(ns), os_, points[inl], per_view, board_rms, poses)
+    # The points of one board lie on its fitted line: their errors are shared, not
+    # independent. Count each board as two independent points (a line's two degrees of
+    # freedom in the plane) for the uncertainties.
+    views_used = sum(1 for pts in per_pts.values() if np.any(np.abs(pts @ k[:3] + k[3]) < 0.5))
+    inflate = math.sqrt(max(int(inl.sum()) / max(2 * views_used, 1), 1.0))
+    return LaserCalibration(k, rms, math.degrees(ns) * inflate, os_ * inflate, points[inl], per_view,
+                            board_rms, poses)
 
 
 def laser_plane(cal: LaserCalibration, channel: str) -> LaserPlane:
