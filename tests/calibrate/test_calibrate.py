@@ -49,7 +49,7 @@ def test_calibrate_camera_then_laser(calib_set: Path, tmp_path: Path, capsys) ->
     assert main(["calibrate", "laser", *_images(calib_set), "--rig", str(rig_cam), "--target", TARGET,
                  "--out", str(rig_full)]) == 0
     k = np.array(load_rig(rig_full).laser.k)
-    assert 0.0 < load_rig(rig_full).laser.offset_sigma_mm < 0.1  # the fit's 1-sigma, written
+    assert 0.025 <= load_rig(rig_full).laser.offset_sigma_mm < 0.1  # fit and board poses, written
     k_true = np.array(truth["laser"]["plane"])
     k_true /= np.linalg.norm(k_true[:3])
     angle = np.degrees(np.arccos(min(1.0, abs(float(k[:3] @ k_true[:3])))))
