@@ -105,17 +105,19 @@ def _near_defect(axial_mm: float, defects: list[dict], margin_mm: float = 2.0) -
     return False
 
 
-def _ring_blur(data: Path) -> float:
-    """The light section's blur along the ring (mm) from a few frames (caches older than it)."""
+def _blurs(data: Path) -> tuple[float, float]:
+    """The light section's blur along the ring and along the axis (mm) from a few frames
+    (caches older than them)."""
     from omnipipe import laser
+    from omnipipe.camera import camera_from_rig
     from omnipipe.dataset import open_dataset
-    from omnipipe.laser.extract import ring_blur_mm
+    from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
     from omnipipe.pipeline import ReconstructConfig
 
     ds = open_dataset(data)
     frames = range(0, len(ds), max(1, len(ds) // 5))
     rings = laser.run(ReconstructConfig.default().laser, ds.rig, (ds.read_frame(i) for i in frames))
-    return ring_blur_mm(rings.rings)
+    return ring_blur_mm(rings.rings), axial_blur_mm(rings.rings, camera_from_rig(ds.rig))
 
 
 def _reconstruct(scenario, root: Path, reuse: bool) -> tuple[dict, dict]:
@@ -131,9 +133,13 @@ def _reconstruct(scenario, root: Path, reuse: bool) -> tuple[dict, dict]:
     scene = json.loads((data / "ground_truth" / "scene.json").read_text()) if reuse else None
     if reuse and cache.is_file():
         z = np.load(cache)
-        blur = float(z["ring_blur_mm"]) if "ring_blur_mm" in z else _ring_blur(data)
+        if "axial_blur_mm" in z:
+            blur, axial = float(z["ring_blur_mm"]), float(z["axial_blur_mm"])
+        else:
+            blur, axial = _blurs(data)
         inputs = analysis.AnalysisInputs(
-            z["points"], z["frame"], z["poses"], z["reference_from_world"], ring_blur_mm=blur
+            z["points"], z["frame"], z["poses"], z["reference_from_world"], ring_blur_mm=blur,
+            axial_blur_mm=axial,
         )
         res = analysis.run(analysis.AnalysisConfig(), inputs)
         fields, _ = analysis.report_fields(res, float(z["scale_sigma_rel"]))
@@ -160,6 +166,7 @@ def _reconstruct(scenario, root: Path, reuse: bool) -> tuple[dict, dict]:
         poses=inp.world_from_rig,
         reference_from_world=inp.reference_from_world,
         ring_blur_mm=inp.ring_blur_mm,
+        axial_blur_mm=inp.axial_blur_mm,
         scale_sigma_rel=rec.summary.get("scale_sigma_rel", math.nan),
     )
     return rec.summary, scene

@@ -182,6 +182,7 @@ def find_defects(
     limit_width_mm: float = 10.0,
     limit_length_mm: float = 20.0,
     ring_blur_mm: float = 0.0,
+    axial_blur_mm: float = 0.0,
 ) -> DefectSearch:
     """Detect and measure bulges and dents.
 
@@ -196,6 +197,7 @@ def find_defects(
         limit_width_mm, limit_length_mm: the reference defect of the detection limit.
         ring_blur_mm: the light section's Gaussian smoothing along the ring (mm), fitted
             with each defect (:func:`omnipipe.analysis.sizing.seen_bump_model`).
+        axial_blur_mm: the same along the pipe axis (mm).
     """
     dev, arc, sigma, circ = (
         samples.deviation_mm,
@@ -265,7 +267,9 @@ def find_defects(
             d0 = _rough(samples, members, sign, kind, sample_spacing, typical_spacing)
             if d0 is None:
                 continue
-            d, mask = _fit(samples, d0, sign, sample_spacing, typical_spacing, ring_blur_mm)
+            d, mask = _fit(
+                samples, d0, sign, sample_spacing, typical_spacing, ring_blur_mm, axial_blur_mm
+            )
             if d["width_mm"] > max_width_fraction * circ:
                 warnings.append(
                     f"{kind} candidate at {d['axial_start_mm']:.0f} mm spans {d['width_mm']:.0f} mm of the "
@@ -336,6 +340,7 @@ def _rough(
 def _fit(
     s: WallSamples, d0: dict, sign: float, sample_spacing: float, ring_spacing: float,
     blur_u_mm: float = 0.0,
+    blur_z_mm: float = 0.0,
 ) -> tuple[dict, np.ndarray]:
     """Model fit around a roughly measured defect ``d0``: the reported dict and its mask."""
     circ = s.circumference_mm
@@ -357,6 +362,7 @@ def _fit(
         bounds_u=(-0.5 * w0 - 2 * sample_spacing, 0.5 * w0 + 2 * sample_spacing),
         bounds_z=(-0.5 * l0 - ring_spacing, 0.5 * l0 + ring_spacing),
         blur_u_mm=blur_u_mm,
+        blur_z_mm=blur_z_mm,
     )
     top = float(np.max(value[win])) if win.any() else 0.0
     if fit is not None and fit.height > top + 3.0 * fit.noise + 0.25 * top:

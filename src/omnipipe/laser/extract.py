@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import CameraModel, OmniCamera
 from omnipipe.image import CHANNEL_INDEX
 
 
@@ -261,4 +261,40 @@ def ring_blur_mm(rings: list[LaserRing], max_rings: int = 50) -> float:
         if ok.sum() < 10:
             continue
         values.append(float(np.median(r.peak_width_px)) * float(np.median(dp[ok] / dx[ok])))
+    return float(np.median(values)) if values else 0.0
+
+
+def axial_blur_mm(rings: list[LaserRing], camera: CameraModel, max_rings: int = 50) -> float:
+    """Gaussian sigma (mm along the pipe axis) of the light section's smoothing across the ring.
+
+    Across the stripe the image is blurred too (``peak_width_px``: the sheet's thickness,
+    the optics and the pixel): each ring sees a band of wall along the axis, and on an
+    axially curved crest its peak is that band's ridge. One px of image radius at a ring
+    sample spans ``dz`` mm of wall along the axis (the rays through the pixel half a px
+    inwards and outwards, met at the sample's distance from the rig's axis); the sigma is
+    the median of ``peak_width_px * dz`` over up to ``max_rings`` evenly chosen rings.
+
+    Returns:
+        The sigma (mm); 0.0 when no ring has enough samples.
+    """
+    usable = [r for r in rings if len(r.points_in_rig) >= 20 and len(r.peak_width_px) == len(r.pixels)]
+    if not usable:
+        return 0.0
+    pick = np.unique(np.linspace(0, len(usable) - 1, min(max_rings, len(usable))).round().astype(int))
+    centre = np.array([camera.cx, camera.cy], float)
+    values = []
+    for r in (usable[i] for i in pick):
+        off = r.pixels - centre
+        rad = np.linalg.norm(off, axis=1, keepdims=True)
+        unit = off / np.maximum(rad, 1e-9)
+        rho = np.hypot(r.points_in_rig[:, 0], r.points_in_rig[:, 1])
+        z = []
+        for step in (-0.5, 0.5):
+            d = camera.unproject(centre + (rad + step) * unit)
+            z.append(rho * d[:, 2] / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9))
+        dz = np.abs(z[1] - z[0])
+        ok = np.isfinite(dz) & np.isfinite(r.peak_width_px)
+        if ok.sum() < 10:
+            continue
+        values.append(float(np.median(r.peak_width_px[ok] * dz[ok])))
     return float(np.median(values)) if values else 0.0

@@ -151,10 +151,11 @@ def run(
     import numpy as np
 
     from omnipipe import analysis, laser, model
+    from omnipipe.camera import camera_from_rig
     from omnipipe.dataset import validate_frames
     from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
-    from omnipipe.laser.extract import ring_blur_mm
+    from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
     from omnipipe.pipeline import quality
     from omnipipe.sfm import pipeline as sfm
 
@@ -229,6 +230,7 @@ def run(
             reference_from_world=np.linalg.inv(motion.world_from_rig[reg[0]]),
             ring_blur_mm=ring_blur_mm(station_rings),
             calibration_sigma_rel=rig.laser.scale_sigma_rel,
+            axial_blur_mm=axial_blur_mm(station_rings, camera_from_rig(rig)),
         ),
     )
     timings["analysis"] = time.perf_counter() - t0
