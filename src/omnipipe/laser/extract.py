@@ -237,6 +237,15 @@ class RingExtractor:
         return ring
 
 
+def _spread_rings(rings: list[LaserRing], max_rings: int) -> list[LaserRing]:
+    """Up to ``max_rings`` evenly chosen rings with triangulated points and peak widths."""
+    usable = [r for r in rings if len(r.points_in_rig) >= 20 and len(r.peak_width_px) == len(r.pixels)]
+    if not usable:
+        return []
+    pick = np.unique(np.linspace(0, len(usable) - 1, min(max_rings, len(usable))).round().astype(int))
+    return [usable[i] for i in pick]
+
+
 def ring_blur_mm(rings: list[LaserRing], max_rings: int = 50) -> float:
     """Gaussian sigma (mm along the wall) of the light section's smoothing along the ring.
 
@@ -249,12 +258,8 @@ def ring_blur_mm(rings: list[LaserRing], max_rings: int = 50) -> float:
     Returns:
         The sigma (mm); 0.0 when no ring has enough samples.
     """
-    usable = [r for r in rings if len(r.points_in_rig) >= 20 and len(r.peak_width_px) == len(r.pixels)]
-    if not usable:
-        return 0.0
-    pick = np.unique(np.linspace(0, len(usable) - 1, min(max_rings, len(usable))).round().astype(int))
     values = []
-    for r in (usable[i] for i in pick):
+    for r in _spread_rings(rings, max_rings):
         dp = np.linalg.norm(np.diff(r.points_in_rig, axis=0), axis=1)
         dx = np.linalg.norm(np.diff(r.pixels, axis=0), axis=1)
         ok = (dx > 0.2) & (dx < 5.0)  # neighbours on the ring, not across a gap
@@ -277,13 +282,9 @@ def axial_blur_mm(rings: list[LaserRing], camera: CameraModel, max_rings: int = 
     Returns:
         The sigma (mm); 0.0 when no ring has enough samples.
     """
-    usable = [r for r in rings if len(r.points_in_rig) >= 20 and len(r.peak_width_px) == len(r.pixels)]
-    if not usable:
-        return 0.0
-    pick = np.unique(np.linspace(0, len(usable) - 1, min(max_rings, len(usable))).round().astype(int))
     centre = np.array([camera.cx, camera.cy], float)
     values = []
-    for r in (usable[i] for i in pick):
+    for r in _spread_rings(rings, max_rings):
         off = r.pixels - centre
         rad = np.linalg.norm(off, axis=1, keepdims=True)
         unit = off / np.maximum(rad, 1e-9)
