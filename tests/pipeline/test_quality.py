@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
-from omnipipe.pipeline.quality import flag_defects, widen_for_unreliable
+import pytest
+
+from omnipipe.errors import ReconstructionError
+from omnipipe.pipeline.quality import flag_defects, refuse_untrusted_motion, widen_for_unreliable
+from omnipipe.sfm.scale_check import StepCheck
 
 
 def _fields() -> dict:
@@ -66,3 +71,16 @@ def test_collapsed_stretch_counts_its_expected_length() -> None:
     widen_for_unreliable(fields, quality)
     assert fields["run_length_unreliable_mm"] == 22.0  # 2 steps x median(10, 12)
     assert math.isclose(fields["run_length_sigma_mm"], math.hypot(0.8, 22.0), abs_tol=1e-3)
+
+
+def test_one_unconfirmed_laser_length_is_no_scale() -> None:
+    """Every step without relative motion but one, whose laser length no feature confirms:
+    refused in one line (random seed 3 chained that one 197 mm length through the run);
+    a run with one step whose two sources agree is not."""
+    lost = [StepCheck(k, k + 1, math.nan, 0.0, math.nan, 0, math.nan, "none", "relative motion not found")
+            for k in range(30)]
+    lone = StepCheck(30, 31, 197.1, 0.0, math.nan, 0, 197.1, "low", "laser scale not confirmed by feature depths")
+    with pytest.raises(ReconstructionError, match="could not be trusted at any of the 31 steps"):
+        refuse_untrusted_motion(SimpleNamespace(step_checks=[*lost, lone]))
+    both = StepCheck(30, 31, 10.3, 0.0, 10.1, 40, 10.2, "low", "laser and feature depths offset")
+    refuse_untrusted_motion(SimpleNamespace(step_checks=[*lost, both]))  # not refused
