@@ -278,6 +278,15 @@ def _blurred(
     return WallSamples(samples.sigma_mm, samples.arc_mm, dev, samples.ring, samples.circumference_mm)
 
 
+def _plain_and_seen(samples: WallSamples, **blur: float) -> tuple[dict, dict]:
+    """The one defect of ``samples`` fitted without and with the blur model ``blur``."""
+    kw = dict(min_height_mm=1.0, noise_factor=6.0, min_points=4, grid_mm=0.25)
+    plain = find_defects(samples, **kw).defects
+    seen = find_defects(samples, **blur, **kw).defects
+    assert len(plain) == 1 and len(seen) == 1
+    return plain[0], seen[0]
+
+
 def test_ring_blur_is_fitted_not_read_as_a_lower_wider_defect() -> None:
     # Narrow defects seen through the stripe's blur along the ring (1.2 mm, as measured at
     # 800x600) read low and wide; fitting the blurred model removes both biases.
@@ -290,15 +299,11 @@ def test_ring_blur_is_fitted_not_read_as_a_lower_wider_defect() -> None:
             "axial_start_mm": 40.0, "angle_deg": float(rng.uniform(0, 360)),
             "ramp_u": 1.0, "ramp_z": 0.5,
         }
-        samples = _blurred(_map(rng, [t]), [t], 1.2)
-        kw = dict(min_height_mm=1.0, noise_factor=6.0, min_points=4, grid_mm=0.25)
-        plain = find_defects(samples, **kw).defects
-        seen = find_defects(samples, ring_blur_mm=1.2, **kw).defects
-        assert len(plain) == 1 and len(seen) == 1
-        h_plain.append(plain[0]["height_mm"] / t["height_mm"] - 1)
-        h_seen.append(seen[0]["height_mm"] / t["height_mm"] - 1)
-        w_plain.append(plain[0]["width_mm"] - t["width_mm"])
-        w_seen.append(seen[0]["width_mm"] - t["width_mm"])
+        plain, seen = _plain_and_seen(_blurred(_map(rng, [t]), [t], 1.2), ring_blur_mm=1.2)
+        h_plain.append(plain["height_mm"] / t["height_mm"] - 1)
+        h_seen.append(seen["height_mm"] / t["height_mm"] - 1)
+        w_plain.append(plain["width_mm"] - t["width_mm"])
+        w_seen.append(seen["width_mm"] - t["width_mm"])
     assert np.mean(h_plain) < -0.03  # the bias this guards against is real at this blur
     assert abs(np.mean(h_seen)) < 0.01
     assert np.mean(w_plain) > 0.1
@@ -320,11 +325,8 @@ def test_axial_blur_is_fitted_not_read_as_a_lower_defect() -> None:
             "ramp_u": 0.5, "ramp_z": 1.0,
         }
         samples = _blurred(_map(rng, [t]), [t], 0.0, axial_blur_mm=1.5)
-        kw = dict(min_height_mm=1.0, noise_factor=6.0, min_points=4, grid_mm=0.25)
-        plain = find_defects(samples, **kw).defects
-        seen = find_defects(samples, axial_blur_mm=1.5, **kw).defects
-        assert len(plain) == 1 and len(seen) == 1
-        h_plain.append(plain[0]["height_mm"] / t["height_mm"] - 1)
-        h_seen.append(seen[0]["height_mm"] / t["height_mm"] - 1)
+        plain, seen = _plain_and_seen(samples, axial_blur_mm=1.5)
+        h_plain.append(plain["height_mm"] / t["height_mm"] - 1)
+        h_seen.append(seen["height_mm"] / t["height_mm"] - 1)
     assert np.mean(h_plain) < -0.03  # the bias this guards against is real at this blur
     assert abs(np.mean(h_seen)) < 0.5 * abs(np.mean(h_plain))
