@@ -7,8 +7,8 @@ robot's LEDs (inverse-square falloff, Lambert cosine with the true surface
 normal), plus the laser sheet of Eq. (4): a Gaussian sheet of finite thickness
 whose radiance is integrated analytically over each pixel's area from the sheet's
 distance to the pixel's wall point and its gradient across the image (so the thin
-line never aliases), then blurred by the optics; it carries laser speckle. Optics blur the LED image,
-then the sensor adds shot and read noise and quantises to 8 bits.
+line never aliases), then blurred by the optics; it carries laser speckle. Optics
+blur the LED image, then the sensor adds shot and read noise and quantises to 8 bits.
 
 The robot body (camera housing and the front unit behind the laser) occludes
 the steepest backward rays: that is the image's blind centre.
@@ -462,8 +462,9 @@ class Renderer:
         if len(sel) == 0:
             return out.reshape(h, w, 3)
         g = np.maximum(grad[sel], 1e-6)
+        flat = self.index[wall][sel]  # flat image index of each selected pixel
         sheet = cfg.laser_sheet_sigma_mm
-        sheet_px_area = np.sqrt(sheet**2 + g**2 / 12.0)
+        sheet_in_pixel_mm = np.sqrt(sheet**2 + g**2 / 12.0)
         # Power per unit length of the line: sheet fan spreads as 1/D; Lambert on the wall.
         to_emitter = self.laser_origin_in_rig - points_rig[sel]
         dist_e = np.linalg.norm(to_emitter, axis=1)
@@ -475,23 +476,21 @@ class Renderer:
         # frame's median footprint: peak radiance = line / (sqrt(2 pi) sheet / g_ref).
         g_ref = float(np.median(g))
         peak = line * g_ref / (math.sqrt(2 * math.pi) * sheet)
-        radiance = peak * (sheet / sheet_px_area) * np.exp(-0.5 * (laser_h[sel] / sheet_px_area) ** 2)
+        radiance = peak * (sheet / sheet_in_pixel_mm) * np.exp(-0.5 * (laser_h[sel] / sheet_in_pixel_mm) ** 2)
         img = np.zeros(h * w, np.float32)
-        img[self.index[wall][sel]] = radiance
+        img[flat] = radiance
         img = img.reshape(h, w)
         if cfg.psf_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), cfg.psf_sigma_px)
-        value = img.ravel()[self.index[wall][sel]]
+        value = img.ravel()[flat]
         if cfg.speckle_contrast > 0:
             # Speckle forms on the sensor (grains of about a pixel): it multiplies the image.
             k = 1.0 / cfg.speckle_contrast**2
             speckle = rng.gamma(k, 1.0 / k, size=len(sel)).astype(np.float32)
             field = np.ones(h * w, np.float32)
-            field[self.index[wall][sel]] = speckle
+            field[flat] = speckle
             field = cv2.GaussianBlur(field.reshape(h, w), (0, 0), 0.6).ravel()
-            value = value * field[self.index[wall][sel]]
-        out = np.zeros((h * w, 3), np.float32)
-        flat = self.index[wall][sel]
+            value = value * field[flat]
         if chan is None:
             out[flat] = value[:, None]
         else:
