@@ -286,6 +286,7 @@ def find_defects(
             d["travel_mm"] = round(_travel(samples, d["axial_start_mm"], ring_ids, ring_sigma), 2)
             defects.append(d)
             masks.append(mask)
+    defects, masks = _merge_overlapping(defects, masks, circ)
     order_h = np.argsort([-d["height_mm"] for d in defects], kind="stable")
     return DefectSearch(
         [defects[i] for i in order_h],
@@ -297,6 +298,36 @@ def find_defects(
         sample_spacing_mm=sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _merge_overlapping(
+    defects: list[dict], masks: list[np.ndarray], circ: float
+) -> tuple[list[dict], list[np.ndarray]]:
+    """One defect per bump: a detection whose centre lies inside the half-height extent of
+    another of the same kind supported by more samples is a piece of it (a short, wide
+    defect between two rings can fall apart into several candidate clusters); it is
+    dropped and its samples join the larger one's mask."""
+    keep = np.ones(len(defects), bool)
+    masks = [np.array(m, bool) for m in masks]
+    order = sorted(range(len(defects)), key=lambda i: -defects[i]["points"])
+    for rank, i in enumerate(order):
+        if not keep[i]:
+            continue
+        a = defects[i]
+        za = a["axial_start_mm"] + 0.5 * a["length_mm"]
+        ua = a["angle_deg"] / 360.0 * circ
+        for j in order[rank + 1 :]:
+            b = defects[j]
+            if not keep[j] or b["kind"] != a["kind"]:
+                continue
+            dz = abs(b["axial_start_mm"] + 0.5 * b["length_mm"] - za)
+            du = abs((b["angle_deg"] / 360.0 * circ - ua + 0.5 * circ) % circ - 0.5 * circ)
+            if dz <= 0.5 * a["length_mm"] and du <= 0.5 * a["width_mm"]:
+                keep[j] = False
+                masks[i] = masks[i] | masks[j]
+    return [d for d, k in zip(defects, keep, strict=True) if k], [
+        m for m, k in zip(masks, keep, strict=True) if k
+    ]
 
 
 def _travel(s: WallSamples, axial_mm: float, ring_ids: np.ndarray, ring_sigma: np.ndarray) -> float:
