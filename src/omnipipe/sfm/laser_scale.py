@@ -250,7 +250,10 @@ def match_laser_points(
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
         pts_b = plane_b0[:, None, :, :] + scales[:, :, None, None] * d  # (N, S, K, 3)
         pix, ok = camera.project(pts_b.reshape(-1, 3))
-        vals = np.where(ok, sample_bilinear(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
+        # Only the valid samples are read (the others are NaN, as they were when every
+        # pixel was sampled and then masked: bilinear samples do not depend on each other).
+        vals = np.full(len(pix), np.nan, dtype=np.result_type(gray_b.dtype, np.nan))
+        vals[ok] = sample_bilinear(gray_b, pix[ok])
         patches = vals.reshape(len(P), scales.shape[1], K)
         w = weight[:, None, :]
         if sheet_n is not None:
