@@ -296,6 +296,43 @@ def _ncc_kernel(template, patches, weight, out):  # pragma: no cover - compiled
             out[i, j] = num / den if n_valid / k_len > 0.8 else -1.0
 
 
+
+@numba.njit(cache=True)
+def _translated(plane, scales, direction):  # pragma: no cover - compiled
+    """(N, S, K, 3) points ``plane[n, k] + scales[n, s] * direction``: the NumPy
+    broadcast ``plane[:, None] + scales[:, :, None, None] * direction`` (same two
+    roundings), without its length-3 inner loops."""
+    n_pts, k_len = plane.shape[0], plane.shape[1]
+    n_s = scales.shape[1]
+    out = np.empty((n_pts, n_s, k_len, 3))
+    for i in range(n_pts):
+        for j in range(n_s):
+            s0 = scales[i, j] * direction[0]
+            s1 = scales[i, j] * direction[1]
+            s2 = scales[i, j] * direction[2]
+            for k in range(k_len):
+                out[i, j, k, 0] = plane[i, k, 0] + s0
+                out[i, j, k, 1] = plane[i, k, 1] + s1
+                out[i, j, k, 2] = plane[i, k, 2] + s2
+    return out
+
+
+
+@numba.njit(cache=True)
+def _off_sheet_weight(along_normal, offset, step, half, weight):  # pragma: no cover - compiled
+    """(N, S, K) ``weight[:, None, :] * (abs(along_normal + offset) / step > half)``
+    (``step``, ``half``: (N,) per point; ``weight``: (N, K)), the NumPy expression's
+    operations in its order."""
+    n_pts, n_s, k_len = along_normal.shape
+    out = np.empty((n_pts, n_s, k_len))
+    for i in range(n_pts):
+        for j in range(n_s):
+            for k in range(k_len):
+                rows = abs(along_normal[i, j, k] + offset) / step[i]
+                out[i, j, k] = weight[i, k] * (1.0 if rows > half[i] else 0.0)
+    return out
+
+
 def _sheet(points: np.ndarray) -> tuple[np.ndarray | None, float]:
     """Plane n.x + o = 0 through (N, 3) laser points (their sheet), or (None, 0)."""
     ok = np.all(np.isfinite(points), axis=1)
@@ -389,17 +426,17 @@ def match_laser_points(
     sheet_n, sheet_o = _sheet(pts)
 
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
-        pts_b = plane_b0[:, None, :, :] + scales[:, :, None, None] * d  # (N, S, K, 3)
+        pts_b = _translated(plane_b0, np.ascontiguousarray(scales, dtype=float), d)  # (N, S, K, 3)
         pix, ok = camera.project(pts_b.reshape(-1, 3))
         # Only the valid samples are read (the others are NaN, as they were when every
         # pixel was sampled and then masked: bilinear samples do not depend on each other).
         vals = np.full(len(pix), np.nan, dtype=np.result_type(gray_b.dtype, np.nan))
-        vals[ok] = sample_bilinear(gray_b, pix[ok])
+        vals[ok] = sample_bilinear(gray_b, np.compress(ok, pix, axis=0))  # 6x pix[ok]
         patches = vals.reshape(len(P), scales.shape[1], K)
         w = weight[:, None, :]
         if sheet_n is not None:
-            rows_b = np.abs(pts_b @ sheet_n + sheet_o) / step[:, None, None]
-            w = w * (rows_b > half[:, None, None])
+            # |pts_b . n + o| / step > half, times the template's weights (one pass).
+            w = _off_sheet_weight(pts_b @ sheet_n, sheet_o, step, half, weight)
         return _ncc(template, patches, w, basis)
 
     steps = cfg.scale_steps
