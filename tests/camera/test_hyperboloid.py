@@ -114,3 +114,46 @@ def test_shape_errors(camera: OmniCamera) -> None:
         camera.unproject(np.zeros((4, 3)))
     with pytest.raises(ShapeError, match=r"\(N, 3\)"):
         camera.project(np.zeros((4, 2)))
+
+
+def _project_numpy(camera: OmniCamera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The NumPy expressions ``project`` had before it was compiled (the reference)."""
+    a, b, c, f = camera.a, camera.b, camera.c, camera.f
+    norm = np.linalg.norm(pts, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = pts / norm[:, None]
+        t = a * a / (b - c * d[:, 2])
+        mz = t * d[:, 2] + 2.0 * c
+        u = f * t * d[:, 0] / mz
+        v = f * t * d[:, 1] / mz
+    seen = (norm > 0) & (d[:, 2] < b / c) & (mz > 0)
+    pixels = np.stack([u + camera.cx, v + camera.cy], axis=1)
+    pixels[~seen] = np.nan
+    valid = seen & camera.is_valid_pixel(np.where(seen[:, None], pixels, 0.0))
+    return pixels, valid
+
+
+def test_compiled_project_is_bit_identical_to_numpy(camera: OmniCamera) -> None:
+    rng = np.random.default_rng(7)
+    pts = rng.normal(size=(200_000, 3)) * rng.lognormal(size=(200_000, 1)) * 50.0
+    pts[::3, 2] = -np.abs(pts[::3, 2]) * 0.3 - 20.0  # most of these in view
+    pts[::500] = 0.0
+    pts[1::500, 0] = np.nan
+    pts[2::500, 1] = np.inf
+    pts[3::500, 2] = -np.inf
+    # Rays whose pixels lie within a few ulp of the valid annulus' radii.
+    phi = rng.uniform(0.0, 2.0 * np.pi, 2000)
+    edge = []
+    for radius in (camera.radius_min, camera.radius_max):
+        for k in range(-8, 9):
+            r = radius * (1.0 + k * 2.2e-16)
+            px = np.stack([camera.cx + r * np.cos(phi), camera.cy + r * np.sin(phi)], axis=1)
+            edge.append(camera.unproject(px))
+    edge_rays = np.concatenate(edge)
+    for p in (pts, edge_rays, np.asfortranarray(pts[:1000]), pts[:0]):
+        got, got_valid = camera.project(p)
+        want, want_valid = _project_numpy(camera, np.asarray(p, float))
+        assert np.array_equal(got, want, equal_nan=True)
+        assert np.array_equal(got_valid, want_valid)
+    _, edge_valid = camera.project(edge_rays)
+    assert 0 < edge_valid.mean() < 1  # the annulus' edges were really probed

@@ -65,3 +65,25 @@ def test_leaking_stripe_does_not_pull_short_steps_to_zero() -> None:
     )
     assert len(m.index) > 40
     assert abs(m.scale / length - 1.0) < 0.03, (m.scale, length)
+
+
+def test_compiled_ncc_is_bit_identical_to_numpy() -> None:
+    from omnipipe.sfm.laser_scale import _ncc, _ncc_numpy
+
+    rng = np.random.default_rng(3)
+    # K: the default 13x13 patch, small ones (< 8: plain loop) and ones needing one and
+    # several halvings of NumPy's pairwise sum (> 128, > 256, > 1024).
+    for trial, k in enumerate((169, 1, 3, 9, 25, 128, 129, 441, 2000)):
+        n, s = int(rng.integers(1, 30)), int(rng.integers(1, 40))
+        dtype = np.float32 if trial % 2 == 0 else np.float64
+        template = (rng.normal(size=(n, k)) * 30 + 100).astype(dtype)
+        patches = (rng.normal(size=(n, s, k)) * 30 + 100).astype(dtype)
+        template[rng.random(template.shape) < 0.05] = np.nan
+        patches[rng.random(patches.shape) < 0.1 * (trial % 3)] = np.nan
+        patches[:, : s // 2] = template[:, None, :] * 1.5 + 3.0  # perfectly correlated
+        weight = (rng.random((n, k)) > 0.3).astype(float)
+        weight[0] = 0.0  # no weight at all
+        weight3 = weight[:, None, :] * (rng.random((n, s, k)) > 0.2)
+        for w in (weight, weight3):
+            got = _ncc(template, patches, w)
+            assert np.array_equal(got, _ncc_numpy(template, patches, w), equal_nan=True)

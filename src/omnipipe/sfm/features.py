@@ -174,6 +174,12 @@ def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> 
         return out
 
     fwd = one_way(f1.descriptors, f2.descriptors)
-    bwd = one_way(f2.descriptors, f1.descriptors)
+    # Only the features of f2 that some f1 feature chose can pass the mutual check: the
+    # backward search is run for those alone. Each query's neighbours depend on its own
+    # distances only, so this is the full backward search restricted to them.
+    targets = np.unique(np.fromiter(fwd.values(), int, len(fwd)))
+    if len(targets) == 0:
+        return np.zeros((0, 2), int)
+    bwd = {int(targets[q]): i for q, i in one_way(f2.descriptors[targets], f1.descriptors).items()}
     pairs = [(i, j) for i, j in fwd.items() if bwd.get(j) == i]
     return np.array(pairs, int).reshape(-1, 2)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from omnipipe.camera import OmniCamera
@@ -128,7 +129,29 @@ def _ncc(
     their weighted least-squares fit of a constant plus those functions before the
     correlation: a brightness gradient across the patch (the LEDs' fall-off, which
     moves with the robot) then cannot pull the match along the epipolar curve.
+
+    Without ``basis`` a compiled kernel computes it (bit-identical to
+    :func:`_ncc_numpy`, NumPy's pairwise sums included; one pass instead of a dozen
+    (N, S, K) temporaries).
     """
+    w = weight[:, None, :] if weight.ndim == 2 else weight
+    if basis is None:
+        out = np.empty(patches.shape[:2])
+        _ncc_kernel(
+            np.ascontiguousarray(template), np.ascontiguousarray(patches),
+            np.ascontiguousarray(w, dtype=float), out,
+        )
+        return out
+    return _ncc_numpy(template, patches, w, basis)
+
+
+def _ncc_numpy(
+    template: np.ndarray,
+    patches: np.ndarray,
+    weight: np.ndarray,
+    basis: np.ndarray | None = None,
+) -> np.ndarray:
+    """:func:`_ncc` in NumPy (the detrended variant; the reference of the kernel)."""
     w = weight[:, None, :] if weight.ndim == 2 else weight
     t = template[:, None, :]
     valid = np.isfinite(patches) & np.isfinite(t)
@@ -153,6 +176,161 @@ def _ncc(
     den = np.sqrt((ww * dp * dp).sum(axis=2) * (ww * dt * dt).sum(axis=2))
     ncc = num / np.maximum(den, 1e-9)
     return np.where(valid.mean(axis=2) > 0.8, ncc, -1.0)
+
+
+
+@numba.njit(cache=True)
+def _block_sum(a, lo, n):  # pragma: no cover - compiled
+    """NumPy's pairwise sum of a[lo:lo + n] for n <= 128 (eight accumulators)."""
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@numba.njit(cache=True)
+def _pairwise_sum(a, n, stack, values):  # pragma: no cover - compiled
+    """Sum of a[:n] in NumPy's pairwise order (``np.add.reduce`` of float64 along a
+    contiguous axis), bit for bit: halves (rounded down to multiples of 8) until a block
+    has at most 128 elements. Iterative (a cached recursive numba function crashes on
+    load); ``stack`` (64, 3) int64 and ``values`` (64,) float64 are scratch space."""
+    if n <= 128:
+        return _block_sum(a, 0, n)
+    sp, vp = 1, 0
+    stack[0, 0], stack[0, 1], stack[0, 2] = 0, n, 0
+    while sp > 0:
+        lo, m, stage = stack[sp - 1, 0], stack[sp - 1, 1], stack[sp - 1, 2]
+        if m <= 128:
+            values[vp] = _block_sum(a, lo, m)
+            vp += 1
+            sp -= 1
+            continue
+        half = m // 2
+        half -= half % 8
+        if stage == 0:  # left half first
+            stack[sp - 1, 2] = 1
+            stack[sp, 0], stack[sp, 1], stack[sp, 2] = lo, half, 0
+            sp += 1
+        elif stage == 1:  # then the right half
+            stack[sp - 1, 2] = 2
+            stack[sp, 0], stack[sp, 1], stack[sp, 2] = lo + half, m - half, 0
+            sp += 1
+        else:  # both done: left + right
+            values[vp - 2] = values[vp - 2] + values[vp - 1]
+            vp -= 1
+            sp -= 1
+    return values[0]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _ncc_kernel(template, patches, weight, out):  # pragma: no cover - compiled
+    """:func:`_ncc_numpy` without basis: (N, K) templates, (N, S, K) patches, (N, 1 or S,
+    K) weights -> (N, S) ``out``; the same operations in the same order (sums pairwise
+    as NumPy's, started from 0)."""
+    n_pts, n_s, k_len = patches.shape
+    ww = np.empty(k_len)
+    p = np.empty(k_len)
+    tt = np.empty(k_len)
+    acc = np.empty(k_len)
+    stack = np.empty((64, 3), np.int64)
+    values = np.empty(64)
+    for i in range(n_pts):
+        for j in range(n_s):
+            jw = j if weight.shape[1] > 1 else 0
+            n_valid = 0
+            for k in range(k_len):
+                pv = patches[i, j, k]
+                tv = template[i, k]
+                if np.isfinite(pv) and np.isfinite(tv):
+                    n_valid += 1
+                    ww[k] = weight[i, jw, k]
+                    p[k] = pv
+                    tt[k] = tv
+                else:
+                    ww[k] = 0.0
+                    p[k] = 0.0
+                    tt[k] = 0.0
+            wsum = 0.0 + _pairwise_sum(ww, k_len, stack, values)
+            if wsum < 1e-9:  # np.maximum(wsum, 1e-9); NaN stays NaN
+                wsum = 1e-9
+            for k in range(k_len):
+                acc[k] = ww[k] * p[k]
+            mean_p = (0.0 + _pairwise_sum(acc, k_len, stack, values)) / wsum
+            for k in range(k_len):
+                acc[k] = ww[k] * tt[k]
+            mean_t = (0.0 + _pairwise_sum(acc, k_len, stack, values)) / wsum
+            for k in range(k_len):
+                p[k] = p[k] - mean_p  # dp
+                tt[k] = tt[k] - mean_t  # dt
+            for k in range(k_len):
+                acc[k] = ww[k] * p[k] * tt[k]
+            num = 0.0 + _pairwise_sum(acc, k_len, stack, values)
+            for k in range(k_len):
+                acc[k] = ww[k] * p[k] * p[k]
+            spp = 0.0 + _pairwise_sum(acc, k_len, stack, values)
+            for k in range(k_len):
+                acc[k] = ww[k] * tt[k] * tt[k]
+            stt = 0.0 + _pairwise_sum(acc, k_len, stack, values)
+            den = math.sqrt(spp * stt)
+            if den < 1e-9:  # np.maximum(den, 1e-9); NaN stays NaN
+                den = 1e-9
+            out[i, j] = num / den if n_valid / k_len > 0.8 else -1.0
+
+
+
+@numba.njit(cache=True)
+def _translated(plane, scales, direction):  # pragma: no cover - compiled
+    """(N, S, K, 3) points ``plane[n, k] + scales[n, s] * direction``: the NumPy
+    broadcast ``plane[:, None] + scales[:, :, None, None] * direction`` (same two
+    roundings), without its length-3 inner loops."""
+    n_pts, k_len = plane.shape[0], plane.shape[1]
+    n_s = scales.shape[1]
+    out = np.empty((n_pts, n_s, k_len, 3))
+    for i in range(n_pts):
+        for j in range(n_s):
+            s0 = scales[i, j] * direction[0]
+            s1 = scales[i, j] * direction[1]
+            s2 = scales[i, j] * direction[2]
+            for k in range(k_len):
+                out[i, j, k, 0] = plane[i, k, 0] + s0
+                out[i, j, k, 1] = plane[i, k, 1] + s1
+                out[i, j, k, 2] = plane[i, k, 2] + s2
+    return out
+
+
+
+@numba.njit(cache=True)
+def _off_sheet_weight(along_normal, offset, step, half, weight):  # pragma: no cover - compiled
+    """(N, S, K) ``weight[:, None, :] * (abs(along_normal + offset) / step > half)``
+    (``step``, ``half``: (N,) per point; ``weight``: (N, K)), the NumPy expression's
+    operations in its order."""
+    n_pts, n_s, k_len = along_normal.shape
+    out = np.empty((n_pts, n_s, k_len))
+    for i in range(n_pts):
+        for j in range(n_s):
+            for k in range(k_len):
+                rows = abs(along_normal[i, j, k] + offset) / step[i]
+                out[i, j, k] = weight[i, k] * (1.0 if rows > half[i] else 0.0)
+    return out
 
 
 def _sheet(points: np.ndarray) -> tuple[np.ndarray | None, float]:
@@ -248,14 +426,17 @@ def match_laser_points(
     sheet_n, sheet_o = _sheet(pts)
 
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
-        pts_b = plane_b0[:, None, :, :] + scales[:, :, None, None] * d  # (N, S, K, 3)
+        pts_b = _translated(plane_b0, np.ascontiguousarray(scales, dtype=float), d)  # (N, S, K, 3)
         pix, ok = camera.project(pts_b.reshape(-1, 3))
-        vals = np.where(ok, sample_bilinear(gray_b, np.nan_to_num(pix, nan=-10.0)), np.nan)
+        # Only the valid samples are read (the others are NaN, as they were when every
+        # pixel was sampled and then masked: bilinear samples do not depend on each other).
+        vals = np.full(len(pix), np.nan, dtype=np.result_type(gray_b.dtype, np.nan))
+        vals[ok] = sample_bilinear(gray_b, np.compress(ok, pix, axis=0))  # 6x pix[ok]
         patches = vals.reshape(len(P), scales.shape[1], K)
         w = weight[:, None, :]
         if sheet_n is not None:
-            rows_b = np.abs(pts_b @ sheet_n + sheet_o) / step[:, None, None]
-            w = w * (rows_b > half[:, None, None])
+            # |pts_b . n + o| / step > half, times the template's weights (one pass).
+            w = _off_sheet_weight(pts_b @ sheet_n, sheet_o, step, half, weight)
         return _ncc(template, patches, w, basis)
 
     steps = cfg.scale_steps

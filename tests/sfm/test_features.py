@@ -1,0 +1,41 @@
+"""Feature matching: the mutual ratio-test matches."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from omnipipe.sfm.features import FrameFeatures, match_features
+
+
+def _features(descriptors: np.ndarray) -> FrameFeatures:
+    n = len(descriptors)
+    return FrameFeatures(np.zeros((n, 3)), np.zeros((n, 2)), descriptors, np.zeros(n, int))
+
+
+def _match_both_ways(d1: np.ndarray, d2: np.ndarray, ratio: float) -> np.ndarray:
+    """The full search both ways (the reference): ratio test each way, mutual check."""
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+
+    def one_way(a: np.ndarray, b: np.ndarray) -> dict[int, int]:
+        return {
+            m[0].queryIdx: m[0].trainIdx
+            for m in bf.knnMatch(a, b, k=2)
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance
+        }
+
+    fwd, bwd = one_way(d1, d2), one_way(d2, d1)
+    return np.array([(i, j) for i, j in fwd.items() if bwd.get(j) == i], int).reshape(-1, 2)
+
+
+def test_backward_search_on_chosen_features_only_gives_the_full_result() -> None:
+    rng = np.random.default_rng(4)
+    for n1, n2, shared in ((300, 250, 120), (40, 500, 30), (2, 2, 1), (50, 60, 0)):
+        base = rng.random((shared, 128)).astype(np.float32) * 100
+        d1 = np.vstack([base + rng.normal(0, 2, base.shape), rng.random((n1 - shared, 128)) * 100])
+        d2 = np.vstack([base + rng.normal(0, 2, base.shape), rng.random((n2 - shared, 128)) * 100])
+        d1, d2 = d1.astype(np.float32), d2[rng.permutation(n2)].astype(np.float32)
+        d2[-1] = d2[0]  # a tie: two equal features in f2
+        for ratio in (0.8, 1.0):
+            got = match_features(_features(d1), _features(d2), ratio)
+            assert np.array_equal(got, _match_both_ways(d1, d2, ratio))
