@@ -364,3 +364,18 @@ def test_axial_blur_is_fitted_not_read_as_a_lower_defect() -> None:
         h_seen.append(seen["height_mm"] / t["height_mm"] - 1)
     assert np.mean(h_plain) < -0.03  # the bias this guards against is real at this blur
     assert abs(np.mean(h_seen)) < 0.5 * abs(np.mean(h_plain))
+
+
+def test_a_defect_the_model_cannot_fit_is_reported_with_a_warning(monkeypatch) -> None:
+    """When the bump fit fails, the rough grid measurement is reported without sigmas, and a
+    warning names the defect: never a size that looks measured but carries no uncertainty."""
+    import omnipipe.analysis.defects as defects_module
+
+    monkeypatch.setattr(defects_module, "fit_bump", lambda *a, **k: None)
+    rng = np.random.default_rng(3)
+    t = _random_defect(rng, (4.0, 6.0), (30.0, 40.0))
+    search = _search(_map(rng, [t]))
+    assert len(search.defects) == 1
+    assert search.defects[0]["height_sigma_mm"] is None
+    assert abs(search.defects[0]["height_mm"] - t["height_mm"]) < 0.2 * t["height_mm"]
+    assert any("model fit failed" in w for w in search.warnings), search.warnings
