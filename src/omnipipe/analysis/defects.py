@@ -282,17 +282,18 @@ def find_defects(
                     f"height {d['height_mm']:.2f} mm is below the detection limit {limit:.2f} mm, not reported"
                 )
                 continue
-            if d.get("height_sigma_mm") is None:
-                warnings.append(
-                    f"{kind} at {d['axial_start_mm']:.0f} mm, {d['angle_deg']:.0f} deg: the model fit "
-                    "failed (a crest extrapolated far above the samples, or too few samples); its "
-                    "size is the rough grid measurement, without uncertainty"
-                )
             d["points"] = len(members)
             d["travel_mm"] = round(_travel(samples, d["axial_start_mm"], ring_ids, ring_sigma), 2)
             defects.append(d)
             masks.append(mask)
     defects, masks = _merge_overlapping(defects, masks, circ)
+    warnings.extend(
+        f"{d['kind']} at {d['axial_start_mm']:.0f} mm, {d['angle_deg']:.0f} deg: the model fit "
+        "failed (a crest extrapolated far above the samples, or too few samples); its size is "
+        "the rough grid measurement, without uncertainty"
+        for d in defects
+        if d.get("height_sigma_mm") is None
+    )
     order_h = np.argsort([-d["height_mm"] for d in defects], kind="stable")
     return DefectSearch(
         [defects[i] for i in order_h],

@@ -383,7 +383,7 @@ def fit_bump(
         return None
     sol = least_squares(residual, best.x, bounds=(lower, upper), x_scale="jac", max_nfev=400)
     n, k = int(keep.sum()), len(sol.x)
-    free, s2 = sol, float(np.sum(sol.fun[:-2] ** 2) / max(n - k, 1))
+    free_cost, s2 = sol.cost, float(np.sum(sol.fun[:-2] ** 2) / max(n - k, 1))
     if ROUND_FLANK_CHI2 > 0 and sol.x[6] < 0.95:
         # The roundest axial flank the samples accept. With one to three rings across a
         # defect, a crest between them is met as well by a lower plateau with a longer,
@@ -394,7 +394,7 @@ def fit_bump(
         trial_lo[6] = 1.0 - 1e-6
         x0 = np.clip(sol.x, np.array(trial_lo) + 1e-9, np.array(upper) - 1e-9)
         rnd = least_squares(residual, x0, bounds=(trial_lo, upper), x_scale="jac", max_nfev=400)
-        if 2.0 * (rnd.cost - free.cost) < ROUND_FLANK_CHI2 * s2:
+        if 2.0 * (rnd.cost - free_cost) < ROUND_FLANK_CHI2 * s2:
             sol = rnd
     p = sol.x
     res = sol.fun[:-2]

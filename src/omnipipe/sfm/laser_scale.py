@@ -178,7 +178,6 @@ def _ncc_numpy(
     return np.where(valid.mean(axis=2) > 0.8, ncc, -1.0)
 
 
-
 @numba.njit(cache=True)
 def _block_sum(a, lo, n):  # pragma: no cover - compiled
     """NumPy's pairwise sum of a[lo:lo + n] for n <= 128 (eight accumulators)."""
@@ -296,7 +295,6 @@ def _ncc_kernel(template, patches, weight, out):  # pragma: no cover - compiled
             out[i, j] = num / den if n_valid / k_len > 0.8 else -1.0
 
 
-
 @numba.njit(cache=True)
 def _translated(plane, scales, direction):  # pragma: no cover - compiled
     """(N, S, K, 3) points ``plane[n, k] + scales[n, s] * direction``: the NumPy
@@ -315,7 +313,6 @@ def _translated(plane, scales, direction):  # pragma: no cover - compiled
                 out[i, j, k, 1] = plane[i, k, 1] + s1
                 out[i, j, k, 2] = plane[i, k, 2] + s2
     return out
-
 
 
 @numba.njit(cache=True)
