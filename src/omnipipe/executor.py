@@ -227,21 +227,26 @@ class FrameSource:
         frames: the dataset indices (0-based) of these frames.
         paths: image file of each frame, or None.
         arrays: decoded RGB (H, W, 3) / grey (H, W) frames, or None.
+        payload: per frame, what the task needs of it besides the image (e.g. the
+            laser ring's pixels to mask), or None.
     """
 
     rig: Any
     frames: Sequence[int]
     paths: tuple[Path, ...] | None = None
     arrays: tuple[Any, ...] | None = None
+    payload: tuple[Any, ...] | None = None
 
     @staticmethod
-    def take(dataset: Any, frames: Sequence[int]) -> FrameSource:
-        """The ``frames`` of an opened :class:`omnipipe.dataset.Dataset`."""
+    def take(dataset: Any, frames: Sequence[int], payload: Sequence[Any] | None = None) -> FrameSource:
+        """The ``frames`` of an opened :class:`omnipipe.dataset.Dataset` (``payload``:
+        one item per frame, carried to the task)."""
+        extra = None if payload is None else tuple(payload)
         if dataset.video is None and dataset.source is None:
             paths = tuple(dataset.frame_paths[i] for i in frames)
-            return FrameSource(dataset.rig, frames, paths=paths)
+            return FrameSource(dataset.rig, frames, paths=paths, payload=extra)
         arrays = tuple(dataset.read_frame(i) for i in frames)
-        return FrameSource(dataset.rig, frames, arrays=arrays)
+        return FrameSource(dataset.rig, frames, arrays=arrays, payload=extra)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -260,6 +265,44 @@ class FrameSource:
         return read_image(self.paths[k], self.rig)
 
 
+def iter_frames(
+    executor: Executor,
+    fn: Callable[[FrameSource], list[R]],
+    dataset: Any,
+    frames: Sequence[int] | None = None,
+    *,
+    most: int = 16,
+    payload: Callable[[int], Any] | None = None,
+) -> Iterator[tuple[int, R]]:
+    """Frame-parallel streaming: ``(frame index, fn's result for it)`` in frame order.
+
+    ``fn(source)`` runs on consecutive chunks of the frames (:class:`FrameSource`, at
+    most ``most`` frames a chunk) and returns one result per frame. At most
+    2 x :func:`parallelism` chunks are in flight and nothing is kept once yielded, so
+    memory stays bounded however long the run (a consumer that keeps only what it
+    needs holds only that). ``frames``: a subset of the dataset's indices (default:
+    all), e.g. only the moving frames. ``payload(i)``: what the task needs of frame i
+    besides its image (:attr:`FrameSource.payload`). Chunks are cut lazily, so a
+    video's frames are decoded only as their chunk is submitted.
+
+    Raises:
+        RuntimeError: ``fn`` returned another number of results than it got frames.
+    """
+    order = list(range(len(dataset))) if frames is None else [int(i) for i in frames]
+    if not order:
+        return
+    size = min(len(chunks(len(order), executor, most=most)[0]), max(1, most))
+    parts = [order[i : i + size] for i in range(0, len(order), size)]
+    sources = (
+        FrameSource.take(dataset, part, None if payload is None else [payload(i) for i in part])
+        for part in parts
+    )
+    for part, result in zip(parts, ordered_map(executor, fn, sources), strict=True):
+        if len(result) != len(part):
+            raise RuntimeError(f"{fn!r} returned {len(result)} results for {len(part)} frames")
+        yield from zip(part, result, strict=True)
+
+
 def map_frames(
     executor: Executor,
     fn: Callable[[FrameSource], list[R]],
@@ -272,21 +315,14 @@ def map_frames(
 
     ``fn`` must be a picklable callable (a module-level function or an instance of a
     module-level class) that decodes its frames with ``source.read(k)`` and returns one
-    result per frame; ``progress(done)`` is called after each chunk with the number of
+    result per frame; ``progress(done)`` is called after each frame with the number of
     frames done. ``frames``: a subset of the dataset's indices (default: all), e.g. only
-    the moving frames. Chunks are cut lazily, so a video's frames are decoded only as
-    their chunk is submitted. E.g. SIFT features per frame:
-    ``map_frames(executor, features_of_chunk, dataset, frames=moving)``.
+    the moving frames. The list form of :func:`iter_frames`. E.g. SIFT features per
+    frame: ``map_frames(executor, features_of_chunk, dataset, frames=moving)``.
     """
-    order = list(range(len(dataset))) if frames is None else [int(i) for i in frames]
     out: list[R] = []
-    size = len(chunks(len(order), executor)[0]) if order else 1
-    parts = [order[i : i + size] for i in range(0, len(order), size)]
-    sources = (FrameSource.take(dataset, part) for part in parts)
-    for part, result in zip(parts, ordered_map(executor, fn, sources), strict=True):
-        if len(result) != len(part):
-            raise RuntimeError(f"{fn!r} returned {len(result)} results for {len(part)} frames")
-        out.extend(result)
+    for _, result in iter_frames(executor, fn, dataset, frames):
+        out.append(result)
         if progress is not None:
             progress(len(out))
     return out

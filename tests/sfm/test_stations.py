@@ -30,3 +30,14 @@ def test_stops_are_found_exactly() -> None:
     assert np.array_equal(flags[1:], moving[1:])
     still = np.array(ratios[1:])[~moving[1:]]
     assert np.all(still < 2.0)  # the noise model explains stationary pairs
+
+
+def test_counted_median_equals_numpy_median() -> None:
+    from omnipipe.sfm.stations import _median_abs
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 10, 999, 1000):
+        whole = rng.integers(-900, 900, n).astype(np.float32)  # the counting path
+        half = whole + np.float32(0.5)  # not whole numbers: numpy's path
+        for values in (whole, half):
+            assert _median_abs(values) == np.median(np.abs(values))

@@ -150,13 +150,13 @@ def run(
         )
     import numpy as np
 
-    from omnipipe import analysis, laser, model
+    from omnipipe import analysis, model
     from omnipipe.camera import camera_from_rig
     from omnipipe.dataset import validate_frames
     from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
     from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
-    from omnipipe.pipeline import quality
+    from omnipipe.pipeline import frame_pass, quality
     from omnipipe.sfm import pipeline as sfm
 
     timings: dict[str, float] = {}
@@ -172,7 +172,9 @@ def run(
 
     t0 = time.perf_counter()
     tick = progress("laser", n)
-    rings = laser.run_dataset(config.laser, dataset, executor, progress=tick)
+    # Each frame decoded once, frame-parallel: its ring and the stationary test's input.
+    frames = frame_pass.run(config.laser, config.sfm.stations, dataset, executor, progress=tick)
+    rings = frames.rings
     timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
     seen = sum(1 for r in rings.rings if len(r.pixels) >= 20)
@@ -195,8 +197,12 @@ def run(
 
     motion = sfm.run(
         config.sfm,
-        sfm.SfmInputs(rig=rig, read_frame=dataset.read_frame, n_frames=n, rings=rings),
+        sfm.SfmInputs(
+            rig=rig, read_frame=dataset.read_frame, n_frames=n, rings=rings,
+            moved=frames.moved, dataset=dataset,
+        ),
         progress=tick,
+        executor=executor,
     )
     if not after_frames:
         after_frames.append(progress("bundle", 1))

@@ -20,18 +20,21 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from omnipipe.camera import camera_from_rig
+from omnipipe.camera import OmniCamera, camera_from_rig
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
 from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
-from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
+from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, match_features
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.planes import PlaneRefineConfig, refine_matches
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
@@ -41,8 +44,6 @@ from omnipipe.sfm.scale_check import (
     StepCheck,
     UnreliableStretch,
     decide,
-    feature_log_scales,
-    feature_scale,
     median_with_sigma,
     merge_stretches,
     wall_cylinder,
@@ -50,6 +51,11 @@ from omnipipe.sfm.scale_check import (
     wall_scale_correction,
 )
 from omnipipe.sfm.stations import StationConfig, StationTracker
+from omnipipe.sfm.tasks import FeatureTask, step_evidence
+
+if TYPE_CHECKING:
+    from omnipipe.dataset import Dataset
+    from omnipipe.laser import LaserResult
 
 
 @dataclass(frozen=True)
@@ -107,15 +113,23 @@ class SfmInputs:
 
     Attributes:
         rig: the calibration.
-        read_frame: frame index -> RGB/grey image.
+        read_frame: frame index -> RGB/grey image (the serial path, and frames the
+            executor does not decode).
         n_frames: number of frames.
         rings: the light-section result (per-frame ring pixels and metric points).
+        moved: (N,) the stationary test's result when it was already made (e.g. by
+            :mod:`omnipipe.pipeline.frame_pass`); None: made here, frame by frame.
+        dataset: the opened dataset; with ``moved`` and an executor, the moving
+            frames' features are extracted frame-parallel, each worker decoding its
+            frames itself (:func:`omnipipe.executor.iter_frames`).
     """
 
     rig: Rig
     read_frame: Callable[[int], np.ndarray]
     n_frames: int
-    rings: object
+    rings: LaserResult
+    moved: np.ndarray | None = None
+    dataset: Dataset | None = None
 
 
 @dataclass
@@ -168,22 +182,32 @@ class SfmResult:
 
 
 def run(
-    config: SfmConfig, inputs: SfmInputs, progress: Callable[[int], None] | None = None
+    config: SfmConfig,
+    inputs: SfmInputs,
+    progress: Callable[[int], None] | None = None,
+    executor: Executor | None = None,
 ) -> SfmResult:
     """Estimate every frame's metric pose (world = rig frame of frame 0).
+
+    ``executor`` (:mod:`omnipipe.executor`) does the frame-parallel work: the moving
+    frames' features (with ``inputs.moved`` and ``inputs.dataset``) and each keyframe
+    step's scale evidence (Eq. 17 template matching, feature depths), while this
+    process chains the steps in frame order. Without one, everything runs here; the
+    result is the same.
 
     Raises:
         ReconstructionError: no frame could be read.
     """
+    from omnipipe.executor import InlineExecutor, parallelism
+
     rig = inputs.rig
     camera = camera_from_rig(rig)
     n = inputs.n_frames
     if n < 1:
         raise ReconstructionError("no frames")
-    rings = inputs.rings.rings  # type: ignore[attr-defined]
+    ex = executor or InlineExecutor()
+    rings = inputs.rings.rings
     warnings: list[str] = []
-    tracker = StationTracker(camera.valid_mask(), config.stations)
-    extractor = FeatureExtractor(camera, config.features)
     mid = np.array([[camera.cx + 0.5 * (camera.radius_min + camera.radius_max), camera.cy]])
     px_angle = float(
         np.arccos(
@@ -215,42 +239,42 @@ def run(
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
     pending: list[tuple[int, int, object, np.ndarray | None]] = []
     checks: list[StepCheck] = []
-    evidence: list[_StepEvidence] = []
+    # Each keyframe step's evidence, or the future of the worker computing it.
+    evidence_parts: list[_StepEvidence | tuple[_StepEvidence, Future]] = []
+    in_flight: deque[Future] = deque()
     steps_b_from_a: list[np.ndarray] = []  # rig_b_from_rig_a of each keyframe step (mm)
     anchor_logs: list[tuple[float, np.ndarray]] = []  # (length, per-point log lengths)
     min_parallax = math.radians(config.keyframe_min_parallax_deg)
-    for i in range(n):
-        img = inputs.read_frame(i)
-        gray = gray_without_laser(img, rig.laser.channel)
-        moved[i], _ = tracker.update(gray)
-        if moved[i]:
-            feats = extractor.extract(img, rig.laser.channel, rings[i].pixels)
-            if prev is None:
-                world_from_kf.append(np.eye(4))
-            else:
-                a, fa, ga = prev
-                m = match_features(fa, feats, config.features.ratio)
-                motion = _relative(a, i, fa, feats, m, ransac, warnings)
-                if motion is None:
-                    lost[i] = True  # its pose (and the chain after it) lacks this step
-                if motion is not None and _parallax(fa, feats, m, motion) < min_parallax and i < n - 1:
-                    # Too little baseline for a reliable step: resected after the adjustment.
-                    pending.append((i, len(kf_features) - 1, feats, m[motion.inliers]))
-                    if progress:
-                        progress(i + 1)
-                    continue
-                if config.planes.enabled and motion is not None and motion.translation_reliable:
-                    motion = _refine(ga, gray, camera, fa, feats, m, motion, ransac, config, warnings, a, i)
-                evidence.append(
-                    _evidence(a, i, ga, gray, camera, rings[a].points_in_rig, fa, feats, m, motion, config, warnings)
+    for i, feats, gray in _moving_frames(config, inputs, camera, executor, moved, progress):
+        if prev is None:
+            world_from_kf.append(np.eye(4))
+        else:
+            a, fa, ga = prev
+            m = match_features(fa, feats, config.features.ratio)
+            motion = _relative(a, i, fa, feats, m, ransac, warnings)
+            if motion is None:
+                lost[i] = True  # its pose (and the chain after it) lacks this step
+            if motion is not None and _parallax(fa, feats, m, motion) < min_parallax and i < n - 1:
+                # Too little baseline for a reliable step: resected after the adjustment.
+                pending.append((i, len(kf_features) - 1, feats, m[motion.inliers]))
+                continue
+            if config.planes.enabled and motion is not None and motion.translation_reliable:
+                motion = _refine(
+                    np.asarray(ga, np.float32), np.asarray(gray, np.float32), camera, fa, feats, m,
+                    motion, ransac, config, warnings, a, i,
                 )
-            kf_features.append(feats)
-            kf_gray.append(np.clip(gray, 0, 65535).astype(np.uint16))
-            kf_frames.append(i)
-            is_kf[i] = True
-            prev = (i, feats, gray)
-        if progress:
-            progress(i + 1)
+            part = _evidence(a, i, ga, gray, camera, rings[a].points_in_rig, fa, feats, m, motion, config, warnings, ex)
+            evidence_parts.append(part)
+            if isinstance(part, tuple):
+                in_flight.append(part[1])
+                while len(in_flight) > 2 * parallelism(ex):  # bounded: each holds two images
+                    in_flight.popleft().result()
+        kf_features.append(feats)
+        kf_gray.append(np.clip(gray, 0, 65535).astype(np.uint16))
+        kf_frames.append(i)
+        is_kf[i] = True
+        prev = (i, feats, gray)
+    evidence = [_resolve(part) for part in evidence_parts]
     # Every step decided with the whole run's evidence (the two sources' systematic
     # offset), then chained.
     offset = _source_offset(evidence, config.scale_check)
@@ -607,8 +631,12 @@ class _StepEvidence:
     status: str  # "ok", "rotation", "lost"
 
 
-def _evidence(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, warnings) -> _StepEvidence:
-    """Both scale sources of one keyframe step (laser Eq. 17 with its peaks, feature depths)."""
+def _evidence(
+    a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, warnings, executor: Executor
+) -> _StepEvidence | tuple[_StepEvidence, Future]:
+    """Both scale sources of one keyframe step (laser Eq. 17 with its peaks, feature
+    depths): the evidence, or (the evidence so far, the future of the worker that
+    measures the two scales; :func:`_resolve` completes it)."""
     if motion is None:
         return _StepEvidence(a, b, np.eye(4), None, None, np.zeros(0), math.nan, 0, "lost")
     inl = m[motion.inliers]
@@ -617,13 +645,74 @@ def _evidence(a, b, ga, gb, camera, laser_points_a, fa, fb, m, motion, config, w
         return _StepEvidence(a, b, motion.rig2_from_rig1.copy(), inl, None, np.zeros(0), math.nan, 0, "rotation")
     b_from_a = motion.rig2_from_rig1.copy()
     R, d = b_from_a[:3, :3], b_from_a[:3, 3]
-    lm = match_laser_points(ga, gb, camera, laser_points_a, R, d, config.laser_scale)
-    log_s = feature_log_scales(
-        fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], R, d, wall_cylinder(laser_points_a),
-        config.scale_check,
+    future = executor.submit(
+        step_evidence, ga, gb, camera, laser_points_a, R, d,
+        fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], config.laser_scale, config.scale_check,
     )
-    s_feat, n_feat = feature_scale(log_s, config.scale_check)
-    return _StepEvidence(a, b, b_from_a, inl, lm, log_s, s_feat, n_feat, "ok")
+    return _StepEvidence(a, b, b_from_a, inl, None, np.zeros(0), math.nan, 0, "ok"), future
+
+
+def _resolve(part: _StepEvidence | tuple[_StepEvidence, Future]) -> _StepEvidence:
+    """The complete evidence of a step from :func:`_evidence`."""
+    if isinstance(part, _StepEvidence):
+        return part
+    ev, future = part
+    lm, log_s, s_feat, n_feat = future.result()
+    return replace(ev, laser=lm, log_scales=log_s, feature_scale_mm=s_feat, feature_matches=n_feat)
+
+
+def _moving_frames(
+    config: SfmConfig,
+    inputs: SfmInputs,
+    camera: OmniCamera,
+    executor: Executor | None,
+    moved: np.ndarray,
+    progress: Callable[[int], None] | None,
+) -> Iterator[tuple[int, FrameFeatures, np.ndarray]]:
+    """(frame index, features, grey image) of every frame where the rig moved, in
+    order; fills ``moved`` (N,) and reports progress over all N frames.
+
+    With ``inputs.moved``, ``inputs.dataset`` and an executor, the features come from
+    workers that decode the frames themselves (:class:`omnipipe.sfm.tasks.FeatureTask`;
+    the grey image as :func:`omnipipe.sfm.tasks.compact_gray` returns it); otherwise
+    every frame is read here and the stationary test runs frame by frame.
+    """
+    from omnipipe.executor import InlineExecutor, iter_frames
+
+    n = inputs.n_frames
+    rings = inputs.rings.rings
+    channel = inputs.rig.laser.channel
+    parallel = executor is not None and not isinstance(executor, InlineExecutor)
+    if inputs.moved is not None and inputs.dataset is not None and parallel:
+        moved[:] = inputs.moved
+        frames = np.flatnonzero(moved)
+        stream = iter_frames(
+            executor, FeatureTask(config.features), inputs.dataset, frames, most=4,
+            payload=lambda i: rings[i].pixels,
+        )
+        for i, (feats, gray) in stream:
+            yield i, feats, gray
+            if progress:
+                progress(i + 1)
+        if progress:
+            progress(n)
+        return
+    extractor = FeatureExtractor(camera, config.features)
+    tracker = None
+    if inputs.moved is None:
+        tracker = StationTracker(camera.valid_mask(), config.stations)
+    else:
+        moved[:] = inputs.moved
+    for i in range(n):
+        if tracker is not None or moved[i]:
+            img = inputs.read_frame(i)
+            gray = gray_without_laser(img, channel)
+            if tracker is not None:
+                moved[i], _ = tracker.update(gray)
+            if moved[i]:
+                yield i, extractor.extract(img, channel, rings[i].pixels), gray
+        if progress:
+            progress(i + 1)
 
 
 def _wall_anchors(ev, fa, fb, ring_points_a, scale, config, max_points: int = 120):

@@ -1,0 +1,121 @@
+"""Camera-motion work done in the executor's workers (:mod:`omnipipe.executor`).
+
+Each task is a pure function of its arguments, so the motion does not depend on
+where it ran:
+
+- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker: its SIFT
+  features on perspective views (:mod:`omnipipe.sfm.features`) and its grey image
+  (for the later template matching, Eq. 17);
+- :func:`step_evidence`: one keyframe step's two scale measurements, the laser points'
+  template matches along the epipolar curves (Eq. 17) and the matched features' depths
+  on the light-section wall (:mod:`omnipipe.sfm.scale_check`).
+"""
+
+from __future__ import annotations
+
+import pickle
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from omnipipe.camera import OmniCamera, camera_from_rig
+from omnipipe.image import gray_without_laser
+from omnipipe.rig import Rig
+from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures
+from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
+from omnipipe.sfm.scale_check import (
+    ScaleCheckConfig,
+    feature_log_scales,
+    feature_scale,
+    wall_cylinder,
+)
+
+if TYPE_CHECKING:
+    from omnipipe.executor import FrameSource
+
+
+def compact_gray(gray: np.ndarray) -> np.ndarray:
+    """``gray`` (H, W) float32 as uint16 when that holds it exactly (whole numbers in
+    0..65535: the green channel of an 8- or 16-bit frame), else unchanged: half the
+    bytes to send between processes, the same values once back in float32."""
+    if gray.dtype == np.float32 and gray.size:
+        small = gray.astype(np.uint16)
+        if np.array_equal(small, gray):
+            return small
+    return gray
+
+
+# Per process: the feature extractor of the last (rig, config) seen (its perspective
+# maps take 0.5 s to build at 1600x1200).
+_EXTRACTORS: dict[bytes, FeatureExtractor] = {}
+
+
+def _extractor(rig: Rig, config: FeatureConfig) -> FeatureExtractor:
+    key = pickle.dumps((rig, config))
+    if key not in _EXTRACTORS:
+        _EXTRACTORS.clear()
+        _EXTRACTORS[key] = FeatureExtractor(camera_from_rig(rig), config)
+    return _EXTRACTORS[key]
+
+
+class FeatureTask:
+    """Picklable task: (features, grey image) of each frame of a chunk.
+
+    The chunk's ``payload`` holds each frame's laser-ring pixels (N, 2), masked out of
+    the features. The grey image is :func:`compact_gray` of
+    :func:`omnipipe.image.gray_without_laser`.
+    """
+
+    def __init__(self, config: FeatureConfig) -> None:
+        self.config = config
+
+    def __call__(self, source: FrameSource) -> list[tuple[FrameFeatures, np.ndarray]]:
+        rig = source.rig
+        extractor = _extractor(rig, self.config)
+        channel = rig.laser.channel
+        out = []
+        for k in range(len(source)):
+            image = source.read(k)
+            ring_pixels = None if source.payload is None else source.payload[k]
+            feats = extractor.extract(image, channel, ring_pixels)
+            out.append((feats, compact_gray(gray_without_laser(image, channel))))
+        return out
+
+
+def step_evidence(
+    gray_a: np.ndarray,
+    gray_b: np.ndarray,
+    camera: OmniCamera,
+    laser_points_a: np.ndarray,
+    b_from_a_rotation: np.ndarray,
+    b_from_a_direction: np.ndarray,
+    rays_a: np.ndarray,
+    rays_b: np.ndarray,
+    laser_scale: LaserScaleConfig,
+    scale_check: ScaleCheckConfig,
+) -> tuple[LaserMatches, np.ndarray, float, int]:
+    """Both scale measurements of one keyframe step a -> b.
+
+    Args:
+        gray_a, gray_b: (H, W) grey images of keyframes a and b (any real dtype; used
+            as float32).
+        camera: the omni camera.
+        laser_points_a: (N, 3) keyframe a's laser-ring points in rig a, mm.
+        b_from_a_rotation: (3, 3) and b_from_a_direction: (3,) unit translation of
+            rig_b_from_rig_a from the relative motion (Eq. 10-16).
+        rays_a, rays_b: (M, 2 x 3) the inlier matches' unit rays in rigs a and b.
+
+    Returns:
+        the laser's template matches (Eq. 17), each match's feature-depth log length
+        (M,), and the step's feature-depth length (mm, NaN: none) with its count.
+    """
+    lm = match_laser_points(
+        np.asarray(gray_a, np.float32), np.asarray(gray_b, np.float32), camera, laser_points_a,
+        b_from_a_rotation, b_from_a_direction, laser_scale,
+    )
+    log_s = feature_log_scales(
+        rays_a, rays_b, b_from_a_rotation, b_from_a_direction, wall_cylinder(laser_points_a),
+        scale_check,
+    )
+    s_feat, n_feat = feature_scale(log_s, scale_check)
+    return lm, log_s, s_feat, n_feat

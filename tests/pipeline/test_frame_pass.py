@@ -1,0 +1,71 @@
+"""The one decoding pass and the frame-parallel motion: the same result as the serial stages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnipipe import laser
+from omnipipe.camera import camera_from_rig
+from omnipipe.dataset import open_dataset
+from omnipipe.executor import open_executor
+from omnipipe.image import gray_without_laser
+from omnipipe.pipeline import frame_pass
+from omnipipe.sfm import pipeline as sfm
+from omnipipe.sfm.stations import StationConfig, StationTracker
+
+
+@pytest.fixture(scope="module")
+def stop_and_go(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from omnipipe.sim import make_scenario, run
+
+    out = tmp_path_factory.mktemp("framepass") / "ds"
+    run(make_scenario("bend-small", frames=18, size=(480, 360), seed=3), out, workers=1)
+    return out
+
+
+def test_one_pass_gives_the_serial_rings_and_stations(stop_and_go: Path) -> None:
+    dataset = open_dataset(stop_and_go)
+    serial = laser.run(laser.LaserConfig(), dataset.rig, dataset.frames())
+    tracker = StationTracker(camera_from_rig(dataset.rig).valid_mask())
+    moved = np.array(
+        [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in dataset.frames()]
+    )
+    assert 2 <= moved.sum() < len(dataset)  # a stop-and-go run: both kinds of frame
+    for workers in (1, 2):
+        done: list[int] = []
+        with open_executor(workers) as ex:
+            result = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex, done.append)
+        assert np.array_equal(result.moved, moved), workers
+        assert done[-1] == len(dataset)
+        for a, b in zip(serial.rings, result.rings.rings, strict=True):
+            assert np.array_equal(a.pixels, b.pixels) and np.array_equal(a.points_in_rig, b.points_in_rig)
+
+
+def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
+    dataset = open_dataset(stop_and_go)
+    config = sfm.SfmConfig()
+    with open_executor(1) as ex:
+        frames = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
+    serial = sfm.run(
+        config, sfm.SfmInputs(dataset.rig, dataset.read_frame, len(dataset), frames.rings)
+    )
+    assert serial.keyframe.sum() >= 3
+    with open_executor(2) as ex:
+        done: list[int] = []
+        parallel = sfm.run(
+            config,
+            sfm.SfmInputs(
+                dataset.rig, dataset.read_frame, len(dataset), frames.rings,
+                moved=frames.moved, dataset=dataset,
+            ),
+            progress=done.append,
+            executor=ex,
+        )
+    assert done[-1] == len(dataset)
+    assert np.array_equal(parallel.keyframe, serial.keyframe)
+    assert np.array_equal(parallel.world_from_rig, serial.world_from_rig)
+    assert parallel.warnings == serial.warnings
+    assert np.array_equal(parallel.step_scale_mm, serial.step_scale_mm)
