@@ -13,6 +13,7 @@ from omnipipe.cli import main
 from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.pipeline import ReconstructConfig
 from omnipipe.sfm import pipeline as sfm
+from omnipipe.sfm import tasks as sfm_tasks
 from omnipipe.sfm.laser_scale import LaserMatches
 from omnipipe.sim import TextureConfig, make_scenario
 from omnipipe.sim import run as simulate
@@ -56,6 +57,8 @@ def _motion(ds_dir: Path, monkeypatch: pytest.MonkeyPatch | None = None, trap: b
             )
 
         monkeypatch.setattr(sfm, "match_laser_points", wrong_course_scores_best)
+        # The steps' first, unwindowed matches run as executor tasks (inline here).
+        monkeypatch.setattr(sfm_tasks, "match_laser_points", wrong_course_scores_best)
     result = sfm.run(
         cfg.sfm, sfm.SfmInputs(rig=ds.rig, read_frame=lambda i: frames[i], n_frames=len(ds), rings=rings)
     )

@@ -51,7 +51,7 @@ from omnipipe.sfm.scale_check import (
     wall_scale_correction,
 )
 from omnipipe.sfm.stations import StationConfig, StationTracker
-from omnipipe.sfm.tasks import FeatureTask, step_evidence
+from omnipipe.sfm.tasks import FeatureTask, laser_matches, step_evidence
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
@@ -237,7 +237,8 @@ def run(
     pair_matches: list[tuple[int, int, np.ndarray]] = []
     anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
-    pending: list[tuple[int, int, object, np.ndarray | None]] = []
+    pending: list[tuple[int, int, FrameFeatures, np.ndarray | None]] = []
+    next_matches: dict[int, Future] = {}  # pending frame -> its matches to the next keyframe
     checks: list[StepCheck] = []
     # Each keyframe step's evidence, or the future of the worker computing it.
     evidence_parts: list[_StepEvidence | tuple[_StepEvidence, Future]] = []
@@ -274,6 +275,17 @@ def run(
         kf_frames.append(i)
         is_kf[i] = True
         prev = (i, feats, gray)
+        # The frames resected between the last keyframe and this one also see this
+        # one's tracks: their matches to it, in the workers.
+        k_new = len(kf_features) - 1
+        for j in range(len(pending) - 1, -1, -1):
+            f, k, pf, inl_f = pending[j]
+            if k != k_new - 1:
+                break
+            next_matches[f] = ex.submit(match_features, feats, pf, config.features.ratio)
+            pending[j] = (f, k, _slim(pf), inl_f)  # no more matching: its descriptors go
+        if k_new >= 1:
+            kf_features[k_new - 1] = _slim(kf_features[k_new - 1])
     evidence = [_resolve(part) for part in evidence_parts]
     # Every step decided with the whole run's evidence (the two sources' systematic
     # offset), then chained.
@@ -336,7 +348,7 @@ def run(
             if config.anchor_reach > 1 and not systematic:
                 # Longer baselines measure the scale better: laser points of keyframe k are
                 # also found in k + 2 ... k + reach with the adjusted motion, then adjust again.
-                extra = _far_anchors(camera, ba.world_from_rig, kf_gray, [rings[f] for f in kf_frames], config)
+                extra = _far_anchors(camera, ba.world_from_rig, kf_gray, [rings[f] for f in kf_frames], config, ex)
                 if extra:
                     problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
                     _append_anchors(problem, extra)
@@ -379,17 +391,21 @@ def run(
         for c in checks
         if not c.reliable
     ]
+    # Resections in the workers, gathered in frame order.
+    jobs = []
     for i, k, feats, inl in pending:
-        n_warn = len(warnings)
         # The next keyframe's tracks too: points on both sides of the frame fix its
         # position better than the few tracks of one keyframe (a joints wall: 0.5-0.9 mm
         # off with one side's 15-40 points).
         nxt = None
-        if feature_point is not None and k + 1 < len(kf_features):
-            nxt = match_features(kf_features[k + 1], feats, config.features.ratio)
-        resected[i] = _resect(
-            i, k, feats, inl, world_from_kf_arr, feature_point, track_points, warnings, nxt
+        if feature_point is not None and i in next_matches:
+            nxt = next_matches[i].result()
+        jobs.append(
+            (i, k, _submit_resection(ex, k, feats, inl, world_from_kf_arr, feature_point, track_points, nxt))
         )
+    for i, k, job in jobs:
+        n_warn = len(warnings)
+        resected[i] = _resection_result(i, k, job, world_from_kf_arr, warnings)
         if len(warnings) > n_warn and warnings[-1].endswith("pose of its keyframe used"):
             # Its pose is its keyframe's: the steps into and out of it are both wrong.
             end = kf_frames[k + 1] if k + 1 < len(kf_frames) else n - 1
@@ -534,9 +550,10 @@ def _relative(a, b, fa, fb, m, ransac, warnings):
         return None
 
 
-def _far_anchors(camera, world_from_kf, grays, rings, config) -> list:
-    """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative poses)."""
-    out = []
+def _far_anchors(camera, world_from_kf, grays, rings, config, executor: Executor) -> list:
+    """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
+    poses), each matched in the executor's workers; in (k, k + j) order."""
+    jobs = []
     for a in range(len(world_from_kf)):
         pts = rings[a].points_in_rig
         if len(pts) == 0:
@@ -549,13 +566,16 @@ def _far_anchors(camera, world_from_kf, grays, rings, config) -> list:
             # The adjusted length is known to a few per cent: search only around it, so
             # that a periodic wall cannot offer the next course.
             w = math.exp(config.scale_check.agree_log)
-            lm = match_laser_points(
-                grays[a].astype(np.float32), grays[b].astype(np.float32), camera, pts,
-                b_from_a[:3, :3], b_from_a[:3, 3] / length, config.laser_scale,
-                (length / w, length * w),
+            future = executor.submit(
+                laser_matches, grays[a], grays[b], camera, pts, b_from_a[:3, :3],
+                b_from_a[:3, 3] / length, config.laser_scale, (length / w, length * w),
             )
-            if len(lm.index):
-                out.append((a, b, pts[lm.index], lm.pixels_b))
+            jobs.append((a, b, pts, future))
+    out = []
+    for a, b, pts, future in jobs:
+        lm = future.result()
+        if len(lm.index):
+            out.append((a, b, pts[lm.index], lm.pixels_b))
     return out
 
 
@@ -589,10 +609,11 @@ def _parallax(fa, fb, m, motion) -> float:
     return float(np.median(np.arccos(np.clip(np.sum(ra * rb, axis=1), -1.0, 1.0))))
 
 
-def _resect(
-    i, k, feats, inl, world_from_kf, feature_point, track_points, warnings, next_matches=None
-) -> np.ndarray:
-    """Pose of a non-keyframe from its matches to the tracks of keyframes k and k + 1.
+def _submit_resection(
+    executor: Executor, k, feats, inl, world_from_kf, feature_point, track_points, next_matches=None
+) -> Future | None:
+    """Resection of a non-keyframe from its matches to the tracks of keyframes k and k + 1,
+    submitted to ``executor`` (None: too few tracked points).
 
     ``inl``: (M, 2) RANSAC-verified matches (keyframe k feature, frame feature);
     ``next_matches``: (M', 2) descriptor matches (keyframe k + 1 feature, frame feature),
@@ -608,8 +629,16 @@ def _resect(
         points.append(track_points[pid[ok]])
     n_first = len(points[0]) if points and inl is not None and len(inl) else 0
     if rays and sum(len(r) for r in rays) >= 12 and n_first >= 6:
+        return executor.submit(resect_rays, np.concatenate(rays), np.concatenate(points), world_from_kf[k])
+    return None
+
+
+def _resection_result(i: int, k: int, job: Future | None, world_from_kf, warnings) -> np.ndarray:
+    """The pose of non-keyframe i from :func:`_submit_resection`; its keyframe k's pose,
+    with a warning, when it could not be resected."""
+    if job is not None:
         try:
-            return resect_rays(np.concatenate(rays), np.concatenate(points), world_from_kf[k])
+            return job.result()
         except ReconstructionError as exc:
             warnings.append(f"frame {i}: {exc}")
     warnings.append(f"frame {i}: too few tracked points to resect; pose of its keyframe used")
@@ -650,6 +679,12 @@ def _evidence(
         fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], config.laser_scale, config.scale_check,
     )
     return _StepEvidence(a, b, b_from_a, inl, None, np.zeros(0), math.nan, 0, "ok"), future
+
+
+def _slim(features: FrameFeatures) -> FrameFeatures:
+    """``features`` without their descriptors (once nothing more is matched to them:
+    the rays and pixels are what the adjustment and resection read)."""
+    return replace(features, descriptors=np.zeros((0, 128), np.float32))
 
 
 def _resolve(part: _StepEvidence | tuple[_StepEvidence, Future]) -> _StepEvidence:

@@ -82,6 +82,24 @@ class FeatureTask:
         return out
 
 
+def laser_matches(
+    gray_a: np.ndarray,
+    gray_b: np.ndarray,
+    camera: OmniCamera,
+    laser_points_a: np.ndarray,
+    b_from_a_rotation: np.ndarray,
+    b_from_a_direction: np.ndarray,
+    config: LaserScaleConfig,
+    scale_window_mm: tuple[float, float] | None = None,
+) -> LaserMatches:
+    """:func:`omnipipe.sfm.laser_scale.match_laser_points` (Eq. 17) on grey images of any
+    real dtype (sent compact, e.g. uint16; matched as float32)."""
+    return match_laser_points(
+        np.asarray(gray_a, np.float32), np.asarray(gray_b, np.float32), camera, laser_points_a,
+        b_from_a_rotation, b_from_a_direction, config, scale_window_mm,
+    )
+
+
 def step_evidence(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
