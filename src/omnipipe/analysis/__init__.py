@@ -22,6 +22,7 @@ of the rings' frames and returns:
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -180,8 +181,11 @@ class AnalysisResult:
     ring_spacing_mm: float = math.nan
 
 
-def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
-    """Measure the pipe from its integrated rings.
+def run(
+    config: AnalysisConfig, inputs: AnalysisInputs, executor: Executor | None = None
+) -> AnalysisResult:
+    """Measure the pipe from its integrated rings (the stations' cylinder fits on
+    ``executor``, :mod:`omnipipe.executor`; None: here; the result is the same).
 
     Raises:
         ShapeError: malformed inputs.
@@ -220,6 +224,7 @@ def run(config: AnalysisConfig, inputs: AnalysisInputs) -> AnalysisResult:
         inputs.reference_from_world,
         window_mm=window,
         loss_scale_mm=config.loss_scale_mm,
+        executor=executor,
     )
     straight = line.straightness_mm() <= config.straight_tolerance_mm
     if straight:

@@ -11,12 +11,14 @@ same thing all along a bent pipe, as the data contract asks.
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
 
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.errors import ReconstructionError
+from omnipipe.executor import InlineExecutor, ordered_map
 
 
 @dataclass(frozen=True)
@@ -83,8 +85,10 @@ def fit_centreline(
     window_mm: float,
     loss_scale_mm: float,
     max_points: int = 6000,
+    executor: Executor | None = None,
 ) -> Centreline:
-    """Piecewise cylinder fit along the rings.
+    """Piecewise cylinder fit along the rings; the stations' fits run on ``executor``
+    (:mod:`omnipipe.executor`; None: here), in order, the same wherever they run.
 
     Args:
         rings_in_world: K arrays (M_k, 3) of ring points in the world frame, in time order.
@@ -108,18 +112,22 @@ def fit_centreline(
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     cylinders: list[Cylinder] = []
     centres, tangents, radii = [], [], []
-    for i in range(len(usable)):
-        along = (centroid - centroid[i]) @ axes[i]
-        members = [usable[j] for j in np.flatnonzero(np.abs(along) <= 0.5 * window_mm)]
-        pts = np.concatenate([rings_in_world[j] for j in members])
-        if len(pts) > max_points:
-            pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
-        guess = (
-            axes[i]
-            if len(members) < 3
-            else np.mean(axes[[usable.index(j) for j in members]], axis=0)
-        )
-        cyl = fit_cylinder(pts, guess, loss_scale_mm=loss_scale_mm)
+    slot_of = {k: j for j, k in enumerate(usable)}
+
+    def windows():  # (points, axis guess) of each station's window, made as needed
+        for i in range(len(usable)):
+            along = (centroid - centroid[i]) @ axes[i]
+            members = [usable[j] for j in np.flatnonzero(np.abs(along) <= 0.5 * window_mm)]
+            pts = np.concatenate([rings_in_world[j] for j in members])
+            if len(pts) > max_points:
+                pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
+            guess = (
+                axes[i] if len(members) < 3 else np.mean(axes[[slot_of[j] for j in members]], axis=0)
+            )
+            yield pts, guess, loss_scale_mm
+
+    fits = ordered_map(executor or InlineExecutor(), _fit_window, windows())
+    for i, cyl in enumerate(fits):
         tangent = cyl.axis if cyl.axis @ axes[i] > 0 else -cyl.axis
         centre = cyl.point + ((centroid[i] - cyl.point) @ tangent) * tangent
         cylinders.append(cyl)
@@ -165,6 +173,12 @@ def fit_centreline(
         np.array(radii)[pick],
         [cylinders[i] for i in pick],
     )
+
+
+def _fit_window(window: tuple[np.ndarray, np.ndarray, float]) -> Cylinder:
+    """Executor task: :func:`fit_cylinder` of one station's (points, axis guess, loss scale)."""
+    pts, guess, loss_scale_mm = window
+    return fit_cylinder(pts, guess, loss_scale_mm=loss_scale_mm)
 
 
 def _local_tangents(centre: np.ndarray, fallback: np.ndarray, half_span_mm: float) -> np.ndarray:

@@ -238,6 +238,7 @@ def run(
             calibration_sigma_rel=rig.laser.scale_sigma_rel,
             axial_blur_mm=axial_blur_mm(station_rings, camera_from_rig(rig)),
         ),
+        executor,
     )
     timings["analysis"] = time.perf_counter() - t0
     tick(2)
