@@ -177,7 +177,7 @@ def run(
     rings = frames.rings
     timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
-    seen = sum(1 for r in rings.rings if len(r.pixels) >= 20)
+    seen = int(np.sum(frames.ring_samples >= 20))
     if seen == 0:
         raise ReconstructionError(
             f"no laser ring found in any of the {n} frames (laser channel '{rig.laser.channel}' of rig.yaml)"

@@ -57,11 +57,16 @@ class FramePassResult:
             starts; frame 0 counts as moved).
         motion_ratio: (N,) the stationary test's difference over its noise-only
             expectation (inf for frame 0).
+        ring_samples: (N,) accepted ring samples of each frame. A frame taken while the
+            robot stood still repeats its station's ring and is used by no later stage:
+            its ring is kept empty (its warnings and scan count stay), so memory grows
+            with the stations, not with the time spent standing.
     """
 
     rings: LaserResult
     moved: np.ndarray
     motion_ratio: np.ndarray
+    ring_samples: np.ndarray
 
 
 # Per process: the valid-mask interior of the last rig seen (built once per worker).
@@ -120,10 +125,20 @@ def run(
     rings: list[LaserRing] = []
     moved = np.zeros(n, bool)
     ratio = np.full(n, math.nan)
+    samples = np.zeros(n, int)
     for i, (ring, signature) in iter_frames(executor, _FrameTask(laser, stations), dataset):
-        rings.append(ring)
         moved[i], ratio[i] = tracker.update_signature(signature)
+        samples[i] = len(ring.pixels)
+        rings.append(ring if moved[i] else _emptied(ring))
         if progress is not None:
             progress(i + 1)
     warnings = [f"frame {i}: {w}" for i, ring in enumerate(rings) for w in ring.warnings]
-    return FramePassResult(LaserResult(rings, warnings), moved, ratio)
+    return FramePassResult(LaserResult(rings, warnings), moved, ratio, samples)
+
+
+def _emptied(ring: LaserRing) -> LaserRing:
+    """``ring`` without its samples (scan count and warnings kept)."""
+    return LaserRing(
+        np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0),
+        scanned=ring.scanned, warnings=ring.warnings,
+    )
