@@ -35,6 +35,7 @@ from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, match_features
+from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.planes import PlaneRefineConfig, refine_matches
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
@@ -198,6 +199,18 @@ def run(
     Raises:
         ReconstructionError: no frame could be read.
     """
+    with ImageStore() as kf_gray:  # keyframe grey images, on disk until the run is decided
+        return _estimate(config, inputs, progress, executor, kf_gray)
+
+
+def _estimate(
+    config: SfmConfig,
+    inputs: SfmInputs,
+    progress: Callable[[int], None] | None,
+    executor: Executor | None,
+    kf_gray: ImageStore,
+) -> SfmResult:
+    """:func:`run`, with ``kf_gray`` the (empty) store of the keyframes' grey images."""
     from omnipipe.executor import InlineExecutor, parallelism
 
     rig = inputs.rig
@@ -233,7 +246,6 @@ def run(
     scales: list[float] = []
     prev = None  # (frame index, features, grey)
     kf_features = []
-    kf_gray: list[np.ndarray] = []
     pair_matches: list[tuple[int, int, np.ndarray]] = []
     anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
