@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from omnipipe.dataset import open_dataset
+from omnipipe.executor import open_executor
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
 from omnipipe.model import ModelConfig, ModelInputs, run, write_outputs
@@ -57,3 +60,41 @@ def test_rings_integrate_onto_the_wall_and_mesh_without_crossings(tmp_path: Path
     assert len(mesh.faces) == len(faces) and np.allclose(
         mesh.vertices, res.points_in_world, atol=1e-3
     )
+
+
+def test_frames_decoded_by_two_worker_processes_give_the_serial_model(small_dataset: Path) -> None:
+    dataset = open_dataset(small_dataset)
+    _, poses, _, moving = build_renderer(make_scenario("paper-small", seed=3))
+    keep = np.flatnonzero(np.r_[True, moving[1:]])  # one frame per station
+    rings = laser_run(LaserConfig(), dataset.rig, [dataset.read_frame(int(i)) for i in keep])
+    reads: list[int] = []
+
+    def read_frame(k: int) -> np.ndarray:
+        reads.append(k)
+        return dataset.read_frame(int(keep[k]))
+
+    serial_inputs = ModelInputs(
+        dataset.rig,
+        poses[keep],
+        [r.points_in_rig for r in rings.rings],
+        [r.pixels for r in rings.rings],
+        read_frame,
+    )
+    ticks: list[int] = []
+    serial = run(ModelConfig(), serial_inputs, progress=ticks.append)
+    assert sorted(reads) == sorted(set(reads))  # each keyframe's image read once
+    assert ticks == list(range(1, len(keep) + 1))
+    reads.clear()
+    parallel_inputs = dataclasses.replace(serial_inputs, dataset=dataset, frame_index=keep)
+    with open_executor(2) as executor:
+        parallel = run(ModelConfig(), parallel_inputs, executor=executor)
+    assert not reads  # the workers decoded the frames
+    assert serial.unrolled is not None and parallel.unrolled is not None
+    assert serial.unrolled.alpha.mean() > 0.5
+    for name in (
+        "points_in_world", "colours", "point_frame", "mesh_faces", "textured_vertices",
+        "textured_faces", "textured_uvs", "texture",
+    ):
+        assert np.array_equal(getattr(serial, name), getattr(parallel, name)), name
+    for name in ("image", "alpha", "source_frame"):
+        assert np.array_equal(getattr(serial.unrolled, name), getattr(parallel.unrolled, name)), name

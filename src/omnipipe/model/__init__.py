@@ -18,6 +18,12 @@ that sees it best; it is also the texture atlas of the textured model (GLB).
 
 Then the edge flips of [25] towards photo-consistency (:mod:`.flips`).
 
+Images: each keyframe's image is decoded once, after the texture's choice of keyframe
+per cell (which needs no image), for both its ring colours and its texture samples;
+with ``ModelInputs.dataset`` the decoding runs frame-parallel on the executor
+(:mod:`omnipipe.executor`), else serially through ``read_frame``. The result does not
+depend on which.
+
 Every triangle is wound so its normal (right-hand rule) points towards the pipe axis:
 the wall is seen from inside. Files in each format's unit and axes: :mod:`.export`.
 """
@@ -25,18 +31,33 @@ the wall is seen from inside. Files in each format's unit and axes: :mod:`.expor
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
 from dataclasses import dataclass
+from itertools import chain
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import Delaunay
+from threadpoolctl import threadpool_limits
 
-from omnipipe.camera import camera_from_rig
-from omnipipe.errors import ConfigError
+from omnipipe.camera import CameraModel, camera_from_rig
+from omnipipe.errors import ConfigError, ShapeError
+from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
 from omnipipe.geometry import apply
 from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
-from omnipipe.model.texture import UnrolledImage, unrolled_image, wall_points_on_grid
+from omnipipe.model.texture import (
+    CellChoice,
+    UnrolledImage,
+    assemble,
+    choose_sources,
+    texture_samples,
+    wall_points_on_grid,
+)
 from omnipipe.rig import Rig
+
+if TYPE_CHECKING:
+    from omnipipe.dataset import Dataset
 
 __all__ = [
     "ModelConfig",
@@ -102,6 +123,9 @@ class ModelInputs:
             position of the integrated points (in :func:`integrate` order); None: a
             straight axis through the rig origins.
         circumference_mm: of the unrolled view (2 pi x the fitted radius).
+        dataset: the opened dataset of the keyframes; with ``frame_index`` the images
+            are decoded in the executor's workers (:func:`run`), not by ``read_frame``.
+        frame_index: (K,) int, the dataset index of each keyframe.
     """
 
     camera_rig: Rig
@@ -111,6 +135,8 @@ class ModelInputs:
     read_frame: Callable[[int], np.ndarray]
     unrolled_mm: np.ndarray | None = None
     circumference_mm: float | None = None
+    dataset: Dataset | None = None
+    frame_index: np.ndarray | None = None
 
 
 @dataclass
@@ -140,6 +166,104 @@ class ModelResult:
     texture: np.ndarray | None = None
     unrolled: UnrolledImage | None = None
     flip_stats: object = None
+
+
+def colour_pixels(ring_pixels: np.ndarray, camera: CameraModel, offset_px: float) -> np.ndarray:
+    """(M, 2) int (col, row) where the colours of a ring's (M, 2) pixels are sampled:
+    ``offset_px`` outside the ring along the radial direction, rounded, in the image."""
+    centre = np.array([camera.cx, camera.cy])
+    radial = ring_pixels - centre
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+    sample = np.round(ring_pixels + offset_px * radial).astype(int)
+    sample[:, 0] = sample[:, 0].clip(0, camera.width - 1)
+    sample[:, 1] = sample[:, 1].clip(0, camera.height - 1)
+    return sample
+
+
+def colours_at(image: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    """(M, 3) uint8 colours of ``image`` ((H, W, 3) or (H, W), uint8 or uint16) at (M, 2)
+    int pixels (col, row)."""
+    c = image[sample[:, 1], sample[:, 0]]
+    if c.ndim == 1:
+        c = np.repeat(c[:, None], 3, axis=1)
+    if c.dtype == np.uint16:
+        c = (c // 257).astype(np.uint8)
+    return c.astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class _FrameWork:
+    """What is sampled in one keyframe's image.
+
+    Attributes:
+        colour_px: (M, 2) int pixels of its ring colours (:func:`colour_pixels`).
+        texture_px: (n, 2) float32 pixels of the texture cells it was chosen for.
+    """
+
+    colour_px: np.ndarray
+    texture_px: np.ndarray
+
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``."""
+        colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
+        samples = (
+            texture_samples(image, self.texture_px)
+            if len(self.texture_px)
+            else np.zeros((0, 3), np.uint8)
+        )
+        return colours, samples
+
+
+class _FramesTask:
+    """Picklable task: decode each frame of a chunk once and sample what its work asks."""
+
+    def __call__(
+        self, chunk: tuple[FrameSource, tuple[_FrameWork, ...]]
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        source, work = chunk
+        return [w(source.read(i)) for i, w in enumerate(work)]
+
+
+def _sample_frames(
+    inputs: ModelInputs,
+    work: list[_FrameWork | None],
+    executor: Executor | None,
+    progress: Callable[[int], None] | None,
+) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Per keyframe, its work done on its image (None where it has none), in order.
+
+    With ``inputs.dataset`` and ``inputs.frame_index``: consecutive chunks of the
+    keyframes that have work, decoded and sampled by ``executor``'s workers (each chunk
+    carries only its own keyframes' pixels); otherwise serially via ``inputs.read_frame``.
+    ``progress(k + 1)`` after keyframe k.
+    """
+    todo = [k for k, w in enumerate(work) if w is not None]
+    results: Iterator[tuple[np.ndarray, np.ndarray]]
+    if inputs.dataset is not None and inputs.frame_index is not None:
+        frame_index = np.asarray(inputs.frame_index)
+        if frame_index.shape != (len(work),):
+            raise ShapeError(
+                f"frame_index: expected shape ({len(work)},) (one per keyframe), got {frame_index.shape}"
+            )
+        ex = executor if executor is not None else InlineExecutor()
+        parts = [[todo[i] for i in part] for part in chunks(len(todo), ex)]
+        items = (
+            (
+                FrameSource.take(inputs.dataset, [int(frame_index[k]) for k in part]),
+                tuple(work[k] for k in part),
+            )
+            for part in parts
+        )
+        results = chain.from_iterable(ordered_map(ex, _FramesTask(), items))
+    else:
+        results = (work[k](inputs.read_frame(k)) for k in todo)  # type: ignore[misc]
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(work)
+    for k, w in enumerate(work):
+        if w is not None:
+            out[k] = next(results)
+        if progress:
+            progress(k + 1)
+    return out
 
 
 def integrate(
@@ -294,9 +418,36 @@ def textured_mesh(
 
 
 def run(
-    config: ModelConfig, inputs: ModelInputs, progress: Callable[[int], None] | None = None
+    config: ModelConfig,
+    inputs: ModelInputs,
+    progress: Callable[[int], None] | None = None,
+    executor: Executor | None = None,
 ) -> ModelResult:
-    """Integrate the rings, colour them, mesh the wall and texture it."""
+    """Integrate the rings, mesh the wall, choose each texture cell's keyframe, then read
+    each keyframe's image once for its ring colours and texture samples.
+
+    Args:
+        config: model settings.
+        inputs: keyframes; with ``inputs.dataset`` and ``inputs.frame_index`` the images
+            are decoded on ``executor`` (default: inline), else by ``inputs.read_frame``.
+        progress: called with k + 1 after keyframe k's image is done.
+        executor: frame-parallel work (:mod:`omnipipe.executor`); the result does not
+            depend on it.
+    """
+    # The stage's BLAS work is small products (3 columns, barycentric transforms): BLAS
+    # threads gain nothing there and, on cores shared with workers, their spinning can
+    # stall the stage for minutes.
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(config, inputs, progress, executor)
+
+
+def _run(
+    config: ModelConfig,
+    inputs: ModelInputs,
+    progress: Callable[[int], None] | None,
+    executor: Executor | None,
+) -> ModelResult:
+    """:func:`run` (BLAS threads already limited)."""
     camera = camera_from_rig(inputs.camera_rig)
     points, frame = integrate(inputs.world_from_rig, inputs.ring_points_in_rig)
     if not len(points):
@@ -304,25 +455,6 @@ def run(
         return ModelResult(
             empty, np.zeros((0, 3), np.uint8), np.zeros(0, int), empty, np.zeros((0, 3), int)
         )
-    cols = []
-    centre = np.array([camera.cx, camera.cy])
-    for k, ring_px in enumerate(inputs.ring_pixels):
-        if len(ring_px):
-            img = inputs.read_frame(k)
-            radial = ring_px - centre
-            radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
-            sample = np.round(ring_px + config.colour_offset_px * radial).astype(int)
-            sample[:, 0] = sample[:, 0].clip(0, camera.width - 1)
-            sample[:, 1] = sample[:, 1].clip(0, camera.height - 1)
-            c = img[sample[:, 1], sample[:, 0]]
-            if c.ndim == 1:
-                c = np.repeat(c[:, None], 3, axis=1)
-            if c.dtype == np.uint16:
-                c = (c // 257).astype(np.uint8)
-            cols.append(c.astype(np.uint8))
-        if progress:
-            progress(k + 1)
-    colours = np.concatenate(cols)
     if inputs.unrolled_mm is not None:
         arc, axial = inputs.unrolled_mm[:, 0], inputs.unrolled_mm[:, 1]
         circ = float(inputs.circumference_mm)
@@ -340,7 +472,10 @@ def run(
             lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
         )
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
-    result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
+    n_keyframes = len(inputs.ring_pixels)
+    choice: CellChoice | None = None
+    z0 = 0.0
+    cells_of: list[np.ndarray] = [np.zeros(0, int)] * n_keyframes
     if config.texture and len(faces):
         # Holes stay holes: a cell counts as wall when it is no farther from a point than
         # the inside of the largest kept triangle (0.6 x its longest edge).
@@ -350,16 +485,33 @@ def run(
         grid, z0 = wall_points_on_grid(
             arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0)
         )
-        unrolled = unrolled_image(
-            inputs.camera_rig,
-            inputs.world_from_rig,
-            inputs.read_frame,
-            grid,
-            z0,
-            circ,
-            config.texture_mm_per_px,
+        choice = choose_sources(
+            inputs.camera_rig, inputs.world_from_rig, grid, config.texture_mm_per_px,
             config.laser_band_mm,
         )
+        cells_of = choice.by_keyframe(n_keyframes)
+    # One image read per keyframe with a ring or texture cells: colours and texture samples.
+    work: list[_FrameWork | None] = []
+    for k, ring_px in enumerate(inputs.ring_pixels):
+        sel = cells_of[k]
+        if not len(ring_px) and not len(sel):
+            work.append(None)
+            continue
+        colour_px = (
+            colour_pixels(ring_px, camera, config.colour_offset_px)
+            if len(ring_px)
+            else np.zeros((0, 2), int)
+        )
+        tex_px = choice.best_px[sel] if choice is not None else np.zeros((0, 2), np.float32)
+        work.append(_FrameWork(colour_px, tex_px))
+    sampled = _sample_frames(inputs, work, executor, progress)
+    colours = np.concatenate(
+        [s[0] for s, r in zip(sampled, inputs.ring_pixels, strict=True) if s is not None and len(r)]
+    )
+    result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
+    if choice is not None:
+        samples = {k: s[1] for k, s in enumerate(sampled) if s is not None and len(cells_of[k])}
+        unrolled = assemble(choice, samples, config.texture_mm_per_px, z0, circ)
         verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
         result.texture, result.unrolled = atlas, unrolled
