@@ -237,7 +237,7 @@ def _sample_frames(
     carries only its own keyframes' pixels); otherwise serially via ``inputs.read_frame``.
     ``progress(k + 1)`` after keyframe k.
     """
-    todo = [k for k, w in enumerate(work) if w is not None]
+    todo = [(k, w) for k, w in enumerate(work) if w is not None]
     results: Iterator[tuple[np.ndarray, np.ndarray]]
     if inputs.dataset is not None and inputs.frame_index is not None:
         frame_index = np.asarray(inputs.frame_index)
@@ -246,17 +246,17 @@ def _sample_frames(
                 f"frame_index: expected shape ({len(work)},) (one per keyframe), got {frame_index.shape}"
             )
         ex = executor if executor is not None else InlineExecutor()
-        parts = [[todo[i] for i in part] for part in chunks(len(todo), ex)]
+        parts = [todo[part.start : part.stop] for part in chunks(len(todo), ex)]
         items = (
             (
-                FrameSource.take(inputs.dataset, [int(frame_index[k]) for k in part]),
-                tuple(work[k] for k in part),
+                FrameSource.take(inputs.dataset, [int(frame_index[k]) for k, _ in part]),
+                tuple(w for _, w in part),
             )
             for part in parts
         )
         results = chain.from_iterable(ordered_map(ex, _FramesTask(), items))
     else:
-        results = (work[k](inputs.read_frame(k)) for k in todo)  # type: ignore[misc]
+        results = (w(inputs.read_frame(k)) for k, w in todo)
     out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(work)
     for k, w in enumerate(work):
         if w is not None:
