@@ -43,6 +43,12 @@ class BundleConfig:
             (their depth is unconstrained).
         max_tracks: evenly chosen tracks kept (the cost grows with their number).
         max_evaluations: cap on residual evaluations.
+        window_keyframes: a longer run is adjusted in consecutive windows of this many
+            keyframes (:func:`keyframe_windows`): cost and memory linear in the run's
+            length instead of one global adjustment (0: always global). Runs of up to
+            1.25 x this are adjusted globally.
+        window_overlap: keyframes each window shares with (and holds fixed from) the
+            one before.
     """
 
     enabled: bool = True
@@ -52,6 +58,8 @@ class BundleConfig:
     min_parallax_deg: float = 1.0
     max_tracks: int = 4000
     max_evaluations: int = 50
+    window_keyframes: int = 64
+    window_overlap: int = 8
 
 
 @dataclass
@@ -67,6 +75,9 @@ class BundleProblem:
         anchor_points_in_a: (L, 3) the laser points in rig a, mm.
         anchor_pixels_b: (L, 2) their matched pixels in keyframe b.
         feature_point: per keyframe, (N_k,) the track point of each feature (-1: none).
+        fixed: the first ``fixed`` keyframes keep their poses (at least 1: the first
+            defines the world; a window of a long run also holds the keyframes it shares
+            with the window before, :func:`keyframe_windows`).
     """
 
     world_from_rig: np.ndarray
@@ -79,6 +90,7 @@ class BundleProblem:
     anchor_points_in_a: np.ndarray
     anchor_pixels_b: np.ndarray
     feature_point: list[np.ndarray] | None = None
+    fixed: int = 1
 
 
 @dataclass
@@ -116,14 +128,17 @@ def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConf
         raise ShapeError(f"bundle_adjust: observations of inconsistent shapes {problem.obs_pixels.shape}")
     if problem.anchor_points_in_a.shape != (L, 3) or problem.anchor_pixels_b.shape != (L, 2):
         raise ShapeError(f"bundle_adjust: anchors of inconsistent shapes {problem.anchor_points_in_a.shape}")
+    F = int(problem.fixed)
+    if not 1 <= F <= K:
+        raise ShapeError(f"bundle_adjust: fixed must be 1..{K} keyframes, got {F}")
     pose0 = _poses_to_params(problem.world_from_rig)
-    fixed = pose0[0].copy()
-    n_pose = 6 * (K - 1)
-    x0 = np.concatenate([pose0[1:].ravel(), problem.points_in_world.ravel()])
+    fixed = pose0[:F].copy()
+    n_pose = 6 * (K - F)
+    x0 = np.concatenate([pose0[F:].ravel(), problem.points_in_world.ravel()])
     w_laser = float(config.laser_weight)
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        poses = np.vstack([fixed, x[:n_pose].reshape(K - 1, 6)])
+        poses = np.vstack([fixed, x[:n_pose].reshape(K - F, 6)])
         R, t = _params_to_rig_from_world(poses)
         return R, t, x[n_pose:].reshape(P, 3)
 
@@ -146,15 +161,15 @@ def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConf
     rows = np.arange(M)
     for d in range(2):
         for c in range(6):
-            has = problem.obs_frame > 0
-            S[2 * rows[has] + d, 6 * (problem.obs_frame[has] - 1) + c] = 1
+            has = problem.obs_frame >= F
+            S[2 * rows[has] + d, 6 * (problem.obs_frame[has] - F) + c] = 1
         for c in range(3):
             S[2 * rows + d, n_pose + 3 * problem.obs_point + c] = 1
         arow = 2 * M + 2 * np.arange(L) + d
         for frames in (problem.anchor_a, problem.anchor_b):
-            has = frames > 0
+            has = frames >= F
             for c in range(6):
-                S[arow[has], 6 * (frames[has] - 1) + c] = 1
+                S[arow[has], 6 * (frames[has] - F) + c] = 1
 
     r0 = residuals(x0)
     # Single-threaded BLAS: lsmr's dot products are short, so threads cost more than they
@@ -327,3 +342,32 @@ def resect_rays(
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = Rotation.from_rotvec(sol.x[:3]).as_matrix(), sol.x[3:]
     return invert(T)
+
+
+def keyframe_windows(n_keyframes: int, size: int, overlap: int) -> list[tuple[int, int, int]]:
+    """Consecutive windows of a long run's keyframes for bundle adjustment.
+
+    Each window ``(start, end, fixed)`` adjusts keyframes ``start .. end - 1``; its first
+    ``fixed`` keyframes are the last ones of the window before (already adjusted, held
+    fixed: they tie the window to the run) or, in the first window, keyframe 0 (the
+    world). Every keyframe is adjusted in exactly one window, so the cost is linear in
+    the run's length. ``size`` <= 0 or a run of at most 1.25 ``size`` keyframes: one
+    window (the global adjustment).
+
+    Raises:
+        ConfigError: ``overlap`` not in 1 .. size - 2.
+    """
+    from omnipipe.errors import ConfigError
+
+    if size <= 0 or n_keyframes <= size + size // 4:
+        return [(0, n_keyframes, 1)]
+    if not 1 <= overlap <= size - 2:
+        raise ConfigError("sfm.bundle.window_overlap", f"must be 1 .. window_keyframes - 2, got {overlap}")
+    out = [(0, size, 1)]
+    while out[-1][1] < n_keyframes:
+        start = out[-1][1] - overlap
+        end = min(n_keyframes, start + size)
+        if n_keyframes - end < size // 4:  # no sliver of a last window: this one takes it
+            end = n_keyframes
+        out.append((start, end, overlap))
+    return out

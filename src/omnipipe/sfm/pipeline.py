@@ -33,7 +33,14 @@ from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import invert
 from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
-from omnipipe.sfm.bundle import BundleConfig, build_problem, bundle_adjust, resect_rays
+from omnipipe.sfm.bundle import (
+    BundleConfig,
+    BundleResult,
+    build_problem,
+    bundle_adjust,
+    keyframe_windows,
+    resect_rays,
+)
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, match_features
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
@@ -347,29 +354,23 @@ def _estimate(
     for b_from_a in steps_b_from_a:
         world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
     world_from_kf_arr = np.array(world_from_kf)
-    bundle_stats = None
-    feature_point: list[np.ndarray] | None = None
-    track_points = None
+    bundle_stats: list[BundleResult] = []
+    tracks: list[_WindowTracks | None] = []  # per adjustment window
+    window_of = np.zeros(len(world_from_kf_arr), int)  # the window that adjusted each keyframe
     if config.bundle.enabled and len(world_from_kf_arr) >= 3:
-        problem = build_problem(
-            camera, world_from_kf_arr, [f.pixels for f in kf_features], [f.rays_in_rig for f in kf_features],
-            pair_matches, anchors, config.bundle,
+        far = None
+        if config.anchor_reach > 1 and not systematic:
+            # Longer baselines measure the scale better: laser points of keyframe k are
+            # also found in k + 2 ... k + reach with the adjusted motion, then adjust again.
+            def far(world_from_window: np.ndarray, first: int, fixed: int) -> list:
+                return _far_anchors(
+                    camera, world_from_window, kf_gray, [rings[f] for f in kf_frames], config, ex,
+                    first=first, fixed=fixed,
+                )
+
+        world_from_kf_arr, tracks, window_of, bundle_stats = _adjust_windows(
+            camera, world_from_kf_arr, kf_features, pair_matches, anchors, far, config.bundle, warnings,
         )
-        if len(problem.points_in_world) >= 10 and len(problem.anchor_a):
-            ba = bundle_adjust(camera, problem, config.bundle)
-            if config.anchor_reach > 1 and not systematic:
-                # Longer baselines measure the scale better: laser points of keyframe k are
-                # also found in k + 2 ... k + reach with the adjusted motion, then adjust again.
-                extra = _far_anchors(camera, ba.world_from_rig, kf_gray, [rings[f] for f in kf_frames], config, ex)
-                if extra:
-                    problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
-                    _append_anchors(problem, extra)
-                    ba = bundle_adjust(camera, problem, config.bundle)
-            world_from_kf_arr = ba.world_from_rig
-            bundle_stats = ba
-            feature_point, track_points = problem.feature_point, ba.points_in_world
-        else:
-            warnings.append("bundle adjustment skipped: too few feature tracks or laser anchors")
     checks = _check_adjusted(checks, world_from_kf_arr, config.scale_check)
     wall_scale = wall_scale_correction(
         world_from_kf_arr, pair_matches, [f.rays_in_rig for f in kf_features],
@@ -387,8 +388,7 @@ def _estimate(
         gain = math.exp(applied)
         world_from_kf_arr = world_from_kf_arr.copy()
         world_from_kf_arr[:, :3, 3] *= gain
-        if track_points is not None:
-            track_points = track_points * gain
+        tracks = [None if t is None else replace(t, points_in_world=t.points_in_world * gain) for t in tracks]
         scales = [s * gain for s in scales]
         if not systematic:
             scale_source = "laser (Eq. 17), combined with feature depths on the light-section wall"
@@ -409,12 +409,18 @@ def _estimate(
         # The next keyframe's tracks too: points on both sides of the frame fix its
         # position better than the few tracks of one keyframe (a joints wall: 0.5-0.9 mm
         # off with one side's 15-40 points).
-        nxt = None
-        if feature_point is not None and i in next_matches:
-            nxt = next_matches[i].result()
-        jobs.append(
-            (i, k, _submit_resection(ex, k, feats, inl, world_from_kf_arr, feature_point, track_points, nxt))
-        )
+        # The window that adjusted keyframe k + 1 holds k too (its first keyframes are the
+        # window before's last): both sides' tracks in one frame of reference.
+        w = int(window_of[min(k + 1, len(window_of) - 1)])
+        t = tracks[w] if tracks else None
+        nxt = next_matches[i].result() if t is not None and i in next_matches else None
+        job = None
+        if t is not None:
+            job = _submit_resection(
+                ex, k - t.first, feats, inl, world_from_kf_arr[t.first :], t.feature_point,
+                t.points_in_world, nxt,
+            )
+        jobs.append((i, k, job))
     for i, k, job in jobs:
         n_warn = len(warnings)
         resected[i] = _resection_result(i, k, job, world_from_kf_arr, warnings)
@@ -435,7 +441,7 @@ def _estimate(
         wall_scale_log=math.nan if wall_scale is None else wall_scale[0],
         scale_correction_log=applied,
         warnings=warnings,
-        bundle=bundle_stats,
+        bundle=bundle_stats[-1] if len(bundle_stats) == 1 else (bundle_stats or None),
         scale_sigma_rel=math.hypot(scale_sigma, SHARED_SCALE_SIGMA),
         step_checks=checks,
         unreliable=merge_stretches(stretches),
@@ -562,15 +568,23 @@ def _relative(a, b, fa, fb, m, ransac, warnings):
         return None
 
 
-def _far_anchors(camera, world_from_kf, grays, rings, config, executor: Executor) -> list:
+def _far_anchors(
+    camera, world_from_kf, grays, rings, config, executor: Executor, first: int = 0, fixed: int = 1
+) -> list:
     """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
-    poses), each matched in the executor's workers; in (k, k + j) order."""
+    poses), each matched in the executor's workers; in (k, k + j) order.
+
+    ``world_from_kf``: (W, 4, 4) the poses of keyframes ``first .. first + W - 1`` (an
+    adjustment window; ``grays`` and ``rings`` count from keyframe 0); pairs of two of
+    its first ``fixed`` keyframes (held fixed there) are left out. Returns (a, b, laser
+    points in a, pixels in b) with a, b counted from ``first``.
+    """
     jobs = []
     for a in range(len(world_from_kf)):
-        pts = rings[a].points_in_rig
+        pts = rings[first + a].points_in_rig
         if len(pts) == 0:
             continue
-        for b in range(a + 2, min(a + config.anchor_reach, len(world_from_kf) - 1) + 1):
+        for b in range(max(a + 2, fixed), min(a + config.anchor_reach, len(world_from_kf) - 1) + 1):
             b_from_a = invert(world_from_kf[b]) @ world_from_kf[a]
             length = float(np.linalg.norm(b_from_a[:3, 3]))
             if length < 1e-6:
@@ -579,7 +593,7 @@ def _far_anchors(camera, world_from_kf, grays, rings, config, executor: Executor
             # that a periodic wall cannot offer the next course.
             w = math.exp(config.scale_check.agree_log)
             future = executor.submit(
-                laser_matches, grays[a], grays[b], camera, pts, b_from_a[:3, :3],
+                laser_matches, grays[first + a], grays[first + b], camera, pts, b_from_a[:3, :3],
                 b_from_a[:3, 3] / length, config.laser_scale, (length / w, length * w),
             )
             jobs.append((a, b, pts, future))
@@ -589,6 +603,92 @@ def _far_anchors(camera, world_from_kf, grays, rings, config, executor: Executor
         if len(lm.index):
             out.append((a, b, pts[lm.index], lm.pixels_b))
     return out
+
+
+@dataclass
+class _WindowTracks:
+    """The feature tracks of one adjustment window (for the resection of the frames
+    between its keyframes).
+
+    Attributes:
+        first: the window's first keyframe.
+        feature_point: per keyframe of the window, (N_k,) each feature's track (-1: none).
+        points_in_world: (P, 3) the adjusted track points, mm.
+    """
+
+    first: int
+    feature_point: list[np.ndarray]
+    points_in_world: np.ndarray
+
+
+def _adjust_windows(
+    camera: OmniCamera,
+    world_from_kf: np.ndarray,
+    kf_features: list[FrameFeatures],
+    pair_matches: list[tuple[int, int, np.ndarray]],
+    anchors: list[tuple[int, int, np.ndarray, np.ndarray]],
+    far: Callable[[np.ndarray, int, int], list] | None,
+    config: BundleConfig,
+    warnings: list[str],
+) -> tuple[np.ndarray, list[_WindowTracks | None], np.ndarray, list[BundleResult]]:
+    """Bundle adjustment of the keyframes, in consecutive windows on a long run.
+
+    A run of up to 1.25 ``config.window_keyframes`` keyframes is adjusted at once (the
+    global adjustment, keyframe 0 fixed). A longer one window by window
+    (:func:`omnipipe.sfm.bundle.keyframe_windows`): each window starts from the chained
+    poses carried on from its first keyframes, which the window before adjusted and
+    which it holds fixed; its tracks and laser anchors are those within it. Cost and
+    memory grow linearly with the run.
+
+    Args:
+        world_from_kf: (K, 4, 4) chained keyframe poses, mm.
+        kf_features: the keyframes' features (pixels, rays).
+        pair_matches, anchors: the steps' inlier matches and laser anchors (keyframe
+            indices a, b).
+        far: ``far(world_from_window, first, fixed)`` -> more laser anchors of the
+            window, with its adjusted poses (then it is adjusted again); None: none.
+
+    Returns:
+        (K, 4, 4) adjusted poses; each window's tracks (None: not adjusted); (K,) the
+        window that adjusted each keyframe; the windows' adjustment results.
+    """
+    K = len(world_from_kf)
+    adjusted = world_from_kf.copy()
+    tracks: list[_WindowTracks | None] = []
+    window_of = np.zeros(K, int)
+    stats: list[BundleResult] = []
+    windows = keyframe_windows(K, config.window_keyframes, config.window_overlap)
+    for w, (s, e, fixed) in enumerate(windows):
+        init = adjusted[s:e].copy()
+        if w > 0:
+            # The chain carried on from the last held keyframe's adjusted pose.
+            j = s + fixed - 1
+            carry = adjusted[j] @ invert(world_from_kf[j])
+            init[fixed:] = np.einsum("ij,njk->nik", carry, world_from_kf[s + fixed : e])
+        problem = build_problem(
+            camera, init, [f.pixels for f in kf_features[s:e]], [f.rays_in_rig for f in kf_features[s:e]],
+            [(a - s, b - s, m) for a, b, m in pair_matches if a >= s and b < e],
+            [(a - s, b - s, q, px) for a, b, q, px in anchors if a >= s and b < e],
+            config,
+        )
+        problem.fixed = fixed
+        window_of[s + (fixed if w else 0) : e] = w
+        if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
+            where = "" if len(windows) == 1 else f" of keyframes {s}-{e - 1}"
+            warnings.append(f"bundle adjustment{where} skipped: too few feature tracks or laser anchors")
+            adjusted[s:e] = init
+            tracks.append(None)
+            continue
+        ba = bundle_adjust(camera, problem, config)
+        extra = far(ba.world_from_rig, s, fixed) if far is not None else []
+        if extra:
+            problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
+            _append_anchors(problem, extra)
+            ba = bundle_adjust(camera, problem, config)
+        adjusted[s:e] = ba.world_from_rig
+        stats.append(ba)
+        tracks.append(_WindowTracks(s, problem.feature_point, ba.points_in_world))
+    return adjusted, tracks, window_of, stats
 
 
 def _append_anchors(problem, extra) -> None:
@@ -625,7 +725,8 @@ def _submit_resection(
     executor: Executor, k, feats, inl, world_from_kf, feature_point, track_points, next_matches=None
 ) -> Future | None:
     """Resection of a non-keyframe from its matches to the tracks of keyframes k and k + 1,
-    submitted to ``executor`` (None: too few tracked points).
+    submitted to ``executor`` (None: too few tracked points). ``k``, ``world_from_kf``
+    and ``feature_point`` count from the first keyframe of the tracks' window.
 
     ``inl``: (M, 2) RANSAC-verified matches (keyframe k feature, frame feature);
     ``next_matches``: (M', 2) descriptor matches (keyframe k + 1 feature, frame feature),
