@@ -262,8 +262,11 @@ def run(
                 [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
             ),
             circumference_mm=circ,
+            dataset=dataset,
+            frame_index=stations,
         ),
         progress=tick,
+        executor=executor,
     )
     timings["model"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
