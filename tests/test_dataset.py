@@ -100,3 +100,18 @@ def test_bad_datasets_name_the_file_or_field(
         validate_frames(d)
         for i in range(len(d)):
             d.read_frame(i)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_read_image_gives_rgb_of_every_png_kind(tmp_path, dtype, channels) -> None:
+    from omnipipe.dataset import read_image
+
+    rng = np.random.default_rng(channels)
+    shape = (7, 9) if channels == 1 else (7, 9, channels)
+    stored = rng.integers(0, np.iinfo(dtype).max, shape).astype(dtype)  # OpenCV order: BGR(A)
+    path = tmp_path / "frame.png"
+    cv2.imwrite(str(path), stored)
+    image = read_image(path)
+    expected = stored if channels == 1 else stored[:, :, 2::-1]  # RGB, alpha dropped
+    assert image.dtype == dtype and np.array_equal(image, expected)

@@ -143,10 +143,11 @@ def read_image(path: Path, rig: Rig | None = None) -> np.ndarray:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise DatasetError(f"{path}: not a readable image (corrupt or truncated?)")
-    if img.ndim == 3:
-        if img.shape[2] == 4:
-            img = img[:, :, :3]
-        img = np.ascontiguousarray(img[:, :, ::-1])  # OpenCV's BGR -> RGB
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        # OpenCV's BGR(A) -> RGB; cvtColor is 5-10x faster than a reversed-stride copy.
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    elif img.ndim == 3:
+        img = np.ascontiguousarray(img[:, :, ::-1])
     if rig is not None and img.shape[:2] != (rig.camera.height, rig.camera.width):
         raise DatasetError(
             f"{path}: image is {img.shape[1]}x{img.shape[0]} but rig.yaml says "
