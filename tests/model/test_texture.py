@@ -1,4 +1,5 @@
-"""The texture's keyframe choice: scoring only each keyframe's visible rows changes nothing."""
+"""The texture's keyframe choice: scoring only each keyframe's visible rows, and a strip of
+rows at a time, changes nothing."""
 
 from __future__ import annotations
 
@@ -7,7 +8,16 @@ import pytest
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.camera.convert import rig_in_model
-from omnipipe.model.texture import choose_sources, elevation_bounds, visible_rows
+from omnipipe.errors import ShapeError
+from omnipipe.model.texture import (
+    CellChoice,
+    WallGrid,
+    assemble,
+    choose_sources,
+    elevation_bounds,
+    visible_rows,
+    wall_points_on_grid,
+)
 from omnipipe.rig import Rig
 from omnipipe.sim import paper_rig
 
@@ -80,10 +90,10 @@ def test_windowed_scoring_equals_scoring_every_cell(
     grid, poses = _pipe(600.0, 30.0, bend_mm)
     windowed = choose_sources(rig, poses, grid, MM_PER_PX, 3.0)
     full = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, windowed=False)
-    assert np.array_equal(windowed.cells, full.cells)
-    assert np.array_equal(windowed.best, full.best)
-    assert np.array_equal(windowed.best_px, full.best_px)
-    assert np.mean(full.best >= 0) > 0.9  # the wall is seen, and holes are not cells
+    _assert_same_choice(windowed, full)
+    wall = np.isfinite(grid).all(axis=2)
+    assert np.mean(full.source[wall] >= 0) > 0.9  # the wall is seen
+    assert np.all(full.source[~wall] == -1)  # and holes are not cells
     if narrow:  # ... while each keyframe scored well under the whole run
         rows = visible_rows(camera_from_rig(rig), poses, grid)
         assert np.all(rows[:, 1] > rows[:, 0])
@@ -113,3 +123,145 @@ def test_elevation_bounds_contain_the_cameras_range() -> None:
         e_lo, e_hi = camera.elevation_range()
         assert lo <= e_lo and e_hi <= hi
         assert e_lo - lo < np.radians(2) and hi - e_hi < np.radians(2)
+
+
+def _assert_same_choice(a: CellChoice, b: CellChoice) -> None:
+    assert a.source.dtype == b.source.dtype
+    assert np.array_equal(a.source, b.source)
+    assert np.array_equal(a.rows, b.rows)
+    for k in range(len(a.pieces)):
+        assert np.array_equal(a.cells(k), b.cells(k))
+        assert np.array_equal(a.pixels(k), b.pixels(k))
+
+
+def _old_choice(rig: Rig, poses: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) keyframe and (H, W, 2) pixel of each cell: every cell scored from every
+    keyframe on the whole grid at once (the model stage before it went strip-wise)."""
+    from omnipipe.geometry import apply, invert
+
+    camera = camera_from_rig(rig)
+    h, w = grid.shape[:2]
+    flat = grid.reshape(-1, 3)
+    idx = np.flatnonzero(np.isfinite(flat).all(axis=1))
+    p = flat[idx]
+    gp = np.where(np.isfinite(grid), grid, 0.0)
+    step_u = np.gradient(gp, axis=1).reshape(-1, 3)[idx]
+    step_z = np.gradient(gp, axis=0).reshape(-1, 3)[idx]
+    best = np.full(len(idx), -1)
+    best_score = np.zeros(len(idx))
+    best_px = np.zeros((len(idx), 2), np.float32)
+    for k, pose in enumerate(poses):
+        m = invert(pose)
+        q = apply(m, p)
+        px, valid = camera.project(q)
+        valid &= np.abs(q @ rig.laser.normal_in_rig + rig.laser.offset_mm) > 3.0
+        px_u, _ = camera.project(q + step_u @ m[:3, :3].T)
+        px_z, _ = camera.project(q + step_z @ m[:3, :3].T)
+        a, b = px_u - px, px_z - px
+        dist2 = np.maximum(np.sum(q * q, axis=1), 1e-6)
+        score = np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])) / MM_PER_PX / dist2
+        score = np.where(valid & np.isfinite(score), score, 0.0)
+        better = score > best_score
+        best[better], best_score[better], best_px[better] = k, score[better], px[better]
+    source = np.full(h * w, -1)
+    source[idx] = best
+    pixels = np.zeros((h * w, 2), np.float32)
+    pixels[idx] = best_px
+    return source.reshape(h, w), pixels.reshape(h, w, 2)
+
+
+@pytest.mark.parametrize("bend_mm", [None, 300.0])
+def test_strips_of_rows_give_the_whole_grid_choice(bend_mm: float | None) -> None:
+    rig = _rig("hyperboloid")
+    grid, poses = _pipe(310.0, 30.0, bend_mm, seed=1)
+    h = grid.shape[0]
+    assert h % 8  # a last strip of part of a tile
+    one = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=h)
+    source, pixels = _old_choice(rig, poses, grid)
+    assert np.array_equal(one.source, source)
+    for k in range(len(poses)):
+        cells = one.cells(k)
+        assert np.array_equal(cells, np.flatnonzero(source.reshape(-1) == k))
+        assert np.array_equal(one.pixels(k), pixels.reshape(-1, 2)[cells])
+        if len(cells):  # the rows holding its cells, tightly
+            assert one.rows[k, 0] == cells[0] // grid.shape[1]
+            assert one.rows[k, 1] == cells[-1] // grid.shape[1] + 1
+    small = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=8)
+    _assert_same_choice(small, one)
+    assert max(len(p) for p in small.pieces) > 1  # a keyframe's cells span strips
+    # 13 rows are rounded up to whole tiles (16); every cell from every keyframe.
+    many = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=13, windowed=False)
+    _assert_same_choice(many, one)
+
+
+def _wall_samples(seed: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Scattered wall points of a wavy tube: (N,) arc, (N,) axial (mm), (N, 3) points and
+    the circumference (a hole in the middle)."""
+    rng = np.random.default_rng(seed)
+    circ = 2 * np.pi * 20.0
+    arc = rng.uniform(0, circ, 3000)
+    axial = rng.uniform(0, 60.0, 3000)
+    keep = ~((np.abs(arc - 60) < 8) & (np.abs(axial - 30) < 6))
+    arc, axial = arc[keep], axial[keep]
+    theta = arc / 20.0
+    r = 20.0 + 0.5 * np.sin(3 * theta) + 0.2 * np.cos(axial / 7)
+    pts = np.column_stack([r * np.cos(theta), r * np.sin(theta), axial + 0.1 * np.sin(theta)])
+    return arc, axial, pts, circ
+
+
+def test_the_wall_grid_by_strips_equals_the_whole_grid() -> None:
+    from scipy.interpolate import LinearNDInterpolator
+    from scipy.spatial import cKDTree
+
+    arc, axial, pts, circ = _wall_samples()
+    mm, gap = 0.5, 2.0
+    # The whole grid in one interpolation (the stage before it went strip-wise).
+    margin = 0.1 * circ
+    lo, hi = arc < margin, arc > circ - margin
+    u = np.concatenate([arc, arc[lo] + circ, arc[hi] - circ])
+    z = np.concatenate([axial, axial[lo], axial[hi]])
+    xyz = np.concatenate([pts, pts[lo], pts[hi]])
+    width = int(np.ceil(circ / mm))
+    z0 = float(np.floor(axial.min()))
+    height = int(np.ceil((axial.max() - z0) / mm)) + 1
+    gu, gz = np.meshgrid((np.arange(width) + 0.5) * (circ / width), z0 + np.arange(height) * mm)
+    whole = LinearNDInterpolator(np.column_stack([u, z]), xyz)(gu, gz)
+    dist, _ = cKDTree(np.column_stack([u, z])).query(np.column_stack([gu.ravel(), gz.ravel()]))
+    whole.reshape(-1, 3)[dist > gap] = np.nan
+    assert np.isnan(whole).any() and np.isfinite(whole).mean() > 0.9
+
+    wall = WallGrid(arc, axial, pts, circ, mm, gap)
+    assert wall.shape == whole.shape[:2] and wall.axial_min_mm == z0
+    for strip in (1, 7, 50, height):
+        grid, origin = wall_points_on_grid(arc, axial, pts, circ, mm, gap, strip_rows=strip)
+        assert origin == z0
+        assert np.array_equal(grid, whole, equal_nan=True)
+    assert np.array_equal(wall.rows(40, 41), whole[40:41], equal_nan=True)
+
+
+def test_the_choice_of_a_wall_grid_equals_that_of_its_array() -> None:
+    rig = _rig("hyperboloid")
+    arc, axial, pts, circ = _wall_samples()
+    # The tube along the rig's z axis, keyframes along it.
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, 2, 3] = [5.0, 20.0, 35.0, 50.0]
+    wall = WallGrid(arc, axial, pts, circ, 0.5, 2.0)
+    grid, _ = wall_points_on_grid(arc, axial, pts, circ, 0.5, 2.0)
+    lazy = choose_sources(rig, poses, wall, 0.5, 3.0, strip_rows=16)
+    _assert_same_choice(lazy, choose_sources(rig, poses, grid, 0.5, 3.0, strip_rows=grid.shape[0]))
+    assert np.mean(lazy.source[np.isfinite(grid).all(axis=2)] >= 0) > 0.5
+
+
+def test_assemble_paints_each_keyframes_cells_and_checks_the_samples() -> None:
+    source = np.array([[0, 1, -1], [1, 0, 0]])
+    px = np.zeros((3, 2), np.float32)
+    choice = CellChoice(source, np.array([[0, 2], [0, 2]]), ((px[:1], px[:2]), (px[:2],)))
+    assert np.array_equal(choice.cells(0), [0, 4, 5]) and np.array_equal(choice.cells(1), [1, 3])
+    samples = {0: np.array([[10] * 3, [40] * 3, [50] * 3], np.uint8), 1: np.array([[20] * 3, [30] * 3], np.uint8)}
+    out = assemble(choice, samples, 0.5, 1.0, 3.0)
+    assert np.array_equal(out.image[..., 0], [[10, 20, 0], [30, 40, 50]])
+    assert np.array_equal(out.alpha, source >= 0) and out.source_frame is source
+    with pytest.raises(ShapeError):
+        assemble(choice, {0: samples[0]}, 0.5, 1.0, 3.0)
+    with pytest.raises(ShapeError):
+        assemble(choice, {0: samples[0][:2], 1: samples[1]}, 0.5, 1.0, 3.0)

@@ -49,10 +49,11 @@ from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
 from omnipipe.model.texture import (
     CellChoice,
     UnrolledImage,
-    assemble,
+    WallGrid,
     choose_sources,
+    finish,
+    paint,
     texture_samples,
-    wall_points_on_grid,
 )
 from omnipipe.rig import Rig
 
@@ -197,20 +198,18 @@ class _FrameWork:
 
     Attributes:
         colour_px: (M, 2) int pixels of its ring colours (:func:`colour_pixels`).
-        texture_px: (n, 2) float32 pixels of the texture cells it was chosen for.
+        texture_px: (n, 2) float32 pixels of the texture cells it was chosen for, in
+            pieces to concatenate (views of the choice's arrays: no copy is held).
     """
 
     colour_px: np.ndarray
-    texture_px: np.ndarray
+    texture_px: tuple[np.ndarray, ...]
 
     def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``."""
         colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
-        samples = (
-            texture_samples(image, self.texture_px)
-            if len(self.texture_px)
-            else np.zeros((0, 3), np.uint8)
-        )
+        pixels = np.concatenate(self.texture_px) if self.texture_px else np.zeros((0, 2), np.float32)
+        samples = texture_samples(image, pixels) if len(pixels) else np.zeros((0, 3), np.uint8)
         return colours, samples
 
 
@@ -229,13 +228,14 @@ def _sample_frames(
     work: list[_FrameWork | None],
     executor: Executor | None,
     progress: Callable[[int], None] | None,
-) -> list[tuple[np.ndarray, np.ndarray] | None]:
-    """Per keyframe, its work done on its image (None where it has none), in order.
+) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray]]]:
+    """(k, result) of each keyframe k with work, its work done on its image, in order of k
+    (consumed as they come: the results of the run are not all held at once).
 
     With ``inputs.dataset`` and ``inputs.frame_index``: consecutive chunks of the
     keyframes that have work, decoded and sampled by ``executor``'s workers (each chunk
     carries only its own keyframes' pixels); otherwise serially via ``inputs.read_frame``.
-    ``progress(k + 1)`` after keyframe k.
+    ``progress(k + 1)`` after keyframe k (after its result is consumed).
     """
     todo = [(k, w) for k, w in enumerate(work) if w is not None]
     results: Iterator[tuple[np.ndarray, np.ndarray]]
@@ -257,13 +257,11 @@ def _sample_frames(
         results = chain.from_iterable(ordered_map(ex, _FramesTask(), items))
     else:
         results = (w(inputs.read_frame(k)) for k, w in todo)
-    out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(work)
     for k, w in enumerate(work):
         if w is not None:
-            out[k] = next(results)
+            yield k, next(results)
         if progress:
             progress(k + 1)
-    return out
 
 
 def integrate(
@@ -305,6 +303,23 @@ def unrolled_coordinates(
     return angle * radius, axial, circ
 
 
+FACE_CHUNK = 1 << 16
+"""Triangles whose (F, 3, 3) corner coordinates are gathered at a time."""
+
+
+def longest_edges(points_in_world: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) longest edge of each of the (F, 3) triangles, mm, a chunk of triangles at a time
+    (no (F, 3, 3) float64 copy of the mesh)."""
+    out = np.empty(len(faces))
+    for a in range(0, len(faces), FACE_CHUNK):
+        p = points_in_world[faces[a : a + FACE_CHUNK]]
+        edges = np.stack(
+            [np.linalg.norm(p[:, i] - p[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1
+        )
+        out[a : a + FACE_CHUNK] = edges.max(axis=1)
+    return out
+
+
 def mesh_unrolled(
     arc_mm: np.ndarray,
     axial_mm: np.ndarray,
@@ -330,12 +345,8 @@ def mesh_unrolled(
     faces = faces[
         (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     ]
-    p = points_in_world[faces]
-    edges = np.stack(
-        [np.linalg.norm(p[:, i] - p[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1
-    )
     # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
-    longest = edges.max(axis=1)
+    longest = longest_edges(points_in_world, faces)
     return faces[longest <= max_edge_factor * float(np.median(longest))]
 
 
@@ -376,10 +387,14 @@ def orient_towards_axis(
     centres = np.zeros((len(frames), 3))
     np.add.at(centres, inverse, points_in_world)
     centres /= np.bincount(inverse, minlength=len(frames))[:, None]
-    p = points_in_world[faces]
-    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    inward = centres[inverse[faces[:, 0]]] - p.mean(axis=1)
-    if np.count_nonzero(np.sum(normal * inward, axis=1) > 0) < 0.5 * len(faces):
+    votes = 0
+    for a in range(0, len(faces), FACE_CHUNK):  # (F, 3, 3) float64 a chunk at a time
+        f = faces[a : a + FACE_CHUNK]
+        p = points_in_world[f]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        inward = centres[inverse[f[:, 0]]] - p.mean(axis=1)
+        votes += int(np.count_nonzero(np.sum(normal * inward, axis=1) > 0))
+    if votes < 0.5 * len(faces):
         faces = faces[:, [0, 2, 1]]
     return faces
 
@@ -472,29 +487,25 @@ def _run(
             lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
         )
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
-    n_keyframes = len(inputs.ring_pixels)
     choice: CellChoice | None = None
     z0 = 0.0
-    cells_of: list[np.ndarray] = [np.zeros(0, int)] * n_keyframes
     if config.texture and len(faces):
         # Holes stay holes: a cell counts as wall when it is no farther from a point than
         # the inside of the largest kept triangle (0.6 x its longest edge).
-        p = points[faces]
-        longest = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
-        gap = 0.6 * float(longest.max())
-        grid, z0 = wall_points_on_grid(
-            arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0)
-        )
+        gap = 0.6 * float(longest_edges(points, faces).max())
+        # The grid is evaluated and scored a strip of rows at a time (never held whole).
+        wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
+        z0 = wall.axial_min_mm
         choice = choose_sources(
-            inputs.camera_rig, inputs.world_from_rig, grid, config.texture_mm_per_px,
+            inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
             config.laser_band_mm,
         )
-        cells_of = choice.by_keyframe(n_keyframes)
+        del wall
     # One image read per keyframe with a ring or texture cells: colours and texture samples.
     work: list[_FrameWork | None] = []
     for k, ring_px in enumerate(inputs.ring_pixels):
-        sel = cells_of[k]
-        if not len(ring_px) and not len(sel):
+        tex_px = choice.pieces[k] if choice is not None else ()
+        if not len(ring_px) and not sum(len(t) for t in tex_px):
             work.append(None)
             continue
         colour_px = (
@@ -502,16 +513,22 @@ def _run(
             if len(ring_px)
             else np.zeros((0, 2), int)
         )
-        tex_px = choice.best_px[sel] if choice is not None else np.zeros((0, 2), np.float32)
         work.append(_FrameWork(colour_px, tex_px))
-    sampled = _sample_frames(inputs, work, executor, progress)
-    colours = np.concatenate(
-        [s[0] for s, r in zip(sampled, inputs.ring_pixels, strict=True) if s is not None and len(r)]
-    )
-    result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
+    image = None
     if choice is not None:
-        samples = {k: s[1] for k, s in enumerate(sampled) if s is not None and len(cells_of[k])}
-        unrolled = assemble(choice, samples, config.texture_mm_per_px, z0, circ)
+        h, w = choice.shape
+        image = np.zeros((h * w, 3), np.uint8)
+    # Each keyframe's samples go into the image as they come (not all held at once).
+    colour_parts: list[np.ndarray] = []
+    for k, (ring_colours, samples) in _sample_frames(inputs, work, executor, progress):
+        if len(inputs.ring_pixels[k]):
+            colour_parts.append(ring_colours)
+        if choice is not None and image is not None:
+            paint(image, choice, k, samples)
+    colours = np.concatenate(colour_parts)
+    result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
+    if choice is not None and image is not None:
+        unrolled = finish(choice, image, config.texture_mm_per_px, z0, circ)
         verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
         result.texture, result.unrolled = atlas, unrolled

@@ -69,6 +69,85 @@ class UnrolledImage:
         return (0.0, 360.0, self.axial_min_mm, self.axial_min_mm + h * self.mm_per_px)
 
 
+STRIP_ROWS = 256
+"""Default rows of the unrolled grid processed at a time (a multiple of the tiles' rows):
+the stage's float64 intermediates are a few strips, not the run (W x 256 cells)."""
+
+TILE = (8, 32)
+"""Tiles of :func:`visible_rows` (rows, columns)."""
+
+
+class WallGrid:
+    """The unrolled grid's wall points (:func:`wall_points_on_grid`), evaluated a strip of
+    rows at a time so that the whole (H, W, 3) float64 grid is never held.
+
+    Any strip equals the same rows of the whole grid evaluated at once, bit for bit: the
+    interpolation's simplex search starts from the previous cell's simplex, so each strip
+    is evaluated from two rows before it (the search is warm when the strip starts).
+
+    Attributes:
+        shape: (H, W) cells; row r at axial ``axial_min_mm + r * mm_per_px``, column c at
+            arc ``(c + 0.5) * circumference_mm / W``.
+        axial_min_mm: axial position of row 0 (mm).
+    """
+
+    HALO = 2
+
+    def __init__(
+        self,
+        arc_mm: np.ndarray,
+        axial_mm: np.ndarray,
+        points_in_world: np.ndarray,
+        circumference_mm: float,
+        mm_per_px: float,
+        max_gap_mm: float,
+    ) -> None:
+        """Triangulate the points (:func:`wall_points_on_grid` for the arguments)."""
+        from scipy.spatial import cKDTree
+
+        circ = circumference_mm
+        margin = 0.1 * circ
+        lo, hi = arc_mm < margin, arc_mm > circ - margin
+        u = np.concatenate([arc_mm, arc_mm[lo] + circ, arc_mm[hi] - circ])
+        z = np.concatenate([axial_mm, axial_mm[lo], axial_mm[hi]])
+        xyz = np.concatenate([points_in_world, points_in_world[lo], points_in_world[hi]])
+        width = int(np.ceil(circ / mm_per_px))
+        z0 = float(np.floor(axial_mm.min()))
+        height = int(np.ceil((axial_mm.max() - z0) / mm_per_px)) + 1
+        self.shape = (height, width)
+        self.axial_min_mm = z0
+        self._u = (np.arange(width) + 0.5) * (circ / width)
+        self._z = z0 + np.arange(height) * mm_per_px
+        uz = np.column_stack([u, z])
+        self._interpolate = LinearNDInterpolator(uz, xyz)
+        self._tree = cKDTree(uz)
+        self._max_gap_mm = max_gap_mm
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, W, 3) wall points of rows [first, stop), mm (NaN: no wall)."""
+        start = max(first - self.HALO, 0)
+        gu, gz = np.meshgrid(self._u, self._z[start:stop])
+        grid = self._interpolate(gu, gz)
+        # Cells far from any measured point (gaps in the rings, the hull's long edges).
+        dist, _ = self._tree.query(np.column_stack([gu.ravel(), gz.ravel()]))
+        grid.reshape(-1, 3)[dist > self._max_gap_mm] = np.nan
+        return grid[first - start :]
+
+
+class _ArrayRows:
+    """An (H, W, 3) array of grid points seen as :class:`WallGrid` (rows are views)."""
+
+    def __init__(self, grid_points: np.ndarray) -> None:
+        if grid_points.ndim != 3 or grid_points.shape[2] != 3:
+            raise ShapeError(f"grid_points: expected shape (H, W, 3), got {grid_points.shape}")
+        self.shape = grid_points.shape[:2]
+        self._grid = grid_points
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, W, 3) rows [first, stop) of the array."""
+        return self._grid[first:stop]
+
+
 def wall_points_on_grid(
     arc_mm: np.ndarray,
     axial_mm: np.ndarray,
@@ -76,33 +155,26 @@ def wall_points_on_grid(
     circumference_mm: float,
     mm_per_px: float,
     max_gap_mm: float,
+    strip_rows: int = STRIP_ROWS,
 ) -> tuple[np.ndarray, float]:
     """(H, W, 3) interpolated wall points (NaN outside the measured wall) and the axial origin.
+
+    The whole grid at once (the model stage keeps a :class:`WallGrid` and evaluates it a
+    strip at a time); ``strip_rows`` rows are interpolated per call, the result does not
+    depend on it.
 
     Args:
         arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
         points_in_world: (N, 3).
         max_gap_mm: cells farther than this from every point stay NaN (holes stay holes).
     """
-    from scipy.spatial import cKDTree
-
-    circ = circumference_mm
-    margin = 0.1 * circ
-    lo, hi = arc_mm < margin, arc_mm > circ - margin
-    u = np.concatenate([arc_mm, arc_mm[lo] + circ, arc_mm[hi] - circ])
-    z = np.concatenate([axial_mm, axial_mm[lo], axial_mm[hi]])
-    xyz = np.concatenate([points_in_world, points_in_world[lo], points_in_world[hi]])
-    width = int(np.ceil(circ / mm_per_px))
-    z0 = float(np.floor(axial_mm.min()))
-    height = int(np.ceil((axial_mm.max() - z0) / mm_per_px)) + 1
-    gu, gz = np.meshgrid(
-        (np.arange(width) + 0.5) * (circ / width), z0 + np.arange(height) * mm_per_px
-    )
-    grid = LinearNDInterpolator(np.column_stack([u, z]), xyz)(gu, gz)
-    # Cells far from any measured point (gaps in the rings, the hull's long edges).
-    dist, _ = cKDTree(np.column_stack([u, z])).query(np.column_stack([gu.ravel(), gz.ravel()]))
-    grid.reshape(-1, 3)[dist > max_gap_mm] = np.nan
-    return grid, z0
+    wall = WallGrid(arc_mm, axial_mm, points_in_world, circumference_mm, mm_per_px, max_gap_mm)
+    h, w = wall.shape
+    grid = np.empty((h, w, 3))
+    step = max(1, int(strip_rows))
+    for r0 in range(0, h, step):
+        grid[r0 : r0 + step] = wall.rows(r0, min(r0 + step, h))
+    return grid, wall.axial_min_mm
 
 
 @dataclass(frozen=True)
@@ -110,24 +182,46 @@ class CellChoice:
     """Which keyframe textures each wall cell, and where in its image (no image read).
 
     Attributes:
-        shape: (H, W) of the unrolled grid.
-        cells: (N,) flat (row-major) indices of the wall cells (finite grid points).
-        best: (N,) keyframe index of each cell (-1: no keyframe sees it).
-        best_px: (N, 2) float32 (col, row) of the cell in that keyframe's image, px.
+        source: (H, W) int64 keyframe of each cell (-1: not a wall cell, or no keyframe
+            sees it).
+        rows: (K, 2) int per keyframe the rows ``[first, stop)`` holding its cells
+            (``first == stop``: none).
+        pieces: per keyframe, (n_i, 2) float32 (col, row) pixels of its cells in its image,
+            in pieces (one per strip of rows) that concatenate in row-major cell order.
     """
 
-    shape: tuple[int, int]
-    cells: np.ndarray
-    best: np.ndarray
-    best_px: np.ndarray
+    source: np.ndarray
+    rows: np.ndarray
+    pieces: tuple[tuple[np.ndarray, ...], ...]
 
-    def by_keyframe(self, n_keyframes: int) -> list[np.ndarray]:
-        """Per keyframe k, (n_k,) positions into :attr:`cells` of the cells it textures
-        (ascending; O(N log N) for all keyframes at once)."""
-        order = np.argsort(self.best, kind="stable")
-        counts = np.bincount(self.best + 1, minlength=n_keyframes + 1)
-        bounds = np.cumsum(counts)
-        return [order[bounds[k] : bounds[k + 1]] for k in range(n_keyframes)]
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of the unrolled grid."""
+        return self.source.shape[0], self.source.shape[1]
+
+    def count(self, k: int) -> int:
+        """Cells keyframe k textures."""
+        return sum(len(piece) for piece in self.pieces[k])
+
+    def cells(self, k: int) -> np.ndarray:
+        """(n_k,) ascending flat (row-major) indices of the cells keyframe k textures
+        (searched in its :attr:`rows` only: linear in the run for all keyframes)."""
+        first, stop = (int(r) for r in self.rows[k])
+        w = self.shape[1]
+        return first * w + np.flatnonzero(self.source[first:stop].reshape(-1) == k)
+
+    def pixels(self, k: int) -> np.ndarray:
+        """(n_k, 2) float32 (col, row) pixels of keyframe k's cells, in :meth:`cells` order."""
+        return _concat_pixels(self.pieces[k])
+
+
+def _concat_pixels(pieces: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(n, 2) float32: the pieces concatenated (the piece itself when there is one)."""
+    if len(pieces) == 1:
+        return pieces[0]
+    if not pieces:
+        return np.zeros((0, 2), np.float32)
+    return np.concatenate(pieces)
 
 
 def elevation_bounds(
@@ -174,41 +268,41 @@ def _box_elevations(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndar
     return bottom, top
 
 
-def visible_rows(
-    camera: CameraModel,
-    world_from_rig: np.ndarray,
-    grid_points: np.ndarray,
-    tile: tuple[int, int] = (8, 32),
-) -> np.ndarray:
-    """(K, 2) per keyframe a window ``[first, stop)`` of grid rows outside which it sees
-    no cell: every cell outside projects outside the valid image (its score is 0).
-
-    Conservative by construction: the grid is cut into tiles (``tile`` = rows, columns)
-    with the axis-aligned world box of their wall points; a binary tree of boxes over
-    the tiles (row-major) is descended per keyframe, keeping a box while the elevation
-    range of its rig-frame bounding box meets the camera's :func:`elevation_bounds`.
-    The window spans the kept tiles. Cost: about (kept tiles + log tiles) box tests per
-    keyframe, so linear in the length of the run.
-
-    Args:
-        camera: the camera model (its valid annulus).
-        world_from_rig: (K, 4, 4) keyframe poses (mm).
-        grid_points: (H, W, 3) wall point of each cell, mm (NaN: none).
-        tile: tile size in cells (rows, columns).
-
-    Returns:
-        (K, 2) int rows; ``first == stop`` (empty) where the keyframe sees no cell.
-    """
-    h, w = grid_points.shape[:2]
-    n_k = len(world_from_rig)
+def _tile_boxes(rows: np.ndarray, tile: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """((T, 3), (T, 3)) NaN-ignoring world box (min, max corners, mm) of each tile of the
+    (h, W, 3) grid rows, tiles row-major (NaN where a tile has no wall point)."""
+    h, w = rows.shape[:2]
     tr, tc = tile
     ntr, ntc = -(-h // tr), -(-w // tc)
     pad = np.full((ntr * tr, ntc * tc, 3), np.nan)
-    pad[:h, :w] = grid_points
+    pad[:h, :w] = rows
     blocks = pad.reshape(ntr, tr, ntc, tc, 3)
     # NaN-ignoring min/max per tile (fmin/fmax: NaN only where the whole tile is empty).
     lo_t = np.fmin.reduce(np.fmin.reduce(blocks, axis=3), axis=1).reshape(-1, 3)
     hi_t = np.fmax.reduce(np.fmax.reduce(blocks, axis=3), axis=1).reshape(-1, 3)
+    return lo_t, hi_t
+
+
+def _seen_rows(
+    rows: np.ndarray,
+    rig_from_world: np.ndarray,
+    bounds: tuple[float, float],
+    tile: tuple[int, int],
+) -> np.ndarray:
+    """(K, 2) per keyframe the window ``[first, stop)`` of the (h, W, 3) grid ``rows``
+    outside which it sees no cell (:func:`visible_rows`, within these rows only).
+
+    Args:
+        rows: (h, W, 3) wall points, mm (NaN: none).
+        rig_from_world: (K, 4, 4) inverse keyframe poses.
+        bounds: the camera's :func:`elevation_bounds` (rad).
+        tile: tile size in cells (rows, columns).
+    """
+    h, w = rows.shape[:2]
+    n_k = len(rig_from_world)
+    tr, tc = tile
+    ntc = -(-w // tc)
+    lo_t, hi_t = _tile_boxes(rows, tile)
     n_leaf = len(lo_t)
     size = 1 << max(0, (n_leaf - 1).bit_length())
     lo = np.full((size, 3), np.inf)
@@ -219,8 +313,7 @@ def visible_rows(
     while len(levels[-1][0]) > 1:
         a, b = levels[-1]
         levels.append((np.minimum(a[0::2], a[1::2]), np.maximum(b[0::2], b[1::2])))
-    e_lo, e_hi = elevation_bounds(camera)
-    rig_from_world = np.stack([invert(T) for T in world_from_rig]) if n_k else np.zeros((0, 4, 4))
+    e_lo, e_hi = bounds
     corner = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], bool)
     station = np.arange(n_k)
     node = np.zeros(n_k, int)
@@ -238,7 +331,7 @@ def visible_rows(
         if depth:
             station = np.repeat(station, 2)
             node = (np.repeat(node, 2) * 2) + np.tile([0, 1], len(node))
-    rows = np.zeros((n_k, 2), int)
+    out = np.zeros((n_k, 2), int)
     if len(station):
         first = np.full(n_k, np.iinfo(int).max)
         stop = np.full(n_k, -1)
@@ -246,66 +339,168 @@ def visible_rows(
         np.minimum.at(first, station, tile_row * tr)
         np.maximum.at(stop, station, np.minimum((tile_row + 1) * tr, h))
         has = stop >= 0
-        rows[has, 0], rows[has, 1] = first[has], stop[has]
-    return rows
+        out[has, 0], out[has, 1] = first[has], stop[has]
+    return out
+
+
+def _rig_from_world(world_from_rig: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) inverses of the (K, 4, 4) poses."""
+    if not len(world_from_rig):
+        return np.zeros((0, 4, 4))
+    return np.stack([invert(T) for T in world_from_rig])
+
+
+def visible_rows(
+    camera: CameraModel,
+    world_from_rig: np.ndarray,
+    grid_points: np.ndarray,
+    tile: tuple[int, int] = TILE,
+) -> np.ndarray:
+    """(K, 2) per keyframe a window ``[first, stop)`` of grid rows outside which it sees
+    no cell: every cell outside projects outside the valid image (its score is 0).
+
+    Conservative by construction: the grid is cut into tiles (``tile`` = rows, columns)
+    with the axis-aligned world box of their wall points; a binary tree of boxes over
+    the tiles (row-major) is descended per keyframe, keeping a box while the elevation
+    range of its rig-frame bounding box meets the camera's :func:`elevation_bounds`.
+    The window spans the kept tiles. Cost: about (kept tiles + log tiles) box tests per
+    keyframe, so linear in the length of the run. (:func:`choose_sources` does the same
+    per strip of rows, on the strip's tiles.)
+
+    Args:
+        camera: the camera model (its valid annulus).
+        world_from_rig: (K, 4, 4) keyframe poses (mm).
+        grid_points: (H, W, 3) wall point of each cell, mm (NaN: none).
+        tile: tile size in cells (rows, columns).
+
+    Returns:
+        (K, 2) int rows; ``first == stop`` (empty) where the keyframe sees no cell.
+    """
+    return _seen_rows(grid_points, _rig_from_world(world_from_rig), elevation_bounds(camera), tile)
 
 
 def choose_sources(
     rig: Rig,
     world_from_rig: np.ndarray,
-    grid_points: np.ndarray,
+    grid_points: np.ndarray | WallGrid,
     mm_per_px: float,
     laser_band_mm: float = 3.0,
     windowed: bool = True,
+    strip_rows: int = STRIP_ROWS,
 ) -> CellChoice:
     """The keyframe that sees each cell best (module docstring) and the cell's pixel in it.
+
+    The grid is processed in strips of ``strip_rows`` rows (rounded up to a multiple of
+    the tiles' rows), each with one row on either side for the steps along the pipe; the
+    float64 intermediates are a strip's, and the result does not depend on the strip size.
 
     Args:
         rig: calibration (camera model and laser plane).
         world_from_rig: (K, 4, 4) keyframe poses (mm).
-        grid_points: (H, W, 3) wall point of each cell, mm (NaN: none).
+        grid_points: (H, W, 3) wall point of each cell, mm (NaN: none), or a
+            :class:`WallGrid` evaluated a strip at a time.
         mm_per_px: cell size (mm).
         laser_band_mm: cells within this distance of the laser plane are not taken.
-        windowed: score each keyframe only on its :func:`visible_rows` (False: every
-            cell from every keyframe; the same result, quadratic in the run's length).
+        windowed: score each keyframe only on the rows of the strip it can see
+            (:func:`visible_rows` on the strip's tiles; False: every cell from every
+            keyframe; the same result, quadratic in the run's length).
+        strip_rows: rows per strip.
 
     Ties go to the earliest keyframe.
     """
-    if grid_points.ndim != 3 or grid_points.shape[2] != 3:
-        raise ShapeError(f"grid_points: expected shape (H, W, 3), got {grid_points.shape}")
+    grid = grid_points if isinstance(grid_points, WallGrid) else _ArrayRows(grid_points)
     camera = camera_from_rig(rig)
-    h, w = grid_points.shape[:2]
-    flat = grid_points.reshape(-1, 3)
-    ok = np.isfinite(flat).all(axis=1)
-    idx = np.flatnonzero(ok)
+    h, w = grid.shape
+    n_k = len(world_from_rig)
+    tr = TILE[0]
+    step = max(tr, -(-int(strip_rows) // tr) * tr)  # strips of whole tiles
+    rig_from_world = _rig_from_world(world_from_rig)
+    bounds = elevation_bounds(camera)
+    source = np.full((h, w), -1)
+    first = np.full(n_k, h)
+    stop = np.zeros(n_k, int)
+    pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
+    for r0 in range(0, h, step):
+        r1 = min(r0 + step, h)
+        lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
+        ext = grid.rows(lo, hi)  # the strip and a row either side (np.gradient along z)
+        best, best_px, idx = _choose_in_strip(
+            rig, camera, rig_from_world, ext, r0 - lo, r1 - r0, bounds, mm_per_px,
+            laser_band_mm, windowed,
+        )
+        del ext
+        source[r0:r1].reshape(-1)[idx] = best
+        chosen = best >= 0
+        order = np.argsort(best[chosen], kind="stable")
+        keys = best[chosen][order]
+        px = best_px[chosen][order]
+        cell_rows = r0 + idx[chosen][order] // w
+        ks, starts = np.unique(keys, return_index=True)
+        ends = np.append(starts[1:], len(keys))
+        for k, a, b in zip(ks.tolist(), starts.tolist(), ends.tolist(), strict=True):
+            pieces[k].append(px[a:b])
+            first[k] = min(first[k], int(cell_rows[a]))
+            stop[k] = max(stop[k], int(cell_rows[b - 1]) + 1)
+    has = stop > 0
+    rows = np.zeros((n_k, 2), int)
+    rows[has, 0], rows[has, 1] = first[has], stop[has]
+    return CellChoice(source, rows, tuple(tuple(p) for p in pieces))
+
+
+def _choose_in_strip(
+    rig: Rig,
+    camera: CameraModel,
+    rig_from_world: np.ndarray,
+    ext: np.ndarray,
+    offset: int,
+    n_rows: int,
+    bounds: tuple[float, float],
+    mm_per_px: float,
+    laser_band_mm: float,
+    windowed: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`choose_sources` on one strip: rows ``[offset, offset + n_rows)`` of ``ext``
+    ((h, W, 3), mm; the other rows are neighbours for the steps along the pipe).
+
+    Returns:
+        best: (n,) keyframe of each wall cell of the strip (-1: none).
+        best_px: (n, 2) float32 its pixel there.
+        idx: (n,) flat indices of the wall cells in the strip (row-major).
+    """
+    core = ext[offset : offset + n_rows]
+    w = core.shape[1]
+    flat = core.reshape(-1, 3)
+    idx = np.flatnonzero(np.isfinite(flat).all(axis=1))
     p = flat[idx]
     # Two small steps on the wall per cell (along the rows and columns) for the footprint.
-    gp = np.where(np.isfinite(grid_points), grid_points, 0.0)
-    step_u = np.gradient(gp, axis=1).reshape(-1, 3)[idx]
-    step_z = np.gradient(gp, axis=0).reshape(-1, 3)[idx]
+    gp = np.where(np.isfinite(ext), ext, 0.0)
+    step_u = np.gradient(gp[offset : offset + n_rows], axis=1).reshape(-1, 3)[idx]
+    step_z = np.gradient(gp, axis=0)[offset : offset + n_rows].reshape(-1, 3)[idx]
+    del gp
+    n_k = len(rig_from_world)
     best = np.full(len(idx), -1)
     best_score = np.zeros(len(idx))
     best_px = np.zeros((len(idx), 2), np.float32)
     # The wall cells of rows [r0, r1) are p[row_start[r0]:row_start[r1]] (idx is row-major).
-    row_start = np.searchsorted(idx, np.arange(h + 1) * w)
+    row_start = np.searchsorted(idx, np.arange(n_rows + 1) * w)
     if windowed:
-        windows = visible_rows(camera, world_from_rig, grid_points)
+        windows = _seen_rows(core, rig_from_world, bounds, TILE)
     else:
-        windows = np.tile([0, h], (len(world_from_rig), 1))
+        windows = np.tile([0, n_rows], (n_k, 1))
     n_plane, o_plane = rig.laser.normal_in_rig, rig.laser.offset_mm
     # Products with 3 columns gain nothing from BLAS threads, which only contend with the
     # executor's workers for the cores (the per-cell values do not depend on them).
     with threadpool_limits(limits=1, user_api="blas"):
-        for k, T in enumerate(world_from_rig):
+        for k in range(n_k):
             sl = slice(int(row_start[windows[k, 0]]), int(row_start[windows[k, 1]]))
             if sl.start >= sl.stop:
                 continue
-            rig_from_world = invert(T)
-            q = apply(rig_from_world, p[sl])
+            m = rig_from_world[k]
+            q = apply(m, p[sl])
             px, valid = camera.project(q)
             valid &= np.abs(q @ n_plane + o_plane) > laser_band_mm
-            px_u, _ = camera.project(q + step_u[sl] @ rig_from_world[:3, :3].T)
-            px_z, _ = camera.project(q + step_z[sl] @ rig_from_world[:3, :3].T)
+            px_u, _ = camera.project(q + step_u[sl] @ m[:3, :3].T)
+            px_z, _ = camera.project(q + step_z[sl] @ m[:3, :3].T)
             a, b = px_u - px, px_z - px
             # Pixels per cell area, over the cell area in mm^2: the footprint's scale.
             # Sharpness (pixels per mm of wall) times the LEDs' inverse-square light: the
@@ -318,7 +513,7 @@ def choose_sources(
             best[sl][better] = k
             best_score[sl][better] = score[better]
             best_px[sl][better] = px[better]
-    return CellChoice((h, w), idx, best, best_px)
+    return best, best_px, idx
 
 
 def texture_samples(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -332,6 +527,41 @@ def texture_samples(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return sample_bilinear(img, pixels, border=cv2.BORDER_REPLICATE)
 
 
+def paint(image: np.ndarray, choice: CellChoice, k: int, samples: np.ndarray | None) -> None:
+    """Write keyframe k's (n_k, 3) uint8 samples (in :meth:`CellChoice.cells` order) into
+    the (H * W, 3) uint8 ``image``.
+
+    Raises:
+        ShapeError: the samples are missing or of the wrong length.
+    """
+    n = choice.count(k)
+    if not n:
+        return
+    if samples is None or len(samples) != n:
+        raise ShapeError(f"keyframe {k}: expected {n} texture samples, got "
+                         f"{'none' if samples is None else len(samples)}")
+    image[choice.cells(k)] = samples
+
+
+def finish(
+    choice: CellChoice,
+    image: np.ndarray,
+    mm_per_px: float,
+    axial_min_mm: float,
+    circumference_mm: float,
+) -> UnrolledImage:
+    """The unrolled image from the choice and the (H * W, 3) uint8 painted ``image``."""
+    h, w = choice.shape
+    return UnrolledImage(
+        image.reshape(h, w, 3),
+        choice.source >= 0,
+        mm_per_px,
+        axial_min_mm,
+        circumference_mm,
+        choice.source,
+    )
+
+
 def assemble(
     choice: CellChoice,
     samples: dict[int, np.ndarray],
@@ -340,39 +570,23 @@ def assemble(
     circumference_mm: float,
 ) -> UnrolledImage:
     """The unrolled image from the choice and, per keyframe k, the (n_k, 3) uint8 samples
-    of its cells (in the order of ``choice.by_keyframe(K)[k]``).
+    of its cells (in the order of ``choice.cells(k)``).
 
     Raises:
         ShapeError: a keyframe's samples are missing or of the wrong length.
     """
     h, w = choice.shape
     image = np.zeros((h * w, 3), np.uint8)
-    for k, sel in enumerate(choice.by_keyframe(int(choice.best.max(initial=-1)) + 1)):
-        if not len(sel):
-            continue
-        got = samples.get(k)
-        if got is None or len(got) != len(sel):
-            raise ShapeError(f"keyframe {k}: expected {len(sel)} texture samples, got "
-                             f"{'none' if got is None else len(got)}")
-        image[choice.cells[sel]] = got
-    source = np.full(h * w, -1)
-    source[choice.cells] = choice.best
-    alpha = source >= 0
-    return UnrolledImage(
-        image.reshape(h, w, 3),
-        alpha.reshape(h, w),
-        mm_per_px,
-        axial_min_mm,
-        circumference_mm,
-        source.reshape(h, w),
-    )
+    for k in range(len(choice.pieces)):
+        paint(image, choice, k, samples.get(k))
+    return finish(choice, image, mm_per_px, axial_min_mm, circumference_mm)
 
 
 def unrolled_image(
     rig: Rig,
     world_from_rig: np.ndarray,
     read_frame: Callable[[int], np.ndarray],
-    grid_points: np.ndarray,
+    grid_points: np.ndarray | WallGrid,
     axial_min_mm: float,
     circumference_mm: float,
     mm_per_px: float,
@@ -386,14 +600,15 @@ def unrolled_image(
         world_from_rig: (K, 4, 4) keyframe poses.
         read_frame: k -> (H, W, 3) or (H, W) image of keyframe k; read once for each
             keyframe that textures some cell.
-        grid_points: (H, W, 3) wall point of each cell (NaN: none).
+        grid_points: (H, W, 3) wall point of each cell (NaN: none), or a :class:`WallGrid`.
         progress: called with k + 1 after keyframe k's image is sampled.
     """
     choice = choose_sources(rig, world_from_rig, grid_points, mm_per_px, laser_band_mm)
-    samples: dict[int, np.ndarray] = {}
-    for k, sel in enumerate(choice.by_keyframe(len(world_from_rig))):
-        if len(sel):
-            samples[k] = texture_samples(read_frame(k), choice.best_px[sel])
+    h, w = choice.shape
+    image = np.zeros((h * w, 3), np.uint8)
+    for k in range(len(world_from_rig)):
+        if choice.count(k):
+            paint(image, choice, k, texture_samples(read_frame(k), choice.pixels(k)))
             if progress:
                 progress(k + 1)
-    return assemble(choice, samples, mm_per_px, axial_min_mm, circumference_mm)
+    return finish(choice, image, mm_per_px, axial_min_mm, circumference_mm)
