@@ -20,6 +20,9 @@ Cost: a keyframe can only see the wall within the camera's elevation range, so e
 keyframe scores only the grid rows it can possibly see (:func:`visible_rows`, a
 conservative window: a cell outside it would score 0). The scoring is then linear in
 the length of the run, and identical to scoring every cell from every keyframe.
+Memory: the grid is evaluated (:class:`WallGrid`) and scored a strip of rows at a
+time (:data:`STRIP_ROWS`, windows per strip), so its float64 intermediates do not grow
+with the run; what is kept is the (H, W) keyframe of each cell and the chosen pixels.
 Choosing (:func:`choose_sources`, no image needed) is separate from sampling
 (:func:`texture_samples`, one image) so that the model stage can read each keyframe
 once for both its ring colours and its texture cells, in parallel.
