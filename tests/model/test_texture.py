@@ -265,3 +265,15 @@ def test_assemble_paints_each_keyframes_cells_and_checks_the_samples() -> None:
         assemble(choice, {0: samples[0]}, 0.5, 1.0, 3.0)
     with pytest.raises(ShapeError):
         assemble(choice, {0: samples[0][:2], 1: samples[1]}, 0.5, 1.0, 3.0)
+
+
+def test_a_strip_no_keyframe_sees_is_left_empty() -> None:
+    # A gap in the wall (rings lost over a stretch): whole strips without a wall point.
+    rig = _rig("hyperboloid")
+    grid, poses = _pipe(310.0, 30.0, None, seed=1)
+    gap = grid.copy()
+    gap[16:48] = np.nan
+    one = choose_sources(rig, poses, gap, MM_PER_PX, 3.0, strip_rows=gap.shape[0])
+    small = choose_sources(rig, poses, gap, MM_PER_PX, 3.0, strip_rows=8)
+    _assert_same_choice(small, one)
+    assert np.all(small.source[16:48] == -1) and np.any(small.source >= 0)

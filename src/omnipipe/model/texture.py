@@ -437,6 +437,8 @@ def choose_sources(
         order = np.argsort(best[chosen], kind="stable")
         keys = best[chosen][order]
         px = best_px[chosen][order]
+        if not len(keys):  # no cell of this strip is seen by any keyframe
+            continue
         cell_rows = r0 + idx[chosen][order] // w
         ks, starts = np.unique(keys, return_index=True)
         ends = np.append(starts[1:], len(keys))
