@@ -153,6 +153,8 @@ class SfmResult:
         station: (N,) station index of each frame.
         step_scale_mm: (K-1,) translation length between consecutive keyframes (mm).
         warnings: what went wrong where (frames with few features, rotation-only steps).
+        bundle: the bundle adjustment's result (of the last window on a long run), or None.
+        bundle_windows: how many windows were adjusted (1: the global adjustment).
         scale_sigma_rel: 1-sigma relative uncertainty of lengths along the run (a length
             L measured along the trajectory has sigma ``L * scale_sigma_rel``); NaN when
             the run could not estimate it.
@@ -179,7 +181,8 @@ class SfmResult:
     station: np.ndarray
     step_scale_mm: np.ndarray
     warnings: list[str] = field(default_factory=list)
-    bundle: object = None
+    bundle: BundleResult | None = None
+    bundle_windows: int = 0
     scale_sigma_rel: float = math.nan
     step_checks: list[StepCheck] = field(default_factory=list)
     unreliable: list[UnreliableStretch] = field(default_factory=list)
@@ -441,7 +444,8 @@ def _estimate(
         wall_scale_log=math.nan if wall_scale is None else wall_scale[0],
         scale_correction_log=applied,
         warnings=warnings,
-        bundle=bundle_stats[-1] if len(bundle_stats) == 1 else (bundle_stats or None),
+        bundle=bundle_stats[-1] if bundle_stats else None,
+        bundle_windows=len(bundle_stats),
         scale_sigma_rel=math.hypot(scale_sigma, SHARED_SCALE_SIGMA),
         step_checks=checks,
         unreliable=merge_stretches(stretches),
