@@ -277,3 +277,14 @@ def test_a_strip_no_keyframe_sees_is_left_empty() -> None:
     small = choose_sources(rig, poses, gap, MM_PER_PX, 3.0, strip_rows=8)
     _assert_same_choice(small, one)
     assert np.all(small.source[16:48] == -1) and np.any(small.source >= 0)
+
+
+def test_strips_scored_by_worker_processes_give_the_same_choice() -> None:
+    from omnipipe.executor import open_executor
+
+    rig = _rig("hyperboloid")
+    grid, poses = _pipe(310.0, 30.0, 300.0, seed=1)
+    here = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=16)
+    with open_executor(2) as ex:
+        there = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=16, executor=ex)
+    _assert_same_choice(there, here)

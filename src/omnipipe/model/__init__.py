@@ -498,7 +498,7 @@ def _run(
         z0 = wall.axial_min_mm
         choice = choose_sources(
             inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
-            config.laser_band_mm,
+            config.laser_band_mm, executor=executor,
         )
         del wall
     # One image read per keyframe with a ring or texture cells: colours and texture samples.

@@ -31,6 +31,7 @@ once for both its ring colours and its texture cells, in parallel.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import cv2
@@ -40,6 +41,7 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.errors import ShapeError
+from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
 from omnipipe.image import sample_bilinear
 from omnipipe.rig import Rig
@@ -390,8 +392,12 @@ def choose_sources(
     laser_band_mm: float = 3.0,
     windowed: bool = True,
     strip_rows: int = STRIP_ROWS,
+    executor: Executor | None = None,
 ) -> CellChoice:
     """The keyframe that sees each cell best (module docstring) and the cell's pixel in it.
+
+    The strips are scored on ``executor`` (:mod:`omnipipe.executor`; None: here), in
+    order, a bounded number at a time; the result does not depend on where they ran.
 
     The grid is processed in strips of ``strip_rows`` rows (rounded up to a multiple of
     the tiles' rows), each with one row on either side for the steps along the pipe; the
@@ -423,15 +429,19 @@ def choose_sources(
     first = np.full(n_k, h)
     stop = np.zeros(n_k, int)
     pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
-    for r0 in range(0, h, step):
+
+    def strips():  # each strip and a row either side (np.gradient along z), made as needed
+        for r0 in range(0, h, step):
+            r1 = min(r0 + step, h)
+            lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
+            yield (
+                rig, camera, rig_from_world, grid.rows(lo, hi), r0 - lo, r1 - r0, bounds,
+                mm_per_px, laser_band_mm, windowed,
+            )
+
+    scored = ordered_map(executor or InlineExecutor(), _strip_task, strips())
+    for r0, (best, best_px, idx) in zip(range(0, h, step), scored, strict=True):
         r1 = min(r0 + step, h)
-        lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
-        ext = grid.rows(lo, hi)  # the strip and a row either side (np.gradient along z)
-        best, best_px, idx = _choose_in_strip(
-            rig, camera, rig_from_world, ext, r0 - lo, r1 - r0, bounds, mm_per_px,
-            laser_band_mm, windowed,
-        )
-        del ext
         source[r0:r1].reshape(-1)[idx] = best
         chosen = best >= 0
         order = np.argsort(best[chosen], kind="stable")
@@ -450,6 +460,11 @@ def choose_sources(
     rows = np.zeros((n_k, 2), int)
     rows[has, 0], rows[has, 1] = first[has], stop[has]
     return CellChoice(source, rows, tuple(tuple(p) for p in pieces))
+
+
+def _strip_task(args: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Executor task: :func:`_choose_in_strip` of one strip's arguments."""
+    return _choose_in_strip(*args)
 
 
 def _choose_in_strip(
