@@ -576,14 +576,17 @@ def _far_anchors(
     camera, world_from_kf, grays, rings, config, executor: Executor, first: int = 0, fixed: int = 1
 ) -> list:
     """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
-    poses), each matched in the executor's workers; in (k, k + j) order.
+    poses), matched in the executor's workers, a bounded number at a time (each task
+    holds two images); in (k, k + j) order.
 
     ``world_from_kf``: (W, 4, 4) the poses of keyframes ``first .. first + W - 1`` (an
     adjustment window; ``grays`` and ``rings`` count from keyframe 0); pairs of two of
     its first ``fixed`` keyframes (held fixed there) are left out. Returns (a, b, laser
     points in a, pixels in b) with a, b counted from ``first``.
     """
-    jobs = []
+    from omnipipe.executor import ordered_map
+
+    pairs = []
     for a in range(len(world_from_kf)):
         pts = rings[first + a].points_in_rig
         if len(pts) == 0:
@@ -591,22 +594,26 @@ def _far_anchors(
         for b in range(max(a + 2, fixed), min(a + config.anchor_reach, len(world_from_kf) - 1) + 1):
             b_from_a = invert(world_from_kf[b]) @ world_from_kf[a]
             length = float(np.linalg.norm(b_from_a[:3, 3]))
-            if length < 1e-6:
-                continue
-            # The adjusted length is known to a few per cent: search only around it, so
-            # that a periodic wall cannot offer the next course.
-            w = math.exp(config.scale_check.agree_log)
-            future = executor.submit(
-                laser_matches, grays[first + a], grays[first + b], camera, pts, b_from_a[:3, :3],
-                b_from_a[:3, 3] / length, config.laser_scale, (length / w, length * w),
-            )
-            jobs.append((a, b, pts, future))
+            if length >= 1e-6:
+                pairs.append((a, b, pts, b_from_a, length))
+    # The adjusted length is known to a few per cent: search only around it, so that a
+    # periodic wall cannot offer the next course.
+    w = math.exp(config.scale_check.agree_log)
+    jobs = (
+        (grays[first + a], grays[first + b], camera, pts, b_from_a[:3, :3],
+         b_from_a[:3, 3] / length, config.laser_scale, (length / w, length * w))
+        for a, b, pts, b_from_a, length in pairs
+    )
     out = []
-    for a, b, pts, future in jobs:
-        lm = future.result()
+    for (a, b, pts, _, _), lm in zip(pairs, ordered_map(executor, _laser_job, jobs), strict=True):
         if len(lm.index):
             out.append((a, b, pts[lm.index], lm.pixels_b))
     return out
+
+
+def _laser_job(job: tuple) -> LaserMatches:
+    """Executor task: :func:`omnipipe.sfm.tasks.laser_matches` of one argument tuple."""
+    return laser_matches(*job)
 
 
 @dataclass

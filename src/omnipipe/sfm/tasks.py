@@ -127,9 +127,8 @@ def step_evidence(
         the laser's template matches (Eq. 17), each match's feature-depth log length
         (M,), and the step's feature-depth length (mm, NaN: none) with its count.
     """
-    lm = match_laser_points(
-        np.asarray(gray_a, np.float32), np.asarray(gray_b, np.float32), camera, laser_points_a,
-        b_from_a_rotation, b_from_a_direction, laser_scale,
+    lm = laser_matches(
+        gray_a, gray_b, camera, laser_points_a, b_from_a_rotation, b_from_a_direction, laser_scale
     )
     log_s = feature_log_scales(
         rays_a, rays_b, b_from_a_rotation, b_from_a_direction, wall_cylinder(laser_points_a),
