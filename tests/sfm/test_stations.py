@@ -41,3 +41,35 @@ def test_counted_median_equals_numpy_median() -> None:
         half = whole + np.float32(0.5)  # not whole numbers: numpy's path
         for values in (whole, half):
             assert _median_abs(values) == np.median(np.abs(values))
+
+
+def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
+    """Frames of every kind the fast signature path takes, and some it must not."""
+    rgb8 = rng.normal(120, 9, (64, 96, 3)).clip(0, 255).astype(np.uint8)
+    rgb16 = rng.normal(30000, 900, (64, 96, 3)).clip(0, 65535).astype(np.uint16)
+    return [
+        (rgb8, "red"),  # fast: the green channel
+        (rgb16, "red"),  # fast, 16 bit
+        (rgb8[..., 1].copy(), "red"),  # fast: one channel
+        (rgb8, "green"),  # slow: the mean of red and blue
+        (rgb8[:63, :94], "red"),  # slow: sides not divisible by 4
+        (rgb8.astype(np.float32), "red"),  # slow: float frame
+        (np.full((64, 96, 3), 255, np.uint8), "red"),  # saturated: all-zero response
+    ]
+
+
+def test_frame_signature_equals_the_grey_image_signature() -> None:
+    from omnipipe.image import gray_without_laser
+    from omnipipe.sfm.stations import frame_signature, inner_mask, station_signature
+
+    rng = np.random.default_rng(11)
+    for image, channel in _frame_cases(rng):
+        h, w = image.shape[:2]
+        yy, xx = np.mgrid[:h, :w]
+        mask = (xx - w / 2) ** 2 + (yy - h / 2) ** 2 < (0.6 * w) ** 2  # cut by the borders
+        inner = inner_mask(mask)
+        want = station_signature(gray_without_laser(image, channel), inner)
+        got = frame_signature(image, channel, inner)
+        assert got.small.dtype == want.small.dtype == np.float32
+        assert np.array_equal(got.small, want.small), (image.shape, image.dtype, channel)
+        assert got.noise_sigma == want.noise_sigma, (image.shape, image.dtype, channel)
