@@ -40,13 +40,59 @@ def test_one_pass_gives_the_serial_rings_and_stations(stop_and_go: Path) -> None
             result = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex, done.append)
         assert np.array_equal(result.moved, moved), workers
         assert done[-1] == len(dataset)
-        assert np.array_equal(result.ring_samples, [len(r.pixels) for r in serial.rings])
+        # A stationary frame counts its station's ring (its own is never extracted).
+        station = np.maximum.accumulate(np.where(moved, np.arange(len(moved)), 0))
+        own = np.array([len(r.pixels) for r in serial.rings])
+        assert np.array_equal(result.ring_samples, own[station])
         for a, b, keep in zip(serial.rings, result.rings.rings, moved, strict=True):
             if keep:  # a standing robot's repeated rings are not kept
                 assert np.array_equal(a.pixels, b.pixels)
                 assert np.array_equal(a.points_in_rig, b.points_in_rig)
+                assert a.warnings == b.warnings
             else:
-                assert len(b.pixels) == 0 and b.warnings == a.warnings
+                assert len(b.pixels) == 0 and not b.warnings
+
+
+def test_a_creep_only_the_run_sees_gets_its_ring(
+    stop_and_go: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Frames creeping a fraction of a pixel each: each looks stationary next to the
+    one before it (which is all a chunk sees), but the run's tracker, comparing with
+    its station's first frame, finds motion every few frames: those rings are
+    extracted after the pass, and every moved frame's ring is the serial one."""
+    import shutil
+
+    import cv2
+
+    from omnipipe.dataset import write_image
+
+    source = open_dataset(stop_and_go)
+    base = source.read_frame(0)
+    creep = tmp_path / "creep"
+    (creep / "frames").mkdir(parents=True)
+    shutil.copy(stop_and_go / "rig.yaml", creep / "rig.yaml")
+    h, w = base.shape[:2]
+    for k in range(12):
+        shift = np.float32([[1, 0, 0.2 * k], [0, 1, 0]])
+        write_image(creep / "frames" / f"{k:06d}.png", cv2.warpAffine(base, shift, (w, h)))
+    dataset = open_dataset(creep)
+    tracker = StationTracker(camera_from_rig(dataset.rig).valid_mask())
+    moved = np.array(
+        [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in dataset.frames()]
+    )
+    fetched: list[int] = []
+    task = frame_pass._RingTask.__call__
+    monkeypatch.setattr(
+        frame_pass._RingTask, "__call__", lambda self, src: fetched.extend(src.frames) or task(self, src)
+    )
+    with open_executor(1) as ex:  # inline: chunks of 3 frames
+        result = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
+    assert np.array_equal(result.moved, moved)
+    assert fetched and all(moved[i] for i in fetched)
+    serial = laser.run(laser.LaserConfig(), dataset.rig, dataset.frames())
+    for a, b, keep in zip(serial.rings, result.rings.rings, moved, strict=True):
+        if keep:
+            assert np.array_equal(a.points_in_rig, b.points_in_rig)
 
 
 def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:

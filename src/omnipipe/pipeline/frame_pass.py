@@ -11,9 +11,13 @@ need of it that is small:
   taken while the robot stood still (:class:`~omnipipe.sfm.stations.StationTracker`).
 
 Results are consumed as they arrive and the signatures are dropped once compared, so
-memory does not grow with the run beyond the rings themselves. The outcome is
-identical to the serial stages (:func:`omnipipe.laser.run` and the tracker fed frame
-by frame).
+memory does not grow with the run beyond the rings themselves. A frame taken while the
+robot stood still is used by no later stage (its station's first frame stands for
+it), and most frames are such frames: the worker runs the stationary test within its
+chunk too and skips the ring of a frame that shows the same station as the frame
+before it (the parent fetches the rare one its own test needs after all). The
+outcome is that of the serial stages (:func:`omnipipe.laser.run` and the tracker fed
+frame by frame) for every frame where the rig moved, whatever the chunks.
 """
 
 from __future__ import annotations
@@ -28,7 +32,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from omnipipe.camera import camera_from_rig
-from omnipipe.image import gray_without_laser
 from omnipipe.laser import LaserConfig, LaserResult
 from omnipipe.laser import _extractor as ring_extractor
 from omnipipe.laser.extract import LaserRing
@@ -38,8 +41,8 @@ from omnipipe.sfm.stations import (
     StationConfig,
     StationSignature,
     StationTracker,
+    frame_signature,
     inner_mask,
-    station_signature,
 )
 
 if TYPE_CHECKING:
@@ -59,8 +62,9 @@ class FramePassResult:
             expectation (inf for frame 0).
         ring_samples: (N,) accepted ring samples of each frame. A frame taken while the
             robot stood still repeats its station's ring and is used by no later stage:
-            its ring is kept empty (its warnings and scan count stay), so memory grows
-            with the stations, not with the time spent standing.
+            its ring is empty, it counts its station's ring's samples and adds no
+            warnings, so memory grows with the stations, not with the time spent
+            standing.
     """
 
     rings: LaserResult
@@ -69,36 +73,67 @@ class FramePassResult:
     ring_samples: np.ndarray
 
 
-# Per process: the valid-mask interior of the last rig seen (built once per worker).
-_INNER: dict[bytes, np.ndarray] = {}
+# Per process: the valid mask and its interior of the last rig seen (built once per worker).
+_MASKS: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
 
-def _inner(rig: Rig) -> np.ndarray:
+def _masks(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
     key = pickle.dumps(rig)
-    if key not in _INNER:
-        _INNER.clear()
-        _INNER[key] = inner_mask(camera_from_rig(rig).valid_mask())
-    return _INNER[key]
+    if key not in _MASKS:
+        _MASKS.clear()
+        valid = camera_from_rig(rig).valid_mask()
+        _MASKS[key] = (valid, inner_mask(valid))
+    return _MASKS[key]
 
 
 class _FrameTask:
-    """Picklable task: ring and station signature of each frame of one chunk."""
+    """Picklable task: (ring or None, station signature) of each frame of one chunk.
+
+    The stationary test runs within the chunk too (its own tracker, started at the
+    chunk's first frame): a frame that shows the same station as the one before it in
+    the chunk is all but certainly stationary for the run's tracker as well, and a
+    stationary frame's ring is used by no later stage, so its extraction is skipped
+    (``None``). The parent fetches the rare ring the run's tracker needs after all
+    (:func:`run`), so the result never depends on where chunks begin.
+    """
 
     def __init__(self, laser: LaserConfig, stations: StationConfig) -> None:
         self.laser = laser
         self.stations = stations
 
-    def __call__(self, source: FrameSource) -> list[tuple[LaserRing, StationSignature]]:
+    def __call__(self, source: FrameSource) -> list[tuple[LaserRing | None, StationSignature]]:
         rig = source.rig
         camera, extractor = ring_extractor(self.laser, rig)
-        inner = _inner(rig)
-        out = []
+        valid, inner = _masks(rig)
+        local = StationTracker(valid, self.stations)
+        out: list[tuple[LaserRing | None, StationSignature]] = []
         for k in range(len(source)):
             image = source.read(k)
-            ring = triangulate_ring(extractor.extract(image, rig.laser.channel), camera, rig.laser)
-            gray = gray_without_laser(image, rig.laser.channel)
-            out.append((ring, station_signature(gray, inner, self.stations)))
+            signature = frame_signature(image, rig.laser.channel, inner, self.stations)
+            moved, _ = local.update_signature(signature)
+            ring = (
+                triangulate_ring(extractor.extract(image, rig.laser.channel), camera, rig.laser)
+                if moved
+                else None
+            )
+            out.append((ring, signature))
         return out
+
+
+class _RingTask:
+    """Picklable task: the ring of each frame of one chunk (the rings :class:`_FrameTask`
+    skipped that the run's stationary test needs)."""
+
+    def __init__(self, laser: LaserConfig) -> None:
+        self.laser = laser
+
+    def __call__(self, source: FrameSource) -> list[LaserRing]:
+        rig = source.rig
+        camera, extractor = ring_extractor(self.laser, rig)
+        return [
+            triangulate_ring(extractor.extract(source.read(k), rig.laser.channel), camera, rig.laser)
+            for k in range(len(source))
+        ]
 
 
 def run(
@@ -122,23 +157,34 @@ def run(
 
     tracker = StationTracker(camera_from_rig(dataset.rig).valid_mask(), stations)
     n = len(dataset)
-    rings: list[LaserRing] = []
+    rings: list[LaserRing | None] = []
     moved = np.zeros(n, bool)
     ratio = np.full(n, math.nan)
-    samples = np.zeros(n, int)
+    station = np.zeros(n, int)  # each frame's station: its first frame
     for i, (ring, signature) in iter_frames(executor, _FrameTask(laser, stations), dataset):
         moved[i], ratio[i] = tracker.update_signature(signature)
-        samples[i] = len(ring.pixels)
-        rings.append(ring if moved[i] else _emptied(ring))
+        station[i] = i if moved[i] else station[i - 1]
+        rings.append(ring if moved[i] else None)
         if progress is not None:
             progress(i + 1)
-    warnings = [f"frame {i}: {w}" for i, ring in enumerate(rings) for w in ring.warnings]
-    return FramePassResult(LaserResult(rings, warnings), moved, ratio, samples)
+    # A frame where the rig moved whose chunk took it for stationary (a slow creep that
+    # only the comparison with an earlier chunk's frame shows): its ring, decoded again.
+    missing = [i for i in range(n) if rings[i] is None and moved[i]]
+    for i, ring in iter_frames(executor, _RingTask(laser), dataset, frames=missing):
+        rings[i] = ring
+    done = [ring if ring is not None else _EMPTY for ring in rings]
+    own = np.array([len(ring.pixels) for ring in done], int)
+    # A stationary frame shows its station's ring: it counts that ring's samples.
+    samples = own[station]
+    warnings = [f"frame {i}: {w}" for i, ring in enumerate(done) for w in ring.warnings]
+    final = [ring if moved[i] else _emptied(done[station[i]].scanned) for i, ring in enumerate(done)]
+    return FramePassResult(LaserResult(final, warnings), moved, ratio, samples)
 
 
-def _emptied(ring: LaserRing) -> LaserRing:
-    """``ring`` without its samples (scan count and warnings kept)."""
-    return LaserRing(
-        np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0),
-        scanned=ring.scanned, warnings=ring.warnings,
-    )
+_EMPTY = LaserRing(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0))
+
+
+def _emptied(scanned: int) -> LaserRing:
+    """A stationary frame's ring: no samples (its station's ring has them), ``scanned``
+    scan lines."""
+    return LaserRing(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), scanned=scanned)
