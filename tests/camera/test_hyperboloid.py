@@ -157,3 +157,23 @@ def test_compiled_project_is_bit_identical_to_numpy(camera: OmniCamera) -> None:
         assert np.array_equal(got_valid, want_valid)
     _, edge_valid = camera.project(edge_rays)
     assert 0 < edge_valid.mean() < 1  # the annulus' edges were really probed
+
+
+def test_project_jacobian_matches_finite_differences(camera: OmniCamera) -> None:
+    pixels = _valid_pixels(camera, 2000, seed=7)
+    depth = np.random.default_rng(8).uniform(20.0, 2000.0, size=(len(pixels), 1))
+    q = camera.unproject(pixels) * depth
+    J = camera.project_jacobian(q)
+    assert J.shape == (len(q), 2, 3)
+    h = 1e-6 * np.linalg.norm(q, axis=1)
+    fd = np.empty_like(J)
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = 1.0
+        plus, _ = camera.project(q + h[:, None] * e)
+        minus, _ = camera.project(q - h[:, None] * e)
+        fd[:, :, i] = (plus - minus) / (2 * h[:, None])
+    scale = np.abs(fd).max(axis=(1, 2))[:, None, None]
+    assert (np.abs(J - fd) / scale).max() < 1e-5
+    # Only the direction matters: no derivative along the point's own ray.
+    assert np.abs(np.einsum("nij,nj->ni", J, q)).max() < 1e-6 * np.abs(J).max()

@@ -102,6 +102,36 @@ class OmniCamera(CameraModel):
         )
         return pixels, valid
 
+    def project_jacobian(self, points_in_rig: np.ndarray) -> np.ndarray:
+        """Derivative of :meth:`project`'s pixels with respect to the points.
+
+        With n = |q| and s = a^2 / (b n - c q_z) (the mirror point is s q),
+        ``project`` is (col, row) = f (q_x, q_y) / g + (cx, cy) with
+        g = q_z + (2c / a^2) (b n - c q_z), so dg/dq = (2c b / a^2) q / n + (1 - 2c^2 / a^2) e_z.
+
+        Args:
+            points_in_rig: (N, 3) points or ray vectors (mm).
+
+        Returns:
+            (N, 2, 3) d(col, row) / d(x, y, z), px/mm (non-finite where the mirror
+            cannot see the point; validity is :meth:`project`'s).
+        """
+        q = as_points(points_in_rig, 3, "points_in_rig")
+        a, b, c, f = self.a, self.b, self.c, self.f
+        k = 2.0 * c / (a * a)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n = np.sqrt(np.einsum("ni,ni->n", q, q))
+            g = q[:, 2] + k * (b * n - c * q[:, 2])
+            dg = (k * b / n)[:, None] * q
+            dg[:, 2] += 1.0 - k * c
+            fg = f / g
+            J = np.empty((len(q), 2, 3))
+            J[:, 0, :] = -(fg * q[:, 0] / g)[:, None] * dg
+            J[:, 1, :] = -(fg * q[:, 1] / g)[:, None] * dg
+            J[:, 0, 0] += fg
+            J[:, 1, 1] += fg
+        return J
+
     def elevation_range(self) -> tuple[float, float]:
         """(lowest, highest) ray elevation (rad, from the xy plane towards +z) of valid pixels."""
         r = np.array(
