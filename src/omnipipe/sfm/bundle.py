@@ -11,8 +11,10 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
   laser_point_in_a) - pixel_b``. These tie the translation lengths to millimetres, so
   the scale cannot drift along the run.
 
-Robust soft-L1 loss; SciPy ``least_squares`` (trf) with the sparse Jacobian
-structure (``jac_sparsity``): each residual touches one or two poses and one point.
+Robust soft-L1 loss; SciPy ``least_squares`` (trf, lsmr) with an analytic sparse
+Jacobian (:func:`_jacobian`): each residual touches one or two poses and one point,
+chained through q = R(omega) X + t, the SO(3) left Jacobian of the rotation vector
+and the camera's :meth:`~omnipipe.camera.OmniCamera.project_jacobian`.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
@@ -115,8 +117,56 @@ def _params_to_rig_from_world(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return Rotation.from_rotvec(p[:, :3]).as_matrix(), p[:, 3:]
 
 
-def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConfig) -> BundleResult:
-    """Refine keyframe poses and track points (see the module docstring).
+def _so3_left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) left Jacobians J of rotation vectors w: exp(w + d) = exp(J d) exp(w) to first order.
+
+    J = I + (1 - cos th) / th^2 [w]x + (th - sin th) / th^3 [w]x^2, th = |w| (series below 1e-3).
+    """
+    th2 = np.einsum("ni,ni->n", rotvec, rotvec)
+    th = np.sqrt(th2)
+    small = th < 1e-3
+    ths = np.where(small, 1.0, th)
+    c1 = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / ths**2)
+    c2 = np.where(small, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0, (ths - np.sin(ths)) / ths**3)
+    W = _skew(rotvec)
+    return np.eye(3) + c1[:, None, None] * W + c2[:, None, None] * (W @ W)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices [v]x (so [v]x u = v x u)."""
+    W = np.zeros((len(v), 3, 3))
+    W[:, 0, 1], W[:, 0, 2] = -v[:, 2], v[:, 1]
+    W[:, 1, 0], W[:, 1, 2] = v[:, 2], -v[:, 0]
+    W[:, 2, 0], W[:, 2, 1] = -v[:, 1], v[:, 0]
+    return W
+
+
+def _masked_projection_jacobian(camera: OmniCamera, q: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) d pixel / d q, zero where the residual is zeroed (invalid or non-finite).
+
+    The camera's ``project_jacobian`` where it has one, else forward differences per
+    point along x, y, z (three projections of all points, step sqrt(eps) |q|).
+    """
+    px, valid = camera.project(q)
+    if hasattr(camera, "project_jacobian"):
+        J = camera.project_jacobian(q)
+    else:
+        h = np.sqrt(np.finfo(float).eps) * np.maximum(np.linalg.norm(q, axis=1), 1.0)
+        J = np.empty((len(q), 2, 3))
+        for i in range(3):
+            qh = q.copy()
+            qh[:, i] += h
+            dh = qh[:, i] - q[:, i]  # the step as represented
+            J[:, :, i] = (camera.project(qh)[0] - px) / dh[:, None]
+    keep = valid & np.isfinite(px).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
+    J[~keep] = 0.0
+    return J
+
+
+def _objective(camera: OmniCamera, problem: BundleProblem, w_laser: float):
+    """The adjustment's start x0, residuals(x), jacobian(x) (sparse CSR) and unpack(x) -> (R, t, points).
+
+    x: the free keyframes' (rotation vector, translation) of rig_from_world, then the points.
 
     Raises:
         ShapeError: inconsistent observation arrays.
@@ -135,7 +185,6 @@ def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConf
     fixed = pose0[:F].copy()
     n_pose = 6 * (K - F)
     x0 = np.concatenate([pose0[F:].ravel(), problem.points_in_world.ravel()])
-    w_laser = float(config.laser_weight)
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         poses = np.vstack([fixed, x[:n_pose].reshape(K - F, 6)])
@@ -156,28 +205,77 @@ def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConf
         r_anc = np.where(vb[:, None], pxb - problem.anchor_pixels_b, 0.0) * w_laser
         return np.nan_to_num(np.concatenate([r_obs.ravel(), r_anc.ravel()]), nan=0.0, posinf=0.0, neginf=0.0)
 
-    # Sparsity: observation rows touch their pose (unless fixed) and point; anchors two poses.
-    S = lil_matrix((2 * M + 2 * L, len(x0)), dtype=np.int8)
-    rows = np.arange(M)
-    for d in range(2):
-        for c in range(6):
-            has = problem.obs_frame >= F
-            S[2 * rows[has] + d, 6 * (problem.obs_frame[has] - F) + c] = 1
-        for c in range(3):
-            S[2 * rows + d, n_pose + 3 * problem.obs_point + c] = 1
-        arow = 2 * M + 2 * np.arange(L) + d
-        for frames in (problem.anchor_a, problem.anchor_b):
-            has = frames >= F
-            for c in range(6):
-                S[arow[has], 6 * (frames[has] - F) + c] = 1
+    # Jacobian structure (row-major CSR, computed once): observation rows touch their
+    # pose (unless fixed) and point; anchor rows two poses (unless fixed; an anchor
+    # within one keyframe is constant: no entries).
+    obs_free = np.flatnonzero(problem.obs_frame >= F)
+    a_free = np.flatnonzero((problem.anchor_a >= F) & (problem.anchor_a != problem.anchor_b))
+    b_free = np.flatnonzero((problem.anchor_b >= F) & (problem.anchor_a != problem.anchor_b))
 
+    def block(rows: np.ndarray, col0: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+        r = np.broadcast_to((2 * rows)[:, None, None] + np.arange(2)[None, :, None], (len(rows), 2, width))
+        c = np.broadcast_to(col0[:, None, None] + np.arange(width)[None, None, :], (len(rows), 2, width))
+        return r.ravel(), c.ravel()
+
+    blocks = [
+        block(obs_free, 6 * (problem.obs_frame[obs_free] - F), 6),
+        block(np.arange(M), n_pose + 3 * problem.obs_point, 3),
+        block(M + a_free, 6 * (problem.anchor_a[a_free] - F), 6),
+        block(M + b_free, 6 * (problem.anchor_b[b_free] - F), 6),
+    ]
+    jac_rows = np.concatenate([r for r, _ in blocks])
+    jac_cols = np.concatenate([c for _, c in blocks])
+    order = np.lexsort((jac_cols, jac_rows))
+    indices = jac_cols[order].astype(np.int32)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L))]).astype(np.int32)
+    shape = (2 * M + 2 * L, len(x0))
+
+    def jacobian(x: np.ndarray) -> csr_matrix:
+        poses = np.vstack([fixed, x[:n_pose].reshape(K - F, 6)])
+        R, t, pts = unpack(x)
+        Jl = _so3_left_jacobian(poses[:, :3])
+        k, p = problem.obs_frame, problem.obs_point
+        Rk = R[k]
+        Rx = np.einsum("nij,nj->ni", Rk, pts[p])
+        Jq = _masked_projection_jacobian(camera, Rx + t[k])
+        # d q / d X = R; d q / d t = I; d q / d omega = -[R X]x Jl(omega).
+        d_point = Jq @ Rk
+        kf = k[obs_free]
+        Jf = Jq[obs_free]
+        d_pose_obs = np.concatenate([np.cross(Rx[obs_free][:, None, :], Jf) @ Jl[kf], Jf], axis=2)
+        a, b = problem.anchor_a, problem.anchor_b
+        y = problem.anchor_points_in_a - t[a]
+        w = np.einsum("nji,nj->ni", R[a], y)  # R_a^T (q_a - t_a)
+        Rw = np.einsum("nij,nj->ni", R[b], w)
+        Jb = _masked_projection_jacobian(camera, Rw + t[b]) * w_laser
+        # Pose b as an observation of w; pose a through w: d w / d t_a = -R_a^T,
+        # d w / d omega_a = R_a^T [y]x Jl(omega_a).
+        Ja, Jbb = Jb[a_free], Jb[b_free]
+        d_pose_b = np.concatenate([np.cross(Rw[b_free][:, None, :], Jbb) @ Jl[b[b_free]], Jbb], axis=2)
+        G = Ja @ R[b[a_free]] @ np.transpose(R[a[a_free]], (0, 2, 1))
+        d_pose_a = np.concatenate([np.cross(G, y[a_free][:, None, :]) @ Jl[a[a_free]], -G], axis=2)
+        data = np.concatenate([d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel()])
+        return csr_matrix((data[order], indices, indptr), shape=shape)
+
+    return x0, residuals, jacobian, unpack
+
+
+def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConfig) -> BundleResult:
+    """Refine keyframe poses and track points (see the module docstring).
+
+    Raises:
+        ShapeError: inconsistent observation arrays.
+    """
+    w_laser = float(config.laser_weight)
+    x0, residuals, jacobian, unpack = _objective(camera, problem, w_laser)
+    K, M = len(problem.world_from_rig), len(problem.obs_frame)
     r0 = residuals(x0)
     # Single-threaded BLAS: lsmr's dot products are short, so threads cost more than they
     # save (bend-small 800x600: 2.6 -> 0.58 s), and the result no longer depends on the
     # machine's core count (threaded sums round differently: 2e-7 mm in the poses).
     with threadpool_limits(limits=1, user_api="blas"):
         sol = least_squares(
-            residuals, x0, jac_sparsity=S.tocsr(), loss="soft_l1", f_scale=config.loss_scale_px,
+            residuals, x0, jac=jacobian, loss="soft_l1", f_scale=config.loss_scale_px,
             x_scale="jac", method="trf", tr_solver="lsmr", max_nfev=config.max_evaluations,
         )
     r1 = sol.fun

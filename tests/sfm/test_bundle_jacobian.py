@@ -1,0 +1,111 @@
+"""The bundle adjustment's analytic Jacobian against finite differences."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from omnipipe.camera import OmniCamera
+from omnipipe.geometry import apply, invert, make_transform
+from omnipipe.sfm.bundle import BundleProblem, _objective, _so3_left_jacobian
+from omnipipe.sim.scenarios import paper_rig
+
+
+def _central_differences(fun, x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    J = np.empty((len(fun(x)), len(x)))
+    for i in range(len(x)):
+        e = np.zeros(len(x))
+        e[i] = h[i]
+        J[:, i] = (fun(x + e) - fun(x - e)) / (2 * h[i])
+    return J
+
+
+def test_so3_left_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(0)
+    rotvecs = np.concatenate([
+        rng.normal(0, 1.0, (20, 3)),
+        rng.normal(0, 1e-2, (5, 3)),
+        rng.normal(0, 1e-4, (5, 3)),  # series branch
+        np.zeros((1, 3)),
+        [[0.0, 0.0, 3.0]],
+        rng.normal(0, 1e-3, (5, 3)) * [[1, 1, 1]] / np.sqrt(3) * 1.0001,  # around the branch switch
+    ])
+    X = rng.normal(0, 100.0, 3)
+    for w, Jl in zip(rotvecs, _so3_left_jacobian(rotvecs), strict=True):
+        R = Rotation.from_rotvec(w).as_matrix()
+        fd = _central_differences(lambda v: Rotation.from_rotvec(v).as_matrix() @ X, w, np.full(3, 1e-6))
+        # d (R(w) X) / d w = -[R X]x Jl(w)
+        q = R @ X
+        skew = np.array([[0, -q[2], q[1]], [q[2], 0, -q[0]], [-q[1], q[0], 0]])
+        assert np.abs(-skew @ Jl - fd).max() < 1e-5 * np.abs(fd).max()
+
+
+def _problem(seed: int, fixed: int):
+    rng = np.random.default_rng(seed)
+    camera = OmniCamera.from_rig(paper_rig(800, 600))
+    K = 5
+    poses = np.array([
+        make_transform(Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix(),
+                       np.array([rng.normal(0, 2), rng.normal(0, 2), 12.0 * k]))
+        for k in range(K)
+    ])
+    n = 200
+    th = rng.uniform(-np.pi, np.pi, n)
+    pts = np.column_stack([101 * np.cos(th), 101 * np.sin(th), rng.uniform(-200, 150, n)])
+    f, p = np.meshgrid(np.arange(K), np.arange(n), indexing="ij")
+    f, p = f.ravel(), p.ravel()
+    px, _ = camera.project(np.einsum("nij,nj->ni", np.array([invert(T) for T in poses])[f][:, :3, :3], pts[p])
+                           + np.array([invert(T) for T in poses])[f][:, :3, 3])
+    px = np.nan_to_num(px) + rng.normal(0, 0.5, px.shape)
+    L = 80
+    aa = rng.integers(0, K, L)
+    ab = (aa + rng.integers(1, K, L)) % K
+    ab[:3] = aa[:3]  # anchors within one keyframe: constant residuals
+    aq = np.column_stack([101 * np.cos(th[:L]), 101 * np.sin(th[:L]), np.full(L, -82.0)])
+    apx = np.array([camera.project(apply(invert(poses[b]) @ poses[a], q[None]))[0][0]
+                    for a, b, q in zip(aa, ab, aq, strict=True)])
+    apx = np.nan_to_num(apx) + rng.normal(0, 0.5, apx.shape)
+    problem = BundleProblem(poses, pts + rng.normal(0, 1.0, pts.shape), f, p, px, aa, ab, aq, apx, fixed=fixed)
+    return camera, problem
+
+
+class _NoJacobianCamera:
+    """A camera without ``project_jacobian``: the adjustment differentiates its projection."""
+
+    def __init__(self, camera: OmniCamera) -> None:
+        self._camera = camera
+
+    def project(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._camera.project(q)
+
+
+def test_bundle_jacobian_matches_finite_differences() -> None:
+    for seed, fixed, wrap in [(1, 1, False), (2, 2, False), (3, 1, True)]:
+        camera, problem = _problem(seed, fixed)
+        if wrap:
+            camera = _NoJacobianCamera(camera)
+        x0, residuals, jacobian, _ = _objective(camera, problem, 2.0)
+        r = residuals(x0)
+        zeroed = r == 0
+        assert 0 < zeroed.sum() < len(r) // 2  # some projections are invalid
+        J = jacobian(x0)
+        assert J.shape == (len(r), len(x0))
+        J = J.toarray()
+        fd = _central_differences(residuals, x0, 1e-6 * np.maximum(1.0, np.abs(x0)))
+        # Rows whose validity flips within the step are not differentiable: skip them.
+        h = 1e-6 * np.maximum(1.0, np.abs(x0))
+        flips = np.zeros(len(r), bool)
+        for i in range(len(x0)):
+            e = np.zeros(len(x0))
+            e[i] = h[i]
+            flips |= (residuals(x0 + e) == 0) != zeroed
+            flips |= (residuals(x0 - e) == 0) != zeroed
+        ok = ~flips
+        assert ok.sum() > 0.9 * len(r)
+        # Per row, relative to its largest derivative (an anchor within one keyframe is
+        # constant: only rounding noise there).
+        scale = np.maximum(np.abs(fd[ok]).max(axis=1, keepdims=True), 1e-3 * np.abs(fd).max())
+        assert (np.abs(J[ok] - fd[ok]) / scale).max() < 1e-5
+        assert np.all(J[zeroed] == 0)
+        # Nothing outside the old sparsity: residual rows touch their own pose(s) and point.
+        assert np.abs(fd[ok][J[ok] == 0]).max() < 1e-6 * np.abs(fd).max()
