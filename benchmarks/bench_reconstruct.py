@@ -1,12 +1,14 @@
 """End to end on a simulated scenario: simulate, reconstruct, evaluate; print errors and times.
 
     python benchmarks/bench_reconstruct.py --scenario bend [--frames N] [--size WxH] [--keep DIR]
-        [--workers N] [--scheduler tcp://HOST:PORT]
+        [--reuse] [--workers N] [--scheduler tcp://HOST:PORT]
 
 Prints the trajectory errors, Table I (diameter, defects) against ground truth, the
 wall time and frames/s of each stage, and the time it takes merely to decode the same
 frames on the same workers (the floor of the laser stage, which decodes and extracts).
-Nothing is tuned here: the defaults of ``omnipipe reconstruct``.
+Nothing is tuned here: the defaults of ``omnipipe reconstruct``. ``--reuse`` with
+``--keep DIR`` reconstructs the dataset an earlier ``--keep DIR`` run simulated there
+(when its frame count and image size are the scenario's) instead of simulating again.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from omnipipe.dataset import open_dataset
+from omnipipe.errors import OmnipipeError
 from omnipipe.evaluation import EvaluationConfig, EvaluationInputs
 from omnipipe.evaluation import run as evaluate
 from omnipipe.evaluation.cli import format_result
@@ -37,6 +40,7 @@ def main() -> None:
     parser.add_argument("--size", default=None, help="WxH (default: the scenario's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep", default=None, help="keep dataset and reconstruction in this directory")
+    parser.add_argument("--reuse", action="store_true", help="with --keep: reuse the dataset simulated there")
     parser.add_argument("--workers", type=int, default=None, help="local processes (default: every core)")
     parser.add_argument("--scheduler", default=None, help="Dask scheduler tcp://HOST:PORT")
     args = parser.parse_args()
@@ -45,7 +49,8 @@ def main() -> None:
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="omnipipe-bench-"))
     try:
         t0 = time.perf_counter()
-        simulate(scenario, root / "dataset", force=True, workers=2)
+        if not (args.reuse and _same_run(root / "dataset", scenario)):
+            simulate(scenario, root / "dataset", force=True, workers=2)
         t_sim = time.perf_counter() - t0
         config = replace(ReconstructConfig.default(), workers=args.workers, scheduler=args.scheduler)
         dataset = open_dataset(root / "dataset")
@@ -65,7 +70,7 @@ def main() -> None:
         t = rec.summary["timings_s"]
         fps = rec.summary["frames_per_s"]
         print(
-            f"time: simulate {t_sim:.1f} s (2 workers); reconstruct {t['total']:.1f} s (laser {t['laser']:.1f}, "
+            f"time: simulate {t_sim:.1f} s (2 workers{'; reused' if t_sim < 5 else ''}); reconstruct {t['total']:.1f} s (laser {t['laser']:.1f}, "
             f"sfm {t['sfm']:.1f}, analysis {t['analysis']:.1f}, model {t['model']:.1f}); "
             f"{scenario.frames / t['total']:.2f} frames/s; keyframes {rec.summary['keyframes']}"
         )
@@ -85,6 +90,19 @@ def main() -> None:
     finally:
         if not args.keep:
             shutil.rmtree(root, ignore_errors=True)
+
+
+def _same_run(path: Path, scenario) -> bool:
+    """Whether ``path`` holds a dataset of ``scenario``'s frame count and image size."""
+    if not (path / "rig.yaml").is_file():
+        return False
+    try:
+        dataset = open_dataset(path)
+    except OmnipipeError:  # anything unreadable is simulated again
+        return False
+    cam = scenario.rig.camera
+    same = len(dataset) == scenario.frames
+    return same and (dataset.rig.camera.width, dataset.rig.camera.height) == (cam.width, cam.height)
 
 
 if __name__ == "__main__":
