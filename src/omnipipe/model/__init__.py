@@ -11,7 +11,9 @@ coordinates, so it follows bends). The wall is a tube, a developable surface: a
 across the pipe, which a 3-D Delaunay of a hollow cylinder would produce everywhere
 (its tetrahedra fill the inside). The angle wraps around: a margin of points is
 duplicated past 2 pi and each triangle is kept once. Triangles with an edge much
-longer than the spacing of the rings are dropped: holes stay holes.
+longer than the spacing of the rings are dropped: holes stay holes. A run of more
+points than :data:`~.texture.CHUNK_POINTS` is triangulated a chunk along the pipe at a
+time (:class:`~.texture.AxialChunks`: the same triangles; qhull's memory is a chunk's).
 
 Texture (:mod:`.texture`): the unrolled wall image, each cell from the keyframe
 that sees it best; it is also the texture atlas of the textured model (GLB).
@@ -47,6 +49,8 @@ from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
 from omnipipe.geometry import apply
 from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
 from omnipipe.model.texture import (
+    CHUNK_POINTS,
+    AxialChunks,
     CellChoice,
     UnrolledImage,
     WallGrid,
@@ -326,8 +330,22 @@ def mesh_unrolled(
     points_in_world: np.ndarray,
     circumference_mm: float,
     max_edge_factor: float,
+    chunk_points: int = CHUNK_POINTS,
 ) -> np.ndarray:
-    """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring)."""
+    """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring).
+
+    Args:
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
+        points_in_world: (N, 3) mm.
+        circumference_mm: period of ``arc_mm``.
+        max_edge_factor: triangles with a (3-D) edge longer than this x the median longest
+            edge are dropped.
+        chunk_points: up to this many points (with the wrapped copies) are triangulated
+            at once, as they always were (the faces in qhull's order); more a chunk along
+            the pipe at a time (:func:`_chunked_triangles`: the same triangles, in
+            ascending order of their ascending vertex ids), so that the triangulation's
+            memory does not grow with the run.
+    """
     n = len(points_in_world)
     if n < 3:
         return np.zeros((0, 3), int)
@@ -337,17 +355,51 @@ def mesh_unrolled(
     uu = np.concatenate([arc_mm, arc_mm[wrap] + circ])
     vv = np.concatenate([axial_mm, axial_mm[wrap]])
     ids = np.concatenate([np.arange(n), wrap])
-    tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
-    # Keep each triangle once: those whose centroid lies in the main period.
-    cu = uu[tri].mean(axis=1)
-    tri = tri[(cu >= 0.5 * margin) & (cu < circ + 0.5 * margin)]
-    faces = ids[tri]
+    if len(uu) <= chunk_points:
+        tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
+        # Keep each triangle once: those whose centroid lies in the main period.
+        cu = uu[tri].mean(axis=1)
+        tri = tri[(cu >= 0.5 * margin) & (cu < circ + 0.5 * margin)]
+        faces = ids[tri]
+    else:
+        tri = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points)
+        faces = ids[tri]
+        del tri
+        # In an order of the triangles alone (ascending vertex ids, ascending triangles).
+        faces.sort(axis=1)
+        faces = faces[np.lexsort((faces[:, 2], faces[:, 1], faces[:, 0]))]
+        tri = None
+    del uu, vv, tri
     faces = faces[
         (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     ]
     # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
     longest = longest_edges(points_in_world, faces)
     return faces[longest <= max_edge_factor * float(np.median(longest))]
+
+
+def _chunked_triangles(
+    uu: np.ndarray, vv: np.ndarray, u_lo: float, u_hi: float, chunk_points: int
+) -> np.ndarray:
+    """(T, 3) indices into the (n,) points (``uu``, ``vv``; mm) of the triangles of their
+    Delaunay triangulation whose centroid has ``u_lo <= u < u_hi``, a chunk along ``vv`` at
+    a time (:class:`~omnipipe.model.texture.AxialChunks`).
+
+    Each chunk keeps its verified triangles whose centroid lies in its core interval of
+    ``vv``; the cores partition the axis, so every triangle is kept once: its centroid is
+    summed over its ascending vertices, the same bits in every chunk that holds it.
+    Triangles of ascending vertices, chunk after chunk.
+    """
+    axial = AxialChunks(uu, vv, chunk_points)
+    parts = []
+    for z_lo, z_hi in axial.cores():
+        ids, tri = axial.triangulate(z_lo, z_hi, u_lo, u_hi)
+        t = np.sort(axial.order[ids[tri.simplices]], axis=1)
+        del tri
+        cu = (uu[t[:, 0]] + uu[t[:, 1]] + uu[t[:, 2]]) / 3.0
+        cv = (vv[t[:, 0]] + vv[t[:, 1]] + vv[t[:, 2]]) / 3.0
+        parts.append(t[(cu >= u_lo) & (cu < u_hi) & (cv >= z_lo) & (cv < z_hi)])
+    return np.concatenate(parts)
 
 
 def orient_towards_axis(

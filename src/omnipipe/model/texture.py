@@ -23,6 +23,8 @@ the length of the run, and identical to scoring every cell from every keyframe.
 Memory: the grid is evaluated (:class:`WallGrid`) and scored a strip of rows at a
 time (:data:`STRIP_ROWS`, windows per strip), so its float64 intermediates do not grow
 with the run; what is kept is the (H, W) keyframe of each cell and the chosen pixels.
+The interpolation's triangulation of a long run is made a chunk of the run at a time
+(:class:`AxialChunks`, also the mesh's), so it does not grow with the run either.
 Choosing (:func:`choose_sources`, no image needed) is separate from sampling
 (:func:`texture_samples`, one image) so that the model stage can read each keyframe
 once for both its ring colours and its texture cells, in parallel.
@@ -33,10 +35,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import CameraModel, camera_from_rig
@@ -81,14 +85,196 @@ the stage's float64 intermediates are a few strips, not the run (W x 256 cells).
 TILE = (8, 32)
 """Tiles of :func:`visible_rows` (rows, columns)."""
 
+CHUNK_POINTS = 1 << 16
+"""Points per axial chunk of the unrolled triangulations (:class:`AxialChunks`). A set of
+no more points is triangulated whole, as before the chunks; a longer run a chunk (plus
+margins) at a time, so qhull's memory (a few hundred bytes per point) does not grow with
+the run."""
+
+MARGIN_EDGES = 8.0
+"""A chunk's first margin on either side of its core, in typical triangle sizes (the
+median longest edge of a sample's Delaunay, about one ring spacing): the empty circles of
+the wall's triangles span a ring spacing or two, so a few spacings hold them all; where
+they reach farther (a hole, the gap between two rings far apart) the chunk's margin is
+widened until they fit (:meth:`AxialChunks.triangulate`)."""
+
+_PILOT_POINTS = 1 << 14
+"""Points (around the middle of the run) of the Delaunay that sets the typical size."""
+
+
+def _hull_or_all(u: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Indices of the (n,) points (u, z)'s convex hull vertices, ascending; all of them if
+    qhull cannot build the hull (fewer than 3 points, all on a line): a superset serves."""
+    if len(u) < 3:
+        return np.arange(len(u))
+    try:
+        return np.sort(ConvexHull(np.column_stack([u, z])).vertices)
+    except QhullError:
+        return np.arange(len(u))
+
+
+class AxialChunks:
+    """Unrolled points (u, z; z along the pipe, mm) sorted by z and Delaunay-triangulated a
+    chunk of z at a time, each chunk's triangles over its region those of all the points.
+
+    Delaunay is local: a triangle is one of the triangulation of all points iff its
+    circumcircle holds none of them. A chunk holds every point with z within its region's
+    z interval widened by a margin on both sides, plus the vertices of the convex hull of
+    all points. A chunk triangle whose circumcircle lies within the chunk's z range is one
+    of the whole set's: any point inside that circle would be in the chunk, and the chunk's
+    triangle has none inside. The chunk's hull is the whole set's, so every point of the
+    region lies in some chunk triangle; once every chunk triangle meeting the region is so
+    verified, every triangle of the whole set with a point in the region is one of them
+    (two Delaunay triangles that overlap are the same). The margin starts at
+    :data:`MARGIN_EDGES` typical edges and widens until that holds (at most to all points:
+    then there is nothing to verify). Memory: a chunk's qhull, not the run's, unless holes
+    longer than a chunk make the margins so wide.
+
+    Degenerate points (4 or more on one empty circle) have no unique Delaunay
+    triangulation: a chunk may split such a polygon differently from the whole set.
+
+    Attributes:
+        order: (n,) indices of the input points in z order (the "sorted" indices below).
+        u, z: (n,) the coordinates in that order, mm.
+        hull: ascending sorted indices of the convex hull's vertices (or a superset).
+        margin_mm: the first margin of each chunk.
+        chunk_points: points of a chunk's core (:meth:`cores`).
+    """
+
+    def __init__(self, u: np.ndarray, z: np.ndarray, chunk_points: int = CHUNK_POINTS) -> None:
+        """Sort (n,) ``u``, ``z`` (mm) by z; find the hull and the typical triangle size."""
+        if u.shape != z.shape or u.ndim != 1:
+            raise ShapeError(f"u, z: expected two (n,) arrays, got {u.shape} and {z.shape}")
+        self.chunk_points = max(3, int(chunk_points))
+        self.order = np.argsort(z, kind="stable")
+        self.u = np.asarray(u, float)[self.order]
+        self.z = np.asarray(z, float)[self.order]
+        n = len(self.z)
+        block = self.chunk_points
+        cand = np.concatenate(
+            [a + _hull_or_all(self.u[a : a + block], self.z[a : a + block]) for a in range(0, n, block)]
+            or [np.zeros(0, int)]
+        )
+        self.hull = cand[_hull_or_all(self.u[cand], self.z[cand])]
+        self.margin_mm = MARGIN_EDGES * self._typical_edge()
+
+    def _typical_edge(self) -> float:
+        """Median longest edge (mm) of the Delaunay triangles of a slab of points around the
+        middle of the run (the z extent of all points if they have none)."""
+        n = len(self.z)
+        extent = float(self.z[-1] - self.z[0]) if n else 0.0
+        m = min(n, max(_PILOT_POINTS, self.chunk_points // 4))
+        a = (n - m) // 2
+        try:
+            tri = Delaunay(np.column_stack([self.u[a : a + m], self.z[a : a + m]])).simplices
+        except (QhullError, ValueError):
+            return extent
+        if not len(tri):
+            return extent
+        p = np.stack([self.u[a : a + m], self.z[a : a + m]], axis=1)[tri]
+        longest = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
+        return float(np.median(longest))
+
+    def cores(self) -> list[tuple[float, float]]:
+        """The chunks' core z intervals ``[lo, hi)``: consecutive, ``chunk_points`` points
+        each (the last fewer), the first from -inf and the last to +inf."""
+        cuts = np.unique(self.z[self.chunk_points :: self.chunk_points])
+        cuts = cuts[cuts > self.z[0]] if len(self.z) else cuts
+        return list(pairwise([-np.inf, *cuts.tolist(), np.inf]))
+
+    def triangulate(
+        self,
+        z_lo: float,
+        z_hi: float,
+        u_lo: float,
+        u_hi: float,
+        min_margin_mm: float = 0.0,
+    ) -> tuple[np.ndarray, Delaunay]:
+        """A chunk whose triangles meeting the box ``[u_lo, u_hi] x [z_lo, z_hi]`` (mm) are
+        all triangles of the Delaunay triangulation of all points (class docstring).
+
+        Args:
+            z_lo, z_hi: the region along the pipe (may be infinite).
+            u_lo, u_hi: the region around it (the chunk's hull slivers at the unrolled
+                strip's ends are outside it).
+            min_margin_mm: the margin is at least this (e.g. for a nearest-point search).
+
+        Returns:
+            ids: (m,) sorted indices of the chunk's points (its hull vertices last).
+            tri: their Delaunay triangulation (``tri.points[i]`` is point ``ids[i]``).
+        """
+        n = len(self.z)
+        margin = max(self.margin_mm, float(min_margin_mm), 0.0)
+        while True:
+            a = int(np.searchsorted(self.z, z_lo - margin, side="left"))
+            b = int(np.searchsorted(self.z, z_hi + margin, side="right"))
+            # Every point with z in [lo, hi] is in the chunk (infinite: the run's end).
+            lo = -np.inf if a == 0 else z_lo - margin
+            hi = np.inf if b == n else z_hi + margin
+            extra = self.hull[(self.hull < a) | (self.hull >= b)]
+            ids = np.concatenate([np.arange(a, b), extra])
+            tri = Delaunay(np.column_stack([self.u[ids], self.z[ids]]))
+            reach = _circle_reach(tri, z_lo, z_hi, u_lo, u_hi)
+            if reach is None:
+                return ids, tri
+            c_lo, c_hi = reach
+            if c_lo >= lo and c_hi <= hi:
+                return ids, tri
+            need = max(z_lo - c_lo, c_hi - z_hi)
+            margin = max(2.0 * margin, 1.25 * need, 1e-3)
+
+
+def _circle_reach(
+    tri: Delaunay, z_lo: float, z_hi: float, u_lo: float, u_hi: float
+) -> tuple[float, float] | None:
+    """(lowest, highest) z (mm) of the circumcircles of the triangles of ``tri`` whose
+    bounding boxes meet ``[u_lo, u_hi] x [z_lo, z_hi]``, widened by their round-off;
+    None if no triangle meets it. A flat triangle's circle is infinite."""
+    s = tri.simplices
+    p = tri.points
+    pu, pz = p[s, 0], p[s, 1]
+    meets = (
+        (pu.max(axis=1) >= u_lo) & (pu.min(axis=1) <= u_hi)
+        & (pz.max(axis=1) >= z_lo) & (pz.min(axis=1) <= z_hi)
+    )
+    if not meets.any():
+        return None
+    pu, pz = pu[meets], pz[meets]
+    bu, bz = pu[:, 1] - pu[:, 0], pz[:, 1] - pz[:, 0]
+    cu, cz = pu[:, 2] - pu[:, 0], pz[:, 2] - pz[:, 0]
+    d = 2.0 * (bu * cz - bz * cu)
+    b2, c2 = bu * bu + bz * bz, cu * cu + cz * cz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ou = (cz * b2 - bz * c2) / d
+        oz = (bu * c2 - cu * b2) / d
+        r = np.hypot(ou, oz)
+        centre = pz[:, 0] + oz
+        tol = 1e-9 * (np.abs(centre) + r) + 1e-9
+        low, high = centre - r - tol, centre + r + tol
+    flat = ~(np.isfinite(low) & np.isfinite(high))
+    if flat.any():
+        return -np.inf, np.inf
+    return float(low.min()), float(high.max())
+
 
 class WallGrid:
     """The unrolled grid's wall points (:func:`wall_points_on_grid`), evaluated a strip of
     rows at a time so that the whole (H, W, 3) float64 grid is never held.
 
-    Any strip equals the same rows of the whole grid evaluated at once, bit for bit: the
-    interpolation's simplex search starts from the previous cell's simplex, so each strip
-    is evaluated from two rows before it (the search is warm when the strip starts).
+    Up to ``chunk_points`` points (with the wrapped copies): one interpolation over all of
+    them, and any strip equals the same rows of the whole grid evaluated at once, bit for
+    bit: the interpolation's simplex search starts from the previous cell's simplex, so
+    each strip is evaluated from two rows before it (the search is warm when the strip
+    starts).
+
+    More points: the rows are evaluated a block at a time (rows whose axial range holds
+    about ``chunk_points`` points), each block's interpolation on a chunk of the points
+    (:class:`AxialChunks`: the block's rows plus a margin, whose triangles over the
+    block's cells are those of all the points) and each cell's distance to the nearest
+    point within the chunk (the margin is at least ``max_gap_mm``, so every point within
+    that distance of a cell is in it). Then the triangulation's memory does not grow with
+    the run, and a row equals the whole set's up to the round-off of the barycentric
+    transform (about 1e-12 mm), holes the same.
 
     Attributes:
         shape: (H, W) cells; row r at axial ``axial_min_mm + r * mm_per_px``, column c at
@@ -106,10 +292,10 @@ class WallGrid:
         circumference_mm: float,
         mm_per_px: float,
         max_gap_mm: float,
+        chunk_points: int = CHUNK_POINTS,
     ) -> None:
-        """Triangulate the points (:func:`wall_points_on_grid` for the arguments)."""
-        from scipy.spatial import cKDTree
-
+        """Triangulate the points (:func:`wall_points_on_grid` for the arguments; a chunk
+        of ``chunk_points`` at a time if there are more)."""
         circ = circumference_mm
         margin = 0.1 * circ
         lo, hi = arc_mm < margin, arc_mm > circ - margin
@@ -123,20 +309,62 @@ class WallGrid:
         self.axial_min_mm = z0
         self._u = (np.arange(width) + 0.5) * (circ / width)
         self._z = z0 + np.arange(height) * mm_per_px
-        uz = np.column_stack([u, z])
-        self._interpolate = LinearNDInterpolator(uz, xyz)
-        self._tree = cKDTree(uz)
         self._max_gap_mm = max_gap_mm
+        self._chunks: AxialChunks | None = None
+        self._block: tuple[int, int, LinearNDInterpolator, cKDTree] | None = None
+        if len(u) <= chunk_points:
+            uz = np.column_stack([u, z])
+            self._interpolate = LinearNDInterpolator(uz, xyz)
+            self._tree = cKDTree(uz)
+            return
+        self._chunks = AxialChunks(u, z, chunk_points)
+        self._xyz = xyz[self._chunks.order]
 
     def rows(self, first: int, stop: int) -> np.ndarray:
         """(stop - first, W, 3) wall points of rows [first, stop), mm (NaN: no wall)."""
-        start = max(first - self.HALO, 0)
+        if self._chunks is None:
+            start = max(first - self.HALO, 0)
+            interpolate, tree = self._interpolate, self._tree
+        else:
+            start = first
+            if stop <= first:
+                return np.zeros((0, self.shape[1], 3))
+            block = self._block
+            if block is None or not (block[0] <= first and stop <= block[1]):
+                self._block = block = None  # the last block's triangulation freed first
+                self._block = block = self._build_block(first, stop)
+            interpolate, tree = block[2], block[3]
         gu, gz = np.meshgrid(self._u, self._z[start:stop])
-        grid = self._interpolate(gu, gz)
+        grid = interpolate(gu, gz)
         # Cells far from any measured point (gaps in the rings, the hull's long edges).
-        dist, _ = self._tree.query(np.column_stack([gu.ravel(), gz.ravel()]))
+        dist, _ = tree.query(np.column_stack([gu.ravel(), gz.ravel()]))
         grid.reshape(-1, 3)[dist > self._max_gap_mm] = np.nan
         return grid[first - start :]
+
+    def _build_block(
+        self, first: int, stop: int
+    ) -> tuple[int, int, LinearNDInterpolator, cKDTree]:
+        """(first, stop', interpolation, tree) of rows [first, stop') for stop' >= ``stop``:
+        as many rows as hold about ``chunk_points`` points, on their verified chunk."""
+        chunks = self._chunks
+        if chunks is None:
+            raise RuntimeError("a block of a wall grid that is not chunked")
+        h = self.shape[0]
+        i0 = int(np.searchsorted(chunks.z, self._z[first], side="left"))
+        i1 = min(i0 + chunks.chunk_points, len(chunks.z))
+        z_cap = chunks.z[i1 - 1] if i1 > i0 else self._z[first]
+        last = int(np.searchsorted(self._z, z_cap, side="right"))
+        last = min(max(last, stop, first + 1), h)
+        ids, tri = chunks.triangulate(
+            float(self._z[first]), float(self._z[last - 1]), float(self._u[0]),
+            float(self._u[-1]), min_margin_mm=self._max_gap_mm,
+        )
+        # The interpolation's barycentric transforms (a small LAPACK solve per triangle,
+        # made on first use) with one BLAS thread: spinning threads on busy cores can
+        # stall them for seconds.
+        with threadpool_limits(limits=1, user_api="blas"):
+            tri.transform  # noqa: B018
+        return first, last, LinearNDInterpolator(tri, self._xyz[ids]), cKDTree(tri.points)
 
 
 class _ArrayRows:
