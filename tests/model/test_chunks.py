@@ -185,3 +185,26 @@ def test_the_chunked_wall_grid_is_the_whole_grid(kind: str) -> None:
     for r in (h - 1, 3, h // 2):  # and any rows, in any order
         np.testing.assert_allclose(wall.rows(r, r + 1), whole[r : r + 1], rtol=0, atol=1e-9)
     assert wall.rows(5, 5).shape == (0, wall.shape[1], 3)
+
+
+def test_winding_and_seam_split_a_chunk_of_triangles_at_a_time_change_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import omnipipe.model as model
+    from omnipipe.model.texture import UnrolledImage
+
+    arc, axial = _rings(20, 60, seed=10)
+    pts = _tube(arc, axial)
+    frame = np.repeat(np.arange(20), 60)
+    faces = mesh_unrolled(arc, axial, pts, CIRC_MM, 2.0)
+    h, w = int(axial.max()) + 2, int(CIRC_MM)
+    image = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    unrolled = UnrolledImage(image, np.ones((h, w), bool), 1.0, float(np.floor(axial.min())), CIRC_MM, np.zeros((h, w), int))
+    results = []
+    for chunk in (len(faces), 7):
+        monkeypatch.setattr(model, "FACE_CHUNK", chunk)
+        wound = model.orient_towards_axis(faces, arc, axial, CIRC_MM, pts, frame)
+        results.append((wound, *model.textured_mesh(wound, pts, arc, axial, unrolled)))
+    for a, b in zip(*results, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert not np.array_equal(results[0][0], faces)  # some triangles were turned

@@ -430,11 +430,19 @@ def orient_towards_axis(
     if not len(faces):
         return faces
     circ = circumference_mm
-    u = np.asarray(arc_mm, float)[faces]
-    u = (u - u[:, :1] + 0.5 * circ) % circ - 0.5 * circ
-    v = np.asarray(axial_mm, float)[faces]
-    area2 = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
-    faces = np.where(area2[:, None] < 0, faces[:, [0, 2, 1]], faces)
+    arc = np.asarray(arc_mm, float)
+    axial = np.asarray(axial_mm, float)
+    # A copy wound in place, a chunk of triangles at a time: the (F, 3) float64
+    # intermediates are a chunk's, not the mesh's.
+    faces = faces.copy()
+    for a in range(0, len(faces), FACE_CHUNK):
+        f = faces[a : a + FACE_CHUNK]  # a view
+        u = arc[f]
+        u = (u - u[:, :1] + 0.5 * circ) % circ - 0.5 * circ
+        v = axial[f]
+        area2 = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
+        neg = area2 < 0
+        f[neg] = f[neg][:, [0, 2, 1]]
     frames, inverse = np.unique(point_frame, return_inverse=True)
     centres = np.zeros((len(frames), 3))
     np.add.at(centres, inverse, points_in_world)
@@ -447,7 +455,9 @@ def orient_towards_axis(
         inward = centres[inverse[f[:, 0]]] - p.mean(axis=1)
         votes += int(np.count_nonzero(np.sum(normal * inward, axis=1) > 0))
     if votes < 0.5 * len(faces):
-        faces = faces[:, [0, 2, 1]]
+        for a in range(0, len(faces), FACE_CHUNK):
+            f = faces[a : a + FACE_CHUNK]
+            f[:, [1, 2]] = f[:, [2, 1]]
     return faces
 
 
@@ -467,9 +477,12 @@ def textured_mesh(
     h, w = unrolled.image.shape[:2]
     extra = int(np.ceil(0.1 * w))
     atlas = np.concatenate([unrolled.image, unrolled.image[:, :extra]], axis=1)
-    u = arc_mm[faces]
-    crossing = np.ptp(u, axis=1) > 0.5 * circ
-    shift = crossing[:, None] & (u < 0.5 * circ)
+    # The small-arc corners of the triangles across angle 0, a chunk of triangles at a time.
+    shift = np.empty(faces.shape, bool)
+    for a in range(0, len(faces), FACE_CHUNK):
+        u = arc_mm[faces[a : a + FACE_CHUNK]]
+        crossing = np.ptp(u, axis=1) > 0.5 * circ
+        shift[a : a + FACE_CHUNK] = crossing[:, None] & (u < 0.5 * circ)
     n = len(points_in_world)
     dup = np.unique(faces[shift])
     new_id = np.full(n, -1)
@@ -578,9 +591,13 @@ def _run(
         if choice is not None and image is not None:
             paint(image, choice, k, samples)
     colours = np.concatenate(colour_parts)
+    # The chosen pixels of every cell and the rings' pixels are done with (8 bytes a cell:
+    # not held on while the textured mesh is made).
+    del work, colour_parts
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if choice is not None and image is not None:
         unrolled = finish(choice, image, config.texture_mm_per_px, z0, circ)
+        choice = image = None  # (their cells live on in the unrolled image)
         verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
         result.texture, result.unrolled = atlas, unrolled
