@@ -49,7 +49,12 @@ def long_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def test_windowed_adjustment_keeps_the_trajectory(long_run: Path) -> None:
+def test_windowed_adjustment_keeps_the_trajectory(long_run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from omnipipe.sfm import schur
+
+    solved: list[int] = []  # the windows go to Levenberg-Marquardt on the reduced system
+    solve = schur.solve
+    monkeypatch.setattr(schur, "solve", lambda *a, **k: solved.append(1) or solve(*a, **k))
     dataset = open_dataset(long_run)
     _, true = read_tum(long_run / "ground_truth" / "poses.txt")
     config = sfm.SfmConfig()
@@ -59,13 +64,22 @@ def test_windowed_adjustment_keeps_the_trajectory(long_run: Path) -> None:
             dataset.rig, dataset.read_frame, len(dataset), frames.rings, moved=frames.moved, dataset=dataset
         )
         whole = sfm.run(config, inputs, executor=ex)
+        assert not solved  # a global adjustment: SciPy's trf
         small = replace(config, bundle=replace(config.bundle, window_keyframes=5, window_overlap=2))
         windowed = sfm.run(small, inputs, executor=ex)
     n_kf = int(whole.keyframe.sum())
     assert len(keyframe_windows(n_kf, 5, 2)) >= 3  # the run really is cut into windows
+    assert len(solved) >= 3
     e_whole = trajectory_errors(whole.world_from_rig, true)
     e_win = trajectory_errors(windowed.world_from_rig, true)
     print(n_kf, e_whole.to_dict(), e_win.to_dict())
     assert e_win.ate_rmse_mm < 1.0 and e_win.scale_error < 0.05  # the short-run band
     assert e_win.ate_rmse_mm < 1.5 * e_whole.ate_rmse_mm + 0.1
     assert not np.array_equal(windowed.world_from_rig, whole.world_from_rig)  # it did adjust apart
+
+
+def test_unknown_solver_is_refused() -> None:
+    from omnipipe.sfm.bundle import BundleConfig
+
+    with pytest.raises(ConfigError, match=r"sfm\.bundle\.solver"):
+        BundleConfig(solver="ceres")

@@ -669,6 +669,8 @@ def _adjust_windows(
     window_of = np.zeros(K, int)
     stats: list[BundleResult] = []
     windows = keyframe_windows(K, config.window_keyframes, config.window_overlap)
+    if len(windows) > 1 and config.solver == "auto":
+        config = replace(config, solver="schur")  # see BundleConfig.solver
     for w, (s, e, fixed) in enumerate(windows):
         init = adjusted[s:e].copy()
         if w > 0:
