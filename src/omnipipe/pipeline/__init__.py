@@ -169,6 +169,10 @@ def run(
     input_quality = assess_input(dataset)  # lossy (JPEG/MPEG) input degrades everything
     if input_quality.warning:
         warnings.append(input_quality.warning)
+    # The compiled kernels and per-rig tables of the decoding pass, made here once
+    # rather than in every worker (the local pool's workers are forked from this process).
+    frame_pass.warm_up(config.laser, config.sfm.stations, rig)
+    timings["startup"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
     tick = progress("laser", n)
@@ -286,7 +290,9 @@ def run(
         **measured,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         # Frames of the run per second of each stage (and of the whole run).
-        "frames_per_s": {k: round(n / v, 3) if v > 0 else None for k, v in timings.items()},
+        "frames_per_s": {
+            k: round(n / v, 3) if v > 0 else None for k, v in timings.items() if k != "startup"
+        },
         "executor": describe_executor(executor),
         "warnings": warnings,
         "stationary_frames": int(np.sum(motion.stationary)),

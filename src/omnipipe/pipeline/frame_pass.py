@@ -86,6 +86,22 @@ def _masks(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
     return _MASKS[key]
 
 
+def warm_up(laser: LaserConfig, stations: StationConfig, rig: Rig) -> None:
+    """Build this process's per-rig tables of the pass (polar sampling maps, masks) and
+    load its compiled kernels by running them once on a blank frame.
+
+    Called before the first task is submitted: the local pool's workers are forked from
+    this process and inherit both. Otherwise each worker paid for them on its first
+    frame (bend, 2 workers: about 0.5 s each, half of it the compiler's start-up).
+    """
+    camera, extractor = ring_extractor(laser, rig)
+    _, inner = _masks(rig)
+    channels = 3 if rig.laser.channel in ("red", "green", "blue") else 1
+    blank = np.zeros((camera.height, camera.width, channels)[: 2 if channels == 1 else 3], np.uint8)
+    extractor.extract(blank, rig.laser.channel)
+    frame_signature(blank, rig.laser.channel, inner, stations)
+
+
 class _FrameTask:
     """Picklable task: (ring or None, station signature) of each frame of one chunk.
 
