@@ -25,6 +25,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from omnipipe.errors import ShapeError
+
 
 @dataclass(frozen=True)
 class LmResult:
@@ -74,13 +76,17 @@ def solve(
         f_scale: soft-L1 scale (residual units).
         max_nfev: cap on residual evaluations.
         ftol, xtol, gtol: stop when the cost falls by less than ``ftol`` x cost in an
-            accepted step, the step is shorter than ``xtol`` x (|x| + xtol), or the
-            gradient's largest entry is below ``gtol``.
+            accepted step the model predicted well, the step is shorter than ``xtol`` x
+            (|x| + xtol), or the gradient's largest entry is below ``gtol``.
+        lam0: initial damping (relative to the normal matrix's diagonal).
+
+    Raises:
+        ShapeError: the point parameters are not triples.
     """
     x = np.asarray(x0, float).copy()
     n = len(x)
     if (n - n_pose) % 3:
-        raise ValueError(f"solve: {n - n_pose} point parameters is not a multiple of 3")
+        raise ShapeError(f"solve: {n - n_pose} point parameters is not a multiple of 3")
     r = fun(x)
     nfev = 1
     cost = soft_l1_cost(r, f_scale)
