@@ -116,7 +116,8 @@ def frame_signature(
     if (
         channel is None
         or channel.dtype not in (np.uint8, np.uint16)
-        or f & (f - 1)  # a power of two: sums / f**2 exact, as INTER_AREA's
+        or f & (f - 1)  # a power of two: sums / f**2 exact, as INTER_AREA's ...
+        or f * f * np.iinfo(channel.dtype).max >= 2**24  # ... and whole sums in float32
         or h % f
         or w % f
         or h < 2
@@ -128,7 +129,7 @@ def frame_signature(
     sums = np.zeros((h // f, w // f), np.int64)
     hist = np.zeros(bins, np.int64)
     _sums_and_histogram(channel, inner, f, sums, hist)
-    # Whole sums below 2**24 are exact in float32, and so is dividing them by 16 (f = 4):
+    # Whole sums below 2**24 are exact in float32, and so is dividing them by f**2:
     # INTER_AREA's box average of the same pixels.
     small = sums.astype(np.float32) / np.float32(f * f)
     return StationSignature(small, float(_hist_median(hist) / (6.0 * 0.6745)))
