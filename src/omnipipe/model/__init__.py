@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import chain
 from typing import TYPE_CHECKING
 
@@ -234,14 +234,18 @@ def _sample_frames(
     progress: Callable[[int], None] | None,
 ) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray]]]:
     """(k, result) of each keyframe k with work, its work done on its image, in order of k
-    (consumed as they come: the results of the run are not all held at once).
+    (consumed as they come: the results of the run are not all held at once). Each
+    keyframe's entry of ``work`` is set to None once its result is consumed, so that
+    its pixels are freed as the run goes, not at its end.
 
     With ``inputs.dataset`` and ``inputs.frame_index``: consecutive chunks of the
     keyframes that have work, decoded and sampled by ``executor``'s workers (each chunk
     carries only its own keyframes' pixels); otherwise serially via ``inputs.read_frame``.
     ``progress(k + 1)`` after keyframe k (after its result is consumed).
     """
-    todo = [(k, w) for k, w in enumerate(work) if w is not None]
+    # Keyframe indices only: each work item is referenced by ``work`` alone (and by its
+    # chunk while in flight), so it is dropped once its result is consumed.
+    todo = [k for k, w in enumerate(work) if w is not None]
     results: Iterator[tuple[np.ndarray, np.ndarray]]
     if inputs.dataset is not None and inputs.frame_index is not None:
         frame_index = np.asarray(inputs.frame_index)
@@ -250,20 +254,21 @@ def _sample_frames(
                 f"frame_index: expected shape ({len(work)},) (one per keyframe), got {frame_index.shape}"
             )
         ex = executor if executor is not None else InlineExecutor()
-        parts = [todo[part.start : part.stop] for part in chunks(len(todo), ex)]
+        dataset = inputs.dataset
         items = (
             (
-                FrameSource.take(inputs.dataset, [int(frame_index[k]) for k, _ in part]),
-                tuple(w for _, w in part),
+                FrameSource.take(dataset, [int(frame_index[k]) for k in todo[part.start : part.stop]]),
+                tuple(work[k] for k in todo[part.start : part.stop]),
             )
-            for part in parts
+            for part in chunks(len(todo), ex)
         )
         results = chain.from_iterable(ordered_map(ex, _FramesTask(), items))
     else:
-        results = (w(inputs.read_frame(k)) for k, w in todo)
-    for k, w in enumerate(work):
-        if w is not None:
+        results = (work[k](inputs.read_frame(k)) for k in todo)  # type: ignore[misc]
+    for k in range(len(work)):
+        if work[k] is not None:
             yield k, next(results)
+            work[k] = None  # its pixels are done with
         if progress:
             progress(k + 1)
 
@@ -581,6 +586,9 @@ def _run(
         work.append(_FrameWork(colour_px, tex_px))
     image = None
     if choice is not None:
+        # The chosen pixels now live in ``work`` only, each keyframe's dropped once it is
+        # sampled (8 bytes a cell: not all held until the last keyframe).
+        choice = replace(choice, pieces=())
         h, w = choice.shape
         image = np.zeros((h * w, 3), np.uint8)
     # Each keyframe's samples go into the image as they come (not all held at once).

@@ -61,7 +61,8 @@ class UnrolledImage:
         mm_per_px: cell size.
         axial_min_mm: axial position of row 0's centre.
         circumference_mm: arc length of the W columns (one full turn).
-        source_frame: (H, W) int, the keyframe each cell's colour came from (-1: none).
+        source_frame: (H, W) int32 (from :func:`choose_sources`), the keyframe each cell's
+            colour came from (-1: none).
     """
 
     image: np.ndarray
@@ -417,8 +418,8 @@ class CellChoice:
     """Which keyframe textures each wall cell, and where in its image (no image read).
 
     Attributes:
-        source: (H, W) int64 keyframe of each cell (-1: not a wall cell, or no keyframe
-            sees it).
+        source: (H, W) int32 keyframe of each cell (-1: not a wall cell, or no keyframe
+            sees it; int32, half of int64's memory on a long run's grid).
         rows: (K, 2) int per keyframe the rows ``[first, stop)`` holding its cells
             (``first == stop``: none).
         pieces: per keyframe, (n_i, 2) float32 (col, row) pixels of its cells in its image,
@@ -655,7 +656,7 @@ def choose_sources(
     step = max(tr, -(-int(strip_rows) // tr) * tr)  # strips of whole tiles
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
-    source = np.full((h, w), -1)
+    source = np.full((h, w), -1, np.int32)
     first = np.full(n_k, h)
     stop = np.zeros(n_k, int)
     pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
@@ -784,13 +785,14 @@ def paint(image: np.ndarray, choice: CellChoice, k: int, samples: np.ndarray | N
     Raises:
         ShapeError: the samples are missing or of the wrong length.
     """
-    n = choice.count(k)
+    cells = choice.cells(k)  # (not :meth:`CellChoice.count`: the pixels may be dropped)
+    n = len(cells)
     if not n:
         return
     if samples is None or len(samples) != n:
         raise ShapeError(f"keyframe {k}: expected {n} texture samples, got "
                          f"{'none' if samples is None else len(samples)}")
-    image[choice.cells(k)] = samples
+    image[cells] = samples
 
 
 def finish(
