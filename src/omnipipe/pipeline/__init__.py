@@ -124,6 +124,23 @@ class Reconstruction:
     survey: Any = None
 
 
+def release_freed_memory() -> None:
+    """Return the pages the C allocator holds free to the system (glibc's ``malloc_trim``).
+
+    A stage's many small freed blocks (rings, features, matches, qhull's work) otherwise
+    stay resident under the next stage's arrays, so the process's peak grew with the run
+    by what the earlier stages had freed. No effect on any result; a no-op where the C
+    library has no ``malloc_trim``.
+    """
+    import ctypes
+
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return
+    trim(0)
+
+
 def run(
     config: ReconstructConfig,
     dataset: Dataset,
@@ -188,6 +205,7 @@ def run(
         )
     if seen < n:
         warnings.append(f"laser ring not found in {n - seen} of {n} frames")
+    release_freed_memory()
 
     t0 = time.perf_counter()
     sfm_tick = progress("sfm", n)
@@ -223,6 +241,7 @@ def run(
         raise ReconstructionError("camera motion could not be estimated for any frame")
     # One frame per station feeds the model: a stationary frame repeats its station's ring.
     stations = np.flatnonzero(motion.registered & ~motion.stationary)
+    release_freed_memory()  # the features and matches of every frame
 
     # Analysis first: its centreline coordinates unroll the mesh and the texture.
     t0 = time.perf_counter()
@@ -250,28 +269,33 @@ def run(
     traj_quality = quality.trajectory_quality(
         motion, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
     )
+    # What the model stage reads of the rings: their points and pixels. The rest of every
+    # frame's ring, and the integrated points (the model integrates them again), are not
+    # held through it.
+    ring_points = [r.points_in_rig for r in station_rings]
+    ring_pixels = [r.pixels for r in station_rings]
+    del frames, rings, station_rings, points, point_frame
+    release_freed_memory()
 
     t0 = time.perf_counter()
     tick = progress("model", len(stations))
     circ = 2 * np.pi * res.radius_mm
-    mdl = model.run(
-        config.model,
-        model.ModelInputs(
-            camera_rig=rig,
-            world_from_rig=station_poses,
-            ring_points_in_rig=[r.points_in_rig for r in station_rings],
-            ring_pixels=[r.pixels for r in station_rings],
-            read_frame=lambda k: dataset.read_frame(int(stations[k])),
-            unrolled_mm=np.column_stack(
-                [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
-            ),
-            circumference_mm=circ,
-            dataset=dataset,
-            frame_index=stations,
+    model_inputs = model.ModelInputs(
+        camera_rig=rig,
+        world_from_rig=station_poses,
+        ring_points_in_rig=ring_points,
+        ring_pixels=ring_pixels,
+        read_frame=lambda k: dataset.read_frame(int(stations[k])),
+        unrolled_mm=np.column_stack(
+            [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
         ),
-        progress=tick,
-        executor=executor,
+        circumference_mm=circ,
+        dataset=dataset,
+        frame_index=stations,
     )
+    del ring_points, ring_pixels
+    mdl = model.run(config.model, model_inputs, progress=tick, executor=executor)
+    del model_inputs
     timings["model"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     # Every measurement with its 1-sigma (lengths along the pipe: the motion's scale sigma).
