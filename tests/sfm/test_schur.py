@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
-from tests.sfm.test_bundle_jacobian import _problem
 
 from omnipipe.sfm.bundle import _objective
 from omnipipe.sfm.schur import _damped_step, soft_l1_cost, solve
@@ -33,12 +32,12 @@ def test_damped_step_solves_the_full_damped_system() -> None:
         assert np.allclose(got, want, rtol=1e-8, atol=1e-10), lam
 
 
-def test_solve_reaches_scipys_minimum_of_the_same_cost() -> None:
+def test_solve_reaches_scipys_minimum_of_the_same_cost(bundle_problem) -> None:
     """Same robust cost as least_squares(loss='soft_l1'): as low a minimum (these toy
     problems have nearby local minima: within 0.1 %) and the same poses to a fraction of
     the noise (the speed is measured on real problems: docs/pipeline.md)."""
     for seed, fixed in [(1, 1), (2, 2)]:
-        camera, problem = _problem(seed, fixed)
+        camera, problem = bundle_problem(seed, fixed)
         x0, residuals, jacobian, _ = _objective(camera, problem, 1.0)
         n_pose = 6 * (len(problem.world_from_rig) - fixed)
         ref = least_squares(
@@ -55,8 +54,8 @@ def test_solve_reaches_scipys_minimum_of_the_same_cost() -> None:
         assert np.abs(got.x[:n_pose] - ref.x[:n_pose]).max() < 0.05
 
 
-def test_solve_stops_at_the_cap_and_keeps_the_best() -> None:
-    camera, problem = _problem(3, 1)
+def test_solve_stops_at_the_cap_and_keeps_the_best(bundle_problem) -> None:
+    camera, problem = bundle_problem(3, 1)
     x0, residuals, jacobian, _ = _objective(camera, problem, 1.0)
     n_pose = 6 * (len(problem.world_from_rig) - 1)
     start = soft_l1_cost(residuals(x0), 1.0)

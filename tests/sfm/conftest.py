@@ -1,0 +1,50 @@
+"""Shared inputs of the bundle-adjustment tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from omnipipe.camera import OmniCamera
+from omnipipe.geometry import apply, invert, make_transform
+from omnipipe.sfm.bundle import BundleProblem
+from omnipipe.sim.scenarios import paper_rig
+
+
+def _problem(seed: int, fixed: int) -> tuple[OmniCamera, BundleProblem]:
+    """A small noisy bundle problem (5 keyframes along a 202 mm pipe, 200 wall points, 80
+    laser anchors, 3 of them within one keyframe), seeded; ``fixed`` keyframes held."""
+    rng = np.random.default_rng(seed)
+    camera = OmniCamera.from_rig(paper_rig(800, 600))
+    K = 5
+    poses = np.array([
+        make_transform(Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix(),
+                       np.array([rng.normal(0, 2), rng.normal(0, 2), 12.0 * k]))
+        for k in range(K)
+    ])
+    n = 200
+    th = rng.uniform(-np.pi, np.pi, n)
+    pts = np.column_stack([101 * np.cos(th), 101 * np.sin(th), rng.uniform(-200, 150, n)])
+    f, p = np.meshgrid(np.arange(K), np.arange(n), indexing="ij")
+    f, p = f.ravel(), p.ravel()
+    px, _ = camera.project(np.einsum("nij,nj->ni", np.array([invert(T) for T in poses])[f][:, :3, :3], pts[p])
+                           + np.array([invert(T) for T in poses])[f][:, :3, 3])
+    px = np.nan_to_num(px) + rng.normal(0, 0.5, px.shape)
+    L = 80
+    aa = rng.integers(0, K, L)
+    ab = (aa + rng.integers(1, K, L)) % K
+    ab[:3] = aa[:3]  # anchors within one keyframe: constant residuals
+    aq = np.column_stack([101 * np.cos(th[:L]), 101 * np.sin(th[:L]), np.full(L, -82.0)])
+    apx = np.array([camera.project(apply(invert(poses[b]) @ poses[a], q[None]))[0][0]
+                    for a, b, q in zip(aa, ab, aq, strict=True)])
+    apx = np.nan_to_num(apx) + rng.normal(0, 0.5, apx.shape)
+    problem = BundleProblem(poses, pts + rng.normal(0, 1.0, pts.shape), f, p, px, aa, ab, aq, apx, fixed=fixed)
+    return camera, problem
+
+
+
+@pytest.fixture
+def bundle_problem():
+    """``bundle_problem(seed, fixed) -> (camera, BundleProblem)``."""
+    return _problem
