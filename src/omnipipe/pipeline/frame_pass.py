@@ -33,6 +33,7 @@ import numpy as np
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.laser import LaserConfig, LaserResult
+from omnipipe.laser import _ChunkTask as _RingTask  # the rings of a chunk's frames
 from omnipipe.laser import _extractor as ring_extractor
 from omnipipe.laser.extract import LaserRing
 from omnipipe.laser.triangulate import triangulate_ring
@@ -134,22 +135,6 @@ class _FrameTask:
             )
             out.append((ring, signature))
         return out
-
-
-class _RingTask:
-    """Picklable task: the ring of each frame of one chunk (the rings :class:`_FrameTask`
-    skipped that the run's stationary test needs)."""
-
-    def __init__(self, laser: LaserConfig) -> None:
-        self.laser = laser
-
-    def __call__(self, source: FrameSource) -> list[LaserRing]:
-        rig = source.rig
-        camera, extractor = ring_extractor(self.laser, rig)
-        return [
-            triangulate_ring(extractor.extract(source.read(k), rig.laser.channel), camera, rig.laser)
-            for k in range(len(source))
-        ]
 
 
 def run(
