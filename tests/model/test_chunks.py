@@ -7,8 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy.interpolate import LinearNDInterpolator
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import Delaunay
 from threadpoolctl import threadpool_limits
 
 from omnipipe.model import mesh_unrolled
@@ -142,27 +141,8 @@ def test_a_chunk_widens_its_margin_until_its_triangles_are_the_whole_sets() -> N
     assert len(t) == len(whole) and _triangle_set(t) == _triangle_set(whole)
 
 
-def _whole_grid(
-    arc: np.ndarray, axial: np.ndarray, pts: np.ndarray, mm: float, gap: float
-) -> np.ndarray:
-    """(H, W, 3) wall grid of one interpolation over all points (the stage before chunks)."""
-    margin = 0.1 * CIRC_MM
-    lo, hi = arc < margin, arc > CIRC_MM - margin
-    u = np.concatenate([arc, arc[lo] + CIRC_MM, arc[hi] - CIRC_MM])
-    z = np.concatenate([axial, axial[lo], axial[hi]])
-    xyz = np.concatenate([pts, pts[lo], pts[hi]])
-    width = int(np.ceil(CIRC_MM / mm))
-    z0 = float(np.floor(axial.min()))
-    height = int(np.ceil((axial.max() - z0) / mm)) + 1
-    gu, gz = np.meshgrid((np.arange(width) + 0.5) * (CIRC_MM / width), z0 + np.arange(height) * mm)
-    grid = LinearNDInterpolator(np.column_stack([u, z]), xyz)(gu, gz)
-    dist, _ = cKDTree(np.column_stack([u, z])).query(np.column_stack([gu.ravel(), gz.ravel()]))
-    grid.reshape(-1, 3)[dist > gap] = np.nan
-    return grid
-
-
 @pytest.mark.parametrize("kind", ["scattered", "rings-gap"])
-def test_the_chunked_wall_grid_is_the_whole_grid(kind: str) -> None:
+def test_the_chunked_wall_grid_is_the_whole_grid(kind: str, whole_wall_grid) -> None:
     if kind == "scattered":
         arc, axial = _scattered(6000, 150.0, seed=8)
         keep = ~((np.abs(arc - 60) < 8) & (np.abs(axial - 70) < 6))  # a hole stays a hole
@@ -171,7 +151,7 @@ def test_the_chunked_wall_grid_is_the_whole_grid(kind: str) -> None:
         arc, axial = _rings(50, 100, seed=9, gap=(70.0, 95.0))
     pts = _tube(arc, axial)
     mm, gap = 0.5, 2.5
-    whole = _whole_grid(arc, axial, pts, mm, gap)
+    whole = whole_wall_grid(arc, axial, pts, CIRC_MM, mm, gap)
     wall = WallGrid(arc, axial, pts, CIRC_MM, mm, gap, chunk_points=800)
     assert wall.shape == whole.shape[:2]
     assert np.isnan(whole).any() and np.isfinite(whole).mean() > 0.5

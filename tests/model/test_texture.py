@@ -209,25 +209,12 @@ def _wall_samples(seed: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, fl
     return arc, axial, pts, circ
 
 
-def test_the_wall_grid_by_strips_equals_the_whole_grid() -> None:
-    from scipy.interpolate import LinearNDInterpolator
-    from scipy.spatial import cKDTree
-
+def test_the_wall_grid_by_strips_equals_the_whole_grid(whole_wall_grid) -> None:
     arc, axial, pts, circ = _wall_samples()
     mm, gap = 0.5, 2.0
     # The whole grid in one interpolation (the stage before it went strip-wise).
-    margin = 0.1 * circ
-    lo, hi = arc < margin, arc > circ - margin
-    u = np.concatenate([arc, arc[lo] + circ, arc[hi] - circ])
-    z = np.concatenate([axial, axial[lo], axial[hi]])
-    xyz = np.concatenate([pts, pts[lo], pts[hi]])
-    width = int(np.ceil(circ / mm))
-    z0 = float(np.floor(axial.min()))
-    height = int(np.ceil((axial.max() - z0) / mm)) + 1
-    gu, gz = np.meshgrid((np.arange(width) + 0.5) * (circ / width), z0 + np.arange(height) * mm)
-    whole = LinearNDInterpolator(np.column_stack([u, z]), xyz)(gu, gz)
-    dist, _ = cKDTree(np.column_stack([u, z])).query(np.column_stack([gu.ravel(), gz.ravel()]))
-    whole.reshape(-1, 3)[dist > gap] = np.nan
+    whole = whole_wall_grid(arc, axial, pts, circ, mm, gap)
+    z0, height = float(np.floor(axial.min())), whole.shape[0]
     assert np.isnan(whole).any() and np.isfinite(whole).mean() > 0.9
 
     wall = WallGrid(arc, axial, pts, circ, mm, gap)
