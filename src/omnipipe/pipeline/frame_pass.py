@@ -156,7 +156,7 @@ def run(
     """
     from omnipipe.executor import iter_frames
 
-    tracker = StationTracker(camera_from_rig(dataset.rig).valid_mask(), stations)
+    tracker = StationTracker(_masks(dataset.rig)[0], stations)  # built once (warm_up)
     n = len(dataset)
     rings: list[LaserRing | None] = []
     moved = np.zeros(n, bool)
