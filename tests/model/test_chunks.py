@@ -141,6 +141,31 @@ def test_a_chunk_widens_its_margin_until_its_triangles_are_the_whole_sets() -> N
     assert len(t) == len(whole) and _triangle_set(t) == _triangle_set(whole)
 
 
+def test_a_chunk_at_the_runs_end_stays_a_chunk() -> None:
+    """The last ring almost straight (hull slivers along it and down the sides with circles
+    of hundreds of metres): the end's chunk is widened only as far as the circles reach
+    within the points' u range, not to every point, and its triangles over the end are
+    the whole set's."""
+    rng = np.random.default_rng(3)
+    z = np.cumsum(rng.uniform(2.0, 4.0, 60))
+    theta = np.sort(rng.uniform(0.0, 2 * math.pi, (60, 200)), axis=1)
+    axial = z[:, None] + rng.normal(0.0, 0.05, theta.shape)
+    axial[-1] = z[-1] + rng.normal(0.0, 1e-3, 200)
+    arc, axial = (theta * RADIUS_MM).ravel(), axial.ravel()
+    chunks = AxialChunks(arc, axial, chunk_points=1000)
+    z_lo, z_hi = z[-1] - 1.0, z[-1] + 1.0
+    ids, tri = chunks.triangulate(z_lo, z_hi, 0.0, CIRC_MM)
+    assert len(ids) < len(arc) / 2
+    t = chunks.order[ids[tri.simplices]]
+    whole = Delaunay(np.column_stack([arc, axial])).simplices
+
+    def meeting(faces: np.ndarray) -> set[tuple[int, ...]]:
+        fz = axial[faces]
+        return _triangle_set(faces[(fz.max(axis=1) >= z_lo) & (fz.min(axis=1) <= z_hi)])
+
+    assert meeting(t) == meeting(whole)
+
+
 @pytest.mark.parametrize("kind", ["scattered", "rings-gap"])
 def test_the_chunked_wall_grid_is_the_whole_grid(kind: str, whole_wall_grid) -> None:
     if kind == "scattered":

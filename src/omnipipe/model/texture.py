@@ -123,9 +123,9 @@ class AxialChunks:
     Delaunay is local: a triangle is one of the triangulation of all points iff its
     circumcircle holds none of them. A chunk holds every point with z within its region's
     z interval widened by a margin on both sides, plus the vertices of the convex hull of
-    all points. A chunk triangle whose circumcircle lies within the chunk's z range is one
-    of the whole set's: any point inside that circle would be in the chunk, and the chunk's
-    triangle has none inside. The chunk's hull is the whole set's, so every point of the
+    all points. A chunk triangle whose circumcircle, over the u range of all points, lies
+    within the chunk's z range is one of the whole set's: any point inside that circle
+    would be in the chunk, and the chunk's triangle has none inside. The chunk's hull is the whole set's, so every point of the
     region lies in some chunk triangle; once every chunk triangle meeting the region is so
     verified, every triangle of the whole set with a point in the region is one of them
     (two Delaunay triangles that overlap are the same). The margin starts at
@@ -140,6 +140,7 @@ class AxialChunks:
         order: (n,) indices of the input points in z order (the "sorted" indices below).
         u, z: (n,) the coordinates in that order, mm.
         hull: ascending sorted indices of the convex hull's vertices (or a superset).
+        u_range: (lowest, highest) u of all points, mm.
         margin_mm: the first margin of each chunk.
         chunk_points: points of a chunk's core (:meth:`cores`).
     """
@@ -160,6 +161,7 @@ class AxialChunks:
         )
         self.hull = cand[_hull_or_all(self.u[cand], self.z[cand])]
         self.margin_mm = MARGIN_EDGES * self._typical_edge()
+        self.u_range = (float(self.u.min()), float(self.u.max())) if n else (0.0, 0.0)
 
     def _typical_edge(self) -> float:
         """Median longest edge (mm) of the Delaunay triangles of a slab of points around the
@@ -217,22 +219,35 @@ class AxialChunks:
             extra = self.hull[(self.hull < a) | (self.hull >= b)]
             ids = np.concatenate([np.arange(a, b), extra])
             tri = Delaunay(np.column_stack([self.u[ids], self.z[ids]]))
-            reach = _circle_reach(tri, z_lo, z_hi, u_lo, u_hi)
+            reach = _circle_reach(tri, z_lo, z_hi, u_lo, u_hi, self.u_range)
             if reach is None:
                 return ids, tri
             c_lo, c_hi = reach
             if c_lo >= lo and c_hi <= hi:
                 return ids, tri
-            need = max(z_lo - c_lo, c_hi - z_hi)
+            # Widened on the side(s) that fail only: beyond the run's end (infinite), a
+            # circle's reach costs nothing.
+            need = max(z_lo - c_lo if c_lo < lo else 0.0, c_hi - z_hi if c_hi > hi else 0.0)
             margin = max(2.0 * margin, 1.25 * need, 1e-3)
 
 
 def _circle_reach(
-    tri: Delaunay, z_lo: float, z_hi: float, u_lo: float, u_hi: float
+    tri: Delaunay,
+    z_lo: float,
+    z_hi: float,
+    u_lo: float,
+    u_hi: float,
+    u_all: tuple[float, float] = (-np.inf, np.inf),
 ) -> tuple[float, float] | None:
-    """(lowest, highest) z (mm) of the circumcircles of the triangles of ``tri`` whose
-    bounding boxes meet ``[u_lo, u_hi] x [z_lo, z_hi]``, widened by their round-off;
-    None if no triangle meets it. A flat triangle's circle is infinite."""
+    """(lowest, highest) z (mm) that the circumcircles of the triangles of ``tri`` whose
+    bounding boxes meet ``[u_lo, u_hi] x [z_lo, z_hi]`` reach within the points' u range
+    ``u_all`` (mm; no point outside it can lie in a circle there), widened by their
+    round-off; None if no triangle meets the box. A flat triangle's circle is infinite.
+
+    The u range matters at the run's ends: a nearly flat triangle along the last ring
+    has a circle of hundreds of metres whose lowest point lies far outside the strip's
+    u range; within it the circle stays close to the ring.
+    """
     s = tri.simplices
     p = tri.points
     pu, pz = p[s, 0], p[s, 1]
@@ -252,12 +267,19 @@ def _circle_reach(
         oz = (bu * c2 - cu * b2) / d
         r = np.hypot(ou, oz)
         centre = pz[:, 0] + oz
-        tol = 1e-9 * (np.abs(centre) + r) + 1e-9
-        low, high = centre - r - tol, centre + r + tol
+        tol = 1e-9 * (np.abs(centre) + np.abs(pu[:, 0] + ou) + r) + 1e-9
+        r = r + tol
+        # The circle's half-height at the u of the points' range nearest its centre.
+        off = np.abs(pu[:, 0] + ou - np.clip(pu[:, 0] + ou, u_all[0], u_all[1]))
+        half = np.sqrt(np.maximum((r - off) * (r + off), 0.0)) + tol
+        low, high = centre - half, centre + half
     flat = ~(np.isfinite(low) & np.isfinite(high))
     if flat.any():
         return -np.inf, np.inf
-    return float(low.min()), float(high.max())
+    seen = off <= r  # circles wholly beside the points' u range hold none of them
+    if not seen.any():
+        return float(z_lo), float(z_hi)
+    return float(low[seen].min()), float(high[seen].max())
 
 
 class WallGrid:
