@@ -204,7 +204,7 @@ def test_winding_and_seam_split_a_chunk_of_triangles_at_a_time_change_nothing(
     faces = mesh_unrolled(arc, axial, pts, CIRC_MM, 2.0)
     h, w = int(axial.max()) + 2, int(CIRC_MM)
     image = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
-    unrolled = UnrolledImage(image, np.ones((h, w), bool), 1.0, float(np.floor(axial.min())), CIRC_MM, np.zeros((h, w), int))
+    unrolled = UnrolledImage(image, np.ones((h, w), bool), 1.0, float(np.floor(axial.min())), CIRC_MM)
     results = []
     for chunk in (len(faces), 7):
         monkeypatch.setattr(model, "FACE_CHUNK", chunk)

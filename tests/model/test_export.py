@@ -54,9 +54,7 @@ def synthetic_pipe(direction: float, seed: int = 0) -> ModelResult:
     mm_per_px = 2.0
     h, w = int(LENGTH_MM / mm_per_px) + 1, int(round(circ / mm_per_px))
     image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-    unrolled = UnrolledImage(
-        image, np.ones((h, w), bool), mm_per_px, 0.0, circ, np.zeros((h, w), int)
-    )
+    unrolled = UnrolledImage(image, np.ones((h, w), bool), mm_per_px, 0.0, circ)
     verts, tfaces, uvs, atlas = textured_mesh(faces, pts, arc, axial, unrolled)
     return ModelResult(
         pts, colours, frame, pts, faces, verts, tfaces, uvs, atlas, unrolled=unrolled

@@ -47,6 +47,7 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
 from omnipipe.geometry import apply
+from omnipipe.memory import release_freed_memory
 from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
 from omnipipe.model.texture import (
     CHUNK_POINTS,
@@ -337,7 +338,8 @@ def mesh_unrolled(
     max_edge_factor: float,
     chunk_points: int = CHUNK_POINTS,
 ) -> np.ndarray:
-    """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring).
+    """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring),
+    vertex indices of :func:`face_dtype` (int32 below 2**31 points: half the memory).
 
     Args:
         arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
@@ -352,14 +354,15 @@ def mesh_unrolled(
             memory does not grow with the run.
     """
     n = len(points_in_world)
+    index = face_dtype(n)
     if n < 3:
-        return np.zeros((0, 3), int)
+        return np.zeros((0, 3), index)
     circ = circumference_mm
     margin = 0.1 * circ
     wrap = np.flatnonzero(arc_mm < margin)
     uu = np.concatenate([arc_mm, arc_mm[wrap] + circ])
     vv = np.concatenate([axial_mm, axial_mm[wrap]])
-    ids = np.concatenate([np.arange(n), wrap])
+    ids = np.concatenate([np.arange(n), wrap]).astype(index)
     if len(uu) <= chunk_points:
         tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
         # Keep each triangle once: those whose centroid lies in the main period.
@@ -381,6 +384,13 @@ def mesh_unrolled(
     # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
     longest = longest_edges(points_in_world, faces)
     return faces[longest <= max_edge_factor * float(np.median(longest))]
+
+
+def face_dtype(points: int) -> type[np.signedinteger]:
+    """Integer type of the faces' vertex indices for a mesh of ``points`` vertices
+    (with the textured mesh's seam copies, at most twice as many): int32 while they fit,
+    as every writer stores them (PLY int, glTF uint32), else int64."""
+    return np.int32 if 2 * points < np.iinfo(np.int32).max else np.int64
 
 
 def _chunked_triangles(
@@ -490,7 +500,7 @@ def textured_mesh(
         shift[a : a + FACE_CHUNK] = crossing[:, None] & (u < 0.5 * circ)
     n = len(points_in_world)
     dup = np.unique(faces[shift])
-    new_id = np.full(n, -1)
+    new_id = np.full(n, -1, faces.dtype)
     new_id[dup] = n + np.arange(len(dup))
     faces = faces.copy()
     faces[shift] = new_id[faces[shift]]
@@ -557,6 +567,7 @@ def _run(
             lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
         )
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
+    release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)
     choice: CellChoice | None = None
     z0 = 0.0
     if config.texture and len(faces):
@@ -571,6 +582,7 @@ def _run(
             config.laser_band_mm, executor=executor,
         )
         del wall
+        release_freed_memory()  # the wall grid's blocks and the strips' results
     # One image read per keyframe with a ring or texture cells: colours and texture samples.
     work: list[_FrameWork | None] = []
     for k, ring_px in enumerate(inputs.ring_pixels):
@@ -608,5 +620,9 @@ def _run(
         choice = image = None  # (their cells live on in the unrolled image)
         verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
-        result.texture, result.unrolled = atlas, unrolled
+        # The unrolled image is the atlas's first W columns (textured_mesh): a view of it,
+        # so the image is held once, not twice.
+        view = atlas[:, : unrolled.image.shape[1]]
+        result.texture, result.unrolled = atlas, replace(unrolled, image=view)
+        del unrolled
     return result

@@ -48,6 +48,7 @@ from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
 from omnipipe.image import sample_bilinear
+from omnipipe.memory import release_freed_memory
 from omnipipe.rig import Rig
 
 
@@ -61,8 +62,9 @@ class UnrolledImage:
         mm_per_px: cell size.
         axial_min_mm: axial position of row 0's centre.
         circumference_mm: arc length of the W columns (one full turn).
-        source_frame: (H, W) int32 (from :func:`choose_sources`), the keyframe each cell's
-            colour came from (-1: none).
+
+    Which keyframe each cell came from (:attr:`CellChoice.source`) is not kept: nothing
+    writes it, and at 4 bytes a cell it was the largest array held to the run's end.
     """
 
     image: np.ndarray
@@ -70,7 +72,6 @@ class UnrolledImage:
     mm_per_px: float
     axial_min_mm: float
     circumference_mm: float
-    source_frame: np.ndarray
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -357,6 +358,7 @@ class WallGrid:
             block = self._block
             if block is None or not (block[0] <= first and stop <= block[1]):
                 self._block = block = None  # the last block's triangulation freed first
+                release_freed_memory()  # (qhull's many small blocks, not left resident)
                 self._block = block = self._build_block(first, stop)
             interpolate, tree = block[2], block[3]
         gu, gz = np.meshgrid(self._u, self._z[start:stop])
@@ -440,8 +442,9 @@ class CellChoice:
     """Which keyframe textures each wall cell, and where in its image (no image read).
 
     Attributes:
-        source: (H, W) int32 keyframe of each cell (-1: not a wall cell, or no keyframe
-            sees it; int32, half of int64's memory on a long run's grid).
+        source: (H, W) keyframe of each cell (-1: not a wall cell, or no keyframe sees
+            it); int16 for fewer than 32767 keyframes, else int32 (:func:`source_dtype`:
+            a long run's grid holds millions of cells).
         rows: (K, 2) int per keyframe the rows ``[first, stop)`` holding its cells
             (``first == stop``: none).
         pieces: per keyframe, (n_i, 2) float32 (col, row) pixels of its cells in its image,
@@ -471,6 +474,12 @@ class CellChoice:
     def pixels(self, k: int) -> np.ndarray:
         """(n_k, 2) float32 (col, row) pixels of keyframe k's cells, in :meth:`cells` order."""
         return _concat_pixels(self.pieces[k])
+
+
+def source_dtype(keyframes: int) -> type[np.signedinteger]:
+    """The smallest signed integer type of :attr:`CellChoice.source` for ``keyframes``
+    keyframes (and -1)."""
+    return np.int16 if keyframes < np.iinfo(np.int16).max else np.int32
 
 
 def _concat_pixels(pieces: tuple[np.ndarray, ...]) -> np.ndarray:
@@ -678,7 +687,7 @@ def choose_sources(
     step = max(tr, -(-int(strip_rows) // tr) * tr)  # strips of whole tiles
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
-    source = np.full((h, w), -1, np.int32)
+    source = np.full((h, w), -1, source_dtype(n_k))
     first = np.full(n_k, h)
     stop = np.zeros(n_k, int)
     pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
@@ -832,7 +841,6 @@ def finish(
         mm_per_px,
         axial_min_mm,
         circumference_mm,
-        choice.source,
     )
 
 

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from omnipipe.config import dataclass_from_dict, load_yaml_mapping
 from omnipipe.errors import ReconstructionError
+from omnipipe.memory import release_freed_memory
 
 if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from concurrent.futures import Executor
@@ -122,23 +123,6 @@ class Reconstruction:
     report_config: Any = None
     frame_index: np.ndarray | None = None
     survey: Any = None
-
-
-def release_freed_memory() -> None:
-    """Return the pages the C allocator holds free to the system (glibc's ``malloc_trim``).
-
-    A stage's many small freed blocks (rings, features, matches, qhull's work) otherwise
-    stay resident under the next stage's arrays, so the process's peak grew with the run
-    by what the earlier stages had freed. No effect on any result; a no-op where the C
-    library has no ``malloc_trim``.
-    """
-    import ctypes
-
-    try:
-        trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return
-    trim(0)
 
 
 def run(
