@@ -6,8 +6,10 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
+import omnipipe.model as model_stage
 from omnipipe.dataset import open_dataset
 from omnipipe.executor import open_executor
 from omnipipe.laser import LaserConfig
@@ -62,7 +64,9 @@ def test_rings_integrate_onto_the_wall_and_mesh_without_crossings(tmp_path: Path
     )
 
 
-def test_frames_decoded_by_two_worker_processes_give_the_serial_model(small_dataset: Path) -> None:
+def test_frames_decoded_by_two_worker_processes_give_the_serial_model(
+    small_dataset: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     dataset = open_dataset(small_dataset)
     _, poses, _, moving = build_renderer(make_scenario("paper-small", seed=3))
     keep = np.flatnonzero(np.r_[True, moving[1:]])  # one frame per station
@@ -101,3 +105,14 @@ def test_frames_decoded_by_two_worker_processes_give_the_serial_model(small_data
         assert np.array_equal(getattr(serial, name), getattr(parallel, name)), name
     for name in ("image", "alpha"):
         assert np.array_equal(getattr(serial.unrolled, name), getattr(parallel.unrolled, name)), name
+    # Textured a section of the pipe at a time (here 128 rows): the same model.
+    assert serial.unrolled.image.shape[0] > 128  # two sections
+    monkeypatch.setattr(model_stage, "SECTION_ROWS", 128)
+    with open_executor(2) as executor:
+        sections = run(ModelConfig(), parallel_inputs, executor=executor)
+    for name in (
+        "points_in_world", "colours", "point_frame", "mesh_faces", "textured_vertices",
+        "textured_faces", "textured_uvs", "texture",
+    ):
+        assert np.array_equal(getattr(serial, name), getattr(sections, name)), name
+    assert np.array_equal(serial.unrolled.alpha, sections.unrolled.alpha)

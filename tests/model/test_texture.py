@@ -193,6 +193,19 @@ def test_strips_of_rows_give_the_whole_grid_choice(bend_mm: float | None) -> Non
     # 13 rows are rounded up to whole tiles (16); every cell from every keyframe.
     many = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=13, windowed=False)
     _assert_same_choice(many, one)
+    # Sections of rows (as the model stage textures them): each cell chosen as in the whole.
+    w = grid.shape[1]
+    for top in range(0, h, 24):
+        end = min(top + 24, h)
+        part = choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=8, rows=(top, end))
+        assert np.array_equal(part.source, source[top:end])
+        for k in range(len(poses)):
+            cells = part.cells(k) + top * w
+            assert np.array_equal(cells, one.cells(k)[(one.cells(k) >= top * w) & (one.cells(k) < end * w)])
+            assert np.array_equal(part.pixels(k), pixels.reshape(-1, 2)[cells])
+    for bad in ((4, 20), (0, h + 1), (16, 8)):
+        with pytest.raises(ShapeError, match="rows"):
+            choose_sources(rig, poses, grid, MM_PER_PX, 3.0, strip_rows=8, rows=bad)
 
 
 def _wall_samples(seed: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

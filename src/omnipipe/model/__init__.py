@@ -51,6 +51,7 @@ from omnipipe.memory import release_freed_memory
 from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
 from omnipipe.model.texture import (
     CHUNK_POINTS,
+    SECTION_ROWS,
     AxialChunks,
     CellChoice,
     UnrolledImage,
@@ -58,6 +59,7 @@ from omnipipe.model.texture import (
     choose_sources,
     finish,
     paint,
+    source_dtype,
     texture_samples,
 )
 from omnipipe.rig import Rig
@@ -216,6 +218,24 @@ class _FrameWork:
         pixels = np.concatenate(self.texture_px) if self.texture_px else np.zeros((0, 2), np.float32)
         samples = texture_samples(image, pixels) if len(pixels) else np.zeros((0, 3), np.uint8)
         return colours, samples
+
+
+_NO_PIXELS = np.zeros((0, 2), int)
+"""No ring colours to sample (a keyframe's ring sampled in an earlier section)."""
+
+
+class _Ticks:
+    """``progress(i)`` once for every i = 1 .. total, in order, as the work gets there."""
+
+    def __init__(self, progress: Callable[[int], None] | None, total: int) -> None:
+        self._progress, self._total, self._done = progress, total, 0
+
+    def to(self, done: int) -> None:
+        """Report every tick up to ``done`` (at most the total) not reported yet."""
+        for i in range(self._done + 1, min(done, self._total) + 1):
+            if self._progress:
+                self._progress(i)
+            self._done = i
 
 
 class _FramesTask:
@@ -568,56 +588,75 @@ def _run(
         )
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
     release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)
-    choice: CellChoice | None = None
-    z0 = 0.0
+    n_k = len(inputs.ring_pixels)
+    colour_px = [
+        colour_pixels(px, camera, config.colour_offset_px) if len(px) else None
+        for px in inputs.ring_pixels
+    ]
+    colours_of: list[np.ndarray | None] = [None] * n_k
+    ticks = _Ticks(progress, n_k)
+
+    def sample(work: list[_FrameWork | None]) -> Iterator[tuple[int, np.ndarray]]:
+        """(k, texture samples) per keyframe with work; its ring colours kept once."""
+        for k, (ring_colours, samples) in _sample_frames(inputs, work, executor, None):
+            if len(ring_colours) and colours_of[k] is None:
+                colours_of[k] = ring_colours
+            yield k, samples
+
+    unrolled: UnrolledImage | None = None
     if config.texture and len(faces):
         # Holes stay holes: a cell counts as wall when it is no farther from a point than
         # the inside of the largest kept triangle (0.6 x its longest edge).
         gap = 0.6 * float(longest_edges(points, faces).max())
         # The grid is evaluated and scored a strip of rows at a time (never held whole).
         wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
-        z0 = wall.axial_min_mm
-        choice = choose_sources(
-            inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
-            config.laser_band_mm, executor=executor,
-        )
+        h, w = wall.shape
+        wall_z0 = wall.axial_min_mm
+        source = np.full((h, w), -1, source_dtype(n_k))
+        image = np.zeros((h * w, 3), np.uint8)
+        # A section of the pipe at a time: its cells chosen, then sampled in the images of
+        # the keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a
+        # section's, not the run's). A keyframe that textures two sections is read twice.
+        for top in range(0, h, SECTION_ROWS):
+            end = min(top + SECTION_ROWS, h)
+            choice = choose_sources(
+                inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
+                config.laser_band_mm, executor=executor, rows=(top, end),
+            )
+            source[top:end] = choice.source
+            work = [
+                _FrameWork(
+                    colour_px[k] if colour_px[k] is not None and colours_of[k] is None
+                    else _NO_PIXELS,
+                    choice.pieces[k],
+                )
+                if choice.count(k)
+                else None
+                for k in range(n_k)
+            ]
+            choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
+            for k, samples in sample(work):
+                paint(image[top * w : end * w], choice, k, samples)
+            del work, choice
+            ticks.to(n_k * end // h)
         del wall
         release_freed_memory()  # the wall grid's blocks and the strips' results
-    # One image read per keyframe with a ring or texture cells: colours and texture samples.
-    work: list[_FrameWork | None] = []
-    for k, ring_px in enumerate(inputs.ring_pixels):
-        tex_px = choice.pieces[k] if choice is not None else ()
-        if not len(ring_px) and not sum(len(t) for t in tex_px):
-            work.append(None)
-            continue
-        colour_px = (
-            colour_pixels(ring_px, camera, config.colour_offset_px)
-            if len(ring_px)
-            else np.zeros((0, 2), int)
-        )
-        work.append(_FrameWork(colour_px, tex_px))
-    image = None
-    if choice is not None:
-        # The chosen pixels now live in ``work`` only, each keyframe's dropped once it is
-        # sampled (8 bytes a cell: not all held until the last keyframe).
-        choice = replace(choice, pieces=())
-        h, w = choice.shape
-        image = np.zeros((h * w, 3), np.uint8)
-    # Each keyframe's samples go into the image as they come (not all held at once).
-    colour_parts: list[np.ndarray] = []
-    for k, (ring_colours, samples) in _sample_frames(inputs, work, executor, progress):
-        if len(inputs.ring_pixels[k]):
-            colour_parts.append(ring_colours)
-        if choice is not None and image is not None:
-            paint(image, choice, k, samples)
-    colours = np.concatenate(colour_parts)
-    # The chosen pixels of every cell and the rings' pixels are done with (8 bytes a cell:
-    # not held on while the textured mesh is made).
-    del work, colour_parts
+        whole = CellChoice(source, np.zeros((n_k, 2), int), ())
+        unrolled = finish(whole, image, config.texture_mm_per_px, wall_z0, circ)
+        del whole, source, image
+    # The rings of the keyframes that textured no cell.
+    rest = [
+        _FrameWork(colour_px[k], ()) if colour_px[k] is not None and colours_of[k] is None
+        else None
+        for k in range(n_k)
+    ]
+    for _ in sample(rest):
+        pass
+    ticks.to(n_k)
+    colours = np.concatenate([c for c in colours_of if c is not None])
+    del colour_px, rest
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
-    if choice is not None and image is not None:
-        unrolled = finish(choice, image, config.texture_mm_per_px, z0, circ)
-        choice = image = None  # (their cells live on in the unrolled image)
+    if unrolled is not None:
         verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
         # The unrolled image is the atlas's first W columns (textured_mesh): a view of it,

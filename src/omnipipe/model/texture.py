@@ -86,6 +86,11 @@ the stage's float64 intermediates are a few strips, not the run (W x 128 cells; 
 2 x workers strips are in flight on the executor, each with its (W x 130 x 3) float64
 rows: 128 rows took 35 MB less than 256 at 2400 frames, and no longer)."""
 
+SECTION_ROWS = 8 * STRIP_ROWS
+"""Rows of the unrolled grid textured at a time by the model stage (a multiple of the
+strips' rows): the cells' chosen pixels (8 bytes a cell) are held for one section, not
+the run. A keyframe whose cells lie in two sections has its image read twice."""
+
 TILE = (8, 32)
 """Tiles of :func:`visible_rows` (rows, columns)."""
 
@@ -655,8 +660,15 @@ def choose_sources(
     windowed: bool = True,
     strip_rows: int = STRIP_ROWS,
     executor: Executor | None = None,
+    rows: tuple[int, int] | None = None,
 ) -> CellChoice:
     """The keyframe that sees each cell best (module docstring) and the cell's pixel in it.
+
+    ``rows`` = ``(first, stop)``: only the grid's rows ``[first, stop)`` (a section along
+    the pipe; ``first`` a multiple of the strips' rows), each cell chosen as in the whole
+    grid; the choice's rows are then counted from ``first`` (its ``source`` is
+    ``(stop - first, W)``). Sections in order of their rows evaluate a :class:`WallGrid`
+    as the whole grid does.
 
     The strips are scored on ``executor`` (:mod:`omnipipe.executor`; None: here), in
     order, a bounded number at a time; the result does not depend on where they ran.
@@ -685,16 +697,21 @@ def choose_sources(
     n_k = len(world_from_rig)
     tr = TILE[0]
     step = max(tr, -(-int(strip_rows) // tr) * tr)  # strips of whole tiles
+    top, end = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= top <= end <= h or top % step:
+        raise ShapeError(
+            f"rows: expected 0 <= first <= stop <= {h} with first a multiple of {step}, got {rows}"
+        )
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
-    source = np.full((h, w), -1, source_dtype(n_k))
-    first = np.full(n_k, h)
+    source = np.full((end - top, w), -1, source_dtype(n_k))
+    first = np.full(n_k, end - top)
     stop = np.zeros(n_k, int)
     pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
 
     def strips():  # each strip and a row either side (np.gradient along z), made as needed
-        for r0 in range(0, h, step):
-            r1 = min(r0 + step, h)
+        for r0 in range(top, end, step):
+            r1 = min(r0 + step, end)
             lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
             yield (
                 rig, camera, rig_from_world, grid.rows(lo, hi), r0 - lo, r1 - r0, bounds,
@@ -702,8 +719,8 @@ def choose_sources(
             )
 
     scored = ordered_map(executor or InlineExecutor(), _strip_task, strips())
-    for r0, (best, best_px, idx) in zip(range(0, h, step), scored, strict=True):
-        r1 = min(r0 + step, h)
+    for r0, (best, best_px, idx) in zip(range(0, end - top, step), scored, strict=True):
+        r1 = min(r0 + step, end - top)
         source[r0:r1].reshape(-1)[idx] = best
         chosen = best >= 0
         order = np.argsort(best[chosen], kind="stable")
@@ -719,9 +736,9 @@ def choose_sources(
             first[k] = min(first[k], int(cell_rows[a]))
             stop[k] = max(stop[k], int(cell_rows[b - 1]) + 1)
     has = stop > 0
-    rows = np.zeros((n_k, 2), int)
-    rows[has, 0], rows[has, 1] = first[has], stop[has]
-    return CellChoice(source, rows, tuple(tuple(p) for p in pieces))
+    spans = np.zeros((n_k, 2), int)
+    spans[has, 0], spans[has, 1] = first[has], stop[has]
+    return CellChoice(source, spans, tuple(tuple(p) for p in pieces))
 
 
 def _strip_task(args: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
