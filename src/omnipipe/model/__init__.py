@@ -53,13 +53,10 @@ from omnipipe.model.texture import (
     CHUNK_POINTS,
     SECTION_ROWS,
     AxialChunks,
-    CellChoice,
     UnrolledImage,
     WallGrid,
     choose_sources,
-    finish,
     paint,
-    source_dtype,
     texture_samples,
 )
 from omnipipe.rig import Rig
@@ -612,7 +609,7 @@ def _run(
         wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
         h, w = wall.shape
         wall_z0 = wall.axial_min_mm
-        source = np.full((h, w), -1, source_dtype(n_k))
+        seen = np.zeros((h, w), bool)  # the cells some keyframe textures
         image = np.zeros((h * w, 3), np.uint8)
         # A section of the pipe at a time: its cells chosen, then sampled in the images of
         # the keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a
@@ -623,7 +620,7 @@ def _run(
                 inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
                 config.laser_band_mm, executor=executor, rows=(top, end),
             )
-            source[top:end] = choice.source
+            seen[top:end] = choice.source >= 0
             work = [
                 _FrameWork(
                     colour_px[k] if colour_px[k] is not None and colours_of[k] is None
@@ -638,12 +635,12 @@ def _run(
             for k, samples in sample(work):
                 paint(image[top * w : end * w], choice, k, samples)
             del work, choice
+            release_freed_memory()  # the section's strips, pixels and samples
             ticks.to(n_k * end // h)
         del wall
         release_freed_memory()  # the wall grid's blocks and the strips' results
-        whole = CellChoice(source, np.zeros((n_k, 2), int), ())
-        unrolled = finish(whole, image, config.texture_mm_per_px, wall_z0, circ)
-        del whole, source, image
+        unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
+        del seen, image
     # The rings of the keyframes that textured no cell.
     rest = [
         _FrameWork(colour_px[k], ()) if colour_px[k] is not None and colours_of[k] is None
