@@ -20,9 +20,12 @@ that sees it best; it is also the texture atlas of the textured model (GLB).
 
 Then the edge flips of [25] towards photo-consistency (:mod:`.flips`).
 
-Images: each keyframe's image is decoded once, after the texture's choice of keyframe
-per cell (which needs no image), for both its ring colours and its texture samples;
-with ``ModelInputs.dataset`` the decoding runs frame-parallel on the executor
+Images: the texture is made a section of :data:`~.texture.SECTION_ROWS` grid rows at a
+time: the section's choice of keyframe per cell (which needs no image), then each
+chosen keyframe's image decoded once for the section's samples (and its ring colours,
+the first time). A keyframe whose cells lie in two sections is decoded twice; the
+keyframes that texture no cell are decoded once at the end for their ring colours.
+With ``ModelInputs.dataset`` the decoding runs frame-parallel on the executor
 (:mod:`omnipipe.executor`), else serially through ``read_frame``. The result does not
 depend on which.
 
