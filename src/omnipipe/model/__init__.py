@@ -589,11 +589,15 @@ def _run(
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
     release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)
     n_k = len(inputs.ring_pixels)
-    colour_px = [
-        colour_pixels(px, camera, config.colour_offset_px) if len(px) else None
-        for px in inputs.ring_pixels
-    ]
     colours_of: list[np.ndarray | None] = [None] * n_k
+
+    def ring_to_sample(k: int) -> np.ndarray | None:
+        """Keyframe k's (M, 2) ring colour pixels if its ring is not sampled yet, else None
+        (made when its image is next read: not held for every keyframe at once)."""
+        px = inputs.ring_pixels[k]
+        if not len(px) or colours_of[k] is not None:
+            return None
+        return colour_pixels(px, camera, config.colour_offset_px)
     ticks = _Ticks(progress, n_k)
 
     def sample(work: list[_FrameWork | None]) -> Iterator[tuple[int, np.ndarray]]:
@@ -624,16 +628,11 @@ def _run(
                 config.laser_band_mm, executor=executor, rows=(top, end),
             )
             seen[top:end] = choice.source >= 0
-            work = [
-                _FrameWork(
-                    colour_px[k] if colour_px[k] is not None and colours_of[k] is None
-                    else _NO_PIXELS,
-                    choice.pieces[k],
-                )
-                if choice.count(k)
-                else None
-                for k in range(n_k)
-            ]
+            work: list[_FrameWork | None] = [None] * n_k
+            for k in range(n_k):
+                if choice.count(k):
+                    ring = ring_to_sample(k)
+                    work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
             choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
             for k, samples in sample(work):
                 paint(image[top * w : end * w], choice, k, samples)
@@ -645,16 +644,12 @@ def _run(
         unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
         del seen, image
     # The rings of the keyframes that textured no cell.
-    rest = [
-        _FrameWork(colour_px[k], ()) if colour_px[k] is not None and colours_of[k] is None
-        else None
-        for k in range(n_k)
-    ]
+    rest = [None if (ring := ring_to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
     for _ in sample(rest):
         pass
     ticks.to(n_k)
     colours = np.concatenate([c for c in colours_of if c is not None])
-    del colour_px, rest
+    del rest
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if unrolled is not None:
         verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
