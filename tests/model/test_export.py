@@ -25,6 +25,7 @@ from omnipipe.model import (
     textured_mesh,
     write_outputs,
 )
+from omnipipe.model.export import write_e57
 from omnipipe.model.texture import UnrolledImage
 
 RADIUS_MM = 100.0
@@ -173,3 +174,18 @@ def test_obj_resolves_its_texture_and_matches_the_glb(written) -> None:
     assert image is not None and image.size == res.texture.shape[1::-1]
     assert np.array_equal(np.asarray(image.convert("RGB")), res.texture)
     assert np.allclose(mesh.visual.uv, res.textured_uvs, atol=1e-6)
+
+
+def test_the_same_points_give_the_same_e57_file_byte_for_byte(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    pts = rng.normal(0.0, 100.0, (500, 3))
+    cols = rng.integers(0, 256, (500, 3), dtype=np.uint8)
+    write_e57(tmp_path / "a.e57", pts, cols)
+    write_e57(tmp_path / "b.e57", pts, cols)
+    assert (tmp_path / "a.e57").read_bytes() == (tmp_path / "b.e57").read_bytes()
+    with pye57.E57(str(tmp_path / "a.e57")) as e57:  # still a readable scan of the points
+        assert np.allclose(e57.read_scan_raw(0)["cartesianX"], pts[:, 0] / 1000.0, atol=1e-7)
+    moved = pts.copy()
+    moved[0, 0] += 1.0  # other points, other GUIDs
+    write_e57(tmp_path / "c.e57", moved, cols)
+    assert (tmp_path / "a.e57").read_bytes() != (tmp_path / "c.e57").read_bytes()

@@ -23,8 +23,14 @@ world +x. The wall's triangles are wound so their normals point towards the pipe
 
 from __future__ import annotations
 
+import hashlib
+import uuid
+from contextlib import nullcontext
+from itertools import count
 from pathlib import Path
+from types import SimpleNamespace
 from typing import TYPE_CHECKING
+from unittest import mock
 
 import numpy as np
 
@@ -160,8 +166,12 @@ def write_e57(path: Path, points_mm: np.ndarray, colours: np.ndarray) -> None:
         points_mm: (N >= 1, 3) world frame, mm (stored as single-precision metres, so
             about 0.1 um at a few metres).
         colours: (N, 3) uint8.
+
+    The file's and the scan's GUIDs (pye57 draws them at random) are derived from the
+    content, so the same points give the same file, byte for byte.
     """
     import pye57
+    import pye57.e57
 
     pts_m = np.asarray(points_mm, float) * M_PER_MM
     cols = np.asarray(colours, np.uint8)
@@ -174,9 +184,21 @@ def write_e57(path: Path, points_mm: np.ndarray, colours: np.ndarray) -> None:
         "colorBlue": cols[:, 2],
     }
     path = Path(path)
+    digest = hashlib.sha256(pts_m.tobytes() + cols.tobytes()).hexdigest()
+    guids = (uuid.uuid5(uuid.NAMESPACE_URL, f"omnipipe:e57:{digest}:{i}") for i in count())
+    deterministic = SimpleNamespace(uuid4=lambda: next(guids))
     try:
-        with pye57.E57(str(path), mode="w") as e57:
-            e57.write_scan_raw(data, name=f"omnipipe wall points; {FRAME_NOTE}")
+        # pye57 calls ``uuid.uuid4()`` for each GUID: its own reference to the module is
+        # replaced for this write only (no other module's uuid4 changes; a pye57 without
+        # that reference writes random GUIDs, as before).
+        patch = (
+            mock.patch.object(pye57.e57, "uuid", deterministic)
+            if hasattr(pye57.e57, "uuid")
+            else nullcontext()
+        )
+        with patch:
+            with pye57.E57(str(path), mode="w") as e57:
+                e57.write_scan_raw(data, name=f"omnipipe wall points; {FRAME_NOTE}")
     except (OSError, RuntimeError) as exc:
         raise OutputError(f"{path}: cannot write E57 ({exc})") from None
 
