@@ -634,8 +634,11 @@ def _run(
                     ring = ring_to_sample(k)
                     work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
             choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
-            for k, samples in sample(work):
+            todo = max(1, sum(item is not None for item in work))
+            for i, (k, samples) in enumerate(sample(work), start=1):
                 paint(image[top * w : end * w], choice, k, samples)
+                # Progress: the share of the grid's rows done, within a section by keyframes.
+                ticks.to(n_k * (top * todo + (end - top) * i) // (h * todo))
             del work, choice
             release_freed_memory()  # the section's strips, pixels and samples
             ticks.to(n_k * end // h)
