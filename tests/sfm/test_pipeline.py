@@ -13,12 +13,15 @@ from omnipipe.laser import run as laser_run
 from omnipipe.sfm.pipeline import SfmConfig, SfmInputs, _bridge_lost_steps, _StepEvidence
 from omnipipe.sfm.pipeline import run as sfm_run
 from omnipipe.sfm.scale_check import StepCheck
+from omnipipe.sfm.tracking import TrackConfig
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
 
-@pytest.mark.parametrize("name", ["paper-small", "bend-small"])
-def test_short_run_trajectory_within_band(name: str) -> None:
+@pytest.mark.parametrize(
+    ("name", "tracking"), [("paper-small", True), ("bend-small", True), ("paper-small", False)]
+)
+def test_short_run_trajectory_within_band(name: str, tracking: bool) -> None:
     # The small variants sample the gait coarsely (8 frames per cycle): 60 mm in 20 frames.
     scenario = make_scenario(name, frames=20, size=(640, 480), seed=1)
     renderer, poses, _, moving = build_renderer(scenario)
@@ -28,7 +31,10 @@ def test_short_run_trajectory_within_band(name: str) -> None:
             irradiance = renderer.irradiance(p, seed=50 + i)[0]
         frames.append(renderer.expose(irradiance, seed=50 + i))
     rings = laser_run(LaserConfig(), scenario.rig, frames)
-    res = sfm_run(SfmConfig(), SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
+    # With tracking, the frames between keyframes are followed by optical flow; without,
+    # every moving frame gets SIFT: the same bands.
+    config = SfmConfig(tracking=TrackConfig(enabled=tracking))
+    res = sfm_run(config, SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
     assert np.all(np.isfinite(res.world_from_rig))
     # Stops are found: every truly stationary frame shares its station's pose.
     assert np.array_equal(res.stationary[1:], ~moving[1:])

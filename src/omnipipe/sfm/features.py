@@ -62,12 +62,30 @@ class FrameFeatures:
         pixels: (N, 2) omni pixels (col, row).
         descriptors: (N, 128) float32 SIFT descriptors.
         view: (N,) index of the perspective view.
+        view_pixels: (N, 2) float32 position in that view (col, row; px), where the
+            tracking between keyframes (:mod:`omnipipe.sfm.tracking`) starts; None when
+            not kept.
     """
 
     rays_in_rig: np.ndarray
     pixels: np.ndarray
     descriptors: np.ndarray
     view: np.ndarray
+    view_pixels: np.ndarray | None = None
+
+
+@dataclass
+class FrameViews:
+    """One frame's perspective views, as SIFT and the tracker read them.
+
+    Attributes:
+        images: per view, (height, width) uint8 grey image after CLAHE.
+        masks: per view, (height, width) uint8, 255 where features may be (inside the
+            mirror's annulus, off the laser band, eroded by 2 px).
+    """
+
+    images: list[np.ndarray]
+    masks: list[np.ndarray]
 
 
 class FeatureExtractor:
@@ -115,7 +133,14 @@ class FeatureExtractor:
         self, image: np.ndarray, laser_channel: str, laser_pixels: np.ndarray | None = None
     ) -> FrameFeatures:
         """Features of one frame; ``laser_pixels`` (M, 2) are masked out."""
-        cfg, cam = self.config, self.camera
+        return self.detect(self.frame_views(image, laser_channel, laser_pixels))
+
+    def frame_views(
+        self, image: np.ndarray, laser_channel: str, laser_pixels: np.ndarray | None = None
+    ) -> FrameViews:
+        """The perspective views of one frame (grey without the laser, CLAHE) and their
+        feature masks; ``laser_pixels`` (M, 2) omni pixels are masked out."""
+        cfg = self.config
         gray = _gray(image, laser_channel)
         mask = self.annulus.copy()
         if laser_pixels is not None and len(laser_pixels):
@@ -123,34 +148,44 @@ class FeatureExtractor:
             cv2.polylines(
                 mask, [pts], False, 0, thickness=int(2 * cfg.laser_margin_px + 1), shift=2
             )
-        rays, descs, views = [], [], []
-        for k, (view, (mx, my, valid)) in enumerate(zip(self.views, self.maps, strict=True)):
-            img = self.clahe.apply(cv2.remap(gray, mx, my, cv2.INTER_LINEAR))
+        images, masks = [], []
+        for mx, my, valid in self.maps:
+            images.append(self.clahe.apply(cv2.remap(gray, mx, my, cv2.INTER_LINEAR)))
             vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
             vmask[~valid] = 0
-            vmask = cv2.erode(vmask, np.ones((5, 5), np.uint8))
+            masks.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
+        return FrameViews(images, masks)
+
+    def detect(self, views: FrameViews) -> FrameFeatures:
+        """SIFT features of one frame's :meth:`frame_views`, as rays (with view pixels)."""
+        cam = self.camera
+        rays, descs, vidx, vpx = [], [], [], []
+        for k, (view, img, vmask) in enumerate(zip(self.views, views.images, views.masks, strict=True)):
             kps, desc = self.sift.detectAndCompute(img, vmask)
             if desc is None or not kps:
                 continue
             pts = np.array([kp.pt for kp in kps], float)
             rays.append(view.rays(pts))
             descs.append(desc)
-            views.append(np.full(len(kps), k))
+            vidx.append(np.full(len(kps), k))
+            vpx.append(pts.astype(np.float32))
         if not rays:
             return FrameFeatures(
-                np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, int)
+                np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, int),
+                np.zeros((0, 2), np.float32),
             )
         r = np.concatenate(rays)
         d = np.concatenate(descs).astype(np.float32)
-        v = np.concatenate(views)
+        v = np.concatenate(vidx)
+        p = np.concatenate(vpx)
         # Overlapping views see some rays twice: keep the first of each pair closer than 0.05 deg.
         pairs = cKDTree(r).query_pairs(math.radians(0.05), output_type="ndarray")
         keep = np.ones(len(r), bool)
         if len(pairs):
             keep[np.maximum(pairs[:, 0], pairs[:, 1])] = False
-        r, d, v = r[keep], d[keep], v[keep]
+        r, d, v, p = r[keep], d[keep], v[keep], p[keep]
         px, _ = cam.project(r)
-        return FrameFeatures(r, px, d, v)
+        return FrameFeatures(r, px, d, v, p)
 
 
 def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:

@@ -3,9 +3,11 @@
 1. Stations: frames taken while the earthworm robot stood still are found from the
    images (:mod:`omnipipe.sfm.stations`); each stop is one station, its frames share
    one pose and are flagged ``stationary``.
-2. Keyframes: SIFT features on perspective views (:mod:`omnipipe.sfm.features`) of
-   each station's first frame are matched with the last keyframe; the station becomes
-   a keyframe once the rays turned ``keyframe_min_parallax_deg`` (rotation removed).
+2. Keyframes: the last keyframe's SIFT features (perspective views,
+   :mod:`omnipipe.sfm.features`) are tracked by optical flow into each station's first
+   frame (:mod:`omnipipe.sfm.tracking`); the station becomes a keyframe once the rays
+   turned ``keyframe_min_parallax_deg`` (rotation removed), and only then is SIFT run
+   on it and matched with the last keyframe (also when too few features were tracked).
 3. Relative motion: eight-point algorithm on ray vectors with RANSAC (Eq. 10-16);
    near-pure rotations are recognised and keep a zero translation.
 4. Scale: the laser points of the earlier keyframe are found again in the later one
@@ -41,7 +43,13 @@ from omnipipe.sfm.bundle import (
     keyframe_windows,
     resect_rays,
 )
-from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, match_features
+from omnipipe.sfm.features import (
+    FeatureConfig,
+    FeatureExtractor,
+    FrameFeatures,
+    FrameViews,
+    match_features,
+)
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.planes import PlaneRefineConfig, refine_matches
@@ -59,7 +67,14 @@ from omnipipe.sfm.scale_check import (
     wall_scale_correction,
 )
 from omnipipe.sfm.stations import StationConfig, StationTracker
-from omnipipe.sfm.tasks import FeatureTask, laser_matches, step_evidence
+from omnipipe.sfm.tasks import (
+    FeatureTask,
+    laser_matches,
+    matched_rays,
+    step_evidence,
+    track_into,
+)
+from omnipipe.sfm.tracking import TrackConfig, Tracks, followed_count, track_features
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
@@ -74,6 +89,8 @@ class SfmConfig:
         stations: stationary-frame detection.
         laser_scale: template matching of laser points (scale, Eq. 17).
         features: SIFT on perspective views.
+        tracking: optical flow of the last keyframe's features into the moving frames
+            after it (the keyframe decision and the resection of the others).
         ransac_threshold_px: RANSAC inlier threshold, in pixels of the omni image at the
             middle of the mirror annulus (converted to an angle through the camera model).
         ransac_iterations: upper bound of RANSAC iterations.
@@ -102,6 +119,7 @@ class SfmConfig:
     stations: StationConfig = field(default_factory=StationConfig)
     laser_scale: LaserScaleConfig = field(default_factory=LaserScaleConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
+    tracking: TrackConfig = field(default_factory=TrackConfig)
     ransac_threshold_px: float = 1.0
     ransac_iterations: int = 2000
     min_inliers: int = 15
@@ -260,7 +278,12 @@ def _estimate(
     anchors: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     # Moving frames too close to the last keyframe: (frame, keyframe index, features, matches).
     pending: list[tuple[int, int, FrameFeatures, np.ndarray | None]] = []
-    next_matches: dict[int, Future] = {}  # pending frame -> its matches to the next keyframe
+    # Pending frame -> its correspondences with the next keyframe (a future of
+    # (keyframe feature indices, the frame's rays)).
+    next_matches: dict[int, Future] = {}
+    pending_views: dict[int, FrameViews] = {}  # tracked pending frames' views, until the next keyframe
+    extractor = FeatureExtractor(camera, config.features)
+    prev_views: FrameViews | None = None
     checks: list[StepCheck] = []
     # Each keyframe step's evidence, or the future of the worker computing it.
     evidence_parts: list[_StepEvidence | tuple[_StepEvidence, Future]] = []
@@ -268,11 +291,22 @@ def _estimate(
     steps_b_from_a: list[np.ndarray] = []  # rig_b_from_rig_a of each keyframe step (mm)
     anchor_logs: list[tuple[float, np.ndarray]] = []  # (length, per-point log lengths)
     min_parallax = math.radians(config.keyframe_min_parallax_deg)
-    for i, feats, gray in _moving_frames(config, inputs, camera, executor, moved, progress):
+    for i, views, feats, gray in _moving_frames(config, inputs, extractor, executor, moved, progress):
         if prev is None:
             world_from_kf.append(np.eye(4))
+            if feats is None:
+                feats = extractor.detect(views)
         else:
             a, fa, ga = prev
+            if feats is None and i < n - 1:
+                tracked = _tracked_step(extractor, prev_views, fa, views, ransac, config)
+                if tracked is not None and tracked[2] < min_parallax:
+                    # Too little baseline, followed without SIFT: resected after the adjustment.
+                    pending.append((i, len(kf_features) - 1, tracked[0].features, tracked[1]))
+                    pending_views[i] = views
+                    continue
+            if feats is None:
+                feats = extractor.detect(views)
             m = match_features(fa, feats, config.features.ratio)
             motion = _relative(a, i, fa, feats, m, ransac, warnings)
             if motion is None:
@@ -280,6 +314,8 @@ def _estimate(
             if motion is not None and _parallax(fa, feats, m, motion) < min_parallax and i < n - 1:
                 # Too little baseline for a reliable step: resected after the adjustment.
                 pending.append((i, len(kf_features) - 1, feats, m[motion.inliers]))
+                if views is not None:
+                    pending_views[i] = views
                 continue
             if config.planes.enabled and motion is not None and motion.translation_reliable:
                 motion = _refine(
@@ -297,15 +333,23 @@ def _estimate(
         kf_frames.append(i)
         is_kf[i] = True
         prev = (i, feats, gray)
+        prev_views = views
         # The frames resected between the last keyframe and this one also see this
-        # one's tracks: their matches to it, in the workers.
+        # one's tracks: their correspondences with it, in the workers (tracked into the
+        # views of a tracked frame, matched to the descriptors of the others).
         k_new = len(kf_features) - 1
         for j in range(len(pending) - 1, -1, -1):
             f, k, pf, inl_f = pending[j]
             if k != k_new - 1:
                 break
-            next_matches[f] = ex.submit(match_features, feats, pf, config.features.ratio)
+            if f in pending_views:
+                next_matches[f] = ex.submit(
+                    track_into, rig, config.features, views, feats, pending_views.pop(f), config.tracking
+                )
+            else:
+                next_matches[f] = ex.submit(matched_rays, feats, pf, config.features.ratio)
             pending[j] = (f, k, _slim(pf), inl_f)  # no more matching: its descriptors go
+        pending_views.clear()
         if k_new >= 1:
             kf_features[k_new - 1] = _slim(kf_features[k_new - 1])
     evidence = [_resolve(part) for part in evidence_parts]
@@ -417,6 +461,8 @@ def _estimate(
         w = int(window_of[min(k + 1, len(window_of) - 1)])
         t = tracks[w] if tracks else None
         nxt = next_matches[i].result() if t is not None and i in next_matches else None
+        if isinstance(nxt, Tracks):
+            nxt = (nxt.feature, nxt.features.rays_in_rig)
         job = None
         if t is not None:
             job = _submit_resection(
@@ -723,6 +769,31 @@ def _refine(ga, gb, camera, fa, fb, m, motion, ransac, config, warnings, a, b):
     return again if again is not None else motion
 
 
+def _tracked_step(
+    extractor: FeatureExtractor,
+    key_views: FrameViews,
+    key_features: FrameFeatures,
+    views: FrameViews,
+    ransac: RansacConfig,
+    config: SfmConfig,
+) -> tuple[Tracks, np.ndarray, float] | None:
+    """The keyframe's features tracked into a frame: (tracks, (M, 2) RANSAC-verified
+    (keyframe feature, frame feature) matches, parallax in rad), or None when too few
+    were tracked or no relative motion fits them (the frame then gets SIFT)."""
+    tracks = track_features(extractor, key_views, key_features, views, config.tracking)
+    followed = followed_count(len(key_features.rays_in_rig), config.tracking)
+    if len(tracks.feature) < config.tracking.min_tracked_fraction * followed:
+        return None
+    m = tracks.matches
+    try:
+        motion = estimate_relative_motion(
+            key_features.rays_in_rig[m[:, 0]], tracks.features.rays_in_rig, ransac
+        )
+    except ReconstructionError:
+        return None
+    return tracks, m[motion.inliers], _parallax(key_features, tracks.features, m, motion)
+
+
 def _parallax(fa, fb, m, motion) -> float:
     """Median angle (rad) between matched rays once the rotation is removed."""
     inl = m[motion.inliers]
@@ -742,16 +813,22 @@ def _submit_resection(
     and ``feature_point`` count from the first keyframe of the tracks' window.
 
     ``inl``: (M, 2) RANSAC-verified matches (keyframe k feature, frame feature);
-    ``next_matches``: (M', 2) descriptor matches (keyframe k + 1 feature, frame feature),
-    verified by the resection itself (rays more than 2 deg off are refitted without).
+    ``next_matches``: ((M',) keyframe k + 1 feature indices, (M', 3) the frame's rays)
+    from descriptor matching or tracking, verified by the resection itself (rays more
+    than 2 deg off are refitted without).
     """
     rays, points = [], []
-    for kk, m in ((k, inl), (k + 1, next_matches)):
-        if feature_point is None or m is None or not len(m) or kk >= len(feature_point):
+    sides = []
+    if inl is not None and len(inl):
+        sides.append((k, inl[:, 0], feats.rays_in_rig[inl[:, 1]]))
+    if next_matches is not None and len(next_matches[0]):
+        sides.append((k + 1, next_matches[0], next_matches[1]))
+    for kk, idx, frame_rays in sides:
+        if feature_point is None or kk >= len(feature_point):
             continue
-        pid = feature_point[kk][m[:, 0]]
+        pid = feature_point[kk][idx]
         ok = pid >= 0
-        rays.append(feats.rays_in_rig[m[ok, 1]])
+        rays.append(frame_rays[ok])
         points.append(track_points[pid[ok]])
     n_first = len(points[0]) if points and inl is not None and len(inl) else 0
     if rays and sum(len(r) for r in rays) >= 12 and n_first >= 6:
@@ -825,17 +902,19 @@ def _resolve(part: _StepEvidence | tuple[_StepEvidence, Future]) -> _StepEvidenc
 def _moving_frames(
     config: SfmConfig,
     inputs: SfmInputs,
-    camera: OmniCamera,
+    extractor: FeatureExtractor,
     executor: Executor | None,
     moved: np.ndarray,
     progress: Callable[[int], None] | None,
-) -> Iterator[tuple[int, FrameFeatures, np.ndarray]]:
-    """(frame index, features, grey image) of every frame where the rig moved, in
-    order; fills ``moved`` (N,) and reports progress over all N frames.
+) -> Iterator[tuple[int, FrameViews | None, FrameFeatures | None, np.ndarray]]:
+    """(frame index, views, features, grey image) of every frame where the rig moved,
+    in order; fills ``moved`` (N,) and reports progress over all N frames. With
+    ``config.tracking`` the views (features None: detected on the keyframes), else the
+    features (views None).
 
-    With ``inputs.moved``, ``inputs.dataset`` and an executor, the features come from
-    workers that decode the frames themselves (:class:`omnipipe.sfm.tasks.FeatureTask`;
-    the grey image as :func:`omnipipe.sfm.tasks.compact_gray` returns it); otherwise
+    With ``inputs.moved``, ``inputs.dataset`` and an executor, they come from workers
+    that decode the frames themselves (:class:`omnipipe.sfm.tasks.FeatureTask`; the
+    grey image as :func:`omnipipe.sfm.tasks.compact_gray` returns it); otherwise
     every frame is read here and the stationary test runs frame by frame.
     """
     from omnipipe.executor import InlineExecutor, iter_frames
@@ -848,20 +927,19 @@ def _moving_frames(
         moved[:] = inputs.moved
         frames = np.flatnonzero(moved)
         stream = iter_frames(
-            executor, FeatureTask(config.features), inputs.dataset, frames, most=4,
-            payload=lambda i: rings[i].pixels,
+            executor, FeatureTask(config.features, detect=not config.tracking.enabled),
+            inputs.dataset, frames, most=4, payload=lambda i: rings[i].pixels,
         )
-        for i, (feats, gray) in stream:
-            yield i, feats, gray
+        for i, (views, feats, gray) in stream:
+            yield i, views, feats, gray
             if progress:
                 progress(i + 1)
         if progress:
             progress(n)
         return
-    extractor = FeatureExtractor(camera, config.features)
     tracker = None
     if inputs.moved is None:
-        tracker = StationTracker(camera.valid_mask(), config.stations)
+        tracker = StationTracker(extractor.camera.valid_mask(), config.stations)
     else:
         moved[:] = inputs.moved
     for i in range(n):
@@ -871,7 +949,11 @@ def _moving_frames(
             if tracker is not None:
                 moved[i], _ = tracker.update(gray)
             if moved[i]:
-                yield i, extractor.extract(img, channel, rings[i].pixels), gray
+                views = extractor.frame_views(img, channel, rings[i].pixels)
+                if config.tracking.enabled:
+                    yield i, views, None, gray
+                else:
+                    yield i, None, extractor.detect(views), gray
         if progress:
             progress(i + 1)
 

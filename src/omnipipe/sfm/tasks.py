@@ -3,9 +3,12 @@
 Each task is a pure function of its arguments, so the motion does not depend on
 where it ran:
 
-- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker: its SIFT
-  features on perspective views (:mod:`omnipipe.sfm.features`) and its grey image
-  (for the later template matching, Eq. 17);
+- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker: its
+  perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
+  tracked between keyframes) and its grey image (for the later template matching,
+  Eq. 17);
+- :func:`track_into`: a keyframe's features followed into a frame's views
+  (:mod:`omnipipe.sfm.tracking`), for the frame's resection;
 - :func:`step_evidence`: one keyframe step's two scale measurements, the laser points'
   template matches along the epipolar curves (Eq. 17) and the matched features' depths
   on the light-section wall (:mod:`omnipipe.sfm.scale_check`).
@@ -21,7 +24,7 @@ import numpy as np
 from omnipipe.camera import OmniCamera, camera_from_rig
 from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
-from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures
+from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, FrameViews
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.scale_check import (
     ScaleCheckConfig,
@@ -29,6 +32,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
+from omnipipe.sfm.tracking import TrackConfig, Tracks, track_features
 
 if TYPE_CHECKING:
     from omnipipe.executor import FrameSource
@@ -59,27 +63,61 @@ def _extractor(rig: Rig, config: FeatureConfig) -> FeatureExtractor:
 
 
 class FeatureTask:
-    """Picklable task: (features, grey image) of each frame of a chunk.
+    """Picklable task: (views or None, features or None, grey image) of each frame of a
+    chunk.
 
-    The chunk's ``payload`` holds each frame's laser-ring pixels (N, 2), masked out of
-    the features. The grey image is :func:`compact_gray` of
-    :func:`omnipipe.image.gray_without_laser`.
+    With ``detect`` the frame's SIFT features (views None: nothing more is read from
+    them), else its :class:`~omnipipe.sfm.features.FrameViews` (features None: the
+    caller tracks into them, and detects on the keyframes). The chunk's ``payload``
+    holds each frame's laser-ring pixels (N, 2), masked out of the features. The grey
+    image is :func:`compact_gray` of :func:`omnipipe.image.gray_without_laser`.
     """
 
-    def __init__(self, config: FeatureConfig) -> None:
+    def __init__(self, config: FeatureConfig, detect: bool = True) -> None:
         self.config = config
+        self.detect = detect
 
-    def __call__(self, source: FrameSource) -> list[tuple[FrameFeatures, np.ndarray]]:
+    def __call__(
+        self, source: FrameSource
+    ) -> list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray]]:
         rig = source.rig
         extractor = _extractor(rig, self.config)
         channel = rig.laser.channel
-        out = []
+        out: list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray]] = []
         for k in range(len(source)):
             image = source.read(k)
             ring_pixels = None if source.payload is None else source.payload[k]
-            feats = extractor.extract(image, channel, ring_pixels)
-            out.append((feats, compact_gray(gray_without_laser(image, channel))))
+            views = extractor.frame_views(image, channel, ring_pixels)
+            gray = compact_gray(gray_without_laser(image, channel))
+            if self.detect:
+                out.append((None, extractor.detect(views), gray))
+            else:
+                out.append((views, None, gray))
         return out
+
+
+def track_into(
+    rig: Rig,
+    features_config: FeatureConfig,
+    key_views: FrameViews,
+    key_features: FrameFeatures,
+    views: FrameViews,
+    config: TrackConfig,
+) -> Tracks:
+    """:func:`omnipipe.sfm.tracking.track_features` with this process's extractor of
+    ``rig`` and ``features_config``."""
+    return track_features(_extractor(rig, features_config), key_views, key_features, views, config)
+
+
+def matched_rays(
+    key_features: FrameFeatures, features: FrameFeatures, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptor matches of a keyframe's features to a frame's: (M,) keyframe feature
+    indices and (M, 3) the matched rays of the frame."""
+    from omnipipe.sfm.features import match_features
+
+    m = match_features(key_features, features, ratio)
+    return m[:, 0], features.rays_in_rig[m[:, 1]]
 
 
 def laser_matches(
