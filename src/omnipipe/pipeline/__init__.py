@@ -312,6 +312,7 @@ def run(
             "photo_inconsistency_after": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_after, 3),
         },
         "keyframes": int(np.sum(motion.keyframe)),
+        "tracked_frames": 0 if motion.tracked is None else int(np.sum(motion.tracked)),
         "trajectory_quality": traj_quality,
         "input_quality": input_quality.to_dict(),
     }

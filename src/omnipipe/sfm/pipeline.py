@@ -190,6 +190,9 @@ class SfmResult:
             adjusted run's (NaN: too few reliable steps to tell).
         scale_correction_log: log of the factor applied to every length after the
             adjustment (:func:`combine_scales`; NaN: none).
+        tracked: (N,) True for the moving frames placed by optical-flow tracks of their
+            keyframe's features (:mod:`omnipipe.sfm.tracking`: no SIFT of their own);
+            None: not recorded.
     """
 
     world_from_rig: np.ndarray
@@ -208,6 +211,7 @@ class SfmResult:
     laser_offset: float = 0.0
     wall_scale_log: float = math.nan
     scale_correction_log: float = math.nan
+    tracked: np.ndarray | None = None
 
 
 def run(
@@ -269,6 +273,7 @@ def _estimate(
     moved = np.zeros(n, bool)
     is_kf = np.zeros(n, bool)
     lost = np.zeros(n, bool)
+    tracked = np.zeros(n, bool)
     world_from_kf: list[np.ndarray] = []
     kf_frames: list[int] = []
     scales: list[float] = []
@@ -299,11 +304,12 @@ def _estimate(
         else:
             a, fa, ga = prev
             if feats is None and i < n - 1:
-                tracked = _tracked_step(extractor, prev_views, fa, views, ransac, config)
-                if tracked is not None and tracked[2] < min_parallax:
+                step = _tracked_step(extractor, prev_views, fa, views, ransac, config)
+                if step is not None and step[2] < min_parallax:
                     # Too little baseline, followed without SIFT: resected after the adjustment.
-                    pending.append((i, len(kf_features) - 1, tracked[0].features, tracked[1]))
+                    pending.append((i, len(kf_features) - 1, step[0].features, step[1]))
                     pending_views[i] = views
+                    tracked[i] = True
                     continue
             if feats is None:
                 feats = extractor.detect(views)
@@ -497,6 +503,7 @@ def _estimate(
         unreliable=merge_stretches(stretches),
         scale_source=scale_source,
         laser_offset=math.exp(offset) - 1.0,
+        tracked=tracked,
     )
 
 
