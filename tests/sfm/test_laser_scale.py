@@ -87,3 +87,32 @@ def test_compiled_ncc_is_bit_identical_to_numpy() -> None:
         for w in (weight, weight3):
             got = _ncc(template, patches, w)
             assert np.array_equal(got, _ncc_numpy(template, patches, w), equal_nan=True)
+
+
+def test_fused_candidates_equal_the_generic_path() -> None:
+    """The hyperboloid camera's one-pass candidates (:func:`_candidate_patches`) give
+    the same matches, bit for bit, as translating, projecting and sampling each
+    candidate through the camera's public ``project`` (any camera model's path)."""
+    from unittest import mock
+
+    import omnipipe.sfm.laser_scale as ls
+    from omnipipe.image import gray_without_laser
+
+    scenario = make_scenario("paper", frames=12, size=(640, 480), seed=4)
+    renderer, poses, _, moving = build_renderer(scenario)
+    b = int(np.flatnonzero(moving)[2])
+    img_a, img_b, ring, b_from_a, length = _pair(renderer, poses, b - 2, b)
+    # Points off the wall too (some candidates leave the mirror's annulus or the image).
+    rng = np.random.default_rng(5)
+    ring = np.vstack([ring, ring[:20] * rng.uniform(0.2, 3.0, (20, 1))])
+    args = (
+        gray_without_laser(img_a, "red"), gray_without_laser(img_b, "red"), renderer.camera, ring,
+        b_from_a[:3, :3], b_from_a[:3, 3] / length,
+    )
+    fused = match_laser_points(*args)
+    with mock.patch.object(ls, "OmniCamera", type("NotThisCamera", (), {})):
+        generic = match_laser_points(*args)
+    assert len(fused.index) > 20
+    for name in ("index", "scale_mm", "pixels_b", "ncc", "peak_scales_mm", "peak_scores"):
+        assert np.array_equal(getattr(fused, name), getattr(generic, name), equal_nan=True), name
+    assert fused.scale == generic.scale

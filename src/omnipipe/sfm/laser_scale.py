@@ -16,10 +16,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numba
 import numpy as np
 
 from omnipipe.camera import OmniCamera
+from omnipipe.camera.hyperboloid import project_point
 from omnipipe.image import sample_bilinear
 
 
@@ -295,6 +297,91 @@ def _ncc_kernel(template, patches, weight, out):  # pragma: no cover - compiled
             out[i, j] = num / den if n_valid / k_len > 0.8 else -1.0
 
 
+def _candidate_patches(
+    gray_b: np.ndarray,
+    camera: OmniCamera,
+    plane_b0: np.ndarray,
+    scales: np.ndarray,
+    direction: np.ndarray,
+    sheet_n: np.ndarray | None,
+    sheet_o: float,
+    step: np.ndarray,
+    half: np.ndarray,
+    weight: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (N, S, K) patches of frame b (float64, NaN where not seen) and their sample
+    weights (N, 1 or S, K) of :func:`match_laser_points`' candidates: patch sample k of
+    point n moved by ``scales[n, s]`` along ``direction`` (Eq. 17), projected by the
+    hyperboloid camera and sampled bilinearly.
+
+    Bit-identical to translating every sample (:func:`_translated`), projecting them
+    (:meth:`OmniCamera.project`), sampling the valid ones (:func:`sample_bilinear`)
+    and weighting off the laser sheet (:func:`_off_sheet_weight`), but one compiled
+    pass writes only the pixels (as ``cv2.remap`` maps) and weights, and one remap
+    samples them.
+    """
+    n_pts, n_s, k_len = plane_b0.shape[0], scales.shape[1], plane_b0.shape[1]
+    total = n_pts * n_s * k_len
+    rows = max(-(-total // 4096), 1)
+    map_x = np.full(rows * 4096, -1.0, np.float32)
+    map_y = np.full(rows * 4096, -1.0, np.float32)
+    with_sheet = sheet_n is not None
+    w = np.empty((n_pts, n_s, k_len)) if with_sheet else np.empty((0, 0, 0))
+    normal = np.asarray(sheet_n if with_sheet else np.zeros(3), float)
+    _candidate_maps(
+        plane_b0, scales, direction, camera.a, camera.b, camera.c, camera.f, camera.cx, camera.cy,
+        float(camera.width), float(camera.height), camera.radius_min, camera.radius_max,
+        with_sheet, normal, float(sheet_o), step, half, weight, map_x, map_y, w,
+    )
+    fill = np.nan if gray_b.dtype.kind == "f" else 0
+    out = cv2.remap(
+        gray_b, map_x.reshape(rows, 4096), map_y.reshape(rows, 4096), cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=fill,
+    )
+    vals = out.reshape(-1)[:total].astype(np.result_type(gray_b.dtype, np.nan))
+    invalid = map_x[:total] == _OUTSIDE
+    vals[invalid] = np.nan
+    return vals.reshape(n_pts, n_s, k_len), (w if with_sheet else weight[:, None, :])
+
+
+_OUTSIDE = np.float32(-1.0e6)  # a remap coordinate far outside any image: not seen
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _candidate_maps(
+    plane, scales, direction, a, b, c, f, cx, cy, width, height, radius_min, radius_max,
+    with_sheet, normal, offset, step, half, weight, map_x, map_y, w,
+):  # pragma: no cover - compiled
+    """The pixels (float32 remap maps, :data:`_OUTSIDE` where not valid) and, with the
+    sheet, the weights of :func:`_candidate_patches`, point by point."""
+    n_pts, k_len = plane.shape[0], plane.shape[1]
+    n_s = scales.shape[1]
+    idx = 0
+    for i in range(n_pts):
+        for j in range(n_s):
+            s0 = scales[i, j] * direction[0]
+            s1 = scales[i, j] * direction[1]
+            s2 = scales[i, j] * direction[2]
+            for k in range(k_len):
+                x = plane[i, k, 0] + s0
+                y = plane[i, k, 1] + s1
+                z = plane[i, k, 2] + s2
+                col, row, ok = project_point(
+                    x, y, z, a, b, c, f, cx, cy, width, height, radius_min, radius_max
+                )
+                if ok:
+                    map_x[idx] = col
+                    map_y[idx] = row
+                else:
+                    map_x[idx] = _OUTSIDE
+                    map_y[idx] = _OUTSIDE
+                if with_sheet:
+                    along = x * normal[0] + y * normal[1] + z * normal[2]
+                    rows = abs(along + offset) / step[i]
+                    w[i, j, k] = weight[i, k] * (1.0 if rows > half[i] else 0.0)
+                idx += 1
+
+
 @numba.njit(cache=True)
 def _translated(plane, scales, direction):  # pragma: no cover - compiled
     """(N, S, K, 3) points ``plane[n, k] + scales[n, s] * direction``: the NumPy
@@ -422,7 +509,15 @@ def match_laser_points(
     # left out of each candidate's correlation as they are out of the template.
     sheet_n, sheet_o = _sheet(pts)
 
+    fused = type(camera) is OmniCamera
+
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
+        if fused:  # the same values in one compiled pass, without the (N, S, K, 3) points
+            patches, w = _candidate_patches(
+                gray_b, camera, plane_b0, np.ascontiguousarray(scales, dtype=float), d,
+                sheet_n, sheet_o, step, half, weight,
+            )
+            return _ncc(template, patches, w, basis)
         pts_b = _translated(plane_b0, np.ascontiguousarray(scales, dtype=float), d)  # (N, S, K, 3)
         pix, ok = camera.project(pts_b.reshape(-1, 3))
         # Only the valid samples are read (the others are NaN, as they were when every
