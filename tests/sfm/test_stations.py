@@ -52,7 +52,9 @@ def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
         (rgb16, "red"),  # fast, 16 bit
         (rgb8[..., 1].copy(), "red"),  # fast: one channel
         (rgb8, "green"),  # slow: the mean of red and blue
-        (rgb8[:63, :94], "red"),  # slow: sides not divisible by 4
+        (rgb8[:63, :94], "red"),  # fast: sides not divisible by 4 (the resize handles them)
+        (np.kron(rng.integers(0, 2, (32, 48, 1)), np.ones((2, 2, 3))).astype(np.uint8) * 255, "red"),  # extremes
+        ((rng.integers(0, 2, (64, 96, 3)) * 65535).astype(np.uint16), "red"),  # 16-bit extremes
         (rgb8.astype(np.float32), "red"),  # slow: float frame
         (np.full((64, 96, 3), 255, np.uint8), "red"),  # saturated: all-zero response
     ]
@@ -60,7 +62,7 @@ def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
 
 def test_frame_signature_equals_the_grey_image_signature() -> None:
     from omnipipe.image import gray_without_laser
-    from omnipipe.sfm.stations import frame_signature, inner_mask, station_signature
+    from omnipipe.sfm.stations import frame_signature, inner_mask, mask_runs, station_signature
 
     rng = np.random.default_rng(11)
     for image, channel in _frame_cases(rng):
@@ -70,6 +72,23 @@ def test_frame_signature_equals_the_grey_image_signature() -> None:
         inner = inner_mask(mask)
         want = station_signature(gray_without_laser(image, channel), inner)
         got = frame_signature(image, channel, inner)
+        again = frame_signature(image, channel, inner, runs=mask_runs(inner))
+        assert np.array_equal(again.small, got.small) and again.noise_sigma == got.noise_sigma
         assert got.small.dtype == want.small.dtype == np.float32
         assert np.array_equal(got.small, want.small), (image.shape, image.dtype, channel)
         assert got.noise_sigma == want.noise_sigma, (image.shape, image.dtype, channel)
+
+
+def test_mask_runs_cover_exactly_the_mask() -> None:
+    from omnipipe.sfm.stations import mask_runs
+
+    rng = np.random.default_rng(12)
+    for shape in ((1, 1), (5, 7), (40, 33)):
+        mask = rng.random(shape) > 0.4
+        mask[0, :] = True  # a run to the row's end
+        runs = mask_runs(mask)
+        flat = np.zeros(mask.size, bool)
+        for start, end in runs:
+            assert start < end and start // shape[1] == (end - 1) // shape[1]  # within one row
+            flat[start:end] = True
+        assert np.array_equal(flat.reshape(shape), mask)

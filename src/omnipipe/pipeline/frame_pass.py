@@ -44,6 +44,7 @@ from omnipipe.sfm.stations import (
     StationTracker,
     frame_signature,
     inner_mask,
+    mask_runs,
 )
 
 if TYPE_CHECKING:
@@ -74,16 +75,18 @@ class FramePassResult:
     ring_samples: np.ndarray
 
 
-# Per process: the valid mask and its interior of the last rig seen (built once per worker).
-_MASKS: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+# Per process: the valid mask, its interior and the interior's row runs of the last rig
+# seen (built once per worker).
+_MASKS: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
-def _masks(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+def _masks(rig: Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     key = pickle.dumps(rig)
     if key not in _MASKS:
         _MASKS.clear()
         valid = camera_from_rig(rig).valid_mask()
-        _MASKS[key] = (valid, inner_mask(valid))
+        inner = inner_mask(valid)
+        _MASKS[key] = (valid, inner, mask_runs(inner))
     return _MASKS[key]
 
 
@@ -96,11 +99,11 @@ def warm_up(laser: LaserConfig, stations: StationConfig, rig: Rig) -> None:
     frame (bend, 2 workers: about 0.5 s each, half of it the compiler's start-up).
     """
     camera, extractor = ring_extractor(laser, rig)
-    _, inner = _masks(rig)
+    _, inner, runs = _masks(rig)
     channels = 3 if rig.laser.channel in ("red", "green", "blue") else 1
     blank = np.zeros((camera.height, camera.width, channels)[: 2 if channels == 1 else 3], np.uint8)
     extractor.extract(blank, rig.laser.channel)
-    frame_signature(blank, rig.laser.channel, inner, stations)
+    frame_signature(blank, rig.laser.channel, inner, stations, runs)
 
 
 class _FrameTask:
@@ -121,12 +124,12 @@ class _FrameTask:
     def __call__(self, source: FrameSource) -> list[tuple[LaserRing | None, StationSignature]]:
         rig = source.rig
         camera, extractor = ring_extractor(self.laser, rig)
-        valid, inner = _masks(rig)
+        valid, inner, runs = _masks(rig)
         local = StationTracker(valid, self.stations)
         out: list[tuple[LaserRing | None, StationSignature]] = []
         for k in range(len(source)):
             image = source.read(k)
-            signature = frame_signature(image, rig.laser.channel, inner, self.stations)
+            signature = frame_signature(image, rig.laser.channel, inner, self.stations, runs)
             moved, _ = local.update_signature(signature)
             ring = (
                 triangulate_ring(extractor.extract(image, rig.laser.channel), camera, rig.laser)

@@ -86,53 +86,79 @@ def _small(gray: np.ndarray, factor: int) -> np.ndarray:
 
 
 def frame_signature(
-    image: np.ndarray, laser_channel: str, inner: np.ndarray, config: StationConfig | None = None
+    image: np.ndarray,
+    laser_channel: str,
+    inner: np.ndarray,
+    config: StationConfig | None = None,
+    runs: np.ndarray | None = None,
 ) -> StationSignature:
     """:func:`station_signature` of a decoded frame's grey image without the laser
     (:func:`omnipipe.image.gray_without_laser`), the same bit for bit.
 
     A frame whose grey image is one of its 8- or 16-bit channels (a red laser: green;
-    a one-channel frame) whose sides divide by the downsample factor takes one compiled
-    pass over that channel (box sums and the noise operator's histogram together, half
-    the time of :func:`station_signature` at 1600x1200); any other frame goes through
-    the grey image.
+    a one-channel frame) is read as that channel: the box average is the same resize of
+    the same values, and the noise operator runs in integers (``cv2.filter2D``) with a
+    histogram of its magnitudes over the ``inner`` pixels instead of a float32 image and
+    a masked median (4.5 -> 2.8 ms at 1600x1200, the signature taken of every frame).
+    Any other frame goes through the grey image.
 
     Args:
         image: (H, W) or (H, W, C) frame as decoded.
         laser_channel: the rig's laser channel.
         inner: (H, W) bool, the camera's valid mask eroded by :func:`inner_mask`.
+        runs: :func:`mask_runs` of ``inner`` when the caller keeps it (many frames share
+            one mask); None: made here.
     """
     from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 
     cfg = config or StationConfig()
-    f = cfg.downsample
+    h, w = image.shape[:2]
     if image.ndim == 2:
         channel = image
     elif image.ndim == 3 and CHANNEL_INDEX.get(laser_channel) == 0 and image.shape[2] >= 2:
-        channel = image[..., 1]
+        channel = cv2.extractChannel(image, 1) if image.dtype in (np.uint8, np.uint16) else None
     else:
         channel = None
-    h, w = image.shape[:2]
-    if (
-        channel is None
-        or channel.dtype not in (np.uint8, np.uint16)
-        or f & (f - 1)  # a power of two: sums / f**2 exact, as INTER_AREA's ...
-        or f * f * np.iinfo(channel.dtype).max >= 2**24  # ... and whole sums in float32
-        or h % f
-        or w % f
-        or h < 2
-        or w < 2
-        or inner.shape != (h, w)
-    ):
+    if channel is None or channel.dtype not in (np.uint8, np.uint16) or inner.shape != (h, w):
         return station_signature(gray_without_laser(image, laser_channel), inner, cfg)
-    bins = 16 * (255 if channel.dtype == np.uint8 else 65535) + 1
-    sums = np.zeros((h // f, w // f), np.int64)
+    channel = np.ascontiguousarray(channel)
+    small = _small(channel, cfg.downsample)
+    # The operator's response is a whole number: |r| <= 16 x the channel's maximum, held
+    # exactly by int16 (8-bit) or float32 (16-bit, below 2**24).
+    if channel.dtype == np.uint8:
+        response = cv2.filter2D(channel, cv2.CV_16S, _NOISE_KERNEL, borderType=cv2.BORDER_REFLECT)
+        magnitude = np.abs(response).view(np.uint16)
+        bins = 16 * 255 + 1
+    else:
+        response = cv2.filter2D(channel, cv2.CV_32F, _NOISE_KERNEL, borderType=cv2.BORDER_REFLECT)
+        magnitude = np.abs(response).astype(np.int32)
+        bins = 16 * 65535 + 1
     hist = np.zeros(bins, np.int64)
-    _sums_and_histogram(channel, inner, f, sums, hist)
-    # Whole sums below 2**24 are exact in float32, and so is dividing them by f**2:
-    # INTER_AREA's box average of the same pixels.
-    small = sums.astype(np.float32) / np.float32(f * f)
+    _histogram_runs(magnitude.reshape(-1), mask_runs(inner) if runs is None else runs, hist)
     return StationSignature(small, float(_hist_median(hist) / (6.0 * 0.6745)))
+
+
+_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
+def mask_runs(mask: np.ndarray) -> np.ndarray:
+    """(R, 2) int64 [start, end) flat indices of the runs of True along the rows of the
+    (H, W) bool ``mask`` (row-major)."""
+    h, w = mask.shape
+    padded = np.zeros((h, w + 2), np.int8)
+    padded[:, 1:-1] = mask
+    edges = np.diff(padded, axis=1)  # (H, W + 1): +1 where a run starts, -1 after it ends
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    runs = np.stack([starts // (w + 1) * w + starts % (w + 1), ends // (w + 1) * w + ends % (w + 1)], axis=1)
+    return runs.astype(np.int64)
+
+
+@numba.njit(cache=True)
+def _histogram_runs(values, runs, hist):  # pragma: no cover - compiled
+    """``hist[v] += 1`` for every ``values[i]`` with i in one of the [start, end) ``runs``."""
+    for r in range(runs.shape[0]):
+        for i in range(runs[r, 0], runs[r, 1]):
+            hist[values[i]] += 1
 
 
 def _hist_median(hist: np.ndarray) -> np.float32:
@@ -146,45 +172,6 @@ def _hist_median(hist: np.ndarray) -> np.float32:
         return np.float32(hi)
     lo = int(np.searchsorted(counts, n // 2 - 1, side="right"))
     return np.mean(np.array([lo, hi], np.float32))
-
-
-@numba.njit(cache=True)
-def _row_second_difference(g, r, out):  # pragma: no cover - compiled
-    """out[c] = g[r, c - 1] - 2 g[r, c] + g[r, c + 1], reflected border (g[r, -1] = g[r, 0])."""
-    w = g.shape[1]
-    out[0] = np.int64(g[r, 1]) - np.int64(g[r, 0])
-    for c in range(1, w - 1):
-        out[c] = np.int64(g[r, c - 1]) - 2 * np.int64(g[r, c]) + np.int64(g[r, c + 1])
-    out[w - 1] = np.int64(g[r, w - 2]) - np.int64(g[r, w - 1])
-
-
-@numba.njit(cache=True)
-def _sums_and_histogram(g, inner, f, sums, hist):  # pragma: no cover - compiled
-    """One pass over the (H, W) whole-number image ``g`` (H, W >= 2): ``sums``
-    (H // f, W // f) of its f x f blocks, and ``hist`` of the absolute noise-operator
-    response ([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], reflected border) at the ``inner``
-    pixels. The operator is separable: the second difference down the columns of the
-    rows' second differences, three rows of which are kept."""
-    h, w = g.shape
-    d = np.empty((3, w), np.int64)  # row r's second difference in d[r % 3]
-    _row_second_difference(g, 0, d[0])
-    _row_second_difference(g, 1, d[1])
-    for r in range(h):
-        up = d[(r - 1) % 3] if r > 0 else d[0]
-        mid = d[r % 3]
-        down = d[(r + 1) % 3] if r + 1 < h else mid
-        for c in range(w):
-            if inner[r, c]:
-                hist[abs(up[c] - 2 * mid[c] + down[c])] += 1
-        if r + 2 < h:
-            _row_second_difference(g, r + 2, d[(r + 2) % 3])
-        sr = r // f
-        if sr < sums.shape[0]:
-            for b in range(sums.shape[1]):
-                acc = 0
-                for c in range(b * f, b * f + f):
-                    acc += np.int64(g[r, c])
-                sums[sr, b] += acc
 
 
 class StationTracker:
