@@ -4,8 +4,10 @@
         [--reuse] [--workers N] [--scheduler tcp://HOST:PORT]
 
 Prints the trajectory errors, Table I (diameter, defects) against ground truth, the
-wall time and frames/s of each stage, and the time it takes merely to decode the same
-frames on the same workers (the floor of the laser stage, which decodes and extracts).
+wall time and frames/s of each stage (report.json's ``timings_s``: the computation), the
+time writing the outputs takes on top (model files, report.html; what ``omnipipe
+reconstruct`` also does), and the time it takes merely to decode the same frames on the
+same workers (the floor of the laser stage, which decodes and extracts).
 Nothing is tuned here: the defaults of ``omnipipe reconstruct``. ``--reuse`` with
 ``--keep DIR`` reconstructs the dataset an earlier ``--keep DIR`` run simulated there
 (when its frame count and image size are the scenario's) instead of simulating again.
@@ -61,7 +63,9 @@ def main() -> None:
             map_frames(ex, decode_only, dataset)
             t_decode = time.perf_counter() - t0
             where = describe(ex)
+        t0 = time.perf_counter()
         write(rec, root / "reconstruction", force=True)
+        t_write = time.perf_counter() - t0
         ev = evaluate(EvaluationConfig(), EvaluationInputs(root / "reconstruction", root / "dataset"))
         cam = scenario.rig.camera
         print(f"scenario {scenario.name}, {scenario.frames} frames at {cam.width}x{cam.height}, seed {args.seed}")
@@ -73,6 +77,10 @@ def main() -> None:
             f"time: simulate {t_sim:.1f} s (2 workers{'; reused' if t_sim < 5 else ''}); reconstruct {t['total']:.1f} s (laser {t['laser']:.1f}, "
             f"sfm {t['sfm']:.1f}, analysis {t['analysis']:.1f}, model {t['model']:.1f}); "
             f"{scenario.frames / t['total']:.2f} frames/s; keyframes {rec.summary['keyframes']}"
+        )
+        print(
+            f"writing the outputs (model files, report.html): {t_write:.1f} s; reconstruct and write "
+            f"{t['total'] + t_write:.1f} s, {scenario.frames / (t['total'] + t_write):.2f} frames/s"
         )
         print(
             "frames/s per stage: "

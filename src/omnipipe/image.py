@@ -7,6 +7,11 @@ import numpy as np
 
 CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
 
+# zlib level of the PNGs omnipipe writes (textures, unrolled wall, report images).
+# Measured on bend's 1107x645 texture atlas: level 6 (PIL's default) 356 ms, 758 KB;
+# level 3 79 ms, 852 KB; level 1 53 ms, 891 KB. Lossless at every level.
+PNG_COMPRESS_LEVEL = 3
+
 
 def gray_without_laser(image: np.ndarray, laser_channel: str) -> np.ndarray:
     """(H, W) float32 grey image of the LED-lit wall without the laser's colour channel.

@@ -35,6 +35,7 @@ from unittest import mock
 import numpy as np
 
 from omnipipe.errors import OutputError
+from omnipipe.image import PNG_COMPRESS_LEVEL
 
 if TYPE_CHECKING:
     from omnipipe.model import ModelResult
@@ -253,6 +254,14 @@ def write_glb(
         raise _fail(path, exc) from None
 
 
+def _rows(fmt: str, values: np.ndarray) -> str:
+    """The (N, K) ``values`` as N lines of ``fmt`` (K %-fields), joined by newlines: one
+    %-format of the whole table (3x faster than a formatted string per row)."""
+    if len(values) == 0:
+        return ""
+    return ((fmt + "\n") * len(values) % tuple(values.ravel().tolist()))[:-1]
+
+
 def write_obj(
     path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray
 ) -> None:
@@ -283,10 +292,10 @@ def write_obj(
     ]
     body = [
         "\n".join(lines),
-        "\n".join(f"v {a:.7f} {b:.7f} {c:.7f}" for a, b, c in v),
-        "\n".join(f"vt {a:.6f} {b:.6f}" for a, b in np.asarray(uvs, float)),
+        _rows("v %.7f %.7f %.7f", np.asarray(v, float)),
+        _rows("vt %.6f %.6f", np.asarray(uvs, float)),
         "usemtl pipe_wall\ns off",
-        "\n".join(f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in f),
+        _rows("f %d/%d %d/%d %d/%d", np.repeat(f, 2, axis=1)),
     ]
     material = "\n".join(
         [
@@ -303,7 +312,9 @@ def write_obj(
     try:
         path.write_text("\n".join(body) + "\n", encoding="ascii")
         mtl.write_text(material + "\n", encoding="ascii")
-        Image.fromarray(np.ascontiguousarray(texture)).save(path.parent / OBJ_TEXTURE)
+        Image.fromarray(np.ascontiguousarray(texture)).save(
+            path.parent / OBJ_TEXTURE, compress_level=PNG_COMPRESS_LEVEL
+        )
     except OSError as exc:
         raise _fail(path, exc) from None
 
@@ -327,7 +338,7 @@ def write_outputs(result: ModelResult, out_dir: Path) -> None:
             [result.unrolled.image, np.where(result.unrolled.alpha, 255, 0).astype(np.uint8)]
         )
         try:
-            Image.fromarray(rgba).save(out_dir / "unrolled.png")
+            Image.fromarray(rgba).save(out_dir / "unrolled.png", compress_level=PNG_COMPRESS_LEVEL)
         except OSError as exc:
             raise _fail(out_dir / "unrolled.png", exc) from None
     if (

@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from omnipipe.image import PNG_COMPRESS_LEVEL
+
 
 @dataclass(frozen=True)
 class ReportConfig:
@@ -78,7 +80,9 @@ def _png_data_uri(image: np.ndarray) -> str:
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", optimize=False)
+    Image.fromarray(np.ascontiguousarray(image)).save(
+        buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL
+    )
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -86,7 +90,9 @@ def _figure_data_uri(fig) -> str:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    fig.savefig(
+        buf, format="png", dpi=110, bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL}
+    )
     plt.close(fig)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
