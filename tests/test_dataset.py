@@ -115,3 +115,33 @@ def test_read_image_gives_rgb_of_every_png_kind(tmp_path, dtype, channels) -> No
     image = read_image(path)
     expected = stored if channels == 1 else stored[:, :, 2::-1]  # RGB, alpha dropped
     assert image.dtype == dtype and np.array_equal(image, expected)
+
+
+def test_every_png_kind_reads_the_same_with_libspng_and_opencv(tmp_path, monkeypatch) -> None:
+    """8-bit grey/RGB/RGBA PNGs go through libspng when pyspng is installed, the rest
+    through OpenCV: the same pixels either way, in RGB order; a truncated 8-bit PNG is
+    still one DatasetError."""
+    import omnipipe.dataset as dataset_module
+    from omnipipe.dataset import read_image
+
+    rng = np.random.default_rng(21)
+    cases = {
+        "rgb8": rng.integers(0, 256, (30, 40, 3), dtype=np.uint8),
+        "rgba8": rng.integers(0, 256, (30, 40, 4), dtype=np.uint8),
+        "grey8": rng.integers(0, 256, (30, 40), dtype=np.uint8),
+        "rgb16": rng.integers(0, 65536, (30, 40, 3), dtype=np.uint16),
+        "grey16": rng.integers(0, 65536, (30, 40), dtype=np.uint16),
+    }
+    for name, bgr in cases.items():
+        path = tmp_path / f"{name}.png"
+        assert cv2.imwrite(str(path), bgr)
+        got = read_image(path)
+        want = bgr if bgr.ndim == 2 else bgr[:, :, 2::-1]  # OpenCV writes BGR(A): RGB, no alpha
+        assert got.dtype == bgr.dtype and np.array_equal(got, want), name
+        with monkeypatch.context() as m:
+            m.setattr(dataset_module, "_spng", None)  # OpenCV alone
+            assert np.array_equal(read_image(path), got), name
+    raw = (tmp_path / "rgb8.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(DatasetError, match="not a readable image"):
+        read_image(tmp_path / "cut.png")
