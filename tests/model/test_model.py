@@ -11,6 +11,7 @@ import trimesh
 
 import omnipipe.model as model_stage
 from omnipipe.dataset import open_dataset
+from omnipipe.errors import ShapeError
 from omnipipe.executor import open_executor
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
@@ -116,3 +117,13 @@ def test_frames_decoded_by_two_worker_processes_give_the_serial_model(
     ):
         assert np.array_equal(getattr(serial, name), getattr(sections, name)), name
     assert np.array_equal(serial.unrolled.alpha, sections.unrolled.alpha)
+    # Given the rings already integrated (as the pipeline passes them), not the rings:
+    # the same model.
+    points, frame = model_stage.integrate(serial_inputs.world_from_rig, serial_inputs.ring_points_in_rig)
+    given = dataclasses.replace(serial_inputs, ring_points_in_rig=[], points_in_world=points, point_frame=frame)
+    integrated = run(ModelConfig(), given)
+    for name in ("points_in_world", "colours", "point_frame", "mesh_faces", "texture"):
+        assert np.array_equal(getattr(serial, name), getattr(integrated, name)), name
+    for bad in (frame[:-1], frame + len(keep), frame.astype(float)):
+        with pytest.raises(ShapeError, match="point_frame"):
+            run(ModelConfig(), dataclasses.replace(given, point_frame=bad))

@@ -124,7 +124,8 @@ class ModelInputs:
     Attributes:
         camera_rig: calibration.
         world_from_rig: (K, 4, 4) poses of the keyframes.
-        ring_points_in_rig: K arrays (M_k, 3), mm.
+        ring_points_in_rig: K arrays (M_k, 3), mm (not read when ``points_in_world`` is
+            given; may then be empty).
         ring_pixels: K arrays (M_k, 2), the rings' image positions (col, row).
         read_frame: k -> image of keyframe k.
         unrolled_mm: (N, 2) arc length around the axis in [0, circumference) and axial
@@ -134,6 +135,12 @@ class ModelInputs:
         dataset: the opened dataset of the keyframes; with ``frame_index`` the images
             are decoded in the executor's workers (:func:`run`), not by ``read_frame``.
         frame_index: (K,) int, the dataset index of each keyframe.
+        points_in_world: (N, 3) the rings already integrated, mm (:func:`integrate` of
+            ``world_from_rig`` and the rings, in its order), with ``point_frame`` (N,)
+            each point's keyframe: a caller that has them (the pipeline's analysis)
+            passes them instead of the rings, which then need not be held through the
+            stage; None: integrated here.
+        point_frame: see ``points_in_world``.
     """
 
     camera_rig: Rig
@@ -145,6 +152,8 @@ class ModelInputs:
     circumference_mm: float | None = None
     dataset: Dataset | None = None
     frame_index: np.ndarray | None = None
+    points_in_world: np.ndarray | None = None
+    point_frame: np.ndarray | None = None
 
 
 @dataclass
@@ -292,6 +301,23 @@ def _sample_frames(
             work[k] = None  # its pixels are done with
         if progress:
             progress(k + 1)
+
+
+def _integrated(inputs: ModelInputs) -> tuple[np.ndarray, np.ndarray]:
+    """``inputs``' own integrated points and their keyframes, checked.
+
+    Raises:
+        ShapeError: not (N, 3) points with (N,) keyframe indices below K.
+    """
+    points = np.asarray(inputs.points_in_world, float)
+    frame = None if inputs.point_frame is None else np.asarray(inputs.point_frame)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ShapeError(f"model inputs: points_in_world must be (N, 3), got {points.shape}")
+    if frame is None or frame.shape != (len(points),) or frame.dtype.kind not in "iu":
+        raise ShapeError("model inputs: point_frame must be (N,) integers with points_in_world")
+    if len(frame) and (frame.min() < 0 or frame.max() >= len(inputs.world_from_rig)):
+        raise ShapeError("model inputs: point_frame must index world_from_rig's keyframes")
+    return points, frame
 
 
 def integrate(
@@ -564,7 +590,10 @@ def _run(
 ) -> ModelResult:
     """:func:`run` (BLAS threads already limited)."""
     camera = camera_from_rig(inputs.camera_rig)
-    points, frame = integrate(inputs.world_from_rig, inputs.ring_points_in_rig)
+    if inputs.points_in_world is not None:
+        points, frame = _integrated(inputs)
+    else:
+        points, frame = integrate(inputs.world_from_rig, inputs.ring_points_in_rig)
     if not len(points):
         empty = np.zeros((0, 3))
         return ModelResult(

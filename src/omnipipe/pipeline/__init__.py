@@ -253,12 +253,11 @@ def run(
     traj_quality = quality.trajectory_quality(
         motion, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
     )
-    # What the model stage reads of the rings: their points and pixels. The rest of every
-    # frame's ring, and the integrated points (the model integrates them again), are not
-    # held through it.
-    ring_points = [r.points_in_rig for r in station_rings]
+    # What the model stage reads of the rings: the integrated points (the same
+    # integration, not done again) and the rings' pixels. The rest of every frame's ring
+    # is not held through it.
     ring_pixels = [r.pixels for r in station_rings]
-    del frames, rings, station_rings, points, point_frame
+    del frames, rings, station_rings
     release_freed_memory()
 
     t0 = time.perf_counter()
@@ -267,7 +266,7 @@ def run(
     model_inputs = model.ModelInputs(
         camera_rig=rig,
         world_from_rig=station_poses,
-        ring_points_in_rig=ring_points,
+        ring_points_in_rig=[],
         ring_pixels=ring_pixels,
         read_frame=lambda k: dataset.read_frame(int(stations[k])),
         unrolled_mm=np.column_stack(
@@ -276,8 +275,10 @@ def run(
         circumference_mm=circ,
         dataset=dataset,
         frame_index=stations,
+        points_in_world=points,
+        point_frame=point_frame,
     )
-    del ring_points, ring_pixels
+    del ring_pixels, points, point_frame
     mdl = model.run(config.model, model_inputs, progress=tick, executor=executor)
     del model_inputs
     timings["model"] = time.perf_counter() - t0
