@@ -39,13 +39,15 @@ if TYPE_CHECKING:
 
 
 def compact_gray(gray: np.ndarray) -> np.ndarray:
-    """``gray`` (H, W) float32 as uint16 when that holds it exactly (whole numbers in
-    0..65535: the green channel of an 8- or 16-bit frame), else unchanged: half the
-    bytes to send between processes, the same values once back in float32."""
+    """``gray`` (H, W) float32 as uint8 or uint16, the smallest that holds it exactly
+    (whole numbers in 0..255: the green channel of an 8-bit frame; in 0..65535: of a
+    16-bit one), else unchanged: a quarter or half the bytes to send between processes,
+    the same values once back in float32."""
     if gray.dtype == np.float32 and gray.size:
-        small = gray.astype(np.uint16)
-        if np.array_equal(small, gray):
-            return small
+        for dtype in (np.uint8, np.uint16):
+            small = gray.astype(dtype)
+            if np.array_equal(small, gray):
+                return small
     return gray
 
 
