@@ -221,9 +221,13 @@ def write_glb(
     import trimesh
     from PIL import Image
 
+    image = Image.fromarray(np.ascontiguousarray(texture))
+    # trimesh encodes the texture with a plain ``save``: Pillow takes the PNG level from
+    # the image's ``encoderinfo`` (Pillow >= 11; older ones ignore it, only slower).
+    image.encoderinfo = {"compress_level": PNG_COMPRESS_LEVEL}
     material = trimesh.visual.material.PBRMaterial(
         name="pipe_wall",
-        baseColorTexture=Image.fromarray(np.ascontiguousarray(texture)),
+        baseColorTexture=image,
         metallicFactor=0.0,
         roughnessFactor=1.0,
         doubleSided=True,
