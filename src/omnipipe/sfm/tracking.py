@@ -4,8 +4,9 @@ A moving frame that is not a keyframe needs only two things from its image: how 
 rig moved since the last keyframe (the keyframe decision, :mod:`omnipipe.sfm.pipeline`)
 and its rays to the keyframes' tracked points (its resection). Both come from the
 keyframe's SIFT keypoints followed into the frame by pyramidal Lucas-Kanade
-(``cv2.calcOpticalFlowPyrLK``) on the same perspective views, 4-5x cheaper than SIFT
-and descriptor matching on the frame. A track is kept only when the flow back from the
+(``cv2.calcOpticalFlowPyrLK``) on the same perspective views: about a tenth of the cost
+of SIFT and descriptor matching on the frame (bend, 1600x1200: 16-19 ms for 1000
+keypoints against about 270 ms). A track is kept only when the flow back from the
 frame returns to within ``max_forward_backward_px`` of where it started and it lands
 inside the frame's feature mask (annulus, off the laser band).
 
