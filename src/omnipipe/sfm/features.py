@@ -73,6 +73,14 @@ class FrameFeatures:
     view: np.ndarray
     view_pixels: np.ndarray | None = None
 
+    @classmethod
+    def empty(cls) -> FrameFeatures:
+        """No features (with empty view pixels)."""
+        return cls(
+            np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, int),
+            np.zeros((0, 2), np.float32),
+        )
+
 
 @dataclass
 class FrameViews:
@@ -170,10 +178,7 @@ class FeatureExtractor:
             vidx.append(np.full(len(kps), k))
             vpx.append(pts.astype(np.float32))
         if not rays:
-            return FrameFeatures(
-                np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, int),
-                np.zeros((0, 2), np.float32),
-            )
+            return FrameFeatures.empty()
         r = np.concatenate(rays)
         d = np.concatenate(descs).astype(np.float32)
         v = np.concatenate(vidx)

@@ -36,6 +36,10 @@ class StationConfig:
     noise_factor: float = 1.7
 
 
+# Immerkaer's noise operator: the difference of two Laplacians.
+_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
 def noise_sigma(gray: np.ndarray, mask: np.ndarray | None = None, *, inner: np.ndarray | None = None) -> float:
     """Sensor noise sigma of an image (Immerkaer 1996: Laplacian-difference operator).
 
@@ -45,8 +49,7 @@ def noise_sigma(gray: np.ndarray, mask: np.ndarray | None = None, *, inner: np.n
         inner: (H, W) bool, the already eroded mask (:func:`inner_mask`; saves the erosion
             when many frames share one mask). Takes precedence over ``mask``.
     """
-    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    resp = cv2.filter2D(gray.astype(np.float32), -1, kernel, borderType=cv2.BORDER_REFLECT)
+    resp = cv2.filter2D(gray.astype(np.float32), -1, _NOISE_KERNEL, borderType=cv2.BORDER_REFLECT)
     if inner is None and mask is not None:
         inner = inner_mask(mask)
     if inner is not None:
@@ -136,9 +139,6 @@ def frame_signature(
     hist = np.zeros(bins, np.int64)
     _histogram_runs(magnitude.reshape(-1), mask_runs(inner) if runs is None else runs, hist)
     return StationSignature(small, float(_hist_median(hist) / (6.0 * 0.6745)))
-
-
-_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
 def mask_runs(mask: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from omnipipe.errors import ConfigError
+from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
 
 
@@ -102,15 +102,15 @@ def track_features(
     of the same camera.
 
     Raises:
-        ValueError: ``key_features`` without view pixels.
+        ShapeError: ``key_features`` without view pixels.
     """
     if key_features.view_pixels is None:
-        raise ValueError("key_features: no view_pixels (features from FeatureExtractor.detect)")
+        raise ShapeError("key_features.view_pixels: missing (features from FeatureExtractor.detect have them)")
     win = (config.window_px, config.window_px)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
     n = len(key_features.view)
     followed = np.unique(np.linspace(0, n - 1, min(n, config.max_points)).round().astype(int))
-    idx_parts, px_parts, view_parts = [], [], []
+    idx_parts, px_parts, view_parts, ray_parts = [], [], [], []
     for k, view in enumerate(extractor.views):
         sel = followed[key_features.view[followed] == k]
         if len(sel) == 0:
@@ -131,19 +131,12 @@ def track_features(
         idx_parts.append(sel[ok])
         px_parts.append(p1[ok])
         view_parts.append(np.full(int(ok.sum()), k))
+        ray_parts.append(view.rays(p1[ok].astype(float)))
     if not idx_parts:
-        empty = FrameFeatures(
-            np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, int),
-            np.zeros((0, 2), np.float32),
-        )
-        return Tracks(np.zeros(0, int), empty)
+        return Tracks(np.zeros(0, int), FrameFeatures.empty())
     feature = np.concatenate(idx_parts)
     vpx = np.concatenate(px_parts).astype(np.float32)
     vidx = np.concatenate(view_parts)
-    rays = np.zeros((len(feature), 3))
-    for k, view in enumerate(extractor.views):
-        s = vidx == k
-        if s.any():
-            rays[s] = view.rays(vpx[s].astype(float))
+    rays = np.concatenate(ray_parts)
     pixels, _ = extractor.camera.project(rays)
     return Tracks(feature, FrameFeatures(rays, pixels, np.zeros((0, 128), np.float32), vidx, vpx))
