@@ -103,6 +103,11 @@ def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:
         return grey, full
     idx = CHANNEL_INDEX[channel]
     others = [c for c in range(img.shape[2]) if c != idx][:2]
+    if img.dtype in (np.uint8, np.uint16) and len(others) == 2:
+        # The same whole numbers, without float32 copies of all channels: the two other
+        # channels' maximum in their own type, then one subtraction into float32.
+        planes = [cv2.extractChannel(img, c) for c in (idx, *others)]
+        return cv2.subtract(planes[0], cv2.max(planes[1], planes[2]), dtype=cv2.CV_32F), full
     sig = img[..., idx].astype(np.float32) - img[..., others].astype(np.float32).max(axis=2)
     return sig, full
 
@@ -126,6 +131,7 @@ class RingExtractor:
             & (self.map_y >= 0)
             & (self.map_y <= camera.height - 1)
         )
+        self._outside = np.flatnonzero(~self.inside)  # flat indices, set to 0 in place
 
     def extract(self, image: np.ndarray, channel: str) -> LaserRing:
         """The ring of one frame (never raises on odd images: returns an empty ring with a warning)."""
@@ -148,18 +154,17 @@ class RingExtractor:
         )
         polar, _ = laser_signal(polar_img, channel)
         if polar_img.ndim == 3 and channel in CHANNEL_INDEX:
-            polar_raw = polar_img[..., CHANNEL_INDEX[channel]].astype(np.float32)
+            polar_raw = polar_img[..., CHANNEL_INDEX[channel]]
         else:
-            polar_raw = (
-                polar_img.astype(np.float32) if polar_img.ndim == 2 else polar_img.mean(axis=2)
-            )
-        polar = np.where(self.inside, polar, 0.0)
+            polar_raw = polar_img if polar_img.ndim == 2 else polar_img.mean(axis=2)
+        polar = np.ascontiguousarray(polar, np.float32)  # a new array: zeroed in place
+        polar.reshape(-1)[self._outside] = 0.0
         if cfg.tophat_px > 0:
             # White top-hat along each line: keeps features narrower than the element (the
             # ring), removes broad ones (red rust close to the LEDs), with no overshoot at
             # their edges.
             kernel = np.ones((1, 2 * int(cfg.tophat_px) + 1), np.uint8)
-            polar = cv2.morphologyEx(polar.astype(np.float32), cv2.MORPH_TOPHAT, kernel)
+            polar = cv2.morphologyEx(polar, cv2.MORPH_TOPHAT, kernel)
         # Per line (compiled, :mod:`omnipipe.laser.peaks`): background (median) and
         # robust noise (MAD of the line's first difference), both estimated on every 4th
         # sample (robust statistics, 4x cheaper); the strongest peak, the strongest
@@ -167,7 +172,10 @@ class RingExtractor:
         # samples around it.
         sep = int(round(cfg.separation_px / cfg.radial_step_px))
         step = int(round(1.0 / cfg.radial_step_px))
-        clipped = polar_raw >= cfg.saturation * full
+        # The raw laser channel against the threshold in float32, as a float32 copy of it
+        # was (its whole numbers are exact in float32); a channel mean in float64.
+        threshold = cfg.saturation * full
+        clipped = polar_raw >= (threshold if polar_raw.dtype == np.float64 else np.float32(threshold))
         stats = line_statistics(polar, clipped, sep, step)
         noise = 1.4826 * stats.mad / math.sqrt(2)
         noise = np.maximum(noise, 0.5)
