@@ -32,15 +32,25 @@ def test_stops_are_found_exactly() -> None:
     assert np.all(still < 2.0)  # the noise model explains stationary pairs
 
 
-def test_counted_median_equals_numpy_median() -> None:
-    from omnipipe.sfm.stations import _median_abs
+def test_counted_median_is_the_grouped_median_of_whole_numbers() -> None:
+    from omnipipe.sfm.stations import _grouped_median, _median_abs
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 3, 10, 999, 1000):
-        whole = rng.integers(-900, 900, n).astype(np.float32)  # the counting path
-        half = whole + np.float32(0.5)  # not whole numbers: numpy's path
-        for values in (whole, half):
-            assert _median_abs(values) == np.median(np.abs(values))
+        half = rng.integers(-900, 900, n).astype(np.float32) + np.float32(0.5)
+        assert _median_abs(half) == float(np.median(np.abs(half)))  # not whole: numpy's
+    # Whole numbers, by hand: [0, 0, 0, 1] -> in [0, 1/2), 2 of its 3 counts below.
+    assert _median_abs(np.array([0, 0, 0, -1], np.float32)) == 0.5 * 2 / 3
+    assert _median_abs(np.array([1, 1, -2, 2], np.float32)) == 1.5  # [0.5, 1.5) filled
+    assert _median_abs(np.array([3], np.float32)) == 3.0  # the middle of [2.5, 3.5)
+    assert np.isnan(_grouped_median(np.zeros(5, np.int64)))
+    # Rounded Gaussian magnitudes: the grouped median finds the continuous one within a
+    # few hundredths where the plain median of whole numbers is up to 1/2 off.
+    for sigma in (3.0, 7.4, 20.0):
+        x = rng.normal(0, sigma, 400_000).astype(np.float32)
+        truth = float(np.median(np.abs(x)))
+        got = _median_abs(np.round(x))
+        assert abs(got - truth) < 0.03, (sigma, got, truth)
 
 
 def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
@@ -53,6 +63,7 @@ def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
         (rgb8[..., 1].copy(), "red"),  # fast: one channel
         (rgb8, "green"),  # slow: the mean of red and blue
         (rgb8[:63, :94], "red"),  # fast: sides not divisible by 4 (the resize handles them)
+        (rgb8[:, :95], "red"),  # odd width: the last column reflected on its own
         (np.kron(rng.integers(0, 2, (32, 48, 1)), np.ones((2, 2, 3))).astype(np.uint8) * 255, "red"),  # extremes
         ((rng.integers(0, 2, (64, 96, 3)) * 65535).astype(np.uint16), "red"),  # 16-bit extremes
         (rgb8.astype(np.float32), "red"),  # slow: float frame
@@ -62,21 +73,74 @@ def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
 
 def test_frame_signature_equals_the_grey_image_signature() -> None:
     from omnipipe.image import gray_without_laser
-    from omnipipe.sfm.stations import frame_signature, inner_mask, mask_runs, station_signature
+    from omnipipe.sfm.stations import (
+        StationConfig,
+        frame_signature,
+        inner_mask,
+        mask_runs,
+        noise_mask,
+        station_signature,
+    )
 
     rng = np.random.default_rng(11)
     for image, channel in _frame_cases(rng):
         h, w = image.shape[:2]
         yy, xx = np.mgrid[:h, :w]
         mask = (xx - w / 2) ** 2 + (yy - h / 2) ** 2 < (0.6 * w) ** 2  # cut by the borders
-        inner = inner_mask(mask)
-        want = station_signature(gray_without_laser(image, channel), inner)
-        got = frame_signature(image, channel, inner)
-        again = frame_signature(image, channel, inner, runs=mask_runs(inner))
-        assert np.array_equal(again.small, got.small) and again.noise_sigma == got.noise_sigma
-        assert got.small.dtype == want.small.dtype == np.float32
-        assert np.array_equal(got.small, want.small), (image.shape, image.dtype, channel)
-        assert got.noise_sigma == want.noise_sigma, (image.shape, image.dtype, channel)
+        whole = np.ones((h, w), bool)  # runs along the borders: reflected neighbours
+        for inner in (inner_mask(mask), noise_mask(mask, 4), noise_mask(whole, 1), whole):
+            for config in (StationConfig(), StationConfig(downsample=3), StationConfig(downsample=1)):
+                want = station_signature(gray_without_laser(image, channel), inner, config)
+                got = frame_signature(image, channel, inner, config)
+                again = frame_signature(image, channel, inner, config, runs=mask_runs(inner))
+                assert np.array_equal(again.small, got.small) and again.noise_sigma == got.noise_sigma
+                assert got.small.dtype == want.small.dtype == np.float32
+                case = (image.shape, image.dtype, channel, config.downsample, int(inner.sum()))
+                assert np.array_equal(got.small, want.small), case
+                assert got.noise_sigma == want.noise_sigma, case
+
+
+def test_noise_mask_keeps_every_kth_row_of_the_interior() -> None:
+    from omnipipe.sfm.stations import inner_mask, noise_mask
+
+    rng = np.random.default_rng(13)
+    mask = rng.random((40, 30)) > 0.2
+    inner = inner_mask(mask)
+    for step in (1, 2, 4, 7):
+        got = noise_mask(mask, step)
+        rows = np.arange(40) % step == 0
+        assert np.array_equal(got[rows], inner[rows]) and not got[~rows].any()
+
+
+def test_noise_on_every_fourth_row_matches_every_row() -> None:
+    """The sparser estimate's error on a textured, noisy 8-bit frame: within 3 %."""
+    from omnipipe.sfm.stations import frame_signature, noise_mask
+
+    rng = np.random.default_rng(14)
+    yy, xx = np.mgrid[:480, :640]
+    texture = 120 + 40 * np.sin(xx / 7.0) * np.cos(yy / 11.0)
+    for sigma in (0.8, 1.5, 3.0, 6.0):
+        image = (texture + rng.normal(0, sigma, texture.shape)).clip(0, 255).astype(np.uint8)
+        mask = np.ones(image.shape, bool)
+        every = frame_signature(image, "red", noise_mask(mask, 1)).noise_sigma
+        fourth = frame_signature(image, "red", noise_mask(mask, 4)).noise_sigma
+        assert abs(fourth / every - 1) < 0.03, (sigma, every, fourth)
+        assert abs(every / sigma - 1) < 0.25, (sigma, every)  # and both measure the noise
+
+
+def test_station_settings_are_validated() -> None:
+    import pytest
+
+    from omnipipe.errors import ConfigError
+    from omnipipe.sfm.stations import StationConfig
+
+    for bad, name in (
+        ({"downsample": 0}, "downsample"),
+        ({"noise_factor": 0.0}, "noise_factor"),
+        ({"noise_row_step": 0}, "noise_row_step"),
+    ):
+        with pytest.raises(ConfigError, match=f"sfm.stations.{name}"):
+            StationConfig(**bad)
 
 
 def test_mask_runs_cover_exactly_the_mask() -> None:

@@ -43,8 +43,8 @@ from omnipipe.sfm.stations import (
     StationSignature,
     StationTracker,
     frame_signature,
-    inner_mask,
     mask_runs,
+    noise_mask,
 )
 
 if TYPE_CHECKING:
@@ -75,17 +75,17 @@ class FramePassResult:
     ring_samples: np.ndarray
 
 
-# Per process: the valid mask, its interior and the interior's row runs of the last rig
-# seen (built once per worker).
+# Per process: the valid mask, the noise estimate's pixels and their row runs of the last
+# (rig, settings) seen (built once per worker).
 _MASKS: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
-def _masks(rig: Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    key = pickle.dumps(rig)
+def _masks(rig: Rig, stations: StationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    key = pickle.dumps((rig, stations.noise_row_step))
     if key not in _MASKS:
         _MASKS.clear()
         valid = camera_from_rig(rig).valid_mask()
-        inner = inner_mask(valid)
+        inner = noise_mask(valid, stations.noise_row_step)
         _MASKS[key] = (valid, inner, mask_runs(inner))
     return _MASKS[key]
 
@@ -99,7 +99,7 @@ def warm_up(laser: LaserConfig, stations: StationConfig, rig: Rig) -> None:
     frame (bend, 2 workers: about 0.5 s each, half of it the compiler's start-up).
     """
     camera, extractor = ring_extractor(laser, rig)
-    _, inner, runs = _masks(rig)
+    _, inner, runs = _masks(rig, stations)
     channels = 3 if rig.laser.channel in ("red", "green", "blue") else 1
     blank = np.zeros((camera.height, camera.width, channels)[: 2 if channels == 1 else 3], np.uint8)
     extractor.extract(blank, rig.laser.channel)
@@ -124,7 +124,7 @@ class _FrameTask:
     def __call__(self, source: FrameSource) -> list[tuple[LaserRing | None, StationSignature]]:
         rig = source.rig
         camera, extractor = ring_extractor(self.laser, rig)
-        valid, inner, runs = _masks(rig)
+        valid, inner, runs = _masks(rig, self.stations)
         local = StationTracker(valid, self.stations)
         out: list[tuple[LaserRing | None, StationSignature]] = []
         for k in range(len(source)):
@@ -159,7 +159,7 @@ def run(
     """
     from omnipipe.executor import iter_frames
 
-    tracker = StationTracker(_masks(dataset.rig)[0], stations)  # built once (warm_up)
+    tracker = StationTracker(_masks(dataset.rig, stations)[0], stations)  # built once (warm_up)
     n = len(dataset)
     rings: list[LaserRing | None] = []
     moved = np.zeros(n, bool)
