@@ -32,7 +32,16 @@ def test_line_statistics_equal_numpy_bit_for_bit() -> None:
         peak_at = rng.integers(0, samples, 50)
         polar[np.arange(20, 50), peak_at[20:]] += 80  # a clear peak, anywhere (ends too)
         clipped = polar > 60
-        for sep, step in ((3, 1), (0, 1), (2, 2)):
+        cases = [polar]
+        # Whole numbers, as an integer frame gives (counted): narrow, negative, sparse;
+        # spread over more values than the count holds (selected); half-integers.
+        whole = np.round(rng.normal(0, 30, (50, samples))).astype(np.float32)
+        whole[:10] = rng.integers(-3, 3, (10, samples))
+        whole[10:20] = rng.choice(np.array([-200, 0, 5, 311], np.float32), (10, samples))
+        whole[20:30] = np.round(rng.normal(0, 400, (10, samples)))
+        whole[30:40] = np.round(rng.normal(0, 3, (10, samples))) + np.float32(0.5)
+        cases.append(whole)
+        for polar, sep, step in [(p, a, b) for p in cases for a, b in ((3, 1), (0, 1), (2, 2))]:
             got = line_statistics(polar, clipped, sep, step)
             want = _numpy_statistics(polar, clipped, sep, step)
             for name, a, b in zip(

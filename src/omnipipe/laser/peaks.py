@@ -6,7 +6,8 @@ absolute deviation of its first difference), its strongest sample, the strongest
 sample away from it (ambiguity), the saturated samples around it and the three
 samples the Gaussian peak fit uses. One compiled pass per line computes them all
 (NumPy needed a dozen whole-image passes and three partitions: 10 ms per 1600x1200
-frame, now about 1 ms) with NumPy's float32 arithmetic, so the results are the
+frame; 3.4 ms compiled with selections for the medians, 1.2 ms with the whole numbers
+of an integer frame counted) with NumPy's float32 arithmetic, so the results are the
 same bit for bit (``tests/laser/test_peaks.py`` holds the NumPy formulation).
 """
 
@@ -95,10 +96,50 @@ def _select(buf: np.ndarray, n: int, kth: int) -> np.float32:  # pragma: no cove
 
 
 @numba.njit(cache=True)
-def _median(buf: np.ndarray, n: int) -> np.float32:  # pragma: no cover - compiled
-    """``np.median`` of float32 buf[:n] (no NaN; buf is reordered): the middle value, or
-    the float32 mean of the two middle values."""
+def _median(buf: np.ndarray, n: int, counts: np.ndarray) -> np.float32:  # pragma: no cover - compiled
+    """``np.median`` of float32 buf[:n] (no NaN; buf may be reordered): the middle value,
+    or the float32 mean of the two middle values.
+
+    Whole numbers spanning fewer values than ``counts`` holds (an integer frame's laser
+    signal: bilinear samples rounded to the frame's type, their differences and the
+    top-hat of them) are counted, in linear time (bend's rings: 3.4 -> 1.2 ms for the
+    three medians of 720 lines); anything else is selected (:func:`_select`).
+    """
     h = n // 2
+    lo = buf[0]
+    hi = buf[0]
+    whole = True
+    for i in range(n):
+        v = buf[i]
+        if v < lo:
+            lo = v
+        if v > hi:
+            hi = v
+        if v != np.floor(v):
+            whole = False
+    if whole and hi - lo < counts.shape[0]:
+        base = np.int64(lo)
+        m = np.int64(hi) - base + 1
+        for j in range(m):
+            counts[j] = 0
+        for i in range(n):
+            counts[np.int64(buf[i]) - base] += 1
+        seen = 0
+        j = 0
+        while seen + counts[j] <= h:
+            seen += counts[j]
+            j += 1
+        upper = np.float32(base + j)
+        if n % 2:
+            return upper
+        if seen < h:  # the (h - 1)th is in the same bin
+            lower = upper
+        else:
+            j -= 1
+            while counts[j] == 0:
+                j -= 1
+            lower = np.float32(base + j)
+        return np.float32(np.float32(lower + upper) / np.float32(2.0))
     upper = _select(buf, n, h)
     if n % 2:
         return upper
@@ -117,11 +158,12 @@ def _lines(polar, clipped, sep, step, bg, mad, k_out, second, run, around):  # p
     buf = np.empty(max(n_bg, n_diff, 1), np.float32)
     diff = np.empty(max(n_diff, 1), np.float32)
     prof = np.empty(s, np.float32)
+    counts = np.empty(512, np.int64)
     for line in range(n_lines):
         row = polar[line]
         for j in range(n_bg):
             buf[j] = row[4 * j]
-        b = _median(buf, n_bg)
+        b = _median(buf, n_bg, counts)
         bg[line] = b
         for j in range(s):
             prof[j] = row[j] - b
@@ -129,10 +171,10 @@ def _lines(polar, clipped, sep, step, bg, mad, k_out, second, run, around):  # p
             for j in range(n_diff):
                 diff[j] = prof[4 * j + 1] - prof[4 * j]
                 buf[j] = diff[j]
-            centre = _median(buf, n_diff)
+            centre = _median(buf, n_diff, counts)
             for j in range(n_diff):
                 buf[j] = abs(diff[j] - centre)
-            mad[line] = _median(buf, n_diff)
+            mad[line] = _median(buf, n_diff, counts)
         else:
             mad[line] = np.float32(np.nan)
         best = 0
