@@ -156,3 +156,18 @@ def test_mask_runs_cover_exactly_the_mask() -> None:
             assert start < end and start // shape[1] == (end - 1) // shape[1]  # within one row
             flat[start:end] = True
         assert np.array_equal(flat.reshape(shape), mask)
+
+
+def test_signature_pickles_exactly_and_compactly() -> None:
+    import pickle
+
+    from omnipipe.sfm.stations import StationSignature
+
+    rng = np.random.default_rng(15)
+    boxed = rng.integers(0, 16 * 255 + 1, (30, 40)).astype(np.float32) / np.float32(16)  # 8-bit, f = 4
+    for small in (boxed, rng.random((30, 40)).astype(np.float32), boxed.astype(np.float64), boxed * 300):
+        signature = StationSignature(small, 1.25)
+        back = pickle.loads(pickle.dumps(signature))
+        assert back.small.dtype == small.dtype and np.array_equal(back.small, small)
+        assert back.noise_sigma == 1.25
+    assert len(pickle.dumps(StationSignature(boxed, 1.0))) < 0.6 * boxed.nbytes  # as uint16 sums

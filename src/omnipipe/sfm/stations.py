@@ -319,10 +319,31 @@ class StationSignature:
     Attributes:
         small: (H // f, W // f) float32 grey image box-averaged by ``downsample`` f.
         noise_sigma: the frame's sensor noise sigma (grey levels, :func:`noise_sigma`).
+
+    Pickled (from the worker that decoded the frame to the process that compares), an
+    8-bit frame's box average of 16 pixels travels as its block sums in uint16, exact
+    and in half the bytes (bend: 160 -> 80 MB through the pipes); any other as is.
     """
 
     small: np.ndarray
     noise_sigma: float
+
+    def __getstate__(self) -> tuple:
+        small = self.small
+        if small.dtype == np.float32 and small.size:
+            sums = small * np.float32(16.0)
+            if float(sums.max()) < 65536 and float(sums.min()) >= 0:
+                packed = sums.astype(np.uint16)
+                if np.array_equal(packed, sums):
+                    return packed, self.noise_sigma
+        return small, self.noise_sigma
+
+    def __setstate__(self, state: tuple) -> None:
+        small, sigma = state
+        if small.dtype == np.uint16:
+            small = small.astype(np.float32) * np.float32(1.0 / 16.0)
+        object.__setattr__(self, "small", small)
+        object.__setattr__(self, "noise_sigma", sigma)
 
 
 def station_signature(
