@@ -88,7 +88,7 @@ def test_frame_signature_equals_the_grey_image_signature() -> None:
         yy, xx = np.mgrid[:h, :w]
         mask = (xx - w / 2) ** 2 + (yy - h / 2) ** 2 < (0.6 * w) ** 2  # cut by the borders
         whole = np.ones((h, w), bool)  # runs along the borders: reflected neighbours
-        for inner in (inner_mask(mask), noise_mask(mask, 4), noise_mask(whole, 1), whole):
+        for inner in (inner_mask(mask), noise_mask(mask, 400), noise_mask(whole, None), whole):
             for config in (StationConfig(), StationConfig(downsample=3), StationConfig(downsample=1)):
                 want = station_signature(gray_without_laser(image, channel), inner, config)
                 got = frame_signature(image, channel, inner, config)
@@ -106,10 +106,14 @@ def test_noise_mask_keeps_every_kth_row_of_the_interior() -> None:
     rng = np.random.default_rng(13)
     mask = rng.random((40, 30)) > 0.2
     inner = inner_mask(mask)
-    for step in (1, 2, 4, 7):
-        got = noise_mask(mask, step)
-        rows = np.arange(40) % step == 0
-        assert np.array_equal(got[rows], inner[rows]) and not got[~rows].any()
+    count = int(inner.sum())
+    assert np.array_equal(noise_mask(mask), inner) and np.array_equal(noise_mask(mask, count), inner)
+    for pixels in (count // 2, count // 4, count // 7, 30):
+        got = noise_mask(mask, pixels)
+        kept = [k for k in range(1, 41) if inner[::k].sum() >= pixels]  # the largest: max
+        rows = np.arange(40) % max(kept) == 0
+        assert np.array_equal(got[rows], inner[rows]) and not got[~rows].any(), pixels
+        assert got.sum() >= pixels
 
 
 def test_noise_on_every_fourth_row_matches_every_row() -> None:
@@ -122,8 +126,8 @@ def test_noise_on_every_fourth_row_matches_every_row() -> None:
     for sigma in (0.8, 1.5, 3.0, 6.0):
         image = (texture + rng.normal(0, sigma, texture.shape)).clip(0, 255).astype(np.uint8)
         mask = np.ones(image.shape, bool)
-        every = frame_signature(image, "red", noise_mask(mask, 1)).noise_sigma
-        fourth = frame_signature(image, "red", noise_mask(mask, 4)).noise_sigma
+        every = frame_signature(image, "red", noise_mask(mask)).noise_sigma
+        fourth = frame_signature(image, "red", noise_mask(mask, mask.size // 4)).noise_sigma
         assert abs(fourth / every - 1) < 0.03, (sigma, every, fourth)
         assert abs(every / sigma - 1) < 0.25, (sigma, every)  # and both measure the noise
 
@@ -137,7 +141,7 @@ def test_station_settings_are_validated() -> None:
     for bad, name in (
         ({"downsample": 0}, "downsample"),
         ({"noise_factor": 0.0}, "noise_factor"),
-        ({"noise_row_step": 0}, "noise_row_step"),
+        ({"noise_pixels": 10}, "noise_pixels"),
     ):
         with pytest.raises(ConfigError, match=f"sfm.stations.{name}"):
             StationConfig(**bad)

@@ -81,11 +81,11 @@ _MASKS: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
 def _masks(rig: Rig, stations: StationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    key = pickle.dumps((rig, stations.noise_row_step))
+    key = pickle.dumps((rig, stations.noise_pixels))
     if key not in _MASKS:
         _MASKS.clear()
         valid = camera_from_rig(rig).valid_mask()
-        inner = noise_mask(valid, stations.noise_row_step)
+        inner = noise_mask(valid, stations.noise_pixels)
         _MASKS[key] = (valid, inner, mask_runs(inner))
     return _MASKS[key]
 
