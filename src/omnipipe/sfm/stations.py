@@ -287,7 +287,7 @@ class StationTracker:
         small = _small(mask.astype(np.float32), f)
         self.mask_small = small > 0.999
         self.mask = mask
-        self._inner = noise_mask(mask, self.config.noise_pixels)
+        self._inner: np.ndarray | None = None  # the noise estimate's pixels, made by update()
         self._prev: np.ndarray | None = None
 
     def update(self, gray: np.ndarray) -> tuple[bool, float]:
@@ -296,6 +296,8 @@ class StationTracker:
         ``ratio`` is the smoothed difference over its noise-only expectation (inf for
         the first frame, which counts as moved: it starts a station).
         """
+        if self._inner is None:
+            self._inner = noise_mask(self.mask, self.config.noise_pixels)
         return self.update_signature(station_signature(gray, self._inner, self.config))
 
     def update_signature(self, signature: StationSignature) -> tuple[bool, float]:
