@@ -60,7 +60,7 @@ def run(
 ) -> LaserResult:
     """Extract and triangulate the laser ring of every frame."""
     camera = camera_from_rig(rig)
-    extractor = RingExtractor(camera, config.extraction)
+    extractor = RingExtractor(camera, config.extraction, rig.laser)
     rings, warnings = [], []
     for i, frame in enumerate(frames):
         ring = triangulate_ring(extractor.extract(frame, rig.laser.channel), camera, rig.laser)
@@ -107,7 +107,7 @@ def _extractor(config: LaserConfig, rig: Rig) -> tuple:
     if key not in _EXTRACTORS:
         camera = camera_from_rig(rig)
         _EXTRACTORS.clear()
-        _EXTRACTORS[key] = (camera, RingExtractor(camera, config.extraction))
+        _EXTRACTORS[key] = (camera, RingExtractor(camera, config.extraction, rig.laser))
     return _EXTRACTORS[key]
 
 

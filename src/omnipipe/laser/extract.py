@@ -2,8 +2,9 @@
 
 The laser channel, with the LED-lit texture suppressed (laser channel minus the
 brightest other channel), is resampled along radial lines from the principal point
-(one line per angle, 1 px radial steps, cv2.remap) over the valid annulus. On
-each line the strongest peak is refined with the three-point Gaussian fit
+(one line per angle, 1 px radial steps, cv2.remap) over the valid annulus, or, when
+the laser plane is known, over its radii whose rays can meet the plane (the others can
+hold no ring sample that triangulates: bend's 211 of 508). On each line the strongest peak is refined with the three-point Gaussian fit
 (log-parabola, Fisher & Naidu [20]). Each sample gets a confidence (peak height
 over the line's robust noise); weak, saturated-flat or ambiguous peaks (a second
 separate peak of comparable height: reflections, bright texture) are rejected and
@@ -21,6 +22,7 @@ import numpy as np
 from omnipipe.camera import CameraModel, OmniCamera
 from omnipipe.image import CHANNEL_INDEX
 from omnipipe.laser.peaks import line_statistics
+from omnipipe.rig import LaserPlane
 
 
 @dataclass(frozen=True)
@@ -113,15 +115,31 @@ def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:
 
 
 class RingExtractor:
-    """Extracts rings from frames of one camera (the polar sampling maps are built once)."""
+    """Extracts rings from frames of one camera (the polar sampling maps are built once).
 
-    def __init__(self, camera: OmniCamera, config: ExtractionConfig | None = None) -> None:
+    Args:
+        camera: the rig's camera.
+        config: extraction settings.
+        plane: the calibrated laser plane, or None (calibrating it). Given, the scan lines
+            cover only the radii whose rays meet it as :func:`triangulate_ring` accepts
+            (in front of the focus, not grazing) on some line, widened by the top-hat's
+            half width, the competing peak's separation and the fit's step: a peak
+            beyond them could not triangulate. Bend: 211 of 508 radii, 7.2 -> 3.4 ms
+            per frame.
+    """
+
+    def __init__(
+        self, camera: OmniCamera, config: ExtractionConfig | None = None, plane: LaserPlane | None = None
+    ) -> None:
         self.camera = camera
         self.config = cfg = config or ExtractionConfig()
         r0 = max(camera.radius_min, 1.0)
         self.radii = np.arange(r0, camera.radius_max, cfg.radial_step_px, dtype=np.float32)
         self.angles = np.arange(cfg.angles) * (2 * math.pi / cfg.angles)
         cos, sin = np.cos(self.angles)[:, None], np.sin(self.angles)[:, None]
+        if plane is not None:
+            margin = int(cfg.tophat_px) + int(math.ceil(cfg.separation_px / cfg.radial_step_px)) + 2
+            self.radii = _radii_meeting(camera, plane, self.radii, cos, sin, margin)
         self.map_x = (camera.cx + self.radii[None, :] * cos).astype(np.float32)
         self.map_y = (camera.cy + self.radii[None, :] * sin).astype(np.float32)
         # Samples outside the image (mirror rim cut by the sensor) are invalid.
@@ -232,6 +250,26 @@ class RingExtractor:
         elif sat.mean() > 0.25:
             ring.warnings.append(f"laser saturated on {100 * sat.mean():.0f} % of scan lines")
         return ring
+
+
+def _radii_meeting(
+    camera: CameraModel, plane: LaserPlane, radii: np.ndarray, cos: np.ndarray, sin: np.ndarray, margin: int
+) -> np.ndarray:
+    """The consecutive part of ``radii`` (float32, px) from the first to the last radius
+    at which some scan line's ray (angle ``cos``, ``sin``: (L, 1)) meets ``plane`` as
+    :func:`~omnipipe.laser.triangulate.intersect_plane` accepts, widened by ``margin``
+    radii each side; all of ``radii`` when no ray meets it."""
+    from omnipipe.laser.triangulate import intersect_plane  # it imports this module
+
+    x = camera.cx + radii[None, :].astype(float) * cos
+    y = camera.cy + radii[None, :].astype(float) * sin
+    with np.errstate(invalid="ignore"):
+        rays = camera.unproject(np.stack([x.ravel(), y.ravel()], axis=1))
+    _, valid = intersect_plane(rays, plane)
+    meets = np.flatnonzero(valid.reshape(x.shape).any(axis=0))
+    if len(meets) == 0:
+        return radii
+    return radii[max(int(meets[0]) - margin, 0) : int(meets[-1]) + margin + 1]
 
 
 def _spread_rings(rings: list[LaserRing], max_rings: int) -> list[LaserRing]:
