@@ -111,3 +111,25 @@ def test_bad_frames_give_empty_rings_and_warnings(small_rig: Rig, kind: str) -> 
         img = np.zeros((300, 400), np.uint16)
     ring = ex.extract(img, "red")
     assert len(ring.pixels) == 0 and ring.warnings
+
+
+def test_scan_lines_cover_every_radius_that_meets_the_plane(small_rig: Rig) -> None:
+    """With the plane known, the scan skips only radii whose rays cannot meet it, and
+    finds the same ring as the full scan."""
+    from omnipipe.laser.triangulate import triangulate_ring
+
+    rng = np.random.default_rng(4)
+    img, cam = _synthetic_ring(small_rig, 101.0, rng)
+    full = RingExtractor(cam)
+    window = RingExtractor(cam, plane=small_rig.laser)
+    assert len(window.radii) < 0.8 * len(full.radii)
+    pixels = np.stack([full.map_x.ravel(), full.map_y.ravel()], axis=1)
+    _, meets = intersect_plane(cam.unproject(pixels), small_rig.laser)
+    radii = np.broadcast_to(full.radii, full.map_x.shape).ravel()[meets]
+    assert window.radii[0] <= radii.min() and radii.max() <= window.radii[-1]
+    a = triangulate_ring(full.extract(img, "red"), cam, small_rig.laser)
+    b = triangulate_ring(window.extract(img, "red"), cam, small_rig.laser)
+    assert len(a.pixels) > 0.9 * len(full.angles)
+    common, ia, ib = np.intersect1d(a.angle_rad, b.angle_rad, return_indices=True)
+    assert len(common) >= 0.99 * max(len(a.pixels), len(b.pixels))
+    assert np.median(np.linalg.norm(a.points_in_rig[ia] - b.points_in_rig[ib], axis=1)) < 0.01  # mm
