@@ -34,8 +34,8 @@ class StationConfig:
             paper and bend keep the same motion.
         noise_pixels: the noise estimate takes every k-th row of the mask's interior, k
             the largest that keeps at least this many pixels (:func:`noise_mask`): a
-            1600x1200 frame's 1.1 million interior pixels give every 8th row, an 800x600
-            frame's every 2nd, smaller frames every row. Its median's relative standard
+            1600x1200 frame's 1.1 million interior pixels give every 8th row; an 800x600
+            frame's 256 000, and anything smaller, every row. Its median's relative standard
             error is then about 0.3 %, and its cost does not grow with the frame size.
     """
 
@@ -153,8 +153,9 @@ def frame_signature(
     operator only at the ``inner`` pixels (:func:`_noise_histogram`, a histogram of its
     magnitudes instead of a float32 image and a masked median) and the box average as
     block sums. 1600x1200, the signature taken of every frame: 4.5 ms as float32 images,
-    2.7 ms with ``cv2.filter2D`` over the whole frame, 1.2 ms now (with the
-    :func:`noise_mask` of every 4th row; 1.0 ms with the default's every 8th). Any other frame goes through the grey image.
+    2.7 ms with ``cv2.filter2D`` over the whole frame, 1.2 ms with the
+    :func:`noise_mask` of every 4th row, 1.0 ms with the default's every 8th. Any other
+    frame goes through the grey image.
 
     Args:
         image: (H, W) or (H, W, C) frame as decoded.
