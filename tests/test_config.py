@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from omnipipe.config import dataclass_from_dict, load_yaml_mapping
+from omnipipe.config import bounded, dataclass_from_dict, deep_merge, load_yaml_mapping
 from omnipipe.errors import ConfigError
 
 
@@ -56,3 +56,40 @@ def test_yaml_files(tmp_path: Path) -> None:
         load_yaml_mapping(p)
     with pytest.raises(ConfigError, match="not found"):
         load_yaml_mapping(tmp_path / "none.yaml")
+
+
+@dataclass(frozen=True)
+class Bounded:
+    grid_mm: float = bounded(1.0, gt=0)
+    count: int = bounded(3, ge=1, le=10)
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [({"grid_mm": 0}, "must be > 0"), ({"count": 0}, "must be >= 1"), ({"count": 11}, "<= 10")],
+)
+def test_values_outside_bounds_are_refused_naming_the_field(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message) as err:
+        dataclass_from_dict(Bounded, data, "sec", source="c.yaml")
+    assert err.value.field == f"sec.{next(iter(data))}"
+    assert "\n" not in str(err.value)
+
+
+def test_values_inside_bounds_are_taken() -> None:
+    assert dataclass_from_dict(Bounded, {"grid_mm": 0.5, "count": 10}) == Bounded(0.5, 10)
+
+
+def test_deep_merge_keeps_nested_siblings() -> None:
+    base = {"sfm": {"features": {"views": 6, "max_features": 100}, "x": 1}}
+    merged = deep_merge(base, {"sfm": {"features": {"max_features": 500}}})
+    assert merged == {"sfm": {"features": {"views": 6, "max_features": 500}, "x": 1}}
+    assert base["sfm"]["features"]["max_features"] == 100
+
+
+def test_yaml_views_survive_a_features_override(tmp_path: Path) -> None:
+    from omnipipe.pipeline import ReconstructConfig
+
+    p = tmp_path / "c.yaml"
+    p.write_text("sfm:\n  features: {views: 6}\n")
+    cfg = ReconstructConfig.from_yaml(p, {"sfm": {"features": {"max_features": 500}}})
+    assert cfg.sfm.features.views == 6 and cfg.sfm.features.max_features == 500

@@ -1,9 +1,11 @@
 """Typed configuration from YAML mappings: dataclasses filled and validated field by field.
 
 ``dataclass_from_dict(SomeConfig, {"key": value}, "section")`` returns a new
-``SomeConfig`` with the given fields replaced; an unknown key or a value of the
-wrong type (a float must also be finite: nan and inf are refused) raises a
-:class:`ConfigError` naming ``section.key``. YAML is read by
+``SomeConfig`` with the given fields replaced; an unknown key, a value of the
+wrong type (a float must also be finite: nan and inf are refused) or a value outside
+the field's declared bounds (:func:`bounded`) raises a :class:`ConfigError` naming
+``section.key``. :func:`deep_merge` layers mappings (defaults, YAML, command line)
+key by key, so an override of one nested setting keeps its siblings. YAML is read by
 :func:`omnipipe.safe_yaml.load_yaml_file` (bounded size and alias expansion).
 """
 
@@ -20,6 +22,55 @@ from omnipipe.errors import ConfigError
 from omnipipe.safe_yaml import load_yaml_file
 
 T = TypeVar("T")
+
+_BOUNDS = "omnipipe_bounds"
+
+
+def bounded(
+    default: Any,
+    *,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+) -> Any:
+    """A dataclass field with ``default`` whose configured values must lie in the bounds.
+
+    ``ge``/``gt``/``le``/``lt``: inclusive/exclusive lower and upper bounds (None: open).
+    :func:`dataclass_from_dict` refuses a value outside them, naming the field.
+    """
+    bounds = {"ge": ge, "gt": gt, "le": le, "lt": lt}
+    return dataclasses.field(default=default, metadata={_BOUNDS: bounds})
+
+
+def _check_bounds(value: Any, bounds: dict[str, float | None], field: str, source: str | None) -> None:
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return
+    tests = {
+        "ge": (lambda v, b: v >= b, ">="),
+        "gt": (lambda v, b: v > b, ">"),
+        "le": (lambda v, b: v <= b, "<="),
+        "lt": (lambda v, b: v < b, "<"),
+    }
+    for key, (ok, sign) in tests.items():
+        bound = bounds.get(key)
+        if bound is not None and not ok(value, bound):
+            raise ConfigError(field, f"must be {sign} {bound:g}, got {value:g}", source)
+
+
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``override`` laid over it, mapping by mapping (new dict; inputs unchanged).
+
+    A key whose values are mappings on both sides is merged recursively; any other
+    value in ``override`` replaces the one in ``base``.
+    """
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 def _coerce(value: Any, annotation: Any, field: str, source: str | None) -> Any:
@@ -80,13 +131,17 @@ def dataclass_from_dict(
     if not isinstance(data, dict):
         raise ConfigError(prefix or "config", f"must be a mapping, got {data!r}", source)
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     kwargs = {}
     for key, value in data.items():
         field = f"{prefix}.{key}" if prefix else str(key)
-        if key not in names:
-            raise ConfigError(field, f"unknown setting (known: {', '.join(sorted(names))})", source)
+        if key not in fields:
+            known = ", ".join(sorted(fields))
+            raise ConfigError(field, f"unknown setting (known: {known})", source)
         kwargs[key] = _coerce(value, hints[key], field, source)
+        bounds = fields[key].metadata.get(_BOUNDS)
+        if bounds:
+            _check_bounds(kwargs[key], bounds, field, source)
     try:
         return cls(**kwargs)
     except ConfigError:

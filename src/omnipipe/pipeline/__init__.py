@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from omnipipe.config import dataclass_from_dict, load_yaml_mapping
+from omnipipe.config import dataclass_from_dict, deep_merge, load_yaml_mapping
 from omnipipe.errors import ReconstructionError
 from omnipipe.memory import release_freed_memory
 
@@ -83,8 +83,7 @@ class ReconstructConfig:
                     source,
                 )
             merged[section] = dict(values or {})
-        for section, values in (overrides or {}).items():
-            merged.setdefault(section, {}).update(values)
+        merged = deep_merge(merged, overrides or {})
         parts = {}
         for section in ("laser", "sfm", "model", "analysis", "report"):
             default = getattr(base, section)
@@ -92,7 +91,7 @@ class ReconstructConfig:
             if values:
                 from dataclasses import asdict
 
-                combined = {**asdict(default), **values}
+                combined = deep_merge(asdict(default), values)
                 # Nested dataclasses come back as dicts from asdict: rebuild the whole section.
                 parts[section] = dataclass_from_dict(type(default), combined, section, source)
             else:
