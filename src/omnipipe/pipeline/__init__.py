@@ -156,6 +156,7 @@ def run(
     from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
     from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
+    from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import frame_pass, quality
     from omnipipe.sfm import pipeline as sfm
 
@@ -231,6 +232,8 @@ def run(
     tick = progress("analysis", 2)
     station_poses = motion.world_from_rig[stations]
     station_rings = [rings.rings[i] for i in stations]
+    # Stray laser peaks (isolated points far off the wall) out before anything uses them.
+    station_rings, outliers_removed = reject_ring_outliers(station_rings)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
     tick(1)
     res = analysis.run(
@@ -304,6 +307,7 @@ def run(
         "executor": describe_executor(executor),
         "warnings": warnings,
         "stationary_frames": int(np.sum(motion.stationary)),
+        "wall_outliers_removed": outliers_removed,
         "mesh": {
             "vertices": int(len(mdl.mesh_vertices)),
             "faces": int(len(mdl.mesh_faces)),
