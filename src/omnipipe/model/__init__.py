@@ -59,6 +59,7 @@ from omnipipe.model.texture import (
     UnrolledImage,
     WallGrid,
     choose_sources,
+    flat_field,
     paint,
     texture_samples,
 )
@@ -647,6 +648,7 @@ def _run(
         wall_z0 = wall.axial_min_mm
         seen = np.zeros((h, w), bool)  # the cells some keyframe textures
         image = np.zeros((h * w, 3), np.uint8)
+        light = np.full((h, w, 2), np.nan, np.float32)  # each cell's view, for the flat field
         # A section of the pipe at a time: its cells chosen, then sampled in the images of
         # the keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a
         # section's, not the run's). A keyframe that textures two sections is read twice.
@@ -657,6 +659,7 @@ def _run(
                 config.laser_band_mm, executor=executor, rows=(top, end),
             )
             seen[top:end] = choice.source >= 0
+            light[top:end] = choice.light
             work: list[_FrameWork | None] = [None] * n_k
             for k in range(n_k):
                 if choice.count(k):
@@ -674,7 +677,8 @@ def _run(
         del wall
         release_freed_memory()  # the wall grid's blocks and the strips' results
         unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
-        del seen, image
+        unrolled = flat_field(unrolled, light)  # the LEDs' falloff and the vignetting out
+        del seen, image, light
     # The rings of the keyframes that textured no cell.
     rest = [None if (ring := ring_to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
     for _ in sample(rest):

@@ -8,11 +8,17 @@ the keyframe that sees it best:
 
 * visible: the point projects into the valid image (mirror rim, blind centre);
 * not in the laser light: farther than ``laser_band_mm`` from the laser plane
-  (there the red laser dominates the LED-lit colour);
+  and imaged farther than :data:`LASER_BAND_PX` pixels from the laser line's image
+  (there the red laser dominates the LED-lit colour; the stripe is a few pixels wide
+  in the image whatever its width in mm);
 * sharpest and brightest: the largest image footprint in pixels per millimetre of
   wall (a near, frontal view covers more pixels), from the camera model's
   projection of two small steps on the wall, over the squared distance (the LEDs'
   light falls with it, and with it the signal to noise).
+
+Then the illumination is divided out (:func:`flat_field`): the LEDs' falloff from the
+range and incidence of each cell's view (known from the reconstruction) and the
+mirror's vignetting as a gain of the image radius estimated from the data.
 
 The image is also the mesh's texture atlas: a vertex's UV is its unrolled position.
 
@@ -34,7 +40,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import pairwise
 
 import cv2
@@ -454,11 +460,17 @@ class CellChoice:
             (``first == stop``: none).
         pieces: per keyframe, (n_i, 2) float32 (col, row) pixels of its cells in its image,
             in pieces (one per strip of rows) that concatenate in row-major cell order.
+        light: (H, W, 2) float32 per cell the view it is textured from, for the flat field
+            (:func:`flat_field`): the LEDs' relative irradiance ``cos(incidence) / range^2``
+            (1/mm^2; range and incidence of the cell's wall point from the keyframe's rig
+            origin) and the chosen pixel's distance from the principal point (px); NaN
+            where no keyframe textures the cell. None: not kept.
     """
 
     source: np.ndarray
     rows: np.ndarray
     pieces: tuple[tuple[np.ndarray, ...], ...]
+    light: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -615,6 +627,99 @@ def _seen_rows(
     return out
 
 
+LASER_BAND_PX = 4.0
+"""Texture is not taken within this many pixels of the laser line's image (its stripe,
+blurred by the optics, is a few pixels wide whatever it is in mm on the wall)."""
+
+
+def laser_line_px(
+    camera: CameraModel, q: np.ndarray, px: np.ndarray, n_plane: np.ndarray, o_plane: float
+) -> np.ndarray:
+    """(n,) distance (px) from each wall point's pixel to the laser line's image at its
+    azimuth: the point moved along the rig's z axis (the pipe's direction) onto the laser
+    plane ``n . x + o = 0``, projected; inf where that point does not image.
+
+    Args:
+        camera: the camera model.
+        q: (n, 3) wall points in the rig frame, mm.
+        px: (n, 2) their pixels (col, row).
+    """
+    nz = float(n_plane[2])
+    if abs(nz) < 1e-6:  # a plane along the axis: no ring to keep away from
+        return np.full(len(q), np.inf)
+    on_plane = q.copy()
+    on_plane[:, 2] -= (q @ n_plane + o_plane) / nz
+    line_px, ok = camera.project(on_plane)
+    d = np.linalg.norm(line_px - px, axis=1)
+    return np.where(ok & np.isfinite(d), d, np.inf)
+
+
+FLAT_FIELD_BINS = 32
+"""Bins of image radius (equal cell counts) of the data-driven vignetting gain."""
+
+FLAT_FIELD_LEVEL = 128.0
+"""Median luminance (8-bit) of the flat-fielded unrolled wall."""
+
+
+def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
+    """The unrolled wall with the LEDs' falloff and the mirror's vignetting divided out.
+
+    Each cell was imaged with gain ``E x V``: ``E = cos(incidence) / range^2`` of its wall
+    point seen from the keyframe's rig origin (:attr:`CellChoice.light`, from the
+    reconstruction; the LEDs sit near the axis, close to it), and ``V(r)`` a gain of the
+    image radius ``r`` of its pixel: the mirror's vignetting plus whatever ``E``'s model
+    misses (the LEDs' own position and beam). ``V`` is estimated from the data, not
+    from a rig's parameters: the median of ``luminance / E`` over the cells of each
+    of :data:`FLAT_FIELD_BINS` radius bins (equal counts; interpolated between), over
+    its overall median. Every wall point around the pipe is seen at every radius, so the
+    wall's own reflectance averages out per bin. Colours are divided by ``E x V``
+    (clipped to 1/10..10 of the typical gain: grazing views are not blown up) and the
+    whole image scaled so its median luminance is :data:`FLAT_FIELD_LEVEL`.
+
+    Args:
+        unrolled: the painted unrolled wall.
+        light: (H, W, 2) float32 :attr:`CellChoice.light` of its cells.
+
+    Returns:
+        The same image, corrected (cells without ``light`` only scaled).
+    """
+    img = unrolled.image
+    h, w = img.shape[:2]
+    if light.shape != (h, w, 2):
+        raise ShapeError(f"light: expected shape ({h}, {w}, 2), got {light.shape}")
+    stride = max(1, (h * w) // 2_000_000)  # the estimate from at most ~2 M cells
+    lum = img.reshape(-1, 3)[::stride].astype(np.float32).mean(axis=1)
+    irr = light.reshape(-1, 2)[::stride, 0]
+    rad = light.reshape(-1, 2)[::stride, 1]
+    ok = unrolled.alpha.reshape(-1)[::stride] & np.isfinite(irr) & (irr > 0) & (lum > 2) & (lum < 253)
+    if np.count_nonzero(ok) < 4 * FLAT_FIELD_BINS:
+        return unrolled
+    irr_ref = float(np.median(irr[ok]))
+    ratio = lum[ok] / (irr[ok] / irr_ref)
+    r_ok = rad[ok]
+    edges = np.unique(np.quantile(r_ok, np.linspace(0.0, 1.0, FLAT_FIELD_BINS + 1)))
+    which = np.clip(np.searchsorted(edges, r_ok, side="right") - 1, 0, max(len(edges) - 2, 0))
+    centres = np.array([np.median(r_ok[which == b]) for b in range(len(edges) - 1) if np.any(which == b)])
+    level = np.array([np.median(ratio[which == b]) for b in range(len(edges) - 1) if np.any(which == b)])
+    vign = level / float(np.median(ratio))
+
+    def gain(cells: np.ndarray) -> np.ndarray:
+        """(..., ) float32 relative gain E x V of cells' (..., 2) light."""
+        g = (cells[..., 0] / irr_ref) * np.interp(cells[..., 1], centres, vign)
+        return np.where(np.isfinite(g), np.clip(g, 0.1, 10.0), 1.0).astype(np.float32)
+
+    # One scale for the whole wall: its corrected median luminance to the target level.
+    seen = unrolled.alpha.reshape(-1)[::stride]
+    corrected = lum[seen] / gain(light.reshape(-1, 2)[::stride][seen])
+    scale = FLAT_FIELD_LEVEL / max(float(np.median(corrected)), 1e-6)
+    out = np.empty_like(img)
+    for r0 in range(0, h, STRIP_ROWS):  # float32 intermediates a strip of rows at a time
+        g = gain(light[r0 : r0 + STRIP_ROWS])
+        part = img[r0 : r0 + STRIP_ROWS].astype(np.float32) * (scale / g)[..., None]
+        out[r0 : r0 + STRIP_ROWS] = np.clip(np.round(part), 0, 255).astype(np.uint8)
+    return replace(unrolled, image=out)
+
+
 def _rig_from_world(world_from_rig: np.ndarray) -> np.ndarray:
     """(K, 4, 4) inverses of the (K, 4, 4) poses."""
     if not len(world_from_rig):
@@ -661,6 +766,7 @@ def choose_sources(
     strip_rows: int = STRIP_ROWS,
     executor: Executor | None = None,
     rows: tuple[int, int] | None = None,
+    laser_band_px: float = LASER_BAND_PX,
 ) -> CellChoice:
     """The keyframe that sees each cell best (module docstring) and the cell's pixel in it.
 
@@ -684,6 +790,8 @@ def choose_sources(
             :class:`WallGrid` evaluated a strip at a time.
         mm_per_px: cell size (mm).
         laser_band_mm: cells within this distance of the laser plane are not taken.
+        laser_band_px: nor cells that image within this many pixels of the laser line
+            (:func:`laser_line_px`).
         windowed: score each keyframe only on the rows of the strip it can see
             (:func:`visible_rows` on the strip's tiles; False: every cell from every
             keyframe; the same result, quadratic in the run's length).
@@ -705,6 +813,7 @@ def choose_sources(
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
     source = np.full((end - top, w), -1, source_dtype(n_k))
+    light = np.full((end - top, w, 2), np.nan, np.float32)
     first = np.full(n_k, end - top)
     stop = np.zeros(n_k, int)
     pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
@@ -715,13 +824,14 @@ def choose_sources(
             lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
             yield (
                 rig, camera, rig_from_world, grid.rows(lo, hi), r0 - lo, r1 - r0, bounds,
-                mm_per_px, laser_band_mm, windowed,
+                mm_per_px, laser_band_mm, windowed, laser_band_px,
             )
 
     scored = ordered_map(executor or InlineExecutor(), _strip_task, strips())
-    for r0, (best, best_px, idx) in zip(range(0, end - top, step), scored, strict=True):
+    for r0, (best, best_px, idx, best_light) in zip(range(0, end - top, step), scored, strict=True):
         r1 = min(r0 + step, end - top)
         source[r0:r1].reshape(-1)[idx] = best
+        light[r0:r1].reshape(-1, 2)[idx] = best_light
         chosen = best >= 0
         order = np.argsort(best[chosen], kind="stable")
         keys = best[chosen][order]
@@ -738,10 +848,10 @@ def choose_sources(
     has = stop > 0
     spans = np.zeros((n_k, 2), int)
     spans[has, 0], spans[has, 1] = first[has], stop[has]
-    return CellChoice(source, spans, tuple(tuple(p) for p in pieces))
+    return CellChoice(source, spans, tuple(tuple(p) for p in pieces), light)
 
 
-def _strip_task(args: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _strip_task(args: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Executor task: :func:`_choose_in_strip` of one strip's arguments."""
     return _choose_in_strip(*args)
 
@@ -757,7 +867,8 @@ def _choose_in_strip(
     mm_per_px: float,
     laser_band_mm: float,
     windowed: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    laser_band_px: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`choose_sources` on one strip: rows ``[offset, offset + n_rows)`` of ``ext``
     ((h, W, 3), mm; the other rows are neighbours for the steps along the pipe).
 
@@ -765,6 +876,7 @@ def _choose_in_strip(
         best: (n,) keyframe of each wall cell of the strip (-1: none).
         best_px: (n, 2) float32 its pixel there.
         idx: (n,) flat indices of the wall cells in the strip (row-major).
+        best_light: (n, 2) float32 its :attr:`CellChoice.light` (NaN: none).
     """
     core = ext[offset : offset + n_rows]
     w = core.shape[1]
@@ -780,6 +892,11 @@ def _choose_in_strip(
     best = np.full(len(idx), -1)
     best_score = np.zeros(len(idx))
     best_px = np.zeros((len(idx), 2), np.float32)
+    best_light = np.full((len(idx), 2), np.nan, np.float32)
+    # The wall's normal at each cell (world frame), for the LEDs' incidence.
+    normal = np.cross(step_u, step_z)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    centre = np.array([camera.cx, camera.cy])
     # The wall cells of rows [r0, r1) are p[row_start[r0]:row_start[r1]] (idx is row-major).
     row_start = np.searchsorted(idx, np.arange(n_rows + 1) * w)
     if windowed:
@@ -798,6 +915,8 @@ def _choose_in_strip(
             q = apply(m, p[sl])
             px, valid = camera.project(q)
             valid &= np.abs(q @ n_plane + o_plane) > laser_band_mm
+            if laser_band_px > 0:
+                valid &= laser_line_px(camera, q, px, n_plane, o_plane) > laser_band_px
             px_u, _ = camera.project(q + step_u[sl] @ m[:3, :3].T)
             px_z, _ = camera.project(q + step_z[sl] @ m[:3, :3].T)
             a, b = px_u - px, px_z - px
@@ -812,7 +931,14 @@ def _choose_in_strip(
             best[sl][better] = k
             best_score[sl][better] = score[better]
             best_px[sl][better] = px[better]
-    return best, best_px, idx
+            if better.any():
+                qb = q[better]
+                dist = np.sqrt(np.maximum(np.sum(qb * qb, axis=1), 1e-6))
+                cos_i = np.abs(np.sum((normal[sl][better] @ m[:3, :3].T) * qb, axis=1)) / dist
+                best_light[sl][better] = np.column_stack(
+                    [cos_i / dist**2, np.linalg.norm(px[better] - centre, axis=1)]
+                )
+    return best, best_px, idx, best_light
 
 
 def texture_samples(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -910,4 +1036,5 @@ def unrolled_image(
             paint(image, choice, k, texture_samples(read_frame(k), choice.pixels(k)))
             if progress:
                 progress(k + 1)
-    return finish(choice, image, mm_per_px, axial_min_mm, circumference_mm)
+    unrolled = finish(choice, image, mm_per_px, axial_min_mm, circumference_mm)
+    return unrolled if choice.light is None else flat_field(unrolled, choice.light)
