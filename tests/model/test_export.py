@@ -189,3 +189,42 @@ def test_the_same_points_give_the_same_e57_file_byte_for_byte(tmp_path: Path) ->
     moved[0, 0] += 1.0  # other points, other GUIDs
     write_e57(tmp_path / "c.e57", moved, cols)
     assert (tmp_path / "a.e57").read_bytes() != (tmp_path / "c.e57").read_bytes()
+
+
+def test_every_3d_file_states_its_unit_and_holds_the_same_point_at_its_scale(written) -> None:
+    """Each file's own unit statement (PLY comment, LAS WKT, E57 root field, glTF
+    asset.extras, OBJ comment) and the same wall point read back in it: mm where it says
+    mm, metres (x 1e-3) where it says metres; model_files lists every file with its unit."""
+    from omnipipe.model.export import model_files
+
+    res, out, _ = written
+    listed = model_files(res)
+    assert set(listed) == {"points.ply", "mesh.ply", "points.laz", "points.e57", "model.glb", "model.obj"}
+    p_mm = res.points_in_world[7]
+    found: dict[str, tuple[str, np.ndarray]] = {}
+    for name in ("points.ply", "mesh.ply"):
+        header = (out / name).read_bytes().split(b"end_header")[0].decode("ascii")
+        unit = "mm" if "comment unit mm" in header.splitlines() else "?"
+        found[name] = unit, np.asarray(trimesh.load(out / name, process=False).vertices)[7]
+    las = laspy.read(out / "points.laz")
+    wkt = "".join(str(getattr(v, "string", "")) for v in las.header.vlrs)
+    found["points.laz"] = ("m" if 'UNIT["metre",1]' in wkt else "?"), np.array([las.x[7], las.y[7], las.z[7]])
+    with pye57.E57(str(out / "points.e57")) as e57:
+        unit = e57.root["omnipipe:unit"].value()
+        d = e57.read_scan_raw(0)
+    found["points.e57"] = ("m" if unit == "metre" else "?"), np.array(
+        [d["cartesianX"][7], d["cartesianY"][7], d["cartesianZ"][7]])
+    gltf_unit = glb_json(out / "model.glb")["asset"]["extras"]["unit"]
+    glb = trimesh.load(out / "model.glb", process=False, force="mesh")
+    obj_text = (out / "model.obj").read_text(encoding="ascii").splitlines()
+    v_obj = np.array([float(x) for x in next(ln for ln in obj_text if ln.startswith("v ")).split()[1:]])
+    # The viewer models' vertex 0 is the textured mesh's vertex 0 (turned to glTF axes).
+    found["model.glb"] = ("m" if gltf_unit == "metre" else "?"), np.asarray(glb.vertices)[0]
+    found["model.obj"] = ("m" if "# unit: metre" in obj_text else "?"), v_obj
+    for name, (unit, value) in found.items():
+        assert unit == listed[name]["unit"], name
+        ref = p_mm
+        if name.startswith("model."):
+            ref = expected_gltf_m(res.textured_vertices[:1])[0] * 1e3  # the glTF axes, mm
+        scale = 1.0 if unit == "mm" else 1e-3
+        assert np.allclose(value, ref * scale, atol=0.01 * scale), name  # LAS: 0.01 mm steps

@@ -7,7 +7,7 @@ viewers and survey tools use the unit their readers assume:
 |---|---|---|
 | ``points.ply``, ``mesh.ply`` | mm (header ``comment unit mm``) | world |
 | ``points.laz`` | metre, 0.01 mm resolution (LAS 1.4, WKT local CRS in metres) | world |
-| ``points.e57`` | metre (the E57 standard's unit) | world |
+| ``points.e57`` | metre (the E57 standard's unit; root ``omnipipe:unit`` "metre") | world |
 | ``model.glb`` | metre (glTF's unit) | glTF, y up (:data:`GLTF_FROM_WORLD`) |
 | ``model.obj`` (+ ``.mtl``, ``model_texture.png``) | metre (comment line) | as the GLB |
 
@@ -61,6 +61,33 @@ LAS_WKT = (
 
 #: Texture image of model.obj (beside it; referenced by model.mtl).
 OBJ_TEXTURE = "model_texture.png"
+
+#: E57 extension (prefix, URI) holding omnipipe's root fields ``unit`` and ``frame``.
+E57_EXTENSION = ("omnipipe", "https://github.com/omnipipe/omnipipe/e57/1.0")
+
+#: Each model file's unit, axes and where the file itself states its unit.
+FILE_UNITS: dict[str, dict[str, str]] = {
+    "points.ply": {"unit": "mm", "axes": "world", "stated": "PLY header 'comment unit mm'"},
+    "mesh.ply": {"unit": "mm", "axes": "world", "stated": "PLY header 'comment unit mm'"},
+    "points.laz": {"unit": "m", "axes": "world",
+                   "stated": "LAS WKT VLR UNIT[\"metre\",1], system identifier"},
+    "points.e57": {"unit": "m", "axes": "world",
+                   "stated": "E57 (always metres), root omnipipe:unit 'metre'"},
+    "model.glb": {"unit": "m", "axes": "glTF y up (x = world z, y = -world y, z = world x)",
+                  "stated": "glTF asset.extras.unit 'metre'"},
+    "model.obj": {"unit": "m", "axes": "as model.glb", "stated": "comment line '# unit: metre'"},
+}
+
+
+def model_files(result: ModelResult) -> dict[str, dict[str, str]]:
+    """The 3-D files :func:`write_outputs` writes for ``result``, each with its
+    :data:`FILE_UNITS` entry (report.json ``files``)."""
+    names = ["points.ply", "mesh.ply", "points.laz"]
+    if len(result.points_in_world):
+        names.append("points.e57")
+    if result.texture is not None and result.textured_faces is not None and len(result.textured_faces):
+        names += ["model.glb", "model.obj"]
+    return {name: dict(FILE_UNITS[name]) for name in names}
 
 
 def gltf_from_world_mm(points_mm: np.ndarray) -> np.ndarray:
@@ -169,10 +196,12 @@ def write_e57(path: Path, points_mm: np.ndarray, colours: np.ndarray) -> None:
         colours: (N, 3) uint8.
 
     The file's and the scan's GUIDs (pye57 draws them at random) are derived from the
-    content, so the same points give the same file, byte for byte.
+    content, so the same points give the same file, byte for byte. The root holds the
+    extension :data:`E57_EXTENSION`'s ``omnipipe:unit`` ("metre") and ``omnipipe:frame``.
     """
     import pye57
     import pye57.e57
+    from pye57 import libe57
 
     pts_m = np.asarray(points_mm, float) * M_PER_MM
     cols = np.asarray(colours, np.uint8)
@@ -199,7 +228,11 @@ def write_e57(path: Path, points_mm: np.ndarray, colours: np.ndarray) -> None:
         )
         with patch:
             with pye57.E57(str(path), mode="w") as e57:
+                e57.image_file.extensionsAdd(*E57_EXTENSION)
                 e57.write_scan_raw(data, name=f"omnipipe wall points; {FRAME_NOTE}")
+                prefix = E57_EXTENSION[0]
+                e57.root.set(f"{prefix}:unit", libe57.StringNode(e57.image_file, "metre"))
+                e57.root.set(f"{prefix}:frame", libe57.StringNode(e57.image_file, FRAME_NOTE))
     except (OSError, RuntimeError) as exc:
         raise OutputError(f"{path}: cannot write E57 ({exc})") from None
 

@@ -156,6 +156,7 @@ def run(
     from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
     from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
+    from omnipipe.model.export import model_files
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import frame_pass, quality
     from omnipipe.sfm import pipeline as sfm
@@ -308,6 +309,7 @@ def run(
         "warnings": warnings,
         "stationary_frames": int(np.sum(motion.stationary)),
         "wall_outliers_removed": outliers_removed,
+        "files": model_files(mdl),  # each 3-D file's unit and axes
         "mesh": {
             "vertices": int(len(mdl.mesh_vertices)),
             "faces": int(len(mdl.mesh_faces)),

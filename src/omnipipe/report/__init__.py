@@ -547,6 +547,11 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         parts.append(
             f"<h2>Trajectory</h2><img id='trajectory' alt='trajectory' src='{plots['trajectory']}'>"
         )
+    if s.get("files"):  # each 3-D file's unit (report.json files)
+        parts.append("<h2>Files</h2><table><thead><tr><th>file</th><th>unit</th><th>axes</th>"
+                     "<th>stated in the file</th></tr></thead>" + "".join(
+                         "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in (n, *f.values()))
+                         + "</tr>" for n, f in s["files"].items()) + "</table>")
     parts.append(
         "<p class='note'>Lengths in mm; angles around the pipe axis from the first rig frame's x axis "
         "towards y; axial positions along the centreline from the first frame's origin. "
