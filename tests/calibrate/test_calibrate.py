@@ -149,3 +149,56 @@ def test_ring_diameter_through_a_rig() -> None:
         assert abs(minor - diameter) < 0.02 and major >= minor  # mm
         k_far = k * np.array([1, 1, 1, 1.01])
         assert abs(ring_section_axes(cam, k_far, px)[0] - 1.01 * diameter) < 0.03
+
+
+def test_ocam_roi_and_crop_round_trip(tmp_path: Path, capsys) -> None:
+    """The file's ROI radii and crop survive write -> read -> import: the rig has the
+    crop's size (so the recorded frames are accepted), the centre moved into it, the same
+    rays as the full image's model at the shifted pixels; --laser-from takes a rig of
+    another image size (the plane is in mm)."""
+    from dataclasses import replace
+
+    from omnipipe.calibrate.ocam_io import OcamCrop, read_ocam_file
+    from omnipipe.errors import ConfigError
+    from omnipipe.rig import save_rig
+
+    rig = paper_rig(400, 300)
+    ocam_rig, _ = rig_in_model(rig, "ocam")
+    full = replace(ocam_rig.camera, cx=201.25, cy=148.75, radius_min=25.5, radius_max=149.0)
+    crop = OcamCrop(row=10, col=30, height=280, width=340)
+    path = tmp_path / "calib_results.txt"
+    write_ocam(full, ocam_rig.model, path, crop)
+    intr, params, crop_back = read_ocam_file(path)
+    assert crop_back == crop
+    assert (intr.width, intr.height, intr.cx, intr.cy) == (400, 300, 201.25, 148.75)
+    assert (intr.radius_min, intr.radius_max) == (25.5, 149.0)
+    cropped, _ = read_ocam(path)
+    assert (cropped.width, cropped.height) == (340, 280)
+    assert (cropped.cx, cropped.cy, cropped.radius_min) == (171.25, 138.75, 25.5)
+    # The cropped form written and read again is the same camera.
+    again = tmp_path / "again.txt"
+    write_ocam(cropped, params, again)
+    assert read_ocam(again)[0] == cropped
+    # Imported with the laser of a full-size (800x600) rig: accepted, plane unchanged.
+    big = tmp_path / "big.yaml"
+    save_rig(paper_rig(800, 600), big)
+    out = tmp_path / "rig.yaml"
+    assert main(["rig", "import-ocam", str(path), "--out", str(out), "--laser-from", str(big)]) == 0
+    assert "800x600" in capsys.readouterr().out
+    imported = load_rig(out)
+    assert (imported.camera.width, imported.camera.height) == (340, 280)
+    assert (imported.camera.radius_min, imported.camera.radius_max) == (25.5, 149.0)
+    assert imported.laser == paper_rig(800, 600).laser
+    px = np.array([[100.0, 50.0], [300.0, 250.0], [170.0, 20.0]])
+    full_cam = camera_from_rig(replace(ocam_rig, camera=full))
+    np.testing.assert_allclose(
+        camera_from_rig(imported).unproject(px), full_cam.unproject(px + [30.0, 10.0]), atol=1e-9
+    )
+    # A crop that leaves the image, and an unknown block, are refused naming the line.
+    bad = tmp_path / "bad.txt"
+    bad.write_text(path.read_text().replace("10 30 280 340", "10 30 280 380"))
+    with pytest.raises(ConfigError, match="leaves the 300x400 image"):
+        read_ocam(bad)
+    bad.write_text(path.read_text() + "#something else\n1 2 3\n")
+    with pytest.raises(ConfigError, match="unexpected data after the image size"):
+        read_ocam(bad)

@@ -212,6 +212,11 @@ def _import_ocam(args: argparse.Namespace) -> int:
             raise ConfigError(name, f"must be a finite radius >= 0 px, got {v}")
     rig = rig_from_ocam(args.calib_results, other, args.radius_min, args.radius_max)
     _write_rig(rig, out)
-    print(f"wrote {out} (camera model ocam, {rig.camera.width}x{rig.camera.height}"
+    cam = rig.camera
+    print(f"wrote {out} (camera model ocam, frames {cam.width}x{cam.height}, radii "
+          f"{cam.radius_min}..{cam.radius_max} px"
           + (", laser from " + args.laser_from if other else ", no laser section") + ")")
+    if other and (other.camera.width, other.camera.height) != (cam.width, cam.height):
+        print(f"note: {args.laser_from} is {other.camera.width}x{other.camera.height}; its laser "
+              "plane is in mm in the rig frame and is taken as is (same camera, mirror and laser)")
     return 0

@@ -5,11 +5,26 @@ polynomial (count, then a0 a1 ...), the inverse polynomial (count, then p0 p1 ..
 the centre "row column" (0-based, C convention), the affine "c d e", and the image
 size "height width". Rows come first throughout; omnipipe's rig.yaml stores the centre
 as cx = column, cy = row.
+
+Two optional blocks may follow the image size, each after a comment line naming it
+(as a rig's owner adds them beside the toolbox's own blocks; :func:`write_ocam` writes
+them so):
+
+* ``#ROI radii: "radius_min" and "radius_max" in pixels`` then ``R_MIN R_MAX``: the
+  valid annulus (blind centre, mirror rim) around the centre; kept as the rig's
+  ``radius_min`` / ``radius_max``.
+* ``#crop: "row" "column" of the top-left corner, "height" "width"`` then
+  ``ROW COL HEIGHT WIDTH``: the recorded frames are this window of the calibration
+  image. The rig then has the crop's size and the centre shifted into it (the model's
+  polynomials depend only on the distance from the centre, so nothing else changes).
+
+Any other data line after the image size is refused, naming it.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +33,31 @@ from omnipipe.errors import ConfigError
 from omnipipe.rig import CameraIntrinsics, OcamParams, Rig
 
 MAX_FILE_BYTES = 1_000_000
+
+
+@dataclass(frozen=True)
+class OcamCrop:
+    """The window of the calibration image that the recorded frames are (px, 0-based).
+
+    Attributes:
+        row, col: top-left corner in the calibration image.
+        height, width: size of the frames.
+    """
+
+    row: int
+    col: int
+    height: int
+    width: int
+
+
+def apply_crop(intrinsics: CameraIntrinsics, crop: OcamCrop | None) -> CameraIntrinsics:
+    """The camera of the cropped frames: the crop's size, the centre moved into it."""
+    if crop is None:
+        return intrinsics
+    return replace(
+        intrinsics, width=crop.width, height=crop.height,
+        cx=intrinsics.cx - crop.col, cy=intrinsics.cy - crop.row,
+    )
 
 
 def _numbers(line: str, path: str, lineno: int) -> list[float]:
@@ -31,15 +71,21 @@ def _numbers(line: str, path: str, lineno: int) -> list[float]:
 
 
 def read_ocam(path: str | Path) -> tuple[CameraIntrinsics, OcamParams]:
-    """Read calib_results.txt.
+    """Read calib_results.txt: the camera of the recorded frames (the crop applied).
 
     Returns:
-        (intrinsics, params): image size, centre (cx = column, cy = row) and the model.
+        (intrinsics, params): image size, centre (cx = column, cy = row), the ROI radii
+        (None when the file has none) and the model.
 
     Raises:
         ConfigError: missing file, wrong layout (naming the line), impossible values.
     """
-    p = Path(path)
+    intr, params, crop = read_ocam_file(path)
+    return apply_crop(intr, crop), params
+
+
+def _data_lines(p: Path) -> list[tuple[int, str, str]]:
+    """(line number, data line, the comment line before it) of calib_results.txt."""
     if not p.is_file():
         raise ConfigError("calib_results", "file not found", str(p))
     if p.stat().st_size > MAX_FILE_BYTES:
@@ -48,11 +94,24 @@ def read_ocam(path: str | Path) -> tuple[CameraIntrinsics, OcamParams]:
         text = p.read_text(encoding="utf-8", errors="strict")
     except UnicodeDecodeError:
         raise ConfigError("calib_results", "not a text file", str(p)) from None
-    rows = [
-        (i + 1, line)
-        for i, line in enumerate(text.splitlines())
-        if line.strip() and not line.lstrip().startswith("#")
-    ]
+    rows, comment = [], ""
+    for i, line in enumerate(text.splitlines()):
+        if line.lstrip().startswith("#"):
+            comment = line.lower()
+        elif line.strip():
+            rows.append((i + 1, line, comment))
+    return rows
+
+
+def read_ocam_file(path: str | Path) -> tuple[CameraIntrinsics, OcamParams, OcamCrop | None]:
+    """Read calib_results.txt as it is: the calibration image's camera (with the ROI
+    radii) and the crop, if the file has one (module docstring).
+
+    Raises:
+        ConfigError: missing file, wrong layout (naming the line), impossible values.
+    """
+    p = Path(path)
+    rows = _data_lines(p)
     if len(rows) < 5:
         raise ConfigError(
             "calib_results",
@@ -60,7 +119,7 @@ def read_ocam(path: str | Path) -> tuple[CameraIntrinsics, OcamParams]:
             f"found {len(rows)}",
             str(p),
         )
-    data = [(n, _numbers(line, str(p), n)) for n, line in rows[:5]]
+    data = [(n, _numbers(line, str(p), n)) for n, line, _ in rows[:5]]
     polys = []
     for (n, vals), what in zip(data[:2], ("polynomial", "inverse polynomial"), strict=True):
         if not vals or vals[0] != int(vals[0]) or int(vals[0]) != len(vals) - 1 or len(vals) < 3:
@@ -84,14 +143,57 @@ def read_ocam(path: str | Path) -> tuple[CameraIntrinsics, OcamParams]:
     if abs(c - d * e) < 1e-9:
         raise ConfigError(f"line {n_a}", "affine matrix [[c, d], [e, 1]] is singular", str(p))
     row, col = centre
+    radii, crop = _extras(rows[5:], str(p), (height, width))
     intr = CameraIntrinsics(
-        width=width, height=height, cx=col, cy=row, f=abs(polys[0][0])
+        width=width, height=height, cx=col, cy=row, f=abs(polys[0][0]),
+        radius_min=radii[0], radius_max=radii[1],
     )
-    return intr, OcamParams(polys[0], polys[1], c, d, e)
+    return intr, OcamParams(polys[0], polys[1], c, d, e), crop
 
 
-def write_ocam(intrinsics: CameraIntrinsics, params: OcamParams, path: str | Path) -> None:
-    """Write calib_results.txt as OCamCalib does (rows first, 0-based centre)."""
+def _extras(
+    rows: list[tuple[int, str, str]], path: str, size: tuple[int, int]
+) -> tuple[tuple[float | None, float | None], OcamCrop | None]:
+    """The optional ROI radii and crop blocks after the image size (module docstring)."""
+    radii: tuple[float | None, float | None] = (None, None)
+    crop = None
+    for n, line, comment in rows:
+        vals = _numbers(line, path, n)
+        if "crop" in comment:
+            if len(vals) != 4 or any(v != int(v) for v in vals) or vals[0] < 0 or vals[1] < 0 \
+                    or vals[2] <= 0 or vals[3] <= 0:
+                raise ConfigError(f"line {n}", "crop: expected 'row column height width' (px)", path)
+            r0, c0, h, w = (int(v) for v in vals)
+            if r0 + h > size[0] or c0 + w > size[1]:
+                raise ConfigError(
+                    f"line {n}", f"crop {h}x{w} at ({r0}, {c0}) leaves the {size[0]}x{size[1]} image",
+                    path,
+                )
+            crop = OcamCrop(r0, c0, h, w)
+        elif "roi" in comment or "radi" in comment:
+            if len(vals) != 2 or not 0 <= vals[0] < vals[1]:
+                raise ConfigError(
+                    f"line {n}", "ROI radii: expected 'radius_min radius_max' (px, min < max)", path
+                )
+            radii = (vals[0], vals[1])
+        else:
+            raise ConfigError(
+                f"line {n}",
+                "unexpected data after the image size (known blocks: '#ROI radii', '#crop')",
+                path,
+            )
+    return radii, crop
+
+
+def write_ocam(
+    intrinsics: CameraIntrinsics,
+    params: OcamParams,
+    path: str | Path,
+    crop: OcamCrop | None = None,
+) -> None:
+    """Write calib_results.txt as OCamCalib does (rows first, 0-based centre), plus the
+    ROI radii block when ``intrinsics`` has both radii and the crop block with ``crop``
+    (``intrinsics`` are then the calibration image's, :func:`read_ocam_file`)."""
     from omnipipe.camera.convert import ocam_inverse_polynomial
 
     inv = params.inverse_polynomial
@@ -116,6 +218,16 @@ def write_ocam(intrinsics: CameraIntrinsics, params: OcamParams, path: str | Pat
         + '\n#image size: "height" and "width"\n\n'
         + f"{intrinsics.height} {intrinsics.width}\n\n"
     )
+    if intrinsics.radius_min is not None and intrinsics.radius_max is not None:
+        text += (
+            '#ROI radii: "radius_min" and "radius_max" in pixels (valid annulus)\n\n'
+            + f"{intrinsics.radius_min:.6f} {intrinsics.radius_max:.6f}\n\n"
+        )
+    if crop is not None:
+        text += (
+            '#crop: "row" "column" of the top-left corner, "height" "width" of the frames\n\n'
+            + f"{crop.row} {crop.col} {crop.height} {crop.width}\n\n"
+        )
     Path(path).write_text(text, encoding="utf-8")
 
 
@@ -125,25 +237,22 @@ def rig_from_ocam(
     radius_min: float | None = None,
     radius_max: float | None = None,
 ) -> Rig:
-    """A rig (model ``ocam``) from calib_results.txt, with the laser of another rig or none.
+    """A rig (model ``ocam``) of the recorded frames (the file's crop applied) from
+    calib_results.txt, with the laser of another rig or none.
 
-    The laser plane is copied as is: it must already be in this camera's rig frame
-    (a laser calibrated with this camera model, ``omnipipe calibrate laser``).
+    ``radius_min`` / ``radius_max`` replace the file's ROI radii when given. The laser
+    plane is copied as is: it is in mm in the rig frame, which does not depend on the
+    image size, so ``laser_from`` may be a rig of another size (e.g. a full-frame
+    calibration of the same camera and mirror, whose laser ``omnipipe calibrate laser``
+    found); it must be of the same camera, mirror and laser.
     """
-    from dataclasses import replace
-
     intr, params = read_ocam(path)
-    intr = replace(intr, radius_min=radius_min, radius_max=radius_max)
-    laser = None if laser_from is None else laser_from.laser
-    if laser_from is not None and (laser_from.camera.width, laser_from.camera.height) != (
-        intr.width,
-        intr.height,
-    ):
-        raise ConfigError(
-            "--laser-from",
-            f"its image is {laser_from.camera.width}x{laser_from.camera.height}, "
-            f"calib_results.txt's {intr.width}x{intr.height}: not the same camera",
-        )
-    if laser_from is not None and laser is None:
+    intr = replace(
+        intr,
+        radius_min=intr.radius_min if radius_min is None else radius_min,
+        radius_max=intr.radius_max if radius_max is None else radius_max,
+    )
+    if laser_from is not None and laser_from.laser is None:
         raise ConfigError("--laser-from", "that rig has no laser section")
+    laser = None if laser_from is None else laser_from.laser
     return Rig(camera=intr, mirror=None, laser=laser, model=params)
