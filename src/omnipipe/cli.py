@@ -48,6 +48,7 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
         "calibrate a real rig's camera or laser plane from checkerboard images",
     ),
     ("rig", "omnipipe.calibrate.cli", "convert calibrations from other tools into rig.yaml (import-ocam)"),
+    ("export-bag", "omnipipe.inputs.export_bag", "write a dataset folder as a ROS 2 bag / MCAP file (or a ROS 1 .bag)"),
 )
 
 # Modules that add sub-commands (each offers ``register(subparsers)``), in --help order.

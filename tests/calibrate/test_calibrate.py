@@ -192,7 +192,7 @@ def test_ocam_roi_and_crop_round_trip(tmp_path: Path, capsys) -> None:
     px = np.array([[100.0, 50.0], [300.0, 250.0], [170.0, 20.0]])
     full_cam = camera_from_rig(replace(ocam_rig, camera=full))
     np.testing.assert_allclose(
-        camera_from_rig(imported).unproject(px), full_cam.unproject(px + [30.0, 10.0]), atol=1e-9
+        camera_from_rig(imported).unproject(px), full_cam.unproject(px + np.array([30.0, 10.0])), atol=1e-9
     )
     # A crop that leaves the image, and an unknown block, are refused naming the line.
     bad = tmp_path / "bad.txt"

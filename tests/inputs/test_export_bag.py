@@ -1,0 +1,77 @@
+"""omnipipe export-bag: a dataset folder written as MCAP, a ROS 2 bag folder and a ROS 1
+bag reads back to the same frames and timestamps, and the MCAP reconstructs to the
+folder's numbers."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnipipe.cli import main
+from omnipipe.dataset import open_dataset, read_image
+from omnipipe.pipeline import ReconstructConfig, run
+from omnipipe.sim import make_scenario
+from omnipipe.sim import run as simulate
+
+pytest.importorskip("rosbags")
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """paper-small, 8 frames (400x300), with epoch-like timestamps.txt."""
+    out = tmp_path_factory.mktemp("export") / "images"
+    simulate(make_scenario("paper-small", frames=8, seed=0), out, workers=1)
+    names = sorted(p.name for p in (out / "frames").glob("*.png"))
+    (out / "timestamps.txt").write_text(
+        "".join(f"{n} {1_700_000_000 + 0.125 * i:.6f}\n" for i, n in enumerate(names))
+    )
+    return out
+
+
+def _numbers(summary: dict) -> dict:
+    keep = ("frames", "frames_registered", "inner_diameter_mm", "defects", "stations", "keyframes")
+    return {k: summary.get(k) for k in keep}
+
+
+def test_mcap_reconstructs_to_the_folders_numbers(folder: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "run.mcap"
+    assert main(["export-bag", str(folder), "--out", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert (tmp_path / "rig.yaml").read_bytes() == (folder / "rig.yaml").read_bytes()
+    reference_ds = open_dataset(folder)
+    ds = open_dataset(out)
+    np.testing.assert_allclose(ds.timestamps, reference_ds.timestamps, rtol=0, atol=1e-6)
+    assert not ds.warnings
+    config = ReconstructConfig.default()
+    reference, rec = run(config, reference_ds), run(config, ds)
+    assert _numbers(rec.summary) == _numbers(reference.summary)
+    np.testing.assert_allclose(rec.world_from_rig, reference.world_from_rig, atol=1e-9)
+    np.testing.assert_allclose(rec.timestamps, reference.timestamps, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name, raw", [("bagdir", True), ("run.bag", False)])
+def test_ros2_folder_and_ros1_bag_hold_the_frames(folder: Path, tmp_path: Path, name: str, raw: bool) -> None:
+    out = tmp_path / name
+    assert main(["export-bag", str(folder), "--out", str(out), *(["--raw"] if raw else [])]) == 0
+    ds = open_dataset(out)
+    assert len(ds) == 8
+    np.testing.assert_allclose(ds.timestamps, 1_700_000_000 + 0.125 * np.arange(8), rtol=0, atol=1e-6)
+    for i in range(8):
+        np.testing.assert_array_equal(ds.read_frame(i), read_image(folder / "frames" / f"{i:06d}.png"))
+
+
+def test_nothing_is_replaced(folder: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "run.mcap"
+    out.write_text("mine")
+    assert main(["export-bag", str(folder), "--out", str(out)]) == 1
+    assert "already exists" in capsys.readouterr().err and out.read_text() == "mine"
+    other = tmp_path / "b"
+    other.mkdir()
+    (other / "rig.yaml").write_text("someone else's rig")
+    assert main(["export-bag", str(folder), "--out", str(other / "x.mcap")]) == 1
+    assert "other content" in capsys.readouterr().err
+    assert sorted(p.name for p in other.iterdir()) == ["rig.yaml"]
+    shutil.rmtree(other)
