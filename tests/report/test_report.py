@@ -150,3 +150,17 @@ def test_report_renders_in_headless_chromium(tmp_path: Path) -> None:
     # The canvas region (dark background) contains the drawn model: not a flat colour.
     view = img[420:880, 60:1040].astype(float)
     assert view.std() > 10.0
+
+
+def test_report_lists_each_model_files_unit() -> None:
+    """report.json's ``files`` (each 3-D file's unit) shows as a table in report.html."""
+    from dataclasses import replace
+
+    from omnipipe.model.export import FILE_UNITS
+
+    inputs = _inputs()
+    page = render_html(replace(inputs, summary={**inputs.summary, "files": FILE_UNITS}))
+    assert "<h2>Files</h2>" in page
+    assert "<tr><td>points.ply</td><td>mm</td>" in page
+    assert "<tr><td>model.glb</td><td>m</td>" in page
+    assert "<h2>Files</h2>" not in render_html(inputs)
