@@ -54,6 +54,7 @@ from omnipipe.memory import release_freed_memory
 from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
 from omnipipe.model.texture import (
     CHUNK_POINTS,
+    LIGHT_DTYPE,
     SECTION_ROWS,
     AxialChunks,
     UnrolledImage,
@@ -648,7 +649,7 @@ def _run(
         wall_z0 = wall.axial_min_mm
         seen = np.zeros((h, w), bool)  # the cells some keyframe textures
         image = np.zeros((h * w, 3), np.uint8)
-        light = np.full((h, w, 2), np.nan, np.float32)  # each cell's view, for the flat field
+        light = np.full((h, w, 2), np.nan, LIGHT_DTYPE)  # each cell's view, for the flat field
         # A section of the pipe at a time: its cells chosen, then sampled in the images of
         # the keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a
         # section's, not the run's). A keyframe that textures two sections is read twice.

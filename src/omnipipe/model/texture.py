@@ -460,11 +460,12 @@ class CellChoice:
             (``first == stop``: none).
         pieces: per keyframe, (n_i, 2) float32 (col, row) pixels of its cells in its image,
             in pieces (one per strip of rows) that concatenate in row-major cell order.
-        light: (H, W, 2) float32 per cell the view it is textured from, for the flat field
-            (:func:`flat_field`): the LEDs' relative irradiance ``cos(incidence) / range^2``
-            (1/mm^2; range and incidence of the cell's wall point from the keyframe's rig
-            origin) and the chosen pixel's distance from the principal point (px); NaN
-            where no keyframe textures the cell. None: not kept.
+        light: (H, W, 2) float16 per cell the view it is textured from, for the flat field
+            (:func:`flat_field`): ``log2`` of the LEDs' relative irradiance
+            ``cos(incidence) / range^2`` (range in mm and incidence of the cell's wall
+            point seen from the keyframe's rig origin) and the chosen pixel's distance
+            from the principal point (px); NaN where no keyframe textures the cell (4 bytes
+            a cell: the model stage holds it for the whole grid). None: not kept.
     """
 
     source: np.ndarray
@@ -654,6 +655,9 @@ def laser_line_px(
     return np.where(ok & np.isfinite(d), d, np.inf)
 
 
+LIGHT_DTYPE = np.float16
+"""Type of :attr:`CellChoice.light` (log2 irradiance to 1e-3, radius to 0.25 px at 600 px)."""
+
 FLAT_FIELD_BINS = 32
 """Bins of image radius (equal cell counts) of the data-driven vignetting gain."""
 
@@ -678,7 +682,7 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
 
     Args:
         unrolled: the painted unrolled wall.
-        light: (H, W, 2) float32 :attr:`CellChoice.light` of its cells.
+        light: (H, W, 2) :attr:`CellChoice.light` of its cells.
 
     Returns:
         The same image, corrected (cells without ``light`` only scaled).
@@ -689,8 +693,8 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
         raise ShapeError(f"light: expected shape ({h}, {w}, 2), got {light.shape}")
     stride = max(1, (h * w) // 2_000_000)  # the estimate from at most ~2 M cells
     lum = img.reshape(-1, 3)[::stride].astype(np.float32).mean(axis=1)
-    irr = light.reshape(-1, 2)[::stride, 0]
-    rad = light.reshape(-1, 2)[::stride, 1]
+    irr = np.exp2(light.reshape(-1, 2)[::stride, 0].astype(np.float32))
+    rad = light.reshape(-1, 2)[::stride, 1].astype(np.float32)
     ok = unrolled.alpha.reshape(-1)[::stride] & np.isfinite(irr) & (irr > 0) & (lum > 2) & (lum < 253)
     if np.count_nonzero(ok) < 4 * FLAT_FIELD_BINS:
         return unrolled
@@ -705,7 +709,8 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
 
     def gain(cells: np.ndarray) -> np.ndarray:
         """(..., ) float32 relative gain E x V of cells' (..., 2) light."""
-        g = (cells[..., 0] / irr_ref) * np.interp(cells[..., 1], centres, vign)
+        cells = cells.astype(np.float32)
+        g = (np.exp2(cells[..., 0]) / irr_ref) * np.interp(cells[..., 1], centres, vign)
         return np.where(np.isfinite(g), np.clip(g, 0.1, 10.0), 1.0).astype(np.float32)
 
     # One scale for the whole wall: its corrected median luminance to the target level.
@@ -813,7 +818,7 @@ def choose_sources(
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
     source = np.full((end - top, w), -1, source_dtype(n_k))
-    light = np.full((end - top, w, 2), np.nan, np.float32)
+    light = np.full((end - top, w, 2), np.nan, LIGHT_DTYPE)
     first = np.full(n_k, end - top)
     stop = np.zeros(n_k, int)
     pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
@@ -936,7 +941,7 @@ def _choose_in_strip(
                 dist = np.sqrt(np.maximum(np.sum(qb * qb, axis=1), 1e-6))
                 cos_i = np.abs(np.sum((normal[sl][better] @ m[:3, :3].T) * qb, axis=1)) / dist
                 best_light[sl][better] = np.column_stack(
-                    [cos_i / dist**2, np.linalg.norm(px[better] - centre, axis=1)]
+                    [np.log2(np.maximum(cos_i, 1e-6) / dist**2), np.linalg.norm(px[better] - centre, axis=1)]
                 )
     return best, best_px, idx, best_light
 
