@@ -30,13 +30,18 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from omnipipe.errors import DatasetError, OutputError
 from omnipipe.inputs.rosbag import MISSING
+
+if TYPE_CHECKING:
+    from omnipipe.dataset import Dataset
 
 DEFAULT_TOPIC = "/omnipipe/image"
 FRAME_ID = "omnipipe_rig"
@@ -84,9 +89,11 @@ def _stamp_ns(t: float) -> int:
     return ns
 
 
-def _image_message(types: dict, kind: str, header: object, path: Path, image: np.ndarray | None, raw: bool):
-    """One sensor_msgs message of a frame (``image``: its decoded pixels, or None to
-    carry the file's own bytes)."""
+def _image_message(
+    types: dict[str, Any], header: object, path: Path, image: np.ndarray | None, raw: bool
+) -> object:
+    """One sensor_msgs message of a frame (``types``: a rosbags typestore's classes;
+    ``image``: its decoded pixels, or None to carry the file's own PNG/JPEG bytes)."""
     if not raw:
         fmt = _FORMATS.get(path.suffix.lower())
         if image is None and fmt is not None and path.is_file():
@@ -94,7 +101,7 @@ def _image_message(types: dict, kind: str, header: object, path: Path, image: np
         else:
             import cv2
 
-            rgb = image
+            rgb = np.asarray(image)
             ok, png = cv2.imencode(".png", rgb[:, :, ::-1] if rgb.ndim == 3 else rgb)
             if not ok:
                 raise DatasetError(f"{path}: cannot encode the frame as PNG")
@@ -155,7 +162,7 @@ def export_bag(dataset_dir: str | Path, out: str | Path, topic: str = DEFAULT_TO
     return target
 
 
-def dataset_rig_text(dataset) -> bytes:
+def dataset_rig_text(dataset: Dataset) -> bytes:
     """The bytes of the dataset's rig.yaml."""
     path = Path(dataset.root) / "rig.yaml"
     if not path.is_file():
@@ -163,12 +170,13 @@ def dataset_rig_text(dataset) -> bytes:
     return path.read_bytes()
 
 
-def _write(dataset, tmp: Path, kind: str, ts, topic: str, raw: bool) -> Path:
-    """Write the bag into ``tmp``; the path of the finished bag (file or folder)."""
+def _write(dataset: Dataset, tmp: Path, kind: str, ts: Any, topic: str, raw: bool) -> Path:
+    """Write the bag into ``tmp`` (``ts``: the rosbags typestore of ``kind``); the path of
+    the finished bag (file or folder)."""
     msgtype = "sensor_msgs/msg/Image" if raw else "sensor_msgs/msg/CompressedImage"
     Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
 
-    def messages():
+    def messages() -> Iterator[tuple[int, object]]:
         for i, (path, t) in enumerate(zip(dataset.frame_paths, dataset.timestamps, strict=True)):
             ns = _stamp_ns(t)
             stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
@@ -176,7 +184,7 @@ def _write(dataset, tmp: Path, kind: str, ts, topic: str, raw: bool) -> Path:
                       else Header(stamp=stamp, frame_id=FRAME_ID))
             carry = not raw and Path(path).suffix.lower() in _FORMATS and Path(path).is_file()
             image = None if carry else dataset.read_frame(i)
-            yield ns, _image_message(ts.types, kind, header, Path(path), image, raw)
+            yield ns, _image_message(ts.types, header, Path(path), image, raw)
 
     if kind == "ros1":
         from rosbags.rosbag1 import Writer as Writer1
