@@ -256,13 +256,15 @@ KILL_SCRIPT = textwrap.dedent(
     import os, signal, sys
     from omnipipe import output
 
-    out, version, kill_at = sys.argv[1:4]
+    out, version, kill_at, mode = sys.argv[1:5]
 
     def hook(step):
         if step == kill_at:
             os.kill(os.getpid(), signal.SIGKILL)
 
     output._step_hook = hook
+    if mode == "renames":  # a system or file system without renameat2's exchange
+        output._exchange = lambda a, b: False
     with output.atomic_output_dir(out, force=True) as tmp:
         for i in range(4):
             (tmp / f"f{i}.txt").write_text(version)
@@ -272,6 +274,7 @@ KILL_SCRIPT = textwrap.dedent(
 )
 
 # step -> which output the next run must find (before "new-in": the previous one).
+# "renames": the fallback without renameat2's exchange (old OUT aside, then new in).
 STEPS = {
     "partial-created": "v1",
     "files-written": "v1",
@@ -283,13 +286,15 @@ STEPS = {
     "old-marked": "v2",
     "old-partly-deleted": "v2",
 }
+# With the exchange (Linux): the new output is in first, then the old one renamed aside.
+EXCHANGE_STEPS = {**STEPS, "old-aside": "v2"}
 
 
-def run_killed(tmp_path: Path, out: Path, version: str, step: str) -> None:
+def run_killed(tmp_path: Path, out: Path, version: str, step: str, mode: str = "exchange") -> None:
     script = tmp_path / "kill.py"
     script.write_text(KILL_SCRIPT)
     proc = subprocess.run(
-        [sys.executable, str(script), str(out), version, step],
+        [sys.executable, str(script), str(out), version, step, mode],
         capture_output=True,
         text=True,
         timeout=60,
@@ -297,20 +302,28 @@ def run_killed(tmp_path: Path, out: Path, version: str, step: str) -> None:
     assert proc.returncode == -signal.SIGKILL, proc.stderr
 
 
+@pytest.mark.parametrize("mode", ["exchange", "renames"])
 @pytest.mark.parametrize("step", list(STEPS))
-def test_kill_at_any_step_keeps_a_complete_output(tmp_path: Path, step: str) -> None:
+def test_kill_at_any_step_keeps_a_complete_output(tmp_path: Path, step: str, mode: str) -> None:
+    from omnipipe.output import _renameat2
+
+    if mode == "exchange" and _renameat2() is None:
+        pytest.skip("no renameat2 on this system: the renames are the only swap")
     work = tmp_path / "work"
     work.mkdir()
     out = work / "out"
     write_own(out, "v1")
-    run_killed(tmp_path, out, "v2", step)
-    # Right after the kill OUT is either missing (being swapped) or complete.
+    run_killed(tmp_path, out, "v2", step, mode)
+    # Right after the kill OUT is complete; only the two renames' swap leaves it missing
+    # (between them).
+    if mode == "exchange":
+        assert out.is_dir(), sorted(p.name for p in work.iterdir())
     if out.exists():
         assert versions(out) in ({"v1"}, {"v2"})
         assert len(versions(out)) == 1 and len(list(out.rglob("*.txt"))) == 5
     # The next run's start-up finishes or rolls back the swap and removes the debris.
     prepare_output_dir(out, force=True)
-    assert versions(out) == {STEPS[step]}
+    assert versions(out) == {(EXCHANGE_STEPS if mode == "exchange" else STEPS)[step]}
     assert len(list(out.rglob("*.txt"))) == 5
     assert read_manifest(out) is not None
     assert sorted(p.name for p in work.iterdir()) == ["out"]

@@ -1,9 +1,11 @@
 """The ``omnipipe`` command line: a thin wrapper around each stage's ``run``.
 
 Each stage that has a command offers a module with ``register(subparsers)``; the
-parser it adds sets ``func(args) -> int``. Every :class:`OmnipipeError` becomes a
-one-line message on stderr and exit code 1. Ctrl-C exits 130 and SIGTERM 143, after
-the ``with`` blocks have removed their temporary output folders (one line each).
+parser it adds sets ``func(args) -> int``. Every :class:`OmnipipeError` (also a bad
+number on the command line, refused while parsing: :mod:`omnipipe.cli_values`) becomes a
+one-line message on stderr (:func:`omnipipe.errors.one_line`) and exit code 1. Ctrl-C
+exits 130 and SIGTERM 143, after the ``with`` blocks have removed their temporary output
+folders and ended their worker processes (one line each).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from omnipipe import __version__
-from omnipipe.errors import OmnipipeError
+from omnipipe.errors import OmnipipeError, one_line
 
 # Sub-commands in the order they appear in --help: (name, module that registers it,
 # one-line help). The help lines are repeated here so that ``omnipipe --help`` answers
@@ -135,7 +137,14 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``omnipipe`` console script; returns the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
-    args = parser.parse_args(argv)
+    try:
+        # A bad number or address on the command line raises ConfigError here
+        # (omnipipe.cli_values), before any work.
+        args = parser.parse_args(argv)
+    except OmnipipeError as exc:
+        prog = " ".join(["omnipipe", *filter(None, [_chosen_command(argv)])])
+        print(f"{prog}: error: {one_line(str(exc))}", file=sys.stderr)
+        return 1
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -144,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except OmnipipeError as exc:
         _close_bars()
-        print(f"omnipipe {args.command}: error: {exc}", file=sys.stderr)
+        print(f"omnipipe {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         _close_bars()

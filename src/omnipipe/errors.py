@@ -42,3 +42,10 @@ class ReconstructionError(OmnipipeError):
 
 class OutputError(OmnipipeError):
     """An output location cannot be written (exists, not writable, ...)."""
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line: every run of whitespace (newlines of a YAML parser's
+    context, indentation) becomes one space. Every message the CLI prints or an index
+    lists goes through here."""
+    return " ".join(str(text).split())

@@ -20,7 +20,11 @@ is a pure function of its arguments, so the outputs do not depend on the executo
 from __future__ import annotations
 
 import os
+import re
+import signal
 import sys
+import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -29,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from omnipipe.errors import ConfigError, OmnipipeError
+from omnipipe.errors import ConfigError, OmnipipeError, one_line
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -45,6 +49,16 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
         return max(1, os.cpu_count() or 1)
+
+
+# ``--workers`` may ask for at most this many processes per core (more only costs memory
+# and time: each forked worker holds the parent's imports, ~140 MB).
+WORKERS_PER_CORE = 4
+
+
+def max_workers() -> int:
+    """The largest ``--workers`` accepted: :data:`WORKERS_PER_CORE` x the usable cores."""
+    return WORKERS_PER_CORE * default_workers()
 
 
 class InlineExecutor(Executor):
@@ -65,36 +79,111 @@ class InlineExecutor(Executor):
         return future
 
 
+# Dask's communication schemes that omnipipe can reach (host:port addresses).
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+_HOST = re.compile(r"\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,252}[A-Za-z0-9])?")
+# Seconds to wait for the scheduler: a reachable one answers in milliseconds, and every
+# --scheduler error must come back well within 5 s.
+CONNECT_TIMEOUT_S = 2.0
+
+
+def parse_scheduler_address(scheduler: str) -> tuple[str, str, int]:
+    """``(scheme, host, port)`` of a Dask scheduler address ``SCHEME://HOST:PORT``.
+
+    The scheme is one of :data:`SCHEDULER_SCHEMES`; HOST a name, an IPv4 address or a
+    bracketed IPv6 address; PORT 1-65535 (required: Dask cannot guess it).
+
+    Raises:
+        ConfigError: naming ``--scheduler`` and what is wrong.
+    """
+    text = str(scheduler).strip()
+    example = "expected a Dask scheduler address like tcp://HOST:8786"
+    scheme, sep, rest = text.partition("://")
+    if not sep or not scheme or not rest:
+        raise ConfigError("--scheduler", f"{example}, got {text!r}")
+    if scheme.lower() not in SCHEDULER_SCHEMES:
+        raise ConfigError(
+            "--scheduler",
+            f"unknown protocol {scheme + '://'!r} in {text!r} (one of "
+            f"{', '.join(s + '://' for s in SCHEDULER_SCHEMES)})",
+        )
+    host, colon, port_text = rest.rstrip("/").rpartition(":")
+    bracketed = host.startswith("[")
+    if not colon or not host or (":" in host) != (bracketed and host.endswith("]")):
+        raise ConfigError("--scheduler", f"{text!r} has no port ({example})")
+    if not _HOST.fullmatch(host):
+        raise ConfigError("--scheduler", f"{host!r} is not a host name or IP address in {text!r}")
+    if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+        raise ConfigError("--scheduler", f"port must be 1-65535, got {port_text!r} in {text!r}")
+    return scheme.lower(), host.strip("[]"), int(port_text)
+
+
 def check_scheduler_address(scheduler: str) -> str:
-    """``scheduler`` if it looks like a Dask address (``tcp://HOST:PORT``, ``tls://...``).
+    """``scheduler`` if it is a Dask address ``SCHEME://HOST:PORT``
+    (:func:`parse_scheduler_address`), stripped.
 
     Raises:
         ConfigError: naming ``--scheduler``.
     """
-    text = str(scheduler).strip()
-    scheme, sep, rest = text.partition("://")
-    if not sep or not scheme or not rest:
-        raise ConfigError(
-            "--scheduler", f"expected a Dask scheduler address like tcp://HOST:PORT, got {text!r}"
-        )
-    return text
+    parse_scheduler_address(scheduler)
+    return str(scheduler).strip()
 
 
 def check_workers(workers: int | None, field: str = "--workers") -> int:
-    """``workers`` as a count (None: :func:`default_workers`).
+    """``workers`` as a count (None: :func:`default_workers`), 1 to :func:`max_workers`.
 
     Raises:
-        ConfigError: not a whole number >= 1.
+        ConfigError: not a whole number in 1 .. :func:`max_workers`.
     """
     if workers is None:
         return default_workers()
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ConfigError(field, f"must be a whole number >= 1, got {workers!r}")
+    most = max_workers()
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= most:
+        raise ConfigError(
+            field,
+            f"must be a whole number from 1 to {most} ({WORKERS_PER_CORE} x "
+            f"{default_workers()} cores), got {workers!r}",
+        )
     return workers
 
 
+def _probe(host: str, port: int, address: str) -> None:
+    """Refuse at once a scheduler that nothing listens to (a refused TCP connection)."""
+    import socket
+
+    try:
+        with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or str(exc) or type(exc).__name__
+        if isinstance(exc, TimeoutError | socket.timeout):
+            reason = f"no answer within {CONNECT_TIMEOUT_S:g} s"
+        raise SchedulerError(f"cannot reach the Dask scheduler at {address} ({reason})") from None
+
+
+@contextmanager
+def _quiet_dask() -> Iterator[None]:
+    """Dask's own log lines and the ``Client.__del__`` of a client that never connected
+    stay silent while connecting: the error is reported in one line by the caller."""
+    import gc
+    import logging
+
+    logger = logging.getLogger("distributed")
+    level, hook = logger.level, sys.unraisablehook
+    logger.setLevel(logging.CRITICAL + 1)
+    sys.unraisablehook = lambda unraisable: None
+    try:
+        yield
+    finally:
+        gc.collect()  # a failed Client's __del__ runs now, while it is silenced
+        logger.setLevel(level)
+        sys.unraisablehook = hook
+
+
 def _dask_client(scheduler: str) -> Any:
-    """A connected ``distributed.Client`` (one-line errors without Dask or scheduler)."""
+    """A connected ``distributed.Client`` (one-line errors without Dask or scheduler,
+    within about :data:`CONNECT_TIMEOUT_S`)."""
+    scheme, host, port = parse_scheduler_address(scheduler)
     address = check_scheduler_address(scheduler)
     try:
         from distributed import Client
@@ -102,25 +191,36 @@ def _dask_client(scheduler: str) -> Any:
         raise ConfigError(
             "--scheduler", "needs Dask, which is not installed: pip install 'omnipipe[dask]'"
         ) from None
-    try:
-        return Client(address, timeout="10s", set_as_default=False)
-    except (OSError, TimeoutError) as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise SchedulerError(f"cannot reach the Dask scheduler at {address} ({reason})") from None
+    if scheme in ("tcp", "tls", "ws", "wss"):
+        _probe(host, port, address)
+    reason = ""
+    with _quiet_dask():
+        try:
+            return Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s", set_as_default=False)
+        except Exception as exc:  # Dask raises OSError, TimeoutError, ValueError, ...
+            reason = one_line(str(exc)) or type(exc).__name__
+    raise SchedulerError(f"cannot reach the Dask scheduler at {address} ({reason})")
 
 
 @contextmanager
-def open_executor(workers: int | None = None, scheduler: str | None = None) -> Iterator[Executor]:
+def open_executor(
+    workers: int | None = None, scheduler: str | None = None, tasks: int | None = None
+) -> Iterator[Executor]:
     """The executor for ``workers`` local processes or the Dask cluster at ``scheduler``.
 
     Args:
-        workers: local processes (None: every core, 1: inline, no pool). Ignored when
-            ``scheduler`` is given (the cluster's workers do the work).
+        workers: local processes, 1 .. :func:`max_workers` (None: every core, 1: inline,
+            no pool). Ignored when ``scheduler`` is given (the cluster's workers do the
+            work).
         scheduler: a Dask scheduler address ``tcp://HOST:PORT``, or None.
+        tasks: the most tasks there will be (frames, runs): no more processes than that
+            are started. None: no cap.
 
     Yields:
         a ``concurrent.futures.Executor``; it is shut down (the Dask client closed) when
-        the block ends.
+        the block ends. When the block raises (an error, Ctrl-C, SIGTERM) the local
+        workers are killed at once rather than waited for; they also die with this
+        process (:func:`worker_init`).
 
     Raises:
         ConfigError: bad ``workers``/``scheduler``, or ``scheduler`` without Dask installed.
@@ -136,6 +236,8 @@ def open_executor(workers: int | None = None, scheduler: str | None = None) -> I
             client.close()
         return
     n = check_workers(workers)
+    if tasks is not None:
+        n = max(1, min(n, int(tasks)))
     if n == 1:
         yield InlineExecutor()
         return
@@ -145,17 +247,75 @@ def open_executor(workers: int | None = None, scheduler: str | None = None) -> I
     # Ctrl-C reaches the whole process group: the workers ignore it and the parent
     # (which owns the output folder) stops the pool, so one line is printed, not N
     # tracebacks.
-    pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_ignore_sigint)
+    pool = ProcessPoolExecutor(
+        max_workers=n, mp_context=ctx, initializer=worker_init, initargs=(os.getpid(),)
+    )
     try:
         yield pool
+    except BaseException:
+        kill_workers(pool)
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _ignore_sigint() -> None:
-    import signal
+def kill_workers(pool: ProcessPoolExecutor) -> None:
+    """End ``pool``'s worker processes now (SIGKILL), not after their current task: a
+    run that stops (error, Ctrl-C, SIGTERM) does not wait for the work in progress."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        try:
+            proc.kill()
+        except (OSError, ValueError, AttributeError):
+            pass
+    for proc in processes:
+        try:
+            proc.join(timeout=5)
+        except (OSError, ValueError, AssertionError):
+            pass
 
+
+# Seconds between a worker's checks that its parent is still alive (the fallback of
+# PR_SET_PDEATHSIG).
+PARENT_POLL_S = 0.5
+
+
+def worker_init(parent: int) -> None:
+    """Initializer of every local worker process: it dies with ``parent``.
+
+    SIGINT is ignored (the parent handles Ctrl-C and ends the pool). On Linux the kernel
+    sends the worker SIGKILL when the parent dies (``prctl(PR_SET_PDEATHSIG)``, also
+    after a SIGKILL or the OOM killer); everywhere a daemon thread checks every
+    :data:`PARENT_POLL_S` s that ``parent`` is still this process's parent and kills
+    the worker when it is not.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
+    if os.getppid() != parent:  # the parent died before the line above took effect
+        os.kill(os.getpid(), signal.SIGKILL)
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+
+
+def _die_with_parent() -> bool:
+    """``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux; False where unavailable."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        return int(libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        time.sleep(PARENT_POLL_S)
+        if os.getppid() != parent:
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 def parallelism(executor: Executor) -> int:

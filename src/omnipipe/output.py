@@ -11,15 +11,20 @@ wrote, as relative POSIX paths). Rules:
 - An existing OUT is replaced (``force``) only if it is empty, or holds a valid manifest
   and nothing that the manifest does not list. Anything else is refused with one line
   (:class:`~omnipipe.errors.OutputError`) and nothing is touched.
-- The swap keeps the previous output recoverable at every instant: the old OUT is
-  renamed aside to ``.NAME.old-XXXX``, the temporary directory is renamed to OUT, then
-  the old one is deleted (only the files its manifest lists).
+- The swap keeps a complete output at OUT at every instant: on Linux the temporary
+  directory and the old OUT trade places in one atomic ``renameat2(RENAME_EXCHANGE)``,
+  the old one is renamed to ``.NAME.old-XXXX`` and deleted (only the files its manifest
+  lists). Elsewhere (or on a file system without the exchange) the old OUT is renamed
+  aside first, then the temporary directory to OUT: a kill between the two leaves OUT
+  missing until the next run restores it.
 - On start-up (:func:`prepare_output_dir`, also run by :func:`atomic_output_dir`) an
   interrupted swap of OUT is finished or rolled back: OUT missing and a complete
   ``.NAME.old-*`` present -> the old one is renamed back; OUT present -> leftover
   ``.NAME.old-*`` are deleted; ``.NAME.partial-*`` whose owner process is dead (its pid
   is in ``.omnipipe-pid``) are deleted. Directories without omnipipe's markers are
   never deleted.
+- Start-up also refuses an OUT whose folder cannot be written (read-only, ``/proc``),
+  before any work.
 
 Swaps and recovery of one parent folder are serialised by an advisory ``flock`` on
 that folder (POSIX), and SIGINT/SIGTERM are deferred during the few renames of a swap.
@@ -286,6 +291,40 @@ def prepare_output_dir(
         with _deferred_signals(), _locked(target.parent):
             recover_output_dir(target)
     check_output_dir(out, force=force, protect=protect)
+    check_writable(out)
+
+
+def check_writable(out: str | Path) -> None:
+    """Refuse an OUT that could not be written at the end of a run: its folder (or the
+    nearest existing ancestor, which would hold the folders created) must let omnipipe
+    create a directory. The probe is an empty ``.NAME.partial-*`` removed at once (a
+    kill in between leaves one that the next run removes).
+
+    Raises:
+        OutputError: one line naming OUT, the folder and the reason.
+    """
+    target = _resolve(out)
+    parent = target.parent
+    if parent.is_dir():
+        probe = parent / f".{target.name}.partial-{secrets.token_hex(4)}"
+        try:
+            os.mkdir(probe)
+            os.rmdir(probe)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot write in {parent} ({exc.strerror})") from None
+        return
+    ancestor = parent
+    while not ancestor.is_dir() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if os.path.lexists(ancestor) and not ancestor.is_dir():
+        raise OutputError(f"{out}: {ancestor} is not a folder")
+    readonly = False
+    try:
+        readonly = bool(os.statvfs(ancestor).f_flag & getattr(os, "ST_RDONLY", 1))
+    except (OSError, AttributeError):
+        pass
+    if readonly or not os.access(ancestor, os.W_OK | os.X_OK):
+        raise OutputError(f"{out}: cannot create it: {ancestor} is not writable")
 
 
 # --- recovery ------------------------------------------------------------------------
@@ -434,7 +473,13 @@ def recover_output_dir(out: str | Path) -> list[str]:
                 pid, start = -1, ""
             if _alive(pid, start):
                 continue
-        elif read_manifest(p) is None and not _only_markers(p):
+        elif read_manifest(p) is not None:
+            # Complete but never swapped in, or the old OUT just exchanged out of place:
+            # only what its manifest lists is deleted.
+            _remove_own(p)
+            done.append(f"removed {p.name}")
+            continue
+        elif not _only_markers(p):
             continue  # not recognisably ours: leave it alone
         _remove_partial(p)
         done.append(f"removed {p.name}")
@@ -561,13 +606,85 @@ def _make_partial(parent: Path, name: str) -> Path:
     raise OutputError(f"{parent / name}: cannot create a temporary folder beside it")
 
 
+# renameat2(2)'s flag and "relative to the current folder" (Linux).
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+# The renameat2 system call's number where glibc < 2.28 lacks the function.
+_SYS_RENAMEAT2 = {"x86_64": 316, "aarch64": 276, "riscv64": 276, "ppc64le": 357, "s390x": 347}
+_renameat2_fn: list = []
+
+
+def _renameat2():  # -> Callable[[int, bytes, int, bytes, int], int] | None
+    """libc's renameat2 (or the raw system call), None where there is none."""
+    if _renameat2_fn:
+        return _renameat2_fn[0]
+    fn = None
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import platform
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+        except OSError:
+            libc = None
+        if libc is not None and hasattr(libc, "renameat2"):
+            fn = libc.renameat2
+            fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
+                           ctypes.c_uint]
+            fn.restype = ctypes.c_int
+        elif libc is not None and platform.machine() in _SYS_RENAMEAT2:
+            number = _SYS_RENAMEAT2[platform.machine()]
+            syscall = libc.syscall
+            syscall.restype = ctypes.c_long
+
+            def fn(a: int, old: bytes, b: int, new: bytes, flags: int) -> int:
+                return int(syscall(ctypes.c_long(number), ctypes.c_int(a), ctypes.c_char_p(old),
+                                   ctypes.c_int(b), ctypes.c_char_p(new), ctypes.c_uint(flags)))
+    _renameat2_fn.append(fn)
+    return fn
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the directories ``a`` and ``b`` in one atomic step
+    (``renameat2(RENAME_EXCHANGE)``, Linux >= 3.15). False, with nothing done, where the
+    system or the file system has no such exchange.
+
+    Raises:
+        OSError: the exchange is supported but failed.
+    """
+    import ctypes
+    import errno
+
+    fn = _renameat2()
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
 def _swap(tmp: Path, target: Path) -> Path | None:
-    """Put ``tmp`` in place of ``target``; returns the old directory set aside (or None)."""
+    """Put ``tmp`` in place of ``target``; returns the old directory set aside (or None).
+
+    With the atomic exchange OUT holds a complete output at every instant; without it,
+    it is missing between the two renames (the next start-up restores it).
+    """
     parent = target.parent
     old: Path | None = None
     if os.path.lexists(target):
         if _is_empty(target):
             target.rmdir()
+        elif _exchange(tmp, target):
+            _step("new-in")  # OUT is the new output; ``tmp`` the old one
+            old = parent / f".{target.name}.old-{secrets.token_hex(4)}"
+            os.rename(tmp, old)
+            _step("old-aside")
+            _fsync_dir(parent)
+            _step("synced")
+            return old
         else:
             old = parent / f".{target.name}.old-{secrets.token_hex(4)}"
             os.rename(target, old)

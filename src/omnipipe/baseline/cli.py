@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from omnipipe import cli_values
 from omnipipe.baseline import BaselineConfig, plot_fig9, run
 from omnipipe.config import finite_option
 from omnipipe.errors import ConfigError, OutputError
@@ -27,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rig", required=True, help="rig.yaml (mirror a, b and f are used)")
     p.add_argument(
         "--distance",
-        type=float,
+        type=cli_values.number("--distance", 0.0, MAX_DISTANCE_MM, open_lo=True, unit="mm"),
         nargs="+",
         default=[100.0, 200.0, 300.0],
         help="wall distances d (mm)",

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omnipipe import cli_values
 from omnipipe.errors import ConfigError, OutputError
 from omnipipe.rig import LASER_CHANNELS, Mirror, Rig, load_rig, rig_from_dict, save_rig
 
@@ -31,10 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     csub = cal.add_subparsers(dest="what", required=True, metavar="{camera,laser}")
     cam = csub.add_parser("camera", help="camera model from checkerboard views")
     cam.add_argument("images", nargs="+", help="images of the checkerboard through the mirror")
-    cam.add_argument("--target", required=True, help="checkerboard:COLSxROWS:SQUARE_MM (inner corners)")
+    cam.add_argument("--target", required=True, type=_target,
+                     help="checkerboard:COLSxROWS:SQUARE_MM (inner corners)")
     cam.add_argument("--model", choices=("unified", "hyperboloid"), default="unified")
     cam.add_argument("--init", help="rig.yaml to start from (e.g. the design), optional")
-    cam.add_argument("--mirror-a", type=float, default=None,
+    cam.add_argument("--mirror-a", type=cli_values.number("--mirror-a", 0.0, 1e4, open_lo=True, unit="mm"),
+                     default=None,
                      help="hyperboloid: the mirror's a (mm) from its datasheet (else --init's)")
     cam.add_argument("--out", required=True, help="rig.yaml to write (camera only, no laser)")
     cam.add_argument("--force", action="store_true", help="replace an existing --out file")
@@ -42,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     las = csub.add_parser("laser", help="laser plane from the laser line on the board")
     las.add_argument("images", nargs="+", help="images of the board cut by the laser line")
     las.add_argument("--rig", required=True, help="rig.yaml with the calibrated camera")
-    las.add_argument("--target", required=True, help="checkerboard:COLSxROWS:SQUARE_MM (inner corners)")
+    las.add_argument("--target", required=True, type=_target,
+                     help="checkerboard:COLSxROWS:SQUARE_MM (inner corners)")
     las.add_argument("--channel", default="red", choices=LASER_CHANNELS)
     las.add_argument("--out", required=True, help="rig.yaml to write (the rig plus its laser)")
     las.add_argument("--force", action="store_true", help="replace an existing --out file")
@@ -58,10 +62,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp.add_argument("calib_results", help="OCamCalib's calib_results.txt")
     imp.add_argument("--out", required=True, help="rig.yaml to write")
     imp.add_argument("--laser-from", help="take the laser section of this rig.yaml")
-    imp.add_argument("--radius-min", type=float, default=None, help="blind centre radius (px)")
-    imp.add_argument("--radius-max", type=float, default=None, help="mirror rim radius (px)")
+    imp.add_argument("--radius-min", type=cli_values.number("--radius-min", 0.0, 1e5, unit="px"), default=None, help="blind centre radius (px)")
+    imp.add_argument("--radius-max", type=cli_values.number("--radius-max", 0.0, 1e5, unit="px"), default=None, help="mirror rim radius (px)")
     imp.add_argument("--force", action="store_true", help="replace an existing --out file")
     imp.set_defaults(func=_import_ocam)
+
+
+def _target(text: str) -> str:
+    """``--target`` checked while the command line is parsed (one line, exit 1)."""
+    from omnipipe.calibrate.camera import parse_target
+
+    parse_target(text)
+    return text
 
 
 def _check_out(out: str, force: bool, inputs: list[str]) -> Path:

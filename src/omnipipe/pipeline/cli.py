@@ -10,7 +10,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from omnipipe.config import finite_option
+from omnipipe import cli_values
 from omnipipe.output import atomic_output_dir, prepare_output_dir
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
 
@@ -59,28 +59,33 @@ def _progress(quiet: bool):
 def _add_knobs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="YAML file with sections laser, sfm, model, analysis, report")
     p.add_argument(
-        "--features", type=int, help="SIFT features per frame (sfm.features.max_features)"
+        "--features",
+        type=cli_values.whole("--features", 16, 100_000),
+        help="SIFT features per frame (sfm.features.max_features, 16-100000)",
     )
     p.add_argument(
         "--keyframe-parallax",
-        type=float,
+        type=cli_values.number("--keyframe-parallax", 0.0, 90.0, open_lo=True, unit="deg"),
         metavar="DEG",
-        help="sfm keyframe spacing as ray parallax (deg)",
+        help="sfm keyframe spacing as ray parallax (deg, > 0 and <= 90)",
     )
     p.add_argument("--mesher", help="model.mesher (default: unrolled-delaunay)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def add_execution_options(p: argparse.ArgumentParser) -> None:
-    """``--workers N`` and ``--scheduler ADDR`` (:mod:`omnipipe.executor`)."""
+    """``--workers N`` and ``--scheduler ADDR`` (:mod:`omnipipe.executor`), both checked
+    while the command line is parsed (:mod:`omnipipe.cli_values`)."""
     p.add_argument(
         "--workers",
-        type=int,
+        type=cli_values.workers(),
         metavar="N",
-        help="local worker processes for frame-parallel work (default: every core; 1: serial)",
+        help="local worker processes for the parallel work, 1 to 4 x the cores (default: "
+        "every core; 1: serial; never more than there are tasks)",
     )
     p.add_argument(
         "--scheduler",
+        type=cli_values.scheduler,
         metavar="ADDR",
         help="run the parallel work on the Dask cluster whose scheduler is at ADDR "
         "(tcp://HOST:PORT; needs pip install 'omnipipe[dask]')",
@@ -103,8 +108,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict]:
     if args.features is not None:
         out.setdefault("sfm", {})["features"] = {"max_features": args.features}
     if args.keyframe_parallax is not None:
-        parallax = finite_option(args.keyframe_parallax, "--keyframe-parallax", positive=True)
-        out.setdefault("sfm", {})["keyframe_min_parallax_deg"] = parallax
+        out.setdefault("sfm", {})["keyframe_min_parallax_deg"] = args.keyframe_parallax
     if args.mesher is not None:
         out.setdefault("model", {})["mesher"] = args.mesher
     return out
@@ -161,7 +165,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument(
         "--quick", action="store_true", help="smaller images and fewer frames (under 2 minutes)"
     )
-    d.add_argument("--seed", type=int, default=0, help="simulation seed")
+    d.add_argument("--seed", type=cli_values.seed(), default=0, help="simulation seed")
     d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=_demo)
 

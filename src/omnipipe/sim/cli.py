@@ -3,23 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
 from tqdm import tqdm
 
-from omnipipe.errors import ConfigError
+from omnipipe import cli_values
+from omnipipe.executor import check_workers
 from omnipipe.output import prepare_output_dir
 from omnipipe.sim.scenarios import SCENARIOS, make_scenario
 from omnipipe.sim.writer import run
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH such as 1600x1200, got {text!r}") from None
-    return w, h
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,18 +31,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", required=True, help="dataset directory to create")
     p.add_argument(
-        "--frames", type=int, default=None, help="number of frames (default: the scenario's)"
+        "--frames",
+        type=cli_values.whole("--frames", 1, 100_000),
+        default=None,
+        help="number of frames, 1-100000 (default: the scenario's)",
     )
     p.add_argument(
         "--size",
-        type=_size,
+        type=cli_values.image_size(),
         default=None,
         metavar="WxH",
-        help="image size (default: the scenario's)",
+        help="image size, each side 16-8192 px (default: the scenario's)",
     )
     p.add_argument(
         "--seed",
-        type=int,
+        type=cli_values.seed(),
         default=0,
         help="random seed (texture, motion, noise; the whole scene of random)",
     )
@@ -58,7 +53,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--dark-frames", action="store_true", help="also write LED-off frames to frames_noled/"
     )
     p.add_argument(
-        "--workers", type=int, default=None, help="render processes (default: all cores)"
+        "--workers",
+        type=cli_values.workers(),
+        default=None,
+        metavar="N",
+        help="render processes, 1 to 4 x the cores (default: every core; 1: serial)",
     )
     p.add_argument(
         "--force",
@@ -81,9 +80,7 @@ def _main(args: argparse.Namespace) -> int:
         return simulate_main(args)
     scenario = make_scenario(args.scenario, frames=args.frames, size=args.size, seed=args.seed)
     scenario.dark_frames = bool(args.dark_frames)
-    workers = args.workers or os.cpu_count() or 1
-    if workers < 1:
-        raise ConfigError("--workers", f"must be >= 1, got {workers}")
+    workers = check_workers(args.workers)  # None: every core
     prepare_output_dir(args.out, force=args.force)  # refuse before rendering, not after
     start = time.perf_counter()
     bar = tqdm(total=scenario.frames, desc="render", unit="frame", disable=args.quiet)

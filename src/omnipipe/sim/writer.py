@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -202,7 +203,9 @@ def _render_all(renderer, scenario, poses, tmp, names, workers, progress) -> Non
         ctx = mp.get_context("fork")
         global _SHARED
         _SHARED = (renderer, scenario, tmp)
-        with ctx.Pool(workers) as pool:
+        from omnipipe.executor import worker_init  # the workers die with this process
+
+        with ctx.Pool(min(workers, len(stations)), worker_init, (os.getpid(),)) as pool:
             for n in pool.imap_unordered(_render_shared, [(poses[st[0]], st) for st in stations]):
                 done += n
                 if progress:
