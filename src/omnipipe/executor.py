@@ -180,19 +180,43 @@ def _quiet_dask() -> Iterator[None]:
         sys.unraisablehook = hook
 
 
+def check_scheduler_reachable(scheduler: str) -> str:
+    """``scheduler`` (stripped) once Dask is known to be installed and something listens
+    at its address: the CLI calls this before any heavy work, so that a wrong
+    ``--scheduler`` is refused in one line within about :data:`CONNECT_TIMEOUT_S`.
+
+    Raises:
+        ConfigError: a malformed address, or Dask not installed.
+        SchedulerError: nothing answers at the address.
+    """
+    import importlib.util
+
+    scheme, host, port = parse_scheduler_address(scheduler)
+    address = check_scheduler_address(scheduler)
+    try:  # found, not imported (importing Dask takes a second or more)
+        found = importlib.util.find_spec("distributed") is not None
+    except (ImportError, ValueError):
+        found = False
+    if not found:
+        raise ConfigError(
+            "--scheduler", "needs Dask, which is not installed: pip install 'omnipipe[dask]'"
+        )
+    if scheme in ("tcp", "tls", "ws", "wss"):
+        _probe(host, port, address)
+    return address
+
+
 def _dask_client(scheduler: str) -> Any:
     """A connected ``distributed.Client`` (one-line errors without Dask or scheduler,
     within about :data:`CONNECT_TIMEOUT_S`)."""
-    scheme, host, port = parse_scheduler_address(scheduler)
-    address = check_scheduler_address(scheduler)
+    address = check_scheduler_reachable(scheduler)
     try:
         from distributed import Client
     except ImportError:
         raise ConfigError(
             "--scheduler", "needs Dask, which is not installed: pip install 'omnipipe[dask]'"
         ) from None
-    if scheme in ("tcp", "tls", "ws", "wss"):
-        _probe(host, port, address)
+
     reason = ""
     with _quiet_dask():
         try:

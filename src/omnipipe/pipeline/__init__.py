@@ -141,7 +141,7 @@ def run(
     if executor is None:
         from omnipipe.executor import open_executor
 
-        with open_executor(config.workers, config.scheduler) as pool:
+        with open_executor(config.workers, config.scheduler, tasks=len(dataset)) as pool:
             return run(config, dataset, progress, pool)
     if dataset.rig.laser is None:  # a camera-only rig (rig.yaml without a laser section)
         raise ReconstructionError(

@@ -93,13 +93,14 @@ def add_execution_options(p: argparse.ArgumentParser) -> None:
 
 
 def with_execution(config: ReconstructConfig, args: argparse.Namespace) -> ReconstructConfig:
-    """``config`` with ``--workers`` / ``--scheduler`` applied (checked: one-line errors)."""
+    """``config`` with ``--workers`` / ``--scheduler`` applied (checked: one-line errors;
+    a scheduler that does not answer is refused here, before any heavy work)."""
     from dataclasses import replace
 
-    from omnipipe.executor import check_scheduler_address, check_workers
+    from omnipipe.executor import check_scheduler_reachable, check_workers
 
     workers = None if args.workers is None else check_workers(args.workers)
-    scheduler = None if args.scheduler is None else check_scheduler_address(args.scheduler)
+    scheduler = None if args.scheduler is None else check_scheduler_reachable(args.scheduler)
     return replace(config, workers=workers, scheduler=scheduler)
 
 
