@@ -49,3 +49,22 @@ def one_line(text: str) -> str:
     context, indentation) becomes one space. Every message the CLI prints or an index
     lists goes through here."""
     return " ".join(str(text).split())
+
+
+def yaml_reason(exc: BaseException) -> str | None:
+    """``"PROBLEM (line L, column C)"`` of a YAML parser's error (PyYAML's or ruamel's
+    ``MarkedYAMLError``: lines and columns 1-based) found in ``exc`` or what caused it,
+    without the parser's multi-line context; None if there is none."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        problem = getattr(cause, "problem", None)
+        if isinstance(problem, str) and problem:
+            mark = getattr(cause, "problem_mark", None)
+            where = ""
+            if mark is not None and hasattr(mark, "line") and hasattr(mark, "column"):
+                where = f" (line {int(mark.line) + 1}, column {int(mark.column) + 1})"
+            return one_line(problem + where)
+        cause = cause.__cause__ or cause.__context__
+    return None

@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from omnipipe.errors import ConfigError
+from omnipipe.errors import ConfigError, yaml_reason
 
 MAX_BYTES = 1_000_000
 MAX_DEPTH = 32
@@ -117,7 +117,7 @@ def load_yaml_file(path: str | Path, field: str) -> Any:
         ) from None
     except yaml.YAMLError as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError(field, f"not valid YAML ({first})", source) from None
+        raise ConfigError(field, f"not valid YAML ({yaml_reason(exc) or first})", source) from None
     except (ValueError, OverflowError) as exc:  # e.g. an impossible date: 2024-13-45
         raise ConfigError(field, f"not valid YAML (a value cannot be read: {exc})", source) from None
     finally:

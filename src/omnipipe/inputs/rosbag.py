@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from omnipipe.errors import ConfigError, DatasetError
+from omnipipe.errors import ConfigError, DatasetError, one_line, yaml_reason
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
@@ -152,7 +152,7 @@ def read_bag(path: Path, topic: str | None = None) -> BagImages:
         reader = AnyReader([path])
         reader.open()
     except (AnyReaderError, OSError, ValueError, KeyError) as exc:
-        raise DatasetError(f"{path}: not a readable ROS bag or MCAP file ({exc})") from None
+        raise DatasetError(f"{path}: not a readable ROS bag or MCAP file ({_reason(exc)})") from None
     try:
         images = sorted({c.topic for c in reader.connections if c.msgtype in IMAGE_TYPES})
         if topic is None:
@@ -184,7 +184,7 @@ def read_bag(path: Path, topic: str | None = None) -> BagImages:
             log_t.append(1e-9 * log_ns)
             formats.append(str(getattr(msg, "format", None) or getattr(msg, "encoding", "")))
     except (AnyReaderError, OSError, ValueError, KeyError, AttributeError) as exc:
-        raise DatasetError(f"{path}: cannot read topic {topic} ({exc})") from None
+        raise DatasetError(f"{path}: cannot read topic {topic} ({_reason(exc)})") from None
     finally:
         reader.close()
     if not messages:
@@ -211,6 +211,15 @@ def read_bag(path: Path, topic: str | None = None) -> BagImages:
         warnings=tuple(warnings),
         _messages=tuple(messages),
     )
+
+
+def _reason(exc: BaseException) -> str:
+    """A reader's error in one line: a broken metadata.yaml names the problem and its
+    line, not the YAML parser's context lines."""
+    problem = yaml_reason(exc)
+    if problem is not None:
+        return f"metadata.yaml: {problem}"
+    return one_line(str(exc)) or type(exc).__name__
 
 
 def find_rig(path: Path) -> Path:
