@@ -68,9 +68,12 @@ def test_refusals_one_line_nothing_written(calib_set: Path, tmp_path: Path, caps
     cases = [
         ([str(blank)] * 3, TARGET, "no 8x6 checkerboard"),
         (imgs, "checkerboard:5x4:12", "5x4"),
+        # issue 27: a wrong size that makes the fit diverge names --target too
+        (imgs, "checkerboard:7x3:12", "is the board really 7x3 inner corners (check --target"),
         (imgs[:2], TARGET, "at least 4"),
         ([*imgs[:3], str(small)], TARGET, "small.png"),
         (imgs, "checkerboard:8x6", "--target"),
+        (imgs, "checkerboard:8x6:0", "--target"),
     ]
     for images, target, message in cases:
         assert main(["calibrate", "camera", *images, "--target", target, "--out", str(out)]) == 1

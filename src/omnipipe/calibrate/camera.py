@@ -348,7 +348,11 @@ def calibrate_unified(
     per = {i: float(np.sqrt(np.mean(np.sum(res[k] ** 2, axis=1)))) for k, i in enumerate(idx)}
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=2))))
     if not (math.isfinite(rms) and x[0] >= 0 and x[1] > 0 and x[2] > 0):
-        raise CalibrationError("the calibration did not converge (xi < 0 or focal <= 0)")
+        raise CalibrationError(
+            f"the calibration did not converge (xi < 0 or focal <= 0): the corners do not fit "
+            f"one camera; is the board really {target.cols}x{target.rows} inner corners (check "
+            "--target: a smaller one matches part of a bigger board)? nothing written"
+        )
     poses_out = {}
     for k, i in enumerate(idx):
         m = np.eye(4)
