@@ -147,18 +147,30 @@ def check_workers(workers: int | None, field: str = "--workers") -> int:
     return workers
 
 
-def _probe(host: str, port: int, address: str) -> None:
-    """Refuse at once a scheduler that nothing listens to (a refused TCP connection)."""
+def _probe(host: str, port: int, address: str, *, greeting: bool) -> None:
+    """Refuse at once a scheduler that nothing listens to (a refused TCP connection)
+    and, with ``greeting`` (plain ``tcp://``), a listener that is not a Dask scheduler:
+    a scheduler sends its handshake as soon as a connection opens, and Dask's own
+    client would wait for it without end."""
     import socket
 
+    def refuse(reason: str) -> SchedulerError:
+        return SchedulerError(f"cannot reach the Dask scheduler at {address} ({reason})")
+
     try:
-        with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):
-            pass
+        sock = socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S)
+    except TimeoutError:
+        raise refuse(f"no answer within {CONNECT_TIMEOUT_S:g} s") from None
     except OSError as exc:
-        reason = exc.strerror or str(exc) or type(exc).__name__
-        if isinstance(exc, TimeoutError | socket.timeout):
-            reason = f"no answer within {CONNECT_TIMEOUT_S:g} s"
-        raise SchedulerError(f"cannot reach the Dask scheduler at {address} ({reason})") from None
+        raise refuse(exc.strerror or str(exc) or type(exc).__name__) from None
+    with sock:
+        try:
+            if greeting and not sock.recv(1):
+                raise refuse("it closed the connection: not a Dask scheduler")
+        except TimeoutError:
+            raise refuse(f"no Dask handshake within {CONNECT_TIMEOUT_S:g} s") from None
+        except OSError as exc:
+            raise refuse(exc.strerror or str(exc) or type(exc).__name__) from None
 
 
 @contextmanager
@@ -202,7 +214,7 @@ def check_scheduler_reachable(scheduler: str) -> str:
             "--scheduler", "needs Dask, which is not installed: pip install 'omnipipe[dask]'"
         )
     if scheme in ("tcp", "tls", "ws", "wss"):
-        _probe(host, port, address)
+        _probe(host, port, address, greeting=scheme == "tcp")
     return address
 
 

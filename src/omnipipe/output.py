@@ -297,34 +297,26 @@ def prepare_output_dir(
 def check_writable(out: str | Path) -> None:
     """Refuse an OUT that could not be written at the end of a run: its folder (or the
     nearest existing ancestor, which would hold the folders created) must let omnipipe
-    create a directory. The probe is an empty ``.NAME.partial-*`` removed at once (a
-    kill in between leaves one that the next run removes).
+    create a directory. The probe is an empty directory removed at once (beside OUT:
+    ``.NAME.partial-*``, which the next run removes should a kill come in between).
 
     Raises:
         OutputError: one line naming OUT, the folder and the reason.
     """
     target = _resolve(out)
-    parent = target.parent
-    if parent.is_dir():
-        probe = parent / f".{target.name}.partial-{secrets.token_hex(4)}"
-        try:
-            os.mkdir(probe)
-            os.rmdir(probe)
-        except OSError as exc:
-            raise OutputError(f"{out}: cannot write in {parent} ({exc.strerror})") from None
-        return
-    ancestor = parent
-    while not ancestor.is_dir() and ancestor != ancestor.parent:
-        ancestor = ancestor.parent
-    if os.path.lexists(ancestor) and not ancestor.is_dir():
-        raise OutputError(f"{out}: {ancestor} is not a folder")
-    readonly = False
+    parent = folder = target.parent
+    while not folder.is_dir() and folder != folder.parent:
+        if os.path.lexists(folder):
+            raise OutputError(f"{out}: {folder} is not a folder")
+        folder = folder.parent
+    name = f".{target.name}.partial-" if folder == parent else ".omnipipe-probe-"
+    probe = folder / f"{name}{secrets.token_hex(4)}"
     try:
-        readonly = bool(os.statvfs(ancestor).f_flag & getattr(os, "ST_RDONLY", 1))
-    except (OSError, AttributeError):
-        pass
-    if readonly or not os.access(ancestor, os.W_OK | os.X_OK):
-        raise OutputError(f"{out}: cannot create it: {ancestor} is not writable")
+        os.mkdir(probe)
+        os.rmdir(probe)
+    except OSError as exc:
+        where = "in" if folder == parent else f"{parent}: cannot create folders in"
+        raise OutputError(f"{out}: cannot write {where} {folder} ({exc.strerror})") from None
 
 
 # --- recovery ------------------------------------------------------------------------
