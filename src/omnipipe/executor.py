@@ -5,11 +5,15 @@ Every stage that has frame-parallel (or run-parallel) work gets it done through 
 
 - ``workers=1``: :class:`InlineExecutor`, the work runs in the calling process at
   ``submit`` (no pool, no pickling): the serial reference.
-- ``workers=N`` (default: the cores this process may use): a
-  :class:`~concurrent.futures.ProcessPoolExecutor` of N local processes (forked on
-  Linux, so the workers start in milliseconds and share the parent's imports).
+- ``workers=N`` (default: the cores this process may use; at most 4 x the cores, and
+  never more than the tasks): a :class:`~concurrent.futures.ProcessPoolExecutor` of N
+  local processes (forked on Linux, so the workers start in milliseconds and share the
+  parent's imports). The workers die with the process that opened the pool (also after
+  a SIGKILL) and are killed at once when the block that uses them raises.
 - ``scheduler="tcp://HOST:PORT"``: the ``concurrent.futures`` executor of a Dask
   distributed ``Client`` connected to that scheduler (``pip install 'omnipipe[dask]'``).
+  A malformed address, or one where no scheduler answers, is refused in one line
+  within about :data:`CONNECT_TIMEOUT_S` seconds.
   The workers must have omnipipe installed and read the dataset at the same path as
   the client (a shared file system); outputs are written by the client.
 
