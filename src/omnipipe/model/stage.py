@@ -1,0 +1,699 @@
+"""Model stage (paper Sec. VI): integrated wall points, mesh, texture, model files.
+
+Integration: every frame's metric ring points go into the world frame with the
+frame's pose. Colour: the LED-lit image a few pixels off the ring along the radial
+direction (at the ring itself the laser dominates the red channel).
+
+Mesh: a Delaunay triangulation in the unrolled parameterisation of the pipe
+(arc length around the axis, distance along it; the analysis stage's centreline
+coordinates, so it follows bends). The wall is a tube, a developable surface: a
+2-D Delaunay on its unrolling gives the wall's own topology, never a triangle
+across the pipe, which a 3-D Delaunay of a hollow cylinder would produce everywhere
+(its tetrahedra fill the inside). The angle wraps around: a margin of points is
+duplicated past 2 pi and each triangle is kept once. Triangles with an edge much
+longer than the spacing of the rings are dropped: holes stay holes. A run of more
+points than :data:`~.texture.CHUNK_POINTS` is triangulated a chunk along the pipe at a
+time (:class:`~.texture.AxialChunks`: the same triangles; qhull's memory is a chunk's).
+
+Texture (:mod:`.texture`): the unrolled wall image, each cell from the keyframe
+that sees it best; it is also the texture atlas of the textured model (GLB).
+
+Then the edge flips of [25] towards photo-consistency (:mod:`.flips`).
+
+Images: the texture is made a section of :data:`~.texture.SECTION_ROWS` grid rows at a
+time: the section's choice of keyframe per cell (which needs no image), then each
+chosen keyframe's image decoded once for the section's samples (and its ring colours,
+the first time). A keyframe whose cells lie in two sections is decoded twice; the
+keyframes that texture no cell are decoded once at the end for their ring colours.
+With ``ModelInputs.dataset`` the decoding runs frame-parallel on the executor
+(:mod:`omnipipe.executor`), else serially through ``read_frame``. The result does not
+depend on which.
+
+Every triangle is wound so its normal (right-hand rule) points towards the pipe axis:
+the wall is seen from inside. Files in each format's unit and axes: :mod:`.export`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
+from dataclasses import dataclass, replace
+from itertools import chain
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import Delaunay
+from threadpoolctl import threadpool_limits
+
+from omnipipe.camera import CameraModel, camera_from_rig
+from omnipipe.errors import ConfigError, ShapeError
+from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
+from omnipipe.geometry import apply
+from omnipipe.memory import release_freed_memory
+from omnipipe.model.export import write_glb, write_obj, write_outputs, write_ply
+from omnipipe.model.texture import (
+    CHUNK_POINTS,
+    LIGHT_DTYPE,
+    SECTION_ROWS,
+    AxialChunks,
+    UnrolledImage,
+    WallGrid,
+    choose_sources,
+    flat_field,
+    paint,
+    texture_samples,
+)
+from omnipipe.rig import Rig
+
+if TYPE_CHECKING:
+    from omnipipe.dataset import Dataset
+
+__all__ = [
+    "ModelConfig",
+    "ModelInputs",
+    "ModelResult",
+    "orient_towards_axis",
+    "run",
+    "write_glb",
+    "write_obj",
+    "write_outputs",
+    "write_ply",
+]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Model settings.
+
+    Attributes:
+        mesher: "unrolled-delaunay" (the only one so far).
+        colour_offset_px: point colours are sampled this far outside the laser ring.
+        max_edge_factor: triangles with an edge longer than this x the median are dropped.
+        texture: build the unrolled image, texture and GLB.
+        texture_mm_per_px: unrolled image cell size (mm).
+        laser_band_mm: texture is not taken within this distance of the laser plane.
+        flips: edge-flip optimisation of [25] (:mod:`.flips`); off by default: on the
+            simulated pipes it did not reduce the mesh's error against the true wall
+            (docs/pipeline.md).
+        flip_passes: its rounds.
+    """
+
+    mesher: str = "unrolled-delaunay"
+    colour_offset_px: float = 4.0
+    max_edge_factor: float = 2.0
+    texture: bool = True
+    texture_mm_per_px: float = 0.5
+    laser_band_mm: float = 3.0
+    flips: bool = False
+    flip_passes: int = 3
+
+    def __post_init__(self) -> None:
+        if self.mesher != "unrolled-delaunay":
+            raise ConfigError(
+                "model.mesher", f"unknown mesher {self.mesher!r} (known: unrolled-delaunay)"
+            )
+        if not self.texture_mm_per_px > 0:
+            raise ConfigError(
+                "model.texture_mm_per_px", f"must be > 0, got {self.texture_mm_per_px}"
+            )
+
+
+@dataclass
+class ModelInputs:
+    """Keyframes' rings and poses.
+
+    Attributes:
+        camera_rig: calibration.
+        world_from_rig: (K, 4, 4) poses of the keyframes.
+        ring_points_in_rig: K arrays (M_k, 3), mm (not read when ``points_in_world`` is
+            given; may then be empty).
+        ring_pixels: K arrays (M_k, 2), the rings' image positions (col, row).
+        read_frame: k -> image of keyframe k.
+        unrolled_mm: (N, 2) arc length around the axis in [0, circumference) and axial
+            position of the integrated points (in :func:`integrate` order); None: a
+            straight axis through the rig origins.
+        circumference_mm: of the unrolled view (2 pi x the fitted radius).
+        dataset: the opened dataset of the keyframes; with ``frame_index`` the images
+            are decoded in the executor's workers (:func:`run`), not by ``read_frame``.
+        frame_index: (K,) int, the dataset index of each keyframe.
+        points_in_world: (N, 3) the rings already integrated, mm (:func:`integrate` of
+            ``world_from_rig`` and the rings, in its order), with ``point_frame`` (N,)
+            each point's keyframe: a caller that has them (the pipeline's analysis)
+            passes them instead of the rings, which then need not be held through the
+            stage; None: integrated here.
+        point_frame: see ``points_in_world``.
+    """
+
+    camera_rig: Rig
+    world_from_rig: np.ndarray
+    ring_points_in_rig: list[np.ndarray]
+    ring_pixels: list[np.ndarray]
+    read_frame: Callable[[int], np.ndarray]
+    unrolled_mm: np.ndarray | None = None
+    circumference_mm: float | None = None
+    dataset: Dataset | None = None
+    frame_index: np.ndarray | None = None
+    points_in_world: np.ndarray | None = None
+    point_frame: np.ndarray | None = None
+
+
+@dataclass
+class ModelResult:
+    """The model.
+
+    Attributes:
+        points_in_world: (N, 3) integrated ring points, mm.
+        colours: (N, 3) uint8 colour of each point.
+        point_frame: (N,) keyframe index of each point.
+        mesh_vertices, mesh_faces: the wall mesh on the points ((N, 3), (F, 3)).
+        textured_vertices, textured_faces, textured_uvs: the same mesh with the vertices
+            of triangles across angle 0 duplicated (their UVs differ); UVs v-up in [0, 1].
+        texture: (H, W', 3) uint8 atlas: the unrolled image plus a wrapped margin.
+        unrolled: the unrolled wall image (:class:`~omnipipe.model.texture.UnrolledImage`).
+        flip_stats: what the edge flips did (:class:`~omnipipe.model.flips.FlipStats`).
+    """
+
+    points_in_world: np.ndarray
+    colours: np.ndarray
+    point_frame: np.ndarray
+    mesh_vertices: np.ndarray
+    mesh_faces: np.ndarray
+    textured_vertices: np.ndarray | None = None
+    textured_faces: np.ndarray | None = None
+    textured_uvs: np.ndarray | None = None
+    texture: np.ndarray | None = None
+    unrolled: UnrolledImage | None = None
+    flip_stats: object = None
+
+
+def colour_pixels(ring_pixels: np.ndarray, camera: CameraModel, offset_px: float) -> np.ndarray:
+    """(M, 2) int (col, row) where the colours of a ring's (M, 2) pixels are sampled:
+    ``offset_px`` outside the ring along the radial direction, rounded, in the image."""
+    centre = np.array([camera.cx, camera.cy])
+    radial = ring_pixels - centre
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+    sample = np.round(ring_pixels + offset_px * radial).astype(int)
+    sample[:, 0] = sample[:, 0].clip(0, camera.width - 1)
+    sample[:, 1] = sample[:, 1].clip(0, camera.height - 1)
+    return sample
+
+
+def colours_at(image: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    """(M, 3) uint8 colours of ``image`` ((H, W, 3) or (H, W), uint8 or uint16) at (M, 2)
+    int pixels (col, row)."""
+    c = image[sample[:, 1], sample[:, 0]]
+    if c.ndim == 1:
+        c = np.repeat(c[:, None], 3, axis=1)
+    if c.dtype == np.uint16:
+        c = (c // 257).astype(np.uint8)
+    return c.astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class _FrameWork:
+    """What is sampled in one keyframe's image.
+
+    Attributes:
+        colour_px: (M, 2) int pixels of its ring colours (:func:`colour_pixels`).
+        texture_px: (n, 2) float32 pixels of the texture cells it was chosen for, in
+            pieces to concatenate (views of the choice's arrays: no copy is held).
+    """
+
+    colour_px: np.ndarray
+    texture_px: tuple[np.ndarray, ...]
+
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``."""
+        colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
+        pixels = np.concatenate(self.texture_px) if self.texture_px else np.zeros((0, 2), np.float32)
+        samples = texture_samples(image, pixels) if len(pixels) else np.zeros((0, 3), np.uint8)
+        return colours, samples
+
+
+_NO_PIXELS = np.zeros((0, 2), int)
+"""No ring colours to sample (a keyframe's ring sampled in an earlier section)."""
+
+
+class _Ticks:
+    """``progress(i)`` once for every i = 1 .. total, in order, as the work gets there."""
+
+    def __init__(self, progress: Callable[[int], None] | None, total: int) -> None:
+        self._progress, self._total, self._done = progress, total, 0
+
+    def to(self, done: int) -> None:
+        """Report every tick up to ``done`` (at most the total) not reported yet."""
+        for i in range(self._done + 1, min(done, self._total) + 1):
+            if self._progress:
+                self._progress(i)
+            self._done = i
+
+
+class _FramesTask:
+    """Picklable task: decode each frame of a chunk once and sample what its work asks."""
+
+    def __call__(
+        self, chunk: tuple[FrameSource, tuple[_FrameWork, ...]]
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        source, work = chunk
+        return [w(source.read(i)) for i, w in enumerate(work)]
+
+
+def _sample_frames(
+    inputs: ModelInputs,
+    work: list[_FrameWork | None],
+    executor: Executor | None,
+    progress: Callable[[int], None] | None,
+) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray]]]:
+    """(k, result) of each keyframe k with work, its work done on its image, in order of k
+    (consumed as they come: the results of the run are not all held at once). Each
+    keyframe's entry of ``work`` is set to None once its result is consumed, so that
+    its pixels are freed as the run goes, not at its end.
+
+    With ``inputs.dataset`` and ``inputs.frame_index``: consecutive chunks of the
+    keyframes that have work, decoded and sampled by ``executor``'s workers (each chunk
+    carries only its own keyframes' pixels); otherwise serially via ``inputs.read_frame``.
+    ``progress(k + 1)`` after keyframe k (after its result is consumed).
+    """
+    # Keyframe indices only: each work item is referenced by ``work`` alone (and by its
+    # chunk while in flight), so it is dropped once its result is consumed.
+    todo = [k for k, w in enumerate(work) if w is not None]
+    results: Iterator[tuple[np.ndarray, np.ndarray]]
+    if inputs.dataset is not None and inputs.frame_index is not None:
+        frame_index = np.asarray(inputs.frame_index)
+        if frame_index.shape != (len(work),):
+            raise ShapeError(
+                f"frame_index: expected shape ({len(work)},) (one per keyframe), got {frame_index.shape}"
+            )
+        ex = executor if executor is not None else InlineExecutor()
+        dataset = inputs.dataset
+        items = (
+            (
+                FrameSource.take(dataset, [int(frame_index[k]) for k in todo[part.start : part.stop]]),
+                tuple(work[k] for k in todo[part.start : part.stop]),
+            )
+            for part in chunks(len(todo), ex)
+        )
+        results = chain.from_iterable(ordered_map(ex, _FramesTask(), items))
+    else:
+        results = (work[k](inputs.read_frame(k)) for k in todo)  # type: ignore[misc]
+    for k in range(len(work)):
+        if work[k] is not None:
+            yield k, next(results)
+            work[k] = None  # its pixels are done with
+        if progress:
+            progress(k + 1)
+
+
+def _integrated(inputs: ModelInputs) -> tuple[np.ndarray, np.ndarray]:
+    """``inputs``' own integrated points and their keyframes, checked.
+
+    Raises:
+        ShapeError: not (N, 3) points with (N,) keyframe indices below K.
+    """
+    points = np.asarray(inputs.points_in_world, float)
+    frame = None if inputs.point_frame is None else np.asarray(inputs.point_frame)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ShapeError(f"model inputs: points_in_world must be (N, 3), got {points.shape}")
+    if frame is None or frame.shape != (len(points),) or frame.dtype.kind not in "iu":
+        raise ShapeError("model inputs: point_frame must be (N,) integers with points_in_world")
+    if len(frame) and (frame.min() < 0 or frame.max() >= len(inputs.world_from_rig)):
+        raise ShapeError("model inputs: point_frame must index world_from_rig's keyframes")
+    return points, frame
+
+
+def integrate(
+    world_from_rig: np.ndarray, ring_points_in_rig: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ring points into the world: (N, 3) points and (N,) keyframe index of each."""
+    pts = [apply(T, r) for T, r in zip(world_from_rig, ring_points_in_rig, strict=True) if len(r)]
+    idx = [np.full(len(r), k) for k, r in enumerate(ring_points_in_rig) if len(r)]
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    return np.concatenate(pts), np.concatenate(idx)
+
+
+def unrolled_coordinates(
+    points_in_world: np.ndarray, world_from_rig: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Fallback unrolling around a straight axis through the rig origins.
+
+    Returns:
+        arc_mm: (N,) in [0, circumference), from the first rig frame's x axis towards y.
+        axial_mm: (N,) along the axis from the first rig origin.
+        circumference_mm: 2 pi x the median distance from the axis.
+    """
+    origins = world_from_rig[:, :3, 3]
+    axis = world_from_rig[0, :3, 2]
+    if len(origins) > 2 and np.linalg.norm(origins[-1] - origins[0]) > 1.0:
+        _, _, vt = np.linalg.svd(origins - origins.mean(axis=0))
+        axis = vt[0] * np.sign(vt[0] @ (origins[-1] - origins[0]))
+    x0 = world_from_rig[0, :3, 0] - (world_from_rig[0, :3, 0] @ axis) * axis
+    x0 /= np.linalg.norm(x0)
+    y0 = np.cross(axis, x0)
+    centre = origins.mean(axis=0)
+    rel = points_in_world - centre
+    axial = rel @ axis + (centre - origins[0]) @ axis
+    perp = rel - np.outer(rel @ axis, axis)
+    radius = float(np.median(np.linalg.norm(perp, axis=1)))
+    circ = 2 * math.pi * radius
+    angle = np.arctan2(rel @ y0, rel @ x0) % (2 * math.pi)
+    return angle * radius, axial, circ
+
+
+FACE_CHUNK = 1 << 16
+"""Triangles whose (F, 3, 3) corner coordinates are gathered at a time."""
+
+
+def longest_edges(points_in_world: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) longest edge of each of the (F, 3) triangles, mm, a chunk of triangles at a time
+    (no (F, 3, 3) float64 copy of the mesh)."""
+    out = np.empty(len(faces))
+    for a in range(0, len(faces), FACE_CHUNK):
+        p = points_in_world[faces[a : a + FACE_CHUNK]]
+        edges = np.stack(
+            [np.linalg.norm(p[:, i] - p[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1
+        )
+        out[a : a + FACE_CHUNK] = edges.max(axis=1)
+    return out
+
+
+def mesh_unrolled(
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    points_in_world: np.ndarray,
+    circumference_mm: float,
+    max_edge_factor: float,
+    chunk_points: int = CHUNK_POINTS,
+) -> np.ndarray:
+    """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring),
+    vertex indices of :func:`face_dtype` (int32 below 2**31 points: half the memory).
+
+    Args:
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
+        points_in_world: (N, 3) mm.
+        circumference_mm: period of ``arc_mm``.
+        max_edge_factor: triangles with a (3-D) edge longer than this x the median longest
+            edge are dropped.
+        chunk_points: up to this many points (with the wrapped copies) are triangulated
+            at once, as they always were (the faces in qhull's order); more a chunk along
+            the pipe at a time (:func:`_chunked_triangles`: the same triangles, in
+            ascending order of their ascending vertex ids), so that the triangulation's
+            memory does not grow with the run.
+    """
+    n = len(points_in_world)
+    index = face_dtype(n)
+    if n < 3:
+        return np.zeros((0, 3), index)
+    circ = circumference_mm
+    margin = 0.1 * circ
+    wrap = np.flatnonzero(arc_mm < margin)
+    uu = np.concatenate([arc_mm, arc_mm[wrap] + circ])
+    vv = np.concatenate([axial_mm, axial_mm[wrap]])
+    ids = np.concatenate([np.arange(n), wrap]).astype(index)
+    if len(uu) <= chunk_points:
+        tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
+        # Keep each triangle once: those whose centroid lies in the main period.
+        cu = uu[tri].mean(axis=1)
+        tri = tri[(cu >= 0.5 * margin) & (cu < circ + 0.5 * margin)]
+        faces = ids[tri]
+    else:
+        tri = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points)
+        faces = ids[tri]
+        del tri
+        # In an order of the triangles alone (ascending vertex ids, ascending triangles).
+        faces.sort(axis=1)
+        faces = faces[np.lexsort((faces[:, 2], faces[:, 1], faces[:, 0]))]
+        tri = None
+    del uu, vv, tri
+    faces = faces[
+        (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    ]
+    # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
+    longest = longest_edges(points_in_world, faces)
+    return faces[longest <= max_edge_factor * float(np.median(longest))]
+
+
+def face_dtype(points: int) -> type[np.signedinteger]:
+    """Integer type of the faces' vertex indices for a mesh of ``points`` vertices
+    (with the textured mesh's seam copies, at most twice as many): int32 while they fit,
+    as every writer stores them (PLY int, glTF uint32), else int64."""
+    return np.int32 if 2 * points < np.iinfo(np.int32).max else np.int64
+
+
+def _chunked_triangles(
+    uu: np.ndarray, vv: np.ndarray, u_lo: float, u_hi: float, chunk_points: int
+) -> np.ndarray:
+    """(T, 3) indices into the (n,) points (``uu``, ``vv``; mm) of the triangles of their
+    Delaunay triangulation whose centroid has ``u_lo <= u < u_hi``, a chunk along ``vv`` at
+    a time (:class:`~omnipipe.model.texture.AxialChunks`).
+
+    Each chunk keeps its verified triangles whose centroid lies in its core interval of
+    ``vv``; the cores partition the axis, so every triangle is kept once: its centroid is
+    summed over its ascending vertices, the same bits in every chunk that holds it.
+    Triangles of ascending vertices, chunk after chunk.
+    """
+    axial = AxialChunks(uu, vv, chunk_points)
+    parts = []
+    for z_lo, z_hi in axial.cores():
+        ids, tri = axial.triangulate(z_lo, z_hi, u_lo, u_hi)
+        t = np.sort(axial.order[ids[tri.simplices]], axis=1)
+        del tri
+        cu = (uu[t[:, 0]] + uu[t[:, 1]] + uu[t[:, 2]]) / 3.0
+        cv = (vv[t[:, 0]] + vv[t[:, 1]] + vv[t[:, 2]]) / 3.0
+        parts.append(t[(cu >= u_lo) & (cu < u_hi) & (cv >= z_lo) & (cv < z_hi)])
+    return np.concatenate(parts)
+
+
+def orient_towards_axis(
+    faces: np.ndarray,
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    circumference_mm: float,
+    points_in_world: np.ndarray,
+    point_frame: np.ndarray,
+) -> np.ndarray:
+    """The faces wound so each normal ``(b - a) x (c - a)`` points towards the pipe axis.
+
+    All triangles get one winding in the unrolled plane (arc, axial; arc unwrapped per
+    triangle), which on the tube is one side of the wall everywhere, bends included.
+    Which side that is (it depends on the direction of travel) is decided by a vote
+    against the centre of each point's ring (mean of its keyframe's points).
+
+    Args:
+        faces: (F, 3) vertex indices into ``points_in_world``.
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, mm.
+        circumference_mm: period of ``arc_mm``.
+        points_in_world: (N, 3) mm.
+        point_frame: (N,) keyframe index of each point.
+
+    Returns:
+        (F, 3) the same triangles, some with two vertices swapped.
+    """
+    if not len(faces):
+        return faces
+    circ = circumference_mm
+    arc = np.asarray(arc_mm, float)
+    axial = np.asarray(axial_mm, float)
+    # A copy wound in place, a chunk of triangles at a time: the (F, 3) float64
+    # intermediates are a chunk's, not the mesh's.
+    faces = faces.copy()
+    for a in range(0, len(faces), FACE_CHUNK):
+        f = faces[a : a + FACE_CHUNK]  # a view
+        u = arc[f]
+        u = (u - u[:, :1] + 0.5 * circ) % circ - 0.5 * circ
+        v = axial[f]
+        area2 = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
+        neg = area2 < 0
+        f[neg] = f[neg][:, [0, 2, 1]]
+    frames, inverse = np.unique(point_frame, return_inverse=True)
+    centres = np.zeros((len(frames), 3))
+    np.add.at(centres, inverse, points_in_world)
+    centres /= np.bincount(inverse, minlength=len(frames))[:, None]
+    votes = 0
+    for a in range(0, len(faces), FACE_CHUNK):  # (F, 3, 3) float64 a chunk at a time
+        f = faces[a : a + FACE_CHUNK]
+        p = points_in_world[f]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        inward = centres[inverse[f[:, 0]]] - p.mean(axis=1)
+        votes += int(np.count_nonzero(np.sum(normal * inward, axis=1) > 0))
+    if votes < 0.5 * len(faces):
+        for a in range(0, len(faces), FACE_CHUNK):
+            f = faces[a : a + FACE_CHUNK]
+            f[:, [1, 2]] = f[:, [2, 1]]
+    return faces
+
+
+def textured_mesh(
+    faces: np.ndarray,
+    points_in_world: np.ndarray,
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    unrolled: UnrolledImage,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Seam-split mesh and its atlas: (vertices, faces, uvs v-up, texture image).
+
+    Triangles across angle 0 get copies of their small-arc vertices shifted by one
+    circumference; the atlas is the unrolled image plus a 10 % wrapped margin on the right.
+    """
+    circ = unrolled.circumference_mm
+    h, w = unrolled.image.shape[:2]
+    extra = int(np.ceil(0.1 * w))
+    atlas = np.concatenate([unrolled.image, unrolled.image[:, :extra]], axis=1)
+    # The small-arc corners of the triangles across angle 0, a chunk of triangles at a time.
+    shift = np.empty(faces.shape, bool)
+    for a in range(0, len(faces), FACE_CHUNK):
+        u = arc_mm[faces[a : a + FACE_CHUNK]]
+        crossing = np.ptp(u, axis=1) > 0.5 * circ
+        shift[a : a + FACE_CHUNK] = crossing[:, None] & (u < 0.5 * circ)
+    n = len(points_in_world)
+    dup = np.unique(faces[shift])
+    new_id = np.full(n, -1, faces.dtype)
+    new_id[dup] = n + np.arange(len(dup))
+    faces = faces.copy()
+    faces[shift] = new_id[faces[shift]]
+    verts = np.concatenate([points_in_world, points_in_world[dup]])
+    arc = np.concatenate([arc_mm, arc_mm[dup] + circ])
+    axial = np.concatenate([axial_mm, axial_mm[dup]])
+    uu = arc / (circ * (w + extra) / w)
+    vv = 1.0 - ((axial - unrolled.axial_min_mm) / unrolled.mm_per_px + 0.5) / h
+    return verts, faces, np.column_stack([uu, vv]), atlas
+
+
+def run(
+    config: ModelConfig,
+    inputs: ModelInputs,
+    progress: Callable[[int], None] | None = None,
+    executor: Executor | None = None,
+) -> ModelResult:
+    """Integrate the rings, mesh the wall, choose each texture cell's keyframe, then read
+    each keyframe's image once for its ring colours and texture samples.
+
+    Args:
+        config: model settings.
+        inputs: keyframes; with ``inputs.dataset`` and ``inputs.frame_index`` the images
+            are decoded on ``executor`` (default: inline), else by ``inputs.read_frame``.
+        progress: called with k + 1 after keyframe k's image is done.
+        executor: frame-parallel work (:mod:`omnipipe.executor`); the result does not
+            depend on it.
+    """
+    # The stage's BLAS work is small products (3 columns, barycentric transforms): BLAS
+    # threads gain nothing there and, on cores shared with workers, their spinning can
+    # stall the stage for minutes.
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(config, inputs, progress, executor)
+
+
+def _run(
+    config: ModelConfig,
+    inputs: ModelInputs,
+    progress: Callable[[int], None] | None,
+    executor: Executor | None,
+) -> ModelResult:
+    """:func:`run` (BLAS threads already limited)."""
+    camera = camera_from_rig(inputs.camera_rig)
+    if inputs.points_in_world is not None:
+        points, frame = _integrated(inputs)
+    else:
+        points, frame = integrate(inputs.world_from_rig, inputs.ring_points_in_rig)
+    if not len(points):
+        empty = np.zeros((0, 3))
+        return ModelResult(
+            empty, np.zeros((0, 3), np.uint8), np.zeros(0, int), empty, np.zeros((0, 3), int)
+        )
+    if inputs.unrolled_mm is not None:
+        arc, axial = inputs.unrolled_mm[:, 0], inputs.unrolled_mm[:, 1]
+        circ = float(inputs.circumference_mm)
+    else:
+        arc, axial, circ = unrolled_coordinates(points, inputs.world_from_rig)
+    faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor)
+    flip_stats = None
+    if config.flips and len(faces):
+        from omnipipe.image import gray_without_laser
+        from omnipipe.model.flips import optimise_flips
+
+        channel = inputs.camera_rig.laser.channel
+        faces, flip_stats = optimise_flips(
+            faces, points, np.column_stack([arc, axial]), circ, camera, inputs.world_from_rig,
+            lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
+        )
+    faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
+    release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)
+    n_k = len(inputs.ring_pixels)
+    colours_of: list[np.ndarray | None] = [None] * n_k
+
+    def ring_to_sample(k: int) -> np.ndarray | None:
+        """Keyframe k's (M, 2) ring colour pixels if its ring is not sampled yet, else None
+        (made when its image is next read: not held for every keyframe at once)."""
+        px = inputs.ring_pixels[k]
+        if not len(px) or colours_of[k] is not None:
+            return None
+        return colour_pixels(px, camera, config.colour_offset_px)
+    ticks = _Ticks(progress, n_k)
+
+    def sample(work: list[_FrameWork | None]) -> Iterator[tuple[int, np.ndarray]]:
+        """(k, texture samples) per keyframe with work; its ring colours kept once."""
+        for k, (ring_colours, samples) in _sample_frames(inputs, work, executor, None):
+            if len(ring_colours) and colours_of[k] is None:
+                colours_of[k] = ring_colours
+            yield k, samples
+
+    unrolled: UnrolledImage | None = None
+    if config.texture and len(faces):
+        # Holes stay holes: a cell counts as wall when it is no farther from a point than
+        # the inside of the largest kept triangle (0.6 x its longest edge).
+        gap = 0.6 * float(longest_edges(points, faces).max())
+        # The grid is evaluated and scored a strip of rows at a time (never held whole).
+        wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
+        h, w = wall.shape
+        wall_z0 = wall.axial_min_mm
+        seen = np.zeros((h, w), bool)  # the cells some keyframe textures
+        image = np.zeros((h * w, 3), np.uint8)
+        light = np.full((h, w, 2), np.nan, LIGHT_DTYPE)  # each cell's view, for the flat field
+        # A section of the pipe at a time: its cells chosen, then sampled in the images of
+        # the keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a
+        # section's, not the run's). A keyframe that textures two sections is read twice.
+        for top in range(0, h, SECTION_ROWS):
+            end = min(top + SECTION_ROWS, h)
+            choice = choose_sources(
+                inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
+                config.laser_band_mm, executor=executor, rows=(top, end),
+            )
+            seen[top:end] = choice.source >= 0
+            light[top:end] = choice.light
+            work: list[_FrameWork | None] = [None] * n_k
+            for k in range(n_k):
+                if choice.count(k):
+                    ring = ring_to_sample(k)
+                    work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
+            choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
+            todo = max(1, sum(item is not None for item in work))
+            for i, (k, samples) in enumerate(sample(work), start=1):
+                paint(image[top * w : end * w], choice, k, samples)
+                # Progress: the share of the grid's rows done, within a section by keyframes.
+                ticks.to(n_k * (top * todo + (end - top) * i) // (h * todo))
+            del work, choice
+            release_freed_memory()  # the section's strips, pixels and samples
+            ticks.to(n_k * end // h)
+        del wall
+        release_freed_memory()  # the wall grid's blocks and the strips' results
+        unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
+        unrolled = flat_field(unrolled, light)  # the LEDs' falloff and the vignetting out
+        del seen, image, light
+    # The rings of the keyframes that textured no cell.
+    rest = [None if (ring := ring_to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
+    for _ in sample(rest):
+        pass
+    ticks.to(n_k)
+    colours = np.concatenate([c for c in colours_of if c is not None])
+    del rest
+    result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
+    if unrolled is not None:
+        verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
+        result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
+        # The unrolled image is the atlas's first W columns (textured_mesh): a view of it,
+        # so the image is held once, not twice.
+        view = atlas[:, : unrolled.image.shape[1]]
+        result.texture, result.unrolled = atlas, replace(unrolled, image=view)
+        del unrolled
+    return result
