@@ -1,7 +1,7 @@
 """Analysis stage: inner diameter, ovality and defects of the measured pipe (Table I).
 
 The stage is :func:`omnipipe.analysis.stage.run`; the modules: :mod:`.centreline`,
-:mod:`.cylinder`, :mod:`.defects`, :mod:`.sizing`.
+:mod:`.cylinder`, :mod:`.defects`, :mod:`.sizing`, :mod:`.uncertainty`.
 """
 
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
@@ -9,9 +9,9 @@ from omnipipe.analysis.stage import (
     AnalysisConfig,
     AnalysisInputs,
     AnalysisResult,
-    report_fields,
     run,
 )
+from omnipipe.analysis.uncertainty import report_fields
 
 __all__ = [
     "AnalysisConfig",
