@@ -11,14 +11,17 @@ from omnipipe.analysis.stage import (
     AnalysisResult,
     run,
 )
-from omnipipe.analysis.uncertainty import report_fields
+from omnipipe.analysis.uncertainty import report_fields, scaled_defects
+from omnipipe.contract import Defect
 
 __all__ = [
     "AnalysisConfig",
     "AnalysisInputs",
     "AnalysisResult",
     "Cylinder",
+    "Defect",
     "fit_cylinder",
     "report_fields",
     "run",
+    "scaled_defects",
 ]

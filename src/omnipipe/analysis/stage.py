@@ -23,19 +23,20 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import Executor
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from omnipipe.analysis.centreline import Centreline, fit_centreline
-from omnipipe.analysis.cylinder import fit_cylinder
+from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
+    DefectSearch,
     WallSamples,
     find_defects,
     fit_wall_profile,
     fourier_design,
 )
+from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 
 
@@ -136,8 +137,8 @@ class AnalysisResult:
         stations_diameter_sigma_mm, stations_ovality_sigma: (K,) their 1-sigma.
         inner_diameter_sigma_mm: 1-sigma of the inner diameter.
         calibration_sigma_rel: the inputs' rig-calibration share of every length (relative).
-        defects: contract dicts with ``*_sigma_*`` keys, largest first (axial sigmas
-            without the camera motion's scale: :func:`.uncertainty.report_fields` adds it).
+        defects: largest first, with their 1-sigma uncertainties (axial sigmas without
+            the camera motion's scale: :func:`.uncertainty.report_fields` adds it).
         detection_limit_mm: height of the smallest reference defect the run detects
             with >= 95 % probability; no reported defect is lower.
         noise_mm: robust sigma of the wall's deviation map.
@@ -155,7 +156,7 @@ class AnalysisResult:
     stations_axial_mm: np.ndarray
     stations_diameter_mm: np.ndarray
     stations_ovality: np.ndarray
-    defects: list[dict]
+    defects: list[Defect]
     centreline: Centreline
     point_sigma_mm: np.ndarray
     point_theta_rad: np.ndarray
@@ -181,6 +182,68 @@ def run(
         ShapeError: malformed inputs.
         ReconstructionError: too few rings to fit the pipe.
     """
+    pts, frame, poses = _checked(inputs)
+    line, whole = _fit_axis(config, inputs, pts, frame, poses, executor)
+    straight = whole is not None
+    diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
+    sigma, rho, theta = line.coordinates(pts, frame)
+    radius = 0.5 * diameter
+    stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius)
+    # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
+    radial_sys = config.systematic_radius_factor * search.noise_mm
+    cal = float(inputs.calibration_sigma_rel)
+    defects = _with_systematics(config, search, cal)
+    st_diam = stations.diameter
+    if whole is not None:
+        # The single cylinder: its statistical spread, and the stations' scatter (errors
+        # shared by the points of one ring: the ring's pose, its laser frame).
+        n_pts = min(len(pts), 20000)
+        stat = 2.0 * whole.scale_mm / math.sqrt(max(n_pts, 1))
+        between = float(np.std(st_diam)) / math.sqrt(max(len(st_diam), 1))
+        diameter_sigma = math.hypot(stat, between)
+    else:
+        # The median of the piecewise fits: 1.25 x the standard error of a mean.
+        radii = 2.0 * np.asarray(line.radius_mm)
+        diameter_sigma = 1.2533 * float(np.std(radii)) / math.sqrt(max(len(radii), 1))
+    diameter_sigma = math.hypot(diameter_sigma, 2.0 * radial_sys)
+    st_dsig = np.hypot(stations.diameter_sigma, 2.0 * radial_sys)
+    if cal > 0:
+        # The rig's calibration scales every measured length alike (the lengths along the
+        # pipe too: report_fields).
+        diameter_sigma = math.hypot(diameter_sigma, cal * float(diameter))
+        st_dsig = np.hypot(st_dsig, cal * np.abs(st_diam))
+    finite = stations.ovality[np.isfinite(stations.ovality)]
+    return AnalysisResult(
+        inner_diameter_mm=float(diameter),
+        straight=bool(straight),
+        ovality_max=float(finite.max()) if len(finite) else float("nan"),
+        stations_axial_mm=stations.axial,
+        stations_diameter_mm=st_diam,
+        stations_ovality=stations.ovality,
+        defects=defects,
+        centreline=line,
+        point_sigma_mm=sigma,
+        point_theta_rad=theta,
+        point_deviation_mm=np.nan_to_num(stations.deviation),
+        radius_mm=float(radius),
+        warnings=list(search.warnings),
+        inner_diameter_sigma_mm=float(diameter_sigma),
+        calibration_sigma_rel=cal,
+        stations_diameter_sigma_mm=st_dsig,
+        stations_ovality_sigma=stations.ovality_sigma,
+        detection_limit_mm=float(search.detection_limit_mm),
+        noise_mm=float(search.noise_mm),
+        ring_spacing_mm=float(search.ring_spacing_mm),
+    )
+
+
+def _checked(inputs: AnalysisInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3) points, (N,) ring indices and (K, 4, 4) poses of ``inputs``, checked.
+
+    Raises:
+        ShapeError: malformed inputs.
+        ReconstructionError: fewer than 12 points.
+    """
     pts = np.asarray(inputs.points_in_world, float)
     frame = np.asarray(inputs.frame_index, int)
     poses = np.asarray(inputs.world_from_rig, float)
@@ -192,13 +255,25 @@ def run(
         raise ShapeError(
             f"analysis: world_from_rig must be (K, 4, 4) covering frame_index, got {poses.shape}"
         )
-    warnings: list[str] = []
+    if len(pts) < 12:
+        raise ReconstructionError(f"only {len(pts)} laser points in total: cannot fit the pipe")
+    return pts, frame, poses
+
+
+def _fit_axis(
+    config: AnalysisConfig,
+    inputs: AnalysisInputs,
+    pts: np.ndarray,
+    frame: np.ndarray,
+    poses: np.ndarray,
+    executor: Executor | None,
+) -> tuple[Centreline, Cylinder | None]:
+    """The piecewise centreline, and the single cylinder of the whole run when the
+    centreline is straight (None: it bends)."""
     rings = [pts[frame == k] for k in range(len(poses))]
     axis_guess = poses[:, :3, 2]
     # A first whole-run fit gives the scale for the window.
-    sample = pts[np.linspace(0, len(pts) - 1, min(len(pts), 6000)).astype(int)] if len(pts) else pts
-    if len(sample) < 12:
-        raise ReconstructionError(f"only {len(pts)} laser points in total: cannot fit the pipe")
+    sample = pts[np.linspace(0, len(pts) - 1, min(len(pts), 6000)).astype(int)]
     rough = fit_cylinder(sample, np.mean(axis_guess, axis=0), loss_scale_mm=config.loss_scale_mm)
     if config.window_mm:
         window = config.window_mm
@@ -216,34 +291,45 @@ def run(
         loss_scale_mm=config.loss_scale_mm,
         executor=executor,
     )
-    straight = line.straightness_mm() <= config.straight_tolerance_mm
-    if straight:
-        whole = fit_cylinder(
-            pts[np.linspace(0, len(pts) - 1, min(len(pts), 20000)).astype(int)],
-            rough.axis,
-            loss_scale_mm=config.loss_scale_mm,
-        )
-        diameter = whole.diameter_mm
-    else:
-        diameter = float(2.0 * np.median(line.radius_mm))
-    sigma, rho, theta = line.coordinates(pts, frame)
+    if line.straightness_mm() > config.straight_tolerance_mm:
+        return line, None
+    whole = fit_cylinder(
+        pts[np.linspace(0, len(pts) - 1, min(len(pts), 20000)).astype(int)],
+        rough.axis,
+        loss_scale_mm=config.loss_scale_mm,
+    )
+    return line, whole
 
+
+def _measure_wall(
+    config: AnalysisConfig,
+    inputs: AnalysisInputs,
+    frame: np.ndarray,
+    poses: np.ndarray,
+    sigma: np.ndarray,
+    rho: np.ndarray,
+    theta: np.ndarray,
+    radius: float,
+) -> tuple[_Stations, DefectSearch]:
+    """The stations' wall profiles and the defects in the deviations from them.
+
+    Pass 1 fits the profiles to all points; pass 2 without the samples of the defects
+    found (so a wide defect does not pull its ring's wall profile), and so on until the
+    excluded samples stop changing (at most two passes).
+    """
     ok_station = np.array([(frame == k).sum() >= 12 for k in range(len(poses))])
-    radius = 0.5 * diameter
     circ = 2 * np.pi * radius
-    # Pass 1: wall profiles of all points; pass 2: without the samples of the defects found.
-    exclude = np.zeros(len(pts), bool)
+    exclude = np.zeros(len(frame), bool)
     # The robot's travel from the first frame to each ring's frame (path along the poses).
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     for _ in range(2):
         stations = _station_profiles(config, frame, theta, rho, sigma, ok_station, exclude)
-        deviation = stations.pop("deviation")
-        ok = np.isfinite(deviation)
+        ok = np.isfinite(stations.deviation)
         samples = WallSamples(
             sigma_mm=sigma[ok],
             arc_mm=(theta[ok] % (2 * np.pi)) * radius,
-            deviation_mm=deviation[ok],
+            deviation_mm=stations.deviation[ok],
             ring=frame[ok],
             circumference_mm=circ,
             ring_travel_mm=travel,
@@ -264,73 +350,57 @@ def run(
         cover = np.zeros(int(ok.sum()), bool)
         for m in search.masks or []:
             cover |= m
-        new_exclude = np.zeros(len(pts), bool)
+        new_exclude = np.zeros(len(frame), bool)
         new_exclude[np.flatnonzero(ok)[cover]] = True
         if np.array_equal(new_exclude, exclude):
             break
         exclude = new_exclude
-    defects, w = search.defects, search.warnings
-    warnings.extend(w)
-    # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
-    radial_sys = config.systematic_radius_factor * search.noise_mm
+    return stations, search
+
+
+def _with_systematics(config: AnalysisConfig, search: DefectSearch, cal: float) -> list[Defect]:
+    """The found defects with the terms their fit cannot see added to height and width:
+    the blurred ring on the defect's flanks, the ring's lateral resolution and the rig
+    calibration's share ``cal`` (relative; the lengths along the pipe get it in
+    :func:`.uncertainty.report_fields`, with the motion's scale)."""
     width_res = config.width_resolution_samples * search.sample_spacing_mm
-    for d in defects:
-        if d.get("height_sigma_mm") is not None:
-            d["height_sigma_mm"] = round(
-                math.hypot(d["height_sigma_mm"], config.systematic_height_factor * search.noise_mm), 4
+    out = []
+    for d in search.defects:
+        if d.height_sigma_mm is not None and d.width_sigma_mm is not None:
+            d = replace(
+                d,
+                height_sigma_mm=round(
+                    math.hypot(d.height_sigma_mm, config.systematic_height_factor * search.noise_mm), 4
+                ),
+                width_sigma_mm=round(math.hypot(d.width_sigma_mm, width_res), 4),
             )
-            d["width_sigma_mm"] = round(math.hypot(d["width_sigma_mm"], width_res), 4)
-    st_axial, st_diam, st_oval = stations["axial"], stations["diameter"], stations["ovality"]
-    st_diam_arr = np.array(st_diam)
-    if straight:
-        # The single cylinder: its statistical spread, and the stations' scatter (errors
-        # shared by the points of one ring: the ring's pose, its laser frame).
-        n_pts = min(len(pts), 20000)
-        stat = 2.0 * whole.scale_mm / math.sqrt(max(n_pts, 1))
-        between = float(np.std(st_diam_arr)) / math.sqrt(max(len(st_diam_arr), 1))
-        diameter_sigma = math.hypot(stat, between)
-    else:
-        # The median of the piecewise fits: 1.25 x the standard error of a mean.
-        radii = 2.0 * np.asarray(line.radius_mm)
-        diameter_sigma = 1.2533 * float(np.std(radii)) / math.sqrt(max(len(radii), 1))
-    diameter_sigma = math.hypot(diameter_sigma, 2.0 * radial_sys)
-    st_dsig = np.hypot(np.array(stations["diameter_sigma"]), 2.0 * radial_sys)
-    cal = float(inputs.calibration_sigma_rel)
-    if cal > 0:
-        # The rig's calibration scales every measured length alike (the lengths along the
-        # pipe too: report_fields).
-        diameter_sigma = math.hypot(diameter_sigma, cal * float(diameter))
-        st_dsig = np.hypot(st_dsig, cal * np.abs(st_diam_arr))
-        for d in defects:
-            for key in ("height", "width"):  # lengths: report_fields, with the motion's scale
-                if d.get(f"{key}_sigma_mm") is not None:
-                    d[f"{key}_sigma_mm"] = round(
-                        math.hypot(d[f"{key}_sigma_mm"], cal * d[f"{key}_mm"]), 4
-                    )
-    st_oval_arr = np.array(st_oval)
-    finite = st_oval_arr[np.isfinite(st_oval_arr)]
-    return AnalysisResult(
-        inner_diameter_mm=float(diameter),
-        straight=bool(straight),
-        ovality_max=float(finite.max()) if len(finite) else float("nan"),
-        stations_axial_mm=np.array(st_axial),
-        stations_diameter_mm=np.array(st_diam),
-        stations_ovality=st_oval_arr,
-        defects=defects,
-        centreline=line,
-        point_sigma_mm=sigma,
-        point_theta_rad=theta,
-        point_deviation_mm=np.nan_to_num(deviation),
-        radius_mm=float(radius),
-        warnings=warnings,
-        inner_diameter_sigma_mm=float(diameter_sigma),
-        calibration_sigma_rel=cal,
-        stations_diameter_sigma_mm=st_dsig,
-        stations_ovality_sigma=np.array(stations["ovality_sigma"]),
-        detection_limit_mm=float(search.detection_limit_mm),
-        noise_mm=float(search.noise_mm),
-        ring_spacing_mm=float(search.ring_spacing_mm),
-    )
+        if cal > 0 and d.height_sigma_mm is not None and d.width_sigma_mm is not None:
+            d = replace(
+                d,
+                height_sigma_mm=round(math.hypot(d.height_sigma_mm, cal * d.height_mm), 4),
+                width_sigma_mm=round(math.hypot(d.width_sigma_mm, cal * d.width_mm), 4),
+            )
+        out.append(d)
+    return out
+
+
+@dataclass(frozen=True)
+class _Stations:
+    """Each station's wall profile (:func:`_station_profiles`).
+
+    Attributes:
+        axial, diameter, diameter_sigma, ovality, ovality_sigma: (K,) per station with
+            enough points (mm; ovality a fraction, NaN below the profile order 2).
+        deviation: (N,) every point's deviation from its station's profile (mm; NaN on
+            stations without enough points).
+    """
+
+    axial: np.ndarray
+    diameter: np.ndarray
+    diameter_sigma: np.ndarray
+    ovality: np.ndarray
+    ovality_sigma: np.ndarray
+    deviation: np.ndarray
 
 
 def _station_profiles(
@@ -341,7 +411,7 @@ def _station_profiles(
     sigma: np.ndarray,
     ok_station: np.ndarray,
     exclude: np.ndarray,
-) -> dict[str, Any]:
+) -> _Stations:
     """Each station's wall profile (fitted without the ``exclude`` points) and every
     point's deviation from it.
 
@@ -350,7 +420,9 @@ def _station_profiles(
     biased upward (E|a|^2 = |a_true|^2 + 2 var), so |a|^2 - 2 var is used (0 when negative).
     """
     deviation = np.full(len(frame), np.nan)
-    out: dict[str, Any] = {k: [] for k in ("axial", "diameter", "diameter_sigma", "ovality", "ovality_sigma")}
+    out: dict[str, list[float]] = {
+        k: [] for k in ("axial", "diameter", "diameter_sigma", "ovality", "ovality_sigma")
+    }
     for k in np.flatnonzero(ok_station):
         on = frame == k
         use = on & ~exclude
@@ -379,5 +451,11 @@ def _station_profiles(
         else:
             out["ovality"].append(math.nan)
             out["ovality_sigma"].append(math.nan)
-    out["deviation"] = deviation
-    return out
+    return _Stations(
+        axial=np.array(out["axial"]),
+        diameter=np.array(out["diameter"]),
+        diameter_sigma=np.array(out["diameter_sigma"]),
+        ovality=np.array(out["ovality"]),
+        ovality_sigma=np.array(out["ovality_sigma"]),
+        deviation=deviation,
+    )

@@ -5,6 +5,7 @@ The stage is :func:`omnipipe.evaluation.stage.run`; trajectory errors:
 """
 
 from omnipipe.evaluation.stage import (
+    DefectMatch,
     EvaluationConfig,
     EvaluationInputs,
     EvaluationResult,
@@ -12,4 +13,11 @@ from omnipipe.evaluation.stage import (
     run,
 )
 
-__all__ = ["EvaluationConfig", "EvaluationInputs", "EvaluationResult", "read_points_ply", "run"]
+__all__ = [
+    "DefectMatch",
+    "EvaluationConfig",
+    "EvaluationInputs",
+    "EvaluationResult",
+    "read_points_ply",
+    "run",
+]

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from omnipipe.contract import Defect
 from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.errors import DatasetError, OmnipipeError
 from omnipipe.evaluation.trajectory import TrajectoryErrors, trajectory_errors
@@ -56,6 +57,55 @@ class EvaluationInputs:
     dataset_dir: Path
 
 
+@dataclass(frozen=True)
+class DefectMatch:
+    """A true defect and the measured one paired with it (same kind, nearest centres).
+
+    Attributes:
+        true: the ground truth's defect, or None (a measured defect with no true one:
+            a false positive).
+        measured: the reconstruction's defect, or None (the true one was not found).
+    """
+
+    true: Defect | None
+    measured: Defect | None
+
+    @property
+    def found(self) -> bool:
+        """A true defect with a measured one paired."""
+        return self.true is not None and self.measured is not None
+
+    @property
+    def false_positive(self) -> bool:
+        """A measured defect that is in no ground truth."""
+        return self.true is None
+
+    def errors(self) -> dict[str, float]:
+        """Measured minus true of each size and position (mm; ``angle_deg`` wrapped to
+        [-180, 180)); empty unless :attr:`found`."""
+        t, m = self.true, self.measured
+        if t is None or m is None:
+            return {}
+        return {
+            "height_mm": m.height_mm - t.height_mm,
+            "width_mm": m.width_mm - t.width_mm,
+            "length_mm": m.length_mm - t.length_mm,
+            "axial_start_mm": m.axial_start_mm - t.axial_start_mm,
+            "angle_deg": (m.angle_deg - t.angle_deg + 180.0) % 360.0 - 180.0,
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        """The row of ``omnipipe evaluate --json``'s ``defects``."""
+        measured = None if self.measured is None else self.measured.to_contract()
+        if self.true is None:
+            return {"true": None, "found": False, "measured": measured, "false_positive": True}
+        row: dict[str, Any] = {"true": self.true.core(), "found": self.found}
+        if measured is not None:
+            row["measured"] = measured
+            row["errors"] = self.errors()
+        return row
+
+
 @dataclass
 class EvaluationResult:
     """All errors; ``to_dict`` is what ``omnipipe evaluate --json`` prints."""
@@ -65,7 +115,7 @@ class EvaluationResult:
     frames_registered: int
     wall: dict[str, float] = field(default_factory=dict)
     diameter: dict[str, float] = field(default_factory=dict)
-    defects: list[dict[str, Any]] = field(default_factory=list)
+    defects: list[DefectMatch] = field(default_factory=list)
     not_evaluated: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -76,7 +126,7 @@ class EvaluationResult:
             "trajectory": None if self.trajectory is None else self.trajectory.to_dict(),
             "wall": self.wall,
             "diameter": self.diameter,
-            "defects": self.defects,
+            "defects": [d.to_dict() for d in self.defects],
             "not_evaluated": self.not_evaluated,
             "warnings": self.warnings,
         }
@@ -100,7 +150,7 @@ def _read_json(path: Path) -> dict[str, Any]:
 _DEFECT_KEYS = ("kind", "height_mm", "width_mm", "length_mm", "axial_start_mm", "angle_deg")
 
 
-def _defect_list(data: dict[str, Any], path: Path) -> list[dict[str, Any]]:
+def _defect_list(data: dict[str, Any], path: Path) -> list[Defect]:
     """The ``defects`` of a report.json or scene.json, each checked for the contract keys."""
     defects = data.get("defects", [])
     if not isinstance(defects, list):
@@ -121,7 +171,7 @@ def _defect_list(data: dict[str, Any], path: Path) -> list[dict[str, Any]]:
             )
             if not ok:
                 raise DatasetError(f"{path}: defects[{i}].{key} missing or invalid ({value!r})")
-    return defects
+    return [Defect.from_contract(d) for d in defects]
 
 
 def read_points_ply(path: Path) -> np.ndarray:
@@ -138,38 +188,29 @@ def read_points_ply(path: Path) -> np.ndarray:
 
 
 def _pair_defects(
-    true: list[dict], measured: list[dict], config: EvaluationConfig
-) -> list[dict[str, Any]]:
+    true: list[Defect], measured: list[Defect], config: EvaluationConfig
+) -> list[DefectMatch]:
+    """Each true defect with the nearest unpaired measured one of its kind within the
+    config's gaps (cost: the gaps as fractions of their limits), then the measured
+    ones left over (false positives)."""
     rows = []
     used: set[int] = set()
     for t in true:
-        t_centre = t["axial_start_mm"] + 0.5 * t["length_mm"]
         best, best_cost = None, math.inf
         for j, m in enumerate(measured):
-            if j in used or m.get("kind") != t["kind"]:
+            if j in used or m.kind != t.kind:
                 continue
-            m_centre = m["axial_start_mm"] + 0.5 * m["length_mm"]
-            d_ax = abs(m_centre - t_centre)
-            d_ang = abs((m["angle_deg"] - t["angle_deg"] + 180.0) % 360.0 - 180.0)
+            d_ax = abs(m.axial_centre_mm - t.axial_centre_mm)
+            d_ang = abs((m.angle_deg - t.angle_deg + 180.0) % 360.0 - 180.0)
             if d_ax > config.max_axial_gap_mm or d_ang > config.max_angle_gap_deg:
                 continue
             cost = d_ax / config.max_axial_gap_mm + d_ang / config.max_angle_gap_deg
             if cost < best_cost:
                 best, best_cost = j, cost
-        row: dict[str, Any] = {"true": t, "found": best is not None}
         if best is not None:
             used.add(best)
-            m = measured[best]
-            row["measured"] = m
-            row["errors"] = {
-                key: m[key] - t[key]
-                for key in ("height_mm", "width_mm", "length_mm", "axial_start_mm")
-            }
-            row["errors"]["angle_deg"] = (m["angle_deg"] - t["angle_deg"] + 180.0) % 360.0 - 180.0
-        rows.append(row)
-    for j, m in enumerate(measured):
-        if j not in used:
-            rows.append({"true": None, "found": False, "measured": m, "false_positive": True})
+        rows.append(DefectMatch(t, None if best is None else measured[best]))
+    rows.extend(DefectMatch(None, m) for j, m in enumerate(measured) if j not in used)
     return rows
 
 

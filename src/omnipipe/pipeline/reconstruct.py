@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,7 +26,15 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
 
     import numpy as np
 
+    from omnipipe.analysis import AnalysisConfig, AnalysisResult
+    from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.dataset import Dataset
+    from omnipipe.laser import LaserConfig
+    from omnipipe.model import ModelConfig, ModelResult
+    from omnipipe.pipeline.frame_pass import FramePassResult
+    from omnipipe.report import ReportConfig, ReportInputs
+    from omnipipe.sfm.pipeline import SfmConfig, SfmResult
+    from omnipipe.survey import Survey
 
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
@@ -44,11 +52,11 @@ class ReconstructConfig:
     frame-parallel work (:mod:`omnipipe.executor`; ``--workers``, ``--scheduler``).
     """
 
-    laser: Any = None
-    sfm: Any = None
-    model: Any = None
-    analysis: Any = None
-    report: Any = None
+    laser: LaserConfig
+    sfm: SfmConfig
+    model: ModelConfig
+    analysis: AnalysisConfig
+    report: ReportConfig
     workers: int | None = None
     scheduler: str | None = None
 
@@ -84,7 +92,7 @@ class ReconstructConfig:
                 )
             merged[section] = dict(values or {})
         merged = deep_merge(merged, overrides or {})
-        parts = {}
+        parts: dict[str, Any] = {}
         for section in ("laser", "sfm", "model", "analysis", "report"):
             default = getattr(base, section)
             values = merged.get(section)
@@ -111,17 +119,23 @@ class Reconstruction:
         analysis: the analysis stage result.
         report_config: how report.html is drawn (the ``report`` section of the config).
         frame_index: (N,) 0-based frame index of each registered pose.
-        survey: the :class:`omnipipe.survey.Survey` header (survey.yaml), or None.
+        survey: the survey.yaml header, or None.
+        defects: the reported defects (the summary's ``defects`` are their
+            ``to_contract()``), largest first.
+        trajectory_quality: what the camera motion check found (the summary's
+            ``trajectory_quality``), or None.
     """
 
     summary: dict[str, Any]
     timestamps: np.ndarray
     world_from_rig: np.ndarray
-    model: Any
-    analysis: Any
-    report_config: Any = None
+    model: ModelResult
+    analysis: AnalysisResult
+    report_config: ReportConfig | None = None
     frame_index: np.ndarray | None = None
-    survey: Any = None
+    survey: Survey | None = None
+    defects: list[Defect] = field(default_factory=list)
+    trajectory_quality: TrajectoryQuality | None = None
 
 
 def run(
@@ -148,50 +162,124 @@ def run(
             "rig.yaml has no laser section: a camera-only rig cannot reconstruct "
             "(add laser.plane, e.g. from omnipipe calibrate laser)"
         )
-    import numpy as np
-
-    from omnipipe import analysis, model
-    from omnipipe.camera import camera_from_rig
     from omnipipe.dataset import validate_frames
-    from omnipipe.executor import describe as describe_executor
     from omnipipe.inputs.lossy import assess_input
-    from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
-    from omnipipe.model.export import model_files
-    from omnipipe.model.outliers import reject_ring_outliers
-    from omnipipe.pipeline import frame_pass, quality
-    from omnipipe.sfm import pipeline as sfm
+    from omnipipe.pipeline import frame_pass
 
-    timings: dict[str, float] = {}
-    warnings: list[str] = []
-    t_start = time.perf_counter()
+    log = _RunLog(t_start=time.perf_counter())
     validate_frames(dataset)
-    rig = dataset.rig
-    n = len(dataset)
-    warnings.extend(dataset.warnings)  # e.g. a truncated video
+    log.warnings.extend(dataset.warnings)  # e.g. a truncated video
     input_quality = assess_input(dataset)  # lossy (JPEG/MPEG) input degrades everything
     if input_quality.warning:
-        warnings.append(input_quality.warning)
+        log.warnings.append(input_quality.warning)
     # The compiled kernels and per-rig tables of the decoding pass, made here once
     # rather than in every worker (the local pool's workers are forked from this process).
-    frame_pass.warm_up(config.laser, config.sfm.stations, rig)
-    timings["startup"] = time.perf_counter() - t_start
+    frame_pass.warm_up(config.laser, config.sfm.stations, dataset.rig)
+    log.timings["startup"] = time.perf_counter() - log.t_start
+    frames = _decode(config, dataset, executor, progress, log)
+    motion = _camera_motion(config, dataset, frames, executor, progress, log)
+    measured, feed = _analyse(config, dataset, frames, motion, executor, progress, log)
+    del frames
+    release_freed_memory()
+    mdl = _model(config, dataset, measured, feed, executor, progress, log)
+    del feed
+    log.timings["total"] = time.perf_counter() - log.t_start
+    summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
+    summary["input_quality"] = input_quality.to_dict()
+    reg = motion.registered_frames
+    return Reconstruction(
+        summary=summary,
+        timestamps=dataset.timestamps[reg],
+        world_from_rig=motion.result.world_from_rig[reg],
+        model=mdl,
+        analysis=measured.result,
+        report_config=config.report,
+        frame_index=reg,
+        defects=defects,
+        trajectory_quality=measured.quality,
+    )
 
+
+@dataclass
+class _RunLog:
+    """What a run notes as it goes: stage times (s) and warnings."""
+
+    t_start: float
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+def _decode(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> FramePassResult:
+    """The decoding pass (every frame's ring and stationary test), refused without a ring.
+
+    Raises:
+        ReconstructionError: no laser ring in any frame.
+    """
+    import numpy as np
+
+    from omnipipe.pipeline import frame_pass
+
+    n = len(dataset)
     t0 = time.perf_counter()
     tick = progress("laser", n)
     # Each frame decoded once, frame-parallel: its ring and the stationary test's input.
     frames = frame_pass.run(config.laser, config.sfm.stations, dataset, executor, progress=tick)
-    rings = frames.rings
-    timings["laser"] = time.perf_counter() - t0
+    log.timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
     seen = int(np.sum(frames.ring_samples >= 20))
     if seen == 0:
+        channel = dataset.rig.laser.channel if dataset.rig.laser is not None else "?"
         raise ReconstructionError(
-            f"no laser ring found in any of the {n} frames (laser channel '{rig.laser.channel}' of rig.yaml)"
+            f"no laser ring found in any of the {n} frames (laser channel '{channel}' of rig.yaml)"
         )
     if seen < n:
-        warnings.append(f"laser ring not found in {n - seen} of {n} frames")
+        log.warnings.append(f"laser ring not found in {n - seen} of {n} frames")
     release_freed_memory()
+    return frames
 
+
+@dataclass(frozen=True)
+class _Motion:
+    """The camera motion and the frames it gives the later stages.
+
+    Attributes:
+        result: the sfm stage's result.
+        registered_frames: (R,) frames with a pose, increasing.
+        stations: (K,) one frame per station that feeds the model (a stationary frame
+            repeats its station's ring), increasing.
+    """
+
+    result: SfmResult
+    registered_frames: np.ndarray
+    stations: np.ndarray
+
+
+def _camera_motion(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    frames: FramePassResult,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> _Motion:
+    """The sfm stage, refused when its motion cannot be trusted or nothing registered.
+
+    Raises:
+        ReconstructionError: see :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`;
+            no frame registered.
+    """
+    import numpy as np
+
+    from omnipipe.pipeline import quality
+    from omnipipe.sfm import pipeline as sfm
+
+    n = len(dataset)
     t0 = time.perf_counter()
     sfm_tick = progress("sfm", n)
     # After its last frame, sfm adjusts the bundle and checks the scale: a bar of its own.
@@ -205,7 +293,7 @@ def run(
     motion = sfm.run(
         config.sfm,
         sfm.SfmInputs(
-            rig=rig, read_frame=dataset.read_frame, n_frames=n, rings=rings,
+            rig=dataset.rig, read_frame=dataset.read_frame, n_frames=n, rings=frames.rings,
             moved=frames.moved, dataset=dataset,
         ),
         progress=tick,
@@ -214,25 +302,81 @@ def run(
     if not after_frames:
         after_frames.append(progress("bundle", 1))
     after_frames[0](1)
-    timings["sfm"] = time.perf_counter() - t0
+    log.timings["sfm"] = time.perf_counter() - t0
     quality.refuse_untrusted_motion(motion)
-    warnings.extend(motion.warnings)
-    warnings.extend(
+    log.warnings.extend(motion.warnings)
+    log.warnings.extend(
         f"frames {u.first_frame}-{u.last_frame}: motion unreliable ({u.reason})"
         for u in motion.unreliable
     )
     reg = np.flatnonzero(motion.registered)
     if len(reg) == 0:
         raise ReconstructionError("camera motion could not be estimated for any frame")
-    # One frame per station feeds the model: a stationary frame repeats its station's ring.
     stations = np.flatnonzero(motion.registered & ~motion.stationary)
     release_freed_memory()  # the features and matches of every frame
+    return _Motion(motion, reg, stations)
 
-    # Analysis first: its centreline coordinates unroll the mesh and the texture.
+
+@dataclass(frozen=True)
+class _Measured:
+    """The analysis of the stations' rings.
+
+    Attributes:
+        result: the analysis stage's result.
+        quality: the camera motion check's findings.
+        stations: (K,) the stations' frames.
+        station_poses: (K, 4, 4) their poses.
+        outliers_removed: stray wall points taken out of the stations' rings
+            (:func:`omnipipe.model.outliers.reject_ring_outliers`).
+    """
+
+    result: AnalysisResult
+    quality: TrajectoryQuality
+    stations: np.ndarray
+    station_poses: np.ndarray
+    outliers_removed: int
+
+
+@dataclass(frozen=True)
+class _ModelFeed:
+    """What the model stage reads of the rings: the integrated points (the same
+    integration, not done again) and the rings' pixels; the rest of every frame's ring
+    is not held through it.
+
+    Attributes:
+        points, point_frame: (N, 3) integrated ring points (mm) and (N,) the station of each.
+        ring_pixels: K (M_k, 2) arrays, the rings' image positions (col, row).
+    """
+
+    points: np.ndarray
+    point_frame: np.ndarray
+    ring_pixels: list[np.ndarray]
+
+
+def _analyse(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    frames: FramePassResult,
+    motion: _Motion,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> tuple[_Measured, _ModelFeed]:
+    """Integration and the analysis stage, first: its centreline coordinates unroll the
+    mesh and the texture; and the camera motion check's report."""
+    import numpy as np
+
+    from omnipipe import analysis, model
+    from omnipipe.camera import camera_from_rig
+    from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
+    from omnipipe.model.outliers import reject_ring_outliers
+    from omnipipe.pipeline import quality
+
+    rig, stations, sfm_result = dataset.rig, motion.stations, motion.result
     t0 = time.perf_counter()
     tick = progress("analysis", 2)
-    station_poses = motion.world_from_rig[stations]
-    station_rings = [rings.rings[i] for i in stations]
+    station_poses = sfm_result.world_from_rig[stations]
+    station_rings = [frames.rings.rings[i] for i in stations]
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
     station_rings, outliers_removed = reject_ring_outliers(station_rings)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
@@ -243,94 +387,129 @@ def run(
             points_in_world=points,
             frame_index=point_frame,
             world_from_rig=station_poses,
-            reference_from_world=np.linalg.inv(motion.world_from_rig[reg[0]]),
+            reference_from_world=np.linalg.inv(sfm_result.world_from_rig[motion.registered_frames[0]]),
             ring_blur_mm=ring_blur_mm(station_rings),
-            calibration_sigma_rel=rig.laser.scale_sigma_rel,
+            calibration_sigma_rel=0.0 if rig.laser is None else rig.laser.scale_sigma_rel,
             axial_blur_mm=axial_blur_mm(station_rings, camera_from_rig(rig)),
         ),
         executor,
     )
-    timings["analysis"] = time.perf_counter() - t0
+    log.timings["analysis"] = time.perf_counter() - t0
     tick(2)
-    warnings.extend(res.warnings)
+    log.warnings.extend(res.warnings)
     traj_quality = quality.trajectory_quality(
-        motion, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
+        sfm_result, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
     )
-    # What the model stage reads of the rings: the integrated points (the same
-    # integration, not done again) and the rings' pixels. The rest of every frame's ring
-    # is not held through it.
-    ring_pixels = [r.pixels for r in station_rings]
-    del frames, rings, station_rings
-    release_freed_memory()
+    feed = _ModelFeed(points, point_frame, [r.pixels for r in station_rings])
+    return _Measured(res, traj_quality, stations, station_poses, outliers_removed), feed
 
+
+def _model(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    measured: _Measured,
+    feed: _ModelFeed,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> ModelResult:
+    """The model stage on the stations, unrolled by the analysis' centreline."""
+    import numpy as np
+
+    from omnipipe import model
+
+    res, stations = measured.result, measured.stations
     t0 = time.perf_counter()
     tick = progress("model", len(stations))
-    circ = 2 * np.pi * res.radius_mm
     model_inputs = model.ModelInputs(
-        camera_rig=rig,
-        world_from_rig=station_poses,
+        camera_rig=dataset.rig,
+        world_from_rig=measured.station_poses,
         ring_points_in_rig=[],
-        ring_pixels=ring_pixels,
+        ring_pixels=feed.ring_pixels,
         read_frame=lambda k: dataset.read_frame(int(stations[k])),
         unrolled_mm=np.column_stack(
             [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
         ),
-        circumference_mm=circ,
+        circumference_mm=2 * np.pi * res.radius_mm,
         dataset=dataset,
         frame_index=stations,
-        points_in_world=points,
-        point_frame=point_frame,
+        points_in_world=feed.points,
+        point_frame=feed.point_frame,
     )
-    del ring_pixels, points, point_frame
     mdl = model.run(config.model, model_inputs, progress=tick, executor=executor)
     del model_inputs
-    timings["model"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
+    log.timings["model"] = time.perf_counter() - t0
+    return mdl
+
+
+def _summary(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    motion: _Motion,
+    measured: _Measured,
+    mdl: ModelResult,
+    executor: Executor,
+    log: _RunLog,
+) -> tuple[dict[str, Any], list[Defect]]:
+    """report.json's content (without ``input_quality``) and the reported defects."""
+    import numpy as np
+
+    from omnipipe import analysis
+    from omnipipe.executor import describe as describe_executor
+    from omnipipe.model.export import model_files
+    from omnipipe.pipeline import quality
+
+    n = len(dataset)
+    sfm_result, stations, traj_quality = motion.result, measured.stations, measured.quality
     # Every measurement with its 1-sigma (lengths along the pipe: the motion's scale sigma).
-    measured, measure_warnings = analysis.report_fields(
-        res, getattr(motion, "scale_sigma_rel", float("nan")), config.analysis
-    )
-    warnings.extend(measure_warnings)
-    if len(measured.get("stations", [])) == len(stations):
-        for entry, frame in zip(measured["stations"], stations, strict=True):
+    scale_rel = getattr(sfm_result, "scale_sigma_rel", float("nan"))
+    fields, measure_warnings = analysis.report_fields(measured.result, scale_rel, config.analysis)
+    log.warnings.extend(measure_warnings)
+    if len(fields.get("stations", [])) == len(stations):
+        for entry, frame in zip(fields["stations"], stations, strict=True):
             entry["frame"] = int(frame)  # the frame whose ring this station is
-    warnings.extend(quality.flag_defects(measured.get("defects", []), traj_quality))
-    warnings.extend(quality.widen_for_unreliable(measured, traj_quality))
+    defects = analysis.scaled_defects(measured.result, scale_rel, config.analysis)
+    defects, flag_warnings = quality.flag_defects(defects, traj_quality)
+    log.warnings.extend(flag_warnings)
+    widened = quality.widen_for_unreliable(fields["run_length_sigma_mm"], defects, traj_quality)
+    defects = widened.defects
+    log.warnings.extend(widened.warnings)
+    fields["defects"] = [d.to_contract() for d in defects]
+    fields["run_length_sigma_mm"] = widened.run_length_sigma_mm
+    fields["run_length_unreliable_mm"] = widened.run_length_unreliable_mm
+    timings = log.timings
     summary = {
         "frames": n,
-        "frames_registered": len(reg),
-        **measured,
+        "frames_registered": len(motion.registered_frames),
+        **fields,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         # Frames of the run per second of each stage (and of the whole run).
         "frames_per_s": {
             k: round(n / v, 3) if v > 0 else None for k, v in timings.items() if k != "startup"
         },
         "executor": describe_executor(executor),
-        "warnings": warnings,
-        "stationary_frames": int(np.sum(motion.stationary)),
-        "wall_outliers_removed": outliers_removed,
+        "warnings": log.warnings,
+        "stationary_frames": int(np.sum(sfm_result.stationary)),
+        "wall_outliers_removed": measured.outliers_removed,
         "files": model_files(mdl),  # each 3-D file's unit and axes
-        "mesh": {
-            "vertices": int(len(mdl.mesh_vertices)),
-            "faces": int(len(mdl.mesh_faces)),
-            "flips_per_pass": [] if mdl.flip_stats is None else mdl.flip_stats.flips,
-            "photo_inconsistency_before": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_before, 3),
-            "photo_inconsistency_after": None if mdl.flip_stats is None else round(mdl.flip_stats.cost_after, 3),
-        },
-        "keyframes": int(np.sum(motion.keyframe)),
-        "tracked_frames": 0 if motion.tracked is None else int(np.sum(motion.tracked)),
-        "trajectory_quality": traj_quality,
-        "input_quality": input_quality.to_dict(),
+        "mesh": _mesh_summary(mdl),
+        "keyframes": int(np.sum(sfm_result.keyframe)),
+        "tracked_frames": 0 if sfm_result.tracked is None else int(np.sum(sfm_result.tracked)),
+        "trajectory_quality": traj_quality.to_contract(),
     }
-    return Reconstruction(
-        summary=summary,
-        timestamps=dataset.timestamps[reg],
-        world_from_rig=motion.world_from_rig[reg],
-        model=mdl,
-        analysis=res,
-        report_config=config.report,
-        frame_index=reg,
-    )
+    return summary, defects
+
+
+def _mesh_summary(mdl: ModelResult) -> dict[str, Any]:
+    """report.json's ``mesh``: its size and what the edge flips did."""
+    flips = mdl.flip_stats
+    return {
+        "vertices": int(len(mdl.mesh_vertices)),
+        "faces": int(len(mdl.mesh_faces)),
+        "flips_per_pass": [] if flips is None else flips.flips,
+        "photo_inconsistency_before": None if flips is None else round(flips.cost_before, 3),
+        "photo_inconsistency_after": None if flips is None else round(flips.cost_after, 3),
+    }
 
 
 def write(
@@ -338,7 +517,7 @@ def write(
     out: str | Path,
     *,
     force: bool = False,
-    evaluation: dict | None = None,
+    evaluation: dict[str, Any] | None = None,
     protect: Sequence[str | Path] = (),
     progress: ProgressFactory = _no_progress,
 ) -> Path:
@@ -374,6 +553,7 @@ def write(
         write_deliverable(
             tmp,
             rec.summary,
+            rec.defects,
             rec.model.unrolled,
             rec.survey,
             travel_along_rig_z=float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]),
@@ -382,7 +562,7 @@ def write(
     return out
 
 
-def report_inputs(rec: Reconstruction, evaluation: dict | None = None):
+def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None) -> ReportInputs:
     """What report.html shows, from a reconstruction (and optional evaluation)."""
     from omnipipe.report import ReportInputs
 
@@ -406,6 +586,8 @@ def report_inputs(rec: Reconstruction, evaluation: dict | None = None):
         truth=truth,
         evaluation=evaluation,
         frame_index=rec.frame_index,
+        defects=rec.defects,
+        trajectory_quality=rec.trajectory_quality,
     )
 
 
