@@ -221,8 +221,6 @@ def run(config: EvaluationConfig, inputs: EvaluationInputs) -> EvaluationResult:
         DatasetError: the dataset has no ground truth (or fewer true poses than frames),
             or an output or ground-truth file is missing, corrupt or malformed.
     """
-    from omnipipe.sim.scene import Pipe
-
     dataset = open_dataset(inputs.dataset_dir)
     gt_dir = dataset.ground_truth_dir
     if not (gt_dir / "poses.txt").is_file():
@@ -264,40 +262,61 @@ def run(config: EvaluationConfig, inputs: EvaluationInputs) -> EvaluationResult:
         result.warnings.append(
             f"{scene_path}: not found; wall, inner diameter and defects are not evaluated"
         )
-    else:
-        scene = _read_json(scene_path)
-        true_d = scene.get("inner_diameter_mm")
-        if not isinstance(true_d, int | float) or isinstance(true_d, bool) or not true_d > 0:
-            raise DatasetError(f"{scene_path}: inner_diameter_mm missing or invalid ({true_d!r})")
-        if not isinstance(scene.get("pipe"), dict):
-            raise DatasetError(f"{scene_path}: pipe missing or not an object")
-        true_defects = _defect_list(scene, scene_path)
-        try:
-            pipe = Pipe.from_dict(scene["pipe"])
-        except OmnipipeError:
-            raise
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DatasetError(
-                f"{scene_path}: pipe is not a valid pipe description ({type(exc).__name__}: {exc})"
-            ) from None
-        if traj is not None and (out / "points.ply").is_file():
-            pts = apply(traj.gt_from_est, read_points_ply(out / "points.ply"))
-            if len(pts):
-                sigma, rho, theta, *_ = pipe.pipe_coordinates(pts)
-                err = rho - pipe.wall_radius(sigma, theta)
-                result.wall = {
-                    "points": len(pts),
-                    "rmse_mm": float(np.sqrt(np.mean(err**2))),
-                    "bias_mm": float(np.mean(err)),
-                    "median_abs_mm": float(np.median(np.abs(err))),
-                    "p95_abs_mm": float(np.percentile(np.abs(err), 95)),
-                }
-        true_d = float(true_d)
-        measured_d = report.get("inner_diameter_mm")
-        result.diameter = {"true_mm": true_d}
-        if isinstance(measured_d, int | float):
-            result.diameter.update(
-                {"measured_mm": float(measured_d), "error_mm": float(measured_d) - true_d}
-            )
-        result.defects = _pair_defects(true_defects, measured_defects, config)
+        return result
+    _against_scene(result, config, _read_json(scene_path), scene_path, out, report, measured_defects)
     return result
+
+
+def _against_scene(
+    result: EvaluationResult,
+    config: EvaluationConfig,
+    scene: dict[str, Any],
+    scene_path: Path,
+    out: Path,
+    report: dict[str, Any],
+    measured_defects: list[Defect],
+) -> None:
+    """The wall, inner diameter and defects of ``result`` against the true pipe of
+    ``scene`` (scene.json), filled in place (``out``: the reconstruction, ``report``:
+    its report.json).
+
+    Raises:
+        DatasetError: a malformed scene.json.
+    """
+    from omnipipe.sim.scene import Pipe
+
+    true_d = scene.get("inner_diameter_mm")
+    if not isinstance(true_d, int | float) or isinstance(true_d, bool) or not true_d > 0:
+        raise DatasetError(f"{scene_path}: inner_diameter_mm missing or invalid ({true_d!r})")
+    if not isinstance(scene.get("pipe"), dict):
+        raise DatasetError(f"{scene_path}: pipe missing or not an object")
+    true_defects = _defect_list(scene, scene_path)
+    try:
+        pipe = Pipe.from_dict(scene["pipe"])
+    except OmnipipeError:
+        raise
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(
+            f"{scene_path}: pipe is not a valid pipe description ({type(exc).__name__}: {exc})"
+        ) from None
+    traj = result.trajectory
+    if traj is not None and (out / "points.ply").is_file():
+        pts = apply(traj.gt_from_est, read_points_ply(out / "points.ply"))
+        if len(pts):
+            sigma, rho, theta, *_ = pipe.pipe_coordinates(pts)
+            err = rho - pipe.wall_radius(sigma, theta)
+            result.wall = {
+                "points": len(pts),
+                "rmse_mm": float(np.sqrt(np.mean(err**2))),
+                "bias_mm": float(np.mean(err)),
+                "median_abs_mm": float(np.median(np.abs(err))),
+                "p95_abs_mm": float(np.percentile(np.abs(err), 95)),
+            }
+    true_d = float(true_d)
+    measured_d = report.get("inner_diameter_mm")
+    result.diameter = {"true_mm": true_d}
+    if isinstance(measured_d, int | float):
+        result.diameter.update(
+            {"measured_mm": float(measured_d), "error_mm": float(measured_d) - true_d}
+        )
+    result.defects = _pair_defects(true_defects, measured_defects, config)

@@ -58,6 +58,7 @@ from omnipipe.rig import Rig
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
+    from omnipipe.model.flips import FlipStats
 
 
 @dataclass(frozen=True)
@@ -162,7 +163,7 @@ class ModelResult:
     textured_uvs: np.ndarray | None = None
     texture: np.ndarray | None = None
     unrolled: UnrolledImage | None = None
-    flip_stats: object = None
+    flip_stats: FlipStats | None = None
 
 
 def colour_pixels(ring_pixels: np.ndarray, camera: CameraModel, offset_px: float) -> np.ndarray:
@@ -318,6 +319,91 @@ def _integrated(inputs: ModelInputs) -> tuple[np.ndarray, np.ndarray]:
 
 
 
+class _RingColours:
+    """Each keyframe's ring colours, sampled the first time its image is read."""
+
+    def __init__(
+        self, inputs: ModelInputs, camera: CameraModel, offset_px: float, executor: Executor | None
+    ) -> None:
+        self.inputs, self.camera, self.offset_px, self.executor = inputs, camera, offset_px, executor
+        self.colours_of: list[np.ndarray | None] = [None] * len(inputs.ring_pixels)
+
+    def to_sample(self, k: int) -> np.ndarray | None:
+        """Keyframe k's (M, 2) ring colour pixels if its ring is not sampled yet, else None
+        (made when its image is next read: not held for every keyframe at once)."""
+        px = self.inputs.ring_pixels[k]
+        if not len(px) or self.colours_of[k] is not None:
+            return None
+        return colour_pixels(px, self.camera, self.offset_px)
+
+    def sample(self, work: list[_FrameWork | None]) -> Iterator[tuple[int, np.ndarray]]:
+        """(k, texture samples) per keyframe with work; its ring colours kept once."""
+        for k, (ring_colours, samples) in _sample_frames(self.inputs, work, self.executor, None):
+            if len(ring_colours) and self.colours_of[k] is None:
+                self.colours_of[k] = ring_colours
+            yield k, samples
+
+
+def _texture(
+    config: ModelConfig,
+    inputs: ModelInputs,
+    rings: _RingColours,
+    ticks: _Ticks,
+    points: np.ndarray,
+    faces: np.ndarray,
+    unrolled_at: tuple[np.ndarray, np.ndarray, float],
+    executor: Executor | None,
+) -> UnrolledImage:
+    """The unrolled wall image: each cell from the keyframe that sees it best.
+
+    A section of the pipe at a time: its cells chosen, then sampled in the images of the
+    keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a section's, not the
+    run's). A keyframe that textures two sections is read twice.
+
+    Args:
+        points, faces: the mesh (mm; (F, 3) vertex indices).
+        unrolled_at: (N,) arc and (N,) axial position of the points (mm), circumference (mm).
+    """
+    arc, axial, circ = unrolled_at
+    n_k = len(inputs.ring_pixels)
+    # Holes stay holes: a cell counts as wall when it is no farther from a point than
+    # the inside of the largest kept triangle (0.6 x its longest edge).
+    gap = 0.6 * float(longest_edges(points, faces).max())
+    # The grid is evaluated and scored a strip of rows at a time (never held whole).
+    wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
+    h, w = wall.shape
+    wall_z0 = wall.axial_min_mm
+    seen = np.zeros((h, w), bool)  # the cells some keyframe textures
+    image = np.zeros((h * w, 3), np.uint8)
+    light = np.full((h, w, 2), np.nan, LIGHT_DTYPE)  # each cell's view, for the flat field
+    for top in range(0, h, SECTION_ROWS):
+        end = min(top + SECTION_ROWS, h)
+        choice = choose_sources(
+            inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
+            config.laser_band_mm, executor=executor, rows=(top, end),
+        )
+        seen[top:end] = choice.source >= 0
+        light[top:end] = choice.light
+        work: list[_FrameWork | None] = [None] * n_k
+        for k in range(n_k):
+            if choice.count(k):
+                ring = rings.to_sample(k)
+                work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
+        choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
+        todo = max(1, sum(item is not None for item in work))
+        for i, (k, samples) in enumerate(rings.sample(work), start=1):
+            paint(image[top * w : end * w], choice, k, samples)
+            # Progress: the share of the grid's rows done, within a section by keyframes.
+            ticks.to(n_k * (top * todo + (end - top) * i) // (h * todo))
+        del work, choice
+        release_freed_memory()  # the section's strips, pixels and samples
+        ticks.to(n_k * end // h)
+    del wall
+    release_freed_memory()  # the wall grid's blocks and the strips' results
+    unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
+    return flat_field(unrolled, light)  # the LEDs' falloff and the vignetting out
+
+
 def run(
     config: ModelConfig,
     inputs: ModelInputs,
@@ -378,72 +464,17 @@ def _run(
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
     release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)
     n_k = len(inputs.ring_pixels)
-    colours_of: list[np.ndarray | None] = [None] * n_k
-
-    def ring_to_sample(k: int) -> np.ndarray | None:
-        """Keyframe k's (M, 2) ring colour pixels if its ring is not sampled yet, else None
-        (made when its image is next read: not held for every keyframe at once)."""
-        px = inputs.ring_pixels[k]
-        if not len(px) or colours_of[k] is not None:
-            return None
-        return colour_pixels(px, camera, config.colour_offset_px)
+    rings = _RingColours(inputs, camera, config.colour_offset_px, executor)
     ticks = _Ticks(progress, n_k)
-
-    def sample(work: list[_FrameWork | None]) -> Iterator[tuple[int, np.ndarray]]:
-        """(k, texture samples) per keyframe with work; its ring colours kept once."""
-        for k, (ring_colours, samples) in _sample_frames(inputs, work, executor, None):
-            if len(ring_colours) and colours_of[k] is None:
-                colours_of[k] = ring_colours
-            yield k, samples
-
     unrolled: UnrolledImage | None = None
     if config.texture and len(faces):
-        # Holes stay holes: a cell counts as wall when it is no farther from a point than
-        # the inside of the largest kept triangle (0.6 x its longest edge).
-        gap = 0.6 * float(longest_edges(points, faces).max())
-        # The grid is evaluated and scored a strip of rows at a time (never held whole).
-        wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
-        h, w = wall.shape
-        wall_z0 = wall.axial_min_mm
-        seen = np.zeros((h, w), bool)  # the cells some keyframe textures
-        image = np.zeros((h * w, 3), np.uint8)
-        light = np.full((h, w, 2), np.nan, LIGHT_DTYPE)  # each cell's view, for the flat field
-        # A section of the pipe at a time: its cells chosen, then sampled in the images of
-        # the keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a
-        # section's, not the run's). A keyframe that textures two sections is read twice.
-        for top in range(0, h, SECTION_ROWS):
-            end = min(top + SECTION_ROWS, h)
-            choice = choose_sources(
-                inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
-                config.laser_band_mm, executor=executor, rows=(top, end),
-            )
-            seen[top:end] = choice.source >= 0
-            light[top:end] = choice.light
-            work: list[_FrameWork | None] = [None] * n_k
-            for k in range(n_k):
-                if choice.count(k):
-                    ring = ring_to_sample(k)
-                    work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
-            choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
-            todo = max(1, sum(item is not None for item in work))
-            for i, (k, samples) in enumerate(sample(work), start=1):
-                paint(image[top * w : end * w], choice, k, samples)
-                # Progress: the share of the grid's rows done, within a section by keyframes.
-                ticks.to(n_k * (top * todo + (end - top) * i) // (h * todo))
-            del work, choice
-            release_freed_memory()  # the section's strips, pixels and samples
-            ticks.to(n_k * end // h)
-        del wall
-        release_freed_memory()  # the wall grid's blocks and the strips' results
-        unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
-        unrolled = flat_field(unrolled, light)  # the LEDs' falloff and the vignetting out
-        del seen, image, light
+        unrolled = _texture(config, inputs, rings, ticks, points, faces, (arc, axial, circ), executor)
     # The rings of the keyframes that textured no cell.
-    rest = [None if (ring := ring_to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
-    for _ in sample(rest):
+    rest = [None if (ring := rings.to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
+    for _ in rings.sample(rest):
         pass
     ticks.to(n_k)
-    colours = np.concatenate([c for c in colours_of if c is not None])
+    colours = np.concatenate([c for c in rings.colours_of if c is not None])
     del rest
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if unrolled is not None:
