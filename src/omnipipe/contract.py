@@ -13,7 +13,6 @@ Lengths mm, angles degrees (the contract's units: these are the edge).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -199,7 +198,3 @@ class TrajectoryQuality:
             "keyframe_steps": [c.to_dict() for c in self.keyframe_steps],
         }
 
-
-def finite_or_none(x: float | None) -> float | None:
-    """``x`` when it is a finite number, else None (JSON null)."""
-    return None if x is None or not math.isfinite(x) else x
