@@ -117,7 +117,7 @@ def main() -> None:
                     dev = wall["dev"] + sign * h * plateau(u, w, w / 3) * plateau(
                         wall["sigma"] - zc, args.length, args.length / 3
                     )
-                    found = find_defects(
+                    search = find_defects(
                         WallSamples(wall["sigma"], wall["arc"], dev, wall["ring"], circ),
                         min_height_mm=cfg.min_height_mm,
                         noise_factor=cfg.noise_factor,
@@ -125,7 +125,8 @@ def main() -> None:
                         grid_mm=cfg.grid_mm,
                         limit_width_mm=cfg.limit_width_mm,
                         limit_length_mm=cfg.limit_length_mm,
-                    ).defects
+                    )
+                    found = [d.to_contract() for d in search.defects]
                     hit = any(_near(d, cand, 25.0, 10.0) for d in found)
                     rate[i, j] += hit
                     false_count += sum(

@@ -149,9 +149,9 @@ def _reconstruct(scenario, root: Path, reuse: bool) -> tuple[dict, dict]:
     captured: dict = {}
     original = analysis.run
 
-    def capture(config, inputs):
+    def capture(config, inputs, executor=None):
         captured["inputs"] = inputs
-        return original(config, inputs)
+        return original(config, inputs, executor)
 
     analysis.run = capture
     try:

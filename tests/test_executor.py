@@ -109,7 +109,7 @@ def test_parallel_laser_stage_equals_serial(tiny_dataset: Path, dask_address: st
     from omnipipe.dataset import open_dataset
 
     dataset = open_dataset(tiny_dataset)
-    serial = laser.run(laser.LaserConfig(), dataset.rig, dataset.frames())
+    serial = laser.run(laser.LaserConfig(), dataset.rig, (dataset.read_frame(i) for i in range(len(dataset))))
     assert sum(len(r.pixels) > 100 for r in serial.rings) == len(dataset)  # rings were found
     for kwargs in _executors(dask_address):
         done: list[int] = []

@@ -77,11 +77,6 @@ class Dataset:
             return img
         return read_image(self.frame_paths[index], self.rig)
 
-    def frames(self) -> Iterator[np.ndarray]:
-        """Every frame in order."""
-        for i in range(len(self)):
-            yield self.read_frame(i)
-
     @property
     def ground_truth_dir(self) -> Path:
         """Where simulators put ground truth (never read by reconstruction)."""

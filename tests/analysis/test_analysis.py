@@ -77,12 +77,12 @@ def test_paper_pipe_table_one_from_exact_rings() -> None:
     assert np.nanmax(res.stations_ovality) < 0.002
     assert len(res.defects) == 1
     d, t = res.defects[0], pipe.defects[0]
-    assert d["kind"] == t.kind
-    assert abs(d["height_mm"] - t.height_mm) < 0.3
-    assert abs(d["width_mm"] - t.width_mm) < 0.5
-    assert abs(d["length_mm"] - t.length_mm) < 2.0
-    assert abs(d["axial_start_mm"] - t.axial_start_mm) < 2.0
-    assert abs((d["angle_deg"] - t.angle_deg + 180) % 360 - 180) < 1.0
+    assert d.kind == t.kind
+    assert abs(d.height_mm - t.height_mm) < 0.3
+    assert abs(d.width_mm - t.width_mm) < 0.5
+    assert abs(d.length_mm - t.length_mm) < 2.0
+    assert abs(d.axial_start_mm - t.axial_start_mm) < 2.0
+    assert abs((d.angle_deg - t.angle_deg + 180) % 360 - 180) < 1.0
 
 
 def test_bent_pipe_diameter_and_defects() -> None:
@@ -90,15 +90,15 @@ def test_bent_pipe_diameter_and_defects() -> None:
     res = run(AnalysisConfig(), inputs)
     assert not res.straight
     assert abs(res.inner_diameter_mm - pipe.inner_diameter_mm) < 0.3
-    found = sorted(res.defects, key=lambda d: d["axial_start_mm"])
-    assert [d["kind"] for d in found] == [
+    found = sorted(res.defects, key=lambda d: d.axial_start_mm)
+    assert [d.kind for d in found] == [
         t.kind for t in sorted(pipe.defects, key=lambda t: t.axial_start_mm)
     ]
     for d, t in zip(found, sorted(pipe.defects, key=lambda t: t.axial_start_mm), strict=True):
-        assert abs(d["height_mm"] - t.height_mm) < 0.3
-        assert abs(d["width_mm"] - t.width_mm) < 1.0
-        assert abs(d["length_mm"] - t.length_mm) < 3.0
-        assert abs((d["angle_deg"] - t.angle_deg + 180) % 360 - 180) < 2.0
+        assert abs(d.height_mm - t.height_mm) < 0.3
+        assert abs(d.width_mm - t.width_mm) < 1.0
+        assert abs(d.length_mm - t.length_mm) < 3.0
+        assert abs((d.angle_deg - t.angle_deg + 180) % 360 - 180) < 2.0
 
 
 @pytest.mark.parametrize("centre_deg", [0.0, 359.0, 180.0])
@@ -121,11 +121,11 @@ def test_defect_on_a_deviation_map_across_the_seam(centre_deg: float) -> None:
     )
     assert len(defects) == 1
     d = defects[0]
-    assert d["kind"] == "dent" and abs(d["height_mm"] - 2.0) < 0.05
-    assert abs(d["width_mm"] - 18.0) < 0.3
-    assert abs(d["length_mm"] - 45.0) < 1.0
-    assert abs(d["axial_start_mm"] - 77.5) < 0.5
-    assert abs((d["angle_deg"] - centre_deg + 180) % 360 - 180) < 0.2
+    assert d.kind == "dent" and abs(d.height_mm - 2.0) < 0.05
+    assert abs(d.width_mm - 18.0) < 0.3
+    assert abs(d.length_mm - 45.0) < 1.0
+    assert abs(d.axial_start_mm - 77.5) < 0.5
+    assert abs((d.angle_deg - centre_deg + 180) % 360 - 180) < 0.2
 
 
 def test_oblique_rings_in_a_bend_stay_round() -> None:
@@ -154,7 +154,7 @@ def test_oblique_rings_in_a_bend_stay_round() -> None:
     assert abs(res.inner_diameter_mm - 160.0) < 0.1
     assert np.nanmax(res.stations_ovality) < 0.004  # the oblique section itself: 0.8 %
     assert np.all(np.abs(res.stations_diameter_mm - 160.0) < 0.3)
-    assert sorted(d["kind"] for d in res.defects) == ["bulge", "dent"]
+    assert sorted(d.kind for d in res.defects) == ["bulge", "dent"]
 
 
 def test_lone_outlier_samples_are_not_defects() -> None:

@@ -14,6 +14,7 @@ import pytest
 
 from omnipipe.analysis.defects import WallSamples, find_defects
 from omnipipe.analysis.sizing import detection_limit, plateau
+from omnipipe.contract import Defect
 
 RADIUS = 50.0
 CIRC = 2 * np.pi * RADIUS
@@ -67,7 +68,7 @@ def _search(samples: WallSamples):
 
 
 @pytest.fixture(scope="module")
-def fitted() -> list[tuple[dict, dict]]:
+def fitted() -> list[tuple[dict, Defect]]:
     """16 random defects 1-10 mm high, one per map: (truth, measured)."""
     rng = np.random.default_rng(12)
     out = []
@@ -75,16 +76,16 @@ def fitted() -> list[tuple[dict, dict]]:
         t = _random_defect(rng, (1.5, 10.0), (20.0, 70.0))
         found = _search(_map(rng, [t])).defects
         assert len(found) == 1, f"expected one defect for {t}, got {found}"
-        assert found[0]["kind"] == t["kind"]
+        assert found[0].kind == t["kind"]
         out.append((t, found[0]))
     return out
 
 
-def _errors(fitted: list[tuple[dict, dict]], key: str) -> tuple[np.ndarray, np.ndarray]:
-    err = np.array([m[key] - t[key] for t, m in fitted])
+def _errors(fitted: list[tuple[dict, Defect]], key: str) -> tuple[np.ndarray, np.ndarray]:
+    err = np.array([getattr(m, key) - t[key] for t, m in fitted])
     if key == "angle_deg":
         err = (err + 180.0) % 360.0 - 180.0
-    sigma = np.array([m[key.replace("_mm", "_sigma_mm").replace("_deg", "_sigma_deg")] for t, m in fitted])
+    sigma = np.array([getattr(m, key.replace("_mm", "_sigma_mm").replace("_deg", "_sigma_deg")) for t, m in fitted])
     return err, sigma
 
 
@@ -120,8 +121,8 @@ def test_a_defect_below_the_detection_limit_is_not_reported() -> None:
     # The low dent crosses the sample threshold (1 mm) but its fitted height is under the limit.
     assert search.threshold_mm < low["height_mm"]
     assert len(search.defects) == 1
-    assert abs(search.defects[0]["angle_deg"] - 240.0) < 2.0
-    assert all(d["height_mm"] >= limit for d in search.defects)
+    assert abs(search.defects[0].angle_deg - 240.0) < 2.0
+    assert all(d.height_mm >= limit for d in search.defects)
     assert any("below the detection limit" in w for w in search.warnings)
 
 
@@ -181,10 +182,10 @@ def test_crest_between_rings_height_sigma_covers_the_shape_ambiguity() -> None:
             t = _random_defect(rng, (2.0, 10.0), (10.0, 16.0))
             h = t["height_mm"]
             found = _search(_map(rng, [t])).defects
-            if len(found) != 1 or found[0]["height_sigma_mm"] is None:
+            if len(found) != 1 or found[0].height_sigma_mm is None:
                 continue
-            err = found[0]["height_mm"] - h
-            inside.append(abs(err) <= 2.0 * found[0]["height_sigma_mm"])
+            err = found[0].height_mm - h
+            inside.append(abs(err) <= 2.0 * found[0].height_sigma_mm)
     finally:
         SPACING = saved
     assert sum(inside) >= 10, f"{sum(inside)} of 12 heights within 2 sigma"
@@ -216,9 +217,9 @@ def test_short_rounded_defect_between_rings_is_not_read_as_a_lower_plateau() -> 
                 "ramp_z": min(length, 2.0 * w) / length,
             }
             found = _search(_map(rng, [t], smooth=3)).defects
-            if len(found) != 1 or found[0]["height_sigma_mm"] is None:
+            if len(found) != 1 or found[0].height_sigma_mm is None:
                 continue
-            errors.append(found[0]["height_mm"] - h)
+            errors.append(found[0].height_mm - h)
     finally:
         SPACING = saved
     assert abs(np.mean(errors)) < 0.15, f"mean height error {np.mean(errors):+.3f} mm"
@@ -230,7 +231,7 @@ def test_axial_sigmas_follow_the_motion_random_walk() -> None:
     the scale share ``rel * travel``. report_fields states it from the run's relative
     scale sigma; +-2 sigma holds 2000 simulated walks' position errors 93-98 % of the time
     at every travel."""
-    from omnipipe.analysis import AnalysisResult, report_fields
+    from omnipipe.analysis import AnalysisResult, Defect, report_fields
 
     rng = np.random.default_rng(4)
     steps, step_mm, step_rel = 40, 7.5, 0.02
@@ -240,12 +241,12 @@ def test_axial_sigmas_follow_the_motion_random_walk() -> None:
     walks = np.cumsum(rng.normal(0.0, step_mm * step_rel, (2000, steps)), axis=1)
     for k in (4, 20, 39):
         travel = (k + 1) * step_mm
-        defect = {
-            "kind": "dent", "height_mm": 3.0, "width_mm": 20.0, "length_mm": 30.0,
-            "axial_start_mm": travel - 80.0, "angle_deg": 10.0, "height_sigma_mm": 0.05,
-            "width_sigma_mm": 0.2, "length_sigma_mm": 0.01, "axial_start_sigma_mm": 0.01,
-            "angle_sigma_deg": 0.1, "travel_mm": travel,
-        }
+        defect = Defect(
+            kind="dent", height_mm=3.0, width_mm=20.0, length_mm=30.0,
+            axial_start_mm=travel - 80.0, angle_deg=10.0, height_sigma_mm=0.05,
+            width_sigma_mm=0.2, length_sigma_mm=0.01, axial_start_sigma_mm=0.01,
+            angle_sigma_deg=0.1, travel_mm=travel,
+        )
         res = AnalysisResult(
             inner_diameter_mm=150.0, straight=True, ovality_max=0.0,
             stations_axial_mm=np.linspace(-80.0, run_mm - 80.0, steps + 1),
@@ -272,12 +273,12 @@ def test_sigmas_hold_with_noise_correlated_along_the_ring() -> None:
         t = _random_defect(rng, (1.5, 10.0), (20.0, 70.0))
         h = t["height_mm"]
         found = _search(_map(rng, [t], smooth=3)).defects
-        if len(found) != 1 or found[0]["length_sigma_mm"] is None:
+        if len(found) != 1 or found[0].length_sigma_mm is None:
             continue
         m = found[0]
-        err_len.append(m["length_mm"] - t["length_mm"])
-        z_len.append(err_len[-1] / m["length_sigma_mm"])
-        z_h.append((m["height_mm"] - h) / m["height_sigma_mm"])
+        err_len.append(m.length_mm - t["length_mm"])
+        z_len.append(err_len[-1] / m.length_sigma_mm)
+        z_h.append((m.height_mm - h) / m.height_sigma_mm)
     for name, z in (("length", z_len), ("height", z_h)):
         rms = float(np.sqrt(np.mean(np.square(z))))
         assert 0.6 <= rms <= 1.4, f"{name}: RMS of error / sigma {rms:.2f}"
@@ -334,10 +335,10 @@ def test_ring_blur_is_fitted_not_read_as_a_lower_wider_defect() -> None:
             "ramp_u": 1.0, "ramp_z": 0.5,
         }
         plain, seen = _plain_and_seen(_blurred(_map(rng, [t]), [t], 1.2), ring_blur_mm=1.2)
-        h_plain.append(plain["height_mm"] / t["height_mm"] - 1)
-        h_seen.append(seen["height_mm"] / t["height_mm"] - 1)
-        w_plain.append(plain["width_mm"] - t["width_mm"])
-        w_seen.append(seen["width_mm"] - t["width_mm"])
+        h_plain.append(plain.height_mm / t["height_mm"] - 1)
+        h_seen.append(seen.height_mm / t["height_mm"] - 1)
+        w_plain.append(plain.width_mm - t["width_mm"])
+        w_seen.append(seen.width_mm - t["width_mm"])
     assert np.mean(h_plain) < -0.03  # the bias this guards against is real at this blur
     assert abs(np.mean(h_seen)) < 0.01
     assert np.mean(w_plain) > 0.1
@@ -360,8 +361,8 @@ def test_axial_blur_is_fitted_not_read_as_a_lower_defect() -> None:
         }
         samples = _blurred(_map(rng, [t]), [t], 0.0, axial_blur_mm=1.5)
         plain, seen = _plain_and_seen(samples, axial_blur_mm=1.5)
-        h_plain.append(plain["height_mm"] / t["height_mm"] - 1)
-        h_seen.append(seen["height_mm"] / t["height_mm"] - 1)
+        h_plain.append(plain.height_mm / t["height_mm"] - 1)
+        h_seen.append(seen.height_mm / t["height_mm"] - 1)
     assert np.mean(h_plain) < -0.03  # the bias this guards against is real at this blur
     assert abs(np.mean(h_seen)) < 0.5 * abs(np.mean(h_plain))
 
@@ -376,6 +377,6 @@ def test_a_defect_the_model_cannot_fit_is_reported_with_a_warning(monkeypatch) -
     t = _random_defect(rng, (4.0, 6.0), (30.0, 40.0))
     search = _search(_map(rng, [t]))
     assert len(search.defects) == 1
-    assert search.defects[0]["height_sigma_mm"] is None
-    assert abs(search.defects[0]["height_mm"] - t["height_mm"]) < 0.2 * t["height_mm"]
+    assert search.defects[0].height_sigma_mm is None
+    assert abs(search.defects[0].height_mm - t["height_mm"]) < 0.2 * t["height_mm"]
     assert any("model fit failed" in w for w in search.warnings), search.warnings

@@ -36,7 +36,7 @@ def _ocam_rig() -> Rig:
 def test_round_trip_and_interface(make) -> None:
     rig = make()
     cam = camera_from_rig(rig)
-    px = cam.pixel_grid()[cam.valid_mask().ravel()][::7]
+    px = np.argwhere(cam.valid_mask())[:, ::-1].astype(float)[::7]  # (col, row), row-major
     rays = cam.unproject(px)
     assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
     back, valid = cam.project(rays)
@@ -124,7 +124,7 @@ def test_bad_ocam_fields_are_named(edit, field: str) -> None:
 def test_conversion_reproduces_the_hyperboloid_rays() -> None:
     rig = paper_rig(400, 300)
     src = camera_from_rig(rig)
-    px = src.pixel_grid()[src.valid_mask().ravel()][::5]
+    px = np.argwhere(src.valid_mask())[:, ::-1].astype(float)[::5]  # (col, row), row-major
     for model, tol_px in (("unified", 1e-6), ("ocam", 1e-3)):
         converted, rms = rig_in_model(rig, model)
         assert converted.camera_model == model and rms < tol_px

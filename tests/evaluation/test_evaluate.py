@@ -10,6 +10,7 @@ import pytest
 import trimesh
 
 from omnipipe.cli import main
+from omnipipe.contract import CORE_KEYS
 from omnipipe.dataset import read_tum, write_tum
 from omnipipe.evaluation import EvaluationConfig, EvaluationInputs, run
 from omnipipe.geometry import apply, invert
@@ -51,9 +52,12 @@ def test_evaluation_measures_known_errors(small_dataset: Path, tmp_path: Path) -
     assert res.trajectory.ate_rmse_mm < 1e-6 and res.trajectory.rotation_rmse_deg < 1e-5
     assert res.wall["bias_mm"] == pytest.approx(0.5, abs=1e-6)
     assert res.diameter["error_mm"] == pytest.approx(0.3)
-    assert len(res.defects) == 1 and res.defects[0]["found"]
-    assert res.defects[0]["errors"]["height_mm"] == pytest.approx(0.2)
-    assert res.defects[0]["errors"]["angle_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert len(res.defects) == 1 and res.defects[0].found
+    assert res.defects[0].errors()["height_mm"] == pytest.approx(0.2)
+    assert res.defects[0].errors()["angle_deg"] == pytest.approx(0.0, abs=1e-9)
+    row = res.to_dict()["defects"][0]  # the JSON form: what was read, and the errors
+    assert row["found"] and row["true"] == {k: row["true"][k] for k in CORE_KEYS}
+    assert row["measured"]["height_mm"] == pytest.approx(row["true"]["height_mm"] + 0.2)
 
 
 def test_evaluate_cli(

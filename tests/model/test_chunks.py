@@ -195,7 +195,7 @@ def test_the_chunked_wall_grid_is_the_whole_grid(kind: str, whole_wall_grid) -> 
 def test_winding_and_seam_split_a_chunk_of_triangles_at_a_time_change_nothing(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import omnipipe.model as model
+    import omnipipe.model.mesh as model
     from omnipipe.model.texture import UnrolledImage
 
     arc, axial = _rings(20, 60, seed=10)

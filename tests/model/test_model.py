@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-import omnipipe.model as model_stage
+import omnipipe.model.stage as model_stage
 from omnipipe.dataset import open_dataset
 from omnipipe.errors import ShapeError
 from omnipipe.executor import open_executor

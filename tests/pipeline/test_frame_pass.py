@@ -28,10 +28,10 @@ def stop_and_go(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_one_pass_gives_the_serial_rings_and_stations(stop_and_go: Path) -> None:
     dataset = open_dataset(stop_and_go)
-    serial = laser.run(laser.LaserConfig(), dataset.rig, dataset.frames())
+    serial = laser.run(laser.LaserConfig(), dataset.rig, (dataset.read_frame(i) for i in range(len(dataset))))
     tracker = StationTracker(camera_from_rig(dataset.rig).valid_mask())
     moved = np.array(
-        [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in dataset.frames()]
+        [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in (dataset.read_frame(i) for i in range(len(dataset)))]
     )
     assert 2 <= moved.sum() < len(dataset)  # a stop-and-go run: both kinds of frame
     for workers in (1, 2):
@@ -78,7 +78,7 @@ def test_a_creep_only_the_run_sees_gets_its_ring(
     dataset = open_dataset(creep)
     tracker = StationTracker(camera_from_rig(dataset.rig).valid_mask())
     moved = np.array(
-        [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in dataset.frames()]
+        [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in (dataset.read_frame(i) for i in range(len(dataset)))]
     )
     fetched: list[int] = []
     task = frame_pass._RingTask.__call__
@@ -89,7 +89,7 @@ def test_a_creep_only_the_run_sees_gets_its_ring(
         result = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
     assert np.array_equal(result.moved, moved)
     assert fetched and all(moved[i] for i in fetched)
-    serial = laser.run(laser.LaserConfig(), dataset.rig, dataset.frames())
+    serial = laser.run(laser.LaserConfig(), dataset.rig, (dataset.read_frame(i) for i in range(len(dataset))))
     for a, b, keep in zip(serial.rings, result.rings.rings, moved, strict=True):
         if keep:
             assert np.array_equal(a.points_in_rig, b.points_in_rig)

@@ -7,70 +7,85 @@ from types import SimpleNamespace
 
 import pytest
 
+from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
 from omnipipe.pipeline.quality import flag_defects, refuse_untrusted_motion, widen_for_unreliable
 from omnipipe.sfm.scale_check import StepCheck
 
 
-def _fields() -> dict:
-    return {
-        "run_length_mm": 300.0,
-        "run_length_sigma_mm": 0.8,
-        "defects": [
-            {"kind": "bulge", "axial_start_mm": 20.0, "length_mm": 10.0, "axial_start_sigma_mm": 0.3},
-            {"kind": "dent", "axial_start_mm": 150.0, "length_mm": 30.0, "axial_start_sigma_mm": 0.4},
-            {"kind": "dent", "axial_start_mm": 250.0, "length_mm": 5.0, "axial_start_sigma_mm": 0.5},
-        ],
-    }
+def _defects() -> list[Defect]:
+    return [
+        Defect("bulge", 2.0, 5.0, 10.0, 20.0, 0.0, axial_start_sigma_mm=0.3),
+        Defect("dent", 2.0, 5.0, 30.0, 150.0, 0.0, axial_start_sigma_mm=0.4),
+        Defect("dent", 2.0, 5.0, 5.0, 250.0, 0.0, axial_start_sigma_mm=0.5),
+    ]
+
+
+def _step(first: int, last: int, confidence: str, scale_mm: float) -> StepCheck:
+    return StepCheck(first, last, math.nan, 0.0, math.nan, 0, scale_mm, confidence, "")
 
 
 def test_reliable_run_is_untouched() -> None:
-    fields = _fields()
-    assert widen_for_unreliable(fields, {"unreliable": []}) == []
-    assert fields["run_length_sigma_mm"] == 0.8
-    assert fields["run_length_unreliable_mm"] == 0.0
-    assert [d["axial_start_sigma_mm"] for d in fields["defects"]] == [0.3, 0.4, 0.5]
+    defects = _defects()
+    out = widen_for_unreliable(0.8, defects, TrajectoryQuality(steps_checked=3))
+    assert out.warnings == []
+    assert out.run_length_sigma_mm == 0.8
+    assert out.run_length_unreliable_mm == 0.0
+    assert out.defects == defects
 
 
 def test_unreliable_stretches_widen_run_length_and_later_positions() -> None:
-    quality = {
-        "unreliable": [
-            {"first_frame": 10, "last_frame": 14, "reason": "x", "axial_start_mm": 60.0, "axial_end_mm": 80.0},
-            {"first_frame": 40, "last_frame": 41, "reason": "y", "axial_start_mm": 200.0, "axial_end_mm": 210.0},
-        ]
-    }
-    fields = _fields()
-    warnings = widen_for_unreliable(fields, quality)
-    assert len(warnings) == 1 and "about 30 mm" in warnings[0]
-    assert fields["run_length_unreliable_mm"] == 30.0
-    assert math.isclose(fields["run_length_sigma_mm"], math.hypot(0.8, 30.0), abs_tol=1e-3)
-    before, middle, after = fields["defects"]
-    assert before["axial_start_sigma_mm"] == 0.3  # upstream of every stretch
-    assert math.isclose(middle["axial_start_sigma_mm"], math.hypot(0.4, 20.0), abs_tol=1e-3)
-    assert math.isclose(after["axial_start_sigma_mm"], math.hypot(0.5, 30.0), abs_tol=1e-3)
+    quality = TrajectoryQuality(
+        steps_checked=3,
+        unreliable=(
+            UnreliableSpan(10, 14, "x", axial_start_mm=60.0, axial_end_mm=80.0),
+            UnreliableSpan(40, 41, "y", axial_start_mm=200.0, axial_end_mm=210.0),
+        ),
+    )
+    defects = _defects()
+    out = widen_for_unreliable(0.8, defects, quality)
+    assert len(out.warnings) == 1 and "about 30 mm" in out.warnings[0]
+    assert out.run_length_unreliable_mm == 30.0
+    assert out.run_length_sigma_mm is not None
+    assert math.isclose(out.run_length_sigma_mm, math.hypot(0.8, 30.0), abs_tol=1e-3)
+    before, middle, after = out.defects
+    assert before.axial_start_sigma_mm == 0.3  # upstream of every stretch
+    assert math.isclose(middle.axial_start_sigma_mm or 0.0, math.hypot(0.4, 20.0), abs_tol=1e-3)
+    assert math.isclose(after.axial_start_sigma_mm or 0.0, math.hypot(0.5, 30.0), abs_tol=1e-3)
+    assert defects[1].axial_start_sigma_mm == 0.4  # the inputs are not changed
     # None of them lies across a stretch.
-    assert flag_defects(fields["defects"], quality) == []
+    flagged, warnings = flag_defects(out.defects, quality)
+    assert warnings == [] and not any(d.motion_unreliable for d in flagged)
+
+
+def test_a_defect_across_a_stretch_is_flagged() -> None:
+    quality = TrajectoryQuality(
+        steps_checked=3, unreliable=(UnreliableSpan(10, 14, "x", axial_start_mm=160.0, axial_end_mm=170.0),)
+    )
+    flagged, warnings = flag_defects(_defects(), quality)
+    assert [d.motion_unreliable for d in flagged] == [False, True, False]
+    assert len(warnings) == 1 and "defect 2 (dent, at 150 mm)" in warnings[0]
+    assert flagged[1].to_contract()["motion_unreliable"] is True
+    assert "motion_unreliable" not in flagged[0].to_contract()
 
 
 def test_collapsed_stretch_counts_its_expected_length() -> None:
     # Steps without any relative motion collapse in the adjustment (0.2 mm for 21 mm):
     # the stretch counts as its unreliable steps times the median trusted step.
-    steps = [
-        {"first_frame": 0, "last_frame": 5, "confidence": "high", "scale_mm": 10.0},
-        {"first_frame": 5, "last_frame": 9, "confidence": "none", "scale_mm": None},
-        {"first_frame": 9, "last_frame": 14, "confidence": "none", "scale_mm": None},
-        {"first_frame": 14, "last_frame": 19, "confidence": "resolved", "scale_mm": 12.0},
-    ]
-    quality = {
-        "keyframe_steps": steps,
-        "unreliable": [
-            {"first_frame": 5, "last_frame": 14, "reason": "x", "axial_start_mm": 10.0, "axial_end_mm": 10.3},
-        ],
-    }
-    fields = _fields()
-    widen_for_unreliable(fields, quality)
-    assert fields["run_length_unreliable_mm"] == 22.0  # 2 steps x median(10, 12)
-    assert math.isclose(fields["run_length_sigma_mm"], math.hypot(0.8, 22.0), abs_tol=1e-3)
+    quality = TrajectoryQuality(
+        steps_checked=2,
+        unreliable=(UnreliableSpan(5, 14, "x", axial_start_mm=10.0, axial_end_mm=10.3),),
+        keyframe_steps=(
+            _step(0, 5, "high", 10.0),
+            _step(5, 9, "none", math.nan),
+            _step(9, 14, "none", math.nan),
+            _step(14, 19, "resolved", 12.0),
+        ),
+    )
+    out = widen_for_unreliable(0.8, _defects(), quality)
+    assert out.run_length_unreliable_mm == 22.0  # 2 steps x median(10, 12)
+    assert out.run_length_sigma_mm is not None
+    assert math.isclose(out.run_length_sigma_mm, math.hypot(0.8, 22.0), abs_tol=1e-3)
 
 
 def test_one_unconfirmed_laser_length_is_no_scale() -> None:

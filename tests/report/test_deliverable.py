@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from omnipipe.cli import main
+from omnipipe.contract import Defect
 from omnipipe.errors import ConfigError
 from omnipipe.report.deliverable import (
     CSV_COLUMNS,
@@ -53,6 +54,10 @@ def _summary() -> dict:
     }
 
 
+def _defects(summary: dict) -> list[Defect]:
+    return [Defect.from_contract(d) for d in summary["defects"]]
+
+
 def _read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
     lines = path.read_text(encoding="utf-8").splitlines()
     comments = [ln[2:] for ln in lines if ln.startswith("# ")]
@@ -84,7 +89,9 @@ def test_defects_csv_from_a_report(tmp_path: Path) -> None:
     survey = survey_from_dict(
         {"site": "Main St", "asset_id": "SW-1", "start_offset_m": 1.5, "direction": "upstream"}
     )
-    files = write_deliverable(tmp_path, _summary(), None, survey, travel_along_rig_z=1.0)
+    files = write_deliverable(
+        tmp_path, _summary(), _defects(_summary()), None, survey, travel_along_rig_z=1.0
+    )
     assert files == [tmp_path / "defects.csv"]
     comments, rows = _read_csv(tmp_path / "defects.csv")
     assert "site: Main St" in comments and "direction: upstream" in comments
@@ -105,7 +112,7 @@ def test_defects_csv_from_a_report(tmp_path: Path) -> None:
 
 def test_clock_reference_from_survey(tmp_path: Path) -> None:
     survey = Survey(clock_reference_deg=0.0)  # +x is 12 o'clock
-    write_deliverable(tmp_path, _summary(), None, survey)
+    write_deliverable(tmp_path, _summary(), _defects(_summary()), None, survey)
     comments, rows = _read_csv(tmp_path / "defects.csv")
     assert [r["clock"] for r in rows] == ["12:00", "09:00"]
     assert any("survey.yaml clock_reference_deg" in c for c in comments)
@@ -129,7 +136,7 @@ def test_crop_shows_the_defect_across_the_seam(tmp_path: Path) -> None:
         "kind": "bulge", "height_mm": 3.0, "width_mm": 10.0, "length_mm": 50.0,
         "axial_start_mm": 0.0, "angle_deg": 0.0,
     }
-    crop = crop_unrolled(image, unrolled.alpha, -100.0, mm_per_px, defect, circ)
+    crop = crop_unrolled(image, unrolled.alpha, -100.0, mm_per_px, Defect.from_contract(defect), circ)
     bright = crop[..., 2] > 245  # the patch (the outline is yellow: blue 0)
     rows, cols = np.nonzero(bright)
     assert bright.any()
@@ -137,7 +144,7 @@ def test_crop_shows_the_defect_across_the_seam(tmp_path: Path) -> None:
     assert abs(rows.mean() - crop.shape[0] / 2) < 0.02 * crop.shape[0]
     assert abs(cols.mean() - crop.shape[1] / 2) < 0.02 * crop.shape[1]
     summary = {"inner_diameter_mm": 127.3, "defects": [defect], "stations": []}
-    files = write_deliverable(tmp_path, summary, unrolled)
+    files = write_deliverable(tmp_path, summary, _defects(summary), unrolled)
     assert [f.relative_to(tmp_path).as_posix() for f in files] == [
         "defects.csv",
         "defects/defect_01.png",
@@ -211,6 +218,7 @@ def test_report_html_has_survey_header_clock_crops_and_print_css() -> None:
             unrolled=image,
             unrolled_extent=(0.0, 360.0, -100.0, 300.0),
             radius_mm=100.0,
+            defects=_defects(summary),
         )
     )
     assert "<h2>Survey</h2>" in html_text and "SW-1" in html_text and "MH-12" in html_text

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from omnipipe.contract import Defect
 from omnipipe.report import ReportConfig, ReportInputs, render_html, run
 
 
@@ -72,6 +73,7 @@ def _inputs() -> ReportInputs:
         stations_ovality=np.abs(rng.normal(0, 0.002, 8)),
         radius_mm=101.1,
         truth=[("inner diameter", 202.2, 0.031, 202.0, "mm"), ("height of bulge 1", 5.1, 0.04, 5.0, "mm")],
+        defects=[Defect.from_contract(d) for d in summary["defects"]],
     )
 
 

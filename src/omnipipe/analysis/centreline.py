@@ -11,6 +11,7 @@ same thing all along a bent pipe, as the data contract asks.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
 
@@ -77,6 +78,36 @@ class Centreline:
         return self.arc_mm[station] + along, rho, theta
 
 
+def _referenced(
+    arc: np.ndarray, centre: np.ndarray, tangent: np.ndarray, reference_from_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The stations' arc lengths (K,) shifted to the reference's axial origin (the
+    reference origin projected on the nearest station's axis), and their (K, 3) unit
+    normals: the reference x axis (angle 0), transported along the stations."""
+    world_from_reference = np.linalg.inv(reference_from_world)
+    origin, x_ref = world_from_reference[:3, 3], world_from_reference[:3, 0]
+    nearest = int(np.argmin(np.linalg.norm(centre - origin, axis=1)))
+    arc = arc - (arc[nearest] + (origin - centre[nearest]) @ tangent[nearest])
+    normals = np.empty_like(tangent)
+    n = x_ref - (x_ref @ tangent[nearest]) * tangent[nearest]
+    normals[nearest] = n / np.linalg.norm(n)
+    for order in (range(nearest + 1, len(tangent)), range(nearest - 1, -1, -1)):
+        prev = nearest
+        for k in order:
+            n = normals[prev] - (normals[prev] @ tangent[k]) * tangent[k]
+            normals[k] = n / np.linalg.norm(n)
+            prev = k
+    return arc, normals
+
+
+def _nearest_usable(usable: list[int], full: int) -> np.ndarray:
+    """(full,) for each ring, the slot in ``usable`` of its nearest usable ring (itself
+    when usable): rings too sparse for a station borrow their nearest neighbour's."""
+    index = np.array([usable[int(np.argmin(np.abs(np.array(usable) - k)))] for k in range(full)])
+    slot = {k: i for i, k in enumerate(usable)}
+    return np.array([slot[k] for k in index])
+
+
 def fit_centreline(
     rings_in_world: list[np.ndarray],
     axis_guess: np.ndarray,
@@ -114,7 +145,8 @@ def fit_centreline(
     centres, tangents, radii = [], [], []
     slot_of = {k: j for j, k in enumerate(usable)}
 
-    def windows():  # (points, axis guess) of each station's window, made as needed
+    def windows() -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+        # (points, axis guess, loss scale) of each station's window, made as needed
         for i in range(len(usable)):
             along = (centroid - centroid[i]) @ axes[i]
             members = [usable[j] for j in np.flatnonzero(np.abs(along) <= 0.5 * window_mm)]
@@ -143,27 +175,9 @@ def fit_centreline(
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.linalg.norm(tangent[1:] + tangent[:-1], axis=1)
     arc = np.concatenate([[0.0], np.cumsum(steps)])
-    world_from_reference = np.linalg.inv(reference_from_world)
-    origin, x_ref = world_from_reference[:3, 3], world_from_reference[:3, 0]
-    # Axial origin: the reference origin projected on the nearest station's axis.
-    nearest = int(np.argmin(np.linalg.norm(centre - origin, axis=1)))
-    arc = arc - (arc[nearest] + (origin - centre[nearest]) @ tangent[nearest])
-    # Angle 0: the reference x axis, transported along the stations.
-    normals = np.empty_like(tangent)
-    n = x_ref - (x_ref @ tangent[nearest]) * tangent[nearest]
-    normals[nearest] = n / np.linalg.norm(n)
-    for order in (range(nearest + 1, len(usable)), range(nearest - 1, -1, -1)):
-        prev = nearest
-        for k in order:
-            n = normals[prev] - (normals[prev] @ tangent[k]) * tangent[k]
-            normals[k] = n / np.linalg.norm(n)
-            prev = k
+    arc, normals = _referenced(arc, centre, tangent, reference_from_world)
     binormals = np.cross(tangent, normals)
-    full = len(rings_in_world)
-    # Rings too sparse for a station borrow their nearest neighbour's.
-    index = np.array([usable[int(np.argmin(np.abs(np.array(usable) - k)))] for k in range(full)])
-    slot = {k: i for i, k in enumerate(usable)}
-    pick = np.array([slot[k] for k in index])
+    pick = _nearest_usable(usable, len(rings_in_world))
     return Centreline(
         arc[pick],
         centre[pick],

@@ -7,29 +7,30 @@ threshold (``min_height_mm`` and a multiple of the measured noise) with a neighb
 their ring at least half as far out (lone samples are extraction outliers), linked
 across neighbouring rings and around the pipe's seam.
 
-Each candidate is first measured roughly on a grid interpolated linearly between the
-points (largest deviation, half-height runs); that is only the starting point of the
+Each candidate is first measured roughly from its samples beyond the threshold
+(largest deviation, extent, weighted centre); that is only the starting point of the
 model fit of :mod:`.sizing` (a raised-cosine plateau bump in arc length and axial
 position, least squares over the defect and the wall around it), which gives the
 reported height, width, length, axial start and angle and their standard
 uncertainties. A fitted defect lower than the run's detection limit
-(:func:`.sizing.detection_limit`) is not reported.
+(:func:`.sizing.detection_limit`) is not reported. Each is a
+:class:`~omnipipe.contract.Defect`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
-from scipy.interpolate import LinearNDInterpolator
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from omnipipe.analysis.sizing import detection_limit, fit_bump, plateau
+from omnipipe.contract import Defect
 
 
 @dataclass(frozen=True)
@@ -80,73 +81,15 @@ def fourier_design(theta: np.ndarray, order: int) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _ring_peak(arc: np.ndarray, value: np.ndarray) -> float:
-    """Peak of one ring's samples near its maximum: a parabola through the 5 nearest."""
-    i = int(np.argmax(value))
-    near = np.argsort(np.abs(arc - arc[i]))[:5]
-    if len(near) < 3:
-        return float(value[i])
-    x = arc[near] - arc[i]
-    c = np.polyfit(x, value[near], 2)
-    if c[0] >= 0:
-        return float(value[i])
-    peak = c[2] - c[1] ** 2 / (4 * c[0])
-    # A parabola through noise may overshoot: stay within the samples' plausible range.
-    return float(np.clip(peak, np.mean(value[near]), value[i] + 0.5 * np.ptp(value[near])))
-
-
-def _axial_peak(z: np.ndarray, peak: np.ndarray) -> float:
-    """Largest ring peak, refined by a parabola through it and its axial neighbours.
-
-    Rings sample the axis sparsely: a defect's crest may lie between two rings. The
-    refinement may raise the estimate by at most the drop to the lower neighbour.
-    """
-    order = np.argsort(z)
-    z, peak = z[order], peak[order]
-    i = int(np.argmax(peak))
-    if i == 0 or i == len(peak) - 1:
-        return float(peak[i])
-    (z0, z1, z2), (p0, p1, p2) = z[i - 1 : i + 2], peak[i - 1 : i + 2]
-    if not (z0 < z1 < z2):
-        return float(peak[i])
-    # Divided differences of the parabola through the three points.
-    d01, d12 = (p1 - p0) / (z1 - z0), (p2 - p1) / (z2 - z1)
-    a = (d12 - d01) / (z2 - z0)
-    if a >= 0:
-        return float(p1)
-    b = d01 - a * (z0 + z1)
-    zv = -b / (2 * a)
-    vertex = p1 + a * (zv - z1) ** 2 + (2 * a * z1 + b) * (zv - z1)
-    return float(np.clip(vertex, p1, p1 + (p1 - min(p0, p2))))
-
-
-def _runs(
-    mask_line: np.ndarray, values: np.ndarray, level: float, step: float
-) -> list[tuple[float, float]]:
-    """Sub-cell [start, end) of each True run in a grid line, crossing at ``level``."""
-    out = []
-    padded = np.concatenate([[False], mask_line, [False]])
-    edges = np.flatnonzero(np.diff(padded.astype(int)))
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
-        start, end = float(a), float(b - 1)
-        if a > 0 and np.isfinite(values[a - 1]) and values[a] != values[a - 1]:
-            start = a - (values[a] - level) / (values[a] - values[a - 1])
-        if b < len(values) and np.isfinite(values[b]) and values[b - 1] != values[b]:
-            end = (b - 1) + (values[b - 1] - level) / (values[b - 1] - values[b])
-        out.append((start * step, end * step))
-    return out
-
-
 @dataclass
 class DefectSearch:
     """What :func:`find_defects` found.
 
     Attributes:
-        defects: contract dicts (kind, height_mm, width_mm, length_mm, axial_start_mm,
-            angle_deg, each with its ``*_sigma_*`` 1-sigma uncertainty; ``points``: samples
-            beyond the threshold; ``travel_mm``: the robot's travel from the first frame
-            to the rings at the defect's start), largest first. The axial sigmas hold the fit and the
-            ring sampling only (not the camera motion's scale).
+        defects: largest first, each with its 1-sigma uncertainties, ``points`` (samples
+            beyond the threshold) and ``travel_mm`` (the robot's travel from the first
+            frame to the rings at the defect's start). The axial sigmas hold the fit and
+            the ring sampling only (not the camera motion's scale).
         warnings: one line per rejected candidate.
         noise_mm: robust sigma of the deviation map.
         threshold_mm: sample threshold of the detector.
@@ -158,7 +101,7 @@ class DefectSearch:
             (model above 1 % of its height), for refitting the wall without it.
     """
 
-    defects: list[dict]
+    defects: list[Defect]
     warnings: list[str]
     noise_mm: float = float("nan")
     threshold_mm: float = float("nan")
@@ -167,8 +110,61 @@ class DefectSearch:
     sample_spacing_mm: float = float("nan")
     masks: list[np.ndarray] | None = None
 
-    def __iter__(self):  # (defects, warnings) = find_defects(...) keeps working
+    def __iter__(self) -> Iterator[list[Defect] | list[str]]:
+        """(defects, warnings) = find_defects(...) keeps working."""
         return iter((self.defects, self.warnings))
+
+
+@dataclass(frozen=True)
+class _Scales:
+    """The sampling of a deviation map, the detector's threshold and its link distances.
+
+    Attributes:
+        noise: robust sigma of the deviations (mm).
+        threshold: sample threshold (mm).
+        ring_ids, ring_sigma: the rings present and their median axial positions (mm).
+        spacing: 90th percentile of the ring gaps (mm): the wide gaps of a slow gait.
+        typical_spacing: median ring gap (mm).
+        sample_spacing: median arc length between samples along a ring (mm).
+        ds, du: link distances across rings and along a ring (mm).
+    """
+
+    noise: float
+    threshold: float
+    ring_ids: np.ndarray
+    ring_sigma: np.ndarray
+    spacing: float
+    typical_spacing: float
+    sample_spacing: float
+    ds: float
+    du: float
+
+
+def _scales(samples: WallSamples, min_height_mm: float, noise_factor: float) -> _Scales:
+    """Noise, threshold and link scales of ``samples``: along the ring a few sample
+    spacings, across rings 1.5 (wide) ring spacings."""
+    dev, sigma = samples.deviation_mm, samples.sigma_mm
+    noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
+    threshold = max(min_height_mm, noise_factor * noise)
+    ring_ids = np.unique(samples.ring)
+    ring_sigma = np.array([np.median(sigma[samples.ring == r]) for r in ring_ids])
+    # Ring spacing varies with the gait (slow start and stop): link across the wide gaps too.
+    gaps = np.diff(np.sort(ring_sigma))
+    spacing = float(np.percentile(gaps, 90)) if len(ring_ids) > 1 else 10.0
+    typical_spacing = float(np.median(gaps)) if len(ring_ids) > 1 else 10.0
+    counts = np.bincount(samples.ring)
+    sample_spacing = samples.circumference_mm / max(float(np.median(counts[counts > 0])), 1.0)
+    return _Scales(
+        noise=noise,
+        threshold=threshold,
+        ring_ids=ring_ids,
+        ring_sigma=ring_sigma,
+        spacing=spacing,
+        typical_spacing=typical_spacing,
+        sample_spacing=sample_spacing,
+        ds=max(1.5 * spacing, 2.0),
+        du=max(3.0 * sample_spacing, 1.0),
+    )
 
 
 def find_defects(
@@ -191,7 +187,8 @@ def find_defects(
         min_height_mm: smallest deviation reported as a defect.
         noise_factor: the threshold is also at least this many robust noise sigmas.
         min_points: a candidate needs this many points beyond the threshold.
-        grid_mm: cell size of the rough measurement grid (the fit's starting point).
+        grid_mm: kept for the configuration's sake (the rough measurement that the model
+            fit starts from no longer uses a grid).
         max_width_fraction: candidates wider than this fraction of the circumference are
             a shape change (ovality, a fit problem), not a local defect: reported as warnings.
         limit_width_mm, limit_length_mm: the reference defect of the detection limit.
@@ -199,137 +196,143 @@ def find_defects(
             with each defect (:func:`omnipipe.analysis.sizing.seen_bump_model`).
         axial_blur_mm: the same along the pipe axis (mm).
     """
+    warnings: list[str] = []
+    if len(samples.deviation_mm) < 10:
+        return DefectSearch([], warnings, masks=[])
+    sc = _scales(samples, min_height_mm, noise_factor)
+    limit = detection_limit(
+        noise_mm=sc.noise,
+        threshold_mm=sc.threshold,
+        sample_spacing_mm=sc.sample_spacing,
+        ring_spacing_mm=sc.typical_spacing,
+        min_points=min_points,
+        width_mm=limit_width_mm,
+        length_mm=limit_length_mm,
+    )
+    defects: list[Defect] = []
+    masks: list[np.ndarray] = []
+    for sign, kind in ((-1.0, "bulge"), (1.0, "dent")):
+        for members in _clusters(samples, sc, sign, min_points):
+            d0 = _rough(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing)
+            d, mask = _fit(
+                samples, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm
+            )
+            rejected = _rejection(d, kind, max_width_fraction * samples.circumference_mm, limit)
+            if rejected:
+                warnings.append(rejected)
+                continue
+            travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
+            defects.append(replace(d, points=len(members), travel_mm=travel))
+            masks.append(mask)
+    defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
+    warnings.extend(
+        f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
+        "failed (a crest extrapolated far above the samples, or too few samples); its size is "
+        "the rough grid measurement, without uncertainty"
+        for d in defects
+        if not d.fitted
+    )
+    order_h = np.argsort([-d.height_mm for d in defects], kind="stable")
+    return DefectSearch(
+        [defects[i] for i in order_h],
+        warnings,
+        noise_mm=sc.noise,
+        threshold_mm=sc.threshold,
+        detection_limit_mm=limit,
+        ring_spacing_mm=sc.typical_spacing,
+        sample_spacing_mm=sc.sample_spacing,
+        masks=[masks[i] for i in order_h],
+    )
+
+
+def _rejection(d: Defect, kind: str, max_width_mm: float, limit: float) -> str | None:
+    """Why a fitted candidate is not reported (a warning line), or None."""
+    if d.width_mm > max_width_mm:
+        return (
+            f"{kind} candidate at {d.axial_start_mm:.0f} mm spans {d.width_mm:.0f} mm of the "
+            "circumference: a shape change, not reported as a defect"
+        )
+    if not d.height_mm >= limit:
+        return (
+            f"{kind} candidate at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: fitted "
+            f"height {d.height_mm:.2f} mm is below the detection limit {limit:.2f} mm, not reported"
+        )
+    return None
+
+
+def _clusters(
+    samples: WallSamples, sc: _Scales, sign: float, min_points: int
+) -> Iterator[np.ndarray]:
+    """Sample indices of each candidate of one sign (-1: bulges, +1: dents): connected
+    groups of supported samples beyond the threshold, at least ``min_points`` strong."""
     dev, arc, sigma, circ = (
         samples.deviation_mm,
         samples.arc_mm,
         samples.sigma_mm,
         samples.circumference_mm,
     )
-    warnings: list[str] = []
-    if len(dev) < 10:
-        return DefectSearch([], warnings, masks=[])
-    noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
-    threshold = max(min_height_mm, noise_factor * noise)
-    # Link scales: along the ring a few sample spacings, across rings 1.5 (wide) ring spacings.
-    ring_ids = np.unique(samples.ring)
-    ring_sigma = np.array([np.median(sigma[samples.ring == r]) for r in ring_ids])
-    # Ring spacing varies with the gait (slow start and stop): link across the wide gaps too.
-    gaps = np.diff(np.sort(ring_sigma))
-    spacing = float(np.percentile(gaps, 90)) if len(ring_ids) > 1 else 10.0
-    typical_spacing = float(np.median(gaps)) if len(ring_ids) > 1 else 10.0
-    ds = max(1.5 * spacing, 2.0)
-    counts = np.bincount(samples.ring)
-    sample_spacing = circ / max(float(np.median(counts[counts > 0])), 1.0)
-    du = max(3.0 * sample_spacing, 1.0)
-    limit = detection_limit(
-        noise_mm=noise,
-        threshold_mm=threshold,
-        sample_spacing_mm=sample_spacing,
-        ring_spacing_mm=typical_spacing,
-        min_points=min_points,
-        width_mm=limit_width_mm,
-        length_mm=limit_length_mm,
-    )
-    defects: list[dict] = []
-    masks: list[np.ndarray] = []
-    # Neighbours along each ring (sorted by ring, then arc), for the support test below.
+    value = sign * dev
+    cand = np.flatnonzero((value > sc.threshold) & _supported(samples, value, sc))
+    if len(cand) < min_points:
+        return
+    ds, du = sc.ds, sc.du
+    box = np.array([circ / du, (np.ptp(sigma) + 4 * ds) / ds])
+    xy = np.column_stack([arc[cand] / du % box[0], (sigma[cand] - sigma.min() + ds) / ds])
+    pairs = cKDTree(xy, boxsize=box).query_pairs(1.0, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cand),) * 2)
+    n_comp, label = connected_components(graph, directed=False)
+    for c in range(n_comp):
+        members = cand[label == c]
+        if len(members) < min_points:
+            continue
+        if len(np.unique(samples.ring[members])) == 1 and len(members) < 2 * min_points:
+            # A speck on one ring, narrower than a few samples: an extraction outlier
+            # cluster (seen beside deep, steep defects), below any size the run resolves.
+            continue
+        yield members
+
+
+def _supported(samples: WallSamples, value: np.ndarray, sc: _Scales) -> np.ndarray:
+    """(N,) bool: a neighbour on the sample's ring (within about 2.5 sample spacings) is at
+    least half the threshold out. A lone sample beyond the threshold without one is an
+    extraction outlier (a blurred peak where the ring runs steeply), not wall."""
+    arc, circ = samples.arc_mm, samples.circumference_mm
+    # Neighbours along each ring (sorted by ring, then arc).
     order = np.lexsort((arc, samples.ring))
     prev_i, next_i = np.roll(order, 1), np.roll(order, -1)
     same_prev = samples.ring[prev_i] == samples.ring[order]
     same_next = samples.ring[next_i] == samples.ring[order]
-    near_gap = 2.5 * du / 3.0  # about 2.5 sample spacings along the ring
-    for sign, kind in ((-1.0, "bulge"), (1.0, "dent")):
-        value = sign * dev
-        # A lone sample beyond the threshold with no neighbour on its ring even half as far
-        # out is an extraction outlier (a blurred peak where the ring runs steeply), not wall.
-        supported = np.zeros(len(dev), bool)
-        for nb, same in ((prev_i, same_prev), (next_i, same_next)):
-            close = same & (np.abs((arc[nb] - arc[order] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap)
-            supported[order] |= close & (value[nb] > 0.5 * threshold)
-        cand = np.flatnonzero((value > threshold) & supported)
-        if len(cand) < min_points:
-            continue
-        box = np.array([circ / du, (np.ptp(sigma) + 4 * ds) / ds])
-        xy = np.column_stack([arc[cand] / du % box[0], (sigma[cand] - sigma.min() + ds) / ds])
-        pairs = cKDTree(xy, boxsize=box).query_pairs(1.0, output_type="ndarray")
-        graph = coo_matrix(
-            (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cand),) * 2
-        )
-        n_comp, label = connected_components(graph, directed=False)
-        for c in range(n_comp):
-            members = cand[label == c]
-            if len(members) < min_points:
-                continue
-            if len(np.unique(samples.ring[members])) == 1 and len(members) < 2 * min_points:
-                # A speck on one ring, narrower than a few samples: an extraction outlier
-                # cluster (seen beside deep, steep defects), below any size the run resolves.
-                continue
-            d0 = _rough(samples, members, sign, kind, sample_spacing, typical_spacing)
-            if d0 is None:
-                continue
-            d, mask = _fit(
-                samples, d0, sign, sample_spacing, typical_spacing, ring_blur_mm, axial_blur_mm
-            )
-            if d["width_mm"] > max_width_fraction * circ:
-                warnings.append(
-                    f"{kind} candidate at {d['axial_start_mm']:.0f} mm spans {d['width_mm']:.0f} mm of the "
-                    "circumference: a shape change, not reported as a defect"
-                )
-                continue
-            if not d["height_mm"] >= limit:
-                warnings.append(
-                    f"{kind} candidate at {d['axial_start_mm']:.0f} mm, {d['angle_deg']:.0f} deg: fitted "
-                    f"height {d['height_mm']:.2f} mm is below the detection limit {limit:.2f} mm, not reported"
-                )
-                continue
-            d["points"] = len(members)
-            d["travel_mm"] = round(_travel(samples, d["axial_start_mm"], ring_ids, ring_sigma), 2)
-            defects.append(d)
-            masks.append(mask)
-    defects, masks = _merge_overlapping(defects, masks, circ)
-    warnings.extend(
-        f"{d['kind']} at {d['axial_start_mm']:.0f} mm, {d['angle_deg']:.0f} deg: the model fit "
-        "failed (a crest extrapolated far above the samples, or too few samples); its size is "
-        "the rough grid measurement, without uncertainty"
-        for d in defects
-        if d.get("height_sigma_mm") is None
-    )
-    order_h = np.argsort([-d["height_mm"] for d in defects], kind="stable")
-    return DefectSearch(
-        [defects[i] for i in order_h],
-        warnings,
-        noise_mm=noise,
-        threshold_mm=threshold,
-        detection_limit_mm=limit,
-        ring_spacing_mm=typical_spacing,
-        sample_spacing_mm=sample_spacing,
-        masks=[masks[i] for i in order_h],
-    )
+    near_gap = 2.5 * sc.du / 3.0  # about 2.5 sample spacings along the ring
+    supported = np.zeros(len(value), bool)
+    for nb, same in ((prev_i, same_prev), (next_i, same_next)):
+        close = same & (np.abs((arc[nb] - arc[order] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap)
+        supported[order] |= close & (value[nb] > 0.5 * sc.threshold)
+    return supported
 
 
 def _merge_overlapping(
-    defects: list[dict], masks: list[np.ndarray], circ: float
-) -> tuple[list[dict], list[np.ndarray]]:
+    defects: list[Defect], masks: list[np.ndarray], circ: float
+) -> tuple[list[Defect], list[np.ndarray]]:
     """One defect per bump: a detection whose centre lies inside the half-height extent of
     another of the same kind supported by more samples is a piece of it (a short, wide
     defect between two rings can fall apart into several candidate clusters); it is
     dropped and its samples join the larger one's mask."""
     keep = np.ones(len(defects), bool)
     masks = [np.array(m, bool) for m in masks]
-    order = sorted(range(len(defects)), key=lambda i: -defects[i]["points"])
+    order = sorted(range(len(defects)), key=lambda i: -defects[i].points)
     for rank, i in enumerate(order):
         if not keep[i]:
             continue
         a = defects[i]
-        za = a["axial_start_mm"] + 0.5 * a["length_mm"]
-        ua = a["angle_deg"] / 360.0 * circ
+        za = a.axial_start_mm + 0.5 * a.length_mm
+        ua = a.angle_deg / 360.0 * circ
         for j in order[rank + 1 :]:
             b = defects[j]
-            if not keep[j] or b["kind"] != a["kind"]:
+            if not keep[j] or b.kind != a.kind:
                 continue
-            dz = abs(b["axial_start_mm"] + 0.5 * b["length_mm"] - za)
-            du = abs((b["angle_deg"] / 360.0 * circ - ua + 0.5 * circ) % circ - 0.5 * circ)
-            if dz <= 0.5 * a["length_mm"] and du <= 0.5 * a["width_mm"]:
+            dz = abs(b.axial_start_mm + 0.5 * b.length_mm - za)
+            du = abs((b.angle_deg / 360.0 * circ - ua + 0.5 * circ) % circ - 0.5 * circ)
+            if dz <= 0.5 * a.length_mm and du <= 0.5 * a.width_mm:
                 keep[j] = False
                 masks[i] = masks[i] | masks[j]
     return [d for d, k in zip(defects, keep, strict=True) if k], [
@@ -354,7 +357,7 @@ def _rough(
     kind: str,
     sample_spacing: float,
     ring_spacing: float,
-) -> dict | None:
+) -> Defect:
     """Rough extent of a candidate from its samples beyond the threshold: the fit's start."""
     circ = s.circumference_mm
     value = sign * s.deviation_mm[members]
@@ -365,26 +368,28 @@ def _rough(
     uc, zc = float(w @ u), float(w @ z)
     width = float(np.ptp(u)) + 2.0 * sample_spacing
     length = float(np.ptp(z)) + ring_spacing
-    return {
-        "kind": kind,
-        "height_mm": round(float(value.max()), 3),
-        "width_mm": round(width, 3),
-        "length_mm": round(length, 3),
-        "axial_start_mm": round(zc - 0.5 * length, 3),
-        "angle_deg": round(((ref + uc) % circ) / circ * 360.0, 3),
-    }
+    return Defect(
+        kind=kind,
+        height_mm=round(float(value.max()), 3),
+        width_mm=round(width, 3),
+        length_mm=round(length, 3),
+        axial_start_mm=round(zc - 0.5 * length, 3),
+        angle_deg=round(((ref + uc) % circ) / circ * 360.0, 3),
+    )
 
 
 def _fit(
-    s: WallSamples, d0: dict, sign: float, sample_spacing: float, ring_spacing: float,
+    s: WallSamples, d0: Defect, sign: float, sample_spacing: float, ring_spacing: float,
     blur_u_mm: float = 0.0,
     blur_z_mm: float = 0.0,
-) -> tuple[dict, np.ndarray]:
-    """Model fit around a roughly measured defect ``d0``: the reported dict and its mask."""
+) -> tuple[Defect, np.ndarray]:
+    """Model fit around a roughly measured defect ``d0``: the reported defect and its mask
+    (without a usable fit: ``d0``, without uncertainties, and its samples above half its
+    height)."""
     circ = s.circumference_mm
-    w0, l0 = max(d0["width_mm"], sample_spacing), max(d0["length_mm"], 0.5 * ring_spacing)
-    uc = d0["angle_deg"] / 360.0 * circ
-    zc = d0["axial_start_mm"] + 0.5 * l0
+    w0, l0 = max(d0.width_mm, sample_spacing), max(d0.length_mm, 0.5 * ring_spacing)
+    uc = d0.angle_deg / 360.0 * circ
+    zc = d0.axial_start_mm + 0.5 * l0
     u = (s.arc_mm - uc + 0.5 * circ) % circ - 0.5 * circ
     z = s.sigma_mm - zc
     hu = min(max(1.5 * w0, 0.5 * w0 + 10.0 * sample_spacing, 6.0), 0.45 * circ)
@@ -396,7 +401,7 @@ def _fit(
         z[win],
         value[win],
         s.ring[win],
-        (d0["height_mm"], 0.0, 0.0, w0, l0),
+        (d0.height_mm, 0.0, 0.0, w0, l0),
         bounds_u=(-0.5 * w0 - 2 * sample_spacing, 0.5 * w0 + 2 * sample_spacing),
         bounds_z=(-0.5 * l0 - ring_spacing, 0.5 * l0 + ring_spacing),
         blur_u_mm=blur_u_mm,
@@ -408,107 +413,23 @@ def _fit(
         # few points): not a measurement. The rough one is reported instead.
         fit = None
     if fit is None:
-        # No usable fit: the rough measurement, with its scale of error as the sigma.
-        d = dict(d0)
-        d.update(
-            height_sigma_mm=None,
-            width_sigma_mm=None,
-            length_sigma_mm=None,
-            axial_start_sigma_mm=None,
-            angle_sigma_deg=None,
-        )
-        support = win & (value > 0.5 * d0["height_mm"])
-        return d, support
+        return d0, win & (value > 0.5 * d0.height_mm)
     cover = (
         plateau(u - fit.u0, fit.width, fit.ramp_u * fit.width)
         * plateau(z - fit.z0, fit.length, fit.ramp_z * fit.length)
     ) > 0.01
     angle = ((uc + fit.u0) % circ) / circ * 360.0
-    return {
-        "kind": d0["kind"],
-        "height_mm": round(fit.height, 3),
-        "width_mm": round(fit.width, 3),
-        "length_mm": round(fit.length, 3),
-        "axial_start_mm": round(zc + fit.z0 - 0.5 * fit.length, 3),
-        "angle_deg": round(angle, 3),
-        "height_sigma_mm": round(fit.height_sigma, 4),
-        "width_sigma_mm": round(fit.width_sigma, 4),
-        "length_sigma_mm": round(fit.length_sigma, 4),
-        "axial_start_sigma_mm": round(fit.start_sigma, 4),
-        "angle_sigma_deg": round(math.degrees(fit.u0_sigma / (circ / (2 * math.pi))), 5),
-        "fit_noise_mm": round(fit.noise, 4),
-    }, cover
-
-
-def _measure(
-    s: WallSamples, members: np.ndarray, sign: float, kind: str, grid: float, du: float, ds: float
-) -> dict | None:
-    circ = s.circumference_mm
-    # Unwrap the arc around the candidate's centre so it never straddles the seam.
-    ref = float(s.arc_mm[members[np.argmax(sign * s.deviation_mm[members])]])
-    u_all = (s.arc_mm - ref + 0.5 * circ) % circ - 0.5 * circ
-    u_m, z_m = u_all[members], s.sigma_mm[members]
-    lo_u, hi_u = u_m.min() - 3 * du, u_m.max() + 3 * du
-    lo_z, hi_z = z_m.min() - 2 * ds, z_m.max() + 2 * ds
-    near = (
-        (u_all >= lo_u - du)
-        & (u_all <= hi_u + du)
-        & (s.sigma_mm >= lo_z - ds)
-        & (s.sigma_mm <= hi_z + ds)
-    )
-    if near.sum() < 4:
-        return None
-    # Height: the largest of the rings' refined peaks.
-    value = sign * s.deviation_mm
-    peaks, peak_z = [], []
-    for r in np.unique(s.ring[near]):
-        on = near & (s.ring == r)
-        if on.sum() >= 3:
-            peaks.append(_ring_peak(u_all[on], value[on]))
-            peak_z.append(float(np.median(s.sigma_mm[on])))
-    if not peaks:
-        return None
-    height = _axial_peak(np.array(peak_z), np.array(peaks))
-    try:
-        interp = LinearNDInterpolator(np.column_stack([u_all[near], s.sigma_mm[near]]), value[near])
-    except Exception:  # degenerate (collinear) support: a single short ring segment
-        return None
-    gu = np.arange(lo_u, hi_u + grid, grid)
-    gz = np.arange(lo_z, hi_z + grid, grid)
-    field = interp(*np.meshgrid(gu, gz))  # rows: sigma, columns: arc
-    level = 0.5 * height
-    above = np.nan_to_num(field, nan=-np.inf) >= level
-    lab, _ = ndimage.label(above)
-    peak_cell = np.unravel_index(np.nanargmax(np.where(above, field, -np.inf)), field.shape)
-    region = lab == lab[peak_cell]
-    if not region.any():
-        return None
-    # Width: each cross-section near the crest at half its own height (the crest may
-    # lie between rings, where no cross-section was measured); angle: the crest row's centre.
-    best_w, best_w_centre, crest = 0.0, 0.0, -np.inf
-    for row in np.flatnonzero(region.any(axis=1)):
-        line = np.where(region[row], field[row], np.nan)
-        top = float(np.nanmax(line))
-        if top < 0.75 * height:
-            continue
-        j = int(np.nanargmax(line))
-        above_row = np.nan_to_num(field[row], nan=-np.inf) >= 0.5 * top
-        lab_row, _ = ndimage.label(above_row)
-        for a, b in _runs(lab_row == lab_row[j], field[row], 0.5 * top, grid):
-            best_w = max(best_w, b - a)
-            if top > crest:
-                crest, best_w_centre = top, lo_u + 0.5 * (a + b)
-    best_l, best_start = 0.0, 0.0
-    for col in np.flatnonzero(region.any(axis=0)):
-        for a, b in _runs(region[:, col], field[:, col], level, grid):
-            if b - a > best_l:
-                best_l, best_start = b - a, lo_z + a
-    angle = ((ref + best_w_centre) % circ) / circ * 360.0
-    return {
-        "kind": kind,
-        "height_mm": round(float(height), 3),
-        "width_mm": round(float(best_w), 3),
-        "length_mm": round(float(best_l), 3),
-        "axial_start_mm": round(float(best_start), 3),
-        "angle_deg": round(float(angle), 3),
-    }
+    return Defect(
+        kind=d0.kind,
+        height_mm=round(fit.height, 3),
+        width_mm=round(fit.width, 3),
+        length_mm=round(fit.length, 3),
+        axial_start_mm=round(zc + fit.z0 - 0.5 * fit.length, 3),
+        angle_deg=round(angle, 3),
+        height_sigma_mm=round(fit.height_sigma, 4),
+        width_sigma_mm=round(fit.width_sigma, 4),
+        length_sigma_mm=round(fit.length_sigma, 4),
+        axial_start_sigma_mm=round(fit.start_sigma, 4),
+        angle_sigma_deg=round(math.degrees(fit.u0_sigma / (circ / (2 * math.pi))), 5),
+        fit_noise_mm=round(fit.noise, 4),
+    ), cover

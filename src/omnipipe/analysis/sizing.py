@@ -35,10 +35,11 @@ caller).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 # Fewer rings than this across a defect's half-height length: its height's sigma is also
 # taken from the profile likelihood (the linearised covariance misses a crest between rings).
@@ -161,6 +162,37 @@ def _end_var(z_rings: np.ndarray, z_edge: float, ramp: float) -> tuple[bool, flo
     return sampled, gap * gap / 12.0
 
 
+def _add_lag_correlation(
+    meat: np.ndarray,
+    grg: np.ndarray,
+    Js: np.ndarray,
+    es: np.ndarray,
+    rs: np.ndarray,
+    inv: np.ndarray,
+    g: np.ndarray,
+    total: float,
+    max_lag: int,
+) -> float:
+    """The correlated noise along the rings, added in place: to ``meat`` (K, K) the
+    Jacobian's lag products weighted by the residuals' correlation rho_k, to ``grg`` (R,)
+    each ring's q^T R q of the cross-section ``g``. Samples ``Js``, ``es``, ``rs``, ``inv``
+    (ring slot), ``g`` in ring, then arc order; lags up to ``max_lag`` or the first where
+    rho falls to 0.02. Returns the sum of the rho_k used."""
+    rho_sum = 0.0
+    for k in range(1, max_lag + 1):
+        same = rs[k:] == rs[:-k]
+        if not same.any():
+            break
+        rho = float(es[k:][same] @ es[:-k][same]) / max(total, 1e-30)
+        if rho <= 0.02:
+            break
+        m = Js[:-k][same].T @ Js[k:][same]
+        meat += rho * (m + m.T)
+        rho_sum += rho
+        grg += 2.0 * rho * np.bincount(inv[k:][same], weights=g[k:][same] * g[:-k][same], minlength=len(grg))
+    return rho_sum
+
+
 def _correlated_cov(
     J: np.ndarray,
     res: np.ndarray,
@@ -216,18 +248,7 @@ def _correlated_cov(
     # Per ring: q.q and q^T R q (R: the noise correlation).
     gg = np.bincount(inv, weights=g * g, minlength=len(ids))
     grg = gg.copy()
-    rho_sum = 0.0
-    for k in range(1, max_lag + 1):
-        same = rs[k:] == rs[:-k]
-        if not same.any():
-            break
-        rho = float(es[k:][same] @ es[:-k][same]) / max(total, 1e-30)
-        if rho <= 0.02:
-            break
-        m = Js[:-k][same].T @ Js[k:][same]
-        meat += rho * (m + m.T)
-        rho_sum += rho
-        grg += 2.0 * rho * np.bincount(inv[k:][same], weights=g[k:][same] * g[:-k][same], minlength=len(ids))
+    rho_sum = _add_lag_correlation(meat, grg, Js, es, rs, inv, g, total, max_lag)
     if len(ids) >= 3:
         # Ring offsets: the ring means' scatter beyond what the correlated noise explains.
         means = np.bincount(inv, weights=es) / counts
@@ -255,14 +276,14 @@ def _correlated_cov(
 
 
 def _profile_sigma(
-    residual,
+    residual: Callable[[np.ndarray], np.ndarray],
     p: np.ndarray,
     index: int,
     factors: tuple[tuple[float, ...], tuple[float, ...]],
     cost: float,
     noise: float,
-    lower,
-    upper,
+    lower: list[float],
+    upper: list[float],
     inflation: float = 1.0,
 ) -> float:
     """Half of the larger side of one parameter's 2-sigma profile-likelihood interval.
@@ -309,6 +330,181 @@ def _profile_sigma(
     return 0.5 * half
 
 
+def _profiled(
+    residual: _BumpResidual,
+    sol: OptimizeResult,
+    var: np.ndarray,
+    cov_iid: np.ndarray,
+    zr: np.ndarray,
+    noise: float,
+    lower: list[float],
+    upper: list[float],
+) -> float:
+    """Height's and length's variances ``var`` (changed in place) raised to their
+    profile likelihood's where the linearised covariance misses an ambiguity; returns the
+    length's profiled sigma (0: not profiled).
+
+    A crest between rings: with few rings across the half-height length, a low flat bump
+    and a taller, shorter or rounder one fit the samples alike, and the linearised
+    covariance misses that. The height's profile likelihood gives its 2-sigma interval
+    instead (heights whose best fit of the other parameters stays within chi-square 4 of
+    the best); its larger half, halved, is the sigma where that is larger.
+
+    An end whose flank (the ramp, 0-100 % of the height) holds fewer than two rings is
+    ambiguous the same way: one ring's value on a flank is met by a steep flank near it
+    or a gentle one further out (on seed 113 of bench_metrology a boxy and a rounded fit,
+    4.5 mm apart in length, differ by 0.1 % in chi-square). The length's profile
+    likelihood then gives its sigma where that is larger.
+    """
+    p = sol.x
+    z0, length, fz = p[2], p[4], p[6]
+    ramp = fz * length
+    prof_length = 0.0
+    few_across = np.sum(np.abs(zr - z0) < 0.5 * length) < PROFILE_RINGS
+    flank_rings = min(
+        int(np.sum(np.abs(zr - (z0 + side * 0.5 * length)) < 0.5 * ramp)) for side in (-1.0, 1.0)
+    )
+    profiles = [(0, ((0.85, 0.7, 0.5), (1.15, 1.35, 1.7, 2.5)))] if few_across else []
+    if few_across or flank_rings < 2:
+        profiles.append((4, ((0.95, 0.9, 0.8, 0.65, 0.5), (1.05, 1.1, 1.25, 1.5, 2.0))))
+    for index, steps in profiles:
+        inflation = float(var[index] / max(cov_iid[index, index], 1e-30))
+        prof = _profile_sigma(residual, p, index, steps, sol.cost, noise, lower, upper, inflation)
+        var[index] = max(var[index], prof**2)
+        if index == 4:
+            prof_length = math.sqrt(var[4])
+    return prof_length
+
+
+def _end_variances(
+    var: np.ndarray,
+    cov: np.ndarray,
+    zr: np.ndarray,
+    z0: float,
+    length: float,
+    ramp: float,
+    prof_length: float,
+) -> tuple[float, float, float]:
+    """(length, centre, start) variances (mm^2) of a bump centred at ``z0`` along the
+    axis, from the fit's (co)variances and the rings ``zr`` (mm) sampling its ends.
+
+    Each end (z0 -+ L / 2): the fit's variance where a ring samples its flank, the
+    uniform spread between the bracketing rings where none does; the bracketing rings
+    bound an end even where the fit constrains it poorly. The flank-shape ambiguity
+    (``prof_length``, the length's profiled sigma) moves both ends: each by half.
+    """
+    sampled_lo, gap_lo = _end_var(zr, z0 - 0.5 * length, ramp)
+    sampled_hi, gap_hi = _end_var(zr, z0 + 0.5 * length, ramp)
+    fit_lo = max(var[2] + 0.25 * var[4] - cov[2, 4], 0.0)
+    fit_hi = max(var[2] + 0.25 * var[4] + cov[2, 4], 0.0)
+    var_lo = min(fit_lo, gap_lo) if sampled_lo else gap_lo
+    var_hi = min(fit_hi, gap_hi) if sampled_hi else gap_hi
+    var_lo = fit_lo if not math.isfinite(var_lo) else var_lo
+    var_hi = fit_hi if not math.isfinite(var_hi) else var_hi
+    both_fit = var_lo == fit_lo and var_hi == fit_hi
+    cov_ends = var[2] - 0.25 * var[4] if both_fit else 0.0
+    var_length = max(var_lo + var_hi - 2.0 * cov_ends, prof_length**2)
+    var_centre = max(0.25 * (var_lo + var_hi + 2.0 * cov_ends), 0.0)
+    var_lo = max(var_lo, 0.25 * prof_length**2)
+    return var_length, var_centre, var_lo
+
+
+class _BumpResidual:
+    """Residuals of :func:`seen_bump_model` against the kept samples, and a weak prior.
+
+    The prior (worth one sample at the noise level ``prior_scale``) pulls flank shapes
+    that no sample constrains (a flank between two rings) to the middle of their range.
+    ``keep`` and ``prior_scale`` are set between the fit's passes.
+    """
+
+    def __init__(
+        self, u: np.ndarray, z: np.ndarray, value: np.ndarray, blur_u_mm: float, blur_z_mm: float
+    ) -> None:
+        self.u, self.z, self.value = u, z, value
+        self.blur_u_mm, self.blur_z_mm = blur_u_mm, blur_z_mm
+        self.keep = np.ones(len(value), bool)
+        self.prior_scale = 0.05
+
+    def model(self, p: np.ndarray) -> np.ndarray:
+        """(N,) the bump of parameters ``p`` at every sample, kept or not (mm)."""
+        return seen_bump_model(p, self.u, self.z, self.blur_u_mm, self.blur_z_mm)
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        keep = self.keep
+        prior = self.prior_scale * (np.asarray(p[5:7]) - 0.5) / 0.5
+        model = seen_bump_model(p, self.u[keep], self.z[keep], self.blur_u_mm, self.blur_z_mm)
+        return np.concatenate([model - self.value[keep], prior])
+
+
+def _bump_bounds(
+    start: tuple[float, float, float, float, float],
+    bounds_u: tuple[float, float],
+    bounds_z: tuple[float, float],
+) -> tuple[list[float], list[float]]:
+    """Lower and upper bounds of (height, u0, z0, width, length, ramp_u, ramp_z, offset)."""
+    h0 = start[0]
+    span_u = bounds_u[1] - bounds_u[0]
+    span_z = bounds_z[1] - bounds_z[0]
+    lower = [1e-3, bounds_u[0], bounds_z[0], 0.2, 0.2, 0.05, 0.05, -5.0]
+    upper = [
+        max(3.0 * h0, h0 + 2.0),
+        bounds_u[1],
+        bounds_z[1],
+        max(span_u, 0.3),
+        max(span_z, 0.3),
+        1.0,
+        1.0,
+        5.0,
+    ]
+    return lower, upper
+
+
+def _solve_bump(
+    residual: _BumpResidual,
+    start: tuple[float, float, float, float, float],
+    lower: list[float],
+    upper: list[float],
+) -> OptimizeResult | None:
+    """The least-squares bump: three starting flank shapes, one pass of outlier rejection
+    (extraction outliers, a neighbouring defect's edge; ``residual.keep`` then holds the
+    samples kept), then the roundest axial flank the samples accept. None: fewer than 12
+    samples kept."""
+    h0, u00, z00, w0, l0 = start
+    starts = []
+    for fu, fz in ((0.5, 0.5), (1.0, 1.0), (0.15, 0.3)):
+        x0 = np.clip(
+            [h0, u00, z00, max(w0, 0.5), max(l0, 0.5), fu, fz, 0.0],
+            np.array(lower) + 1e-9,
+            np.array(upper) - 1e-9,
+        )
+        starts.append(
+            least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", max_nfev=400, tr_solver="lsmr")
+        )
+    best = min(starts, key=lambda sol: sol.cost)  # the first of the lowest
+    res = best.fun[:-2]
+    scale = 1.4826 * float(np.median(np.abs(res))) + 1e-9
+    residual.prior_scale = scale
+    residual.keep = np.abs(residual.model(best.x) - residual.value) <= max(5.0 * scale, 1e-6)
+    if residual.keep.sum() < 12:
+        return None
+    sol = least_squares(residual, best.x, bounds=(lower, upper), x_scale="jac", max_nfev=400)
+    n, k = int(residual.keep.sum()), len(sol.x)
+    free_cost, s2 = sol.cost, float(np.sum(sol.fun[:-2] ** 2) / max(n - k, 1))
+    if ROUND_FLANK_CHI2 > 0 and sol.x[6] < 0.95:
+        # The roundest axial flank the samples accept. With one to three rings across a
+        # defect, a crest between them is met as well by a lower plateau with a longer,
+        # steeper-ended profile as by a taller rounded bump; the free fit drifted to the
+        # plateau (heights -0.3 mm under 20 mm long at 8 mm ring spacing, with the same
+        # data read +0.09 mm by the true shape). Round is kept unless the samples reject it.
+        trial_lo = list(lower)
+        trial_lo[6] = 1.0 - 1e-6
+        x0 = np.clip(sol.x, np.array(trial_lo) + 1e-9, np.array(upper) - 1e-9)
+        rnd = least_squares(residual, x0, bounds=(trial_lo, upper), x_scale="jac", max_nfev=400)
+        if 2.0 * (rnd.cost - free_cost) < ROUND_FLANK_CHI2 * s2:
+            sol = rnd
+    return sol
+
+
 def fit_bump(
     u: np.ndarray,
     z: np.ndarray,
@@ -340,62 +536,14 @@ def fit_bump(
     u, z, value = (np.asarray(a, float) for a in (u, z, value))
     if len(value) < 12:
         return None
-    h0, u00, z00, w0, l0 = start
-    span_u = bounds_u[1] - bounds_u[0]
-    span_z = bounds_z[1] - bounds_z[0]
-    lower = [1e-3, bounds_u[0], bounds_z[0], 0.2, 0.2, 0.05, 0.05, -5.0]
-    upper = [
-        max(3.0 * h0, h0 + 2.0),
-        bounds_u[1],
-        bounds_z[1],
-        max(span_u, 0.3),
-        max(span_z, 0.3),
-        1.0,
-        1.0,
-        5.0,
-    ]
-
-    # A weak prior (worth one sample at the noise level) pulls flank shapes that no
-    # sample constrains (a flank between two rings) to the middle of their range.
-    prior_scale = [0.05]
-
-    def residual(p: np.ndarray) -> np.ndarray:
-        prior = prior_scale[0] * (np.asarray(p[5:7]) - 0.5) / 0.5
-        return np.concatenate([seen_bump_model(p, u[keep], z[keep], blur_u_mm, blur_z_mm) - value[keep], prior])
-
-    keep = np.ones(len(value), bool)
-    best = None
-    for fu, fz in ((0.5, 0.5), (1.0, 1.0), (0.15, 0.3)):
-        x0 = np.clip(
-            [h0, u00, z00, max(w0, 0.5), max(l0, 0.5), fu, fz, 0.0],
-            np.array(lower) + 1e-9,
-            np.array(upper) - 1e-9,
-        )
-        sol = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", max_nfev=400, tr_solver="lsmr")
-        if best is None or sol.cost < best.cost:
-            best = sol
-    # One pass of outlier rejection (extraction outliers, a neighbouring defect's edge).
-    res = best.fun[:-2]
-    scale = 1.4826 * float(np.median(np.abs(res))) + 1e-9
-    prior_scale[0] = scale
-    keep = np.abs(seen_bump_model(best.x, u, z, blur_u_mm, blur_z_mm) - value) <= max(5.0 * scale, 1e-6)
-    if keep.sum() < 12:
+    h0, _, _, w0, l0 = start
+    lower, upper = _bump_bounds(start, bounds_u, bounds_z)
+    residual = _BumpResidual(u, z, value, blur_u_mm, blur_z_mm)
+    sol = _solve_bump(residual, start, lower, upper)
+    if sol is None:
         return None
-    sol = least_squares(residual, best.x, bounds=(lower, upper), x_scale="jac", max_nfev=400)
+    keep = residual.keep
     n, k = int(keep.sum()), len(sol.x)
-    free_cost, s2 = sol.cost, float(np.sum(sol.fun[:-2] ** 2) / max(n - k, 1))
-    if ROUND_FLANK_CHI2 > 0 and sol.x[6] < 0.95:
-        # The roundest axial flank the samples accept. With one to three rings across a
-        # defect, a crest between them is met as well by a lower plateau with a longer,
-        # steeper-ended profile as by a taller rounded bump; the free fit drifted to the
-        # plateau (heights -0.3 mm under 20 mm long at 8 mm ring spacing, with the same
-        # data read +0.09 mm by the true shape). Round is kept unless the samples reject it.
-        trial_lo = list(lower)
-        trial_lo[6] = 1.0 - 1e-6
-        x0 = np.clip(sol.x, np.array(trial_lo) + 1e-9, np.array(upper) - 1e-9)
-        rnd = least_squares(residual, x0, bounds=(trial_lo, upper), x_scale="jac", max_nfev=400)
-        if 2.0 * (rnd.cost - free_cost) < ROUND_FLANK_CHI2 * s2:
-            sol = rnd
     p = sol.x
     res = sol.fun[:-2]
     noise = float(np.sqrt(np.sum(res**2) / max(n - k, 1)))
@@ -417,49 +565,8 @@ def fit_bump(
         zr = np.array(
             [float(np.median(z[keep & near_u & (ring == r)])) for r in np.unique(ring[keep & near_u])]
         )
-    ramp = fz * length
-    # A crest between rings: with few rings across the half-height length, a low
-    # flat bump and a taller, shorter or rounder one fit the samples alike, and the
-    # linearised covariance misses that. The height's profile likelihood gives its 2-sigma
-    # interval instead (heights whose best fit of the other parameters stays within
-    # chi-square 4 of the best); its larger half, halved, is the sigma where that is larger.
-    #
-    # An end whose flank (the ramp, 0-100 % of the height) holds fewer than two rings
-    # is ambiguous the same way: one ring's value on a flank is met by a steep flank
-    # near it or a gentle one further out (on seed 113 of bench_metrology a boxy and a
-    # rounded fit, 4.5 mm apart in length, differ by 0.1 % in chi-square). The length's
-    # profile likelihood then gives its sigma where that is larger.
-    prof_length = 0.0
-    few_across = np.sum(np.abs(zr - z0) < 0.5 * length) < PROFILE_RINGS
-    flank_rings = min(
-        int(np.sum(np.abs(zr - (z0 + side * 0.5 * length)) < 0.5 * ramp)) for side in (-1.0, 1.0)
-    )
-    profiles = [(0, ((0.85, 0.7, 0.5), (1.15, 1.35, 1.7, 2.5)))] if few_across else []
-    if few_across or flank_rings < 2:
-        profiles.append((4, ((0.95, 0.9, 0.8, 0.65, 0.5), (1.05, 1.1, 1.25, 1.5, 2.0))))
-    for index, steps in profiles:
-        inflation = float(var[index] / max(cov_iid[index, index], 1e-30))
-        prof = _profile_sigma(residual, p, index, steps, sol.cost, noise, lower, upper, inflation)
-        var[index] = max(var[index], prof**2)
-        if index == 4:
-            prof_length = math.sqrt(var[4])
-    sampled_lo, gap_lo = _end_var(zr, z0 - 0.5 * length, ramp)
-    sampled_hi, gap_hi = _end_var(zr, z0 + 0.5 * length, ramp)
-    # Each end (z0 -+ L / 2): the fit's variance where a ring samples its flank, the
-    # uniform spread between the bracketing rings where none does.
-    # The bracketing rings bound an end even where the fit constrains it poorly.
-    fit_lo = max(var[2] + 0.25 * var[4] - cov[2, 4], 0.0)
-    fit_hi = max(var[2] + 0.25 * var[4] + cov[2, 4], 0.0)
-    var_lo = min(fit_lo, gap_lo) if sampled_lo else gap_lo
-    var_hi = min(fit_hi, gap_hi) if sampled_hi else gap_hi
-    var_lo = fit_lo if not math.isfinite(var_lo) else var_lo
-    var_hi = fit_hi if not math.isfinite(var_hi) else var_hi
-    both_fit = var_lo == fit_lo and var_hi == fit_hi
-    cov_ends = var[2] - 0.25 * var[4] if both_fit else 0.0
-    var_length = max(var_lo + var_hi - 2.0 * cov_ends, prof_length**2)
-    var_centre = max(0.25 * (var_lo + var_hi + 2.0 * cov_ends), 0.0)
-    # The flank-shape ambiguity moves both ends: each by half the length's.
-    var_lo = max(var_lo, 0.25 * prof_length**2)
+    prof_length = _profiled(residual, sol, var, cov_iid, zr, noise, lower, upper)
+    var_length, var_centre, var_lo = _end_variances(var, cov, zr, z0, length, fz * length, prof_length)
     return BumpFit(
         height=float(h),
         width=float(w),

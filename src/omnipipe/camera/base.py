@@ -84,11 +84,6 @@ class CameraModel:
         r = np.hypot(cols - self.cx, rows - self.cy)
         return (r >= self.radius_min) & (r <= self.radius_max)
 
-    def pixel_grid(self) -> np.ndarray:
-        """(height*width, 2) (col, row) coordinates of every pixel, row-major."""
-        rows, cols = np.mgrid[0 : self.height, 0 : self.width]
-        return np.stack([cols.ravel(), rows.ravel()], axis=1).astype(float)
-
     def elevation_range(self) -> tuple[float, float]:
         """(lowest, highest) ray elevation (rad, from the xy plane towards +z) of valid pixels.
 

@@ -48,18 +48,18 @@ def format_result(res: EvaluationResult) -> str:
         else:
             lines.append(f"inner diameter: not measured (true {d['true_mm']:.2f} mm)")
     for row in res.defects:
-        if row.get("false_positive"):
-            m = row["measured"]
-            lines.append(
-                f"defect not in ground truth: {m['kind']} {m['height_mm']:.1f} mm at {m['angle_deg']:.0f} deg"
-            )
+        t, m = row.true, row.measured
+        if t is None:
+            if m is not None:
+                lines.append(
+                    f"defect not in ground truth: {m.kind} {m.height_mm:.1f} mm at {m.angle_deg:.0f} deg"
+                )
             continue
-        t = row["true"]
-        head = f"{t['kind']} {t['height_mm']:g}x{t['width_mm']:g}x{t['length_mm']:g} mm"
-        if not row["found"]:
+        head = f"{t.kind} {t.height_mm:g}x{t.width_mm:g}x{t.length_mm:g} mm"
+        if not row.found:
             lines.append(f"{head}: NOT FOUND")
             continue
-        e = row["errors"]
+        e = row.errors()
         lines.append(
             f"{head}: height {e['height_mm']:+.2f}, width {e['width_mm']:+.2f}, length {e['length_mm']:+.2f}, "
             f"start {e['axial_start_mm']:+.2f} mm, angle {e['angle_deg']:+.2f} deg"

@@ -84,7 +84,7 @@ def run_dataset(
         progress: ``progress(frames_done)`` after each chunk of frames.
 
     Returns:
-        the same :class:`LaserResult` as :func:`run` on ``dataset.frames()``.
+        the same :class:`LaserResult` as :func:`run` on every frame of ``dataset`` in order.
 
     Raises:
         DatasetError: an unreadable frame (naming its file).

@@ -140,28 +140,41 @@ def optimise_flips(
         # Independent flips: no two chosen edges share a face (greedy by gain).
         cand = np.flatnonzero(better)
         cand = cand[np.argsort(cost_alt[cand] - cost_now[cand])]
-        used = np.zeros(len(faces), bool)
-        n_flip = 0
-        for e in cand:
-            f0, f1 = pair[e]
-            if used[f0] or used[f1]:
-                continue
-            used[f0] = used[f1] = True
-            # Keep each face's orientation: a -> b -> c in f0 becomes c -> d -> ... consistently.
-            o0 = faces[f0]
-            if _orientation(o0, a[e], b[e]):
-                faces[f0] = [c[e], a[e], d[e]]
-                faces[f1] = [d[e], b[e], c[e]]
-            else:
-                faces[f0] = [c[e], b[e], d[e]]
-                faces[f1] = [d[e], a[e], c[e]]
-            n_flip += 1
+        n_flip = _flip(faces, pair, cand, (a, b, c, d))
         flips.append(n_flip)
         final = np.where(better & np.isin(np.arange(len(cost_now)), cand), cost_alt, cost_now)
         last_cost = float(np.nanmean(final))
         if n_flip == 0:
             break
     return faces, FlipStats(flips, first_cost, last_cost)
+
+
+def _flip(
+    faces: np.ndarray,
+    pair: np.ndarray,
+    cand: np.ndarray,
+    quads: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+) -> int:
+    """Flip the candidate edges ``cand`` (best first) of ``faces`` in place, no two that
+    share a face; returns how many. ``pair``: (E, 2) the faces of each edge; ``quads``:
+    (E,) vertices a, b (the edge) and c, d (opposite) of each edge's quad."""
+    a, b, c, d = quads
+    used = np.zeros(len(faces), bool)
+    n_flip = 0
+    for e in cand:
+        f0, f1 = pair[e]
+        if used[f0] or used[f1]:
+            continue
+        used[f0] = used[f1] = True
+        # Keep each face's orientation: a -> b -> c in f0 becomes c -> d -> ... consistently.
+        if _orientation(faces[f0], a[e], b[e]):
+            faces[f0] = [c[e], a[e], d[e]]
+            faces[f1] = [d[e], b[e], c[e]]
+        else:
+            faces[f0] = [c[e], b[e], d[e]]
+            faces[f1] = [d[e], a[e], c[e]]
+        n_flip += 1
+    return n_flip
 
 
 def _local(uv: np.ndarray, v: np.ndarray, ref: np.ndarray, circ: float) -> np.ndarray:

@@ -6,16 +6,20 @@ omnipipe adds, compatibly: per unreliable stretch its extent along the pipe
 report.html can mark it on the unrolled wall, and ``keyframe_steps``: every keyframe
 step's evidence (laser length and consensus peaks, feature depth length, confidence).
 Defects whose axial extent touches an unreliable stretch get ``"motion_unreliable":
-true`` and a warning: their length and position rest on untrusted motion.
+true`` and a warning: their length and position rest on untrusted motion. The records
+are :class:`~omnipipe.contract.TrajectoryQuality` and :class:`~omnipipe.contract.Defect`,
+changed by ``dataclasses.replace`` only.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
 from omnipipe.sfm.pipeline import SfmResult
 from omnipipe.sfm.scale_check import StepCheck, steps_checked
@@ -37,7 +41,7 @@ def station_axial_mm(
 
 def trajectory_quality(
     motion: SfmResult, station_frames: np.ndarray, station_axial: np.ndarray
-) -> dict[str, Any]:
+) -> TrajectoryQuality:
     """report.json's ``trajectory_quality``.
 
     Args:
@@ -47,7 +51,7 @@ def trajectory_quality(
     """
     unreliable = []
     for u in motion.unreliable:
-        row = u.to_dict()
+        span = UnreliableSpan(int(u.first_frame), int(u.last_frame), u.reason)
         if len(station_frames):
             k = np.clip(
                 np.searchsorted(station_frames, [u.first_frame, u.last_frame], side="right") - 1,
@@ -56,21 +60,24 @@ def trajectory_quality(
             )
             ax = station_axial[k]
             if np.all(np.isfinite(ax)):
-                row["axial_start_mm"] = round(float(ax.min()), 1)
-                row["axial_end_mm"] = round(float(ax.max()), 1)
-        unreliable.append(row)
-    return {
-        "steps_checked": steps_checked(motion.step_checks, motion.stationary),
-        "scale_source": motion.scale_source,
-        "laser_offset_pct": round(100 * motion.laser_offset, 2),
+                span = replace(
+                    span,
+                    axial_start_mm=round(float(ax.min()), 1),
+                    axial_end_mm=round(float(ax.max()), 1),
+                )
+        unreliable.append(span)
+    return TrajectoryQuality(
+        steps_checked=steps_checked(motion.step_checks, motion.stationary),
+        unreliable=tuple(unreliable),
+        scale_source=motion.scale_source,
+        laser_offset_pct=round(100 * motion.laser_offset, 2),
         # After the adjustment: how far the wall's lengths were from the laser-anchored
         # run's, and the correction applied (both NaN -> null when not measured).
-        "wall_scale_gap_pct": _pct(motion.wall_scale_log),
-        "scale_correction_pct": _pct(motion.scale_correction_log),
-        "scale_sigma_pct": _pct(math.log1p(motion.scale_sigma_rel)),
-        "unreliable": unreliable,
-        "keyframe_steps": [c.to_dict() for c in motion.step_checks],
-    }
+        wall_scale_gap_pct=_pct(motion.wall_scale_log),
+        scale_correction_pct=_pct(motion.scale_correction_log),
+        scale_sigma_pct=_pct(math.log1p(motion.scale_sigma_rel)),
+        keyframe_steps=tuple(motion.step_checks),
+    )
 
 
 def _pct(log_value: float) -> float | None:
@@ -78,27 +85,56 @@ def _pct(log_value: float) -> float | None:
     return round(100 * math.expm1(log_value), 3) if math.isfinite(log_value) else None
 
 
-def flag_defects(defects: list[dict[str, Any]], quality: dict[str, Any]) -> list[str]:
-    """Mark defects lying across an unreliable stretch; returns one warning per defect."""
+def flag_defects(
+    defects: Sequence[Defect], quality: TrajectoryQuality
+) -> tuple[list[Defect], list[str]]:
+    """The defects, those lying across an unreliable stretch flagged
+    ``motion_unreliable``; and one warning per flagged defect."""
     warnings = []
+    out = []
     for k, d in enumerate(defects):
-        start = float(d.get("axial_start_mm", np.nan))
-        end = start + float(d.get("length_mm", 0.0))
-        for u in quality["unreliable"]:
-            if "axial_start_mm" not in u:
+        start, end = d.axial_start_mm, d.axial_end_mm
+        for u in quality.unreliable:
+            if u.axial_start_mm is None or u.axial_end_mm is None:
                 continue
-            if start <= u["axial_end_mm"] and end >= u["axial_start_mm"]:
-                d["motion_unreliable"] = True
+            if start <= u.axial_end_mm and end >= u.axial_start_mm:
+                d = replace(d, motion_unreliable=True)
                 warnings.append(
-                    f"defect {k + 1} ({d.get('kind')}, at {start:.0f} mm) lies across frames "
-                    f"{u['first_frame']}-{u['last_frame']}, whose motion is unreliable: its "
+                    f"defect {k + 1} ({d.kind}, at {start:.0f} mm) lies across frames "
+                    f"{u.first_frame}-{u.last_frame}, whose motion is unreliable: its "
                     "length and position are not trustworthy"
                 )
                 break
-    return warnings
+        out.append(d)
+    return out, warnings
 
 
-def widen_for_unreliable(fields: dict[str, Any], quality: dict[str, Any]) -> list[str]:
+@dataclass(frozen=True)
+class Widened:
+    """What :func:`widen_for_unreliable` gives.
+
+    Attributes:
+        run_length_sigma_mm: the run length's 1-sigma with the unreliable stretches in it
+            (None: the run length had none).
+        run_length_unreliable_mm: the length of the run resting on unreliable motion.
+        defects: the defects, their axial starts' sigmas widened by the stretches before.
+        warnings: one line when some of the run is unreliable.
+    """
+
+    run_length_sigma_mm: float | None
+    run_length_unreliable_mm: float
+    defects: list[Defect]
+    warnings: list[str]
+
+
+def _reported_scale_mm(check: StepCheck) -> float | None:
+    """A step's length as report.json's ``keyframe_steps`` states it (0.01 mm)."""
+    return round(float(check.scale_mm), 2) if math.isfinite(check.scale_mm) else None
+
+
+def widen_for_unreliable(
+    run_length_sigma_mm: float | None, defects: Sequence[Defect], quality: TrajectoryQuality
+) -> Widened:
     """Lengths along the pipe that pass through unreliable motion carry its length as sigma.
 
     An unreliable stretch keeps the run going with a placeholder length, and after the
@@ -109,47 +145,47 @@ def widen_for_unreliable(fields: dict[str, Any], quality: dict[str, Any]) -> lis
     in quadrature (100 %, 1 sigma) to ``run_length_sigma_mm`` and to each later defect's
     ``axial_start_sigma_mm``; ``run_length_unreliable_mm`` is their sum, and a warning
     says so. Defects lying across a stretch are flagged by :func:`flag_defects`.
-
-    Args:
-        fields: the analysis keys of report.json (modified in place).
-        quality: :func:`trajectory_quality`'s dict.
-
-    Returns:
-        The warnings (empty when every stretch was reliable).
     """
-    steps = quality.get("keyframe_steps", [])
+    steps = quality.keyframe_steps
     trusted = [
-        c["scale_mm"] for c in steps
-        if c.get("confidence") in ("high", "resolved") and c.get("scale_mm")
+        scale
+        for c in steps
+        if c.confidence in ("high", "resolved") and (scale := _reported_scale_mm(c))
     ]
     typical = float(np.median(trusted)) if trusted else 0.0
     spans = []
-    for u in quality.get("unreliable", []):
-        if "axial_start_mm" not in u:
+    for u in quality.unreliable:
+        if u.axial_start_mm is None or u.axial_end_mm is None:
             continue
-        a, b = float(u["axial_start_mm"]), float(u["axial_end_mm"])
+        a, b = float(u.axial_start_mm), float(u.axial_end_mm)
         n_steps = sum(
             1 for c in steps
-            if c.get("confidence") not in ("high", "resolved")
-            and c["first_frame"] < u["last_frame"] and c["last_frame"] > u["first_frame"]
+            if c.confidence not in ("high", "resolved")
+            and c.first_frame < u.last_frame and c.last_frame > u.first_frame
         )
         spans.append((a, b, max(b - a, n_steps * typical)))
     total = sum(w for *_, w in spans)
-    fields["run_length_unreliable_mm"] = round(float(total), 1)
+    unchanged = Widened(run_length_sigma_mm, round(float(total), 1), list(defects), [])
     if not spans or total <= 0:
-        return []
-    if fields.get("run_length_sigma_mm") is not None:
-        fields["run_length_sigma_mm"] = round(math.hypot(fields["run_length_sigma_mm"], total), 3)
-    for d in fields.get("defects", []):
-        start = float(d.get("axial_start_mm", -math.inf))
-        before = sum(w for _, b, w in spans if b <= start)
-        if before > 0 and d.get("axial_start_sigma_mm") is not None:
-            d["axial_start_sigma_mm"] = round(math.hypot(d["axial_start_sigma_mm"], before), 4)
-    return [
-        f"about {total:.0f} mm of the run is unreliable motion ({len(spans)} stretches): its "
-        "length is a placeholder, counted in run_length_sigma_mm and in the axial positions "
-        "beyond it"
-    ]
+        return unchanged
+    if run_length_sigma_mm is not None:
+        run_length_sigma_mm = round(math.hypot(run_length_sigma_mm, total), 3)
+    widened = []
+    for d in defects:
+        before = sum(w for _, b, w in spans if b <= d.axial_start_mm)
+        if before > 0 and d.axial_start_sigma_mm is not None:
+            d = replace(d, axial_start_sigma_mm=round(math.hypot(d.axial_start_sigma_mm, before), 4))
+        widened.append(d)
+    return Widened(
+        run_length_sigma_mm,
+        unchanged.run_length_unreliable_mm,
+        widened,
+        [
+            f"about {total:.0f} mm of the run is unreliable motion ({len(spans)} stretches): its "
+            "length is a placeholder, counted in run_length_sigma_mm and in the axial positions "
+            "beyond it"
+        ],
+    )
 
 
 def _has_length(check: StepCheck) -> bool:

@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import numpy as np
 
+    from omnipipe.contract import Defect
+    from omnipipe.model.texture import UnrolledImage
     from omnipipe.survey import Survey
 
 CSV_NAME = "defects.csv"
@@ -114,7 +116,7 @@ class DefectRow:
     """One row of defects.csv (see :data:`CSV_COLUMNS`); ``values`` maps column to text."""
 
     values: dict[str, str]
-    defect: dict[str, Any]
+    defect: Defect
 
 
 def _fmt(value: Any, digits: int) -> str:
@@ -141,14 +143,16 @@ def best_view_frame(centre_mm: float, stations: Sequence[dict[str, Any]]) -> int
 
 
 def defect_rows(
+    defects: Sequence[Defect],
     summary: dict[str, Any],
     survey: Survey | None = None,
     travel_along_rig_z: float = 1.0,
 ) -> list[DefectRow]:
-    """The rows of defects.csv from a report.json mapping.
+    """The rows of defects.csv.
 
     Args:
-        summary: report.json content (``defects``, ``inner_diameter_mm``, ``stations``).
+        defects: the reported defects, in report.json's order.
+        summary: report.json content (``inner_diameter_mm``, ``stations``).
         survey: start offset and clock reference (None: offset 0, image up = 12).
         travel_along_rig_z: sign of the robot's motion along its first rig frame's z.
     """
@@ -159,16 +163,15 @@ def defect_rows(
     diameter = summary.get("inner_diameter_mm")
     stations = summary.get("stations") or []
     rows = []
-    for k, d in enumerate(summary.get("defects") or [], start=1):
-        clock, clock_deg = clock_position(float(d["angle_deg"]), ref)
-        start = float(d["axial_start_mm"])
-        length = float(d["length_mm"])
-        grade, pct = severity_grade(float(d["height_mm"]), diameter)
+    for k, d in enumerate(defects, start=1):
+        clock, clock_deg = clock_position(d.angle_deg, ref)
+        start, length = d.axial_start_mm, d.length_mm
+        grade, pct = severity_grade(d.height_mm, diameter)
         frame = best_view_frame(start + 0.5 * length, stations)
-        flags = [key for key in ("motion_unreliable",) if d.get(key)]
+        flags = ["motion_unreliable"] if d.motion_unreliable else []
         values = {
             "defect": str(k),
-            "kind": str(d["kind"]),
+            "kind": d.kind,
             "clock": clock,
             "clock_deg": _fmt(clock_deg, 1),
             "distance_start_m": _fmt(offset_m + start / 1000.0, 4),
@@ -179,9 +182,13 @@ def defect_rows(
             "crop": f"{CROP_DIR}/defect_{k:02d}.png",
             "flags": ";".join(flags),
         }
-        for what in ("height", "width", "length"):
-            values[f"{what}_mm"] = _fmt(d.get(f"{what}_mm"), 2)
-            values[f"{what}_sigma_mm"] = _fmt(d.get(f"{what}_sigma_mm"), 2)
+        for what, value, sigma in (
+            ("height", d.height_mm, d.height_sigma_mm),
+            ("width", d.width_mm, d.width_sigma_mm),
+            ("length", d.length_mm, d.length_sigma_mm),
+        ):
+            values[f"{what}_mm"] = _fmt(value, 2)
+            values[f"{what}_sigma_mm"] = _fmt(sigma, 2)
         rows.append(DefectRow(values=values, defect=d))
     return rows
 
@@ -239,7 +246,7 @@ def crop_unrolled(
     alpha: np.ndarray | None,
     axial_min_mm: float,
     mm_per_px: float,
-    defect: dict[str, Any],
+    defect: Defect,
     circumference_mm: float,
 ) -> np.ndarray:
     """The window of the unrolled wall around a defect, outlined, as (h, w, 3) uint8.
@@ -248,33 +255,32 @@ def crop_unrolled(
         image: (H, W, 3) unrolled wall, row 0 at ``axial_min_mm``, column 0 at angle 0,
             W columns spanning ``circumference_mm``.
         alpha: (H, W) measured cells, or None; unmeasured cells are drawn grey.
-        defect: report.json defect (``axial_start_mm``, ``length_mm``, ``angle_deg``,
-            ``width_mm``).
+        defect: the defect (its axial start, length, angle and width).
     The window wraps around the seam at angle 0.
     """
     import numpy as np
 
     h, w = image.shape[:2]
     px_per_col_mm = w / circumference_mm
-    length = max(float(defect["length_mm"]), mm_per_px)
-    width = max(float(defect["width_mm"]), circumference_mm / w)
+    length = max(defect.length_mm, mm_per_px)
+    width = max(defect.width_mm, circumference_mm / w)
     margin_z = max(CROP_MARGIN * length, MIN_MARGIN_MM)
     margin_u = max(CROP_MARGIN * width, MIN_MARGIN_MM)
-    z0 = float(defect["axial_start_mm"]) - margin_z
-    z1 = float(defect["axial_start_mm"]) + length + margin_z
+    z0 = defect.axial_start_mm - margin_z
+    z1 = defect.axial_start_mm + length + margin_z
     r0 = int(np.clip(math.floor((z0 - axial_min_mm) / mm_per_px), 0, h - 1))
     r1 = int(np.clip(math.ceil((z1 - axial_min_mm) / mm_per_px), r0 + 1, h))
-    centre_col = float(defect["angle_deg"]) / 360.0 * w
+    centre_col = defect.angle_deg / 360.0 * w
     half = min(0.5 * width + margin_u, 0.5 * circumference_mm) * px_per_col_mm
     cols = np.arange(math.floor(centre_col - half), math.ceil(centre_col + half) + 1) % w
     crop = image[r0:r1][:, cols, :3].astype(np.uint8).copy()
     if alpha is not None:
         crop[~alpha[r0:r1][:, cols].astype(bool)] = 128
     # Outline of the half-height extent (yellow).
-    top = (float(defect["axial_start_mm"]) - axial_min_mm) / mm_per_px - r0
-    bottom = top + float(defect["length_mm"]) / mm_per_px
-    left = centre_col - 0.5 * float(defect["width_mm"]) * px_per_col_mm - math.floor(centre_col - half)
-    right = left + float(defect["width_mm"]) * px_per_col_mm
+    top = (defect.axial_start_mm - axial_min_mm) / mm_per_px - r0
+    bottom = top + defect.length_mm / mm_per_px
+    left = centre_col - 0.5 * defect.width_mm * px_per_col_mm - math.floor(centre_col - half)
+    right = left + defect.width_mm * px_per_col_mm
     ch, cw = crop.shape[:2]
     t, b = int(np.clip(round(top), 0, ch - 1)), int(np.clip(round(bottom), 0, ch - 1))
     lft, rgt = int(np.clip(round(left), 0, cw - 1)), int(np.clip(round(right), 0, cw - 1))
@@ -293,7 +299,8 @@ def crop_unrolled(
 def write_deliverable(
     out: Path,
     summary: dict[str, Any],
-    unrolled: Any = None,
+    defects: Sequence[Defect],
+    unrolled: UnrolledImage | None = None,
     survey: Survey | None = None,
     travel_along_rig_z: float = 1.0,
 ) -> list[Path]:
@@ -302,15 +309,16 @@ def write_deliverable(
     Args:
         out: output folder (the pipeline's temporary folder; the manifest lists
             everything in it).
-        summary: report.json content.
-        unrolled: :class:`omnipipe.model.texture.UnrolledImage` or None (no crops).
+        summary: report.json content (diameter, stations).
+        defects: the reported defects, in report.json's order.
+        unrolled: the unrolled wall image, or None (no crops).
         survey: the survey header, or None.
         travel_along_rig_z: sign of the robot's motion along its first rig frame's z.
     """
     from omnipipe.dataset import write_image
 
     out = Path(out)
-    rows = defect_rows(summary, survey, travel_along_rig_z)
+    rows = defect_rows(defects, summary, survey, travel_along_rig_z)
     ref = survey.clock_reference_deg if survey is not None else None
     if ref is None:
         ref = default_clock_reference_deg(travel_along_rig_z)

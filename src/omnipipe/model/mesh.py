@@ -1,0 +1,267 @@
+"""The wall mesh of the model stage (paper Sec. VI): integration, unrolled Delaunay, winding.
+
+Integration: every frame's metric ring points go into the world frame with the
+frame's pose.
+
+Mesh: a Delaunay triangulation in the unrolled parameterisation of the pipe
+(arc length around the axis, distance along it; the analysis stage's centreline
+coordinates, so it follows bends). The wall is a tube, a developable surface: a
+2-D Delaunay on its unrolling gives the wall's own topology, never a triangle
+across the pipe, which a 3-D Delaunay of a hollow cylinder would produce everywhere
+(its tetrahedra fill the inside). The angle wraps around: a margin of points is
+duplicated past 2 pi and each triangle is kept once. Triangles with an edge much
+longer than the spacing of the rings are dropped: holes stay holes. A run of more
+points than :data:`~.texture.CHUNK_POINTS` is triangulated a chunk along the pipe at a
+time (:class:`~.texture.AxialChunks`: the same triangles; qhull's memory is a chunk's).
+
+Every triangle is wound so its normal (right-hand rule) points towards the pipe axis:
+the wall is seen from inside.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from omnipipe.geometry import apply
+from omnipipe.model.texture import CHUNK_POINTS, AxialChunks, UnrolledImage
+
+
+def integrate(
+    world_from_rig: np.ndarray, ring_points_in_rig: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ring points into the world: (N, 3) points and (N,) keyframe index of each."""
+    pts = [apply(T, r) for T, r in zip(world_from_rig, ring_points_in_rig, strict=True) if len(r)]
+    idx = [np.full(len(r), k) for k, r in enumerate(ring_points_in_rig) if len(r)]
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    return np.concatenate(pts), np.concatenate(idx)
+
+
+def unrolled_coordinates(
+    points_in_world: np.ndarray, world_from_rig: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Fallback unrolling around a straight axis through the rig origins.
+
+    Returns:
+        arc_mm: (N,) in [0, circumference), from the first rig frame's x axis towards y.
+        axial_mm: (N,) along the axis from the first rig origin.
+        circumference_mm: 2 pi x the median distance from the axis.
+    """
+    origins = world_from_rig[:, :3, 3]
+    axis = world_from_rig[0, :3, 2]
+    if len(origins) > 2 and np.linalg.norm(origins[-1] - origins[0]) > 1.0:
+        _, _, vt = np.linalg.svd(origins - origins.mean(axis=0))
+        axis = vt[0] * np.sign(vt[0] @ (origins[-1] - origins[0]))
+    x0 = world_from_rig[0, :3, 0] - (world_from_rig[0, :3, 0] @ axis) * axis
+    x0 /= np.linalg.norm(x0)
+    y0 = np.cross(axis, x0)
+    centre = origins.mean(axis=0)
+    rel = points_in_world - centre
+    axial = rel @ axis + (centre - origins[0]) @ axis
+    perp = rel - np.outer(rel @ axis, axis)
+    radius = float(np.median(np.linalg.norm(perp, axis=1)))
+    circ = 2 * math.pi * radius
+    angle = np.arctan2(rel @ y0, rel @ x0) % (2 * math.pi)
+    return angle * radius, axial, circ
+
+
+FACE_CHUNK = 1 << 16
+"""Triangles whose (F, 3, 3) corner coordinates are gathered at a time."""
+
+
+def longest_edges(points_in_world: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) longest edge of each of the (F, 3) triangles, mm, a chunk of triangles at a time
+    (no (F, 3, 3) float64 copy of the mesh)."""
+    out = np.empty(len(faces))
+    for a in range(0, len(faces), FACE_CHUNK):
+        p = points_in_world[faces[a : a + FACE_CHUNK]]
+        edges = np.stack(
+            [np.linalg.norm(p[:, i] - p[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1
+        )
+        out[a : a + FACE_CHUNK] = edges.max(axis=1)
+    return out
+
+
+def mesh_unrolled(
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    points_in_world: np.ndarray,
+    circumference_mm: float,
+    max_edge_factor: float,
+    chunk_points: int = CHUNK_POINTS,
+) -> np.ndarray:
+    """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring),
+    vertex indices of :func:`face_dtype` (int32 below 2**31 points: half the memory).
+
+    Args:
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
+        points_in_world: (N, 3) mm.
+        circumference_mm: period of ``arc_mm``.
+        max_edge_factor: triangles with a (3-D) edge longer than this x the median longest
+            edge are dropped.
+        chunk_points: up to this many points (with the wrapped copies) are triangulated
+            at once, as they always were (the faces in qhull's order); more a chunk along
+            the pipe at a time (:func:`_chunked_triangles`: the same triangles, in
+            ascending order of their ascending vertex ids), so that the triangulation's
+            memory does not grow with the run.
+    """
+    n = len(points_in_world)
+    index = face_dtype(n)
+    if n < 3:
+        return np.zeros((0, 3), index)
+    circ = circumference_mm
+    margin = 0.1 * circ
+    wrap = np.flatnonzero(arc_mm < margin)
+    uu = np.concatenate([arc_mm, arc_mm[wrap] + circ])
+    vv = np.concatenate([axial_mm, axial_mm[wrap]])
+    ids = np.concatenate([np.arange(n), wrap]).astype(index)
+    if len(uu) <= chunk_points:
+        tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
+        # Keep each triangle once: those whose centroid lies in the main period.
+        cu = uu[tri].mean(axis=1)
+        tri = tri[(cu >= 0.5 * margin) & (cu < circ + 0.5 * margin)]
+        faces = ids[tri]
+    else:
+        tri = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points)
+        faces = ids[tri]
+        del tri
+        # In an order of the triangles alone (ascending vertex ids, ascending triangles).
+        faces.sort(axis=1)
+        faces = faces[np.lexsort((faces[:, 2], faces[:, 1], faces[:, 0]))]
+        tri = None
+    del uu, vv, tri
+    faces = faces[
+        (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    ]
+    # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
+    longest = longest_edges(points_in_world, faces)
+    return faces[longest <= max_edge_factor * float(np.median(longest))]
+
+
+def face_dtype(points: int) -> type[np.signedinteger]:
+    """Integer type of the faces' vertex indices for a mesh of ``points`` vertices
+    (with the textured mesh's seam copies, at most twice as many): int32 while they fit,
+    as every writer stores them (PLY int, glTF uint32), else int64."""
+    return np.int32 if 2 * points < np.iinfo(np.int32).max else np.int64
+
+
+def _chunked_triangles(
+    uu: np.ndarray, vv: np.ndarray, u_lo: float, u_hi: float, chunk_points: int
+) -> np.ndarray:
+    """(T, 3) indices into the (n,) points (``uu``, ``vv``; mm) of the triangles of their
+    Delaunay triangulation whose centroid has ``u_lo <= u < u_hi``, a chunk along ``vv`` at
+    a time (:class:`~omnipipe.model.texture.AxialChunks`).
+
+    Each chunk keeps its verified triangles whose centroid lies in its core interval of
+    ``vv``; the cores partition the axis, so every triangle is kept once: its centroid is
+    summed over its ascending vertices, the same bits in every chunk that holds it.
+    Triangles of ascending vertices, chunk after chunk.
+    """
+    axial = AxialChunks(uu, vv, chunk_points)
+    parts = []
+    for z_lo, z_hi in axial.cores():
+        ids, tri = axial.triangulate(z_lo, z_hi, u_lo, u_hi)
+        t = np.sort(axial.order[ids[tri.simplices]], axis=1)
+        del tri
+        cu = (uu[t[:, 0]] + uu[t[:, 1]] + uu[t[:, 2]]) / 3.0
+        cv = (vv[t[:, 0]] + vv[t[:, 1]] + vv[t[:, 2]]) / 3.0
+        parts.append(t[(cu >= u_lo) & (cu < u_hi) & (cv >= z_lo) & (cv < z_hi)])
+    return np.concatenate(parts)
+
+
+def orient_towards_axis(
+    faces: np.ndarray,
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    circumference_mm: float,
+    points_in_world: np.ndarray,
+    point_frame: np.ndarray,
+) -> np.ndarray:
+    """The faces wound so each normal ``(b - a) x (c - a)`` points towards the pipe axis.
+
+    All triangles get one winding in the unrolled plane (arc, axial; arc unwrapped per
+    triangle), which on the tube is one side of the wall everywhere, bends included.
+    Which side that is (it depends on the direction of travel) is decided by a vote
+    against the centre of each point's ring (mean of its keyframe's points).
+
+    Args:
+        faces: (F, 3) vertex indices into ``points_in_world``.
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, mm.
+        circumference_mm: period of ``arc_mm``.
+        points_in_world: (N, 3) mm.
+        point_frame: (N,) keyframe index of each point.
+
+    Returns:
+        (F, 3) the same triangles, some with two vertices swapped.
+    """
+    if not len(faces):
+        return faces
+    circ = circumference_mm
+    arc = np.asarray(arc_mm, float)
+    axial = np.asarray(axial_mm, float)
+    # A copy wound in place, a chunk of triangles at a time: the (F, 3) float64
+    # intermediates are a chunk's, not the mesh's.
+    faces = faces.copy()
+    for a in range(0, len(faces), FACE_CHUNK):
+        f = faces[a : a + FACE_CHUNK]  # a view
+        u = arc[f]
+        u = (u - u[:, :1] + 0.5 * circ) % circ - 0.5 * circ
+        v = axial[f]
+        area2 = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
+        neg = area2 < 0
+        f[neg] = f[neg][:, [0, 2, 1]]
+    frames, inverse = np.unique(point_frame, return_inverse=True)
+    centres = np.zeros((len(frames), 3))
+    np.add.at(centres, inverse, points_in_world)
+    centres /= np.bincount(inverse, minlength=len(frames))[:, None]
+    votes = 0
+    for a in range(0, len(faces), FACE_CHUNK):  # (F, 3, 3) float64 a chunk at a time
+        f = faces[a : a + FACE_CHUNK]
+        p = points_in_world[f]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        inward = centres[inverse[f[:, 0]]] - p.mean(axis=1)
+        votes += int(np.count_nonzero(np.sum(normal * inward, axis=1) > 0))
+    if votes < 0.5 * len(faces):
+        for a in range(0, len(faces), FACE_CHUNK):
+            f = faces[a : a + FACE_CHUNK]
+            f[:, [1, 2]] = f[:, [2, 1]]
+    return faces
+
+
+def textured_mesh(
+    faces: np.ndarray,
+    points_in_world: np.ndarray,
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    unrolled: UnrolledImage,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Seam-split mesh and its atlas: (vertices, faces, uvs v-up, texture image).
+
+    Triangles across angle 0 get copies of their small-arc vertices shifted by one
+    circumference; the atlas is the unrolled image plus a 10 % wrapped margin on the right.
+    """
+    circ = unrolled.circumference_mm
+    h, w = unrolled.image.shape[:2]
+    extra = int(np.ceil(0.1 * w))
+    atlas = np.concatenate([unrolled.image, unrolled.image[:, :extra]], axis=1)
+    # The small-arc corners of the triangles across angle 0, a chunk of triangles at a time.
+    shift = np.empty(faces.shape, bool)
+    for a in range(0, len(faces), FACE_CHUNK):
+        u = arc_mm[faces[a : a + FACE_CHUNK]]
+        crossing = np.ptp(u, axis=1) > 0.5 * circ
+        shift[a : a + FACE_CHUNK] = crossing[:, None] & (u < 0.5 * circ)
+    n = len(points_in_world)
+    dup = np.unique(faces[shift])
+    new_id = np.full(n, -1, faces.dtype)
+    new_id[dup] = n + np.arange(len(dup))
+    faces = faces.copy()
+    faces[shift] = new_id[faces[shift]]
+    verts = np.concatenate([points_in_world, points_in_world[dup]])
+    arc = np.concatenate([arc_mm, arc_mm[dup] + circ])
+    axial = np.concatenate([axial_mm, axial_mm[dup]])
+    uu = arc / (circ * (w + extra) / w)
+    vv = 1.0 - ((axial - unrolled.axial_min_mm) / unrolled.mm_per_px + 0.5) / h
+    return verts, faces, np.column_stack([uu, vv]), atlas

@@ -1,0 +1,625 @@
+"""The reconstruction pipeline: dataset in, contract outputs out.
+
+Stages, each a ``run(config, inputs)`` of its own subpackage: ``laser`` (light
+section: metric ring points per frame), ``sfm`` (camera motion, metric by the laser),
+``model`` (integration, mesh, texture, unrolled wall), ``analysis`` (inner diameter,
+ovality, defects) and ``report``. Outputs are written to a temporary directory next
+to OUT and moved into place at the end, so a failed or interrupted run never leaves
+OUT looking complete.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from omnipipe.config import dataclass_from_dict, deep_merge, load_yaml_mapping
+from omnipipe.errors import ReconstructionError
+from omnipipe.memory import release_freed_memory
+
+if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
+    from concurrent.futures import Executor
+
+    import numpy as np
+
+    from omnipipe.analysis import AnalysisConfig, AnalysisResult
+    from omnipipe.contract import Defect, TrajectoryQuality
+    from omnipipe.dataset import Dataset
+    from omnipipe.laser import LaserConfig
+    from omnipipe.model import ModelConfig, ModelResult
+    from omnipipe.pipeline.frame_pass import FramePassResult
+    from omnipipe.report import ReportConfig, ReportInputs
+    from omnipipe.sfm.pipeline import SfmConfig, SfmResult
+    from omnipipe.survey import Survey
+
+ProgressFactory = Callable[[str, int], Callable[[int], None]]
+
+
+def _no_progress(stage: str, total: int) -> Callable[[int], None]:
+    return lambda done: None
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Settings of every stage; ``--config FILE.yaml`` overrides any of them by section.
+
+    ``workers`` (local processes, None: every core, 1: serial) and ``scheduler`` (a Dask
+    scheduler address ``tcp://HOST:PORT``, or None) choose the executor of the
+    frame-parallel work (:mod:`omnipipe.executor`; ``--workers``, ``--scheduler``).
+    """
+
+    laser: LaserConfig
+    sfm: SfmConfig
+    model: ModelConfig
+    analysis: AnalysisConfig
+    report: ReportConfig
+    workers: int | None = None
+    scheduler: str | None = None
+
+    @staticmethod
+    def default() -> ReconstructConfig:
+        from omnipipe.analysis import AnalysisConfig
+        from omnipipe.laser import LaserConfig
+        from omnipipe.model import ModelConfig
+        from omnipipe.report import ReportConfig
+        from omnipipe.sfm.pipeline import SfmConfig
+
+        return ReconstructConfig(
+            LaserConfig(), SfmConfig(), ModelConfig(), AnalysisConfig(), ReportConfig()
+        )
+
+    @staticmethod
+    def from_yaml(
+        path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None
+    ) -> ReconstructConfig:
+        """Defaults, then the YAML file's sections, then ``overrides`` (CLI options)."""
+        base = ReconstructConfig.default()
+        data = load_yaml_mapping(path) if path is not None else {}
+        source = None if path is None else str(path)
+        merged: dict[str, dict[str, Any]] = {}
+        for section, values in data.items():
+            if section not in ("laser", "sfm", "model", "analysis", "report"):
+                from omnipipe.errors import ConfigError
+
+                raise ConfigError(
+                    str(section),
+                    "unknown section (known: laser, sfm, model, analysis, report)",
+                    source,
+                )
+            merged[section] = dict(values or {})
+        merged = deep_merge(merged, overrides or {})
+        parts: dict[str, Any] = {}
+        for section in ("laser", "sfm", "model", "analysis", "report"):
+            default = getattr(base, section)
+            values = merged.get(section)
+            if values:
+                from dataclasses import asdict
+
+                combined = deep_merge(asdict(default), values)
+                # Nested dataclasses come back as dicts from asdict: rebuild the whole section.
+                parts[section] = dataclass_from_dict(type(default), combined, section, source)
+            else:
+                parts[section] = default
+        return ReconstructConfig(**parts)
+
+
+@dataclass
+class Reconstruction:
+    """Everything a run produced, before it is written.
+
+    Attributes:
+        summary: the report.json content.
+        timestamps: (N,) seconds of the registered frames.
+        world_from_rig: (N, 4, 4) poses of the registered frames.
+        model: the model stage result.
+        analysis: the analysis stage result.
+        report_config: how report.html is drawn (the ``report`` section of the config).
+        frame_index: (N,) 0-based frame index of each registered pose.
+        survey: the survey.yaml header, or None.
+        defects: the reported defects (the summary's ``defects`` are their
+            ``to_contract()``), largest first.
+        trajectory_quality: what the camera motion check found (the summary's
+            ``trajectory_quality``), or None.
+    """
+
+    summary: dict[str, Any]
+    timestamps: np.ndarray
+    world_from_rig: np.ndarray
+    model: ModelResult
+    analysis: AnalysisResult
+    report_config: ReportConfig | None = None
+    frame_index: np.ndarray | None = None
+    survey: Survey | None = None
+    defects: list[Defect] = field(default_factory=list)
+    trajectory_quality: TrajectoryQuality | None = None
+
+
+def run(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    progress: ProgressFactory = _no_progress,
+    executor: Executor | None = None,
+) -> Reconstruction:
+    """Run every stage on ``dataset``.
+
+    ``executor`` does the frame-parallel work (default: one opened from
+    ``config.workers`` / ``config.scheduler`` for this run, :mod:`omnipipe.executor`).
+
+    Raises:
+        OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
+    """
+    if executor is None:
+        from omnipipe.executor import open_executor
+
+        with open_executor(config.workers, config.scheduler, tasks=len(dataset)) as pool:
+            return run(config, dataset, progress, pool)
+    if dataset.rig.laser is None:  # a camera-only rig (rig.yaml without a laser section)
+        raise ReconstructionError(
+            "rig.yaml has no laser section: a camera-only rig cannot reconstruct "
+            "(add laser.plane, e.g. from omnipipe calibrate laser)"
+        )
+    from omnipipe.dataset import validate_frames
+    from omnipipe.inputs.lossy import assess_input
+    from omnipipe.pipeline import frame_pass
+
+    log = _RunLog(t_start=time.perf_counter())
+    validate_frames(dataset)
+    log.warnings.extend(dataset.warnings)  # e.g. a truncated video
+    input_quality = assess_input(dataset)  # lossy (JPEG/MPEG) input degrades everything
+    if input_quality.warning:
+        log.warnings.append(input_quality.warning)
+    # The compiled kernels and per-rig tables of the decoding pass, made here once
+    # rather than in every worker (the local pool's workers are forked from this process).
+    frame_pass.warm_up(config.laser, config.sfm.stations, dataset.rig)
+    log.timings["startup"] = time.perf_counter() - log.t_start
+    frames = _decode(config, dataset, executor, progress, log)
+    motion = _camera_motion(config, dataset, frames, executor, progress, log)
+    measured, feed = _analyse(config, dataset, frames, motion, executor, progress, log)
+    del frames
+    release_freed_memory()
+    mdl = _model(config, dataset, measured, feed, executor, progress, log)
+    del feed
+    log.timings["total"] = time.perf_counter() - log.t_start
+    summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
+    summary["input_quality"] = input_quality.to_dict()
+    reg = motion.registered_frames
+    return Reconstruction(
+        summary=summary,
+        timestamps=dataset.timestamps[reg],
+        world_from_rig=motion.result.world_from_rig[reg],
+        model=mdl,
+        analysis=measured.result,
+        report_config=config.report,
+        frame_index=reg,
+        defects=defects,
+        trajectory_quality=measured.quality,
+    )
+
+
+@dataclass
+class _RunLog:
+    """What a run notes as it goes: stage times (s) and warnings."""
+
+    t_start: float
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+def _decode(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> FramePassResult:
+    """The decoding pass (every frame's ring and stationary test), refused without a ring.
+
+    Raises:
+        ReconstructionError: no laser ring in any frame.
+    """
+    import numpy as np
+
+    from omnipipe.pipeline import frame_pass
+
+    n = len(dataset)
+    t0 = time.perf_counter()
+    tick = progress("laser", n)
+    # Each frame decoded once, frame-parallel: its ring and the stationary test's input.
+    frames = frame_pass.run(config.laser, config.sfm.stations, dataset, executor, progress=tick)
+    log.timings["laser"] = time.perf_counter() - t0
+    # A ring of a handful of samples is noise, not the laser.
+    seen = int(np.sum(frames.ring_samples >= 20))
+    if seen == 0:
+        channel = dataset.rig.laser.channel if dataset.rig.laser is not None else "?"
+        raise ReconstructionError(
+            f"no laser ring found in any of the {n} frames (laser channel '{channel}' of rig.yaml)"
+        )
+    if seen < n:
+        log.warnings.append(f"laser ring not found in {n - seen} of {n} frames")
+    release_freed_memory()
+    return frames
+
+
+@dataclass(frozen=True)
+class _Motion:
+    """The camera motion and the frames it gives the later stages.
+
+    Attributes:
+        result: the sfm stage's result.
+        registered_frames: (R,) frames with a pose, increasing.
+        stations: (K,) one frame per station that feeds the model (a stationary frame
+            repeats its station's ring), increasing.
+    """
+
+    result: SfmResult
+    registered_frames: np.ndarray
+    stations: np.ndarray
+
+
+def _camera_motion(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    frames: FramePassResult,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> _Motion:
+    """The sfm stage, refused when its motion cannot be trusted or nothing registered.
+
+    Raises:
+        ReconstructionError: see :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`;
+            no frame registered.
+    """
+    import numpy as np
+
+    from omnipipe.pipeline import quality
+    from omnipipe.sfm import pipeline as sfm
+
+    n = len(dataset)
+    t0 = time.perf_counter()
+    sfm_tick = progress("sfm", n)
+    # After its last frame, sfm adjusts the bundle and checks the scale: a bar of its own.
+    after_frames: list[Callable[[int], None]] = []
+
+    def tick(done: int) -> None:
+        sfm_tick(done)
+        if done >= n and not after_frames:
+            after_frames.append(progress("bundle", 1))
+
+    motion = sfm.run(
+        config.sfm,
+        sfm.SfmInputs(
+            rig=dataset.rig, read_frame=dataset.read_frame, n_frames=n, rings=frames.rings,
+            moved=frames.moved, dataset=dataset,
+        ),
+        progress=tick,
+        executor=executor,
+    )
+    if not after_frames:
+        after_frames.append(progress("bundle", 1))
+    after_frames[0](1)
+    log.timings["sfm"] = time.perf_counter() - t0
+    quality.refuse_untrusted_motion(motion)
+    log.warnings.extend(motion.warnings)
+    log.warnings.extend(
+        f"frames {u.first_frame}-{u.last_frame}: motion unreliable ({u.reason})"
+        for u in motion.unreliable
+    )
+    reg = np.flatnonzero(motion.registered)
+    if len(reg) == 0:
+        raise ReconstructionError("camera motion could not be estimated for any frame")
+    stations = np.flatnonzero(motion.registered & ~motion.stationary)
+    release_freed_memory()  # the features and matches of every frame
+    return _Motion(motion, reg, stations)
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """The analysis of the stations' rings.
+
+    Attributes:
+        result: the analysis stage's result.
+        quality: the camera motion check's findings.
+        stations: (K,) the stations' frames.
+        station_poses: (K, 4, 4) their poses.
+        outliers_removed: stray wall points taken out of the stations' rings
+            (:func:`omnipipe.model.outliers.reject_ring_outliers`).
+    """
+
+    result: AnalysisResult
+    quality: TrajectoryQuality
+    stations: np.ndarray
+    station_poses: np.ndarray
+    outliers_removed: int
+
+
+@dataclass(frozen=True)
+class _ModelFeed:
+    """What the model stage reads of the rings: the integrated points (the same
+    integration, not done again) and the rings' pixels; the rest of every frame's ring
+    is not held through it.
+
+    Attributes:
+        points, point_frame: (N, 3) integrated ring points (mm) and (N,) the station of each.
+        ring_pixels: K (M_k, 2) arrays, the rings' image positions (col, row).
+    """
+
+    points: np.ndarray
+    point_frame: np.ndarray
+    ring_pixels: list[np.ndarray]
+
+
+def _analyse(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    frames: FramePassResult,
+    motion: _Motion,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> tuple[_Measured, _ModelFeed]:
+    """Integration and the analysis stage, first: its centreline coordinates unroll the
+    mesh and the texture; and the camera motion check's report."""
+    import numpy as np
+
+    from omnipipe import analysis, model
+    from omnipipe.camera import camera_from_rig
+    from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
+    from omnipipe.model.outliers import reject_ring_outliers
+    from omnipipe.pipeline import quality
+
+    rig, stations, sfm_result = dataset.rig, motion.stations, motion.result
+    t0 = time.perf_counter()
+    tick = progress("analysis", 2)
+    station_poses = sfm_result.world_from_rig[stations]
+    station_rings = [frames.rings.rings[i] for i in stations]
+    # Stray laser peaks (isolated points far off the wall) out before anything uses them.
+    station_rings, outliers_removed = reject_ring_outliers(station_rings)
+    points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
+    tick(1)
+    res = analysis.run(
+        config.analysis,
+        analysis.AnalysisInputs(
+            points_in_world=points,
+            frame_index=point_frame,
+            world_from_rig=station_poses,
+            reference_from_world=np.linalg.inv(sfm_result.world_from_rig[motion.registered_frames[0]]),
+            ring_blur_mm=ring_blur_mm(station_rings),
+            calibration_sigma_rel=0.0 if rig.laser is None else rig.laser.scale_sigma_rel,
+            axial_blur_mm=axial_blur_mm(station_rings, camera_from_rig(rig)),
+        ),
+        executor,
+    )
+    log.timings["analysis"] = time.perf_counter() - t0
+    tick(2)
+    log.warnings.extend(res.warnings)
+    traj_quality = quality.trajectory_quality(
+        sfm_result, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
+    )
+    feed = _ModelFeed(points, point_frame, [r.pixels for r in station_rings])
+    return _Measured(res, traj_quality, stations, station_poses, outliers_removed), feed
+
+
+def _model(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    measured: _Measured,
+    feed: _ModelFeed,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+) -> ModelResult:
+    """The model stage on the stations, unrolled by the analysis' centreline."""
+    import numpy as np
+
+    from omnipipe import model
+
+    res, stations = measured.result, measured.stations
+    t0 = time.perf_counter()
+    tick = progress("model", len(stations))
+    model_inputs = model.ModelInputs(
+        camera_rig=dataset.rig,
+        world_from_rig=measured.station_poses,
+        ring_points_in_rig=[],
+        ring_pixels=feed.ring_pixels,
+        read_frame=lambda k: dataset.read_frame(int(stations[k])),
+        unrolled_mm=np.column_stack(
+            [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
+        ),
+        circumference_mm=2 * np.pi * res.radius_mm,
+        dataset=dataset,
+        frame_index=stations,
+        points_in_world=feed.points,
+        point_frame=feed.point_frame,
+    )
+    mdl = model.run(config.model, model_inputs, progress=tick, executor=executor)
+    del model_inputs
+    log.timings["model"] = time.perf_counter() - t0
+    return mdl
+
+
+def _summary(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    motion: _Motion,
+    measured: _Measured,
+    mdl: ModelResult,
+    executor: Executor,
+    log: _RunLog,
+) -> tuple[dict[str, Any], list[Defect]]:
+    """report.json's content (without ``input_quality``) and the reported defects."""
+    import numpy as np
+
+    from omnipipe import analysis
+    from omnipipe.executor import describe as describe_executor
+    from omnipipe.model.export import model_files
+    from omnipipe.pipeline import quality
+
+    n = len(dataset)
+    sfm_result, stations, traj_quality = motion.result, measured.stations, measured.quality
+    # Every measurement with its 1-sigma (lengths along the pipe: the motion's scale sigma).
+    scale_rel = getattr(sfm_result, "scale_sigma_rel", float("nan"))
+    fields, measure_warnings = analysis.report_fields(measured.result, scale_rel, config.analysis)
+    log.warnings.extend(measure_warnings)
+    if len(fields.get("stations", [])) == len(stations):
+        for entry, frame in zip(fields["stations"], stations, strict=True):
+            entry["frame"] = int(frame)  # the frame whose ring this station is
+    defects = analysis.scaled_defects(measured.result, scale_rel, config.analysis)
+    defects, flag_warnings = quality.flag_defects(defects, traj_quality)
+    log.warnings.extend(flag_warnings)
+    widened = quality.widen_for_unreliable(fields["run_length_sigma_mm"], defects, traj_quality)
+    defects = widened.defects
+    log.warnings.extend(widened.warnings)
+    fields["defects"] = [d.to_contract() for d in defects]
+    fields["run_length_sigma_mm"] = widened.run_length_sigma_mm
+    fields["run_length_unreliable_mm"] = widened.run_length_unreliable_mm
+    timings = log.timings
+    summary = {
+        "frames": n,
+        "frames_registered": len(motion.registered_frames),
+        **fields,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        # Frames of the run per second of each stage (and of the whole run).
+        "frames_per_s": {
+            k: round(n / v, 3) if v > 0 else None for k, v in timings.items() if k != "startup"
+        },
+        "executor": describe_executor(executor),
+        "warnings": log.warnings,
+        "stationary_frames": int(np.sum(sfm_result.stationary)),
+        "wall_outliers_removed": measured.outliers_removed,
+        "files": model_files(mdl),  # each 3-D file's unit and axes
+        "mesh": _mesh_summary(mdl),
+        "keyframes": int(np.sum(sfm_result.keyframe)),
+        "tracked_frames": 0 if sfm_result.tracked is None else int(np.sum(sfm_result.tracked)),
+        "trajectory_quality": traj_quality.to_contract(),
+    }
+    return summary, defects
+
+
+def _mesh_summary(mdl: ModelResult) -> dict[str, Any]:
+    """report.json's ``mesh``: its size and what the edge flips did."""
+    flips = mdl.flip_stats
+    return {
+        "vertices": int(len(mdl.mesh_vertices)),
+        "faces": int(len(mdl.mesh_faces)),
+        "flips_per_pass": [] if flips is None else flips.flips,
+        "photo_inconsistency_before": None if flips is None else round(flips.cost_before, 3),
+        "photo_inconsistency_after": None if flips is None else round(flips.cost_after, 3),
+    }
+
+
+def write(
+    rec: Reconstruction,
+    out: str | Path,
+    *,
+    force: bool = False,
+    evaluation: dict[str, Any] | None = None,
+    protect: Sequence[str | Path] = (),
+    progress: ProgressFactory = _no_progress,
+) -> Path:
+    """Write the contract outputs of ``rec`` to ``out`` atomically, with a manifest.
+
+    ``force`` replaces only an earlier omnipipe output (see :mod:`omnipipe.output`);
+    ``protect`` lists inputs (dataset, config file) that ``out`` may not be or hold.
+    ``progress`` draws a bar ``output`` over the files written. Besides the contract's
+    files: defects.csv and defects/*.png (:mod:`omnipipe.report.deliverable`).
+
+    Raises:
+        OutputError: ``out`` exists (without ``force``), is not omnipipe's, or cannot be
+            written.
+    """
+    from omnipipe import model as model_stage
+    from omnipipe import report
+    from omnipipe.dataset import atomic_output_dir, write_tum
+    from omnipipe.report.deliverable import write_deliverable
+
+    out = Path(out)
+    with atomic_output_dir(out, force=force, protect=protect) as tmp:
+        tick = progress("output", 3)
+        write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
+        model_stage.write_outputs(rec.model, tmp)
+        tick(1)
+        (tmp / "report.json").write_text(json.dumps(rec.summary, indent=1), encoding="utf-8")
+        report.run(
+            rec.report_config or report.ReportConfig(),
+            report_inputs(rec, evaluation),
+            tmp / "report.html",
+        )
+        tick(2)
+        write_deliverable(
+            tmp,
+            rec.summary,
+            rec.defects,
+            rec.model.unrolled,
+            rec.survey,
+            travel_along_rig_z=float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]),
+        )
+        tick(3)
+    return out
+
+
+def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None) -> ReportInputs:
+    """What report.html shows, from a reconstruction (and optional evaluation)."""
+    from omnipipe.report import ReportInputs
+
+    mdl, res = rec.model, rec.analysis
+    truth = None
+    if evaluation:
+        truth = table_one(rec.summary, evaluation)
+    return ReportInputs(
+        summary=rec.summary,
+        world_from_rig=rec.world_from_rig,
+        mesh_vertices=mdl.mesh_vertices if mdl.textured_vertices is None else mdl.textured_vertices,
+        mesh_faces=mdl.mesh_faces if mdl.textured_faces is None else mdl.textured_faces,
+        mesh_uvs=mdl.textured_uvs,
+        texture=mdl.texture,
+        unrolled=None if mdl.unrolled is None else mdl.unrolled.image,
+        unrolled_extent=None if mdl.unrolled is None else mdl.unrolled.extent,
+        stations_axial_mm=res.stations_axial_mm,
+        stations_diameter_mm=res.stations_diameter_mm,
+        stations_ovality=res.stations_ovality,
+        radius_mm=None if res.inner_diameter_mm is None else res.inner_diameter_mm / 2,
+        truth=truth,
+        evaluation=evaluation,
+        frame_index=rec.frame_index,
+        defects=rec.defects,
+        trajectory_quality=rec.trajectory_quality,
+    )
+
+
+def table_one(
+    summary: dict[str, Any], evaluation: dict[str, Any]
+) -> list[tuple[str, float | None, float | None, float | None, str]]:
+    """The paper's Table I rows (name, measured, its 1-sigma, true, unit) from an evaluation."""
+    rows: list[tuple[str, float | None, float | None, float | None, str]] = []
+    d = evaluation.get("diameter", {})
+    rows.append(
+        (
+            "inside diameter",
+            d.get("measured_mm"),
+            summary.get("inner_diameter_sigma_mm"),
+            d.get("true_mm"),
+            "mm",
+        )
+    )
+    for k, row in enumerate(evaluation.get("defects", [])):
+        t = row.get("true")
+        if t is None:
+            continue
+        m = row.get("measured") or {}
+        name = f"{t['kind']} {k + 1}"
+        for what in ("height", "width", "length"):
+            rows.append(
+                (
+                    f"{what} of {name}",
+                    m.get(f"{what}_mm"),
+                    m.get(f"{what}_sigma_mm"),
+                    t[f"{what}_mm"],
+                    "mm",
+                )
+            )
+    return rows

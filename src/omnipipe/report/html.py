@@ -1,0 +1,616 @@
+"""Report stage: a self-contained report.html (opens offline, no CDN).
+
+It holds an interactive 3-D view of the textured model (a small WebGL viewer shipped
+with omnipipe), the inner diameter and ovality along the pipe, the unrolled wall
+image with the defects outlined, the trajectory, the defect table, and the
+measured-vs-true table (the paper's Table I) when ground truth exists.
+
+The page is ``templates/report.html`` (a :class:`string.Template`: its style sheet,
+headings and notes) filled with the sections made here. Printed (A4 or Letter,
+whichever the printer uses) it has no 3-D view, keeps headings with what follows them
+and never splits tables and figures across pages.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from string import Template
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from omnipipe.image import PNG_COMPRESS_LEVEL
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from matplotlib.figure import Figure
+
+    from omnipipe.contract import Defect, TrajectoryQuality
+    from omnipipe.survey import Survey
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """Report knobs.
+
+    Attributes:
+        max_faces: the 3-D view keeps at most this many triangles (the rest are thinned).
+        texture_max_px: longest side of the texture sent to the viewer (px).
+        title: page title.
+    """
+
+    max_faces: int = 250_000
+    texture_max_px: int = 4096
+    title: str = "omnipipe inspection report"
+
+
+@dataclass
+class ReportInputs:
+    """What the report shows.
+
+    Attributes:
+        summary: the report.json content (frames, inner_diameter_mm, stations, ...).
+        world_from_rig: (N, 4, 4) estimated poses (mm).
+        mesh_vertices: (V, 3) mm, world frame; None when there is no mesh.
+        mesh_faces: (F, 3) vertex indices.
+        mesh_uvs: (V, 2) texture coordinates in [0, 1] (v up), or None.
+        texture: (H, W, 3) uint8 texture image, or None.
+        unrolled: (H, W, 3) uint8 unrolled wall image (rows: along the pipe, columns: angle).
+        unrolled_extent: (angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of it.
+        stations_axial_mm, stations_diameter_mm, stations_ovality: per-station profile.
+        radius_mm: fitted wall radius, for drawing defect outlines on the unrolled image.
+        truth: rows of the measured-vs-true table: (name, measured, 1-sigma, true, unit)
+            (or without the sigma), or None.
+        evaluation: the evaluate result dict, when ground truth exists.
+        frame_index: (N,) 0-based frame index of each pose in ``world_from_rig`` (to
+            mark the unreliable stretches on the trajectory), or None.
+        defects: the reported defects, in report.json's order.
+        trajectory_quality: the camera motion check (unreliable stretches are marked on
+            the unrolled wall and the trajectory), or None.
+    """
+
+    summary: dict[str, Any]
+    world_from_rig: np.ndarray
+    mesh_vertices: np.ndarray | None = None
+    mesh_faces: np.ndarray | None = None
+    mesh_uvs: np.ndarray | None = None
+    texture: np.ndarray | None = None
+    unrolled: np.ndarray | None = None
+    unrolled_extent: tuple[float, float, float, float] | None = None
+    stations_axial_mm: np.ndarray | None = None
+    stations_diameter_mm: np.ndarray | None = None
+    stations_ovality: np.ndarray | None = None
+    radius_mm: float | None = None
+    truth: Sequence[tuple[Any, ...]] | None = None
+    evaluation: dict[str, Any] | None = field(default=None)
+    frame_index: np.ndarray | None = None
+    defects: Sequence[Defect] = ()
+    trajectory_quality: TrajectoryQuality | None = None
+
+
+def _png_data_uri(image: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(
+        buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL
+    )
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _figure_data_uri(fig: Figure) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(
+        buf, format="png", dpi=110, bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL}
+    )
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _plots(inputs: ReportInputs) -> dict[str, str]:
+    """The figures (PNG data URIs) by name: profile, trajectory, unrolled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    out: dict[str, str] = {}
+    if inputs.stations_axial_mm is not None and len(inputs.stations_axial_mm):
+        out["profile"] = _profile_plot(inputs)
+    poses = np.asarray(inputs.world_from_rig)
+    if poses.ndim == 3 and len(poses):
+        out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
+    if inputs.unrolled is not None and inputs.unrolled_extent is not None:
+        out["unrolled"] = _unrolled_plot(inputs, inputs.unrolled, inputs.unrolled_extent)
+    return out
+
+
+def _profile_plot(inputs: ReportInputs) -> str:
+    """Diameter (with 2-sigma bars) and ovality along the pipe."""
+    import matplotlib.pyplot as plt
+
+    fig, ax1 = plt.subplots(figsize=(8, 3.2))
+    sig = [st.get("diameter_sigma_mm") for st in inputs.summary.get("stations", [])]
+    axial = np.asarray(inputs.stations_axial_mm)
+    if len(sig) == len(axial) and all(v is not None for v in sig):
+        ax1.errorbar(
+            axial,
+            inputs.stations_diameter_mm,
+            yerr=2 * np.asarray(sig, float),
+            fmt="o-",
+            color="#1f77b4",
+            ms=3,
+            capsize=2,
+            label="diameter ± 2 sigma",
+        )
+    else:
+        ax1.plot(axial, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
+    survey = inputs.summary.get("survey") or {}
+    ax1.set_xlabel("distance along the pipe (mm)")
+    if survey:
+        # A second axis: distance from the survey's start node, metres.
+        off = float(survey.get("start_offset_m") or 0.0)
+        top = ax1.secondary_xaxis(
+            "top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0)
+        )
+        top.set_xlabel(f"distance from start node {survey.get('start_node') or ''} (m)")
+    nominal = survey.get("nominal_diameter_mm")
+    if nominal:
+        ax1.axhline(nominal, color="#888", ls="--", lw=1, label="nominal")
+    ax1.set_ylabel("inner diameter (mm)", color="#1f77b4")
+    if inputs.stations_ovality is not None:
+        ax2 = ax1.twinx()
+        ax2.plot(axial, 100 * np.asarray(inputs.stations_ovality), "s-", color="#d62728", ms=3)
+        ax2.set_ylabel("ovality (%)", color="#d62728")
+    ax1.grid(alpha=0.3)
+    return _figure_data_uri(fig)
+
+
+def _trajectory_plot(inputs: ReportInputs, p: np.ndarray) -> str:
+    """Top and side view of the (N, 3) rig positions ``p`` (mm), unreliable frames red."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+    bad = _unreliable_frames(inputs)
+    for ax, (i, j, name) in zip(axes, ((2, 0, "top view: x"), (2, 1, "side view: y")), strict=True):
+        ax.plot(p[:, i], p[:, j], ".-", ms=3)
+        for n, (lo, hi) in enumerate(bad):
+            sel = (inputs.frame_index >= lo) & (inputs.frame_index <= hi)
+            ax.plot(
+                p[sel, i], p[sel, j], "o", ms=4, color="#d62728",
+                label="unreliable motion" if n == 0 else None,
+            )
+        if bad:
+            ax.legend(fontsize=7)
+        ax.set_xlabel("z: along the first rig axis (mm)")
+        ax.set_ylabel(f"{name} (mm)")
+        ax.grid(alpha=0.3)
+    fig.suptitle("estimated rig trajectory (world = first rig frame)")
+    return _figure_data_uri(fig)
+
+
+def _unrolled_plot(
+    inputs: ReportInputs, image: np.ndarray, extent: tuple[float, float, float, float]
+) -> str:
+    """The unrolled wall with the defects outlined and the unreliable stretches shaded."""
+    import matplotlib.patches
+    import matplotlib.pyplot as plt
+
+    a0, a1, s0, s1 = extent
+    fig, ax = plt.subplots(
+        figsize=(
+            9,
+            9 * (s1 - s0) / max(1.0, (a1 - a0) * (inputs.radius_mm or 100) * math.pi / 180) + 1,
+        )
+    )
+    ax.imshow(image, extent=(a0, a1, s1, s0), aspect="auto", interpolation="bilinear")
+    radius = inputs.radius_mm or 100.0
+    for k, d in enumerate(inputs.defects):
+        half_w = math.degrees(0.5 * d.width_mm / radius)
+        rect = matplotlib.patches.Rectangle(
+            (d.angle_deg - half_w, d.axial_start_mm),
+            2 * half_w,
+            d.length_mm,
+            fill=False,
+            ec="cyan" if d.kind == "bulge" else "yellow",
+            lw=1.5,
+        )
+        ax.add_patch(rect)
+        ax.text(d.angle_deg + half_w + 2, d.axial_start_mm, f"#{k + 1} {d.kind}", color="white", fontsize=8)
+    quality = inputs.trajectory_quality
+    for u in () if quality is None else quality.unreliable:
+        if u.axial_start_mm is not None and u.axial_end_mm is not None:
+            ax.axhspan(u.axial_start_mm, u.axial_end_mm, color="#d62728", alpha=0.3, lw=0)
+            ax.text(a0 + 2, u.axial_start_mm, "unreliable motion", color="white", fontsize=7, va="top")
+    ax.set_xlabel("angle around the axis from the first rig frame's x axis (deg)")
+    ax.set_ylabel("distance along the pipe (mm)")
+    return _figure_data_uri(fig)
+
+
+def _unreliable_frames(inputs: ReportInputs) -> list[tuple[int, int]]:
+    """(first, last) frame of each unreliable stretch, when poses carry frame indices."""
+    if inputs.frame_index is None or inputs.trajectory_quality is None:
+        return []
+    return [(u.first_frame, u.last_frame) for u in inputs.trajectory_quality.unreliable]
+
+
+def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
+    if inputs.mesh_vertices is None or inputs.mesh_faces is None or not len(inputs.mesh_faces):
+        return None
+    verts = np.asarray(inputs.mesh_vertices, float)
+    faces = np.asarray(inputs.mesh_faces, np.int64)
+    if len(faces) > config.max_faces:
+        faces = faces[:: math.ceil(len(faces) / config.max_faces)]
+    uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
+    texture = None
+    if inputs.texture is not None:
+        import cv2
+
+        tex = np.asarray(inputs.texture)
+        scale = config.texture_max_px / max(tex.shape[:2])
+        if scale < 1:
+            tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        texture = _png_data_uri(tex)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    rest = {
+        "texture": texture,
+        "centre": ((lo + hi) / 2).tolist(),
+        "radius": float(max(np.linalg.norm(hi - lo) / 2, 1.0)),
+    }
+    # The long arrays as JSON number lists in one %-format each (5x faster than lists of
+    # Python floats through json.dumps; the viewer reads the same values).
+    arrays = (
+        f'"positions":[{_numbers("%.2f", verts)}],'
+        # WebGL samples textures with v = 0 at the first uploaded row (the image top).
+        f'"uvs":[{_numbers("%.5f", np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]]))}],'
+        f'"indices":[{_numbers("%d", faces)}],'
+    )
+    text = "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:]
+    return text.replace("</", "<\\/")
+
+
+def _numbers(fmt: str, values: np.ndarray) -> str:
+    """The values of ``values`` (any shape, row-major) in ``fmt``, comma-separated."""
+    flat = np.asarray(values).ravel()
+    if not len(flat):
+        return ""
+    return ((fmt + ",") * len(flat) % tuple(flat.tolist()))[:-1]
+
+
+def value_pm(value: float | None, sigma: float | None, *, plain: str = "±", digits: int = 2) -> str:
+    """``value ± sigma`` with as many decimals as the sigma needs (at least ``digits``
+    when it is large, 3 when it is under 0.1); "-" without a value, the value alone
+    without a sigma."""
+    if value is None or not isinstance(value, int | float) or not math.isfinite(value):
+        return "-"
+    if sigma is None or not isinstance(sigma, int | float) or not math.isfinite(sigma):
+        return f"{value:.{digits}f}"
+    nd = max(digits, 3 if sigma < 0.1 else 2) if sigma < 1 else max(1, digits - 1)
+    return f"{value:.{nd}f} {plain} {sigma:.{nd}f}"
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return html.escape(str(value))
+
+
+_SURVEY_LABELS = (
+    ("site", "site"),
+    ("asset_id", "asset ID"),
+    ("pipe_material", "pipe material"),
+    ("nominal_diameter_mm", "nominal diameter (mm)"),
+    ("start_node", "start node"),
+    ("end_node", "end node"),
+    ("direction", "direction"),
+    ("start_offset_m", "start node to first frame (m)"),
+    ("operator", "operator"),
+    ("date", "date"),
+)
+
+
+def _survey_html(survey: dict[str, Any] | None) -> str:
+    """The survey header (survey.yaml) as a two-column table, or '' without one."""
+    if not survey:
+        return ""
+    rows = [
+        f"<tr><td>{label}</td><td>{_fmt(survey.get(key))}</td></tr>"
+        for key, label in _SURVEY_LABELS
+        if survey.get(key) is not None
+    ]
+    return "<h2>Survey</h2><table class='survey'>" + "".join(rows) + "</table>" if rows else ""
+
+
+def _survey_of(summary: dict[str, Any]) -> Survey | None:
+    from omnipipe.survey import FIELDS, Survey
+
+    data = summary.get("survey")
+    if not data:
+        return None
+    return Survey(**{k: v for k, v in data.items() if k in FIELDS})
+
+
+def _travel_sign(inputs: ReportInputs) -> float:
+    poses = np.asarray(inputs.world_from_rig)
+    if poses.ndim != 3 or len(poses) < 2:
+        return 1.0
+    return float(poses[-1][2, 3] - poses[0][2, 3])
+
+
+def _defect_extras(inputs: ReportInputs) -> list[list[str]]:
+    """Per defect: clock, distance from the start node, grade and a crop (HTML cells)."""
+    from omnipipe.report.deliverable import crop_unrolled, defect_rows
+
+    rows = defect_rows(inputs.defects, inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs))
+    out = []
+    for row in rows:
+        v = row.values
+        img = ""
+        if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
+            ext = inputs.unrolled_extent
+            h = inputs.unrolled.shape[0]
+            crop = crop_unrolled(
+                inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / h, row.defect,
+                2 * math.pi * inputs.radius_mm,
+            )
+            img = f"<img class='crop' alt='defect {v['defect']}' src='{_png_data_uri(crop)}'>"
+        out.append(
+            [
+                f"{v['clock']} ({v['clock_deg']}°)",
+                f"{v['distance_start_m']} – {v['distance_end_m']}",
+                v["severity_grade"],
+                img,
+            ]
+        )
+    return out
+
+
+def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str:
+    """The report page as one self-contained HTML string (``templates/report.html``)."""
+    config = config or ReportConfig()
+    s = inputs.summary
+    plots = _plots(inputs)
+    template = resources.files("omnipipe.report").joinpath("templates", "report.html")
+    page = Template(template.read_text(encoding="utf-8"))
+    return page.substitute(
+        title=html.escape(config.title),
+        survey=_survey_html(s.get("survey")),
+        summary_rows=_summary_rows(s) + _motion_rows(s, inputs.trajectory_quality) + _calibration_row(s),
+        warnings="".join(f"<p class='warn'>warning: {html.escape(str(w))}</p>" for w in s.get("warnings", [])),
+        truth=_truth_table(inputs.truth),
+        trajectory_note=_trajectory_note(inputs.evaluation),
+        model_view=_model_view(_model_json(inputs, config)),
+        defects=_defects_section(inputs),
+        figures=_figures(plots),
+        files=_files_table(s.get("files")),
+    )
+
+
+def _summary_rows(s: dict[str, Any]) -> str:
+    """The summary table's rows of the measurements and the processing time."""
+    rows = [
+        f"<tr><td>frames</td><td>{_fmt(s.get('frames'))}</td></tr>",
+        f"<tr><td>frames registered</td><td>{_fmt(s.get('frames_registered'))}</td></tr>",
+        "<tr><td>inner diameter</td><td>"
+        f"{value_pm(s.get('inner_diameter_mm'), s.get('inner_diameter_sigma_mm'))} mm</td></tr>",
+    ]
+    if s.get("run_length_mm") is not None:
+        rows.append(
+            "<tr><td>measured length of pipe</td><td>"
+            f"{value_pm(s['run_length_mm'], s.get('run_length_sigma_mm'), digits=1)} mm</td></tr>"
+        )
+    if s.get("detection_limit_mm") is not None:
+        ref = s.get("detection_limit_reference_mm") or {}
+        size = (
+            f" (smallest height reported; a defect {ref['width']:g} mm wide and {ref['length']:g} mm "
+            "long this high rises above the detector's threshold with 95 % probability)"
+            if ref.get("width") and ref.get("length")
+            else ""
+        )
+        rows.append(
+            f"<tr><td>detection limit</td><td>{_fmt(s['detection_limit_mm'])} mm high{size}</td></tr>"
+        )
+    if s.get("wall_noise_mm") is not None:
+        rows.append(f"<tr><td>wall noise (1 sigma)</td><td>{_fmt(s['wall_noise_mm'], 3)} mm</td></tr>")
+    if s.get("ovality_max") is not None:
+        rows.append(f"<tr><td>largest ovality</td><td>{_fmt(100 * s['ovality_max'])} %</td></tr>")
+    if s.get("timings_s"):
+        t = s["timings_s"]
+        rows.append(
+            "<tr><td>processing time</td><td>"
+            + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
+            + "</td></tr>"
+        )
+    return "".join(rows)
+
+
+def _motion_rows(s: dict[str, Any], q: TrajectoryQuality | None) -> str:
+    """The summary table's rows of the camera motion check and the metric scale."""
+    if q is None:
+        return ""
+    bad = q.unreliable
+    steps = max(int(s.get("frames") or 1) - 1, 0)
+    verdict = (
+        f"<span class='warn'>UNRELIABLE in {len(bad)} stretch(es): frames "
+        + ", ".join(f"{u.first_frame}-{u.last_frame}" for u in bad)
+        + " (marked red on the unrolled wall and the trajectory)</span>"
+        if bad
+        else "every moving step confirmed by two scale sources"
+    )
+    rows = [
+        f"<tr><td>camera motion check</td><td>{_fmt(q.steps_checked)} of {steps} frame "
+        f"steps verified; {verdict}</td></tr>"
+    ]
+    if q.scale_source:
+        gap, sigma = q.wall_scale_gap_pct, q.scale_sigma_pct
+        rows.append(
+            f"<tr><td>metric scale</td><td>{html.escape(str(q.scale_source))}"
+            + (f"; 1-sigma {sigma:.2f} % of every length along the pipe" if sigma is not None else "")
+            + (f"; wall vs laser before combining {gap:+.2f} %" if gap is not None else "")
+            + "</td></tr>"
+        )
+    return "".join(rows)
+
+
+def _calibration_row(s: dict[str, Any]) -> str:
+    """The summary table's row of the rig calibration's share of the uncertainties."""
+    cal = s.get("calibration_sigma_rel")
+    return (
+        "<tr><td>rig calibration</td><td>"
+        + (
+            f"1-sigma {100 * cal:.3f} % of every length (rig.yaml laser.offset_sigma_mm), "
+            "included in every uncertainty"
+            if cal
+            else "rig.yaml states no calibration uncertainty: the uncertainties above exclude it"
+        )
+        + "</td></tr>"
+    )
+
+
+def _truth_table(truth: Sequence[tuple[Any, ...]] | None) -> str:
+    """The measured-vs-true table (the paper's Table I), or '' without ground truth."""
+    if not truth:
+        return ""
+    parts = [
+        "<h2>Measured vs true (the paper's Table I)</h2><table><tr><th></th>"
+        "<th>measured ± 1 sigma</th><th>true</th><th>error</th><th>error / sigma</th></tr>"
+    ]
+    for row in truth:
+        name, meas, sig, true, unit = row if len(row) == 5 else (row[0], row[1], None, *row[2:])
+        err = None if meas is None or true is None else meas - true
+        z = "" if err is None or not sig else f"{err / sig:+.1f}"
+        parts.append(
+            f"<tr><td>{html.escape(name)}</td><td>{value_pm(meas, sig)} {unit}</td>"
+            f"<td>{_fmt(true)} {unit}</td>"
+            f"<td>{'' if err is None else f'{err:+.2f} {unit}'}</td><td>{z}</td></tr>"
+        )
+    parts.append("</table>")
+    return "".join(parts)
+
+
+def _trajectory_note(ev: dict[str, Any] | None) -> str:
+    """The trajectory's errors against ground truth, or ''."""
+    if not ev or not ev.get("trajectory"):
+        return ""
+    tr = ev["trajectory"]
+    return (
+        "<p class='note'>Trajectory against ground truth: ATE "
+        f"{tr['ate_rmse_mm']:.3f} mm RMS, scale error {tr['scale_error_percent']:.3f} %, rotation "
+        f"{tr['rotation_rmse_deg']:.3f} deg RMS over {tr['path_length_mm']:.0f} mm.</p>"
+    )
+
+
+def _model_view(model: str | None) -> str:
+    """The 3-D view: the model's JSON and the viewer (viewer.js), or a note without a mesh."""
+    if model is None:
+        return "<p class='note'>No mesh was built.</p>"
+    viewer_js = resources.files("omnipipe.report").joinpath("viewer.js").read_text(encoding="utf-8")
+    return (
+        "<canvas id='model-view'></canvas><p id='model-status' class='note'>loading…</p>"
+        f"<script type='application/json' id='model-data'>{model}</script>"
+        f"<script>{viewer_js}</script>"
+    )
+
+
+_DEFECT_COLUMNS = (
+    "<table><thead><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
+    "<th>axial start (mm)</th><th>angle (deg)</th><th>clock</th><th>distance (m)</th>"
+    "<th>grade</th><th>view</th></tr></thead>"
+)
+
+
+def _defects_section(inputs: ReportInputs) -> str:
+    """The defect table and its note, or the sentence that none was found."""
+    s = inputs.summary
+    if not inputs.defects:
+        limit = s.get("detection_limit_mm")
+        return (
+            "<p>No bulges or dents"
+            + ("" if limit is None else f" {_fmt(limit)} mm high or more")
+            + " were found.</p>"
+        )
+    extra = _defect_extras(inputs)
+    parts = [_DEFECT_COLUMNS]
+    for k, d in enumerate(inputs.defects):
+        cells = [
+            value_pm(value, sigma, digits=nd)
+            for value, sigma, nd in (
+                (d.height_mm, d.height_sigma_mm, 2),
+                (d.width_mm, d.width_sigma_mm, 2),
+                (d.length_mm, d.length_sigma_mm, 2),
+                (d.axial_start_mm, d.axial_start_sigma_mm, 2),
+                (d.angle_deg, d.angle_sigma_deg, 1),
+            )
+        ]
+        kind = html.escape(d.kind) + (
+            " <span class='warn'>(across unreliable motion)</span>" if d.motion_unreliable else ""
+        )
+        cells += extra[k] if k < len(extra) else ["", "", "", ""]
+        parts.append(
+            f"<tr><td>{k + 1}</td><td>{kind}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
+        )
+    parts.append("</table>")
+    parts.append(
+        "<p class='note'>clock: looking in the direction of travel, clockwise; 12:00 = "
+        + (
+            "survey.yaml clock_reference_deg"
+            if (s.get("survey") or {}).get("clock_reference_deg") is not None
+            else "image up in the first frame (omnipipe has no gravity reference)"
+        )
+        + ". distance: from the start node to the defect's start and end. grade: height as % "
+        "of the inner diameter, omnipipe's bands (docs/inspection_coding.md), not an official "
+        "PACP / EN 13508-2 grade. view: the unrolled wall around the defect (defects/*.png; "
+        "defects.csv names the frame of its best view).</p>"
+    )
+    return "".join(parts)
+
+
+def _figures(plots: dict[str, str]) -> str:
+    """The unrolled wall, the diameter profile and the trajectory (those drawn)."""
+    parts = []
+    if "unrolled" in plots:
+        parts.append(
+            f"<h2>Unrolled wall</h2><img id='unrolled' alt='unrolled wall' src='{plots['unrolled']}'>"
+        )
+    if "profile" in plots:
+        parts.append(
+            "<h2>Diameter and ovality along the pipe</h2>"
+            f"<img id='profile' alt='diameter profile' src='{plots['profile']}'>"
+        )
+    if "trajectory" in plots:
+        parts.append(
+            f"<h2>Trajectory</h2><img id='trajectory' alt='trajectory' src='{plots['trajectory']}'>"
+        )
+    return "".join(parts)
+
+
+def _files_table(files: dict[str, dict[str, Any]] | None) -> str:
+    """Each 3-D file's unit and axes (report.json ``files``), or ''."""
+    if not files:
+        return ""
+    return (
+        "<h2>Files</h2><table><thead><tr><th>file</th><th>unit</th><th>axes</th>"
+        "<th>stated in the file</th></tr></thead>"
+        + "".join(
+            "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in (n, *f.values())) + "</tr>"
+            for n, f in files.items()
+        )
+        + "</table>"
+    )
+
+
+def run(config: ReportConfig, inputs: ReportInputs, out_path: Path) -> Path:
+    """Write report.html to ``out_path`` and return it."""
+    out_path = Path(out_path)
+    out_path.write_text(render_html(inputs, config), encoding="utf-8")
+    return out_path
