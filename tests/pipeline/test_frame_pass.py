@@ -119,4 +119,3 @@ def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
     assert np.array_equal(parallel.keyframe, serial.keyframe)
     assert np.array_equal(parallel.world_from_rig, serial.world_from_rig)
     assert parallel.warnings == serial.warnings
-    assert np.array_equal(parallel.step_scale_mm, serial.step_scale_mm)

@@ -216,12 +216,9 @@ def _estimate(
     adjusted = adjust_keyframes(ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored)
     checks = check_adjusted(chain.checks, adjusted.world_from_kf, config.scale_check)
     length = run_length(ctx, adjusted.world_from_kf, replace(chain, checks=checks), kf, scale)
-    scales = list(chain.scales_mm)
     if not math.isnan(length.correction_log):
         # One similarity of the whole run: positions and tracked points alike.
-        gain = math.exp(length.correction_log)
-        adjusted = adjusted.scaled(gain)
-        scales = [s * gain for s in chain.scales_mm]
+        adjusted = adjusted.scaled(math.exp(length.correction_log))
     # Every station gets a pose: keyframes from the adjustment, the others by resection.
     pending = [PendingFrame(i, k, feats, inl) for i, k, feats, inl in pending]
     resected = resect_pending(ctx, adjusted, kf, pending, next_matches, n)
@@ -244,7 +241,6 @@ def _estimate(
         keyframe=is_kf,
         stationary=~moved,
         station=station,
-        step_scale_mm=np.array(scales),
         wall_scale_log=length.wall_log,
         scale_correction_log=length.correction_log,
         warnings=warnings,

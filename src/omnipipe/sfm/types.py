@@ -121,7 +121,6 @@ class SfmResult:
             first frames, the others are resected).
         stationary: (N,) True for frames that share the previous frame's station.
         station: (N,) station index of each frame.
-        step_scale_mm: (K-1,) translation length between consecutive keyframes (mm).
         warnings: what went wrong where (frames with few features, rotation-only steps).
         bundle: the bundle adjustment's result (of the last window on a long run), or None.
         bundle_windows: how many windows were adjusted (1: the global adjustment).
@@ -152,7 +151,6 @@ class SfmResult:
     keyframe: np.ndarray
     stationary: np.ndarray
     station: np.ndarray
-    step_scale_mm: np.ndarray
     warnings: list[str] = field(default_factory=list)
     bundle: BundleResult | None = None
     bundle_windows: int = 0
