@@ -7,13 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnipipe import laser
+from omnipipe import laser, sfm
 from omnipipe.camera import camera_from_rig
 from omnipipe.dataset import open_dataset
 from omnipipe.executor import open_executor
 from omnipipe.image import gray_without_laser
 from omnipipe.pipeline import frame_pass
-from omnipipe.sfm import pipeline as sfm
 from omnipipe.sfm.stations import StationConfig, StationTracker
 
 

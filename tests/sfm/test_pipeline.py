@@ -10,8 +10,8 @@ import pytest
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
-from omnipipe.sfm.pipeline import SfmConfig, SfmInputs
-from omnipipe.sfm.pipeline import run as sfm_run
+from omnipipe.sfm import SfmConfig, SfmInputs
+from omnipipe.sfm import run as sfm_run
 from omnipipe.sfm.scale_check import StepCheck
 from omnipipe.sfm.step_scale import bridge_lost_steps
 from omnipipe.sfm.tracking import TrackConfig
@@ -78,9 +78,7 @@ def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
         if not lost:
             t[:3, 3] = [rng.normal(0, 0.1), rng.normal(0, 0.1), -10.0 + rng.normal(0, 0.2)]
         steps.append(t)
-        evidence.append(
-            StepEvidence(k, k + 1, t, None, None, np.zeros(0), math.nan, 0, "lost" if lost else "ok")
-        )
+        evidence.append(StepEvidence.unmeasured(k, k + 1, t, None, "lost" if lost else "ok"))
         checks.append(
             StepCheck(k, k + 1, 10.0, 0.0, 10.0, 50, math.nan if lost else 10.0, "none" if lost else "high")
         )

@@ -8,11 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnipipe import laser
+from omnipipe import laser, sfm
 from omnipipe.cli import main
 from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.pipeline import ReconstructConfig
-from omnipipe.sfm import pipeline as sfm
 from omnipipe.sfm import step_scale
 from omnipipe.sfm import tasks as sfm_tasks
 from omnipipe.sfm.laser_scale import LaserMatches

@@ -58,7 +58,7 @@ class ReconstructConfig:
         from omnipipe.laser import LaserConfig
         from omnipipe.model import ModelConfig
         from omnipipe.report import ReportConfig
-        from omnipipe.sfm.pipeline import SfmConfig
+        from omnipipe.sfm import SfmConfig
 
         return ReconstructConfig(
             LaserConfig(), SfmConfig(), ModelConfig(), AnalysisConfig(), ReportConfig()
@@ -150,7 +150,7 @@ def run(
         )
     import numpy as np
 
-    from omnipipe import analysis, model
+    from omnipipe import analysis, model, sfm
     from omnipipe.camera import camera_from_rig
     from omnipipe.dataset import validate_frames
     from omnipipe.executor import describe as describe_executor
@@ -159,7 +159,6 @@ def run(
     from omnipipe.model.export import model_files
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import frame_pass, quality
-    from omnipipe.sfm import pipeline as sfm
 
     timings: dict[str, float] = {}
     warnings: list[str] = []

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.sfm.pipeline import SfmResult
+from omnipipe.sfm import SfmResult
 from omnipipe.sfm.scale_check import StepCheck, steps_checked
 
 

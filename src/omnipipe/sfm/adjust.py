@@ -86,7 +86,8 @@ class Adjusted:
         world_from_kf = self.world_from_kf.copy()
         world_from_kf[:, :3, 3] *= gain
         tracks = [
-            None if t is None else replace(t, points_in_world=t.points_in_world * gain) for t in self.tracks
+            None if t is None else replace(t, points_in_world=t.points_in_world * gain)
+            for t in self.tracks
         ]
         return replace(self, world_from_kf=world_from_kf, tracks=tracks)
 
@@ -110,8 +111,12 @@ class _Observations:
 
 
 def adjust_keyframes(
-    ctx: SfmContext, world_from_kf: np.ndarray, kf: Keyframes, pair_matches: list[PairMatches],
-    anchors: list[Anchor], wall_anchored: bool,
+    ctx: SfmContext,
+    world_from_kf: np.ndarray,
+    kf: Keyframes,
+    pair_matches: list[PairMatches],
+    anchors: list[Anchor],
+    wall_anchored: bool,
 ) -> Adjusted:
     """Bundle adjustment of the chained keyframe poses ``world_from_kf`` ((K, 4, 4) mm)
     with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with fewer
@@ -156,7 +161,9 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
         ba, problem = _adjust_window(ctx, config, init, obs, (s, e, fixed))
         if ba is None:
             where = "" if len(windows) == 1 else f" of keyframes {s}-{e - 1}"
-            ctx.warnings.append(f"bundle adjustment{where} skipped: too few feature tracks or laser anchors")
+            ctx.warnings.append(
+                f"bundle adjustment{where} skipped: too few feature tracks or laser anchors"
+            )
             adjusted[s:e] = init
             tracks.append(None)
             continue
@@ -167,7 +174,11 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
 
 
 def _adjust_window(
-    ctx: SfmContext, config: BundleConfig, init: np.ndarray, obs: _Observations, window: tuple[int, int, int]
+    ctx: SfmContext,
+    config: BundleConfig,
+    init: np.ndarray,
+    obs: _Observations,
+    window: tuple[int, int, int],
 ) -> tuple[BundleResult | None, BundleProblem]:
     """One window ``(start, end, fixed)`` of keyframes adjusted from ``init`` ((W, 4, 4)
     mm), its first ``fixed`` held; (None, the problem) when it has too few tracks or no
@@ -175,9 +186,16 @@ def _adjust_window(
     s, e, fixed = window
     features = obs.kf.features[s:e]
     problem = build_problem(
-        ctx.camera, init, [f.pixels for f in features], [f.rays_in_rig for f in features],
+        ctx.camera,
+        init,
+        [f.pixels for f in features],
+        [f.rays_in_rig for f in features],
         [(p.a - s, p.b - s, p.matches) for p in obs.pair_matches if p.a >= s and p.b < e],
-        [(q.a - s, q.b - s, q.points_in_a, q.pixels_b) for q in obs.anchors if q.a >= s and q.b < e],
+        [
+            (q.a - s, q.b - s, q.points_in_a, q.pixels_b)
+            for q in obs.anchors
+            if q.a >= s and q.b < e
+        ],
         config,
     )
     problem.fixed = fixed
@@ -194,10 +212,18 @@ def _adjust_window(
 
 def _append_anchors(problem: BundleProblem, extra: list[Anchor]) -> None:
     """Add ``extra`` anchors (keyframes counted from the problem's first) to ``problem``."""
-    problem.anchor_a = np.concatenate([problem.anchor_a] + [np.full(len(q.points_in_a), q.a) for q in extra])
-    problem.anchor_b = np.concatenate([problem.anchor_b] + [np.full(len(q.points_in_a), q.b) for q in extra])
-    problem.anchor_points_in_a = np.concatenate([problem.anchor_points_in_a] + [q.points_in_a for q in extra])
-    problem.anchor_pixels_b = np.concatenate([problem.anchor_pixels_b] + [q.pixels_b for q in extra])
+    problem.anchor_a = np.concatenate(
+        [problem.anchor_a] + [np.full(len(q.points_in_a), q.a) for q in extra]
+    )
+    problem.anchor_b = np.concatenate(
+        [problem.anchor_b] + [np.full(len(q.points_in_a), q.b) for q in extra]
+    )
+    problem.anchor_points_in_a = np.concatenate(
+        [problem.anchor_points_in_a] + [q.points_in_a for q in extra]
+    )
+    problem.anchor_pixels_b = np.concatenate(
+        [problem.anchor_pixels_b] + [q.pixels_b for q in extra]
+    )
 
 
 @dataclass(frozen=True)
@@ -213,7 +239,9 @@ class _FarPair:
     length: float
 
 
-def _far_anchors(ctx: SfmContext, world_from_kf: np.ndarray, kf: Keyframes, first: int, fixed: int) -> list[Anchor]:
+def _far_anchors(
+    ctx: SfmContext, world_from_kf: np.ndarray, kf: Keyframes, first: int, fixed: int
+) -> list[Anchor]:
     """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
     poses), matched in the executor's workers, a bounded number at a time (each task
     holds two images); in (k, k + j) order.
@@ -238,8 +266,16 @@ def _far_anchors(ctx: SfmContext, world_from_kf: np.ndarray, kf: Keyframes, firs
     # periodic wall cannot offer the next course.
     w = math.exp(config.scale_check.agree_log)
     jobs = (
-        (kf.grays[first + p.a], kf.grays[first + p.b], ctx.camera, p.points_in_a, p.b_from_a[:3, :3],
-         p.b_from_a[:3, 3] / p.length, config.laser_scale, (p.length / w, p.length * w))
+        (
+            kf.grays[first + p.a],
+            kf.grays[first + p.b],
+            ctx.camera,
+            p.points_in_a,
+            p.b_from_a[:3, :3],
+            p.b_from_a[:3, 3] / p.length,
+            config.laser_scale,
+            (p.length / w, p.length * w),
+        )
         for p in pairs
     )
     out = []
@@ -269,8 +305,12 @@ class Resected:
 
 
 def resect_pending(
-    ctx: SfmContext, adjusted: Adjusted, kf: Keyframes, pending: list[PendingFrame],
-    next_matches: dict[int, Future[KeyframeRays]], n_frames: int,
+    ctx: SfmContext,
+    adjusted: Adjusted,
+    kf: Keyframes,
+    pending: list[PendingFrame],
+    next_matches: dict[int, Future[KeyframeRays]],
+    n_frames: int,
 ) -> Resected:
     """Every pending frame resected in the workers against the adjusted tracks of its
     keyframe k and of k + 1 (``next_matches``: its correspondences with k + 1),
@@ -284,7 +324,11 @@ def resect_pending(
         # The window that adjusted keyframe k + 1 holds k too (its first keyframes are the
         # window before's last): both sides' tracks in one frame of reference.
         window_of = adjusted.window_of
-        t = adjusted.tracks[int(window_of[min(p.keyframe + 1, len(window_of) - 1)])] if adjusted.tracks else None
+        t = (
+            adjusted.tracks[int(window_of[min(p.keyframe + 1, len(window_of) - 1)])]
+            if adjusted.tracks
+            else None
+        )
         nxt = next_matches[p.frame].result() if t is not None and p.frame in next_matches else None
         job = None if t is None else _submit_resection(ctx, p, t, adjusted.world_from_kf, nxt)
         jobs.append((p, job))
@@ -293,7 +337,9 @@ def resect_pending(
     for p, job in jobs:
         pose = _resection_result(ctx, p.frame, job)
         if pose is None:
-            ctx.warnings.append(f"frame {p.frame}: too few tracked points to resect; pose of its keyframe used")
+            ctx.warnings.append(
+                f"frame {p.frame}: too few tracked points to resect; pose of its keyframe used"
+            )
             pose = adjusted.world_from_kf[p.keyframe].copy()
             # Its pose is its keyframe's: the steps into and out of it are both wrong.
             k = p.keyframe
@@ -304,7 +350,10 @@ def resect_pending(
 
 
 def _submit_resection(
-    ctx: SfmContext, frame: PendingFrame, tracks: WindowTracks, world_from_kf: np.ndarray,
+    ctx: SfmContext,
+    frame: PendingFrame,
+    tracks: WindowTracks,
+    world_from_kf: np.ndarray,
     next_matches: KeyframeRays | None,
 ) -> Future | None:
     """Resection of a non-keyframe from its matches to the tracks of keyframes k and k + 1
@@ -331,9 +380,16 @@ def _submit_resection(
         rays.append(frame_rays[ok])
         points.append(tracks.points_in_world[pid[ok]])
     n_first = len(points[0]) if points and inl is not None and len(inl) else 0
-    if rays and sum(len(r) for r in rays) >= MIN_RESECTION_POINTS and n_first >= MIN_RESECTION_POINTS_OWN_SIDE:
+    if (
+        rays
+        and sum(len(r) for r in rays) >= MIN_RESECTION_POINTS
+        and n_first >= MIN_RESECTION_POINTS_OWN_SIDE
+    ):
         return ctx.executor.submit(
-            resect_rays, np.concatenate(rays), np.concatenate(points), world_from_kf[tracks.first + k]
+            resect_rays,
+            np.concatenate(rays),
+            np.concatenate(points),
+            world_from_kf[tracks.first + k],
         )
     return None
 

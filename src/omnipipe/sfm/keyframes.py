@@ -43,6 +43,7 @@ from omnipipe.sfm.types import (
     SfmContext,
     SfmInputs,
     StepEvidence,
+    StepScales,
 )
 
 
@@ -111,14 +112,20 @@ class _EvidenceJob:
     """A step's evidence, completed by the worker's ``future`` when there is one."""
 
     evidence: StepEvidence
-    future: Future | None = None
+    future: Future[StepScales] | None = None
 
     def result(self) -> StepEvidence:
         """The complete evidence (waits for the worker)."""
         if self.future is None:
             return self.evidence
-        lm, log_s, s_feat, n_feat = self.future.result()
-        return replace(self.evidence, laser=lm, log_scales=log_s, feature_scale_mm=s_feat, feature_matches=n_feat)
+        got: StepScales = self.future.result()
+        return replace(
+            self.evidence,
+            laser=got.laser,
+            log_scales=got.log_scales,
+            feature_scale_mm=got.feature_scale_mm,
+            feature_matches=got.feature_matches,
+        )
 
 
 @dataclass(frozen=True)
@@ -174,7 +181,8 @@ class KeyframeLoop:
         self.features: list[FrameFeatures] = []
         self.pending: list[PendingFrame] = []
         self.next_matches: dict[int, Future[KeyframeRays]] = {}
-        self._pending_views: dict[int, FrameViews] = {}  # tracked pending frames', until the next keyframe
+        # The tracked pending frames' views, until the next keyframe.
+        self._pending_views: dict[int, FrameViews] = {}
         self._jobs: list[_EvidenceJob] = []
         self._in_flight: deque[Future] = deque()
         self._last: _Keyframe | None = None
@@ -185,7 +193,9 @@ class KeyframeLoop:
         last = self._last
         features = frame.features
         if last is None:
-            self._add_keyframe(frame, self.extractor.detect(frame.views) if features is None else features)
+            self._add_keyframe(
+                frame, self.extractor.detect(frame.views) if features is None else features
+            )
             return
         closing = frame.frame == self.inputs.n_frames - 1  # the last frame is always a keyframe
         if features is None and not closing:
@@ -215,11 +225,20 @@ class KeyframeLoop:
         """The keyframes with their steps' complete evidence, and the pending frames."""
         rings = self.inputs.rings.rings
         keyframes = Keyframes(
-            self.frames, self.features, self.grays, [rings[f].points_in_rig for f in self.frames],
+            self.frames,
+            self.features,
+            self.grays,
+            [rings[f].points_in_rig for f in self.frames],
             [job.result() for job in self._jobs],
         )
         return Followed(
-            keyframes, self.pending, self.next_matches, self.moved, self.keyframe, self.lost, self.tracked
+            keyframes,
+            self.pending,
+            self.next_matches,
+            self.moved,
+            self.keyframe,
+            self.lost,
+            self.tracked,
         )
 
     def _defer(self, frame: MovingFrame, features: FrameFeatures, inliers: np.ndarray) -> None:
@@ -228,27 +247,40 @@ class KeyframeLoop:
         if frame.views is not None:
             self._pending_views[frame.frame] = frame.views
 
-    def _measure(self, pair: StepPair, motion: RelativeMotion | None, gray_a: np.ndarray, gray_b: np.ndarray) -> None:
+    def _measure(
+        self, pair: StepPair, motion: RelativeMotion | None, gray_a: np.ndarray, gray_b: np.ndarray
+    ) -> None:
         """The step's evidence: its status, and for a translation both scale sources
         (laser Eq. 17 with its peaks, feature depths) measured in a worker; at most
         twice the executor's parallelism in flight (each holds two images)."""
         a, b = pair.a, pair.b
         if motion is None:
-            self._jobs.append(_EvidenceJob(StepEvidence(a, b, np.eye(4), None, None, np.zeros(0), math.nan, 0, "lost")))
+            self._jobs.append(_EvidenceJob(StepEvidence.unmeasured(a, b, np.eye(4), None, "lost")))
             return
         inl = pair.matches[motion.inliers]
         b_from_a = motion.rig2_from_rig1.copy()
         if not motion.translation_reliable:
             self.ctx.warnings.append(f"frames {a}->{b}: rotation only (no measurable translation)")
-            self._jobs.append(_EvidenceJob(StepEvidence(a, b, b_from_a, inl, None, np.zeros(0), math.nan, 0, "rotation")))
+            self._jobs.append(
+                _EvidenceJob(StepEvidence.unmeasured(a, b, b_from_a, inl, "rotation"))
+            )
             return
         config = self.ctx.config
         future = self.ctx.executor.submit(
-            step_evidence, gray_a, gray_b, self.ctx.camera, self.inputs.rings.rings[a].points_in_rig,
-            b_from_a[:3, :3], b_from_a[:3, 3], pair.features_a.rays_in_rig[inl[:, 0]],
-            pair.features_b.rays_in_rig[inl[:, 1]], config.laser_scale, config.scale_check,
+            step_evidence,
+            gray_a,
+            gray_b,
+            self.ctx.camera,
+            self.inputs.rings.rings[a].points_in_rig,
+            b_from_a[:3, :3],
+            b_from_a[:3, 3],
+            pair.features_a.rays_in_rig[inl[:, 0]],
+            pair.features_b.rays_in_rig[inl[:, 1]],
+            config.laser_scale,
+            config.scale_check,
         )
-        self._jobs.append(_EvidenceJob(StepEvidence(a, b, b_from_a, inl, None, np.zeros(0), math.nan, 0, "ok"), future))
+        evidence = StepEvidence.unmeasured(a, b, b_from_a, inl, "ok")
+        self._jobs.append(_EvidenceJob(evidence, future))
         self._in_flight.append(future)
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):
             self._in_flight.popleft().result()
@@ -271,11 +303,18 @@ class KeyframeLoop:
                 break
             if p.frame in self._pending_views:
                 self.next_matches[p.frame] = executor.submit(
-                    track_into, self.inputs.rig, config.features, frame.views, features,
-                    self._pending_views.pop(p.frame), config.tracking,
+                    track_into,
+                    self.inputs.rig,
+                    config.features,
+                    frame.views,
+                    features,
+                    self._pending_views.pop(p.frame),
+                    config.tracking,
                 )
             else:
-                self.next_matches[p.frame] = executor.submit(matched_rays, features, p.features, config.features.ratio)
+                self.next_matches[p.frame] = executor.submit(
+                    matched_rays, features, p.features, config.features.ratio
+                )
             self.pending[j] = replace(p, features=_slim(p.features))
         self._pending_views.clear()
         if k_new >= 1:
@@ -293,7 +332,9 @@ def _relative(ctx: SfmContext, pair: StepPair) -> RelativeMotion | None:
     warning)."""
     m = pair.matches
     try:
-        return estimate_relative_motion(pair.features_a.rays_in_rig[m[:, 0]], pair.features_b.rays_in_rig[m[:, 1]], ctx.ransac)
+        return estimate_relative_motion(
+            pair.features_a.rays_in_rig[m[:, 0]], pair.features_b.rays_in_rig[m[:, 1]], ctx.ransac
+        )
     except ReconstructionError as exc:
         ctx.warnings.append(f"frames {pair.a}->{pair.b}: {exc}; pose kept from frame {pair.a}")
         return None
@@ -318,8 +359,13 @@ def _refine(
     inl = pair.matches[motion.inliers]
     fa, fb = pair.features_a, pair.features_b
     refined = refine_matches(
-        np.asarray(gray_a, np.float32), np.asarray(gray_b, np.float32), ctx.camera,
-        fa.rays_in_rig[inl[:, 0]], fb.rays_in_rig[inl[:, 1]], motion.rig2_from_rig1, ctx.config.planes,
+        np.asarray(gray_a, np.float32),
+        np.asarray(gray_b, np.float32),
+        ctx.camera,
+        fa.rays_in_rig[inl[:, 0]],
+        fb.rays_in_rig[inl[:, 1]],
+        motion.rig2_from_rig1,
+        ctx.config.planes,
     )
     fb.rays_in_rig[inl[:, 1]] = refined
     fb.pixels[inl[:, 1]] = ctx.camera.project(refined)[0]
@@ -339,7 +385,9 @@ def _tracked_step(
         return None
     m = tracks.matches
     try:
-        motion = estimate_relative_motion(key.features.rays_in_rig[m[:, 0]], tracks.features.rays_in_rig, ctx.ransac)
+        motion = estimate_relative_motion(
+            key.features.rays_in_rig[m[:, 0]], tracks.features.rays_in_rig, ctx.ransac
+        )
     except ReconstructionError:
         return None
     pair = StepPair(key.frame, frame.frame, key.features, tracks.features, m)
@@ -369,8 +417,12 @@ def moving_frames(
     if inputs.moved is not None and inputs.dataset is not None and ctx.parallel:
         moved[:] = inputs.moved
         stream = iter_frames(
-            ctx.executor, FeatureTask(config.features, detect=not config.tracking.enabled),
-            inputs.dataset, np.flatnonzero(moved), most=4, payload=lambda i: rings[i].pixels,
+            ctx.executor,
+            FeatureTask(config.features, detect=not config.tracking.enabled),
+            inputs.dataset,
+            np.flatnonzero(moved),
+            most=4,
+            payload=lambda i: rings[i].pixels,
         )
         for i, (views, feats, gray) in stream:
             yield MovingFrame(i, views, feats, gray)

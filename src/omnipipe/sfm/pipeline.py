@@ -87,14 +87,20 @@ def run(
         chain = chain_steps(ctx, kf, scale)
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
-        adjusted = adjust_keyframes(ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored)
-        chain = replace(chain, checks=check_adjusted(chain.checks, adjusted.world_from_kf, config.scale_check))
+        adjusted = adjust_keyframes(
+            ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
+        )
+        chain = replace(
+            chain, checks=check_adjusted(chain.checks, adjusted.world_from_kf, config.scale_check)
+        )
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))
         # Step 6: the moving frames that are not keyframes, resected against the
         # adjusted tracks.
-        resected = resect_pending(ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames)
+        resected = resect_pending(
+            ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames
+        )
     return _result(ctx, followed, adjusted, resected, chain.checks, scale, length)
 
 
@@ -138,9 +144,13 @@ def _result(
     kf_of = {f: k for k, f in enumerate(followed.keyframes.frames)}
     world_from_station = np.empty((len(first), 4, 4))
     for s_idx, f in enumerate(first):
-        world_from_station[s_idx] = adjusted.world_from_kf[kf_of[f]] if f in kf_of else resected.world_from_rig[f]
+        world_from_station[s_idx] = (
+            adjusted.world_from_kf[kf_of[f]] if f in kf_of else resected.world_from_rig[f]
+        )
     stretches = [
-        UnreliableStretch(c.first_frame, c.last_frame, c.reason or c.confidence) for c in checks if not c.reliable
+        UnreliableStretch(c.first_frame, c.last_frame, c.reason or c.confidence)
+        for c in checks
+        if not c.reliable
     ]
     return SfmResult(
         world_from_rig=world_from_station[station],

@@ -142,7 +142,9 @@ def source_offset(evidence: list[StepEvidence], config: ScaleCheckConfig) -> flo
     return offset if abs(offset) <= config.max_source_offset_log else 0.0
 
 
-def run_scale(evidence: list[StepEvidence], config: ScaleCheckConfig, warnings: list[str]) -> RunScale:
+def run_scale(
+    evidence: list[StepEvidence], config: ScaleCheckConfig, warnings: list[str]
+) -> RunScale:
     """The two sources' run-wide offset, and whether the wall anchors the scale
     (both with a warning)."""
     offset = source_offset(evidence, config)
@@ -164,33 +166,34 @@ def run_scale(evidence: list[StepEvidence], config: ScaleCheckConfig, warnings: 
     return RunScale(offset, systematic)
 
 
-def decide_step(ctx: SfmContext, ev: StepEvidence, offset_log: float, kf: Keyframes, k: int) -> DecidedStep:
-    """Step ``k`` (keyframes k -> k + 1, evidence ``ev``) decided with the run's source
-    offset: its length, the matches to keep and the laser anchors to use; a resolved
-    step (another consensus peak chosen) adds a warning."""
+def decide_step(ctx: SfmContext, kf: Keyframes, k: int, offset_log: float) -> DecidedStep:
+    """Step ``k`` (keyframes k -> k + 1) decided with the run's source offset
+    ``offset_log`` (:func:`source_offset`): its length, the matches to keep and the
+    laser anchors to use; a resolved step (another consensus peak chosen) adds a
+    warning."""
+    ev = kf.evidence[k]
     if ev.status != "ok":
-        check = StepCheck(
-            ev.a, ev.b, math.nan, 0.0, math.nan, 0, 0.0 if ev.status == "rotation" else math.nan,
-            "high" if ev.status == "rotation" else "none",
-            "" if ev.status == "rotation" else "relative motion not found",
-        )
-        return DecidedStep(ev.b_from_a.copy(), 0.0, ev.inliers, None, check)
+        return _unmeasured_step(ev)
     config = ctx.config
     lm = ev.laser
     gain = math.exp(offset_log)  # laser length = gain x feature depth length, run-wide
     check = decide(
-        ev.a, ev.b, lm.scale, lm.peak_scales_mm, lm.peak_scores, ev.feature_scale_mm,
-        ev.feature_matches, config.scale_check, gain,
+        ev.a,
+        ev.b,
+        lm.scale,
+        lm.peak_scales_mm,
+        lm.peak_scores,
+        ev.feature_scale_mm,
+        ev.feature_matches,
+        config.scale_check,
+        gain,
     )
     scale = check.scale_mm
-    R, d = ev.b_from_a[:3, :3], ev.b_from_a[:3, 3]
-    if check.confidence == "resolved" or (check.confidence == "low" and not math.isfinite(lm.scale)):
+    if check.confidence == "resolved" or (
+        check.confidence == "low" and not math.isfinite(lm.scale)
+    ):
         # Re-match the laser around the chosen length: no point may pick another course.
-        w = math.exp(config.scale_check.agree_log)
-        again = match_laser_points(
-            kf.grays[k].astype(np.float32), kf.grays[k + 1].astype(np.float32), ctx.camera,
-            kf.ring_points[k], R, d, config.laser_scale, (scale / w, scale * w),
-        )
+        again = _laser_around(ctx, kf, k, scale)
         if math.isfinite(again.scale):
             lm, scale = again, again.scale
         elif check.confidence == "resolved":
@@ -200,7 +203,8 @@ def decide_step(ctx: SfmContext, ev: StepEvidence, offset_log: float, kf: Keyfra
     elif (
         check.confidence == "high"
         and math.isfinite(ev.feature_scale_mm)
-        and abs(math.log(lm.scale / (gain * ev.feature_scale_mm))) > config.scale_check.anchor_agree_log
+        and abs(math.log(lm.scale / (gain * ev.feature_scale_mm)))
+        > config.scale_check.anchor_agree_log
     ):
         # Agreeing within agree_log but not closely: part of the laser points took
         # another course (seen on tiles: laser +14.7 %, features +1.8 % of the true
@@ -220,6 +224,40 @@ def decide_step(ctx: SfmContext, ev: StepEvidence, offset_log: float, kf: Keyfra
     return DecidedStep(ev.b_from_a.copy(), scale, inl, lm, check)
 
 
+def _unmeasured_step(ev: StepEvidence) -> DecidedStep:
+    """A rotation (trusted, no translation) or a lost step (no relative motion)."""
+    rotation = ev.status == "rotation"
+    check = StepCheck(
+        ev.a,
+        ev.b,
+        math.nan,
+        0.0,
+        math.nan,
+        0,
+        0.0 if rotation else math.nan,
+        "high" if rotation else "none",
+        "" if rotation else "relative motion not found",
+    )
+    return DecidedStep(ev.b_from_a.copy(), 0.0, ev.inliers, None, check)
+
+
+def _laser_around(ctx: SfmContext, kf: Keyframes, k: int, length_mm: float) -> LaserMatches:
+    """Step k's laser points matched again (Eq. 17), searched only within
+    ``scale_check.agree_log`` of ``length_mm``."""
+    ev, config = kf.evidence[k], ctx.config
+    w = math.exp(config.scale_check.agree_log)
+    return match_laser_points(
+        kf.grays[k].astype(np.float32),
+        kf.grays[k + 1].astype(np.float32),
+        ctx.camera,
+        kf.ring_points[k],
+        ev.b_from_a[:3, :3],
+        ev.b_from_a[:3, 3],
+        config.laser_scale,
+        (length_mm / w, length_mm * w),
+    )
+
+
 def chain_steps(ctx: SfmContext, kf: Keyframes, scale: RunScale) -> ChainedSteps:
     """Every keyframe step decided (:func:`decide_step`) with the run's source offset,
     made metric and chained from keyframe 0; each step's inlier matches and metric
@@ -230,8 +268,8 @@ def chain_steps(ctx: SfmContext, kf: Keyframes, scale: RunScale) -> ChainedSteps
     pair_matches: list[PairMatches] = []
     anchors: list[Anchor] = []
     checks: list[StepCheck] = []
-    for k, ev in enumerate(kf.evidence):
-        step = decide_step(ctx, ev, scale.offset_log, kf, k)
+    for k in range(len(kf.evidence)):
+        step = decide_step(ctx, kf, k, scale.offset_log)
         checks.append(step.check)
         length = step.scale_mm
         if scale.wall_anchored and math.isfinite(length):
@@ -253,7 +291,9 @@ def chain_steps(ctx: SfmContext, kf: Keyframes, scale: RunScale) -> ChainedSteps
                 anchors.append(wall)
         elif step.laser is not None and len(step.laser.index):
             lm = step.laser
-            anchors.append(Anchor(k, k + 1, kf.ring_points[k][lm.index], lm.pixels_b, np.log(lm.scale_mm)))
+            anchors.append(
+                Anchor(k, k + 1, kf.ring_points[k][lm.index], lm.pixels_b, np.log(lm.scale_mm))
+            )
     bridge_lost_steps(steps_b_from_a, kf.evidence, checks)
     world_from_kf = [np.eye(4)] if kf.frames else []
     for b_from_a in steps_b_from_a:
@@ -270,7 +310,12 @@ def wall_anchors(kf: Keyframes, k: int, scale_mm: float, config: ScaleCheckConfi
     (``keep_match_log``), at most :data:`WALL_ANCHORS_PER_STEP`.
     """
     ev, fa, fb = kf.evidence[k], kf.features[k], kf.features[k + 1]
-    if ev.inliers is None or not math.isfinite(scale_mm) or scale_mm <= 0 or len(ev.log_scales) == 0:
+    if (
+        ev.inliers is None
+        or not math.isfinite(scale_mm)
+        or scale_mm <= 0
+        or len(ev.log_scales) == 0
+    ):
         return None
     wall = wall_cylinder(kf.ring_points[k])
     keep = np.isfinite(ev.log_scales) & (
@@ -279,11 +324,19 @@ def wall_anchors(kf: Keyframes, k: int, scale_mm: float, config: ScaleCheckConfi
     idx = np.flatnonzero(keep)
     if wall is None or len(idx) < config.min_feature_matches:
         return None
-    idx = idx[np.linspace(0, len(idx) - 1, min(WALL_ANCHORS_PER_STEP, len(idx))).round().astype(int)]
+    idx = idx[
+        np.linspace(0, len(idx) - 1, min(WALL_ANCHORS_PER_STEP, len(idx))).round().astype(int)
+    ]
     rays = fa.rays_in_rig[ev.inliers[idx, 0]]
     depth = wall_depth(rays, wall)
     ok = np.isfinite(depth)
-    return Anchor(k, k + 1, rays[ok] * depth[ok, None], fb.pixels[ev.inliers[idx[ok], 1]], ev.log_scales[idx[ok]])
+    return Anchor(
+        k,
+        k + 1,
+        rays[ok] * depth[ok, None],
+        fb.pixels[ev.inliers[idx[ok], 1]],
+        ev.log_scales[idx[ok]],
+    )
 
 
 def bridge_lost_steps(
@@ -329,7 +382,8 @@ def check_adjusted(
     """
     lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
     ok = [
-        k for k, c in enumerate(checks)
+        k
+        for k, c in enumerate(checks)
         if k < len(lengths) and c.reliable and lengths[k] > 1e-9 and math.isfinite(c.scale_mm)
     ]
 
@@ -369,8 +423,12 @@ def run_length(
     light-section wall (:func:`combine_scales`)."""
     config = ctx.config
     wall = wall_scale_correction(
-        world_from_kf, [(p.a, p.b, p.matches) for p in chain.pair_matches],
-        [f.rays_in_rig for f in kf.features], kf.ring_points, chain.checks, config.scale_check,
+        world_from_kf,
+        [(p.a, p.b, p.matches) for p in chain.pair_matches],
+        [f.rays_in_rig for f in kf.features],
+        kf.ring_points,
+        chain.checks,
+        config.scale_check,
     )
     source = "feature depths on the light-section wall" if scale.wall_anchored else "laser (Eq. 17)"
     sigma = scale_sigma(chain.anchors, chain.scales_mm, scale.offset_log, scale.wall_anchored)
@@ -416,7 +474,9 @@ def combine_scales(
     return mean, sigma * math.sqrt(max(chi2, 1.0))
 
 
-def scale_sigma(anchors: list[Anchor], scales_mm: list[float], offset_log: float, wall_anchored: bool) -> float:
+def scale_sigma(
+    anchors: list[Anchor], scales_mm: list[float], offset_log: float, wall_anchored: bool
+) -> float:
     """Relative 1-sigma of lengths: the anchors' statistical part, plus the systematic
     part. With laser anchors, the run-wide gap to the feature depths (which source is
     right within it is unknown: measured bend 0.43 % scale error, gap 0.4 %; paper

@@ -34,7 +34,7 @@ from omnipipe.sfm.scale_check import (
     wall_cylinder,
 )
 from omnipipe.sfm.tracking import TrackConfig, track_features
-from omnipipe.sfm.types import KeyframeRays
+from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
     from omnipipe.executor import FrameSource
@@ -153,7 +153,7 @@ def step_evidence(
     rays_b: np.ndarray,
     laser_scale: LaserScaleConfig,
     scale_check: ScaleCheckConfig,
-) -> tuple[LaserMatches, np.ndarray, float, int]:
+) -> StepScales:
     """Both scale measurements of one keyframe step a -> b.
 
     Args:
@@ -166,8 +166,8 @@ def step_evidence(
         rays_a, rays_b: (M, 2 x 3) the inlier matches' unit rays in rigs a and b.
 
     Returns:
-        the laser's template matches (Eq. 17), each match's feature-depth log length
-        (M,), and the step's feature-depth length (mm, NaN: none) with its count.
+        the laser's template matches (Eq. 17), each match's feature-depth log length,
+        and the step's feature-depth length with its count.
     """
     lm = laser_matches(
         gray_a, gray_b, camera, laser_points_a, b_from_a_rotation, b_from_a_direction, laser_scale
@@ -177,4 +177,4 @@ def step_evidence(
         scale_check,
     )
     s_feat, n_feat = feature_scale(log_s, scale_check)
-    return lm, log_s, s_feat, n_feat
+    return StepScales(lm, log_s, s_feat, n_feat)

@@ -215,6 +215,31 @@ class StepEvidence:
     feature_matches: int
     status: str
 
+    @classmethod
+    def unmeasured(
+        cls, a: int, b: int, b_from_a: np.ndarray, inliers: np.ndarray | None, status: str
+    ) -> StepEvidence:
+        """A step's evidence before (or without) its scale measurements."""
+        return cls(a, b, b_from_a, inliers, None, np.zeros(0), math.nan, 0, status)
+
+
+@dataclass(frozen=True)
+class StepScales:
+    """Both scale measurements of one keyframe step a -> b (made in a worker).
+
+    Attributes:
+        laser: the laser's template matches (Eq. 17).
+        log_scales: (M,) each inlier match's feature-depth log length (log mm; NaN:
+            none).
+        feature_scale_mm: the step's feature-depth length (mm, NaN: none).
+        feature_matches: matches behind ``feature_scale_mm``.
+    """
+
+    laser: LaserMatches
+    log_scales: np.ndarray
+    feature_scale_mm: float
+    feature_matches: int
+
 
 @dataclass(frozen=True)
 class PairMatches:
