@@ -65,9 +65,8 @@ def step_errors(
 def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict], float]:
     """Light section and camera motion as reconstruct runs them; registered poses,
     the unreliable stretches (report.json form) and the stated relative scale sigma."""
-    from omnipipe import laser
+    from omnipipe import laser, sfm
     from omnipipe.pipeline.quality import refuse_untrusted_motion
-    from omnipipe.sfm import pipeline as sfm
 
     cfg = ReconstructConfig.default()
     n = len(dataset)

@@ -14,9 +14,9 @@ import time
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
+from omnipipe.sfm import SfmConfig, SfmInputs
+from omnipipe.sfm import run as sfm_run
 from omnipipe.sfm.bundle import BundleConfig
-from omnipipe.sfm.pipeline import SfmConfig, SfmInputs
-from omnipipe.sfm.pipeline import run as sfm_run
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 

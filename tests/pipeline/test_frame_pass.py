@@ -7,13 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnipipe import laser
+from omnipipe import laser, sfm
 from omnipipe.camera import camera_from_rig
 from omnipipe.dataset import open_dataset
 from omnipipe.executor import open_executor
 from omnipipe.image import gray_without_laser
 from omnipipe.pipeline import frame_pass
-from omnipipe.sfm import pipeline as sfm
 from omnipipe.sfm.stations import StationConfig, StationTracker
 
 
@@ -119,4 +118,3 @@ def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
     assert np.array_equal(parallel.keyframe, serial.keyframe)
     assert np.array_equal(parallel.world_from_rig, serial.world_from_rig)
     assert parallel.warnings == serial.warnings
-    assert np.array_equal(parallel.step_scale_mm, serial.step_scale_mm)

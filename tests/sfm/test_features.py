@@ -39,3 +39,38 @@ def test_backward_search_on_chosen_features_only_gives_the_full_result() -> None
         for ratio in (0.8, 1.0):
             got = match_features(_features(d1), _features(d2), ratio)
             assert np.array_equal(got, _match_both_ways(d1, d2, ratio))
+
+
+def test_track_labels_join_matched_features_across_frames() -> None:
+    from omnipipe.sfm.features import track_labels
+
+    rng = np.random.default_rng(7)
+    sizes = [30, 25, 40, 35]
+    offset = np.concatenate([[0], np.cumsum(sizes)])
+    pairs = []
+    for a, b in [(0, 1), (1, 2), (2, 3), (0, 2)]:
+        m = np.stack([rng.choice(sizes[a], 12, replace=False), rng.choice(sizes[b], 12, replace=False)], axis=1)
+        pairs.append((a, b, m))
+    labels = track_labels(offset, pairs)
+    # Reference: breadth-first search over the matches, by hand.
+    n = int(offset[-1])
+    neighbours: list[list[int]] = [[] for _ in range(n)]
+    for a, b, m in pairs:
+        for i, j in m:
+            neighbours[offset[a] + i].append(offset[b] + j)
+            neighbours[offset[b] + j].append(offset[a] + i)
+    expected = np.full(n, -1)
+    label = 0
+    for start in range(n):  # components numbered by their first feature
+        if expected[start] >= 0:
+            continue
+        expected[start], queue = label, [start]
+        while queue:
+            for v in neighbours[queue.pop()]:
+                if expected[v] < 0:
+                    expected[v] = label
+                    queue.append(v)
+        label += 1
+    assert np.array_equal(labels, expected)
+    assert labels.max() + 1 < n  # some features were joined
+    assert np.array_equal(track_labels(offset, []), np.arange(n))

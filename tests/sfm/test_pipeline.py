@@ -10,10 +10,12 @@ import pytest
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
-from omnipipe.sfm.pipeline import SfmConfig, SfmInputs, _bridge_lost_steps, _StepEvidence
-from omnipipe.sfm.pipeline import run as sfm_run
+from omnipipe.sfm import SfmConfig, SfmInputs
+from omnipipe.sfm import run as sfm_run
 from omnipipe.sfm.scale_check import StepCheck
+from omnipipe.sfm.step_scale import bridge_lost_steps
 from omnipipe.sfm.tracking import TrackConfig
+from omnipipe.sfm.types import StepEvidence
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
@@ -49,7 +51,7 @@ def test_short_run_trajectory_within_band(name: str, tracking: bool) -> None:
 
 
 def test_combine_scales_weights_and_widens_on_disagreement() -> None:
-    from omnipipe.sfm.pipeline import combine_scales
+    from omnipipe.sfm.step_scale import combine_scales
 
     # Agreeing sources of equal sigma: the mean, sigma / sqrt(2).
     mean, sigma = combine_scales(0.001, 0.001, 0.001, wall_anchored=False)
@@ -76,13 +78,11 @@ def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
         if not lost:
             t[:3, 3] = [rng.normal(0, 0.1), rng.normal(0, 0.1), -10.0 + rng.normal(0, 0.2)]
         steps.append(t)
-        evidence.append(
-            _StepEvidence(k, k + 1, t, None, None, np.zeros(0), math.nan, 0, "lost" if lost else "ok")
-        )
+        evidence.append(StepEvidence.unmeasured(k, k + 1, t, None, "lost" if lost else "ok"))
         checks.append(
             StepCheck(k, k + 1, 10.0, 0.0, 10.0, 50, math.nan if lost else 10.0, "none" if lost else "high")
         )
-    _bridge_lost_steps(steps, evidence, checks)
+    bridge_lost_steps(steps, evidence, checks)
     for k in (3, 4):
         assert np.allclose(steps[k][:3, :3], np.eye(3))
         assert abs(steps[k][2, 3] + 10.0) < 0.3 and np.hypot(*steps[k][:2, 3]) < 0.2

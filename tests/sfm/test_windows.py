@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from omnipipe import sfm
 from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.errors import ConfigError
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.executor import open_executor
 from omnipipe.laser import LaserConfig
 from omnipipe.pipeline import frame_pass
-from omnipipe.sfm import pipeline as sfm
 from omnipipe.sfm.bundle import keyframe_windows
 from omnipipe.sfm.stations import StationConfig
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
-from omnipipe.sfm.pipeline import SfmResult
+from omnipipe.sfm import SfmResult
 from omnipipe.sfm.scale_check import StepCheck, steps_checked
 
 

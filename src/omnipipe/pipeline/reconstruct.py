@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.model import ModelConfig, ModelResult
     from omnipipe.pipeline.frame_pass import FramePassResult
     from omnipipe.report import ReportConfig, ReportInputs
-    from omnipipe.sfm.pipeline import SfmConfig, SfmResult
+    from omnipipe.sfm import SfmConfig, SfmResult
     from omnipipe.survey import Survey
 
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -66,7 +66,7 @@ class ReconstructConfig:
         from omnipipe.laser import LaserConfig
         from omnipipe.model import ModelConfig
         from omnipipe.report import ReportConfig
-        from omnipipe.sfm.pipeline import SfmConfig
+        from omnipipe.sfm import SfmConfig
 
         return ReconstructConfig(
             LaserConfig(), SfmConfig(), ModelConfig(), AnalysisConfig(), ReportConfig()
@@ -277,7 +277,7 @@ def _camera_motion(
     import numpy as np
 
     from omnipipe.pipeline import quality
-    from omnipipe.sfm import pipeline as sfm
+    from omnipipe import sfm
 
     n = len(dataset)
     t0 = time.perf_counter()

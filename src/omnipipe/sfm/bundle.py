@@ -36,6 +36,7 @@ from omnipipe.camera import OmniCamera
 from omnipipe.errors import ShapeError
 from omnipipe.geometry import invert
 from omnipipe.sfm import schur
+from omnipipe.sfm.features import track_labels
 
 
 @dataclass(frozen=True)
@@ -338,20 +339,7 @@ def build_problem(
         anchors: (a, b, (L, 3) laser points in rig a, (L, 2) matched pixels in b).
     """
     offset = np.concatenate([[0], np.cumsum([len(p) for p in pixels])])
-    parent = np.arange(offset[-1])
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b, m in pair_matches:
-        for i, j in zip(offset[a] + m[:, 0], offset[b] + m[:, 1], strict=True):
-            ri, rj = find(int(i)), find(int(j))
-            if ri != rj:
-                parent[max(ri, rj)] = min(ri, rj)
-    roots = np.array([find(i) for i in range(offset[-1])], dtype=int)
+    roots = track_labels(offset, pair_matches)
     frame_of = np.repeat(np.arange(len(pixels)), np.diff(offset))
     local = np.arange(offset[-1]) - offset[frame_of]
     # Tracks: roots with observations in at least two keyframes, at most one per keyframe.

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from omnipipe.camera import OmniCamera, PerspectiveView
@@ -222,6 +224,31 @@ def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> 
     bwd = {int(targets[q]): i for q, i in one_way(f2.descriptors[targets], f1.descriptors).items()}
     pairs = [(i, j) for i, j in fwd.items() if bwd.get(j) == i]
     return np.array(pairs, int).reshape(-1, 2)
+
+
+def track_labels(offset: np.ndarray, pair_matches: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """Multi-view tracks from pairwise matches: the connected components of the graph
+    whose nodes are the features of all frames and whose edges are the matches.
+
+    Args:
+        offset: (K + 1,) where each frame's features start in the concatenation of all
+            frames' features (``offset[-1]``: their number F).
+        pair_matches: (a, b, (M, 2) (feature in a, feature in b) index pairs).
+
+    Returns:
+        (F,) each feature's track label; the labels are numbered in the order of each
+        track's first feature (a feature matched to nothing has a label of its own).
+    """
+    n = int(offset[-1])
+    if n == 0:
+        return np.zeros(0, int)
+    rows = [offset[a] + m[:, 0] for a, _, m in pair_matches]
+    cols = [offset[b] + m[:, 1] for _, b, m in pair_matches]
+    i = np.concatenate(rows).astype(int) if rows else np.zeros(0, int)
+    j = np.concatenate(cols).astype(int) if cols else np.zeros(0, int)
+    graph = coo_matrix((np.ones(len(i), np.int8), (i, j)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels.astype(int)
 
 
 def two_nearest(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

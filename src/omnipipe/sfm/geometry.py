@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from omnipipe.errors import ShapeError
-from omnipipe.geometry import make_transform, skew
+from omnipipe.geometry import make_transform
 
 
 def _check_pairs(rays1: np.ndarray, rays2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,11 +110,6 @@ def decompose_essential(
             if n > best_n:
                 best, best_n = T, n
     return best, best_n  # type: ignore[return-value]
-
-
-def essential_from_motion(rig2_from_rig1: np.ndarray) -> np.ndarray:
-    """E = [t]x R of a relative transform (Eq. 15-16 in this module's convention)."""
-    return skew(rig2_from_rig1[:3, 3]) @ rig2_from_rig1[:3, :3]
 
 
 def epipolar_angle(E: np.ndarray, rays1: np.ndarray, rays2: np.ndarray) -> np.ndarray:

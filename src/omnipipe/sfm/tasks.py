@@ -7,8 +7,9 @@ where it ran:
   perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
   tracked between keyframes) and its grey image (for the later template matching,
   Eq. 17);
-- :func:`track_into`: a keyframe's features followed into a frame's views
-  (:mod:`omnipipe.sfm.tracking`), for the frame's resection;
+- :func:`track_into` and :func:`matched_rays`: a frame's correspondences with the next
+  keyframe's features (optical flow into its views, :mod:`omnipipe.sfm.tracking`, or
+  descriptor matches), for the frame's resection;
 - :func:`step_evidence`: one keyframe step's two scale measurements, the laser points'
   template matches along the epipolar curves (Eq. 17) and the matched features' depths
   on the light-section wall (:mod:`omnipipe.sfm.scale_check`).
@@ -32,7 +33,8 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import TrackConfig, Tracks, track_features
+from omnipipe.sfm.tracking import TrackConfig, track_features
+from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
     from omnipipe.executor import FrameSource
@@ -105,21 +107,21 @@ def track_into(
     key_features: FrameFeatures,
     views: FrameViews,
     config: TrackConfig,
-) -> Tracks:
-    """:func:`omnipipe.sfm.tracking.track_features` with this process's extractor of
-    ``rig`` and ``features_config``."""
-    return track_features(_extractor(rig, features_config), key_views, key_features, views, config)
+) -> KeyframeRays:
+    """The keyframe's features tracked into ``views``
+    (:func:`omnipipe.sfm.tracking.track_features` with this process's extractor of
+    ``rig`` and ``features_config``): the tracked features and their rays in the frame."""
+    tracks = track_features(_extractor(rig, features_config), key_views, key_features, views, config)
+    return KeyframeRays(tracks.feature, tracks.features.rays_in_rig)
 
 
-def matched_rays(
-    key_features: FrameFeatures, features: FrameFeatures, ratio: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Descriptor matches of a keyframe's features to a frame's: (M,) keyframe feature
-    indices and (M, 3) the matched rays of the frame."""
+def matched_rays(key_features: FrameFeatures, features: FrameFeatures, ratio: float) -> KeyframeRays:
+    """Descriptor matches of a keyframe's features to a frame's: the matched keyframe
+    features and the frame's rays of them."""
     from omnipipe.sfm.features import match_features
 
     m = match_features(key_features, features, ratio)
-    return m[:, 0], features.rays_in_rig[m[:, 1]]
+    return KeyframeRays(m[:, 0], features.rays_in_rig[m[:, 1]])
 
 
 def laser_matches(
@@ -151,7 +153,7 @@ def step_evidence(
     rays_b: np.ndarray,
     laser_scale: LaserScaleConfig,
     scale_check: ScaleCheckConfig,
-) -> tuple[LaserMatches, np.ndarray, float, int]:
+) -> StepScales:
     """Both scale measurements of one keyframe step a -> b.
 
     Args:
@@ -164,8 +166,8 @@ def step_evidence(
         rays_a, rays_b: (M, 2 x 3) the inlier matches' unit rays in rigs a and b.
 
     Returns:
-        the laser's template matches (Eq. 17), each match's feature-depth log length
-        (M,), and the step's feature-depth length (mm, NaN: none) with its count.
+        the laser's template matches (Eq. 17), each match's feature-depth log length,
+        and the step's feature-depth length with its count.
     """
     lm = laser_matches(
         gray_a, gray_b, camera, laser_points_a, b_from_a_rotation, b_from_a_direction, laser_scale
@@ -175,4 +177,4 @@ def step_evidence(
         scale_check,
     )
     s_feat, n_feat = feature_scale(log_s, scale_check)
-    return lm, log_s, s_feat, n_feat
+    return StepScales(lm, log_s, s_feat, n_feat)

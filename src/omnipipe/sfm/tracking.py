@@ -1,7 +1,7 @@
 """Optical-flow tracking of a keyframe's features into the frames after it.
 
 A moving frame that is not a keyframe needs only two things from its image: how far the
-rig moved since the last keyframe (the keyframe decision, :mod:`omnipipe.sfm.pipeline`)
+rig moved since the last keyframe (the keyframe decision, :mod:`omnipipe.sfm.keyframes`)
 and its rays to the keyframes' tracked points (its resection). Both come from the
 keyframe's SIFT keypoints followed into the frame by pyramidal Lucas-Kanade
 (``cv2.calcOpticalFlowPyrLK``) on the same perspective views: about a tenth of the cost

@@ -1,0 +1,405 @@
+"""Bundle adjustment of the keyframes and resection of the other stations (paper Sec. V,
+steps 5 and 6).
+
+- :func:`adjust_keyframes`: reprojection errors of the feature tracks in pixels through
+  the hyperboloid model plus the metric anchors (laser points found again, Eq. 17, or
+  wall-placed features), over all keyframes or, on a long run, in consecutive windows
+  (:func:`omnipipe.sfm.bundle.keyframe_windows`); laser points are also matched to the
+  keyframes further ahead with the adjusted motion (``anchor_reach``), then adjusted
+  again.
+- :func:`resect_pending`: each moving frame that is not a keyframe is placed against the
+  adjusted tracks of its keyframe and the next (in the executor's workers).
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import Future
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from omnipipe.errors import ReconstructionError
+from omnipipe.executor import ordered_map
+from omnipipe.geometry import invert
+from omnipipe.sfm.bundle import (
+    BundleConfig,
+    BundleProblem,
+    BundleResult,
+    build_problem,
+    bundle_adjust,
+    keyframe_windows,
+    resect_rays,
+)
+from omnipipe.sfm.laser_scale import LaserMatches
+from omnipipe.sfm.scale_check import UnreliableStretch
+from omnipipe.sfm.tasks import laser_matches
+from omnipipe.sfm.types import (
+    Anchor,
+    KeyframeRays,
+    Keyframes,
+    PairMatches,
+    PendingFrame,
+    SfmContext,
+)
+
+# Fewest tracked points to resect a frame, in all and on its keyframe's side.
+MIN_RESECTION_POINTS = 12
+MIN_RESECTION_POINTS_OWN_SIDE = 6
+
+
+@dataclass(frozen=True)
+class WindowTracks:
+    """The feature tracks of one adjustment window (for the resection of the frames
+    between its keyframes).
+
+    Attributes:
+        first: the window's first keyframe.
+        feature_point: per keyframe of the window, (N_k,) each feature's track (-1: none).
+        points_in_world: (P, 3) the adjusted track points, mm.
+    """
+
+    first: int
+    feature_point: list[np.ndarray]
+    points_in_world: np.ndarray
+
+
+@dataclass(frozen=True)
+class Adjusted:
+    """The keyframes after the bundle adjustment.
+
+    Attributes:
+        world_from_kf: (K, 4, 4) adjusted keyframe poses, mm.
+        tracks: per window, its tracks (None: not adjusted); empty without adjustment.
+        window_of: (K,) the window that adjusted each keyframe.
+        results: each adjusted window's result, in order.
+    """
+
+    world_from_kf: np.ndarray
+    tracks: list[WindowTracks | None]
+    window_of: np.ndarray
+    results: list[BundleResult]
+
+    def scaled(self, gain: float) -> Adjusted:
+        """The same run with every length multiplied by ``gain`` (positions and track
+        points alike: one similarity)."""
+        world_from_kf = self.world_from_kf.copy()
+        world_from_kf[:, :3, 3] *= gain
+        tracks = [
+            None if t is None else replace(t, points_in_world=t.points_in_world * gain)
+            for t in self.tracks
+        ]
+        return replace(self, world_from_kf=world_from_kf, tracks=tracks)
+
+
+@dataclass(frozen=True)
+class _Observations:
+    """What the adjustment fits the keyframe poses to.
+
+    Attributes:
+        kf: the keyframes (features; grey images and ring points for far anchors).
+        pair_matches: each step's inlier matches (the tracks).
+        anchors: each step's metric anchors.
+        far: with the laser's anchors and ``anchor_reach`` > 1, laser points are also
+            matched to the keyframes further ahead.
+    """
+
+    kf: Keyframes
+    pair_matches: list[PairMatches]
+    anchors: list[Anchor]
+    far: bool
+
+
+def adjust_keyframes(
+    ctx: SfmContext,
+    world_from_kf: np.ndarray,
+    kf: Keyframes,
+    pair_matches: list[PairMatches],
+    anchors: list[Anchor],
+    wall_anchored: bool,
+) -> Adjusted:
+    """Bundle adjustment of the chained keyframe poses ``world_from_kf`` ((K, 4, 4) mm)
+    with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with fewer
+    than 3 keyframes. ``wall_anchored``: the anchors are wall-placed features (no laser
+    matches further ahead then)."""
+    config = ctx.config
+    if not (config.bundle.enabled and len(world_from_kf) >= 3):
+        return Adjusted(world_from_kf, [], np.zeros(len(world_from_kf), int), [])
+    # Longer baselines measure the scale better: laser points of keyframe k are also
+    # found in k + 2 ... k + reach with the adjusted motion, then adjusted again.
+    far = config.anchor_reach > 1 and not wall_anchored
+    return _adjust_windows(ctx, world_from_kf, _Observations(kf, pair_matches, anchors, far))
+
+
+def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observations) -> Adjusted:
+    """Bundle adjustment of the keyframes, in consecutive windows on a long run.
+
+    A run of up to 1.25 ``config.window_keyframes`` keyframes is adjusted at once (the
+    global adjustment, keyframe 0 fixed). A longer one window by window
+    (:func:`omnipipe.sfm.bundle.keyframe_windows`): each window starts from the chained
+    poses carried on from its first keyframes, which the window before adjusted and
+    which it holds fixed; its tracks and laser anchors are those within it. Cost and
+    memory grow linearly with the run.
+    """
+    config = ctx.config.bundle
+    K = len(world_from_kf)
+    adjusted = world_from_kf.copy()
+    tracks: list[WindowTracks | None] = []
+    window_of = np.zeros(K, int)
+    stats: list[BundleResult] = []
+    windows = keyframe_windows(K, config.window_keyframes, config.window_overlap)
+    if len(windows) > 1 and config.solver == "auto":
+        config = replace(config, solver="schur")  # see BundleConfig.solver
+    for w, (s, e, fixed) in enumerate(windows):
+        init = adjusted[s:e].copy()
+        if w > 0:
+            # The chain carried on from the last held keyframe's adjusted pose.
+            j = s + fixed - 1
+            carry = adjusted[j] @ invert(world_from_kf[j])
+            init[fixed:] = np.einsum("ij,njk->nik", carry, world_from_kf[s + fixed : e])
+        window_of[s + (fixed if w else 0) : e] = w
+        ba, problem = _adjust_window(ctx, config, init, obs, (s, e, fixed))
+        if ba is None:
+            where = "" if len(windows) == 1 else f" of keyframes {s}-{e - 1}"
+            ctx.warnings.append(
+                f"bundle adjustment{where} skipped: too few feature tracks or laser anchors"
+            )
+            adjusted[s:e] = init
+            tracks.append(None)
+            continue
+        adjusted[s:e] = ba.world_from_rig
+        stats.append(ba)
+        tracks.append(WindowTracks(s, problem.feature_point, ba.points_in_world))
+    return Adjusted(adjusted, tracks, window_of, stats)
+
+
+def _adjust_window(
+    ctx: SfmContext,
+    config: BundleConfig,
+    init: np.ndarray,
+    obs: _Observations,
+    window: tuple[int, int, int],
+) -> tuple[BundleResult | None, BundleProblem]:
+    """One window ``(start, end, fixed)`` of keyframes adjusted from ``init`` ((W, 4, 4)
+    mm), its first ``fixed`` held; (None, the problem) when it has too few tracks or no
+    anchors."""
+    s, e, fixed = window
+    features = obs.kf.features[s:e]
+    problem = build_problem(
+        ctx.camera,
+        init,
+        [f.pixels for f in features],
+        [f.rays_in_rig for f in features],
+        [(p.a - s, p.b - s, p.matches) for p in obs.pair_matches if p.a >= s and p.b < e],
+        [
+            (q.a - s, q.b - s, q.points_in_a, q.pixels_b)
+            for q in obs.anchors
+            if q.a >= s and q.b < e
+        ],
+        config,
+    )
+    problem.fixed = fixed
+    if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
+        return None, problem
+    ba = bundle_adjust(ctx.camera, problem, config)
+    extra = _far_anchors(ctx, ba.world_from_rig, obs.kf, s, fixed) if obs.far else []
+    if extra:
+        problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
+        _append_anchors(problem, extra)
+        ba = bundle_adjust(ctx.camera, problem, config)
+    return ba, problem
+
+
+def _append_anchors(problem: BundleProblem, extra: list[Anchor]) -> None:
+    """Add ``extra`` anchors (keyframes counted from the problem's first) to ``problem``."""
+    problem.anchor_a = np.concatenate(
+        [problem.anchor_a] + [np.full(len(q.points_in_a), q.a) for q in extra]
+    )
+    problem.anchor_b = np.concatenate(
+        [problem.anchor_b] + [np.full(len(q.points_in_a), q.b) for q in extra]
+    )
+    problem.anchor_points_in_a = np.concatenate(
+        [problem.anchor_points_in_a] + [q.points_in_a for q in extra]
+    )
+    problem.anchor_pixels_b = np.concatenate(
+        [problem.anchor_pixels_b] + [q.pixels_b for q in extra]
+    )
+
+
+@dataclass(frozen=True)
+class _FarPair:
+    """Keyframes a -> b (counted from a window's first) whose laser points are matched
+    with the adjusted relative pose ``b_from_a`` ((4, 4), its translation ``length``
+    mm)."""
+
+    a: int
+    b: int
+    points_in_a: np.ndarray
+    b_from_a: np.ndarray
+    length: float
+
+
+def _far_anchors(
+    ctx: SfmContext, world_from_kf: np.ndarray, kf: Keyframes, first: int, fixed: int
+) -> list[Anchor]:
+    """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
+    poses), matched in the executor's workers, a bounded number at a time (each task
+    holds two images); in (k, k + j) order.
+
+    ``world_from_kf``: (W, 4, 4) the poses of keyframes ``first .. first + W - 1`` (an
+    adjustment window; ``kf`` counts from keyframe 0); pairs of two of its first
+    ``fixed`` keyframes (held fixed there) are left out. The anchors' keyframes count
+    from ``first``.
+    """
+    config = ctx.config
+    pairs = []
+    for a in range(len(world_from_kf)):
+        pts = kf.ring_points[first + a]
+        if len(pts) == 0:
+            continue
+        for b in range(max(a + 2, fixed), min(a + config.anchor_reach, len(world_from_kf) - 1) + 1):
+            b_from_a = invert(world_from_kf[b]) @ world_from_kf[a]
+            length = float(np.linalg.norm(b_from_a[:3, 3]))
+            if length >= 1e-6:
+                pairs.append(_FarPair(a, b, pts, b_from_a, length))
+    # The adjusted length is known to a few per cent: search only around it, so that a
+    # periodic wall cannot offer the next course.
+    w = math.exp(config.scale_check.agree_log)
+    jobs = (
+        (
+            kf.grays[first + p.a],
+            kf.grays[first + p.b],
+            ctx.camera,
+            p.points_in_a,
+            p.b_from_a[:3, :3],
+            p.b_from_a[:3, 3] / p.length,
+            config.laser_scale,
+            (p.length / w, p.length * w),
+        )
+        for p in pairs
+    )
+    out = []
+    for p, lm in zip(pairs, ordered_map(ctx.executor, _laser_job, jobs), strict=True):
+        if len(lm.index):
+            out.append(Anchor(p.a, p.b, p.points_in_a[lm.index], lm.pixels_b))
+    return out
+
+
+def _laser_job(job: tuple) -> LaserMatches:
+    """Executor task: :func:`omnipipe.sfm.tasks.laser_matches` of one argument tuple."""
+    return laser_matches(*job)
+
+
+@dataclass(frozen=True)
+class Resected:
+    """The moving frames that are not keyframes, placed.
+
+    Attributes:
+        world_from_rig: frame index -> its (4, 4) pose, mm.
+        unreliable: the stretches around frames that could not be resected (their
+            keyframe's pose is used).
+    """
+
+    world_from_rig: dict[int, np.ndarray]
+    unreliable: list[UnreliableStretch]
+
+
+def resect_pending(
+    ctx: SfmContext,
+    adjusted: Adjusted,
+    kf: Keyframes,
+    pending: list[PendingFrame],
+    next_matches: dict[int, Future[KeyframeRays]],
+    n_frames: int,
+) -> Resected:
+    """Every pending frame resected in the workers against the adjusted tracks of its
+    keyframe k and of k + 1 (``next_matches``: its correspondences with k + 1),
+    gathered in frame order. A frame that cannot be resected takes its keyframe's pose,
+    with a warning, and the stretch from k to k + 1 is unreliable."""
+    jobs = []
+    for p in pending:
+        # The next keyframe's tracks too: points on both sides of the frame fix its
+        # position better than the few tracks of one keyframe (a joints wall: 0.5-0.9 mm
+        # off with one side's 15-40 points).
+        # The window that adjusted keyframe k + 1 holds k too (its first keyframes are the
+        # window before's last): both sides' tracks in one frame of reference.
+        window_of = adjusted.window_of
+        t = (
+            adjusted.tracks[int(window_of[min(p.keyframe + 1, len(window_of) - 1)])]
+            if adjusted.tracks
+            else None
+        )
+        nxt = next_matches[p.frame].result() if t is not None and p.frame in next_matches else None
+        job = None if t is None else _submit_resection(ctx, p, t, adjusted.world_from_kf, nxt)
+        jobs.append((p, job))
+    placed: dict[int, np.ndarray] = {}
+    stretches = []
+    for p, job in jobs:
+        pose = _resection_result(ctx, p.frame, job)
+        if pose is None:
+            ctx.warnings.append(
+                f"frame {p.frame}: too few tracked points to resect; pose of its keyframe used"
+            )
+            pose = adjusted.world_from_kf[p.keyframe].copy()
+            # Its pose is its keyframe's: the steps into and out of it are both wrong.
+            k = p.keyframe
+            end = kf.frames[k + 1] if k + 1 < len(kf.frames) else n_frames - 1
+            stretches.append(UnreliableStretch(kf.frames[k], end, "frame could not be resected"))
+        placed[p.frame] = pose
+    return Resected(placed, stretches)
+
+
+def _submit_resection(
+    ctx: SfmContext,
+    frame: PendingFrame,
+    tracks: WindowTracks,
+    world_from_kf: np.ndarray,
+    next_matches: KeyframeRays | None,
+) -> Future | None:
+    """Resection of a non-keyframe from its matches to the tracks of keyframes k and k + 1
+    (of the window ``tracks``; ``world_from_kf`` (K, 4, 4) all keyframes' poses),
+    submitted to the executor (None: too few tracked points).
+
+    ``frame.inliers``: RANSAC-verified matches to keyframe k; ``next_matches``: the
+    frame's correspondences with keyframe k + 1 from descriptor matching or tracking,
+    verified by the resection itself (rays more than 2 deg off are refitted without).
+    """
+    k = frame.keyframe - tracks.first  # counted from the window's first keyframe
+    inl = frame.inliers
+    sides: list[tuple[int, np.ndarray, np.ndarray]] = []
+    if inl is not None and len(inl):
+        sides.append((k, inl[:, 0], frame.features.rays_in_rig[inl[:, 1]]))
+    if next_matches is not None and len(next_matches.feature):
+        sides.append((k + 1, next_matches.feature, next_matches.rays_in_rig))
+    rays, points = [], []
+    for kk, idx, frame_rays in sides:
+        if kk >= len(tracks.feature_point):
+            continue
+        pid = tracks.feature_point[kk][idx]
+        ok = pid >= 0
+        rays.append(frame_rays[ok])
+        points.append(tracks.points_in_world[pid[ok]])
+    n_first = len(points[0]) if points and inl is not None and len(inl) else 0
+    if (
+        rays
+        and sum(len(r) for r in rays) >= MIN_RESECTION_POINTS
+        and n_first >= MIN_RESECTION_POINTS_OWN_SIDE
+    ):
+        return ctx.executor.submit(
+            resect_rays,
+            np.concatenate(rays),
+            np.concatenate(points),
+            world_from_kf[tracks.first + k],
+        )
+    return None
+
+
+def _resection_result(ctx: SfmContext, frame: int, job: Future | None) -> np.ndarray | None:
+    """The pose of a non-keyframe from :func:`_submit_resection`; None (with a warning
+    when the resection failed) when it could not be resected."""
+    if job is not None:
+        try:
+            return job.result()
+        except ReconstructionError as exc:
+            ctx.warnings.append(f"frame {frame}: {exc}")
+    return None
