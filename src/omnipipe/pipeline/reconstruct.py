@@ -276,8 +276,8 @@ def _camera_motion(
     """
     import numpy as np
 
-    from omnipipe.pipeline import quality
     from omnipipe import sfm
+    from omnipipe.pipeline import quality
 
     n = len(dataset)
     t0 = time.perf_counter()
