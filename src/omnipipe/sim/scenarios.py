@@ -22,6 +22,7 @@ from omnipipe.rig import CameraIntrinsics, LaserPlane, Mirror, Rig
 from omnipipe.sim.motion import MotionConfig
 from omnipipe.sim.render import RenderConfig, blind_radius_px
 from omnipipe.sim.scene import Centreline, Defect, Pipe
+from omnipipe.sim.sensors import SensorConfig
 from omnipipe.sim.texture import TextureConfig
 
 # Hyper70-like mirror: a published parameter set of the maker's hyperboloid mirror.
@@ -89,6 +90,7 @@ class Scenario:
         dark_frames: also write each station's laser-only frame (LED off) to frames_noled/.
         random: for ``random`` scenarios, the drawn parameters (family, diameter, bend,
             gait, rig), written to scene.json's ``random``; None otherwise.
+        sensors: the robot's odometry and IMU (omnipipe.sim.sensors).
     """
 
     name: str
@@ -102,6 +104,7 @@ class Scenario:
     fps: float = 8.0
     dark_frames: bool = False
     random: dict[str, Any] | None = None
+    sensors: SensorConfig = field(default_factory=SensorConfig)
 
 
 def _paper(width: int, height: int, frames: int) -> Scenario:
