@@ -3,9 +3,11 @@
 ``odometry.txt`` (``<time s> <distance_mm> <sigma_mm>``): the cumulative travel along
 the pipe, i.e. the centreline arc length of the rig's station since frame 0, as a
 cable counter or stroke actuator reports it: a run-wide slip (U(1, 3) %: the counter
-reads more than the robot advanced), white noise and quantisation. ``sigma_mm`` states
-the reading's 1-sigma uncertainty: hypot(``sigma_rel`` x distance, noise, quantum /
-sqrt(12)), with ``sigma_rel`` = 3 % covering the slip.
+reads more than the robot advanced), a random walk that grows only while the robot
+moves (a counter at rest does not change; it never counts backwards), and
+quantisation. ``sigma_mm`` states the reading's 1-sigma uncertainty:
+hypot(``sigma_rel`` x distance, walk x sqrt(distance), quantum / sqrt(12)), with
+``sigma_rel`` = 3 % covering the slip.
 
 ``imu.txt`` (``<time s> ax ay az wx wy wz``): specific force (m/s^2; the accelerometer
 reads a - g, so +9.81 m/s^2 "up" at rest) and angular rate (rad/s) in the rig frame,
@@ -49,7 +51,7 @@ class SensorConfig:
         odometry_rate_hz: odometry readings per second.
         slip_range: the run's slip is drawn from U(lo, hi) (fraction; reading = (1 + slip)
             x true travel).
-        odometry_noise_mm: white noise of a reading (mm, 1 sigma).
+        odometry_walk_mm: random walk of the count (mm per sqrt(mm) travelled, 1 sigma).
         odometry_quantum_mm: resolution of the counter (mm).
         odometry_sigma_rel: relative part of the stated sigma (covers the slip).
         imu_rate_hz: IMU samples per second.
@@ -64,7 +66,7 @@ class SensorConfig:
     imu: bool = True
     odometry_rate_hz: float = 20.0
     slip_range: tuple[float, float] = (0.01, 0.03)
-    odometry_noise_mm: float = 0.3
+    odometry_walk_mm: float = 0.1
     odometry_quantum_mm: float = 0.1
     odometry_sigma_rel: float = 0.03
     imu_rate_hz: float = 100.0
@@ -148,12 +150,15 @@ def _odometry(
 ) -> np.ndarray:
     t = np.arange(float(frame_t[0]), float(frame_t[-1]) + SENSOR_MARGIN_S, 1.0 / cfg.odometry_rate_hz)
     true = travel_at_times(*_knots(frame_t, travel), t)
-    reading = (1.0 + slip) * true + rng.normal(0.0, cfg.odometry_noise_mm, len(t))
+    inc = np.diff(true, prepend=true[0])
+    walk = cfg.odometry_walk_mm * np.sqrt(inc) * rng.standard_normal(len(t))
+    reading = np.cumsum(np.maximum((1.0 + slip) * inc + walk, 0.0))  # never backwards
     q = cfg.odometry_quantum_mm
     if q > 0:
         reading = np.round(reading / q) * q
+    d = np.abs(reading)
     sigma = np.sqrt(
-        (cfg.odometry_sigma_rel * np.abs(reading)) ** 2 + cfg.odometry_noise_mm**2 + q * q / 12.0
+        (cfg.odometry_sigma_rel * d) ** 2 + cfg.odometry_walk_mm**2 * d + q * q / 12.0
     )
     return np.stack([t, reading, sigma], axis=1)
 
