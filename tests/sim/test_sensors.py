@@ -38,7 +38,9 @@ def test_odometry_within_its_sigma_and_gravity_within_a_degree(
     z = np.abs(d - true) / s
     print(f"{name}: odometry |error| / sigma: median {np.median(z):.2f}, max {z.max():.2f}")
     assert np.isfinite(d).all()
-    assert np.mean(z <= 1.0) >= 0.68 and z.max() <= 4.0
+    # The slip is a bias inside the stated sigma's 3 % part; the count's walk adds its own
+    # part: |error| <= 3 % d + 3 sigma_walk gives at most sqrt(10) = 3.2 stated sigma.
+    assert z.max() <= 3.2
     assert 0.01 <= sim.truth["odometry"]["slip"] <= 0.03
     g, gs = gravity_at(imu, stamps)
     g_true = np.array(sim.truth["gravity_in_rig_at_frames"])
@@ -69,13 +71,16 @@ def test_sensors_are_deterministic_per_seed() -> None:
     np.testing.assert_array_equal(a.odometry, b.odometry)
     np.testing.assert_array_equal(a.imu, b.imu)
     assert a.truth["odometry"]["slip"] != c.truth["odometry"]["slip"]
-    # Switching the IMU off changes nothing in the odometry.
+    # Switching one sensor off changes nothing in the other.
     sc = make_scenario("random-wide", seed=5)
-    sc.sensors = replace(sc.sensors, imu=False)
     poses, sigma, _ = simulate_trajectory(sc.pipe, sc.motion, sc.frames, sc.seed)
-    off = simulate_sensors(sc, np.arange(sc.frames) / sc.fps, sigma, poses)
-    assert off.imu is None
-    np.testing.assert_array_equal(off.odometry, a.odometry)
+    sc.sensors = replace(sc.sensors, imu=False)
+    no_imu = simulate_sensors(sc, np.arange(sc.frames) / sc.fps, sigma, poses)
+    sc.sensors = replace(sc.sensors, imu=True, odometry=False)
+    no_odo = simulate_sensors(sc, np.arange(sc.frames) / sc.fps, sigma, poses)
+    assert no_imu.imu is None and no_odo.odometry is None
+    np.testing.assert_array_equal(no_imu.odometry, a.odometry)
+    np.testing.assert_array_equal(no_odo.imu, a.imu)
 
 
 def test_simulate_writes_and_the_dataset_reads_the_sensors(tmp_path: Path) -> None:

@@ -108,7 +108,8 @@ def simulate_sensors(
     """Odometry and IMU readings of ``scenario``'s run (frames at ``frame_times_s``,
     stations ``sigma_mm``, true poses ``poses`` (N, 4, 4))."""
     cfg = scenario.sensors
-    rng = np.random.default_rng(np.random.SeedSequence([int(scenario.seed), _SENSOR_SEED_TAG]))
+    seq = np.random.SeedSequence([int(scenario.seed), _SENSOR_SEED_TAG])
+    rng, rng_odo, rng_imu = (np.random.default_rng(s) for s in seq.spawn(3))
     travel = np.asarray(sigma_mm, float) - float(sigma_mm[0])
     g_world = np.asarray(cfg.gravity_world, float)
     g_rig = np.einsum("nji,j->ni", poses[:, :3, :3], g_world / np.linalg.norm(g_world))
@@ -120,15 +121,16 @@ def simulate_sensors(
         "gravity_in_rig_at_frames: unit vector of gravity (pointing down) in each frame's rig frame",
     }
     odo = imu = None
-    # Both draws are made in a fixed order whatever is switched off.
+    # The run's constants are drawn whatever is switched off; each sensor's noise from
+    # its own stream, so switching one off changes nothing in the other.
     slip = float(rng.uniform(*cfg.slip_range))
     accel_bias = rng.normal(0.0, cfg.accel_bias_sigma, 3)
     gyro_bias = rng.normal(0.0, cfg.gyro_bias_sigma, 3)
     if cfg.odometry:
-        odo = _odometry(cfg, rng, frame_times_s, travel, slip)
+        odo = _odometry(cfg, rng_odo, frame_times_s, travel, slip)
         truth["odometry"] = {"slip": slip}
     if cfg.imu:
-        imu = _imu(scenario, rng, frame_times_s, travel, accel_bias, gyro_bias)
+        imu = _imu(scenario, rng_imu, frame_times_s, travel, accel_bias, gyro_bias)
         truth["imu"] = {"accel_bias": accel_bias.tolist(), "gyro_bias": gyro_bias.tolist()}
     return SimulatedSensors(odo, imu, truth)
 
