@@ -20,6 +20,7 @@ import numpy as np
 
 from omnipipe.errors import DatasetError
 from omnipipe.geometry import transform_from_tum, tum_from_transform
+from omnipipe.inputs.sensors import Imu, Odometry, read_dataset_sensors
 from omnipipe.output import atomic_output_dir, check_output_dir  # noqa: F401 (re-exported)
 from omnipipe.rig import Rig, load_rig
 
@@ -44,6 +45,8 @@ class Dataset:
             copies them into report.json ``warnings``.
         source: for a ROS bag / MCAP file, its :class:`omnipipe.inputs.rosbag.BagImages`
             (``read(index)`` decodes a frame); None otherwise.
+        odometry, imu: the robot's optional sensors (odometry.txt, imu.txt or the bag's
+            topics; :mod:`omnipipe.inputs.sensors`), None when absent.
     """
 
     root: Path
@@ -53,6 +56,8 @@ class Dataset:
     video: Path | None = None
     warnings: tuple[str, ...] = ()
     source: Any = None
+    odometry: Odometry | None = None
+    imu: Imu | None = None
 
     def __len__(self) -> int:
         return len(self.frame_paths)
@@ -312,7 +317,8 @@ def open_dataset(root: str | Path, topic: str | None = None) -> Dataset:
     ts_file = root / "timestamps.txt"
     if ts_file.is_file():
         stamps = _read_timestamps(ts_file, paths)
-    return Dataset(root=root, rig=rig, frame_paths=paths, timestamps=stamps)
+    odometry, imu = read_dataset_sensors(root)
+    return Dataset(root, rig, paths, stamps, odometry=odometry, imu=imu)
 
 
 def _read_timestamps(path: Path, frame_paths: tuple[Path, ...]) -> np.ndarray:

@@ -146,3 +146,86 @@ def test_missing_rosbags_is_one_line(monkeypatch: pytest.MonkeyPatch, tmp_path: 
 
     with pytest.raises(DatasetError, match=r"pip install 'omnipipe\[ros\]'"):
         read_bag(bag)
+
+
+def _sensor_messages(ts, n: int, bad_stamp: bool = False):
+    """nav_msgs/Odometry moving 1 mm per message along x (covariance 0.5 mm^2 in x) and
+    sensor_msgs/Imu at rest with gravity along -y, 20 per second from T0."""
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    V3 = ts.types["geometry_msgs/msg/Vector3"]
+    Quat = ts.types["geometry_msgs/msg/Quaternion"]
+    g = ts.types
+    odo, imu = [], []
+    for i in range(n):
+        ns = T0 * 10**9 + i * 50_000_000
+        if bad_stamp and i == 5:
+            ns -= 100_000_000
+        header = Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="omni")
+        cov = np.zeros(36)
+        cov[0] = 0.5e-6  # m^2
+        pose = g["geometry_msgs/msg/PoseWithCovariance"](
+            pose=g["geometry_msgs/msg/Pose"](
+                position=g["geometry_msgs/msg/Point"](x=0.001 * i, y=0.0, z=0.0),
+                orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+            ),
+            covariance=cov,
+        )
+        twist = g["geometry_msgs/msg/TwistWithCovariance"](
+            twist=g["geometry_msgs/msg/Twist"](linear=V3(x=0.0, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
+            covariance=np.zeros(36),
+        )
+        odo.append((ns, g["nav_msgs/msg/Odometry"](header=header, child_frame_id="rig", pose=pose, twist=twist)))
+        imu.append((ns, g["sensor_msgs/msg/Imu"](
+            header=header, orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=np.zeros(9),
+            angular_velocity=V3(x=0.0, y=0.0, z=0.01), angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=V3(x=0.0, y=9.80665, z=0.0), linear_acceleration_covariance=np.zeros(9),
+        )))  # fmt: skip
+    return odo, imu
+
+
+def _write_ros2_with_sensors(folder: Path, bag: Path, bad_stamp: bool = False) -> None:
+    ts, msgtype, msgs = _messages(folder, Stores.ROS2_HUMBLE, "compressed")
+    odo, imu = _sensor_messages(ts, 30, bad_stamp)
+    with Writer2(bag, version=8, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        conn = writer.add_connection(TOPIC, msgtype, typestore=ts)
+        c_odo = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
+        c_imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=ts)
+        for t, msg in msgs:
+            writer.write(conn, t, ts.serialize_cdr(msg, msgtype))
+        for (t, m), (_, i) in zip(odo, imu, strict=True):
+            writer.write(c_odo, t + 1000, ts.serialize_cdr(m, "nav_msgs/msg/Odometry"))
+            writer.write(c_imu, t + 2000, ts.serialize_cdr(i, "sensor_msgs/msg/Imu"))
+    shutil.copy(folder / "rig.yaml", bag.parent / "rig.yaml")
+
+
+def test_bag_odometry_and_imu_topics_are_read(folder: Path, tmp_path: Path) -> None:
+    from omnipipe.inputs.sensors import gravity_at, odometry_at
+
+    bag = tmp_path / "s" / "bag"
+    bag.parent.mkdir()
+    _write_ros2_with_sensors(folder, bag)
+    ds = open_dataset(bag)
+    assert len(ds) == 8 and ds.odometry is not None and ds.imu is not None
+    np.testing.assert_allclose(ds.odometry.distance_mm, np.arange(30.0), atol=1e-9)
+    np.testing.assert_allclose(ds.odometry.sigma_mm, np.sqrt(0.5), rtol=1e-9)
+    d, s = odometry_at(ds.odometry, ds.timestamps)
+    np.testing.assert_allclose(d, 2.5 * np.arange(8), atol=1e-6)  # frames 8/s, odometry 20/s
+    np.testing.assert_allclose(s, np.sqrt(0.5), rtol=1e-9)
+    np.testing.assert_allclose(ds.imu.gyro[:, 2], 0.01)
+    g, _ = gravity_at(ds.imu, ds.timestamps[4:5], window_s=0.5)
+    np.testing.assert_allclose(g[0], [0.0, -1.0, 0.0], atol=1e-12)
+    # The simulated image folder has odometry.txt; a bag with images only has no sensors.
+    assert open_dataset(folder).odometry is not None
+    plain = tmp_path / "p" / "bag"
+    plain.parent.mkdir()
+    _write_ros2(folder, plain, "compressed", StoragePlugin.SQLITE3)
+    assert open_dataset(plain).odometry is None and open_dataset(plain).imu is None
+
+
+def test_bag_sensor_stamps_out_of_order_are_refused(folder: Path, tmp_path: Path) -> None:
+    bag = tmp_path / "s" / "bag"
+    bag.parent.mkdir()
+    _write_ros2_with_sensors(folder, bag, bad_stamp=True)
+    with pytest.raises(DatasetError, match=r"topic /odom message \d+: time .* increase strictly"):
+        open_dataset(bag)

@@ -9,6 +9,21 @@ the messages were recorded (with a warning).
 
 The messages' payloads are kept in memory and decoded on demand (a compressed image
 is a few hundred kB; raw images take what a decoded video takes).
+
+The robot's sensors (contract section 1), both optional, are read from the bag's only
+topic of each type (:func:`read_bag_sensors`; with several topics of a type none is
+read and a warning says so):
+
+* ``nav_msgs/Odometry``: the distance travelled is the path length of
+  ``pose.pose.position`` (m -> mm) summed from the first message; its sigma is the
+  position's 1-sigma, sqrt(var x + var y + var z) of ``pose.covariance`` (mm), when the
+  covariance is set (else the defaults of :mod:`omnipipe.inputs.sensors`).
+* ``sensor_msgs/Imu``: ``linear_acceleration`` (m/s^2) and ``angular_velocity``
+  (rad/s), which must be in the rig frame (no extrinsic is applied); the gyro is absent
+  when ``angular_velocity_covariance[0]`` is -1 (the ROS convention for "not provided").
+
+Their times are the header stamps; readings whose stamps do not increase strictly are
+refused naming the topic and message.
 """
 
 from __future__ import annotations
@@ -21,8 +36,11 @@ from typing import Any
 import numpy as np
 
 from omnipipe.errors import ConfigError, DatasetError, one_line, yaml_reason
+from omnipipe.inputs.sensors import Imu, Odometry
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+IMU_TYPE = "sensor_msgs/msg/Imu"
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 MISSING = (
     "reading ROS bags and MCAP files needs the optional package 'rosbags': "
@@ -248,6 +266,7 @@ def open_bag(path: str | Path, topic: str | None = None):
     path = Path(path)
     rig = load_rig(find_rig(path))
     images = read_bag(path, topic)
+    odometry, imu, sensor_warnings = read_bag_sensors(path)
     first = images.read(0)
     cam = rig.camera
     if first.shape[:2] != (cam.height, cam.width):
@@ -261,6 +280,74 @@ def open_bag(path: str | Path, topic: str | None = None):
         rig=rig,
         frame_paths=names,
         timestamps=images.timestamps,
-        warnings=images.warnings,
+        warnings=images.warnings + sensor_warnings,
         source=images,
+        odometry=odometry,
+        imu=imu,
     )
+
+
+def _sensor_topic(reader: Any, msgtype: str, path: Path, warnings: list[str]) -> str | None:
+    topics = sorted({c.topic for c in reader.connections if c.msgtype == msgtype})
+    if len(topics) > 1:
+        warnings.append(
+            f"{path.name}: several {msgtype} topics ({', '.join(topics)}); none of them read"
+        )
+        return None
+    return topics[0] if topics else None
+
+
+def _stamp(msg: Any) -> float:
+    return int(msg.header.stamp.sec) + 1e-9 * int(msg.header.stamp.nanosec)
+
+
+def read_bag_sensors(path: Path) -> tuple[Odometry | None, Imu | None, tuple[str, ...]]:
+    """The bag's optional odometry (nav_msgs/Odometry) and IMU (sensor_msgs/Imu), see the
+    module docstring; (None, None, ()) for a bag without them.
+
+    Raises:
+        DatasetError: an unreadable sensor topic, or stamps that do not increase.
+    """
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    from omnipipe.inputs.sensors import make_imu, make_odometry
+
+    path = Path(path)
+    warnings: list[str] = []
+    odometry = imu = None
+    try:
+        with AnyReader([path]) as reader:
+            for msgtype in (ODOMETRY_TYPE, IMU_TYPE):
+                topic = _sensor_topic(reader, msgtype, path, warnings)
+                if topic is None:
+                    continue
+                conns = [c for c in reader.connections if c.topic == topic]
+                msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(conns)]
+                if not msgs:
+                    continue
+                t = np.array([_stamp(m) for m in msgs])
+                where = f"{path} topic {topic} message {{}}".format
+                if msgtype == ODOMETRY_TYPE:
+                    odometry = make_odometry(f"{path} {topic}", t, *_odometry_arrays(msgs), where)
+                else:
+                    acc = np.array([_xyz(m.linear_acceleration) for m in msgs])
+                    gyro = np.array([_xyz(m.angular_velocity) for m in msgs])
+                    has_gyro = float(msgs[0].angular_velocity_covariance[0]) != -1.0
+                    imu = make_imu(f"{path} {topic}", t, acc, gyro if has_gyro else None, where)
+    except (AnyReaderError, OSError, ValueError, KeyError, AttributeError) as exc:
+        raise DatasetError(f"{path}: cannot read the sensor topics ({_reason(exc)})") from None
+    return odometry, imu, tuple(warnings)
+
+
+def _xyz(v: Any) -> tuple[float, float, float]:
+    return float(v.x), float(v.y), float(v.z)
+
+
+def _odometry_arrays(msgs: list[Any]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Path length (mm) of nav_msgs/Odometry positions, and the positions' sigma (mm)
+    when every message states a covariance."""
+    p = np.array([_xyz(m.pose.pose.position) for m in msgs]) * 1000.0
+    distance = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    var = np.array([np.asarray(m.pose.covariance, float)[[0, 7, 14]].sum() for m in msgs])
+    sigma = 1000.0 * np.sqrt(var) if (var > 0).all() else None
+    return distance, sigma

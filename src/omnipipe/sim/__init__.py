@@ -1,7 +1,8 @@
 """Simulator stage: contract datasets with ground truth, from a known pipe and robot run.
 
 ``run(scenario, out_dir)`` renders every frame and writes ``rig.yaml``, ``frames/``,
-``timestamps.txt`` and ``ground_truth/{poses.txt, scene.json}``; the dataset appears
+``timestamps.txt``, the robot's ``odometry.txt`` and ``imu.txt`` (sim/sensors.py) and
+``ground_truth/{poses.txt, scene.json}``; the dataset appears
 at ``out_dir`` only when complete. ``render_sequence`` gives the same frames in memory.
 """
 

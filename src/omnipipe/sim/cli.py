@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 from tqdm import tqdm
 
 from omnipipe import cli_values
 from omnipipe.executor import check_workers
 from omnipipe.output import prepare_output_dir
-from omnipipe.sim.scenarios import SCENARIOS, make_scenario
+from omnipipe.sim.scenarios import SCENARIOS, Scenario, make_scenario
 from omnipipe.sim.writer import run
 
 
@@ -70,7 +71,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="calibration scenario only: render the paper rig as designed, not a random rig",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_sensor_options(p)
     p.set_defaults(func=_main)
+
+
+def _add_sensor_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-odometry", action="store_true", help="do not write the robot's odometry.txt"
+    )
+    p.add_argument("--no-imu", action="store_true", help="do not write the robot's imu.txt")
+
+
+def _apply_sensor_options(scenario: Scenario, args: argparse.Namespace) -> None:
+    scenario.sensors = replace(
+        scenario.sensors, odometry=not args.no_odometry, imu=not args.no_imu
+    )
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -80,6 +95,7 @@ def _main(args: argparse.Namespace) -> int:
         return simulate_main(args)
     scenario = make_scenario(args.scenario, frames=args.frames, size=args.size, seed=args.seed)
     scenario.dark_frames = bool(args.dark_frames)
+    _apply_sensor_options(scenario, args)
     workers = check_workers(args.workers)  # None: every core
     prepare_output_dir(args.out, force=args.force)  # refuse before rendering, not after
     start = time.perf_counter()

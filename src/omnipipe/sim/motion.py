@@ -42,6 +42,8 @@ class MotionConfig:
             ``frames_per_cycle - moving_frames`` frames at rest (>= 1), each stop's rest
             varying by up to ``rest_jitter_frames`` frames (at least 1 frame at rest).
         rest_jitter_frames: per-stop variation of the rest (frames, free rhythm only).
+        min_rest_frames: fewest frames at rest after a stroke (free rhythm only; 0 lets
+            strokes follow each other without a stop, a continuously crawling robot).
     """
 
     n_units: int = 4
@@ -55,6 +57,7 @@ class MotionConfig:
     speed_jitter: float = 0.1
     moving_frames: int | None = None
     rest_jitter_frames: int = 0
+    min_rest_frames: int = 1
 
     def __post_init__(self) -> None:
         if self.n_units < 1:
@@ -65,10 +68,15 @@ class MotionConfig:
             )
         if self.stroke_mm < 0:
             raise ConfigError("motion.stroke_mm", f"must be >= 0, got {self.stroke_mm}")
-        if self.moving_frames is not None and not 1 <= self.moving_frames < self.frames_per_cycle:
+        if self.min_rest_frames < 0:
+            raise ConfigError(
+                "motion.min_rest_frames", f"must be >= 0, got {self.min_rest_frames}"
+            )
+        top = self.frames_per_cycle - self.min_rest_frames
+        if self.moving_frames is not None and not 1 <= self.moving_frames <= top:
             raise ConfigError(
                 "motion.moving_frames",
-                f"must be in [1, frames_per_cycle - 1 = {self.frames_per_cycle - 1}], "
+                f"must be in [1, frames_per_cycle - min_rest_frames = {top}], "
                 f"got {self.moving_frames}",
             )
         if self.rest_jitter_frames < 0:
@@ -110,11 +118,13 @@ def _free_rhythm_travel(
     moving frames (smooth velocity) and a rest of its own length (see MotionConfig)."""
     m = int(config.moving_frames)  # type: ignore[arg-type]
     rest0 = config.frames_per_cycle - m
-    n_cycles = n_frames // (m + 1) + 2  # enough strokes even with the shortest rests
+    min_rest = config.min_rest_frames
+    # Enough strokes even with the shortest rests.
+    n_cycles = n_frames // (m + 1) + 2 if min_rest >= 1 else n_frames // m + 2
     strokes = config.stroke_mm * (1.0 + config.speed_jitter * rng.uniform(-1, 1, n_cycles))
     jit = config.rest_jitter_frames
     rests = rest0 + (rng.integers(-jit, jit + 1, n_cycles) if jit else np.zeros(n_cycles, int))
-    rests = np.maximum(rests, 1)
+    rests = np.maximum(rests, min_rest)
     within = 0.5 * (1.0 - np.cos(np.pi * np.arange(1, m + 1) / m))  # smooth start and stop
     travel = [0.0]
     done = 0.0
@@ -154,6 +164,42 @@ def simulate_trajectory(
         raise ConfigError("frames", f"must be >= 1, got {n_frames}")
     rng = np.random.default_rng(seed)
     travel, moving = head_travel(config, n_frames, rng)
+    poses, sigma = _poses_at_travel(pipe, config, travel, rng)
+    return poses, sigma, moving
+
+
+def poses_at_travel(
+    pipe: Pipe, config: MotionConfig, n_frames: int, seed: int, travel_mm: np.ndarray
+) -> np.ndarray:
+    """Rig poses (M, 4, 4) of the run of :func:`simulate_trajectory` at any head travel
+    ``travel_mm`` (M,) (mm since frame 0): the same disturbances, between the frames too
+    (the simulated IMU samples the run between frames with it)."""
+    rng = np.random.default_rng(seed)
+    head_travel(config, n_frames, rng)  # the same draws as simulate_trajectory
+    poses, _ = _poses_at_travel(pipe, config, np.asarray(travel_mm, float), rng)
+    return poses
+
+
+def travel_at_times(
+    frame_times_s: np.ndarray, travel_mm: np.ndarray, times_s: np.ndarray
+) -> np.ndarray:
+    """Head travel (mm) at any times (s), between frames by monotone cubic (PCHIP)
+    interpolation of the frames' travel: at rest where two frames are at rest, never
+    backwards; before the first and after the last frame the head stands still."""
+    from scipy.interpolate import PchipInterpolator
+
+    t = np.clip(np.asarray(times_s, float), frame_times_s[0], frame_times_s[-1])
+    if len(frame_times_s) < 2:
+        return np.full(t.shape, float(travel_mm[0]))
+    return PchipInterpolator(frame_times_s, travel_mm)(t)
+
+
+def _poses_at_travel(
+    pipe: Pipe, config: MotionConfig, travel: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (M, 4, 4) and stations sigma (M,) at head travel ``travel``; the lateral
+    offset, tilt and roll disturbances drawn from ``rng``."""
+    n_frames = len(travel)
     sigma = config.start_mm + travel
     # Disturbances are functions of the distance travelled, so they freeze when anchored.
     off_n = _smooth_profile(travel, rng, config.lateral_mm)
@@ -171,4 +217,4 @@ def simulate_trajectory(
         wobble = Rotation.from_euler("xyz", [pitch[i], yaw[i], roll[i]]).as_matrix()
         origin = centre[i] + off_n[i] * normal[i] + off_b[i] * binormal[i]
         poses[i] = make_transform(pipe_frame @ wobble, origin)
-    return poses, sigma, moving
+    return poses, sigma

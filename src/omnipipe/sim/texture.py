@@ -11,7 +11,8 @@ Besides that default ``steel`` family, ``TextureConfig.family`` selects other wa
 (randomised scenarios, docs/simulator.md): ``brick`` (running bond with mortar
 joints), ``tiles`` (square glazed tiles with grout), ``joints`` (concrete or plastic
 pipe sections with circumferential joints, or corrugated metal), ``smooth`` (low
-contrast plastic or lined wall); any family can carry extra ``stains`` and a
+contrast plastic or lined wall), ``photo`` (aperiodic, with a natural photograph's
+1/f^2 spectrum and edges at every scale: weathered concrete, scale, deposits); any family can carry extra ``stains`` and a
 reduced ``contrast``.
 """
 
@@ -26,7 +27,7 @@ import scipy.fft as sfft
 
 from omnipipe.errors import ConfigError
 
-TEXTURE_FAMILIES = ("steel", "brick", "tiles", "joints", "smooth")
+TEXTURE_FAMILIES = ("steel", "brick", "tiles", "joints", "smooth", "photo")
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class TextureConfig:
 
     Attributes:
         texel_mm: texture sample spacing on the wall (mm).
-        family: "steel" (the knobs below), "brick", "tiles", "joints" or "smooth".
+        family: "steel" (the knobs below), "brick", "tiles", "joints", "smooth" or "photo".
         rust_cover: fraction of the wall covered by rust (0..1).
         pit_density_per_cm2: small dark pits per square centimetre.
         girth_weld_spacing_mm: distance between circumferential welds (0: none).
@@ -44,7 +45,8 @@ class TextureConfig:
         course_mm: brick: course height (mm).
         joint_mm: width of mortar joints, grout lines or pipe joints (mm).
         variant: brick: "along" (long side along the axis, courses around it) or
-            "around" (courses are rings along the axis); tiles: "grid" or "offset";
+            "around" (courses are rings along the axis); tiles: "grid", "offset" or
+            "mosaic" (a grid of small tiles of several glaze colours);
             joints: "concrete", "plastic" or "corrugated"; smooth: "pvc" or "lined".
         base_rgb: main colour of bricks, tiles or wall (None: the family's default).
         contrast: scales the albedo's deviation from its mean (1: as generated).
@@ -178,6 +180,7 @@ class WallTexture:
                 "tiles": self._tiles,
                 "joints": self._joints,
                 "smooth": self._smooth,
+                "photo": self._photo,
             }[cfg.family]
             img = gen(rng, rows, cols)
         if cfg.stain_strength > 0:
@@ -353,7 +356,10 @@ class WallTexture:
         d_circ = np.minimum(wa, s_c - wa)
         dist = np.minimum(d_ax, d_circ) + 0.15 * self._noise(rng, 1.5, coarse=2)
         n_rows = int(row_id.max()) + 1
-        shade = 1.0 + 0.04 * rng.standard_normal((n_rows, n_a, 1))
+        if cfg.variant == "mosaic":  # each tile one of a few glazes, +-10 % in tone
+            shade = self._mosaic_shades(rng, n_rows, n_a)
+        else:
+            shade = 1.0 + 0.04 * rng.standard_normal((n_rows, n_a, 1))
         base = np.array(cfg.base_rgb or (0.78, 0.76, 0.70), np.float32)
         colour = (base * shade).astype(np.float32)[
             np.broadcast_to(row_id[:, None], w.shape), col_f.astype(np.int64) % n_a
@@ -366,6 +372,32 @@ class WallTexture:
         grout_img = grout_rgb * (1.0 + 0.10 * self._noise(rng, 0.8))[..., None]
         m = (1.0 - _smoothstep(dist, 0.5 * grout - 0.3, 0.5 * grout + 0.3))[..., None]
         return (tiles * (1.0 - m) + grout_img * m).astype(np.float32)
+
+    @staticmethod
+    def _mosaic_shades(rng: np.random.Generator, n_rows: int, n_cols: int) -> np.ndarray:
+        """(n_rows, n_cols, 3) colour factors of mosaic tiles: 2-4 glazes mixed at random."""
+        n_glaze = int(rng.integers(2, 5))
+        glazes = 1.0 + 0.25 * rng.uniform(-1.0, 1.0, (n_glaze, 3))
+        pick = rng.integers(0, n_glaze, (n_rows, n_cols))
+        tone = 1.0 + 0.10 * rng.uniform(-1.0, 1.0, (n_rows, n_cols, 1))
+        return glazes[pick] * tone
+
+    def _photo(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """An aperiodic wall with a photograph's statistics: colour fields with a 1/f^2
+        power spectrum, and patches (scale, deposits, spalls) cut out of further 1/f^2
+        fields, so edges of every size and contrast appear, as on weathered concrete."""
+        cfg = self.config
+        base = np.array(cfg.base_rgb or (0.50, 0.48, 0.44), np.float32)
+        lum = self._noise(rng, 2.0, coarse=2)
+        tint = np.stack([self._noise(rng, 2.4, coarse=4) for _ in range(3)], axis=-1)
+        img = base * (1.0 + 0.22 * lum[..., None] + 0.05 * tint)
+        for level, colour in ((0.8, (0.30, 0.26, 0.20)), (1.3, (0.70, 0.68, 0.62))):
+            field_ = self._noise(rng, 2.0, coarse=2) + 0.3 * self._noise(rng, 1.0)
+            mask = _smoothstep(field_, level, level + 0.08)[..., None]
+            detail = 1.0 + 0.15 * self._noise(rng, 1.2)[..., None]
+            img = img * (1.0 - mask) + np.array(colour, np.float32) * detail * mask
+        img *= (1.0 + 0.05 * self._noise(rng, 0.8))[..., None]  # fine grain
+        return img.astype(np.float32)
 
     def _joints(self, rng: np.random.Generator, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Pipe sections with circumferential joints every ``period_mm`` (concrete, plastic)

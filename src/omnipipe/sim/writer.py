@@ -17,6 +17,7 @@ from omnipipe.rig import save_rig
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import Renderer
 from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.sensors import simulate_sensors, write_sensor_files
 from omnipipe.sim.texture import WallTexture
 
 
@@ -160,6 +161,10 @@ def run(
         )
         write_tum(tmp / "ground_truth" / "poses.txt", stamps, poses)
         scene = scene_description(scenario, poses, sigma, moving)
+        if scenario.sensors.odometry or scenario.sensors.imu:
+            sensors = simulate_sensors(scenario, stamps, sigma, poses)
+            write_sensor_files(tmp, sensors)
+            scene["sensors"] = sensors.truth
         (tmp / "ground_truth" / "scene.json").write_text(
             json.dumps(scene, indent=1), encoding="utf-8"
         )
