@@ -1,4 +1,5 @@
-"""The simulated pipe: centreline (straight / constant-radius bend), wall radius with defects.
+"""The simulated pipe: centreline (straight / constant-radius bend), wall radius with defects
+and the features of real pipes (joints, laterals, tapers, ovality, water: sim/features.py).
 
 Pipe coordinates of a world point: arc length ``sigma`` (mm) along the centreline,
 radial distance ``rho`` (mm) from it, and angle ``theta`` (rad) around it, measured
@@ -18,6 +19,14 @@ import numba
 import numpy as np
 
 from omnipipe.errors import ConfigError
+from omnipipe.sim.features import (
+    PipeFeatures,
+    WallTables,
+    pack_tables,
+    section_offset,
+    section_table_kernel,
+    wall_radius_kernel,
+)
 
 DEFECT_KINDS = ("bulge", "dent")
 
@@ -118,6 +127,9 @@ class Pipe:
         defects: bulges and dents.
         ovality: (Dmax - Dmin) / D of an elliptic cross-section, 0 for round.
         ovality_angle_deg: direction of the major axis around the pipe axis.
+        features: joints, laterals, tapers, local ovality, standing water, gravity.
+            The wall function is fixed at construction: build a new Pipe to change
+            defects or features.
     """
 
     inner_diameter_mm: float
@@ -125,6 +137,7 @@ class Pipe:
     defects: list[Defect] = field(default_factory=list)
     ovality: float = 0.0
     ovality_angle_deg: float = 0.0
+    features: PipeFeatures = field(default_factory=PipeFeatures)
 
     def __post_init__(self) -> None:
         if not self.inner_diameter_mm > 0:
@@ -150,6 +163,16 @@ class Pipe:
             self._rb = math.inf
             self._big_phi = 0.0
             self._sigma2 = math.inf
+        self._tables: WallTables | None = None
+        if self.features.shapes_wall:
+            self._tables = pack_tables(
+                self.radius_mm,
+                self.ovality,
+                self.ovality_angle_deg,
+                self.features,
+                _defect_table(self.defects),
+            )
+        self._check_features()
 
     @property
     def radius_mm(self) -> float:
@@ -244,9 +267,23 @@ class Pipe:
 
     # -- wall -------------------------------------------------------------------------
     def wall_radius(self, sigma: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """True wall radius (mm) at (sigma, theta): nominal, ovality and defects."""
+        """True wall radius (mm) at (sigma, theta): nominal, ovality, features and defects."""
         sigma = np.asarray(sigma, dtype=float)
         theta = np.asarray(theta, dtype=float)
+        if self._tables is not None:
+            s, th = np.broadcast_arrays(sigma, theta)
+            tb = self._tables
+            flat = wall_radius_kernel(
+                np.ascontiguousarray(s, dtype=float).ravel(),
+                np.ascontiguousarray(th, dtype=float).ravel(),
+                tb.base,
+                tb.tapers,
+                tb.ovals,
+                tb.joints,
+                tb.offsets,
+                tb.defects,
+            )
+            return flat.reshape(s.shape)
         radius = np.full(np.broadcast(sigma, theta).shape, self.radius_mm)
         if self.ovality:
             # r(theta) = R (1 + (ov/2) cos 2(theta - theta0)): (Dmax - Dmin)/D = ov.
@@ -274,14 +311,17 @@ class Pipe:
         return inward + ov, outward + ov
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description (scene.json's ``pipe``)."""
-        return {
+        """JSON-ready description (scene.json's ``pipe``; ``features`` only when present)."""
+        out = {
             "inner_diameter_mm": self.inner_diameter_mm,
             "ovality": self.ovality,
             "ovality_angle_deg": self.ovality_angle_deg,
             "centreline": asdict(self.centreline),
             "defects": [asdict(d) for d in self.defects],
         }
+        if not self.features.empty:
+            out["features"] = self.features.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Pipe:
@@ -292,7 +332,155 @@ class Pipe:
             defects=[Defect(**d) for d in data.get("defects", [])],
             ovality=float(data.get("ovality", 0.0)),
             ovality_angle_deg=float(data.get("ovality_angle_deg", 0.0)),
+            features=PipeFeatures.from_dict(data.get("features", {})),
         )
+
+    # -- features -----------------------------------------------------------------------
+    def _check_features(self) -> None:
+        for k, lat in enumerate(self.features.laterals):
+            d_main = 2.0 * self.nominal_radius(np.array([lat.axial_mm]))[0]
+            if lat.diameter_mm > 0.8 * d_main:
+                raise ConfigError(
+                    f"features.laterals[{k}].diameter_mm",
+                    f"must be at most 0.8 x the main diameter ({0.8 * d_main:.1f} mm)",
+                )
+        if self.features.water is not None:
+            ref = np.array([self.features.water.reference_mm])
+            if not self.features.water.depth_mm < 2.0 * self.nominal_radius(ref)[0]:
+                raise ConfigError("features.water.depth_mm", "must be less than the diameter")
+
+    def nominal_radius(self, sigma: np.ndarray) -> np.ndarray:
+        """(M,) radius (mm) of the round section at ``sigma``: the nominal one changed by tapers."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        r = np.full(s.shape, self.radius_mm)
+        before = self.radius_mm
+        for t in sorted(self.features.tapers, key=lambda t: t.axial_from_mm):
+            f = np.clip((s - t.axial_from_mm) / (t.axial_to_mm - t.axial_from_mm), 0.0, 1.0)
+            r = r + (0.5 * t.diameter_to_mm - before) * f
+            before = 0.5 * t.diameter_to_mm
+        return r
+
+    def wall_bounds(self) -> tuple[float, float]:
+        """(smallest, largest) wall radius anywhere (mm): brackets for the ray casting."""
+        inward, outward = (
+            sum(d.height_mm for d in self.defects if d.kind == kind) for kind in ("bulge", "dent")
+        )
+        radii = [self.radius_mm] + [0.5 * t.diameter_to_mm for t in self.features.tapers]
+        ov = self.ovality + sum(o.percent / 100.0 for o in self.features.ovalities)
+        shift = 0.0
+        if self._tables is not None and len(self._tables.offsets):
+            shift = float(np.hypot(self._tables.offsets[:, 1], self._tables.offsets[:, 2]).max())
+        depth = max((j.depth_mm for j in self.features.joints), default=0.0)
+        lo = min(radii) * (1.0 - 0.5 * ov) - shift - inward
+        hi = max(radii) * (1.0 + 0.5 * ov) + shift + depth + outward
+        return lo, hi
+
+    def breakpoints(self) -> np.ndarray:
+        """Arc lengths (mm) where the wall function bends sharply: joint edges, taper ends."""
+        out: list[float] = []
+        for j in self.features.joints:
+            for a in (0.5 * (j.gap_mm + j.edge_mm), 0.5 * (j.gap_mm - j.edge_mm)):
+                out += [j.axial_mm - a, j.axial_mm + a]
+        for t in self.features.tapers:
+            out += [t.axial_from_mm, t.axial_to_mm]
+        return np.array(sorted(out), float)
+
+    def section_centre_offset(self, sigma: np.ndarray) -> np.ndarray:
+        """(M, 2) displacement (mm) of the section centre along (N, B) from the joints' offsets."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        if self._tables is None:
+            return np.zeros((len(s), 2))
+        return np.array([section_offset(float(v), self._tables.offsets) for v in s]).reshape(-1, 2)
+
+    def section_table(self, sigma: np.ndarray, n_angles: int = 360) -> np.ndarray:
+        """(M, 3) true Dmax, Dmin (mm) and the direction of Dmax (rad, N towards B, in [0, pi))
+        of the cross-sections at ``sigma``: taper and ovality, not gaps or defects."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        tb = self._section_tables()
+        return section_table_kernel(s, n_angles, tb.base, tb.tapers, tb.ovals)
+
+    def up(self) -> np.ndarray:
+        """(3,) unit vector against gravity, world frame."""
+        return -np.asarray(self.features.gravity, float)
+
+    def _section_tables(self) -> WallTables:
+        """The wall tables without gaps and defects (sections, tapers, ovality, offsets)."""
+        tb = pack_tables(
+            self.radius_mm, self.ovality, self.ovality_angle_deg, self.features, np.zeros((0, 7))
+        )
+        return WallTables(tb.base, tb.tapers, tb.ovals, np.zeros((0, 4)), tb.offsets, tb.defects)
+
+    def invert_height(self, sigma: np.ndarray, n_angles: int = 720) -> np.ndarray:
+        """(M,) height (mm, along :meth:`up`) of the lowest wall point of each section at
+        ``sigma``: taper, ovality and joint offsets included, gaps and defects not."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        centre, normal, binormal, _ = self.frame_at(s)
+        up = self.up()
+        tb = self._section_tables()
+        th = np.linspace(0.0, 2 * np.pi, n_angles, endpoint=False)
+        out = np.empty(len(s))
+        for i in range(len(s)):
+            r = wall_radius_kernel(
+                np.full(n_angles, s[i]),
+                th,
+                tb.base,
+                tb.tapers,
+                tb.ovals,
+                tb.joints,
+                tb.offsets,
+                tb.defects,
+            )
+            dirs = np.cos(th)[:, None] * normal[i] + np.sin(th)[:, None] * binormal[i]
+            out[i] = float(np.min((centre[i] + r[:, None] * dirs) @ up))
+        return out
+
+    def water_level(self) -> float | None:
+        """Height (mm, along :meth:`up`) of the standing water's surface; None without water."""
+        water = self.features.water
+        if water is None:
+            return None
+        return float(self.invert_height(np.array([water.reference_mm]))[0]) + water.depth_mm
+
+    def lateral_frame(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """World geometry of lateral ``index``.
+
+        Returns:
+            origin: (3,) where the branch axis leaves the main centreline (mm).
+            axis: (3,) unit branch axis, away from the main pipe.
+            ref: (3,) unit vector normal to the axis: angle 0 of the branch's texture.
+            radius: branch radius (mm).
+            end: axial coordinate (mm from origin) where the branch ends.
+        """
+        lat = self.features.laterals[index]
+        beta = math.radians(lat.branch_angle_deg)
+        c, n, b, t = self.frame_at(np.array([lat.axial_mm]))
+        th = math.radians(lat.angle_deg)
+        e = math.cos(th) * n[0] + math.sin(th) * b[0]
+        r_main = float(self.nominal_radius(np.array([lat.axial_mm]))[0])
+        origin = c[0] - r_main / math.tan(beta) * t[0]
+        axis = math.cos(beta) * t[0] + math.sin(beta) * e
+        ref = t[0] - (t[0] @ axis) * axis
+        ref /= np.linalg.norm(ref)
+        return origin, axis, ref, 0.5 * lat.diameter_mm, r_main / math.sin(beta) + lat.length_mm
+
+
+def _defect_table(defects: list[Defect]) -> np.ndarray:
+    """(K, 7) defects for the compiled wall kernel (features.WallTables.defects)."""
+    return np.array(
+        [
+            (
+                d.sign * d.height_mm,
+                d.axial_centre_mm,
+                d.length_mm,
+                d.ramp_length_mm,
+                math.radians(d.angle_deg),
+                d.width_mm,
+                d.ramp_width_mm,
+            )
+            for d in defects
+        ],
+        float,
+    ).reshape(-1, 7)
 
 
 @numba.njit(cache=True)
