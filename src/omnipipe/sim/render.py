@@ -344,30 +344,7 @@ class Renderer:
             tb = np.where(np.isfinite(tb), tb, t_in[:, None])
             cols.extend(np.clip(tb, t_in[:, None], t_out[:, None]).T)
         ts = np.sort(np.stack(cols, axis=1), axis=1)
-        return self._first_crossing(o, D, ts)
-
-    def _first_crossing(self, o: np.ndarray, D: np.ndarray, ts: np.ndarray) -> np.ndarray:
-        """First inside-to-outside sign change of the wall residual over the (M, K) sample
-        distances ``ts`` (sorted per ray), refined by Illinois regula falsi."""
-        n = ts.shape[1]
-        g = np.stack([self._wall_residual(o, D, ts[:, k])[0] for k in range(n)], axis=1)
-        crossing = (g[:, :-1] < 0) & (g[:, 1:] >= 0)
-        k = np.where(crossing.any(axis=1), np.argmax(crossing, axis=1), n - 2)
-        rows = np.arange(len(D))
-        lo, hi = ts[rows, k], ts[rows, k + 1]
-        g_lo, g_hi = g[rows, k], g[rows, k + 1]
-        mid = lo
-        for _ in range(14):
-            mid = lo - g_lo * (hi - lo) / np.where(g_hi > g_lo, g_hi - g_lo, 1.0)
-            gm, _ = self._wall_residual(o, D, mid)
-            below = gm < 0
-            lo, g_lo, g_hi = (
-                np.where(below, mid, lo),
-                np.where(below, gm, 0.5 * g_lo),
-                np.where(below, 0.5 * g_hi, g_hi),
-            )
-            hi, g_hi = np.where(below, hi, mid), np.where(below, g_hi, gm)
-        return mid
+        return pipe.first_wall_crossing(o, D, ts)
 
     def _in_hole(self, index: int, points_in_world: np.ndarray) -> np.ndarray:
         """(M,) True for main-wall points inside lateral ``index``'s hole."""
@@ -436,9 +413,7 @@ class Renderer:
         sigma, theta = hits.sigma.copy(), hits.theta.copy()
         if len(changed):
             sigma[changed], theta[changed] = pipe.sigma_theta(points[changed])
-        return WallHits(
-            t[:, None] * rays_in_rig, points, sigma, theta, normals, surface, coords
-        )
+        return WallHits(t[:, None] * rays_in_rig, points, sigma, theta, normals, surface, coords)
 
     def _seen_through_holes(
         self, source_in_world: np.ndarray, points_in_world: np.ndarray, surface: np.ndarray

@@ -26,6 +26,7 @@ from omnipipe.sim.features import (
     section_offset,
     section_table_kernel,
     wall_radius_kernel,
+    wall_radius_one,
 )
 
 DEFECT_KINDS = ("bulge", "dent")
@@ -376,10 +377,17 @@ class Pipe:
         return lo, hi
 
     def breakpoints(self) -> np.ndarray:
-        """Arc lengths (mm) where the wall function bends sharply: joint edges, taper ends."""
+        """Arc lengths (mm) where the wall function bends sharply: joint edges, taper ends.
+
+        The renderer samples each ray's wall residual on the planes normal to the
+        centreline there, so no narrow gap edge is stepped over."""
         out: list[float] = []
         for j in self.features.joints:
-            for a in (0.5 * (j.gap_mm + j.edge_mm), 0.5 * (j.gap_mm - j.edge_mm)):
+            # Five points across each edge (a ray can clip an edge's corner between two)
+            # and the centre, where an offset section starts.
+            out.append(j.axial_mm)
+            for f in np.linspace(-0.5, 0.5, 5):
+                a = 0.5 * j.gap_mm + f * j.edge_mm
                 out += [j.axial_mm - a, j.axial_mm + a]
         for t in self.features.tapers:
             out += [t.axial_from_mm, t.axial_to_mm]
@@ -402,6 +410,49 @@ class Pipe:
     def up(self) -> np.ndarray:
         """(3,) unit vector against gravity, world frame."""
         return -np.asarray(self.features.gravity, float)
+
+    def centreline_table(self) -> np.ndarray:
+        """(24,) the centreline packed for the compiled kernels (see ``_coords_one``)."""
+        out = np.zeros(24)
+        out[0:3], out[3:6], out[6:9] = self._t0, self._u_b, self._w
+        if self.centreline.has_bend:
+            end_pt, _, _, end_t = self.frame_at(np.array([self._sigma2]))
+            out[9:12], out[12:15], out[15:18] = self._cb, end_pt[0], end_t[0]
+            out[18:23] = (
+                self._rb,
+                self._big_phi,
+                self.centreline.straight_mm,
+                self._sigma2,
+                self._phi,
+            )
+            out[23] = 1.0
+        return out
+
+    def first_wall_crossing(
+        self, origin_in_world: np.ndarray, rays_in_world: np.ndarray, samples: np.ndarray
+    ) -> np.ndarray:
+        """(M,) distance (mm) where each unit ray first passes from inside the wall to outside.
+
+        Args:
+            samples: (M, K) distances along each ray, sorted, the first inside the wall:
+                the first sign change of rho - wall radius between two of them is refined
+                by Illinois regula falsi. Needs a pipe with joints, tapers or local ovality.
+        """
+        tb = self._tables
+        if tb is None:
+            raise ConfigError("pipe.features", "first_wall_crossing needs a shaped wall")
+        return _first_crossing_kernel(
+            np.asarray(origin_in_world, float),
+            np.ascontiguousarray(rays_in_world, dtype=float),
+            np.ascontiguousarray(samples, dtype=float),
+            self.centreline_table(),
+            tb.base,
+            tb.tapers,
+            tb.ovals,
+            tb.joints,
+            tb.offsets,
+            tb.defects,
+        )
 
     def _section_tables(self) -> WallTables:
         """The wall tables without gaps and defects (sections, tapers, ovality, offsets)."""
@@ -614,3 +665,96 @@ def _ray_radius_bent(
                 break
         t[i] = ti
     return t
+
+
+@numba.njit(cache=True)
+def _coords_one(x0, x1, x2, cl):  # pragma: no cover - compiled
+    """(sigma, rho, theta) of one world point; ``cl`` from Pipe.centreline_table."""
+    if cl[23] == 0.0:  # straight along +z with N = +x, B = +y
+        return x2, math.sqrt(x0 * x0 + x1 * x1), math.atan2(x1, x0)
+    rb, big_phi, straight, sigma2, phi = cl[18], cl[19], cl[20], cl[21], cl[22]
+    y0, y1, y2 = x0 - cl[9], x1 - cl[10], x2 - cl[11]
+    alpha = math.atan2(
+        y0 * cl[0] + y1 * cl[1] + y2 * cl[2], -(y0 * cl[3] + y1 * cl[4] + y2 * cl[5])
+    )
+    if 0.0 < alpha <= big_phi:
+        s = straight + rb * alpha
+    elif alpha > big_phi:
+        s = sigma2 + (x0 - cl[12]) * cl[15] + (x1 - cl[13]) * cl[16] + (x2 - cl[14]) * cl[17]
+    else:
+        s = min(x0 * cl[0] + x1 * cl[1] + x2 * cl[2], straight)
+    if s > straight:
+        a = min((s - straight) / rb, big_phi)
+        ca, sa = math.cos(a), math.sin(a)
+        after = max(s - sigma2, 0.0)
+    else:
+        ca, sa, after = 1.0, 0.0, 0.0
+    cp, sp = math.cos(phi), math.sin(phi)
+    rr = 0.0
+    en = 0.0
+    eb = 0.0
+    for k in range(3):
+        g = cl[3 + k] * sa + cl[k] * ca
+        q = cl[3 + k] * ca - cl[k] * sa
+        if s > straight:
+            c = cl[9 + k] - rb * cl[3 + k] * ca + rb * cl[k] * sa + after * g
+        else:
+            c = s * cl[k]
+        xk = x0 if k == 0 else (x1 if k == 1 else x2)
+        ek = xk - c
+        rr += ek * ek
+        en += ek * (cp * q - sp * cl[6 + k])
+        eb += ek * (sp * q + cp * cl[6 + k])
+    return s, math.sqrt(rr), math.atan2(eb, en)
+
+
+@numba.njit(cache=True)
+def _residual_one(t, o, d, cl, base, tapers, ovals, joints, offsets, defects):  # pragma: no cover
+    s, rho, th = _coords_one(o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2], cl)
+    return rho - wall_radius_one(s, th, base, tapers, ovals, joints, offsets, defects)
+
+
+@numba.njit(cache=True)
+def _first_crossing_kernel(
+    o, D, ts, cl, base, tapers, ovals, joints, offsets, defects
+):  # pragma: no cover - compiled
+    """Per ray: first inside-to-outside sign change over ``ts``, then Illinois regula falsi."""
+    m, n = ts.shape
+    out = np.empty(m)
+    for i in range(m):
+        d = D[i]
+        lo = ts[i, n - 2]
+        hi = ts[i, n - 1]
+        t_prev = ts[i, 0]
+        g_prev = _residual_one(t_prev, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+        g_lo = 0.0
+        g_hi = 0.0
+        found = False
+        for k in range(1, n):
+            tk = ts[i, k]
+            if tk <= t_prev:  # breakpoints clipped to the bracket repeat its ends
+                continue
+            gk = _residual_one(tk, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+            if g_prev < 0.0 and gk >= 0.0:
+                lo, hi, g_lo, g_hi = t_prev, tk, g_prev, gk
+                found = True
+                break
+            t_prev, g_prev = tk, gk
+        if not found:
+            g_lo = _residual_one(lo, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+            g_hi = _residual_one(hi, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+        mid = lo
+        for _ in range(40):
+            den = g_hi - g_lo
+            mid = lo - g_lo * (hi - lo) / den if den > 0.0 else 0.5 * (lo + hi)
+            gm = _residual_one(mid, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+            if abs(gm) < 1e-7 or hi - lo < 1e-7:
+                break
+            if gm < 0.0:
+                lo, g_lo = mid, gm
+                g_hi *= 0.5
+            else:
+                hi, g_hi = mid, gm
+                g_lo *= 0.5
+        out[i] = mid
+    return out
