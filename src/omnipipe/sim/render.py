@@ -334,17 +334,7 @@ class Renderer:
         t0 = self._solve_radius(o, D, pipe.radius_mm)
         t_in = self._solve_radius(o, D, lo, start=t0)
         t_out = np.maximum(self._solve_radius(o, D, hi, start=t0), t_in)
-        cols = [t_in + (t_out - t_in) * f for f in np.linspace(0.0, 1.0, n_samples)]
-        breaks = pipe.breakpoints()
-        if len(breaks):
-            centre, _, _, tangent = pipe.frame_at(breaks)
-            rate = D @ tangent.T  # (M, K)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                tb = ((centre - o) * tangent).sum(axis=1)[None, :] / rate
-            tb = np.where(np.isfinite(tb), tb, t_in[:, None])
-            cols.extend(np.clip(tb, t_in[:, None], t_out[:, None]).T)
-        ts = np.sort(np.stack(cols, axis=1), axis=1)
-        return pipe.first_wall_crossing(o, D, ts)
+        return pipe.first_wall_crossing(o, D, t_in, t_out, n_samples)
 
     def _in_hole(self, index: int, points_in_world: np.ndarray) -> np.ndarray:
         """(M,) True for main-wall points inside lateral ``index``'s hole."""

@@ -429,22 +429,33 @@ class Pipe:
         return out
 
     def first_wall_crossing(
-        self, origin_in_world: np.ndarray, rays_in_world: np.ndarray, samples: np.ndarray
+        self,
+        origin_in_world: np.ndarray,
+        rays_in_world: np.ndarray,
+        t_in: np.ndarray,
+        t_out: np.ndarray,
+        n_samples: int = 20,
     ) -> np.ndarray:
         """(M,) distance (mm) where each unit ray first passes from inside the wall to outside.
 
-        Args:
-            samples: (M, K) distances along each ray, sorted, the first inside the wall:
-                the first sign change of rho - wall radius between two of them is refined
-                by Illinois regula falsi. Needs a pipe with joints, tapers or local ovality.
+        The wall residual (rho - wall radius) is sampled ``n_samples`` times evenly over
+        [t_in, t_out] (t_in inside the wall) and on every plane of :meth:`breakpoints`
+        the ray crosses there; the first sign change is refined by Illinois regula falsi.
+        Needs a pipe with joints, tapers or local ovality.
         """
         tb = self._tables
         if tb is None:
             raise ConfigError("pipe.features", "first_wall_crossing needs a shaped wall")
+        breaks = self.breakpoints()
+        centre, _, _, tangent = self.frame_at(breaks) if len(breaks) else (np.zeros((0, 3)),) * 4
         return _first_crossing_kernel(
             np.asarray(origin_in_world, float),
             np.ascontiguousarray(rays_in_world, dtype=float),
-            np.ascontiguousarray(samples, dtype=float),
+            np.ascontiguousarray(t_in, dtype=float),
+            np.ascontiguousarray(t_out, dtype=float),
+            int(n_samples),
+            np.ascontiguousarray(centre, dtype=float),
+            np.ascontiguousarray(tangent, dtype=float),
             self.centreline_table(),
             tb.base,
             tb.tapers,
@@ -716,24 +727,54 @@ def _residual_one(t, o, d, cl, base, tapers, ovals, joints, offsets, defects):  
 
 @numba.njit(cache=True)
 def _first_crossing_kernel(
-    o, D, ts, cl, base, tapers, ovals, joints, offsets, defects
+    o,
+    D,
+    t_in,
+    t_out,
+    n_uniform,
+    plane_c,
+    plane_t,
+    cl,
+    base,
+    tapers,
+    ovals,
+    joints,
+    offsets,
+    defects,
 ):  # pragma: no cover - compiled
-    """Per ray: first inside-to-outside sign change over ``ts``, then Illinois regula falsi."""
-    m, n = ts.shape
+    """Per ray: samples (uniform and on the planes), first inside-to-outside sign change,
+    then Illinois regula falsi (see Pipe.first_wall_crossing)."""
+    m = D.shape[0]
+    n_planes = plane_c.shape[0]
     out = np.empty(m)
+    ts = np.empty(n_uniform + n_planes)
     for i in range(m):
         d = D[i]
-        lo = ts[i, n - 2]
-        hi = ts[i, n - 1]
-        t_prev = ts[i, 0]
+        a, b = t_in[i], t_out[i]
+        for k in range(n_uniform):
+            ts[k] = a + (b - a) * k / (n_uniform - 1)
+        n = n_uniform
+        for k in range(n_planes):
+            rate = d[0] * plane_t[k, 0] + d[1] * plane_t[k, 1] + d[2] * plane_t[k, 2]
+            if rate != 0.0:
+                tk = (
+                    (plane_c[k, 0] - o[0]) * plane_t[k, 0]
+                    + (plane_c[k, 1] - o[1]) * plane_t[k, 1]
+                    + (plane_c[k, 2] - o[2]) * plane_t[k, 2]
+                ) / rate
+                if a < tk < b:
+                    ts[n] = tk
+                    n += 1
+        samples = np.sort(ts[:n])
+        lo = samples[n - 2]
+        hi = samples[n - 1]
+        t_prev = samples[0]
         g_prev = _residual_one(t_prev, o, d, cl, base, tapers, ovals, joints, offsets, defects)
         g_lo = 0.0
         g_hi = 0.0
         found = False
         for k in range(1, n):
-            tk = ts[i, k]
-            if tk <= t_prev:  # breakpoints clipped to the bracket repeat its ends
-                continue
+            tk = samples[k]
             gk = _residual_one(tk, o, d, cl, base, tapers, ovals, joints, offsets, defects)
             if g_prev < 0.0 and gk >= 0.0:
                 lo, hi, g_lo, g_hi = t_prev, tk, g_prev, gk
