@@ -170,6 +170,21 @@ def feature_description(scenario: Scenario, poses: np.ndarray, sigma: np.ndarray
     def clock(s: float, deg: float) -> float | None:
         return _clock_deg(pipe, s, math.radians(deg))
 
+    out = _feature_entries(pipe, s0, lo, hi, ang, clock)
+    feats = pipe.features
+    g = np.asarray(feats.gravity, float)
+    return {
+        "gravity": g.tolist(),
+        "gravity_in_first_rig_frame": (poses[0][:3, :3].T @ g).round(12).tolist(),
+        "features": out,
+        "stations": _station_truth(pipe, np.arange(lo, hi + 1e-9, STATION_STEP_MM), s0, ang),
+    }
+
+
+def _feature_entries(
+    pipe: Pipe, s0: float, lo: float, hi: float, ang: Callable, clock: Callable
+) -> list[dict]:
+    """scene.json's ``features`` (see :func:`feature_description`)."""
     feats = pipe.features
     out: list[dict] = []
     for j in feats.joints:
@@ -248,13 +263,7 @@ def feature_description(scenario: Scenario, poses: np.ndarray, sigma: np.ndarray
                 "reference_axial_mm": w.reference_mm - s0,
             }
         )
-    g = np.asarray(feats.gravity, float)
-    return {
-        "gravity": g.tolist(),
-        "gravity_in_first_rig_frame": (poses[0][:3, :3].T @ g).round(12).tolist(),
-        "features": out,
-        "stations": _station_truth(pipe, np.arange(lo, hi + 1e-9, STATION_STEP_MM), s0, ang),
-    }
+    return out
 
 
 def _station_truth(pipe: Pipe, grid: np.ndarray, s0: float, ang: Callable) -> list[dict]:
