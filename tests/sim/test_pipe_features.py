@@ -3,6 +3,7 @@ ground truth says; the laser ring lies where the scene puts it; scenarios are de
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -223,6 +224,7 @@ def test_sewer_scene_json_in_the_contract_convention() -> None:
     assert mid["ovality_pct"] == pytest.approx(4.0, abs=0.01)
     assert mid["inner_diameter_mm"] == pytest.approx(300.0, abs=0.01)
     assert mid["water_depth_mm"] == pytest.approx(37.0, abs=0.01)
+    assert Pipe.from_dict(json.loads(json.dumps(scene["pipe"]))) == sc.pipe
 
 
 def test_invalid_features_are_named() -> None:
