@@ -762,10 +762,14 @@ def _first_crossing_kernel(
                     + (plane_c[k, 1] - o[1]) * plane_t[k, 1]
                     + (plane_c[k, 2] - o[2]) * plane_t[k, 2]
                 ) / rate
-                if a < tk < b:
-                    ts[n] = tk
+                if a < tk < b:  # insert in order (the uniform samples are sorted)
+                    j = n
+                    while j > 0 and ts[j - 1] > tk:
+                        ts[j] = ts[j - 1]
+                        j -= 1
+                    ts[j] = tk
                     n += 1
-        samples = np.sort(ts[:n])
+        samples = ts
         lo = samples[n - 2]
         hi = samples[n - 1]
         t_prev = samples[0]
