@@ -17,17 +17,22 @@ the steepest backward rays: that is the image's blind centre.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from omnipipe.camera import OmniCamera
-from omnipipe.geometry import rotate
+from omnipipe.geometry import apply, rotate
 from omnipipe.image import CHANNEL_INDEX
 from omnipipe.rig import Rig
 from omnipipe.sim.scene import Pipe
-from omnipipe.sim.texture import WallTexture
+from omnipipe.sim.texture import TextureConfig, WallTexture
+
+# A branch pipe's own wall: plain PVC-like plastic, unlike any main wall's colour.
+BRANCH_TEXTURE = TextureConfig(
+    family="smooth", variant="pvc", base_rgb=(0.70, 0.48, 0.30), contrast=0.35
+)
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,11 @@ class WallHits:
         points_in_world: (M, 3) hit points in the world frame (mm).
         sigma, theta: (M,) pipe coordinates (mm, rad).
         normals_in_world: (M, 3) unit wall normals pointing into the pipe.
+        surface: (M,) int8 what each ray met, for pipes with laterals or water (None
+            otherwise: all main wall): SURFACE_WALL, SURFACE_WATER, SURFACE_DARK (a
+            branch's open far end) or 1 + k for lateral k's branch wall.
+        branch_coords: (M, 2) the branch wall's texture coordinates (mm along its axis,
+            rad around it) where ``surface`` is a branch, else NaN; None with ``surface``.
     """
 
     points_in_rig: np.ndarray
@@ -101,6 +111,16 @@ class WallHits:
     sigma: np.ndarray
     theta: np.ndarray
     normals_in_world: np.ndarray
+    surface: np.ndarray | None = None
+    branch_coords: np.ndarray | None = None
+
+
+SURFACE_WALL = 0
+SURFACE_WATER = -1
+SURFACE_DARK = -2
+# Standing water: a dark, almost black surface (no laser return: the sheet does not
+# scatter back from a still water surface).
+WATER_ALBEDO = (0.025, 0.03, 0.028)
 
 
 class Renderer:
@@ -151,6 +171,16 @@ class Renderer:
         self.led_in_rig = np.array([0.0, 0.0, led_z])
         # Auto exposure: the gain that keeps the wall of this pipe as bright as in a 202 mm pipe.
         self.gain = (pipe.radius_mm / 101.0) ** 2
+        n_lat = len(pipe.features.laterals)
+        self.branch_geometry = [pipe.lateral_frame(k) for k in range(n_lat)]
+        self.branch_textures = [self._branch_texture(k) for k in range(n_lat)]
+
+    def _branch_texture(self, index: int) -> WallTexture:
+        """Lateral ``index``'s own wall texture (fixed seed per lateral)."""
+        lat = self.pipe.features.laterals[index]
+        end = self.branch_geometry[index][4]
+        cfg = replace(BRANCH_TEXTURE, texel_mm=max(self.texture.texel_mm, 0.5))
+        return WallTexture(math.pi * lat.diameter_mm, (-10.0, end + 10.0), 7919 + index, cfg)
 
     # -- geometry ---------------------------------------------------------------------
     def intersect(
@@ -165,6 +195,8 @@ class Renderer:
         pipe = self.pipe
         o = np.asarray(origin_in_world, float)
         D = rays_in_world
+        if pipe.features.shapes_wall:
+            return self._intersect_shaped(o, D), np.ones(len(D), bool)
         t = self._solve_radius(o, D, pipe.radius_mm)
         if pipe.ovality:
             t = self._newton_wall(o, D, t)
@@ -287,6 +319,139 @@ class Renderer:
         )
         return -grad / np.linalg.norm(grad, axis=1, keepdims=True)
 
+    # -- features (joints, tapers, ovality, laterals, water) ------------------------
+    def _intersect_shaped(self, o: np.ndarray, D: np.ndarray, n_samples: int = 20) -> np.ndarray:
+        """First wall hit (mm along each ray) of a pipe with joints, tapers or local ovality.
+
+        The wall radius lies within :meth:`Pipe.wall_bounds`, so the first hit lies between
+        the distances where each ray reaches those radii. The wall residual is sampled
+        there (``n_samples`` evenly) and on every plane where the wall bends sharply (joint
+        edges, taper ends: no narrow gap edge is stepped over), and the first sign change
+        is refined by regula falsi.
+        """
+        pipe = self.pipe
+        lo, hi = pipe.wall_bounds()
+        t0 = self._solve_radius(o, D, pipe.radius_mm)
+        t_in = self._solve_radius(o, D, lo, start=t0)
+        t_out = np.maximum(self._solve_radius(o, D, hi, start=t0), t_in)
+        return pipe.first_wall_crossing(o, D, t_in, t_out, n_samples)
+
+    def _in_hole(self, index: int, points_in_world: np.ndarray) -> np.ndarray:
+        """(M,) True for main-wall points inside lateral ``index``'s hole."""
+        origin, axis, _, radius, _ = self.branch_geometry[index]
+        v = points_in_world - origin
+        u = v @ axis
+        return (u > 0) & (np.einsum("ij,ij->i", v, v) - u * u < radius * radius)
+
+    def _hit_extras(
+        self,
+        world_from_rig: np.ndarray,
+        rays_in_rig: np.ndarray,
+        rays_world: np.ndarray,
+        t: np.ndarray,
+        hits: WallHits,
+    ) -> WallHits:
+        """Standing water in front of the wall, and branch walls seen through laterals' holes."""
+        pipe = self.pipe
+        o = world_from_rig[:3, 3]
+        surface = np.zeros(len(t), np.int8)
+        coords = np.full((len(t), 2), np.nan)
+        t = t.copy()
+        points, normals = hits.points_in_world.copy(), hits.normals_in_world.copy()
+        water = pipe.features.water
+        if water is not None:
+            up = pipe.up()
+            rate = rays_world @ up
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_w = (float(pipe.water_level()) - o @ up) / rate
+            cand = np.flatnonzero((rate < 0) & (t_w > 0) & (t_w < t))
+            p_w = o + t_w[cand, None] * rays_world[cand]
+            s_w, _ = pipe.sigma_theta(p_w)
+            keep = (s_w >= water.axial_from_mm) & (s_w <= water.axial_to_mm)
+            idx = cand[keep]
+            t[idx], points[idx], normals[idx] = t_w[idx], p_w[keep], up
+            surface[idx] = SURFACE_WATER
+        for k in range(len(self.branch_geometry)):
+            wall_idx = np.flatnonzero(surface == SURFACE_WALL)
+            idx = wall_idx[self._in_hole(k, points[wall_idx])]
+            if len(idx) == 0:
+                continue
+            origin, axis, ref, radius, end = self.branch_geometry[k]
+            d = rays_world[idx]
+            w = o - origin
+            d_p = d - np.outer(d @ axis, axis)
+            w_p = w - (w @ axis) * axis
+            a = np.einsum("ij,ij->i", d_p, d_p)
+            b = d_p @ w_p
+            c = w_p @ w_p - radius * radius
+            t2 = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / np.maximum(a, 1e-12)
+            u = w @ axis + t2 * (d @ axis)
+            far = u > end
+            # Past the branch's end: the dark opening, on the end's plane.
+            t2 = np.where(far, (end - w @ axis) / np.where(far, d @ axis, 1.0), t2)
+            y = o + t2[:, None] * d
+            v = y - origin
+            u = v @ axis
+            radial = v - u[:, None] * axis
+            rr = np.maximum(np.linalg.norm(radial, axis=1), 1e-12)
+            t[idx], points[idx] = t2, y
+            normals[idx] = np.where(far[:, None], -axis, -radial / rr[:, None])
+            surface[idx] = np.where(far, SURFACE_DARK, k + 1)
+            coords[idx, 0] = u
+            coords[idx, 1] = np.arctan2(radial @ np.cross(axis, ref), radial @ ref)
+        changed = np.flatnonzero(surface != SURFACE_WALL)
+        sigma, theta = hits.sigma.copy(), hits.theta.copy()
+        if len(changed):
+            sigma[changed], theta[changed] = pipe.sigma_theta(points[changed])
+        return WallHits(t[:, None] * rays_in_rig, points, sigma, theta, normals, surface, coords)
+
+    def _seen_through_holes(
+        self, source_in_world: np.ndarray, points_in_world: np.ndarray, surface: np.ndarray
+    ) -> np.ndarray:
+        """(M,) 1.0 where the straight path from a light source inside the main pipe to a
+        branch wall point (``surface`` 1 + k) leaves through lateral k's hole, else 0.0."""
+        diff = points_in_world - source_in_world
+        dist = np.linalg.norm(diff, axis=1)
+        dirs = diff / np.maximum(dist, 1e-12)[:, None]
+        t_main, _ = self.intersect(source_in_world, dirs)
+        exit_pts = source_in_world + t_main[:, None] * dirs
+        ok = t_main < dist + 1e-6
+        for k in range(len(self.branch_geometry)):
+            sel = surface == k + 1
+            ok[sel] &= self._in_hole(k, exit_pts[sel])
+        return ok.astype(np.float64)
+
+    def _albedo(self, hits: WallHits, footprint_mm: np.ndarray) -> np.ndarray:
+        """(M, 3) albedo of each hit: main wall texture, water, branch textures, dark ends."""
+        if hits.surface is None:
+            return self.texture.sample(hits.sigma, hits.theta, footprint_mm)
+        out = np.zeros((len(footprint_mm), 3), np.float32)
+        wall = hits.surface == SURFACE_WALL
+        out[wall] = self.texture.sample(hits.sigma[wall], hits.theta[wall], footprint_mm[wall])
+        out[hits.surface == SURFACE_WATER] = WATER_ALBEDO
+        for k, tex in enumerate(self.branch_textures):
+            sel = hits.surface == k + 1
+            if sel.any() and hits.branch_coords is not None:
+                uv = hits.branch_coords[sel]
+                out[sel] = tex.sample(uv[:, 0], uv[:, 1], footprint_mm[sel])
+        return out
+
+    def _laser_extras(
+        self, world_from_rig: np.ndarray, hits: WallHits, footprint: np.ndarray, laser_h: np.ndarray
+    ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+        """(albedo, lit, surface) for :meth:`_laser_image` with water or laterals; Nones without."""
+        if hits.surface is None:
+            return None, None, None
+        albedo = self._albedo(hits, footprint)
+        lit = (hits.surface >= 0).astype(np.float64)  # water and dark ends send nothing back
+        branch = np.flatnonzero((hits.surface > 0) & (np.abs(laser_h) < 30.0))
+        if len(branch):
+            emitter = apply(world_from_rig, self.laser_origin_in_rig[None])[0]
+            lit[branch] = self._seen_through_holes(
+                emitter, hits.points_in_world[branch], hits.surface[branch]
+            )
+        return albedo, lit, hits.surface
+
     # -- image ------------------------------------------------------------------------
     def hit(self, world_from_rig: np.ndarray, rays_in_rig: np.ndarray) -> WallHits:
         """Cast (M, 3) unit rays from the rig at ``world_from_rig`` onto the true wall."""
@@ -299,7 +464,10 @@ class Renderer:
         shaped = near_defect if not self.pipe.ovality else np.ones(len(t), bool)
         if shaped.any():
             normals[shaped] = self.wall_normals(points_world[shaped])
-        return WallHits(t[:, None] * rays_in_rig, points_world, sigma, theta, normals)
+        hits = WallHits(t[:, None] * rays_in_rig, points_world, sigma, theta, normals)
+        if self.pipe.features.laterals or self.pipe.features.water is not None:
+            hits = self._hit_extras(world_from_rig, rays_in_rig, rays_world, t, hits)
+        return hits
 
     def shade(
         self, world_from_rig: np.ndarray, hits: WallHits, footprint_mm: np.ndarray
@@ -310,12 +478,17 @@ class Renderer:
             footprint_mm: (M,) size of each pixel on the wall (mm), for texture filtering.
         """
         cfg = self.config
-        albedo = self.texture.sample(hits.sigma, hits.theta, np.minimum(footprint_mm, 50.0))
+        albedo = self._albedo(hits, np.minimum(footprint_mm, 50.0))
         led_world = world_from_rig[:3, :3] @ self.led_in_rig + world_from_rig[:3, 3]
         to_led = led_world - hits.points_in_world
         dist = np.linalg.norm(to_led, axis=1)
         cos_i = np.clip(np.einsum("ij,ij->i", hits.normals_in_world, to_led) / dist, 0.0, 1.0)
         irradiance = cfg.exposure * cos_i * (100.0 / dist) ** 2
+        if hits.surface is not None and (hits.surface > 0).any():
+            branch = np.flatnonzero(hits.surface > 0)
+            irradiance[branch] *= self._seen_through_holes(
+                led_world, hits.points_in_world[branch], hits.surface[branch]
+            )
         return albedo * irradiance[:, None].astype(np.float32)
 
     @staticmethod
@@ -389,8 +562,9 @@ class Renderer:
 
         laser_h = points_rig @ self.laser_normal + self.laser_offset
         if laser:
+            extras = self._laser_extras(world_from_rig, hits, footprint, laser_h)
             image += self._laser_image(
-                points_rig, laser_h, hits.sigma, hits.theta, footprint, wall, rng
+                points_rig, laser_h, hits.sigma, hits.theta, footprint, wall, rng, *extras
             )
 
         truth = {
@@ -400,7 +574,25 @@ class Renderer:
             "theta": hits.theta,
             "laser_h": laser_h,
         }
+        if hits.surface is not None:
+            truth["surface"] = hits.surface
         return image, truth
+
+    def _grad_at_edges(self, grad: np.ndarray, surface: np.ndarray, wall: np.ndarray) -> np.ndarray:
+        """``grad`` with pixels beside another surface (or the body) set to the median."""
+        h, w = self.camera.height, self.camera.width
+        full = np.full(h * w, 127, np.int16)
+        full[self.index[wall]] = surface
+        img = full.reshape(h, w)
+        edge = np.zeros((h, w), bool)
+        edge[:, 1:] |= img[:, 1:] != img[:, :-1]
+        edge[:, :-1] |= img[:, 1:] != img[:, :-1]
+        edge[1:] |= img[1:] != img[:-1]
+        edge[:-1] |= img[1:] != img[:-1]
+        at = edge.ravel()[self.index[wall]]
+        out = grad.copy()
+        out[at] = float(np.nanmedian(grad))
+        return out
 
     def expose(self, image: np.ndarray, seed: int, noise: bool = True) -> np.ndarray:
         """The sensor: gain, shot and read noise, 8-bit quantisation of an irradiance image.
@@ -429,8 +621,17 @@ class Renderer:
         footprint: np.ndarray,
         wall: np.ndarray,
         rng: np.random.Generator,
+        albedo_all: np.ndarray | None = None,
+        lit: np.ndarray | None = None,
+        surface: np.ndarray | None = None,
     ) -> np.ndarray:
         """The laser line: the sheet's radiance on the wall, then the optics' blur.
+
+        ``albedo_all`` (M, 3) replaces the main texture's albedo of every wall pixel and
+        ``lit`` (M,) scales the sheet's power reaching each (0: under water, a branch's
+        dark end, a branch wall the hole hides from the emitter); None: the main wall.
+        Pixels next to another ``surface`` (M,) straddle a jump in depth: their gradient
+        is not the sheet's across the pixel, so they take the frame's median.
 
         Each pixel sees the wall point on its ray at distance ``h`` (mm) from the sheet's
         centre plane; the sheet's radiance there is Gaussian in ``h`` (sigma
@@ -456,6 +657,8 @@ class Renderer:
         # Gradient of the sheet distance across the image (mm per px), central differences.
         gy, gx = np.gradient(himg)
         grad = np.hypot(gx, gy).ravel()[self.index[wall]]
+        if surface is not None:
+            grad = self._grad_at_edges(grad, surface, wall)
         near = np.isfinite(grad) & (np.abs(laser_h) < 8.0 * cfg.laser_sheet_sigma_mm + 8.0 * grad)
         sel = np.flatnonzero(near)
         out = np.zeros((h * w, 3), np.float32)
@@ -468,10 +671,15 @@ class Renderer:
         # Power per unit length of the line: sheet fan spreads as 1/D; Lambert on the wall.
         to_emitter = self.laser_origin_in_rig - points_rig[sel]
         dist_e = np.linalg.norm(to_emitter, axis=1)
-        albedo = self.texture.sample(sigma[sel], theta[sel], footprint[sel])
+        if albedo_all is None:
+            albedo = self.texture.sample(sigma[sel], theta[sel], footprint[sel])
+        else:
+            albedo = albedo_all[sel]
         chan = CHANNEL_INDEX.get(self.rig.laser.channel)
         refl = albedo[:, chan] if chan is not None else albedo.mean(axis=1)
         line = cfg.laser_power * (100.0 / dist_e) * np.clip(refl / 0.5, 0.2, 2.0) * 0.5
+        if lit is not None:
+            line = line * lit[sel]
         # laser_power is the line integral across the stripe (image value x px) at the
         # frame's median footprint: peak radiance = line / (sqrt(2 pi) sheet / g_ref).
         g_ref = float(np.median(g))

@@ -1,4 +1,5 @@
-"""The simulated pipe: centreline (straight / constant-radius bend), wall radius with defects.
+"""The simulated pipe: centreline (straight / constant-radius bend), wall radius with defects
+and the features of real pipes (joints, laterals, tapers, ovality, water: sim/features.py).
 
 Pipe coordinates of a world point: arc length ``sigma`` (mm) along the centreline,
 radial distance ``rho`` (mm) from it, and angle ``theta`` (rad) around it, measured
@@ -18,6 +19,15 @@ import numba
 import numpy as np
 
 from omnipipe.errors import ConfigError
+from omnipipe.sim.features import (
+    PipeFeatures,
+    WallTables,
+    pack_tables,
+    section_offset,
+    section_table_kernel,
+    wall_radius_kernel,
+    wall_radius_one,
+)
 
 DEFECT_KINDS = ("bulge", "dent")
 
@@ -118,6 +128,9 @@ class Pipe:
         defects: bulges and dents.
         ovality: (Dmax - Dmin) / D of an elliptic cross-section, 0 for round.
         ovality_angle_deg: direction of the major axis around the pipe axis.
+        features: joints, laterals, tapers, local ovality, standing water, gravity.
+            The wall function is fixed at construction: build a new Pipe to change
+            defects or features.
     """
 
     inner_diameter_mm: float
@@ -125,6 +138,7 @@ class Pipe:
     defects: list[Defect] = field(default_factory=list)
     ovality: float = 0.0
     ovality_angle_deg: float = 0.0
+    features: PipeFeatures = field(default_factory=PipeFeatures)
 
     def __post_init__(self) -> None:
         if not self.inner_diameter_mm > 0:
@@ -150,6 +164,16 @@ class Pipe:
             self._rb = math.inf
             self._big_phi = 0.0
             self._sigma2 = math.inf
+        self._tables: WallTables | None = None
+        if self.features.shapes_wall:
+            self._tables = pack_tables(
+                self.radius_mm,
+                self.ovality,
+                self.ovality_angle_deg,
+                self.features,
+                _defect_table(self.defects),
+            )
+        self._check_features()
 
     @property
     def radius_mm(self) -> float:
@@ -244,9 +268,23 @@ class Pipe:
 
     # -- wall -------------------------------------------------------------------------
     def wall_radius(self, sigma: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """True wall radius (mm) at (sigma, theta): nominal, ovality and defects."""
+        """True wall radius (mm) at (sigma, theta): nominal, ovality, features and defects."""
         sigma = np.asarray(sigma, dtype=float)
         theta = np.asarray(theta, dtype=float)
+        if self._tables is not None:
+            s, th = np.broadcast_arrays(sigma, theta)
+            tb = self._tables
+            flat = wall_radius_kernel(
+                np.ascontiguousarray(s, dtype=float).ravel(),
+                np.ascontiguousarray(th, dtype=float).ravel(),
+                tb.base,
+                tb.tapers,
+                tb.ovals,
+                tb.joints,
+                tb.offsets,
+                tb.defects,
+            )
+            return flat.reshape(s.shape)
         radius = np.full(np.broadcast(sigma, theta).shape, self.radius_mm)
         if self.ovality:
             # r(theta) = R (1 + (ov/2) cos 2(theta - theta0)): (Dmax - Dmin)/D = ov.
@@ -274,14 +312,17 @@ class Pipe:
         return inward + ov, outward + ov
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description (scene.json's ``pipe``)."""
-        return {
+        """JSON-ready description (scene.json's ``pipe``; ``features`` only when present)."""
+        out = {
             "inner_diameter_mm": self.inner_diameter_mm,
             "ovality": self.ovality,
             "ovality_angle_deg": self.ovality_angle_deg,
             "centreline": asdict(self.centreline),
             "defects": [asdict(d) for d in self.defects],
         }
+        if not self.features.empty:
+            out["features"] = self.features.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Pipe:
@@ -292,7 +333,216 @@ class Pipe:
             defects=[Defect(**d) for d in data.get("defects", [])],
             ovality=float(data.get("ovality", 0.0)),
             ovality_angle_deg=float(data.get("ovality_angle_deg", 0.0)),
+            features=PipeFeatures.from_dict(data.get("features", {})),
         )
+
+    # -- features -----------------------------------------------------------------------
+    def _check_features(self) -> None:
+        for k, lat in enumerate(self.features.laterals):
+            d_main = 2.0 * self.nominal_radius(np.array([lat.axial_mm]))[0]
+            if lat.diameter_mm > 0.8 * d_main:
+                raise ConfigError(
+                    f"features.laterals[{k}].diameter_mm",
+                    f"must be at most 0.8 x the main diameter ({0.8 * d_main:.1f} mm)",
+                )
+        if self.features.water is not None:
+            ref = np.array([self.features.water.reference_mm])
+            if not self.features.water.depth_mm < 2.0 * self.nominal_radius(ref)[0]:
+                raise ConfigError("features.water.depth_mm", "must be less than the diameter")
+
+    def nominal_radius(self, sigma: np.ndarray) -> np.ndarray:
+        """(M,) radius (mm) of the round section at ``sigma``: the nominal one changed by tapers."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        r = np.full(s.shape, self.radius_mm)
+        before = self.radius_mm
+        for t in sorted(self.features.tapers, key=lambda t: t.axial_from_mm):
+            f = np.clip((s - t.axial_from_mm) / (t.axial_to_mm - t.axial_from_mm), 0.0, 1.0)
+            r = r + (0.5 * t.diameter_to_mm - before) * f
+            before = 0.5 * t.diameter_to_mm
+        return r
+
+    def wall_bounds(self) -> tuple[float, float]:
+        """(smallest, largest) wall radius anywhere (mm): brackets for the ray casting."""
+        inward, outward = (
+            sum(d.height_mm for d in self.defects if d.kind == kind) for kind in ("bulge", "dent")
+        )
+        radii = [self.radius_mm] + [0.5 * t.diameter_to_mm for t in self.features.tapers]
+        ov = self.ovality + sum(o.percent / 100.0 for o in self.features.ovalities)
+        shift = 0.0
+        if self._tables is not None and len(self._tables.offsets):
+            shift = float(np.hypot(self._tables.offsets[:, 1], self._tables.offsets[:, 2]).max())
+        depth = max((j.depth_mm for j in self.features.joints), default=0.0)
+        lo = min(radii) * (1.0 - 0.5 * ov) - shift - inward
+        hi = max(radii) * (1.0 + 0.5 * ov) + shift + depth + outward
+        return lo, hi
+
+    def breakpoints(self) -> np.ndarray:
+        """Arc lengths (mm) where the wall function bends sharply: joint edges, taper ends.
+
+        The renderer samples each ray's wall residual on the planes normal to the
+        centreline there, so no narrow gap edge is stepped over."""
+        out: list[float] = []
+        for j in self.features.joints:
+            # Five points across each edge (a ray can clip an edge's corner between two)
+            # and the centre, where an offset section starts.
+            out.append(j.axial_mm)
+            for f in np.linspace(-0.5, 0.5, 5):
+                a = 0.5 * j.gap_mm + f * j.edge_mm
+                out += [j.axial_mm - a, j.axial_mm + a]
+        for t in self.features.tapers:
+            out += [t.axial_from_mm, t.axial_to_mm]
+        return np.array(sorted(out), float)
+
+    def section_centre_offset(self, sigma: np.ndarray) -> np.ndarray:
+        """(M, 2) displacement (mm) of the section centre along (N, B) from the joints' offsets."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        if self._tables is None:
+            return np.zeros((len(s), 2))
+        return np.array([section_offset(float(v), self._tables.offsets) for v in s]).reshape(-1, 2)
+
+    def section_table(self, sigma: np.ndarray, n_angles: int = 360) -> np.ndarray:
+        """(M, 3) true Dmax, Dmin (mm) and the direction of Dmax (rad, N towards B, in [0, pi))
+        of the cross-sections at ``sigma``: taper and ovality, not gaps or defects."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        tb = self._section_tables()
+        return section_table_kernel(s, n_angles, tb.base, tb.tapers, tb.ovals)
+
+    def up(self) -> np.ndarray:
+        """(3,) unit vector against gravity, world frame."""
+        return -np.asarray(self.features.gravity, float)
+
+    def centreline_table(self) -> np.ndarray:
+        """(24,) the centreline packed for the compiled kernels (see ``_coords_one``)."""
+        out = np.zeros(24)
+        out[0:3], out[3:6], out[6:9] = self._t0, self._u_b, self._w
+        if self.centreline.has_bend:
+            end_pt, _, _, end_t = self.frame_at(np.array([self._sigma2]))
+            out[9:12], out[12:15], out[15:18] = self._cb, end_pt[0], end_t[0]
+            out[18:23] = (
+                self._rb,
+                self._big_phi,
+                self.centreline.straight_mm,
+                self._sigma2,
+                self._phi,
+            )
+            out[23] = 1.0
+        return out
+
+    def first_wall_crossing(
+        self,
+        origin_in_world: np.ndarray,
+        rays_in_world: np.ndarray,
+        t_in: np.ndarray,
+        t_out: np.ndarray,
+        n_samples: int = 20,
+    ) -> np.ndarray:
+        """(M,) distance (mm) where each unit ray first passes from inside the wall to outside.
+
+        The wall residual (rho - wall radius) is sampled ``n_samples`` times evenly over
+        [t_in, t_out] (t_in inside the wall) and on every plane of :meth:`breakpoints`
+        the ray crosses there; the first sign change is refined by Illinois regula falsi.
+        Needs a pipe with joints, tapers or local ovality.
+        """
+        tb = self._tables
+        if tb is None:
+            raise ConfigError("pipe.features", "first_wall_crossing needs a shaped wall")
+        breaks = self.breakpoints()
+        centre, _, _, tangent = self.frame_at(breaks) if len(breaks) else (np.zeros((0, 3)),) * 4
+        return _first_crossing_kernel(
+            np.asarray(origin_in_world, float),
+            np.ascontiguousarray(rays_in_world, dtype=float),
+            np.ascontiguousarray(t_in, dtype=float),
+            np.ascontiguousarray(t_out, dtype=float),
+            int(n_samples),
+            np.ascontiguousarray(centre, dtype=float),
+            np.ascontiguousarray(tangent, dtype=float),
+            self.centreline_table(),
+            tb.base,
+            tb.tapers,
+            tb.ovals,
+            tb.joints,
+            tb.offsets,
+            tb.defects,
+        )
+
+    def _section_tables(self) -> WallTables:
+        """The wall tables without gaps and defects (sections, tapers, ovality, offsets)."""
+        tb = pack_tables(
+            self.radius_mm, self.ovality, self.ovality_angle_deg, self.features, np.zeros((0, 7))
+        )
+        return WallTables(tb.base, tb.tapers, tb.ovals, np.zeros((0, 4)), tb.offsets, tb.defects)
+
+    def invert_height(self, sigma: np.ndarray, n_angles: int = 720) -> np.ndarray:
+        """(M,) height (mm, along :meth:`up`) of the lowest wall point of each section at
+        ``sigma``: taper, ovality and joint offsets included, gaps and defects not."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        centre, normal, binormal, _ = self.frame_at(s)
+        up = self.up()
+        tb = self._section_tables()
+        th = np.linspace(0.0, 2 * np.pi, n_angles, endpoint=False)
+        out = np.empty(len(s))
+        for i in range(len(s)):
+            r = wall_radius_kernel(
+                np.full(n_angles, s[i]),
+                th,
+                tb.base,
+                tb.tapers,
+                tb.ovals,
+                tb.joints,
+                tb.offsets,
+                tb.defects,
+            )
+            dirs = np.cos(th)[:, None] * normal[i] + np.sin(th)[:, None] * binormal[i]
+            out[i] = float(np.min((centre[i] + r[:, None] * dirs) @ up))
+        return out
+
+    def water_level(self) -> float | None:
+        """Height (mm, along :meth:`up`) of the standing water's surface; None without water."""
+        water = self.features.water
+        if water is None:
+            return None
+        return float(self.invert_height(np.array([water.reference_mm]))[0]) + water.depth_mm
+
+    def lateral_frame(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """World geometry of lateral ``index``.
+
+        Returns:
+            origin: (3,) where the branch axis leaves the main centreline (mm).
+            axis: (3,) unit branch axis, away from the main pipe.
+            ref: (3,) unit vector normal to the axis: angle 0 of the branch's texture.
+            radius: branch radius (mm).
+            end: axial coordinate (mm from origin) where the branch ends.
+        """
+        lat = self.features.laterals[index]
+        beta = math.radians(lat.branch_angle_deg)
+        c, n, b, t = self.frame_at(np.array([lat.axial_mm]))
+        th = math.radians(lat.angle_deg)
+        e = math.cos(th) * n[0] + math.sin(th) * b[0]
+        r_main = float(self.nominal_radius(np.array([lat.axial_mm]))[0])
+        origin = c[0] - r_main / math.tan(beta) * t[0]
+        axis = math.cos(beta) * t[0] + math.sin(beta) * e
+        ref = t[0] - (t[0] @ axis) * axis
+        ref /= np.linalg.norm(ref)
+        return origin, axis, ref, 0.5 * lat.diameter_mm, r_main / math.sin(beta) + lat.length_mm
+
+
+def _defect_table(defects: list[Defect]) -> np.ndarray:
+    """(K, 7) defects for the compiled wall kernel (features.WallTables.defects)."""
+    return np.array(
+        [
+            (
+                d.sign * d.height_mm,
+                d.axial_centre_mm,
+                d.length_mm,
+                d.ramp_length_mm,
+                math.radians(d.angle_deg),
+                d.width_mm,
+                d.ramp_width_mm,
+            )
+            for d in defects
+        ],
+        float,
+    ).reshape(-1, 7)
 
 
 @numba.njit(cache=True)
@@ -426,3 +676,130 @@ def _ray_radius_bent(
                 break
         t[i] = ti
     return t
+
+
+@numba.njit(cache=True)
+def _coords_one(x0, x1, x2, cl):  # pragma: no cover - compiled
+    """(sigma, rho, theta) of one world point; ``cl`` from Pipe.centreline_table."""
+    if cl[23] == 0.0:  # straight along +z with N = +x, B = +y
+        return x2, math.sqrt(x0 * x0 + x1 * x1), math.atan2(x1, x0)
+    rb, big_phi, straight, sigma2, phi = cl[18], cl[19], cl[20], cl[21], cl[22]
+    y0, y1, y2 = x0 - cl[9], x1 - cl[10], x2 - cl[11]
+    alpha = math.atan2(
+        y0 * cl[0] + y1 * cl[1] + y2 * cl[2], -(y0 * cl[3] + y1 * cl[4] + y2 * cl[5])
+    )
+    if 0.0 < alpha <= big_phi:
+        s = straight + rb * alpha
+    elif alpha > big_phi:
+        s = sigma2 + (x0 - cl[12]) * cl[15] + (x1 - cl[13]) * cl[16] + (x2 - cl[14]) * cl[17]
+    else:
+        s = min(x0 * cl[0] + x1 * cl[1] + x2 * cl[2], straight)
+    if s > straight:
+        a = min((s - straight) / rb, big_phi)
+        ca, sa = math.cos(a), math.sin(a)
+        after = max(s - sigma2, 0.0)
+    else:
+        ca, sa, after = 1.0, 0.0, 0.0
+    cp, sp = math.cos(phi), math.sin(phi)
+    rr = 0.0
+    en = 0.0
+    eb = 0.0
+    for k in range(3):
+        g = cl[3 + k] * sa + cl[k] * ca
+        q = cl[3 + k] * ca - cl[k] * sa
+        if s > straight:
+            c = cl[9 + k] - rb * cl[3 + k] * ca + rb * cl[k] * sa + after * g
+        else:
+            c = s * cl[k]
+        xk = x0 if k == 0 else (x1 if k == 1 else x2)
+        ek = xk - c
+        rr += ek * ek
+        en += ek * (cp * q - sp * cl[6 + k])
+        eb += ek * (sp * q + cp * cl[6 + k])
+    return s, math.sqrt(rr), math.atan2(eb, en)
+
+
+@numba.njit(cache=True)
+def _residual_one(t, o, d, cl, base, tapers, ovals, joints, offsets, defects):  # pragma: no cover
+    s, rho, th = _coords_one(o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2], cl)
+    return rho - wall_radius_one(s, th, base, tapers, ovals, joints, offsets, defects)
+
+
+@numba.njit(cache=True)
+def _first_crossing_kernel(
+    o,
+    D,
+    t_in,
+    t_out,
+    n_uniform,
+    plane_c,
+    plane_t,
+    cl,
+    base,
+    tapers,
+    ovals,
+    joints,
+    offsets,
+    defects,
+):  # pragma: no cover - compiled
+    """Per ray: samples (uniform and on the planes), first inside-to-outside sign change,
+    then Illinois regula falsi (see Pipe.first_wall_crossing)."""
+    m = D.shape[0]
+    n_planes = plane_c.shape[0]
+    out = np.empty(m)
+    ts = np.empty(n_uniform + n_planes)
+    for i in range(m):
+        d = D[i]
+        a, b = t_in[i], t_out[i]
+        for k in range(n_uniform):
+            ts[k] = a + (b - a) * k / (n_uniform - 1)
+        n = n_uniform
+        for k in range(n_planes):
+            rate = d[0] * plane_t[k, 0] + d[1] * plane_t[k, 1] + d[2] * plane_t[k, 2]
+            if rate != 0.0:
+                tk = (
+                    (plane_c[k, 0] - o[0]) * plane_t[k, 0]
+                    + (plane_c[k, 1] - o[1]) * plane_t[k, 1]
+                    + (plane_c[k, 2] - o[2]) * plane_t[k, 2]
+                ) / rate
+                if a < tk < b:  # insert in order (the uniform samples are sorted)
+                    j = n
+                    while j > 0 and ts[j - 1] > tk:
+                        ts[j] = ts[j - 1]
+                        j -= 1
+                    ts[j] = tk
+                    n += 1
+        samples = ts
+        lo = samples[n - 2]
+        hi = samples[n - 1]
+        t_prev = samples[0]
+        g_prev = _residual_one(t_prev, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+        g_lo = 0.0
+        g_hi = 0.0
+        found = False
+        for k in range(1, n):
+            tk = samples[k]
+            gk = _residual_one(tk, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+            if g_prev < 0.0 and gk >= 0.0:
+                lo, hi, g_lo, g_hi = t_prev, tk, g_prev, gk
+                found = True
+                break
+            t_prev, g_prev = tk, gk
+        if not found:
+            g_lo = _residual_one(lo, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+            g_hi = _residual_one(hi, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+        mid = lo
+        for _ in range(40):
+            den = g_hi - g_lo
+            mid = lo - g_lo * (hi - lo) / den if den > 0.0 else 0.5 * (lo + hi)
+            gm = _residual_one(mid, o, d, cl, base, tapers, ovals, joints, offsets, defects)
+            if abs(gm) < 1e-7 or hi - lo < 1e-7:
+                break
+            if gm < 0.0:
+                lo, g_lo = mid, gm
+                g_hi *= 0.5
+            else:
+                hi, g_hi = mid, gm
+                g_lo *= 0.5
+        out[i] = mid
+    return out

@@ -17,6 +17,7 @@ from omnipipe.rig import save_rig
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import Renderer
 from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.scene import Pipe
 from omnipipe.sim.sensors import simulate_sensors, write_sensor_files
 from omnipipe.sim.texture import WallTexture
 
@@ -110,6 +111,8 @@ def scene_description(
             "centreline, angle_deg around the axis from the first rig frame's x axis towards y",
             "pipe.defects": "pipe convention: axial_start_mm is centreline arc length from sigma=0, "
             "angle_deg from the transported normal N (world +x at sigma=0) towards B",
+            "features": "contract convention as defects; *clock_deg from 12:00 (against gravity), "
+            "clockwise looking downstream; pipe.features holds them in the pipe convention",
         },
         "first_station_sigma_mm": s0,
         "first_frame_angle_offset_deg": angle0,
@@ -123,7 +126,170 @@ def scene_description(
         "render": asdict(scenario.render),
         "texture": asdict(scenario.texture),
         **({"random": scenario.random} if scenario.random is not None else {}),
+        **feature_description(scenario, poses, sigma),
     }
+
+
+STATION_STEP_MM = 5.0
+
+
+def _clock_deg(pipe: Pipe, sigma: float, theta_rad: float) -> float | None:
+    """Clock position (deg, 0 = 12:00, clockwise looking downstream) of a pipe angle at
+    ``sigma``; None where the axis is vertical."""
+    _, n, b, t = pipe.frame_at(np.array([sigma]))
+    up = pipe.up()
+    up_p = up - (up @ t[0]) * t[0]
+    if np.linalg.norm(up_p) < 1e-6:
+        return None
+    up_p /= np.linalg.norm(up_p)
+    e = math.cos(theta_rad) * n[0] + math.sin(theta_rad) * b[0]
+    right = np.cross(t[0], up_p)
+    return math.degrees(math.atan2(e @ right, e @ up_p)) % 360.0
+
+
+def feature_description(scenario: Scenario, poses: np.ndarray, sigma: np.ndarray) -> dict:
+    """scene.json's ``gravity``, ``features`` and ``stations`` in the contract's convention.
+
+    ``features`` lists joints, laterals, the bend, tapers, ovality and water (the
+    DATA_CONTRACT's "Real pipes" keys, plus ``clock_deg``-style keys from 12:00 and the
+    simulator's own sizes); features longer than the simulated stretch (from 300 mm
+    behind the first station to 500 mm past the last) are clipped to it. ``stations``
+    samples the true cross-section every 5 mm over that stretch: mean, smallest and
+    largest diameter, ovality and its direction, water depth (gaps and defects are
+    not part of it: they are in ``features`` and ``defects``).
+    """
+    pipe = scenario.pipe
+    s0 = float(sigma[0])
+    _, normal, binormal, tangent = pipe.frame_at(np.array([s0]))
+    x0 = poses[0][:3, 0] - (poses[0][:3, 0] @ tangent[0]) * tangent[0]
+    angle0 = math.degrees(math.atan2(x0 @ binormal[0], x0 @ normal[0]))
+    lo, hi = float(sigma.min()) - 300.0, float(sigma.max()) + 500.0
+
+    def ang(deg: float, period: float = 360.0) -> float:
+        return (deg - angle0) % period
+
+    def clock(s: float, deg: float) -> float | None:
+        return _clock_deg(pipe, s, math.radians(deg))
+
+    out = _feature_entries(pipe, s0, lo, hi, ang, clock)
+    feats = pipe.features
+    g = np.asarray(feats.gravity, float)
+    return {
+        "gravity": g.tolist(),
+        "gravity_in_first_rig_frame": (poses[0][:3, :3].T @ g).round(12).tolist(),
+        "features": out,
+        "stations": _station_truth(pipe, np.arange(lo, hi + 1e-9, STATION_STEP_MM), s0, ang),
+    }
+
+
+def _feature_entries(
+    pipe: Pipe, s0: float, lo: float, hi: float, ang: Callable, clock: Callable
+) -> list[dict]:
+    """scene.json's ``features`` (see :func:`feature_description`)."""
+    feats = pipe.features
+    out: list[dict] = []
+    for j in feats.joints:
+        out.append(
+            {
+                "kind": "joint",
+                "axial_mm": j.axial_mm - s0,
+                "gap_mm": j.gap_mm,
+                "offset_mm": j.offset_mm,
+                "offset_angle_deg": ang(j.offset_angle_deg),
+                "offset_clock_deg": clock(j.axial_mm, j.offset_angle_deg),
+                "depth_mm": j.depth_mm,
+            }
+        )
+    for v in feats.laterals:
+        out.append(
+            {
+                "kind": "lateral",
+                "axial_mm": v.axial_mm - s0,
+                "angle_deg": ang(v.angle_deg),
+                "clock_deg": clock(v.axial_mm, v.angle_deg),
+                "diameter_mm": v.diameter_mm,
+                "branch_angle_deg": v.branch_angle_deg,
+                "length_mm": v.length_mm,
+            }
+        )
+    cl = pipe.centreline
+    if cl.has_bend:
+        arc = float(cl.bend_radius_mm) * math.radians(cl.bend_angle_deg)  # type: ignore[arg-type]
+        out.append(
+            {
+                "kind": "bend",
+                "axial_from_mm": cl.straight_mm - s0,
+                "axial_to_mm": cl.straight_mm + arc - s0,
+                "radius_mm": cl.bend_radius_mm,
+                "turn_deg": cl.bend_angle_deg,
+                "direction_deg": ang(cl.bend_direction_deg),
+            }
+        )
+    for t in feats.tapers:
+        out.append(
+            {
+                "kind": "taper",
+                "axial_from_mm": t.axial_from_mm - s0,
+                "axial_to_mm": t.axial_to_mm - s0,
+                "diameter_from_mm": 2.0
+                * float(pipe.nominal_radius(np.array([t.axial_from_mm]))[0]),
+                "diameter_to_mm": t.diameter_to_mm,
+            }
+        )
+    ovals = [
+        (o.axial_from_mm, o.axial_to_mm, o.percent, o.angle_deg, o.blend_mm)
+        for o in feats.ovalities
+    ]
+    if pipe.ovality:
+        ovals.append((lo, hi, 100.0 * pipe.ovality, pipe.ovality_angle_deg, 0.0))
+    for a, b, pct, deg, blend in ovals:
+        out.append(
+            {
+                "kind": "ovality",
+                "axial_from_mm": max(a, lo) - s0,
+                "axial_to_mm": min(b, hi) - s0,
+                "percent": pct,
+                "angle_deg": ang(deg, 180.0),
+                "blend_mm": blend,
+            }
+        )
+    if feats.water is not None:
+        w = feats.water
+        out.append(
+            {
+                "kind": "water",
+                "axial_from_mm": max(w.axial_from_mm, lo) - s0,
+                "axial_to_mm": min(w.axial_to_mm, hi) - s0,
+                "depth_mm": w.depth_mm,
+                "reference_axial_mm": w.reference_mm - s0,
+            }
+        )
+    return out
+
+
+def _station_truth(pipe: Pipe, grid: np.ndarray, s0: float, ang: Callable) -> list[dict]:
+    """The true cross-section at arc lengths ``grid`` (see :func:`feature_description`)."""
+    table = pipe.section_table(grid)
+    level = pipe.water_level()
+    water = pipe.features.water
+    depth = np.zeros(len(grid))
+    if level is not None and water is not None:
+        wet = (grid >= water.axial_from_mm) & (grid <= water.axial_to_mm)
+        depth[wet] = np.maximum(level - pipe.invert_height(grid[wet]), 0.0)
+    rows = []
+    for s, (dmax, dmin, amax), d in zip(grid, table, depth, strict=True):
+        rows.append(
+            {
+                "axial_mm": round(float(s - s0), 6),
+                "inner_diameter_mm": 0.5 * (dmax + dmin),
+                "inner_diameter_min_mm": dmin,
+                "inner_diameter_max_mm": dmax,
+                "ovality_pct": 100.0 * (dmax - dmin) / (2.0 * float(pipe.nominal_radius(s)[0])),
+                "ovality_angle_deg": ang(math.degrees(amax), 180.0) if dmax - dmin > 1e-9 else 0.0,
+                "water_depth_mm": float(d),
+            }
+        )
+    return rows
 
 
 def run(
