@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnipipe.camera import OcamCamera, OmniCamera, UnifiedCamera, camera_from_rig
+from omnipipe.camera import CameraModel, OcamCamera, OmniCamera, UnifiedCamera, camera_from_rig
 from omnipipe.camera.convert import rig_in_model
 from omnipipe.cli import main
 from omnipipe.errors import ConfigError
@@ -168,3 +168,43 @@ def test_baseline_needs_the_hyperboloid_mirror(tmp_path: Path, capsys) -> None:
     assert main(["baseline", "--rig", str(tmp_path / "rig.yaml"), "--distance", "100"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "mirror" in err[0]
+
+
+@pytest.mark.parametrize("make", [lambda: paper_rig(400, 300), _unified_rig, _ocam_rig])
+def test_analytic_jacobian_matches_the_central_differences(make) -> None:
+    """Each model's ``project_jacobian`` against the interface's generic central
+    differences (:meth:`CameraModel.project_jacobian`, error ~1e-10 relative)."""
+    cam = camera_from_rig(make())
+    assert type(cam).project_jacobian is not CameraModel.project_jacobian  # analytic
+    px = cam.pixel_grid()[cam.valid_mask().ravel()][::11]
+    depth = np.random.default_rng(3).uniform(20.0, 2000.0, size=(len(px), 1))
+    q = cam.unproject(px) * depth
+    J = cam.project_jacobian(q)
+    fd = CameraModel.project_jacobian(cam, q)
+    assert J.shape == fd.shape == (len(q), 2, 3)
+    scale = np.abs(fd).max(axis=(1, 2))[:, None, None]
+    assert np.isfinite(J).all()
+    assert (np.abs(J - fd) / scale).max() < 1e-7
+    # Only the direction matters: no derivative along the point's own ray.
+    assert np.abs(np.einsum("nij,nj->ni", J, q)).max() < 1e-6 * np.abs(J).max()
+
+
+def test_camera_model_is_abstract_and_pixel_angle_is_the_ray_angle() -> None:
+    with pytest.raises(TypeError):
+        CameraModel()  # type: ignore[abstract]
+    cam = camera_from_rig(paper_rig(400, 300))
+    px = np.array([[cam.cx + 60.0, cam.cy + 5.0], [cam.cx - 30.0, cam.cy + 40.0]])
+    for step in ((0.0, 1.0), (1.0, 0.0)):
+        r0, r1 = cam.unproject(px), cam.unproject(px + np.array(step))
+        want = np.arctan2(np.linalg.norm(np.cross(r0, r1), axis=1), np.sum(r0 * r1, axis=1))
+        np.testing.assert_allclose(cam.pixel_angle(px, step), want, rtol=1e-6)
+    mid = cam.cx + 0.5 * (cam.radius_min + cam.radius_max)
+    assert cam.angular_resolution() == cam.pixel_angle(np.array([[mid, cam.cy]]))[0]
+    assert 1e-3 < cam.angular_resolution() < 0.1  # rad/px of a 400x300 omni image
+
+
+@pytest.mark.parametrize("make", [_unified_rig, _ocam_rig])
+def test_models_without_a_compiled_projection_say_so(make) -> None:
+    assert camera_from_rig(make()).compiled_projection() is None
+    proj = camera_from_rig(paper_rig(400, 300)).compiled_projection()
+    assert proj is not None and proj.params.dtype == np.float64

@@ -172,7 +172,7 @@ def _as_hyperboloid(rig: Rig, a: float) -> Rig:
     """The unified (no distortion) rig as the hyperboloid of Eq. 1-3 with mirror ``a``."""
     from scipy.optimize import least_squares
 
-    from omnipipe.camera import OmniCamera, camera_from_rig
+    from omnipipe.camera import camera_from_parts, camera_from_rig
     from omnipipe.camera.convert import _samples
 
     src = camera_from_rig(rig)
@@ -180,7 +180,7 @@ def _as_hyperboloid(rig: Rig, a: float) -> Rig:
     rays = src.unproject(px)
 
     def residual(x: np.ndarray) -> np.ndarray:
-        cam = OmniCamera(replace(rig.camera, f=float(x[1]), radius_max=None), Mirror(a, float(x[0])))
+        cam = camera_from_parts(replace(rig.camera, f=float(x[1]), radius_max=None), Mirror(a, float(x[0])), None)
         return np.nan_to_num((cam.project(rays)[0] - px).ravel(), nan=1e3)
 
     sol = least_squares(residual, np.array([1.5 * a, 5.0 * rig.camera.f]), x_scale="jac")

@@ -9,6 +9,9 @@ inside the image.
 
 from __future__ import annotations
 
+import abc
+from dataclasses import dataclass
+
 import numpy as np
 
 from omnipipe.errors import ShapeError
@@ -28,12 +31,32 @@ def as_points(array: np.ndarray, dim: int, name: str) -> np.ndarray:
     return arr
 
 
-class CameraModel:
-    """Base of every camera model: the valid region and helpers built on project/unproject.
+@dataclass(frozen=True)
+class CompiledProjection:
+    """A model's projection as compiled code can run it, point by point.
+
+    Attributes:
+        kind: which kernel of :mod:`omnipipe.camera._kernels` projects (e.g.
+            :data:`~omnipipe.camera._kernels.HYPERBOLOID`).
+        params: (P,) float64 parameters of that kernel, in its order.
+
+    :func:`omnipipe.camera._kernels.project_point` (``kind``, ``params``, x, y, z) ->
+    (col, row, valid) gives bit for bit the model's :meth:`CameraModel.project`.
+    """
+
+    kind: int
+    params: np.ndarray
+
+
+class CameraModel(abc.ABC):
+    """The one camera interface: pixels <-> rig-frame rays, the projection's Jacobian,
+    the pixel angle, and the valid region.
 
     Subclasses set ``width``, ``height`` (px), ``cx``, ``cy`` (px, the image of the
     mirror axis: centre of the valid annulus), ``radius_min``, ``radius_max`` (px) and
-    implement :meth:`project` and :meth:`unproject`.
+    implement :meth:`project` and :meth:`unproject`; they may override
+    :meth:`project_jacobian` with an analytic one and offer a compiled projection
+    (:meth:`compiled_projection`) that fast paths use.
     """
 
     model_name = "base"
@@ -58,13 +81,50 @@ class CameraModel:
         self.radius_max = max(inscribed, 1.0) if rmax is None else float(rmax)
         self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
 
+    @abc.abstractmethod
     def unproject(self, pixels: np.ndarray) -> np.ndarray:
         """(N, 2) pixels (col, row) -> (N, 3) unit rays in the rig frame (NaN where none)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def project(self, points_in_rig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) points or directions in the rig frame -> ((N, 2) pixels, (N,) valid)."""
-        raise NotImplementedError
+
+    def project_jacobian(self, points_in_rig: np.ndarray) -> np.ndarray:
+        """(N, 2, 3) d(col, row) / d(x, y, z) of :meth:`project`'s pixels (px/mm).
+
+        This generic one takes central differences, step cbrt(eps) max(|q|, 1) mm per
+        point (error ~1e-10 relative); models override it with their analytic one.
+        Non-finite where the model cannot see the point (validity is :meth:`project`'s).
+        """
+        q = as_points(points_in_rig, 3, "points_in_rig")
+        h = np.cbrt(np.finfo(float).eps) * np.maximum(np.linalg.norm(q, axis=1), 1.0)
+        J = np.empty((len(q), 2, 3))
+        for i in range(3):
+            plus, minus = q.copy(), q.copy()
+            plus[:, i] += h
+            minus[:, i] -= h
+            step = plus[:, i] - minus[:, i]  # the step as represented
+            J[:, :, i] = (self.project(plus)[0] - self.project(minus)[0]) / step[:, None]
+        return J
+
+    def compiled_projection(self) -> CompiledProjection | None:
+        """The model's projection for compiled callers, or None (then they use
+        :meth:`project`). This base offers none."""
+        return None
+
+    def pixel_angle(self, pixels: np.ndarray, step: tuple[float, float] = (0.0, 1.0)) -> np.ndarray:
+        """(N,) angle (rad) between the rays of (N, 2) ``pixels`` and of ``pixels + step``
+        (px, (col, row)): the angle one pixel subtends there (NaN where a ray is missing)."""
+        px = as_points(pixels, 2, "pixels")
+        r0 = self.unproject(px)
+        r1 = self.unproject(px + np.array([step], dtype=float))
+        return np.arccos(np.clip(np.sum(r0 * r1, axis=1), -1, 1))
+
+    def angular_resolution(self) -> float:
+        """The image's angular resolution (rad/px): :meth:`pixel_angle` of one row step
+        at the middle of the valid annulus, (cx + (radius_min + radius_max) / 2, cy)."""
+        mid = np.array([[self.cx + 0.5 * (self.radius_min + self.radius_max), self.cy]])
+        return float(self.pixel_angle(mid)[0])
 
     def is_valid_pixel(self, pixels: np.ndarray) -> np.ndarray:
         """(N,) True for pixels inside the image and the valid annulus."""

@@ -13,12 +13,10 @@ sheet), and that mirror point images at f (x, y) / (z + 2c) through the lens.
 
 from __future__ import annotations
 
-import math
-
-import numba
 import numpy as np
 
-from omnipipe.camera.base import CameraModel, as_points
+from omnipipe.camera import _kernels
+from omnipipe.camera.base import CameraModel, CompiledProjection, as_points
 from omnipipe.rig import CameraIntrinsics, Mirror, Rig
 
 
@@ -50,6 +48,10 @@ class OmniCamera(CameraModel):
         rmax = intrinsics.radius_max
         self.radius_max = asymptote if rmax is None else min(float(rmax), asymptote)
         self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
+        self._params = np.array(
+            [self.a, self.b, self.c, self.f, self.cx, self.cy, float(self.width),
+             float(self.height), self.radius_min, self.radius_max]
+        )
 
     @classmethod
     def from_rig(cls, rig: Rig) -> OmniCamera:
@@ -96,11 +98,12 @@ class OmniCamera(CameraModel):
         pts = np.ascontiguousarray(as_points(points_in_rig, 3, "points_in_rig"))
         pixels = np.empty((len(pts), 2))
         valid = np.empty(len(pts), bool)
-        _project(
-            pts, self.a, self.b, self.c, self.f, self.cx, self.cy, float(self.width),
-            float(self.height), self.radius_min, self.radius_max, pixels, valid,
-        )
+        _kernels.project_points(pts, _kernels.HYPERBOLOID, self._params, pixels, valid)
         return pixels, valid
+
+    def compiled_projection(self) -> CompiledProjection:
+        """:func:`omnipipe.camera._kernels.hyperboloid_point`'s kind and parameters."""
+        return CompiledProjection(_kernels.HYPERBOLOID, self._params)
 
     def project_jacobian(self, points_in_rig: np.ndarray) -> np.ndarray:
         """Derivative of :meth:`project`'s pixels with respect to the points.
@@ -140,61 +143,3 @@ class OmniCamera(CameraModel):
         rays = self.unproject(r)
         elev = np.arcsin(np.clip(rays[:, 2], -1.0, 1.0))
         return float(elev[0]), float(elev[1])
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def project_point(
-    x, y, z, a, b, c, f, cx, cy, width, height, radius_min, radius_max
-):  # pragma: no cover - compiled
-    """(col, row, valid) of one rig-frame point: :meth:`OmniCamera.project`'s arithmetic
-    for compiled callers (:func:`_project`, the Eq. 17 candidates in
-    :mod:`omnipipe.sfm.laser_scale`); NaN pixels where the mirror cannot see it."""
-    aa = a * a
-    c2 = 2.0 * c
-    b_over_c = b / c
-    col_max = width - 0.5
-    row_max = height - 0.5
-    norm = math.sqrt(x * x + y * y + z * z)
-    dx, dy, dz = x / norm, y / norm, z / norm
-    # Mirror point t d: root of (t dxy)^2/a^2 - (t dz + c)^2/b^2 = -1 on the
-    # mirror's sheet; valid for d_z < b/c (above it the ray misses the mirror).
-    t = aa / (b - c * dz)
-    mz = t * dz + c2  # mirror point seen from the lens centre
-    if norm > 0 and dz < b_over_c and mz > 0:
-        col = f * t * dx / mz + cx
-        row = f * t * dy / mz + cy
-        inside = col >= -0.5 and col <= col_max and row >= -0.5 and row <= row_max
-        if inside:
-            du, dv = col - cx, row - cy
-            r = math.sqrt(du * du + dv * dv)  # within a few ulp of hypot
-            if (
-                abs(r - radius_min) <= 1e-9 * (1.0 + radius_min)
-                or abs(r - radius_max) <= 1e-9 * (1.0 + radius_max)
-            ):
-                r = math.hypot(du, dv)  # is_valid_pixel's value where it decides
-            inside = r >= radius_min and r <= radius_max
-        return col, row, inside
-    return np.nan, np.nan, False
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _project(
-    pts, a, b, c, f, cx, cy, width, height, radius_min, radius_max, pixels, valid
-):  # pragma: no cover - compiled
-    """:meth:`OmniCamera.project` of (N, 3) points into (N, 2) ``pixels`` and (N,) ``valid``.
-
-    One pass per point (:func:`project_point`), the same floating-point operations in
-    the same order as the NumPy expressions it replaced (norm ((x^2 + y^2) + z^2),
-    t = a^2 / (b - c d_z), u = ((f t) d_x) / m_z, pixel validity as
-    :meth:`CameraModel.is_valid_pixel`), so pixels and validity are bit-identical. The
-    radius is sqrt(du^2 + dv^2), which is within a few ulp of ``hypot``; the (slow)
-    ``hypot`` itself is taken only when that is within 1e-9 of a valid-annulus radius,
-    where the rounding could decide.
-    """
-    for i in range(pts.shape[0]):
-        col, row, ok = project_point(
-            pts[i, 0], pts[i, 1], pts[i, 2], a, b, c, f, cx, cy, width, height, radius_min, radius_max
-        )
-        pixels[i, 0] = col
-        pixels[i, 1] = row
-        valid[i] = ok

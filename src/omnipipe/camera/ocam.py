@@ -94,3 +94,40 @@ class OcamCamera(CameraModel):
         px[~seen] = np.nan
         valid = seen & self.is_valid_pixel(np.where(seen[:, None], px, 0.0))
         return px, valid
+
+    def project_jacobian(self, points_in_rig: np.ndarray) -> np.ndarray:
+        """(N, 2, 3) d(col, row) / d(x, y, z) of :meth:`project`'s pixels (px/mm).
+
+        In OCamCalib's frame (xo, yo, zo) = (y, x, z): theta = atan2(zo, |(xo, yo)|),
+        rho(theta) solves atan2(P(rho), rho) = theta, so d rho / d theta =
+        (rho^2 + P^2) / (P'(rho) rho - P); (x, y) = rho (xo, yo) / |(xo, yo)| and
+        (row, col) = (c x + d y, e x + y) + centre. Non-finite where the model cannot
+        see the point (and on the axis, where the direction around it is undefined).
+        """
+        q = as_points(points_in_rig, 3, "points_in_rig")
+        px, _ = self.project(q)
+        xo, yo, zo = q[:, 1], q[:, 0], q[:, 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            row_off, col_off = px[:, 1] - self.cy, px[:, 0] - self.cx
+            # (x, y) back from the pixel (the affine's inverse), then rho = |(x, y)|.
+            inv = 1.0 / (self.c - self.d * self.e)
+            x = inv * (row_off - self.d * col_off)
+            y = inv * (-self.e * row_off + self.c * col_off)
+            rho = np.hypot(x, y)
+            p = self._p(rho)
+            drho = (rho * rho + p * p) / (self._dp(rho) * rho - p)  # d rho / d theta
+            s2 = xo * xo + yo * yo
+            nxy = np.sqrt(s2)
+            r2 = s2 + zo * zo
+            # d theta / d (xo, yo, zo); d (xo/nxy, yo/nxy) / d (xo, yo).
+            dtheta = np.stack([-zo * xo / (nxy * r2), -zo * yo / (nxy * r2), nxy / r2], axis=1)
+            u, v = xo / nxy, yo / nxy
+            n3 = nxy**3
+            du = np.stack([yo * yo / n3, -xo * yo / n3, np.zeros(len(q))], axis=1)
+            dv = np.stack([-xo * yo / n3, xo * xo / n3, np.zeros(len(q))], axis=1)
+            dx = rho[:, None] * du + (u * drho)[:, None] * dtheta
+            dy = rho[:, None] * dv + (v * drho)[:, None] * dtheta
+        d_row = self.c * dx + self.d * dy  # w.r.t. (xo, yo, zo)
+        d_col = self.e * dx + dy
+        J = np.stack([d_col, d_row], axis=1)
+        return J[:, :, [1, 0, 2]]  # w.r.t. (x, y, z) = (yo, xo, zo)

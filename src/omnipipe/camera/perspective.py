@@ -14,8 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from omnipipe.camera.base import as_points
-from omnipipe.camera.hyperboloid import OmniCamera
+from omnipipe.camera.base import CameraModel, as_points
 from omnipipe.errors import ShapeError
 
 
@@ -109,7 +108,7 @@ class PerspectiveView:
         rows, cols = np.mgrid[0 : self.height, 0 : self.width]
         return np.stack([cols.ravel(), rows.ravel()], axis=1).astype(float)
 
-    def omni_maps(self, camera: OmniCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def omni_maps(self, camera: CameraModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """cv2.remap maps (float32 col, row) into the omni image and the valid mask.
 
         Returns:
@@ -122,7 +121,7 @@ class PerspectiveView:
         map_y = px[:, 1].reshape(self.height, self.width).astype(np.float32)
         return map_x, map_y, valid.reshape(self.height, self.width)
 
-    def render(self, omni_image: np.ndarray, camera: OmniCamera) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, omni_image: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
         """Perspective image drawn from an omni image (bilinear, zero outside the mirror).
 
         Args:

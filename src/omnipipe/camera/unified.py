@@ -35,24 +35,32 @@ def distort(
     return dx, dy
 
 
+def distort_jacobian(
+    mx: np.ndarray, my: np.ndarray, k: tuple[float, float, float, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """d(dx, dy) / d(mx, my) of :func:`distort`: (j11, j12, j21, j22), each (N,)."""
+    k1, k2, p1, p2 = k
+    r2 = mx * mx + my * my
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    dr = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(m) = dr * m
+    j11 = radial + mx * mx * dr + 2.0 * p1 * my + 6.0 * p2 * mx
+    j12 = mx * my * dr + 2.0 * p1 * mx + 2.0 * p2 * my
+    j21 = my * mx * dr + 2.0 * p1 * mx + 2.0 * p2 * my
+    j22 = radial + my * my * dr + 6.0 * p1 * my + 2.0 * p2 * mx
+    return j11, j12, j21, j22
+
+
 def undistort(
     dx: np.ndarray, dy: np.ndarray, k: tuple[float, float, float, float]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`distort` by Newton's method (exact to ~1e-12 for sane distortion)."""
-    k1, k2, p1, p2 = k
     mx, my = dx.copy(), dy.copy()
     if not any(k):
         return mx, my
     for _ in range(_UNDISTORT_ITERATIONS):
         fx, fy = distort(mx, my, k)
         ex, ey = fx - dx, fy - dy
-        r2 = mx * mx + my * my
-        radial = 1.0 + k1 * r2 + k2 * r2 * r2
-        dr = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(m) = dr * m
-        j11 = radial + mx * mx * dr + 2.0 * p1 * my + 6.0 * p2 * mx
-        j12 = mx * my * dr + 2.0 * p1 * mx + 2.0 * p2 * my
-        j21 = my * mx * dr + 2.0 * p1 * mx + 2.0 * p2 * my
-        j22 = radial + my * my * dr + 6.0 * p1 * my + 2.0 * p2 * mx
+        j11, j12, j21, j22 = distort_jacobian(mx, my, k)
         det = j11 * j22 - j12 * j21
         with np.errstate(invalid="ignore", divide="ignore"):
             mx = mx - (j22 * ex - j12 * ey) / det
@@ -124,3 +132,29 @@ class UnifiedCamera(CameraModel):
         )
         valid = seen & self.is_valid_pixel(np.where(seen[:, None], px, 0.0))
         return px, valid
+
+    def project_jacobian(self, points_in_rig: np.ndarray) -> np.ndarray:
+        """(N, 2, 3) d(col, row) / d(x, y, z) of :meth:`project`'s pixels (px/mm).
+
+        In the model frame X = diag(1, 1, -1) q, n = |X|, D = X_z + xi n:
+        m = (X_x, X_y) / D, so dm_i / dX_j = delta_ij / D - m_i (delta_zj + xi X_j / n) / D;
+        then the distortion's Jacobian (:func:`distort_jacobian`) and the pixel's
+        [[fx, skew], [0, fy]]. Non-finite where the model cannot see the point.
+        """
+        q = as_points(points_in_rig, 3, "points_in_rig")
+        X = q * np.array([1.0, 1.0, -1.0])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n = np.linalg.norm(X, axis=1)
+            D = X[:, 2] + self.xi * n
+            mx, my = X[:, 0] / D, X[:, 1] / D
+            dD = self.xi * X / n[:, None]  # dD / dX
+            dD[:, 2] += 1.0
+            dm = np.empty((len(q), 2, 3))
+            dm[:, 0, :] = -(mx / D)[:, None] * dD
+            dm[:, 1, :] = -(my / D)[:, None] * dD
+            dm[:, 0, 0] += 1.0 / D
+            dm[:, 1, 1] += 1.0 / D
+            j11, j12, j21, j22 = distort_jacobian(mx, my, self.k)
+        dmd = np.stack([np.stack([j11, j12], axis=1), np.stack([j21, j22], axis=1)], axis=1)
+        K = np.array([[self.fx, self.skew], [0.0, self.fy]])
+        return K @ dmd @ dm * np.array([1.0, 1.0, -1.0])  # d/dq = d/dX diag(1, 1, -1)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from omnipipe.camera import CameraModel, OmniCamera
+from omnipipe.camera import CameraModel
 from omnipipe.image import CHANNEL_INDEX
 from omnipipe.laser.peaks import line_statistics
 from omnipipe.rig import LaserPlane
@@ -129,7 +129,7 @@ class RingExtractor:
     """
 
     def __init__(
-        self, camera: OmniCamera, config: ExtractionConfig | None = None, plane: LaserPlane | None = None
+        self, camera: CameraModel, config: ExtractionConfig | None = None, plane: LaserPlane | None = None
     ) -> None:
         self.camera = camera
         self.config = cfg = config or ExtractionConfig()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import CameraModel
 from omnipipe.laser.extract import LaserRing
 from omnipipe.rig import LaserPlane
 
@@ -29,7 +29,7 @@ def intersect_plane(rays_in_rig: np.ndarray, plane: LaserPlane) -> tuple[np.ndar
     return pts, valid
 
 
-def triangulate_ring(ring: LaserRing, camera: OmniCamera, plane: LaserPlane) -> LaserRing:
+def triangulate_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) -> LaserRing:
     """Fill ``ring.points_in_rig`` and ``ring.sigma_mm`` (drops samples that miss the plane).
 
     The uncertainty propagates each peak's radial sigma through the forward model:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import CameraModel
 from omnipipe.geometry import apply, invert
 from omnipipe.image import sample_bilinear
 
@@ -81,7 +81,7 @@ def optimise_flips(
     points_in_world: np.ndarray,
     unrolled_mm: np.ndarray,
     circumference_mm: float,
-    camera: OmniCamera,
+    camera: CameraModel,
     world_from_rig: np.ndarray,
     read_gray: Callable[[int], np.ndarray],
     *,

@@ -14,7 +14,7 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
 Robust soft-L1 loss with an analytic sparse Jacobian (:func:`_objective`): each
 residual touches one or two poses and one point, chained through q = R(omega) X + t,
 the SO(3) left Jacobian of the rotation vector and the camera's
-:meth:`~omnipipe.camera.OmniCamera.project_jacobian`. Minimised by SciPy's
+:meth:`~omnipipe.camera.CameraModel.project_jacobian`. Minimised by SciPy's
 ``least_squares`` (trf, LSMR) for a global adjustment, and by Levenberg-Marquardt on
 the reduced camera system (:mod:`omnipipe.sfm.schur`: the points eliminated, each step
 solved exactly) for the windows of a long run: there LSMR needed hundreds of sparse
@@ -32,7 +32,7 @@ from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import CameraModel
 from omnipipe.errors import ShapeError
 from omnipipe.geometry import invert
 from omnipipe.sfm import schur
@@ -162,29 +162,17 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return W
 
 
-def _masked_projection_jacobian(camera: OmniCamera, q: np.ndarray) -> np.ndarray:
-    """(N, 2, 3) d pixel / d q, zero where the residual is zeroed (invalid or non-finite).
-
-    The camera's ``project_jacobian`` where it has one, else forward differences per
-    point along x, y, z (three projections of all points, step sqrt(eps) |q|).
-    """
+def _masked_projection_jacobian(camera: CameraModel, q: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) d pixel / d q (the camera's :meth:`~CameraModel.project_jacobian`),
+    zero where the residual is zeroed (invalid or non-finite)."""
     px, valid = camera.project(q)
-    if hasattr(camera, "project_jacobian"):
-        J = camera.project_jacobian(q)
-    else:
-        h = np.sqrt(np.finfo(float).eps) * np.maximum(np.linalg.norm(q, axis=1), 1.0)
-        J = np.empty((len(q), 2, 3))
-        for i in range(3):
-            qh = q.copy()
-            qh[:, i] += h
-            dh = qh[:, i] - q[:, i]  # the step as represented
-            J[:, :, i] = (camera.project(qh)[0] - px) / dh[:, None]
+    J = camera.project_jacobian(q)
     keep = valid & np.isfinite(px).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
     J[~keep] = 0.0
     return J
 
 
-def _objective(camera: OmniCamera, problem: BundleProblem, w_laser: float):
+def _objective(camera: CameraModel, problem: BundleProblem, w_laser: float):
     """The adjustment's start x0, residuals(x), jacobian(x) (sparse CSR) and unpack(x) -> (R, t, points).
 
     x: the free keyframes' (rotation vector, translation) of rig_from_world, then the points.
@@ -281,7 +269,7 @@ def _objective(camera: OmniCamera, problem: BundleProblem, w_laser: float):
     return x0, residuals, jacobian, unpack
 
 
-def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConfig) -> BundleResult:
+def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleConfig) -> BundleResult:
     """Refine keyframe poses and track points (see the module docstring).
 
     Raises:
@@ -322,7 +310,7 @@ def bundle_adjust(camera: OmniCamera, problem: BundleProblem, config: BundleConf
 
 
 def build_problem(
-    camera: OmniCamera,
+    camera: CameraModel,
     world_from_rig: np.ndarray,
     pixels: list[np.ndarray],
     rays_in_rig: list[np.ndarray],

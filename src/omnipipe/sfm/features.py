@@ -19,7 +19,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from omnipipe.camera import OmniCamera, PerspectiveView
+from omnipipe.camera import CameraModel, PerspectiveView
 from omnipipe.errors import ConfigError
 from omnipipe.image import gray_without_laser
 
@@ -101,7 +101,7 @@ class FrameViews:
 class FeatureExtractor:
     """Builds the perspective views of one camera once and extracts features per frame."""
 
-    def __init__(self, camera: OmniCamera, config: FeatureConfig | None = None) -> None:
+    def __init__(self, camera: CameraModel, config: FeatureConfig | None = None) -> None:
         self.camera = camera
         self.config = cfg = config or FeatureConfig()
         lo, hi = (math.radians(v) for v in cfg.elevation_deg)
@@ -109,11 +109,7 @@ class FeatureExtractor:
         lo, hi = max(lo, lo_cam + 0.02), min(hi, hi_cam - 0.02)
         mid = 0.5 * (lo + hi)
         # Focal length matched to the omni image's angular resolution in the band.
-        probe = np.array([[camera.cx + 0.5 * (camera.radius_min + camera.radius_max), camera.cy]])
-        r0 = camera.unproject(probe)
-        r1 = camera.unproject(probe + np.array([[0.0, 1.0]]))
-        ang = float(np.arccos(np.clip(np.sum(r0 * r1), -1, 1)))
-        focal = 1.0 / max(ang, 1e-4)
+        focal = 1.0 / max(camera.angular_resolution(), 1e-4)
         half_h = math.pi / cfg.views * 1.15  # overlap between neighbouring views
         half_v = 0.5 * (hi - lo)
         width = int(2 * focal * math.tan(half_h))

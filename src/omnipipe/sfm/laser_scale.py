@@ -20,8 +20,9 @@ import cv2
 import numba
 import numpy as np
 
-from omnipipe.camera import OmniCamera
-from omnipipe.camera.hyperboloid import project_point
+from omnipipe.camera import CameraModel
+from omnipipe.camera._kernels import project_point
+from omnipipe.camera.base import CompiledProjection
 from omnipipe.image import sample_bilinear
 
 
@@ -299,7 +300,7 @@ def _ncc_kernel(template, patches, weight, out):  # pragma: no cover - compiled
 
 def _candidate_patches(
     gray_b: np.ndarray,
-    camera: OmniCamera,
+    projection: CompiledProjection,
     plane_b0: np.ndarray,
     scales: np.ndarray,
     direction: np.ndarray,
@@ -312,10 +313,10 @@ def _candidate_patches(
     """The (N, S, K) patches of frame b (float64, NaN where not seen) and their sample
     weights (N, 1 or S, K) of :func:`match_laser_points`' candidates: patch sample k of
     point n moved by ``scales[n, s]`` along ``direction`` (Eq. 17), projected by the
-    hyperboloid camera and sampled bilinearly.
+    camera's compiled ``projection`` and sampled bilinearly.
 
     Bit-identical to translating every sample (:func:`_translated`), projecting them
-    (:meth:`OmniCamera.project`), sampling the valid ones (:func:`sample_bilinear`)
+    (:meth:`CameraModel.project`), sampling the valid ones (:func:`sample_bilinear`)
     and weighting off the laser sheet (:func:`_off_sheet_weight`), but one compiled
     pass writes only the pixels (as ``cv2.remap`` maps) and weights, and one remap
     samples them.
@@ -329,9 +330,7 @@ def _candidate_patches(
     w = np.empty((n_pts, n_s, k_len)) if with_sheet else np.empty((0, 0, 0))
     normal = np.asarray(sheet_n if with_sheet else np.zeros(3), float)
     _candidate_maps(
-        plane_b0, scales, direction, camera.a, camera.b, camera.c, camera.f, camera.cx, camera.cy,
-        float(camera.width), float(camera.height), camera.radius_min, camera.radius_max,
-        with_sheet, normal, float(sheet_o), step, half, weight, map_x, map_y, w,
+        plane_b0, scales, direction, projection.kind, projection.params, with_sheet, normal, float(sheet_o), step, half, weight, map_x, map_y, w,
     )
     fill = np.nan if gray_b.dtype.kind == "f" else 0
     out = cv2.remap(
@@ -349,8 +348,7 @@ _OUTSIDE = np.float32(-1.0e6)  # a remap coordinate far outside any image: not s
 
 @numba.njit(cache=True, error_model="numpy")
 def _candidate_maps(
-    plane, scales, direction, a, b, c, f, cx, cy, width, height, radius_min, radius_max,
-    with_sheet, normal, offset, step, half, weight, map_x, map_y, w,
+    plane, scales, direction, kind, params, with_sheet, normal, offset, step, half, weight, map_x, map_y, w,
 ):  # pragma: no cover - compiled
     """The pixels (float32 remap maps, :data:`_OUTSIDE` where not valid) and, with the
     sheet, the weights of :func:`_candidate_patches`, point by point."""
@@ -366,9 +364,7 @@ def _candidate_maps(
                 x = plane[i, k, 0] + s0
                 y = plane[i, k, 1] + s1
                 z = plane[i, k, 2] + s2
-                col, row, ok = project_point(
-                    x, y, z, a, b, c, f, cx, cy, width, height, radius_min, radius_max
-                )
+                col, row, ok = project_point(kind, params, x, y, z)
                 if ok:
                     map_x[idx] = col
                     map_y[idx] = row
@@ -434,7 +430,7 @@ def _sheet(points: np.ndarray) -> tuple[np.ndarray | None, float]:
 def match_laser_points(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
-    camera: OmniCamera,
+    camera: CameraModel,
     laser_points_in_a: np.ndarray,
     b_from_a_rotation: np.ndarray,
     b_from_a_direction: np.ndarray,
@@ -474,9 +470,7 @@ def match_laser_points(
     sy = np.tile([0.0, 0.0, 1.0], (len(P), 1))  # along the pipe
     # Sample spacing: about one pixel of frame a at the point.
     px_a, ok_a = camera.project(P)
-    ray_a = camera.unproject(np.nan_to_num(px_a))
-    ray_a1 = camera.unproject(np.nan_to_num(px_a) + np.array([1.0, 0.0]))
-    step = np.linalg.norm(P, axis=1) * np.arccos(np.clip(np.sum(ray_a * ray_a1, axis=1), -1, 1))
+    step = np.linalg.norm(P, axis=1) * camera.pixel_angle(np.nan_to_num(px_a), (1.0, 0.0))
     step = np.clip(np.nan_to_num(step, nan=1.0), 0.05, 5.0)
     r = cfg.patch_radius
     grid = np.arange(-r, r + 1, dtype=float)
@@ -509,12 +503,12 @@ def match_laser_points(
     # left out of each candidate's correlation as they are out of the template.
     sheet_n, sheet_o = _sheet(pts)
 
-    fused = type(camera) is OmniCamera
+    projection = camera.compiled_projection()
 
     def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
-        if fused:  # the same values in one compiled pass, without the (N, S, K, 3) points
+        if projection is not None:  # the same values in one compiled pass, without the (N, S, K, 3) points
             patches, w = _candidate_patches(
-                gray_b, camera, plane_b0, np.ascontiguousarray(scales, dtype=float), d,
+                gray_b, projection, plane_b0, np.ascontiguousarray(scales, dtype=float), d,
                 sheet_n, sheet_o, step, half, weight,
             )
             return _ncc(template, patches, w, basis)

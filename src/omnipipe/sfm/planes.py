@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import CameraModel
 from omnipipe.image import sample_bilinear
 
 
@@ -58,7 +58,7 @@ def _plane_axes(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sx, sy
 
 
-def _mosaic(gray: np.ndarray, camera: OmniCamera, centres: np.ndarray, focal: float, size: int) -> np.ndarray:
+def _mosaic(gray: np.ndarray, camera: CameraModel, centres: np.ndarray, focal: float, size: int) -> np.ndarray:
     """Perspective planes centred on rays ``centres`` (N, 3), tiled in rows of 64."""
     n = len(centres)
     half = (size - 1) / 2
@@ -98,7 +98,7 @@ def _describe(sift, mosaic: np.ndarray, n: int, size: int, angles: list[float], 
 def refine_matches(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
-    camera: OmniCamera,
+    camera: CameraModel,
     rays_a: np.ndarray,
     rays_b: np.ndarray,
     b_from_a: np.ndarray,
@@ -137,9 +137,7 @@ def refine_matches(
     if len(idx) == 0:
         return out
     # Plane focal length: the omni image's angular resolution mid-annulus.
-    probe = np.array([[camera.cx + 0.5 * (camera.radius_min + camera.radius_max), camera.cy]])
-    ang = float(np.arccos(np.clip(np.sum(camera.unproject(probe) * camera.unproject(probe + np.array([[0.0, 1.0]]))), -1, 1)))
-    focal = 1.0 / max(ang, 1e-4)
+    focal = 1.0 / max(camera.angular_resolution(), 1e-4)
     sift = cv2.SIFT_create()
     size = config.patch_px
     desc_a = _describe(sift, _mosaic(gray_a, camera, rays_a[idx], focal, size), len(idx), size, [0.0], config.keypoint_size_px)[:, 0]

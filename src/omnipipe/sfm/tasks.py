@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera, camera_from_rig
+from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, FrameViews
@@ -127,7 +127,7 @@ def matched_rays(key_features: FrameFeatures, features: FrameFeatures, ratio: fl
 def laser_matches(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
-    camera: OmniCamera,
+    camera: CameraModel,
     laser_points_a: np.ndarray,
     b_from_a_rotation: np.ndarray,
     b_from_a_direction: np.ndarray,
@@ -145,7 +145,7 @@ def laser_matches(
 def step_evidence(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
-    camera: OmniCamera,
+    camera: CameraModel,
     laser_points_a: np.ndarray,
     b_from_a_rotation: np.ndarray,
     b_from_a_direction: np.ndarray,
