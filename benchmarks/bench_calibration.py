@@ -40,7 +40,8 @@ from omnipipe.calibrate.camera import (
 )
 from omnipipe.calibrate.laser import calibrate_laser, laser_plane, ring_section_axes
 from omnipipe.camera import camera_from_rig
-from omnipipe.rig import Rig, save_rig
+from omnipipe.rig import Rig
+from omnipipe.rig_yaml import save_rig
 from omnipipe.sim.calibration import TARGET, ring_pixels, write_calibration_set
 
 PIPE_MM = 202.0

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from omnipipe.errors import ConfigError
-from omnipipe.rig import load_rig, rig_from_dict, save_rig
+from omnipipe.rig_yaml import load_rig, rig_from_dict, save_rig
 
 GOOD = {
     "camera": {

@@ -6,23 +6,21 @@ I/O lives here, at the edge: stages receive arrays and data classes.
 from __future__ import annotations
 
 import math
-import os
-import sys
-import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
-from omnipipe.errors import DatasetError
+from omnipipe.errors import ConfigError, DatasetError
 from omnipipe.geometry import transform_from_tum, tum_from_transform
+from omnipipe.inputs.rosbag import BagImages, find_rig, is_bag, read_bag, read_bag_sensors
 from omnipipe.inputs.sensors import Imu, Odometry, read_dataset_sensors
+from omnipipe.native import quiet_native_stderr
 from omnipipe.output import atomic_output_dir, check_output_dir  # noqa: F401 (re-exported)
-from omnipipe.rig import Rig, load_rig
+from omnipipe.rig import Rig
+from omnipipe.rig_yaml import load_rig
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
@@ -55,7 +53,7 @@ class Dataset:
     timestamps: np.ndarray
     video: Path | None = None
     warnings: tuple[str, ...] = ()
-    source: Any = None
+    source: BagImages | None = None
     odometry: Odometry | None = None
     imu: Imu | None = None
 
@@ -86,48 +84,6 @@ class Dataset:
     def ground_truth_dir(self) -> Path:
         """Where simulators put ground truth (never read by reconstruction)."""
         return self.root / "ground_truth"
-
-
-_STDERR_LOCK = threading.Lock()
-_STDERR_STATE: dict[str, int] = {"depth": 0, "saved": -1}
-
-
-@contextmanager
-def quiet_native_stderr() -> Iterator[None]:
-    """Silence what C libraries write to file descriptor 2 inside the block.
-
-    libpng, libjpeg, FFmpeg and OpenCV's logger print their own complaints straight to
-    the process's stderr (e.g. "libpng error: Read Error"), ahead of omnipipe's one-line
-    error. Inside the block fd 2 points at the null device; it is restored on every
-    exit path. Python's ``sys.stderr`` is flushed first so nothing of ours is lost.
-    Re-entrant and thread-safe (the outermost block owns the redirection).
-    """
-    with _STDERR_LOCK:
-        if _STDERR_STATE["depth"] == 0:
-            try:
-                sys.stderr.flush()
-            except (AttributeError, OSError, ValueError):
-                pass
-            try:
-                saved = os.dup(2)
-                null = os.open(os.devnull, os.O_WRONLY)
-                try:
-                    os.dup2(null, 2)
-                finally:
-                    os.close(null)
-            except OSError:
-                saved = -1  # no usable fd 2: nothing to silence
-            _STDERR_STATE["saved"] = saved
-        _STDERR_STATE["depth"] += 1
-    try:
-        yield
-    finally:
-        with _STDERR_LOCK:
-            _STDERR_STATE["depth"] -= 1
-            if _STDERR_STATE["depth"] == 0 and _STDERR_STATE["saved"] >= 0:
-                os.dup2(_STDERR_STATE["saved"], 2)
-                os.close(_STDERR_STATE["saved"])
-                _STDERR_STATE["saved"] = -1
 
 
 try:  # libspng, where pyspng ships wheels (pyproject.toml)
@@ -276,6 +232,40 @@ def open_video(path: Path) -> Dataset:
     )
 
 
+def open_bag(path: str | Path, topic: str | None = None) -> Dataset:
+    """Open a bag's image topic (:mod:`omnipipe.inputs.rosbag`) as a :class:`Dataset`.
+
+    rig.yaml lies inside a ROS 2 bag folder or beside the bag. Frames are named
+    ``BAG#000000`` ...; the first is decoded here to check its size against the rig.
+
+    Raises:
+        DatasetError / ConfigError: as :func:`read_bag`, a missing rig.yaml, or frames of
+            another size than the rig's.
+    """
+    path = Path(path)
+    rig = load_rig(find_rig(path))
+    images = read_bag(path, topic)
+    odometry, imu, sensor_warnings = read_bag_sensors(path)
+    first = images.read(0)
+    cam = rig.camera
+    if first.shape[:2] != (cam.height, cam.width):
+        raise DatasetError(
+            f"{path}: topic {images.topic} images are {first.shape[1]}x{first.shape[0]} but "
+            f"rig.yaml says {cam.width}x{cam.height}"
+        )
+    names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(images)))
+    return Dataset(
+        root=find_rig(path).parent,
+        rig=rig,
+        frame_paths=names,
+        timestamps=images.timestamps,
+        warnings=images.warnings + sensor_warnings,
+        source=images,
+        odometry=odometry,
+        imu=imu,
+    )
+
+
 def open_dataset(root: str | Path, topic: str | None = None) -> Dataset:
     """Open and validate a dataset: a directory (rig.yaml, frames/, timestamps.txt), a
     video file (MP4, AVI, MOV, MKV) with rig.yaml beside it, or a ROS 1 bag, ROS 2 bag
@@ -285,9 +275,6 @@ def open_dataset(root: str | Path, topic: str | None = None) -> Dataset:
     Raises:
         DatasetError / ConfigError: naming the missing or invalid file or field.
     """
-    from omnipipe.errors import ConfigError
-    from omnipipe.inputs.rosbag import is_bag, open_bag
-
     root = Path(root)
     if is_bag(root):
         return open_bag(root, topic)

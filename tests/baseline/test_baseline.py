@@ -55,7 +55,7 @@ def test_optima_match_the_paper() -> None:
 
 
 def test_cli(tmp_path, capsys) -> None:
-    from omnipipe.rig import save_rig
+    from omnipipe.rig_yaml import save_rig
     from omnipipe.sim import paper_rig
 
     save_rig(paper_rig(), tmp_path / "rig.yaml")

@@ -14,7 +14,7 @@ from omnipipe.calibrate.ocam_io import read_ocam, write_ocam
 from omnipipe.camera import camera_from_rig
 from omnipipe.camera.convert import rig_in_model
 from omnipipe.cli import main
-from omnipipe.rig import load_rig
+from omnipipe.rig_yaml import load_rig
 from omnipipe.sim import paper_rig
 from omnipipe.sim.calibration import write_calibration_set
 
@@ -102,7 +102,7 @@ def test_import_ocam(tmp_path: Path, capsys) -> None:
     np.testing.assert_allclose(p2.polynomial, params.polynomial, rtol=1e-6)
     # with the laser of another rig
     other = tmp_path / "other.yaml"
-    from omnipipe.rig import save_rig
+    from omnipipe.rig_yaml import save_rig
 
     save_rig(rig, other)
     out = tmp_path / "rig.yaml"

@@ -14,7 +14,8 @@ from omnipipe.camera import CameraModel, OcamCamera, OmniCamera, UnifiedCamera, 
 from omnipipe.camera.convert import rig_in_model
 from omnipipe.cli import main
 from omnipipe.errors import ConfigError
-from omnipipe.rig import OcamParams, Rig, UnifiedParams, load_rig, rig_from_dict, save_rig
+from omnipipe.rig import OcamParams, Rig, UnifiedParams
+from omnipipe.rig_yaml import load_rig, rig_from_dict, save_rig
 from omnipipe.sim import make_scenario, paper_rig, run
 
 

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from omnipipe.cli import main
-from omnipipe.dataset import open_dataset, quiet_native_stderr, read_image
+from omnipipe.dataset import open_dataset, read_image
 from omnipipe.errors import DatasetError
+from omnipipe.native import quiet_native_stderr
 from omnipipe.pipeline.cli import _progress, close_progress_bars
 from omnipipe.sim import make_scenario, run
 

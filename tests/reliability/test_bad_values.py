@@ -18,7 +18,8 @@ import yaml
 from omnipipe.cli import main
 from omnipipe.dataset import open_dataset
 from omnipipe.errors import ConfigError, DatasetError
-from omnipipe.rig import MIN_LASER_DISTANCE_MM, rig_from_dict
+from omnipipe.rig import MIN_LASER_DISTANCE_MM
+from omnipipe.rig_yaml import rig_from_dict
 from omnipipe.sim import make_scenario, paper_rig, run
 
 

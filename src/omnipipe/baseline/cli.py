@@ -10,7 +10,7 @@ from omnipipe import cli_values
 from omnipipe.baseline import BaselineConfig, plot_fig9, run
 from omnipipe.config import finite_option
 from omnipipe.errors import ConfigError, OutputError
-from omnipipe.rig import load_rig
+from omnipipe.rig_yaml import load_rig
 
 # Largest wall distance accepted (mm): 1 km, far beyond any pipe; beyond ~1e300 the
 # optimisation overflows.

@@ -15,7 +15,8 @@ import numpy as np
 
 from omnipipe import cli_values
 from omnipipe.errors import ConfigError, OutputError
-from omnipipe.rig import LASER_CHANNELS, Mirror, Rig, load_rig, rig_from_dict, save_rig
+from omnipipe.rig import LASER_CHANNELS, Mirror, Rig
+from omnipipe.rig_yaml import load_rig, rig_from_dict, save_rig
 
 # A calibration worse than this (px RMS) is refused: wrong target size or bad detections.
 MAX_RMS_PX = 1.0

@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from omnipipe.native import quiet_native_stderr
+
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
 
@@ -77,8 +79,6 @@ class InputQuality:
 def _video_codec(dataset: Dataset) -> tuple[str | None, float | None, float | None]:
     """(FourCC, bit rate kbit/s, bits per pixel per frame) of a video dataset."""
     import cv2
-
-    from omnipipe.dataset import quiet_native_stderr
 
     with quiet_native_stderr():
         cap = cv2.VideoCapture(str(dataset.video))

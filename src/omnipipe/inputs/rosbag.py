@@ -37,6 +37,7 @@ import numpy as np
 
 from omnipipe.errors import ConfigError, DatasetError, one_line, yaml_reason
 from omnipipe.inputs.sensors import Imu, Odometry
+from omnipipe.native import quiet_native_stderr
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
@@ -95,8 +96,6 @@ class BagImages:
 def decode_compressed(data: np.ndarray, where: str) -> np.ndarray:
     """A sensor_msgs/CompressedImage payload (JPEG, PNG, ...) as RGB or grey."""
     import cv2
-
-    from omnipipe.dataset import quiet_native_stderr
 
     with quiet_native_stderr():
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
@@ -248,43 +247,6 @@ def find_rig(path: Path) -> Path:
         if candidate.is_file() and (candidate.parent == bag_dir or (bag_dir / "metadata.yaml").is_file()):
             return candidate
     return bag_dir / "rig.yaml"
-
-
-def open_bag(path: str | Path, topic: str | None = None):
-    """Open a bag's image topic as a :class:`omnipipe.dataset.Dataset`.
-
-    rig.yaml lies inside a ROS 2 bag folder or beside the bag. Frames are named
-    ``BAG#000000`` ...; the first is decoded here to check its size against the rig.
-
-    Raises:
-        DatasetError / ConfigError: as :func:`read_bag`, a missing rig.yaml, or frames of
-            another size than the rig's.
-    """
-    from omnipipe.dataset import Dataset
-    from omnipipe.rig import load_rig
-
-    path = Path(path)
-    rig = load_rig(find_rig(path))
-    images = read_bag(path, topic)
-    odometry, imu, sensor_warnings = read_bag_sensors(path)
-    first = images.read(0)
-    cam = rig.camera
-    if first.shape[:2] != (cam.height, cam.width):
-        raise DatasetError(
-            f"{path}: topic {images.topic} images are {first.shape[1]}x{first.shape[0]} but "
-            f"rig.yaml says {cam.width}x{cam.height}"
-        )
-    names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(images)))
-    return Dataset(
-        root=find_rig(path).parent,
-        rig=rig,
-        frame_paths=names,
-        timestamps=images.timestamps,
-        warnings=images.warnings + sensor_warnings,
-        source=images,
-        odometry=odometry,
-        imu=imu,
-    )
 
 
 def _sensor_topic(reader: Any, msgtype: str, path: Path, warnings: list[str]) -> str | None:

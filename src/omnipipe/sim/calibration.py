@@ -41,7 +41,8 @@ import numpy as np
 
 from omnipipe.errors import ConfigError
 from omnipipe.output import atomic_output_dir
-from omnipipe.rig import Rig, save_rig
+from omnipipe.rig import Rig
+from omnipipe.rig_yaml import save_rig
 
 CALIBRATION_SCENARIO = "calibration"
 DEFAULT_SIZE = (800, 600)

@@ -13,7 +13,7 @@ import numpy as np
 
 from omnipipe.dataset import write_image, write_tum
 from omnipipe.output import atomic_output_dir
-from omnipipe.rig import save_rig
+from omnipipe.rig_yaml import save_rig
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import Renderer
 from omnipipe.sim.scenarios import Scenario
