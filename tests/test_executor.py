@@ -178,3 +178,21 @@ def test_map_frames_on_a_subset_keeps_its_order(tiny_dataset: Path) -> None:
         everything = map_frames(ex, _checksums, dataset)
     assert subset == [truth[5], truth[1], truth[4], truth[6]] and done[-1] == 4
     assert everything == truth
+
+
+def test_worker_cached_builds_once_per_key_and_keeps_the_last() -> None:
+    from omnipipe.executor import worker_cached
+
+    built: list[tuple[int, ...]] = []
+
+    def build(key: tuple[int, ...]) -> list[int]:
+        built.append(key)
+        return list(key)
+
+    a = worker_cached("test.cache", (1, 2), lambda: build((1, 2)))
+    assert worker_cached("test.cache", (1, 2), lambda: build((1, 2))) is a  # same key: kept
+    b = worker_cached("test.cache", (3,), lambda: build((3,)))
+    assert b == [3] and b is not a
+    assert worker_cached("test.cache", (1, 2), lambda: build((1, 2))) is not a  # only the last kept
+    assert worker_cached("test.other", (3,), lambda: build((3,))) is not b  # names are separate
+    assert built == [(1, 2), (3,), (1, 2), (3,)]

@@ -24,6 +24,7 @@ is a pure function of its arguments, so the outputs do not depend on the executo
 from __future__ import annotations
 
 import os
+import pickle
 import re
 import signal
 import sys
@@ -45,6 +46,27 @@ R = TypeVar("R")
 
 class SchedulerError(OmnipipeError):
     """The Dask scheduler named by ``--scheduler`` cannot be reached."""
+
+
+_WORKER_CACHE: dict[str, tuple[bytes, Any]] = {}
+
+
+def worker_cached(name: str, key: Any, build: Callable[[], T]) -> T:
+    """This process's ``build()`` for ``key``, built once per process and key.
+
+    For what a worker builds from a task's settings and reuses across its chunks (polar
+    sampling maps, perspective maps, masks): one entry per ``name``, holding the last
+    ``key`` seen (compared by its pickle, so any picklable settings, e.g. frozen
+    dataclasses, serve); a new key drops the old value before building the new one.
+    """
+    token = pickle.dumps(key)
+    hit = _WORKER_CACHE.get(name)
+    if hit is not None and hit[0] == token:
+        return hit[1]
+    _WORKER_CACHE.pop(name, None)  # freed before the new one is built
+    value = build()
+    _WORKER_CACHE[name] = (token, value)
+    return value
 
 
 def default_workers() -> int:

@@ -80,9 +80,9 @@ def test_a_creep_only_the_run_sees_gets_its_ring(
         [tracker.update(gray_without_laser(f, dataset.rig.laser.channel))[0] for f in (dataset.read_frame(i) for i in range(len(dataset)))]
     )
     fetched: list[int] = []
-    task = frame_pass._RingTask.__call__
+    task = frame_pass.RingTask.__call__
     monkeypatch.setattr(
-        frame_pass._RingTask, "__call__", lambda self, src: fetched.extend(src.frames) or task(self, src)
+        frame_pass.RingTask, "__call__", lambda self, src: fetched.extend(src.frames) or task(self, src)
     )
     with open_executor(1) as ex:  # inline: chunks of 3 frames
         result = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)

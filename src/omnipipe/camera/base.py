@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from omnipipe.errors import ShapeError
+from omnipipe.rig import CameraIntrinsics
 
 
 def as_points(array: np.ndarray, dim: int, name: str) -> np.ndarray:
@@ -60,6 +61,7 @@ class CameraModel(abc.ABC):
     """
 
     model_name = "base"
+    intrinsics: CameraIntrinsics
     width: int
     height: int
     cx: float
@@ -67,7 +69,7 @@ class CameraModel(abc.ABC):
     radius_min: float
     radius_max: float
 
-    def _set_image(self, intrinsics) -> None:
+    def _set_image(self, intrinsics: CameraIntrinsics) -> None:
         """Principal point, image size and valid annulus (px) from ``CameraIntrinsics``;
         without ``radius_max`` the annulus is the largest circle inside the image."""
         self.cx = float(intrinsics.cx)

@@ -13,6 +13,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from omnipipe.camera.base import CameraModel
+from omnipipe.camera.factory import camera_from_rig
+from omnipipe.camera.ocam import OcamCamera
 from omnipipe.camera.unified import unified_project
 from omnipipe.rig import OcamParams, Rig, UnifiedParams
 
@@ -85,8 +87,6 @@ def fit_ocam(camera: CameraModel, degree: int = 5) -> tuple[OcamParams, float, f
     Returns:
         (params, cx, cy, rms_px): parameters, centre and RMS pixel residual.
     """
-    from omnipipe.camera.ocam import OcamCamera
-
     px = _samples(camera)
     rays = camera.unproject(px)
     ok = np.isfinite(rays).all(axis=1)
@@ -103,7 +103,7 @@ def fit_ocam(camera: CameraModel, degree: int = 5) -> tuple[OcamParams, float, f
         poly[i] = c * scale ** (1 - i)
     inv = ocam_inverse_polynomial(poly, camera.radius_max * 1.02)
     params = OcamParams(tuple(float(v) for v in poly), tuple(float(v) for v in inv))
-    fitted = OcamCamera(replace(camera.intrinsics), params)  # type: ignore[attr-defined]
+    fitted = OcamCamera(replace(camera.intrinsics), params)
     pred, _ = fitted.project(rays)
     rms = float(np.sqrt(np.nanmean(np.sum((pred - px) ** 2, axis=1))))
     return params, camera.cx, camera.cy, rms
@@ -115,8 +115,6 @@ def rig_in_model(rig: Rig, model: str, **kwargs: object) -> tuple[Rig, float]:
     Returns:
         (rig, rms_px): the converted rig and the fit's RMS pixel residual.
     """
-    from omnipipe.camera.factory import camera_from_rig
-
     camera = camera_from_rig(rig)
     if model == "unified":
         params, cx, cy, rms = fit_unified(camera, **kwargs)  # type: ignore[arg-type]

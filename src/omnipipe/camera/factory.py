@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 from omnipipe.camera.base import CameraModel
+from omnipipe.camera.hyperboloid import OmniCamera
+from omnipipe.camera.ocam import OcamCamera
+from omnipipe.camera.unified import UnifiedCamera
 from omnipipe.errors import ConfigError
 from omnipipe.rig import CameraIntrinsics, Mirror, OcamParams, Rig, UnifiedParams
 
@@ -18,17 +21,11 @@ def camera_from_parts(
         ConfigError: a hyperboloid camera without a mirror.
     """
     if isinstance(model, UnifiedParams):
-        from omnipipe.camera.unified import UnifiedCamera
-
         return UnifiedCamera(intrinsics, model)
     if isinstance(model, OcamParams):
-        from omnipipe.camera.ocam import OcamCamera
-
         return OcamCamera(intrinsics, model)
     if mirror is None:
         raise ConfigError("mirror", "the hyperboloid camera model needs the mirror section")
-    from omnipipe.camera.hyperboloid import OmniCamera
-
     return OmniCamera(intrinsics, mirror)
 
 

@@ -1,136 +1,23 @@
 """Light-section stage (paper Sec. III): metric laser-ring points of every frame.
 
-``run(config, rig, frames)`` extracts each frame's laser ring with sub-pixel
-Gaussian peak detection and intersects the rays with the calibrated laser plane.
-``run_dataset(config, dataset, executor)`` does the same frame-parallel: each worker
-decodes and extracts a chunk of frames (:func:`omnipipe.executor.map_frames`); the
-rings are identical to the serial ones.
+Extraction (:mod:`~omnipipe.laser.extract`, sub-pixel peaks along radial lines), the
+ring (:mod:`~omnipipe.laser.ring`), triangulation on the laser plane
+(:mod:`~omnipipe.laser.triangulate`, Eq. 4-5) and the stage's ``run`` /
+``run_dataset`` (:mod:`~omnipipe.laser.stage`).
 """
 
-from __future__ import annotations
-
-import pickle
-from collections.abc import Callable, Iterable
-from concurrent.futures import Executor
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
-
-import numpy as np
-
-from omnipipe.camera import camera_from_rig
-from omnipipe.laser.extract import ExtractionConfig, LaserRing, RingExtractor
+from omnipipe.laser.extract import ExtractionConfig, RingExtractor
+from omnipipe.laser.ring import LaserRing
+from omnipipe.laser.stage import (
+    LaserConfig,
+    LaserResult,
+    RingTask,
+    decode_only,
+    ring_extractor,
+    run,
+    run_dataset,
+)
 from omnipipe.laser.triangulate import intersect_plane, triangulate_ring
-from omnipipe.rig import Rig
-
-if TYPE_CHECKING:
-    from omnipipe.dataset import Dataset
-    from omnipipe.executor import FrameSource
-
-
-@dataclass(frozen=True)
-class LaserConfig:
-    """Light-section settings (see :class:`ExtractionConfig`)."""
-
-    extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
-
-
-@dataclass
-class LaserResult:
-    """Rings of all frames, in frame order.
-
-    Attributes:
-        rings: one :class:`LaserRing` per frame (pixels, points_in_rig, sigma_mm, ...).
-        warnings: per-frame problems, prefixed with the frame index.
-    """
-
-    rings: list[LaserRing]
-    warnings: list[str]
-
-    @property
-    def recovered_fraction(self) -> np.ndarray:
-        """(N,) fraction of scan lines with an accepted sample, per frame."""
-        return np.array([r.fraction for r in self.rings])
-
-
-def run(
-    config: LaserConfig,
-    rig: Rig,
-    frames: Iterable[np.ndarray],
-    progress: Callable[[int], None] | None = None,
-) -> LaserResult:
-    """Extract and triangulate the laser ring of every frame."""
-    camera = camera_from_rig(rig)
-    extractor = RingExtractor(camera, config.extraction, rig.laser)
-    rings, warnings = [], []
-    for i, frame in enumerate(frames):
-        ring = triangulate_ring(extractor.extract(frame, rig.laser.channel), camera, rig.laser)
-        warnings.extend(f"frame {i}: {w}" for w in ring.warnings)
-        rings.append(ring)
-        if progress:
-            progress(i + 1)
-    return LaserResult(rings, warnings)
-
-
-def run_dataset(
-    config: LaserConfig,
-    dataset: Dataset,
-    executor: Executor | None = None,
-    progress: Callable[[int], None] | None = None,
-) -> LaserResult:
-    """Decode and extract the ring of every frame of ``dataset``, frame-parallel.
-
-    Args:
-        executor: from :func:`omnipipe.executor.open_executor` (None: inline, serial).
-        progress: ``progress(frames_done)`` after each chunk of frames.
-
-    Returns:
-        the same :class:`LaserResult` as :func:`run` on every frame of ``dataset`` in order.
-
-    Raises:
-        DatasetError: an unreadable frame (naming its file).
-    """
-    from omnipipe.executor import InlineExecutor, map_frames
-
-    task = _ChunkTask(config)
-    rings = map_frames(executor or InlineExecutor(), task, dataset, progress=progress)
-    warnings = [f"frame {i}: {w}" for i, ring in enumerate(rings) for w in ring.warnings]
-    return LaserResult(rings, warnings)
-
-
-# Per process: the camera and ring extractor of the last (rig, config) seen, so that a
-# worker builds its polar sampling maps once, not once per chunk.
-_EXTRACTORS: dict[bytes, tuple] = {}
-
-
-def _extractor(config: LaserConfig, rig: Rig) -> tuple:
-    key = pickle.dumps((config, rig))
-    if key not in _EXTRACTORS:
-        camera = camera_from_rig(rig)
-        _EXTRACTORS.clear()
-        _EXTRACTORS[key] = (camera, RingExtractor(camera, config.extraction, rig.laser))
-    return _EXTRACTORS[key]
-
-
-class _ChunkTask:
-    """Picklable task: the rings (extracted and triangulated) of one chunk of frames."""
-
-    def __init__(self, config: LaserConfig) -> None:
-        self.config = config
-
-    def __call__(self, source: FrameSource) -> list[LaserRing]:
-        rig = source.rig
-        camera, extractor = _extractor(self.config, rig)
-        return [
-            triangulate_ring(extractor.extract(source.read(k), rig.laser.channel), camera, rig.laser)
-            for k in range(len(source))
-        ]
-
-
-def decode_only(source: FrameSource) -> list[tuple[int, ...]]:
-    """Decode a chunk of frames and return only their shapes (benchmarks: the decode cost
-    on the same workers, to compare with :func:`run_dataset`)."""
-    return [tuple(source.read(k).shape) for k in range(len(source))]
-
 
 __all__ = [
     "ExtractionConfig",
@@ -138,7 +25,11 @@ __all__ = [
     "LaserResult",
     "LaserRing",
     "RingExtractor",
+    "RingTask",
+    "decode_only",
     "intersect_plane",
+    "ring_extractor",
     "run",
     "run_dataset",
+    "triangulate_ring",
 ]

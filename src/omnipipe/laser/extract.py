@@ -14,7 +14,7 @@ left as gaps, never filled in.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -22,6 +22,8 @@ import numpy as np
 from omnipipe.camera import CameraModel
 from omnipipe.image import CHANNEL_INDEX
 from omnipipe.laser.peaks import line_statistics
+from omnipipe.laser.ring import LaserRing
+from omnipipe.laser.triangulate import intersect_plane
 from omnipipe.rig import LaserPlane
 
 
@@ -56,38 +58,6 @@ class ExtractionConfig:
     tophat_px: int = 8
     max_width_factor: float = 0.0
     min_ring_fraction: float = 0.4
-
-
-@dataclass
-class LaserRing:
-    """The laser ring of one frame.
-
-    Attributes:
-        pixels: (N, 2) sub-pixel image coordinates (col, row) of accepted samples.
-        angle_rad: (N,) angle of each sample's scan line around the principal point.
-        confidence: (N,) peak height over the line noise (SNR).
-        radius_sigma_px: (N,) 1-sigma radial uncertainty of each peak (px).
-        peak_width_px: (N,) Gaussian sigma of each peak along its scan line (px).
-        points_in_rig: (N, 3) metric points on the laser plane (mm), set by triangulation.
-        sigma_mm: (N,) 1-sigma depth uncertainty of each point (mm).
-        scanned: number of scan lines.
-        warnings: why samples or the whole frame were rejected.
-    """
-
-    pixels: np.ndarray
-    angle_rad: np.ndarray
-    confidence: np.ndarray
-    radius_sigma_px: np.ndarray
-    peak_width_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    points_in_rig: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    scanned: int = 0
-    warnings: list[str] = field(default_factory=list)
-
-    @property
-    def fraction(self) -> float:
-        """Fraction of scan lines with an accepted sample."""
-        return len(self.pixels) / self.scanned if self.scanned else 0.0
 
 
 def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:
@@ -259,8 +229,6 @@ def _radii_meeting(
     at which some scan line's ray (angle ``cos``, ``sin``: (L, 1)) meets ``plane`` as
     :func:`~omnipipe.laser.triangulate.intersect_plane` accepts, widened by ``margin``
     radii each side; all of ``radii`` when no ray meets it."""
-    from omnipipe.laser.triangulate import intersect_plane  # it imports this module
-
     x = camera.cx + radii[None, :].astype(float) * cos
     y = camera.cy + radii[None, :].astype(float) * sin
     with np.errstate(invalid="ignore"):

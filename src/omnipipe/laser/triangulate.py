@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from omnipipe.camera import CameraModel
-from omnipipe.laser.extract import LaserRing
+from omnipipe.laser.ring import LaserRing
 from omnipipe.rig import LaserPlane
 
 

@@ -23,7 +23,6 @@ frame by frame) for every frame where the rig moved, whatever the chunks.
 from __future__ import annotations
 
 import math
-import pickle
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -32,11 +31,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from omnipipe.camera import camera_from_rig
-from omnipipe.laser import LaserConfig, LaserResult
-from omnipipe.laser import _ChunkTask as _RingTask  # the rings of a chunk's frames
-from omnipipe.laser import _extractor as ring_extractor
-from omnipipe.laser.extract import LaserRing
-from omnipipe.laser.triangulate import triangulate_ring
+from omnipipe.executor import worker_cached
+from omnipipe.laser import (
+    LaserConfig,
+    LaserResult,
+    LaserRing,
+    RingTask,
+    ring_extractor,
+    triangulate_ring,
+)
 from omnipipe.rig import Rig
 from omnipipe.sfm.stations import (
     StationConfig,
@@ -75,19 +78,16 @@ class FramePassResult:
     ring_samples: np.ndarray
 
 
-# Per process: the valid mask, the noise estimate's pixels and their row runs of the last
-# (rig, settings) seen (built once per worker).
-_MASKS: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-
-
 def _masks(rig: Rig, stations: StationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    key = pickle.dumps((rig, stations.noise_pixels))
-    if key not in _MASKS:
-        _MASKS.clear()
+    """The valid mask, the noise estimate's pixels and their row runs, built once per
+    process and (rig, settings) (:func:`~omnipipe.executor.worker_cached`)."""
+
+    def build() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         valid = camera_from_rig(rig).valid_mask()
         inner = noise_mask(valid, stations.noise_pixels)
-        _MASKS[key] = (valid, inner, mask_runs(inner))
-    return _MASKS[key]
+        return valid, inner, mask_runs(inner)
+
+    return worker_cached("pipeline.frame_pass.masks", (rig, stations.noise_pixels), build)
 
 
 def warm_up(laser: LaserConfig, stations: StationConfig, rig: Rig) -> None:
@@ -174,7 +174,7 @@ def run(
     # A frame where the rig moved whose chunk took it for stationary (a slow creep that
     # only the comparison with an earlier chunk's frame shows): its ring, decoded again.
     missing = [i for i in range(n) if rings[i] is None and moved[i]]
-    for i, ring in iter_frames(executor, _RingTask(laser), dataset, frames=missing):
+    for i, ring in iter_frames(executor, RingTask(laser), dataset, frames=missing):
         rings[i] = ring
     done = [ring if ring is not None else _EMPTY for ring in rings]
     own = np.array([len(ring.pixels) for ring in done], int)

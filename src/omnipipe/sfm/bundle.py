@@ -33,7 +33,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import CameraModel
-from omnipipe.errors import ShapeError
+from omnipipe.errors import ConfigError, ReconstructionError, ShapeError
 from omnipipe.geometry import invert
 from omnipipe.sfm import schur
 from omnipipe.sfm.features import track_labels
@@ -79,8 +79,6 @@ class BundleConfig:
     solver: str = "auto"
 
     def __post_init__(self) -> None:
-        from omnipipe.errors import ConfigError
-
         if self.solver not in ("auto", "trf", "schur"):
             raise ConfigError("sfm.bundle.solver", f"must be auto, trf or schur, got {self.solver!r}")
 
@@ -412,8 +410,6 @@ def resect_rays(
     Raises:
         ReconstructionError: fewer than 6 consistent rays after the fit.
     """
-    from omnipipe.errors import ReconstructionError
-
     p0 = _poses_to_params(world_from_rig_init[None])[0]
 
     def residual(x: np.ndarray) -> np.ndarray:
@@ -457,8 +453,6 @@ def keyframe_windows(n_keyframes: int, size: int, overlap: int) -> list[tuple[in
     Raises:
         ConfigError: ``overlap`` not in 1 .. size - 2.
     """
-    from omnipipe.errors import ConfigError
-
     if size <= 0 or n_keyframes <= size + size // 4:
         return [(0, n_keyframes, 1)]
     if not 1 <= overlap <= size - 2:
