@@ -37,6 +37,7 @@ from omnipipe.errors import ConfigError, ReconstructionError, ShapeError
 from omnipipe.geometry import invert
 from omnipipe.sfm import schur
 from omnipipe.sfm.features import track_labels
+from omnipipe.sfm.geometry import triangulate_pairs
 
 
 @dataclass(frozen=True)
@@ -349,14 +350,16 @@ def build_problem(
         f, li = frame_of[idx], local[idx]
         d = np.array([R[k] @ rays_in_rig[k][j] for k, j in zip(f, li, strict=True)])
         # Midpoint of the first and last rays (the widest baseline).
-        d1, d2, c1, c2 = d[0], d[-1], C[f[0]], C[f[-1]]
-        if d1 @ d2 > cos_min:
+        if d[0] @ d[-1] > cos_min:
             continue
-        A = np.stack([d1, -d2], axis=1)
-        lam, *_ = np.linalg.lstsq(A, c2 - c1, rcond=None)
-        if lam[0] <= 0 or lam[1] <= 0:
+        k1, k2 = f[0], f[-1]
+        pair, depth = triangulate_pairs(
+            rays_in_rig[k1][li[0]][None], rays_in_rig[k2][li[-1]][None],
+            invert(world_from_rig[k2]) @ world_from_rig[k1],
+        )
+        if not (depth[0, 0] > 0 and depth[0, 1] > 0):
             continue
-        X = 0.5 * (c1 + lam[0] * d1 + c2 + lam[1] * d2)
+        X = R[k1] @ pair[0] + C[k1]
         q = np.einsum("nji,nj->ni", R[f], X - C[f])
         px, valid = camera.project(q)
         obs = np.array([pixels[k][j] for k, j in zip(f, li, strict=True)])

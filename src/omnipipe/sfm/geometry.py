@@ -57,12 +57,18 @@ def eight_point(
 def triangulate_pairs(
     rays1: np.ndarray, rays2: np.ndarray, rig2_from_rig1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Midpoint triangulation of ray pairs.
+    """Midpoint triangulation of ray pairs: the package's one triangulation of two views.
+
+    Each pair's point is the midpoint of the shortest segment between the ray
+    lam1 rays1 from rig 1's centre and the ray lam2 rays2 from rig 2's (least squares
+    in (lam1, lam2)).
 
     Returns:
         points_in_rig1: (N, 3).
-        depths: (N, 2) distances along rays1 (from rig 1) and rays2 (from rig 2);
-        both positive for points in front of both views.
+        depths: (N, 2) distances along rays1 (from rig 1) and rays2 (from rig 2), in
+        units of the rays' lengths; both positive for points in front of both views;
+        NaN (and the point too) where the rays are parallel (sin^2 of their angle
+        <= 1e-12).
     """
     r1, r2 = _check_pairs(rays1, rays2)
     R = rig2_from_rig1[:3, :3]
@@ -79,6 +85,9 @@ def triangulate_pairs(
     with np.errstate(invalid="ignore", divide="ignore"):
         lam1 = (c * p - b * q) / den
         lam2 = (b * p - a * q) / den
+    parallel = ~(den > 1e-12 * a * c)
+    lam1[parallel] = np.nan
+    lam2[parallel] = np.nan
     pts = 0.5 * (lam1[:, None] * r1 + (c2 + lam2[:, None] * d2))
     return pts, np.stack([lam1, lam2], axis=1)
 

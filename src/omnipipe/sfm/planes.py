@@ -23,6 +23,7 @@ import numpy as np
 
 from omnipipe.camera import CameraModel
 from omnipipe.image import sample_bilinear
+from omnipipe.sfm.geometry import triangulate_pairs
 
 
 @dataclass(frozen=True)
@@ -120,15 +121,7 @@ def refine_matches(
         return rays_b.copy()
     R, t = b_from_a[:3, :3], b_from_a[:3, 3]
     # Initial depth along each ray of a (midpoint triangulation), for the search range.
-    d2 = rays_b @ R  # rays of b in a
-    c2 = -R.T @ t
-    A11 = np.sum(rays_a * rays_a, axis=1)
-    A12 = -np.sum(rays_a * d2, axis=1)
-    A22 = np.sum(d2 * d2, axis=1)
-    b1 = rays_a @ c2
-    b2 = -(d2 @ c2)
-    det = A11 * A22 - A12**2
-    lam = np.where(np.abs(det) > 1e-12, (A22 * b1 - A12 * b2) / np.where(np.abs(det) > 1e-12, det, 1.0), np.nan)
+    lam = triangulate_pairs(rays_a, rays_b, b_from_a)[1][:, 0]
     ok = np.isfinite(lam) & (lam > 0)
     out = rays_b.copy()
     idx = np.flatnonzero(ok)

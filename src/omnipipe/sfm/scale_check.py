@@ -30,6 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from omnipipe.geometry import make_transform
+from omnipipe.sfm.geometry import triangulate_pairs
+
 #: Confidence levels of a step, best first.
 CONFIDENCE = ("high", "resolved", "low", "none")
 
@@ -241,21 +244,15 @@ def unit_depths(
         parallax angles (rad) between the rays.
     """
     R = np.asarray(b_from_a_rotation, float)
-    d = np.asarray(direction, float)
     u = np.asarray(rays_a, float) @ R.T  # ray a expressed in rig b
     v = np.asarray(rays_b, float)
-    # t u + d = w v  ->  least squares in (t, w).
-    uu = np.sum(u * u, axis=1)
-    vv = np.sum(v * v, axis=1)
+    _, depth = triangulate_pairs(
+        np.asarray(rays_a, float), v, make_transform(R, np.asarray(direction, float))
+    )
     uv = np.sum(u * v, axis=1)
-    ud = u @ d
-    vd = v @ d
-    det = uu * vv - uv * uv
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = (-ud * vv + uv * vd) / det
-        w = (uu * vd - uv * ud) / det
-    parallax = np.arccos(np.clip(uv / np.sqrt(uu * vv), -1.0, 1.0))
-    t = np.where((det > 1e-12) & (t > 0) & (w > 0), t, np.nan)
+    parallax = np.arccos(np.clip(uv / np.sqrt(np.sum(u * u, axis=1) * np.sum(v * v, axis=1)), -1.0, 1.0))
+    with np.errstate(invalid="ignore"):
+        t = np.where((depth[:, 0] > 0) & (depth[:, 1] > 0), depth[:, 0], np.nan)
     return t, parallax
 
 
