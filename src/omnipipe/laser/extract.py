@@ -21,7 +21,7 @@ import numpy as np
 
 from omnipipe.camera import CameraModel
 from omnipipe.image import CHANNEL_INDEX
-from omnipipe.laser.peaks import line_statistics
+from omnipipe.laser._kernels import line_statistics
 from omnipipe.laser.ring import LaserRing
 from omnipipe.laser.triangulate import intersect_plane
 from omnipipe.rig import LaserPlane
@@ -153,7 +153,7 @@ class RingExtractor:
             # their edges.
             kernel = np.ones((1, 2 * int(cfg.tophat_px) + 1), np.uint8)
             polar = cv2.morphologyEx(polar, cv2.MORPH_TOPHAT, kernel)
-        # Per line (compiled, :mod:`omnipipe.laser.peaks`): background (median) and
+        # Per line (compiled, :mod:`omnipipe.laser._kernels`): background (median) and
         # robust noise (MAD of the line's first difference), both estimated on every 4th
         # sample (robust statistics, 4x cheaper); the strongest peak, the strongest
         # response farther than separation_px from it (ambiguity) and the saturated

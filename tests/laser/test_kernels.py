@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnipipe.laser.peaks import line_statistics
+from omnipipe.laser._kernels import line_statistics
 
 
 def _numpy_statistics(polar: np.ndarray, clipped: np.ndarray, sep: int, step: int) -> tuple:
