@@ -25,7 +25,13 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.executor import worker_cached
 from omnipipe.image import gray_without_laser
 from omnipipe.rig import Rig
-from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameFeatures, FrameViews
+from omnipipe.sfm.features import (
+    FeatureConfig,
+    FeatureExtractor,
+    FrameFeatures,
+    FrameViews,
+    match_features,
+)
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.scale_check import (
     ScaleCheckConfig,
@@ -115,8 +121,6 @@ def track_into(
 def matched_rays(key_features: FrameFeatures, features: FrameFeatures, ratio: float) -> KeyframeRays:
     """Descriptor matches of a keyframe's features to a frame's: the matched keyframe
     features and the frame's rays of them."""
-    from omnipipe.sfm.features import match_features
-
     m = match_features(key_features, features, ratio)
     return KeyframeRays(m[:, 0], features.rays_in_rig[m[:, 1]])
 
