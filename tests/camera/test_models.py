@@ -208,4 +208,4 @@ def test_camera_model_is_abstract_and_pixel_angle_is_the_ray_angle() -> None:
 def test_models_without_a_compiled_projection_say_so(make) -> None:
     assert camera_from_rig(make()).compiled_projection() is None
     proj = camera_from_rig(paper_rig(400, 300)).compiled_projection()
-    assert proj is not None and proj.params.dtype == np.float64
+    assert proj is not None and all(isinstance(v, float) for v in proj.params)

@@ -39,14 +39,16 @@ class CompiledProjection:
     Attributes:
         kind: which kernel of :mod:`omnipipe.camera._kernels` projects (e.g.
             :data:`~omnipipe.camera._kernels.HYPERBOLOID`).
-        params: (P,) float64 parameters of that kernel, in its order.
+        params: the kernel's parameters (floats, in its order): a tuple, which compiled
+            code holds as values (an array could alias the outputs, and its entries
+            would be reloaded per point).
 
     :func:`omnipipe.camera._kernels.project_point` (``kind``, ``params``, x, y, z) ->
     (col, row, valid) gives bit for bit the model's :meth:`CameraModel.project`.
     """
 
     kind: int
-    params: np.ndarray
+    params: tuple[float, ...]
 
 
 class CameraModel(abc.ABC):

@@ -48,9 +48,9 @@ class OmniCamera(CameraModel):
         rmax = intrinsics.radius_max
         self.radius_max = asymptote if rmax is None else min(float(rmax), asymptote)
         self.radius_min = 0.0 if intrinsics.radius_min is None else float(intrinsics.radius_min)
-        self._params = np.array(
-            [self.a, self.b, self.c, self.f, self.cx, self.cy, float(self.width),
-             float(self.height), self.radius_min, self.radius_max]
+        self._params = (
+            self.a, self.b, self.c, self.f, self.cx, self.cy, float(self.width),
+            float(self.height), self.radius_min, self.radius_max,
         )
 
     @classmethod
