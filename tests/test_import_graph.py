@@ -12,8 +12,9 @@ runs ``omnipipe/camera/__init__.py`` first; a module importing a sibling does no
 "Upward" is either of:
 
 - a module importing a unit of a higher layer (:data:`LAYERS`; a unit is a top-level
-  module or subpackage of omnipipe; the CLI layer is ``omnipipe.cli`` and the modules
-  that register sub-commands, ``omnipipe.cli.COMMAND_MODULES``);
+  module or subpackage of omnipipe; the CLI layer is ``omnipipe.cli``, its argument
+  checks ``omnipipe.cli_values`` and the modules that register sub-commands,
+  ``omnipipe.cli.COMMAND_MODULES``);
 - a module of a subpackage importing names its own package's ``__init__`` defines or
   re-exports (the ``__init__`` is the package's face to the layers above; its
   modules import each other directly). The package's CLI modules are exempt: they
@@ -36,8 +37,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # 0 foundation: errors, YAML, small numeric and image helpers, output folders
     ("omnipipe", "errors", "safe_yaml", "geometry", "native", "memory", "image", "config",
      "survey", "output"),
-    # 1 the calibration's data classes
-    ("rig",),
+    # 1 the contract's data classes: the calibration, report.json's records
+    ("rig", "contract"),
     # 2 the camera models (one interface, CameraModel)
     ("camera",),
     # 3 files in: rig.yaml, recorded inputs, datasets
@@ -52,6 +53,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("pipeline",),
 )
 CLI_LAYER = len(LAYERS)
+# Units of the CLI layer besides the modules that register sub-commands.
+CLI_UNITS = ("cli", "cli_values")
 
 
 def _modules() -> dict[str, tuple[Path, bool]]:
@@ -175,9 +178,9 @@ def _unit(name: str) -> str:
 
 
 def _layer(name: str) -> int:
-    if name == "omnipipe.cli" or name in COMMAND_MODULES:
-        return CLI_LAYER
     unit = _unit(name)
+    if (unit in CLI_UNITS and name.count(".") == 1) or name in COMMAND_MODULES:
+        return CLI_LAYER
     for layer, units in enumerate(LAYERS):
         if unit in units:
             return layer

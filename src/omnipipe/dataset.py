@@ -6,7 +6,6 @@ I/O lives here, at the edge: stages receive arrays and data classes.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 

@@ -177,7 +177,7 @@ def test_analytic_jacobian_matches_the_central_differences(make) -> None:
     differences (:meth:`CameraModel.project_jacobian`, error ~1e-10 relative)."""
     cam = camera_from_rig(make())
     assert type(cam).project_jacobian is not CameraModel.project_jacobian  # analytic
-    px = cam.pixel_grid()[cam.valid_mask().ravel()][::11]
+    px = np.argwhere(cam.valid_mask())[:, ::-1].astype(float)[::11]  # (col, row)
     depth = np.random.default_rng(3).uniform(20.0, 2000.0, size=(len(px), 1))
     q = cam.unproject(px) * depth
     J = cam.project_jacobian(q)
