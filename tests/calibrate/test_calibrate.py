@@ -163,7 +163,7 @@ def test_ocam_roi_and_crop_round_trip(tmp_path: Path, capsys) -> None:
 
     from omnipipe.calibrate.ocam_io import OcamCrop, read_ocam_file
     from omnipipe.errors import ConfigError
-    from omnipipe.rig import save_rig
+    from omnipipe.rig_yaml import save_rig
 
     rig = paper_rig(400, 300)
     ocam_rig, _ = rig_in_model(rig, "ocam")
