@@ -35,7 +35,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera, camera_from_rig
+from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
@@ -109,21 +109,13 @@ def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) ->
     camera = camera_from_rig(inputs.rig)
     ex = executor or InlineExecutor()
     ransac = RansacConfig(
-        threshold_rad=config.ransac_threshold_px * _pixel_angle(camera),
+        threshold_rad=config.ransac_threshold_px * camera.angular_resolution(),
         max_iterations=config.ransac_iterations,
         min_inliers=config.min_inliers,
         rotation_only_ratio=config.rotation_only_ratio,
         seed=config.seed,
     )
     return SfmContext(config, camera, ransac, ex, not isinstance(ex, InlineExecutor), [])
-
-
-def _pixel_angle(camera: OmniCamera) -> float:
-    """Angle (rad) between the rays of two neighbouring pixels (one row apart) at the
-    middle of the mirror annulus."""
-    mid = np.array([[camera.cx + 0.5 * (camera.radius_min + camera.radius_max), camera.cy]])
-    cos = np.sum(camera.unproject(mid) * camera.unproject(mid + np.array([[0.0, 1.0]])))
-    return float(np.arccos(np.clip(cos, -1, 1)))
 
 
 def _result(

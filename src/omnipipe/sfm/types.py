@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from omnipipe.camera import OmniCamera
+from omnipipe.camera import CameraModel
 from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, BundleResult
 from omnipipe.sfm.features import FeatureConfig, FrameFeatures
@@ -180,7 +180,7 @@ class SfmContext:
     """
 
     config: SfmConfig
-    camera: OmniCamera
+    camera: CameraModel
     ransac: RansacConfig
     executor: Executor
     parallel: bool
