@@ -12,7 +12,7 @@ import pytest
 
 from omnipipe.cli import main as cli_main
 from omnipipe.dataset import open_dataset
-from omnipipe.inputs.sensors import gravity_at, odometry_at, read_imu, read_odometry
+from omnipipe.inputs.sensors import gravity_at, make_imu, odometry_at, read_imu, read_odometry
 from omnipipe.sim import make_scenario, simulate_trajectory
 from omnipipe.sim.sensors import simulate_sensors, write_sensor_files
 
@@ -97,3 +97,19 @@ def test_simulate_writes_and_the_dataset_reads_the_sensors(tmp_path: Path) -> No
     ds2 = open_dataset(odo_only)
     assert ds2.imu is None and not (odo_only / "imu.txt").exists()
     np.testing.assert_array_equal(ds2.odometry.distance_mm, ds.odometry.distance_mm)
+
+
+def test_imu_follows_the_scene_gravity() -> None:
+    """A scenario whose gravity is world +x (a pipe running down a vertical shaft's
+    side): the accelerometer's gravity direction follows it, within a degree."""
+    sc = make_scenario("brick-bend", seed=0, frames=40)
+    sc.pipe = replace(sc.pipe, features=replace(sc.pipe.features, gravity=(1.0, 0.0, 0.0)))
+    poses, sigma, _ = simulate_trajectory(sc.pipe, sc.motion, sc.frames, sc.seed)
+    stamps = np.arange(sc.frames) / sc.fps
+    sim = simulate_sensors(sc, stamps, sigma, poses)
+    imu = make_imu("sim", sim.imu[:, 0], sim.imu[:, 1:4], sim.imu[:, 4:7], str)
+    g, _ = gravity_at(imu, stamps)
+    expected = np.einsum("nji,j->ni", poses[:, :3, :3], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(sim.truth["gravity_in_rig_at_frames"], expected, atol=1e-8)
+    err = np.degrees(np.arccos(np.clip(np.sum(g * expected, axis=1), -1, 1)))
+    assert err.max() < 1.0

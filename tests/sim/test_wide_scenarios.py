@@ -123,7 +123,7 @@ def test_wide_periodic_walls_repeat_at_the_stated_period(family: str) -> None:
 
 def test_photo_and_tiled_culvert_walls() -> None:
     culvert = make_scenario("tiled-culvert")
-    assert culvert.pipe.inner_diameter_mm == 600.0 and culvert.texture.variant == "mosaic"
+    assert culvert.pipe.inner_diameter_mm == 600.0 and culvert.texture.variant == "grid"
     assert (culvert.rig.camera.width, culvert.rig.camera.height) == (1280, 1024)
     assert culvert.rig.laser.distance_mm == 235.0
     best, peak, _ = _autocorrelation_peak(culvert.texture, 30.0)

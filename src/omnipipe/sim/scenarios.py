@@ -769,7 +769,8 @@ def _brick_bend(width: int, height: int, frames: int) -> Scenario:
 
 
 def _tiled_culvert(width: int, height: int, frames: int) -> Scenario:
-    """A 600 mm culvert lined with glazed mosaic tiles 30 mm apart; 22 mm strokes over 5
+    """A 600 mm culvert lined with glazed mosaic tiles 30 mm apart, all of one glaze (+-4 %
+    per tile: the wall repeats every 30 mm along and around); 22 mm strokes over 5
     frames (2-7 mm between frames); another mirror on a 1280x1024 sensor; the laser plane
     235 mm behind the focus."""
     s = height / 1024.0
@@ -780,7 +781,7 @@ def _tiled_culvert(width: int, height: int, frames: int) -> Scenario:
     )  # fmt: skip
     texture = TextureConfig(
         texel_mm=0.25 * 600.0 / 202.0, family="tiles", period_mm=30.0, joint_mm=2.5,
-        variant="mosaic", base_rgb=_MOSAIC_COLOURS[0],
+        variant="grid", base_rgb=_MOSAIC_COLOURS[0],
     )  # fmt: skip
     motion = MotionConfig(start_mm=335.0, stroke_mm=22.0, frames_per_cycle=6, moving_frames=5)
     pipe = Pipe(inner_diameter_mm=600.0)

@@ -12,9 +12,10 @@ hypot(``sigma_rel`` x distance, walk x sqrt(distance), quantum / sqrt(12)), with
 ``imu.txt`` (``<time s> ax ay az wx wy wz``): specific force (m/s^2; the accelerometer
 reads a - g, so +9.81 m/s^2 "up" at rest) and angular rate (rad/s) in the rig frame,
 from the true trajectory between frames (:func:`omnipipe.sim.motion.travel_at_times`),
-each axis with a constant bias and white noise. Gravity points along world -y unless
-``SensorConfig.gravity_world`` says otherwise. The IMU covers the run from a second
-before the first frame to a second after the last (the robot at rest), the odometry
+each axis with a constant bias and white noise. Gravity (9.80665 m/s^2) points along
+the scene's gravity (``Pipe.features.gravity``: world -y unless the scenario says
+otherwise), or along ``SensorConfig.gravity_world`` when that is set. The IMU covers
+the run from a second before the first frame to a second after the last (the robot at rest), the odometry
 from the first frame to a second after the last.
 
 Sensor draws come from their own seed (``SeedSequence([seed, 0x53454E53])``), so
@@ -59,7 +60,8 @@ class SensorConfig:
         accel_bias_sigma: each axis' constant bias ~ N(0, this) (m/s^2).
         gyro_noise: gyro white noise (rad/s, 1 sigma).
         gyro_bias_sigma: each gyro axis' constant bias ~ N(0, this) (rad/s).
-        gravity_world: gravity in the world frame (m/s^2).
+        gravity_world: gravity in the world frame (m/s^2); None: the scene's gravity
+            direction (``Pipe.features.gravity``) x 9.80665 m/s^2.
     """
 
     odometry: bool = True
@@ -74,7 +76,7 @@ class SensorConfig:
     accel_bias_sigma: float = 0.03
     gyro_noise: float = 0.002
     gyro_bias_sigma: float = 0.0005
-    gravity_world: tuple[float, float, float] = (0.0, -STANDARD_GRAVITY, 0.0)
+    gravity_world: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         for name in ("odometry_rate_hz", "imu_rate_hz"):
@@ -111,7 +113,7 @@ def simulate_sensors(
     seq = np.random.SeedSequence([int(scenario.seed), _SENSOR_SEED_TAG])
     rng, rng_odo, rng_imu = (np.random.default_rng(s) for s in seq.spawn(3))
     travel = np.asarray(sigma_mm, float) - float(sigma_mm[0])
-    g_world = np.asarray(cfg.gravity_world, float)
+    g_world = gravity_world(scenario)
     g_rig = np.einsum("nji,j->ni", poses[:, :3, :3], g_world / np.linalg.norm(g_world))
     truth: dict = {
         "config": asdict(cfg),
@@ -133,6 +135,13 @@ def simulate_sensors(
         imu = _imu(scenario, rng_imu, frame_times_s, travel, accel_bias, gyro_bias)
         truth["imu"] = {"accel_bias": accel_bias.tolist(), "gyro_bias": gyro_bias.tolist()}
     return SimulatedSensors(odo, imu, truth)
+
+
+def gravity_world(scenario: Scenario) -> np.ndarray:
+    """(3,) gravity (m/s^2) in the world frame of ``scenario``'s run."""
+    if scenario.sensors.gravity_world is not None:
+        return np.asarray(scenario.sensors.gravity_world, float)
+    return STANDARD_GRAVITY * np.asarray(scenario.pipe.features.gravity, float)
 
 
 def _knots(frame_t: np.ndarray, travel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -187,7 +196,7 @@ def _imu(
     p = poses[:, :3, 3].reshape(3, n, 3) * 1e-3  # m
     rot = poses[:, :3, :3].reshape(3, n, 3, 3)
     acc_world = (p[0] - 2.0 * p[1] + p[2]) / (h * h)
-    f_world = acc_world - np.asarray(cfg.gravity_world, float)
+    f_world = acc_world - gravity_world(scenario)
     f_rig = np.einsum("nji,nj->ni", rot[1], f_world)
     rel = np.einsum("nji,njk->nik", rot[0], rot[2])  # R(t-h)^T R(t+h)
     omega = Rotation.from_matrix(rel).as_rotvec() / (2.0 * h)
