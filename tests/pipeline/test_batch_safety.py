@@ -252,7 +252,7 @@ def test_ctrl_c_and_sigterm_stop_a_batch_promptly(
     proc = start(tmp_path, "slow", argv)
     workers = wait_for_workers(proc, 2)
     assert proc.stdout is not None
-    assert proc.stdout.readline().strip() == "task started"  # a run is in progress
+    assert "task started" in proc.stdout.readline()  # a run is in progress (two workers may print on one line)
     sent = time.monotonic()
     if sig == signal.SIGINT:
         os.killpg(proc.pid, sig)
