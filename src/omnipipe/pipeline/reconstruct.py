@@ -124,6 +124,8 @@ class Reconstruction:
             ``to_contract()``), largest first.
         trajectory_quality: what the camera motion check found (the summary's
             ``trajectory_quality``), or None.
+        up_in_rig: (3,) unit up direction in the first registered frame's rig frame
+            (imu.txt's accelerometer), or None: no gravity reference.
     """
 
     summary: dict[str, Any]
@@ -136,6 +138,7 @@ class Reconstruction:
     survey: Survey | None = None
     defects: list[Defect] = field(default_factory=list)
     trajectory_quality: TrajectoryQuality | None = None
+    up_in_rig: np.ndarray | None = None
 
 
 def run(
@@ -187,6 +190,9 @@ def run(
     summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
     summary["input_quality"] = input_quality.to_dict()
     reg = motion.registered_frames
+    from omnipipe.report.clock import IMU_FILE, read_imu_up
+
+    up = read_imu_up(dataset.root / IMU_FILE, float(dataset.timestamps[reg[0]])) if len(reg) else None
     return Reconstruction(
         summary=summary,
         timestamps=dataset.timestamps[reg],
@@ -197,6 +203,7 @@ def run(
         frame_index=reg,
         defects=defects,
         trajectory_quality=measured.quality,
+        up_in_rig=up,
     )
 
 
@@ -535,9 +542,12 @@ def write(
     from omnipipe import model as model_stage
     from omnipipe import report
     from omnipipe.dataset import atomic_output_dir, write_tum
+    from omnipipe.report.clock import clock_reference
     from omnipipe.report.deliverable import write_deliverable
 
     out = Path(out)
+    travel = float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]) if len(rec.world_from_rig) else 1.0
+    rec.summary["clock_reference"] = clock_reference(rec.survey, rec.up_in_rig, travel).to_dict()
     with atomic_output_dir(out, force=force, protect=protect) as tmp:
         tick = progress("output", 3)
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
@@ -556,7 +566,7 @@ def write(
             rec.defects,
             rec.model.unrolled,
             rec.survey,
-            travel_along_rig_z=float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]),
+            travel_along_rig_z=travel,
         )
         tick(3)
     return out
