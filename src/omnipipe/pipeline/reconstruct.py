@@ -574,7 +574,10 @@ def write(
 
 def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None) -> ReportInputs:
     """What report.html shows, from a reconstruction (and optional evaluation)."""
+    import numpy as np
+
     from omnipipe.report import ReportInputs
+    from omnipipe.report.relief import WallPoints
 
     mdl, res = rec.model, rec.analysis
     truth = None
@@ -598,6 +601,14 @@ def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None)
         frame_index=rec.frame_index,
         defects=rec.defects,
         trajectory_quality=rec.trajectory_quality,
+        wall=WallPoints(
+            axial_mm=res.point_sigma_mm,
+            angle_deg=np.degrees(res.point_theta_rad) % 360.0,
+            deviation_mm=res.point_deviation_mm,
+            radius_mm=res.radius_mm,
+        )
+        if len(res.point_sigma_mm)
+        else None,
     )
 
 

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from omnipipe.contract import Defect, TrajectoryQuality
+    from omnipipe.report.relief import WallPoints
     from omnipipe.survey import Survey
 
 
@@ -75,6 +76,7 @@ class ReportInputs:
         defects: the reported defects, in report.json's order.
         trajectory_quality: the camera motion check (unreliable stretches are marked on
             the unrolled wall and the trajectory), or None.
+        wall: the measured wall points and their deviations (the relief maps), or None.
     """
 
     summary: dict[str, Any]
@@ -94,6 +96,7 @@ class ReportInputs:
     frame_index: np.ndarray | None = None
     defects: Sequence[Defect] = ()
     trajectory_quality: TrajectoryQuality | None = None
+    wall: WallPoints | None = None
 
 
 def _png_data_uri(image: np.ndarray) -> str:
@@ -130,7 +133,77 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
         out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         out["unrolled"] = _unrolled_plot(inputs, inputs.unrolled, inputs.unrolled_extent)
+    if inputs.wall is not None and len(inputs.wall.axial_mm):
+        out["relief"] = _relief_plot(inputs, inputs.wall)
     return out
+
+
+def _clock_deg(inputs: ReportInputs) -> float:
+    """The omnipipe angle that is 12:00 in this report."""
+    from omnipipe.report.deliverable import run_clock
+
+    return run_clock(inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs)).angle_deg
+
+
+def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
+    """The unrolled wall's deviation map (mm, colour scale) with the defects outlined."""
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report import relief
+
+    z0, z1 = float(np.min(wall.axial_mm)), float(np.max(wall.axial_mm))
+    ref = _clock_deg(inputs)
+    a0 = ref  # 12:00 at the left edge: columns run clockwise through a full turn
+    cell = max(1.0, (z1 - z0) / 400.0)
+    grid = relief.deviation_grid(wall, (z0, z1), (a0, a0 + 360.0), cell)
+    circ = 2 * math.pi * wall.radius_mm
+    fig, ax = plt.subplots(figsize=(9, min(12.0, 9 * (z1 - z0) / circ + 1.2)))
+    vmax = relief.relief_vmax([d.height_mm for d in inputs.defects], inputs.summary.get("wall_noise_mm"))
+    im = relief.draw_relief(ax, grid, (a0, a0 + 360.0, z0, z1), vmax)
+    for k, d in enumerate(inputs.defects):
+        shifted = _shift_angle(d, a0)
+        relief.outline(ax, shifted, wall.radius_mm)
+        ax.text(shifted.angle_deg, shifted.axial_start_mm, f" #{k + 1}", fontsize=8, va="bottom")
+    relief.clock_ticks(ax, a0, a0 + 360.0, ref)
+    ax.set_xlabel("clock position (looking in the direction of travel)")
+    ax.set_ylabel("distance along the pipe (mm, from the first frame)")
+    fig.colorbar(im, ax=ax, label="deviation from the wall (mm): − bulge, + dent", shrink=0.8)
+    return _figure_data_uri(fig)
+
+
+def _shift_angle(d: Defect, a0: float) -> Defect:
+    """``d`` with its angle moved into [a0, a0 + 360)."""
+    from dataclasses import replace
+
+    return replace(d, angle_deg=a0 + (d.angle_deg - a0) % 360.0)
+
+
+def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
+    """One defect's relief map crop (mm colour scale, outline, clock axis) as a data URI."""
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report import relief
+
+    wall = inputs.wall
+    if wall is None:
+        return ""
+    a0, a1, z0, z1 = relief.defect_window(d, wall.radius_mm)
+    cell = max(0.25, min(2.0, min(d.width_mm, d.length_mm) / 12.0))
+    grid = relief.deviation_grid(wall, (z0, z1), (a0, a1), cell)
+    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    vmax = relief.relief_vmax([d.height_mm], inputs.summary.get("wall_noise_mm"))
+    im = relief.draw_relief(ax, grid, (a0, a1, z0, z1), vmax)
+    relief.outline(ax, d, wall.radius_mm)
+    span_h = (a1 - a0) / 30.0
+    relief.clock_ticks(ax, a0, a1, _clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
+    ax.set_xlabel("clock", fontsize=8)
+    ax.set_ylabel("along the pipe (mm)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=9)
+    bar = fig.colorbar(im, ax=ax, shrink=0.85)
+    bar.set_label("deviation (mm)", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    return _figure_data_uri(fig)
 
 
 def _profile_plot(inputs: ReportInputs) -> str:
@@ -224,14 +297,18 @@ def _unrolled_plot(
             lw=1.5,
         )
         ax.add_patch(rect)
+        rect.set_linestyle("--" if d.truncated else "-")
         ax.text(d.angle_deg + half_w + 2, d.axial_start_mm, f"#{k + 1} {d.kind}", color="white", fontsize=8)
     quality = inputs.trajectory_quality
     for u in () if quality is None else quality.unreliable:
         if u.axial_start_mm is not None and u.axial_end_mm is not None:
             ax.axhspan(u.axial_start_mm, u.axial_end_mm, color="#d62728", alpha=0.3, lw=0)
             ax.text(a0 + 2, u.axial_start_mm, "unreliable motion", color="white", fontsize=7, va="top")
-    ax.set_xlabel("angle around the axis from the first rig frame's x axis (deg)")
-    ax.set_ylabel("distance along the pipe (mm)")
+    from omnipipe.report.relief import clock_ticks
+
+    clock_ticks(ax, a0, a1, _clock_deg(inputs))
+    ax.set_xlabel("clock position (looking in the direction of travel)")
+    ax.set_ylabel("distance along the pipe (mm, from the first frame)")
     return _figure_data_uri(fig)
 
 
@@ -348,31 +425,41 @@ def _travel_sign(inputs: ReportInputs) -> float:
 
 
 def _defect_extras(inputs: ReportInputs) -> list[list[str]]:
-    """Per defect: clock, distance from the start node, grade and a crop (HTML cells)."""
-    from omnipipe.report.deliverable import crop_unrolled, defect_rows
+    """Per defect: clock, distance, grade and its views (HTML cells)."""
+    from omnipipe.report.deliverable import defect_rows
 
     rows = defect_rows(inputs.defects, inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs))
     out = []
-    for row in rows:
+    for k, row in enumerate(rows):
         v = row.values
-        img = ""
+        views = []
+        if inputs.wall is not None:
+            views.append(_zoomable(_defect_relief(inputs, row.defect, k), f"defect {k + 1}: relief map"))
         if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
+            from omnipipe.report.deliverable import crop_unrolled
+
             ext = inputs.unrolled_extent
-            h = inputs.unrolled.shape[0]
             crop = crop_unrolled(
-                inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / h, row.defect,
+                inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], row.defect,
                 2 * math.pi * inputs.radius_mm,
             )
-            img = f"<img class='crop' alt='defect {v['defect']}' src='{_png_data_uri(crop)}'>"
+            views.append(_zoomable(_png_data_uri(crop), f"defect {k + 1}: wall texture"))
+        sig = v["clock_sigma_deg"]
+        end_sig = v["distance_end_sigma_m"]
         out.append(
             [
-                f"{v['clock']} ({v['clock_deg']}°)",
-                f"{v['distance_start_m']} – {v['distance_end_m']}",
+                f"{v['clock']}" + (f" ± {sig}°" if sig else ""),
+                f"{v['distance_start_m']} – {v['distance_end_m']}" + (f" ± {end_sig}" if end_sig else ""),
                 v["severity_grade"],
-                img,
+                "".join(views),
             ]
         )
     return out
+
+
+def _zoomable(uri: str, alt: str) -> str:
+    """An image that opens large when clicked (the page's zoom overlay)."""
+    return f"<img class='crop zoomable' alt='{html.escape(alt)}' title='click to enlarge' src='{uri}'>"
 
 
 def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str:
@@ -524,7 +611,7 @@ def _model_view(model: str | None) -> str:
 
 _DEFECT_COLUMNS = (
     "<table><thead><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
-    "<th>axial start (mm)</th><th>angle (deg)</th><th>clock</th><th>distance (m)</th>"
+    "<th>clock</th><th>distance (m)</th>"
     "<th>grade</th><th>view</th></tr></thead>"
 )
 
@@ -548,29 +635,41 @@ def _defects_section(inputs: ReportInputs) -> str:
                 (d.height_mm, d.height_sigma_mm, 2),
                 (d.width_mm, d.width_sigma_mm, 2),
                 (d.length_mm, d.length_sigma_mm, 2),
-                (d.axial_start_mm, d.axial_start_sigma_mm, 2),
-                (d.angle_deg, d.angle_sigma_deg, 1),
             )
         ]
+        if d.truncated:
+            cells = ["≥ " + c for c in cells]
         kind = html.escape(d.kind) + (
             " <span class='warn'>(across unreliable motion)</span>" if d.motion_unreliable else ""
+        ) + (
+            " <span class='warn'>TRUNCATED: runs past the measured stretch; sizes are lower bounds</span>"
+            if d.truncated
+            else ""
         )
         cells += extra[k] if k < len(extra) else ["", "", "", ""]
         parts.append(
             f"<tr><td>{k + 1}</td><td>{kind}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
         )
     parts.append("</table>")
+    from omnipipe.report.deliverable import distance_origin, run_clock
+
+    clock = run_clock(s, _survey_of(s), _travel_sign(inputs))
+    origin = distance_origin(s, _survey_of(s))
     parts.append(
         "<p class='note'>clock: looking in the direction of travel, clockwise; 12:00 = "
         + (
-            "survey.yaml clock_reference_deg"
-            if (s.get("survey") or {}).get("clock_reference_deg") is not None
-            else "image up in the first frame (omnipipe has no gravity reference)"
+            f"the top of the pipe ({html.escape(clock.source)})"
+            if clock.gravity
+            else "<span class='warn'>clock from image up: no gravity reference</span> (the first "
+            "frame's image up; give survey.yaml clock_reference_deg or imu.txt)"
         )
-        + ". distance: from the start node to the defect's start and end. grade: height as % "
+        + f". distance: metres along the pipe from the {html.escape(origin.name)} to the defect's "
+        "start and end (± 1 sigma of the end). grade: height as % "
         "of the inner diameter, omnipipe's bands (docs/inspection_coding.md), not an official "
-        "PACP / EN 13508-2 grade. view: the unrolled wall around the defect (defects/*.png; "
-        "defects.csv names the frame of its best view).</p>"
+        "PACP / EN 13508-2 grade. views: the relief map (deviation from the fitted wall, mm; blue "
+        "into the pipe) and the wall texture around the defect, its half-height extent outlined "
+        "(dashed: truncated); click a view to enlarge it. report.json keeps the angle in degrees "
+        "from the first rig frame's x axis (angle_deg).</p>"
     )
     return "".join(parts)
 
@@ -578,10 +677,21 @@ def _defects_section(inputs: ReportInputs) -> str:
 def _figures(plots: dict[str, str]) -> str:
     """The unrolled wall, the diameter profile and the trajectory (those drawn)."""
     parts = []
-    if "unrolled" in plots:
-        parts.append(
-            f"<h2>Unrolled wall</h2><img id='unrolled' alt='unrolled wall' src='{plots['unrolled']}'>"
-        )
+    if "unrolled" in plots or "relief" in plots:
+        parts.append("<h2>Unrolled wall</h2>")
+        if "unrolled" in plots and "relief" in plots:
+            parts.append(
+                "<p class='screen-only'><label><input type='radio' name='wallmode' checked "
+                "onclick=\"wallMode('texture')\"> texture</label> <label><input type='radio' "
+                "name='wallmode' onclick=\"wallMode('relief')\"> deviation map (mm)</label></p>"
+            )
+        if "unrolled" in plots:
+            parts.append(f"<img id='unrolled' class='zoomable' alt='unrolled wall' src='{plots['unrolled']}'>")
+        if "relief" in plots:
+            hidden = " style='display:none'" if "unrolled" in plots else ""
+            parts.append(
+                f"<img id='relief' class='zoomable' alt='deviation map'{hidden} src='{plots['relief']}'>"
+            )
     if "profile" in plots:
         parts.append(
             "<h2>Diameter and ovality along the pipe</h2>"
