@@ -33,6 +33,8 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.model import ModelConfig, ModelResult
     from omnipipe.pipeline.frame_pass import FramePassResult
     from omnipipe.report import ReportConfig, ReportInputs
+    from omnipipe.report.relief import WallPoints
+    from omnipipe.report.views import DefectView
     from omnipipe.sfm import SfmConfig, SfmResult
     from omnipipe.survey import Survey
 
@@ -126,6 +128,7 @@ class Reconstruction:
             ``trajectory_quality``), or None.
         up_in_rig: (3,) unit up direction in the first registered frame's rig frame
             (imu.txt's accelerometer), or None: no gravity reference.
+        defect_views: each defect's camera view (None where no frame sees it).
     """
 
     summary: dict[str, Any]
@@ -139,6 +142,7 @@ class Reconstruction:
     defects: list[Defect] = field(default_factory=list)
     trajectory_quality: TrajectoryQuality | None = None
     up_in_rig: np.ndarray | None = None
+    defect_views: list[DefectView | None] = field(default_factory=list)
 
 
 def run(
@@ -193,6 +197,7 @@ def run(
     from omnipipe.report.clock import IMU_FILE, read_imu_up
 
     up = read_imu_up(dataset.root / IMU_FILE, float(dataset.timestamps[reg[0]])) if len(reg) else None
+    views = _defect_views(dataset, defects, measured.result, mdl, motion.result.world_from_rig[reg], reg)
     return Reconstruction(
         summary=summary,
         timestamps=dataset.timestamps[reg],
@@ -204,6 +209,48 @@ def run(
         defects=defects,
         trajectory_quality=measured.quality,
         up_in_rig=up,
+        defect_views=views,
+    )
+
+
+def _defect_views(
+    dataset: Dataset,
+    defects: list[Defect],
+    res: AnalysisResult,
+    mdl: ModelResult,
+    world_from_rig: np.ndarray,
+    frame_index: np.ndarray,
+) -> list[DefectView | None]:
+    """Each defect's camera view (:mod:`omnipipe.report.views`)."""
+    from omnipipe.camera import camera_from_rig
+    from omnipipe.report.views import defect_views
+
+    if not defects:
+        return []
+    return defect_views(
+        defects,
+        wall_points(res),
+        mdl.points_in_world,
+        world_from_rig,
+        frame_index,
+        camera_from_rig(dataset.rig),
+        dataset.read_frame,
+    )
+
+
+def wall_points(res: AnalysisResult) -> WallPoints | None:
+    """The analysis' wall points and deviations for the relief maps, or None."""
+    import numpy as np
+
+    from omnipipe.report.relief import WallPoints
+
+    if not len(res.point_sigma_mm):
+        return None
+    return WallPoints(
+        axial_mm=res.point_sigma_mm,
+        angle_deg=np.degrees(res.point_theta_rad) % 360.0,
+        deviation_mm=res.point_deviation_mm,
+        radius_mm=res.radius_mm,
     )
 
 
@@ -567,6 +614,7 @@ def write(
             rec.model.unrolled,
             rec.survey,
             travel_along_rig_z=travel,
+            views=rec.defect_views,
         )
         tick(3)
     return out
@@ -574,10 +622,7 @@ def write(
 
 def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None) -> ReportInputs:
     """What report.html shows, from a reconstruction (and optional evaluation)."""
-    import numpy as np
-
     from omnipipe.report import ReportInputs
-    from omnipipe.report.relief import WallPoints
 
     mdl, res = rec.model, rec.analysis
     truth = None
@@ -601,14 +646,9 @@ def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None)
         frame_index=rec.frame_index,
         defects=rec.defects,
         trajectory_quality=rec.trajectory_quality,
-        wall=WallPoints(
-            axial_mm=res.point_sigma_mm,
-            angle_deg=np.degrees(res.point_theta_rad) % 360.0,
-            deviation_mm=res.point_deviation_mm,
-            radius_mm=res.radius_mm,
-        )
-        if len(res.point_sigma_mm)
-        else None,
+        wall=wall_points(res),
+        defect_views=rec.defect_views,
+        wall_points_in_world=mdl.points_in_world,
     )
 
 

@@ -22,7 +22,9 @@ Conventions (also written as ``#`` comment lines at the top of defects.csv):
   (:data:`SEVERITY_BANDS_PCT`): bands chosen by omnipipe in the manner of PACP's
   structural grades (1 = minor ... 5 = most severe); they are not an official PACP or
   EN 13508-2 grading and must be reviewed by a certified inspector.
-- **Best view**: the frame whose laser ring passed closest to the defect's axial centre.
+- **Best view**: the frame of the camera view (``camera_view``, :mod:`omnipipe.report.views`:
+  the frame that sees the defect from closest); without one, the frame whose laser ring
+  passed closest to the defect's axial centre.
 - **Crop**: ``defects/defect_NN.png``, the unrolled wall (``unrolled.png``, 0.5 mm per
   px by default) around the defect: the defect's extent plus a margin, with a thin
   outline of its half-height extent; columns run clockwise as seen in the travel
@@ -50,6 +52,7 @@ if TYPE_CHECKING:
 
     from omnipipe.contract import Defect
     from omnipipe.model.texture import UnrolledImage
+    from omnipipe.report.views import DefectView
     from omnipipe.survey import Survey
 
 CSV_NAME = "defects.csv"
@@ -81,6 +84,7 @@ CSV_COLUMNS = (
     "severity_grade",
     "best_view_frame",
     "crop",
+    "camera_view",
     "flags",
 )
 
@@ -228,6 +232,7 @@ def defect_rows(
             "severity_grade": "" if grade is None else str(grade),
             "best_view_frame": "" if frame is None else str(frame),
             "crop": f"{CROP_DIR}/defect_{k:02d}.png",
+            "camera_view": "",
             "flags": ";".join(flags),
         }
         for what, value, sigma in (
@@ -347,6 +352,7 @@ def write_deliverable(
     unrolled: UnrolledImage | None = None,
     survey: Survey | None = None,
     travel_along_rig_z: float = 1.0,
+    views: Sequence[DefectView | None] = (),
 ) -> list[Path]:
     """Write defects.csv and ``defects/defect_NN.png`` into ``out``; returns the files.
 
@@ -358,12 +364,23 @@ def write_deliverable(
         unrolled: the unrolled wall image, or None (no crops).
         survey: the survey header, or None.
         travel_along_rig_z: sign of the robot's motion along its first rig frame's z.
+        views: each defect's camera view (``defects/defect_NN_camera.png``; its frame
+            becomes ``best_view_frame``).
     """
     from omnipipe.dataset import write_image
 
     out = Path(out)
     rows = defect_rows(defects, summary, survey, travel_along_rig_z)
     written = []
+    for row, view in zip(rows, views, strict=False):
+        if view is None:
+            continue
+        (out / CROP_DIR).mkdir(exist_ok=True)
+        path = out / CROP_DIR / f"defect_{int(row.values['defect']):02d}_camera.png"
+        write_image(path, view.image)
+        written.append(path)
+        row.values["best_view_frame"] = str(view.frame)
+        row.values["camera_view"] = f"{CROP_DIR}/{path.name}"
     if unrolled is not None and rows:
         (out / CROP_DIR).mkdir(exist_ok=True)
         for row in rows:

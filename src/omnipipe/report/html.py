@@ -31,10 +31,12 @@ from omnipipe.image import PNG_COMPRESS_LEVEL
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.report.relief import WallPoints
+    from omnipipe.report.views import DefectView
     from omnipipe.survey import Survey
 
 
@@ -77,6 +79,10 @@ class ReportInputs:
         trajectory_quality: the camera motion check (unreliable stretches are marked on
             the unrolled wall and the trajectory), or None.
         wall: the measured wall points and their deviations (the relief maps), or None.
+        defect_views: each defect's camera view (None where no frame sees it), in the
+            defects' order; may be empty.
+        wall_points_in_world: (N, 3) world positions (mm) of ``wall``'s points (the 3-D
+            view's defect markers), or None.
     """
 
     summary: dict[str, Any]
@@ -97,6 +103,8 @@ class ReportInputs:
     defects: Sequence[Defect] = ()
     trajectory_quality: TrajectoryQuality | None = None
     wall: WallPoints | None = None
+    defect_views: Sequence[DefectView | None] = ()
+    wall_points_in_world: np.ndarray | None = None
 
 
 def _png_data_uri(image: np.ndarray) -> str:
@@ -166,9 +174,19 @@ def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
         ax.text(shifted.angle_deg, shifted.axial_start_mm, f" #{k + 1}", fontsize=8, va="bottom")
     relief.clock_ticks(ax, a0, a0 + 360.0, ref)
     ax.set_xlabel("clock position (looking in the direction of travel)")
-    ax.set_ylabel("distance along the pipe (mm, from the first frame)")
+    _distance_axis(ax, inputs)
     fig.colorbar(im, ax=ax, label="deviation from the wall (mm): − bulge, + dent", shrink=0.8)
     return _figure_data_uri(fig)
+
+
+def _distance_axis(ax: Axes, inputs: ReportInputs) -> None:
+    """The vertical axis in the inspector's distance (m from the start node or the first
+    measured ring)."""
+    from omnipipe.report.deliverable import distance_origin
+    from omnipipe.report.relief import distance_axis
+
+    origin = distance_origin(inputs.summary, _survey_of(inputs.summary))
+    distance_axis(ax, origin.offset_m, origin.name)
 
 
 def _shift_angle(d: Defect, a0: float) -> Defect:
@@ -197,7 +215,8 @@ def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
     span_h = (a1 - a0) / 30.0
     relief.clock_ticks(ax, a0, a1, _clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
     ax.set_xlabel("clock", fontsize=8)
-    ax.set_ylabel("along the pipe (mm)", fontsize=8)
+    _distance_axis(ax, inputs)
+    ax.yaxis.label.set_fontsize(7)
     ax.tick_params(labelsize=7)
     ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=9)
     bar = fig.colorbar(im, ax=ax, shrink=0.85)
@@ -227,14 +246,14 @@ def _profile_plot(inputs: ReportInputs) -> str:
     else:
         ax1.plot(axial, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
     survey = inputs.summary.get("survey") or {}
-    ax1.set_xlabel("distance along the pipe (mm)")
-    if survey:
-        # A second axis: distance from the survey's start node, metres.
-        off = float(survey.get("start_offset_m") or 0.0)
-        top = ax1.secondary_xaxis(
-            "top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0)
-        )
-        top.set_xlabel(f"distance from start node {survey.get('start_node') or ''} (m)")
+    ax1.set_xlabel("axial position (mm, from the first frame's mirror focus)")
+    from omnipipe.report.deliverable import distance_origin
+
+    # A second axis: the inspector's distance (from the start node or the first ring), m.
+    origin = distance_origin(inputs.summary, _survey_of(inputs.summary))
+    off = origin.offset_m
+    top = ax1.secondary_xaxis("top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0))
+    top.set_xlabel(f"distance (m) from the {origin.name}")
     nominal = survey.get("nominal_diameter_mm")
     if nominal:
         ax1.axhline(nominal, color="#888", ls="--", lw=1, label="nominal")
@@ -308,7 +327,7 @@ def _unrolled_plot(
 
     clock_ticks(ax, a0, a1, _clock_deg(inputs))
     ax.set_xlabel("clock position (looking in the direction of travel)")
-    ax.set_ylabel("distance along the pipe (mm, from the first frame)")
+    _distance_axis(ax, inputs)
     return _figure_data_uri(fig)
 
 
@@ -338,6 +357,7 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         texture = _png_data_uri(tex)
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     rest = {
+        "markers": _markers(inputs),
         "texture": texture,
         "centre": ((lo + hi) / 2).tolist(),
         "radius": float(max(np.linalg.norm(hi - lo) / 2, 1.0)),
@@ -352,6 +372,26 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     )
     text = "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:]
     return text.replace("</", "<\\/")
+
+
+def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
+    """The 3-D view's defect labels: each defect's measured centre (world, mm)."""
+    from omnipipe.report.views import centre_point
+
+    if inputs.wall is None or inputs.wall_points_in_world is None:
+        return []
+    out = []
+    for k, d in enumerate(inputs.defects):
+        p = centre_point(d, inputs.wall, inputs.wall_points_in_world)
+        if p is not None:
+            out.append(
+                {
+                    "label": f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""),
+                    "position": [round(float(v), 2) for v in p],
+                    "href": f"#defect-{k + 1}",
+                }
+            )
+    return out
 
 
 def _numbers(fmt: str, values: np.ndarray) -> str:
@@ -424,37 +464,62 @@ def _travel_sign(inputs: ReportInputs) -> float:
     return float(poses[-1][2, 3] - poses[0][2, 3])
 
 
-def _defect_extras(inputs: ReportInputs) -> list[list[str]]:
-    """Per defect: clock, distance, grade and its views (HTML cells)."""
+def _defect_extras(inputs: ReportInputs) -> tuple[list[list[str]], list[str]]:
+    """Per defect: the table's cells (clock, distance, grade, link to its views) and its
+    views' card (relief map, wall texture, camera view; each enlarges when clicked)."""
     from omnipipe.report.deliverable import defect_rows
 
     rows = defect_rows(inputs.defects, inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs))
-    out = []
+    cells, cards = [], []
     for k, row in enumerate(rows):
         v = row.values
-        views = []
-        if inputs.wall is not None:
-            views.append(_zoomable(_defect_relief(inputs, row.defect, k), f"defect {k + 1}: relief map"))
-        if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
-            from omnipipe.report.deliverable import crop_unrolled
-
-            ext = inputs.unrolled_extent
-            crop = crop_unrolled(
-                inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], row.defect,
-                2 * math.pi * inputs.radius_mm,
-            )
-            views.append(_zoomable(_png_data_uri(crop), f"defect {k + 1}: wall texture"))
+        views = _defect_views_html(inputs, row.defect, k)
         sig = v["clock_sigma_deg"]
         end_sig = v["distance_end_sigma_m"]
-        out.append(
+        cells.append(
             [
                 f"{v['clock']}" + (f" ± {sig}°" if sig else ""),
                 f"{v['distance_start_m']} – {v['distance_end_m']}" + (f" ± {end_sig}" if end_sig else ""),
                 v["severity_grade"],
-                "".join(views),
+                f"<a href='#views-{k + 1}'>views</a>" if views else "",
             ]
         )
-    return out
+        if views:
+            d = row.defect
+            head = (
+                f"#{k + 1} {html.escape(d.kind)} at {v['clock']}, {v['distance_start_m']} – "
+                f"{v['distance_end_m']} m from the {html.escape(v['distance_from'])}: "
+                f"{'≥ ' if d.truncated else ''}{d.height_mm:.2f} mm high"
+                + (" <span class='warn'>(truncated: runs past the measured stretch)</span>" if d.truncated else "")
+            )
+            cards.append(f"<div class='card keep' id='views-{k + 1}'><h3>{head}</h3>{''.join(views)}</div>")
+    return cells, cards
+
+
+def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
+    """The ``<figure>`` of each view of defect ``d`` (number ``k + 1``)."""
+    views = []
+    if inputs.wall is not None:
+        views.append(
+            _figure_html(_defect_relief(inputs, d, k), "relief map: deviation from the fitted wall (mm)")
+        )
+    if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
+        from omnipipe.report.deliverable import crop_unrolled
+
+        ext = inputs.unrolled_extent
+        crop = crop_unrolled(
+            inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
+            2 * math.pi * inputs.radius_mm,
+        )
+        views.append(_figure_html(_png_data_uri(crop), "wall texture (unrolled)"))
+    view = inputs.defect_views[k] if k < len(inputs.defect_views) else None
+    if view is not None:
+        views.append(_figure_html(_png_data_uri(view.image), f"camera view, frame {view.frame}"))
+    return views
+
+
+def _figure_html(uri: str, caption: str) -> str:
+    return f"<figure>{_zoomable(uri, caption)}<figcaption>{html.escape(caption)}</figcaption></figure>"
 
 
 def _zoomable(uri: str, alt: str) -> str:
@@ -603,7 +668,8 @@ def _model_view(model: str | None) -> str:
         return "<p class='note'>No mesh was built.</p>"
     viewer_js = resources.files("omnipipe.report").joinpath("viewer.js").read_text(encoding="utf-8")
     return (
-        "<canvas id='model-view'></canvas><p id='model-status' class='note'>loading…</p>"
+        "<div id='model-wrap'><canvas id='model-view'></canvas></div>"
+        "<p id='model-status' class='note'>loading…</p>"
         f"<script type='application/json' id='model-data'>{model}</script>"
         f"<script>{viewer_js}</script>"
     )
@@ -612,7 +678,7 @@ def _model_view(model: str | None) -> str:
 _DEFECT_COLUMNS = (
     "<table><thead><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
     "<th>clock</th><th>distance (m)</th>"
-    "<th>grade</th><th>view</th></tr></thead>"
+    "<th>grade</th><th>views</th></tr></thead>"
 )
 
 
@@ -626,7 +692,7 @@ def _defects_section(inputs: ReportInputs) -> str:
             + ("" if limit is None else f" {_fmt(limit)} mm high or more")
             + " were found.</p>"
         )
-    extra = _defect_extras(inputs)
+    extra, cards = _defect_extras(inputs)
     parts = [_DEFECT_COLUMNS]
     for k, d in enumerate(inputs.defects):
         cells = [
@@ -648,7 +714,7 @@ def _defects_section(inputs: ReportInputs) -> str:
         )
         cells += extra[k] if k < len(extra) else ["", "", "", ""]
         parts.append(
-            f"<tr><td>{k + 1}</td><td>{kind}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
+            f"<tr id='defect-{k + 1}'><td>{k + 1}</td><td>{kind}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
         )
     parts.append("</table>")
     from omnipipe.report.deliverable import distance_origin, run_clock
@@ -667,10 +733,14 @@ def _defects_section(inputs: ReportInputs) -> str:
         "start and end (± 1 sigma of the end). grade: height as % "
         "of the inner diameter, omnipipe's bands (docs/inspection_coding.md), not an official "
         "PACP / EN 13508-2 grade. views: the relief map (deviation from the fitted wall, mm; blue "
-        "into the pipe) and the wall texture around the defect, its half-height extent outlined "
-        "(dashed: truncated); click a view to enlarge it. report.json keeps the angle in degrees "
+        "into the pipe), the wall texture around the defect and the camera's own view (a "
+        "perspective crop of the frame that sees it closest, defects.csv best_view_frame), its "
+        "half-height extent outlined (dashed: truncated); click a view to enlarge it. "
+        "report.json keeps the angle in degrees "
         "from the first rig frame's x axis (angle_deg).</p>"
     )
+    if cards:
+        parts.append("<h2>Defect views</h2>" + "".join(cards))
     return "".join(parts)
 
 

@@ -81,7 +81,34 @@ def deviation_grid(
         gap[inside] = zs[nxt[inside]] - zs[nxt[inside] - 1]
         fill = ~ok & inside & (gap <= max_gap_mm)
         col[fill] = filled[fill]
+    _fill_rows(grid, max(1, int(round(max_gap_mm / 5.0 / cell_mm))))
     return grid
+
+
+def _fill_rows(grid: np.ndarray, max_cells: int) -> None:
+    """Fill NaN runs of at most ``max_cells`` inside each row linearly (in place): the
+    gaps between a ring's samples when the cells are finer than their spacing."""
+    cols = np.arange(grid.shape[1])
+    for row in grid:
+        ok = np.isfinite(row)
+        if ok.sum() < 2 or ok.all():
+            continue
+        xs = cols[ok]
+        nxt = np.searchsorted(xs, cols)
+        inside = (nxt > 0) & (nxt < len(xs))
+        gap = np.full(len(cols), np.inf)
+        gap[inside] = xs[nxt[inside]] - xs[nxt[inside] - 1]
+        fill = ~ok & inside & (gap <= max_cells + 1)
+        row[fill] = np.interp(cols[fill], xs, row[ok])
+
+
+def distance_axis(ax: Axes, offset_m: float, origin: str) -> None:
+    """Label the vertical axis (axial mm from the first frame) as the inspector's
+    distance: metres from ``origin`` (``offset_m`` + axial / 1000)."""
+    from matplotlib.ticker import FuncFormatter
+
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda z, _pos: f"{offset_m + z / 1000.0:.2f}"))
+    ax.set_ylabel(f"distance (m) from the {origin}")
 
 
 def clock_ticks(ax: Axes, a0: float, a1: float, reference_deg: float, step_h: float = 1.0) -> None:
