@@ -253,25 +253,25 @@ def test_truncated_defect_and_distances_without_a_survey(tmp_path: Path) -> None
 
 
 def test_clock_from_imu_gravity(tmp_path: Path) -> None:
-    """imu.txt's accelerometer at the first frame gives 12:00: up along the rig's +x is
+    """The IMU's accelerometer at the first frame gives 12:00: up along the rig's +x is
     omnipipe angle 0, so a defect at angle 0 is at 12:00 and one at 270 deg at 9:00."""
-    from omnipipe.report.clock import clock_reference, read_imu_up
+    from omnipipe.inputs.sensors import make_imu
+    from omnipipe.report.clock import clock_reference, imu_up
 
     rng = np.random.default_rng(0)
     t = np.arange(0.0, 5.0, 0.01)
     acc = np.array([9.81, 0.0, 0.3]) + rng.normal(0, 0.05, (len(t), 3))
-    (tmp_path / "imu.txt").write_text(
-        "".join(f"{ti:.3f} {a[0]:.4f} {a[1]:.4f} {a[2]:.4f}\n" for ti, a in zip(t, acc, strict=True)),
-        encoding="utf-8",
-    )
-    up = read_imu_up(tmp_path / "imu.txt", 0.0)
-    assert up is not None
-    ref = clock_reference(None, up, 1.0)
+    imu = make_imu("test", t, acc, None, str)
+    found = imu_up(imu, 0.0)  # the recording starts at the frame: the first whole window
+    assert found is not None
+    up, sigma = found
+    ref = clock_reference(None, up, 1.0, sigma)
     assert ref.gravity and ref.source == "gravity (imu.txt)"
-    assert ref.angle_deg == pytest.approx(0.0, abs=1.0)
+    assert ref.angle_deg == pytest.approx(0.0, abs=1.0) and 0 < ref.sigma_deg < 1.0
     summary = _summary() | {"clock_reference": ref.to_dict()}
     write_deliverable(tmp_path, summary, _defects(summary), None, None)
     comments, rows = _read_csv(tmp_path / "defects.csv")
     assert [r["clock"] for r in rows] == ["12:00", "09:00"]
     assert any("the top of the pipe" in c for c in comments)
-    assert read_imu_up(tmp_path / "missing.txt", 0.0) is None
+    # Up along the mirror axis: no clock position across it.
+    assert imu_up(make_imu("axis", t, np.tile([0.0, 0.0, 9.81], (len(t), 1)), None, str), 1.0) is None

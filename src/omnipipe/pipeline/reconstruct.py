@@ -128,6 +128,7 @@ class Reconstruction:
             ``trajectory_quality``), or None.
         up_in_rig: (3,) unit up direction in the first registered frame's rig frame
             (imu.txt's accelerometer), or None: no gravity reference.
+        up_sigma_rad: its 1-sigma angle (rad).
         defect_views: each defect's camera view (None where no frame sees it).
     """
 
@@ -142,6 +143,7 @@ class Reconstruction:
     defects: list[Defect] = field(default_factory=list)
     trajectory_quality: TrajectoryQuality | None = None
     up_in_rig: np.ndarray | None = None
+    up_sigma_rad: float = 0.0
     defect_views: list[DefectView | None] = field(default_factory=list)
 
 
@@ -194,9 +196,9 @@ def run(
     summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
     summary["input_quality"] = input_quality.to_dict()
     reg = motion.registered_frames
-    from omnipipe.report.clock import IMU_FILE, read_imu_up
+    from omnipipe.report.clock import imu_up
 
-    up = read_imu_up(dataset.root / IMU_FILE, float(dataset.timestamps[reg[0]])) if len(reg) else None
+    up = None if dataset.imu is None or not len(reg) else imu_up(dataset.imu, float(dataset.timestamps[reg[0]]))
     views = _defect_views(dataset, defects, measured.result, mdl, motion.result.world_from_rig[reg], reg)
     return Reconstruction(
         summary=summary,
@@ -208,7 +210,8 @@ def run(
         frame_index=reg,
         defects=defects,
         trajectory_quality=measured.quality,
-        up_in_rig=up,
+        up_in_rig=None if up is None else up[0],
+        up_sigma_rad=0.0 if up is None else up[1],
         defect_views=views,
     )
 
@@ -594,7 +597,9 @@ def write(
 
     out = Path(out)
     travel = float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]) if len(rec.world_from_rig) else 1.0
-    rec.summary["clock_reference"] = clock_reference(rec.survey, rec.up_in_rig, travel).to_dict()
+    rec.summary["clock_reference"] = clock_reference(
+        rec.survey, rec.up_in_rig, travel, rec.up_sigma_rad
+    ).to_dict()
     with atomic_output_dir(out, force=force, protect=protect) as tmp:
         tick = progress("output", 3)
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)

@@ -221,7 +221,9 @@ def defect_rows(
             "kind": d.kind,
             "clock": text,
             "clock_deg": _fmt(clock_deg, 1),
-            "clock_sigma_deg": _fmt(d.angle_sigma_deg, 2),
+            "clock_sigma_deg": _fmt(
+                None if d.angle_sigma_deg is None else math.hypot(d.angle_sigma_deg, clock.sigma_deg), 2
+            ),
             "clock_reference": clock.source,
             "distance_from": origin.name,
             "distance_start_m": _fmt(dist_start, 4),
