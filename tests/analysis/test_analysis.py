@@ -228,3 +228,22 @@ def test_defect_cut_by_the_measured_stretch_is_truncated(start: float, cut_by: s
     inside = search(70.0).defects
     assert len(inside) == 1 and not inside[0].truncated
     assert "truncated" not in inside[0].to_contract()
+
+
+def test_defect_at_an_unmeasured_band_is_truncated() -> None:
+    """A dent whose side lies in a band of the wall without samples (standing water):
+    truncated; the same dent on a fully measured wall is not."""
+    rng = np.random.default_rng(5)
+    radius, circ = 100.0, 2 * np.pi * 100.0
+    sig, arc = np.meshgrid(np.arange(0, 200, 5.0), np.arange(720) * circ / 720, indexing="ij")
+    sig, arc = sig.ravel(), arc.ravel()
+    ring = (sig // 5).astype(int)
+    du = (arc - np.radians(90.0) * radius + circ / 2) % circ - circ / 2
+    dev = 2.0 * plateau(du, 18.0, 6.0) * plateau(sig - 100.0, 45.0, 15.0) + rng.normal(0, 0.05, sig.size)
+    wet = (du > 4.0) & (du < 60.0)  # no samples from just past the dent's centre on
+    kw = dict(min_height_mm=1.0, noise_factor=6, min_points=4, grid_mm=0.25)
+    cut = find_defects(WallSamples(sig[~wet], arc[~wet], dev[~wet], ring[~wet], circ), **kw)
+    assert len(cut.defects) == 1 and cut.defects[0].truncated
+    assert any("water line" in w for w in cut.warnings)
+    whole = find_defects(WallSamples(sig, arc, dev, ring, circ), **kw)
+    assert len(whole.defects) == 1 and not whole.defects[0].truncated

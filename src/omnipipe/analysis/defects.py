@@ -256,8 +256,8 @@ def _truncation(
 ) -> tuple[Defect, str | None]:
     """The defect flagged ``truncated`` when it runs past the measured stretch: its
     samples beyond the threshold lie on the first or last ring, its extent reaches beyond
-    them, or it overlaps an unmeasured gap (rings further apart than 3 wide ring spacings
-    and 5 mm). Its extent is then clipped to the measured rings (the length a lower bound,
+    them, it overlaps an unmeasured gap (rings further apart than 3 wide ring spacings
+    and 5 mm), or the wall beside it around the ring was not measured (:func:`_cut_around`). Its extent is then clipped to the measured rings (the length a lower bound,
     1-sigma one ring spacing) and its height is the larger of the fit's and the largest
     measured deviation ``top_mm`` (a bump cut off mid-flank is fitted too low). Returns
     (defect, what cut it or None)."""
@@ -279,6 +279,8 @@ def _truncation(
         for a, b in zip(zs[:-1][wide], zs[1:][wide], strict=True)
         if start < b and end > a
     ]
+    if _cut_around(s, d, members, sc):
+        cuts.append("an unmeasured part of the wall around the ring (e.g. below the water line)")
     if not cuts:
         return d, None
     new_start, new_end = max(start, lo), min(end, hi)
@@ -295,6 +297,26 @@ def _truncation(
         height_mm=round(max(d.height_mm, top_mm), 3),
         truncated=True,
     ), " and ".join(cuts)
+
+
+def _cut_around(s: WallSamples, d: Defect, members: np.ndarray, sc: _Scales) -> bool:
+    """Whether the wall beside the defect went unmeasured on at least half of its rings:
+    within its width plus 5 mm each side, a stretch of the ring without samples longer
+    than 5 sample spacings and 5 mm (standing water, a shadow)."""
+    circ = s.circumference_mm
+    centre = d.angle_deg / 360.0 * circ
+    half = 0.5 * d.width_mm + 5.0
+    min_gap = max(5.0 * sc.sample_spacing, 5.0)
+    rings = np.unique(s.ring[members])
+    cut = 0
+    for r in rings:
+        on = s.ring == r
+        u = (s.arc_mm[on] - centre + 0.5 * circ) % circ - 0.5 * circ
+        u = np.sort(u[np.abs(u) <= half])
+        edges = np.concatenate([[-half], u, [half]])
+        if np.max(np.diff(edges)) > min_gap:
+            cut += 1
+    return cut * 2 >= len(rings) > 0
 
 
 def _rejection(d: Defect, kind: str, max_width_mm: float, limit: float) -> str | None:
