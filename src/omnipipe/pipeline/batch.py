@@ -394,12 +394,15 @@ def _defects_cell(s: dict[str, Any]) -> str:
     """The run's defects, one line each: kind, height, clock position and flags."""
     from omnipipe.contract import Defect
     from omnipipe.report.deliverable import defect_rows
+    from omnipipe.survey import FIELDS, Survey
 
     entries = s.get("defects") or []
     if not entries:
         return "none"
+    sv = s.get("survey")
     try:
-        rows = defect_rows([Defect.from_contract(e) for e in entries], s, None)
+        survey = Survey(**{k: v for k, v in sv.items() if k in FIELDS}) if isinstance(sv, dict) else None
+        rows = defect_rows([Defect.from_contract(e) for e in entries], s, survey)
     except (KeyError, TypeError, ValueError):
         return str(len(entries))
     items = []
