@@ -64,7 +64,13 @@ def format_result(res: EvaluationResult) -> str:
             lines.append(
                 f"{head}: outside the measured stretch (no run could measure it)"
                 if row.coverage == "outside"
-                else f"{head}: NOT FOUND" + (f" ({place})" if place else "")
+                else f"{head}: NOT FOUND"
+                + (f" ({place})" if place else "")
+                + (
+                    f" (below the run's detection limit {res.detection_limit_mm:.2f} mm)"
+                    if res.detection_limit_mm is not None and t.height_mm < res.detection_limit_mm
+                    else ""
+                )
             )
             continue
         e = row.errors()

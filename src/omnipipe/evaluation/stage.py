@@ -123,6 +123,7 @@ class EvaluationResult:
     defects: list[DefectMatch] = field(default_factory=list)
     not_evaluated: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    detection_limit_mm: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -273,8 +274,12 @@ def run(config: EvaluationConfig, inputs: EvaluationInputs) -> EvaluationResult:
     traj = None
     if ok.sum() >= 2:
         traj = trajectory_errors(est_poses[ok], gt_poses[nearest[ok]])
+    limit = report.get("detection_limit_mm")
     result = EvaluationResult(
-        trajectory=traj, frames=len(gt_stamps), frames_registered=int(ok.sum())
+        trajectory=traj,
+        frames=len(gt_stamps),
+        frames_registered=int(ok.sum()),
+        detection_limit_mm=float(limit) if isinstance(limit, int | float) else None,
     )
     if (~ok).any():
         result.warnings.append(
