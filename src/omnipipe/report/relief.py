@@ -138,8 +138,7 @@ def draw_relief(
     image for a colour bar."""
     import matplotlib as mpl
 
-    cmap = mpl.colormaps["RdBu_r"].copy()
-    cmap.set_bad("#bbbbbb")
+    cmap = mpl.colormaps["RdBu_r"].with_extremes(bad="#bbbbbb")
     a0, a1, z0, z1 = extent
     return ax.imshow(
         np.ma.masked_invalid(grid),
