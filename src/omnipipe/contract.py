@@ -52,6 +52,9 @@ class Defect:
         travel_mm: the robot's travel from the first frame to the rings at the defect's
             start (the camera motion's position errors grow with it); not in report.json.
         motion_unreliable: the defect lies across a stretch of unreliable camera motion.
+        truncated: the defect runs past the measured stretch (its start or end, or an
+            unmeasured gap): its sizes are those of the measured part, lower bounds, and
+            its extent ends at the last measured ring (report.json ``truncated: true``).
     """
 
     kind: str
@@ -69,6 +72,7 @@ class Defect:
     points: int = 0
     travel_mm: float | None = None
     motion_unreliable: bool = False
+    truncated: bool = False
 
     @property
     def axial_end_mm(self) -> float:
@@ -88,13 +92,15 @@ class Defect:
     def to_contract(self) -> dict[str, Any]:
         """The report.json entry: the contract's keys, their ``*_sigma_*`` partners
         (null when not estimated), ``fit_noise_mm`` (with a fit), ``points`` and
-        ``motion_unreliable: true`` (only when set)."""
+        ``motion_unreliable: true`` and ``truncated: true`` (each only when set)."""
         out: dict[str, Any] = {key: getattr(self, key) for key in CORE_KEYS + SIGMA_KEYS}
         if self.fit_noise_mm is not None:
             out["fit_noise_mm"] = self.fit_noise_mm
         out["points"] = self.points
         if self.motion_unreliable:
             out["motion_unreliable"] = True
+        if self.truncated:
+            out["truncated"] = True
         return out
 
     def core(self) -> dict[str, Any]:
@@ -115,6 +121,7 @@ class Defect:
             fit_noise_mm=_float_or_none(entry.get("fit_noise_mm")),
             points=int(entry.get("points") or 0),
             motion_unreliable=bool(entry.get("motion_unreliable", False)),
+            truncated=bool(entry.get("truncated", False)),
             **sigmas,
         )
 

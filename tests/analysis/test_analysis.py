@@ -195,3 +195,55 @@ def test_rig_calibration_uncertainty_covers_a_miscalibrated_laser() -> None:
     assert plain_fields["calibration_sigma_rel"] is None
     assert fields["run_length_sigma_mm"] >= fields["run_length_mm"] * 0.15 / 82.0
     assert fields["run_length_sigma_mm"] > 2 * plain_fields["run_length_sigma_mm"]
+
+
+@pytest.mark.parametrize(("start", "cut_by"), [(170.0, "end"), (-20.0, "start")])
+def test_defect_cut_by_the_measured_stretch_is_truncated(start: float, cut_by: str) -> None:
+    """A 2 mm dent 60 mm long (half height) that runs past the last (first) ring at 195 (0)
+    mm: flagged truncated, its extent inside the rings (a lower bound of the true one);
+    the same dent inside the stretch is not flagged."""
+    rng = np.random.default_rng(3)
+    radius, circ = 100.0, 2 * np.pi * 100.0
+    sig, arc = np.meshgrid(np.arange(0, 200, 5.0), np.arange(720) * circ / 720, indexing="ij")
+    sig, arc = sig.ravel(), arc.ravel()
+    ring = (sig // 5).astype(int)
+
+    def search(z0: float):
+        du = (arc - np.radians(90.0) * radius + circ / 2) % circ - circ / 2
+        dev = 2.0 * plateau(du, 18.0, 6.0) * plateau(sig - (z0 + 30.0), 60.0, 15.0)
+        dev = dev + rng.normal(0, 0.05, sig.size)
+        return find_defects(
+            WallSamples(sig, arc, dev, ring, circ), min_height_mm=1.0, noise_factor=6, min_points=4, grid_mm=0.25
+        )
+
+    res = search(start)
+    assert len(res.defects) == 1
+    d = res.defects[0]
+    assert d.truncated
+    assert 0.0 - 1e-6 <= d.axial_start_mm and d.axial_end_mm <= 195.0 + 1e-6
+    assert d.length_mm < 60.0  # the measured part only
+    assert abs(d.height_mm - 2.0) < 0.3
+    assert any(f"the {cut_by} of the measured stretch" in w for w in res.warnings)
+    assert d.to_contract()["truncated"] is True
+    inside = search(70.0).defects
+    assert len(inside) == 1 and not inside[0].truncated
+    assert "truncated" not in inside[0].to_contract()
+
+
+def test_defect_at_an_unmeasured_band_is_truncated() -> None:
+    """A dent whose side lies in a band of the wall without samples (standing water):
+    truncated; the same dent on a fully measured wall is not."""
+    rng = np.random.default_rng(5)
+    radius, circ = 100.0, 2 * np.pi * 100.0
+    sig, arc = np.meshgrid(np.arange(0, 200, 5.0), np.arange(720) * circ / 720, indexing="ij")
+    sig, arc = sig.ravel(), arc.ravel()
+    ring = (sig // 5).astype(int)
+    du = (arc - np.radians(90.0) * radius + circ / 2) % circ - circ / 2
+    dev = 2.0 * plateau(du, 18.0, 6.0) * plateau(sig - 100.0, 45.0, 15.0) + rng.normal(0, 0.05, sig.size)
+    wet = (du > 4.0) & (du < 60.0)  # no samples from just past the dent's centre on
+    kw = dict(min_height_mm=1.0, noise_factor=6, min_points=4, grid_mm=0.25)
+    cut = find_defects(WallSamples(sig[~wet], arc[~wet], dev[~wet], ring[~wet], circ), **kw)
+    assert len(cut.defects) == 1 and cut.defects[0].truncated
+    assert any("water line" in w for w in cut.warnings)
+    whole = find_defects(WallSamples(sig, arc, dev, ring, circ), **kw)
+    assert len(whole.defects) == 1 and not whole.defects[0].truncated

@@ -92,8 +92,11 @@ def test_cli_warns_about_jpeg_frames_and_lists_the_deliverable(
     data = _copy(small_dataset, tmp_path / "jpg", 8, 30)
     out = tmp_path / "out"
     assert main(["reconstruct", str(data), "--out", str(out), "--quiet"]) == 0
-    printed = capsys.readouterr().out.splitlines()
-    assert any(line.startswith("warning: lossy input: 8x8 block") for line in printed)
+    captured = capsys.readouterr()
+    printed, errors = captured.out.splitlines(), captured.err.splitlines()
+    # Warnings on stderr, the verdict alone on stdout.
+    assert any(line.startswith("warning: lossy input: 8x8 block") for line in errors)
+    assert not any(line.startswith("warning:") for line in printed)
     assert printed[-1].startswith(f"wrote {out}")
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
     assert report["input_quality"]["lossy"] is True

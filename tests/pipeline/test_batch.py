@@ -14,7 +14,7 @@ from omnipipe.output import MANIFEST_NAME
 from omnipipe.pipeline.batch import run_names
 
 # Wall-clock values and how they were obtained: the only keys allowed to differ.
-_VOLATILE = ("timings_s", "frames_per_s")
+_VOLATILE = ("timings_s", "frames_per_s", "executor")
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +28,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
         path = root / f"pipe-{seed}"
         simulate(make_scenario("paper-small", frames=6, size=(320, 240), seed=seed), path, workers=1)
         out.append(path)
+    (out[0] / "survey.yaml").write_text("site: Main St\nasset_id: SW-7\nstart_node: MH-1\n", encoding="utf-8")
     broken = root / "broken"
     shutil.copytree(out[0], broken)
     (broken / "rig.yaml").unlink()
@@ -76,8 +77,13 @@ def test_every_run_listed_and_the_failure_does_not_stop_the_others(
         )
         for name in ("report.html", "mesh.ply", "trajectory.txt", MANIFEST_NAME):
             assert (out / row["name"] / name).is_file(), name
+        # The batch's executor (2 local processes), not the worker's inline one.
+        assert report["executor"]["kind"] == "processes" and report["executor"]["workers"] == 2
     page = (out / "index.html").read_text()
     assert 'href="pipe-3/report.html"' in page and "FAILED" in page and "rig.yaml" in page
+    # The survey header of the run that has one, and every run's executor.
+    assert "Main St" in page and "asset SW-7" in page and "from MH-1" in page
+    assert page.count("processes x 2") == 2
     assert (out / MANIFEST_NAME).is_file()
 
 
@@ -99,6 +105,8 @@ def test_dask_cluster_gives_the_same_reports(
     local = _reports(local_batch[0])
     assert sorted(local) == ["pipe-3", "pipe-4"]
     assert _reports(out) == local
+    for name in local:
+        assert json.loads((out / name / "report.json").read_text())["executor"]["kind"] == "dask"
     for name in local:  # the trajectory is the same to the last digit written
         assert (out / name / "trajectory.txt").read_text() == (
             local_batch[0] / name / "trajectory.txt"

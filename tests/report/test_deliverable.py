@@ -222,8 +222,56 @@ def test_report_html_has_survey_header_clock_crops_and_print_css() -> None:
         )
     )
     assert "<h2>Survey</h2>" in html_text and "SW-1" in html_text and "MH-12" in html_text
-    assert "03:00 (90.0°)" in html_text and "12:00 (0.0°)" in html_text
+    assert "<td>03:00</td>" in html_text and "<td>12:00</td>" in html_text
     assert "1.5400 – 1.6400" in html_text  # distance of the bulge from the start node, m
-    assert html_text.count("class='crop'") == 2
+    assert html_text.count("class='crop zoomable'") == 2  # one texture view per defect
+    assert "clock from image up: no gravity reference" in html_text
     assert "@media print" in html_text and "break-inside:avoid" in html_text
     assert "<div class='screen-only'><h2>3-D model</h2>" in html_text
+
+
+def test_truncated_defect_and_distances_without_a_survey(tmp_path: Path) -> None:
+    """No survey.yaml: distances from the first measured ring (never negative inside the
+    measured stretch); a truncated defect is flagged; sigmas of distance and clock."""
+    summary = _summary()
+    summary["defects"][0].update(
+        axial_start_mm=-82.0, axial_start_sigma_mm=0.6, angle_sigma_deg=0.2, truncated=True
+    )
+    write_deliverable(tmp_path, summary, _defects(summary), None, None)
+    comments, rows = _read_csv(tmp_path / "defects.csv")
+    bulge = rows[0]
+    assert bulge["distance_from"] == "first measured ring (no survey.yaml)"
+    assert float(bulge["distance_start_m"]) == pytest.approx(0.0)
+    assert float(bulge["distance_end_m"]) == pytest.approx(0.100)
+    assert float(bulge["distance_start_sigma_m"]) == pytest.approx(0.0006)
+    assert float(bulge["distance_end_sigma_m"]) == pytest.approx(np.hypot(0.6, 0.8) / 1000, abs=1e-4)
+    assert float(bulge["clock_sigma_deg"]) == pytest.approx(0.2)
+    assert bulge["flags"] == "truncated"
+    assert bulge["clock_reference"] == "image up in the first frame: no gravity reference"
+    assert any("truncated" in c for c in comments)
+    assert all(float(r["distance_start_m"]) >= 0 for r in rows)
+
+
+def test_clock_from_imu_gravity(tmp_path: Path) -> None:
+    """The IMU's accelerometer at the first frame gives 12:00: up along the rig's +x is
+    omnipipe angle 0, so a defect at angle 0 is at 12:00 and one at 270 deg at 9:00."""
+    from omnipipe.inputs.sensors import make_imu
+    from omnipipe.report.clock import clock_reference, imu_up
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 5.0, 0.01)
+    acc = np.array([9.81, 0.0, 0.3]) + rng.normal(0, 0.05, (len(t), 3))
+    imu = make_imu("test", t, acc, None, str)
+    found = imu_up(imu, 0.0)  # the recording starts at the frame: the first whole window
+    assert found is not None
+    up, sigma = found
+    ref = clock_reference(None, up, 1.0, sigma)
+    assert ref.gravity and ref.source == "gravity (imu.txt)"
+    assert ref.angle_deg == pytest.approx(0.0, abs=1.0) and 0 < ref.sigma_deg < 1.0
+    summary = _summary() | {"clock_reference": ref.to_dict()}
+    write_deliverable(tmp_path, summary, _defects(summary), None, None)
+    comments, rows = _read_csv(tmp_path / "defects.csv")
+    assert [r["clock"] for r in rows] == ["12:00", "09:00"]
+    assert any("the top of the pipe" in c for c in comments)
+    # Up along the mirror axis: no clock position across it.
+    assert imu_up(make_imu("axis", t, np.tile([0.0, 0.0, 9.81], (len(t), 1)), None, str), 1.0) is None

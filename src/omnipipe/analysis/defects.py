@@ -217,6 +217,7 @@ def find_defects(
             d, mask = _fit(
                 samples, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm
             )
+            d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
             rejected = _rejection(d, kind, max_width_fraction * samples.circumference_mm, limit)
             if rejected:
                 warnings.append(rejected)
@@ -224,6 +225,11 @@ def find_defects(
             travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
             defects.append(replace(d, points=len(members), travel_mm=travel))
             masks.append(mask)
+            if cut_by:
+                warnings.append(
+                    f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
+                    f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
+                )
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
     warnings.extend(
         f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
@@ -243,6 +249,74 @@ def find_defects(
         sample_spacing_mm=sc.sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _truncation(
+    s: WallSamples, d: Defect, top_mm: float, members: np.ndarray, sc: _Scales
+) -> tuple[Defect, str | None]:
+    """The defect flagged ``truncated`` when it runs past the measured stretch: its
+    samples beyond the threshold lie on the first or last ring, its extent reaches beyond
+    them, it overlaps an unmeasured gap (rings further apart than 3 wide ring spacings
+    and 5 mm), or the wall beside it around the ring was not measured (:func:`_cut_around`). Its extent is then clipped to the measured rings (the length a lower bound,
+    1-sigma one ring spacing) and its height is the larger of the fit's and the largest
+    measured deviation ``top_mm`` (a bump cut off mid-flank is fitted too low). Returns
+    (defect, what cut it or None)."""
+    z = np.asarray(sc.ring_sigma, float)
+    if len(z) < 2:
+        return d, None
+    lo, hi = float(z.min()), float(z.max())
+    on = set(np.unique(s.ring[members]).tolist())
+    start, end = d.axial_start_mm, d.axial_end_mm
+    cuts = []
+    if start < lo or int(sc.ring_ids[np.argmin(z)]) in on:
+        cuts.append(f"the start of the measured stretch (first ring at {lo:.1f} mm)")
+    if end > hi or int(sc.ring_ids[np.argmax(z)]) in on:
+        cuts.append(f"the end of the measured stretch (last ring at {hi:.1f} mm)")
+    zs = np.sort(z)
+    wide = np.diff(zs) > max(3.0 * sc.spacing, 5.0)
+    cuts += [
+        f"an unmeasured gap ({a:.1f} to {b:.1f} mm)"
+        for a, b in zip(zs[:-1][wide], zs[1:][wide], strict=True)
+        if start < b and end > a
+    ]
+    if _cut_around(s, d, members, sc):
+        cuts.append("an unmeasured part of the wall around the ring (e.g. below the water line)")
+    if not cuts:
+        return d, None
+    new_start, new_end = max(start, lo), min(end, hi)
+    if new_end <= new_start:
+        zm = s.sigma_mm[members]
+        new_start, new_end = float(zm.min()), float(zm.max())
+    spacing = round(max(sc.typical_spacing, 0.1), 4)
+    return replace(
+        d,
+        axial_start_mm=round(new_start, 3),
+        length_mm=round(new_end - new_start, 3),
+        length_sigma_mm=spacing,
+        axial_start_sigma_mm=spacing if new_start != start else d.axial_start_sigma_mm,
+        height_mm=round(max(d.height_mm, top_mm), 3),
+        truncated=True,
+    ), " and ".join(cuts)
+
+
+def _cut_around(s: WallSamples, d: Defect, members: np.ndarray, sc: _Scales) -> bool:
+    """Whether the wall beside the defect went unmeasured on at least half of its rings:
+    within its width plus 5 mm each side, a stretch of the ring without samples longer
+    than 5 sample spacings and 5 mm (standing water, a shadow)."""
+    circ = s.circumference_mm
+    centre = d.angle_deg / 360.0 * circ
+    half = 0.5 * d.width_mm + 5.0
+    min_gap = max(5.0 * sc.sample_spacing, 5.0)
+    rings = np.unique(s.ring[members])
+    cut = 0
+    for r in rings:
+        on = s.ring == r
+        u = (s.arc_mm[on] - centre + 0.5 * circ) % circ - 0.5 * circ
+        u = np.sort(u[np.abs(u) <= half])
+        edges = np.concatenate([[-half], u, [half]])
+        if np.max(np.diff(edges)) > min_gap:
+            cut += 1
+    return cut * 2 >= len(rings) > 0
 
 
 def _rejection(d: Defect, kind: str, max_width_mm: float, limit: float) -> str | None:

@@ -56,13 +56,30 @@ def format_result(res: EvaluationResult) -> str:
                 )
             continue
         head = f"{t.kind} {t.height_mm:g}x{t.width_mm:g}x{t.length_mm:g} mm"
+        place = {
+            "outside": "outside the measured stretch",
+            "partly": "runs past the measured stretch",
+        }.get(row.coverage)
         if not row.found:
-            lines.append(f"{head}: NOT FOUND")
+            lines.append(
+                f"{head}: outside the measured stretch (no run could measure it)"
+                if row.coverage == "outside"
+                else f"{head}: NOT FOUND"
+                + (f" ({place})" if place else "")
+                + (
+                    f" (below the run's detection limit {res.detection_limit_mm:.2f} mm)"
+                    if res.detection_limit_mm is not None and t.height_mm < res.detection_limit_mm
+                    else ""
+                )
+            )
             continue
         e = row.errors()
+        cut = m is not None and m.truncated
         lines.append(
             f"{head}: height {e['height_mm']:+.2f}, width {e['width_mm']:+.2f}, length {e['length_mm']:+.2f}, "
             f"start {e['axial_start_mm']:+.2f} mm, angle {e['angle_deg']:+.2f} deg"
+            + (f" ({place}; measured part {'flagged truncated' if cut else 'NOT flagged truncated'})"
+               if row.coverage != "inside" and place else "")
         )
     if res.not_evaluated:
         lines.append(f"not evaluated: {', '.join(res.not_evaluated)}")

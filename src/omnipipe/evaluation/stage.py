@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,10 +65,15 @@ class DefectMatch:
         true: the ground truth's defect, or None (a measured defect with no true one:
             a false positive).
         measured: the reconstruction's defect, or None (the true one was not found).
+        coverage: how the true defect lies in the stretch the run measured (report.json's
+            stations, first to last): "inside", "partly" (it runs past an end: the
+            measured one should be flagged truncated) or "outside" (no run could find it);
+            "unknown" without stations.
     """
 
     true: Defect | None
     measured: Defect | None
+    coverage: str = "unknown"
 
     @property
     def found(self) -> bool:
@@ -99,7 +104,7 @@ class DefectMatch:
         measured = None if self.measured is None else self.measured.to_contract()
         if self.true is None:
             return {"true": None, "found": False, "measured": measured, "false_positive": True}
-        row: dict[str, Any] = {"true": self.true.core(), "found": self.found}
+        row: dict[str, Any] = {"true": self.true.core(), "found": self.found, "coverage": self.coverage}
         if measured is not None:
             row["measured"] = measured
             row["errors"] = self.errors()
@@ -118,6 +123,7 @@ class EvaluationResult:
     defects: list[DefectMatch] = field(default_factory=list)
     not_evaluated: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    detection_limit_mm: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -187,6 +193,27 @@ def read_points_ply(path: Path) -> np.ndarray:
     return np.asarray(cloud.vertices, dtype=float)
 
 
+def measured_stretch(report: dict[str, Any]) -> tuple[float, float] | None:
+    """(first, last) axial position of report.json's stations (mm), or None."""
+    axial = [
+        float(st["axial_mm"])
+        for st in report.get("stations") or []
+        if isinstance(st, dict) and isinstance(st.get("axial_mm"), int | float)
+    ]
+    return (min(axial), max(axial)) if axial else None
+
+
+def _coverage(true: Defect | None, report: dict[str, Any]) -> str:
+    """"inside", "partly", "outside" the measured stretch, or "unknown" (no stations)."""
+    stretch = measured_stretch(report)
+    if true is None or stretch is None:
+        return "unknown"
+    lo, hi = stretch
+    if true.axial_end_mm < lo or true.axial_start_mm > hi:
+        return "outside"
+    return "inside" if true.axial_start_mm >= lo and true.axial_end_mm <= hi else "partly"
+
+
 def _pair_defects(
     true: list[Defect], measured: list[Defect], config: EvaluationConfig
 ) -> list[DefectMatch]:
@@ -247,8 +274,12 @@ def run(config: EvaluationConfig, inputs: EvaluationInputs) -> EvaluationResult:
     traj = None
     if ok.sum() >= 2:
         traj = trajectory_errors(est_poses[ok], gt_poses[nearest[ok]])
+    limit = report.get("detection_limit_mm")
     result = EvaluationResult(
-        trajectory=traj, frames=len(gt_stamps), frames_registered=int(ok.sum())
+        trajectory=traj,
+        frames=len(gt_stamps),
+        frames_registered=int(ok.sum()),
+        detection_limit_mm=float(limit) if isinstance(limit, int | float) else None,
     )
     if (~ok).any():
         result.warnings.append(
@@ -319,4 +350,7 @@ def _against_scene(
         result.diameter.update(
             {"measured_mm": float(measured_d), "error_mm": float(measured_d) - true_d}
         )
-    result.defects = _pair_defects(true_defects, measured_defects, config)
+    result.defects = [
+        replace(row, coverage=_coverage(row.true, report))
+        for row in _pair_defects(true_defects, measured_defects, config)
+    ]

@@ -320,13 +320,17 @@ def _write_runs(
 ) -> Iterator[RunOutcome]:
     """Each run's outcome as its folder is written into ``tmp``: the new reconstruction,
     or for a failed run its earlier folder (``previous``), kept."""
-    from omnipipe.executor import ordered_map
+    from omnipipe.executor import describe, ordered_map
     from omnipipe.pipeline import write
 
+    # Each run is one task of the batch's executor and runs serially inside its worker:
+    # report.json says so (not the worker's own inline executor).
+    batch_executor = describe(executor) | {"per_run": "one task of the batch, serial in its worker"}
     results = ordered_map(executor, reconstruct_task, tasks)
     for name, task, result in zip(names, tasks, results, strict=True):
         outcome = RunOutcome(name, task.dataset, error=result.error)
         if result.reconstruction is not None:
+            result.reconstruction.summary["executor"] = batch_executor
             try:
                 write(result.reconstruction, tmp / name, protect=[task.dataset])
                 outcome.summary = result.reconstruction.summary
@@ -352,14 +356,95 @@ def _fmt(value: Any, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+_INDEX_STYLE = (
+    "<style>body{font-family:system-ui,sans-serif;margin:2em}table{border-collapse:collapse}"
+    "td,th{border:1px solid #bbb;padding:4px 8px;text-align:left;vertical-align:top}"
+    "th{background:#eee}tr.failed td{background:#fdd}tr.stale td{background:#ffd}"
+    ".warn{color:#a40}.small{font-size:.85em;color:#444}ul{margin:0;padding-left:1.1em}</style>"
+)
+_INDEX_COLUMNS = (
+    "run",
+    "site / asset",
+    "dataset",
+    "inner diameter (mm, &plusmn; 1 sigma)",
+    "defects",
+    "warnings",
+    "frames registered",
+    "time (s)",
+    "executor",
+    "status",
+)
+
+
+def _survey_cell(s: dict[str, Any]) -> str:
+    """Site, asset, nodes and date of a run's survey header, or '-'."""
+    sv = s.get("survey") or {}
+    parts = [
+        f"{label}{html.escape(str(sv[key]))}"
+        for key, label in (
+            ("site", ""), ("asset_id", "asset "), ("start_node", "from "), ("end_node", "to "),
+            ("direction", ""), ("date", ""),
+        )
+        if sv.get(key) is not None
+    ]
+    return "<br>".join(parts) if parts else "-"
+
+
+def _defects_cell(s: dict[str, Any]) -> str:
+    """The run's defects, one line each: kind, height, clock position and flags."""
+    from omnipipe.contract import Defect
+    from omnipipe.report.deliverable import defect_rows
+    from omnipipe.survey import FIELDS, Survey
+
+    entries = s.get("defects") or []
+    if not entries:
+        return "none"
+    sv = s.get("survey")
+    try:
+        survey = Survey(**{k: v for k, v in sv.items() if k in FIELDS}) if isinstance(sv, dict) else None
+        rows = defect_rows([Defect.from_contract(e) for e in entries], s, survey)
+    except (KeyError, TypeError, ValueError):
+        return str(len(entries))
+    items = []
+    for row in rows:
+        v, d = row.values, row.defect
+        flags = f" <span class='warn'>{html.escape(v['flags'])}</span>" if v["flags"] else ""
+        items.append(
+            f"<li>{html.escape(d.kind)} {'&ge; ' if d.truncated else ''}{d.height_mm:.1f} mm at "
+            f"{v['clock']}, {v['distance_start_m']} m{flags}</li>"
+        )
+    return f"{len(entries)}<ul class='small'>{''.join(items)}</ul>"
+
+
+def _warnings_cell(s: dict[str, Any] | None) -> str:
+    if s is None:
+        return "-"
+    warnings = s.get("warnings") or []
+    if not warnings:
+        return "0"
+    items = "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings[:8])
+    more = f"<li>... {len(warnings) - 8} more in the run's report</li>" if len(warnings) > 8 else ""
+    return f"{len(warnings)}<ul class='small warn'>{items}{more}</ul>"
+
+
+def _executor_cell(s: dict[str, Any]) -> str:
+    ex = s.get("executor") or {}
+    if not isinstance(ex, dict) or not ex:
+        return "-"
+    return html.escape(f"{ex.get('kind')} x {ex.get('workers')}")
+
+
 def index_html(outcomes: Sequence[RunOutcome]) -> str:
     """A self-contained HTML page listing every run (links to each report.html; a stale
-    run's row says that its output is the earlier one, and why the new run failed)."""
+    run's row says that its output is the earlier one, and why the new run failed): its
+    survey header, inner diameter, defects (kind, height, clock, distance, flags), warnings
+    and the executor it ran on."""
     failed = sum(not o.ok for o in outcomes)
     stale = sum(o.status == "stale" for o in outcomes)
     rows = []
     for o in outcomes:
         r = o.to_dict()
+        s = o.summary or {}
         name = html.escape(o.name)
         link = f'<a href="{name}/report.html">{name}</a>' if o.summary is not None else name
         diameter = "-"
@@ -375,36 +460,27 @@ def index_html(outcomes: Sequence[RunOutcome]) -> str:
         }[o.status]
         cells = [
             link,
+            _survey_cell(s),
             html.escape(o.dataset),
             diameter,
-            "-" if r["defects"] is None else str(r["defects"]),
-            "-" if r["warnings"] is None else str(r["warnings"]),
+            "-" if o.summary is None else _defects_cell(s),
+            _warnings_cell(o.summary),
             "-" if r["frames"] is None else f"{r['frames_registered']}/{r['frames']}",
             _fmt(r["time_s"], 1),
+            _executor_cell(s),
             status,
         ]
-        cls = o.status
-        rows.append(f'<tr class="{cls}">' + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
-    head = "".join(
-        f"<th>{h}</th>"
-        for h in (
-            "run",
-            "dataset",
-            "inner diameter (mm, &plusmn; 1 sigma)",
-            "defects",
-            "warnings",
-            "frames registered",
-            "time (s)",
-            "status",
-        )
-    )
+        rows.append(f'<tr class="{o.status}">' + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    head = "".join(f"<th>{h}</th>" for h in _INDEX_COLUMNS)
+    n_defects = sum(len((o.summary or {}).get("defects") or []) for o in outcomes)
     return (
         "<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>omnipipe batch</title>"
-        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
-        "td,th{border:1px solid #bbb;padding:4px 8px;text-align:left}"
-        "tr.failed td{background:#fdd}tr.stale td{background:#ffd}</style></head><body>"
+        f"{_INDEX_STYLE}</head><body>"
         f"<h1>omnipipe batch: {len(outcomes)} runs, {failed} failed"
         f"{f' ({stale} showing an earlier, stale output)' if stale else ''}</h1>"
+        f"<p>{n_defects} defect(s) in all; clock positions as each run's report states "
+        "(12:00 = image up where a run has no gravity reference); distances in m from each "
+        "run's start node, or its first measured ring without survey.yaml.</p>"
         f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
         "</body></html>\n"
     )

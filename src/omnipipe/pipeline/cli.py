@@ -121,8 +121,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "reconstruct",
         help="build the measured, textured pipe model from a dataset",
         description="Light section, camera motion, model and measurements of DATASET (a contract "
-        "directory, or a video with rig.yaml beside it); writes trajectory.txt, points.ply, mesh.ply, "
-        "model.glb, unrolled.png, report.json and report.html to OUT.",
+        "directory, or a video with rig.yaml beside it); writes to OUT: trajectory.txt, points.ply, "
+        "points.laz, points.e57, mesh.ply, model.glb, model.obj (+ .mtl, texture), unrolled.png, "
+        "report.json, report.html, defects.csv and defects/ (per defect: wall crop and camera "
+        "view). Warnings go to stderr; the last line (stdout) says what was measured and what "
+        "cannot be trusted.",
     )
     p.add_argument(
         "dataset",
@@ -189,7 +192,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
         rec.survey = survey
         rec.summary["survey"] = survey.to_dict()
     write(rec, out, force=args.force, protect=protect, progress=bars)
-    print(closing_line(rec.summary, out))
+    *warnings, last = closing_line(rec.summary, out).split("\n")
+    for line in warnings:
+        print(line, file=sys.stderr)
+    print(last)
     return 0
 
 

@@ -33,6 +33,8 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.model import ModelConfig, ModelResult
     from omnipipe.pipeline.frame_pass import FramePassResult
     from omnipipe.report import ReportConfig, ReportInputs
+    from omnipipe.report.relief import WallPoints
+    from omnipipe.report.views import DefectView
     from omnipipe.sfm import SfmConfig, SfmResult
     from omnipipe.survey import Survey
 
@@ -124,6 +126,10 @@ class Reconstruction:
             ``to_contract()``), largest first.
         trajectory_quality: what the camera motion check found (the summary's
             ``trajectory_quality``), or None.
+        up_in_rig: (3,) unit up direction in the first registered frame's rig frame
+            (imu.txt's accelerometer), or None: no gravity reference.
+        up_sigma_rad: its 1-sigma angle (rad).
+        defect_views: each defect's camera view (None where no frame sees it).
     """
 
     summary: dict[str, Any]
@@ -136,6 +142,9 @@ class Reconstruction:
     survey: Survey | None = None
     defects: list[Defect] = field(default_factory=list)
     trajectory_quality: TrajectoryQuality | None = None
+    up_in_rig: np.ndarray | None = None
+    up_sigma_rad: float = 0.0
+    defect_views: list[DefectView | None] = field(default_factory=list)
 
 
 def run(
@@ -187,6 +196,10 @@ def run(
     summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
     summary["input_quality"] = input_quality.to_dict()
     reg = motion.registered_frames
+    from omnipipe.report.clock import imu_up
+
+    up = None if dataset.imu is None or not len(reg) else imu_up(dataset.imu, float(dataset.timestamps[reg[0]]))
+    views = _defect_views(dataset, defects, measured.result, mdl, motion.result.world_from_rig[reg], reg)
     return Reconstruction(
         summary=summary,
         timestamps=dataset.timestamps[reg],
@@ -197,6 +210,50 @@ def run(
         frame_index=reg,
         defects=defects,
         trajectory_quality=measured.quality,
+        up_in_rig=None if up is None else up[0],
+        up_sigma_rad=0.0 if up is None else up[1],
+        defect_views=views,
+    )
+
+
+def _defect_views(
+    dataset: Dataset,
+    defects: list[Defect],
+    res: AnalysisResult,
+    mdl: ModelResult,
+    world_from_rig: np.ndarray,
+    frame_index: np.ndarray,
+) -> list[DefectView | None]:
+    """Each defect's camera view (:mod:`omnipipe.report.views`)."""
+    from omnipipe.camera import camera_from_rig
+    from omnipipe.report.views import defect_views
+
+    if not defects:
+        return []
+    return defect_views(
+        defects,
+        wall_points(res),
+        mdl.points_in_world,
+        world_from_rig,
+        frame_index,
+        camera_from_rig(dataset.rig),
+        dataset.read_frame,
+    )
+
+
+def wall_points(res: AnalysisResult) -> WallPoints | None:
+    """The analysis' wall points and deviations for the relief maps, or None."""
+    import numpy as np
+
+    from omnipipe.report.relief import WallPoints
+
+    if not len(res.point_sigma_mm):
+        return None
+    return WallPoints(
+        axial_mm=res.point_sigma_mm,
+        angle_deg=np.degrees(res.point_theta_rad) % 360.0,
+        deviation_mm=res.point_deviation_mm,
+        radius_mm=res.radius_mm,
     )
 
 
@@ -535,9 +592,14 @@ def write(
     from omnipipe import model as model_stage
     from omnipipe import report
     from omnipipe.dataset import atomic_output_dir, write_tum
+    from omnipipe.report.clock import clock_reference
     from omnipipe.report.deliverable import write_deliverable
 
     out = Path(out)
+    travel = float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]) if len(rec.world_from_rig) else 1.0
+    rec.summary["clock_reference"] = clock_reference(
+        rec.survey, rec.up_in_rig, travel, rec.up_sigma_rad
+    ).to_dict()
     with atomic_output_dir(out, force=force, protect=protect) as tmp:
         tick = progress("output", 3)
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
@@ -556,7 +618,8 @@ def write(
             rec.defects,
             rec.model.unrolled,
             rec.survey,
-            travel_along_rig_z=float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]),
+            travel_along_rig_z=travel,
+            views=rec.defect_views,
         )
         tick(3)
     return out
@@ -588,6 +651,9 @@ def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None)
         frame_index=rec.frame_index,
         defects=rec.defects,
         trajectory_quality=rec.trajectory_quality,
+        wall=wall_points(res),
+        defect_views=rec.defect_views,
+        wall_points_in_world=mdl.points_in_world,
     )
 
 

@@ -6,20 +6,25 @@ explains each column and how it maps to NASSCO PACP and EN 13508-2).
 Conventions (also written as ``#`` comment lines at the top of defects.csv):
 
 - **Clock position**: viewed looking in the survey direction (the robot's direction of
-  travel), clockwise from 12 o'clock. omnipipe has no gravity reference: 12 o'clock is
-  the first rig frame's -y axis (image up) unless survey.yaml gives
-  ``clock_reference_deg`` (the omnipipe angle, degrees from the first rig frame's x axis
-  towards y, that is 12 o'clock). ``clock_deg`` is 0-360 clockwise from 12; ``clock``
-  is ``hh:mm`` (1 hour = 30 degrees, 1 minute = 0.5 degree; 12:00 = top).
-- **Distance**: metres from the survey's start node along the pipe in the direction of
-  travel: ``start_offset_m`` (survey.yaml; 0 without one) + the axial position of the
-  defect's start (``distance_start_m``) and end (``distance_end_m``). The axial origin
-  is the first frame's mirror focus.
+  travel), clockwise from 12 o'clock (:mod:`omnipipe.report.clock`: survey.yaml
+  ``clock_reference_deg``, else gravity from imu.txt, else image up in the first frame,
+  said in the ``clock_reference`` column). ``clock_deg`` is 0-360 clockwise from 12,
+  ``clock_sigma_deg`` its 1-sigma; ``clock`` is ``hh:mm`` (1 hour = 30 degrees,
+  1 minute = 0.5 degree).
+- **Distance**: metres along the pipe in the direction of travel from ``distance_from``:
+  with survey.yaml the start node (``start_offset_m`` + the axial position from the first
+  frame's mirror focus), without one the first measured ring (the start of the inspected
+  stretch). ``distance_start_m`` / ``distance_end_m`` bound the defect, each with its
+  1-sigma; a negative distance from the start node is flagged ``before_start_node``.
+- **Flags**: ``truncated`` (the defect runs past the measured stretch: the sizes are those
+  of the measured part, lower bounds), ``motion_unreliable``, ``before_start_node``.
 - **Severity grade** 1-5 from the defect height as a percentage of the inner diameter
   (:data:`SEVERITY_BANDS_PCT`): bands chosen by omnipipe in the manner of PACP's
   structural grades (1 = minor ... 5 = most severe); they are not an official PACP or
   EN 13508-2 grading and must be reviewed by a certified inspector.
-- **Best view**: the frame whose laser ring passed closest to the defect's axial centre.
+- **Best view**: the frame of the camera view (``camera_view``, :mod:`omnipipe.report.views`:
+  the frame that sees the defect from closest); without one, the frame whose laser ring
+  passed closest to the defect's axial centre.
 - **Crop**: ``defects/defect_NN.png``, the unrolled wall (``unrolled.png``, 0.5 mm per
   px by default) around the defect: the defect's extent plus a margin, with a thin
   outline of its half-height extent; columns run clockwise as seen in the travel
@@ -35,11 +40,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from omnipipe.report.clock import (
+    ClockReference,
+    clock_position,
+    clock_reference,
+    image_up_angle_deg,
+)
+
 if TYPE_CHECKING:
     import numpy as np
 
     from omnipipe.contract import Defect
     from omnipipe.model.texture import UnrolledImage
+    from omnipipe.report.views import DefectView
     from omnipipe.survey import Survey
 
 CSV_NAME = "defects.csv"
@@ -54,8 +67,13 @@ CSV_COLUMNS = (
     "kind",
     "clock",
     "clock_deg",
+    "clock_sigma_deg",
+    "clock_reference",
+    "distance_from",
     "distance_start_m",
+    "distance_start_sigma_m",
     "distance_end_m",
+    "distance_end_sigma_m",
     "height_mm",
     "height_sigma_mm",
     "width_mm",
@@ -66,6 +84,7 @@ CSV_COLUMNS = (
     "severity_grade",
     "best_view_frame",
     "crop",
+    "camera_view",
     "flags",
 )
 
@@ -86,29 +105,35 @@ def severity_grade(height_mm: float, diameter_mm: float | None) -> tuple[int | N
     return 5, pct
 
 
-def clock_position(angle_deg: float, reference_deg: float) -> tuple[str, float]:
-    """(``"hh:mm"``, degrees clockwise from 12) of an omnipipe angle.
-
-    Args:
-        angle_deg: degrees from the first rig frame's x axis towards y, in the frame
-            whose third axis is the direction of travel (report.json ``angle_deg``);
-            increasing angles run clockwise as seen looking along the travel direction.
-        reference_deg: the angle that is 12 o'clock.
-    """
-    clock_deg = (angle_deg - reference_deg) % 360.0
-    minutes = round(clock_deg * 2.0) % 720  # 0.5 degree per clock minute
-    hours, mins = divmod(minutes, 60)
-    return f"{hours or 12:02d}:{mins:02d}", clock_deg
-
-
 def default_clock_reference_deg(travel_along_rig_z: float = 1.0) -> float:
-    """The omnipipe angle of the first rig frame's -y axis (image up).
+    """The omnipipe angle of image up (:func:`omnipipe.report.clock.image_up_angle_deg`)."""
+    return image_up_angle_deg(travel_along_rig_z)
 
-    The angle is measured around the direction of travel from x towards the axis that
-    completes a right-handed frame: y when the robot moves along +z of its rig frame,
-    -y when along -z. ``travel_along_rig_z``: the sign of that motion.
+
+@dataclass(frozen=True)
+class DistanceOrigin:
+    """Where the distances of defects.csv and the report start.
+
+    Attributes:
+        name: what the inspector reads (``start node MH-12`` or ``first measured ring``).
+        offset_m: distance of the axial origin (the first frame's mirror focus) from it.
+        from_node: True when it is the survey's start node.
     """
-    return -90.0 if travel_along_rig_z >= 0 else 90.0
+
+    name: str
+    offset_m: float
+    from_node: bool
+
+
+def distance_origin(summary: dict[str, Any], survey: Survey | None) -> DistanceOrigin:
+    """The survey's start node (with survey.yaml), else the first measured ring (the
+    first station's axial position: no distance inside the measured stretch is negative)."""
+    if survey is not None:
+        node = survey.start_node or "(unnamed)"
+        return DistanceOrigin(f"start node {node}", float(survey.start_offset_m), True)
+    axial = [float(st["axial_mm"]) for st in summary.get("stations") or [] if st.get("axial_mm") is not None]
+    first = min(axial) if axial else 0.0
+    return DistanceOrigin("first measured ring (no survey.yaml)", -first / 1000.0, False)
 
 
 @dataclass(frozen=True)
@@ -142,6 +167,14 @@ def best_view_frame(centre_mm: float, stations: Sequence[dict[str, Any]]) -> int
     return None if best is None else best[1]
 
 
+def run_clock(summary: dict[str, Any], survey: Survey | None, travel_along_rig_z: float) -> ClockReference:
+    """The run's 12:00: report.json ``clock_reference`` when the pipeline stated it, else
+    the survey's or image up."""
+    return ClockReference.from_dict(summary.get("clock_reference")) or clock_reference(
+        survey, None, travel_along_rig_z
+    )
+
+
 def defect_rows(
     defects: Sequence[Defect],
     summary: dict[str, Any],
@@ -152,34 +185,56 @@ def defect_rows(
 
     Args:
         defects: the reported defects, in report.json's order.
-        summary: report.json content (``inner_diameter_mm``, ``stations``).
-        survey: start offset and clock reference (None: offset 0, image up = 12).
+        summary: report.json content (``inner_diameter_mm``, ``stations``,
+            ``clock_reference``).
+        survey: start node, offset and clock reference (None: distances from the first
+            measured ring).
         travel_along_rig_z: sign of the robot's motion along its first rig frame's z.
     """
-    offset_m = survey.start_offset_m if survey is not None else 0.0
-    ref = None if survey is None else survey.clock_reference_deg
-    if ref is None:
-        ref = default_clock_reference_deg(travel_along_rig_z)
+    clock = run_clock(summary, survey, travel_along_rig_z)
+    origin = distance_origin(summary, survey)
     diameter = summary.get("inner_diameter_mm")
     stations = summary.get("stations") or []
     rows = []
     for k, d in enumerate(defects, start=1):
-        clock, clock_deg = clock_position(d.angle_deg, ref)
+        text, clock_deg = clock_position(d.angle_deg, clock.angle_deg)
         start, length = d.axial_start_mm, d.length_mm
         grade, pct = severity_grade(d.height_mm, diameter)
         frame = best_view_frame(start + 0.5 * length, stations)
-        flags = ["motion_unreliable"] if d.motion_unreliable else []
+        dist_start = origin.offset_m + start / 1000.0
+        flags = [
+            name
+            for name, on in (
+                ("truncated", d.truncated),
+                ("motion_unreliable", d.motion_unreliable),
+                ("before_start_node", origin.from_node and dist_start < 0),
+            )
+            if on
+        ]
+        end_sigma = (
+            None
+            if d.axial_start_sigma_mm is None or d.length_sigma_mm is None
+            else math.hypot(d.axial_start_sigma_mm, d.length_sigma_mm)
+        )
         values = {
             "defect": str(k),
             "kind": d.kind,
-            "clock": clock,
+            "clock": text,
             "clock_deg": _fmt(clock_deg, 1),
-            "distance_start_m": _fmt(offset_m + start / 1000.0, 4),
-            "distance_end_m": _fmt(offset_m + (start + length) / 1000.0, 4),
+            "clock_sigma_deg": _fmt(
+                None if d.angle_sigma_deg is None else math.hypot(d.angle_sigma_deg, clock.sigma_deg), 2
+            ),
+            "clock_reference": clock.source,
+            "distance_from": origin.name,
+            "distance_start_m": _fmt(dist_start, 4),
+            "distance_start_sigma_m": _fmt(None if d.axial_start_sigma_mm is None else d.axial_start_sigma_mm / 1000, 4),
+            "distance_end_m": _fmt(dist_start + length / 1000.0, 4),
+            "distance_end_sigma_m": _fmt(None if end_sigma is None else end_sigma / 1000, 4),
             "height_pct_of_diameter": _fmt(pct, 2),
             "severity_grade": "" if grade is None else str(grade),
             "best_view_frame": "" if frame is None else str(frame),
             "crop": f"{CROP_DIR}/defect_{k:02d}.png",
+            "camera_view": "",
             "flags": ";".join(flags),
         }
         for what, value, sigma in (
@@ -194,7 +249,7 @@ def defect_rows(
 
 
 def header_lines(
-    summary: dict[str, Any], survey: Survey | None, reference_deg: float
+    summary: dict[str, Any], survey: Survey | None, travel_along_rig_z: float = 1.0
 ) -> list[str]:
     """The ``#`` comment lines of defects.csv: survey header and conventions."""
     lines = ["omnipipe defects.csv"]
@@ -207,23 +262,19 @@ def header_lines(
         sigma = summary.get("inner_diameter_sigma_mm")
         pm = "" if sigma is None else f" +- {sigma:.2f}"
         lines.append(f"measured inner diameter: {diameter:.2f}{pm} mm")
+    clock = run_clock(summary, survey, travel_along_rig_z)
+    origin = distance_origin(summary, survey)
     lines += [
-        "clock: viewed looking in the direction of travel, clockwise; 12:00 = omnipipe angle "
-        f"{reference_deg:.1f} deg ("
-        + (
-            "survey.yaml clock_reference_deg"
-            if survey is not None and survey.clock_reference_deg is not None
-            else "the first rig frame's -y axis, image up: no gravity reference"
-        )
-        + ")",
-        "distance_*_m: from the start node along the pipe (survey start_offset_m + axial "
-        "position from the first frame's mirror focus)",
+        "clock: viewed looking in the direction of travel, clockwise; 12:00 = "
+        + ("the top of the pipe" if clock.gravity else "clock from image up: no gravity reference")
+        + f" (clock_reference: {clock.source}; omnipipe angle {clock.angle_deg:.1f} deg)",
+        f"distance_*_m: along the pipe in the direction of travel from the {origin.name}",
+        "flags: truncated = runs past the measured stretch, sizes are lower bounds; "
+        "motion_unreliable; before_start_node",
         "severity_grade: height as % of the inner diameter, bands "
-        + ", ".join(
-            f"<{b:g} %: {g}" for b, g in SEVERITY_BANDS_PCT
-        )
+        + ", ".join(f"<{b:g} %: {g}" for b, g in SEVERITY_BANDS_PCT)
         + ", else 5 (omnipipe's bands, not an official PACP/EN 13508-2 grade)",
-        "*_sigma_mm: 1-sigma standard uncertainty; empty where not estimated",
+        "*_sigma_*: 1-sigma standard uncertainty; empty where not estimated",
     ]
     return lines
 
@@ -303,6 +354,7 @@ def write_deliverable(
     unrolled: UnrolledImage | None = None,
     survey: Survey | None = None,
     travel_along_rig_z: float = 1.0,
+    views: Sequence[DefectView | None] = (),
 ) -> list[Path]:
     """Write defects.csv and ``defects/defect_NN.png`` into ``out``; returns the files.
 
@@ -314,15 +366,23 @@ def write_deliverable(
         unrolled: the unrolled wall image, or None (no crops).
         survey: the survey header, or None.
         travel_along_rig_z: sign of the robot's motion along its first rig frame's z.
+        views: each defect's camera view (``defects/defect_NN_camera.png``; its frame
+            becomes ``best_view_frame``).
     """
     from omnipipe.dataset import write_image
 
     out = Path(out)
     rows = defect_rows(defects, summary, survey, travel_along_rig_z)
-    ref = survey.clock_reference_deg if survey is not None else None
-    if ref is None:
-        ref = default_clock_reference_deg(travel_along_rig_z)
     written = []
+    for row, view in zip(rows, views, strict=False):
+        if view is None:
+            continue
+        (out / CROP_DIR).mkdir(exist_ok=True)
+        path = out / CROP_DIR / f"defect_{int(row.values['defect']):02d}_camera.png"
+        write_image(path, view.image)
+        written.append(path)
+        row.values["best_view_frame"] = str(view.frame)
+        row.values["camera_view"] = f"{CROP_DIR}/{path.name}"
     if unrolled is not None and rows:
         (out / CROP_DIR).mkdir(exist_ok=True)
         for row in rows:
@@ -340,6 +400,6 @@ def write_deliverable(
     else:
         for row in rows:
             row.values["crop"] = ""
-    write_defects_csv(out / CSV_NAME, rows, header_lines(summary, survey, ref))
+    write_defects_csv(out / CSV_NAME, rows, header_lines(summary, survey, travel_along_rig_z))
     written.insert(0, out / CSV_NAME)
     return written

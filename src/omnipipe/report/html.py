@@ -31,9 +31,12 @@ from omnipipe.image import PNG_COMPRESS_LEVEL
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
     from omnipipe.contract import Defect, TrajectoryQuality
+    from omnipipe.report.relief import WallPoints
+    from omnipipe.report.views import DefectView
     from omnipipe.survey import Survey
 
 
@@ -75,6 +78,11 @@ class ReportInputs:
         defects: the reported defects, in report.json's order.
         trajectory_quality: the camera motion check (unreliable stretches are marked on
             the unrolled wall and the trajectory), or None.
+        wall: the measured wall points and their deviations (the relief maps), or None.
+        defect_views: each defect's camera view (None where no frame sees it), in the
+            defects' order; may be empty.
+        wall_points_in_world: (N, 3) world positions (mm) of ``wall``'s points (the 3-D
+            view's defect markers), or None.
     """
 
     summary: dict[str, Any]
@@ -94,6 +102,9 @@ class ReportInputs:
     frame_index: np.ndarray | None = None
     defects: Sequence[Defect] = ()
     trajectory_quality: TrajectoryQuality | None = None
+    wall: WallPoints | None = None
+    defect_views: Sequence[DefectView | None] = ()
+    wall_points_in_world: np.ndarray | None = None
 
 
 def _png_data_uri(image: np.ndarray) -> str:
@@ -130,7 +141,88 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
         out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         out["unrolled"] = _unrolled_plot(inputs, inputs.unrolled, inputs.unrolled_extent)
+    if inputs.wall is not None and len(inputs.wall.axial_mm):
+        out["relief"] = _relief_plot(inputs, inputs.wall)
     return out
+
+
+def _clock_deg(inputs: ReportInputs) -> float:
+    """The omnipipe angle that is 12:00 in this report."""
+    from omnipipe.report.deliverable import run_clock
+
+    return run_clock(inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs)).angle_deg
+
+
+def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
+    """The unrolled wall's deviation map (mm, colour scale) with the defects outlined."""
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report import relief
+
+    z0, z1 = float(np.min(wall.axial_mm)), float(np.max(wall.axial_mm))
+    ref = _clock_deg(inputs)
+    a0 = ref  # 12:00 at the left edge: columns run clockwise through a full turn
+    cell = max(1.0, (z1 - z0) / 400.0)
+    grid = relief.deviation_grid(wall, (z0, z1), (a0, a0 + 360.0), cell)
+    circ = 2 * math.pi * wall.radius_mm
+    fig, ax = plt.subplots(figsize=(9, min(12.0, 9 * (z1 - z0) / circ + 1.2)))
+    vmax = relief.relief_vmax([d.height_mm for d in inputs.defects], inputs.summary.get("wall_noise_mm"))
+    im = relief.draw_relief(ax, grid, (a0, a0 + 360.0, z0, z1), vmax)
+    for k, d in enumerate(inputs.defects):
+        shifted = _shift_angle(d, a0)
+        relief.outline(ax, shifted, wall.radius_mm)
+        ax.text(shifted.angle_deg, shifted.axial_start_mm, f" #{k + 1}", fontsize=8, va="bottom")
+    relief.clock_ticks(ax, a0, a0 + 360.0, ref)
+    ax.set_xlabel("clock position (looking in the direction of travel)")
+    _distance_axis(ax, inputs)
+    fig.colorbar(im, ax=ax, label="deviation from the wall (mm): − bulge, + dent", shrink=0.8)
+    return _figure_data_uri(fig)
+
+
+def _distance_axis(ax: Axes, inputs: ReportInputs) -> None:
+    """The vertical axis in the inspector's distance (m from the start node or the first
+    measured ring)."""
+    from omnipipe.report.deliverable import distance_origin
+    from omnipipe.report.relief import distance_axis
+
+    origin = distance_origin(inputs.summary, _survey_of(inputs.summary))
+    distance_axis(ax, origin.offset_m, origin.name)
+
+
+def _shift_angle(d: Defect, a0: float) -> Defect:
+    """``d`` with its angle moved into [a0, a0 + 360)."""
+    from dataclasses import replace
+
+    return replace(d, angle_deg=a0 + (d.angle_deg - a0) % 360.0)
+
+
+def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
+    """One defect's relief map crop (mm colour scale, outline, clock axis) as a data URI."""
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report import relief
+
+    wall = inputs.wall
+    if wall is None:
+        return ""
+    a0, a1, z0, z1 = relief.defect_window(d, wall.radius_mm)
+    cell = max(0.25, min(2.0, min(d.width_mm, d.length_mm) / 12.0))
+    grid = relief.deviation_grid(wall, (z0, z1), (a0, a1), cell)
+    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    vmax = relief.relief_vmax([d.height_mm], inputs.summary.get("wall_noise_mm"))
+    im = relief.draw_relief(ax, grid, (a0, a1, z0, z1), vmax)
+    relief.outline(ax, d, wall.radius_mm)
+    span_h = (a1 - a0) / 30.0
+    relief.clock_ticks(ax, a0, a1, _clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
+    ax.set_xlabel("clock", fontsize=8)
+    _distance_axis(ax, inputs)
+    ax.yaxis.label.set_fontsize(7)
+    ax.tick_params(labelsize=7)
+    ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=9)
+    bar = fig.colorbar(im, ax=ax, shrink=0.85)
+    bar.set_label("deviation (mm)", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    return _figure_data_uri(fig)
 
 
 def _profile_plot(inputs: ReportInputs) -> str:
@@ -154,14 +246,14 @@ def _profile_plot(inputs: ReportInputs) -> str:
     else:
         ax1.plot(axial, inputs.stations_diameter_mm, "o-", color="#1f77b4", ms=3)
     survey = inputs.summary.get("survey") or {}
-    ax1.set_xlabel("distance along the pipe (mm)")
-    if survey:
-        # A second axis: distance from the survey's start node, metres.
-        off = float(survey.get("start_offset_m") or 0.0)
-        top = ax1.secondary_xaxis(
-            "top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0)
-        )
-        top.set_xlabel(f"distance from start node {survey.get('start_node') or ''} (m)")
+    ax1.set_xlabel("axial position (mm, from the first frame's mirror focus)")
+    from omnipipe.report.deliverable import distance_origin
+
+    # A second axis: the inspector's distance (from the start node or the first ring), m.
+    origin = distance_origin(inputs.summary, _survey_of(inputs.summary))
+    off = origin.offset_m
+    top = ax1.secondary_xaxis("top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0))
+    top.set_xlabel(f"distance (m) from the {origin.name}")
     nominal = survey.get("nominal_diameter_mm")
     if nominal:
         ax1.axhline(nominal, color="#888", ls="--", lw=1, label="nominal")
@@ -224,14 +316,18 @@ def _unrolled_plot(
             lw=1.5,
         )
         ax.add_patch(rect)
+        rect.set_linestyle("--" if d.truncated else "-")
         ax.text(d.angle_deg + half_w + 2, d.axial_start_mm, f"#{k + 1} {d.kind}", color="white", fontsize=8)
     quality = inputs.trajectory_quality
     for u in () if quality is None else quality.unreliable:
         if u.axial_start_mm is not None and u.axial_end_mm is not None:
             ax.axhspan(u.axial_start_mm, u.axial_end_mm, color="#d62728", alpha=0.3, lw=0)
             ax.text(a0 + 2, u.axial_start_mm, "unreliable motion", color="white", fontsize=7, va="top")
-    ax.set_xlabel("angle around the axis from the first rig frame's x axis (deg)")
-    ax.set_ylabel("distance along the pipe (mm)")
+    from omnipipe.report.relief import clock_ticks
+
+    clock_ticks(ax, a0, a1, _clock_deg(inputs))
+    ax.set_xlabel("clock position (looking in the direction of travel)")
+    _distance_axis(ax, inputs)
     return _figure_data_uri(fig)
 
 
@@ -261,6 +357,7 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         texture = _png_data_uri(tex)
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     rest = {
+        "markers": _markers(inputs),
         "texture": texture,
         "centre": ((lo + hi) / 2).tolist(),
         "radius": float(max(np.linalg.norm(hi - lo) / 2, 1.0)),
@@ -275,6 +372,26 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     )
     text = "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:]
     return text.replace("</", "<\\/")
+
+
+def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
+    """The 3-D view's defect labels: each defect's measured centre (world, mm)."""
+    from omnipipe.report.views import centre_point
+
+    if inputs.wall is None or inputs.wall_points_in_world is None:
+        return []
+    out = []
+    for k, d in enumerate(inputs.defects):
+        p = centre_point(d, inputs.wall, inputs.wall_points_in_world)
+        if p is not None:
+            out.append(
+                {
+                    "label": f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""),
+                    "position": [round(float(v), 2) for v in p],
+                    "href": f"#defect-{k + 1}",
+                }
+            )
+    return out
 
 
 def _numbers(fmt: str, values: np.ndarray) -> str:
@@ -347,32 +464,67 @@ def _travel_sign(inputs: ReportInputs) -> float:
     return float(poses[-1][2, 3] - poses[0][2, 3])
 
 
-def _defect_extras(inputs: ReportInputs) -> list[list[str]]:
-    """Per defect: clock, distance from the start node, grade and a crop (HTML cells)."""
-    from omnipipe.report.deliverable import crop_unrolled, defect_rows
+def _defect_extras(inputs: ReportInputs) -> tuple[list[list[str]], list[str]]:
+    """Per defect: the table's cells (clock, distance, grade, link to its views) and its
+    views' card (relief map, wall texture, camera view; each enlarges when clicked)."""
+    from omnipipe.report.deliverable import defect_rows
 
     rows = defect_rows(inputs.defects, inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs))
-    out = []
-    for row in rows:
+    cells, cards = [], []
+    for k, row in enumerate(rows):
         v = row.values
-        img = ""
-        if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
-            ext = inputs.unrolled_extent
-            h = inputs.unrolled.shape[0]
-            crop = crop_unrolled(
-                inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / h, row.defect,
-                2 * math.pi * inputs.radius_mm,
-            )
-            img = f"<img class='crop' alt='defect {v['defect']}' src='{_png_data_uri(crop)}'>"
-        out.append(
+        views = _defect_views_html(inputs, row.defect, k)
+        sig = v["clock_sigma_deg"]
+        end_sig = v["distance_end_sigma_m"]
+        cells.append(
             [
-                f"{v['clock']} ({v['clock_deg']}°)",
-                f"{v['distance_start_m']} – {v['distance_end_m']}",
+                f"{v['clock']}" + (f" ± {sig}°" if sig else ""),
+                f"{v['distance_start_m']} – {v['distance_end_m']}" + (f" ± {end_sig}" if end_sig else ""),
                 v["severity_grade"],
-                img,
+                f"<a href='#views-{k + 1}'>views</a>" if views else "",
             ]
         )
-    return out
+        if views:
+            d = row.defect
+            head = (
+                f"#{k + 1} {html.escape(d.kind)} at {v['clock']}, {v['distance_start_m']} – "
+                f"{v['distance_end_m']} m from the {html.escape(v['distance_from'])}: "
+                f"{'≥ ' if d.truncated else ''}{d.height_mm:.2f} mm high"
+                + (" <span class='warn'>(truncated: runs past the measured stretch)</span>" if d.truncated else "")
+            )
+            cards.append(f"<div class='card keep' id='views-{k + 1}'><h3>{head}</h3>{''.join(views)}</div>")
+    return cells, cards
+
+
+def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
+    """The ``<figure>`` of each view of defect ``d`` (number ``k + 1``)."""
+    views = []
+    if inputs.wall is not None:
+        views.append(
+            _figure_html(_defect_relief(inputs, d, k), "relief map: deviation from the fitted wall (mm)")
+        )
+    if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
+        from omnipipe.report.deliverable import crop_unrolled
+
+        ext = inputs.unrolled_extent
+        crop = crop_unrolled(
+            inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
+            2 * math.pi * inputs.radius_mm,
+        )
+        views.append(_figure_html(_png_data_uri(crop), "wall texture (unrolled)"))
+    view = inputs.defect_views[k] if k < len(inputs.defect_views) else None
+    if view is not None:
+        views.append(_figure_html(_png_data_uri(view.image), f"camera view, frame {view.frame}"))
+    return views
+
+
+def _figure_html(uri: str, caption: str) -> str:
+    return f"<figure>{_zoomable(uri, caption)}<figcaption>{html.escape(caption)}</figcaption></figure>"
+
+
+def _zoomable(uri: str, alt: str) -> str:
+    """An image that opens large when clicked (the page's zoom overlay)."""
+    return f"<img class='crop zoomable' alt='{html.escape(alt)}' title='click to enlarge' src='{uri}'>"
 
 
 def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str:
@@ -516,7 +668,8 @@ def _model_view(model: str | None) -> str:
         return "<p class='note'>No mesh was built.</p>"
     viewer_js = resources.files("omnipipe.report").joinpath("viewer.js").read_text(encoding="utf-8")
     return (
-        "<canvas id='model-view'></canvas><p id='model-status' class='note'>loading…</p>"
+        "<div id='model-wrap'><canvas id='model-view'></canvas></div>"
+        "<p id='model-status' class='note'>loading…</p>"
         f"<script type='application/json' id='model-data'>{model}</script>"
         f"<script>{viewer_js}</script>"
     )
@@ -524,8 +677,8 @@ def _model_view(model: str | None) -> str:
 
 _DEFECT_COLUMNS = (
     "<table><thead><tr><th>#</th><th>kind</th><th>height (mm)</th><th>width (mm)</th><th>length (mm)</th>"
-    "<th>axial start (mm)</th><th>angle (deg)</th><th>clock</th><th>distance (m)</th>"
-    "<th>grade</th><th>view</th></tr></thead>"
+    "<th>clock</th><th>distance (m)</th>"
+    "<th>grade</th><th>views</th></tr></thead>"
 )
 
 
@@ -539,7 +692,7 @@ def _defects_section(inputs: ReportInputs) -> str:
             + ("" if limit is None else f" {_fmt(limit)} mm high or more")
             + " were found.</p>"
         )
-    extra = _defect_extras(inputs)
+    extra, cards = _defect_extras(inputs)
     parts = [_DEFECT_COLUMNS]
     for k, d in enumerate(inputs.defects):
         cells = [
@@ -548,40 +701,67 @@ def _defects_section(inputs: ReportInputs) -> str:
                 (d.height_mm, d.height_sigma_mm, 2),
                 (d.width_mm, d.width_sigma_mm, 2),
                 (d.length_mm, d.length_sigma_mm, 2),
-                (d.axial_start_mm, d.axial_start_sigma_mm, 2),
-                (d.angle_deg, d.angle_sigma_deg, 1),
             )
         ]
+        if d.truncated:
+            cells = ["≥ " + c for c in cells]
         kind = html.escape(d.kind) + (
             " <span class='warn'>(across unreliable motion)</span>" if d.motion_unreliable else ""
+        ) + (
+            " <span class='warn'>TRUNCATED: runs past the measured stretch; sizes are lower bounds</span>"
+            if d.truncated
+            else ""
         )
         cells += extra[k] if k < len(extra) else ["", "", "", ""]
         parts.append(
-            f"<tr><td>{k + 1}</td><td>{kind}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
+            f"<tr id='defect-{k + 1}'><td>{k + 1}</td><td>{kind}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
         )
     parts.append("</table>")
+    from omnipipe.report.deliverable import distance_origin, run_clock
+
+    clock = run_clock(s, _survey_of(s), _travel_sign(inputs))
+    origin = distance_origin(s, _survey_of(s))
     parts.append(
         "<p class='note'>clock: looking in the direction of travel, clockwise; 12:00 = "
         + (
-            "survey.yaml clock_reference_deg"
-            if (s.get("survey") or {}).get("clock_reference_deg") is not None
-            else "image up in the first frame (omnipipe has no gravity reference)"
+            f"the top of the pipe ({html.escape(clock.source)})"
+            if clock.gravity
+            else "<span class='warn'>clock from image up: no gravity reference</span> (the first "
+            "frame's image up; give survey.yaml clock_reference_deg or imu.txt)"
         )
-        + ". distance: from the start node to the defect's start and end. grade: height as % "
+        + f". distance: metres along the pipe from the {html.escape(origin.name)} to the defect's "
+        "start and end (± 1 sigma of the end). grade: height as % "
         "of the inner diameter, omnipipe's bands (docs/inspection_coding.md), not an official "
-        "PACP / EN 13508-2 grade. view: the unrolled wall around the defect (defects/*.png; "
-        "defects.csv names the frame of its best view).</p>"
+        "PACP / EN 13508-2 grade. views: the relief map (deviation from the fitted wall, mm; blue "
+        "into the pipe), the wall texture around the defect and the camera's own view (a "
+        "perspective crop of the frame that sees it closest, defects.csv best_view_frame), its "
+        "half-height extent outlined (dashed: truncated); click a view to enlarge it. "
+        "report.json keeps the angle in degrees "
+        "from the first rig frame's x axis (angle_deg).</p>"
     )
+    if cards:
+        parts.append("<h2>Defect views</h2>" + "".join(cards))
     return "".join(parts)
 
 
 def _figures(plots: dict[str, str]) -> str:
     """The unrolled wall, the diameter profile and the trajectory (those drawn)."""
     parts = []
-    if "unrolled" in plots:
-        parts.append(
-            f"<h2>Unrolled wall</h2><img id='unrolled' alt='unrolled wall' src='{plots['unrolled']}'>"
-        )
+    if "unrolled" in plots or "relief" in plots:
+        parts.append("<h2>Unrolled wall</h2>")
+        if "unrolled" in plots and "relief" in plots:
+            parts.append(
+                "<p class='screen-only'><label><input type='radio' name='wallmode' checked "
+                "onclick=\"wallMode('texture')\"> texture</label> <label><input type='radio' "
+                "name='wallmode' onclick=\"wallMode('relief')\"> deviation map (mm)</label></p>"
+            )
+        if "unrolled" in plots:
+            parts.append(f"<img id='unrolled' class='zoomable' alt='unrolled wall' src='{plots['unrolled']}'>")
+        if "relief" in plots:
+            hidden = " style='display:none'" if "unrolled" in plots else ""
+            parts.append(
+                f"<img id='relief' class='zoomable' alt='deviation map'{hidden} src='{plots['relief']}'>"
+            )
     if "profile" in plots:
         parts.append(
             "<h2>Diameter and ovality along the pipe</h2>"

@@ -1,7 +1,8 @@
 // omnipipe report: a dependency-free WebGL viewer for the textured pipe model.
 // Data come from <script type="application/json" id="model-data">: positions (flat
 // xyz, mm), uvs (flat uv), indices (flat triangles), texture (data URI), centre,
-// radius. Drag to orbit, shift+drag or right-drag to pan, wheel to zoom, double
+// radius, markers ([{label, position: [x, y, z] mm, href}]: the defects, drawn as
+// labels that follow the model and link to their table rows). Drag to orbit, shift+drag or right-drag to pan, wheel to zoom, double
 // click to reset.
 (function () {
   "use strict";
@@ -115,6 +116,27 @@
     var back = new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, state.panX, state.panY, -state.dist, 1]);
     return mul(back, mul(r, t));
   }
+  var markers = (data.markers || []).map(function (m) {
+    var a = document.createElement("a");
+    a.className = "marker";
+    a.textContent = m.label;
+    a.href = m.href || "#";
+    a.title = "go to " + m.label + " in the defect table";
+    canvas.parentNode.appendChild(a);
+    return { el: a, p: m.position };
+  });
+  function placeMarkers(mvp, w, h) {
+    markers.forEach(function (m) {
+      var x = m.p[0], y = m.p[1], z = m.p[2];
+      var cx = mvp[0] * x + mvp[4] * y + mvp[8] * z + mvp[12];
+      var cy = mvp[1] * x + mvp[5] * y + mvp[9] * z + mvp[13];
+      var cw = mvp[3] * x + mvp[7] * y + mvp[11] * z + mvp[15];
+      if (cw <= 0) { m.el.style.display = "none"; return; }
+      m.el.style.display = "";
+      m.el.style.left = ((cx / cw + 1) / 2 * w).toFixed(1) + "px";
+      m.el.style.top = ((1 - cy / cw) / 2 * h).toFixed(1) + "px";
+    });
+  }
   function draw() {
     var w = canvas.clientWidth, h = canvas.clientHeight;
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
@@ -128,8 +150,9 @@
     gl.uniformMatrix4fv(gl.getUniformLocation(prog, "uView"), false, v);
     gl.uniform1f(gl.getUniformLocation(prog, "uUseTex"), useTex);
     gl.drawElements(gl.TRIANGLES, idx.length, uintIndex ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT, 0);
+    placeMarkers(mul(p, v), w, h);
     status.textContent = (idx.length / 3) + " triangles, " + (pos.length / 3) + " vertices" +
-      (useTex ? ", textured" : "") + ". Drag: orbit, shift+drag: pan, wheel: zoom, double-click: reset.";
+      (useTex ? ", textured" : "") + (markers.length ? ", " + markers.length + " defect marker(s)" : "") + ". Drag: orbit, shift+drag: pan, wheel: zoom, double-click: reset.";
     canvas.setAttribute("data-rendered", "1");
   }
   var drag = null;

@@ -1,0 +1,189 @@
+"""The wall's relief for a person: deviation maps in mm with a colour scale and clock axes.
+
+The deviation of a wall point is its radial distance from the fitted wall (mm; negative:
+a bulge into the pipe, positive: a dent). :func:`deviation_grid` bins the measured points
+(axial position, angle, deviation) into a regular grid and fills the rows between rings
+(linear along the pipe, only across gaps no wider than ``max_gap_mm``: an unmeasured
+stretch stays blank). The figures put clock positions (``hh:mm``, 12:00 by the run's
+:class:`~omnipipe.report.clock.ClockReference`) on the horizontal axis and the distance
+along the pipe on the vertical one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+    from omnipipe.contract import Defect
+
+
+@dataclass(frozen=True)
+class WallPoints:
+    """The measured wall points in pipe coordinates.
+
+    Attributes:
+        axial_mm: (N,) along the centreline (the defects' axial convention).
+        angle_deg: (N,) omnipipe angle (report.json ``angle_deg``'s convention), [0, 360).
+        deviation_mm: (N,) radial deviation from the fitted wall (+ out of the pipe).
+        radius_mm: the wall's reference radius (arc length = angle x radius).
+    """
+
+    axial_mm: np.ndarray
+    angle_deg: np.ndarray
+    deviation_mm: np.ndarray
+    radius_mm: float
+
+
+def deviation_grid(
+    wall: WallPoints,
+    axial_range: tuple[float, float],
+    angle_range: tuple[float, float],
+    cell_mm: float,
+    max_gap_mm: float = 25.0,
+) -> np.ndarray:
+    """(rows along the pipe, columns around it) mean deviation (mm), NaN where unmeasured.
+
+    ``angle_range`` may run past 360 (or below 0): angles wrap. Rows between measured
+    rows are filled linearly along the pipe across gaps up to ``max_gap_mm``.
+    """
+    z0, z1 = axial_range
+    a0, a1 = angle_range
+    cell_deg = math.degrees(cell_mm / wall.radius_mm)
+    rows = max(1, int(math.ceil((z1 - z0) / cell_mm)))
+    cols = max(1, int(math.ceil((a1 - a0) / cell_deg)))
+    ang = (wall.angle_deg - a0) % 360.0
+    r = np.floor((wall.axial_mm - z0) / cell_mm).astype(np.int64)
+    c = np.floor(ang / cell_deg).astype(np.int64)
+    keep = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & np.isfinite(wall.deviation_mm)
+    flat = r[keep] * cols + c[keep]
+    total = np.bincount(flat, wall.deviation_mm[keep], rows * cols)
+    count = np.bincount(flat, None, rows * cols)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        grid = (total / count).reshape(rows, cols)
+    centres = z0 + (np.arange(rows) + 0.5) * cell_mm
+    for j in range(cols):
+        col = grid[:, j]
+        ok = np.isfinite(col)
+        if ok.sum() < 2:
+            continue
+        zs = centres[ok]
+        filled = np.interp(centres, zs, col[ok])
+        # Only between measured rows, and only across gaps up to max_gap_mm.
+        nxt = np.searchsorted(zs, centres)
+        inside = (nxt > 0) & (nxt < len(zs))
+        gap = np.full(rows, np.inf)
+        gap[inside] = zs[nxt[inside]] - zs[nxt[inside] - 1]
+        fill = ~ok & inside & (gap <= max_gap_mm)
+        col[fill] = filled[fill]
+    _fill_rows(grid, max(1, int(round(max_gap_mm / 5.0 / cell_mm))))
+    return grid
+
+
+def _fill_rows(grid: np.ndarray, max_cells: int) -> None:
+    """Fill NaN runs of at most ``max_cells`` inside each row linearly (in place): the
+    gaps between a ring's samples when the cells are finer than their spacing."""
+    cols = np.arange(grid.shape[1])
+    for row in grid:
+        ok = np.isfinite(row)
+        if ok.sum() < 2 or ok.all():
+            continue
+        xs = cols[ok]
+        nxt = np.searchsorted(xs, cols)
+        inside = (nxt > 0) & (nxt < len(xs))
+        gap = np.full(len(cols), np.inf)
+        gap[inside] = xs[nxt[inside]] - xs[nxt[inside] - 1]
+        fill = ~ok & inside & (gap <= max_cells + 1)
+        row[fill] = np.interp(cols[fill], xs, row[ok])
+
+
+def distance_axis(ax: Axes, offset_m: float, origin: str) -> None:
+    """Label the vertical axis (axial mm from the first frame) as the inspector's
+    distance: metres from ``origin`` (``offset_m`` + axial / 1000)."""
+    from matplotlib.ticker import FuncFormatter
+
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda z, _pos: f"{offset_m + z / 1000.0:.2f}"))
+    ax.set_ylabel(f"distance (m) from the {origin}")
+
+
+def clock_ticks(ax: Axes, a0: float, a1: float, reference_deg: float, step_h: float = 1.0) -> None:
+    """Clock labels (``h:mm``) on the horizontal axis of angles ``a0``..``a1`` (deg)."""
+    step = 30.0 * step_h
+    first = math.ceil((a0 - reference_deg) / step)
+    ticks, labels = [], []
+    k = first
+    while reference_deg + k * step <= a1 + 1e-9:
+        angle = reference_deg + k * step
+        clock = (k * step) % 360.0
+        h, m = divmod(round(clock * 2) % 720, 60)
+        ticks.append(angle)
+        labels.append(f"{h or 12}:{m:02d}")
+        k += 1
+    ax.set_xticks(ticks, labels)
+
+
+def draw_relief(
+    ax: Axes,
+    grid: np.ndarray,
+    extent: tuple[float, float, float, float],
+    vmax: float,
+) -> object:
+    """The deviation grid on ``ax`` (angles ``extent[0:2]``, axial ``extent[2:4]``):
+    blue into the pipe (bulge), red out of it (dent), grey where unmeasured; returns the
+    image for a colour bar."""
+    import matplotlib as mpl
+
+    cmap = mpl.colormaps["RdBu_r"].with_extremes(bad="#bbbbbb")
+    a0, a1, z0, z1 = extent
+    return ax.imshow(
+        np.ma.masked_invalid(grid),
+        extent=(a0, a1, z1, z0),
+        aspect="auto",
+        cmap=cmap,
+        vmin=-vmax,
+        vmax=vmax,
+        interpolation="nearest",
+    )
+
+
+def outline(ax: Axes, d: Defect, radius_mm: float, colour: str = "black") -> None:
+    """The defect's half-height extent as a rectangle (dashed where truncated)."""
+    import matplotlib.patches
+
+    half_w = math.degrees(0.5 * d.width_mm / radius_mm)
+    ax.add_patch(
+        matplotlib.patches.Rectangle(
+            (d.angle_deg - half_w, d.axial_start_mm),
+            2 * half_w,
+            d.length_mm,
+            fill=False,
+            ec=colour,
+            lw=1.4,
+            ls="--" if d.truncated else "-",
+        )
+    )
+
+
+def defect_window(d: Defect, radius_mm: float) -> tuple[float, float, float, float]:
+    """(angle_min, angle_max, axial_min, axial_max) around a defect: its extent plus half
+    of it and at least 20 mm each side."""
+    margin_z = max(0.5 * d.length_mm, 20.0)
+    width = max(d.width_mm, 1.0)
+    half_deg = math.degrees((0.5 * width + max(0.5 * width, 20.0)) / radius_mm)
+    return (
+        d.angle_deg - half_deg,
+        d.angle_deg + half_deg,
+        d.axial_start_mm - margin_z,
+        d.axial_end_mm + margin_z,
+    )
+
+
+def relief_vmax(heights: list[float], noise_mm: float | None) -> float:
+    """Colour scale limit (mm): the largest defect height, at least 3 noise sigmas and 0.5."""
+    top = max([abs(h) for h in heights] + [0.5])
+    return max(top, 3.0 * (noise_mm or 0.0))

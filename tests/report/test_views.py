@@ -1,0 +1,101 @@
+"""Relief maps, camera views and 3-D markers of defects (omnipipe.report.relief, .views)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from omnipipe.analysis.sizing import plateau
+from omnipipe.camera import camera_from_rig
+from omnipipe.contract import Defect
+from omnipipe.evaluation.stage import _coverage
+from omnipipe.report.relief import WallPoints, deviation_grid
+from omnipipe.report.views import best_frame, camera_view, centre_point
+from omnipipe.sim.scenarios import make_scenario
+
+RADIUS = 100.0
+
+
+def _wall(gap: tuple[float, float] | None = None) -> tuple[WallPoints, np.ndarray]:
+    """Rings every 5 mm, 720 samples each, a 3 mm bulge at 90 deg, 100-150 mm; the
+    points' world positions on a cylinder about z."""
+    z, ang = np.meshgrid(np.arange(0.0, 300.0, 5.0), np.arange(720) * 0.5, indexing="ij")
+    z, ang = z.ravel(), ang.ravel()
+    if gap is not None:
+        keep = (z < gap[0]) | (z > gap[1])
+        z, ang = z[keep], ang[keep]
+    du = ((ang - 90.0 + 180.0) % 360.0 - 180.0) * math.pi / 180.0 * RADIUS
+    dev = -3.0 * plateau(du, 10.0, 4.0) * plateau(z - 125.0, 50.0, 10.0)
+    r = RADIUS + dev
+    world = np.column_stack([r * np.cos(np.radians(ang)), r * np.sin(np.radians(ang)), z])
+    return WallPoints(z, ang, dev, RADIUS), world
+
+
+def _bulge(**kw) -> Defect:
+    base = dict(kind="bulge", height_mm=3.0, width_mm=10.0, length_mm=50.0, axial_start_mm=100.0, angle_deg=90.0)
+    return Defect(**(base | kw))
+
+
+def test_relief_grid_shows_the_bulge_and_leaves_gaps_blank() -> None:
+    wall, _ = _wall(gap=(180.0, 240.0))
+    grid = deviation_grid(wall, (0.0, 300.0), (0.0, 360.0), cell_mm=2.0)
+    cell_deg = math.degrees(2.0 / RADIUS)
+    row, col = int(125 // 2), int(90 // cell_deg)
+    assert abs(grid[row, col] + 3.0) < 0.2  # the crest, mm (negative: into the pipe)
+    assert abs(grid[row, int(270 // cell_deg)]) < 0.05  # the sound wall opposite
+    assert np.isnan(grid[int(210 // 2), col])  # the unmeasured stretch stays blank
+    assert np.isfinite(grid[int(52 // 2), col])  # between rings 5 mm apart: filled
+
+
+def test_camera_view_of_a_defect_through_the_camera_model() -> None:
+    """The paper rig 150 mm up a 202 mm pipe from the defect: the centre point is found on
+    the wall, the frame that sees it is chosen, and the view shows it where the rays say."""
+    wall, world = _wall()
+    d = _bulge()
+    p = centre_point(d, wall, world)
+    assert p is not None and abs(p[2] - 125.0) <= 2.5 and abs(math.atan2(p[1], p[0]) - math.pi / 2) < 0.01
+    rig = make_scenario("paper-small").rig
+    camera = camera_from_rig(rig)
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    poses[:, 2, 3] = [-2000.0, 125.0 + 82.0, 125.0 + 150.0]  # far away / laser ring on it / ahead
+    found = best_frame(p, poses, camera)
+    assert found is not None
+    k, p_rig = found
+    _, valid = camera.project(p_rig[None])
+    assert valid[0] and k in (1, 2)
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    px, _ = camera.project(p_rig[None])
+    c, r = np.round(px[0]).astype(int)
+    image[r - 2 : r + 3, c - 2 : c + 3] = 255  # a bright spot where the defect centre is imaged
+    view = camera_view(image, camera, d, p_rig)
+    assert view.shape == (320, 320, 3) and view.dtype == np.uint8
+    bright = np.argwhere(view.max(axis=2) == 255)
+    assert len(bright)
+    # The spot lands at the view's centre (the view looks at the defect's centre).
+    assert np.all(np.abs(bright.mean(axis=0) - 159.5) < 12)
+
+
+def test_3d_view_has_a_marker_per_defect() -> None:
+    from omnipipe.report import ReportConfig
+    from omnipipe.report.html import ReportInputs, _model_json
+
+    wall, world = _wall()
+    faces = np.array([[0, 1, 2]])
+    inputs = ReportInputs(
+        summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=world, mesh_faces=faces,
+        defects=[_bulge(truncated=True)], wall=wall, wall_points_in_world=world,
+    )
+    model = json.loads(_model_json(inputs, ReportConfig()))
+    (marker,) = model["markers"]
+    assert marker["label"] == "#1 bulge (truncated)" and marker["href"] == "#defect-1"
+    assert abs(marker["position"][2] - 125.0) <= 2.5
+
+
+def test_evaluation_says_where_a_true_defect_lies() -> None:
+    report = {"stations": [{"axial_mm": -82.0}, {"axial_mm": 33.7}]}
+    assert _coverage(_bulge(axial_start_mm=-50.0, length_mm=100.0), report) == "partly"
+    assert _coverage(_bulge(axial_start_mm=-60.0, length_mm=40.0), report) == "inside"
+    assert _coverage(_bulge(axial_start_mm=150.0, length_mm=40.0), report) == "outside"
+    assert _coverage(_bulge(), {}) == "unknown"
