@@ -3,16 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
 from omnipipe import cli_values
 from omnipipe.output import atomic_output_dir, prepare_output_dir
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
+
+if TYPE_CHECKING:
+    from omnipipe.dataset import Dataset
+    from omnipipe.pipeline.checkpoint import Checkpoints
 
 # Progress bars that are drawn and not yet finished, oldest first.
 _OPEN_BARS: list[tqdm] = []
@@ -150,6 +156,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="survey header YAML (site, asset_id, start_node, direction, ...; default: "
         "survey.yaml beside the dataset if there is one; docs/inspection_coding.md)",
     )
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="compute every stage again: ignore (and delete) the checkpoints an interrupted "
+        "earlier run into OUT left (by default a rerun with the same dataset, rig and "
+        "settings resumes after its last completed stage)",
+    )
     _add_knobs(p)
     add_execution_options(p)
     p.set_defaults(func=_reconstruct)
@@ -187,16 +200,59 @@ def _reconstruct(args: argparse.Namespace) -> int:
     survey = find_survey(args.dataset, args.survey)
     dataset = open_dataset(args.dataset, topic=args.topic)
     bars = _progress(args.quiet)
-    rec = run(config, dataset, bars)
+    checkpoints = open_checkpoints(out, dataset, config, fresh=args.fresh)
+    rec = run(config, dataset, bars, checkpoints=checkpoints)
     if survey is not None:
         rec.survey = survey
         rec.summary["survey"] = survey.to_dict()
     write(rec, out, force=args.force, protect=protect, progress=bars)
-    *warnings, last = closing_line(rec.summary, out).split("\n")
+    for problem in checkpoints.problems:
+        print(f"note: {problem}", file=sys.stderr)
+    remove_checkpoints(out)  # OUT is in place: nothing left to resume
+    *warnings, last = closing_line(rec.summary, out).split("
+")
     for line in warnings:
         print(line, file=sys.stderr)
     print(last)
     return 0
+
+
+def open_checkpoints(
+    out: Path, dataset: Dataset, config: ReconstructConfig, *, fresh: bool
+) -> Checkpoints:
+    """The checkpoints of a run into ``out`` (:mod:`omnipipe.pipeline.checkpoint`); says
+    on stderr which stages a rerun resumes from. ``fresh``: earlier ones deleted."""
+    from dataclasses import replace
+
+    from omnipipe.pipeline.checkpoint import Checkpoints, run_key
+
+    # Where the work runs does not change the result: a rerun may choose other workers.
+    key = run_key(dataset, replace(config, workers=None, scheduler=None))
+    checkpoints = Checkpoints.open(out, key)
+    if fresh:
+        checkpoints.remove()
+        checkpoints = Checkpoints.open(out, key)
+    elif checkpoints.saved:
+        print(
+            f"resuming: {', '.join(checkpoints.saved)} done by an earlier run "
+            f"(checkpoints in {checkpoints.folder}; --fresh computes them again)",
+            file=sys.stderr,
+        )
+    return checkpoints
+
+
+def remove_checkpoints(out: Path) -> None:
+    """Delete every checkpoint folder of runs into ``out`` (only what omnipipe wrote)."""
+    from omnipipe.pipeline.checkpoint import checkpoint_dir, remove_checkpoint_dir
+
+    mine = checkpoint_dir(out, "0" * 16)
+    prefix = mine.name[: -16]
+    try:
+        names = [n for n in os.listdir(mine.parent) if n.startswith(prefix)]
+    except OSError:
+        return
+    for name in names:
+        remove_checkpoint_dir(mine.parent / name)
 
 
 def closing_line(s: dict, out: Path) -> str:

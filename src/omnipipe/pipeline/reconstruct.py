@@ -31,6 +31,7 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.dataset import Dataset
     from omnipipe.laser import LaserConfig
     from omnipipe.model import ModelConfig, ModelResult
+    from omnipipe.pipeline.checkpoint import Checkpoints
     from omnipipe.pipeline.frame_pass import FramePassResult
     from omnipipe.report import ReportConfig, ReportInputs
     from omnipipe.report.relief import WallPoints
@@ -152,11 +153,15 @@ def run(
     dataset: Dataset,
     progress: ProgressFactory = _no_progress,
     executor: Executor | None = None,
+    checkpoints: Checkpoints | None = None,
 ) -> Reconstruction:
     """Run every stage on ``dataset``.
 
     ``executor`` does the frame-parallel work (default: one opened from
     ``config.workers`` / ``config.scheduler`` for this run, :mod:`omnipipe.executor`).
+    ``checkpoints``: where each long stage's result is saved, and loaded from instead of
+    computed when an earlier run with the same key saved it
+    (:mod:`omnipipe.pipeline.checkpoint`); the result is the same either way.
 
     Raises:
         OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
@@ -165,7 +170,7 @@ def run(
         from omnipipe.executor import open_executor
 
         with open_executor(config.workers, config.scheduler, tasks=len(dataset)) as pool:
-            return run(config, dataset, progress, pool)
+            return run(config, dataset, progress, pool, checkpoints)
     if dataset.rig.laser is None:  # a camera-only rig (rig.yaml without a laser section)
         raise ReconstructionError(
             "rig.yaml has no laser section: a camera-only rig cannot reconstruct "
@@ -185,13 +190,7 @@ def run(
     # rather than in every worker (the local pool's workers are forked from this process).
     frame_pass.warm_up(config.laser, config.sfm.stations, dataset.rig)
     log.timings["startup"] = time.perf_counter() - log.t_start
-    frames = _decode(config, dataset, executor, progress, log)
-    motion = _camera_motion(config, dataset, frames, executor, progress, log)
-    measured, feed = _analyse(config, dataset, frames, motion, executor, progress, log)
-    del frames
-    release_freed_memory()
-    mdl = _model(config, dataset, measured, feed, executor, progress, log)
-    del feed
+    motion, measured, mdl = _stages(config, dataset, executor, progress, log, checkpoints)
     log.timings["total"] = time.perf_counter() - log.t_start
     summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
     summary["input_quality"] = input_quality.to_dict()
@@ -264,6 +263,82 @@ class _RunLog:
     t_start: float
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class _Saved:
+    """A stage's checkpoint: its result and the run's notes when it ended.
+
+    Attributes:
+        result: the stage's result.
+        timings: the stage times (s) so far.
+        warnings: the run's warnings so far.
+    """
+
+    result: Any
+    timings: dict[str, float]
+    warnings: list[str]
+
+
+def _restore(checkpoints: Checkpoints | None, stage: str, log: _RunLog) -> Any | None:
+    """The result of ``stage`` loaded from ``checkpoints`` (the run's notes as they were
+    when it was saved), or None."""
+    saved = None if checkpoints is None else checkpoints.load(stage)
+    if not isinstance(saved, _Saved):
+        return None
+    log.timings = dict(saved.timings)
+    log.warnings = list(saved.warnings)
+    return saved.result
+
+
+def _keep(checkpoints: Checkpoints | None, stage: str, result: Any, log: _RunLog) -> None:
+    if checkpoints is not None:
+        checkpoints.save(stage, _Saved(result, dict(log.timings), list(log.warnings)))
+
+
+def _stages(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+    checkpoints: Checkpoints | None,
+) -> tuple[_Motion, _Measured, ModelResult]:
+    """The frame pass, camera motion, analysis and model, each loaded from its
+    checkpoint when there is one (then the frame pass is done only if a later stage
+    still needs it), otherwise computed and saved."""
+    cp = checkpoints
+    frames_box: list[FramePassResult] = []
+
+    def frames() -> FramePassResult:
+        # Needed after the camera motion was loaded: the pass's notes are in the loaded
+        # ones already, so it notes into a log of its own.
+        own = log if motion is None else _RunLog(log.t_start)
+        if not frames_box:
+            got = _restore(cp, "frames", own)
+            if got is None:
+                got = _decode(config, dataset, executor, progress, own)
+                _keep(cp, "frames", got, own)
+            frames_box.append(got)
+        return frames_box[0]
+
+    motion: _Motion | None = None
+    motion = _restore(cp, "sfm", log)
+    if motion is None:
+        motion = _camera_motion(config, dataset, frames(), executor, progress, log)
+        _keep(cp, "sfm", motion, log)
+    found = _restore(cp, "analysis", log)
+    if found is None:
+        found = _analyse(config, dataset, frames(), motion, executor, progress, log)
+        _keep(cp, "analysis", found, log)
+    measured, feed = found
+    frames_box.clear()
+    release_freed_memory()
+    mdl = _restore(cp, "model", log)
+    if mdl is None:
+        mdl = _model(config, dataset, measured, feed, executor, progress, log)
+        _keep(cp, "model", mdl, log)
+    return motion, measured, mdl
 
 
 def _decode(
