@@ -20,6 +20,7 @@ import numpy as np
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor, ordered_map
+from omnipipe.progress import phase
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,9 @@ def fit_centreline(
             yield pts, guess, loss_scale_mm
 
     fits = ordered_map(executor or InlineExecutor(), _fit_window, windows())
+    tick = phase("centreline", len(usable))
     for i, cyl in enumerate(fits):
+        tick(i + 1)
         tangent = cyl.axis if cyl.axis @ axes[i] > 0 else -cyl.axis
         centre = cyl.point + ((centroid[i] - cyl.point) @ tangent) * tangent
         cylinders.append(cyl)

@@ -38,6 +38,7 @@ from omnipipe.analysis.defects import (
 )
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
+from omnipipe.progress import phase
 
 
 @dataclass(frozen=True)
@@ -323,7 +324,8 @@ def _measure_wall(
     # The robot's travel from the first frame to each ring's frame (path along the poses).
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     travel = np.concatenate([[0.0], np.cumsum(steps)])
-    for _ in range(2):
+    tick = phase("defects", 2)
+    for done in range(1, 3):
         stations = _station_profiles(config, frame, theta, rho, sigma, ok_station, exclude)
         ok = np.isfinite(stations.deviation)
         samples = WallSamples(
@@ -345,6 +347,7 @@ def _measure_wall(
             ring_blur_mm=inputs.ring_blur_mm,
             axial_blur_mm=inputs.axial_blur_mm,
         )
+        tick(done)
         if not search.defects:
             break
         cover = np.zeros(int(ok.sum()), bool)
@@ -355,6 +358,7 @@ def _measure_wall(
         if np.array_equal(new_exclude, exclude):
             break
         exclude = new_exclude
+    tick(2)
     return stations, search
 
 

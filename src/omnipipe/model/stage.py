@@ -54,6 +54,7 @@ from omnipipe.model.texture import (
     paint,
     texture_samples,
 )
+from omnipipe.progress import phase
 from omnipipe.rig import Rig
 
 if TYPE_CHECKING:
@@ -378,9 +379,12 @@ def _texture(
     light = np.full((h, w, 2), np.nan, LIGHT_DTYPE)  # each cell's view, for the flat field
     for top in range(0, h, SECTION_ROWS):
         end = min(top + SECTION_ROWS, h)
+        # Progress: a section's rows count half for the choice of its cells (strip by
+        # strip), half for sampling them (keyframe by keyframe).
         choice = choose_sources(
             inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
             config.laser_band_mm, executor=executor, rows=(top, end),
+            rows_done=lambda r, top=top: ticks.to(n_k * (2 * top + r) // (2 * h)),
         )
         seen[top:end] = choice.source >= 0
         light[top:end] = choice.light
@@ -393,8 +397,7 @@ def _texture(
         todo = max(1, sum(item is not None for item in work))
         for i, (k, samples) in enumerate(rings.sample(work), start=1):
             paint(image[top * w : end * w], choice, k, samples)
-            # Progress: the share of the grid's rows done, within a section by keyframes.
-            ticks.to(n_k * (top * todo + (end - top) * i) // (h * todo))
+            ticks.to(n_k * (2 * top * todo + (end - top) * (todo + i)) // (2 * h * todo))
         del work, choice
         release_freed_memory()  # the section's strips, pixels and samples
         ticks.to(n_k * end // h)
@@ -457,9 +460,16 @@ def _run(
         from omnipipe.model.flips import optimise_flips
 
         channel = inputs.camera_rig.laser.channel
+        tick = phase("mesh", len(inputs.world_from_rig))  # the stations' images, read once
+
+        def read_gray(k: int) -> np.ndarray:
+            gray = gray_without_laser(inputs.read_frame(k), channel)
+            tick(k + 1)
+            return gray
+
         faces, flip_stats = optimise_flips(
             faces, points, np.column_stack([arc, axial]), circ, camera, inputs.world_from_rig,
-            lambda k: gray_without_laser(inputs.read_frame(k), channel), passes=config.flip_passes,
+            read_gray, passes=config.flip_passes,
         )
     faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
     release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)

@@ -772,6 +772,7 @@ def choose_sources(
     executor: Executor | None = None,
     rows: tuple[int, int] | None = None,
     laser_band_px: float = LASER_BAND_PX,
+    rows_done: Callable[[int], None] | None = None,
 ) -> CellChoice:
     """The keyframe that sees each cell best (module docstring) and the cell's pixel in it.
 
@@ -801,6 +802,7 @@ def choose_sources(
             (:func:`visible_rows` on the strip's tiles; False: every cell from every
             keyframe; the same result, quadratic in the run's length).
         strip_rows: rows per strip.
+        rows_done: called with the rows of the section done after each strip (progress).
 
     Ties go to the earliest keyframe.
     """
@@ -832,8 +834,14 @@ def choose_sources(
                 mm_per_px, laser_band_mm, windowed, laser_band_px,
             )
 
-    scored = ordered_map(executor or InlineExecutor(), _strip_task, strips())
-    for r0, (best, best_px, idx, best_light) in zip(range(0, end - top, step), scored, strict=True):
+    def scored():  # each strip's scores; ``rows_done`` told once the strip is used
+        results = ordered_map(executor or InlineExecutor(), _strip_task, strips())
+        for r0, result in zip(range(0, end - top, step), results, strict=True):
+            yield r0, result
+            if rows_done is not None:
+                rows_done(min(r0 + step, end - top))
+
+    for r0, (best, best_px, idx, best_light) in scored():
         r1 = min(r0 + step, end - top)
         source[r0:r1].reshape(-1)[idx] = best
         light[r0:r1].reshape(-1, 2)[idx] = best_light

@@ -10,18 +10,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
 from omnipipe import cli_values
 from omnipipe.output import atomic_output_dir, prepare_output_dir
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
+from omnipipe.progress import HonestBar, ProgressFactory, RunEstimate
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
     from omnipipe.pipeline.checkpoint import Checkpoints
 
 # Progress bars that are drawn and not yet finished, oldest first.
-_OPEN_BARS: list[tqdm] = []
+_OPEN_BARS: list[HonestBar] = []
 
 
 def close_progress_bars() -> None:
@@ -31,26 +30,37 @@ def close_progress_bars() -> None:
         _OPEN_BARS.pop().close()
 
 
-def _progress(quiet: bool):
-    """Progress factory ``(stage, total) -> tick(done)`` drawing one tqdm bar per stage.
+def _progress(quiet: bool) -> ProgressFactory:
+    """Progress factory ``(stage, total) -> tick(done)`` drawing one bar per stage (or
+    inner step: bundle windows, centreline stations, ...), whose rate and ETA are
+    measured from its first tick on, and after it the whole run's elapsed and
+    remaining time (:mod:`omnipipe.progress`).
 
     A new stage's bar first closes any bar still open (a stage that stopped early);
     :func:`close_progress_bars` closes the rest when a run fails.
     """
+    run = RunEstimate()
 
     def factory(stage: str, total: int) -> Callable[[int], None]:
         close_progress_bars()
-        bar = tqdm(
+        run.bar_started(stage)
+        bar = HonestBar(
             total=total,
-            desc=f"{stage:>8}",
-            unit={"laser": "frame", "sfm": "frame", "model": "station"}.get(stage, "step"),
+            desc=f"{stage:>10}",
+            unit=_UNITS.get(stage, "step"),
             disable=quiet,
             leave=True,
             file=sys.stderr,
+            smoothing=0,
         )
+        bar.set_postfix_str(run.line(None), refresh=False)
         _OPEN_BARS.append(bar)
 
         def tick(done: int) -> None:
+            if bar.disable or bar not in _OPEN_BARS:  # quiet, or done already
+                return
+            bar.honest.update(done)  # (again in update: the same time, no change)
+            bar.set_postfix_str(run.line(bar.honest.remaining_s()), refresh=False)
             bar.update(done - bar.n)
             if done >= total:
                 bar.close()
@@ -60,6 +70,12 @@ def _progress(quiet: bool):
         return tick
 
     return factory
+
+
+_UNITS = {
+    "laser": "frame", "sfm": "frame", "bundle": "window", "centreline": "station",
+    "mesh": "image", "model": "station", "defects": "pass",
+}
 
 
 def _add_knobs(p: argparse.ArgumentParser) -> None:
@@ -321,8 +337,9 @@ def _demo(args: argparse.Namespace) -> int:
     # interrupted demo keeps the previous one.
     with atomic_output_dir(out, force=True) as tmp:
         dataset_dir, rec_dir = tmp / "dataset", tmp / "reconstruction"
-        bar = tqdm(
-            total=scenario.frames, desc="render", unit="frame", disable=args.quiet, file=sys.stderr
+        bar = HonestBar(
+            total=scenario.frames, desc="render", unit="frame", disable=args.quiet,
+            file=sys.stderr, smoothing=0,
         )
         simulate(scenario, dataset_dir, workers=2, progress=lambda d, t: bar.update(d - bar.n))
         bar.close()

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from omnipipe.config import dataclass_from_dict, deep_merge, load_yaml_mapping
 from omnipipe.errors import ReconstructionError
 from omnipipe.memory import release_freed_memory
+from omnipipe.progress import ProgressFactory
 
 if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from concurrent.futures import Executor
@@ -38,8 +39,6 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.report.views import DefectView
     from omnipipe.sfm import SfmConfig, SfmResult
     from omnipipe.survey import Survey
-
-ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
 
 def _no_progress(stage: str, total: int) -> Callable[[int], None]:
@@ -190,7 +189,10 @@ def run(
     # rather than in every worker (the local pool's workers are forked from this process).
     frame_pass.warm_up(config.laser, config.sfm.stations, dataset.rig)
     log.timings["startup"] = time.perf_counter() - log.t_start
-    motion, measured, mdl = _stages(config, dataset, executor, progress, log, checkpoints)
+    from omnipipe.progress import reporting
+
+    with reporting(progress):  # the stages' inner steps draw bars of their own
+        motion, measured, mdl = _stages(config, dataset, executor, progress, log, checkpoints)
     log.timings["total"] = time.perf_counter() - log.t_start
     summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
     summary["input_quality"] = input_quality.to_dict()
@@ -413,15 +415,9 @@ def _camera_motion(
 
     n = len(dataset)
     t0 = time.perf_counter()
-    sfm_tick = progress("sfm", n)
-    # After its last frame, sfm adjusts the bundle and checks the scale: a bar of its own.
-    after_frames: list[Callable[[int], None]] = []
-
-    def tick(done: int) -> None:
-        sfm_tick(done)
-        if done >= n and not after_frames:
-            after_frames.append(progress("bundle", 1))
-
+    # After its last frame, sfm adjusts the bundle window by window: a bar of its own
+    # (omnipipe.progress.phase).
+    tick = progress("sfm", n)
     motion = sfm.run(
         config.sfm,
         sfm.SfmInputs(
@@ -431,9 +427,6 @@ def _camera_motion(
         progress=tick,
         executor=executor,
     )
-    if not after_frames:
-        after_frames.append(progress("bundle", 1))
-    after_frames[0](1)
     log.timings["sfm"] = time.perf_counter() - t0
     quality.refuse_untrusted_motion(motion)
     log.warnings.extend(motion.warnings)
@@ -506,13 +499,13 @@ def _analyse(
 
     rig, stations, sfm_result = dataset.rig, motion.stations, motion.result
     t0 = time.perf_counter()
-    tick = progress("analysis", 2)
+    # The stage's bars: its centreline's stations and its defect search's passes
+    # (omnipipe.progress.phase).
     station_poses = sfm_result.world_from_rig[stations]
     station_rings = [frames.rings.rings[i] for i in stations]
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
     station_rings, outliers_removed = reject_ring_outliers(station_rings)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
-    tick(1)
     res = analysis.run(
         config.analysis,
         analysis.AnalysisInputs(
@@ -527,7 +520,6 @@ def _analyse(
         executor,
     )
     log.timings["analysis"] = time.perf_counter() - t0
-    tick(2)
     log.warnings.extend(res.warnings)
     traj_quality = quality.trajectory_quality(
         sfm_result, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
@@ -552,7 +544,15 @@ def _model(
 
     res, stations = measured.result, measured.stations
     t0 = time.perf_counter()
-    tick = progress("model", len(stations))
+    # The bar of the stations' texture opens at its first station: before it the mesh's
+    # edge flips read the stations' images (a bar ``mesh`` of their own).
+    bar: list[Callable[[int], None]] = []
+
+    def tick(done: int) -> None:
+        if not bar:
+            bar.append(progress("model", len(stations)))
+        bar[0](done)
+
     model_inputs = model.ModelInputs(
         camera_rig=dataset.rig,
         world_from_rig=measured.station_poses,

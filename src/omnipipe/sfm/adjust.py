@@ -14,6 +14,7 @@ steps 5 and 6).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
@@ -22,6 +23,7 @@ import numpy as np
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import ordered_map
 from omnipipe.geometry import invert
+from omnipipe.progress import phase
 from omnipipe.sfm.bundle import (
     BundleConfig,
     BundleProblem,
@@ -148,6 +150,8 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
     window_of = np.zeros(K, int)
     stats: list[BundleResult] = []
     windows = keyframe_windows(K, config.window_keyframes, config.window_overlap)
+    # Progress: three steps a window (adjust, far laser anchors, adjust again).
+    tick = phase("bundle", 3 * len(windows))
     if len(windows) > 1 and config.solver == "auto":
         config = replace(config, solver="schur")  # see BundleConfig.solver
     for w, (s, e, fixed) in enumerate(windows):
@@ -158,7 +162,10 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
             carry = adjusted[j] @ invert(world_from_kf[j])
             init[fixed:] = np.einsum("ij,njk->nik", carry, world_from_kf[s + fixed : e])
         window_of[s + (fixed if w else 0) : e] = w
-        ba, problem = _adjust_window(ctx, config, init, obs, (s, e, fixed))
+        ba, problem = _adjust_window(
+            ctx, config, init, obs, (s, e, fixed), lambda k, w=w: tick(3 * w + k)
+        )
+        tick(3 * w + 3)
         if ba is None:
             where = "" if len(windows) == 1 else f" of keyframes {s}-{e - 1}"
             ctx.warnings.append(
@@ -170,6 +177,7 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
         adjusted[s:e] = ba.world_from_rig
         stats.append(ba)
         tracks.append(WindowTracks(s, problem.feature_point, ba.points_in_world))
+    tick(3 * len(windows))
     return Adjusted(adjusted, tracks, window_of, stats)
 
 
@@ -179,10 +187,11 @@ def _adjust_window(
     init: np.ndarray,
     obs: _Observations,
     window: tuple[int, int, int],
+    steps_done: Callable[[int], None],
 ) -> tuple[BundleResult | None, BundleProblem]:
     """One window ``(start, end, fixed)`` of keyframes adjusted from ``init`` ((W, 4, 4)
     mm), its first ``fixed`` held; (None, the problem) when it has too few tracks or no
-    anchors."""
+    anchors. ``steps_done(k)`` after its first adjustment (1) and its far anchors (2)."""
     s, e, fixed = window
     features = obs.kf.features[s:e]
     problem = build_problem(
@@ -202,7 +211,9 @@ def _adjust_window(
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
     ba = bundle_adjust(ctx.camera, problem, config)
+    steps_done(1)
     extra = _far_anchors(ctx, ba.world_from_rig, obs.kf, s, fixed) if obs.far else []
+    steps_done(2)
     if extra:
         problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
         _append_anchors(problem, extra)

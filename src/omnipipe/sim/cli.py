@@ -6,11 +6,10 @@ import argparse
 import time
 from dataclasses import replace
 
-from tqdm import tqdm
-
 from omnipipe import cli_values
 from omnipipe.executor import check_workers
 from omnipipe.output import prepare_output_dir
+from omnipipe.progress import HonestBar
 from omnipipe.sim.scenarios import SCENARIOS, Scenario, make_scenario
 from omnipipe.sim.writer import run
 
@@ -99,7 +98,10 @@ def _main(args: argparse.Namespace) -> int:
     workers = check_workers(args.workers)  # None: every core
     prepare_output_dir(args.out, force=args.force)  # refuse before rendering, not after
     start = time.perf_counter()
-    bar = tqdm(total=scenario.frames, desc="render", unit="frame", disable=args.quiet)
+    # Rate and ETA from the first frame on: the first carries the workers' start-up.
+    bar = HonestBar(
+        total=scenario.frames, desc="render", unit="frame", disable=args.quiet, smoothing=0
+    )
 
     def progress(done: int, total: int) -> None:
         bar.update(done - bar.n)
