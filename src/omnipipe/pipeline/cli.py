@@ -73,7 +73,7 @@ def _progress(quiet: bool) -> ProgressFactory:
 
 
 _UNITS = {
-    "laser": "frame", "sfm": "frame", "bundle": "window", "centreline": "station",
+    "laser": "frame", "sfm": "frame", "bundle": "step", "centreline": "station",
     "mesh": "image", "model": "station", "defects": "pass",
 }
 
@@ -225,8 +225,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     for problem in checkpoints.problems:
         print(f"note: {problem}", file=sys.stderr)
     remove_checkpoints(out)  # OUT is in place: nothing left to resume
-    *warnings, last = closing_line(rec.summary, out).split("
-")
+    *warnings, last = closing_line(rec.summary, out).split("\n")
     for line in warnings:
         print(line, file=sys.stderr)
     print(last)
