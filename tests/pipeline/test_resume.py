@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from omnipipe.cli import main
+from omnipipe.executor import FrameSource
 from omnipipe.output import MANIFEST_NAME
 from omnipipe.pipeline import checkpoint
 from omnipipe.sim import make_scenario
@@ -102,6 +103,37 @@ def test_resume_after_a_kill_at_each_stage_gives_the_same_output(
     assert computed == list(checkpoint.STAGES[checkpoint.STAGES.index(stage) + 1 :])
     assert _contents(out) == _contents(uninterrupted)
     assert _checkpoint_dirs(out) == []  # removed once OUT is in place
+
+
+def test_resume_inside_the_frame_pass_decodes_only_the_frames_after_its_last_part(
+    tiny_dataset: Path, uninterrupted: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from omnipipe.pipeline import frame_pass
+
+    monkeypatch.setattr(frame_pass, "PART_FRAMES", 2)
+    out = tmp_path / "out"
+
+    def kill(name: str) -> None:
+        if name == "frames-part-00001":  # frames 0-3 saved in two parts
+            raise _Killed()
+
+    monkeypatch.setattr(checkpoint, "_saved_hook", kill)
+    with pytest.raises(_Killed):
+        _reconstruct(tiny_dataset, out)
+    decoded: list[int] = []
+    task_call = frame_pass._FrameTask.__call__
+
+    def spy(self: frame_pass._FrameTask, source: FrameSource) -> list:
+        decoded.extend(source.frames)
+        return task_call(self, source)
+
+    monkeypatch.setattr(frame_pass._FrameTask, "__call__", spy)
+    computed: list[str] = []
+    monkeypatch.setattr(checkpoint, "_saved_hook", computed.append)
+    assert _reconstruct(tiny_dataset, out) == 0
+    assert decoded == [4, 5]
+    assert computed == list(checkpoint.STAGES)
+    assert _contents(out) == _contents(uninterrupted)
 
 
 def test_checkpoint_round_trip_is_exact(tiny_dataset: Path, tmp_path: Path) -> None:

@@ -258,6 +258,8 @@ class Checkpoints:
         folder: ``.OUT.resume-KEY`` beside OUT.
         key: the run's key (:func:`run_key`).
         saved: the stages saved so far (read from the marker when the folder exists).
+        parts: per stage, how many parts of it are saved (a stage saved in parts as it
+            goes, e.g. the frame pass; its parts are deleted once it is saved whole).
         problems: why a stage saved earlier could not be loaded or a stage not saved
             (one line each; the run goes on without it).
     """
@@ -265,6 +267,7 @@ class Checkpoints:
     folder: Path
     key: str
     saved: list[str] = field(default_factory=list)
+    parts: dict[str, int] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
 
     @staticmethod
@@ -275,6 +278,9 @@ class Checkpoints:
         marker = _read_marker(cp.folder)
         if marker is not None and marker.get("key") == key:
             cp.saved = [s for s in marker.get("stages", []) if s in STAGES]
+            parts = marker.get("parts", {})
+            if isinstance(parts, dict):
+                cp.parts = {s: int(k) for s, k in parts.items() if s in STAGES and isinstance(k, int)}
         return cp
 
     def has(self, stage: str) -> bool:
@@ -286,40 +292,74 @@ class Checkpoints:
         if stage not in self.saved:
             return None
         try:
-            node = json.loads((self.folder / f"{stage}.json").read_text(encoding="utf-8"))
-            with np.load(self.folder / f"{stage}.npz", allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-            return decode(node, arrays)
-        except (OSError, ValueError, KeyError, TypeError, AttributeError, ImportError) as exc:
+            return self._read(stage)
+        except _READ_ERRORS as exc:
             self.problems.append(f"checkpoint of {stage} not usable ({exc}); computed again")
             self.saved = self.saved[: self.saved.index(stage)]
             return None
 
+    def load_parts(self, stage: str) -> list[Any]:
+        """The parts saved of ``stage``, in order (up to the first unreadable one)."""
+        out: list[Any] = []
+        for k in range(self.parts.get(stage, 0)):
+            try:
+                out.append(self._read(_part_name(stage, k)))
+            except _READ_ERRORS as exc:
+                self.problems.append(f"checkpoint of {stage} part {k} not usable ({exc})")
+                self.parts[stage] = k
+                break
+        return out
+
     def save(self, stage: str, value: Any) -> None:
-        """Save ``value`` as the result of ``stage`` (a failure to write is noted in
-        ``problems``; the run goes on)."""
+        """Save ``value`` as the result of ``stage`` (its parts are deleted then); a
+        failure to write is noted in ``problems``, and the run goes on."""
+        if self._write(stage, value, lambda: self.saved.append(stage)):
+            old = self.parts.pop(stage, 0)
+            try:
+                self._write_marker()
+                for k in range(old):
+                    for ext in ("json", "npz"):
+                        (self.folder / f"{_part_name(stage, k)}.{ext}").unlink(missing_ok=True)
+            except OSError:
+                pass
+            _notify(stage)
+
+    def save_part(self, stage: str, value: Any) -> None:
+        """Save ``value`` as the next part of ``stage`` (see :meth:`save`)."""
+        k = self.parts.get(stage, 0)
+        if self._write(_part_name(stage, k), value, lambda: self.parts.__setitem__(stage, k + 1)):
+            _notify(_part_name(stage, k))
+
+    def _read(self, name: str) -> Any:
+        node = json.loads((self.folder / f"{name}.json").read_text(encoding="utf-8"))
+        with np.load(self.folder / f"{name}.npz", allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        return decode(node, arrays)
+
+    def _write(self, name: str, value: Any, record: Callable[[], None]) -> bool:
+        """Write ``name``'s files, then ``record()`` it and rewrite the marker; False
+        (noted in ``problems``) when the file system refused."""
         enc = _Encoder()
         node = enc(value)  # CheckpointFormatError: a type the codec does not know (a bug)
         try:
             self.folder.mkdir(exist_ok=True)
             if _read_marker(self.folder) is None:
                 self._write_marker()
-            _write_atomic(self.folder / f"{stage}.npz", lambda fh: np.savez(fh, **enc.arrays))
+            _write_atomic(self.folder / f"{name}.npz", lambda fh: np.savez(fh, **enc.arrays))
             text = json.dumps(node, allow_nan=True)
-            _write_atomic(self.folder / f"{stage}.json", lambda fh: fh.write(text.encode()))
-            if stage not in self.saved:
-                self.saved.append(stage)
+            _write_atomic(self.folder / f"{name}.json", lambda fh: fh.write(text.encode()))
+            record()
             self._write_marker()
         except OSError as exc:
-            self.problems.append(f"checkpoint of {stage} not saved ({exc.strerror or exc})")
-            return
-        if _saved_hook is not None:
-            _saved_hook(stage)
+            self.problems.append(f"checkpoint of {name} not saved ({exc.strerror or exc})")
+            return False
+        return True
 
     def _write_marker(self) -> None:
-        files = [MARKER] + [f"{s}.{ext}" for s in self.saved for ext in ("json", "npz")]
+        names = list(self.saved) + [_part_name(s, k) for s, n in self.parts.items() for k in range(n)]
+        files = [MARKER] + [f"{s}.{ext}" for s in names for ext in ("json", "npz")]
         data = {"tool": "omnipipe", "kind": "checkpoint", "format": FORMAT, "key": self.key,
-                "stages": self.saved, "files": files}
+                "stages": self.saved, "parts": self.parts, "files": files}
         text = json.dumps(data, indent=1)
         _write_atomic(self.folder / MARKER, lambda fh: fh.write(text.encode()))
 
@@ -327,6 +367,18 @@ class Checkpoints:
         """Delete the checkpoint folder: the files its marker lists, then the folder if
         nothing else is in it (files omnipipe did not write are kept)."""
         remove_checkpoint_dir(self.folder)
+
+
+_READ_ERRORS = (OSError, ValueError, KeyError, TypeError, AttributeError, ImportError)
+
+
+def _part_name(stage: str, k: int) -> str:
+    return f"{stage}-part-{k:05d}"
+
+
+def _notify(name: str) -> None:
+    if _saved_hook is not None:
+        _saved_hook(name)
 
 
 def _read_marker(folder: Path) -> dict[str, Any] | None:
@@ -370,6 +422,6 @@ def _iter_tmp(folder: Path) -> Iterator[Path]:
     for name in names:
         stem = name[1:].rsplit(".", 2)
         if name.startswith(".") and name.endswith(".tmp") and len(stem) == 3 and (
-            stem[0] in {f"{s}.{e}" for s in STAGES for e in ("json", "npz")} | {MARKER}
+            stem[0] == MARKER or stem[0].split("-part-")[0].rsplit(".", 1)[0] in STAGES
         ):
             yield folder / name

@@ -23,7 +23,7 @@ frame by frame) for every frame where the rig moved, whatever the chunks.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -140,12 +140,41 @@ class _FrameTask:
         return out
 
 
+@dataclass
+class FramePassPart:
+    """What the pass found in consecutive frames, and where its stationary test stood
+    after them: a resumed run continues from the parts saved (:func:`run`).
+
+    Attributes:
+        first: the first frame's index.
+        rings: each frame's ring (None: a stationary frame, or one whose ring the
+            pass fetches at its end).
+        moved, motion_ratio: (M,) as in :class:`FramePassResult`.
+        station: (M,) each frame's station (its first frame's index).
+        reference: the stationary test's reference after the last frame
+            (:attr:`~omnipipe.sfm.stations.StationTracker.reference`).
+    """
+
+    first: int
+    rings: list[LaserRing | None]
+    moved: np.ndarray
+    motion_ratio: np.ndarray
+    station: np.ndarray
+    reference: np.ndarray | None
+
+
+# Frames between two parts handed to ``save_part`` (a few seconds of the pass).
+PART_FRAMES = 256
+
+
 def run(
     laser: LaserConfig,
     stations: StationConfig,
     dataset: Dataset,
     executor: Executor,
     progress: Callable[[int], None] | None = None,
+    parts: Sequence[FramePassPart] = (),
+    save_part: Callable[[FramePassPart], None] | None = None,
 ) -> FramePassResult:
     """Decode every frame of ``dataset`` once: its ring and whether the rig moved.
 
@@ -153,6 +182,9 @@ def run(
         laser, stations: the light-section and stationary-test settings.
         executor: from :func:`omnipipe.executor.open_executor`.
         progress: ``progress(frames_done)`` as frames arrive.
+        parts: the consecutive parts an earlier run of the same pass saved (from
+            frame 0): the pass goes on after them, with the same result.
+        save_part: called with each :data:`PART_FRAMES` frames' part as it is done.
 
     Raises:
         DatasetError: an unreadable frame (naming its file).
@@ -165,10 +197,18 @@ def run(
     moved = np.zeros(n, bool)
     ratio = np.full(n, math.nan)
     station = np.zeros(n, int)  # each frame's station: its first frame
-    for i, (ring, signature) in iter_frames(executor, _FrameTask(laser, stations), dataset):
+    start = _restore(parts, tracker, rings, moved, ratio, station)
+    if progress is not None and start:
+        progress(start)
+    task = _FrameTask(laser, stations)
+    for i, (ring, signature) in iter_frames(executor, task, dataset, frames=range(start, n)):
         moved[i], ratio[i] = tracker.update_signature(signature)
         station[i] = i if moved[i] else station[i - 1]
         rings.append(ring if moved[i] else None)
+        if save_part is not None and (i + 1 - start) % PART_FRAMES == 0 and i + 1 < n:
+            a = i + 1 - PART_FRAMES
+            save_part(FramePassPart(a, rings[a:], moved[a : i + 1], ratio[a : i + 1],
+                                    station[a : i + 1], tracker.reference))
         if progress is not None:
             progress(i + 1)
     # A frame where the rig moved whose chunk took it for stationary (a slow creep that
@@ -183,6 +223,31 @@ def run(
     warnings = [f"frame {i}: {w}" for i, ring in enumerate(done) for w in ring.warnings]
     final = [ring if moved[i] else _emptied(done[station[i]].scanned) for i, ring in enumerate(done)]
     return FramePassResult(LaserResult(final, warnings), moved, ratio, samples)
+
+
+def _restore(
+    parts: Sequence[FramePassPart],
+    tracker: StationTracker,
+    rings: list[LaserRing | None],
+    moved: np.ndarray,
+    ratio: np.ndarray,
+    station: np.ndarray,
+) -> int:
+    """Fill the pass's state from ``parts``, as far as they follow each other from
+    frame 0; returns the first frame still to decode."""
+    start = 0
+    for part in parts:
+        end = start + len(part.moved)
+        if part.first != start or end > len(moved) or not (
+            len(part.rings) == len(part.motion_ratio) == len(part.station) == end - start
+        ):
+            break
+        rings.extend(part.rings)
+        moved[start:end], ratio[start:end] = part.moved, part.motion_ratio
+        station[start:end] = part.station
+        tracker.reference = part.reference
+        start = end
+    return start
 
 
 _EMPTY = LaserRing(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0))

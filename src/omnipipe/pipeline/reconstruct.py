@@ -14,6 +14,7 @@ import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -319,7 +320,7 @@ def _stages(
         if not frames_box:
             got = _restore(cp, "frames", own)
             if got is None:
-                got = _decode(config, dataset, executor, progress, own)
+                got = _decode(config, dataset, executor, progress, own, cp)
                 _keep(cp, "frames", got, own)
             frames_box.append(got)
         return frames_box[0]
@@ -349,8 +350,11 @@ def _decode(
     executor: Executor,
     progress: ProgressFactory,
     log: _RunLog,
+    checkpoints: Checkpoints | None = None,
 ) -> FramePassResult:
     """The decoding pass (every frame's ring and stationary test), refused without a ring.
+    With ``checkpoints``, it goes on after the parts of it an earlier run saved, and
+    saves its own parts as it goes.
 
     Raises:
         ReconstructionError: no laser ring in any frame.
@@ -363,7 +367,11 @@ def _decode(
     t0 = time.perf_counter()
     tick = progress("laser", n)
     # Each frame decoded once, frame-parallel: its ring and the stationary test's input.
-    frames = frame_pass.run(config.laser, config.sfm.stations, dataset, executor, progress=tick)
+    parts = [] if checkpoints is None else checkpoints.load_parts("frames")
+    frames = frame_pass.run(
+        config.laser, config.sfm.stations, dataset, executor, progress=tick, parts=parts,
+        save_part=None if checkpoints is None else partial(checkpoints.save_part, "frames"),
+    )
     log.timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
     seen = int(np.sum(frames.ring_samples >= 20))

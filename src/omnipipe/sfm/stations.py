@@ -301,6 +301,16 @@ class StationTracker:
             self._inner = noise_mask(self.mask, self.config.noise_pixels)
         return self.update_signature(station_signature(gray, self._inner, self.config))
 
+    @property
+    def reference(self) -> np.ndarray | None:
+        """The current station's first frame's box-averaged image (None before a frame):
+        the tracker's whole state, saved and restored by a resumed run."""
+        return self._prev
+
+    @reference.setter
+    def reference(self, small: np.ndarray | None) -> None:
+        self._prev = small
+
     def update_signature(self, signature: StationSignature) -> tuple[bool, float]:
         """:meth:`update` from the frame's :func:`station_signature` (computed anywhere,
         e.g. in the worker that decoded the frame)."""
