@@ -80,7 +80,7 @@ def test_resume_after_a_kill_at_each_stage_gives_the_same_output(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    out = tmp_path / "out"
+    out = tmp_path / "runs" / "out"  # its folder made by the run (the checkpoints' first)
     saved: list[str] = []
 
     def kill(name: str) -> None:

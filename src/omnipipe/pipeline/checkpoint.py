@@ -342,7 +342,7 @@ class Checkpoints:
         enc = _Encoder()
         node = enc(value)  # CheckpointFormatError: a type the codec does not know (a bug)
         try:
-            self.folder.mkdir(exist_ok=True)
+            self.folder.mkdir(parents=True, exist_ok=True)  # as OUT's parent at the end
             if _read_marker(self.folder) is None:
                 self._write_marker()
             _write_atomic(self.folder / f"{name}.npz", lambda fh: np.savez(fh, **enc.arrays))
