@@ -195,7 +195,7 @@ def test_a_changed_setting_or_input_never_reuses_a_checkpoint(
     assert computed == list(checkpoint.STAGES)
 
 
-def test_checkpoint_folder_keeps_files_omnipipe_did_not_write(
+def test_fresh_computes_again_and_keeps_files_omnipipe_did_not_write(
     tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     out = tmp_path / "out"
@@ -208,8 +208,10 @@ def test_checkpoint_folder_keeps_files_omnipipe_did_not_write(
         _reconstruct(tiny_dataset, out)
     (folder,) = _checkpoint_dirs(out)
     (folder / "notes.txt").write_text("mine")
-    monkeypatch.setattr(checkpoint, "_saved_hook", None)
-    assert _reconstruct(tiny_dataset, out) == 0
+    computed: list[str] = []
+    monkeypatch.setattr(checkpoint, "_saved_hook", computed.append)
+    assert _reconstruct(tiny_dataset, out, "--fresh") == 0
+    assert computed == list(checkpoint.STAGES)  # the saved frame pass not used
     assert sorted(os.listdir(folder)) == ["notes.txt"]
 
 

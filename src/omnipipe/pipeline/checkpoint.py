@@ -92,6 +92,18 @@ def checkpoint_dir(out: str | Path, key: str) -> Path:
     return target.parent / f".{target.name}.resume-{key[:16]}"
 
 
+def checkpoint_dirs(out: str | Path) -> list[Path]:
+    """Every checkpoint folder of runs into ``out`` (any key) that carries omnipipe's
+    marker."""
+    target = Path(os.path.abspath(Path(out).expanduser()))
+    prefix = f".{target.name}.resume-"
+    try:
+        names = sorted(n for n in os.listdir(target.parent) if n.startswith(prefix))
+    except OSError:
+        return []
+    return [target.parent / n for n in names if _read_marker(target.parent / n) is not None]
+
+
 # --- encoding ------------------------------------------------------------------------
 
 
@@ -283,9 +295,6 @@ class Checkpoints:
                 cp.parts = {s: int(k) for s, k in parts.items() if s in STAGES and isinstance(k, int)}
         return cp
 
-    def has(self, stage: str) -> bool:
-        return stage in self.saved
-
     def load(self, stage: str) -> Any | None:
         """The result saved for ``stage``, or None (not saved, or unreadable: noted in
         ``problems`` and forgotten)."""
@@ -342,6 +351,8 @@ class Checkpoints:
         enc = _Encoder()
         node = enc(value)  # CheckpointFormatError: a type the codec does not know (a bug)
         try:
+            if self.folder.is_symlink():  # not a folder omnipipe made
+                raise OSError(f"{self.folder} is a symbolic link")
             self.folder.mkdir(parents=True, exist_ok=True)  # as OUT's parent at the end
             if _read_marker(self.folder) is None:
                 self._write_marker()
@@ -382,6 +393,8 @@ def _notify(name: str) -> None:
 
 
 def _read_marker(folder: Path) -> dict[str, Any] | None:
+    if folder.is_symlink():
+        return None
     try:
         data = json.loads((folder / MARKER).read_text(encoding="utf-8"))
     except (OSError, ValueError):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from collections.abc import Callable
@@ -258,16 +257,10 @@ def open_checkpoints(
 
 def remove_checkpoints(out: Path) -> None:
     """Delete every checkpoint folder of runs into ``out`` (only what omnipipe wrote)."""
-    from omnipipe.pipeline.checkpoint import checkpoint_dir, remove_checkpoint_dir
+    from omnipipe.pipeline.checkpoint import checkpoint_dirs, remove_checkpoint_dir
 
-    mine = checkpoint_dir(out, "0" * 16)
-    prefix = mine.name[: -16]
-    try:
-        names = [n for n in os.listdir(mine.parent) if n.startswith(prefix)]
-    except OSError:
-        return
-    for name in names:
-        remove_checkpoint_dir(mine.parent / name)
+    for folder in checkpoint_dirs(out):
+        remove_checkpoint_dir(folder)
 
 
 def closing_line(s: dict, out: Path) -> str:
