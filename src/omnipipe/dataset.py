@@ -40,8 +40,9 @@ class Dataset:
         warnings: problems found while opening that do not stop a run (e.g. a video
             with fewer decodable frames than its container announces); the pipeline
             copies them into report.json ``warnings``.
-        source: for a ROS bag / MCAP file, its :class:`omnipipe.inputs.rosbag.BagImages`
-            (``read(index)`` decodes a frame); None otherwise.
+        source: for a ROS bag / MCAP file, its :class:`omnipipe.inputs.rosbag.BagImages`;
+            for a video, its :class:`omnipipe.inputs.video.VideoFrames` (``read(index)``
+            decodes a frame); None otherwise.
         odometry, imu: the robot's optional sensors (odometry.txt, imu.txt or the bag's
             topics; :mod:`omnipipe.inputs.sensors`), None when absent.
     """
@@ -66,8 +67,6 @@ class Dataset:
 
     def read_frame(self, index: int) -> np.ndarray:
         """Frame ``index`` as an RGB (H, W, 3) or grey (H, W) array (uint8 or uint16)."""
-        if self.video is not None:
-            return _video_frames(self.video, self.rig)[index]
         if self.source is not None:
             img = self.source.read(index)
             cam = self.rig.camera
@@ -151,75 +150,34 @@ def write_image(path: Path, image: np.ndarray) -> None:
         raise DatasetError(f"{path}: could not write image")
 
 
-_VIDEO_CACHE: dict[tuple[str, float], list[np.ndarray]] = {}
-
-
-def _decode_video(path: Path) -> tuple[list[np.ndarray], float, int, list[float]]:
-    """Every decodable frame (RGB), the frame rate (0 if unknown), the frame count
-    the container announces (0 if unknown) and each frame's container timestamp
-    (CAP_PROP_POS_MSEC, seconds; NaN if unknown). Decoding stops at the first frame that
-    cannot be read; the decoder's own messages are silenced."""
-    with quiet_native_stderr():
-        cap = cv2.VideoCapture(str(path))
-        try:
-            if not cap.isOpened():
-                raise DatasetError(f"{path}: not a readable video (not a video, or damaged)")
-            fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-            announced = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)
-            frames, times = [], []
-            while True:
-                ok, frame = cap.read()
-                if not ok or frame is None:
-                    break
-                frames.append(np.ascontiguousarray(frame[:, :, ::-1]))
-                msec = cap.get(cv2.CAP_PROP_POS_MSEC)
-                times.append(float(msec) / 1000.0 if msec is not None else math.nan)
-        finally:
-            cap.release()
-    if not frames:
-        raise DatasetError(f"{path}: the video holds no decodable frame")
-    if not math.isfinite(fps) or fps < 0:
-        fps = 0.0
-    count = int(announced) if math.isfinite(announced) and 0 < announced < 1e9 else 0
-    return frames, fps, count, times
-
-
-def _video_frames(path: Path, rig: Rig) -> list[np.ndarray]:
-    key = (str(path), path.stat().st_mtime)
-    if key not in _VIDEO_CACHE:
-        frames, _, _, _ = _decode_video(path)
-        h, w = frames[0].shape[:2]
-        if (h, w) != (rig.camera.height, rig.camera.width):
-            raise DatasetError(
-                f"{path}: video is {w}x{h} but rig.yaml says {rig.camera.width}x{rig.camera.height}"
-            )
-        _VIDEO_CACHE.clear()
-        _VIDEO_CACHE[key] = frames
-    return _VIDEO_CACHE[key]
-
-
 def open_video(path: Path) -> Dataset:
-    """Open a video file as a dataset; its rig.yaml lies in the same directory."""
+    """Open a video file as a dataset; its rig.yaml lies in the same directory.
+
+    The video is decoded once here (every frame's time, the count of decodable frames)
+    and then as a stream when frames are read (:class:`omnipipe.inputs.video.VideoFrames`,
+    the dataset's ``source``): no decoded frame is held.
+    """
+    from omnipipe.inputs.video import VideoFrames, scan_video
+
     rig = load_rig(path.parent / "rig.yaml")
-    frames, fps, announced, times = _decode_video(path)
-    h, w = frames[0].shape[:2]
-    if (h, w) != (rig.camera.height, rig.camera.width):
+    scan = scan_video(path)
+    if (scan.height, scan.width) != (rig.camera.height, rig.camera.width):
         raise DatasetError(
-            f"{path}: video is {w}x{h} but rig.yaml says {rig.camera.width}x{rig.camera.height}"
+            f"{path}: video is {scan.width}x{scan.height} but rig.yaml says "
+            f"{rig.camera.width}x{rig.camera.height}"
         )
-    _VIDEO_CACHE.clear()
-    _VIDEO_CACHE[(str(path), path.stat().st_mtime)] = frames
-    names = tuple(Path(f"{path.name}#{i:06d}") for i in range(len(frames)))
+    n = scan.frames
+    names = tuple(Path(f"{path.name}#{i:06d}") for i in range(n))
     # The container's presentation times when they are usable (frame-accurate, also for
     # variable frame rates); else frame index / frame rate.
-    stamps = np.array(times, dtype=float)
+    stamps = scan.times_s
     if len(stamps) < 2 or not np.isfinite(stamps).all() or not (np.diff(stamps) > 0).all():
-        stamps = np.arange(len(frames)) / fps if fps > 0 else np.arange(len(frames), dtype=float)
+        stamps = np.arange(n) / scan.fps if scan.fps > 0 else np.arange(n, dtype=float)
     warnings: tuple[str, ...] = ()
-    if announced > len(frames):
+    if scan.announced > n:
         warnings = (
-            f"{path.name}: the container announces {announced} frames but only the first "
-            f"{len(frames)} could be decoded (truncated or damaged video); using those",
+            f"{path.name}: the container announces {scan.announced} frames but only the first "
+            f"{n} could be decoded (truncated or damaged video); using those",
         )
     return Dataset(
         root=path.parent,
@@ -228,6 +186,7 @@ def open_video(path: Path) -> Dataset:
         timestamps=stamps,
         video=path,
         warnings=warnings,
+        source=VideoFrames(path, n, scan.times_s),
     )
 
 
