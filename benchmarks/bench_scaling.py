@@ -83,7 +83,12 @@ def _video(png: Path) -> tuple[Path, Path]:
         names = sorted((png / "frames").glob("*.png"))
         h, w = cv2.imread(str(names[0])).shape[:2]
         part = folder / "run.part.avi"
-        writer = cv2.VideoWriter(str(part), cv2.VideoWriter_fourcc(*"MJPG"), 8.0, (w, h))
+        # OpenCV's own MJPG writer at quality 100 (the default 95 leaves block artefacts
+        # that make every frame a station: 4x the points, another run's work).
+        writer = cv2.VideoWriter(
+            str(part), cv2.CAP_OPENCV_MJPEG, cv2.VideoWriter_fourcc(*"MJPG"), 8.0, (w, h),
+            [cv2.VIDEOWRITER_PROP_QUALITY, 100],
+        )
         for name in names:
             writer.write(cv2.imread(str(name)))
         writer.release()
