@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from omnipipe.errors import DatasetError
+from omnipipe.native import quiet_native_stderr
 
 FORWARD_DECODE = 48
 """Frames ahead of the decoder reached by decoding (``grab``) rather than by a seek."""
@@ -58,7 +59,6 @@ def _capture(path: Path) -> Any:
     """
     import cv2
 
-    from omnipipe.dataset import quiet_native_stderr
 
     with quiet_native_stderr():
         cap = cv2.VideoCapture(str(path))
@@ -77,7 +77,6 @@ def scan_video(path: Path) -> VideoScan:
     """
     import cv2
 
-    from omnipipe.dataset import quiet_native_stderr
 
     cap = _capture(path)
     times: list[float] = []
@@ -160,7 +159,6 @@ class VideoFrames:
     def _decode(self, index: int) -> np.ndarray:
         import cv2
 
-        from omnipipe.dataset import quiet_native_stderr
 
         with quiet_native_stderr():
             if self._cap is None or not 0 <= index - self._next <= FORWARD_DECODE:
