@@ -13,7 +13,7 @@ from omnipipe.laser import run as laser_run
 from omnipipe.sfm import SfmConfig, SfmInputs
 from omnipipe.sfm import run as sfm_run
 from omnipipe.sfm.scale_check import StepCheck
-from omnipipe.sfm.step_scale import bridge_lost_steps
+from omnipipe.sfm.step_scale import bridge_lost_steps, bridge_steps
 from omnipipe.sfm.tracking import TrackConfig
 from omnipipe.sfm.types import StepEvidence
 from omnipipe.sim import make_scenario
@@ -68,8 +68,9 @@ def test_combine_scales_weights_and_widens_on_disagreement() -> None:
 
 
 def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
-    """A lost step (no relative motion found) is chained with the median trusted step,
-    not as zero length: the positions after it are not shortened by a whole step."""
+    """A lost step (no relative motion found) is chained with the gait's estimate (the
+    nearest trusted steps), not as zero length: the positions after it are not
+    shortened by a whole step; the estimate carries a sigma covering the true 10 mm."""
     rng = np.random.default_rng(3)
     steps, evidence, checks = [], [], []
     for k in range(7):
@@ -82,8 +83,13 @@ def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
         checks.append(
             StepCheck(k, k + 1, 10.0, 0.0, 10.0, 50, math.nan if lost else 10.0, "none" if lost else "high")
         )
-    bridge_lost_steps(steps, evidence, checks)
+    lengths = np.array([np.nan if k in (3, 4) else np.linalg.norm(t[:3, 3]) for k, t in enumerate(steps)])
+    lengths, checks, _ = bridge_steps(lengths, checks, None)
+    bridge_lost_steps(steps, evidence, checks, lengths)
     for k in (3, 4):
+        c = checks[k]
+        assert c.bridged_from == "gait" and not c.reliable
+        assert 0 < c.bridged_sigma_mm < 3.0 and abs(c.bridged_mm - 10.0) <= 2 * c.bridged_sigma_mm
         assert np.allclose(steps[k][:3, :3], np.eye(3))
         assert abs(steps[k][2, 3] + 10.0) < 0.3 and np.hypot(*steps[k][:2, 3]) < 0.2
     assert steps[0][2, 3] != steps[3][2, 3]  # trusted steps untouched

@@ -292,10 +292,7 @@ def _camera_motion(
 
     motion = sfm.run(
         config.sfm,
-        sfm.SfmInputs(
-            rig=dataset.rig, read_frame=dataset.read_frame, n_frames=n, rings=frames.rings,
-            moved=frames.moved, dataset=dataset,
-        ),
+        sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved),
         progress=tick,
         executor=executor,
     )
