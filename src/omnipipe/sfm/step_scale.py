@@ -283,6 +283,11 @@ def chain_steps(
         float,
     )
     checks = [d.check for d in decided]
+    if odometry is not None:
+        trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
+        odometry = calibrate_odometry(odometry, lengths, trusted)
+    resolve_by_prior(ctx, kf, decided, lengths, odometry, scale)
+    checks = [d.check for d in decided]
     lengths, checks, odometry = bridge_steps(lengths, checks, odometry)
     scales: list[float] = []
     steps_b_from_a: list[np.ndarray] = []
@@ -316,6 +321,71 @@ def chain_steps(
     return ChainedSteps(np.array(world_from_kf), scales, pair_matches, anchors, checks)
 
 
+# A flagged step's vision candidate agreeing with the prior (odometry or gait) within
+# this many of the prior's sigmas, every other candidate further than REJECT_SIGMAS,
+# is resolved: two independent sources agree, the alternatives are excluded.
+ACCEPT_SIGMAS = 2.0
+REJECT_SIGMAS = 4.0
+
+
+def resolve_by_prior(
+    ctx: SfmContext,
+    kf: Keyframes,
+    decided: list[DecidedStep],
+    lengths: np.ndarray,
+    odometry: OdometrySteps | None,
+    scale: RunScale,
+) -> None:
+    """Flagged steps whose vision candidates (every laser consensus peak, the feature
+    depth length) include exactly one the prior (calibrated odometry, else the gait of
+    the nearest trusted steps: :func:`omnipipe.sfm.robot_sensors.bridge_estimate`)
+    confirms and excludes the others, in place: ``decided[k]`` resolved to it (laser
+    re-matched around it, wrong-course matches dropped), ``lengths[k]`` set; a
+    warning says so. The prior rests on the originally trusted steps only."""
+    gain = math.exp(scale.offset_log)
+    unit = gain if scale.wall_anchored else 1.0  # chain length = laser length / unit
+    trusted = np.array([d.check.reliable for d in decided], bool) & np.isfinite(lengths)
+    for k, (step, ev) in enumerate(zip(decided, kf.evidence, strict=True)):
+        c = step.check
+        if c.reliable or ev.status != "ok":
+            continue
+        prior, sigma, source = bridge_estimate(k, lengths, trusted, odometry)
+        cand = [(p / unit, "laser peak") for p in c.laser_peaks_mm if p > 0]
+        if math.isfinite(c.feature_scale_mm):
+            cand.append((c.feature_scale_mm * gain / unit, "feature depth"))
+        if not source or not cand:
+            continue
+        z = np.array([abs(v - prior) / sigma for v, _ in cand])
+        near = np.flatnonzero(z <= ACCEPT_SIGMAS)
+        if len(near) == 0 or np.any((z > ACCEPT_SIGMAS) & (z <= REJECT_SIGMAS)):
+            continue
+        values = np.array([cand[i][0] for i in near])
+        if values.max() > values.min() * math.exp(ctx.config.scale_check.agree_log):
+            continue  # two different confirmed courses: still ambiguous
+        chosen = float(np.median(values))
+        lm = _laser_around(ctx, kf, k, chosen * unit)
+        if math.isfinite(lm.scale):
+            chosen = lm.scale / unit
+        inl = ev.inliers
+        if inl is not None:
+            expected = math.log(chosen * unit / gain)
+            bad = np.isfinite(ev.log_scales) & (
+                np.abs(ev.log_scales - expected) > ctx.config.scale_check.keep_match_log
+            )
+            inl = inl[~bad]
+        names = " and ".join(sorted({cand[i][1] for i in near}))
+        reason = (
+            f"{c.reason}; resolved to {chosen:.1f} mm: the {names} length agrees with the "
+            f"{source}'s {prior:.1f} +- {sigma:.1f} mm, the other candidates do not"
+        )
+        ctx.warnings.append(f"frames {ev.a}->{ev.b}: {reason}")
+        check = replace(c, scale_mm=chosen * unit, confidence="resolved", reason=reason)
+        decided[k] = DecidedStep(
+            step.b_from_a, chosen * unit, inl, lm if math.isfinite(lm.scale) else None, check
+        )
+        lengths[k] = chosen
+
+
 def bridge_steps(
     lengths: np.ndarray, checks: list[StepCheck], odometry: OdometrySteps | None
 ) -> tuple[np.ndarray, list[StepCheck], OdometrySteps | None]:
@@ -324,7 +394,7 @@ def bridge_steps(
     bridge, and the odometry calibrated against the trusted steps."""
     lengths = np.array(lengths, float)
     trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
-    if odometry is not None:
+    if odometry is not None and not odometry.calibrated:
         odometry = calibrate_odometry(odometry, lengths, trusted)
     out = list(checks)
     for k in np.flatnonzero(~np.isfinite(lengths)):
