@@ -328,6 +328,22 @@ ACCEPT_SIGMAS = 2.0
 REJECT_SIGMAS = 4.0
 
 
+def confirmed_candidates(
+    candidates: np.ndarray, prior: float, sigma: float, agree_log: float
+) -> np.ndarray | None:
+    """Indices of the candidate lengths (mm) within :data:`ACCEPT_SIGMAS` of ``prior``
+    +- ``sigma`` (mm), when every other one lies beyond :data:`REJECT_SIGMAS` and the
+    confirmed ones agree within ``agree_log``; None when the prior cannot decide."""
+    z = np.abs(np.asarray(candidates, float) - prior) / sigma
+    near = np.flatnonzero(z <= ACCEPT_SIGMAS)
+    if len(near) == 0 or np.any((z > ACCEPT_SIGMAS) & (z <= REJECT_SIGMAS)):
+        return None
+    values = np.asarray(candidates, float)[near]
+    if values.max() > values.min() * math.exp(agree_log):
+        return None  # two different confirmed courses: still ambiguous
+    return near
+
+
 def resolve_by_prior(
     ctx: SfmContext,
     kf: Keyframes,
@@ -355,14 +371,12 @@ def resolve_by_prior(
             cand.append((c.feature_scale_mm * gain / unit, "feature depth"))
         if not source or not cand:
             continue
-        z = np.array([abs(v - prior) / sigma for v, _ in cand])
-        near = np.flatnonzero(z <= ACCEPT_SIGMAS)
-        if len(near) == 0 or np.any((z > ACCEPT_SIGMAS) & (z <= REJECT_SIGMAS)):
+        near = confirmed_candidates(
+            np.array([v for v, _ in cand]), prior, sigma, ctx.config.scale_check.agree_log
+        )
+        if near is None:
             continue
-        values = np.array([cand[i][0] for i in near])
-        if values.max() > values.min() * math.exp(ctx.config.scale_check.agree_log):
-            continue  # two different confirmed courses: still ambiguous
-        chosen = float(np.median(values))
+        chosen = float(np.median([cand[i][0] for i in near]))
         lm = _laser_around(ctx, kf, k, chosen * unit)
         if math.isfinite(lm.scale):
             chosen = lm.scale / unit
