@@ -70,7 +70,7 @@ def test_combine_scales_weights_and_widens_on_disagreement() -> None:
 
 def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
     """A lost step (no relative motion found) is chained with the gait's estimate (the
-    nearest trusted steps), not as zero length: the positions after it are not
+    run's trusted steps), not as zero length: the positions after it are not
     shortened by a whole step; the estimate carries a sigma covering the true 10 mm."""
     rng = np.random.default_rng(3)
     steps, evidence, checks = [], [], []
@@ -121,7 +121,7 @@ def test_frames_between_keyframes_are_tracked_and_placed_within_band() -> None:
 
 def test_periodic_alias_one_period_too_long_is_rejected_by_the_gait() -> None:
     """Bricks every 14 mm, the robot steps ~4 mm: the laser's best consensus peak is
-    one course too long (18.1 mm), its second is right (4.2 mm). The nearest trusted
+    one course too long (18.1 mm), its second is right (4.2 mm). The trusted
     steps' gait (bridge_estimate) confirms the right one and excludes the alias; with
     no trusted neighbours nothing is decided."""
     rng = np.random.default_rng(5)

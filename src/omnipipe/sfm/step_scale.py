@@ -354,7 +354,7 @@ def resolve_by_prior(
 ) -> None:
     """Flagged steps whose vision candidates (every laser consensus peak, the feature
     depth length) include exactly one the prior (calibrated odometry, else the gait of
-    the nearest trusted steps: :func:`omnipipe.sfm.robot_sensors.bridge_estimate`)
+    the run's trusted steps: :func:`omnipipe.sfm.robot_sensors.bridge_estimate`)
     confirms and excludes the others, in place: ``decided[k]`` resolved to it (laser
     re-matched around it, wrong-course matches dropped), ``lengths[k]`` set; a
     warning says so. The prior rests on the originally trusted steps only."""
