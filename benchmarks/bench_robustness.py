@@ -77,9 +77,7 @@ def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict], float]:
     cfg = ReconstructConfig.default()
     n = len(dataset)
     rings = laser.run(cfg.laser, dataset.rig, (dataset.read_frame(i) for i in range(n)))
-    motion = sfm.run(
-        cfg.sfm, sfm.SfmInputs(rig=dataset.rig, read_frame=dataset.read_frame, n_frames=n, rings=rings)
-    )
+    motion = sfm.run(cfg.sfm, sfm.SfmInputs.of_dataset(dataset, rings))
     refuse_untrusted_motion(motion)
     reg = np.flatnonzero(motion.registered)
     unreliable = [u.to_dict() for u in motion.unreliable]

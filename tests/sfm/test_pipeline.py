@@ -12,8 +12,9 @@ from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
 from omnipipe.sfm import SfmConfig, SfmInputs
 from omnipipe.sfm import run as sfm_run
+from omnipipe.sfm.robot_sensors import bridge_estimate
 from omnipipe.sfm.scale_check import StepCheck
-from omnipipe.sfm.step_scale import bridge_lost_steps
+from omnipipe.sfm.step_scale import bridge_lost_steps, bridge_steps, confirmed_candidates
 from omnipipe.sfm.tracking import TrackConfig
 from omnipipe.sfm.types import StepEvidence
 from omnipipe.sim import make_scenario
@@ -68,8 +69,9 @@ def test_combine_scales_weights_and_widens_on_disagreement() -> None:
 
 
 def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
-    """A lost step (no relative motion found) is chained with the median trusted step,
-    not as zero length: the positions after it are not shortened by a whole step."""
+    """A lost step (no relative motion found) is chained with the gait's estimate (the
+    run's trusted steps), not as zero length: the positions after it are not
+    shortened by a whole step; the estimate carries a sigma covering the true 10 mm."""
     rng = np.random.default_rng(3)
     steps, evidence, checks = [], [], []
     for k in range(7):
@@ -82,8 +84,13 @@ def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
         checks.append(
             StepCheck(k, k + 1, 10.0, 0.0, 10.0, 50, math.nan if lost else 10.0, "none" if lost else "high")
         )
-    bridge_lost_steps(steps, evidence, checks)
+    lengths = np.array([np.nan if k in (3, 4) else np.linalg.norm(t[:3, 3]) for k, t in enumerate(steps)])
+    lengths, checks, _ = bridge_steps(lengths, checks, None)
+    bridge_lost_steps(steps, evidence, checks, lengths)
     for k in (3, 4):
+        c = checks[k]
+        assert c.bridged_from == "gait" and not c.reliable
+        assert 0 < c.bridged_sigma_mm < 3.0 and abs(c.bridged_mm - 10.0) <= 2 * c.bridged_sigma_mm
         assert np.allclose(steps[k][:3, :3], np.eye(3))
         assert abs(steps[k][2, 3] + 10.0) < 0.3 and np.hypot(*steps[k][:2, 3]) < 0.2
     assert steps[0][2, 3] != steps[3][2, 3]  # trusted steps untouched
@@ -110,3 +117,51 @@ def test_frames_between_keyframes_are_tracked_and_placed_within_band() -> None:
     assert errs.ate_rmse_mm < 0.5  # mm over 50 mm of travel at 640x480 (measured 0.23)
     assert errs.ate_max_mm < 1.0
     assert errs.scale_error < 0.05
+
+
+def test_periodic_alias_one_period_too_long_is_rejected_by_the_gait() -> None:
+    """Bricks every 14 mm, the robot steps ~4 mm: the laser's best consensus peak is
+    one course too long (18.1 mm), its second is right (4.2 mm). The trusted
+    steps' gait (bridge_estimate) confirms the right one and excludes the alias; with
+    no trusted neighbours nothing is decided."""
+    rng = np.random.default_rng(5)
+    truth = 4.0 + rng.normal(0, 0.2, 12)
+    lengths = truth.copy()
+    lengths[6] = np.nan  # the ambiguous step
+    trusted = np.isfinite(lengths)
+    prior, sigma, source = bridge_estimate(6, lengths, trusted, None)
+    assert source == "gait" and abs(prior - truth[6]) <= 2 * sigma
+    candidates = np.array([truth[6] + 14.0, truth[6] + 0.1])  # alias first: it scored best
+    near = confirmed_candidates(candidates, prior, sigma, agree_log=0.1)
+    assert near is not None and list(near) == [1]
+    assert abs(candidates[near[0]] - truth[6]) < 0.2
+    # Two candidates a period apart both near a vague prior: undecided, stays flagged.
+    assert confirmed_candidates(np.array([4.0, 18.0]), 11.0, 5.0, 0.1) is None
+    # No trusted neighbour: no prior at all.
+    assert bridge_estimate(6, lengths, np.zeros(12, bool), None)[2] == ""
+
+
+def test_bridged_step_from_odometry_covers_the_truth() -> None:
+    """Odometry with a 2.5 % slip: calibrated on the trusted steps, a lost step's bridged
+    length is non-zero and its sigma covers the true length."""
+    from omnipipe.inputs.sensors import make_odometry
+    from omnipipe.sfm.robot_sensors import calibrate_odometry, odometry_steps
+
+    rng = np.random.default_rng(7)
+    truth = 5.0 + rng.normal(0, 0.5, 20)  # keyframe steps, mm
+    frames = list(range(0, 41, 2))
+    times = np.arange(41) * 0.1
+    travel = np.concatenate([[0.0], np.cumsum(np.repeat(truth / 2, 2))])
+    counted = np.round(travel * 1.025 + rng.normal(0, 0.05, len(travel)).cumsum() * 0.1, 1)
+    counted = np.maximum.accumulate(counted)
+    sigma = np.hypot(0.03 * counted, 0.03)
+    odo = make_odometry("test", times, counted, sigma, str)
+    steps = odometry_steps(odo, times, frames)
+    vision = truth * (1 + rng.normal(0, 0.002, 20))
+    trusted = np.ones(20, bool)
+    trusted[9] = False
+    steps = calibrate_odometry(steps, vision, trusted)
+    assert steps.calibrated and abs(math.exp(-steps.ratio_log) - 1.025) < 0.01
+    est, sig, source = bridge_estimate(9, np.where(trusted, vision, np.nan), trusted, steps)
+    assert source == "odometry" and est > 0 and 0 < sig < 0.5
+    assert abs(est - truth[9]) <= 2 * sig

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -106,9 +108,48 @@ def test_wall_without_texture_is_refused_in_one_line(
 ) -> None:
     sc = make_scenario("paper-small", frames=12, seed=4)
     sc.texture = TextureConfig(family="smooth", variant="pvc", contrast=0.0)
+    sc.sensors = replace(sc.sensors, odometry=False, imu=False)
     simulate(sc, tmp_path / "ds", workers=2)
     code = main(["reconstruct", str(tmp_path / "ds"), "--out", str(tmp_path / "rec"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1
     assert len(err) == 1 and "could not be trusted" in err[0]
     assert not (tmp_path / "rec").exists()
+
+
+def test_wall_without_texture_with_odometry_is_measured_along_the_axis(tmp_path: Path) -> None:
+    """The same plain wall with the robot's odometry: not refused; every step flagged,
+    its length bridged from the odometry with a sigma, the frames placed along the
+    axis; the end position within 3 stated sigma of the truth; gravity from the IMU."""
+    from omnipipe.pipeline.quality import refuse_untrusted_motion
+
+    sc = make_scenario("paper-small", frames=12, seed=4)
+    sc.texture = TextureConfig(family="smooth", variant="pvc", contrast=0.0)
+    simulate(sc, tmp_path / "ds", workers=2)
+    ds = open_dataset(tmp_path / "ds")
+    assert ds.odometry is not None and ds.imu is not None
+    cfg = ReconstructConfig.default()
+    frames = [ds.read_frame(i) for i in range(len(ds))]
+    rings = laser.run(cfg.laser, ds.rig, iter(frames))
+    inputs = replace(sfm.SfmInputs.of_dataset(ds, rings), read_frame=lambda i: frames[i])
+    result = sfm.run(cfg.sfm, inputs)
+    refuse_untrusted_motion(result)  # does not raise
+    moving = [c for c in result.step_checks if c.bridged_from]
+    assert moving and all(c.bridged_from == "odometry" and not c.reliable for c in moving)
+    assert result.registered.all()
+    _, true = read_tum(tmp_path / "ds" / "ground_truth" / "poses.txt")
+    travel_true = np.linalg.norm(true[-1, :3, 3] - true[0, :3, 3])
+    travel = np.linalg.norm(result.world_from_rig[-1, :3, 3])
+    sigma = math.sqrt(sum(c.bridged_sigma_mm**2 for c in moving))
+    assert travel_true > 5 and abs(travel - travel_true) <= 3 * sigma, (travel, travel_true, sigma)
+    assert result.world_from_rig[-1, 2, 3] > 0  # along the rig's +z, the way it travels
+    flagged = np.zeros(len(ds) - 1, bool)  # step i -> i + 1
+    for u in result.unreliable:
+        flagged[u.first_frame : u.last_frame] = True
+    true_steps = np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1)
+    assert flagged[true_steps > 0.1].all()  # every step that moved is flagged
+    # Gravity from the IMU, in the world frame (= rig frame of frame 0).
+    g = np.array(json.loads((tmp_path / "ds" / "ground_truth" / "scene.json").read_text())["gravity_in_first_rig_frame"])
+    assert result.gravity_world is not None
+    angle = math.acos(min(1.0, float(result.gravity_world @ g / np.linalg.norm(g))))
+    assert angle <= 3 * result.gravity_sigma_rad + 1e-3, (angle, result.gravity_sigma_rad)

@@ -189,8 +189,9 @@ def widen_for_unreliable(
 
 
 def _has_length(check: StepCheck) -> bool:
-    """Whether a step's length rests on more than one unconfirmed source."""
-    if check.confidence in ("high", "resolved"):
+    """Whether a step's length rests on more than one unconfirmed source (the odometry
+    is a measurement of its own: a plain wall with odometry is measured along the axis)."""
+    if check.confidence in ("high", "resolved") or check.bridged_from == "odometry":
         return True
     both = math.isfinite(check.laser_scale_mm) and math.isfinite(check.feature_scale_mm)
     return check.confidence == "low" and both

@@ -428,10 +428,7 @@ def _camera_motion(
     tick = progress("sfm", n)
     motion = sfm.run(
         config.sfm,
-        sfm.SfmInputs(
-            rig=dataset.rig, read_frame=dataset.read_frame, n_frames=n, rings=frames.rings,
-            moved=frames.moved, dataset=dataset,
-        ),
+        sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved),
         progress=tick,
         executor=executor,
     )

@@ -322,6 +322,7 @@ def resect_pending(
     pending: list[PendingFrame],
     next_matches: dict[int, Future[KeyframeRays]],
     n_frames: int,
+    travel_mm: np.ndarray | None = None,
 ) -> Resected:
     """Every pending frame resected in the workers against the adjusted tracks of its
     keyframe k and of k + 1 (``next_matches``: its correspondences with k + 1),
@@ -348,16 +349,36 @@ def resect_pending(
     for p, job in jobs:
         pose = _resection_result(ctx, p.frame, job)
         if pose is None:
-            ctx.warnings.append(
-                f"frame {p.frame}: too few tracked points to resect; pose of its keyframe used"
-            )
-            pose = adjusted.world_from_kf[p.keyframe].copy()
-            # Its pose is its keyframe's: the steps into and out of it are both wrong.
             k = p.keyframe
+            pose, how = _unresected_pose(adjusted.world_from_kf, kf.frames, k, p.frame, travel_mm)
+            ctx.warnings.append(f"frame {p.frame}: too few tracked points to resect; {how}")
+            # The steps into and out of it are both estimates.
             end = kf.frames[k + 1] if k + 1 < len(kf.frames) else n_frames - 1
             stretches.append(UnreliableStretch(kf.frames[k], end, "frame could not be resected"))
         placed[p.frame] = pose
     return Resected(placed, stretches)
+
+
+def _unresected_pose(
+    world_from_kf: np.ndarray,
+    frames: list[int],
+    k: int,
+    frame: int,
+    travel_mm: np.ndarray | None,
+) -> tuple[np.ndarray, str]:
+    """A frame that could not be resected: between keyframes k and k + 1 at the
+    odometry's fraction of their travel (``travel_mm`` (N,) cumulative, mm), rotation
+    of keyframe k; without it (or past the last keyframe) keyframe k's pose. The pose
+    and what was done, in words."""
+    pose = world_from_kf[k].copy()
+    if travel_mm is None or k + 1 >= len(frames):
+        return pose, "pose of its keyframe used"
+    d0, d1, d = travel_mm[frames[k]], travel_mm[frames[k + 1]], travel_mm[frame]
+    if not (np.isfinite([d0, d1, d]).all() and d1 - d0 > 0):
+        return pose, "pose of its keyframe used"
+    f = float(np.clip((d - d0) / (d1 - d0), 0.0, 1.0))
+    pose[:3, 3] = (1 - f) * world_from_kf[k][:3, 3] + f * world_from_kf[k + 1][:3, 3]
+    return pose, f"placed between its keyframes at the odometry's fraction {f:.2f}"
 
 
 def _submit_resection(

@@ -33,6 +33,7 @@ from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews, m
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.planes import refine_matches
 from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
+from omnipipe.sfm.robot_sensors import odometry_moved
 from omnipipe.sfm.stations import StationTracker
 from omnipipe.sfm.tasks import FeatureTask, matched_rays, step_evidence, track_into
 from omnipipe.sfm.tracking import Tracks, followed_count, track_features
@@ -409,13 +410,20 @@ def moving_frames(
     workers that decode the frames themselves (:class:`omnipipe.sfm.tasks.FeatureTask`;
     the grey image as :func:`omnipipe.sfm.tasks.compact_gray` returns it); otherwise
     every frame is read here and the stationary test runs frame by frame (paper
-    Sec. V, step 1).
+    Sec. V, step 1). Frames the robot's odometry counted moving
+    (:func:`omnipipe.sfm.robot_sensors.odometry_moved`) are moving frames too.
     """
     config = ctx.config
     n = inputs.n_frames
     rings = inputs.rings.rings
+    # Where the images cannot tell (a plain wall), the odometry's count moves the rig too.
+    by_odometry = (
+        odometry_moved(inputs.odometry, inputs.timestamps)
+        if inputs.odometry is not None and inputs.timestamps is not None
+        else np.zeros(n, bool)
+    )
     if inputs.moved is not None and inputs.dataset is not None and ctx.parallel:
-        moved[:] = inputs.moved
+        moved[:] = inputs.moved | by_odometry
         stream = iter_frames(
             ctx.executor,
             FeatureTask(config.features, detect=not config.tracking.enabled),
@@ -436,13 +444,14 @@ def moving_frames(
     if inputs.moved is None:
         tracker = StationTracker(extractor.camera.valid_mask(), config.stations)
     else:
-        moved[:] = inputs.moved
+        moved[:] = inputs.moved | by_odometry
     for i in range(n):
         if tracker is not None or moved[i]:
             img = inputs.read_frame(i)
             gray = gray_without_laser(img, channel)
             if tracker is not None:
                 moved[i], _ = tracker.update(gray)
+                moved[i] |= by_odometry[i]
             if moved[i]:
                 views = extractor.frame_views(img, channel, rings[i].pixels)
                 if config.tracking.enabled:

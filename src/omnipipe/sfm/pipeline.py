@@ -38,10 +38,12 @@ import numpy as np
 from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor
+from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
+from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps
 from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
 from omnipipe.sfm.step_scale import (
     RunLength,
@@ -84,7 +86,12 @@ def run(
         # Step 4: every step's length decided with the whole run's evidence (the two
         # sources' systematic offset), then chained.
         scale = run_scale(kf.evidence, config.scale_check, ctx.warnings)
-        chain = chain_steps(ctx, kf, scale)
+        odometry = (
+            odometry_steps(inputs.odometry, inputs.timestamps, kf.frames)
+            if inputs.odometry is not None and inputs.timestamps is not None
+            else None
+        )
+        chain = chain_steps(ctx, kf, scale, odometry)
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
         adjusted = adjust_keyframes(
@@ -98,10 +105,22 @@ def run(
             adjusted = adjusted.scaled(math.exp(length.correction_log))
         # Step 6: the moving frames that are not keyframes, resected against the
         # adjusted tracks.
-        resected = resect_pending(
-            ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames
+        travel = (
+            odometry_at(inputs.odometry, inputs.timestamps)[0]
+            if inputs.odometry is not None and inputs.timestamps is not None
+            else None
         )
-    return _result(ctx, followed, adjusted, resected, chain.checks, scale, length)
+        resected = resect_pending(
+            ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames, travel
+        )
+    result = _result(ctx, followed, adjusted, resected, chain.checks, scale, length)
+    if inputs.imu is not None and inputs.timestamps is not None:
+        gravity = gravity_world(
+            inputs.imu, inputs.timestamps, result.world_from_rig, result.registered
+        )
+        if gravity is not None:
+            result.gravity_world, result.gravity_sigma_rad = gravity
+    return result
 
 
 def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) -> SfmContext:
@@ -139,6 +158,10 @@ def _result(
         world_from_station[s_idx] = (
             adjusted.world_from_kf[kf_of[f]] if f in kf_of else resected.world_from_rig[f]
         )
+    # A lost step bridged by the odometry places its frame along the axis (flagged).
+    odometry_placed = {c.last_frame for c in checks if c.bridged_from == "odometry"}
+    lost = followed.lost.copy()
+    lost[list(odometry_placed)] = False
     stretches = [
         UnreliableStretch(c.first_frame, c.last_frame, c.reason or c.confidence)
         for c in checks
@@ -146,7 +169,7 @@ def _result(
     ]
     return SfmResult(
         world_from_rig=world_from_station[station],
-        registered=~followed.lost[first[station]],
+        registered=~lost[first[station]],
         keyframe=followed.keyframe,
         stationary=~moved,
         station=station,

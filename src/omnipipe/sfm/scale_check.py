@@ -107,6 +107,11 @@ class StepCheck:
         confidence: one of :data:`CONFIDENCE`.
         reason: why the step is not ``high`` (empty when it is).
         laser_peaks_mm: up to three laser consensus peaks (mm), best first.
+        bridged_mm: for a step vision could not measure, the length it was given
+            (mm; NaN: measured, or nothing to bridge it with).
+        bridged_sigma_mm: that length's 1-sigma (mm; NaN: not bridged).
+        bridged_from: where it came from: ``"odometry"``, ``"gait"`` (the nearest
+            trusted steps) or ``""`` (not bridged).
     """
 
     first_frame: int
@@ -119,6 +124,9 @@ class StepCheck:
     confidence: str
     reason: str = ""
     laser_peaks_mm: tuple[float, ...] = ()
+    bridged_mm: float = math.nan
+    bridged_sigma_mm: float = math.nan
+    bridged_from: str = ""
 
     @property
     def reliable(self) -> bool:
@@ -142,6 +150,15 @@ class StepCheck:
             "scale_mm": r(self.scale_mm),
             "laser_peaks_mm": [r(p) for p in self.laser_peaks_mm],
             "reason": self.reason,
+            **(
+                {
+                    "bridged_mm": r(self.bridged_mm),
+                    "bridged_sigma_mm": r(self.bridged_sigma_mm),
+                    "bridged_from": self.bridged_from,
+                }
+                if self.bridged_from
+                else {}
+            ),
         }
 
 

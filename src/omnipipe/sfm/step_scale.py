@@ -26,6 +26,12 @@ import numpy as np
 
 from omnipipe.geometry import invert
 from omnipipe.sfm.laser_scale import LaserMatches, match_laser_points
+from omnipipe.sfm.robot_sensors import (
+    OdometrySteps,
+    bridge_estimate,
+    calibrate_odometry,
+    odometry_disagreement,
+)
 from omnipipe.sfm.scale_check import (
     WALL_SCALE_SIGMA_FLOOR,
     ScaleCheckConfig,
@@ -258,26 +264,37 @@ def _laser_around(ctx: SfmContext, kf: Keyframes, k: int, length_mm: float) -> L
     )
 
 
-def chain_steps(ctx: SfmContext, kf: Keyframes, scale: RunScale) -> ChainedSteps:
+def chain_steps(
+    ctx: SfmContext, kf: Keyframes, scale: RunScale, odometry: OdometrySteps | None = None
+) -> ChainedSteps:
     """Every keyframe step decided (:func:`decide_step`) with the run's source offset,
     made metric and chained from keyframe 0; each step's inlier matches and metric
     anchors (its laser matches, or with ``scale.wall_anchored`` its features placed on
-    the light-section wall) for the bundle adjustment."""
+    the light-section wall) for the bundle adjustment.
+
+    A step vision could not measure is bridged (:func:`bridge_steps`): its length comes
+    from the odometry (calibrated against the trusted steps) or the gait, with a
+    1-sigma, recorded in its check; it stays flagged."""
+    decided = [decide_step(ctx, kf, k, scale.offset_log) for k in range(len(kf.evidence))]
+    gain = math.exp(scale.offset_log) if scale.wall_anchored else 1.0
+    # Feature-depth units when the wall anchors (the laser's bias removed).
+    lengths = np.array(
+        [math.nan if ev.status == "lost" else d.scale_mm / gain for d, ev in zip(decided, kf.evidence, strict=True)],
+        float,
+    )
+    checks = [d.check for d in decided]
+    if odometry is not None:
+        trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
+        odometry = calibrate_odometry(odometry, lengths, trusted)
+    resolve_by_prior(ctx, kf, decided, lengths, odometry, scale)
+    checks = [d.check for d in decided]
+    lengths, checks, odometry = bridge_steps(lengths, checks, odometry)
     scales: list[float] = []
     steps_b_from_a: list[np.ndarray] = []
     pair_matches: list[PairMatches] = []
     anchors: list[Anchor] = []
-    checks: list[StepCheck] = []
-    for k in range(len(kf.evidence)):
-        step = decide_step(ctx, kf, k, scale.offset_log)
-        checks.append(step.check)
-        length = step.scale_mm
-        if scale.wall_anchored and math.isfinite(length):
-            length /= math.exp(scale.offset_log)  # feature-depth units: the laser's bias removed
-        if scales and not math.isfinite(length):
-            # A placeholder length keeps the chain going; the step is flagged.
-            length = float(np.median([s for s in scales if s > 0] or [0.0]))
-        length = 0.0 if not math.isfinite(length) else length
+    for k, step in enumerate(decided):
+        length = float(lengths[k])
         scales.append(length)
         b_from_a = step.b_from_a.copy()
         b_from_a[:3, 3] *= length
@@ -294,11 +311,120 @@ def chain_steps(ctx: SfmContext, kf: Keyframes, scale: RunScale) -> ChainedSteps
             anchors.append(
                 Anchor(k, k + 1, kf.ring_points[k][lm.index], lm.pixels_b, np.log(lm.scale_mm))
             )
-    bridge_lost_steps(steps_b_from_a, kf.evidence, checks)
+    bridge_lost_steps(steps_b_from_a, kf.evidence, checks, lengths)
+    if odometry is not None:
+        trusted = np.array([c.reliable for c in checks], bool)
+        ctx.warnings.extend(odometry_disagreement(odometry, lengths, trusted, kf.frames))
     world_from_kf = [np.eye(4)] if kf.frames else []
     for b_from_a in steps_b_from_a:
         world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
     return ChainedSteps(np.array(world_from_kf), scales, pair_matches, anchors, checks)
+
+
+# A flagged step's vision candidate agreeing with the prior (odometry or gait) within
+# this many of the prior's sigmas, every other candidate further than REJECT_SIGMAS,
+# is resolved: two independent sources agree, the alternatives are excluded.
+ACCEPT_SIGMAS = 2.0
+REJECT_SIGMAS = 4.0
+
+
+def confirmed_candidates(
+    candidates: np.ndarray, prior: float, sigma: float, agree_log: float
+) -> np.ndarray | None:
+    """Indices of the candidate lengths (mm) within :data:`ACCEPT_SIGMAS` of ``prior``
+    +- ``sigma`` (mm), when every other one lies beyond :data:`REJECT_SIGMAS` and the
+    confirmed ones agree within ``agree_log``; None when the prior cannot decide."""
+    z = np.abs(np.asarray(candidates, float) - prior) / sigma
+    near = np.flatnonzero(z <= ACCEPT_SIGMAS)
+    if len(near) == 0 or np.any((z > ACCEPT_SIGMAS) & (z <= REJECT_SIGMAS)):
+        return None
+    values = np.asarray(candidates, float)[near]
+    if values.max() > values.min() * math.exp(agree_log):
+        return None  # two different confirmed courses: still ambiguous
+    return near
+
+
+def resolve_by_prior(
+    ctx: SfmContext,
+    kf: Keyframes,
+    decided: list[DecidedStep],
+    lengths: np.ndarray,
+    odometry: OdometrySteps | None,
+    scale: RunScale,
+) -> None:
+    """Flagged steps whose vision candidates (every laser consensus peak, the feature
+    depth length) include exactly one the prior (calibrated odometry, else the gait of
+    the run's trusted steps: :func:`omnipipe.sfm.robot_sensors.bridge_estimate`)
+    confirms and excludes the others, in place: ``decided[k]`` resolved to it (laser
+    re-matched around it, wrong-course matches dropped), ``lengths[k]`` set; a
+    warning says so. The prior rests on the originally trusted steps only."""
+    gain = math.exp(scale.offset_log)
+    unit = gain if scale.wall_anchored else 1.0  # chain length = laser length / unit
+    trusted = np.array([d.check.reliable for d in decided], bool) & np.isfinite(lengths)
+    for k, (step, ev) in enumerate(zip(decided, kf.evidence, strict=True)):
+        c = step.check
+        if c.reliable or ev.status != "ok":
+            continue
+        prior, sigma, source = bridge_estimate(k, lengths, trusted, odometry)
+        cand = [(p / unit, "laser peak") for p in c.laser_peaks_mm if p > 0]
+        if math.isfinite(c.feature_scale_mm):
+            cand.append((c.feature_scale_mm * gain / unit, "feature depth"))
+        if not source or not cand:
+            continue
+        near = confirmed_candidates(
+            np.array([v for v, _ in cand]), prior, sigma, ctx.config.scale_check.agree_log
+        )
+        if near is None:
+            continue
+        chosen = float(np.median([cand[i][0] for i in near]))
+        lm = _laser_around(ctx, kf, k, chosen * unit)
+        if math.isfinite(lm.scale):
+            chosen = lm.scale / unit
+        inl = ev.inliers
+        if inl is not None:
+            expected = math.log(chosen * unit / gain)
+            bad = np.isfinite(ev.log_scales) & (
+                np.abs(ev.log_scales - expected) > ctx.config.scale_check.keep_match_log
+            )
+            inl = inl[~bad]
+        names = " and ".join(sorted({cand[i][1] for i in near}))
+        reason = (
+            f"{c.reason}; resolved to {chosen:.1f} mm: the {names} length agrees with the "
+            f"{source}'s {prior:.1f} +- {sigma:.1f} mm, the other candidates do not"
+        )
+        ctx.warnings.append(f"frames {ev.a}->{ev.b}: {reason}")
+        check = replace(c, scale_mm=chosen * unit, confidence="resolved", reason=reason)
+        decided[k] = DecidedStep(
+            step.b_from_a, chosen * unit, inl, lm if math.isfinite(lm.scale) else None, check
+        )
+        lengths[k] = chosen
+
+
+def bridge_steps(
+    lengths: np.ndarray, checks: list[StepCheck], odometry: OdometrySteps | None
+) -> tuple[np.ndarray, list[StepCheck], OdometrySteps | None]:
+    """Lengths (K-1,) mm with every unmeasured one (NaN) bridged
+    (:func:`omnipipe.sfm.robot_sensors.bridge_estimate`), the checks recording the
+    bridge, and the odometry calibrated against the trusted steps."""
+    lengths = np.array(lengths, float)
+    trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
+    if odometry is not None and not odometry.calibrated:
+        odometry = calibrate_odometry(odometry, lengths, trusted)
+    out = list(checks)
+    for k in np.flatnonzero(~np.isfinite(lengths)):
+        est, sigma, source = bridge_estimate(int(k), lengths, trusted, odometry)
+        if source:
+            out[k] = replace(
+                out[k],
+                bridged_mm=est,
+                bridged_sigma_mm=sigma,
+                bridged_from=source,
+                reason=f"{out[k].reason}; length bridged from the {source}: "
+                f"{est:.1f} +- {sigma:.1f} mm".lstrip("; "),
+            )
+    for k in np.flatnonzero(~np.isfinite(lengths)):
+        lengths[k] = out[k].bridged_mm if out[k].bridged_from else 0.0
+    return lengths, out, odometry
 
 
 def wall_anchors(kf: Keyframes, k: int, scale_mm: float, config: ScaleCheckConfig) -> Anchor | None:
@@ -340,34 +466,36 @@ def wall_anchors(kf: Keyframes, k: int, scale_mm: float, config: ScaleCheckConfi
 
 
 def bridge_lost_steps(
-    steps_b_from_a: list[np.ndarray], evidence: list[StepEvidence], checks: list[StepCheck]
+    steps_b_from_a: list[np.ndarray],
+    evidence: list[StepEvidence],
+    checks: list[StepCheck],
+    lengths: np.ndarray,
 ) -> None:
-    """Give steps whose relative motion was not found the run's typical step, in place.
+    """Give steps whose relative motion was not found their bridged length, in place.
 
     Such a step has no measurement at all (its check says so and the stretch is reported
     unreliable); chaining it as zero length would shorten everything after it. The robot
-    moves along its own axis, so the median step of the trusted ones (rotation none,
-    translation the median of their translations in the earlier keyframe's frame) is the
-    best guess; the report's run length already counts these steps at 100 % uncertainty
-    (:func:`omnipipe.pipeline.quality.widen_for_unreliable`).
+    moves along its own axis: no rotation, translation along the median direction of the
+    trusted steps (rig -z, the way the world moves past a rig travelling along its +z,
+    with fewer than 3), ``lengths[k]`` long (:func:`bridge_steps`: odometry or gait).
 
     Args:
         steps_b_from_a: (4, 4) rig_b_from_rig_a of every keyframe step, mm; lost ones are
             replaced.
         evidence, checks: the steps' evidence and decisions, same order.
+        lengths: (K-1,) each step's length (mm), bridged ones included.
     """
     trusted = [
-        t[:3, 3]
+        t[:3, 3] / np.linalg.norm(t[:3, 3])
         for t, ev, c in zip(steps_b_from_a, evidence, checks, strict=True)
         if ev.status == "ok" and c.confidence == "high" and np.linalg.norm(t[:3, 3]) > 0
     ]
-    if len(trusted) < 3:
-        return
-    typical = np.median(np.array(trusted), axis=0)
+    direction = np.median(np.array(trusted), axis=0) if len(trusted) >= 3 else np.array([0, 0, -1.0])
+    direction = direction / max(np.linalg.norm(direction), 1e-12)
     for k, ev in enumerate(evidence):
-        if ev.status == "lost":
+        if ev.status == "lost" and math.isfinite(lengths[k]):
             step = np.eye(4)
-            step[:3, 3] = typical
+            step[:3, 3] = direction * lengths[k]
             steps_b_from_a[k] = step
 
 

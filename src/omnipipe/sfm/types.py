@@ -30,6 +30,7 @@ from omnipipe.sfm.tracking import TrackConfig
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
+    from omnipipe.inputs.sensors import Imu, Odometry
     from omnipipe.laser import LaserResult
 
 
@@ -100,6 +101,10 @@ class SfmInputs:
         dataset: the opened dataset; with ``moved`` and an executor, the moving
             frames' features are extracted frame-parallel, each worker decoding its
             frames itself (:func:`omnipipe.executor.iter_frames`).
+        timestamps: (N,) frame times (s); needed to read ``odometry`` and ``imu``.
+        odometry: the robot's odometry (bridges steps vision could not measure, is
+            compared with the trusted ones; :mod:`omnipipe.sfm.robot_sensors`), or None.
+        imu: the robot's IMU (gravity in the world frame), or None.
     """
 
     rig: Rig
@@ -108,6 +113,26 @@ class SfmInputs:
     rings: LaserResult
     moved: np.ndarray | None = None
     dataset: Dataset | None = None
+    timestamps: np.ndarray | None = None
+    odometry: Odometry | None = None
+    imu: Imu | None = None
+
+    @classmethod
+    def of_dataset(
+        cls, dataset: Dataset, rings: LaserResult, moved: np.ndarray | None = None
+    ) -> SfmInputs:
+        """The inputs of an opened dataset: its rig, frames, times and sensors."""
+        return cls(
+            rig=dataset.rig,
+            read_frame=dataset.read_frame,
+            n_frames=len(dataset),
+            rings=rings,
+            moved=moved,
+            dataset=dataset,
+            timestamps=dataset.timestamps,
+            odometry=dataset.odometry,
+            imu=dataset.imu,
+        )
 
 
 @dataclass
@@ -144,6 +169,9 @@ class SfmResult:
         tracked: (N,) True for the moving frames placed by optical-flow tracks of their
             keyframe's features (:mod:`omnipipe.sfm.tracking`: no SIFT of their own);
             None: not recorded.
+        gravity_world: (3,) unit vector pointing down in the world frame (from the IMU,
+            :func:`omnipipe.sfm.robot_sensors.gravity_world`), or None without one.
+        gravity_sigma_rad: its 1-sigma angle (rad; NaN without one).
     """
 
     world_from_rig: np.ndarray
@@ -162,6 +190,8 @@ class SfmResult:
     wall_scale_log: float = math.nan
     scale_correction_log: float = math.nan
     tracked: np.ndarray | None = None
+    gravity_world: np.ndarray | None = None
+    gravity_sigma_rad: float = math.nan
 
 
 @dataclass(frozen=True)
