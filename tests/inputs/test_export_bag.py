@@ -75,3 +75,22 @@ def test_nothing_is_replaced(folder: Path, tmp_path: Path, capsys) -> None:
     assert "other content" in capsys.readouterr().err
     assert sorted(p.name for p in other.iterdir()) == ["rig.yaml"]
     shutil.rmtree(other)
+
+
+@pytest.mark.parametrize("name", ["sensors.mcap", "sensors.bag"])
+def test_odometry_and_imu_travel_with_the_frames(folder: Path, tmp_path: Path, name: str) -> None:
+    reference = open_dataset(folder)
+    assert reference.odometry is not None and reference.imu is not None  # simulate writes both
+    out = tmp_path / name
+    assert main(["export-bag", str(folder), "--out", str(out)]) == 0
+    ds = open_dataset(out)
+    odo, ref_odo = ds.odometry, reference.odometry
+    assert odo is not None and ds.imu is not None
+    o, m = ref_odo.timestamps >= 0, reference.imu.timestamps >= 0  # a bag has no times < 0
+    np.testing.assert_allclose(odo.timestamps, ref_odo.timestamps[o], rtol=0, atol=1e-6)
+    travel = ref_odo.distance_mm[o] - ref_odo.distance_mm[o][0]  # path length starts at 0
+    np.testing.assert_allclose(odo.distance_mm, travel, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(odo.sigma_mm, ref_odo.sigma_mm[o], rtol=1e-9)
+    np.testing.assert_allclose(ds.imu.timestamps, reference.imu.timestamps[m], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(ds.imu.accel, reference.imu.accel[m], rtol=0, atol=1e-9)
+    assert (ds.imu.gyro is None) == (reference.imu.gyro is None)

@@ -20,14 +20,19 @@ Nothing is written until the whole bag is: it is made in a temporary sibling and
 moved into place. An existing OUT, or a different rig.yaml where the bag's must go,
 is refused.
 
-TODO: odometry.txt and imu.txt (DATA_CONTRACT section 1) are not written yet: their
-readers (``omnipipe.inputs.sensors``) are not on main; with them, nav_msgs/Odometry
-(or a std_msgs travel topic) and sensor_msgs/Imu topics belong here.
+The robot's sensors, when the dataset has them (DATA_CONTRACT section 1), go on their own
+topics in time order with the frames: odometry.txt as ``nav_msgs/Odometry`` on
+:data:`ODOMETRY_TOPIC` (the travel as the position's x in metres, its sigma as the x
+variance; the reader takes the path length, so a travel that starts above 0 reads back
+from 0) and imu.txt as ``sensor_msgs/Imu`` on :data:`IMU_TOPIC` (no orientation; no gyro
+where the file has none: covariance[0] = -1). Sensor readings before time 0 (a simulator's
+IMU starts before the first frame) cannot be stamped in a bag and are left out.
 """
 
 from __future__ import annotations
 
 import argparse
+import heapq
 import os
 import shutil
 from collections.abc import Iterator
@@ -44,6 +49,10 @@ if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
 
 DEFAULT_TOPIC = "/omnipipe/image"
+ODOMETRY_TOPIC = "/omnipipe/odometry"
+IMU_TOPIC = "/omnipipe/imu"
+_ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+_IMU_TYPE = "sensor_msgs/msg/Imu"
 FRAME_ID = "omnipipe_rig"
 _FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}
 
@@ -170,39 +179,99 @@ def dataset_rig_text(dataset: Dataset) -> bytes:
     return path.read_bytes()
 
 
+def _header(ts: Any, kind: str, ns: int, seq: int) -> object:
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+    if kind == "ros1":
+        return Header(seq=seq, stamp=stamp, frame_id=FRAME_ID)
+    return Header(stamp=stamp, frame_id=FRAME_ID)
+
+
+def _sensor_messages(dataset: Dataset, ts: Any, kind: str) -> Iterator[tuple[int, str, object]]:
+    """(stamp ns, topic, message) of the dataset's odometry and IMU, each in time order."""
+    t = ts.types
+    vec = t["geometry_msgs/msg/Vector3"]
+    quat = t["geometry_msgs/msg/Quaternion"]
+    odo = dataset.odometry
+    if odo is not None:
+        for i, (time, d, sigma) in enumerate(
+            zip(odo.timestamps, odo.distance_mm, odo.sigma_mm, strict=True)
+        ):
+            if time < 0:
+                continue
+            ns = _stamp_ns(time)
+            cov = np.zeros(36)
+            cov[0] = (float(sigma) / 1000.0) ** 2
+            pose = t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=float(d) / 1000.0, y=0.0, z=0.0),
+                orientation=quat(x=0.0, y=0.0, z=0.0, w=1.0),
+            )
+            twist = t["geometry_msgs/msg/Twist"](linear=vec(x=0.0, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0))
+            yield ns, ODOMETRY_TOPIC, t[_ODOMETRY_TYPE](
+                header=_header(ts, kind, ns, i), child_frame_id=FRAME_ID,
+                pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov),
+                twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+            )
+    imu = dataset.imu
+    if imu is not None:
+        no = np.zeros(9)
+        no[0] = -1.0
+        for i, time in enumerate(imu.timestamps):
+            if time < 0:
+                continue
+            ns = _stamp_ns(time)
+            a = imu.accel[i]
+            w = imu.gyro[i] if imu.gyro is not None else np.zeros(3)
+            yield ns, IMU_TOPIC, t[_IMU_TYPE](
+                header=_header(ts, kind, ns, i), orientation=quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=no.copy(),
+                angular_velocity=vec(x=float(w[0]), y=float(w[1]), z=float(w[2])),
+                angular_velocity_covariance=np.zeros(9) if imu.gyro is not None else no.copy(),
+                linear_acceleration=vec(x=float(a[0]), y=float(a[1]), z=float(a[2])),
+                linear_acceleration_covariance=np.zeros(9),
+            )
+
+
 def _write(dataset: Dataset, tmp: Path, kind: str, ts: Any, topic: str, raw: bool) -> Path:
     """Write the bag into ``tmp`` (``ts``: the rosbags typestore of ``kind``); the path of
     the finished bag (file or folder)."""
     msgtype = "sensor_msgs/msg/Image" if raw else "sensor_msgs/msg/CompressedImage"
-    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
 
-    def messages() -> Iterator[tuple[int, object]]:
+    def frames() -> Iterator[tuple[int, str, object]]:
         for i, (path, t) in enumerate(zip(dataset.frame_paths, dataset.timestamps, strict=True)):
             ns = _stamp_ns(t)
-            stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
-            header = (Header(seq=i, stamp=stamp, frame_id=FRAME_ID) if kind == "ros1"
-                      else Header(stamp=stamp, frame_id=FRAME_ID))
             carry = not raw and Path(path).suffix.lower() in _FORMATS and Path(path).is_file()
             image = None if carry else dataset.read_frame(i)
-            yield ns, _image_message(ts.types, header, Path(path), image, raw)
+            yield ns, topic, _image_message(ts.types, _header(ts, kind, ns, i), Path(path), image, raw)
+
+    types = {topic: msgtype, ODOMETRY_TOPIC: _ODOMETRY_TYPE, IMU_TOPIC: _IMU_TYPE}
+    used = {topic}
+    if dataset.odometry is not None:
+        used.add(ODOMETRY_TOPIC)
+    if dataset.imu is not None:
+        used.add(IMU_TOPIC)
+
+    def messages() -> Iterator[tuple[int, str, object]]:
+        sensors = sorted(_sensor_messages(dataset, ts, kind), key=lambda m: m[0])
+        return heapq.merge(frames(), iter(sensors), key=lambda m: m[0])
 
     if kind == "ros1":
         from rosbags.rosbag1 import Writer as Writer1
 
         bag = tmp / "bag.bag"
         with Writer1(bag) as writer:
-            conn = writer.add_connection(topic, msgtype, typestore=ts)
-            for ns, msg in messages():
-                writer.write(conn, ns, ts.serialize_ros1(msg, msgtype))
+            conns = {name: writer.add_connection(name, types[name], typestore=ts) for name in sorted(used)}
+            for ns, name, msg in messages():
+                writer.write(conns[name], ns, ts.serialize_ros1(msg, types[name]))
         return bag
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
 
     folder = tmp / "bag"
     with Writer2(folder, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(topic, msgtype, typestore=ts)
-        for ns, msg in messages():
-            writer.write(conn, ns, ts.serialize_cdr(msg, msgtype))
+        conns = {name: writer.add_connection(name, types[name], typestore=ts) for name in sorted(used)}
+        for ns, name, msg in messages():
+            writer.write(conns[name], ns, ts.serialize_cdr(msg, types[name]))
     if kind == "ros2-folder":
         return folder
     files = sorted(folder.glob("*.mcap"))
