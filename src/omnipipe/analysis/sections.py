@@ -21,12 +21,22 @@ from omnipipe.analysis.stations import Headline, SectionConfig, Station
 def section_features(
     stations: list[Station], line: Centreline, head: Headline, config: SectionConfig
 ) -> list[Feature]:
-    """Taper, bend, ovality and water features of the run, in axial order."""
+    """Taper, bend, ovality and water features of the run, in axial order (a centreline
+    turn overlapping a taper is not a bend: the cylinder fits tilt in a cone)."""
     if len(stations) < 3:
         return []
-    out = _tapers(stations, config) + _bends(line, head.diameter_mm, config)
+    tapers = _tapers(stations, config)
+    # The piecewise cylinder fits tilt their axes in a cone: no bend inside a taper.
+    bends = [b for b in _bends(line, head.diameter_mm, config) if not any(_overlap(b, t) for t in tapers)]
+    out = tapers + bends
     out += _ovality_stretches(stations, config) + _water_stretches(stations, config)
     return sorted(out, key=lambda f: f.axial_from_mm if f.axial_from_mm is not None else 0.0)
+
+
+def _overlap(a: Feature, b: Feature) -> bool:
+    lo = max(a.axial_from_mm or 0.0, b.axial_from_mm or 0.0)
+    hi = min(a.axial_to_mm or 0.0, b.axial_to_mm or 0.0)
+    return hi > lo
 
 
 def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
@@ -173,8 +183,10 @@ def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[
     ds = np.maximum(np.diff(arc), 1e-6)
     kappa = step / ds
     mid = 0.5 * (arc[1:] + arc[:-1])
+    chords = np.diff(np.asarray(line.centre), axis=0)
+    chords = chords / np.maximum(np.linalg.norm(chords, axis=1), 1e-9)[:, None]
     straight = kappa[kappa * diameter_mm < config.bend_min_curvature]
-    noise = 1.4826 * float(np.median(straight)) if len(straight) else 0.0
+    noise = 1.4826 * float(np.median(straight)) if len(straight) >= 3 else 0.0
     thr = max(config.bend_min_curvature / diameter_mm, 6.0 * noise)
     out = []
     for i0, i1 in _runs(kappa > thr, config.min_stations):
@@ -184,7 +196,11 @@ def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[
         turn = math.acos(float(np.clip(ta @ tb, -1.0, 1.0)))
         if math.degrees(turn) < config.bend_min_turn_deg:
             continue
-        turn_sigma = math.sqrt(2.0) * max(noise * float(np.median(ds)), 1e-4)
+        # The ring centres' chords turn by the same angle: their disagreement with the
+        # fitted tangents bounds the turn's error from below.
+        ca, cb = chords[max(i0 - 1, 0)], chords[min(i1 + 1, len(chords) - 1)]
+        chord_turn = math.acos(float(np.clip(ca @ cb, -1.0, 1.0)))
+        turn_sigma = math.hypot(math.sqrt(2.0) * noise * float(np.median(ds)), turn - chord_turn)
         radius = (hi - lo) / max(turn, 1e-9)
         edge = _edge_sigma(arc)
         out.append(
