@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline, fit_centreline
+from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
     DefectSearch,
@@ -229,10 +229,12 @@ def run(
         ReconstructionError: too few rings to fit the pipe.
     """
     pts, frame, poses = _checked(inputs)
-    line, whole = _fit_axis(config, inputs, pts, frame, poses, executor)
-    straight = whole is not None
-    diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
+    line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor)
     sigma, rho, theta = line.coordinates(pts, frame)
+    line = recentred(line, _section_centres(config, frame, theta, rho, len(poses)), inputs.reference_from_world, 0.5 * window)
+    sigma, rho, theta = line.coordinates(pts, frame)
+    straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
+    diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
     stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius)
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
@@ -342,9 +344,9 @@ def _fit_axis(
     frame: np.ndarray,
     poses: np.ndarray,
     executor: Executor | None,
-) -> tuple[Centreline, Cylinder | None]:
-    """The piecewise centreline, and the single cylinder of the whole run when the
-    centreline is straight (None: it bends)."""
+) -> tuple[Centreline, Cylinder | None, float]:
+    """The piecewise centreline, the single cylinder of the whole run when the
+    centreline is straight (None: it bends) and the window of the piecewise fits (mm)."""
     rings = [pts[frame == k] for k in range(len(poses))]
     axis_guess = poses[:, :3, 2]
     # A first whole-run fit gives the scale for the window.
@@ -367,13 +369,32 @@ def _fit_axis(
         executor=executor,
     )
     if line.straightness_mm() > config.straight_tolerance_mm:
-        return line, None
+        return line, None, window
     whole = fit_cylinder(
         pts[np.linspace(0, len(pts) - 1, min(len(pts), 20000)).astype(int)],
         rough.axis,
         loss_scale_mm=config.loss_scale_mm,
     )
-    return line, whole
+    return line, whole, window
+
+
+def _section_centres(
+    config: AnalysisConfig, frame: np.ndarray, theta: np.ndarray, rho: np.ndarray, k: int
+) -> np.ndarray:
+    """(K, 2) each ring's section centre in its station's (normal, binormal) plane:
+    the order-1 terms of its wall profile (0 for a ring too sparse to fit)."""
+    out = np.zeros((k, 2))
+    sec_config = section_config(config)
+    for i in range(k):
+        on = frame == i
+        if on.sum() < 12:
+            continue
+        cut, coverage = ring_cut(theta[on], sec_config)
+        order = section_order(cut, coverage, config.profile_order, sec_config)
+        if order >= 1:
+            coef = fit_wall_profile(theta[on], rho[on], order, config.loss_scale_mm)
+            out[i] = coef[1:3]
+    return out
 
 
 def _measure_wall(
@@ -508,8 +529,11 @@ def _station_profiles(
         if use.sum() < 12:
             use = on
         th = theta[use]
-        cut, coverage = ring_cut(th, sec_config)
-        order = section_order(cut, coverage, config.profile_order, sec_config)
+        # The cut (water) is where the ring has no points at all; the coverage for the
+        # order is that of the points fitted (a defect's samples left out open a gap).
+        cut, coverage = ring_cut(theta[on], sec_config)
+        _, fitted_coverage = ring_cut(th, sec_config)
+        order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
         coef = fit_wall_profile(th, rho[use], order, config.loss_scale_mm)
         A = fourier_design(th, order)
         res = rho[use] - A @ coef
