@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, report_fields, run
 from omnipipe.analysis.feature_types import Feature
@@ -45,6 +46,7 @@ def _kinds(features: tuple[Feature, ...], kind: str) -> list[Feature]:
     return [f for f in features if f.kind == kind]
 
 
+@pytest.mark.slow
 def test_oval_pipe_mean_diameter_ovality_and_a_bulge_on_it() -> None:
     bulge = Defect("bulge", 2.0, 30.0, 60.0, axial_start_mm=170.0, angle_deg=100.0)
     pipe = Pipe(inner_diameter_mm=250.0, defects=[bulge], ovality=0.06, ovality_angle_deg=30.0)
@@ -65,6 +67,7 @@ def test_oval_pipe_mean_diameter_ovality_and_a_bulge_on_it() -> None:
     assert not _kinds(res.features, "water") and res.water_depth_mm is None
 
 
+@pytest.mark.slow
 def test_reducer_is_a_taper_not_a_dent() -> None:
     pipe = Pipe(inner_diameter_mm=250.0, features=PipeFeatures(tapers=(Taper(220.0, 370.0, 180.0),)))
     res = run(AnalysisConfig(), _rings(pipe, 150.0, 5.0, 60, seed=4))
@@ -79,6 +82,7 @@ def test_reducer_is_a_taper_not_a_dent() -> None:
     assert res.inner_diameter_min_mm < 181.0 and res.inner_diameter_max_mm > 249.0
 
 
+@pytest.mark.slow
 def test_partly_flooded_oval_sewer_water_depth_and_wall_above_it() -> None:
     features = PipeFeatures(ovalities=(Ovality(230.0, 430.0, 4.0, angle_deg=0.0, blend_mm=40.0),), water=Water(40.0))
     pipe = Pipe(inner_diameter_mm=300.0, features=features)
@@ -108,6 +112,7 @@ def test_partly_flooded_oval_sewer_water_depth_and_wall_above_it() -> None:
     assert {f["kind"] for f in fields["features"]} == {"water", "ovality"}
 
 
+@pytest.mark.slow
 def test_tight_elbow_is_a_bend_feature() -> None:
     pipe = Pipe(
         inner_diameter_mm=200.0,
