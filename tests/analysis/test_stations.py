@@ -15,12 +15,14 @@ from omnipipe.sim.features import Ovality, PipeFeatures, Taper, Water
 from omnipipe.sim.scene import Centreline, Defect, Pipe
 
 
-def _rings(pipe: Pipe, first: float, spacing: float, n: int, seed: int, noise: float = 0.1) -> AnalysisInputs:
+def _rings(
+    pipe: Pipe, first: float, spacing: float, n: int, seed: int, noise: float = 0.1, samples: int = 360
+) -> AnalysisInputs:
     """Rings of the true wall every ``spacing`` mm from ``first``, rig z along the
     centreline; wall under the standing water returns no laser."""
     rng = np.random.default_rng(seed)
     sig = first + spacing * np.arange(n) + rng.uniform(-0.5, 0.5, n)
-    theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    theta = np.linspace(-np.pi, np.pi, samples, endpoint=False)
     centre, normal, binormal, tangent = pipe.frame_at(sig)
     level = pipe.water_level()
     pts, frame, poses = [], [], []
@@ -70,7 +72,7 @@ def test_oval_pipe_mean_diameter_ovality_and_a_bulge_on_it() -> None:
 @pytest.mark.slow
 def test_reducer_is_a_taper_not_a_dent() -> None:
     pipe = Pipe(inner_diameter_mm=250.0, features=PipeFeatures(tapers=(Taper(220.0, 370.0, 180.0),)))
-    res = run(AnalysisConfig(), _rings(pipe, 150.0, 5.0, 60, seed=4))
+    res = run(AnalysisConfig(), _rings(pipe, 150.0, 7.5, 40, seed=4))
     assert res.defects == []
     truth = _true_mean_diameter(pipe, res.stations_axial_mm)
     assert abs(res.inner_diameter_mm - truth.mean()) <= 3 * res.inner_diameter_sigma_mm
@@ -86,22 +88,24 @@ def test_reducer_is_a_taper_not_a_dent() -> None:
 def test_partly_flooded_oval_sewer_water_depth_and_wall_above_it() -> None:
     features = PipeFeatures(ovalities=(Ovality(230.0, 430.0, 4.0, angle_deg=0.0, blend_mm=40.0),), water=Water(40.0))
     pipe = Pipe(inner_diameter_mm=300.0, features=features)
-    res = run(AnalysisConfig(), _rings(pipe, 150.0, 5.0, 60, seed=5))
+    res = run(AnalysisConfig(), _rings(pipe, 150.0, 7.5, 40, seed=5))
     assert res.defects == []
     assert any("water" in w for w in res.warnings)
-    assert res.water_depth_mm is not None and abs(res.water_depth_mm - 40.0) <= 2.0
+    # True depth at each station: the water level above its section's invert (40 mm,
+    # 37 mm where the 4 % ovality with a horizontal major axis lifts the invert).
+    true_depth = pipe.water_level() - pipe.invert_height(res.stations_axial_mm)
+    assert res.water_depth_mm is not None
+    assert abs(res.water_depth_mm - np.median(true_depth)) <= 2.0
     truth = _true_mean_diameter(pipe, res.stations_axial_mm)
     assert abs(res.inner_diameter_mm - truth.mean()) <= 3 * res.inner_diameter_sigma_mm
     th = np.linspace(0, 2 * np.pi, 720, endpoint=False)
-    for s in res.stations:
-        # True depth: the water level above this section's invert.
-        invert = float(pipe.invert_height(np.array([s.axial_mm]))[0])
-        assert abs(s.water_depth_mm - (pipe.water_level() - invert)) <= 2.0
+    for s, depth in zip(res.stations, true_depth, strict=True):
+        assert abs(s.water_depth_mm - depth) <= 2.0
         r = pipe.wall_radius(np.full_like(th, s.axial_mm), th)
         true_ov = 100 * (2 * r.max() - 2 * r.min()) / (2 * r.mean())
         assert abs(100 * s.ovality - true_ov) <= 0.3
     (water,) = _kinds(res.features, "water")
-    assert abs(water.sizes["depth_mm"] - 40.0) <= 2.0 and water.truncated
+    assert abs(water.sizes["depth_mm"] - np.median(true_depth)) <= 2.0 and water.truncated
     (oval,) = _kinds(res.features, "ovality")
     assert 220.0 < oval.axial_from_mm < 260.0 and 400.0 < oval.axial_to_mm < 440.0
     assert abs(oval.sizes["percent"] - 4.0) <= 0.3

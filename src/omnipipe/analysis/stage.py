@@ -7,8 +7,12 @@ of the rings' frames and returns:
   diameter is the single cylinder fitted to the whole run when the pipe is straight
   (the paper's cylinder fitting, Table I) and the median of the piecewise fits when it
   bends;
-* per station (ring) a robust Fourier fit of the radius around the axis: station
-  diameter and ovality (Dmax - Dmin) / D;
+* each station re-centred on its own section (:func:`.centreline.recentred`), then per
+  station (ring) a robust Fourier fit of the radius around the axis: mean diameter
+  (Dmax + Dmin) / 2, ovality (Dmax - Dmin) / D and its axis, standing water from the
+  ring's cut-off chord (:mod:`.stations`); the headline inner diameter is the stations'
+  mean (:func:`.stations.headline`) and the section features (taper, bend, ovality,
+  water) follow from the stations and the centreline (:mod:`.sections`);
 * the radial deviation of every point from that wall, and the bulges and dents found
   in it (:mod:`.defects`, sized by a model fit, :mod:`.sizing`), in the data contract's
   convention (axial position along the centreline from the first frame's origin, angle
