@@ -75,7 +75,7 @@ def test_reducer_is_a_taper_not_a_dent() -> None:
     res = run(AnalysisConfig(), _rings(pipe, 150.0, 7.5, 40, seed=4))
     assert res.defects == []
     truth = _true_mean_diameter(pipe, res.stations_axial_mm)
-    assert abs(res.inner_diameter_mm - truth.mean()) <= 3 * res.inner_diameter_sigma_mm
+    assert abs(res.inner_diameter_mm - np.median(truth)) <= 3 * res.inner_diameter_sigma_mm
     assert np.max(np.abs(res.stations_diameter_mm - truth)) < 0.5
     (taper,) = _kinds(res.features, "taper")
     assert abs(taper.axial_from_mm - 220.0) < 8.0 and abs(taper.axial_to_mm - 370.0) < 8.0
@@ -97,7 +97,7 @@ def test_partly_flooded_oval_sewer_water_depth_and_wall_above_it() -> None:
     assert res.water_depth_mm is not None
     assert abs(res.water_depth_mm - np.median(true_depth)) <= 2.0
     truth = _true_mean_diameter(pipe, res.stations_axial_mm)
-    assert abs(res.inner_diameter_mm - truth.mean()) <= 3 * res.inner_diameter_sigma_mm
+    assert abs(res.inner_diameter_mm - np.median(truth)) <= 3 * res.inner_diameter_sigma_mm
     th = np.linspace(0, 2 * np.pi, 720, endpoint=False)
     for s, depth in zip(res.stations, true_depth, strict=True):
         assert abs(s.water_depth_mm - depth) <= 2.0

@@ -289,10 +289,10 @@ class Headline:
     """The run's inner diameter from its stations (mm).
 
     Attributes:
-        diameter_mm, sigma_mm: mean of the stations' mean diameters and its 1-sigma.
+        diameter_mm, sigma_mm: median of the stations' mean diameters and its 1-sigma.
         min_mm, max_mm: smallest Dmin and largest Dmax of the stations (each smoothed
             over 5 neighbouring stations).
-        stations_used: stations in the mean (outliers off the local trend dropped).
+        stations_used: stations measured.
     """
 
     diameter_mm: float
@@ -307,27 +307,28 @@ def _running_median(x: np.ndarray, half: int = 2) -> np.ndarray:
 
 
 def headline(stations: list[Station], shared_sigma_mm: float) -> Headline:
-    """Mean diameter of the run: the mean of the stations' (Dmax + Dmin) / 2 (a taper's
-    stations included: the mean over the measured stretch).
+    """Mean diameter of the run: the median of the stations' (Dmax + Dmin) / 2 (robust to
+    a ring across a joint; on a taper the diameter at the middle station).
 
-    Its sigma: the stations' scatter about their local trend (running median of 5, x
-    sqrt(1.5) for the median's own noise) over sqrt(n), and ``shared_sigma_mm`` (errors
-    all stations share: the rig calibration, the systematic ring radius); with fewer than
-    3 stations their stated sigma stands in for the scatter.
+    Its sigma: 1.25 x the stations' scatter / sqrt(n), the scatter from each station's
+    difference to the line through its neighbours (a taper's slope cancels; robust MAD,
+    / sqrt(1.5) for the neighbours' own noise), and ``shared_sigma_mm`` (errors all
+    stations share: the rig calibration, the systematic ring radius); with fewer than 3
+    stations their stated sigma stands in for the scatter.
     """
     d = np.array([s.diameter_mm for s in stations])
     ds = np.array([s.diameter_sigma_mm for s in stations])
-    trend = _running_median(d)
-    resid = d - trend
-    mad = 1.4826 * float(np.median(np.abs(resid))) if len(d) > 2 else 0.0
-    keep = np.abs(resid) <= max(5.0 * mad, 3.0 * float(np.median(ds)))
-    n = int(keep.sum())
-    scatter = float(np.std(resid[keep])) * math.sqrt(1.5) if n > 2 else float(np.median(ds))
-    stat = scatter / math.sqrt(max(n, 1))
+    n = len(d)
+    if n >= 3:
+        resid = d[1:-1] - 0.5 * (d[:-2] + d[2:])
+        scatter = 1.4826 * float(np.median(np.abs(resid))) / math.sqrt(1.5)
+    else:
+        scatter = float(np.median(ds))
+    stat = 1.2533 * scatter / math.sqrt(max(n, 1))
     dmin = _running_median(np.array([s.diameter_min_mm for s in stations]))
     dmax = _running_median(np.array([s.diameter_max_mm for s in stations]))
     return Headline(
-        diameter_mm=float(np.mean(d[keep])),
+        diameter_mm=float(np.median(d)),
         sigma_mm=math.hypot(stat, shared_sigma_mm),
         min_mm=float(np.min(dmin)),
         max_mm=float(np.max(dmax)),
