@@ -201,8 +201,8 @@ def main() -> None:
         for st in summary["stations"]:
             # Stations away from the defects measure the round pipe (a ring crossing a
             # defect has no single true diameter): outside every defect's flanks.
-            if st.get("diameter_sigma_mm") is not None and not _near_defect(st["axial_mm"], scene["defects"]):
-                errors["station diameter"].append((st["diameter_mm"] - d_true, st["diameter_sigma_mm"]))
+            if st.get("inner_diameter_sigma_mm") is not None and not _near_defect(st["axial_mm"], scene["defects"]):
+                errors["station diameter"].append((st["inner_diameter_mm"] - d_true, st["inner_diameter_sigma_mm"]))
         for t, m in _pair(scene["defects"], summary["defects"]):
             if m is None:
                 missed.append(t)

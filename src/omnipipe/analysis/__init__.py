@@ -1,7 +1,9 @@
 """Analysis stage: inner diameter, ovality and defects of the measured pipe (Table I).
 
 The stage is :func:`omnipipe.analysis.stage.run`; the modules: :mod:`.centreline`,
-:mod:`.cylinder`, :mod:`.defects`, :mod:`.sizing`, :mod:`.uncertainty`.
+:mod:`.cylinder`, :mod:`.defects`, :mod:`.sizing`, :mod:`.uncertainty`, :mod:`.stations`
+(cross-sections: mean diameter, ovality, water), :mod:`.sections` (taper, bend, ovality and
+water features) and :mod:`.feature_types` (:class:`Feature`).
 """
 
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder

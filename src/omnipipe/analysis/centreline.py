@@ -80,6 +80,38 @@ class Centreline:
         return self.arc_mm[station] + along, rho, theta
 
 
+def recentred(
+    line: Centreline,
+    offsets: np.ndarray,
+    reference_from_world: np.ndarray,
+    half_span_mm: float,
+) -> Centreline:
+    """The centreline through corrected station centres.
+
+    Args:
+        line: the piecewise fit.
+        offsets: (K, 2) each station's section centre in its (normal, binormal) plane (mm):
+            the order-1 terms of its wall profile.
+        reference_from_world: as for :func:`fit_centreline`.
+        half_span_mm: the tangent at a station is the direction of the corrected
+            centres within this distance.
+
+    A short window's cylinder can tilt to mimic an oval section (an oblique cut of a
+    circular cylinder is an ellipse: 6 % ovality ~ 20 deg), which shifts its station's
+    projected centre; each ring's own section centre has no such freedom.
+    """
+    off = np.asarray(offsets, float)
+    centre = line.centre + off[:, :1] * line.normal + off[:, 1:2] * line.binormal
+    tangent = _local_tangents(centre, line.tangent, half_span_mm)
+    steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
+    steps /= np.maximum(np.linalg.norm(tangent[1:] + tangent[:-1], axis=1), 1e-12)
+    arc = np.concatenate([[0.0], np.cumsum(steps)])
+    arc, normals = _referenced(arc, centre, tangent, reference_from_world)
+    return Centreline(
+        arc, centre, tangent, normals, np.cross(tangent, normals), line.radius_mm, line.cylinders
+    )
+
+
 def _referenced(
     arc: np.ndarray, centre: np.ndarray, tangent: np.ndarray, reference_from_world: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,10 @@
 
 The deviation of a wall point is its distance from the axis minus the fitted wall
 radius at its station and angle: negative for a bulge (into the pipe), positive
-for a dent. Candidates are connected groups of points whose deviation exceeds a
+for a dent. The fitted wall is each station's own section (:mod:`.stations`: an ellipse
+per ring, on the wall above any standing water, about the ring's own centre), so an
+oval, tapering or bending pipe is the reference, never a defect; :class:`WallSamples`
+carries those deviations. Candidates are connected groups of points whose deviation exceeds a
 threshold (``min_height_mm`` and a multiple of the measured noise) with a neighbour on
 their ring at least half as far out (lone samples are extraction outliers), linked
 across neighbouring rings and around the pipe's seam.

@@ -7,8 +7,12 @@ of the rings' frames and returns:
   diameter is the single cylinder fitted to the whole run when the pipe is straight
   (the paper's cylinder fitting, Table I) and the median of the piecewise fits when it
   bends;
-* per station (ring) a robust Fourier fit of the radius around the axis: station
-  diameter and ovality (Dmax - Dmin) / D;
+* each station re-centred on its own section (:func:`.centreline.recentred`), then per
+  station (ring) a robust Fourier fit of the radius around the axis: mean diameter
+  (Dmax + Dmin) / 2, ovality (Dmax - Dmin) / D and its axis, standing water from the
+  ring's cut-off chord (:mod:`.stations`); the headline inner diameter is the stations'
+  mean (:func:`.stations.headline`) and the section features (taper, bend, ovality,
+  water) follow from the stations and the centreline (:mod:`.sections`);
 * the radial deviation of every point from that wall, and the bulges and dents found
   in it (:mod:`.defects`, sized by a model fit, :mod:`.sizing`), in the data contract's
   convention (axial position along the centreline from the first frame's origin, angle
@@ -27,7 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline, fit_centreline
+from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
     DefectSearch,
@@ -35,6 +39,19 @@ from omnipipe.analysis.defects import (
     find_defects,
     fit_wall_profile,
     fourier_design,
+)
+from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.sections import section_features
+from omnipipe.analysis.stations import (
+    Section,
+    SectionConfig,
+    Station,
+    headline,
+    ring_cut,
+    section_order,
+    station_from_section,
+    with_deformation,
+    with_water,
 )
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
@@ -92,6 +109,25 @@ class AnalysisConfig:
     systematic_radius_factor: float = 0.08
     systematic_height_factor: float = 0.5
     width_resolution_samples: float = 0.35
+    cut_min_coverage_deg: float = 200.0
+    cut_min_deg: float = 8.0
+    ovality_feature_pct: float = 2.0
+    taper_min_mm: float = 2.0
+    bend_min_curvature: float = 0.2
+    bend_min_turn_deg: float = 10.0
+
+
+def section_config(config: AnalysisConfig) -> SectionConfig:
+    """The section measurements' settings (:class:`.stations.SectionConfig`) of ``config``."""
+    return SectionConfig(
+        min_coverage_deg=config.min_coverage_deg,
+        cut_min_coverage_deg=config.cut_min_coverage_deg,
+        cut_min_deg=config.cut_min_deg,
+        ovality_feature_pct=config.ovality_feature_pct,
+        taper_min_mm=config.taper_min_mm,
+        bend_min_curvature=config.bend_min_curvature,
+        bend_min_turn_deg=config.bend_min_turn_deg,
+    )
 
 
 @dataclass
@@ -130,7 +166,8 @@ class AnalysisResult:
     """Measurements of the pipe.
 
     Attributes:
-        inner_diameter_mm: the fitted inner diameter.
+        inner_diameter_mm: the mean diameter (Dmax + Dmin) / 2, averaged over the stations
+            (:func:`.stations.headline`).
         straight: True when one cylinder describes the whole run.
         ovality_max: the largest station ovality (Dmax - Dmin) / D.
         stations_axial_mm, stations_diameter_mm, stations_ovality: (K,) per ring
@@ -147,8 +184,14 @@ class AnalysisResult:
         centreline: the fitted axis.
         point_sigma_mm, point_theta_rad, point_deviation_mm: (N,) unrolled pipe
             coordinates and deviation of every input point (the model's unrolled view).
-        radius_mm: reference radius of the unrolled view (inner diameter / 2).
+        radius_mm: reference radius of the unrolled view (the first fit's diameter / 2).
         warnings: human-readable notes.
+        stations: each station's cross-section (:class:`.stations.Station`).
+        features: the section features (taper, bend, ovality, water; :mod:`.sections`).
+        inner_diameter_min_mm, inner_diameter_max_mm: smallest Dmin and largest Dmax of
+            the stations (:func:`.stations.headline`).
+        water_depth_mm, water_depth_sigma_mm: median standing water over the wet
+            stations and its 1-sigma (None: no water seen).
     """
 
     inner_diameter_mm: float
@@ -171,6 +214,12 @@ class AnalysisResult:
     detection_limit_mm: float = math.nan
     noise_mm: float = math.nan
     ring_spacing_mm: float = math.nan
+    stations: tuple[Station, ...] = ()
+    features: tuple[Feature, ...] = ()
+    inner_diameter_min_mm: float = math.nan
+    inner_diameter_max_mm: float = math.nan
+    water_depth_mm: float | None = None
+    water_depth_sigma_mm: float | None = None
 
 
 def run(
@@ -184,42 +233,37 @@ def run(
         ReconstructionError: too few rings to fit the pipe.
     """
     pts, frame, poses = _checked(inputs)
-    line, whole = _fit_axis(config, inputs, pts, frame, poses, executor)
-    straight = whole is not None
-    diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
+    line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor)
     sigma, rho, theta = line.coordinates(pts, frame)
+    line = recentred(line, _section_centres(config, frame, theta, rho, len(poses)), inputs.reference_from_world, 0.5 * window)
+    sigma, rho, theta = line.coordinates(pts, frame)
+    straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
+    diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
     stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius)
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
     defects = _with_systematics(config, search, cal)
-    st_diam = stations.diameter
-    if whole is not None:
-        # The single cylinder: its statistical spread, and the stations' scatter (errors
-        # shared by the points of one ring: the ring's pose, its laser frame).
-        n_pts = min(len(pts), 20000)
-        stat = 2.0 * whole.scale_mm / math.sqrt(max(n_pts, 1))
-        between = float(np.std(st_diam)) / math.sqrt(max(len(st_diam), 1))
-        diameter_sigma = math.hypot(stat, between)
-    else:
-        # The median of the piecewise fits: 1.25 x the standard error of a mean.
-        radii = 2.0 * np.asarray(line.radius_mm)
-        diameter_sigma = 1.2533 * float(np.std(radii)) / math.sqrt(max(len(radii), 1))
-    diameter_sigma = math.hypot(diameter_sigma, 2.0 * radial_sys)
-    st_dsig = np.hypot(stations.diameter_sigma, 2.0 * radial_sys)
-    if cal > 0:
-        # The rig's calibration scales every measured length alike (the lengths along the
-        # pipe too: report_fields).
-        diameter_sigma = math.hypot(diameter_sigma, cal * float(diameter))
-        st_dsig = np.hypot(st_dsig, cal * np.abs(st_diam))
+    shared = math.hypot(2.0 * radial_sys, cal * float(diameter))
+    sec_config = section_config(config)
+    st_list = [
+        replace(st, diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm))
+        for st in _station_list(stations)
+    ]
+    st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config)
+    head = headline(st_list, shared)
+    st_list = with_deformation(st_list, head)
+    features = section_features(st_list, line, head, sec_config)
+    warnings = list(search.warnings) + _section_warnings(st_list, wet)
+    water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
     return AnalysisResult(
-        inner_diameter_mm=float(diameter),
+        inner_diameter_mm=head.diameter_mm,
         straight=bool(straight),
         ovality_max=float(finite.max()) if len(finite) else float("nan"),
         stations_axial_mm=stations.axial,
-        stations_diameter_mm=st_diam,
+        stations_diameter_mm=stations.diameter,
         stations_ovality=stations.ovality,
         defects=defects,
         centreline=line,
@@ -227,15 +271,51 @@ def run(
         point_theta_rad=theta,
         point_deviation_mm=np.nan_to_num(stations.deviation),
         radius_mm=float(radius),
-        warnings=list(search.warnings),
-        inner_diameter_sigma_mm=float(diameter_sigma),
+        warnings=warnings,
+        inner_diameter_sigma_mm=head.sigma_mm,
         calibration_sigma_rel=cal,
-        stations_diameter_sigma_mm=st_dsig,
+        stations_diameter_sigma_mm=np.array([st.diameter_sigma_mm for st in st_list]),
         stations_ovality_sigma=stations.ovality_sigma,
         detection_limit_mm=float(search.detection_limit_mm),
         noise_mm=float(search.noise_mm),
         ring_spacing_mm=float(search.ring_spacing_mm),
+        stations=tuple(st_list),
+        features=tuple(features),
+        inner_diameter_min_mm=head.min_mm,
+        inner_diameter_max_mm=head.max_mm,
+        water_depth_mm=water,
+        water_depth_sigma_mm=water_sigma,
     )
+
+
+def _station_list(stations: _Stations) -> list[Station]:
+    return [
+        station_from_section(a, sec, 0.0, 0.0)
+        for a, sec in zip(stations.axial, stations.sections, strict=True)
+    ]
+
+
+def _run_water(stations: list[Station]) -> tuple[float, float]:
+    """Median water depth over the wet stations and its 1-sigma (mm)."""
+    depth = np.array([s.water_depth_mm for s in stations if s.water_depth_mm > 0])
+    sig = np.array([s.water_depth_sigma_mm for s in stations if s.water_depth_mm > 0])
+    spread = float(np.std(depth)) if len(depth) > 2 else 0.0
+    return float(np.median(depth)), 1.2533 * max(spread, float(np.median(sig))) / math.sqrt(len(depth))
+
+
+def _section_warnings(stations: list[Station], wet: bool) -> list[str]:
+    """What the user must know about the sections' measurement."""
+    out = []
+    if wet:
+        n = sum(s.water_depth_mm > 0 for s in stations)
+        out.append(
+            f"standing water cuts the laser ring at the invert on {n} of {len(stations)} stations: "
+            "their diameter and ovality rest on the wall above the water only"
+        )
+    low = sum(not math.isfinite(s.ovality) for s in stations)
+    if low:
+        out.append(f"{low} station(s) cover too little of the wall for an ovality (diameter only)")
+    return out
 
 
 def _checked(inputs: AnalysisInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -268,9 +348,9 @@ def _fit_axis(
     frame: np.ndarray,
     poses: np.ndarray,
     executor: Executor | None,
-) -> tuple[Centreline, Cylinder | None]:
-    """The piecewise centreline, and the single cylinder of the whole run when the
-    centreline is straight (None: it bends)."""
+) -> tuple[Centreline, Cylinder | None, float]:
+    """The piecewise centreline, the single cylinder of the whole run when the
+    centreline is straight (None: it bends) and the window of the piecewise fits (mm)."""
     rings = [pts[frame == k] for k in range(len(poses))]
     axis_guess = poses[:, :3, 2]
     # A first whole-run fit gives the scale for the window.
@@ -293,13 +373,32 @@ def _fit_axis(
         executor=executor,
     )
     if line.straightness_mm() > config.straight_tolerance_mm:
-        return line, None
+        return line, None, window
     whole = fit_cylinder(
         pts[np.linspace(0, len(pts) - 1, min(len(pts), 20000)).astype(int)],
         rough.axis,
         loss_scale_mm=config.loss_scale_mm,
     )
-    return line, whole
+    return line, whole, window
+
+
+def _section_centres(
+    config: AnalysisConfig, frame: np.ndarray, theta: np.ndarray, rho: np.ndarray, k: int
+) -> np.ndarray:
+    """(K, 2) each ring's section centre in its station's (normal, binormal) plane:
+    the order-1 terms of its wall profile (0 for a ring too sparse to fit)."""
+    out = np.zeros((k, 2))
+    sec_config = section_config(config)
+    for i in range(k):
+        on = frame == i
+        if on.sum() < 12:
+            continue
+        cut, coverage = ring_cut(theta[on], sec_config)
+        order = section_order(cut, coverage, config.profile_order, sec_config)
+        if order >= 1:
+            coef = fit_wall_profile(theta[on], rho[on], order, config.loss_scale_mm)
+            out[i] = coef[1:3]
+    return out
 
 
 def _measure_wall(
@@ -405,6 +504,7 @@ class _Stations:
     ovality: np.ndarray
     ovality_sigma: np.ndarray
     deviation: np.ndarray
+    sections: tuple[Section, ...] = ()
 
 
 def _station_profiles(
@@ -420,23 +520,24 @@ def _station_profiles(
     point's deviation from it.
 
     The diameter's sigma is the fit's (A^T A)^-1 scaled by the ring's robust residual
-    spread. Ovality is 2 |(a2, b2)| / c0; the amplitude of a pair of noisy coefficients is
-    biased upward (E|a|^2 = |a_true|^2 + 2 var), so |a|^2 - 2 var is used (0 when negative).
+    spread. A ring cut off by water (one gap) keeps the order while the wall above it
+    covers ``cut_min_coverage_deg`` (:func:`.stations.section_order`). Ovality is
+    2 |(a2, b2)| / c0, bias-corrected (:func:`.stations.station_from_section`).
     """
     deviation = np.full(len(frame), np.nan)
-    out: dict[str, list[float]] = {
-        k: [] for k in ("axial", "diameter", "diameter_sigma", "ovality", "ovality_sigma")
-    }
+    sec_config = section_config(config)
+    axial, sections = [], []
     for k in np.flatnonzero(ok_station):
         on = frame == k
         use = on & ~exclude
         if use.sum() < 12:
             use = on
         th = theta[use]
-        coverage = 360.0 - np.degrees(
-            np.max(np.diff(np.sort(np.concatenate([th, [th.min() + 2 * np.pi]]))))
-        )
-        order = config.profile_order if coverage >= config.min_coverage_deg else 0
+        # The cut (water) is where the ring has no points at all; the coverage for the
+        # order is that of the points fitted (a defect's samples left out open a gap).
+        cut, coverage = ring_cut(theta[on], sec_config)
+        _, fitted_coverage = ring_cut(th, sec_config)
+        order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
         coef = fit_wall_profile(th, rho[use], order, config.loss_scale_mm)
         A = fourier_design(th, order)
         res = rho[use] - A @ coef
@@ -444,22 +545,15 @@ def _station_profiles(
         inlier = np.abs(res) <= 4.0 * max(spread, 1e-6)
         cov = np.linalg.pinv(A[inlier].T @ A[inlier]) * spread**2
         deviation[on] = rho[on] - fourier_design(theta[on], order) @ coef
-        out["axial"].append(float(np.median(sigma[on])))
-        out["diameter"].append(2.0 * coef[0])
-        out["diameter_sigma"].append(2.0 * math.sqrt(max(cov[0, 0], 0.0)))
-        if order >= 2:
-            var2 = 0.5 * (cov[3, 3] + cov[4, 4])
-            amp2 = coef[3] ** 2 + coef[4] ** 2 - 2.0 * var2
-            out["ovality"].append(2.0 * math.sqrt(max(amp2, 0.0)) / coef[0])
-            out["ovality_sigma"].append(2.0 * math.sqrt(var2) / coef[0])
-        else:
-            out["ovality"].append(math.nan)
-            out["ovality_sigma"].append(math.nan)
+        axial.append(float(np.median(sigma[on])))
+        sections.append(Section(coef, cov, order, cut, coverage))
+    stations = [station_from_section(a, sec, 0.0, 0.0) for a, sec in zip(axial, sections, strict=True)]
     return _Stations(
-        axial=np.array(out["axial"]),
-        diameter=np.array(out["diameter"]),
-        diameter_sigma=np.array(out["diameter_sigma"]),
-        ovality=np.array(out["ovality"]),
-        ovality_sigma=np.array(out["ovality_sigma"]),
+        axial=np.array([st.axial_mm for st in stations]),
+        diameter=np.array([st.diameter_mm for st in stations]),
+        diameter_sigma=np.array([st.diameter_sigma_mm for st in stations]),
+        ovality=np.array([st.ovality for st in stations]),
+        ovality_sigma=np.array([st.ovality_sigma for st in stations]),
         deviation=deviation,
+        sections=tuple(sections),
     )

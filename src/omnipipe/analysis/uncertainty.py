@@ -131,24 +131,16 @@ def report_fields(
         "pipe_straight": res.straight,
         "stations": _stations(res),
     }
+    if math.isfinite(res.inner_diameter_min_mm):
+        fields["inner_diameter_min_mm"] = _r(res.inner_diameter_min_mm, 3)
+        fields["inner_diameter_max_mm"] = _r(res.inner_diameter_max_mm, 3)
+    fields["water_depth_mm"] = _r(res.water_depth_mm, 2) if res.water_depth_mm is not None else 0.0
+    fields["water_depth_sigma_mm"] = _r(res.water_depth_sigma_mm, 3) if res.water_depth_sigma_mm is not None else None
+    fields["features"] = [f.to_contract() for f in res.features]
     return fields, warnings
 
 
 def _stations(res: AnalysisResult) -> list[dict[str, Any]]:
-    """report.json's ``stations``: axial position, diameter and ovality with 1-sigma."""
-    n = len(res.stations_diameter_mm)
-    dsig = res.stations_diameter_sigma_mm if len(res.stations_diameter_sigma_mm) == n else np.full(n, np.nan)
-    osig = res.stations_ovality_sigma if len(res.stations_ovality_sigma) == n else np.full(n, np.nan)
-    return [
-        {
-            "axial_mm": round(float(a), 2),
-            "diameter_mm": round(float(d), 3),
-            "diameter_sigma_mm": _r(float(ds), 4),
-            "ovality": _r(float(o), 5),
-            "ovality_sigma": _r(float(os_), 5),
-        }
-        for a, d, ds, o, os_ in zip(
-            res.stations_axial_mm, res.stations_diameter_mm, dsig, res.stations_ovality, osig,
-            strict=True,
-        )
-    ]
+    """report.json's ``stations``: each station's contract keys with their 1-sigma
+    (:meth:`.stations.Station.to_contract`)."""
+    return [st.to_contract() for st in res.stations]

@@ -230,7 +230,7 @@ def _profile_plot(inputs: ReportInputs) -> str:
     import matplotlib.pyplot as plt
 
     fig, ax1 = plt.subplots(figsize=(8, 3.2))
-    sig = [st.get("diameter_sigma_mm") for st in inputs.summary.get("stations", [])]
+    sig = [st.get("inner_diameter_sigma_mm") for st in inputs.summary.get("stations", [])]
     axial = np.asarray(inputs.stations_axial_mm)
     if len(sig) == len(axial) and all(v is not None for v in sig):
         ax1.errorbar(

@@ -1,0 +1,235 @@
+"""Section features of the measured pipe from its stations and centreline (issue 30):
+taper (a diameter change), bend (the centreline turning), ovality and water stretches.
+
+Each is a :class:`~omnipipe.analysis.feature_types.Feature` in the contract's form. A
+stretch touching the first or last station is ``truncated`` (it may run on beyond the
+measured stations). Extents along the pipe are uncertain by half the local station
+spacing (the feature's edge lies somewhere between two stations).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from omnipipe.analysis.centreline import Centreline
+from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.stations import Headline, SectionConfig, Station
+
+
+def section_features(
+    stations: list[Station], line: Centreline, head: Headline, config: SectionConfig
+) -> list[Feature]:
+    """Taper, bend, ovality and water features of the run, in axial order (a centreline
+    turn overlapping a taper is not a bend: the cylinder fits tilt in a cone)."""
+    if len(stations) < 3:
+        return []
+    tapers = _tapers(stations, config)
+    # The piecewise cylinder fits tilt their axes in a cone: no bend inside a taper.
+    bends = [b for b in _bends(line, head.diameter_mm, config) if not any(_overlap(b, t) for t in tapers)]
+    out = tapers + bends
+    out += _ovality_stretches(stations, config) + _water_stretches(stations, config)
+    return sorted(out, key=lambda f: f.axial_from_mm if f.axial_from_mm is not None else 0.0)
+
+
+def _overlap(a: Feature, b: Feature) -> bool:
+    lo = max(a.axial_from_mm or 0.0, b.axial_from_mm or 0.0)
+    hi = min(a.axial_to_mm or 0.0, b.axial_to_mm or 0.0)
+    return hi > lo
+
+
+def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
+    """(first, last) index of each run of True at least ``min_len`` long."""
+    out, start = [], None
+    for i, m in enumerate([*list(mask), False]):
+        if m and start is None:
+            start = i
+        elif not m and start is not None:
+            if i - start >= min_len:
+                out.append((start, i - 1))
+            start = None
+    return out
+
+
+def _edge_sigma(axial: np.ndarray) -> float:
+    return 0.5 * float(np.median(np.diff(axial))) if len(axial) > 1 else math.nan
+
+
+def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[Feature]:
+    """Stretches whose ovality is at least ``config.ovality_feature_pct``."""
+    ov = np.array([s.ovality for s in stations])
+    axial = np.array([s.axial_mm for s in stations])
+    mask = np.nan_to_num(ov, nan=0.0) * 100.0 >= config.ovality_feature_pct
+    edge = _edge_sigma(axial)
+    out = []
+    for i0, i1 in _runs(mask, config.min_stations):
+        sel = slice(i0, i1 + 1)
+        n = i1 - i0 + 1
+        z = np.exp(2j * np.radians([s.ovality_angle_deg for s in stations[sel]]))
+        angle = (0.5 * math.degrees(float(np.angle(np.mean(z))))) % 180.0
+        osig = np.array([s.ovality_sigma for s in stations[sel]])
+        asig = np.array([s.ovality_angle_sigma_deg for s in stations[sel]])
+        spread = float(np.std(ov[sel])) if n > 2 else float(np.median(osig))
+        out.append(
+            Feature(
+                kind="ovality",
+                axial_from_mm=float(axial[i0]),
+                axial_to_mm=float(axial[i1]),
+                angle_deg=angle,
+                sizes={"percent": 100.0 * float(np.median(ov[sel]))},
+                sigmas={
+                    "percent_sigma": 100.0 * max(spread, float(np.median(osig))) / math.sqrt(n),
+                    "angle_sigma_deg": float(np.median(asig)) / math.sqrt(n),
+                    "axial_from_sigma_mm": edge,
+                    "axial_to_sigma_mm": edge,
+                },
+                truncated=i0 == 0 or i1 == len(stations) - 1,
+            )
+        )
+    return out
+
+
+def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Feature]:
+    """Stretches of standing water (stations with a water depth)."""
+    depth = np.array([s.water_depth_mm for s in stations])
+    axial = np.array([s.axial_mm for s in stations])
+    edge = _edge_sigma(axial)
+    out = []
+    for i0, i1 in _runs(depth > 0, config.min_stations):
+        sel = slice(i0, i1 + 1)
+        dsig = np.array([s.water_depth_sigma_mm for s in stations[sel]])
+        n = i1 - i0 + 1
+        spread = float(np.std(depth[sel])) if n > 2 else 0.0
+        out.append(
+            Feature(
+                kind="water",
+                axial_from_mm=float(axial[i0]),
+                axial_to_mm=float(axial[i1]),
+                sizes={"depth_mm": float(np.median(depth[sel]))},
+                sigmas={
+                    "depth_sigma_mm": max(spread, float(np.median(dsig))) / math.sqrt(n),
+                    "axial_from_sigma_mm": edge,
+                    "axial_to_sigma_mm": edge,
+                },
+                truncated=i0 == 0 or i1 == len(stations) - 1,
+            )
+        )
+    return out
+
+
+def _taper_fit(axial: np.ndarray, d: np.ndarray) -> tuple[float, float, float, float, float]:
+    """Best ramp D1 -> D2 between a and b (constant outside) over the station grid:
+    (a, b, D1, D2, residual sum of squares)."""
+    best = (0.0, 0.0, 0.0, 0.0, math.inf)
+    knots = np.concatenate([axial, 0.5 * (axial[1:] + axial[:-1])])
+    knots.sort()
+    for i, a in enumerate(knots):
+        for b in knots[i + 1 :]:
+            w = np.clip((axial - a) / (b - a), 0.0, 1.0)
+            A = np.stack([1.0 - w, w], axis=1)
+            coef, *_ = np.linalg.lstsq(A, d, rcond=None)
+            rss = float(np.sum((A @ coef - d) ** 2))
+            if rss < best[4]:
+                best = (float(a), float(b), float(coef[0]), float(coef[1]), rss)
+    return best
+
+
+def _tapers(stations: list[Station], config: SectionConfig) -> list[Feature]:
+    """A diameter change along the run: a ramp fitted to the stations' mean diameters,
+    reported when the change is at least ``config.taper_min_mm`` and 6 sigma and the ramp
+    explains the stations much better than one diameter (residuals 4 x smaller)."""
+    axial = np.array([s.axial_mm for s in stations])
+    d = np.array([s.diameter_mm for s in stations])
+    dsig = np.array([s.diameter_sigma_mm for s in stations])
+    if len(d) < 4:
+        return []
+    a, b, d1, d2, rss = _taper_fit(axial, d)
+    rss0 = float(np.sum((d - d.mean()) ** 2))
+    noise = max(math.sqrt(rss / max(len(d) - 4, 1)), float(np.median(dsig)))
+    n1 = max(int(np.sum(axial <= a)), 1)
+    n2 = max(int(np.sum(axial >= b)), 1)
+    s1, s2 = noise / math.sqrt(n1), noise / math.sqrt(n2)
+    change = abs(d2 - d1)
+    if change < max(config.taper_min_mm, 6.0 * math.hypot(s1, s2)) or rss * 16.0 > rss0:
+        return []
+    edge = _edge_sigma(axial)
+    return [
+        Feature(
+            kind="taper",
+            axial_from_mm=a,
+            axial_to_mm=b,
+            sizes={"diameter_from_mm": d1, "diameter_to_mm": d2},
+            sigmas={
+                "diameter_from_sigma_mm": s1,
+                "diameter_to_sigma_mm": s2,
+                "axial_from_sigma_mm": edge,
+                "axial_to_sigma_mm": edge,
+            },
+            truncated=a <= axial[0] or b >= axial[-1],
+        )
+    ]
+
+
+def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[Feature]:
+    """Stretches where the centreline turns faster than ``config.bend_min_curvature`` /
+    diameter. Extent: where the curvature crosses half its median inside the stretch (the
+    piecewise fits' window smooths the bend's ends symmetrically); turn: the angle
+    between the tangents just outside it; radius: extent / turn."""
+    t, arc = np.asarray(line.tangent), np.asarray(line.arc_mm)
+    if len(t) < 4:
+        return []
+    step = np.arccos(np.clip(np.sum(t[1:] * t[:-1], axis=1), -1.0, 1.0))
+    ds = np.maximum(np.diff(arc), 1e-6)
+    kappa = step / ds
+    mid = 0.5 * (arc[1:] + arc[:-1])
+    chords = np.diff(np.asarray(line.centre), axis=0)
+    chords = chords / np.maximum(np.linalg.norm(chords, axis=1), 1e-9)[:, None]
+    straight = kappa[kappa * diameter_mm < config.bend_min_curvature]
+    noise = 1.4826 * float(np.median(straight)) if len(straight) >= 3 else 0.0
+    thr = max(config.bend_min_curvature / diameter_mm, 6.0 * noise)
+    out = []
+    for i0, i1 in _runs(kappa > thr, config.min_stations):
+        half = 0.5 * float(np.median(kappa[i0 : i1 + 1]))
+        lo, hi = _crossing(mid, kappa, i0, half, -1), _crossing(mid, kappa, i1, half, +1)
+        ta, tb = t[max(i0 - 1, 0)], t[min(i1 + 2, len(t) - 1)]
+        turn = math.acos(float(np.clip(ta @ tb, -1.0, 1.0)))
+        if math.degrees(turn) < config.bend_min_turn_deg:
+            continue
+        # The ring centres' chords turn by the same angle: their disagreement with the
+        # fitted tangents bounds the turn's error from below.
+        ca, cb = chords[max(i0 - 1, 0)], chords[min(i1 + 1, len(chords) - 1)]
+        chord_turn = math.acos(float(np.clip(ca @ cb, -1.0, 1.0)))
+        turn_sigma = math.hypot(math.sqrt(2.0) * noise * float(np.median(ds)), turn - chord_turn)
+        radius = (hi - lo) / max(turn, 1e-9)
+        edge = _edge_sigma(arc)
+        out.append(
+            Feature(
+                kind="bend",
+                axial_from_mm=lo,
+                axial_to_mm=hi,
+                sizes={"radius_mm": radius, "turn_deg": math.degrees(turn)},
+                sigmas={
+                    "radius_sigma_mm": radius
+                    * math.hypot(turn_sigma / max(turn, 1e-9), math.sqrt(2) * edge / max(hi - lo, 1e-9)),
+                    "turn_sigma_deg": math.degrees(turn_sigma),
+                    "axial_from_sigma_mm": edge,
+                    "axial_to_sigma_mm": edge,
+                },
+                truncated=i0 == 0 or i1 == len(kappa) - 1,
+            )
+        )
+    return out
+
+
+def _crossing(x: np.ndarray, y: np.ndarray, i: int, level: float, direction: int) -> float:
+    """Where ``y`` falls through ``level`` going from index ``i`` in ``direction``
+    (linear interpolation; the end of the array if it never does)."""
+    j = i
+    while 0 <= j + direction < len(y) and y[j + direction] >= level:
+        j += direction
+    k = j + direction
+    if not 0 <= k < len(y):
+        return float(x[j])
+    f = (y[j] - level) / max(y[j] - y[k], 1e-12)
+    return float(x[j] + f * (x[k] - x[j]))

@@ -1,0 +1,348 @@
+"""Cross-section measurements of real pipes (issue 30): each station's section, the
+run's headline diameter and the section features (taper, bend, ovality, water).
+
+Each station is one laser ring in the local pipe frame of the centreline (angle theta
+around the axis from the transported reference x axis, distance rho from the axis).
+Its wall profile is the robust Fourier fit rho(theta) = c0 + a1 cos + b1 sin + a2 cos 2
+theta + b2 sin 2 theta (:func:`.defects.fit_wall_profile`): c0 is half the mean diameter
+(Dmax + Dmin) / 2, |(a2, b2)| half the difference Dmax - Dmin, so the ovality is
+(Dmax - Dmin) / D = 2 |(a2, b2)| / c0 and the major axis lies at atan2(b2, a2) / 2.
+
+Standing water returns no laser: the ring is cut off at the water line, one gap in the
+ring. A ring with one such cut is still fitted to order 2 while the wall above the water
+covers ``cut_min_coverage_deg``; the water depth is the depth of the fitted section
+below the chord joining the cut's edges (each edge taken half a sample step into the
+gap: the water line lies between the last lit sample and the next, unlit, one). Cuts
+at the same angle on several consecutive stations are water; the station's diameter
+and ovality then rest on the wall above it only.
+
+The defect finder measures deviations from these per-station sections (an ellipse per
+ring that follows a taper and the oblique rings of a bend), never from one cylinder.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SectionConfig:
+    """Settings of the section measurements.
+
+    Attributes:
+        min_coverage_deg: a ring covering less of the circumference with several gaps
+            fits order 0 only (no ovality).
+        cut_min_coverage_deg: a ring with one cut (water) still fits order 2 while the
+            wall above it covers this much.
+        cut_min_deg: a gap in the ring at least this wide (and 4 sample steps) is a cut.
+        water_angle_tol_deg: cuts centred within this of the run's median cut angle are
+            the same water surface.
+        min_stations: stations a stretch (ovality, water, bend) needs.
+        ovality_feature_pct: ovality stretches reported from this (percent).
+        taper_min_mm: smallest diameter change reported as a taper.
+        bend_min_curvature: curvature (1/mm) x diameter above which a stretch is a bend
+            (0.2: a bend radius under 5 diameters, an elbow).
+        bend_min_turn_deg: smallest turn reported as a bend.
+    """
+
+    min_coverage_deg: float = 270.0
+    cut_min_coverage_deg: float = 200.0
+    cut_min_deg: float = 8.0
+    water_angle_tol_deg: float = 35.0
+    min_stations: int = 2
+    ovality_feature_pct: float = 2.0
+    taper_min_mm: float = 2.0
+    bend_min_curvature: float = 0.2
+    bend_min_turn_deg: float = 10.0
+
+
+@dataclass(frozen=True)
+class Cut:
+    """The widest gap of a ring (radians, [0, 2 pi)): from ``start`` to ``end``
+    anticlockwise, ``step`` the ring's median sample step."""
+
+    start: float
+    end: float
+    step: float
+
+    @property
+    def width(self) -> float:
+        return (self.end - self.start) % (2 * np.pi)
+
+    @property
+    def centre(self) -> float:
+        return (self.start + 0.5 * self.width) % (2 * np.pi)
+
+
+@dataclass(frozen=True)
+class Section:
+    """One ring's fitted wall profile.
+
+    Attributes:
+        coef: [c0, a1, b1, a2, b2, ...] of :func:`.defects.fit_wall_profile` (mm).
+        cov: its covariance (mm^2).
+        order: the Fourier order fitted (0 or 2).
+        cut: the ring's widest gap when it is a cut (water candidate), else None.
+        coverage_deg: the circumference the ring covers.
+    """
+
+    coef: np.ndarray
+    cov: np.ndarray
+    order: int
+    cut: Cut | None
+    coverage_deg: float
+
+
+@dataclass(frozen=True)
+class Station:
+    """One measured cross-section (mm; ovality a fraction; angles degrees).
+
+    Attributes:
+        axial_mm: position along the centreline (the defects' convention).
+        diameter_mm, diameter_sigma_mm: mean diameter (Dmax + Dmin) / 2 and its 1-sigma.
+        diameter_min_mm, diameter_max_mm: Dmin and Dmax of the fitted section.
+        ovality, ovality_sigma: (Dmax - Dmin) / D (bias-corrected) and its 1-sigma; NaN
+            when the ring's coverage allowed order 0 only.
+        ovality_angle_deg, ovality_angle_sigma_deg: direction of the major axis, [0, 180),
+            from the first rig frame's x axis towards y.
+        water_depth_mm, water_depth_sigma_mm: standing water above the invert (0: none
+            seen; its sigma then the shallowest depth a cut would show).
+        wall_coverage_deg: circumference covered by the ring's wall points.
+        deformation_mm, deformation_sigma_mm: mean diameter minus the run's (headline).
+    """
+
+    axial_mm: float
+    diameter_mm: float
+    diameter_sigma_mm: float
+    diameter_min_mm: float
+    diameter_max_mm: float
+    ovality: float
+    ovality_sigma: float
+    ovality_angle_deg: float
+    ovality_angle_sigma_deg: float
+    water_depth_mm: float = 0.0
+    water_depth_sigma_mm: float = 0.0
+    wall_coverage_deg: float = 360.0
+    deformation_mm: float = 0.0
+    deformation_sigma_mm: float = 0.0
+    cut_centre_deg: float | None = None
+
+    def to_contract(self) -> dict[str, Any]:
+        """The report.json ``stations`` entry: the contract's keys with their sigma
+        partners, then omnipipe's (``wall_coverage_deg``, ``deformation_mm``)."""
+        return {
+            "axial_mm": _r(self.axial_mm, 2),
+            "inner_diameter_mm": _r(self.diameter_mm, 3),
+            "inner_diameter_sigma_mm": _r(self.diameter_sigma_mm, 4),
+            "inner_diameter_min_mm": _r(self.diameter_min_mm, 3),
+            "inner_diameter_max_mm": _r(self.diameter_max_mm, 3),
+            "ovality_pct": _r(100 * self.ovality, 3),
+            "ovality_sigma_pct": _r(100 * self.ovality_sigma, 3),
+            "ovality_angle_deg": _r(self.ovality_angle_deg, 2),
+            "ovality_angle_sigma_deg": _r(self.ovality_angle_sigma_deg, 2),
+            "water_depth_mm": _r(self.water_depth_mm, 2),
+            "water_depth_sigma_mm": _r(self.water_depth_sigma_mm, 3),
+            "wall_coverage_deg": _r(self.wall_coverage_deg, 1),
+            "deformation_mm": _r(self.deformation_mm, 3),
+            "deformation_sigma_mm": _r(self.deformation_sigma_mm, 4),
+        }
+
+
+def _r(x: float | None, nd: int) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), nd)
+
+
+def ring_cut(theta: np.ndarray, config: SectionConfig) -> tuple[Cut | None, float]:
+    """The ring's widest gap if it is a cut (``config.cut_min_deg`` and 4 sample steps
+    wide), and the ring's coverage (degrees)."""
+    t = np.sort(np.mod(theta, 2 * np.pi))
+    gaps = np.diff(np.concatenate([t, [t[0] + 2 * np.pi]]))
+    i = int(np.argmax(gaps))
+    step = float(np.median(gaps))
+    coverage = 360.0 - math.degrees(float(gaps[i]))
+    if gaps[i] < max(math.radians(config.cut_min_deg), 4 * step):
+        return None, coverage
+    return Cut(float(t[i]), float(t[(i + 1) % len(t)]), step), coverage
+
+
+def section_order(cut: Cut | None, coverage_deg: float, wanted: int, config: SectionConfig) -> int:
+    """The Fourier order a ring supports: ``wanted`` when it covers
+    ``config.min_coverage_deg``, or ``config.cut_min_coverage_deg`` with a single cut."""
+    if coverage_deg >= config.min_coverage_deg:
+        return wanted
+    if cut is not None and coverage_deg >= config.cut_min_coverage_deg:
+        return wanted
+    return 0
+
+
+def profile_radius(coef: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """rho(theta) of a Fourier profile (mm)."""
+    out = np.full(np.shape(theta), float(coef[0]))
+    for k in range(1, (len(coef) - 1) // 2 + 1):
+        out = out + coef[2 * k - 1] * np.cos(k * theta) + coef[2 * k] * np.sin(k * theta)
+    return out
+
+
+def water_depth(section: Section, radial_sigma_mm: float) -> tuple[float, float]:
+    """Depth (mm) of the fitted section below the chord across its cut, and its 1-sigma.
+
+    The water line lies between the last lit sample and the next: each edge is taken half
+    a sample step into the gap, its position uncertain by step / sqrt(12).
+    """
+    cut = section.cut
+    if cut is None:
+        return 0.0, math.nan
+    e1, e2 = cut.start + 0.5 * cut.step, cut.start + cut.width - 0.5 * cut.step
+
+    def point(a: np.ndarray) -> np.ndarray:
+        r = profile_radius(section.coef, a)
+        return np.stack([r * np.cos(a), r * np.sin(a)], axis=-1)
+
+    p1, p2 = point(np.array(e1)), point(np.array(e2))
+    chord = p2 - p1
+    normal = np.array([chord[1], -chord[0]]) / max(float(np.linalg.norm(chord)), 1e-9)
+    if normal @ (0.5 * (p1 + p2)) < 0:
+        normal = -normal  # away from the axis, towards the cut's wall
+    inside = point(np.linspace(e1, e2, 181))
+    depth = float(np.max((inside - p1) @ normal))
+    # Each edge's height error: the wall's slope across the chord x its position error.
+    h = 1e-4
+    slopes = [abs((point(np.array(e + h)) - point(np.array(e - h))) @ normal) / (2 * h) for e in (e1, e2)]
+    edge = cut.step / math.sqrt(12.0)
+    sigma = math.hypot(0.5 * math.hypot(slopes[0] * edge, slopes[1] * edge), radial_sigma_mm)
+    return max(depth, 0.0), sigma
+
+
+def station_from_section(
+    axial_mm: float, section: Section, radial_sys_mm: float, cal_rel: float
+) -> Station:
+    """A :class:`Station` from a ring's section fit (water not yet decided: depth 0);
+    ``radial_sys_mm`` and ``cal_rel`` the radial errors no fit sees (added to diameters)."""
+    c, cov = section.coef, section.cov
+    c0 = float(c[0])
+    d = 2.0 * c0
+    dsig = math.hypot(2.0 * math.sqrt(max(cov[0, 0], 0.0)), 2.0 * radial_sys_mm, cal_rel * d)
+    if section.order >= 2:
+        var2 = 0.5 * (cov[3, 3] + cov[4, 4])
+        raw2 = float(c[3] ** 2 + c[4] ** 2)
+        amp = math.sqrt(max(raw2 - 2.0 * var2, 0.0))
+        ovality, osig = 2.0 * amp / c0, 2.0 * math.sqrt(var2) / c0
+        angle = math.degrees(0.5 * math.atan2(float(c[4]), float(c[3]))) % 180.0
+        asig = math.degrees(0.5 * math.sqrt(var2) / max(math.sqrt(raw2), 1e-9))
+        asig = min(asig, 180.0 / math.sqrt(12.0))
+    else:
+        amp, ovality, osig, angle, asig = 0.0, math.nan, math.nan, math.nan, math.nan
+    return Station(
+        axial_mm=float(axial_mm),
+        diameter_mm=d,
+        diameter_sigma_mm=dsig,
+        diameter_min_mm=d - 2.0 * amp,
+        diameter_max_mm=d + 2.0 * amp,
+        ovality=ovality,
+        ovality_sigma=osig,
+        ovality_angle_deg=angle,
+        ovality_angle_sigma_deg=asig,
+        wall_coverage_deg=section.coverage_deg,
+        cut_centre_deg=None if section.cut is None else math.degrees(section.cut.centre),
+    )
+
+
+def with_water(
+    stations: list[Station], sections: list[Section], radial_sigma_mm: float, config: SectionConfig
+) -> tuple[list[Station], bool]:
+    """The stations with their water depths: cuts at the run's common cut angle on at
+    least ``config.min_stations`` stations are water (returns True then); the other
+    stations are dry (depth 0, sigma the depth of the narrowest cut)."""
+    centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
+    common = None
+    if len(centres) >= config.min_stations:
+        z = np.exp(1j * np.radians(centres))
+        common = math.degrees(float(np.angle(np.mean(z))))
+    out, wet = [], 0
+    for st, sec in zip(stations, sections, strict=True):
+        shallowest = 0.5 * st.diameter_mm * (1.0 - math.cos(0.5 * math.radians(config.cut_min_deg)))
+        is_water = (
+            common is not None
+            and st.cut_centre_deg is not None
+            and abs((st.cut_centre_deg - common + 180.0) % 360.0 - 180.0) <= config.water_angle_tol_deg
+        )
+        if is_water:
+            depth, sig = water_depth(sec, radial_sigma_mm)
+            wet += 1
+            out.append(replace(st, water_depth_mm=depth, water_depth_sigma_mm=sig))
+        else:
+            out.append(replace(st, water_depth_mm=0.0, water_depth_sigma_mm=shallowest))
+    if wet < config.min_stations:
+        out = [
+            replace(s, water_depth_mm=0.0) if s.water_depth_mm > 0 else s for s in out
+        ]
+        return out, False
+    return out, True
+
+
+@dataclass(frozen=True)
+class Headline:
+    """The run's inner diameter from its stations (mm).
+
+    Attributes:
+        diameter_mm, sigma_mm: median of the stations' mean diameters and its 1-sigma.
+        min_mm, max_mm: smallest Dmin and largest Dmax of the stations (each smoothed
+            over 5 neighbouring stations).
+        stations_used: stations measured.
+    """
+
+    diameter_mm: float
+    sigma_mm: float
+    min_mm: float
+    max_mm: float
+    stations_used: int
+
+
+def _running_median(x: np.ndarray, half: int = 2) -> np.ndarray:
+    return np.array([np.median(x[max(0, i - half) : i + half + 1]) for i in range(len(x))])
+
+
+def headline(stations: list[Station], shared_sigma_mm: float) -> Headline:
+    """Mean diameter of the run: the median of the stations' (Dmax + Dmin) / 2 (robust to
+    a ring across a joint; on a taper the diameter at the middle station).
+
+    Its sigma: 1.25 x the stations' scatter / sqrt(n), the scatter from each station's
+    difference to the line through its neighbours (a taper's slope cancels; robust MAD,
+    / sqrt(1.5) for the neighbours' own noise), and ``shared_sigma_mm`` (errors all
+    stations share: the rig calibration, the systematic ring radius); with fewer than 3
+    stations their stated sigma stands in for the scatter.
+    """
+    d = np.array([s.diameter_mm for s in stations])
+    ds = np.array([s.diameter_sigma_mm for s in stations])
+    n = len(d)
+    if n >= 3:
+        resid = d[1:-1] - 0.5 * (d[:-2] + d[2:])
+        scatter = 1.4826 * float(np.median(np.abs(resid))) / math.sqrt(1.5)
+    else:
+        scatter = float(np.median(ds))
+    stat = 1.2533 * scatter / math.sqrt(max(n, 1))
+    dmin = _running_median(np.array([s.diameter_min_mm for s in stations]))
+    dmax = _running_median(np.array([s.diameter_max_mm for s in stations]))
+    return Headline(
+        diameter_mm=float(np.median(d)),
+        sigma_mm=math.hypot(stat, shared_sigma_mm),
+        min_mm=float(np.min(dmin)),
+        max_mm=float(np.max(dmax)),
+        stations_used=n,
+    )
+
+
+def with_deformation(stations: list[Station], head: Headline) -> list[Station]:
+    """Each station's mean diameter minus the run's, with its 1-sigma."""
+    return [
+        replace(
+            s,
+            deformation_mm=s.diameter_mm - head.diameter_mm,
+            deformation_sigma_mm=math.hypot(s.diameter_sigma_mm, head.sigma_mm),
+        )
+        for s in stations
+    ]
