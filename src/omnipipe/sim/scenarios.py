@@ -185,6 +185,28 @@ def _other_rig(width: int, height: int, frames: int) -> Scenario:
     return Scenario("other-rig", rig, pipe, motion, frames=frames)
 
 
+def _continuous(width: int, height: int, frames: int) -> Scenario:
+    """A robot that never stops: every frame moves (about 3.3 mm a frame), a straight
+    160 mm pipe with one dent; the throughput case bend's rest frames hide."""
+    pipe = Pipe(
+        inner_diameter_mm=160.0,
+        defects=[
+            Defect(
+                kind="dent",
+                height_mm=3.0,
+                width_mm=20.0,
+                length_mm=30.0,
+                axial_start_mm=200.0,
+                angle_deg=120.0,
+            )
+        ],
+    )
+    motion = MotionConfig(
+        start_mm=200.0, stroke_mm=20.0, frames_per_cycle=6, moving_frames=6, min_rest_frames=0
+    )
+    return Scenario("continuous", paper_rig(width, height), pipe, motion, frames=frames)
+
+
 # Scenarios of real pipes (issue 30): built by make_feature_scenario.
 FEATURE_SCENARIOS = (
     "sewer",
@@ -205,6 +227,7 @@ _BUILDERS = {
     "paper": (_paper, 1600, 1200, 300),
     "bend": (_bend, 1600, 1200, 330),
     "other-rig": (_other_rig, 1280, 1024, 90),
+    "continuous": (_continuous, 1600, 1200, 300),
 }
 # The -small runs (24 frames, 8 per gait cycle) sweep only 50-70 mm of wall: their
 # defects (same kind, height, width and angle as the full-size scenario's) are moved and
@@ -215,15 +238,18 @@ _SMALL_DEFECTS: dict[str, tuple[tuple[float, float], ...]] = {
     "paper": ((130.0, 40.0),),
     "bend": ((108.0, 22.0), (135.0, 18.0)),
     "other-rig": ((162.0, 28.0),),
+    "continuous": ((140.0, 30.0),),
 }
 SCENARIOS = (
     "paper",
     "bend",
     "other-rig",
+    "continuous",
     "random",
     "paper-small",
     "bend-small",
     "other-rig-small",
+    "continuous-small",
     "random-small",
     "random-wide",
     "brick-bend",
@@ -272,7 +298,8 @@ def make_scenario(
     scenario = builder(width, height, n)
     if name.endswith("-small"):
         # Short test runs sample the gait coarsely (8 frames per cycle) to travel further.
-        scenario.motion = replace(scenario.motion, frames_per_cycle=8)
+        if scenario.motion.moving_frames is None:
+            scenario.motion = replace(scenario.motion, frames_per_cycle=8)
         moved = [
             replace(d, axial_start_mm=start, length_mm=length)
             for d, (start, length) in zip(scenario.pipe.defects, _SMALL_DEFECTS[base], strict=True)
