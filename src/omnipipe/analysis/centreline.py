@@ -137,9 +137,12 @@ def _referenced(
 def _nearest_usable(usable: list[int], full: int) -> np.ndarray:
     """(full,) for each ring, the slot in ``usable`` of its nearest usable ring (itself
     when usable): rings too sparse for a station borrow their nearest neighbour's."""
-    index = np.array([usable[int(np.argmin(np.abs(np.array(usable) - k)))] for k in range(full)])
-    slot = {k: i for i, k in enumerate(usable)}
-    return np.array([slot[k] for k in index])
+    u = np.asarray(usable)
+    k = np.arange(full)
+    right = np.clip(np.searchsorted(u, k), 0, len(u) - 1)  # first usable >= k
+    left = np.clip(right - 1, 0, len(u) - 1)
+    # argmin takes the first (lower) of two equally near rings
+    return np.where(np.abs(u[left] - k) <= np.abs(u[right] - k), left, right)
 
 
 def fit_centreline(

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from itertools import pairwise
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -150,7 +151,9 @@ def _scales(samples: WallSamples, min_height_mm: float, noise_factor: float) -> 
     noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
     threshold = max(min_height_mm, noise_factor * noise)
     ring_ids = np.unique(samples.ring)
-    ring_sigma = np.array([np.median(sigma[samples.ring == r]) for r in ring_ids])
+    order = np.argsort(samples.ring, kind="stable")
+    bounds = np.append(np.searchsorted(samples.ring[order], ring_ids), len(order))
+    ring_sigma = np.array([np.median(sigma[order[a:b]]) for a, b in pairwise(bounds)])
     # Ring spacing varies with the gait (slow start and stop): link across the wide gaps too.
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(ring_ids) > 1 else 10.0
