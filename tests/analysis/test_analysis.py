@@ -247,3 +247,11 @@ def test_defect_at_an_unmeasured_band_is_truncated() -> None:
     assert any("water line" in w for w in cut.warnings)
     whole = find_defects(WallSamples(sig, arc, dev, ring, circ), **kw)
     assert len(whole.defects) == 1 and not whole.defects[0].truncated
+
+
+def test_ring_groups_are_each_rings_indices() -> None:
+    from omnipipe.analysis.stage import ring_groups
+
+    frame = np.random.default_rng(4).integers(0, 9, size=400)
+    groups = ring_groups(frame, 10)
+    assert [g.tolist() for g in groups] == [np.flatnonzero(frame == k).tolist() for k in range(10)]

@@ -30,3 +30,15 @@ def test_parallel_fits_equal_serial_and_find_the_radius() -> None:
         parallel = fit_centreline(rings, axes, np.eye(4), window_mm=30.0, loss_scale_mm=0.3, executor=ex)
     assert np.array_equal(serial.radius_mm, parallel.radius_mm)
     assert np.array_equal(serial.centre, parallel.centre)
+
+
+def test_nearest_usable_matches_the_brute_force_search() -> None:
+    """Each ring's nearest usable ring (the lower of two equally near), as an argmin finds it."""
+    from omnipipe.analysis.centreline import _nearest_usable
+
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        full = int(rng.integers(2, 40))
+        usable = sorted(rng.choice(full, size=int(rng.integers(1, full + 1)), replace=False).tolist())
+        brute = [int(np.argmin(np.abs(np.array(usable) - k))) for k in range(full)]
+        assert _nearest_usable(usable, full).tolist() == brute
