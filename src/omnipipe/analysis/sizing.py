@@ -97,10 +97,19 @@ def plateau(x: np.ndarray, full_width: float, ramp: float) -> np.ndarray:
         full_width: extent at half height (mm).
         ramp: length of each cosine flank (mm), 0 < ramp <= full_width.
     """
-    ax = np.abs(x)
-    inner = 0.5 * (full_width - ramp)
-    phase = np.clip((ax - inner) / max(ramp, 1e-9), 0.0, 1.0)
-    return 0.5 * (1.0 + np.cos(np.pi * phase))
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 0:
+        return plateau(x.reshape(1), full_width, ramp)[0]
+    phase = np.abs(x)  # then, in place: clip((|x| - inner) / ramp, 0, 1)
+    phase -= 0.5 * (full_width - ramp)
+    phase /= max(ramp, 1e-9)
+    np.maximum(phase, 0.0, out=phase)
+    np.minimum(phase, 1.0, out=phase)
+    phase *= np.pi
+    np.cos(phase, out=phase)
+    phase += 1.0
+    phase *= 0.5
+    return phase
 
 
 def bump_model(params: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -119,7 +128,14 @@ def _blurred_plateau(x: np.ndarray, full_width: float, ramp: float, blur_mm: flo
     """:func:`plateau` convolved with a Gaussian of sigma ``blur_mm`` (Gauss-Hermite)."""
     if not blur_mm > 0:
         return plateau(x, full_width, ramp)
-    return sum(w * plateau(x + blur_mm * g, full_width, ramp) for g, w in zip(_GH_X, _GH_W, strict=True))
+    # Every node's plateau in one (7, ...) evaluation, summed node by node in order (the
+    # same floating-point sums as one plateau per node, without 7 calls' overhead).
+    x = np.asarray(x, float)
+    nodes = plateau(x[None, ...] + (blur_mm * _GH_X).reshape((-1,) + (1,) * x.ndim), full_width, ramp)
+    total = _GH_W[0] * nodes[0]
+    for w, p in zip(_GH_W[1:], nodes[1:], strict=True):
+        total = total + w * p
+    return total
 
 
 def seen_bump_model(
