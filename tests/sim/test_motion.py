@@ -30,3 +30,15 @@ def test_anchored_frames_have_identical_poses() -> None:
     # The rig looks along the pipe: z within a few degrees of the axis.
     assert np.all(R[:, 2, 2] > np.cos(np.radians(5)))
     assert sigma[-1] - sigma[0] > 100.0
+
+
+def test_continuous_scenarios_move_on_every_frame() -> None:
+    """``continuous`` (1600x1200, 300 frames) and ``-small``: no frame at rest after the first."""
+    from omnipipe.sim import make_scenario
+
+    for name, size, n in (("continuous", (1600, 1200), 300), ("continuous-small", (400, 300), 24)):
+        s = make_scenario(name)
+        assert (s.rig.camera.width, s.rig.camera.height, s.frames) == (*size, n)
+        travel, moving = head_travel(s.motion, s.frames, np.random.default_rng(0))
+        assert moving[1:].all()
+        assert np.diff(travel).min() > 0.5
