@@ -255,3 +255,24 @@ def test_ring_groups_are_each_rings_indices() -> None:
     frame = np.random.default_rng(4).integers(0, 9, size=400)
     groups = ring_groups(frame, 10)
     assert [g.tolist() for g in groups] == [np.flatnonzero(frame == k).tolist() for k in range(10)]
+
+
+def test_defect_fits_are_the_same_on_an_executor() -> None:
+    """A dent and a bulge fitted on two worker processes: the very same defects as here."""
+    from omnipipe.executor import open_executor
+
+    rng = np.random.default_rng(11)
+    circ = 2 * np.pi * 100.0
+    sig, ang = np.meshgrid(np.arange(0, 200, 5.0), np.arange(360) * circ / 360, indexing="ij")
+    sig, arc = sig.ravel(), ang.ravel()
+    dev = 2.0 * plateau(arc - 100.0, 18.0, 6.0) * plateau(sig - 60.0, 45.0, 15.0)
+    dev -= 1.5 * plateau(arc - 400.0, 15.0, 5.0) * plateau(sig - 140.0, 30.0, 10.0)
+    dev += rng.normal(0, 0.05, sig.size)
+    samples = WallSamples(sig, arc, dev, (sig // 5).astype(int), circ)
+    kw = {"min_height_mm": 1.0, "noise_factor": 6, "min_points": 4, "grid_mm": 0.25}
+    here = find_defects(samples, **kw)
+    with open_executor(2) as ex:
+        there = find_defects(samples, **kw, executor=ex)
+    assert sorted(d.kind for d in here.defects) == ["bulge", "dent"]
+    assert here.defects == there.defects
+    assert all(np.array_equal(a, b) for a, b in zip(here.masks, there.masks, strict=True))

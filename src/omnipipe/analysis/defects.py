@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from itertools import pairwise
 
@@ -35,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from omnipipe.analysis.sizing import detection_limit, fit_bump, plateau
 from omnipipe.contract import Defect
+from omnipipe.executor import InlineExecutor, ordered_map
 
 
 @dataclass(frozen=True)
@@ -185,8 +187,10 @@ def find_defects(
     limit_length_mm: float = 20.0,
     ring_blur_mm: float = 0.0,
     axial_blur_mm: float = 0.0,
+    executor: Executor | None = None,
 ) -> DefectSearch:
-    """Detect and measure bulges and dents.
+    """Detect and measure bulges and dents (the candidates' model fits on ``executor``,
+    :mod:`omnipipe.executor`; None: here; the result is the same).
 
     Args:
         samples: the wall points.
@@ -217,25 +221,31 @@ def find_defects(
     )
     defects: list[Defect] = []
     masks: list[np.ndarray] = []
-    for sign, kind in ((-1.0, "bulge"), (1.0, "dent")):
-        for members in _clusters(samples, sc, sign, min_points):
-            d0 = _rough(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing)
-            d, mask = _fit(
-                samples, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm
+    candidates = [
+        (sign, kind, members, _rough(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing))
+        for sign, kind in ((-1.0, "bulge"), (1.0, "dent"))
+        for members in _clusters(samples, sc, sign, min_points)
+    ]
+    # The candidates' model fits are independent: on the executor's workers, in order.
+    jobs = (
+        (samples, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm)
+        for sign, _, _, d0 in candidates
+    )
+    fits = ordered_map(executor or InlineExecutor(), _fit_job, jobs)
+    for (_, kind, members, d0), (d, mask) in zip(candidates, fits, strict=True):
+        d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
+        rejected = _rejection(d, kind, max_width_fraction * samples.circumference_mm, limit)
+        if rejected:
+            warnings.append(rejected)
+            continue
+        travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
+        defects.append(replace(d, points=len(members), travel_mm=travel))
+        masks.append(mask)
+        if cut_by:
+            warnings.append(
+                f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
+                f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
             )
-            d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
-            rejected = _rejection(d, kind, max_width_fraction * samples.circumference_mm, limit)
-            if rejected:
-                warnings.append(rejected)
-                continue
-            travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
-            defects.append(replace(d, points=len(members), travel_mm=travel))
-            masks.append(mask)
-            if cut_by:
-                warnings.append(
-                    f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
-                    f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
-                )
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
     warnings.extend(
         f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
@@ -255,6 +265,13 @@ def find_defects(
         sample_spacing_mm=sc.sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _fit_job(
+    job: tuple[WallSamples, Defect, float, float, float, float, float],
+) -> tuple[Defect, np.ndarray]:
+    """:func:`_fit` of one candidate, its arguments as one tuple (for the executor)."""
+    return _fit(*job)
 
 
 def _truncation(

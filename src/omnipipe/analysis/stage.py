@@ -225,8 +225,9 @@ class AnalysisResult:
 def run(
     config: AnalysisConfig, inputs: AnalysisInputs, executor: Executor | None = None
 ) -> AnalysisResult:
-    """Measure the pipe from its integrated rings (the stations' cylinder fits on
-    ``executor``, :mod:`omnipipe.executor`; None: here; the result is the same).
+    """Measure the pipe from its integrated rings (the stations' cylinder fits and the
+    defects' model fits on ``executor``, :mod:`omnipipe.executor`; None: here; the
+    result is the same).
 
     Raises:
         ShapeError: malformed inputs.
@@ -240,7 +241,7 @@ def run(
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
-    stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius)
+    stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius, executor)
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
@@ -411,6 +412,7 @@ def _measure_wall(
     rho: np.ndarray,
     theta: np.ndarray,
     radius: float,
+    executor: Executor | None = None,
 ) -> tuple[_Stations, DefectSearch]:
     """The stations' wall profiles and the defects in the deviations from them.
 
@@ -447,6 +449,7 @@ def _measure_wall(
             limit_length_mm=config.limit_length_mm,
             ring_blur_mm=inputs.ring_blur_mm,
             axial_blur_mm=inputs.axial_blur_mm,
+            executor=executor,
         )
         tick(done)
         if not search.defects:
