@@ -29,6 +29,8 @@ import numpy as np
 
 from omnipipe.analysis.centreline import Centreline, fit_centreline
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
+from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.analysis.defects import (
     DefectSearch,
     WallSamples,
@@ -92,6 +94,7 @@ class AnalysisConfig:
     systematic_radius_factor: float = 0.08
     systematic_height_factor: float = 0.5
     width_resolution_samples: float = 0.35
+    features: FeatureConfig = field(default_factory=FeatureConfig)
 
 
 @dataclass
@@ -171,6 +174,8 @@ class AnalysisResult:
     detection_limit_mm: float = math.nan
     noise_mm: float = math.nan
     ring_spacing_mm: float = math.nan
+    features: list[Feature] = field(default_factory=list)
+    point_not_wall: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def run(
@@ -189,7 +194,11 @@ def run(
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     sigma, rho, theta = line.coordinates(pts, frame)
     radius = 0.5 * diameter
-    stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius)
+    # Joint gaps and lateral openings are not wall: out of the profiles and the defects.
+    feats = find_features(config.features, line, sigma, rho, theta, frame, radius)
+    stations, search = _measure_wall(
+        config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall
+    )
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
@@ -235,6 +244,8 @@ def run(
         detection_limit_mm=float(search.detection_limit_mm),
         noise_mm=float(search.noise_mm),
         ring_spacing_mm=float(search.ring_spacing_mm),
+        features=feats.features,
+        point_not_wall=feats.not_wall,
     )
 
 
@@ -311,6 +322,7 @@ def _measure_wall(
     rho: np.ndarray,
     theta: np.ndarray,
     radius: float,
+    not_wall: np.ndarray,
 ) -> tuple[_Stations, DefectSearch]:
     """The stations' wall profiles and the defects in the deviations from them.
 
@@ -320,14 +332,14 @@ def _measure_wall(
     """
     ok_station = np.array([(frame == k).sum() >= 12 for k in range(len(poses))])
     circ = 2 * np.pi * radius
-    exclude = np.zeros(len(frame), bool)
+    exclude = not_wall.copy()
     # The robot's travel from the first frame to each ring's frame (path along the poses).
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     tick = phase("defects", 2)
     for done in range(1, 3):
         stations = _station_profiles(config, frame, theta, rho, sigma, ok_station, exclude)
-        ok = np.isfinite(stations.deviation)
+        ok = np.isfinite(stations.deviation) & ~not_wall
         samples = WallSamples(
             sigma_mm=sigma[ok],
             arc_mm=(theta[ok] % (2 * np.pi)) * radius,
@@ -353,7 +365,7 @@ def _measure_wall(
         cover = np.zeros(int(ok.sum()), bool)
         for m in search.masks or []:
             cover |= m
-        new_exclude = np.zeros(len(frame), bool)
+        new_exclude = not_wall.copy()
         new_exclude[np.flatnonzero(ok)[cover]] = True
         if np.array_equal(new_exclude, exclude):
             break

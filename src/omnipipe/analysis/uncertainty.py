@@ -130,6 +130,7 @@ def report_fields(
         "ovality_max": _r(res.ovality_max, 5),
         "pipe_straight": res.straight,
         "stations": _stations(res),
+        "features": [f.to_contract() for f in res.features],
     }
     return fields, warnings
 
