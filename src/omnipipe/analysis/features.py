@@ -123,7 +123,9 @@ def find_features(
         members = np.flatnonzero(np.isin(ring_of, run) & deep)
         if len(members) < config.min_points:
             continue
-        f, mask = _joint(config, line, sigma, dev, members, ring_sigma, ring_centre, rings)
+        f, mask = _joint(
+            config, line, sigma, dev, members, ring_sigma, ring_centre, rings, frame, noise
+        )
         feats.append(f)
         not_wall |= mask
     # Laterals: the rest, linked across rings, narrow and reaching far out.
@@ -210,15 +212,21 @@ def _joint(
     ring_sigma: np.ndarray,
     ring_centre: np.ndarray,
     rings: np.ndarray,
+    frame: np.ndarray,
+    noise: float,
 ) -> tuple[Feature, np.ndarray]:
     """A joint from its cluster: gap edges, depth and the sections' offset."""
     depth = float(np.percentile(dev[members], 90))
-    deep = members[dev[members] > 0.5 * depth]
-    centre = float(np.median(sigma[deep]))
-    near = np.abs(sigma - centre) < config.window_mm
-    shallow = sigma[near & (dev <= 0.5 * depth)]
-    lo, slo = _edge(sigma[deep], shallow, True)
-    hi, shi = _edge(sigma[deep], shallow, False)
+    # Edges between ring positions (a ring's points spread along the axis by its tilt).
+    ring_of = np.searchsorted(rings, frame)
+    frac = np.bincount(ring_of[members], minlength=len(rings)) / np.maximum(
+        np.bincount(ring_of, minlength=len(rings)), 1
+    )
+    inside = ring_sigma[frac >= 0.5]
+    if len(inside) == 0:
+        inside = ring_sigma[[int(np.argmax(frac))]]
+    lo, slo = _edge(inside, ring_sigma[frac < 0.5], True)
+    hi, shi = _edge(inside, ring_sigma[frac < 0.5], False)
     axial, gap = 0.5 * (lo + hi), hi - lo
     k = int(np.argmin(np.abs(line.arc_mm - axial)))
     t, n, b = line.tangent[k], line.normal[k], line.binormal[k]
@@ -228,15 +236,24 @@ def _joint(
     off = off_sig = ang = ang_sig = None
     if up.any() and down.any():
         pu, pd = ring_centre[up], ring_centre[down]
-        pu = pu - np.outer((pu - line.centre[k]) @ t, t)
-        pd = pd - np.outer((pd - line.centre[k]) @ t, t)
-        mu, md = np.median(pu, axis=0), np.median(pd, axis=0)
+        mu, md = pu.mean(axis=0), pd.mean(axis=0)
+        if up.sum() + down.sum() >= 4:
+            # The sections' common direction (the fitted centreline bends through an offset).
+            _, _, vt = np.linalg.svd(np.concatenate([pu - mu, pd - md]))
+            t = vt[0] * np.sign(vt[0] @ t)
         v = md - mu
         v -= (v @ t) * t
-        res = np.concatenate([np.linalg.norm(pu - mu, axis=1), np.linalg.norm(pd - md, axis=1)])
-        spread = 1.4826 * float(np.median(res)) if len(res) > 2 else 0.1
-        off_sig = max(1.25 * spread * math.sqrt(1.0 / up.sum() + 1.0 / down.sum()), 0.02)
+        ru = (pu - mu) - np.outer((pu - mu) @ t, t)
+        rd = (pd - md) - np.outer((pd - md) @ t, t)
+        res = np.concatenate([np.linalg.norm(ru, axis=1), np.linalg.norm(rd, axis=1)])
+        spread = float(np.sqrt(np.mean(res**2))) if len(res) > 2 else 0.1
+        # Plus half the wall noise: ring centres share errors the scatter of a few rings
+        # cannot show (water-cut rings, ovality, the ring's blur).
+        off_sig = math.hypot(1.25 * spread * math.sqrt(1.0 / up.sum() + 1.0 / down.sum()), 0.5 * noise)
         off = float(np.linalg.norm(v))
+        n = n - (n @ t) * t
+        b = np.cross(t, n / np.linalg.norm(n))
+        n = n / np.linalg.norm(n)
         ang = math.degrees(math.atan2(v @ b, v @ n)) % 360.0
         ang_sig = min(math.degrees(off_sig / max(off, 1e-9)), 180.0)
     f = Feature(
@@ -252,7 +269,10 @@ def _joint(
         offset_angle_sigma_deg=ang_sig,
         points=len(members),
     )
-    return f, np.abs(sigma - axial) <= clear
+    in_gap = np.abs(ring_sigma - axial) <= clear
+    # The gap's rings, and the deep points of rings crossing its edges.
+    edge = (np.abs(sigma - axial) <= clear) & (dev > 0.5 * float(np.min(dev[members])))
+    return f, edge | in_gap[ring_of]
 
 
 def _chords(
@@ -299,9 +319,11 @@ def _lateral(
     """A lateral's opening from its cluster: centre, angle and diameter (jackknife sigmas)."""
     th0 = math.atan2(float(np.mean(np.sin(theta[members]))), float(np.mean(np.cos(theta[members]))))
     u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
-    on = np.flatnonzero(np.isin(frame, np.unique(frame[members])))
-    d_u = np.diff(np.sort(u[on]))
-    sample = float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0
+    steps = []
+    for k in np.unique(frame[members]):
+        d_u = np.diff(np.sort(u[frame == k]))
+        steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
+    sample = float(np.median(steps))
     ch = _chords(sigma, u, frame, members, sample)
     zc, uc, b, a = _ellipse(ch)
     est = [(zc, uc, b)]

@@ -29,8 +29,6 @@ import numpy as np
 
 from omnipipe.analysis.centreline import Centreline, fit_centreline
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
-from omnipipe.analysis.feature_types import Feature
-from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.analysis.defects import (
     DefectSearch,
     WallSamples,
@@ -38,6 +36,8 @@ from omnipipe.analysis.defects import (
     fit_wall_profile,
     fourier_design,
 )
+from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
