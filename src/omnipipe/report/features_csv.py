@@ -64,7 +64,9 @@ def feature_rows(
     rows = []
     for i, f in enumerate(features, 1):
         pacp, en, note = codes(f, diameter_mm)
-        angle = f.get("angle_deg", f.get("offset_angle_deg"))
+        angle = f.get("angle_deg")
+        if f.get("kind") == "joint" and (f.get("offset_mm") or 0.0) > 2.0 * (f.get("offset_sigma_mm") or 0.0):
+            angle = f.get("offset_angle_deg")  # a joint's clock: its offset's direction
         clock, clock_deg = clock_position(angle, reference_deg) if angle is not None else ("", None)
         axial = f.get("axial_mm", f.get("axial_from_mm"))
         rows.append({
