@@ -41,6 +41,8 @@ from omnipipe.analysis.defects import (
     fourier_design,
 )
 from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.features import FeatureConfig, find_features
+from omnipipe.analysis.point_feature import PointFeature
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
     Section,
@@ -115,6 +117,7 @@ class AnalysisConfig:
     taper_min_mm: float = 2.0
     bend_min_curvature: float = 0.2
     bend_min_turn_deg: float = 10.0
+    features: FeatureConfig = field(default_factory=FeatureConfig)
 
 
 def section_config(config: AnalysisConfig) -> SectionConfig:
@@ -215,11 +218,12 @@ class AnalysisResult:
     noise_mm: float = math.nan
     ring_spacing_mm: float = math.nan
     stations: tuple[Station, ...] = ()
-    features: tuple[Feature, ...] = ()
+    features: tuple[Feature | PointFeature, ...] = ()
     inner_diameter_min_mm: float = math.nan
     inner_diameter_max_mm: float = math.nan
     water_depth_mm: float | None = None
     water_depth_sigma_mm: float | None = None
+    point_not_wall: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def run(
@@ -241,7 +245,11 @@ def run(
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
-    stations, search = _measure_wall(config, inputs, frame, poses, sigma, rho, theta, radius, executor)
+    # Joint gaps and lateral openings are not wall: out of the profiles and the defects.
+    feats = find_features(config.features, line, sigma, rho, theta, frame, radius)
+    stations, search = _measure_wall(
+        config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor
+    )
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
@@ -281,11 +289,12 @@ def run(
         noise_mm=float(search.noise_mm),
         ring_spacing_mm=float(search.ring_spacing_mm),
         stations=tuple(st_list),
-        features=tuple(features),
+        features=(*feats.features, *features),
         inner_diameter_min_mm=head.min_mm,
         inner_diameter_max_mm=head.max_mm,
         water_depth_mm=water,
         water_depth_sigma_mm=water_sigma,
+        point_not_wall=feats.not_wall,
     )
 
 
@@ -412,6 +421,7 @@ def _measure_wall(
     rho: np.ndarray,
     theta: np.ndarray,
     radius: float,
+    not_wall: np.ndarray,
     executor: Executor | None = None,
 ) -> tuple[_Stations, DefectSearch]:
     """The stations' wall profiles and the defects in the deviations from them.
@@ -423,14 +433,14 @@ def _measure_wall(
     groups = ring_groups(frame, len(poses))
     ok_station = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
     circ = 2 * np.pi * radius
-    exclude = np.zeros(len(frame), bool)
+    exclude = not_wall.copy()
     # The robot's travel from the first frame to each ring's frame (path along the poses).
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     tick = phase("defects", 2)
     for done in range(1, 3):
         stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude)
-        ok = np.isfinite(stations.deviation)
+        ok = np.isfinite(stations.deviation) & ~not_wall
         samples = WallSamples(
             sigma_mm=sigma[ok],
             arc_mm=(theta[ok] % (2 * np.pi)) * radius,
@@ -457,7 +467,7 @@ def _measure_wall(
         cover = np.zeros(int(ok.sum()), bool)
         for m in search.masks or []:
             cover |= m
-        new_exclude = np.zeros(len(frame), bool)
+        new_exclude = not_wall.copy()
         new_exclude[np.flatnonzero(ok)[cover]] = True
         if np.array_equal(new_exclude, exclude):
             break

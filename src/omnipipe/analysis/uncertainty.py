@@ -130,13 +130,13 @@ def report_fields(
         "ovality_max": _r(res.ovality_max, 5),
         "pipe_straight": res.straight,
         "stations": _stations(res),
+        "features": [f.to_contract() for f in res.features],
     }
     if math.isfinite(res.inner_diameter_min_mm):
         fields["inner_diameter_min_mm"] = _r(res.inner_diameter_min_mm, 3)
         fields["inner_diameter_max_mm"] = _r(res.inner_diameter_max_mm, 3)
     fields["water_depth_mm"] = _r(res.water_depth_mm, 2) if res.water_depth_mm is not None else 0.0
     fields["water_depth_sigma_mm"] = _r(res.water_depth_sigma_mm, 3) if res.water_depth_sigma_mm is not None else None
-    fields["features"] = [f.to_contract() for f in res.features]
     return fields, warnings
 
 

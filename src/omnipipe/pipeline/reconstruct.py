@@ -674,6 +674,7 @@ def write(
     from omnipipe.dataset import atomic_output_dir, write_tum
     from omnipipe.report.clock import clock_reference
     from omnipipe.report.deliverable import write_deliverable
+    from omnipipe.report.features_csv import write_features
 
     out = Path(out)
     travel = float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]) if len(rec.world_from_rig) else 1.0
@@ -700,6 +701,10 @@ def write(
             rec.survey,
             travel_along_rig_z=travel,
             views=rec.defect_views,
+        )
+        write_features(
+            tmp, rec.summary, rec.survey,
+            travel_along_rig_z=float(rec.world_from_rig[-1][2, 3] - rec.world_from_rig[0][2, 3]),
         )
         tick(3)
     return out

@@ -542,7 +542,7 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         truth=_truth_table(inputs.truth),
         trajectory_note=_trajectory_note(inputs.evaluation),
         model_view=_model_view(_model_json(inputs, config)),
-        defects=_defects_section(inputs),
+        defects=_defects_section(inputs) + _features_section(s),
         figures=_figures(plots),
         files=_files_table(s.get("files")),
     )
@@ -680,6 +680,25 @@ _DEFECT_COLUMNS = (
     "<th>clock</th><th>distance (m)</th>"
     "<th>grade</th><th>views</th></tr></thead>"
 )
+
+
+def _features_section(s: dict[str, Any]) -> str:
+    """The joints' and laterals' table (report.json ``features``; features.csv codes them)."""
+    feats = s.get("features") or []
+    if not feats:
+        return ""
+    keys = ("kind", "axial_mm", "axial_sigma_mm", "gap_mm", "offset_mm", "offset_angle_deg",
+            "angle_deg", "diameter_mm", "diameter_sigma_mm")
+    head = "".join(f"<th>{k}</th>" for k in keys)
+    rows = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(str(f.get(k, '')) if f.get(k) is not None else '')}</td>" for k in keys)
+        + "</tr>"
+        for f in feats
+    )
+    return (
+        "<h3>Features (joints, laterals: parts of the pipe, not defects)</h3>"
+        f"<table><tr>{head}</tr>{rows}</table>"
+    )
 
 
 def _defects_section(inputs: ReportInputs) -> str:
