@@ -258,6 +258,9 @@ def test_baseline_plot_into_missing_folder(
         ("analysis: [[min_height_mm, 1.0]]\n", "analysis"),
         ("sfm: {keyframe_min_parallax_deg: .nan}\n", "sfm.keyframe_min_parallax_deg"),
         ("analysis: {min_height_mm: .inf}\n", "analysis.min_height_mm"),
+        ("analysis: {grid_mm: 0}\n", "analysis.grid_mm"),
+        ("sfm: {bundle: {max_tracks: -5}}\n", "sfm.bundle.max_tracks"),
+        ("sfm: {bundle: {window_keyframes: -3}}\n", "sfm.bundle.window_keyframes"),
     ],
 )
 def test_config_sections_and_values_are_checked(
