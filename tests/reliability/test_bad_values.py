@@ -20,15 +20,7 @@ from omnipipe.dataset import open_dataset
 from omnipipe.errors import ConfigError, DatasetError
 from omnipipe.rig import MIN_LASER_DISTANCE_MM
 from omnipipe.rig_yaml import rig_from_dict
-from omnipipe.sim import make_scenario, paper_rig, run
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 simulated frames of 64x48 px with timestamps.txt and ground truth."""
-    out = tmp_path_factory.mktemp("badvalues") / "ds"
-    run(make_scenario("paper-small", frames=4, size=(64, 48), seed=2), out, workers=1)
-    return out
+from omnipipe.sim import paper_rig
 
 
 def copy_dataset(src: Path, dst: Path) -> Path:
