@@ -28,3 +28,12 @@ def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("datasets") / "paper-small"
     run(make_scenario("paper-small", seed=3), out)
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """4 simulated paper-small frames of 64x48 px with timestamps.txt and ground truth,
+    made once per session (tests that change it work on a copy)."""
+    out = tmp_path_factory.mktemp("tiny") / "ds"
+    run(make_scenario("paper-small", frames=4, size=(64, 48), seed=2), out, workers=1)
+    return out

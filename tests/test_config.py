@@ -93,3 +93,60 @@ def test_yaml_views_survive_a_features_override(tmp_path: Path) -> None:
     p.write_text("sfm:\n  features: {views: 6}\n")
     cfg = ReconstructConfig.from_yaml(p, {"sfm": {"features": {"max_features": 500}}})
     assert cfg.sfm.features.views == 6 and cfg.sfm.features.max_features == 500
+
+
+def _stage_config_classes() -> list[type]:
+    """Every ``*Config`` dataclass of omnipipe's stages (found by walking the package)."""
+    import dataclasses
+    import importlib
+    import pkgutil
+
+    import omnipipe
+
+    found: dict[str, type] = {}
+    for info in pkgutil.walk_packages(omnipipe.__path__, "omnipipe."):
+        module = importlib.import_module(info.name)
+        for name, obj in vars(module).items():
+            if name.endswith("Config") and dataclasses.is_dataclass(obj) and obj.__module__ == info.name:
+                required = [
+                    f.name
+                    for f in dataclasses.fields(obj)
+                    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+                ]
+                if not required:  # a config with required fields has no defaults to check
+                    found[f"{info.name}.{name}"] = obj
+    return [found[k] for k in sorted(found)]
+
+
+def test_every_default_lies_inside_its_bounds() -> None:
+    import dataclasses
+
+    classes = _stage_config_classes()
+    assert len(classes) >= 15
+    for cls in classes:
+        default = cls()
+        assert dataclass_from_dict(cls, dataclasses.asdict(default), cls.__name__) == default
+
+
+@pytest.mark.parametrize(
+    ("text", "field_name"),
+    [
+        ("analysis: {grid_mm: 0}\n", "analysis.grid_mm"),
+        ("sfm: {bundle: {max_tracks: -5}}\n", "sfm.bundle.max_tracks"),
+        ("sfm: {bundle: {window_keyframes: -3}}\n", "sfm.bundle.window_keyframes"),
+        ("laser: {extraction: {min_ring_fraction: 1.5}}\n", "laser.extraction.min_ring_fraction"),
+        ("model: {texture_mm_per_px: 0}\n", "model.texture_mm_per_px"),
+        ("report: {max_faces: 0}\n", "report.max_faces"),
+    ],
+)
+def test_reconstruct_yaml_outside_bounds_is_refused_at_load(
+    tmp_path: Path, text: str, field_name: str
+) -> None:
+    from omnipipe.pipeline.reconstruct import ReconstructConfig
+
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        ReconstructConfig.from_yaml(path)
+    message = str(info.value)
+    assert field_name + ":" in message and "\n" not in message, message

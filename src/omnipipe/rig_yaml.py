@@ -130,12 +130,36 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
     if not isinstance(data, dict):
         raise ConfigError("rig", "the file must hold a mapping with camera, mirror, laser", source)
     cam = _section(data, "camera", source)
+    model_name = _camera_model_name(cam, source)
+    camera, params = _camera_from_dict(cam, model_name, source)
+    mirror: Mirror | None = None
+    if model_name == "hyperboloid" or data.get("mirror") is not None:
+        mir = _section(data, "mirror", source)
+        mirror = Mirror(
+            a=_number(mir, "mirror", "a", source, positive=True),  # type: ignore[arg-type]
+            b=_number(mir, "mirror", "b", source, positive=True),  # type: ignore[arg-type]
+        )
+    if data.get("laser") is None:
+        return Rig(camera=camera, mirror=mirror, laser=None, model=params)
+    laser = _laser_from_dict(_section(data, "laser", source), source)
+    check_ring_visible(camera, mirror, laser, source, model=params)
+    return Rig(camera=camera, mirror=mirror, laser=laser, model=params)
+
+
+def _camera_model_name(cam: dict[str, Any], source: str | None) -> str:
+    """``camera.model`` in lower case (``hyperboloid`` when absent), checked against CAMERA_MODELS."""
     model_name = cam.get("model", "hyperboloid")
     if not isinstance(model_name, str) or model_name.lower() not in CAMERA_MODELS:
         raise ConfigError(
             "camera.model", f"must be one of {', '.join(CAMERA_MODELS)}, got {model_name!r}", source
         )
-    model_name = model_name.lower()
+    return model_name.lower()
+
+
+def _camera_from_dict(
+    cam: dict[str, Any], model_name: str, source: str | None
+) -> tuple[CameraIntrinsics, UnifiedParams | OcamParams | None]:
+    """The ``camera`` section: intrinsics (px) and the unified / OCam parameters (None: hyperboloid)."""
     width = _number(cam, "camera", "width", source, positive=True)
     height = _number(cam, "camera", "height", source, positive=True)
     for key, value in (("width", width), ("height", height)):
@@ -172,16 +196,11 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
             f"must be < camera.radius_max ({camera.radius_min:g} >= {camera.radius_max:g})",
             source,
         )
-    mirror: Mirror | None = None
-    if model_name == "hyperboloid" or data.get("mirror") is not None:
-        mir = _section(data, "mirror", source)
-        mirror = Mirror(
-            a=_number(mir, "mirror", "a", source, positive=True),  # type: ignore[arg-type]
-            b=_number(mir, "mirror", "b", source, positive=True),  # type: ignore[arg-type]
-        )
-    if data.get("laser") is None:
-        return Rig(camera=camera, mirror=mirror, laser=None, model=params)
-    las = _section(data, "laser", source)
+    return camera, params
+
+
+def _laser_plane_k(las: dict[str, Any], source: str | None) -> list[float]:
+    """``laser.plane`` (k1, k2, k3, k4): four finite numbers, a non-zero normal, far enough from the focus."""
     plane = las.get("plane")
     if plane is None:
         raise ConfigError("laser.plane", "missing", source)
@@ -211,6 +230,12 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
             f"{MIN_LASER_DISTANCE_MM:g} mm from it (k4 / |k1 k2 k3| is that distance)",
             source,
         )
+    return k
+
+
+def _laser_from_dict(las: dict[str, Any], source: str | None) -> LaserPlane:
+    """The ``laser`` section: plane, channel and offset sigma (mm), validated."""
+    k = _laser_plane_k(las, source)
     channel = las.get("channel", "red")
     if not isinstance(channel, str) or channel.lower() not in LASER_CHANNELS:
         raise ConfigError(
@@ -226,11 +251,9 @@ def rig_from_dict(data: Any, source: str | None = None) -> Rig:
         raise ConfigError(
             "laser.offset_sigma_mm", f"must be a finite number >= 0 (mm), got {offset_sigma!r}", source
         )
-    laser = LaserPlane(
+    return LaserPlane(
         k=(k[0], k[1], k[2], k[3]), channel=channel.lower(), offset_sigma_mm=float(offset_sigma)
     )
-    check_ring_visible(camera, mirror, laser, source, model=params)
-    return Rig(camera=camera, mirror=mirror, laser=laser, model=params)
 
 
 def load_rig(path: str | Path) -> Rig:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from omnipipe import model
+from omnipipe.config import dataclass_from_dict
 from omnipipe.errors import ConfigError
 from omnipipe.laser.extract import LaserRing
 from omnipipe.model.outliers import OutlierConfig, reject_outliers, reject_ring_outliers
@@ -102,4 +103,4 @@ def test_bad_settings_are_named() -> None:
     with pytest.raises(ConfigError, match=r"outliers\.window"):
         OutlierConfig(window=40)
     with pytest.raises(ConfigError, match=r"outliers\.floor_mm"):
-        OutlierConfig(floor_mm=0.0)
+        dataclass_from_dict(OutlierConfig, {"floor_mm": 0.0}, "outliers")

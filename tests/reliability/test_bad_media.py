@@ -21,17 +21,8 @@ from omnipipe.dataset import open_dataset, read_image
 from omnipipe.errors import DatasetError
 from omnipipe.native import quiet_native_stderr
 from omnipipe.pipeline.cli import _progress, close_progress_bars
-from omnipipe.sim import make_scenario, run
 
 FRAMES = 24
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 simulated frames of 64x48 px."""
-    out = tmp_path_factory.mktemp("badmedia") / "ds"
-    run(make_scenario("paper-small", frames=4, size=(64, 48), seed=4), out, workers=1)
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -20,15 +20,7 @@ from omnipipe.dataset import open_dataset
 from omnipipe.errors import ConfigError, DatasetError
 from omnipipe.rig import MIN_LASER_DISTANCE_MM
 from omnipipe.rig_yaml import rig_from_dict
-from omnipipe.sim import make_scenario, paper_rig, run
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 simulated frames of 64x48 px with timestamps.txt and ground truth."""
-    out = tmp_path_factory.mktemp("badvalues") / "ds"
-    run(make_scenario("paper-small", frames=4, size=(64, 48), seed=2), out, workers=1)
-    return out
+from omnipipe.sim import paper_rig
 
 
 def copy_dataset(src: Path, dst: Path) -> Path:
@@ -258,6 +250,9 @@ def test_baseline_plot_into_missing_folder(
         ("analysis: [[min_height_mm, 1.0]]\n", "analysis"),
         ("sfm: {keyframe_min_parallax_deg: .nan}\n", "sfm.keyframe_min_parallax_deg"),
         ("analysis: {min_height_mm: .inf}\n", "analysis.min_height_mm"),
+        ("analysis: {grid_mm: 0}\n", "analysis.grid_mm"),
+        ("sfm: {bundle: {max_tracks: -5}}\n", "sfm.bundle.max_tracks"),
+        ("sfm: {bundle: {window_keyframes: -3}}\n", "sfm.bundle.window_keyframes"),
     ],
 )
 def test_config_sections_and_values_are_checked(

@@ -19,15 +19,6 @@ import pytest
 
 from omnipipe.cli import main
 from omnipipe.dataset import read_tum, write_tum
-from omnipipe.sim import make_scenario, run
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 simulated frames of 64x48 px with ground truth."""
-    out = tmp_path_factory.mktemp("evalinputs") / "ds"
-    run(make_scenario("paper-small", frames=4, size=(64, 48), seed=6), out, workers=1)
-    return out
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ import yaml
 from omnipipe.cli import main
 from omnipipe.errors import ConfigError
 from omnipipe.safe_yaml import MAX_BYTES, load_yaml_file
-from omnipipe.sim import make_scenario, paper_rig, run
+from omnipipe.sim import paper_rig
 
 PEAK_LIMIT_BYTES = 20_000_000
 
@@ -42,14 +42,6 @@ def rig_text(**fields: str) -> str:
         f"mirror: {{a: {rig['mirror']['a']}, b: {rig['mirror']['b']}}}\n"
         f"laser: {{plane: {plane}, channel: red}}\n"
     )
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 simulated frames of 64x48 px with ground truth."""
-    out = tmp_path_factory.mktemp("hostile") / "ds"
-    run(make_scenario("paper-small", frames=4, size=(64, 48), seed=1), out, workers=1)
-    return out
 
 
 def run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, int]:

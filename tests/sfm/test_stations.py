@@ -135,6 +135,7 @@ def test_noise_on_every_fourth_row_matches_every_row() -> None:
 def test_station_settings_are_validated() -> None:
     import pytest
 
+    from omnipipe.config import dataclass_from_dict
     from omnipipe.errors import ConfigError
     from omnipipe.sfm.stations import StationConfig
 
@@ -144,7 +145,7 @@ def test_station_settings_are_validated() -> None:
         ({"noise_pixels": 10}, "noise_pixels"),
     ):
         with pytest.raises(ConfigError, match=f"sfm.stations.{name}"):
-            StationConfig(**bad)
+            dataclass_from_dict(StationConfig, bad, "sfm.stations")
 
 
 def test_mask_runs_cover_exactly_the_mask() -> None:

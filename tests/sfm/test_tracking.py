@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from omnipipe.camera import camera_from_rig
+from omnipipe.config import dataclass_from_dict
 from omnipipe.errors import ConfigError
 from omnipipe.geometry import invert
 from omnipipe.sfm.features import FeatureExtractor, FrameViews
@@ -87,4 +88,4 @@ def test_nothing_is_tracked_into_a_blank_frame(two_frames) -> None:
 )
 def test_bad_settings_name_their_field(field: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"sfm.tracking.{field}"):
-        TrackConfig(**{field: value})
+        dataclass_from_dict(TrackConfig, {field: value}, "sfm.tracking")

@@ -55,6 +55,7 @@ from omnipipe.analysis.stations import (
     with_deformation,
     with_water,
 )
+from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
@@ -95,28 +96,28 @@ class AnalysisConfig:
             the ring (the imaged ring is blurred over about a sample): added to widths.
     """
 
-    window_mm: float | None = None
-    straight_tolerance_mm: float = 1.0
-    loss_scale_mm: float = 0.5
-    profile_order: int = 2
-    min_coverage_deg: float = 270.0
-    min_height_mm: float = 1.0
-    noise_factor: float = 6.0
-    min_points: int = 4
-    grid_mm: float = 0.25
-    limit_width_mm: float = 10.0
-    limit_length_mm: float = 20.0
-    fallback_scale_sigma_rel: float = 0.01
-    angle_pose_sigma_deg: float = 0.3
-    systematic_radius_factor: float = 0.08
-    systematic_height_factor: float = 0.5
-    width_resolution_samples: float = 0.35
-    cut_min_coverage_deg: float = 200.0
-    cut_min_deg: float = 8.0
-    ovality_feature_pct: float = 2.0
-    taper_min_mm: float = 2.0
-    bend_min_curvature: float = 0.2
-    bend_min_turn_deg: float = 10.0
+    window_mm: float | None = bounded(None, gt=0)
+    straight_tolerance_mm: float = bounded(1.0, gt=0)
+    loss_scale_mm: float = bounded(0.5, gt=0)
+    profile_order: int = bounded(2, ge=0)
+    min_coverage_deg: float = bounded(270.0, gt=0, le=360)
+    min_height_mm: float = bounded(1.0, gt=0)
+    noise_factor: float = bounded(6.0, gt=0)
+    min_points: int = bounded(4, ge=1)
+    grid_mm: float = bounded(0.25, gt=0)
+    limit_width_mm: float = bounded(10.0, gt=0)
+    limit_length_mm: float = bounded(20.0, gt=0)
+    fallback_scale_sigma_rel: float = bounded(0.01, ge=0)
+    angle_pose_sigma_deg: float = bounded(0.3, ge=0)
+    systematic_radius_factor: float = bounded(0.08, ge=0)
+    systematic_height_factor: float = bounded(0.5, ge=0)
+    width_resolution_samples: float = bounded(0.35, gt=0)
+    cut_min_coverage_deg: float = bounded(200.0, gt=0, le=360)
+    cut_min_deg: float = bounded(8.0, ge=0, le=360)
+    ovality_feature_pct: float = bounded(2.0, ge=0, le=100)
+    taper_min_mm: float = bounded(2.0, ge=0)
+    bend_min_curvature: float = bounded(0.2, ge=0)
+    bend_min_turn_deg: float = bounded(10.0, ge=0, le=180)
     features: FeatureConfig = field(default_factory=FeatureConfig)
 
 

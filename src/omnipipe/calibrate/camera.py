@@ -269,38 +269,85 @@ def calibrate_unified(
     obj = target.object_points()
     w, h = size
     cx0, cy0 = init_centre if init_centre is not None else ((w - 1) / 2.0, (h - 1) / 2.0)
+    x0, poses = _starting_model(corners, idx, obj, size, init, (cx0, cy0))
+    x, p, res = _adjust_unified(corners, idx, obj, x0, poses, distortion)
+    per = {i: float(np.sqrt(np.mean(np.sum(res[k] ** 2, axis=1)))) for k, i in enumerate(idx)}
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=2))))
+    if not (math.isfinite(rms) and x[0] >= 0 and x[1] > 0 and x[2] > 0):
+        raise CalibrationError(
+            f"the calibration did not converge (xi < 0 or focal <= 0): the corners do not fit "
+            f"one camera; is the board really {target.cols}x{target.rows} inner corners (check "
+            "--target: a smaller one matches part of a bigger board)? nothing written"
+        )
+    poses_out = {}
+    for k, i in enumerate(idx):
+        m = np.eye(4)
+        m[:3, :3] = cv2.Rodrigues(p[k, :3])[0]
+        m[:3, 3] = p[k, 3:]
+        poses_out[i] = m
+    params = UnifiedParams(float(x[0]), float(x[1]), float(x[2]), 0.0, *map(float, x[5:9]))
+    return CameraCalibration(params, float(x[3]), float(x[4]), per, rms, idx, poses_out)
 
-    def seed_poses(x: np.ndarray) -> tuple[list[np.ndarray], float]:
-        poses, err = [], 0.0
-        for i in idx:
-            rays = _unified_rays(corners[i], x)
-            sol = _rays_pose(rays, obj) if np.isfinite(rays).all() else None
-            if sol is None:
-                return [], math.inf
-            rvec, t = sol
-            pts = obj @ cv2.Rodrigues(rvec)[0].T + t
-            pred, _ = unified_project(pts, x[0], x[1], x[2], x[3], x[4], 0.0, tuple(x[5:9]))
-            e = np.nan_to_num(pred - corners[i], nan=1e3)
-            err += float(np.sum(e * e))
-            poses.append(np.concatenate([rvec, t]))
-        return poses, err
 
+def _seed_poses(
+    corners: dict[int, np.ndarray], idx: list[int], obj: np.ndarray, x: np.ndarray
+) -> tuple[list[np.ndarray], float]:
+    """Board poses (rvec, t) of each view under intrinsics ``x`` (9,) and their squared
+    reprojection error (px^2); ([], inf) when a view's rays do not give a pose."""
+    poses, err = [], 0.0
+    for i in idx:
+        rays = _unified_rays(corners[i], x)
+        sol = _rays_pose(rays, obj) if np.isfinite(rays).all() else None
+        if sol is None:
+            return [], math.inf
+        rvec, t = sol
+        pts = obj @ cv2.Rodrigues(rvec)[0].T + t
+        pred, _ = unified_project(pts, x[0], x[1], x[2], x[3], x[4], 0.0, tuple(x[5:9]))
+        e = np.nan_to_num(pred - corners[i], nan=1e3)
+        err += float(np.sum(e * e))
+        poses.append(np.concatenate([rvec, t]))
+    return poses, err
+
+
+def _starting_model(
+    corners: dict[int, np.ndarray],
+    idx: list[int],
+    obj: np.ndarray,
+    size: tuple[int, int],
+    init: UnifiedParams | None,
+    centre: tuple[float, float],
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Starting intrinsics (xi, fx, fy, cx, cy, k1, k2, p1, p2) and board poses: ``init``,
+    or xi = 1 with the focal scale scanned for the smallest reprojection error."""
+    w, h = size
+    cx0, cy0 = centre
     if init is not None:
         x0 = np.array([init.xi, init.fx, init.fy, cx0, cy0, init.k1, init.k2, init.p1, init.p2])
-        poses, err = seed_poses(x0)
+        poses, _ = _seed_poses(corners, idx, obj, x0)
     else:
         best: tuple[float, np.ndarray, list[np.ndarray]] | None = None
         for gamma in np.geomspace(0.05, 3.0, 48) * min(w, h):
             x = np.array([1.0, gamma, gamma, cx0, cy0, 0, 0, 0, 0])
-            poses, err = seed_poses(x)
+            poses, err = _seed_poses(corners, idx, obj, x)
             if poses and (best is None or err < best[0]):
                 best = (err, x, poses)
         if best is None:
             raise CalibrationError("no starting model explains the corners (give --init RIG.yaml)")
-        err, x0, poses = best
+        _, x0, poses = best
     if not poses:
         raise CalibrationError("the starting model (--init) does not see the detected corners")
+    return x0, poses
 
+
+def _adjust_unified(
+    corners: dict[int, np.ndarray],
+    idx: list[int],
+    obj: np.ndarray,
+    x0: np.ndarray,
+    poses: list[np.ndarray],
+    distortion: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares over intrinsics and poses: (x (9,), poses (V, 6), residuals (V, K, 2) px)."""
     n_int = 9
     n_corner = len(obj)
     free = np.ones(n_int, bool)
@@ -310,12 +357,8 @@ def calibrate_unified(
 
     # Internally fx, fy are divided by (1 + xi): the small-angle scale, which the corners
     # fix well; xi and fx themselves are strongly correlated (slow convergence).
-    def to_internal(x: np.ndarray) -> np.ndarray:
-        y = x.copy()
-        y[1:3] = x[1:3] / (1.0 + x[0])
-        return y
-
-    y0 = to_internal(x0)
+    y0 = x0.copy()
+    y0[1:3] = x0[1:3] / (1.0 + x0[0])
 
     def unpack(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         y = y0.copy()
@@ -344,23 +387,7 @@ def calibrate_unified(
     sol = least_squares(residual, v0, jac_sparsity=sparsity, x_scale="jac", method="trf",
                         ftol=1e-9, max_nfev=120)
     x, p = unpack(sol.x)
-    res = sol.fun.reshape(len(idx), n_corner, 2)
-    per = {i: float(np.sqrt(np.mean(np.sum(res[k] ** 2, axis=1)))) for k, i in enumerate(idx)}
-    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=2))))
-    if not (math.isfinite(rms) and x[0] >= 0 and x[1] > 0 and x[2] > 0):
-        raise CalibrationError(
-            f"the calibration did not converge (xi < 0 or focal <= 0): the corners do not fit "
-            f"one camera; is the board really {target.cols}x{target.rows} inner corners (check "
-            "--target: a smaller one matches part of a bigger board)? nothing written"
-        )
-    poses_out = {}
-    for k, i in enumerate(idx):
-        m = np.eye(4)
-        m[:3, :3] = cv2.Rodrigues(p[k, :3])[0]
-        m[:3, 3] = p[k, 3:]
-        poses_out[i] = m
-    params = UnifiedParams(float(x[0]), float(x[1]), float(x[2]), 0.0, *map(float, x[5:9]))
-    return CameraCalibration(params, float(x[3]), float(x[4]), per, rms, idx, poses_out)
+    return x, p, sol.fun.reshape(len(idx), n_corner, 2)
 
 
 def mirror_annulus(images: list[np.ndarray], cx: float, cy: float) -> tuple[float | None, float]:

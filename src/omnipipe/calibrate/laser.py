@@ -203,9 +203,24 @@ def fit_laser_line(
     oth = img[..., others].astype(float).max(axis=2) / full
     centre = uv.mean(axis=0)
     direction = np.linalg.svd(uv - centre, full_matrices=False)[2][0]
-    normal = np.array([-direction[1], direction[0]])
     along = (uv - centre) @ direction
     lo, hi = float(along.min()), float(along.max())
+    band = _band_pixels(lam, oth, camera, pose, target, centre, direction, (lo, hi))
+    if band is None:
+        return None
+    return _fit_line_profile(*band, centre, direction, full)
+
+
+def _band_pixels(
+    lam: np.ndarray, oth: np.ndarray, camera: CameraModel, pose: np.ndarray, target: Target,
+    centre: np.ndarray, direction: np.ndarray, extent: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The pixels within ``LINE_BAND_MM`` of the line (``centre`` + t ``direction``, t in
+    ``extent``, board mm) on the board and unsaturated: their board coordinates (M, 2) mm,
+    laser-channel and other-channel values (M,) (fractions of full scale); None when
+    fewer than 30 or the band does not project."""
+    lo, hi = extent
+    normal = np.array([-direction[1], direction[0]])
     s = target.square_mm
     # the band's outline on the board -> pixels
     t = np.linspace(lo, hi, 40)
@@ -239,7 +254,15 @@ def fit_laser_line(
     )
     if use.sum() < 30:
         return None
-    buv, val, oth_v = buv[use], lam[rows[use], cols[use]], oth[rows[use], cols[use]]
+    return buv[use], lam[rows[use], cols[use]], oth[rows[use], cols[use]]
+
+
+def _fit_line_profile(
+    buv: np.ndarray, val: np.ndarray, oth_v: np.ndarray, centre: np.ndarray,
+    direction: np.ndarray, full: float,
+) -> tuple[tuple[np.ndarray, np.ndarray], float] | None:
+    """Least-squares fit of the line's profile model (see :func:`fit_laser_line`) to the
+    band's pixels: ((point, unit direction) board mm, RMS grey levels) or None."""
 
     def model(v: np.ndarray) -> np.ndarray:
         d = (buv - centre) @ np.array([-math.sin(v[1]), math.cos(v[1])]) - v[0]

@@ -43,6 +43,35 @@ def check_ring_visible(
     k = np.asarray(laser.k, dtype=float)
     n = k[:3] / np.linalg.norm(k[:3])
     tilt = math.degrees(math.acos(min(1.0, abs(float(n[2])))))
+    t_lo, t_hi, r_mirror = _full_ring_band(camera, mirror, model, source)
+    if abs(n[2]) < 1e-12:
+        tan_max, z0 = -1.0, math.nan
+    else:
+        z0 = -float(k[3] / k[2])
+        ratio = z0 / r_mirror  # z0 / R at the narrowest pipe the robot fits in
+        if z0 < 0:
+            tan_max = min((t_hi - t_lo) / 2.0, t_hi - ratio, -t_lo)
+        else:
+            tan_max = min((t_hi - t_lo) / 2.0, ratio - t_lo, t_hi)
+    tan_tilt = math.tan(math.radians(tilt)) if tilt < 90.0 else math.inf
+    if tan_tilt <= tan_max:
+        return
+    _refuse_plane(tilt, z0, tan_max, (t_lo, t_hi), r_mirror, source)
+
+
+def _full_ring_band(
+    camera: CameraIntrinsics,
+    mirror: Mirror | None,
+    model: UnifiedParams | OcamParams | None,
+    source: str | None,
+) -> tuple[float, float, float]:
+    """(t_lo, t_hi, r_mirror): tangents of the elevations bounding the band of full rings
+    the camera sees, and the mirror's radius (mm) at its outer edge (inf without a
+    hyperboloid).
+
+    Raises:
+        ConfigError: no full circle fits (``camera``) or ``radius_max`` is past the asymptote.
+    """
     cam = camera_from_parts(camera, mirror, model)
     r_full = min(
         cam.radius_max,
@@ -75,18 +104,21 @@ def check_ring_visible(
         r_mirror = t_rim * math.hypot(rim[0], rim[1])
     else:
         r_mirror = math.inf
-    if abs(n[2]) < 1e-12:
-        tan_max, z0 = -1.0, math.nan
-    else:
-        z0 = -float(k[3] / k[2])
-        ratio = z0 / r_mirror  # z0 / R at the narrowest pipe the robot fits in
-        if z0 < 0:
-            tan_max = min((t_hi - t_lo) / 2.0, t_hi - ratio, -t_lo)
-        else:
-            tan_max = min((t_hi - t_lo) / 2.0, ratio - t_lo, t_hi)
-    tan_tilt = math.tan(math.radians(tilt)) if tilt < 90.0 else math.inf
-    if tan_tilt <= tan_max:
-        return
+    return t_lo, t_hi, r_mirror
+
+
+def _refuse_plane(
+    tilt: float,
+    z0: float,
+    tan_max: float,
+    band_t: tuple[float, float],
+    r_mirror: float,
+    source: str | None,
+) -> None:
+    """Raise the ``laser.plane`` ConfigError: never visible (``tan_max`` < 0) or tilted too far.
+
+    ``tilt`` in degrees, ``z0`` where the plane crosses the axis (mm, nan: parallel)."""
+    t_lo, t_hi = band_t
     band = (
         f"elevations {math.degrees(math.atan(t_lo)):.1f} to {math.degrees(math.atan(t_hi)):.1f} deg"
     )

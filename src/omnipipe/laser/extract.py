@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.config import bounded
 from omnipipe.image import CHANNEL_INDEX
 from omnipipe.laser._kernels import line_statistics
 from omnipipe.laser.ring import LaserRing
@@ -48,16 +49,16 @@ class ExtractionConfig:
             laser ring (measured: real rings 0.92-1.0; texture in a wrong channel 0.04-0.27).
     """
 
-    angles: int = 720
-    radial_step_px: float = 1.0
-    min_snr: float = 6.0
-    min_peak: float = 12.0
-    ambiguity_ratio: float = 0.6
-    separation_px: float = 3.0
-    saturation: float = 0.98
-    tophat_px: int = 8
-    max_width_factor: float = 0.0
-    min_ring_fraction: float = 0.4
+    angles: int = bounded(720, ge=8)
+    radial_step_px: float = bounded(1.0, gt=0)
+    min_snr: float = bounded(6.0, ge=0)
+    min_peak: float = bounded(12.0, ge=0)
+    ambiguity_ratio: float = bounded(0.6, ge=0, le=1)
+    separation_px: float = bounded(3.0, ge=0)
+    saturation: float = bounded(0.98, gt=0, le=1)
+    tophat_px: int = bounded(8, ge=0)
+    max_width_factor: float = bounded(0.0, ge=0)
+    min_ring_fraction: float = bounded(0.4, ge=0, le=1)
 
 
 def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:

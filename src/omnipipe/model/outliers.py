@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.ndimage import median_filter
 
+from omnipipe.config import bounded
 from omnipipe.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -57,20 +58,15 @@ class OutlierConfig:
             angle supports it (kept).
     """
 
-    window: int = 41
-    k_mad: float = 6.0
-    floor_mm: float = 1.0
-    max_run: int = 2
-    support_deg: float = 1.5
+    window: int = bounded(41, ge=3)
+    k_mad: float = bounded(6.0, gt=0)
+    floor_mm: float = bounded(1.0, gt=0)
+    max_run: int = bounded(2, ge=1)
+    support_deg: float = bounded(1.5, gt=0)
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
             raise ConfigError("outliers.window", f"must be an odd number >= 3, got {self.window}")
-        for name in ("k_mad", "floor_mm", "support_deg"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"outliers.{name}", f"must be > 0, got {getattr(self, name)}")
-        if self.max_run < 1:
-            raise ConfigError("outliers.max_run", f"must be >= 1, got {self.max_run}")
 
 
 def ring_departures(

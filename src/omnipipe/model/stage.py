@@ -33,6 +33,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import CameraModel, camera_from_rig
+from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
 from omnipipe.memory import release_freed_memory
@@ -80,22 +81,18 @@ class ModelConfig:
     """
 
     mesher: str = "unrolled-delaunay"
-    colour_offset_px: float = 4.0
-    max_edge_factor: float = 2.0
+    colour_offset_px: float = bounded(4.0, ge=0)
+    max_edge_factor: float = bounded(2.0, gt=0)
     texture: bool = True
-    texture_mm_per_px: float = 0.5
-    laser_band_mm: float = 3.0
+    texture_mm_per_px: float = bounded(0.5, gt=0)
+    laser_band_mm: float = bounded(3.0, ge=0)
     flips: bool = False
-    flip_passes: int = 3
+    flip_passes: int = bounded(3, ge=0)
 
     def __post_init__(self) -> None:
         if self.mesher != "unrolled-delaunay":
             raise ConfigError(
                 "model.mesher", f"unknown mesher {self.mesher!r} (known: unrolled-delaunay)"
-            )
-        if not self.texture_mm_per_px > 0:
-            raise ConfigError(
-                "model.texture_mm_per_px", f"must be > 0, got {self.texture_mm_per_px}"
             )
 
 

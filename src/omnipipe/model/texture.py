@@ -38,7 +38,7 @@ once for both its ring colours and its texture cells, in parallel.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from itertools import pairwise
@@ -819,11 +819,6 @@ def choose_sources(
         )
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
-    source = np.full((end - top, w), -1, source_dtype(n_k))
-    light = np.full((end - top, w, 2), np.nan, LIGHT_DTYPE)
-    first = np.full(n_k, end - top)
-    stop = np.zeros(n_k, int)
-    pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
 
     def strips():  # each strip and a row either side (np.gradient along z), made as needed
         for r0 in range(top, end, step):
@@ -837,12 +832,29 @@ def choose_sources(
     def scored():  # each strip's scores; ``rows_done`` told once the strip is used
         results = ordered_map(executor or InlineExecutor(), _strip_task, strips())
         for r0, result in zip(range(0, end - top, step), results, strict=True):
-            yield r0, result
+            yield result
             if rows_done is not None:
                 rows_done(min(r0 + step, end - top))
 
-    for r0, (best, best_px, idx, best_light) in scored():
-        r1 = min(r0 + step, end - top)
+    return _collect_strips(scored(), n_k, w, step, end - top)
+
+
+def _collect_strips(
+    scored: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    n_k: int,
+    w: int,
+    step: int,
+    n_rows: int,
+) -> CellChoice:
+    """The :class:`CellChoice` of ``n_rows`` x ``w`` cells from the strips' choices
+    (:func:`_choose_in_strip`, in order, ``step`` rows each) among ``n_k`` keyframes."""
+    source = np.full((n_rows, w), -1, source_dtype(n_k))
+    light = np.full((n_rows, w, 2), np.nan, LIGHT_DTYPE)
+    first = np.full(n_k, n_rows)
+    stop = np.zeros(n_k, int)
+    pieces: list[list[np.ndarray]] = [[] for _ in range(n_k)]
+    for r0, (best, best_px, idx, best_light) in zip(range(0, n_rows, step), scored, strict=True):
+        r1 = min(r0 + step, n_rows)
         source[r0:r1].reshape(-1)[idx] = best
         light[r0:r1].reshape(-1, 2)[idx] = best_light
         chosen = best >= 0
@@ -916,7 +928,6 @@ def _choose_in_strip(
         windows = _seen_rows(core, rig_from_world, bounds, TILE)
     else:
         windows = np.tile([0, n_rows], (n_k, 1))
-    n_plane, o_plane = rig.laser.normal_in_rig, rig.laser.offset_mm
     # Products with 3 columns gain nothing from BLAS threads, which only contend with the
     # executor's workers for the cores (the per-cell values do not depend on them).
     with threadpool_limits(limits=1, user_api="blas"):
@@ -925,20 +936,9 @@ def _choose_in_strip(
             if sl.start >= sl.stop:
                 continue
             m = rig_from_world[k]
-            q = apply(m, p[sl])
-            px, valid = camera.project(q)
-            valid &= np.abs(q @ n_plane + o_plane) > laser_band_mm
-            if laser_band_px > 0:
-                valid &= laser_line_px(camera, q, px, n_plane, o_plane) > laser_band_px
-            px_u, _ = camera.project(q + step_u[sl] @ m[:3, :3].T)
-            px_z, _ = camera.project(q + step_z[sl] @ m[:3, :3].T)
-            a, b = px_u - px, px_z - px
-            # Pixels per cell area, over the cell area in mm^2: the footprint's scale.
-            # Sharpness (pixels per mm of wall) times the LEDs' inverse-square light: the
-            # near view is both finer and brighter.
-            dist2 = np.maximum(np.sum(q * q, axis=1), 1e-6)
-            score = np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])) / mm_per_px / dist2
-            score = np.where(valid & np.isfinite(score), score, 0.0)
+            q, px, score = _view_score(
+                rig, camera, m, (p[sl], step_u[sl], step_z[sl]), mm_per_px, laser_band_mm, laser_band_px
+            )
             # Views of the window: strictly better, so ties keep the earlier keyframe.
             better = score > best_score[sl]
             best[sl][better] = k
@@ -952,6 +952,41 @@ def _choose_in_strip(
                     [np.log2(np.maximum(cos_i, 1e-6) / dist**2), np.linalg.norm(px[better] - centre, axis=1)]
                 )
     return best, best_px, idx, best_light
+
+
+def _view_score(
+    rig: Rig,
+    camera: CameraModel,
+    rig_from_world: np.ndarray,
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray],
+    mm_per_px: float,
+    laser_band_mm: float,
+    laser_band_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How well one keyframe (pose ``rig_from_world`` (4, 4)) sees wall cells.
+
+    ``cells`` = (points, step_u, step_z): (n, 3) world points (mm) and their steps along
+    the rows and columns. Returns (q (n, 3) points in the rig frame, px (n, 2) their
+    pixels, score (n,): sharpness (px per mm of wall) over the squared distance, 0 where
+    not seen or within the laser's bands).
+    """
+    p, step_u, step_z = cells
+    n_plane, o_plane = rig.laser.normal_in_rig, rig.laser.offset_mm
+    m = rig_from_world
+    q = apply(m, p)
+    px, valid = camera.project(q)
+    valid &= np.abs(q @ n_plane + o_plane) > laser_band_mm
+    if laser_band_px > 0:
+        valid &= laser_line_px(camera, q, px, n_plane, o_plane) > laser_band_px
+    px_u, _ = camera.project(q + step_u @ m[:3, :3].T)
+    px_z, _ = camera.project(q + step_z @ m[:3, :3].T)
+    a, b = px_u - px, px_z - px
+    # Pixels per cell area, over the cell area in mm^2: the footprint's scale.
+    # Sharpness (pixels per mm of wall) times the LEDs' inverse-square light: the
+    # near view is both finer and brighter.
+    dist2 = np.maximum(np.sum(q * q, axis=1), 1e-6)
+    score = np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])) / mm_per_px / dist2
+    return q, px, np.where(valid & np.isfinite(score), score, 0.0)
 
 
 def texture_samples(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from omnipipe.config import bounded
 from omnipipe.image import PNG_COMPRESS_LEVEL
 
 if TYPE_CHECKING:
@@ -50,8 +51,8 @@ class ReportConfig:
         title: page title.
     """
 
-    max_faces: int = 250_000
-    texture_max_px: int = 4096
+    max_faces: int = bounded(250_000, ge=1)
+    texture_max_px: int = bounded(4096, ge=16)
     title: str = "omnipipe inspection report"
 
 

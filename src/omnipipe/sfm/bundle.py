@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import CameraModel
+from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ReconstructionError, ShapeError
 from omnipipe.geometry import invert
 from omnipipe.sfm import schur
@@ -69,14 +70,14 @@ class BundleConfig:
     """
 
     enabled: bool = True
-    loss_scale_px: float = 1.0
-    laser_weight: float = 1.0
-    max_reprojection_px: float = 4.0
-    min_parallax_deg: float = 1.0
-    max_tracks: int = 4000
-    max_evaluations: int = 50
-    window_keyframes: int = 64
-    window_overlap: int = 8
+    loss_scale_px: float = bounded(1.0, gt=0)
+    laser_weight: float = bounded(1.0, ge=0)
+    max_reprojection_px: float = bounded(4.0, gt=0)
+    min_parallax_deg: float = bounded(1.0, ge=0, lt=180)
+    max_tracks: int = bounded(4000, ge=1)
+    max_evaluations: int = bounded(50, ge=1)
+    window_keyframes: int = bounded(64, ge=3)
+    window_overlap: int = bounded(8, ge=1)
     solver: str = "auto"
 
     def __post_init__(self) -> None:

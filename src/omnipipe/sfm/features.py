@@ -20,6 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from omnipipe.camera import CameraModel, PerspectiveView
+from omnipipe.config import bounded
 from omnipipe.errors import ConfigError
 from omnipipe.image import gray_without_laser
 
@@ -37,12 +38,12 @@ class FeatureConfig:
         contrast_threshold: SIFT's contrast threshold (OpenCV default 0.04).
     """
 
-    views: int = 8
+    views: int = bounded(8, ge=1)
     elevation_deg: tuple[float, float] = (-55.0, 15.0)
-    max_features: int = 3000
-    laser_margin_px: float = 6.0
-    ratio: float = 0.8
-    contrast_threshold: float = 0.01
+    max_features: int = bounded(3000, ge=1)
+    laser_margin_px: float = bounded(6.0, ge=0)
+    ratio: float = bounded(0.8, gt=0, le=1)
+    contrast_threshold: float = bounded(0.01, ge=0)
 
     def __post_init__(self) -> None:
         if self.views < 1:

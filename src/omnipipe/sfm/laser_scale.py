@@ -23,6 +23,7 @@ import numpy as np
 from omnipipe.camera import CameraModel
 from omnipipe.camera._kernels import project_point
 from omnipipe.camera.base import CompiledProjection
+from omnipipe.config import bounded
 from omnipipe.image import sample_bilinear
 
 
@@ -47,14 +48,14 @@ class LaserScaleConfig:
             scale there stays, so it is not the cause; off until measured on paper/bend.
     """
 
-    patch_radius: int = 6
-    stripe_half_width_mm: float = 1.2
-    stripe_half_width_px: float = 2.5
+    patch_radius: int = bounded(6, ge=1)
+    stripe_half_width_mm: float = bounded(1.2, ge=0)
+    stripe_half_width_px: float = bounded(2.5, ge=0)
     scale_range_mm: tuple[float, float] = (0.2, 200.0)
-    scale_steps: int = 96
-    min_ncc: float = 0.8
-    min_template_std: float = 2.0
-    max_points: int = 120
+    scale_steps: int = bounded(96, ge=2)
+    min_ncc: float = bounded(0.8, ge=-1, le=1)
+    min_template_std: float = bounded(2.0, ge=0)
+    max_points: int = bounded(120, ge=1)
     detrend: bool = False
 
 

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.config import bounded
 from omnipipe.image import sample_bilinear
 from omnipipe.sfm.geometry import triangulate_pairs
 
@@ -42,11 +43,11 @@ class PlaneRefineConfig:
     """
 
     enabled: bool = False
-    max_matches: int = 300
-    patch_px: int = 33
-    keypoint_size_px: float = 12.0
-    depth_span: float = 1.5
-    depth_steps: int = 15
+    max_matches: int = bounded(300, ge=1)
+    patch_px: int = bounded(33, ge=3)
+    keypoint_size_px: float = bounded(12.0, gt=0)
+    depth_span: float = bounded(1.5, ge=1)
+    depth_steps: int = bounded(15, ge=1)
     rotations_deg: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from omnipipe.config import bounded
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import make_transform
 from omnipipe.sfm.geometry import (
@@ -41,12 +42,12 @@ class RansacConfig:
         seed: random seed.
     """
 
-    threshold_rad: float = math.radians(0.2)
-    max_iterations: int = 2000
-    confidence: float = 0.999
-    min_inliers: int = 15
-    rotation_only_ratio: float = 0.9
-    seed: int = 0
+    threshold_rad: float = bounded(math.radians(0.2), gt=0, lt=math.pi)
+    max_iterations: int = bounded(2000, ge=1)
+    confidence: float = bounded(0.999, gt=0, lt=1)
+    min_inliers: int = bounded(15, ge=1)
+    rotation_only_ratio: float = bounded(0.9, gt=0, le=1)
+    seed: int = bounded(0, ge=0)
 
 
 @dataclass

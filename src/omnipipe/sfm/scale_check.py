@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from omnipipe.config import bounded
 from omnipipe.geometry import make_transform
 from omnipipe.sfm.geometry import triangulate_pairs
 
@@ -67,17 +68,17 @@ class ScaleCheckConfig:
             not anchor the bundle adjustment (a partial wrong-course laser match).
     """
 
-    agree_log: float = 0.12
-    ambiguous_ratio: float = 0.8
-    alternative_min_ratio: float = 0.5
-    min_feature_matches: int = 12
-    min_parallax_deg: float = 1.0
-    max_feature_spread_log: float = 0.35
-    keep_match_log: float = 0.25
-    adjusted_agree_log: float = 0.1
-    max_source_offset_log: float = 0.25
-    max_bias_log: float = 0.05
-    anchor_agree_log: float = 0.05
+    agree_log: float = bounded(0.12, gt=0)
+    ambiguous_ratio: float = bounded(0.8, gt=0, le=1)
+    alternative_min_ratio: float = bounded(0.5, gt=0, le=1)
+    min_feature_matches: int = bounded(12, ge=1)
+    min_parallax_deg: float = bounded(1.0, ge=0, lt=180)
+    max_feature_spread_log: float = bounded(0.35, gt=0)
+    keep_match_log: float = bounded(0.25, gt=0)
+    adjusted_agree_log: float = bounded(0.1, gt=0)
+    max_source_offset_log: float = bounded(0.25, gt=0)
+    max_bias_log: float = bounded(0.05, gt=0)
+    anchor_agree_log: float = bounded(0.05, gt=0)
 
 
 @dataclass(frozen=True)

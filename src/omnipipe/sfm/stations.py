@@ -17,7 +17,7 @@ import cv2
 import numba
 import numpy as np
 
-from omnipipe.errors import ConfigError
+from omnipipe.config import bounded
 
 
 @dataclass(frozen=True)
@@ -39,17 +39,10 @@ class StationConfig:
             error is then about 0.3 %, and its cost does not grow with the frame size.
     """
 
-    downsample: int = 4
-    noise_factor: float = 1.7
-    noise_pixels: int = 2**17
+    downsample: int = bounded(4, ge=1)
+    noise_factor: float = bounded(1.7, gt=0)
+    noise_pixels: int = bounded(2**17, ge=1000)
 
-    def __post_init__(self) -> None:
-        if self.downsample < 1:
-            raise ConfigError("sfm.stations.downsample", f"must be >= 1, got {self.downsample}")
-        if not self.noise_factor > 0:
-            raise ConfigError("sfm.stations.noise_factor", f"must be > 0, got {self.noise_factor}")
-        if self.noise_pixels < 1000:
-            raise ConfigError("sfm.stations.noise_pixels", f"must be >= 1000, got {self.noise_pixels}")
 
 
 # Immerkaer's noise operator: the difference of two Laplacians.

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
 
@@ -43,27 +44,15 @@ class TrackConfig:
     """
 
     enabled: bool = True
-    window_px: int = 21
-    levels: int = 3
-    max_forward_backward_px: float = 0.5
-    min_tracked_fraction: float = 0.4
-    max_points: int = 1000
+    window_px: int = bounded(21, ge=5)
+    levels: int = bounded(3, ge=0)
+    max_forward_backward_px: float = bounded(0.5, gt=0)
+    min_tracked_fraction: float = bounded(0.4, gt=0, le=1)
+    max_points: int = bounded(1000, ge=8)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
             raise ConfigError("sfm.tracking.window_px", f"must be an odd number >= 5, got {self.window_px}")
-        if self.levels < 0:
-            raise ConfigError("sfm.tracking.levels", f"must be >= 0, got {self.levels}")
-        if not self.max_forward_backward_px > 0:
-            raise ConfigError(
-                "sfm.tracking.max_forward_backward_px", f"must be > 0, got {self.max_forward_backward_px}"
-            )
-        if self.max_points < 8:
-            raise ConfigError("sfm.tracking.max_points", f"must be >= 8, got {self.max_points}")
-        if not 0 < self.min_tracked_fraction <= 1:
-            raise ConfigError(
-                "sfm.tracking.min_tracked_fraction", f"must be in (0, 1], got {self.min_tracked_fraction}"
-            )
 
 
 @dataclass

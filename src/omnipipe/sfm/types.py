@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.config import bounded
 from omnipipe.rig import Rig
 from omnipipe.sfm.bundle import BundleConfig, BundleResult
 from omnipipe.sfm.features import FeatureConfig, FrameFeatures
@@ -73,13 +74,13 @@ class SfmConfig:
     laser_scale: LaserScaleConfig = field(default_factory=LaserScaleConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
     tracking: TrackConfig = field(default_factory=TrackConfig)
-    ransac_threshold_px: float = 1.0
-    ransac_iterations: int = 2000
-    min_inliers: int = 15
-    rotation_only_ratio: float = 0.9
-    seed: int = 0
-    keyframe_min_parallax_deg: float = 4.0
-    anchor_reach: int = 3
+    ransac_threshold_px: float = bounded(1.0, gt=0)
+    ransac_iterations: int = bounded(2000, ge=1)
+    min_inliers: int = bounded(15, ge=1)
+    rotation_only_ratio: float = bounded(0.9, gt=0, le=1)
+    seed: int = bounded(0, ge=0)
+    keyframe_min_parallax_deg: float = bounded(4.0, gt=0, lt=180)
+    anchor_reach: int = bounded(3, ge=1)
     scale_from_wall: bool = True
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)

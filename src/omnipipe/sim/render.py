@@ -664,27 +664,64 @@ class Renderer:
         out = np.zeros((h * w, 3), np.float32)
         if len(sel) == 0:
             return out.reshape(h, w, 3)
-        g = np.maximum(grad[sel], 1e-6)
         flat = self.index[wall][sel]  # flat image index of each selected pixel
+        radiance = self._sheet_radiance(
+            points_rig[sel], laser_h[sel], np.maximum(grad[sel], 1e-6),
+            (sigma[sel], theta[sel], footprint[sel]),
+            None if albedo_all is None else albedo_all[sel],
+            None if lit is None else lit[sel],
+        )
+        value = self._blur_and_speckle(radiance, flat, rng)
+        chan = CHANNEL_INDEX.get(self.rig.laser.channel)
+        if chan is None:
+            out[flat] = value[:, None]
+        else:
+            out[flat] = (cfg.laser_crosstalk * value)[:, None]
+            out[flat, chan] = value
+        return out.reshape(h, w, 3)
+
+    def _sheet_radiance(
+        self,
+        points_rig: np.ndarray,
+        laser_h: np.ndarray,
+        g: np.ndarray,
+        wall_coords: tuple[np.ndarray, np.ndarray, np.ndarray],
+        albedo: np.ndarray | None,
+        lit: np.ndarray | None,
+    ) -> np.ndarray:
+        """The sheet's radiance (K,) at K wall pixels near it (see :meth:`_laser_image`).
+
+        ``points_rig`` (K, 3) mm, ``laser_h`` (K,) distance from the sheet's centre plane
+        (mm), ``g`` (K,) its gradient across the image (mm/px), ``wall_coords`` (sigma,
+        theta, footprint) for the texture, ``albedo`` (K, 3) replacing it, ``lit`` (K,)
+        the power's scale.
+        """
+        cfg = self.config
         sheet = cfg.laser_sheet_sigma_mm
         sheet_in_pixel_mm = np.sqrt(sheet**2 + g**2 / 12.0)
         # Power per unit length of the line: sheet fan spreads as 1/D; Lambert on the wall.
-        to_emitter = self.laser_origin_in_rig - points_rig[sel]
+        to_emitter = self.laser_origin_in_rig - points_rig
         dist_e = np.linalg.norm(to_emitter, axis=1)
-        if albedo_all is None:
-            albedo = self.texture.sample(sigma[sel], theta[sel], footprint[sel])
-        else:
-            albedo = albedo_all[sel]
+        if albedo is None:
+            albedo = self.texture.sample(*wall_coords)
         chan = CHANNEL_INDEX.get(self.rig.laser.channel)
         refl = albedo[:, chan] if chan is not None else albedo.mean(axis=1)
         line = cfg.laser_power * (100.0 / dist_e) * np.clip(refl / 0.5, 0.2, 2.0) * 0.5
         if lit is not None:
-            line = line * lit[sel]
+            line = line * lit
         # laser_power is the line integral across the stripe (image value x px) at the
         # frame's median footprint: peak radiance = line / (sqrt(2 pi) sheet / g_ref).
         g_ref = float(np.median(g))
         peak = line * g_ref / (math.sqrt(2 * math.pi) * sheet)
-        radiance = peak * (sheet / sheet_in_pixel_mm) * np.exp(-0.5 * (laser_h[sel] / sheet_in_pixel_mm) ** 2)
+        return peak * (sheet / sheet_in_pixel_mm) * np.exp(-0.5 * (laser_h / sheet_in_pixel_mm) ** 2)
+
+    def _blur_and_speckle(
+        self, radiance: np.ndarray, flat: np.ndarray, rng: np.random.Generator
+    ) -> np.ndarray:
+        """The image values (K,) at flat pixel indices ``flat`` of ``radiance`` (K,) after
+        the point spread function and laser speckle."""
+        cfg = self.config
+        h, w = self.camera.height, self.camera.width
         img = np.zeros(h * w, np.float32)
         img[flat] = radiance
         img = img.reshape(h, w)
@@ -694,14 +731,9 @@ class Renderer:
         if cfg.speckle_contrast > 0:
             # Speckle forms on the sensor (grains of about a pixel): it multiplies the image.
             k = 1.0 / cfg.speckle_contrast**2
-            speckle = rng.gamma(k, 1.0 / k, size=len(sel)).astype(np.float32)
+            speckle = rng.gamma(k, 1.0 / k, size=len(flat)).astype(np.float32)
             field = np.ones(h * w, np.float32)
             field[flat] = speckle
             field = cv2.GaussianBlur(field.reshape(h, w), (0, 0), 0.6).ravel()
             value = value * field[flat]
-        if chan is None:
-            out[flat] = value[:, None]
-        else:
-            out[flat] = (cfg.laser_crosstalk * value)[:, None]
-            out[flat, chan] = value
-        return out.reshape(h, w, 3)
+        return value

@@ -212,6 +212,15 @@ def _feature_entries(
                 "length_mm": v.length_mm,
             }
         )
+    out.extend(_bend_and_taper_entries(pipe, s0, ang))
+    out.extend(_ovality_and_water_entries(pipe, s0, lo, hi, ang))
+    return out
+
+
+def _bend_and_taper_entries(pipe: Pipe, s0: float, ang: Callable) -> list[dict]:
+    """scene.json's ``bend`` and ``taper`` features (axial mm from the run's start ``s0``)."""
+    feats = pipe.features
+    out: list[dict] = []
     cl = pipe.centreline
     if cl.has_bend:
         arc = float(cl.bend_radius_mm) * math.radians(cl.bend_angle_deg)  # type: ignore[arg-type]
@@ -236,6 +245,15 @@ def _feature_entries(
                 "diameter_to_mm": t.diameter_to_mm,
             }
         )
+    return out
+
+
+def _ovality_and_water_entries(
+    pipe: Pipe, s0: float, lo: float, hi: float, ang: Callable
+) -> list[dict]:
+    """scene.json's ``ovality`` and ``water`` features, clipped to the run [lo, hi] (mm)."""
+    feats = pipe.features
+    out: list[dict] = []
     ovals = [
         (o.axial_from_mm, o.axial_to_mm, o.percent, o.angle_deg, o.blend_mm)
         for o in feats.ovalities
