@@ -168,6 +168,7 @@ def test_station_diameter_and_ovality_unbiased_with_stated_sigma(ovality: float)
     assert abs(res.inner_diameter_mm - 150.0) <= 2 * res.inner_diameter_sigma_mm
 
 
+@pytest.mark.slow  # 13 s; the sizing stage stays covered by the fast tests above and tests/pipeline
 def test_crest_between_rings_height_sigma_covers_the_shape_ambiguity() -> None:
     """Short defects (10-16 mm at half height) on rings 9 mm apart: one or two rings cross
     each, so a flat top and a rounded crest between the rings fit the samples alike. The
@@ -191,6 +192,7 @@ def test_crest_between_rings_height_sigma_covers_the_shape_ambiguity() -> None:
     assert sum(inside) >= 10, f"{sum(inside)} of 12 heights within 2 sigma"
 
 
+@pytest.mark.slow  # 8 s; the sizing stage stays covered by the fast tests above and tests/pipeline
 def test_short_rounded_defect_between_rings_is_not_read_as_a_lower_plateau() -> None:
     """Short defects (10-20 mm) of the simulator's rounded shape (a raised cosine along the
     axis, no plateau) on rings 8 mm apart, noise correlated along the ring: a free flank
