@@ -99,11 +99,14 @@ def test_output_path_that_is_a_file_is_refused(small_dataset: Path, tmp_path: Pa
 
 
 def test_a_black_frame_mid_run_is_not_registered(small_dataset: Path, tmp_path: Path) -> None:
-    """A frame with nothing to see (lights failed) keeps the run going, flagged, not faked."""
+    """A frame with nothing to see (lights failed) keeps the run going, flagged, not faked
+    (without the robot's sensors: with odometry the frame is placed by it, flagged)."""
     from PIL import Image
 
     ds = tmp_path / "ds"
     shutil.copytree(small_dataset, ds)
+    for sensor in ("odometry.txt", "imu.txt"):
+        (ds / sensor).unlink(missing_ok=True)
     size = Image.open(ds / "frames" / "000012.png").size
     Image.new("RGB", size).save(ds / "frames" / "000012.png")
     out = tmp_path / "out"

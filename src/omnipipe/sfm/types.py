@@ -79,7 +79,7 @@ class SfmConfig:
     min_inliers: int = bounded(15, ge=1)
     rotation_only_ratio: float = bounded(0.9, gt=0, le=1)
     seed: int = bounded(0, ge=0)
-    keyframe_min_parallax_deg: float = bounded(4.0, gt=0, lt=180)
+    keyframe_min_parallax_deg: float = bounded(4.0, ge=0, lt=180)
     anchor_reach: int = bounded(3, ge=1)
     scale_from_wall: bool = True
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
