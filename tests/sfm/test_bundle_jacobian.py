@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from omnipipe.camera import CameraModel, OmniCamera
-from omnipipe.sfm.bundle import _objective, _so3_left_jacobian
+from omnipipe.sfm.bundle import BundleObjective, _so3_left_jacobian
 
 
 def _central_differences(fun, x: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -56,7 +56,8 @@ def test_bundle_jacobian_matches_finite_differences(bundle_problem) -> None:
         camera, problem = bundle_problem(seed, fixed)
         if wrap:
             camera = _GenericJacobianCamera(camera)
-        x0, residuals, jacobian, _ = _objective(camera, problem, 2.0)
+        objective = BundleObjective(camera, problem, 2.0)
+        x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
         r = residuals(x0)
         zeroed = r == 0
         assert 0 < zeroed.sum() < len(r) // 2  # some projections are invalid

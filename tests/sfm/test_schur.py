@@ -6,7 +6,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from omnipipe.sfm.bundle import _objective
+from omnipipe.sfm.bundle import BundleObjective
 from omnipipe.sfm.schur import _damped_step, soft_l1_cost, solve
 
 
@@ -38,7 +38,8 @@ def test_solve_reaches_scipys_minimum_of_the_same_cost(bundle_problem) -> None:
     the noise (the speed is measured on real problems: docs/pipeline.md)."""
     for seed, fixed in [(1, 1), (2, 2)]:
         camera, problem = bundle_problem(seed, fixed)
-        x0, residuals, jacobian, _ = _objective(camera, problem, 1.0)
+        objective = BundleObjective(camera, problem, 1.0)
+        x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
         n_pose = 6 * (len(problem.world_from_rig) - fixed)
         ref = least_squares(
             residuals, x0, jac=jacobian, loss="soft_l1", f_scale=1.0, x_scale="jac",
@@ -56,7 +57,8 @@ def test_solve_reaches_scipys_minimum_of_the_same_cost(bundle_problem) -> None:
 
 def test_solve_stops_at_the_cap_and_keeps_the_best(bundle_problem) -> None:
     camera, problem = bundle_problem(3, 1)
-    x0, residuals, jacobian, _ = _objective(camera, problem, 1.0)
+    objective = BundleObjective(camera, problem, 1.0)
+    x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
     n_pose = 6 * (len(problem.world_from_rig) - 1)
     start = soft_l1_cost(residuals(x0), 1.0)
     capped = solve(residuals, jacobian, x0, n_pose, max_nfev=2)

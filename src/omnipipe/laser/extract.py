@@ -137,6 +137,36 @@ class RingExtractor:
         if img.dtype not in (np.uint8, np.uint16):
             img = img.astype(np.float32)
             full = float(np.nanmax(img)) or 1.0
+        polar, polar_raw = self._polar_signal(img, channel)
+        peaks = self._line_peaks(polar, polar_raw, full)
+        ok = peaks.ok
+        cx = cam.cx + peaks.radius * np.cos(self.angles)
+        cy = cam.cy + peaks.radius * np.sin(self.angles)
+        pixels = np.stack([cx, cy], axis=1)[ok]
+        ring = LaserRing(
+            pixels=pixels,
+            angle_rad=self.angles[ok],
+            confidence=peaks.snr[ok],
+            radius_sigma_px=peaks.radius_sigma[ok],
+            peak_width_px=peaks.width[ok],
+            scanned=n_lines,
+        )
+        if not ok.any():
+            ring.warnings.append("no laser ring visible (no scan line with a clear peak)")
+        elif ok.mean() < cfg.min_ring_fraction:
+            # Scattered peaks on a few lines are texture (seams, pits), not a light ring.
+            empty.warnings.append(
+                f"no laser ring visible (peaks on only {100 * ok.mean():.0f} % of scan lines)"
+            )
+            return empty
+        elif peaks.saturated.mean() > 0.25:
+            ring.warnings.append(f"laser saturated on {100 * peaks.saturated.mean():.0f} % of scan lines")
+        return ring
+
+    def _polar_signal(self, img: np.ndarray, channel: str) -> tuple[np.ndarray, np.ndarray]:
+        """(lines, radii) float32 laser signal (texture suppressed, top-hat filtered,
+        zero outside the image) and the raw laser channel, resampled along the scan lines."""
+        cfg = self.config
         # Resample first (one remap of all channels), then suppress the texture in polar.
         polar_img = cv2.remap(
             img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
@@ -154,6 +184,12 @@ class RingExtractor:
             # their edges.
             kernel = np.ones((1, 2 * int(cfg.tophat_px) + 1), np.uint8)
             polar = cv2.morphologyEx(polar, cv2.MORPH_TOPHAT, kernel)
+        return polar, polar_raw
+
+    def _line_peaks(self, polar: np.ndarray, polar_raw: np.ndarray, full: float) -> _LinePeaks:
+        """Each scan line's strongest peak, refined by the three-point Gaussian fit and
+        tested (SNR, height, ambiguity, saturation, width, radius)."""
+        cfg = self.config
         # Per line (compiled, :mod:`omnipipe.laser._kernels`): background (median) and
         # robust noise (MAD of the line's first difference), both estimated on every 4th
         # sample (robust statistics, 4x cheaper); the strongest peak, the strongest
@@ -176,21 +212,10 @@ class RingExtractor:
         # Saturation: a clipped top is still symmetric if the clipped run is short;
         # longer plateaus have no peak to fit and are rejected.
         run_len = stats.clipped_run
-        sat = run_len > 0
         ok &= run_len <= 3
-        # Three-point Gaussian fit on the 1-px grid around the peak (Fisher & Naidu).
-        y0 = np.maximum(stats.around[:, 0], 1e-3)
-        y1 = np.maximum(stats.around[:, 1], 1e-3)
-        y2 = np.maximum(stats.around[:, 2], 1e-3)
-        l0, l1, l2 = np.log(y0), np.log(y1), np.log(y2)
-        den = l0 - 2 * l1 + l2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            off = np.where(den < -1e-9, 0.5 * (l0 - l2) / den, np.nan)
+        off, width = _gaussian_fit(stats.around)
         ok &= np.isfinite(off) & (np.abs(off) <= 1.0)
         radius = self.radii[0] + (k + off * step) * cfg.radial_step_px
-        # Peak width from the log-parabola curvature: sigma^2 = -1 / den (px^2).
-        with np.errstate(invalid="ignore", divide="ignore"):
-            width = np.sqrt(np.where(den < 0, -1.0 / den, np.nan))
         # Sub-pixel uncertainty of a Gaussian peak's centre ~ width / SNR.
         rad_sigma = np.where(ok, width / np.maximum(snr, 1e-6), np.nan)
         if cfg.max_width_factor > 0 and np.sum(ok) > 10:
@@ -198,29 +223,42 @@ class RingExtractor:
             # nearly parallel to it (a dent's or bulge's flank): its centre is off the plane.
             typical = float(np.nanmedian(width[ok]))
             ok &= width <= cfg.max_width_factor * typical
-        ok &= radius <= cam.radius_max
-        cx = cam.cx + radius * np.cos(self.angles)
-        cy = cam.cy + radius * np.sin(self.angles)
-        pixels = np.stack([cx, cy], axis=1)[ok]
-        ring = LaserRing(
-            pixels=pixels,
-            angle_rad=self.angles[ok],
-            confidence=snr[ok],
-            radius_sigma_px=rad_sigma[ok],
-            peak_width_px=width[ok],
-            scanned=n_lines,
-        )
-        if not ok.any():
-            ring.warnings.append("no laser ring visible (no scan line with a clear peak)")
-        elif ok.mean() < cfg.min_ring_fraction:
-            # Scattered peaks on a few lines are texture (seams, pits), not a light ring.
-            empty.warnings.append(
-                f"no laser ring visible (peaks on only {100 * ok.mean():.0f} % of scan lines)"
-            )
-            return empty
-        elif sat.mean() > 0.25:
-            ring.warnings.append(f"laser saturated on {100 * sat.mean():.0f} % of scan lines")
-        return ring
+        ok &= radius <= self.camera.radius_max
+        return _LinePeaks(ok, radius, snr, width, rad_sigma, run_len > 0)
+
+
+@dataclass(frozen=True)
+class _LinePeaks:
+    """Per scan line (L,): accepted, peak radius (px), SNR, Gaussian sigma (px), radius
+    sigma (px, NaN where not accepted) and whether the peak's top is clipped."""
+
+    ok: np.ndarray
+    radius: np.ndarray
+    snr: np.ndarray
+    width: np.ndarray
+    radius_sigma: np.ndarray
+    saturated: np.ndarray
+
+
+def _gaussian_fit(around: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Three-point Gaussian fit on the 1-px grid around each peak (Fisher & Naidu).
+
+    Args:
+        around: (L, 3) the signal one sample before, at and after each line's peak.
+
+    Returns:
+        (L,) sub-sample offset of the centre (NaN where the log-parabola opens upwards)
+        and (L,) Gaussian sigma from its curvature, sigma^2 = -1 / den (samples).
+    """
+    y0 = np.maximum(around[:, 0], 1e-3)
+    y1 = np.maximum(around[:, 1], 1e-3)
+    y2 = np.maximum(around[:, 2], 1e-3)
+    l0, l1, l2 = np.log(y0), np.log(y1), np.log(y2)
+    den = l0 - 2 * l1 + l2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off = np.where(den < -1e-9, 0.5 * (l0 - l2) / den, np.nan)
+        width = np.sqrt(np.where(den < 0, -1.0 / den, np.nan))
+    return off, width
 
 
 def _radii_meeting(

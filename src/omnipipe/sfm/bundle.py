@@ -11,7 +11,7 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
   laser_point_in_a) - pixel_b``. These tie the translation lengths to millimetres, so
   the scale cannot drift along the run.
 
-Robust soft-L1 loss with an analytic sparse Jacobian (:func:`_objective`): each
+Robust soft-L1 loss with an analytic sparse Jacobian (:class:`BundleObjective`): each
 residual touches one or two poses and one point, chained through q = R(omega) X + t,
 the SO(3) left Jacobian of the rotation vector and the camera's
 :meth:`~omnipipe.camera.CameraModel.project_jacobian`. Minimised by SciPy's
@@ -172,101 +172,139 @@ def _masked_projection_jacobian(camera: CameraModel, q: np.ndarray) -> np.ndarra
     return J
 
 
-def _objective(camera: CameraModel, problem: BundleProblem, w_laser: float):
-    """The adjustment's start x0, residuals(x), jacobian(x) (sparse CSR) and unpack(x) -> (R, t, points).
-
-    x: the free keyframes' (rotation vector, translation) of rig_from_world, then the points.
-
-    Raises:
-        ShapeError: inconsistent observation arrays.
-    """
+def _check_shapes(problem: BundleProblem) -> None:
+    """Raises ShapeError on observation or anchor arrays of inconsistent shapes, or a bad ``fixed``."""
     K = len(problem.world_from_rig)
-    P = len(problem.points_in_world)
     M, L = len(problem.obs_frame), len(problem.anchor_a)
     if problem.obs_pixels.shape != (M, 2) or problem.obs_point.shape != (M,):
         raise ShapeError(f"bundle_adjust: observations of inconsistent shapes {problem.obs_pixels.shape}")
     if problem.anchor_points_in_a.shape != (L, 3) or problem.anchor_pixels_b.shape != (L, 2):
         raise ShapeError(f"bundle_adjust: anchors of inconsistent shapes {problem.anchor_points_in_a.shape}")
-    F = int(problem.fixed)
-    if not 1 <= F <= K:
-        raise ShapeError(f"bundle_adjust: fixed must be 1..{K} keyframes, got {F}")
-    pose0 = _poses_to_params(problem.world_from_rig)
-    fixed = pose0[:F].copy()
-    n_pose = 6 * (K - F)
-    x0 = np.concatenate([pose0[F:].ravel(), problem.points_in_world.ravel()])
+    if not 1 <= int(problem.fixed) <= K:
+        raise ShapeError(f"bundle_adjust: fixed must be 1..{K} keyframes, got {int(problem.fixed)}")
 
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        poses = np.vstack([fixed, x[:n_pose].reshape(K - F, 6)])
-        R, t = _params_to_rig_from_world(poses)
-        return R, t, x[n_pose:].reshape(P, 3)
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        R, t, pts = unpack(x)
-        k, p = problem.obs_frame, problem.obs_point
+def _block_entries(rows: np.ndarray, col0: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col) indices of a (2, width) Jacobian block per residual pair ``rows``, from column ``col0``."""
+    r = np.broadcast_to((2 * rows)[:, None, None] + np.arange(2)[None, :, None], (len(rows), 2, width))
+    c = np.broadcast_to(col0[:, None, None] + np.arange(width)[None, None, :], (len(rows), 2, width))
+    return r.ravel(), c.ravel()
+
+
+class BundleObjective:
+    """A bundle adjustment's parameters, residuals and analytic sparse Jacobian.
+
+    ``x`` holds the free keyframes' (rotation vector, translation) of rig_from_world
+    (6 each), then the points (3 each, mm). Residuals (2M observation rows, then 2L
+    anchor rows, px) are in the order of :class:`BundleProblem`'s arrays; an invalid or
+    non-finite projection gives a zero residual.
+
+    Attributes:
+        x0: the start (the problem's initial poses and points).
+        n_pose: pose parameters in ``x``: 6 x (K - fixed).
+
+    Raises:
+        ShapeError: inconsistent observation arrays.
+    """
+
+    def __init__(self, camera: CameraModel, problem: BundleProblem, w_laser: float) -> None:
+        _check_shapes(problem)
+        self.camera, self.problem, self.w_laser = camera, problem, w_laser
+        K, F = len(problem.world_from_rig), int(problem.fixed)
+        pose0 = _poses_to_params(problem.world_from_rig)
+        self._fixed = pose0[:F].copy()
+        self._F = F
+        self.n_pose = 6 * (K - F)
+        self.x0 = np.concatenate([pose0[F:].ravel(), problem.points_in_world.ravel()])
+        self._sparsity()
+
+    def _sparsity(self) -> None:
+        """The Jacobian's structure (row-major CSR, computed once): observation rows touch
+        their pose (unless fixed) and point; anchor rows two poses (unless fixed; an anchor
+        within one keyframe is constant: no entries)."""
+        pr, F = self.problem, self._F
+        M, L = len(pr.obs_frame), len(pr.anchor_a)
+        self._obs_free = np.flatnonzero(pr.obs_frame >= F)
+        self._a_free = np.flatnonzero((pr.anchor_a >= F) & (pr.anchor_a != pr.anchor_b))
+        self._b_free = np.flatnonzero((pr.anchor_b >= F) & (pr.anchor_a != pr.anchor_b))
+        blocks = [
+            _block_entries(self._obs_free, 6 * (pr.obs_frame[self._obs_free] - F), 6),
+            _block_entries(np.arange(M), self.n_pose + 3 * pr.obs_point, 3),
+            _block_entries(M + self._a_free, 6 * (pr.anchor_a[self._a_free] - F), 6),
+            _block_entries(M + self._b_free, 6 * (pr.anchor_b[self._b_free] - F), 6),
+        ]
+        jac_rows = np.concatenate([r for r, _ in blocks])
+        jac_cols = np.concatenate([c for _, c in blocks])
+        self._order = np.lexsort((jac_cols, jac_rows))
+        self._indices = jac_cols[self._order].astype(np.int32)
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L))]).astype(np.int32)
+        self._shape = (2 * M + 2 * L, len(self.x0))
+
+    def _poses(self, x: np.ndarray) -> np.ndarray:
+        """(K, 6) every keyframe's (rotation vector, translation) of rig_from_world."""
+        return np.vstack([self._fixed, x[: self.n_pose].reshape(-1, 6)])
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(K, 3, 3) rotations and (K, 3) translations of rig_from_world, (P, 3) points in the world."""
+        R, t = _params_to_rig_from_world(self._poses(x))
+        return R, t, x[self.n_pose :].reshape(len(self.problem.points_in_world), 3)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """(2M + 2L,) observation then (weighted) anchor residuals, px."""
+        pr, camera = self.problem, self.camera
+        R, t, pts = self.unpack(x)
+        k, p = pr.obs_frame, pr.obs_point
         q = np.einsum("nij,nj->ni", R[k], pts[p]) + t[k]
         px, valid = camera.project(q)
-        r_obs = np.where(valid[:, None], px - problem.obs_pixels, 0.0)
-        a, b = problem.anchor_a, problem.anchor_b
+        r_obs = np.where(valid[:, None], px - pr.obs_pixels, 0.0)
+        a, b = pr.anchor_a, pr.anchor_b
         # world point of the laser point: R_a^T (q_a - t_a)
-        w = np.einsum("nji,nj->ni", R[a], problem.anchor_points_in_a - t[a])
+        w = np.einsum("nji,nj->ni", R[a], pr.anchor_points_in_a - t[a])
         qb = np.einsum("nij,nj->ni", R[b], w) + t[b]
         pxb, vb = camera.project(qb)
-        r_anc = np.where(vb[:, None], pxb - problem.anchor_pixels_b, 0.0) * w_laser
+        r_anc = np.where(vb[:, None], pxb - pr.anchor_pixels_b, 0.0) * self.w_laser
         return np.nan_to_num(np.concatenate([r_obs.ravel(), r_anc.ravel()]), nan=0.0, posinf=0.0, neginf=0.0)
 
-    # Jacobian structure (row-major CSR, computed once): observation rows touch their
-    # pose (unless fixed) and point; anchor rows two poses (unless fixed; an anchor
-    # within one keyframe is constant: no entries).
-    obs_free = np.flatnonzero(problem.obs_frame >= F)
-    a_free = np.flatnonzero((problem.anchor_a >= F) & (problem.anchor_a != problem.anchor_b))
-    b_free = np.flatnonzero((problem.anchor_b >= F) & (problem.anchor_a != problem.anchor_b))
+    def jacobian(self, x: np.ndarray) -> csr_matrix:
+        """(2M + 2L, len(x)) sparse CSR d residuals / d x."""
+        R, t, pts = self.unpack(x)
+        Jl = _so3_left_jacobian(self._poses(x)[:, :3])
+        d_pose_obs, d_point = self._observation_blocks(R, t, pts, Jl)
+        d_pose_a, d_pose_b = self._anchor_blocks(R, t, Jl)
+        data = np.concatenate([d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel()])
+        return csr_matrix((data[self._order], self._indices, self._indptr), shape=self._shape)
 
-    def block(rows: np.ndarray, col0: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
-        r = np.broadcast_to((2 * rows)[:, None, None] + np.arange(2)[None, :, None], (len(rows), 2, width))
-        c = np.broadcast_to(col0[:, None, None] + np.arange(width)[None, None, :], (len(rows), 2, width))
-        return r.ravel(), c.ravel()
-
-    blocks = [
-        block(obs_free, 6 * (problem.obs_frame[obs_free] - F), 6),
-        block(np.arange(M), n_pose + 3 * problem.obs_point, 3),
-        block(M + a_free, 6 * (problem.anchor_a[a_free] - F), 6),
-        block(M + b_free, 6 * (problem.anchor_b[b_free] - F), 6),
-    ]
-    jac_rows = np.concatenate([r for r, _ in blocks])
-    jac_cols = np.concatenate([c for _, c in blocks])
-    order = np.lexsort((jac_cols, jac_rows))
-    indices = jac_cols[order].astype(np.int32)
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L))]).astype(np.int32)
-    shape = (2 * M + 2 * L, len(x0))
-
-    def jacobian(x: np.ndarray) -> csr_matrix:
-        poses = np.vstack([fixed, x[:n_pose].reshape(K - F, 6)])
-        R, t, pts = unpack(x)
-        Jl = _so3_left_jacobian(poses[:, :3])
-        k, p = problem.obs_frame, problem.obs_point
+    def _observation_blocks(
+        self, R: np.ndarray, t: np.ndarray, pts: np.ndarray, Jl: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(free obs, 2, 6) d residual / d pose and (M, 2, 3) d residual / d point of the observations."""
+        k, p = self.problem.obs_frame, self.problem.obs_point
         Rk = R[k]
         Rx = np.einsum("nij,nj->ni", Rk, pts[p])
-        Jq = _masked_projection_jacobian(camera, Rx + t[k])
+        Jq = _masked_projection_jacobian(self.camera, Rx + t[k])
         # d q / d X = R; d q / d t = I; d q / d omega = -[R X]x Jl(omega).
         d_point = Jq @ Rk
-        kf = k[obs_free]
+        obs_free = self._obs_free
         Jf = Jq[obs_free]
-        d_pose_obs = np.concatenate([np.cross(Rx[obs_free][:, None, :], Jf) @ Jl[kf], Jf], axis=2)
-        a, b = problem.anchor_a, problem.anchor_b
-        y = problem.anchor_points_in_a - t[a]
+        d_pose_obs = np.concatenate([np.cross(Rx[obs_free][:, None, :], Jf) @ Jl[k[obs_free]], Jf], axis=2)
+        return d_pose_obs, d_point
+
+    def _anchor_blocks(self, R: np.ndarray, t: np.ndarray, Jl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(free a, 2, 6) and (free b, 2, 6): d anchor residual / d pose a and / d pose b."""
+        pr = self.problem
+        a, b = pr.anchor_a, pr.anchor_b
+        a_free, b_free = self._a_free, self._b_free
+        y = pr.anchor_points_in_a - t[a]
         w = np.einsum("nji,nj->ni", R[a], y)  # R_a^T (q_a - t_a)
         Rw = np.einsum("nij,nj->ni", R[b], w)
-        Jb = _masked_projection_jacobian(camera, Rw + t[b]) * w_laser
+        Jb = _masked_projection_jacobian(self.camera, Rw + t[b]) * self.w_laser
         # Pose b as an observation of w; pose a through w: d w / d t_a = -R_a^T,
         # d w / d omega_a = R_a^T [y]x Jl(omega_a).
         Ja, Jbb = Jb[a_free], Jb[b_free]
         d_pose_b = np.concatenate([np.cross(Rw[b_free][:, None, :], Jbb) @ Jl[b[b_free]], Jbb], axis=2)
         G = Ja @ R[b[a_free]] @ np.transpose(R[a[a_free]], (0, 2, 1))
         d_pose_a = np.concatenate([np.cross(G, y[a_free][:, None, :]) @ Jl[a[a_free]], -G], axis=2)
-        data = np.concatenate([d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel()])
-        return csr_matrix((data[order], indices, indptr), shape=shape)
-
-    return x0, residuals, jacobian, unpack
+        return d_pose_a, d_pose_b
 
 
 def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleConfig) -> BundleResult:
@@ -276,7 +314,8 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
         ShapeError: inconsistent observation arrays.
     """
     w_laser = float(config.laser_weight)
-    x0, residuals, jacobian, unpack = _objective(camera, problem, w_laser)
+    objective = BundleObjective(camera, problem, w_laser)
+    x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
     K, M = len(problem.world_from_rig), len(problem.obs_frame)
     r0 = residuals(x0)
     # Single-threaded BLAS: the result does not depend on the machine's core count
@@ -285,7 +324,7 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
     with threadpool_limits(limits=1, user_api="blas"):
         if config.solver == "schur":
             sol = schur.solve(
-                residuals, jacobian, x0, 6 * (K - int(problem.fixed)),
+                residuals, jacobian, x0, objective.n_pose,
                 f_scale=config.loss_scale_px, max_nfev=config.max_evaluations,
             )
         else:
@@ -294,7 +333,7 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
                 x_scale="jac", method="trf", tr_solver="lsmr", max_nfev=config.max_evaluations,
             )
     r1 = sol.fun
-    R, t, pts = unpack(sol.x)
+    R, t, pts = objective.unpack(sol.x)
     world_from_rig = np.empty((K, 4, 4))
     for k in range(K):
         T = np.eye(4)
@@ -307,6 +346,83 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
     return BundleResult(
         world_from_rig, pts, rms(r0[: 2 * M]), rms(r1[: 2 * M]), rms(r1[2 * M :] / max(w_laser, 1e-9)), int(sol.nfev)
     )
+
+
+def _select_tracks(
+    pixels: list[np.ndarray], pair_matches: list[tuple[int, int, np.ndarray]], max_tracks: int
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Feature tracks from pairwise matches: per track, its keyframes and feature indices.
+
+    A track is a connected set of matched features seen in at least two keyframes, at
+    most one feature per keyframe (in keyframe order); beyond ``max_tracks`` the
+    longest are kept.
+    """
+    offset = np.concatenate([[0], np.cumsum([len(p) for p in pixels])])
+    roots = track_labels(offset, pair_matches)
+    frame_of = np.repeat(np.arange(len(pixels)), np.diff(offset))
+    local = np.arange(offset[-1]) - offset[frame_of]
+    order = np.lexsort((frame_of, roots))
+    roots_s, frames_s = roots[order], frame_of[order]
+    dup = np.r_[False, (roots_s[1:] == roots_s[:-1]) & (frames_s[1:] == frames_s[:-1])]
+    order = order[~dup]
+    roots_s = roots[order]
+    _, start, count = np.unique(roots_s, return_index=True, return_counts=True)
+    tracks = [(start[i], count[i]) for i in np.flatnonzero(count >= 2)]
+    if len(tracks) > max_tracks:
+        # Prefer long tracks, then spread evenly.
+        tracks.sort(key=lambda s: -s[1])
+        tracks = tracks[:max_tracks]
+    out = []
+    for s, c in tracks:
+        idx = order[s : s + c]
+        out.append((frame_of[idx], local[idx]))
+    return out
+
+
+def _triangulate_track(
+    camera: CameraModel,
+    world_from_rig: np.ndarray,
+    rays_in_rig: list[np.ndarray],
+    f: np.ndarray,
+    li: np.ndarray,
+    obs: np.ndarray,
+    config: BundleConfig,
+) -> np.ndarray | None:
+    """(3,) world point of a track (keyframes ``f``, features ``li``, pixels ``obs``): the
+    midpoint of its first and last rays (the widest baseline), or None if their parallax
+    is below ``min_parallax_deg``, the point is behind either, or it reprojects anywhere
+    worse than ``max_reprojection_px``."""
+    R = world_from_rig[:, :3, :3]
+    C = world_from_rig[:, :3, 3]
+    d = np.array([R[k] @ rays_in_rig[k][j] for k, j in zip(f, li, strict=True)])
+    if d[0] @ d[-1] > np.cos(np.radians(config.min_parallax_deg)):
+        return None
+    k1, k2 = f[0], f[-1]
+    pair, depth = triangulate_pairs(
+        rays_in_rig[k1][li[0]][None], rays_in_rig[k2][li[-1]][None],
+        invert(world_from_rig[k2]) @ world_from_rig[k1],
+    )
+    if not (depth[0, 0] > 0 and depth[0, 1] > 0):
+        return None
+    X = R[k1] @ pair[0] + C[k1]
+    q = np.einsum("nji,nj->ni", R[f], X - C[f])
+    px, valid = camera.project(q)
+    if not valid.all() or np.max(np.linalg.norm(px - obs, axis=1)) > config.max_reprojection_px:
+        return None
+    return X
+
+
+def _stack_anchors(
+    anchors: list[tuple[int, int, np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(L,) keyframes a and b, (L, 3) laser points in rig a and (L, 2) pixels in b of all anchors."""
+    if not anchors:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 2))
+    aa = np.concatenate([np.full(len(q), a) for a, _, q, _ in anchors])
+    ab = np.concatenate([np.full(len(q), b) for _, b, q, _ in anchors])
+    aq = np.concatenate([q for *_, q, _ in anchors])
+    apx = np.concatenate([p for *_, p in anchors])
+    return aa, ab, aq, apx
 
 
 def build_problem(
@@ -326,63 +442,21 @@ def build_problem(
         pair_matches: (a, b, (M, 2) feature indices in a and b) of RANSAC inliers.
         anchors: (a, b, (L, 3) laser points in rig a, (L, 2) matched pixels in b).
     """
-    offset = np.concatenate([[0], np.cumsum([len(p) for p in pixels])])
-    roots = track_labels(offset, pair_matches)
-    frame_of = np.repeat(np.arange(len(pixels)), np.diff(offset))
-    local = np.arange(offset[-1]) - offset[frame_of]
-    # Tracks: roots with observations in at least two keyframes, at most one per keyframe.
-    order = np.lexsort((frame_of, roots))
-    roots_s, frames_s = roots[order], frame_of[order]
-    dup = np.r_[False, (roots_s[1:] == roots_s[:-1]) & (frames_s[1:] == frames_s[:-1])]
-    order = order[~dup]
-    roots_s = roots[order]
-    _, start, count = np.unique(roots_s, return_index=True, return_counts=True)
-    tracks = [(start[i], count[i]) for i in np.flatnonzero(count >= 2)]
-    if len(tracks) > config.max_tracks:
-        # Prefer long tracks, then spread evenly.
-        tracks.sort(key=lambda s: -s[1])
-        tracks = tracks[: config.max_tracks]
-    R = world_from_rig[:, :3, :3]
-    C = world_from_rig[:, :3, 3]
-    obs_f, obs_p, obs_px, obs_local, pts = [], [], [], [], []
-    cos_min = np.cos(np.radians(config.min_parallax_deg))
-    for s, c in tracks:
-        idx = order[s : s + c]
-        f, li = frame_of[idx], local[idx]
-        d = np.array([R[k] @ rays_in_rig[k][j] for k, j in zip(f, li, strict=True)])
-        # Midpoint of the first and last rays (the widest baseline).
-        if d[0] @ d[-1] > cos_min:
-            continue
-        k1, k2 = f[0], f[-1]
-        pair, depth = triangulate_pairs(
-            rays_in_rig[k1][li[0]][None], rays_in_rig[k2][li[-1]][None],
-            invert(world_from_rig[k2]) @ world_from_rig[k1],
-        )
-        if not (depth[0, 0] > 0 and depth[0, 1] > 0):
-            continue
-        X = R[k1] @ pair[0] + C[k1]
-        q = np.einsum("nji,nj->ni", R[f], X - C[f])
-        px, valid = camera.project(q)
+    obs_f, obs_p, obs_px, pts = [], [], [], []
+    feature_point = [np.full(len(p), -1) for p in pixels]
+    for f, li in _select_tracks(pixels, pair_matches, config.max_tracks):
         obs = np.array([pixels[k][j] for k, j in zip(f, li, strict=True)])
-        if not valid.all() or np.max(np.linalg.norm(px - obs, axis=1)) > config.max_reprojection_px:
+        X = _triangulate_track(camera, world_from_rig, rays_in_rig, f, li, obs, config)
+        if X is None:
             continue
+        feature_point_id = len(pts)
+        for k, j in zip(f, li, strict=True):
+            feature_point[k][j] = feature_point_id
         obs_f.append(f)
-        obs_local.append(li)
-        obs_p.append(np.full(len(f), len(pts)))
+        obs_p.append(np.full(len(f), feature_point_id))
         obs_px.append(obs)
         pts.append(X)
-    if anchors:
-        aa = np.concatenate([np.full(len(q), a) for a, _, q, _ in anchors])
-        ab = np.concatenate([np.full(len(q), b) for _, b, q, _ in anchors])
-        aq = np.concatenate([q for *_, q, _ in anchors])
-        apx = np.concatenate([p for *_, p in anchors])
-    else:
-        aa = ab = np.zeros(0, int)
-        aq, apx = np.zeros((0, 3)), np.zeros((0, 2))
-    feature_point = [np.full(len(p), -1) for p in pixels]
-    for f, pid, li in zip(obs_f, obs_p, obs_local, strict=True):
-        for k, j in zip(f, li, strict=True):
-            feature_point[k][j] = pid[0]
+    aa, ab, aq, apx = _stack_anchors(anchors)
     if not pts:
         return BundleProblem(world_from_rig, np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int),
                              np.zeros((0, 2)), aa, ab, aq, apx, feature_point)

@@ -88,53 +88,86 @@ def solve(
     if (n - n_pose) % 3:
         raise ShapeError(f"solve: {n - n_pose} point parameters is not a multiple of 3")
     r = fun(x)
-    nfev = 1
-    cost = soft_l1_cost(r, f_scale)
-    lam, nu = lam0, 2.0
+    state = _LmState(x, r, soft_l1_cost(r, f_scale), nfev=1, lam=lam0)
     converged = False
-    while nfev < max_nfev:
-        J = jac(x).tocsr()
-        z = (r / f_scale) ** 2
-        rho1 = 1.0 / np.sqrt(1.0 + z)
-        rho2 = -0.5 / (1.0 + z) ** 1.5
-        scale = np.sqrt(np.maximum(rho1 + 2.0 * rho2 * z, np.finfo(float).eps))  # (1 + z)^-3/4
-        Js = sp.diags(scale) @ J
-        rs = r * rho1 / scale
-        g = Js.T @ rs
+    while state.nfev < max_nfev:
+        H, g = _robust_normal_equations(jac(state.x).tocsr(), state.r, f_scale)
         if np.max(np.abs(g), initial=0.0) < gtol:
             converged = True
             break
-        H = (Js.T @ Js).tocsr()
-        step_taken = False
-        while nfev < max_nfev:
-            dx = _damped_step(H, g, n_pose, lam)
-            predicted = -(g @ dx + 0.5 * dx @ (H @ dx))  # the model's reduction
-            x_new = x + dx
-            r_new = fun(x_new)
-            nfev += 1
-            cost_new = soft_l1_cost(r_new, f_scale) if np.all(np.isfinite(r_new)) else np.inf
-            ratio = (cost - cost_new) / predicted if predicted > 0 else -1.0
-            if cost_new < cost:
-                # Converged (as SciPy's ftol and xtol): a small reduction the model
-                # predicted well, or a step too short to matter.
-                small_gain = cost - cost_new < ftol * cost and ratio > 0.25
-                small_step = np.linalg.norm(dx) < xtol * (np.linalg.norm(x) + xtol)
-                x, r, cost = x_new, r_new, cost_new
-                # Nielsen's update: less damping the better the model predicted.
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * min(ratio, 1.0) - 1.0) ** 3)
-                lam = max(lam, 1e-12)
-                nu = 2.0
-                step_taken = True
-                converged = bool(small_gain or small_step)
-                break
-            lam *= nu
-            nu *= 2.0
-            if lam > 1e12:  # no step lowers the cost: a minimum to working precision
-                converged = True
-                break
+        step_taken, converged = _damped_search(fun, H, g, n_pose, state, f_scale, max_nfev, ftol, xtol)
         if converged or not step_taken:  # done, or the cap was reached mid-search
             break
-    return LmResult(x, r, cost, nfev, converged)
+    return LmResult(state.x, state.r, state.cost, state.nfev, converged)
+
+
+@dataclass
+class _LmState:
+    """Levenberg-Marquardt's iterate: parameters, residuals, cost, evaluations, damping."""
+
+    x: np.ndarray
+    r: np.ndarray
+    cost: float
+    nfev: int
+    lam: float
+    nu: float = 2.0
+
+
+def _robust_normal_equations(
+    J: sp.csr_matrix, r: np.ndarray, f_scale: float
+) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Gauss-Newton matrix H = Js^T Js and gradient g = Js^T rs of the soft-L1 cost, with
+    SciPy's second-order residual and Jacobian scaling (Js = diag(s) J, s = (1 + z)^-3/4)."""
+    z = (r / f_scale) ** 2
+    rho1 = 1.0 / np.sqrt(1.0 + z)
+    rho2 = -0.5 / (1.0 + z) ** 1.5
+    scale = np.sqrt(np.maximum(rho1 + 2.0 * rho2 * z, np.finfo(float).eps))  # (1 + z)^-3/4
+    Js = sp.diags(scale) @ J
+    rs = r * rho1 / scale
+    g = Js.T @ rs
+    return (Js.T @ Js).tocsr(), g
+
+
+def _damped_search(
+    fun: Callable[[np.ndarray], np.ndarray],
+    H: sp.csr_matrix,
+    g: np.ndarray,
+    n_pose: int,
+    state: _LmState,
+    f_scale: float,
+    max_nfev: int,
+    ftol: float,
+    xtol: float,
+) -> tuple[bool, bool]:
+    """Raise the damping until a step lowers the cost; take it (updating ``state``).
+
+    Returns:
+        (step taken, converged): converged on a small gain the model predicted well, a
+        step too short to matter (SciPy's ftol, xtol) or no lowering step at any damping;
+        neither when the evaluation cap stopped the search.
+    """
+    while state.nfev < max_nfev:
+        dx = _damped_step(H, g, n_pose, state.lam)
+        predicted = -(g @ dx + 0.5 * dx @ (H @ dx))  # the model's reduction
+        x_new = state.x + dx
+        r_new = fun(x_new)
+        state.nfev += 1
+        cost_new = soft_l1_cost(r_new, f_scale) if np.all(np.isfinite(r_new)) else np.inf
+        ratio = (state.cost - cost_new) / predicted if predicted > 0 else -1.0
+        if cost_new < state.cost:
+            small_gain = state.cost - cost_new < ftol * state.cost and ratio > 0.25
+            small_step = np.linalg.norm(dx) < xtol * (np.linalg.norm(state.x) + xtol)
+            state.x, state.r, state.cost = x_new, r_new, cost_new
+            # Nielsen's update: less damping the better the model predicted.
+            state.lam *= max(1.0 / 3.0, 1.0 - (2.0 * min(ratio, 1.0) - 1.0) ** 3)
+            state.lam = max(state.lam, 1e-12)
+            state.nu = 2.0
+            return True, bool(small_gain or small_step)
+        state.lam *= state.nu
+        state.nu *= 2.0
+        if state.lam > 1e12:  # no step lowers the cost: a minimum to working precision
+            return False, True
+    return False, False
 
 
 def _damped_step(H: sp.csr_matrix, g: np.ndarray, n_pose: int, lam: float) -> np.ndarray:
