@@ -11,7 +11,8 @@ from scipy.spatial import Delaunay
 from threadpoolctl import threadpool_limits
 
 from omnipipe.model import mesh_unrolled
-from omnipipe.model.texture import CHUNK_POINTS, AxialChunks, WallGrid
+from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
+from omnipipe.model.texture_grid import WallGrid
 
 RADIUS_MM = 20.0
 CIRC_MM = 2 * math.pi * RADIUS_MM
@@ -196,7 +197,7 @@ def test_winding_and_seam_split_a_chunk_of_triangles_at_a_time_change_nothing(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     import omnipipe.model.mesh as model
-    from omnipipe.model.texture import UnrolledImage
+    from omnipipe.model.texture_grid import UnrolledImage
 
     arc, axial = _rings(20, 60, seed=10)
     pts = _tube(arc, axial)

@@ -26,7 +26,7 @@ from omnipipe.model import (
     write_outputs,
 )
 from omnipipe.model.export import write_e57
-from omnipipe.model.texture import UnrolledImage
+from omnipipe.model.texture_grid import UnrolledImage
 
 RADIUS_MM = 100.0
 LENGTH_MM = 300.0

@@ -11,8 +11,8 @@ across the pipe, which a 3-D Delaunay of a hollow cylinder would produce everywh
 (its tetrahedra fill the inside). The angle wraps around: a margin of points is
 duplicated past 2 pi and each triangle is kept once. Triangles with an edge much
 longer than the spacing of the rings are dropped: holes stay holes. A run of more
-points than :data:`~.texture.CHUNK_POINTS` is triangulated a chunk along the pipe at a
-time (:class:`~.texture.AxialChunks`: the same triangles; qhull's memory is a chunk's).
+points than :data:`~.chunks.CHUNK_POINTS` is triangulated a chunk along the pipe at a
+time (:class:`~.chunks.AxialChunks`: the same triangles; qhull's memory is a chunk's).
 
 Every triangle is wound so its normal (right-hand rule) points towards the pipe axis:
 the wall is seen from inside.
@@ -26,7 +26,8 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from omnipipe.geometry import apply
-from omnipipe.model.texture import CHUNK_POINTS, AxialChunks, UnrolledImage
+from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
+from omnipipe.model.texture_grid import UnrolledImage
 
 
 def integrate(
@@ -153,7 +154,7 @@ def _chunked_triangles(
 ) -> np.ndarray:
     """(T, 3) indices into the (n,) points (``uu``, ``vv``; mm) of the triangles of their
     Delaunay triangulation whose centroid has ``u_lo <= u < u_hi``, a chunk along ``vv`` at
-    a time (:class:`~omnipipe.model.texture.AxialChunks`).
+    a time (:class:`~omnipipe.model.chunks.AxialChunks`).
 
     Each chunk keeps its verified triangles whose centroid lies in its core interval of
     ``vv``; the cores partition the axis, so every triangle is kept once: its centroid is

@@ -9,7 +9,7 @@ that sees it best; it is also the texture atlas of the textured model (GLB).
 
 Then the edge flips of [25] towards photo-consistency (:mod:`.flips`).
 
-Images: the texture is made a section of :data:`~.texture.SECTION_ROWS` grid rows at a
+Images: the texture is made a section of :data:`~.texture_grid.SECTION_ROWS` grid rows at a
 time: the section's choice of keyframe per cell (which needs no image), then each
 chosen keyframe's image decoded once for the section's samples (and its ring colours,
 the first time). A keyframe whose cells lie in two sections is decoded twice; the
@@ -45,16 +45,10 @@ from omnipipe.model.mesh import (
     textured_mesh,
     unrolled_coordinates,
 )
-from omnipipe.model.texture import (
-    LIGHT_DTYPE,
-    SECTION_ROWS,
-    UnrolledImage,
-    WallGrid,
-    choose_sources,
-    flat_field,
-    paint,
-    texture_samples,
-)
+from omnipipe.model.texture import paint, texture_samples
+from omnipipe.model.texture_grid import SECTION_ROWS, UnrolledImage, WallGrid
+from omnipipe.model.texture_light import flat_field
+from omnipipe.model.texture_sources import LIGHT_DTYPE, choose_sources
 from omnipipe.progress import phase
 from omnipipe.rig import Rig
 
@@ -147,7 +141,7 @@ class ModelResult:
         textured_vertices, textured_faces, textured_uvs: the same mesh with the vertices
             of triangles across angle 0 duplicated (their UVs differ); UVs v-up in [0, 1].
         texture: (H, W', 3) uint8 atlas: the unrolled image plus a wrapped margin.
-        unrolled: the unrolled wall image (:class:`~omnipipe.model.texture.UnrolledImage`).
+        unrolled: the unrolled wall image (:class:`~omnipipe.model.texture_grid.UnrolledImage`).
         flip_stats: what the edge flips did (:class:`~omnipipe.model.flips.FlipStats`).
     """
 

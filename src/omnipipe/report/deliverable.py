@@ -51,7 +51,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from omnipipe.contract import Defect
-    from omnipipe.model.texture import UnrolledImage
+    from omnipipe.model.texture_grid import UnrolledImage
     from omnipipe.report.views import DefectView
     from omnipipe.survey import Survey
 

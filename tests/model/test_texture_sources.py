@@ -9,15 +9,14 @@ import pytest
 from omnipipe.camera import camera_from_rig
 from omnipipe.camera.convert import rig_in_model
 from omnipipe.errors import ShapeError
-from omnipipe.model.texture import (
+from omnipipe.model.texture import assemble
+from omnipipe.model.texture_grid import WallGrid, wall_points_on_grid
+from omnipipe.model.texture_sources import (
     CellChoice,
-    WallGrid,
-    assemble,
     choose_sources,
     elevation_bounds,
     source_dtype,
     visible_rows,
-    wall_points_on_grid,
 )
 from omnipipe.rig import Rig
 from omnipipe.sim import paper_rig

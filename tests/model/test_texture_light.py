@@ -13,7 +13,8 @@ from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.errors import ShapeError
 from omnipipe.evaluation.trajectory import trajectory_errors
 from omnipipe.geometry import apply
-from omnipipe.model.texture import FLAT_FIELD_LEVEL, UnrolledImage, WallGrid, flat_field
+from omnipipe.model.texture_grid import UnrolledImage, WallGrid
+from omnipipe.model.texture_light import FLAT_FIELD_LEVEL, flat_field
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 

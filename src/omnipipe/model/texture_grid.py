@@ -1,0 +1,205 @@
+"""The unrolled wall image (paper Sec. VI) and the wall points of its grid.
+
+The wall is unrolled into an image (:class:`UnrolledImage`): columns are arc length
+around the axis (angle x reference radius), rows distance along the pipe, ``mm_per_px``
+each. Every cell gets a 3-D wall point by linear interpolation of the measured points
+over the unrolled Delaunay triangulation (the same one the mesh uses).
+
+Memory: the grid is evaluated (:class:`WallGrid`) a strip of rows at a time
+(:data:`STRIP_ROWS`), so its float64 intermediates do not grow with the run; the
+interpolation's triangulation of a long run is made a chunk of the run at a time
+(:class:`~omnipipe.model.chunks.AxialChunks`, also the mesh's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
+
+from omnipipe.memory import release_freed_memory
+from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
+
+
+@dataclass(frozen=True)
+class UnrolledImage:
+    """The unrolled wall.
+
+    Attributes:
+        image: (H, W, 3) uint8; row 0 is the smallest axial position, column 0 angle 0.
+        alpha: (H, W) bool, True where the wall was measured and seen.
+        mm_per_px: cell size.
+        axial_min_mm: axial position of row 0's centre.
+        circumference_mm: arc length of the W columns (one full turn).
+
+    Which keyframe each cell came from (:attr:`CellChoice.source`) is not kept: nothing
+    writes it, and at 4 bytes a cell it was the largest array held to the run's end.
+    """
+
+    image: np.ndarray
+    alpha: np.ndarray
+    mm_per_px: float
+    axial_min_mm: float
+    circumference_mm: float
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of the image."""
+        h = self.image.shape[0]
+        return (0.0, 360.0, self.axial_min_mm, self.axial_min_mm + h * self.mm_per_px)
+
+
+STRIP_ROWS = 128
+"""Default rows of the unrolled grid processed at a time (a multiple of the tiles' rows):
+the stage's float64 intermediates are a few strips, not the run (W x 128 cells; up to
+2 x workers strips are in flight on the executor, each with its (W x 130 x 3) float64
+rows: 128 rows took 35 MB less than 256 at 2400 frames, and no longer)."""
+
+
+SECTION_ROWS = 8 * STRIP_ROWS
+"""Rows of the unrolled grid textured at a time by the model stage (a multiple of the
+strips' rows): the cells' chosen pixels (8 bytes a cell) are held for one section, not
+the run. A keyframe whose cells lie in two sections has its image read twice."""
+
+
+class WallGrid:
+    """The unrolled grid's wall points (:func:`wall_points_on_grid`), evaluated a strip of
+    rows at a time so that the whole (H, W, 3) float64 grid is never held.
+
+    Up to ``chunk_points`` points (with the wrapped copies): one interpolation over all of
+    them, and any strip equals the same rows of the whole grid evaluated at once, bit for
+    bit: the interpolation's simplex search starts from the previous cell's simplex, so
+    each strip is evaluated from two rows before it (the search is warm when the strip
+    starts).
+
+    More points: the rows are evaluated a block at a time (rows whose axial range holds
+    about ``chunk_points`` points), each block's interpolation on a chunk of the points
+    (:class:`AxialChunks`: the block's rows plus a margin, whose triangles over the
+    block's cells are those of all the points) and each cell's distance to the nearest
+    point within the chunk (the margin is at least ``max_gap_mm``, so every point within
+    that distance of a cell is in it). Then the triangulation's memory does not grow with
+    the run, and a row equals the whole set's up to the round-off of the barycentric
+    transform (about 1e-12 mm), holes the same.
+
+    Attributes:
+        shape: (H, W) cells; row r at axial ``axial_min_mm + r * mm_per_px``, column c at
+            arc ``(c + 0.5) * circumference_mm / W``.
+        axial_min_mm: axial position of row 0 (mm).
+    """
+
+    HALO = 2
+
+    def __init__(
+        self,
+        arc_mm: np.ndarray,
+        axial_mm: np.ndarray,
+        points_in_world: np.ndarray,
+        circumference_mm: float,
+        mm_per_px: float,
+        max_gap_mm: float,
+        chunk_points: int = CHUNK_POINTS,
+    ) -> None:
+        """Triangulate the points (:func:`wall_points_on_grid` for the arguments; a chunk
+        of ``chunk_points`` at a time if there are more)."""
+        circ = circumference_mm
+        margin = 0.1 * circ
+        lo, hi = arc_mm < margin, arc_mm > circ - margin
+        u = np.concatenate([arc_mm, arc_mm[lo] + circ, arc_mm[hi] - circ])
+        z = np.concatenate([axial_mm, axial_mm[lo], axial_mm[hi]])
+        xyz = np.concatenate([points_in_world, points_in_world[lo], points_in_world[hi]])
+        width = int(np.ceil(circ / mm_per_px))
+        z0 = float(np.floor(axial_mm.min()))
+        height = int(np.ceil((axial_mm.max() - z0) / mm_per_px)) + 1
+        self.shape = (height, width)
+        self.axial_min_mm = z0
+        self._u = (np.arange(width) + 0.5) * (circ / width)
+        self._z = z0 + np.arange(height) * mm_per_px
+        self._max_gap_mm = max_gap_mm
+        self._chunks: AxialChunks | None = None
+        self._block: tuple[int, int, LinearNDInterpolator, cKDTree] | None = None
+        if len(u) <= chunk_points:
+            uz = np.column_stack([u, z])
+            self._interpolate = LinearNDInterpolator(uz, xyz)
+            self._tree = cKDTree(uz)
+            return
+        self._chunks = AxialChunks(u, z, chunk_points)
+        self._xyz = xyz[self._chunks.order]
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, W, 3) wall points of rows [first, stop), mm (NaN: no wall)."""
+        if self._chunks is None:
+            start = max(first - self.HALO, 0)
+            interpolate, tree = self._interpolate, self._tree
+        else:
+            start = first
+            if stop <= first:
+                return np.zeros((0, self.shape[1], 3))
+            block = self._block
+            if block is None or not (block[0] <= first and stop <= block[1]):
+                self._block = block = None  # the last block's triangulation freed first
+                release_freed_memory()  # (qhull's many small blocks, not left resident)
+                self._block = block = self._build_block(first, stop)
+            interpolate, tree = block[2], block[3]
+        gu, gz = np.meshgrid(self._u, self._z[start:stop])
+        grid = interpolate(gu, gz)
+        # Cells far from any measured point (gaps in the rings, the hull's long edges).
+        dist, _ = tree.query(np.column_stack([gu.ravel(), gz.ravel()]))
+        grid.reshape(-1, 3)[dist > self._max_gap_mm] = np.nan
+        return grid[first - start :]
+
+    def _build_block(
+        self, first: int, stop: int
+    ) -> tuple[int, int, LinearNDInterpolator, cKDTree]:
+        """(first, stop', interpolation, tree) of rows [first, stop') for stop' >= ``stop``:
+        as many rows as hold about ``chunk_points`` points, on their verified chunk."""
+        chunks = self._chunks
+        if chunks is None:
+            raise RuntimeError("a block of a wall grid that is not chunked")
+        h = self.shape[0]
+        i0 = int(np.searchsorted(chunks.z, self._z[first], side="left"))
+        i1 = min(i0 + chunks.chunk_points, len(chunks.z))
+        z_cap = chunks.z[i1 - 1] if i1 > i0 else self._z[first]
+        last = int(np.searchsorted(self._z, z_cap, side="right"))
+        last = min(max(last, stop, first + 1), h)
+        ids, tri = chunks.triangulate(
+            float(self._z[first]), float(self._z[last - 1]), float(self._u[0]),
+            float(self._u[-1]), min_margin_mm=self._max_gap_mm,
+        )
+        # The interpolation's barycentric transforms (a small LAPACK solve per triangle,
+        # made on first use) with one BLAS thread: spinning threads on busy cores can
+        # stall them for seconds.
+        with threadpool_limits(limits=1, user_api="blas"):
+            tri.transform  # noqa: B018
+        return first, last, LinearNDInterpolator(tri, self._xyz[ids]), cKDTree(tri.points)
+
+
+def wall_points_on_grid(
+    arc_mm: np.ndarray,
+    axial_mm: np.ndarray,
+    points_in_world: np.ndarray,
+    circumference_mm: float,
+    mm_per_px: float,
+    max_gap_mm: float,
+    strip_rows: int = STRIP_ROWS,
+) -> tuple[np.ndarray, float]:
+    """(H, W, 3) interpolated wall points (NaN outside the measured wall) and the axial origin.
+
+    The whole grid at once (the model stage keeps a :class:`WallGrid` and evaluates it a
+    strip at a time); ``strip_rows`` rows are interpolated per call, the result does not
+    depend on it.
+
+    Args:
+        arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
+        points_in_world: (N, 3).
+        max_gap_mm: cells farther than this from every point stay NaN (holes stay holes).
+    """
+    wall = WallGrid(arc_mm, axial_mm, points_in_world, circumference_mm, mm_per_px, max_gap_mm)
+    h, w = wall.shape
+    grid = np.empty((h, w, 3))
+    step = max(1, int(strip_rows))
+    for r0 in range(0, h, step):
+        grid[r0 : r0 + step] = wall.rows(r0, min(r0 + step, h))
+    return grid, wall.axial_min_mm

@@ -1,0 +1,113 @@
+"""Light on the unrolled wall: the laser's band kept out of the texture, and the flat field.
+
+Texture is not taken where the red laser dominates the LED-lit colour: within
+:data:`LASER_BAND_PX` pixels of the laser line's image (:func:`laser_line_px`; the
+stripe is a few pixels wide in the image whatever its width in mm). After painting, the
+illumination is divided out (:func:`flat_field`): the LEDs' falloff from the range and
+incidence of each cell's view (known from the reconstruction) and the mirror's
+vignetting as a gain of the image radius estimated from the data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from omnipipe.camera import CameraModel
+from omnipipe.errors import ShapeError
+from omnipipe.model.texture_grid import STRIP_ROWS, UnrolledImage
+
+LASER_BAND_PX = 4.0
+"""Texture is not taken within this many pixels of the laser line's image (its stripe,
+blurred by the optics, is a few pixels wide whatever it is in mm on the wall)."""
+
+
+def laser_line_px(
+    camera: CameraModel, q: np.ndarray, px: np.ndarray, n_plane: np.ndarray, o_plane: float
+) -> np.ndarray:
+    """(n,) distance (px) from each wall point's pixel to the laser line's image at its
+    azimuth: the point moved along the rig's z axis (the pipe's direction) onto the laser
+    plane ``n . x + o = 0``, projected; inf where that point does not image.
+
+    Args:
+        camera: the camera model.
+        q: (n, 3) wall points in the rig frame, mm.
+        px: (n, 2) their pixels (col, row).
+    """
+    nz = float(n_plane[2])
+    if abs(nz) < 1e-6:  # a plane along the axis: no ring to keep away from
+        return np.full(len(q), np.inf)
+    on_plane = q.copy()
+    on_plane[:, 2] -= (q @ n_plane + o_plane) / nz
+    line_px, ok = camera.project(on_plane)
+    d = np.linalg.norm(line_px - px, axis=1)
+    return np.where(ok & np.isfinite(d), d, np.inf)
+
+
+FLAT_FIELD_BINS = 32
+"""Bins of image radius (equal cell counts) of the data-driven vignetting gain."""
+
+
+FLAT_FIELD_LEVEL = 128.0
+"""Median luminance (8-bit) of the flat-fielded unrolled wall."""
+
+
+def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
+    """The unrolled wall with the LEDs' falloff and the mirror's vignetting divided out.
+
+    Each cell was imaged with gain ``E x V``: ``E = cos(incidence) / range^2`` of its wall
+    point seen from the keyframe's rig origin (:attr:`CellChoice.light`, from the
+    reconstruction; the LEDs sit near the axis, close to it), and ``V(r)`` a gain of the
+    image radius ``r`` of its pixel: the mirror's vignetting plus whatever ``E``'s model
+    misses (the LEDs' own position and beam). ``V`` is estimated from the data, not
+    from a rig's parameters: the median of ``luminance / E`` over the cells of each
+    of :data:`FLAT_FIELD_BINS` radius bins (equal counts; interpolated between), over
+    its overall median. Every wall point around the pipe is seen at every radius, so the
+    wall's own reflectance averages out per bin. Colours are divided by ``E x V``
+    (clipped to 1/10..10 of the typical gain: grazing views are not blown up) and the
+    whole image scaled so its median luminance is :data:`FLAT_FIELD_LEVEL`.
+
+    Args:
+        unrolled: the painted unrolled wall.
+        light: (H, W, 2) :attr:`CellChoice.light` of its cells.
+
+    Returns:
+        The same image, corrected (cells without ``light`` only scaled).
+    """
+    img = unrolled.image
+    h, w = img.shape[:2]
+    if light.shape != (h, w, 2):
+        raise ShapeError(f"light: expected shape ({h}, {w}, 2), got {light.shape}")
+    stride = max(1, (h * w) // 2_000_000)  # the estimate from at most ~2 M cells
+    lum = img.reshape(-1, 3)[::stride].astype(np.float32).mean(axis=1)
+    irr = np.exp2(light.reshape(-1, 2)[::stride, 0].astype(np.float32))
+    rad = light.reshape(-1, 2)[::stride, 1].astype(np.float32)
+    ok = unrolled.alpha.reshape(-1)[::stride] & np.isfinite(irr) & (irr > 0) & (lum > 2) & (lum < 253)
+    if np.count_nonzero(ok) < 4 * FLAT_FIELD_BINS:
+        return unrolled
+    irr_ref = float(np.median(irr[ok]))
+    ratio = lum[ok] / (irr[ok] / irr_ref)
+    r_ok = rad[ok]
+    edges = np.unique(np.quantile(r_ok, np.linspace(0.0, 1.0, FLAT_FIELD_BINS + 1)))
+    which = np.clip(np.searchsorted(edges, r_ok, side="right") - 1, 0, max(len(edges) - 2, 0))
+    centres = np.array([np.median(r_ok[which == b]) for b in range(len(edges) - 1) if np.any(which == b)])
+    level = np.array([np.median(ratio[which == b]) for b in range(len(edges) - 1) if np.any(which == b)])
+    vign = level / float(np.median(ratio))
+
+    def gain(cells: np.ndarray) -> np.ndarray:
+        """(..., ) float32 relative gain E x V of cells' (..., 2) light."""
+        cells = cells.astype(np.float32)
+        g = (np.exp2(cells[..., 0]) / irr_ref) * np.interp(cells[..., 1], centres, vign)
+        return np.where(np.isfinite(g), np.clip(g, 0.1, 10.0), 1.0).astype(np.float32)
+
+    # One scale for the whole wall: its corrected median luminance to the target level.
+    seen = unrolled.alpha.reshape(-1)[::stride]
+    corrected = lum[seen] / gain(light.reshape(-1, 2)[::stride][seen])
+    scale = FLAT_FIELD_LEVEL / max(float(np.median(corrected)), 1e-6)
+    out = np.empty_like(img)
+    for r0 in range(0, h, STRIP_ROWS):  # float32 intermediates a strip of rows at a time
+        g = gain(light[r0 : r0 + STRIP_ROWS])
+        part = img[r0 : r0 + STRIP_ROWS].astype(np.float32) * (scale / g)[..., None]
+        out[r0 : r0 + STRIP_ROWS] = np.clip(np.round(part), 0, 255).astype(np.uint8)
+    return replace(unrolled, image=out)
