@@ -346,13 +346,19 @@ PARENT_POLL_S = 0.5
 def worker_init(parent: int) -> None:
     """Initializer of every local worker process: it dies with ``parent``.
 
-    SIGINT is ignored (the parent handles Ctrl-C and ends the pool). On Linux the kernel
+    SIGINT is ignored (the parent handles Ctrl-C and ends the pool); BLAS runs
+    single-threaded (the pool's processes share the cores). On Linux the kernel
     sends the worker SIGKILL when the parent dies (``prctl(PR_SET_PDEATHSIG)``, also
     after a SIGKILL or the OOM killer); everywhere a daemon thread checks every
     :data:`PARENT_POLL_S` s that ``parent`` is still this process's parent and kills
     the worker when it is not.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The pool already has a process per core: BLAS threads inside each worker would only
+    # compete with the other workers (small least-squares SVDs waited on busy threads).
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
     _die_with_parent()
     if os.getppid() != parent:  # the parent died before the line above took effect
         os.kill(os.getpid(), signal.SIGKILL)

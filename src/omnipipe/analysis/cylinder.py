@@ -61,7 +61,45 @@ def circle_fit_2d(xy: np.ndarray) -> tuple[np.ndarray, float]:
 def radial_distance(points: np.ndarray, point: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """(N,) distance of ``points`` (N, 3) from the line through ``point`` along unit ``axis``."""
     rel = points - point
-    return np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
+    perp = rel - (rel @ axis)[:, None] * axis
+    return np.sqrt(np.einsum("ij,ij->i", perp, perp))
+
+
+class CylinderResidual:
+    """Signed distance to the axis minus the radius of every point, and its Jacobian, for
+    parameters x = (two tilts of ``axis0`` along its basis e1, e2; the axis point's offsets
+    from ``point0`` along e1, e2; the radius) (mm, radians' tangents).
+
+    With d = |q|, q = rel - (rel.n) n, rel = p - point, n = m / |m|,
+    m = axis0 + x0 e1 + x1 e2: dd/dpoint = -q / d (q is orthogonal to n) and
+    dd/dm = -(rel.n) q / (d |m|).
+    """
+
+    def __init__(self, points: np.ndarray, axis0: np.ndarray, point0: np.ndarray) -> None:
+        self.points, self.axis0, self.point0 = points, axis0, point0
+        self.e1, self.e2 = _basis(axis0)
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(axis point (3,), unit axis (3,)) of parameters ``x``."""
+        axis = self.axis0 + x[0] * self.e1 + x[1] * self.e2
+        axis = axis / np.linalg.norm(axis)
+        return self.point0 + x[2] * self.e1 + x[3] * self.e2, axis
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        point, axis = self.unpack(x)
+        return radial_distance(self.points, point, axis) - x[4]
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """(N, 5) d residual / d x."""
+        norm_m = float(np.linalg.norm(self.axis0 + x[0] * self.e1 + x[1] * self.e2))
+        point, axis = self.unpack(x)
+        rel = self.points - point
+        along = rel @ axis
+        q = rel - along[:, None] * axis
+        d = np.maximum(np.sqrt(np.einsum("ij,ij->i", q, q)), 1e-12)
+        q1, q2 = q @ self.e1 / d, q @ self.e2 / d
+        tilt = -along / norm_m
+        return np.column_stack([tilt * q1, tilt * q2, -q1, -q2, -np.ones(len(self.points))])
 
 
 def fit_cylinder(
@@ -95,29 +133,31 @@ def fit_cylinder(
     centre2, r0 = circle_fit_2d(np.column_stack([rel @ e1, rel @ e2]))
     point0 = centroid + centre2[0] * e1 + centre2[1] * e2
 
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        axis = axis0 + x[0] * e1 + x[1] * e2
-        axis = axis / np.linalg.norm(axis)
-        return point0 + x[2] * e1 + x[3] * e2, axis
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        point, axis = unpack(x)
-        return radial_distance(points, point, axis) - x[4]
+    residual = CylinderResidual(points, axis0, point0)
+    jacobian = residual.jacobian
+    unpack = residual.unpack
 
     lim = np.tan(max_tilt_rad)
     x0 = np.array([0.0, 0.0, 0.0, 0.0, r0])
     lower = [-lim, -lim, -np.inf, -np.inf, 0.0]
     upper = [lim, lim, np.inf, np.inf, np.inf]
     # First a plain fit from the algebraic start, then the robust one from there.
-    sol = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac")
+    sol = least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale="jac")
     sol = least_squares(
-        residual, sol.x, bounds=(lower, upper), loss="soft_l1", f_scale=loss_scale_mm, x_scale="jac"
+        residual,
+        sol.x,
+        jac=jacobian,
+        bounds=(lower, upper),
+        loss="soft_l1",
+        f_scale=loss_scale_mm,
+        x_scale="jac",
     )
     # Finally a redescending (Cauchy) loss at the measured noise: far points stop pulling.
     spread = 1.4826 * float(np.median(np.abs(residual(sol.x))))
     sol = least_squares(
         residual,
         sol.x,
+        jac=jacobian,
         bounds=(lower, upper),
         loss="cauchy",
         f_scale=float(np.clip(3.0 * spread, 0.02, loss_scale_mm)),

@@ -23,13 +23,12 @@ uncertainties. A fitted defect lower than the run's detection limit
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from itertools import pairwise
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -67,15 +66,30 @@ def fit_wall_profile(
 ) -> np.ndarray:
     """Robust Fourier fit rho(theta) = c0 + sum_k (a_k cos k theta + b_k sin k theta).
 
-    Order 1 absorbs a ring's offset from the fitted axis, order 2 an oval section.
+    Order 1 absorbs a ring's offset from the fitted axis, order 2 an oval section. The
+    loss is soft-L1 at ``loss_scale_mm`` (SciPy's ``least_squares(loss="soft_l1")``);
+    the residuals are linear in the coefficients, so that loss is convex and its one
+    minimum is found by iteratively reweighted least squares (weights
+    1 / sqrt(1 + (r / scale)^2), until the coefficients move less than 1e-9 mm).
 
     Returns:
         (1 + 2 order,) coefficients [c0, a1, b1, a2, b2, ...].
     """
     A = fourier_design(theta, order)
     coef, *_ = np.linalg.lstsq(A, rho, rcond=None)
-    if len(rho) > A.shape[1] + 3:
-        coef = least_squares(lambda c: A @ c - rho, coef, loss="soft_l1", f_scale=loss_scale_mm).x
+    if len(rho) <= A.shape[1] + 3:
+        return coef
+    for _ in range(200):
+        r = (A @ coef - rho) / loss_scale_mm
+        weighted = A * (1.0 / np.sqrt(1.0 + r * r))[:, None]
+        try:
+            new = np.linalg.solve(weighted.T @ A, weighted.T @ rho)
+        except np.linalg.LinAlgError:  # a degenerate ring: keep the plain fit
+            return coef
+        done = float(np.max(np.abs(new - coef))) < 1e-9
+        coef = new
+        if done:
+            break
     return coef
 
 
@@ -219,8 +233,6 @@ def find_defects(
         width_mm=limit_width_mm,
         length_mm=limit_length_mm,
     )
-    defects: list[Defect] = []
-    masks: list[np.ndarray] = []
     candidates = [
         (sign, kind, members, _rough(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing))
         for sign, kind in ((-1.0, "bulge"), (1.0, "dent"))
@@ -232,20 +244,9 @@ def find_defects(
         for sign, _, _, d0 in candidates
     )
     fits = ordered_map(executor or InlineExecutor(), _fit_job, jobs)
-    for (_, kind, members, d0), (d, mask) in zip(candidates, fits, strict=True):
-        d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
-        rejected = _rejection(d, kind, max_width_fraction * samples.circumference_mm, limit)
-        if rejected:
-            warnings.append(rejected)
-            continue
-        travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
-        defects.append(replace(d, points=len(members), travel_mm=travel))
-        masks.append(mask)
-        if cut_by:
-            warnings.append(
-                f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
-                f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
-            )
+    defects, masks = _accepted(
+        samples, sc, candidates, fits, max_width_fraction * samples.circumference_mm, limit, warnings
+    )
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
     warnings.extend(
         f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
@@ -265,6 +266,36 @@ def find_defects(
         sample_spacing_mm=sc.sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _accepted(
+    samples: WallSamples,
+    sc: _Scales,
+    candidates: list[tuple[float, str, np.ndarray, Defect]],
+    fits: Iterable[tuple[Defect, np.ndarray]],
+    max_width_mm: float,
+    limit: float,
+    warnings: list[str],
+) -> tuple[list[Defect], list[np.ndarray]]:
+    """The fitted candidates that are reported (truncation flagged, travel added) and
+    their masks; a line is appended to ``warnings`` for each rejected or truncated one."""
+    defects: list[Defect] = []
+    masks: list[np.ndarray] = []
+    for (_, kind, members, d0), (d, mask) in zip(candidates, fits, strict=True):
+        d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
+        rejected = _rejection(d, kind, max_width_mm, limit)
+        if rejected:
+            warnings.append(rejected)
+            continue
+        travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
+        defects.append(replace(d, points=len(members), travel_mm=travel))
+        masks.append(mask)
+        if cut_by:
+            warnings.append(
+                f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
+                f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
+            )
+    return defects, masks
 
 
 def _fit_job(

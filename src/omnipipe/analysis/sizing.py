@@ -35,11 +35,13 @@ caller).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
+from threadpoolctl import threadpool_limits
+
+from omnipipe.analysis._kernels import GH_W, GH_X, seen_bump_with_jacobian
 
 # Fewer rings than this across a defect's half-height length: its height's sigma is also
 # taken from the profile likelihood (the linearised covariance misses a crest between rings).
@@ -120,8 +122,7 @@ def bump_model(params: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 # Gauss-Hermite nodes and weights of a unit Gaussian (7 points: exact for polynomials
 # up to degree 13, far below the model's resolution at the blurs that occur).
-_GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(7)
-_GH_W = _GH_W / _GH_W.sum()
+_GH_X, _GH_W = GH_X, GH_W
 
 
 def _blurred_plateau(x: np.ndarray, full_width: float, ramp: float, blur_mm: float) -> np.ndarray:
@@ -292,7 +293,7 @@ def _correlated_cov(
 
 
 def _profile_sigma(
-    residual: Callable[[np.ndarray], np.ndarray],
+    residual: _BumpResidual,
     p: np.ndarray,
     index: int,
     factors: tuple[tuple[float, ...], tuple[float, ...]],
@@ -332,7 +333,7 @@ def _profile_sigma(
                 if fz is not None:
                     x0[6] = fz
                 x0 = np.clip(x0, np.array(lo_f) + 1e-12, np.array(hi_f) - 1e-12)
-                trial = least_squares(residual, x0, bounds=(lo_f, hi_f), x_scale="jac", max_nfev=80)
+                trial = least_squares(residual, x0, bounds=(lo_f, hi_f), jac=residual.jac, x_scale="jac", max_nfev=80)
                 if sol is None or trial.cost < sol.cost:
                     sol = trial
             d = 2.0 * (sol.cost - cost)
@@ -426,11 +427,14 @@ def _end_variances(
 
 
 class _BumpResidual:
-    """Residuals of :func:`seen_bump_model` against the kept samples, and a weak prior.
+    """Residuals of :func:`seen_bump_model` against the kept samples, a weak prior, and
+    their analytic Jacobian (:func:`._kernels.seen_bump_with_jacobian`).
 
     The prior (worth one sample at the noise level ``prior_scale``) pulls flank shapes
     that no sample constrains (a flank between two rings) to the middle of their range.
-    ``keep`` and ``prior_scale`` are set between the fit's passes.
+    ``keep`` and ``prior_scale`` are set between the fit's passes. The model and its
+    Jacobian are computed together and the Jacobian kept for the same parameters
+    (least squares asks for the residuals, then the Jacobian, at each accepted step).
     """
 
     def __init__(
@@ -440,16 +444,43 @@ class _BumpResidual:
         self.blur_u_mm, self.blur_z_mm = blur_u_mm, blur_z_mm
         self.keep = np.ones(len(value), bool)
         self.prior_scale = 0.05
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def keep(self) -> np.ndarray:
+        """(N,) bool: the samples the residuals hold."""
+        return self._keep
+
+    @keep.setter
+    def keep(self, keep: np.ndarray) -> None:
+        self._keep = np.asarray(keep, bool)
+        self._u = np.ascontiguousarray(self.u[self._keep], float)
+        self._z = np.ascontiguousarray(self.z[self._keep], float)
+        self._value = self.value[self._keep]
+        self._last = None
 
     def model(self, p: np.ndarray) -> np.ndarray:
         """(N,) the bump of parameters ``p`` at every sample, kept or not (mm)."""
         return seen_bump_model(p, self.u, self.z, self.blur_u_mm, self.blur_z_mm)
 
+    def _evaluate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = np.array(p, float)
+        if self._last is not None and np.array_equal(self._last[0], p):
+            return self._last[1], self._last[2]
+        model, jac = seen_bump_with_jacobian(p, self._u, self._z, self.blur_u_mm, self.blur_z_mm)
+        res = np.concatenate([model - self._value, self.prior_scale * (p[5:7] - 0.5) / 0.5])
+        full = np.zeros((len(res), len(p)))
+        full[:-2] = jac
+        full[-2, 5] = full[-1, 6] = self.prior_scale / 0.5
+        self._last = (p, res, full)
+        return res, full
+
     def __call__(self, p: np.ndarray) -> np.ndarray:
-        keep = self.keep
-        prior = self.prior_scale * (np.asarray(p[5:7]) - 0.5) / 0.5
-        model = seen_bump_model(p, self.u[keep], self.z[keep], self.blur_u_mm, self.blur_z_mm)
-        return np.concatenate([model - self.value[keep], prior])
+        return self._evaluate(p)[0].copy()
+
+    def jac(self, p: np.ndarray) -> np.ndarray:
+        """(N_kept + 2, 8) Jacobian of :meth:`__call__` at ``p``."""
+        return self._evaluate(p)[1].copy()
 
 
 def _bump_bounds(
@@ -494,7 +525,7 @@ def _solve_bump(
             np.array(upper) - 1e-9,
         )
         starts.append(
-            least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", max_nfev=400, tr_solver="lsmr")
+            least_squares(residual, x0, bounds=(lower, upper), jac=residual.jac, x_scale="jac", max_nfev=400)
         )
     best = min(starts, key=lambda sol: sol.cost)  # the first of the lowest
     res = best.fun[:-2]
@@ -503,7 +534,7 @@ def _solve_bump(
     residual.keep = np.abs(residual.model(best.x) - residual.value) <= max(5.0 * scale, 1e-6)
     if residual.keep.sum() < 12:
         return None
-    sol = least_squares(residual, best.x, bounds=(lower, upper), x_scale="jac", max_nfev=400)
+    sol = least_squares(residual, best.x, bounds=(lower, upper), jac=residual.jac, x_scale="jac", max_nfev=400)
     n, k = int(residual.keep.sum()), len(sol.x)
     free_cost, s2 = sol.cost, float(np.sum(sol.fun[:-2] ** 2) / max(n - k, 1))
     if ROUND_FLANK_CHI2 > 0 and sol.x[6] < 0.95:
@@ -515,7 +546,7 @@ def _solve_bump(
         trial_lo = list(lower)
         trial_lo[6] = 1.0 - 1e-6
         x0 = np.clip(sol.x, np.array(trial_lo) + 1e-9, np.array(upper) - 1e-9)
-        rnd = least_squares(residual, x0, bounds=(trial_lo, upper), x_scale="jac", max_nfev=400)
+        rnd = least_squares(residual, x0, bounds=(trial_lo, upper), jac=residual.jac, x_scale="jac", max_nfev=400)
         if 2.0 * (rnd.cost - free_cost) < ROUND_FLANK_CHI2 * s2:
             sol = rnd
     return sol
@@ -552,6 +583,24 @@ def fit_bump(
     u, z, value = (np.asarray(a, float) for a in (u, z, value))
     if len(value) < 12:
         return None
+    # Single-threaded BLAS: the solver's SVDs of a (N, 8) Jacobian are far too small to
+    # share out, and threads waiting on a busy machine cost more than the SVD.
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit_bump(u, z, value, np.asarray(ring), start, bounds_u, bounds_z, blur_u_mm, blur_z_mm)
+
+
+def _fit_bump(
+    u: np.ndarray,
+    z: np.ndarray,
+    value: np.ndarray,
+    ring: np.ndarray,
+    start: tuple[float, float, float, float, float],
+    bounds_u: tuple[float, float],
+    bounds_z: tuple[float, float],
+    blur_u_mm: float,
+    blur_z_mm: float,
+) -> BumpFit | None:
+    """:func:`fit_bump`'s work, its arguments checked."""
     h0, _, _, w0, l0 = start
     lower, upper = _bump_bounds(start, bounds_u, bounds_z)
     residual = _BumpResidual(u, z, value, blur_u_mm, blur_z_mm)
