@@ -201,9 +201,16 @@ def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
 
 
 def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> np.ndarray:
-    """(M, 2) index pairs: Lowe's ratio test both ways and a mutual check."""
-    if len(f1.descriptors) < 2 or len(f2.descriptors) < 2:
+    """(M, 2) index pairs: Lowe's ratio test both ways and a mutual check. Features
+    without a descriptor (a zero row: tracked points, corners) match nothing."""
+    i1, i2 = _described(f1.descriptors), _described(f2.descriptors)
+    if len(i1) < 2 or len(i2) < 2:
         return np.zeros((0, 2), int)
+    if len(i1) < len(f1.descriptors) or len(i2) < len(f2.descriptors):
+        sub1 = FrameFeatures(f1.rays_in_rig[i1], f1.pixels[i1], f1.descriptors[i1], f1.view[i1])
+        sub2 = FrameFeatures(f2.rays_in_rig[i2], f2.pixels[i2], f2.descriptors[i2], f2.view[i2])
+        m = match_features(sub1, sub2, ratio)
+        return np.stack([i1[m[:, 0]], i2[m[:, 1]]], axis=1) if len(m) else m
 
     def one_way(a: np.ndarray, b: np.ndarray) -> dict[int, int]:
         best, d0, d1 = two_nearest(a, b)
@@ -221,6 +228,63 @@ def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> 
     bwd = {int(targets[q]): i for q, i in one_way(f2.descriptors[targets], f1.descriptors).items()}
     pairs = [(i, j) for i, j in fwd.items() if bwd.get(j) == i]
     return np.array(pairs, int).reshape(-1, 2)
+
+
+def guided_matches(
+    f1: FrameFeatures,
+    f2: FrameFeatures,
+    feature: np.ndarray,
+    predicted_rays: np.ndarray,
+    radius_rad: float,
+    ratio: float = 0.8,
+    most: int = 8,
+) -> np.ndarray:
+    """(M, 2) index pairs of descriptor matches searched only near a prediction.
+
+    Each of ``f1``'s features ``feature`` (P,) is expected in ``f2``'s frame along
+    ``predicted_rays`` (P, 3) unit rays (e.g. where its track went); only ``f2``'s
+    features within ``radius_rad`` of that ray (at most ``most``, nearest first) are
+    compared. Choose the radius under half the wall's texture period: a periodic wall
+    then offers one candidate of each kind, where a global ratio test finds every
+    period alike and matches none (or the wrong one). The nearest descriptor wins when
+    it passes Lowe's ratio test against the next candidate of the window (alone in the
+    window: it passes); an ``f2`` feature claimed twice goes to the closer descriptor.
+    Features without a descriptor (zero rows) match nothing.
+    """
+    d2_ok = np.zeros(len(f2.view), bool)
+    d2_ok[_described(f2.descriptors)] = True
+    feature = np.asarray(feature, int)
+    if len(feature) == 0 or not d2_ok.any():
+        return np.zeros((0, 2), int)
+    keep = np.isin(feature, _described(f1.descriptors))
+    feature, predicted_rays = feature[keep], np.asarray(predicted_rays, float)[keep]
+    described = np.flatnonzero(d2_ok)
+    k = min(most, len(described))
+    dist, nn = cKDTree(f2.rays_in_rig[described]).query(predicted_rays, k=k, distance_upper_bound=2.0 * math.sin(0.5 * radius_rad))
+    dist, nn = dist.reshape(len(feature), k), nn.reshape(len(feature), k)
+    found = np.isfinite(dist)
+    cand = described[np.where(found, nn, 0)]
+    desc = np.linalg.norm(f2.descriptors[cand] - f1.descriptors[feature][:, None, :], axis=2)
+    desc[~found] = np.inf
+    order = np.argsort(desc, axis=1)
+    rows = np.arange(len(feature))
+    best = desc[rows, order[:, 0]]
+    second = desc[rows, order[:, 1]] if k > 1 else np.full(len(feature), np.inf)
+    ok = np.isfinite(best) & (best < ratio * second)
+    i1, i2, d = feature[ok], cand[rows, order[:, 0]][ok], best[ok]
+    # One f1 feature per f2 feature: the closest descriptor.
+    by = np.lexsort((d, i2))
+    first = np.ones(len(by), bool)
+    first[1:] = i2[by][1:] != i2[by][:-1]
+    sel = by[first]
+    return np.stack([i1[sel], i2[sel]], axis=1)
+
+
+def _described(descriptors: np.ndarray) -> np.ndarray:
+    """Indices of the (N, 128) ``descriptors`` rows that are not all zero."""
+    if len(descriptors) == 0:
+        return np.zeros(0, int)
+    return np.flatnonzero(np.any(descriptors != 0, axis=1))
 
 
 def track_labels(offset: np.ndarray, pair_matches: list[tuple[int, int, np.ndarray]]) -> np.ndarray:

@@ -25,18 +25,25 @@ from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import iter_frames, parallelism
 from omnipipe.image import gray_without_laser
-from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews, match_features
+from omnipipe.sfm.features import (
+    FeatureExtractor,
+    FrameFeatures,
+    FrameViews,
+    guided_matches,
+    match_features,
+)
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.planes import refine_matches
 from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
 from omnipipe.sfm.robot_sensors import odometry_moved
 from omnipipe.sfm.stations import StationTracker
-from omnipipe.sfm.tasks import FeatureTask, matched_rays, step_evidence, track_into
-from omnipipe.sfm.tracking import Tracks, followed_count, track_features
+from omnipipe.sfm.tasks import FeatureTask, matched_rays, step_evidence, track_back
+from omnipipe.sfm.tracking import TrackChain, Tracks, corner_features
 from omnipipe.sfm.types import (
     KeyframeRays,
     Keyframes,
@@ -188,27 +195,32 @@ class KeyframeLoop:
         self._in_flight: deque[Future] = deque()
         self._last: _Keyframe | None = None
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
+        # The last keyframe's tracks, followed frame to frame (None: tracking off).
+        self._chain: TrackChain | None = None
+        # A new feature this close (rad) to a track carried on is that track.
+        self._near = 2.0 * ctx.camera.angular_resolution()
 
     def add(self, frame: MovingFrame) -> None:
         """One moving frame: pending (too little parallax) or the next keyframe."""
         last = self._last
         features = frame.features
         if last is None:
-            self._add_keyframe(
-                frame, self.extractor.detect(frame.views) if features is None else features
-            )
+            self._add_keyframe(frame, self._keyframe_features(frame, features), 0)
             return
         closing = frame.frame == self.inputs.n_frames - 1  # the last frame is always a keyframe
-        if features is None and not closing:
-            step = _tracked_step(self.ctx, self.extractor, last, frame)
-            if step is not None and step.parallax_rad < self._min_parallax:
-                # Too little baseline, followed without SIFT: resected after the adjustment.
-                self._defer(frame, step.tracks.features, step.inliers)
-                self.tracked[frame.frame] = True
-                return
-        if features is None:
-            features = self.extractor.detect(frame.views)
-        m = match_features(last.features, features, self.ctx.config.features.ratio)
+        step = self._chained_step(last, frame)
+        if step is not None and step.parallax_rad < self._min_parallax and not closing:
+            # Too little baseline, followed without SIFT: resected after the adjustment.
+            self._defer(frame, step.tracks.features, step.inliers)
+            self.tracked[frame.frame] = True
+            return
+        if step is not None:
+            features, m, n_continued = self._chained_matches(last, frame, step)
+        else:
+            if features is None:
+                features = self._keyframe_features(frame, None)
+            n_continued = 0
+            m = match_features(last.features, features, self.ctx.config.features.ratio)
         pair = StepPair(last.frame, frame.frame, last.features, features, m)
         motion = _relative(self.ctx, pair)
         if motion is None:
@@ -220,7 +232,85 @@ class KeyframeLoop:
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
             motion = _refine(self.ctx, pair, motion, last.gray, frame.gray)
         self._measure(pair, motion, last.gray, frame.gray)
-        self._add_keyframe(frame, features)
+        self._add_keyframe(frame, features, n_continued)
+
+    def _chained_matches(
+        self, last: _Keyframe, frame: MovingFrame, step: TrackedStep
+    ) -> tuple[FrameFeatures, np.ndarray, int]:
+        """The next keyframe's features, its (last keyframe feature, feature) matches
+        and how many of its features are tracks carried on.
+
+        Three candidates, each verified by RANSAC: its SIFT features matched to the last
+        keyframe's by descriptor over the whole frame (Lowe's ratio test), or guided by
+        the chained tracks (:func:`omnipipe.sfm.features.guided_matches`: only within
+        ``tracking.guided_radius_px`` of where each track went, so no period of a
+        periodic wall is skipped); or the chained tracks themselves (the keyframe then
+        carries them on as its first features). Descriptor matches are the more precise
+        where the wall's descriptors tell its points apart: the one with more inliers is
+        taken, unless the chained tracks have ``tracking.chain_over_descriptors`` times
+        as many (periodic walls, brick faces, plain walls)."""
+        config = self.ctx.config.tracking
+        ratio = self.ctx.config.features.ratio
+        inl = step.inliers
+        detected = self._keyframe_features(frame, None)
+        radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
+        best, best_count = np.zeros((0, 2), int), 0
+        for m in (
+            match_features(last.features, detected, ratio),
+            guided_matches(
+                last.features, detected, inl[:, 0], step.tracks.features.rays_in_rig[inl[:, 1]],
+                radius, ratio,
+            ),
+        ):  # fmt: skip
+            count = _inlier_count(self.ctx, last.features, detected, m)
+            if count > best_count:
+                best, best_count = m, count
+        if best_count > 0 and config.chain_over_descriptors * best_count >= len(inl):
+            return detected, best, 0
+        continued = _subset(step.tracks.features, inl[:, 1])
+        features = self._keyframe_features(frame, detected, continued)
+        return features, np.stack([inl[:, 0], np.arange(len(inl))], axis=1), len(inl)
+
+    def _keyframe_features(
+        self,
+        frame: MovingFrame,
+        features: FrameFeatures | None,
+        continued: FrameFeatures | None = None,
+    ) -> FrameFeatures:
+        """A keyframe's features: ``continued`` (tracks carried on from the last
+        keyframe) first, then its SIFT features (``features``, or detected on its views)
+        that are not where a continued track is, then Shi-Tomasi corners where SIFT
+        found few (:func:`omnipipe.sfm.tracking.corner_features`; with views only)."""
+        if features is None:
+            features = self.extractor.detect(frame.views)
+            if frame.views is not None and self.ctx.config.tracking.enabled:
+                corners = corner_features(self.extractor, frame.views, features, self.ctx.config.tracking)
+                if len(corners.view):
+                    features = _concat([features, corners])
+        if continued is not None and len(continued.view):
+            near = cKDTree(continued.rays_in_rig).query(features.rays_in_rig, distance_upper_bound=self._near)[0]
+            features = _concat([continued, _subset(features, np.flatnonzero(~np.isfinite(near)))])
+        return features
+
+    def _chained_step(self, key: _Keyframe, frame: MovingFrame) -> TrackedStep | None:
+        """The last keyframe's tracks followed on into ``frame``'s views, or None when
+        there is no chain (tracking off), too few were tracked or no relative motion fits
+        them (the frame then gets SIFT)."""
+        if self._chain is None or frame.views is None:
+            return None
+        config = self.ctx.config.tracking
+        tracks = self._chain.advance(frame.views)
+        if len(tracks.feature) < max(config.min_tracks, self.ctx.ransac.min_inliers):
+            return None
+        m = tracks.matches
+        try:
+            motion = estimate_relative_motion(
+                key.features.rays_in_rig[m[:, 0]], tracks.features.rays_in_rig, self.ctx.ransac
+            )
+        except ReconstructionError:
+            return None
+        pair = StepPair(key.frame, frame.frame, key.features, tracks.features, m)
+        return TrackedStep(tracks, m[motion.inliers], _parallax(pair, motion))
 
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
@@ -286,40 +376,106 @@ class KeyframeLoop:
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):
             self._in_flight.popleft().result()
 
-    def _add_keyframe(self, frame: MovingFrame, features: FrameFeatures) -> None:
-        """``frame`` the next keyframe. The frames pending since the last one also see
-        its tracks: their correspondences with it go to the workers (tracked into the
-        views of a tracked frame, matched to the descriptors of the others); then
+    def _add_keyframe(self, frame: MovingFrame, features: FrameFeatures, n_continued: int) -> None:
+        """``frame`` the next keyframe (its first ``n_continued`` features carried on from
+        the last one); its features are followed on from it. The frames pending since
+        the last one also see its tracks: their correspondences with it go to the
+        workers (its other features followed back frame by frame through the pending
+        frames' views, or matched to the descriptors of frames without views); then
         nothing more is matched to them or to the last keyframe, whose descriptors go."""
         self.features.append(features)
         self.grays.append(np.clip(frame.gray, 0, 65535).astype(np.uint16))
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
         self._last = _Keyframe(frame.frame, features, frame.gray, frame.views)
-        config, executor = self.ctx.config, self.ctx.executor
+        config = self.ctx.config
+        fresh = np.arange(n_continued, len(features.view))
+        self._chain = None
+        if frame.views is not None and config.tracking.enabled:
+            # The tracks carried on first, then the new features evenly, up to the budget.
+            followed = _budget(n_continued, len(features.view), config.tracking.max_points)
+            self._chain = TrackChain(self.extractor, frame.views, features, config.tracking, followed)
         k_new = len(self.features) - 1
-        for j in range(len(self.pending) - 1, -1, -1):
+        since = [j for j, p in enumerate(self.pending) if p.keyframe == k_new - 1]
+        viewed = [j for j in since if self.pending[j].frame in self._pending_views]
+        if viewed and frame.views is not None:
+            # Backwards from the new keyframe: its latest pending frame first.
+            back = viewed[::-1]
+            whole = self.ctx.executor.submit(
+                track_back,
+                self.inputs.rig,
+                config.features,
+                frame.views,
+                _slim(features),
+                fresh[_budget(0, len(fresh), config.tracking.max_points)],
+                [self._pending_views[self.pending[j].frame] for j in back],
+                config.tracking,
+            )
+            for j, part in zip(back, _split(whole, len(back)), strict=True):
+                self.next_matches[self.pending[j].frame] = part
+        for j in since:
             p = self.pending[j]
-            if p.keyframe != k_new - 1:
-                break
-            if p.frame in self._pending_views:
-                self.next_matches[p.frame] = executor.submit(
-                    track_into,
-                    self.inputs.rig,
-                    config.features,
-                    frame.views,
-                    features,
-                    self._pending_views.pop(p.frame),
-                    config.tracking,
-                )
-            else:
-                self.next_matches[p.frame] = executor.submit(
+            if p.frame not in self.next_matches:
+                self.next_matches[p.frame] = self.ctx.executor.submit(
                     matched_rays, features, p.features, config.features.ratio
                 )
             self.pending[j] = replace(p, features=_slim(p.features))
         self._pending_views.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _slim(self.features[k_new - 1])
+
+
+def _budget(n_first: int, n: int, most: int) -> np.ndarray:
+    """Indices of ``n`` features to follow, at most ``most``: the first ``n_first``
+    (evenly when they alone are too many), then the rest evenly."""
+    if n_first >= most:
+        return np.unique(np.linspace(0, n_first - 1, most).round().astype(int))
+    rest = min(n - n_first, most - n_first)
+    tail = np.unique(np.linspace(n_first, n - 1, rest).round().astype(int)) if rest > 0 else np.zeros(0, int)
+    return np.concatenate([np.arange(n_first), tail])
+
+
+def _split(whole: Future[list[KeyframeRays]], n: int) -> list[Future[KeyframeRays]]:
+    """One future per item of the list ``whole`` will hold (``n`` items)."""
+    parts: list[Future[KeyframeRays]] = [Future() for _ in range(n)]
+
+    def done(f: Future[list[KeyframeRays]]) -> None:
+        exc = f.exception()
+        for i, part in enumerate(parts):
+            if exc is not None:
+                part.set_exception(exc)
+            else:
+                part.set_result(f.result()[i])
+
+    whole.add_done_callback(done)
+    return parts
+
+
+def _subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:
+    """The features ``idx`` of ``features`` (descriptors too when it has them)."""
+    desc = features.descriptors[idx] if len(features.descriptors) else np.zeros((len(idx), 128), np.float32)
+    vpx = None if features.view_pixels is None else features.view_pixels[idx]
+    return FrameFeatures(features.rays_in_rig[idx], features.pixels[idx], desc, features.view[idx], vpx)
+
+
+def _concat(parts: list[FrameFeatures]) -> FrameFeatures:
+    """The features of ``parts`` one after the other (each with descriptors or as
+    many zero rows; view pixels when every part has them)."""
+    def desc(f: FrameFeatures) -> np.ndarray:
+        return f.descriptors if len(f.descriptors) == len(f.view) else np.zeros((len(f.view), 128), np.float32)
+
+    vpx = (
+        np.concatenate([f.view_pixels for f in parts]).astype(np.float32)
+        if all(f.view_pixels is not None for f in parts)
+        else None
+    )
+    return FrameFeatures(
+        np.concatenate([f.rays_in_rig for f in parts]),
+        np.concatenate([f.pixels for f in parts]),
+        np.concatenate([desc(f) for f in parts]).astype(np.float32),
+        np.concatenate([f.view for f in parts]),
+        vpx,
+    )
 
 
 def _slim(features: FrameFeatures) -> FrameFeatures:
@@ -339,6 +495,15 @@ def _relative(ctx: SfmContext, pair: StepPair) -> RelativeMotion | None:
     except ReconstructionError as exc:
         ctx.warnings.append(f"frames {pair.a}->{pair.b}: {exc}; pose kept from frame {pair.a}")
         return None
+
+
+def _inlier_count(ctx: SfmContext, fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray) -> int:
+    """How many of the matches ``m`` one relative motion explains (RANSAC; 0: none)."""
+    try:
+        motion = estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ctx.ransac)
+    except ReconstructionError:
+        return 0
+    return int(motion.inliers.sum())
 
 
 def _parallax(pair: StepPair, motion: RelativeMotion) -> float:
@@ -372,27 +537,6 @@ def _refine(
     fb.pixels[inl[:, 1]] = ctx.camera.project(refined)[0]
     again = _relative(ctx, pair)
     return again if again is not None else motion
-
-
-def _tracked_step(
-    ctx: SfmContext, extractor: FeatureExtractor, key: _Keyframe, frame: MovingFrame
-) -> TrackedStep | None:
-    """The keyframe's features tracked into ``frame``'s views, or None when too few were
-    tracked or no relative motion fits them (the frame then gets SIFT)."""
-    config = ctx.config.tracking
-    tracks = track_features(extractor, key.views, key.features, frame.views, config)
-    followed = followed_count(len(key.features.rays_in_rig), config)
-    if len(tracks.feature) < config.min_tracked_fraction * followed:
-        return None
-    m = tracks.matches
-    try:
-        motion = estimate_relative_motion(
-            key.features.rays_in_rig[m[:, 0]], tracks.features.rays_in_rig, ctx.ransac
-        )
-    except ReconstructionError:
-        return None
-    pair = StepPair(key.frame, frame.frame, key.features, tracks.features, m)
-    return TrackedStep(tracks, m[motion.inliers], _parallax(pair, motion))
 
 
 def moving_frames(

@@ -39,7 +39,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import TrackConfig, track_features
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, track_features
 from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
@@ -116,6 +116,26 @@ def track_into(
     ``rig`` and ``features_config``): the tracked features and their rays in the frame."""
     tracks = track_features(_extractor(rig, features_config), key_views, key_features, views, config)
     return KeyframeRays(tracks.feature, tracks.features.rays_in_rig)
+
+
+def track_back(
+    rig: Rig,
+    features_config: FeatureConfig,
+    key_views: FrameViews,
+    key_features: FrameFeatures,
+    followed: np.ndarray,
+    views: list[FrameViews],
+    config: TrackConfig,
+) -> list[KeyframeRays]:
+    """The keyframe's features ``followed`` (indices) tracked frame by frame into each
+    of ``views`` in turn (:class:`omnipipe.sfm.tracking.TrackChain`; the frames before
+    the keyframe, latest first): per frame, the tracked features and their rays."""
+    chain = TrackChain(_extractor(rig, features_config), key_views, key_features, config, followed)
+    out = []
+    for v in views:
+        tracks = chain.advance(v)
+        out.append(KeyframeRays(tracks.feature, tracks.features.rays_in_rig))
+    return out
 
 
 def matched_rays(key_features: FrameFeatures, features: FrameFeatures, ratio: float) -> KeyframeRays:
