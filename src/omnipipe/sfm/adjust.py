@@ -368,17 +368,36 @@ def _unresected_pose(
 ) -> tuple[np.ndarray, str]:
     """A frame that could not be resected: between keyframes k and k + 1 at the
     odometry's fraction of their travel (``travel_mm`` (N,) cumulative, mm), rotation
-    of keyframe k; without it (or past the last keyframe) keyframe k's pose. The pose
-    and what was done, in words."""
+    of keyframe k; past the last keyframe, the odometry's travel beyond it along the
+    last step's direction (:func:`_beyond_last`); without odometry keyframe k's pose.
+    The pose and what was done, in words."""
     pose = world_from_kf[k].copy()
-    if travel_mm is None or k + 1 >= len(frames):
+    if travel_mm is None:
         return pose, "pose of its keyframe used"
+    if k + 1 >= len(frames):
+        return _beyond_last(world_from_kf, frames, k, travel_mm[frame] - travel_mm[frames[k]])
     d0, d1, d = travel_mm[frames[k]], travel_mm[frames[k + 1]], travel_mm[frame]
     if not (np.isfinite([d0, d1, d]).all() and d1 - d0 > 0):
         return pose, "pose of its keyframe used"
     f = float(np.clip((d - d0) / (d1 - d0), 0.0, 1.0))
     pose[:3, 3] = (1 - f) * world_from_kf[k][:3, 3] + f * world_from_kf[k + 1][:3, 3]
     return pose, f"placed between its keyframes at the odometry's fraction {f:.2f}"
+
+
+def _beyond_last(
+    world_from_kf: np.ndarray, frames: list[int], k: int, travel_mm: float
+) -> tuple[np.ndarray, str]:
+    """A frame after the last keyframe k, ``travel_mm`` (odometry, mm) beyond it: moved
+    that far along the last keyframe step's direction (the rig's +z axis when k is the
+    only keyframe), rotation of keyframe k. The pose and what was done, in words."""
+    pose = world_from_kf[k].copy()
+    if not np.isfinite(travel_mm):
+        return pose, "pose of its keyframe used"
+    step = world_from_kf[k][:3, 3] - world_from_kf[k - 1][:3, 3] if k > 0 else np.zeros(3)
+    norm = float(np.linalg.norm(step))
+    direction = step / norm if norm > 1e-9 else world_from_kf[k][:3, 2]
+    pose[:3, 3] += max(float(travel_mm), 0.0) * direction
+    return pose, f"placed {travel_mm:.1f} mm beyond its keyframe by the odometry"
 
 
 def _submit_resection(
