@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from omnipipe.geometry import make_transform
 from omnipipe.sfm.laser_scale import consensus_peaks
 from omnipipe.sfm.scale_check import (
+    FEATURE_ONLY,
     WALL_SCALE_SIGMA_FLOOR,
     ScaleCheckConfig,
     StepCheck,
@@ -113,6 +114,25 @@ def test_decide_disagreement_without_an_alternative_is_flagged() -> None:
     c = decide(3, 9, 18.4, np.array([18.4]), np.array([0.9]), 4.5, 40, CFG)
     assert c.confidence == "none" and not c.reliable and math.isnan(c.scale_mm)
     assert "disagree" in c.reason
+
+
+def test_decide_best_peak_left_by_the_points_median_is_resolved() -> None:
+    """Corrugation: best peak 19.5 mm, the points' median 30.8 mm, features 18.3 mm."""
+    c = decide(3, 9, 30.8, np.array([19.5, 43.4]), np.array([0.47, 0.41]), 18.3, 108, CFG)
+    assert c.confidence == "resolved" and c.scale_mm == pytest.approx(19.5)
+
+
+def test_decide_ambiguous_laser_leaves_the_features_alone_but_unreliable() -> None:
+    """Tiles: every course scores alike; many agreeing feature depths give the length,
+    flagged until the gait confirms it (step_window); too few matches do not."""
+    peaks, scores = np.array([10.2, 6.6, 32.5]), np.array([0.94, 0.94, 0.93])
+    c = decide(3, 9, 21.6, peaks, scores, 16.6, 37, CFG)
+    assert c.confidence == "low" and not c.reliable and c.reason.startswith(FEATURE_ONLY)
+    assert c.scale_mm == pytest.approx(16.6)
+    c = decide(3, 9, 21.6, peaks, scores, 16.6, 12, CFG)
+    assert c.confidence == "none" and math.isnan(c.scale_mm)
+    c = decide(3, 9, 21.6, np.array([21.6, 10.2]), np.array([0.9, 0.3]), 16.6, 37, CFG)
+    assert c.confidence == "none"  # an unambiguous laser contradicting the features
 
 
 def test_decide_ambiguous_laser_without_features_is_flagged() -> None:

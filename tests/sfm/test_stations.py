@@ -176,3 +176,14 @@ def test_signature_pickles_exactly_and_compactly() -> None:
         assert back.small.dtype == small.dtype and np.array_equal(back.small, small)
         assert back.noise_sigma == 1.25
     assert len(pickle.dumps(StationSignature(boxed, 1.0))) < 0.6 * boxed.nbytes  # as uint16 sums
+
+
+def test_the_creep_before_a_stroke_makes_the_stations_last_frame_moving() -> None:
+    """Only a frame right before a moving one, and only above the creep factor."""
+    from omnipipe.sfm.stations import promote_creep
+
+    moved = np.array([1, 0, 0, 0, 1, 1, 0, 0, 1, 0], bool)
+    ratio = np.array([np.inf, 1.3, 1.0, 1.3, 3.0, 3.0, 1.2, 1.05, 3.0, 1.4])
+    out = promote_creep(moved, ratio, 1.15)
+    assert out.tolist() == [1, 0, 0, 1, 1, 1, 0, 0, 1, 0]
+    assert moved[3] == 0  # the input is not changed

@@ -48,6 +48,7 @@ from omnipipe.sfm.stations import (
     frame_signature,
     mask_runs,
     noise_mask,
+    promote_creep,
 )
 
 if TYPE_CHECKING:
@@ -211,6 +212,10 @@ def run(
                                     station[a : i + 1], tracker.reference))
         if progress is not None:
             progress(i + 1)
+    # The creep before a stroke makes the station's last frame a moving one.
+    moved = promote_creep(moved, ratio, stations.creep_factor)
+    station = np.where(moved, np.arange(n), 0)
+    station = np.maximum.accumulate(station)
     # A frame where the rig moved whose chunk took it for stationary (a slow creep that
     # only the comparison with an earlier chunk's frame shows): its ring, decoded again.
     missing = [i for i in range(n) if rings[i] is None and moved[i]]

@@ -589,18 +589,27 @@ def moving_frames(
         tracker = StationTracker(extractor.camera.valid_mask(), config.stations)
     else:
         moved[:] = inputs.moved | by_odometry
+
+    def moving(i: int, img: np.ndarray, gray: np.ndarray) -> MovingFrame:
+        views = extractor.frame_views(img, channel, rings[i].pixels)
+        if config.tracking.enabled:
+            return MovingFrame(i, views, None, gray)
+        return MovingFrame(i, None, extractor.detect(views), gray)
+
+    held: tuple[int, np.ndarray, np.ndarray] | None = None  # a creeping stationary frame
     for i in range(n):
         if tracker is not None or moved[i]:
             img = inputs.read_frame(i)
             gray = gray_without_laser(img, channel)
             if tracker is not None:
-                moved[i], _ = tracker.update(gray)
+                moved[i], ratio = tracker.update(gray)
                 moved[i] |= by_odometry[i]
+                if moved[i] and held is not None:  # stations.promote_creep, one frame late
+                    moved[held[0]] = True
+                    yield moving(*held)
+                creeping = not moved[i] and ratio > config.stations.creep_factor
+                held = (i, img, gray) if creeping else None
             if moved[i]:
-                views = extractor.frame_views(img, channel, rings[i].pixels)
-                if config.tracking.enabled:
-                    yield MovingFrame(i, views, None, gray)
-                else:
-                    yield MovingFrame(i, None, extractor.detect(views), gray)
+                yield moving(i, img, gray)
         if progress:
             progress(i + 1)

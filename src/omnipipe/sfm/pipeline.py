@@ -53,6 +53,7 @@ from omnipipe.sfm.step_scale import (
     run_length,
     run_scale,
 )
+from omnipipe.sfm.step_window import moving_counts
 from omnipipe.sfm.types import SfmConfig, SfmContext, SfmInputs, SfmResult
 
 __all__ = ["SfmConfig", "SfmInputs", "SfmResult", "run"]
@@ -91,7 +92,7 @@ def run(
             if inputs.odometry is not None and inputs.timestamps is not None
             else None
         )
-        chain = chain_steps(ctx, kf, scale, odometry)
+        chain = chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames))
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
         adjusted = adjust_keyframes(

@@ -36,6 +36,10 @@ from omnipipe.sfm.geometry import triangulate_pairs
 
 #: Confidence levels of a step, best first.
 CONFIDENCE = ("high", "resolved", "low", "none")
+#: How the reason of a step measured by its feature depths alone begins (the laser's
+#: consensus peaks ambiguous); the window of steps around it may confirm it
+#: (:func:`omnipipe.sfm.step_window.confirm_by_gait`).
+FEATURE_ONLY = "feature depth scale alone:"
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,12 @@ class ScaleCheckConfig:
         max_bias_log: a run-wide offset beyond this (5 %) means the laser's template
             lengths are biased on this rig and pipe: the metric anchors of the bundle
             adjustment are then features placed on the light-section wall instead.
+        adjusted_agree_mm: ... or further than this (mm) from every source's length
+            (the run-wide offsets removed): a frame step off by more than 1 mm is wrong
+            (bench_robustness), whatever its share of a long keyframe step.
+        feature_only_min_matches: fewest feature-depth matches for a step whose laser
+            peaks are ambiguous to be measured by its feature depths alone (still
+            unreliable until its neighbours confirm it).
         anchor_agree_log: a ``high`` step whose two lengths differ by more than this
             (offset removed) takes the feature-depth length, and its laser matches do
             not anchor the bundle adjustment (a partial wrong-course laser match).
@@ -77,6 +87,8 @@ class ScaleCheckConfig:
     keep_match_log: float = bounded(0.25, gt=0)
     adjusted_agree_log: float = bounded(0.1, gt=0)
     max_source_offset_log: float = bounded(0.25, gt=0)
+    adjusted_agree_mm: float = bounded(0.75, gt=0)
+    feature_only_min_matches: int = bounded(30, ge=1)
     max_bias_log: float = bounded(0.05, gt=0)
     anchor_agree_log: float = bounded(0.05, gt=0)
 
@@ -352,8 +364,10 @@ def decide(
     if has_laser and has_feat:
         if abs(math.log(laser_scale_mm / expected)) <= config.agree_log:
             return check(laser_scale_mm, "high")
-        # Another consensus peak may be the right course.
-        for s, c in zip(peak_scales_mm[1:], peak_scores[1:], strict=True):
+        # Another consensus peak may be the right course; so may the best peak itself
+        # when the points' median (``laser_scale_mm``) left it (seen on corrugation:
+        # best peak 19.5 mm, median 30.8 mm, features 18.3 mm, truth 18.4 mm).
+        for s, c in zip(peak_scales_mm, peak_scores, strict=True):
             if (
                 c >= config.alternative_min_ratio * peak_scores[0]
                 and abs(math.log(s / expected)) <= config.agree_log
@@ -363,6 +377,15 @@ def decide(
                     f"laser peak {s:.1f} mm chosen over {laser_scale_mm:.1f} mm: it agrees with "
                     f"the feature depth scale {feature_scale_mm:.1f} mm",
                 )
+        if amb >= config.ambiguous_ratio and feature_matches >= config.feature_only_min_matches:
+            # A periodic wall: every course scores alike. The features' depths, many
+            # and agreeing, are a length of their own; the window (gait) confirms it.
+            return check(
+                expected, "low",
+                f"{FEATURE_ONLY} {feature_scale_mm:.1f} mm ({feature_matches} matches); the "
+                f"laser's peaks ({', '.join(f'{s:.1f}' for s in peak_scales_mm[:3])} mm) "
+                "are ambiguous",
+            )
         return check(
             math.nan, "none",
             f"laser scale {laser_scale_mm:.1f} mm and feature depth scale "

@@ -33,6 +33,7 @@ from omnipipe.sfm.robot_sensors import (
     odometry_disagreement,
 )
 from omnipipe.sfm.scale_check import (
+    FEATURE_ONLY,
     WALL_SCALE_SIGMA_FLOOR,
     ScaleCheckConfig,
     StepCheck,
@@ -42,6 +43,7 @@ from omnipipe.sfm.scale_check import (
     wall_depth,
     wall_scale_correction,
 )
+from omnipipe.sfm.step_window import gait_agrees
 from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, SfmContext, StepEvidence
 
 # Relative 1-sigma both scale sources share, added to every run's: the laser (Eq. 17)
@@ -204,7 +206,7 @@ def decide_step(ctx: SfmContext, kf: Keyframes, k: int, offset_log: float) -> De
             lm, scale = again, again.scale
         elif check.confidence == "resolved":
             lm = None
-    elif check.confidence == "none":
+    elif check.confidence == "none" or check.reason.startswith(FEATURE_ONLY):
         lm = None  # its laser matches would pull the adjustment to a wrong length
     elif (
         check.confidence == "high"
@@ -265,7 +267,11 @@ def _laser_around(ctx: SfmContext, kf: Keyframes, k: int, length_mm: float) -> L
 
 
 def chain_steps(
-    ctx: SfmContext, kf: Keyframes, scale: RunScale, odometry: OdometrySteps | None = None
+    ctx: SfmContext,
+    kf: Keyframes,
+    scale: RunScale,
+    odometry: OdometrySteps | None = None,
+    counts: np.ndarray | None = None,
 ) -> ChainedSteps:
     """Every keyframe step decided (:func:`decide_step`) with the run's source offset,
     made metric and chained from keyframe 0; each step's inlier matches and metric
@@ -274,7 +280,10 @@ def chain_steps(
 
     A step vision could not measure is bridged (:func:`bridge_steps`): its length comes
     from the odometry (calibrated against the trusted steps) or the gait, with a
-    1-sigma, recorded in its check; it stays flagged."""
+    1-sigma, recorded in its check; it stays flagged. A step measured by its feature
+    depths alone is trusted when its pace agrees with its neighbours'
+    (:func:`confirm_by_gait`, ``counts``: (K-1,) moving frames per step,
+    :func:`omnipipe.sfm.step_window.moving_counts`)."""
     decided = [decide_step(ctx, kf, k, scale.offset_log) for k in range(len(kf.evidence))]
     gain = math.exp(scale.offset_log) if scale.wall_anchored else 1.0
     # Feature-depth units when the wall anchors (the laser's bias removed).
@@ -282,6 +291,8 @@ def chain_steps(
         [math.nan if ev.status == "lost" else d.scale_mm / gain for d, ev in zip(decided, kf.evidence, strict=True)],
         float,
     )
+    if counts is not None:
+        confirm_by_gait(ctx, decided, lengths, counts)
     checks = [d.check for d in decided]
     if odometry is not None:
         trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
@@ -319,6 +330,26 @@ def chain_steps(
     for b_from_a in steps_b_from_a:
         world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
     return ChainedSteps(np.array(world_from_kf), scales, pair_matches, anchors, checks)
+
+
+def confirm_by_gait(
+    ctx: SfmContext, decided: list[DecidedStep], lengths: np.ndarray, counts: np.ndarray
+) -> None:
+    """Steps measured by their feature depths alone (the laser's peaks ambiguous,
+    :data:`~omnipipe.sfm.scale_check.FEATURE_ONLY`) whose pace agrees with the trusted
+    steps around them (:func:`omnipipe.sfm.step_window.gait_agrees`), ``resolved`` in
+    place with a warning; the others stay unreliable. ``lengths`` (K-1,) mm and
+    ``counts`` (K-1,) moving frames per step."""
+    trusted = np.array([d.check.reliable for d in decided], bool) & np.isfinite(lengths)
+    for k, step in enumerate(decided):
+        c = step.check
+        if c.confidence != "low" or not c.reason.startswith(FEATURE_ONLY):
+            continue
+        why = gait_agrees(k, float(lengths[k]), lengths, trusted, counts)
+        if why:
+            reason = f"{c.reason}; confirmed by the gait: {why}"
+            ctx.warnings.append(f"frames {c.first_frame}->{c.last_frame}: {reason}")
+            decided[k] = replace(step, check=replace(c, confidence="resolved", reason=reason))
 
 
 # A flagged step's vision candidate agreeing with the prior (odometry or gait) within
@@ -504,9 +535,12 @@ def check_adjusted(
 ) -> list[StepCheck]:
     """Flag keyframe steps whose adjusted length left what their sources measured.
 
-    Each source is compared after removing its run-wide ratio to the adjusted lengths
-    (a consistent bias is not a jump); a step that left either by more than
-    ``adjusted_agree_log`` is flagged.
+    The sources are the length the step was decided on (``scale_mm``: the laser's,
+    re-matched, or the feature depths') and its feature-depth length; each is compared
+    after removing its run-wide ratio to the adjusted lengths (a consistent bias is
+    not a jump). A step is flagged when it left the decided length by more than
+    ``adjusted_agree_log``, or every source by more than ``adjusted_agree_mm``. (The
+    laser's best peak is not a source here: on a resolved step it is the wrong course.)
     """
     lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
     ok = [
@@ -522,22 +556,25 @@ def check_adjusted(
         good = r[np.isfinite(r)]
         return r, float(np.median(good)) if len(good) >= 3 else 0.0
 
-    r_laser, m_laser = offsets([checks[k].laser_scale_mm for k in ok])
+    r_dec, m_dec = offsets([checks[k].scale_mm for k in ok])
     r_feat, m_feat = offsets([checks[k].feature_scale_mm for k in ok])
     out = list(checks)
     for j, k in enumerate(ok):
-        c = checks[k]
-        off = [
+        c, length = checks[k], float(lengths[k])
+        devs = [
             (name, float(r - m))
-            for name, r, m in (("laser", r_laser[j], m_laser), ("feature depth", r_feat[j], m_feat))
-            if np.isfinite(r) and abs(r - m) > config.adjusted_agree_log
+            for name, r, m in (("decided", r_dec[j], m_dec), ("feature depth", r_feat[j], m_feat))
+            if np.isfinite(r)
         ]
-        if off:
-            name, dev = off[0]
-            reason = (
-                f"bundle adjustment moved the step to {lengths[k]:.1f} mm, {100 * dev:+.0f} % "
-                f"from its {name} length"
-            )
+        # Each source's length in the adjusted run's units, and how far it lies (mm).
+        gaps = [abs(length - length * math.exp(-d)) for _, d in devs]
+        reason = ""
+        if devs and abs(devs[0][1]) > config.adjusted_agree_log:
+            reason = f"{100 * devs[0][1]:+.0f} % from its measured length"
+        elif gaps and min(gaps) > config.adjusted_agree_mm:
+            reason = f"{min(gaps):.1f} mm from the nearest of its measured lengths"
+        if reason:
+            reason = f"bundle adjustment moved the step to {length:.1f} mm, {reason}"
             out[k] = replace(c, confidence="none", reason=reason)
     return out
 

@@ -1,0 +1,66 @@
+"""The window of steps around a step: its pace against its neighbours' (gait)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from omnipipe.sfm.scale_check import ScaleCheckConfig, StepCheck
+from omnipipe.sfm.step_scale import check_adjusted
+from omnipipe.sfm.step_window import gait_agrees, moving_counts, window_pace
+
+CFG = ScaleCheckConfig()
+
+
+def test_moving_counts_skip_the_standstills() -> None:
+    moved = np.array([1, 1, 1, 0, 0, 1, 1, 0, 1], bool)
+    assert moving_counts(moved, [0, 2, 6, 8]).tolist() == [2, 2, 1]
+
+
+def test_a_step_one_course_off_does_not_agree_with_the_gait() -> None:
+    """Steps of 3 moving frames at 5 mm/frame; on a 10 mm brick wall the wrong course
+    makes a step 25 mm instead of 15: its pace is off by 67 %, the right one agrees."""
+    rng = np.random.default_rng(3)
+    counts = np.full(9, 3)
+    lengths = 15.0 * (1 + rng.uniform(-0.15, 0.15, 9))
+    trusted = np.ones(9, bool)
+    trusted[4] = False
+    assert window_pace(4, lengths, trusted, counts)[1] == 8
+    assert gait_agrees(4, 15.4, lengths, trusted, counts)
+    assert not gait_agrees(4, 25.4, lengths, trusted, counts)
+    assert not gait_agrees(4, 5.4, lengths, trusted, counts)
+    # A step covering twice the moving frames may be twice as long.
+    counts[4] = 6
+    assert gait_agrees(4, 30.0, lengths, trusted, counts)
+    # Without trusted neighbours the window cannot tell.
+    assert not gait_agrees(4, 15.0, lengths, np.zeros(9, bool), counts)
+
+
+def _check(k: int, length: float) -> StepCheck:
+    return StepCheck(k, k + 1, length, 0.1, length, 50, length, "high")
+
+
+@pytest.mark.parametrize(("moved_mm", "flagged"), [(0.5, False), (1.2, True)])
+def test_an_adjusted_step_further_than_a_millimetre_from_its_sources_is_flagged(
+    moved_mm: float, flagged: bool
+) -> None:
+    """A 35 mm step the adjustment moved 1.2 mm (3.4 %: under the relative limit) is
+    flagged; 0.5 mm is not."""
+    lengths = np.full(8, 35.0)
+    checks = [_check(k, float(v)) for k, v in enumerate(lengths)]
+    adjusted = lengths.copy()
+    adjusted[3] += moved_mm
+    adjusted[4] -= moved_mm
+    world = np.tile(np.eye(4), (9, 1, 1))
+    world[1:, 2, 3] = np.cumsum(adjusted)
+    out = check_adjusted(checks, world, CFG)
+    assert (not out[3].reliable) is flagged and (not out[4].reliable) is flagged
+    assert all(c.reliable for k, c in enumerate(out) if k not in (3, 4))
+    if flagged:
+        assert "mm from the nearest" in out[3].reason
+    assert math.isfinite(out[0].scale_mm)
+
+
+
