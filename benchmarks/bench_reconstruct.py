@@ -1,6 +1,7 @@
-"""End to end on a simulated scenario: simulate, reconstruct, evaluate; print errors and times.
+"""End to end on simulated scenarios: simulate, reconstruct, evaluate; print errors and times.
 
-    python benchmarks/bench_reconstruct.py --scenario bend|continuous|random [--frames N] [--size WxH] [--keep DIR]
+    python benchmarks/bench_reconstruct.py --scenario bend|continuous|random[,...] [--frames N]
+        [--size WxH] [--seed S] [--random-seeds S ...] [--dataset NAME=DIR ...] [--keep DIR]
         [--reuse] [--workers N] [--scheduler tcp://HOST:PORT]
 
 Prints the trajectory errors, Table I (diameter, defects) against ground truth, the
@@ -12,18 +13,27 @@ files are read once before either is timed, so that both find them in the OS's f
 cache: otherwise the laser stage, the first to read them, also paid for the disk
 (a reused dataset read after other work: 1.38 against 1.13-1.17 once cached).
 Each stage is also reported per moving frame (``continuous``: every frame moves; bend
-has 245 stationary frames of 330, which cost little). Nothing is tuned here: the defaults of ``omnipipe reconstruct``. ``--reuse`` with
-``--keep DIR`` reconstructs the dataset an earlier ``--keep DIR`` run simulated there
-(when its frame count and image size are the scenario's) instead of simulating again.
+has 245 stationary frames of 330, which cost little), and the cores the reconstruction
+kept busy on average (CPU seconds of this process and its workers over the wall time).
+Nothing is tuned here: the defaults of ``omnipipe reconstruct``.
+
+Several scenarios (``--scenario continuous,bend``, ``--random-seeds 0 1 2`` for members
+of the random family) are run one after the other and summed up in one table at the
+end. ``--dataset NAME=DIR`` reconstructs a dataset rendered before (read only; e.g.
+``continuous=/tmp/bench/continuous``) instead of simulating scenario NAME. ``--reuse``
+with ``--keep DIR`` reconstructs the dataset an earlier ``--keep DIR`` run simulated
+there (when its frame count and image size are the scenario's) instead of simulating
+again.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import shutil
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from omnipipe.dataset import open_dataset
@@ -39,30 +49,62 @@ from omnipipe.sim import make_scenario
 from omnipipe.sim import run as simulate
 
 
+@dataclass(frozen=True)
+class _Row:
+    """One scenario's line of the closing table."""
+
+    name: str
+    frames: int
+    moving: int
+    timings: dict[str, float]
+    decode_s: float
+    cores_busy: float
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenario", default="bend")
+    parser.add_argument("--scenario", default="bend", help="one or more, comma-separated")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--size", default=None, help="WxH (default: the scenario's)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--random-seeds", type=int, nargs="*", default=[], help="random-family members")
+    parser.add_argument("--dataset", action="append", default=[], help="NAME=DIR: reconstruct DIR for scenario NAME")
     parser.add_argument("--keep", default=None, help="keep dataset and reconstruction in this directory")
     parser.add_argument("--reuse", action="store_true", help="with --keep: reuse the dataset simulated there")
     parser.add_argument("--workers", type=int, default=None, help="local processes (default: every core)")
     parser.add_argument("--scheduler", default=None, help="Dask scheduler tcp://HOST:PORT")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x")) if args.size else None
-    scenario = make_scenario(args.scenario, frames=args.frames, size=size, seed=args.seed)
-    root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="omnipipe-bench-"))
+    given = dict(item.split("=", 1) for item in args.dataset)
+    runs = [(name, args.seed) for name in args.scenario.split(",") if name]
+    runs += [("random", seed) for seed in args.random_seeds]
+    rows = []
+    for name, seed in runs:
+        scenario = make_scenario(name, frames=args.frames, size=size, seed=seed)
+        keep = Path(args.keep) / f"{name}-{seed}" if args.keep and len(runs) > 1 else args.keep
+        rows.append(_bench(args, scenario, seed, Path(given[name]) if name in given else None, keep))
+    if len(rows) > 1:
+        print()
+        print(_table(rows))
+
+
+def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | None, keep) -> _Row:
+    """Simulate (unless ``dataset_dir`` is given), reconstruct, evaluate and print one run."""
+    root = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="omnipipe-bench-"))
     try:
         t0 = time.perf_counter()
-        if not (args.reuse and _same_run(root / "dataset", scenario)):
-            simulate(scenario, root / "dataset", force=True, workers=2)
+        data = dataset_dir or root / "dataset"
+        if dataset_dir is None and not (args.reuse and _same_run(data, scenario)):
+            simulate(scenario, data, force=True, workers=2)
         t_sim = time.perf_counter() - t0
         config = replace(ReconstructConfig.default(), workers=args.workers, scheduler=args.scheduler)
-        dataset = open_dataset(root / "dataset")
+        dataset = open_dataset(data)
         for path in dataset.frame_paths:  # into the OS's file cache, for both timings
             path.read_bytes()
+        cpu0 = _cpu_s()
+        t0 = time.perf_counter()
         rec = run(config, dataset)
+        busy = (_cpu_s() - cpu0) / max(time.perf_counter() - t0, 1e-9)
         # The floor of the laser stage: decode the same frames on the same kind of executor.
         with open_executor(args.workers, args.scheduler) as ex:
             t0 = time.perf_counter()
@@ -72,29 +114,33 @@ def main() -> None:
         t0 = time.perf_counter()
         write(rec, root / "reconstruction", force=True)
         t_write = time.perf_counter() - t0
-        ev = evaluate(EvaluationConfig(), EvaluationInputs(root / "reconstruction", root / "dataset"))
-        cam = scenario.rig.camera
-        print(f"scenario {scenario.name}, {scenario.frames} frames at {cam.width}x{cam.height}, seed {args.seed}")
+        ev = evaluate(EvaluationConfig(), EvaluationInputs(root / "reconstruction", data))
+        cam = dataset.rig.camera
+        n = len(dataset)
+        source = f"dataset {data}" if dataset_dir else f"seed {seed}"
+        print(f"scenario {scenario.name}, {n} frames at {cam.width}x{cam.height}, {source}")
         print(format_result(ev))
         print(format_table_one(table_one(rec.summary, ev.to_dict())))
         t = rec.summary["timings_s"]
         fps = rec.summary["frames_per_s"]
+        sim = "given" if dataset_dir else f"{t_sim:.1f} s (2 workers{'; reused' if t_sim < 5 else ''})"
         print(
-            f"time: simulate {t_sim:.1f} s (2 workers{'; reused' if t_sim < 5 else ''}); reconstruct {t['total']:.1f} s (laser {t['laser']:.1f}, "
+            f"time: simulate {sim}; reconstruct {t['total']:.1f} s (laser {t['laser']:.1f}, "
             f"sfm {t['sfm']:.1f}, analysis {t['analysis']:.1f}, model {t['model']:.1f}); "
-            f"{scenario.frames / t['total']:.2f} frames/s; keyframes {rec.summary['keyframes']}"
+            f"{n / t['total']:.2f} frames/s; keyframes {rec.summary['keyframes']}; "
+            f"cores busy {busy:.2f} on average"
         )
         print(
             f"writing the outputs (model files, report.html): {t_write:.1f} s; reconstruct and write "
-            f"{t['total'] + t_write:.1f} s, {scenario.frames / (t['total'] + t_write):.2f} frames/s"
+            f"{t['total'] + t_write:.1f} s, {n / (t['total'] + t_write):.2f} frames/s"
         )
         print(
             "frames/s per stage: "
             + ", ".join(f"{k} {v:.2f}" for k, v in fps.items() if v is not None)
             + f" (executor {where['kind']}, {where['workers']} workers)"
         )
-        n = len(dataset)
-        print(_per_stage(t, n, int(rec.summary.get("stationary_frames", 0))))
+        stationary = int(rec.summary.get("stationary_frames", 0))
+        print(_per_stage(t, n, stationary))
         print(
             f"laser stage {t['laser']:.2f} s ({n / t['laser']:.1f} frames/s) vs decode only "
             f"{t_decode:.2f} s ({n / t_decode:.1f} frames/s) on the same workers: "
@@ -102,9 +148,38 @@ def main() -> None:
         )
         for w in rec.summary["warnings"][:10]:
             print("warning:", w)
+        return _Row(f"{scenario.name}" + (f" (seed {seed})" if scenario.name.startswith("random") else ""),
+                    n, n - stationary, dict(t), t_decode, busy)
     finally:
-        if not args.keep:
+        if not keep:
             shutil.rmtree(root, ignore_errors=True)
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process and its finished child processes (the
+    executor's workers are counted once the run's pool has shut down)."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _table(rows: list[_Row]) -> str:
+    """The scenarios side by side: frames/s overall and per moving frame, each stage's
+    share of the total, the laser stage over decode-only, the cores kept busy."""
+    head = (
+        "| scenario | frames (moving) | total s | frames/s | moving frames/s | laser | sfm | "
+        "analysis | model | laser / decode | cores busy |"
+    )
+    lines = [head, "|" + "---|" * 11]
+    for r in rows:
+        t = r.timings
+        share = [f"{100 * t[k] / t['total']:.0f} %" for k in ("laser", "sfm", "analysis", "model")]
+        lines.append(
+            f"| {r.name} | {r.frames} ({r.moving}) | {t['total']:.1f} | {r.frames / t['total']:.2f} | "
+            f"{r.moving / t['total']:.2f} | " + " | ".join(share)
+            + f" | {t['laser'] / r.decode_s:.2f} | {r.cores_busy:.2f} |"
+        )
+    return "\n".join(lines)
 
 
 def _per_stage(t: dict[str, float], n: int, stationary: int) -> str:

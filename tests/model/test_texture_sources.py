@@ -296,3 +296,26 @@ def test_the_cells_keyframe_takes_the_smallest_type_that_holds_every_keyframe() 
     # the largest keyframe index and -1 survive the round trip through the type
     for k in (1, 32766, 32767, 10**6):
         assert np.array([-1, k - 1], source_dtype(k)).tolist() == [-1, k - 1]
+
+
+@pytest.mark.parametrize("bend_mm", [None, 1000.0])
+def test_compiled_scoring_equals_the_numpy_formulation(bend_mm: float | None) -> None:
+    """The compiled view scores (:mod:`omnipipe.model._kernels`) choose what the NumPy
+    formulation chooses, at the same pixels and light to float32 rounding."""
+    from omnipipe.model.texture_sources import _choose_in_strip
+
+    grid, poses = _pipe(500.0, 12.0, bend_mm)
+    rig = _rig("hyperboloid")
+    camera = camera_from_rig(rig)
+    assert camera.compiled_projection() is not None
+    rig_from_world = np.linalg.inv(poses)
+    args = (rig, camera, rig_from_world, grid, 0, grid.shape[0], elevation_bounds(camera), MM_PER_PX, 3.0, True, 4.0)
+    fast = _choose_in_strip(*args, compiled=True)
+    slow = _choose_in_strip(*args, compiled=False)
+    assert np.array_equal(fast[2], slow[2])
+    # Scores agree to rounding: a choice may differ only between exactly tied views.
+    same = fast[0] == slow[0]
+    assert same.mean() > 0.9999 and (slow[0] >= 0).mean() > 0.9
+    np.testing.assert_allclose(fast[1][same], slow[1][same], rtol=0, atol=1e-3)
+    lit = same & np.isfinite(slow[3][:, 0])
+    np.testing.assert_allclose(fast[3][lit], slow[3][lit], rtol=1e-5, atol=1e-3)

@@ -120,19 +120,66 @@ def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Fea
 
 def _taper_fit(axial: np.ndarray, d: np.ndarray) -> tuple[float, float, float, float, float]:
     """Best ramp D1 -> D2 between a and b (constant outside) over the station grid:
-    (a, b, D1, D2, residual sum of squares)."""
-    best = (0.0, 0.0, 0.0, 0.0, math.inf)
+    (a, b, D1, D2, residual sum of squares).
+
+    Every knot pair's two-parameter least squares from prefix sums over the stations in
+    axial order (O(1) a pair: stations before a weigh (1, 0), after b (0, 1), between
+    (1 - w, w) with w linear in z), so the search grows with the square of the stations,
+    not their cube, in blocks of pairs of bounded memory; the best pair is then fitted
+    directly.
+    """
+    order = np.argsort(axial, kind="stable")
+    z, y = axial[order], d[order]
+    centre = (float(z.mean()), float(y.mean()))
+    zc, yc = z - centre[0], y - centre[1]  # centred: the sums lose nothing to cancellation
+    cum = np.stack(
+        [np.concatenate([[0.0], np.cumsum(v)]) for v in (np.ones_like(zc), zc, zc * zc, yc, zc * yc)]
+    )
     knots = np.concatenate([axial, 0.5 * (axial[1:] + axial[:-1])])
     knots.sort()
-    for i, a in enumerate(knots):
-        for b in knots[i + 1 :]:
-            w = np.clip((axial - a) / (b - a), 0.0, 1.0)
-            A = np.stack([1.0 - w, w], axis=1)
-            coef, *_ = np.linalg.lstsq(A, d, rcond=None)
-            rss = float(np.sum((A @ coef - d) ** 2))
-            if rss < best[4]:
-                best = (float(a), float(b), float(coef[0]), float(coef[1]), rss)
-    return best
+    total = float(yc @ yc)
+    best = (math.inf, 0, 0)
+    block = max(1, 1_000_000 // max(len(knots), 1))  # rows of pairs per block
+    for i0 in range(0, len(knots) - 1, block):
+        ka, kb = _pairs(len(knots), i0, i0 + block)
+        rss = total - _explained(z, cum, centre[0], knots[ka], knots[kb])
+        j = int(np.argmin(rss))
+        if rss[j] < best[0]:
+            best = (float(rss[j]), int(ka[j]), int(kb[j]))
+    ba, bb = float(knots[best[1]]), float(knots[best[2]])
+    w = np.clip((axial - ba) / (bb - ba), 0.0, 1.0)
+    A = np.stack([1.0 - w, w], axis=1)
+    coef, *_ = np.linalg.lstsq(A, d, rcond=None)
+    return ba, bb, float(coef[0]), float(coef[1]), float(np.sum((A @ coef - d) ** 2))
+
+
+def _pairs(n: int, first: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+    """Knot pairs (i, j), i < j < n, for i in [first, stop), in (i, j) order."""
+    rows = np.arange(first, min(stop, n - 1))
+    counts = n - 1 - rows
+    ka = np.repeat(rows, counts)
+    kb = np.arange(len(ka)) - np.repeat(np.cumsum(counts) - counts, counts) + ka + 1
+    return ka, kb
+
+
+def _explained(z: np.ndarray, cum: np.ndarray, z0: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sum of squares the ramp (a, b) explains of the centred diameters, per pair, from the
+    prefix sums ``cum`` (count, z, z^2, y, z y; centred) of the stations ``z`` (sorted)."""
+    lo = np.searchsorted(z, a, side="right")  # stations [0, lo): w = 0
+    hi = np.searchsorted(z, b, side="left")  # stations [hi, n): w = 1
+    n_mid, s_z, s_zz, s_y, s_zy = cum[:, hi] - cum[:, lo]
+    n_hi, y_hi = len(z) - hi, cum[3, -1] - cum[3, hi]
+    length, ac = b - a, a - z0
+    sum_w = n_hi + (s_z - ac * n_mid) / length
+    s22 = n_hi + (s_zz - 2.0 * ac * s_z + ac * ac * n_mid) / length**2
+    s12 = sum_w - s22
+    s11 = len(z) - 2.0 * sum_w + s22
+    r2 = y_hi + (s_zy - ac * s_y) / length
+    r1 = cum[3, -1] - r2
+    det = s11 * s22 - s12 * s12
+    ok = det > 1e-9 * np.maximum(s11 * s22, 1e-300)
+    # One column (every station on one side): the constant's fit, which explains 0 (centred).
+    return np.where(ok, (s22 * r1 * r1 - 2.0 * s12 * r1 * r2 + s11 * r2 * r2) / np.where(ok, det, 1.0), 0.0)
 
 
 def _tapers(stations: list[Station], config: SectionConfig) -> list[Feature]:

@@ -14,7 +14,9 @@ A cell takes its colour from the keyframe that sees it best (:func:`choose_sourc
 Cost: a keyframe can only see the wall within the camera's elevation range, so each
 keyframe scores only the grid rows it can possibly see (:func:`visible_rows`, a
 conservative window: a cell outside it would score 0). The scoring is then linear in
-the length of the run, and identical to scoring every cell from every keyframe. The grid
+the length of the run, and identical to scoring every cell from every keyframe. Cameras
+with a compiled projection score in one compiled pass per strip
+(:func:`omnipipe.model._kernels.score_strip`; the same scores to rounding). The grid
 is scored a strip of rows at a time; what is kept is the (H, W) keyframe of each cell
 and the chosen pixels (:class:`CellChoice`). Choosing needs no image: sampling
 (:func:`omnipipe.model.texture.texture_samples`) is separate, so that the model stage
@@ -34,6 +36,7 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
+from omnipipe.model._kernels import score_strip
 from omnipipe.model.texture_grid import STRIP_ROWS, WallGrid
 from omnipipe.model.texture_light import LASER_BAND_PX, laser_line_px
 from omnipipe.rig import Rig
@@ -408,9 +411,12 @@ def _choose_in_strip(
     laser_band_mm: float,
     windowed: bool,
     laser_band_px: float = 0.0,
+    compiled: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`choose_sources` on one strip: rows ``[offset, offset + n_rows)`` of ``ext``
     ((h, W, 3), mm; the other rows are neighbours for the steps along the pipe).
+    ``compiled``: score through the camera's compiled projection where it has one
+    (:func:`omnipipe.model._kernels.score_strip`); False: the NumPy formulation.
 
     Returns:
         best: (n,) keyframe of each wall cell of the strip (-1: none).
@@ -436,37 +442,66 @@ def _choose_in_strip(
     # The wall's normal at each cell (world frame), for the LEDs' incidence.
     normal = np.cross(step_u, step_z)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    centre = np.array([camera.cx, camera.cy])
     # The wall cells of rows [r0, r1) are p[row_start[r0]:row_start[r1]] (idx is row-major).
     row_start = np.searchsorted(idx, np.arange(n_rows + 1) * w)
     if windowed:
         windows = _seen_rows(core, rig_from_world, bounds, TILE)
     else:
         windows = np.tile([0, n_rows], (n_k, 1))
+    spans = np.ascontiguousarray(row_start[windows], np.int64)  # (K, 2) cells each keyframe scores
+    projection = camera.compiled_projection() if compiled else None
+    if projection is not None:
+        score_strip(
+            np.ascontiguousarray(rig_from_world, float), spans, projection.kind, projection.params,
+            p, step_u, step_z, normal,
+            np.append(rig.laser.normal_in_rig, rig.laser.offset_mm).astype(float),
+            np.array([laser_band_mm, laser_band_px], float), float(mm_per_px),
+            np.array([camera.cx, camera.cy], float), best, best_score, best_px, best_light,
+        )
+        return best, best_px, idx, best_light
+    cells = (p, step_u, step_z, normal)
+    bands = (laser_band_mm, laser_band_px)
     # Products with 3 columns gain nothing from BLAS threads, which only contend with the
     # executor's workers for the cores (the per-cell values do not depend on them).
     with threadpool_limits(limits=1, user_api="blas"):
         for k in range(n_k):
-            sl = slice(int(row_start[windows[k, 0]]), int(row_start[windows[k, 1]]))
-            if sl.start >= sl.stop:
-                continue
-            m = rig_from_world[k]
-            q, px, score = _view_score(
-                rig, camera, m, (p[sl], step_u[sl], step_z[sl]), mm_per_px, laser_band_mm, laser_band_px
-            )
-            # Views of the window: strictly better, so ties keep the earlier keyframe.
-            better = score > best_score[sl]
-            best[sl][better] = k
-            best_score[sl][better] = score[better]
-            best_px[sl][better] = px[better]
-            if better.any():
-                qb = q[better]
-                dist = np.sqrt(np.maximum(np.sum(qb * qb, axis=1), 1e-6))
-                cos_i = np.abs(np.sum((normal[sl][better] @ m[:3, :3].T) * qb, axis=1)) / dist
-                best_light[sl][better] = np.column_stack(
-                    [np.log2(np.maximum(cos_i, 1e-6) / dist**2), np.linalg.norm(px[better] - centre, axis=1)]
-                )
+            sl = slice(int(spans[k, 0]), int(spans[k, 1]))
+            if sl.start < sl.stop:
+                _keep_better(rig, camera, rig_from_world[k], k, cells, sl, mm_per_px, bands, (best, best_score, best_px, best_light))
     return best, best_px, idx, best_light
+
+
+def _keep_better(
+    rig: Rig,
+    camera: CameraModel,
+    m: np.ndarray,
+    k: int,
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    sl: slice,
+    mm_per_px: float,
+    bands: tuple[float, float],
+    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+) -> None:
+    """Keyframe ``k``'s (pose ``m`` = rig_from_world (4, 4)) view of the cells ``sl`` of
+    ``cells`` (points, step_u, step_z, normal), kept in ``out`` (best, best_score,
+    best_px, best_light) where strictly better (ties keep the earlier keyframe)."""
+    p, step_u, step_z, normal = cells
+    best, best_score, best_px, best_light = out
+    q, px, score = _view_score(
+        rig, camera, m, (p[sl], step_u[sl], step_z[sl]), mm_per_px, bands[0], bands[1]
+    )
+    better = score > best_score[sl]
+    best[sl][better] = k
+    best_score[sl][better] = score[better]
+    best_px[sl][better] = px[better]
+    if better.any():
+        qb = q[better]
+        dist = np.sqrt(np.maximum(np.sum(qb * qb, axis=1), 1e-6))
+        cos_i = np.abs(np.sum((normal[sl][better] @ m[:3, :3].T) * qb, axis=1)) / dist
+        centre = np.array([camera.cx, camera.cy])
+        best_light[sl][better] = np.column_stack(
+            [np.log2(np.maximum(cos_i, 1e-6) / dist**2), np.linalg.norm(px[better] - centre, axis=1)]
+        )
 
 
 def _view_score(
