@@ -15,6 +15,7 @@ from omnipipe.model.texture_sources import (
     CellChoice,
     choose_sources,
     elevation_bounds,
+    magnification_table,
     source_dtype,
     visible_rows,
 )
@@ -301,7 +302,8 @@ def test_the_cells_keyframe_takes_the_smallest_type_that_holds_every_keyframe() 
 @pytest.mark.parametrize("bend_mm", [None, 1000.0])
 def test_compiled_scoring_equals_the_numpy_formulation(bend_mm: float | None) -> None:
     """The compiled view scores (:mod:`omnipipe.model._kernels`) choose what the NumPy
-    formulation chooses, at the same pixels and light to float32 rounding."""
+    formulation chooses, at the same pixels and light to float32 rounding, and skipping
+    the views that cannot win changes nothing."""
     from omnipipe.model.texture_sources import _choose_in_strip
 
     grid, poses = _pipe(500.0, 12.0, bend_mm)
@@ -312,6 +314,10 @@ def test_compiled_scoring_equals_the_numpy_formulation(bend_mm: float | None) ->
     args = (rig, camera, rig_from_world, grid, 0, grid.shape[0], elevation_bounds(camera), MM_PER_PX, 3.0, True, 4.0)
     fast = _choose_in_strip(*args, compiled=True)
     slow = _choose_in_strip(*args, compiled=False)
+    # Views skipped by the magnification bound could not have won: the same choice.
+    skipping = _choose_in_strip(*args, compiled=True, magnification=magnification_table(camera))
+    for a, b in zip(skipping, fast, strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
     assert np.array_equal(fast[2], slow[2])
     # Scores agree to rounding: a choice may differ only between exactly tied views.
     same = fast[0] == slow[0]
@@ -319,3 +325,20 @@ def test_compiled_scoring_equals_the_numpy_formulation(bend_mm: float | None) ->
     np.testing.assert_allclose(fast[1][same], slow[1][same], rtol=0, atol=1e-3)
     lit = same & np.isfinite(slow[3][:, 0])
     np.testing.assert_allclose(fast[3][lit], slow[3][lit], rtol=1e-5, atol=1e-3)
+
+
+def test_magnification_table_bounds_the_projection() -> None:
+    """Every sampled ray's px per radian (its Jacobian's largest singular value at unit
+    distance) lies below its elevation bin's entry."""
+    from omnipipe.model._kernels import MAG_BIN_RAD
+
+    camera = camera_from_rig(_rig("hyperboloid"))
+    table = magnification_table(camera)
+    rng = np.random.default_rng(2)
+    lo, hi = elevation_bounds(camera)
+    e, a = rng.uniform(lo, hi, 5000), rng.uniform(0, 2 * np.pi, 5000)
+    rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
+    mag = np.linalg.norm(camera.project_jacobian(rays), ord=2, axis=(1, 2))
+    bins = ((e + 0.5 * np.pi) / MAG_BIN_RAD).astype(int)
+    assert np.all(mag <= table[bins])
+    assert np.all(table[bins] <= 2.0 * mag.max())  # and it is not vacuous

@@ -17,8 +17,16 @@ from __future__ import annotations
 import math
 
 import numba
+import numpy as np
 
 from omnipipe.camera._kernels import project_point
+
+STEP_RAD = 0.05
+"""The largest turn of the ray (rad) over a cell's step that :func:`_bound` bounds."""
+
+MAG_BIN_RAD = float(np.radians(0.5))
+"""Elevation bins of the magnification table :func:`_bound` reads (from -pi/2 up; each
+bin holds the camera's largest px per radian within :data:`STEP_RAD` of it)."""
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -61,18 +69,48 @@ def _score_cell(m, kind, params, p, su, sz, plane, bands, mm_per_px):  # pragma:
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _bound(p, su, sz, m, mag, mm_per_px):  # pragma: no cover - compiled
+    """An upper bound of :func:`_score_cell`'s score of the cell ``p`` from ``m``.
+
+    Seen from distance d, a step s turns the ray by at most |s| / (d - |s|) (while
+    that is below :data:`STEP_RAD`), and the pixel moves by at most that times the
+    camera's largest px per radian near the ray's elevation (``mag``: the table of
+    :func:`omnipipe.model.texture_sources.magnification_table`; one entry: the same
+    everywhere); the footprint's area is at most the product of the two steps' moves.
+    inf where a step turns the ray further."""
+    rx, ry, rz = _rotate(m, p[0], p[1], p[2])
+    qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+    d2 = qx * qx + qy * qy + qz * qz
+    d = math.sqrt(d2)
+    lu = math.sqrt(su[0] * su[0] + su[1] * su[1] + su[2] * su[2])
+    lz = math.sqrt(sz[0] * sz[0] + sz[1] * sz[1] + sz[2] * sz[2])
+    if not (lu < STEP_RAD * (d - lu) and lz < STEP_RAD * (d - lz)):
+        return math.inf
+    j = 0
+    if len(mag) > 1:
+        elev = math.asin(min(max(qz / d, -1.0), 1.0))
+        j = min(max(int((elev + 0.5 * math.pi) / MAG_BIN_RAD), 0), len(mag) - 1)
+    return mag[j] * math.sqrt(lu * lz / ((d - lu) * (d - lz))) / mm_per_px / max(d2, 1e-6)
+
+
+@numba.njit(cache=True, error_model="numpy")
 def score_strip(
-    rig_from_world, spans, kind, params, p, step_u, step_z, normal, plane, bands, mm_per_px,
-    centre, best, best_score, best_px, best_light,
+    rig_from_world, spans, order, mag, kind, params, p, step_u, step_z, normal, plane, bands,
+    mm_per_px, centre, best, best_score, best_px, best_light,
 ):  # pragma: no cover - compiled
     """Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
-    is strictly better than ``best_score`` (ties keep the earlier keyframe), ``best``,
+    is better than ``best_score`` (equal: the earlier keyframe wins), ``best``,
     ``best_score``, ``best_px`` and ``best_light`` (log2 of cos(incidence) / range^2 and
-    the pixel's distance from ``centre``) are updated in place.
+    the pixel's distance from ``centre``) are updated in place. The keyframes are taken
+    in ``order`` (near ones first: a good view found early lets :func:`_bound` skip the
+    views that cannot beat it; the result does not depend on the order).
 
     Args:
         rig_from_world: (K, 4, 4) inverse keyframe poses (mm).
         spans: (K, 2) int64 cell ranges each keyframe scores.
+        order: (K,) int64 the keyframes in the order they are scored.
+        mag: (N,) the camera's largest px per radian by elevation (:func:`_bound`;
+            [inf]: no view skipped).
         kind, params: the camera's compiled projection.
         p, step_u, step_z, normal: (n, 3) cells' world points, their steps along the rows
             and columns (mm) and unit wall normals.
@@ -81,13 +119,15 @@ def score_strip(
         mm_per_px: the cell size (mm).
         centre: (2,) principal point (px).
     """
-    for k in range(rig_from_world.shape[0]):
+    for k in order:
         m = rig_from_world[k]
         for i in range(spans[k, 0], spans[k, 1]):
+            if best[i] >= 0 and _bound(p[i], step_u[i], step_z[i], m, mag, mm_per_px) < best_score[i]:
+                continue
             score, col, row, qx, qy, qz = _score_cell(
                 m, kind, params, p[i], step_u[i], step_z[i], plane, bands, mm_per_px
             )
-            if not score > best_score[i]:
+            if not (score > best_score[i] or (score == best_score[i] and score > 0 and k < best[i])):
                 continue
             best[i] = k
             best_score[i] = score

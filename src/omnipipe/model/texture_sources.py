@@ -36,7 +36,7 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
-from omnipipe.model._kernels import score_strip
+from omnipipe.model._kernels import MAG_BIN_RAD, STEP_RAD, score_strip
 from omnipipe.model.texture_grid import STRIP_ROWS, WallGrid
 from omnipipe.model.texture_light import LASER_BAND_PX, laser_line_px
 from omnipipe.rig import Rig
@@ -148,6 +148,31 @@ def elevation_bounds(
     )
     margin = step + 1e-3
     return max(float(elev.min()) - margin, -0.5 * np.pi), min(float(elev.max()) + margin, 0.5 * np.pi)
+
+
+def magnification_table(camera: CameraModel, factor: float = 1.25) -> np.ndarray:
+    """(N,) per elevation bin of :data:`~omnipipe.model._kernels.MAG_BIN_RAD` (from -pi/2
+    up) the camera's largest image displacement per radian of ray direction (px/rad)
+    within :data:`~omnipipe.model._kernels.STEP_RAD` of the bin, with ``factor`` to spare
+    (inf where the projection's Jacobian is not finite: nothing is skipped there).
+
+    Directions are sampled every quarter bin of elevation and every degree of azimuth;
+    the largest singular value of :meth:`CameraModel.project_jacobian` at a unit ray is the
+    displacement per radian in the worst direction.
+    """
+    n_bins = int(round(np.pi / MAG_BIN_RAD))
+    elev = -0.5 * np.pi + (np.arange(4 * n_bins) + 0.5) * (MAG_BIN_RAD / 4)
+    azim = np.radians(np.arange(360.0))
+    e, a = (g.ravel() for g in np.meshgrid(elev, azim, indexing="ij"))
+    rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        jac = camera.project_jacobian(rays).reshape(len(elev), len(azim), 2, 3)
+        fine = np.linalg.norm(np.nan_to_num(jac, nan=np.inf), ord=2, axis=(2, 3)).max(axis=1)
+    fine = np.where(np.isfinite(fine), fine, np.inf).reshape(n_bins, 4).max(axis=1)
+    reach = int(np.ceil(STEP_RAD / MAG_BIN_RAD)) + 1  # bins a step may turn the ray across
+    padded = np.concatenate([np.full(reach, np.inf), fine, np.full(reach, np.inf)])
+    window = np.lib.stride_tricks.sliding_window_view(padded, 2 * reach + 1).max(axis=1)
+    return factor * window
 
 
 def _box_elevations(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -337,6 +362,7 @@ def choose_sources(
         )
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
+    magnification = magnification_table(camera)
 
     def strips():  # each strip and a row either side (np.gradient along z), made as needed
         for r0 in range(top, end, step):
@@ -344,7 +370,7 @@ def choose_sources(
             lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
             yield (
                 rig, camera, rig_from_world, grid.rows(lo, hi), r0 - lo, r1 - r0, bounds,
-                mm_per_px, laser_band_mm, windowed, laser_band_px,
+                mm_per_px, laser_band_mm, windowed, laser_band_px, True, magnification,
             )
 
     def scored():  # each strip's scores; ``rows_done`` told once the strip is used
@@ -412,11 +438,14 @@ def _choose_in_strip(
     windowed: bool,
     laser_band_px: float = 0.0,
     compiled: bool = True,
+    magnification: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`choose_sources` on one strip: rows ``[offset, offset + n_rows)`` of ``ext``
     ((h, W, 3), mm; the other rows are neighbours for the steps along the pipe).
     ``compiled``: score through the camera's compiled projection where it has one
-    (:func:`omnipipe.model._kernels.score_strip`); False: the NumPy formulation.
+    (:func:`omnipipe.model._kernels.score_strip`; ``magnification``, the camera's
+    :func:`magnification_table`, lets it skip views that cannot win; None: none
+    skipped); False: the NumPy formulation.
 
     Returns:
         best: (n,) keyframe of each wall cell of the strip (-1: none).
@@ -451,8 +480,14 @@ def _choose_in_strip(
     spans = np.ascontiguousarray(row_start[windows], np.int64)  # (K, 2) cells each keyframe scores
     projection = camera.compiled_projection() if compiled else None
     if projection is not None:
+        # Keyframes near the strip first: their good views let the far ones be skipped.
+        origins = -np.einsum("kji,kj->ki", rig_from_world[:, :3, :3], rig_from_world[:, :3, 3])
+        near = np.linalg.norm(origins - p.mean(axis=0), axis=1) if len(p) else np.zeros(n_k)
         score_strip(
-            np.ascontiguousarray(rig_from_world, float), spans, projection.kind, projection.params,
+            np.ascontiguousarray(rig_from_world, float), spans,
+            np.argsort(near, kind="stable").astype(np.int64),
+            np.full(1, np.inf) if magnification is None else np.asarray(magnification, float),
+            projection.kind, projection.params,
             p, step_u, step_z, normal,
             np.append(rig.laser.normal_in_rig, rig.laser.offset_mm).astype(float),
             np.array([laser_band_mm, laser_band_px], float), float(mm_per_px),
