@@ -21,7 +21,14 @@ and imu.txt unless ``--no-sensors``. Per run:
   over 0.25 mm): there the stationarity test splits a sub-millimetre creep between
   neighbouring frames, the next step absorbs it and positions do not drift.
 
+* bridged: keyframe steps vision could not measure, bridged from the odometry or the
+  gait: how many of their lengths lie within 2 stated sigma of the true length;
+* clock: with an IMU, the error (deg) of the gravity direction around the rig axis,
+  i.e. of every clock position measured from it.
+
 A run refused with one line (no trustworthy step at all) counts as flagged, not failed.
+The last line checks issue 32's acceptance targets (silent, refusals where the wall has
+texture, flagged share, ATE per 300 mm, median scale error, bridged sigma, clock).
 
 By default only the stages that decide the motion run (light section, camera motion,
 the step check: the same code that fills report.json's ``trajectory_quality``); the
@@ -33,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import tempfile
 import time
@@ -68,9 +76,22 @@ def step_errors(
     return idx[:-1][consecutive], le[consecutive], lt[consecutive]
 
 
-def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict], float]:
+PERIODIC = ("brick", "tiles", "mosaic", "corrugated")
+PLAIN = ("smooth",)
+# Acceptance targets of issue 32 (without sensors unless said).
+TARGET_FLAGGED_PCT = 2.0
+TARGET_ATE_PER_300MM = 1.0
+TARGET_SCALE_PCT = 0.3
+TARGET_CLOCK_DEG = 1.0
+# A bridged length "covers" the truth when within this many of its stated sigmas.
+COVER_SIGMAS = 2.0
+
+
+def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict], float, list[dict], np.ndarray | None]:
     """Light section and camera motion as reconstruct runs them; registered poses,
-    the unreliable stretches (report.json form) and the stated relative scale sigma."""
+    the unreliable stretches (report.json form), the stated relative scale sigma, the
+    keyframe steps' checks (report.json form) and the gravity direction in the world
+    (rig 0) frame (None without an IMU)."""
     from omnipipe import laser, sfm
     from omnipipe.pipeline.quality import refuse_untrusted_motion
 
@@ -81,7 +102,35 @@ def _motion_only(dataset) -> tuple[np.ndarray, np.ndarray, list[dict], float]:
     refuse_untrusted_motion(motion)
     reg = np.flatnonzero(motion.registered)
     unreliable = [u.to_dict() for u in motion.unreliable]
-    return dataset.timestamps[reg], motion.world_from_rig[reg], unreliable, motion.scale_sigma_rel
+    checks = [c.to_dict() for c in motion.step_checks]
+    return (
+        dataset.timestamps[reg], motion.world_from_rig[reg], unreliable, motion.scale_sigma_rel,
+        checks, motion.gravity_world,
+    )
+
+
+def bridged_cover(checks: list[dict], true_positions: np.ndarray) -> list[tuple[float, float, float]]:
+    """(bridged length, its sigma, true length) mm of every bridged keyframe step."""
+    out = []
+    for c in checks:
+        if c.get("bridged_from") and c.get("bridged_mm") is not None:
+            a, b = c["first_frame"], c["last_frame"]
+            true = float(np.linalg.norm(true_positions[b] - true_positions[a]))
+            out.append((float(c["bridged_mm"]), float(c["bridged_sigma_mm"] or 0.0), true))
+    return out
+
+
+def clock_error_deg(gravity_world: np.ndarray | None, scene_json: Path) -> float:
+    """Angle (deg) between the estimated and true gravity around the rig-0 axis (z): the
+    error of every clock position measured from it. NaN without either."""
+    if gravity_world is None or not scene_json.is_file():
+        return float("nan")
+    truth = json.loads(scene_json.read_text()).get("sensors", {}).get("gravity_in_rig_at_frames")
+    if not truth:
+        return float("nan")
+    g_true, g = np.asarray(truth[0], float), np.asarray(gravity_world, float)
+    d = math.atan2(g[1], g[0]) - math.atan2(g_true[1], g_true[0])
+    return abs(math.degrees((d + math.pi) % (2 * math.pi) - math.pi))
 
 
 def scenario_size(name: str, seed: int, size: str | None) -> tuple[int, int] | None:
@@ -126,8 +175,11 @@ def evaluate_seed(
             unreliable = rec.summary["trajectory_quality"]["unreliable"]
             ts_est, est = read_tum(out / "trajectory.txt")
             sigma_rel = float(rec.summary.get("scale_sigma_rel", float("nan")))
+            steps = rec.summary["trajectory_quality"].get("keyframe_steps", ())
+            checks = [c if isinstance(c, dict) else c.to_dict() for c in steps]
+            gravity = None
         else:
-            ts_est, est, unreliable, sigma_rel = _motion_only(open_dataset(ds))
+            ts_est, est, unreliable, sigma_rel, checks, gravity = _motion_only(open_dataset(ds))
     except OmnipipeError as exc:
         row.update(refused=str(exc), time_s=time.perf_counter() - t0)
         return row
@@ -160,6 +212,8 @@ def evaluate_seed(
         silent=int(silent.sum()),
         silent_steps=[int(i) for i in frames_i[silent]],
         worst_unflagged_mm=float(err[~flagged[frames_i]].max()) if (~flagged[frames_i]).any() else 0.0,
+        bridged=bridged_cover(checks, true[:, :3, 3]),
+        clock_err_deg=clock_error_deg(gravity, ds / "ground_truth" / "scene.json"),
     )
     return row
 
@@ -172,10 +226,53 @@ def _print_row(r: dict) -> None:
     print(
         f"{lead} {r['steps']:>5d} {r['steps_flagged']:>7d} {r['silent']:>6d} "
         f"{r['ate_mm']:>7.3f} {r['ate_per_300mm']:>7.3f} {r['scale_err_pct']:>7.3f} "
-        f"{r['scale_sigma_pct']:>7.3f} {r['worst_unflagged_mm']:>9.2f} {r['time_s']:>5.0f}"
+        f"{r['scale_sigma_pct']:>7.3f} {r['worst_unflagged_mm']:>9.2f} {r['time_s']:>5.0f} "
+        f"{_covered(r['bridged'])[0]:>3d}/{len(r['bridged']):<3d} {r['clock_err_deg']:>6.2f}"
         + (f"  silent at {r['silent_steps']}" if r["silent"] else ""),
         flush=True,
     )
+
+
+def _covered(bridged: list) -> tuple[int, float]:
+    """How many bridged lengths lie within COVER_SIGMAS of the truth, and the largest
+    |error| / sigma."""
+    z = [abs(est - true) / max(sig, 1e-9) for est, sig, true in bridged]
+    return sum(v <= COVER_SIGMAS for v in z), max(z, default=0.0)
+
+
+def acceptance(rows: list[dict]) -> str:
+    """One line: each issue-32 target, its value and PASS / FAIL (the sensors' targets
+    apply to runs with odometry and IMU, the others to runs without)."""
+    done = [r for r in rows if "refused" not in r]
+    textured_refused = [r["seed"] for r in rows if "refused" in r and r["family"] not in PLAIN]
+    steps = sum(r["steps"] for r in done)
+    flagged_pct = 100 * sum(r["steps_flagged"] for r in done) / max(steps, 1)
+    ate = max((r["ate_per_300mm"] for r in done), default=math.nan)
+    scale = float(np.median([abs(r["scale_err_pct"]) for r in done])) if done else math.nan
+    silent = sum(r["silent"] for r in done)
+    bridged = [b for r in done for b in r["bridged"]]
+    covered, worst_z = _covered(bridged)
+    clock = [r["clock_err_deg"] for r in done if np.isfinite(r["clock_err_deg"])]
+    periodic = sum(r["family"] in PERIODIC for r in rows)
+    plain = sum(r["family"] in PLAIN for r in rows)
+
+    def v(ok: bool) -> str:
+        return "PASS" if ok else "FAIL"
+
+    parts = [
+        f"{len(rows)} runs ({periodic} periodic, {plain} plain)",
+        f"silent {silent} {v(silent == 0)}",
+        f"refused with texture {len(textured_refused)} {v(not textured_refused)}",
+        f"flagged {flagged_pct:.1f} % {v(flagged_pct <= TARGET_FLAGGED_PCT)}",
+        f"max ATE/300 mm {ate:.3f} {v(ate <= TARGET_ATE_PER_300MM)}",
+        f"median |scale| {scale:.3f} % {v(scale <= TARGET_SCALE_PCT)}",
+        f"all refused {len(rows) - len(done)}",
+        f"bridged within {COVER_SIGMAS:g} sigma {covered}/{len(bridged)} (worst {worst_z:.1f} sigma) "
+        f"{v(covered == len(bridged))}",
+    ]
+    if clock:
+        parts.append(f"max clock error {max(clock):.2f} deg {v(max(clock) <= TARGET_CLOCK_DEG)}")
+    return "acceptance: " + "; ".join(parts)
 
 
 def summarise(rows: list[dict]) -> None:
@@ -215,6 +312,7 @@ def summarise(rows: list[dict]) -> None:
         f"median ATE per 300 mm {np.median([r['ate_per_300mm'] for r in done]):.3f} mm, "
         f"median |scale error| {np.median([abs(r['scale_err_pct']) for r in done]):.3f} %"
     )
+    print(acceptance(rows))
 
 
 def main() -> None:
@@ -242,7 +340,7 @@ def main() -> None:
     print(
         f"{'seed':>4} {'family':>10} {'D mm':>5} {'size':>9} {'frames':>6} {'steps':>5} "
         f"{'flagged':>7} {'silent':>6} {'ATE mm':>7} {'/300mm':>7} {'scale %':>7} "
-        f"{'sigma %':>7} {'unflag mm':>9} {'s':>5}"
+        f"{'sigma %':>7} {'unflag mm':>9} {'s':>5} {'bridged':>7} {'clock':>6}"
     )
     try:
         for seed in range(args.first, args.first + args.seeds):

@@ -99,3 +99,21 @@ def test_one_unconfirmed_laser_length_is_no_scale() -> None:
         refuse_untrusted_motion(SimpleNamespace(step_checks=[*lost, lone]))
     both = StepCheck(30, 31, 10.3, 0.0, 10.1, 40, 10.2, "low", "laser and feature depths offset")
     refuse_untrusted_motion(SimpleNamespace(step_checks=[*lost, both]))  # not refused
+
+
+def test_a_run_that_moved_without_any_keyframe_step_is_refused() -> None:
+    """A plain wall: the rig moved at 4 frames, none became a keyframe or could be
+    resected (all left at frame 0's pose): refused in one line. Standing still all
+    along, or with every moving frame placed, it is not."""
+    import numpy as np
+
+    stationary = np.ones(48, bool)
+    stationary[[0, 14, 15, 32, 33]] = False
+    lost = [UnreliableSpan(0, 47, "frame could not be resected")]
+    run = SimpleNamespace(step_checks=[], stationary=stationary, unreliable=lost)
+    with pytest.raises(ReconstructionError, match="moved at 4 frames but no two frames"):
+        refuse_untrusted_motion(run)
+    refuse_untrusted_motion(SimpleNamespace(step_checks=[], stationary=stationary, unreliable=[]))
+    still = np.ones(48, bool)
+    still[0] = False
+    refuse_untrusted_motion(SimpleNamespace(step_checks=[], stationary=still, unreliable=lost))
