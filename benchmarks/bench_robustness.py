@@ -1,7 +1,8 @@
 """Camera motion on random scenarios: accuracy, flagged steps and silent failures.
 
     python benchmarks/bench_robustness.py --seeds 30 [--first 0] [--scenario random-wide]
-        [--size 800 | --size 800x600] [--frames N] [--no-sensors] [--keep DIR] [--json FILE]
+        [--size 800 | --size 800x600] [--frames N] [--no-sensors | --both] [--keep DIR]
+        [--json FILE]
 
 For each seed: ``omnipipe simulate --scenario random-wide`` (default; the wide family of
 docs/simulator.md: periodic walls at many periods, 100-1000 mm pipes, 640x480-2448x2048
@@ -9,7 +10,8 @@ sensors, other mirrors, laser planes and gaits) or ``--scenario random`` (the or
 family), ``reconstruct`` with default settings, and a comparison with the true poses.
 ``--size W`` renders each run W px wide at its drawn sensor's aspect (``WxH``: exactly
 that size); the scene does not depend on it. The datasets carry the robot's odometry.txt
-and imu.txt unless ``--no-sensors``. Per run:
+and imu.txt unless ``--no-sensors``; ``--both`` runs each seed with and without them
+(an ``s`` after the seed marks the run with them). Per run:
 
 * ATE (SE(3)-aligned, mm), also per 300 mm of travel, and scale error (%) of the whole
   trajectory;
@@ -152,7 +154,10 @@ def evaluate_seed(
     full: bool = False,
     scenario_name: str = "random-wide",
     sensors: bool = True,
+    use_sensors: bool = True,
 ) -> dict:
+    """One seed's row; the dataset rendered with the robot's sensors when ``sensors``,
+    read without them unless ``use_sensors``."""
     wh = scenario_size(scenario_name, seed, size)
     scenario = make_scenario(scenario_name, seed=seed, size=wh, frames=frames)
     scenario.sensors = replace(scenario.sensors, odometry=sensors, imu=sensors)
@@ -166,11 +171,15 @@ def evaluate_seed(
         "diameter_mm": scenario.pipe.inner_diameter_mm,
         "frames": scenario.frames,
         "size": f"{scenario.rig.camera.width}x{scenario.rig.camera.height}",
+        "sensors": sensors and use_sensors,
     }
+    dataset = open_dataset(ds)
+    if not use_sensors:
+        dataset = replace(dataset, odometry=None, imu=None)
     t0 = time.perf_counter()
     try:
         if full:
-            rec = run(ReconstructConfig.default(), open_dataset(ds))
+            rec = run(ReconstructConfig.default(), dataset)
             write(rec, out, force=True)
             unreliable = rec.summary["trajectory_quality"]["unreliable"]
             ts_est, est = read_tum(out / "trajectory.txt")
@@ -179,7 +188,7 @@ def evaluate_seed(
             checks = [c if isinstance(c, dict) else c.to_dict() for c in steps]
             gravity = None
         else:
-            ts_est, est, unreliable, sigma_rel, checks, gravity = _motion_only(open_dataset(ds))
+            ts_est, est, unreliable, sigma_rel, checks, gravity = _motion_only(dataset)
     except OmnipipeError as exc:
         row.update(refused=str(exc), time_s=time.perf_counter() - t0)
         return row
@@ -219,7 +228,10 @@ def evaluate_seed(
 
 
 def _print_row(r: dict) -> None:
-    lead = f"{r['seed']:>4} {r['family'][:10]:>10} {r['diameter_mm']:>5.0f} {r['size']:>9} {r['frames']:>6}"
+    lead = (
+        f"{r['seed']:>4}{'s' if r['sensors'] else ' '} {r['family'][:10]:>10} "
+        f"{r['diameter_mm']:>5.0f} {r['size']:>9} {r['frames']:>6}"
+    )
     if "refused" in r:
         print(f"{lead} refused: {r['refused']}", flush=True)
         return
@@ -331,6 +343,11 @@ def main() -> None:
     )
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--no-sensors", action="store_true", help="no odometry.txt / imu.txt")
+    parser.add_argument(
+        "--both", action="store_true",
+        help="each seed rendered once with its sensors and run with and without them "
+        "(two tables, two acceptance lines)",
+    )
     parser.add_argument("--keep", default=None, help="keep datasets and reconstructions here")
     parser.add_argument("--json", default=None, help="also write the rows as JSON")
     parser.add_argument("--full", action="store_true", help="run the whole of reconstruct")
@@ -342,19 +359,25 @@ def main() -> None:
         f"{'flagged':>7} {'silent':>6} {'ATE mm':>7} {'/300mm':>7} {'scale %':>7} "
         f"{'sigma %':>7} {'unflag mm':>9} {'s':>5} {'bridged':>7} {'clock':>6}"
     )
+    modes = (False, True) if args.both else (not args.no_sensors,)
     try:
         for seed in range(args.first, args.first + args.seeds):
-            r = evaluate_seed(
-                seed, args.size, args.frames, root, args.full, args.scenario, not args.no_sensors
-            )
-            rows.append(r)
-            _print_row(r)
+            for use in modes:
+                r = evaluate_seed(
+                    seed, args.size, args.frames, root, args.full, args.scenario,
+                    args.both or not args.no_sensors, use,
+                )
+                rows.append(r)
+                _print_row(r)
             if not args.keep:
                 shutil.rmtree(root / f"seed{seed}", ignore_errors=True)
     finally:
         if not args.keep:
             shutil.rmtree(root, ignore_errors=True)
-    summarise(rows)
+    for use in modes:
+        if args.both:
+            print(f"\n== {'with' if use else 'without'} odometry and IMU")
+        summarise([r for r in rows if r["sensors"] == use])
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1), encoding="utf-8")
 

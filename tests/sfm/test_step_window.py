@@ -64,3 +64,18 @@ def test_an_adjusted_step_further_than_a_millimetre_from_its_sources_is_flagged(
 
 
 
+
+
+def test_an_unresected_frame_is_placed_by_the_gait_not_left_at_its_keyframe() -> None:
+    """Keyframes 0 and 8 (30 mm apart), frames 1-8 all moving: frame 2, not resected, is
+    placed at 2/8 of the step by the count of moving frames (true 7.5 mm at an even
+    pace), said so; without any travel it keeps keyframe 0's pose."""
+    from omnipipe.sfm.adjust import _unresected_pose
+
+    world = np.tile(np.eye(4), (2, 1, 1))
+    world[1, 2, 3] = 30.0
+    moved = np.ones(9, bool)
+    pose, how = _unresected_pose(world, [0, 8], 0, 2, np.cumsum(moved).astype(float), "gait")
+    assert pose[2, 3] == pytest.approx(7.5) and "gait's fraction 0.25" in how
+    pose, how = _unresected_pose(world, [0, 8], 0, 2, None)
+    assert pose[2, 3] == 0.0 and "keyframe" in how

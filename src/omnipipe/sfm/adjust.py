@@ -323,11 +323,14 @@ def resect_pending(
     next_matches: dict[int, Future[KeyframeRays]],
     n_frames: int,
     travel_mm: np.ndarray | None = None,
+    travel_source: str = "odometry",
 ) -> Resected:
     """Every pending frame resected in the workers against the adjusted tracks of its
     keyframe k and of k + 1 (``next_matches``: its correspondences with k + 1),
-    gathered in frame order. A frame that cannot be resected takes its keyframe's pose,
-    with a warning, and the stretch from k to k + 1 is unreliable."""
+    gathered in frame order. A frame that cannot be resected is placed between its
+    keyframes at its fraction of ``travel_mm`` (the ``travel_source``'s cumulative
+    travel, e.g. the odometry's or the gait's count of moving frames) or takes its
+    keyframe's pose, with a warning, and the stretch from k to k + 1 is unreliable."""
     jobs = []
     for p in pending:
         # The next keyframe's tracks too: points on both sides of the frame fix its
@@ -350,7 +353,9 @@ def resect_pending(
         pose = _resection_result(ctx, p.frame, job)
         if pose is None:
             k = p.keyframe
-            pose, how = _unresected_pose(adjusted.world_from_kf, kf.frames, k, p.frame, travel_mm)
+            pose, how = _unresected_pose(
+                adjusted.world_from_kf, kf.frames, k, p.frame, travel_mm, travel_source
+            )
             ctx.warnings.append(f"frame {p.frame}: too few tracked points to resect; {how}")
             # The steps into and out of it are both estimates.
             end = kf.frames[k + 1] if k + 1 < len(kf.frames) else n_frames - 1
@@ -365,23 +370,27 @@ def _unresected_pose(
     k: int,
     frame: int,
     travel_mm: np.ndarray | None,
+    source: str = "odometry",
 ) -> tuple[np.ndarray, str]:
     """A frame that could not be resected: between keyframes k and k + 1 at the
-    odometry's fraction of their travel (``travel_mm`` (N,) cumulative, mm), rotation
-    of keyframe k; past the last keyframe, the odometry's travel beyond it along the
-    last step's direction (:func:`_beyond_last`); without odometry keyframe k's pose.
+    ``source``'s fraction of their travel (``travel_mm`` (N,) cumulative; mm for the
+    odometry, any unit otherwise), rotation of keyframe k; past the last keyframe, the
+    odometry's travel beyond it along the last step's direction (:func:`_beyond_last`);
+    without travel (or past the last keyframe without odometry) keyframe k's pose.
     The pose and what was done, in words."""
     pose = world_from_kf[k].copy()
     if travel_mm is None:
         return pose, "pose of its keyframe used"
     if k + 1 >= len(frames):
+        if source != "odometry":  # not a length
+            return pose, "pose of its keyframe used"
         return _beyond_last(world_from_kf, frames, k, travel_mm[frame] - travel_mm[frames[k]])
     d0, d1, d = travel_mm[frames[k]], travel_mm[frames[k + 1]], travel_mm[frame]
     if not (np.isfinite([d0, d1, d]).all() and d1 - d0 > 0):
         return pose, "pose of its keyframe used"
     f = float(np.clip((d - d0) / (d1 - d0), 0.0, 1.0))
     pose[:3, 3] = (1 - f) * world_from_kf[k][:3, 3] + f * world_from_kf[k + 1][:3, 3]
-    return pose, f"placed between its keyframes at the odometry's fraction {f:.2f}"
+    return pose, f"placed between its keyframes at the {source}'s fraction {f:.2f}"
 
 
 def _beyond_last(

@@ -106,13 +106,17 @@ def run(
             adjusted = adjusted.scaled(math.exp(length.correction_log))
         # Step 6: the moving frames that are not keyframes, resected against the
         # adjusted tracks.
+        # A frame that cannot be resected is placed between its keyframes by the
+        # odometry, else by the gait: its share of their moving frames.
+        with_odometry = inputs.odometry is not None and inputs.timestamps is not None
         travel = (
             odometry_at(inputs.odometry, inputs.timestamps)[0]
-            if inputs.odometry is not None and inputs.timestamps is not None
-            else None
+            if with_odometry
+            else np.cumsum(followed.moved).astype(float)
         )
         resected = resect_pending(
-            ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames, travel
+            ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames, travel,
+            "odometry" if with_odometry else "gait (moving frames)",
         )
     result = _result(ctx, followed, adjusted, resected, chain.checks, scale, length)
     if inputs.imu is not None and inputs.timestamps is not None:
