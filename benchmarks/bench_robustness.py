@@ -333,9 +333,12 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument(
         "--scenario", default="random-wide",
-        choices=("random-wide", "random", "brick-bend", "tiled-culvert"),
-        help="scenario family (default random-wide); brick-bend and tiled-culvert are fixed "
-        "scenes whose seed draws only the gait's jitter and the noise",
+        choices=(
+            "random-wide", "random", "brick-bend", "tiled-culvert",
+            "paper-small", "bend-small", "other-rig-small",
+        ),
+        help="scenario family (default random-wide); the others are fixed scenes whose "
+        "seed draws only the gait's jitter and the noise",
     )
     parser.add_argument(
         "--size", default="800",
