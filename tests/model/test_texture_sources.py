@@ -341,4 +341,5 @@ def test_magnification_table_bounds_the_projection() -> None:
     mag = np.linalg.norm(camera.project_jacobian(rays), ord=2, axis=(1, 2))
     bins = ((e + 0.5 * np.pi) / MAG_BIN_RAD).astype(int)
     assert np.all(mag <= table[bins])
-    assert np.all(table[bins] <= 2.0 * mag.max())  # and it is not vacuous
+    inner = (e > lo + 0.1) & (e < hi - 0.1)  # and it is not vacuous inside the seen band
+    assert inner.sum() > 1000 and np.all(table[bins[inner]] <= 2.0 * mag.max())

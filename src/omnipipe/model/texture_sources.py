@@ -153,26 +153,41 @@ def elevation_bounds(
 def magnification_table(camera: CameraModel, factor: float = 1.25) -> np.ndarray:
     """(N,) per elevation bin of :data:`~omnipipe.model._kernels.MAG_BIN_RAD` (from -pi/2
     up) the camera's largest image displacement per radian of ray direction (px/rad)
-    within :data:`~omnipipe.model._kernels.STEP_RAD` of the bin, with ``factor`` to spare
-    (inf where the projection's Jacobian is not finite: nothing is skipped there).
+    within :data:`~omnipipe.model._kernels.STEP_RAD` of the bin, with ``factor`` to spare;
+    inf outside the camera's :func:`elevation_bounds` and where the projection's Jacobian
+    is not finite (nothing is skipped there). Computed once per camera (its compiled
+    projection's parameters) and process.
 
     Directions are sampled every quarter bin of elevation and every degree of azimuth;
     the largest singular value of :meth:`CameraModel.project_jacobian` at a unit ray is the
     displacement per radian in the worst direction.
     """
+    projection = camera.compiled_projection()
+    key = None if projection is None else (type(camera).__name__, projection.kind, projection.params, factor)
+    if key is not None and key in _MAGNIFICATION:
+        return _MAGNIFICATION[key]
     n_bins = int(round(np.pi / MAG_BIN_RAD))
-    elev = -0.5 * np.pi + (np.arange(4 * n_bins) + 0.5) * (MAG_BIN_RAD / 4)
+    lo, hi = elevation_bounds(camera)
+    first = max(int((lo + 0.5 * np.pi - STEP_RAD) / MAG_BIN_RAD) - 1, 0)
+    stop = min(int((hi + 0.5 * np.pi + STEP_RAD) / MAG_BIN_RAD) + 2, n_bins)
+    elev = -0.5 * np.pi + (np.arange(4 * first, 4 * stop) + 0.5) * (MAG_BIN_RAD / 4)
     azim = np.radians(np.arange(360.0))
     e, a = (g.ravel() for g in np.meshgrid(elev, azim, indexing="ij"))
     rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         jac = camera.project_jacobian(rays).reshape(len(elev), len(azim), 2, 3)
-        fine = np.linalg.norm(np.nan_to_num(jac, nan=np.inf), ord=2, axis=(2, 3)).max(axis=1)
-    fine = np.where(np.isfinite(fine), fine, np.inf).reshape(n_bins, 4).max(axis=1)
+        sampled = np.linalg.norm(np.nan_to_num(jac, nan=np.inf), ord=2, axis=(2, 3)).max(axis=1)
+    fine = np.full(n_bins, np.inf)
+    fine[first:stop] = np.where(np.isfinite(sampled), sampled, np.inf).reshape(-1, 4).max(axis=1)
     reach = int(np.ceil(STEP_RAD / MAG_BIN_RAD)) + 1  # bins a step may turn the ray across
     padded = np.concatenate([np.full(reach, np.inf), fine, np.full(reach, np.inf)])
-    window = np.lib.stride_tricks.sliding_window_view(padded, 2 * reach + 1).max(axis=1)
-    return factor * window
+    table = factor * np.lib.stride_tricks.sliding_window_view(padded, 2 * reach + 1).max(axis=1)
+    if key is not None:
+        _MAGNIFICATION[key] = table
+    return table
+
+
+_MAGNIFICATION: dict[tuple, np.ndarray] = {}
 
 
 def _box_elevations(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
