@@ -137,6 +137,11 @@ def test_every_default_lies_inside_its_bounds() -> None:
         ("laser: {extraction: {min_ring_fraction: 1.5}}\n", "laser.extraction.min_ring_fraction"),
         ("model: {texture_mm_per_px: 0}\n", "model.texture_mm_per_px"),
         ("report: {max_faces: 0}\n", "report.max_faces"),
+        ("model: {outliers: {k_mad: 0}}\n", "model.outliers.k_mad"),
+        ("model: {outliers: {window: 40}}\n", "model.outliers.window"),
+        ("sfm: {features: {elevation_deg: [-95, 15]}}\n", "sfm.features.elevation_deg[0]"),
+        ("sfm: {laser_scale: {scale_range_mm: [0.2, 0]}}\n", "sfm.laser_scale.scale_range_mm[1]"),
+        ("sfm: {planes: {rotations_deg: [0, 200]}}\n", "sfm.planes.rotations_deg[1]"),
     ],
 )
 def test_reconstruct_yaml_outside_bounds_is_refused_at_load(
@@ -150,3 +155,43 @@ def test_reconstruct_yaml_outside_bounds_is_refused_at_load(
         ReconstructConfig.from_yaml(path)
     message = str(info.value)
     assert field_name + ":" in message and "\n" not in message, message
+
+
+def test_model_outliers_are_read_from_yaml(tmp_path: Path) -> None:
+    from omnipipe.pipeline.reconstruct import ReconstructConfig
+
+    path = tmp_path / "outliers.yaml"
+    path.write_text("model: {outliers: {k_mad: 8.5, max_run: 3}}\n")
+    outliers = ReconstructConfig.from_yaml(path).model.outliers
+    assert (outliers.k_mad, outliers.max_run, outliers.window) == (8.5, 3, 41)
+
+
+# Numeric settings still without declared bounds, each with its reason.
+UNBOUNDED = {
+    # issue 30's detector (analysis/features.py, its owner's): bounds land with it.
+    "omnipipe.analysis.features.FeatureConfig": {
+        "min_depth_mm", "noise_factor", "joint_coverage", "lateral_reach_rel", "min_points",
+        "margin_mm", "window_mm",
+    },
+}
+
+
+def test_every_numeric_setting_declares_its_bounds() -> None:
+    """Every int / float (or tuple of them) field of every stage config has ``bounded()``
+    metadata, so a YAML value outside its range is refused at load, naming the field."""
+    import dataclasses
+    import typing
+
+    # The simulator's scene settings (omnipipe.sim) are built by its scenarios, not read
+    # from a user's YAML.
+    classes = [c for c in _stage_config_classes() if not c.__module__.startswith("omnipipe.sim.")]
+    missing = []
+    for cls in classes:
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            kinds = typing.get_args(hints[f.name]) or (hints[f.name],)
+            numeric = any(k in (int, float) for k in kinds)
+            name = f"{cls.__module__}.{cls.__qualname__}"
+            if numeric and not f.metadata.get("omnipipe_bounds") and f.name not in UNBOUNDED.get(name, ()):
+                missing.append(f"{name}.{f.name}")
+    assert not missing, missing

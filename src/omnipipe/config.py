@@ -27,23 +27,30 @@ _BOUNDS = "omnipipe_bounds"
 
 
 def bounded(
-    default: Any,
+    default: Any = dataclasses.MISSING,
     *,
+    default_factory: Any = dataclasses.MISSING,
     ge: float | None = None,
     gt: float | None = None,
     le: float | None = None,
     lt: float | None = None,
 ) -> Any:
-    """A dataclass field with ``default`` whose configured values must lie in the bounds.
+    """A dataclass field with ``default`` (or ``default_factory``; neither: a required
+    field) whose configured values must lie in the bounds.
 
-    ``ge``/``gt``/``le``/``lt``: inclusive/exclusive lower and upper bounds (None: open).
-    :func:`dataclass_from_dict` refuses a value outside them, naming the field.
+    ``ge``/``gt``/``le``/``lt``: inclusive/exclusive lower and upper bounds (None: open);
+    for a tuple, each of its numbers. :func:`dataclass_from_dict` refuses a value outside
+    them, naming the field.
     """
     bounds = {"ge": ge, "gt": gt, "le": le, "lt": lt}
-    return dataclasses.field(default=default, metadata={_BOUNDS: bounds})
+    return dataclasses.field(default=default, default_factory=default_factory, metadata={_BOUNDS: bounds})
 
 
 def _check_bounds(value: Any, bounds: dict[str, float | None], field: str, source: str | None) -> None:
+    if isinstance(value, tuple):
+        for i, v in enumerate(value):
+            _check_bounds(v, bounds, f"{field}[{i}]", source)
+        return
     if not isinstance(value, int | float) or isinstance(value, bool):
         return
     tests = {

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from omnipipe.config import bounded
+
 
 @dataclass(frozen=True)
 class SectionConfig:
@@ -49,15 +51,15 @@ class SectionConfig:
         bend_min_turn_deg: smallest turn reported as a bend.
     """
 
-    min_coverage_deg: float = 270.0
-    cut_min_coverage_deg: float = 200.0
-    cut_min_deg: float = 8.0
-    water_angle_tol_deg: float = 35.0
-    min_stations: int = 2
-    ovality_feature_pct: float = 2.0
-    taper_min_mm: float = 2.0
-    bend_min_curvature: float = 0.2
-    bend_min_turn_deg: float = 10.0
+    min_coverage_deg: float = bounded(270.0, gt=0, le=360)
+    cut_min_coverage_deg: float = bounded(200.0, gt=0, le=360)
+    cut_min_deg: float = bounded(8.0, ge=0, le=360)
+    water_angle_tol_deg: float = bounded(35.0, ge=0, le=180)
+    min_stations: int = bounded(2, ge=1)
+    ovality_feature_pct: float = bounded(2.0, ge=0, le=100)
+    taper_min_mm: float = bounded(2.0, ge=0)
+    bend_min_curvature: float = bounded(0.2, ge=0)
+    bend_min_turn_deg: float = bounded(10.0, ge=0, le=180)
 
 
 @dataclass(frozen=True)

@@ -18,11 +18,12 @@ the mirror alone: the optimal l is proportional to d.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from omnipipe.config import bounded
 from omnipipe.errors import ConfigError
 from omnipipe.rig import Mirror
 
@@ -102,9 +103,9 @@ class BaselineConfig:
     """
 
     mirror: Mirror
-    f_px: float
-    distances_mm: tuple[float, ...] = (100.0, 200.0, 300.0)
-    delta_r_px: float = field(default_factory=quantisation_error_px)
+    f_px: float = bounded(gt=0)
+    distances_mm: tuple[float, ...] = bounded((100.0, 200.0, 300.0), gt=0)
+    delta_r_px: float = bounded(default_factory=quantisation_error_px, gt=0)
 
 
 @dataclass

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.errors import DatasetError, OmnipipeError
@@ -45,8 +46,8 @@ class EvaluationConfig:
         max_angle_gap_deg: largest angular distance between their centres.
     """
 
-    max_axial_gap_mm: float = 60.0
-    max_angle_gap_deg: float = 25.0
+    max_axial_gap_mm: float = bounded(60.0, gt=0)
+    max_angle_gap_deg: float = bounded(25.0, gt=0, le=180)
 
 
 @dataclass(frozen=True)

@@ -66,7 +66,7 @@ class OutlierConfig:
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
-            raise ConfigError("outliers.window", f"must be an odd number >= 3, got {self.window}")
+            raise ConfigError("model.outliers.window", f"must be an odd number >= 3, got {self.window}")
 
 
 def ring_departures(

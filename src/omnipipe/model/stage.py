@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import chain
 from typing import TYPE_CHECKING
 
@@ -45,6 +45,7 @@ from omnipipe.model.mesh import (
     textured_mesh,
     unrolled_coordinates,
 )
+from omnipipe.model.outliers import OutlierConfig
 from omnipipe.model.texture import paint, texture_samples
 from omnipipe.model.texture_grid import SECTION_ROWS, UnrolledImage, WallGrid
 from omnipipe.model.texture_light import flat_field
@@ -72,6 +73,8 @@ class ModelConfig:
             simulated pipes it did not reduce the mesh's error against the true wall
             (docs/pipeline.md).
         flip_passes: its rounds.
+        outliers: the stray-point rule applied to the stations' rings before
+            integration (:mod:`.outliers`; ``model.outliers.*`` in YAML).
     """
 
     mesher: str = "unrolled-delaunay"
@@ -82,6 +85,7 @@ class ModelConfig:
     laser_band_mm: float = bounded(3.0, ge=0)
     flips: bool = False
     flip_passes: int = bounded(3, ge=0)
+    outliers: OutlierConfig = field(default_factory=OutlierConfig)
 
     def __post_init__(self) -> None:
         if self.mesher != "unrolled-delaunay":

@@ -509,7 +509,7 @@ def _analyse(
     station_poses = sfm_result.world_from_rig[stations]
     station_rings = [frames.rings.rings[i] for i in stations]
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
-    station_rings, outliers_removed = reject_ring_outliers(station_rings)
+    station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
     res = analysis.run(
         config.analysis,

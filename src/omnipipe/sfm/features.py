@@ -39,7 +39,7 @@ class FeatureConfig:
     """
 
     views: int = bounded(8, ge=1)
-    elevation_deg: tuple[float, float] = (-55.0, 15.0)
+    elevation_deg: tuple[float, float] = bounded((-55.0, 15.0), ge=-90, le=90)
     max_features: int = bounded(3000, ge=1)
     laser_margin_px: float = bounded(6.0, ge=0)
     ratio: float = bounded(0.8, gt=0, le=1)

@@ -51,7 +51,7 @@ class LaserScaleConfig:
     patch_radius: int = bounded(6, ge=1)
     stripe_half_width_mm: float = bounded(1.2, ge=0)
     stripe_half_width_px: float = bounded(2.5, ge=0)
-    scale_range_mm: tuple[float, float] = (0.2, 200.0)
+    scale_range_mm: tuple[float, float] = bounded((0.2, 200.0), gt=0)
     scale_steps: int = bounded(96, ge=2)
     min_ncc: float = bounded(0.8, ge=-1, le=1)
     min_template_std: float = bounded(2.0, ge=0)

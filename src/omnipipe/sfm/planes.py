@@ -48,7 +48,7 @@ class PlaneRefineConfig:
     keypoint_size_px: float = bounded(12.0, gt=0)
     depth_span: float = bounded(1.5, ge=1)
     depth_steps: int = bounded(15, ge=1)
-    rotations_deg: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)
+    rotations_deg: tuple[float, ...] = bounded((-6.0, -3.0, 0.0, 3.0, 6.0), ge=-180, le=180)
 
 
 def _plane_axes(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
