@@ -20,7 +20,7 @@ def _copy(src: Path, dst: Path) -> Path:
 
 def test_simulated_dataset_follows_the_contract(small_dataset: Path) -> None:
     ds = open_dataset(small_dataset)
-    assert len(ds) == 24 and ds.frame_names[0] == "000000.png"
+    assert len(ds) == 24 and ds.frame_paths[0].name == "000000.png"
     validate_frames(ds)
     img = ds.read_frame(0)
     assert img.shape == (300, 400, 3) and img.dtype == np.uint8

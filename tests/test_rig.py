@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -47,7 +48,7 @@ def test_contract_example_loads_and_round_trips(tmp_path: Path) -> None:
     assert rig.camera.width == 1600 and rig.camera.f == 1200.0
     assert rig.mirror.c == pytest.approx((20.0**2 + 30.0**2) ** 0.5)
     assert rig.laser.distance_mm == pytest.approx(82.0)
-    assert rig.laser.signed_distance([[0.0, 0.0, -82.0]])[0] == pytest.approx(0.0)
+    assert np.array([0.0, 0.0, -82.0]) @ rig.laser.normal_in_rig + rig.laser.offset_mm == pytest.approx(0.0)
     save_rig(rig, tmp_path / "rig.yaml")
     assert load_rig(tmp_path / "rig.yaml") == rig
 

@@ -60,11 +60,6 @@ class Dataset:
     def __len__(self) -> int:
         return len(self.frame_paths)
 
-    @property
-    def frame_names(self) -> list[str]:
-        """File names (or video frame labels) in order."""
-        return [p.name for p in self.frame_paths]
-
     def read_frame(self, index: int) -> np.ndarray:
         """Frame ``index`` as an RGB (H, W, 3) or grey (H, W) array (uint8 or uint16)."""
         if self.source is not None:

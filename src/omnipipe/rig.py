@@ -100,10 +100,6 @@ class LaserPlane:
         """Distance of the plane from the focus: the paper's baseline l (mm)."""
         return abs(self.offset_mm)
 
-    def signed_distance(self, points_in_rig: np.ndarray) -> np.ndarray:
-        """Signed distance (mm) of (N, 3) points in the rig frame to the plane."""
-        return np.asarray(points_in_rig) @ self.normal_in_rig + self.offset_mm
-
 
 CAMERA_MODELS = ("hyperboloid", "unified", "ocam")
 
@@ -175,30 +171,6 @@ class Rig:
         """``hyperboloid``, ``unified`` or ``ocam``."""
         return "hyperboloid" if self.model is None else self.model.name
 
-    def with_image_size(self, width: int, height: int) -> Rig:
-        """The same rig with its image scaled to ``width`` x ``height`` pixels.
-
-        Scales f, the principal point and the radii by the same factor (the width
-        ratio); used by the simulator to make small test images of one rig.
-        """
-        s = width / self.camera.width
-        cam = self.camera
-        return Rig(
-            camera=CameraIntrinsics(
-                width=int(width),
-                height=int(height),
-                cx=(cam.cx + 0.5) * s - 0.5,
-                cy=(cam.cy + 0.5) * s - 0.5,
-                f=cam.f * s,
-                pixel_pitch=None if cam.pixel_pitch is None else cam.pixel_pitch / s,
-                radius_min=None if cam.radius_min is None else cam.radius_min * s,
-                radius_max=None if cam.radius_max is None else cam.radius_max * s,
-            ),
-            mirror=self.mirror,
-            laser=self.laser,
-            model=_scaled_model(self.model, s),
-        )
-
     def to_dict(self) -> dict[str, Any]:
         """The rig as the contract's rig.yaml mapping (optional keys only when set)."""
         cam = self.camera
@@ -241,22 +213,3 @@ class Rig:
             if self.laser.offset_sigma_mm > 0:
                 out["laser"]["offset_sigma_mm"] = float(self.laser.offset_sigma_mm)
         return out
-
-
-def _scaled_model(
-    model: UnifiedParams | OcamParams | None, s: float
-) -> UnifiedParams | OcamParams | None:
-    """The model parameters of an image scaled by ``s`` (pixel lengths times s)."""
-    if isinstance(model, UnifiedParams):
-        return UnifiedParams(
-            xi=model.xi, fx=model.fx * s, fy=model.fy * s, skew=model.skew * s,
-            k1=model.k1, k2=model.k2, p1=model.p1, p2=model.p2,
-        )
-    if isinstance(model, OcamParams):
-        # ray (xp, yp, P(r)) keeps its direction when xp, yp, r and P scale by s.
-        poly = tuple(a * s ** (1 - i) for i, a in enumerate(model.polynomial))
-        inv = None
-        if model.inverse_polynomial is not None:
-            inv = tuple(a * s for a in model.inverse_polynomial)
-        return OcamParams(poly, inv, model.c, model.d, model.e)
-    return model

@@ -64,16 +64,11 @@ def test_factory_picks_the_model() -> None:
 
 
 @pytest.mark.parametrize("make", [lambda: paper_rig(400, 300), _unified_rig, _ocam_rig])
-def test_rig_yaml_round_trip_and_scaling(make, tmp_path: Path) -> None:
+def test_rig_yaml_round_trip(make, tmp_path: Path) -> None:
     rig = make()
     save_rig(rig, tmp_path / "rig.yaml")
     loaded = load_rig(tmp_path / "rig.yaml")
     assert loaded == rig
-    # a scaled image keeps every pixel's ray (pixel centres at integers)
-    big = rig.with_image_size(800, 600)
-    a, b = camera_from_rig(rig), camera_from_rig(big)
-    px = np.array([[250.0, 180.0], [120.0, 90.0]])
-    np.testing.assert_allclose(a.unproject(px), b.unproject((px + 0.5) * 2.0 - 0.5), atol=1e-9)
 
 
 def test_rig_without_laser_loads_and_reconstruct_refuses(small_dataset: Path, tmp_path: Path, capsys) -> None:

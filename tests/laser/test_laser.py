@@ -79,7 +79,8 @@ def test_rendered_rings_are_metric() -> None:
         s, rho, th, *_ = renderer.pipe.pipe_coordinates(apply(poses[i], ring.points_in_rig))
         errs.append(rho - renderer.pipe.wall_radius(s, th))
         # Every point lies on the laser plane (Eq. 5).
-        assert np.allclose(scenario.rig.laser.signed_distance(ring.points_in_rig), 0.0, atol=1e-9)
+        plane = scenario.rig.laser
+        assert np.allclose(ring.points_in_rig @ plane.normal_in_rig + plane.offset_mm, 0.0, atol=1e-9)
         assert np.all(ring.sigma_mm > 0)
     e = np.concatenate(errs)
     assert (

@@ -9,7 +9,6 @@ import pytest
 from omnipipe.camera import camera_from_rig
 from omnipipe.camera.convert import rig_in_model
 from omnipipe.errors import ShapeError
-from omnipipe.model.texture import assemble
 from omnipipe.model.texture_grid import WallGrid, wall_points_on_grid
 from omnipipe.model.texture_sources import (
     CellChoice,
@@ -251,21 +250,6 @@ def test_the_choice_of_a_wall_grid_equals_that_of_its_array() -> None:
     lazy = choose_sources(rig, poses, wall, 0.5, 3.0, strip_rows=16)
     _assert_same_choice(lazy, choose_sources(rig, poses, grid, 0.5, 3.0, strip_rows=grid.shape[0]))
     assert np.mean(lazy.source[np.isfinite(grid).all(axis=2)] >= 0) > 0.5
-
-
-def test_assemble_paints_each_keyframes_cells_and_checks_the_samples() -> None:
-    source = np.array([[0, 1, -1], [1, 0, 0]])
-    px = np.zeros((3, 2), np.float32)
-    choice = CellChoice(source, np.array([[0, 2], [0, 2]]), ((px[:1], px[:2]), (px[:2],)))
-    assert np.array_equal(choice.cells(0), [0, 4, 5]) and np.array_equal(choice.cells(1), [1, 3])
-    samples = {0: np.array([[10] * 3, [40] * 3, [50] * 3], np.uint8), 1: np.array([[20] * 3, [30] * 3], np.uint8)}
-    out = assemble(choice, samples, 0.5, 1.0, 3.0)
-    assert np.array_equal(out.image[..., 0], [[10, 20, 0], [30, 40, 50]])
-    assert np.array_equal(out.alpha, source >= 0)
-    with pytest.raises(ShapeError):
-        assemble(choice, {0: samples[0]}, 0.5, 1.0, 3.0)
-    with pytest.raises(ShapeError):
-        assemble(choice, {0: samples[0][:2], 1: samples[1]}, 0.5, 1.0, 3.0)
 
 
 def test_a_strip_no_keyframe_sees_is_left_empty() -> None:

@@ -23,7 +23,6 @@ from omnipipe.sim.features import (
     PipeFeatures,
     WallTables,
     pack_tables,
-    section_offset,
     section_table_kernel,
     wall_radius_kernel,
     wall_radius_one,
@@ -392,13 +391,6 @@ class Pipe:
         for t in self.features.tapers:
             out += [t.axial_from_mm, t.axial_to_mm]
         return np.array(sorted(out), float)
-
-    def section_centre_offset(self, sigma: np.ndarray) -> np.ndarray:
-        """(M, 2) displacement (mm) of the section centre along (N, B) from the joints' offsets."""
-        s = np.atleast_1d(np.asarray(sigma, dtype=float))
-        if self._tables is None:
-            return np.zeros((len(s), 2))
-        return np.array([section_offset(float(v), self._tables.offsets) for v in s]).reshape(-1, 2)
 
     def section_table(self, sigma: np.ndarray, n_angles: int = 360) -> np.ndarray:
         """(M, 3) true Dmax, Dmin (mm) and the direction of Dmax (rad, N towards B, in [0, pi))

@@ -1,0 +1,36 @@
+"""Painting the unrolled wall (model/texture.py): each keyframe's samples into its cells."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnipipe.errors import ShapeError
+from omnipipe.model.texture import paint, texture_samples
+from omnipipe.model.texture_sources import CellChoice
+
+
+def test_paint_writes_each_keyframes_cells_and_checks_the_samples() -> None:
+    source = np.array([[0, 1, -1], [1, 0, 0]])
+    px = np.zeros((3, 2), np.float32)
+    choice = CellChoice(source, np.array([[0, 2], [0, 2]]), ((px[:1], px[:2]), (px[:2],)))
+    assert np.array_equal(choice.cells(0), [0, 4, 5]) and np.array_equal(choice.cells(1), [1, 3])
+    samples = {0: np.array([[10] * 3, [40] * 3, [50] * 3], np.uint8), 1: np.array([[20] * 3, [30] * 3], np.uint8)}
+    image = np.zeros((6, 3), np.uint8)
+    for k, s in samples.items():
+        paint(image, choice, k, s)
+    assert np.array_equal(image[:, 0].reshape(2, 3), [[10, 20, 0], [30, 40, 50]])
+    with pytest.raises(ShapeError):
+        paint(image, choice, 1, None)
+    with pytest.raises(ShapeError):
+        paint(image, choice, 0, samples[0][:2])
+
+
+def test_texture_samples_take_grey_and_16_bit_images() -> None:
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    px = np.array([[3.0, 4.0], [10.0, 7.0]], np.float32)  # on pixel centres: exact
+    assert np.array_equal(texture_samples(rgb, px), rgb[[4, 7], [3, 10]])
+    grey = rgb[..., 0]
+    assert np.array_equal(texture_samples(grey, px), np.repeat(grey[[4, 7], [3, 10]][:, None], 3, axis=1))
+    assert np.array_equal(texture_samples(rgb.astype(np.uint16) * 257, px), rgb[[4, 7], [3, 10]])
