@@ -56,7 +56,7 @@ def tum_from_transform(dst_from_src: np.ndarray) -> np.ndarray:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """(3, 3) cross-product matrix [v]_x (the paper's T of Eq. 16 for v = t)."""
+    """(3, 3) cross-product matrix [v]_x (the paper's T of Eq. (16) for v = t)."""
     x, y, z = np.asarray(v, dtype=float).reshape(3)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 

@@ -5,10 +5,11 @@ z = -l (l: the baseline between the mirror focus and the laser). Its image radiu
 r(l, d) = |project((d, 0, -l))| (Eq. 1-3 inverted). The light section inverts that
 relation at fixed l, so an image error delta_r becomes a depth error
 
-    delta_d = |dd/dr| delta_r = delta_r / |dr/dd|          (the role of Eq. 6-8)
+    delta_d = |dd/dr| delta_r = delta_r / |dr/dd|          (the role of Eq. (6))
 
-with delta_r the quantisation error of Eq. (9): half a pixel in each direction,
-sqrt((s_H/2)^2 + (s_V/2)^2), i.e. sqrt(0.5) px for square pixels. The typeset
+with r(l, d) the image radius of Eq. (7) and Eq. (8), and delta_r the quantisation
+error of Eq. (9): half a pixel in each direction, sqrt((s_H/2)^2 + (s_V/2)^2), i.e.
+sqrt(0.5) px for square pixels. The typeset
 Eq. 6-8 are garbled in the paper text; this module derives dr/dd in closed form
 from the camera model (docs/baseline.md) and tests it against finite differences.
 Since r is proportional to f, the error rate delta_d / d at the optimum depends on

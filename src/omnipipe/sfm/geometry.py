@@ -3,9 +3,9 @@
 Convention: ``rays1`` in rig 1, ``rays2`` in rig 2, and the relative transform
 ``rig2_from_rig1`` = (R, t): a point X1 in rig 1 is R X1 + t in rig 2. Then
 
-    rays2^T E rays1 = 0,  E = [t]x R                      (Eq. 10)
+    rays2^T E rays1 = 0,  E = [t]x R                      (Eq. (10))
 
-The paper writes r'^T E r = 0 with E = R T, T = [t]x (Eq. 15-16); with r = rays1 and
+The paper writes r'^T E r = 0 with E = R T, T = [t]x (Eq. (15), Eq. (16)); with r = rays1 and
 r' = rays2 its (R, t) is the motion expressed in the other frame, the same
 essential matrix up to that change of convention. Rays may point anywhere on the
 sphere (omni-directional): cheirality asks for positive depth along both rays,
@@ -33,10 +33,10 @@ def _check_pairs(rays1: np.ndarray, rays2: np.ndarray) -> tuple[np.ndarray, np.n
 def eight_point(
     rays1: np.ndarray, rays2: np.ndarray, weights: np.ndarray | None = None
 ) -> np.ndarray:
-    """Essential matrix from >= 8 ray pairs (Eq. 11-14), projected onto the essential manifold.
+    """Essential matrix from >= 8 ray pairs (Eq. (11)-(14)), projected onto the essential manifold.
 
-    Each pair gives u_i^T e = 0 (Eq. 11) with u_i the Kronecker product of the rays
-    (Eq. 12) and e the stacked entries of E (Eq. 13); e minimises ||U e||^2 (Eq. 14):
+    Each pair gives u_i^T e = 0 (Eq. (11)) with u_i the Kronecker product of the rays
+    (Eq. (12)) and e the stacked entries of E (Eq. (13)); e minimises ||U e||^2 (Eq. (14)):
     the right singular vector of U with the smallest singular value. Unit rays are
     already well conditioned (every entry in [-1, 1]), so no further normalisation
     is needed. The result has singular values (1, 1, 0).
