@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -36,4 +38,35 @@ def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     made once per session (tests that change it work on a copy)."""
     out = tmp_path_factory.mktemp("tiny") / "ds"
     run(make_scenario("paper-small", frames=4, size=(64, 48), seed=2), out, workers=1)
+    return out
+
+
+def _snapshot(root: Path) -> dict[str, bytes | None]:
+    """Every file (content) and folder (None) under root, hidden ones included."""
+    found: dict[str, bytes | None] = {}
+    for here, dirnames, filenames in os.walk(root):
+        for d in dirnames:
+            found[str(Path(here, d).relative_to(root))] = None
+        for f in filenames:
+            found[str(Path(here, f).relative_to(root))] = Path(here, f).read_bytes()
+    return found
+
+
+@pytest.fixture(scope="session")
+def snapshot() -> Callable[[Path], dict[str, bytes | None]]:
+    """``snapshot(root)``: every file (content) and folder (None) under root, hidden ones
+    included: equal snapshots before and after prove nothing there was touched."""
+    return _snapshot
+
+
+@pytest.fixture(scope="session")
+def two_tiny_runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two paper-small runs of 6 frames at 320x240 (seeds 3 and 4), made once per session
+    for the batch tests (tests that change them work on copies)."""
+    root = tmp_path_factory.mktemp("two_runs")
+    out = []
+    for seed in (3, 4):
+        path = root / f"pipe-{seed}"
+        run(make_scenario("paper-small", frames=6, size=(320, 240), seed=seed), path, workers=1)
+        out.append(path)
     return out

@@ -9,11 +9,11 @@ SIGKILLed at a named step.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
 import textwrap
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -28,16 +28,7 @@ from omnipipe.output import (
     read_manifest,
 )
 
-
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    """Every file (content) and folder (None) under root, hidden ones included."""
-    found: dict[str, bytes | None] = {}
-    for here, dirnames, filenames in os.walk(root):
-        for d in dirnames:
-            found[str(Path(here, d).relative_to(root))] = None
-        for f in filenames:
-            found[str(Path(here, f).relative_to(root))] = Path(here, f).read_bytes()
-    return found
+Snapshot = Callable[[Path], dict[str, bytes | None]]  # the ``snapshot`` fixture (conftest)
 
 
 def fake_dataset(root: Path) -> Path:
@@ -76,7 +67,7 @@ def refused(capsys, argv: list[str], expected: str) -> None:
 # --- refusals through the CLI: file lists before and after ---------------------------
 
 
-def test_out_equal_to_dataset_is_refused(tmp_path: Path, capsys) -> None:
+def test_out_equal_to_dataset_is_refused(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     ds = fake_dataset(tmp_path / "D")
     before = snapshot(tmp_path)
     refused(capsys, ["reconstruct", str(ds), "--out", str(ds), "--force", "--quiet"], "is the input")
@@ -88,6 +79,7 @@ def test_out_equal_to_dataset_is_refused(tmp_path: Path, capsys) -> None:
 
 
 def test_out_dot_from_the_folder_holding_the_dataset_is_refused(
+    snapshot: Snapshot,
     tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     fake_dataset(tmp_path / "D")
@@ -100,7 +92,7 @@ def test_out_dot_from_the_folder_holding_the_dataset_is_refused(
     assert snapshot(tmp_path) == before
 
 
-def test_out_parent_of_the_dataset_is_refused(tmp_path: Path, capsys) -> None:
+def test_out_parent_of_the_dataset_is_refused(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     ds = fake_dataset(tmp_path / "work" / "D")
     (tmp_path / "work" / "notes.txt").write_text("mine")
     before = snapshot(tmp_path)
@@ -109,7 +101,7 @@ def test_out_parent_of_the_dataset_is_refused(tmp_path: Path, capsys) -> None:
     assert snapshot(tmp_path) == before
 
 
-def test_out_symlink_to_the_dataset_is_refused(tmp_path: Path, capsys) -> None:
+def test_out_symlink_to_the_dataset_is_refused(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     ds = fake_dataset(tmp_path / "D")
     (tmp_path / "link").symlink_to(ds, target_is_directory=True)
     before = snapshot(tmp_path)
@@ -118,7 +110,7 @@ def test_out_symlink_to_the_dataset_is_refused(tmp_path: Path, capsys) -> None:
     assert snapshot(tmp_path) == before
 
 
-def test_out_holding_the_config_file_is_refused(tmp_path: Path, capsys) -> None:
+def test_out_holding_the_config_file_is_refused(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     ds = fake_dataset(tmp_path / "D")
     (tmp_path / "cfg").mkdir()
     (tmp_path / "cfg" / "c.yaml").write_text("sfm: {}\n")
@@ -129,7 +121,7 @@ def test_out_holding_the_config_file_is_refused(tmp_path: Path, capsys) -> None:
     assert snapshot(tmp_path) == before
 
 
-def test_force_onto_a_user_folder_is_refused(tmp_path: Path, capsys) -> None:
+def test_force_onto_a_user_folder_is_refused(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     ds = fake_dataset(tmp_path / "D")
     user = tmp_path / "results"
     user.mkdir()
@@ -143,7 +135,7 @@ def test_force_onto_a_user_folder_is_refused(tmp_path: Path, capsys) -> None:
     assert snapshot(tmp_path) == before
 
 
-def test_force_onto_own_output_with_an_added_user_file_is_refused(tmp_path: Path, capsys) -> None:
+def test_force_onto_own_output_with_an_added_user_file_is_refused(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     ds = fake_dataset(tmp_path / "D")
     out = tmp_path / "out"
     write_own(out, "v1")
@@ -157,7 +149,7 @@ def test_force_onto_own_output_with_an_added_user_file_is_refused(tmp_path: Path
     assert snapshot(tmp_path) == before
 
 
-def test_simulate_force_replaces_only_its_own_output(tmp_path: Path, capsys) -> None:
+def test_simulate_force_replaces_only_its_own_output(snapshot: Snapshot, tmp_path: Path, capsys) -> None:
     user = tmp_path / "data"
     user.mkdir()
     (user / "frames").mkdir()
@@ -212,7 +204,7 @@ def test_force_onto_an_empty_folder_is_allowed(tmp_path: Path) -> None:
         json.dumps({"tool": "omnipipe", "files": "f0.txt"}),
     ],
 )
-def test_damaged_or_forged_manifest_is_refused(tmp_path: Path, manifest: str) -> None:
+def test_damaged_or_forged_manifest_is_refused(snapshot: Snapshot, tmp_path: Path, manifest: str) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "f0.txt").write_text("user")

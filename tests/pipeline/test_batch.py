@@ -18,16 +18,12 @@ _VOLATILE = ("timings_s", "frames_per_s", "executor")
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    from omnipipe.sim import make_scenario
-    from omnipipe.sim import run as simulate
-
+def runs(two_tiny_runs: list[Path], tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Copies of the two tiny runs, the first with a survey header, and a broken one."""
     root = tmp_path_factory.mktemp("batch")
-    out = []
-    for seed in (3, 4):
-        path = root / f"pipe-{seed}"
-        simulate(make_scenario("paper-small", frames=6, size=(320, 240), seed=seed), path, workers=1)
-        out.append(path)
+    out = [root / r.name for r in two_tiny_runs]
+    for src, dst in zip(two_tiny_runs, out, strict=True):
+        shutil.copytree(src, dst)
     (out[0] / "survey.yaml").write_text("site: Main St\nasset_id: SW-7\nstart_node: MH-1\n", encoding="utf-8")
     broken = root / "broken"
     shutil.copytree(out[0], broken)

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -23,30 +24,13 @@ import pytest
 from omnipipe.cli import main
 from omnipipe.output import prepare_output_dir
 
-
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    """Every file (content) and folder (None) under root, hidden ones included."""
-    found: dict[str, bytes | None] = {}
-    for here, dirnames, filenames in os.walk(root):
-        for d in dirnames:
-            found[str(Path(here, d).relative_to(root))] = None
-        for f in filenames:
-            found[str(Path(here, f).relative_to(root))] = Path(here, f).read_bytes()
-    return found
+Snapshot = Callable[[Path], dict[str, bytes | None]]  # the ``snapshot`` fixture (conftest)
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    from omnipipe.sim import make_scenario
-    from omnipipe.sim import run as simulate
-
-    root = tmp_path_factory.mktemp("batchsafety")
-    out = []
-    for seed in (3, 4):
-        path = root / f"pipe-{seed}"
-        simulate(make_scenario("paper-small", frames=6, size=(320, 240), seed=seed), path, workers=1)
-        out.append(path)
-    return out
+def runs(two_tiny_runs: list[Path]) -> list[Path]:
+    """The two tiny runs (read only here: the tests work on :func:`_copies`)."""
+    return two_tiny_runs
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +60,7 @@ def _rows(out: Path) -> list[dict]:
 
 
 def test_no_success_leaves_the_earlier_batch_untouched(
+    snapshot: Snapshot,
     runs: list[Path], good_batch: Path, tmp_path: Path, capsys
 ) -> None:
     """The issue's reproducer: both runs unreadable, batch --force: nothing replaced."""
@@ -92,6 +77,7 @@ def test_no_success_leaves_the_earlier_batch_untouched(
 
 
 def test_a_failed_run_keeps_its_earlier_folder_marked_stale(
+    snapshot: Snapshot,
     runs: list[Path], good_batch: Path, tmp_path: Path, capsys
 ) -> None:
     (a, b), out = _copies(runs, good_batch, tmp_path)
@@ -216,6 +202,7 @@ needs_proc = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="ne
 
 @needs_proc
 def test_sigkill_of_batch_kills_its_workers_and_keeps_the_earlier_batch(
+    snapshot: Snapshot,
     runs: list[Path], good_batch: Path, tmp_path: Path
 ) -> None:
     """SIGKILL while both runs are being reconstructed (real runs, 2 workers): within a
@@ -241,6 +228,7 @@ def test_sigkill_of_batch_kills_its_workers_and_keeps_the_earlier_batch(
 @pytest.mark.parametrize(("sig", "code", "word"), [(signal.SIGINT, 130, "interrupted"),
                                                   (signal.SIGTERM, 143, "terminated")])
 def test_ctrl_c_and_sigterm_stop_a_batch_promptly(
+    snapshot: Snapshot,
     runs: list[Path], good_batch: Path, tmp_path: Path, sig: int, code: int, word: str
 ) -> None:
     """Runs that would take a minute each: Ctrl-C (SIGINT to the process group, as a
