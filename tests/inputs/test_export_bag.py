@@ -13,17 +13,15 @@ import pytest
 from omnipipe.cli import main
 from omnipipe.dataset import open_dataset, read_image
 from omnipipe.pipeline import ReconstructConfig, run
-from omnipipe.sim import make_scenario
-from omnipipe.sim import run as simulate
 
 pytest.importorskip("rosbags")
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """paper-small, 8 frames (400x300), with epoch-like timestamps.txt."""
+def folder(eight_frames: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """paper-small, 8 frames (400x300), with epoch-like timestamps.txt (a copy)."""
     out = tmp_path_factory.mktemp("export") / "images"
-    simulate(make_scenario("paper-small", frames=8, seed=0), out, workers=1)
+    shutil.copytree(eight_frames, out)
     names = sorted(p.name for p in (out / "frames").glob("*.png"))
     (out / "timestamps.txt").write_text(
         "".join(f"{n} {1_700_000_000 + 0.125 * i:.6f}\n" for i, n in enumerate(names))

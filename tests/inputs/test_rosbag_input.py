@@ -12,8 +12,6 @@ import pytest
 from omnipipe.dataset import open_dataset, read_image
 from omnipipe.errors import ConfigError, DatasetError
 from omnipipe.pipeline import ReconstructConfig, run
-from omnipipe.sim import make_scenario
-from omnipipe.sim import run as simulate
 
 rosbags = pytest.importorskip("rosbags")
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
@@ -26,11 +24,9 @@ T0 = 1_700_000_000  # header stamps: an epoch time in seconds
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """`omnipipe simulate --scenario paper-small --frames 8` (400x300)."""
-    out = tmp_path_factory.mktemp("ros") / "images"
-    simulate(make_scenario("paper-small", frames=8, seed=0), out, workers=1)
-    return out
+def folder(eight_frames: Path) -> Path:
+    """`omnipipe simulate --scenario paper-small --frames 8` (400x300; read only)."""
+    return eight_frames
 
 
 def _messages(folder: Path, store: Stores, kind: str):

@@ -3,11 +3,19 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import cKDTree
+
+from omnipipe.laser import LaserConfig, LaserResult
+from omnipipe.laser import run as laser_run
+from omnipipe.sim import make_scenario
+from omnipipe.sim.render import Renderer
+from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.writer import build_renderer
 
 
 def _whole_wall_grid(
@@ -35,3 +43,35 @@ def _whole_wall_grid(
 def whole_wall_grid() -> Callable[..., np.ndarray]:
     """``whole_wall_grid(arc, axial, pts, circ, mm, gap) -> (H, W, 3)`` (the reference)."""
     return _whole_wall_grid
+
+
+@dataclass(frozen=True)
+class RenderedStations:
+    """One rendered frame per station of paper-small (24 frames, seed 2), true poses, and
+    their laser rings (the model stage's inputs without the camera motion's errors).
+
+    Attributes:
+        scenario, renderer: the scene.
+        poses: (F, 4, 4) every frame's true world_from_rig.
+        keep: (K,) the stations' frames.
+        frames: frame -> (H, W, 3) uint8 image of the stations' frames.
+        rings: the laser stage's result on them.
+    """
+
+    scenario: Scenario
+    renderer: Renderer
+    poses: np.ndarray
+    keep: np.ndarray
+    frames: dict[int, np.ndarray]
+    rings: LaserResult
+
+
+@pytest.fixture(scope="session")
+def rendered_stations() -> RenderedStations:
+    """:class:`RenderedStations`, rendered once per session (read only)."""
+    scenario = make_scenario("paper-small", frames=24, seed=2)
+    renderer, poses, _, moving = build_renderer(scenario)
+    keep = np.flatnonzero(np.r_[True, moving[1:]])  # one frame per station
+    frames = {int(i): renderer.render(poses[i], seed=int(i))[0] for i in keep}
+    rings = laser_run(LaserConfig(), scenario.rig, [frames[int(i)] for i in keep])
+    return RenderedStations(scenario, renderer, poses, keep, frames, rings)

@@ -4,19 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnipipe.laser import LaserConfig
-from omnipipe.laser import run as laser_run
 from omnipipe.model import ModelConfig, ModelInputs, run
-from omnipipe.sim import make_scenario
-from omnipipe.sim.writer import build_renderer
 
 
-def test_flips_keep_a_manifold_wall_and_lower_their_cost() -> None:
-    scenario = make_scenario("paper-small", frames=24, seed=2)
-    renderer, poses, _, moving = build_renderer(scenario)
-    keep = np.flatnonzero(np.r_[True, moving[1:]])
-    frames = {int(i): renderer.render(poses[i], seed=int(i))[0] for i in keep}
-    rings = laser_run(LaserConfig(), scenario.rig, [frames[int(i)] for i in keep])
+def test_flips_keep_a_manifold_wall_and_lower_their_cost(rendered_stations) -> None:
+    st = rendered_stations
+    scenario, poses, keep, frames, rings = st.scenario, st.poses, st.keep, st.frames, st.rings
     inputs = ModelInputs(
         scenario.rig, poses[keep], [r.points_in_rig for r in rings.rings], [r.pixels for r in rings.rings],
         lambda k: frames[int(keep[k])],

@@ -20,12 +20,13 @@ from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
 
-def test_rings_integrate_onto_the_wall_and_mesh_without_crossings(tmp_path: Path) -> None:
-    scenario = make_scenario("paper-small", frames=24, seed=2)
-    renderer, poses, _, moving = build_renderer(scenario)
-    keep = np.flatnonzero(np.r_[True, moving[1:]])  # one frame per station
-    frames = {int(i): renderer.render(poses[i], seed=int(i))[0] for i in keep}
-    rings = laser_run(LaserConfig(), scenario.rig, [frames[int(i)] for i in keep])
+def test_rings_integrate_onto_the_wall_and_mesh_without_crossings(
+    rendered_stations, tmp_path: Path
+) -> None:
+    st = rendered_stations
+    scenario, renderer, poses, keep, frames, rings = (
+        st.scenario, st.renderer, st.poses, st.keep, st.frames, st.rings
+    )
     res = run(
         ModelConfig(),
         ModelInputs(

@@ -20,8 +20,6 @@ from omnipipe.cli import main
 from omnipipe.executor import FrameSource
 from omnipipe.output import MANIFEST_NAME
 from omnipipe.pipeline import checkpoint
-from omnipipe.sim import make_scenario
-from omnipipe.sim import run as simulate
 
 
 class _Killed(BaseException):
@@ -29,11 +27,9 @@ class _Killed(BaseException):
 
 
 @pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """paper-small at 320x240, 6 frames (the smallest that reconstructs)."""
-    out = tmp_path_factory.mktemp("resume") / "ds"
-    simulate(make_scenario("paper-small", frames=6, size=(320, 240), seed=3), out)
-    return out
+def tiny_run(two_tiny_runs: list[Path]) -> Path:
+    """paper-small at 320x240, 6 frames (the smallest that reconstructs; read only)."""
+    return two_tiny_runs[0]
 
 
 def _reconstruct(ds: Path, out: Path, *extra: str) -> int:
@@ -41,9 +37,9 @@ def _reconstruct(ds: Path, out: Path, *extra: str) -> int:
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def uninterrupted(tiny_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("whole") / "out"
-    assert _reconstruct(tiny_dataset, out) == 0
+    assert _reconstruct(tiny_run, out) == 0
     return out
 
 
@@ -75,7 +71,7 @@ def _checkpoint_dirs(out: Path) -> list[Path]:
 @pytest.mark.parametrize("stage", checkpoint.STAGES)
 def test_resume_after_a_kill_at_each_stage_gives_the_same_output(
     stage: str,
-    tiny_dataset: Path,
+    tiny_run: Path,
     uninterrupted: Path,
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
@@ -90,7 +86,7 @@ def test_resume_after_a_kill_at_each_stage_gives_the_same_output(
 
     monkeypatch.setattr(checkpoint, "_saved_hook", kill)
     with pytest.raises(_Killed):
-        _reconstruct(tiny_dataset, out)
+        _reconstruct(tiny_run, out)
     assert not out.exists()  # an interrupted run writes no OUT
     (folder,) = _checkpoint_dirs(out)
     marker = json.loads((folder / checkpoint.MARKER).read_text())
@@ -98,7 +94,7 @@ def test_resume_after_a_kill_at_each_stage_gives_the_same_output(
 
     computed: list[str] = []
     monkeypatch.setattr(checkpoint, "_saved_hook", computed.append)
-    assert _reconstruct(tiny_dataset, out) == 0
+    assert _reconstruct(tiny_run, out) == 0
     # Only the stages after the kill ran again.
     assert computed == list(checkpoint.STAGES[checkpoint.STAGES.index(stage) + 1 :])
     assert _contents(out) == _contents(uninterrupted)
@@ -106,7 +102,7 @@ def test_resume_after_a_kill_at_each_stage_gives_the_same_output(
 
 
 def test_resume_inside_the_frame_pass_decodes_only_the_frames_after_its_last_part(
-    tiny_dataset: Path, uninterrupted: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tiny_run: Path, uninterrupted: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from omnipipe.pipeline import frame_pass
 
@@ -119,7 +115,7 @@ def test_resume_inside_the_frame_pass_decodes_only_the_frames_after_its_last_par
 
     monkeypatch.setattr(checkpoint, "_saved_hook", kill)
     with pytest.raises(_Killed):
-        _reconstruct(tiny_dataset, out)
+        _reconstruct(tiny_run, out)
     decoded: list[int] = []
     task_call = frame_pass._FrameTask.__call__
 
@@ -130,13 +126,13 @@ def test_resume_inside_the_frame_pass_decodes_only_the_frames_after_its_last_par
     monkeypatch.setattr(frame_pass._FrameTask, "__call__", spy)
     computed: list[str] = []
     monkeypatch.setattr(checkpoint, "_saved_hook", computed.append)
-    assert _reconstruct(tiny_dataset, out) == 0
+    assert _reconstruct(tiny_run, out) == 0
     assert decoded == [4, 5]
     assert computed == list(checkpoint.STAGES)
     assert _contents(out) == _contents(uninterrupted)
 
 
-def test_checkpoint_round_trip_is_exact(tiny_dataset: Path, tmp_path: Path) -> None:
+def test_checkpoint_round_trip_is_exact(tiny_run: Path, tmp_path: Path) -> None:
     """Arrays keep dtype, shape and bits; NaN, numpy scalars, tuples, nested dataclasses
     and lists of one dataclass (stored by column) come back as they were."""
     from omnipipe.laser.extract import LaserRing
@@ -161,12 +157,12 @@ def test_checkpoint_round_trip_is_exact(tiny_dataset: Path, tmp_path: Path) -> N
 
 
 def test_a_changed_setting_or_input_never_reuses_a_checkpoint(
-    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import shutil
 
     ds = tmp_path / "ds"
-    shutil.copytree(tiny_dataset, ds)
+    shutil.copytree(tiny_run, ds)
     out = tmp_path / "out"
 
     def kill(name: str) -> None:
@@ -196,7 +192,7 @@ def test_a_changed_setting_or_input_never_reuses_a_checkpoint(
 
 
 def test_fresh_computes_again_and_keeps_files_omnipipe_did_not_write(
-    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     out = tmp_path / "out"
 
@@ -205,22 +201,22 @@ def test_fresh_computes_again_and_keeps_files_omnipipe_did_not_write(
 
     monkeypatch.setattr(checkpoint, "_saved_hook", kill)
     with pytest.raises(_Killed):
-        _reconstruct(tiny_dataset, out)
+        _reconstruct(tiny_run, out)
     (folder,) = _checkpoint_dirs(out)
     (folder / "notes.txt").write_text("mine")
     computed: list[str] = []
     monkeypatch.setattr(checkpoint, "_saved_hook", computed.append)
-    assert _reconstruct(tiny_dataset, out, "--fresh") == 0
+    assert _reconstruct(tiny_run, out, "--fresh") == 0
     assert computed == list(checkpoint.STAGES)  # the saved frame pass not used
     assert sorted(os.listdir(folder)) == ["notes.txt"]
 
 
-def test_sigterm_then_rerun_resumes(tiny_dataset: Path, uninterrupted: Path, tmp_path: Path) -> None:
+def test_sigterm_then_rerun_resumes(tiny_run: Path, uninterrupted: Path, tmp_path: Path) -> None:
     """A real SIGTERM to ``omnipipe reconstruct`` once its camera motion is saved: OUT
     is not written, the rerun computes only the later stages, the output is the same."""
     out = tmp_path / "out"
     env = dict(os.environ, PYTHONPATH=str(Path(checkpoint.__file__).parents[2]))
-    cmd = [sys.executable, "-m", "omnipipe.cli", "reconstruct", str(tiny_dataset), "--out",
+    cmd = [sys.executable, "-m", "omnipipe.cli", "reconstruct", str(tiny_run), "--out",
            str(out), "--workers", "1", "--quiet"]
     proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
