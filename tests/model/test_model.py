@@ -16,8 +16,7 @@ from omnipipe.executor import open_executor
 from omnipipe.laser import LaserConfig
 from omnipipe.laser import run as laser_run
 from omnipipe.model import ModelConfig, ModelInputs, run, write_outputs
-from omnipipe.sim import make_scenario
-from omnipipe.sim.writer import build_renderer
+from omnipipe.sim import make_scenario, simulate_trajectory
 
 
 def test_rings_integrate_onto_the_wall_and_mesh_without_crossings(
@@ -70,7 +69,8 @@ def test_frames_decoded_by_two_worker_processes_give_the_serial_model(
     small_dataset: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     dataset = open_dataset(small_dataset)
-    _, poses, _, moving = build_renderer(make_scenario("paper-small", seed=3))
+    sc = make_scenario("paper-small", seed=3)  # small_dataset's scene: its true trajectory
+    poses, _, moving = simulate_trajectory(sc.pipe, sc.motion, sc.frames, sc.seed)
     keep = np.flatnonzero(np.r_[True, moving[1:]])  # one frame per station
     rings = laser_run(LaserConfig(), dataset.rig, [dataset.read_frame(int(i)) for i in keep])
     reads: list[int] = []
