@@ -70,3 +70,12 @@ def two_tiny_runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
         run(make_scenario("paper-small", frames=6, size=(320, 240), seed=seed), path, workers=1)
         out.append(path)
     return out
+
+
+@pytest.fixture(scope="session")
+def eight_frames(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`omnipipe simulate --scenario paper-small --frames 8 --seed 0` (400x300), made once
+    per session (tests that change it work on a copy)."""
+    out = tmp_path_factory.mktemp("eight") / "images"
+    run(make_scenario("paper-small", frames=8, seed=0), out, workers=1)
+    return out

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from omnipipe.geometry import invert
 from omnipipe.sfm.laser_scale import match_laser_points
 from omnipipe.sim import make_scenario
+from omnipipe.sim.render import Renderer
+from omnipipe.sim.scenarios import Scenario
 from omnipipe.sim.writer import build_renderer
 
 
@@ -19,9 +22,17 @@ def _pair(renderer, poses: np.ndarray, a: int, b: int):
     return img_a, img_b, ring, b_from_a, float(np.linalg.norm(b_from_a[:3, 3]))
 
 
-def test_laser_points_give_the_metric_translation() -> None:
+@pytest.fixture(scope="module")
+def paper_800() -> tuple[Scenario, Renderer, np.ndarray, np.ndarray]:
+    """paper at 800x600, 12 frames, seed 4: (scenario, renderer, poses, moving), built once
+    for the module (its wall texture is most of the cost)."""
     scenario = make_scenario("paper", frames=12, size=(800, 600), seed=4)
     renderer, poses, _, moving = build_renderer(scenario)
+    return scenario, renderer, poses, moving
+
+
+def test_laser_points_give_the_metric_translation(paper_800) -> None:
+    scenario, renderer, poses, moving = paper_800
     # A full stroke apart: frame 0 and the last frame of the first move.
     a, b = 0, int(np.flatnonzero(moving)[: scenario.motion.frames_per_cycle // scenario.motion.n_units][-1])
     img_a, img_b, ring, b_from_a, length = _pair(renderer, poses, a, b)
@@ -40,7 +51,7 @@ def test_laser_points_give_the_metric_translation() -> None:
     assert np.median(np.linalg.norm(m.pixels_b - true_px, axis=1)) < 0.5
 
 
-def test_leaking_stripe_does_not_pull_short_steps_to_zero() -> None:
+def test_leaking_stripe_does_not_pull_short_steps_to_zero(paper_800) -> None:
     """The laser sheet moves with the robot: its light leaking into the grey image
     (colour crosstalk) sits at the same place in both frames. Left in the correlation it
     pulled every short step towards zero motion (-9 % on a 585 mm random rig)."""
@@ -48,9 +59,10 @@ def test_leaking_stripe_does_not_pull_short_steps_to_zero() -> None:
 
     from omnipipe.image import gray_without_laser
 
-    scenario = make_scenario("paper", frames=12, size=(800, 600), seed=4)
-    scenario = replace(scenario, render=replace(scenario.render, laser_crosstalk=0.25))
-    renderer, poses, _, moving = build_renderer(scenario)
+    scenario, plain, poses, moving = paper_800
+    # The same scene (its texture) rendered with the laser's light leaking into the grey.
+    renderer = Renderer(scenario.rig, scenario.pipe, plain.texture,
+                        replace(scenario.render, laser_crosstalk=0.25))
     a = int(np.flatnonzero(moving)[0]) - 1  # at rest, then the first moving frame
     b = a + 1
     img_a, img_b, ring, b_from_a, length = _pair(renderer, poses, a, b)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 from omnipipe.evaluation.trajectory import trajectory_errors
-from omnipipe.laser import LaserConfig
+from omnipipe.laser import LaserConfig, LaserResult
 from omnipipe.laser import run as laser_run
 from omnipipe.sfm import SfmConfig, SfmInputs
 from omnipipe.sfm import run as sfm_run
@@ -18,22 +19,37 @@ from omnipipe.sfm.step_scale import bridge_lost_steps, bridge_steps, confirmed_c
 from omnipipe.sfm.tracking import TrackConfig
 from omnipipe.sfm.types import StepEvidence
 from omnipipe.sim import make_scenario
+from omnipipe.sim.scenarios import Scenario
 from omnipipe.sim.writer import build_renderer
+
+
+@pytest.fixture(scope="module")
+def short_run() -> Callable[[str], tuple[Scenario, np.ndarray, np.ndarray, list[np.ndarray], LaserResult]]:
+    """``short_run(name)``: (scenario, true poses, moving, frames, rings) of a 20-frame run at
+    640x480 (seed 1), rendered once per scenario for the module."""
+    made: dict[str, tuple[Scenario, np.ndarray, np.ndarray, list[np.ndarray], LaserResult]] = {}
+
+    def get(name: str) -> tuple[Scenario, np.ndarray, np.ndarray, list[np.ndarray], LaserResult]:
+        if name not in made:
+            # The small variants sample the gait coarsely (8 frames per cycle): 60 mm in 20 frames.
+            scenario = make_scenario(name, frames=20, size=(640, 480), seed=1)
+            renderer, poses, _, moving = build_renderer(scenario)
+            frames, irradiance = [], None
+            for i, p in enumerate(poses):
+                if i == 0 or moving[i]:  # a standing robot sees the same scene: new sensor noise only
+                    irradiance = renderer.irradiance(p, seed=50 + i)[0]
+                frames.append(renderer.expose(irradiance, seed=50 + i))
+            made[name] = (scenario, poses, moving, frames, laser_run(LaserConfig(), scenario.rig, frames))
+        return made[name]
+
+    return get
 
 
 @pytest.mark.parametrize(
     ("name", "tracking"), [("paper-small", True), ("bend-small", True), ("paper-small", False)]
 )
-def test_short_run_trajectory_within_band(name: str, tracking: bool) -> None:
-    # The small variants sample the gait coarsely (8 frames per cycle): 60 mm in 20 frames.
-    scenario = make_scenario(name, frames=20, size=(640, 480), seed=1)
-    renderer, poses, _, moving = build_renderer(scenario)
-    frames, irradiance = [], None
-    for i, p in enumerate(poses):
-        if i == 0 or moving[i]:  # a standing robot sees the same scene: new sensor noise only
-            irradiance = renderer.irradiance(p, seed=50 + i)[0]
-        frames.append(renderer.expose(irradiance, seed=50 + i))
-    rings = laser_run(LaserConfig(), scenario.rig, frames)
+def test_short_run_trajectory_within_band(short_run, name: str, tracking: bool) -> None:
+    scenario, poses, moving, frames, rings = short_run(name)
     # With tracking, the frames between keyframes are followed by optical flow; without,
     # every moving frame gets SIFT: the same bands.
     config = SfmConfig(tracking=TrackConfig(enabled=tracking))
