@@ -132,6 +132,7 @@ def test_conversion_reproduces_the_hyperboloid_rays() -> None:
         np.testing.assert_allclose(back[valid], px[valid], atol=10 * tol_px)
 
 
+@pytest.mark.slow  # 7 s: three reconstructions; the pipeline stays covered by tests/pipeline
 def test_every_model_reconstructs_alike(eight_frames: Path, tmp_path: Path) -> None:
     """A paper-small run written in each model: diameters within 0.3 mm of each other."""
     base = eight_frames  # read only: the other models' rigs go beside copies of its frames

@@ -46,6 +46,7 @@ def test_flat_field_recovers_albedo_up_to_scale() -> None:
         flat_field(raw, light[:, :10])
 
 
+@pytest.mark.slow  # 4 s: a whole reconstruction; the model stage stays covered by tests/model/test_model.py and tests/pipeline
 def test_demo_like_run_has_even_light_and_no_laser_band(small_dataset: Path) -> None:
     """paper-small (400x300, 24 frames): the unrolled wall's luminance over the true
     albedo's at the same wall points (mean over 10 x 10 mm) varies by <= 25 % (10th to

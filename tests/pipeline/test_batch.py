@@ -83,6 +83,7 @@ def test_every_run_listed_and_the_failure_does_not_stop_the_others(
     assert (out / MANIFEST_NAME).is_file()
 
 
+@pytest.mark.slow  # 5 s: a local Dask cluster; the batch itself stays covered by the tests above
 def test_dask_cluster_gives_the_same_reports(
     local_batch: tuple[Path, int], runs: list[Path], tmp_path: Path
 ) -> None:

@@ -211,6 +211,7 @@ def test_fresh_computes_again_and_keeps_files_omnipipe_did_not_write(
     assert sorted(os.listdir(folder)) == ["notes.txt"]
 
 
+@pytest.mark.slow  # 4 s: a real SIGTERM to a subprocess; resuming stays covered by the in-process kills above
 def test_sigterm_then_rerun_resumes(tiny_run: Path, uninterrupted: Path, tmp_path: Path) -> None:
     """A real SIGTERM to ``omnipipe reconstruct`` once its camera motion is saved: OUT
     is not written, the rerun computes only the later stages, the output is the same."""

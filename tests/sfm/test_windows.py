@@ -49,6 +49,7 @@ def long_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.slow  # 5 s: two sfm runs of 48 frames; the sfm stage stays covered by tests/sfm/test_pipeline.py
 def test_windowed_adjustment_keeps_the_trajectory(long_run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from omnipipe.sfm import schur
 

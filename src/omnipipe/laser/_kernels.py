@@ -7,7 +7,7 @@ sample away from it (ambiguity), the saturated samples around it and the three
 samples the Gaussian peak fit uses. One compiled pass per line computes them all
 (selections for the medians; the whole numbers of an integer frame counted) with
 NumPy's float32 arithmetic, so the results are the same bit for bit as the NumPy
-formulation in ``tests/laser/test_kernels.py``. About 1.2 ms per 1600x1200 frame.
+formulation in ``tests/laser/test_laser_kernels.py``. About 1.2 ms per 1600x1200 frame.
 """
 
 from __future__ import annotations
