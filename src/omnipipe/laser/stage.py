@@ -9,7 +9,7 @@ rings are identical to the serial ones.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -39,11 +39,12 @@ class LaserResult:
     """Rings of all frames, in frame order.
 
     Attributes:
-        rings: one :class:`LaserRing` per frame (pixels, points_in_rig, sigma_mm, ...).
+        rings: one :class:`LaserRing` per frame (pixels, points_in_rig, sigma_mm, ...):
+            a list, or (from the decoding pass) a :class:`~omnipipe.laser.store.RingStore`.
         warnings: per-frame problems, prefixed with the frame index.
     """
 
-    rings: list[LaserRing]
+    rings: Sequence[LaserRing]
     warnings: list[str]
 
     @property

@@ -10,8 +10,9 @@ need of it that is small:
   sensor noise), from which the parent decides, in frame order, which frames were
   taken while the robot stood still (:class:`~omnipipe.sfm.stations.StationTracker`).
 
-Results are consumed as they arrive and the signatures are dropped once compared, so
-memory does not grow with the run beyond the rings themselves. A frame taken while the
+Results are consumed as they arrive and the signatures are dropped once compared; the
+rings go to disk as they arrive (:class:`~omnipipe.laser.store.RingStore`), so memory
+grows with the run by a few bytes a frame only (its flags and sample counts). A frame taken while the
 robot stood still is used by no later stage (its station's first frame stands for
 it), and most frames are such frames: the worker runs the stationary test within its
 chunk too and skips the ring of a frame that shows the same station as the frame
@@ -40,6 +41,7 @@ from omnipipe.laser import (
     ring_extractor,
     triangulate_ring,
 )
+from omnipipe.laser.store import RingStore
 from omnipipe.rig import Rig
 from omnipipe.sfm.stations import (
     StationConfig,
@@ -61,7 +63,8 @@ class FramePassResult:
     """What the pass found in every frame, in frame order.
 
     Attributes:
-        rings: the light-section result (one ring per frame).
+        rings: the light-section result (one ring per frame; its ``rings`` a
+            :class:`~omnipipe.laser.store.RingStore`, read from disk when indexed).
         moved: (N,) True where the rig moved since the station began (a new station
             starts; frame 0 counts as moved).
         motion_ratio: (N,) the stationary test's difference over its noise-only
@@ -194,21 +197,22 @@ def run(
 
     tracker = StationTracker(_masks(dataset.rig, stations)[0], stations)  # built once (warm_up)
     n = len(dataset)
-    rings: list[LaserRing | None] = []
+    kept = _Kept(n)
     moved = np.zeros(n, bool)
     ratio = np.full(n, math.nan)
     station = np.zeros(n, int)  # each frame's station: its first frame
-    start = _restore(parts, tracker, rings, moved, ratio, station)
+    start = _restore(parts, tracker, kept, moved, ratio, station)
     if progress is not None and start:
         progress(start)
     task = _FrameTask(laser, stations)
     for i, (ring, signature) in iter_frames(executor, task, dataset, frames=range(start, n)):
         moved[i], ratio[i] = tracker.update_signature(signature)
         station[i] = i if moved[i] else station[i - 1]
-        rings.append(ring if moved[i] else None)
+        if moved[i] and ring is not None:
+            kept.put(i, ring)
         if save_part is not None and (i + 1 - start) % PART_FRAMES == 0 and i + 1 < n:
             a = i + 1 - PART_FRAMES
-            save_part(FramePassPart(a, rings[a:], moved[a : i + 1], ratio[a : i + 1],
+            save_part(FramePassPart(a, kept.part(a, i + 1), moved[a : i + 1], ratio[a : i + 1],
                                     station[a : i + 1], tracker.reference))
         if progress is not None:
             progress(i + 1)
@@ -218,22 +222,48 @@ def run(
     station = np.maximum.accumulate(station)
     # A frame where the rig moved whose chunk took it for stationary (a slow creep that
     # only the comparison with an earlier chunk's frame shows): its ring, decoded again.
-    missing = [i for i in range(n) if rings[i] is None and moved[i]]
+    missing = [i for i in range(n) if moved[i] and not kept.has(i)]
     for i, ring in iter_frames(executor, RingTask(laser), dataset, frames=missing):
-        rings[i] = ring
-    done = [ring if ring is not None else _EMPTY for ring in rings]
-    own = np.array([len(ring.pixels) for ring in done], int)
+        kept.put(i, ring)
+    for i in np.flatnonzero(~moved):
+        kept.store.put(int(i), _emptied(int(kept.scanned[station[i]])))
     # A stationary frame shows its station's ring: it counts that ring's samples.
-    samples = own[station]
-    warnings = [f"frame {i}: {w}" for i, ring in enumerate(done) for w in ring.warnings]
-    final = [ring if moved[i] else _emptied(done[station[i]].scanned) for i, ring in enumerate(done)]
-    return FramePassResult(LaserResult(final, warnings), moved, ratio, samples)
+    samples = kept.own[station]
+    warnings = [f"frame {i}: {w}" for i in sorted(kept.notes) for w in kept.notes[i]]
+    return FramePassResult(LaserResult(kept.store, warnings), moved, ratio, samples)
+
+
+class _Kept:
+    """The moving frames' rings as the pass finds them: on disk
+    (:class:`~omnipipe.laser.store.RingStore`), with each one's sample count, scan lines
+    and warnings in memory (a few bytes a frame)."""
+
+    def __init__(self, n: int) -> None:
+        self.store = RingStore(n)
+        self.own = np.zeros(n, int)  # each frame's own ring's samples
+        self.scanned = np.zeros(n, int)
+        self.notes: dict[int, list[str]] = {}
+        self._has = np.zeros(n, bool)
+
+    def put(self, i: int, ring: LaserRing) -> None:
+        self.own[i], self.scanned[i] = len(ring.pixels), ring.scanned
+        if ring.warnings:
+            self.notes[i] = list(ring.warnings)
+        self.store.put(i, ring)
+        self._has[i] = True
+
+    def has(self, i: int) -> bool:
+        return bool(self._has[i])
+
+    def part(self, a: int, b: int) -> list[LaserRing | None]:
+        """Frames a..b-1's rings (None: not found yet), read back for a checkpoint part."""
+        return [self.store[i] if self._has[i] else None for i in range(a, b)]
 
 
 def _restore(
     parts: Sequence[FramePassPart],
     tracker: StationTracker,
-    rings: list[LaserRing | None],
+    kept: _Kept,
     moved: np.ndarray,
     ratio: np.ndarray,
     station: np.ndarray,
@@ -247,15 +277,14 @@ def _restore(
             len(part.rings) == len(part.motion_ratio) == len(part.station) == end - start
         ):
             break
-        rings.extend(part.rings)
+        for k, ring in enumerate(part.rings):
+            if ring is not None:
+                kept.put(start + k, ring)
         moved[start:end], ratio[start:end] = part.moved, part.motion_ratio
         station[start:end] = part.station
         tracker.reference = part.reference
         start = end
     return start
-
-
-_EMPTY = LaserRing(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0))
 
 
 _EMPTIED: dict[int, LaserRing] = {}

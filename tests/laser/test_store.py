@@ -1,0 +1,66 @@
+"""Rings kept on disk read back equal to the rings put, in any order."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnipipe.laser.ring import LaserRing
+from omnipipe.laser.store import RingStore
+
+
+def _ring(rng: np.random.Generator, n: int, widths: int | None = None) -> LaserRing:
+    """A ring of n samples; ``widths``: another length for ``peak_width_px`` (the
+    triangulation filters the other arrays, not that one)."""
+    return LaserRing(
+        pixels=rng.normal(200, 50, (n, 2)),
+        angle_rad=rng.uniform(0, 6.3, n),
+        confidence=rng.uniform(3, 30, n).astype(np.float32),
+        radius_sigma_px=rng.uniform(0.05, 0.3, n),
+        peak_width_px=rng.uniform(1, 2, n if widths is None else widths),
+        points_in_rig=rng.normal(0, 100, (n, 3)),
+        sigma_mm=rng.uniform(0.01, 0.1, n),
+        scanned=720,
+        warnings=[f"ring of {n}"] if n % 2 else [],
+    )
+
+
+def _same(a: LaserRing, b: LaserRing) -> bool:
+    arrays = ("pixels", "angle_rad", "confidence", "radius_sigma_px", "peak_width_px", "points_in_rig", "sigma_mm")
+    return (
+        all(
+            getattr(a, k).dtype == getattr(b, k).dtype and np.array_equal(getattr(a, k), getattr(b, k))
+            for k in arrays
+        )
+        and a.scanned == b.scanned
+        and a.warnings == b.warnings
+    )
+
+
+def test_rings_read_back_as_put_in_any_order() -> None:
+    rng = np.random.default_rng(3)
+    rings = [_ring(rng, n, widths) for n, widths in ((50, None), (0, None), (7, 9), (300, None), (1, 0))]
+    store = RingStore(len(rings))
+    for i in (3, 0, 4, 1, 2):
+        store.put(i, rings[i])
+    assert len(store) == len(rings)
+    for i in (4, 0, 3, 3, 2, 1):
+        assert _same(store[i], rings[i]), f"ring {i}"
+    assert all(_same(a, b) for a, b in zip(store, rings, strict=True))
+    assert all(_same(a, b) for a, b in zip(store[1:4], rings[1:4], strict=True))
+    # What a reader changes stays with the reader.
+    store[0].pixels[:] = 0
+    assert _same(store[0], rings[0])
+    store.close()
+
+
+def test_a_ring_without_samples_is_kept_as_is_and_each_frame_once() -> None:
+    store = RingStore(3)
+    empty = _ring(np.random.default_rng(0), 0)
+    store.put(0, empty)
+    assert store[0] is empty
+    with pytest.raises(ValueError, match="frame 0 already"):
+        store.put(0, empty)
+    with pytest.raises(KeyError, match="frame 2 has no ring"):
+        store[2]
+    store.close()
