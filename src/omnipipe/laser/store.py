@@ -11,7 +11,6 @@ laser ring) stays in memory: it holds no array worth writing.
 
 from __future__ import annotations
 
-import tempfile
 import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields
@@ -21,6 +20,7 @@ from typing import overload
 import numpy as np
 
 from omnipipe.laser.ring import LaserRing
+from omnipipe.scratch import scratch_folder
 
 _ARRAYS = tuple(f.name for f in fields(LaserRing) if f.name not in ("scanned", "warnings"))
 """The ring's per-sample arrays, written in this order."""
@@ -46,7 +46,7 @@ class RingStore(Sequence[LaserRing]):
     """
 
     def __init__(self, frames: int) -> None:
-        self._dir = tempfile.TemporaryDirectory(prefix="omnipipe-rings-")
+        self._dir = scratch_folder("omnipipe-rings-")
         self._path = Path(self._dir.name) / "rings.npy-stream"
         self._file = open(self._path, "w+b")  # closed by close()
         self._lock = threading.Lock()

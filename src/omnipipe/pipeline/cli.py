@@ -216,7 +216,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset, topic=args.topic)
     bars = _progress(args.quiet)
     checkpoints = open_checkpoints(out, dataset, config, fresh=args.fresh)
-    rec = run(config, dataset, bars, checkpoints=checkpoints)
+    from omnipipe.scratch import scratch_beside
+
+    with scratch_beside(out):  # what waits on disk during the run: beside OUT, removed
+        rec = run(config, dataset, bars, checkpoints=checkpoints)
     if survey is not None:
         rec.survey = survey
         rec.summary["survey"] = survey.to_dict()

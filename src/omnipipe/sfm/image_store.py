@@ -9,11 +9,12 @@ it back when asked (from the page cache, about 1 ms).
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from types import TracebackType
 
 import numpy as np
+
+from omnipipe.scratch import scratch_folder
 
 
 class ImageStore:
@@ -24,7 +25,7 @@ class ImageStore:
     """
 
     def __init__(self) -> None:
-        self._dir = tempfile.TemporaryDirectory(prefix="omnipipe-keyframes-")
+        self._dir = scratch_folder("omnipipe-keyframes-")
         self._n = 0
 
     def append(self, image: np.ndarray) -> None:
