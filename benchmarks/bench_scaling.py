@@ -1,18 +1,20 @@
 """Does reconstruct's cost grow with the length of the run? frames/s and peak RSS per run length.
 
     python benchmarks/bench_scaling.py [--frames 150 600 2400] [--scenario paper]
-        [--size 400x300] [--workers N] [--cache DIR] [--video]
+        [--size 400x300] [--workers N] [--cache DIR] [--video [--decoded-png]] [--rest N]
 
 Simulates one run per length (small images; ``--cache`` keeps them for the next call),
 reconstructs each in a fresh process (``omnipipe.pipeline.run``, nothing written) and
 prints, per run: frames, wall time, frames/s of the whole run and of each stage, and
 the peak resident memory of the reconstructing process and of its largest worker.
 With ``--video`` each run is also made into an MJPG video (cv2.VideoWriter, from its
-PNG frames), reconstructed too, and its frames decoded back to PNGs (the same pixels
-as the video: the fair comparison of the two inputs, JPEG's artefacts change the
-reconstruction's work). The last lines compare the two longest runs of each input
-(issue 13's acceptance: frames/s within 20 %, peak RSS within 30 % from 600 to 2400
-frames; issue 27: within 20 % and 10 %). It only measures.
+PNG frames) and reconstructed too; ``--decoded-png`` adds the video's frames decoded
+back to PNGs (the same pixels as the video: the fair comparison of the two inputs,
+JPEG's artefacts change the reconstruction's work). ``--rest N``
+replaces the scenario's gait by 6-frame strokes each followed by N frames at rest. The
+last lines compare each longer run of each input with its shortest (issue 13's
+acceptance: frames/s within 20 %, peak RSS within 30 % from 600 to 2400 frames; issue
+27: within 20 % and 10 % from 1,000 to 10,000). It only measures.
 """
 
 from __future__ import annotations
@@ -58,21 +60,37 @@ def _child(dataset: str, workers: int | None) -> None:
     )
 
 
-def _dataset(cache: Path, scenario: str, frames: int, size: tuple[int, int], seed: int) -> Path:
+def _dataset(
+    cache: Path, scenario: str, frames: int, size: tuple[int, int], seed: int, rest: int | None = None
+) -> Path:
+    """The simulated run (made once into ``cache``); ``rest``: the gait's frames at rest
+    after each stroke of :data:`STROKE_FRAMES` frames (None: the scenario's own gait)."""
+    from dataclasses import replace
+
     from omnipipe.sim import make_scenario
     from omnipipe.sim import run as simulate
 
-    path = cache / f"{scenario}-{frames}-{size[0]}x{size[1]}-s{seed}"
+    gait = "" if rest is None else f"-rest{rest}"
+    path = cache / f"{scenario}{gait}-{frames}-{size[0]}x{size[1]}-s{seed}"
     if not (path / "rig.yaml").is_file():
         t0 = time.perf_counter()
-        simulate(make_scenario(scenario, frames=frames, size=size, seed=seed), path, force=True, workers=2)
+        scene = make_scenario(scenario, frames=frames, size=size, seed=seed)
+        if rest is not None:
+            scene.motion = replace(
+                scene.motion, moving_frames=STROKE_FRAMES, frames_per_cycle=STROKE_FRAMES + rest
+            )
+        simulate(scene, path, force=True, workers=2)
         print(f"simulated {path.name} in {time.perf_counter() - t0:.0f} s", flush=True)
     return path
 
 
-def _video(png: Path) -> tuple[Path, Path]:
-    """An MJPG video of the PNG dataset ``png`` (rig.yaml beside it) and a PNG dataset of
-    the video's decoded frames (made once, kept with the cache)."""
+STROKE_FRAMES = 6
+"""Frames of each stroke with ``--rest`` (the paper gait's head moves for 6 of its 24)."""
+
+
+def _video(png: Path, decoded_png: bool) -> tuple[Path, Path]:
+    """An MJPG video of the PNG dataset ``png`` (rig.yaml beside it) and (``decoded_png``)
+    a PNG dataset of the video's decoded frames (made once, kept with the cache)."""
     import cv2
 
     folder = png.parent / f"{png.name}-mjpg"
@@ -93,7 +111,7 @@ def _video(png: Path) -> tuple[Path, Path]:
             writer.write(cv2.imread(str(name)))
         writer.release()
         part.rename(video)
-    if not (decoded / "rig.yaml").is_file():
+    if decoded_png and not (decoded / "rig.yaml").is_file():
         (decoded / "frames").mkdir(parents=True, exist_ok=True)
         cap = cv2.VideoCapture(str(video))
         lines = []
@@ -152,9 +170,17 @@ def main() -> None:
     parser.add_argument("--scenario", default="paper")
     parser.add_argument("--size", default="400x300", help="WxH")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--rest", type=int, default=None,
+        help=f"gait: {STROKE_FRAMES}-frame strokes, each followed by REST frames at rest "
+        "(default: the scenario's gait)",
+    )
     parser.add_argument("--workers", type=int, default=None, help="local processes (default: every core)")
     parser.add_argument("--cache", default=None, help="keep the simulated runs here")
     parser.add_argument("--video", action="store_true", help="also an MJPG video of each run")
+    parser.add_argument(
+        "--decoded-png", action="store_true", help="with --video: also the video's frames as PNGs"
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -166,19 +192,19 @@ def main() -> None:
     rows: dict[str, list[dict]] = {"png": [], "mjpg": [], "mjpg-png": []}
     try:
         for n in args.frames:
-            path = _dataset(cache, args.scenario, n, size, args.seed)  # type: ignore[arg-type]
+            path = _dataset(cache, args.scenario, n, size, args.seed, args.rest)  # type: ignore[arg-type]
             inputs = [("png", path)]
             if args.video:
-                video, decoded = _video(path)
-                inputs += [("mjpg", video), ("mjpg-png", decoded)]
+                video, decoded = _video(path, args.decoded_png)
+                inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
             for kind, source in inputs:
                 row = _measure(source, args.workers)
                 if row is not None:
                     rows[kind].append(row)
                     _print_row(kind, row)
         for kind, done in rows.items():
-            if len(done) >= 2:
-                _compare(kind, done[-2], done[-1])
+            for later in done[1:]:  # each longer run against the shortest
+                _compare(kind, done[0], later)
     finally:
         if not args.cache:
             shutil.rmtree(cache, ignore_errors=True)
