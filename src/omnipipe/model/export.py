@@ -29,7 +29,7 @@ from contextlib import nullcontext
 from itertools import count
 from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TextIO
 from unittest import mock
 
 import numpy as np
@@ -299,6 +299,19 @@ def _rows(fmt: str, values: np.ndarray) -> str:
     return ((fmt + "\n") * len(values) % tuple(values.ravel().tolist()))[:-1]
 
 
+_ROWS_CHUNK = 1 << 15
+"""Rows formatted at once by :func:`_write_rows` (their Python numbers, about 40 bytes
+a value, are a chunk's, not the model's)."""
+
+
+def _write_rows(fh: TextIO, fmt: str, values: np.ndarray) -> None:
+    """Write :func:`_rows` of ``values`` to ``fh``, a chunk of rows at a time."""
+    for a in range(0, len(values), _ROWS_CHUNK):
+        if a:
+            fh.write("\n")
+        fh.write(_rows(fmt, values[a : a + _ROWS_CHUNK]))
+
+
 def write_obj(
     path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray
 ) -> None:
@@ -328,11 +341,11 @@ def write_obj(
         "o pipe_wall",
     ]
     body = [
-        "\n".join(lines),
-        _rows("v %.7f %.7f %.7f", np.asarray(v, float)),
-        _rows("vt %.6f %.6f", np.asarray(uvs, float)),
-        "usemtl pipe_wall\ns off",
-        _rows("f %d/%d %d/%d %d/%d", np.repeat(f, 2, axis=1)),
+        lambda fh: fh.write("\n".join(lines)),
+        lambda fh: _write_rows(fh, "v %.7f %.7f %.7f", np.asarray(v, float)),
+        lambda fh: _write_rows(fh, "vt %.6f %.6f", np.asarray(uvs, float)),
+        lambda fh: fh.write("usemtl pipe_wall\ns off"),
+        lambda fh: _write_rows(fh, "f %d/%d %d/%d %d/%d", np.repeat(f, 2, axis=1)),
     ]
     material = "\n".join(
         [
@@ -347,7 +360,13 @@ def write_obj(
         ]
     )
     try:
-        path.write_text("\n".join(body) + "\n", encoding="ascii")
+        # The parts joined by newlines, written a chunk of rows at a time.
+        with open(path, "w", encoding="ascii") as fh:
+            for i, part in enumerate(body):
+                if i:
+                    fh.write("\n")
+                part(fh)
+            fh.write("\n")
         mtl.write_text(material + "\n", encoding="ascii")
         Image.fromarray(np.ascontiguousarray(texture)).save(
             path.parent / OBJ_TEXTURE, compress_level=PNG_COMPRESS_LEVEL

@@ -395,12 +395,19 @@ def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
     return out
 
 
+_NUMBERS_CHUNK = 1 << 16
+"""Values formatted at once by :func:`_numbers` (their Python floats, about 100 bytes
+each, are a chunk's, not the mesh's)."""
+
+
 def _numbers(fmt: str, values: np.ndarray) -> str:
     """The values of ``values`` (any shape, row-major) in ``fmt``, comma-separated."""
     flat = np.asarray(values).ravel()
-    if not len(flat):
-        return ""
-    return ((fmt + ",") * len(flat) % tuple(flat.tolist()))[:-1]
+    parts = [
+        (fmt + ",") * len(chunk) % tuple(chunk.tolist())
+        for chunk in (flat[a : a + _NUMBERS_CHUNK] for a in range(0, len(flat), _NUMBERS_CHUNK))
+    ]
+    return "".join(parts)[:-1]
 
 
 def value_pm(value: float | None, sigma: float | None, *, plain: str = "±", digits: int = 2) -> str:
