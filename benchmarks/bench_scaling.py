@@ -30,18 +30,25 @@ import time
 from pathlib import Path
 
 
-def _child(dataset: str, workers: int | None) -> None:
-    """Reconstruct ``dataset`` in this process and print one JSON line of measurements."""
+def _child(dataset: str, workers: int | None, write_to: str | None) -> None:
+    """Reconstruct ``dataset`` in this process (and write its outputs into ``write_to``)
+    and print one JSON line of measurements."""
     from dataclasses import replace
 
     from omnipipe.dataset import open_dataset
-    from omnipipe.pipeline import ReconstructConfig, run
+    from omnipipe.pipeline import ReconstructConfig, run, write
 
     config = replace(ReconstructConfig.default(), workers=workers)
     t0 = time.perf_counter()
     rec = run(config, open_dataset(dataset))
     wall = time.perf_counter() - t0
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB -> MiB (Linux)
+    write_s = written = None
+    if write_to is not None:
+        t1 = time.perf_counter()
+        write(rec, Path(write_to) / "out")
+        write_s = time.perf_counter() - t1
+        written = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     workers_rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     s = rec.summary
     print(
@@ -53,6 +60,8 @@ def _child(dataset: str, workers: int | None) -> None:
                 "frames_per_s": s["frames_per_s"],
                 "keyframes": s["keyframes"],
                 "rss_mb": own,
+                "write_s": write_s,
+                "rss_with_write_mb": written,
                 "worker_rss_mb": workers_rss,
                 "executor": s.get("executor"),
             }
@@ -127,12 +136,16 @@ def _video(png: Path, decoded_png: bool) -> tuple[Path, Path]:
     return video, decoded
 
 
-def _measure(path: Path, workers: int | None) -> dict | None:
-    """Reconstruct ``path`` in a fresh process; its JSON line of measurements, or None."""
+def _measure(path: Path, workers: int | None, write: bool) -> dict | None:
+    """Reconstruct ``path`` in a fresh process (``write``: and write its outputs, into a
+    temporary folder removed after); its JSON line of measurements, or None."""
     cmd = [sys.executable, __file__, "--child", str(path)]
     if workers is not None:
         cmd += ["--workers", str(workers)]
-    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    with tempfile.TemporaryDirectory(prefix="omnipipe-scaling-out-") as out:
+        done = subprocess.run(
+            cmd + (["--write-to", out] if write else []), capture_output=True, text=True, check=False
+        )
     if done.returncode != 0:
         print(f"{path.name}: reconstruct failed: {done.stderr.strip().splitlines()[-1:]}")
         return None
@@ -145,8 +158,13 @@ def _print_row(kind: str, row: dict) -> None:
         f"{kind:9s} {row['frames']:5d} frames ({row['keyframes']} keyframes): {row['wall_s']:7.1f} s, "
         f"{fps['total']:6.2f} frames/s (laser {fps['laser']:.1f}, sfm {fps['sfm']:.2f}, "
         f"analysis {fps['analysis']:.1f}, model {fps['model']:.2f}); peak RSS "
-        f"{row['rss_mb']:.0f} MB (largest worker {row['worker_rss_mb']:.0f} MB); "
-        f"{row['executor']}",
+        f"{row['rss_mb']:.0f} MB (largest worker {row['worker_rss_mb']:.0f} MB)"
+        + (
+            f", with writing {row['rss_with_write_mb']:.0f} MB ({row['write_s']:.0f} s); "
+            if row.get("write_s") is not None
+            else "; "
+        )
+        + f"{row['executor']}",
         flush=True,
     )
 
@@ -154,6 +172,10 @@ def _print_row(kind: str, row: dict) -> None:
 def _compare(kind: str, a: dict, b: dict) -> None:
     dfps = b["frames_per_s"]["total"] / a["frames_per_s"]["total"] - 1
     drss = b["rss_mb"] / a["rss_mb"] - 1
+    if a.get("rss_with_write_mb") and b.get("rss_with_write_mb"):
+        dw = b["rss_with_write_mb"] / a["rss_with_write_mb"] - 1
+        print(f"{kind}: {a['frames']} -> {b['frames']} frames: peak RSS with writing {100 * dw:+.0f} % "
+              f"({a['rss_with_write_mb']:.0f} -> {b['rss_with_write_mb']:.0f} MB)")
     print(
         f"{kind}: {a['frames']} -> {b['frames']} frames: frames/s {100 * dfps:+.0f} %, "
         f"peak RSS {100 * drss:+.0f} % ({a['rss_mb']:.0f} -> {b['rss_mb']:.0f} MB, "
@@ -181,10 +203,15 @@ def main() -> None:
     parser.add_argument(
         "--decoded-png", action="store_true", help="with --video: also the video's frames as PNGs"
     )
+    parser.add_argument(
+        "--write", action="store_true",
+        help="also write each run's outputs (omnipipe.pipeline.write) and its peak RSS with it",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--write-to", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        _child(args.child, args.workers)
+        _child(args.child, args.workers, args.write_to)
         return
     size = tuple(int(v) for v in args.size.split("x"))
     cache = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="omnipipe-scaling-"))
@@ -198,7 +225,7 @@ def main() -> None:
                 video, decoded = _video(path, args.decoded_png)
                 inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
             for kind, source in inputs:
-                row = _measure(source, args.workers)
+                row = _measure(source, args.workers, args.write)
                 if row is not None:
                     rows[kind].append(row)
                     _print_row(kind, row)

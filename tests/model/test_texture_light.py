@@ -46,6 +46,24 @@ def test_flat_field_recovers_albedo_up_to_scale() -> None:
         flat_field(raw, light[:, :10])
 
 
+@pytest.mark.parametrize("shape", [(37, 53), (1500, 2700)])  # the second: every 2nd cell
+def test_flat_field_does_not_depend_on_its_chunks(shape: tuple[int, int], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The estimate taken a few cells at a time gives the image taken at once, bit for bit."""
+    from omnipipe.model import texture_light
+
+    rng = np.random.default_rng(4)
+    h, w = shape
+    img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    light = np.stack([rng.normal(-10, 1, (h, w)), rng.uniform(50, 150, (h, w))], 2).astype(np.float16)
+    light[rng.uniform(size=(h, w)) < 0.1] = np.nan
+    raw = UnrolledImage(img, rng.uniform(size=(h, w)) < 0.9, 0.5, 0.0, 150.0)
+    monkeypatch.setattr(texture_light, "_CELLS_AT_ONCE", h * w)
+    whole = flat_field(raw, light).image
+    monkeypatch.setattr(texture_light, "_CELLS_AT_ONCE", 1009)
+    assert np.array_equal(flat_field(raw, light).image, whole)
+    assert np.mean(whole != img) > 0.5  # it did correct
+
+
 @pytest.mark.slow  # 4 s: a whole reconstruction; the model stage stays covered by tests/model/test_model.py and tests/pipeline
 def test_demo_like_run_has_even_light_and_no_laser_band(small_dataset: Path) -> None:
     """paper-small (400x300, 24 frames): the unrolled wall's luminance over the true

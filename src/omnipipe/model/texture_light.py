@@ -10,6 +10,7 @@ vignetting as a gain of the image radius estimated from the data.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import replace
 
 import numpy as np
@@ -80,20 +81,22 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
     if light.shape != (h, w, 2):
         raise ShapeError(f"light: expected shape ({h}, {w}, 2), got {light.shape}")
     stride = max(1, (h * w) // 2_000_000)  # the estimate from at most ~2 M cells
-    lum = img.reshape(-1, 3)[::stride].astype(np.float32).mean(axis=1)
-    irr = np.exp2(light.reshape(-1, 2)[::stride, 0].astype(np.float32))
-    rad = light.reshape(-1, 2)[::stride, 1].astype(np.float32)
-    ok = unrolled.alpha.reshape(-1)[::stride] & np.isfinite(irr) & (irr > 0) & (lum > 2) & (lum < 253)
-    if np.count_nonzero(ok) < 4 * FLAT_FIELD_BINS:
+    samples = _FlatFieldCells(img, light, unrolled.alpha, stride)
+    lum, irr, r_ok = samples.usable()
+    if len(lum) < 4 * FLAT_FIELD_BINS:
         return unrolled
-    irr_ref = float(np.median(irr[ok]))
-    ratio = lum[ok] / (irr[ok] / irr_ref)
-    r_ok = rad[ok]
+    irr_ref = float(np.median(irr))
+    ratio = lum / (irr / irr_ref)
+    del lum, irr
     edges = np.unique(np.quantile(r_ok, np.linspace(0.0, 1.0, FLAT_FIELD_BINS + 1)))
-    which = np.clip(np.searchsorted(edges, r_ok, side="right") - 1, 0, max(len(edges) - 2, 0))
+    which = np.empty(len(r_ok), np.min_scalar_type(len(edges)))
+    for a in range(0, len(r_ok), _CELLS_AT_ONCE):  # the bins' int64 a chunk at a time
+        b = a + _CELLS_AT_ONCE
+        which[a:b] = np.clip(np.searchsorted(edges, r_ok[a:b], side="right") - 1, 0, max(len(edges) - 2, 0))
     centres = np.array([np.median(r_ok[which == b]) for b in range(len(edges) - 1) if np.any(which == b)])
     level = np.array([np.median(ratio[which == b]) for b in range(len(edges) - 1) if np.any(which == b)])
     vign = level / float(np.median(ratio))
+    del ratio, r_ok, which
 
     def gain(cells: np.ndarray) -> np.ndarray:
         """(..., ) float32 relative gain E x V of cells' (..., 2) light."""
@@ -102,12 +105,60 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
         return np.where(np.isfinite(g), np.clip(g, 0.1, 10.0), 1.0).astype(np.float32)
 
     # One scale for the whole wall: its corrected median luminance to the target level.
-    seen = unrolled.alpha.reshape(-1)[::stride]
-    corrected = lum[seen] / gain(light.reshape(-1, 2)[::stride][seen])
+    corrected = np.concatenate(
+        [lum_c[seen] / gain(light_c[seen]) for lum_c, light_c, seen in samples.chunks()]
+    )
     scale = FLAT_FIELD_LEVEL / max(float(np.median(corrected)), 1e-6)
+    del corrected
     out = np.empty_like(img)
     for r0 in range(0, h, STRIP_ROWS):  # float32 intermediates a strip of rows at a time
         g = gain(light[r0 : r0 + STRIP_ROWS])
         part = img[r0 : r0 + STRIP_ROWS].astype(np.float32) * (scale / g)[..., None]
         out[r0 : r0 + STRIP_ROWS] = np.clip(np.round(part), 0, 255).astype(np.uint8)
     return replace(unrolled, image=out)
+
+
+_CELLS_AT_ONCE = 1 << 18
+"""Cells of :func:`flat_field`'s estimate evaluated at once (its float intermediates a
+chunk's, not the wall's)."""
+
+
+class _FlatFieldCells:
+    """The cells :func:`flat_field` estimates from (every ``stride``-th, row-major), a
+    chunk at a time: the same values as taken all at once."""
+
+    def __init__(self, img: np.ndarray, light: np.ndarray, alpha: np.ndarray, stride: int) -> None:
+        self.img, self.light = img.reshape(-1, 3), light.reshape(-1, 2)
+        self.alpha, self.stride = alpha.reshape(-1), stride
+
+    def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per chunk: (n,) float32 luminance, (n, 2) light and (n,) alpha of its cells."""
+        step = self.stride * _CELLS_AT_ONCE  # chunks start on a multiple of the stride
+        for a in range(0, len(self.img), step):
+            sl = slice(a, a + step, self.stride)
+            yield self.img[sl].astype(np.float32).mean(axis=1), self.light[sl], self.alpha[sl]
+
+    def usable(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Luminance, irradiance E (float32) and image radius of the cells fit for the
+        estimate (seen, finite positive E, luminance neither dark nor saturated)."""
+        lum: list[np.ndarray] = []
+        irr: list[np.ndarray] = []
+        rad: list[np.ndarray] = []
+        for lum_c, light_c, alpha_c in self.chunks():
+            irr_c = np.exp2(light_c[:, 0].astype(np.float32))
+            ok = alpha_c & np.isfinite(irr_c) & (irr_c > 0) & (lum_c > 2) & (lum_c < 253)
+            lum.append(lum_c[ok])
+            irr.append(irr_c[ok])
+            rad.append(light_c[ok, 1].astype(np.float32))
+        return _joined(lum, np.float32), _joined(irr, np.float32), _joined(rad, np.float32)
+
+
+def _joined(parts: list[np.ndarray], dtype: type) -> np.ndarray:
+    """``np.concatenate(parts)`` (the parts released as it goes), or an empty array."""
+    out = np.empty(sum(len(p) for p in parts), dtype)
+    at = 0
+    while parts:
+        part = parts.pop(0)
+        out[at : at + len(part)] = part
+        at += len(part)
+    return out
