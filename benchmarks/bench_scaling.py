@@ -211,6 +211,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=None, help="local processes (default: every core)")
     parser.add_argument("--cache", default=None, help="keep the simulated runs here")
     parser.add_argument("--video", action="store_true", help="also an MJPG video of each run")
+    parser.add_argument("--no-png", action="store_true", help="with --video: the video only")
     parser.add_argument(
         "--decoded-png", action="store_true", help="with --video: also the video's frames as PNGs"
     )
@@ -231,7 +232,7 @@ def main() -> None:
     try:
         for n in args.frames:
             path = _dataset(cache, args.scenario, n, size, args.seed, args.rest)  # type: ignore[arg-type]
-            inputs = [("png", path)]
+            inputs = [] if args.no_png else [("png", path)]
             if args.video:
                 video, decoded = _video(path, args.decoded_png)
                 inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
