@@ -4,9 +4,11 @@ Frames come in order (:func:`moving_frames`: stationary ones, whose robot stood 
 are left out, :mod:`omnipipe.sfm.stations`). :class:`KeyframeLoop` takes each moving
 frame:
 
-- the last keyframe's features are tracked into it by optical flow
-  (:mod:`omnipipe.sfm.tracking`), or matched by SIFT descriptors
-  (:mod:`omnipipe.sfm.features`) when too few were tracked or tracking is off;
+- the last keyframe's features are tracked into it by optical flow from the frame
+  before (:class:`omnipipe.sfm.tracking.TrackChain`), or matched by SIFT descriptors
+  (:mod:`omnipipe.sfm.features`) when too few were tracked or tracking is off; a new
+  keyframe's correspondences are the best RANSAC-verified of its descriptor matches
+  (global, or guided by the tracks) and the tracks themselves;
 - the relative motion of the matched rays (eight-point algorithm with RANSAC,
   Eq. 10-16, :mod:`omnipipe.sfm.ransac`) tells how far the rays turned, rotation
   removed: under ``keyframe_min_parallax_deg`` the frame is *pending* (resected after

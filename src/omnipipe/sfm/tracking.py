@@ -102,11 +102,6 @@ class Tracks:
         return np.stack([self.feature, np.arange(len(self.feature))], axis=1)
 
 
-def followed_count(n_features: int, config: TrackConfig) -> int:
-    """How many of a keyframe's ``n_features`` features :func:`track_features` follows."""
-    return min(n_features, config.max_points)
-
-
 def _followed(n: int, config: TrackConfig) -> np.ndarray:
     """The indices of ``n`` features that are followed (at most ``config.max_points``,
     evenly over the list)."""
