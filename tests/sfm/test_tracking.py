@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from omnipipe.geometry import invert
 from omnipipe.sfm.features import FeatureExtractor, FrameViews
 from omnipipe.sfm.geometry import triangulate_pairs
 from omnipipe.sfm.ransac import estimate_relative_motion
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, track_features
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, corner_features, track_features
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
@@ -134,3 +135,30 @@ def test_chained_tracks_follow_a_tiled_wall_without_skipping_a_period() -> None:
     # Each track's depth with a unit step, against the wall's true depth along its ray.
     length = float(np.median(s[ok] / depth[ok, 0]))
     assert abs(length - true_len) < 0.03 * true_len
+
+
+def test_corners_top_up_a_keyframe_with_few_sift_features(two_frames) -> None:
+    extractor, views_a, views_b, b_from_a = two_frames
+    key = extractor.detect(views_a)
+    few = replace(key, rays_in_rig=key.rays_in_rig[:50], pixels=key.pixels[:50], descriptors=key.descriptors[:50],
+                  view=key.view[:50], view_pixels=key.view_pixels[:50])  # fmt: skip
+    config = TrackConfig(min_corner_points=400)
+    corners = corner_features(extractor, views_a, few, config)
+    assert 200 <= len(corners.view) <= 400 + len(extractor.views)
+    assert not np.any(corners.descriptors)  # never matched by descriptor
+    # Each corner keeps its distance from the SIFT features of its view.
+    for k in range(len(extractor.views)):
+        c, s = corners.view_pixels[corners.view == k], few.view_pixels[few.view == k]
+        if len(c) and len(s):
+            assert np.min(np.linalg.norm(c[:, None] - s[None], axis=2)) >= config.min_corner_distance_px - 1
+    # Followed frame to frame, the corners' tracks are as good as SIFT keypoints'.
+    chain = TrackChain(extractor, views_a, corners, TrackConfig())
+    tracks = chain.advance(views_b)
+    assert len(tracks.feature) >= 0.5 * chain.n_followed
+    err = _epipolar_deg(corners.rays_in_rig[tracks.feature], tracks.features.rays_in_rig, b_from_a)
+    view = extractor.views[0]
+    r = view.rays(np.array([[view.width / 2, view.height / 2], [view.width / 2 + 1, view.height / 2]]))
+    px_deg = math.degrees(math.acos(float(np.clip(r[0] @ r[1], -1, 1))))
+    assert np.median(err) < 0.35 * px_deg
+    # Enough SIFT features: no corners.
+    assert len(corner_features(extractor, views_a, key, TrackConfig(min_corner_points=len(key.view))).view) == 0
