@@ -209,7 +209,12 @@ class KeyframeLoop:
         if last is None:
             self._add_keyframe(frame, self._keyframe_features(frame, features), 0)
             return
-        closing = frame.frame == self.inputs.n_frames - 1  # the last frame is always a keyframe
+        # The last moving frame is always a keyframe (when the moving frames are known
+        # beforehand; else the last frame): no frame is left pending after the last step.
+        last_moving = self.inputs.n_frames - 1
+        if self.inputs.moved is not None and self.moved.any():
+            last_moving = int(np.flatnonzero(self.moved)[-1])
+        closing = frame.frame >= last_moving
         step = self._chained_step(last, frame)
         if step is not None and step.parallax_rad < self._min_parallax and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
