@@ -170,6 +170,7 @@ def follow_keyframes(
     loop = KeyframeLoop(ctx, inputs, grays)
     for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress):
         loop.add(frame)
+    loop.finish()
     return loop.result()
 
 
@@ -199,22 +200,20 @@ class KeyframeLoop:
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
         # The last keyframe's tracks, followed frame to frame (None: tracking off).
         self._chain: TrackChain | None = None
+        self._latest: MovingFrame | None = None  # the last moving frame added
         # A new feature this close (rad) to a track carried on is that track.
         self._near = 2.0 * ctx.camera.angular_resolution()
 
-    def add(self, frame: MovingFrame) -> None:
-        """One moving frame: pending (too little parallax) or the next keyframe."""
+    def add(self, frame: MovingFrame, closing: bool = False) -> None:
+        """One moving frame: pending (too little parallax) or the next keyframe (always
+        with ``closing``)."""
+        self._latest = frame
         last = self._last
         features = frame.features
         if last is None:
             self._add_keyframe(frame, self._keyframe_features(frame, features), 0)
             return
-        # The last moving frame is always a keyframe (when the moving frames are known
-        # beforehand; else the last frame): no frame is left pending after the last step.
-        last_moving = self.inputs.n_frames - 1
-        if self.inputs.moved is not None and self.moved.any():
-            last_moving = int(np.flatnonzero(self.moved)[-1])
-        closing = frame.frame >= last_moving
+        closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
         if step is not None and step.parallax_rad < self._min_parallax and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
@@ -318,6 +317,18 @@ class KeyframeLoop:
             return None
         pair = StepPair(key.frame, frame.frame, key.features, tracks.features, m)
         return TrackedStep(tracks, m[motion.inliers], _parallax(pair, motion))
+
+    def finish(self) -> None:
+        """After the last moving frame: when it was left pending (the robot stood still
+        from there on), it becomes a keyframe, so that no frame waits for a step that
+        never comes."""
+        frame = self._latest
+        if frame is None or not self.pending or self.pending[-1].frame != frame.frame:
+            return
+        self.pending.pop()
+        self._pending_views.pop(frame.frame, None)
+        self.tracked[frame.frame] = False
+        self.add(frame, closing=True)
 
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
