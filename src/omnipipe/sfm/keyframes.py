@@ -321,9 +321,13 @@ class KeyframeLoop:
     def finish(self) -> None:
         """After the last moving frame: when it was left pending (the robot stood still
         from there on), it becomes a keyframe, so that no frame waits for a step that
-        never comes."""
+        never comes (without it, a plain wall's few tracked frames left no step at all:
+        nothing measured, nothing refused). With the robot's odometry such frames are
+        placed by its travel instead (:func:`omnipipe.sfm.adjust.resect_pending`)."""
         frame = self._latest
-        if frame is None or not self.pending or self.pending[-1].frame != frame.frame:
+        if self.inputs.odometry is not None or frame is None:
+            return
+        if not self.pending or self.pending[-1].frame != frame.frame:
             return
         self.pending.pop()
         self._pending_views.pop(frame.frame, None)
