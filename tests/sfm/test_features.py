@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from omnipipe.sfm.features import FrameFeatures, match_features
+from omnipipe.sfm.features import FrameFeatures, guided_matches, match_features
 
 
 def _features(descriptors: np.ndarray) -> FrameFeatures:
@@ -74,3 +74,42 @@ def test_track_labels_join_matched_features_across_frames() -> None:
     assert np.array_equal(labels, expected)
     assert labels.max() + 1 < n  # some features were joined
     assert np.array_equal(track_labels(offset, []), np.arange(n))
+
+
+def _periodic_wall(rng: np.random.Generator, period: float, shift: float):
+    """Features on a wall that repeats every ``period`` rad of azimuth (3 kinds of
+    texel, 12 periods): frame 2 sees it turned by ``shift`` rad; each kind's
+    descriptor is the same in every period (plus noise)."""
+    kinds = rng.random((3, 128)).astype(np.float32) * 100
+    az = np.concatenate([np.arange(12) * period + k * period / 3 for k in range(3)])
+    kind = np.repeat(np.arange(3), 12)
+
+    def frame(offset: float) -> FrameFeatures:
+        a = az + offset
+        rays = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
+        desc = (kinds[kind] + rng.normal(0, 1, (len(a), 128))).astype(np.float32)
+        return FrameFeatures(rays, np.zeros((len(a), 2)), desc, np.zeros(len(a), int))
+
+    return frame(0.0), frame(shift)
+
+
+def test_guided_matching_keeps_each_feature_in_its_own_period() -> None:
+    rng = np.random.default_rng(7)
+    period, shift = 0.3, 0.07  # the wall turned by under a quarter period
+    f1, f2 = _periodic_wall(rng, period, shift)
+    # Every period looks alike: the global ratio test finds (almost) nothing.
+    assert len(match_features(f1, f2, 0.8)) <= 2
+    # Predicted a little off the truth (a track's error), searched within under half a
+    # third of the period (the nearest other texel of any kind): each finds itself.
+    a = np.arctan2(f1.rays_in_rig[:, 1], f1.rays_in_rig[:, 0]) + shift + rng.normal(0, 0.01, 36)
+    predicted = np.column_stack([np.cos(a), np.sin(a), np.zeros(36)])
+    m = guided_matches(f1, f2, np.arange(36), predicted, radius_rad=0.04, ratio=0.8)
+    assert len(m) == 36 and np.array_equal(m[:, 0], m[:, 1])
+    # A prediction a whole period off finds the wrong period's twin: the guide decides.
+    wrong = predicted @ np.array([[np.cos(period), np.sin(period), 0], [-np.sin(period), np.cos(period), 0], [0, 0, 1]])
+    m = guided_matches(f1, f2, np.arange(36), wrong, radius_rad=0.04)
+    assert np.all(m[:, 1] != m[:, 0])
+    # Features without a descriptor (tracked points, corners) are never matched.
+    f2.descriptors[:] = 0
+    assert len(guided_matches(f1, f2, np.arange(36), predicted, radius_rad=0.04)) == 0
+    assert len(match_features(f1, f2)) == 0

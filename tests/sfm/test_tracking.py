@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,9 @@ from omnipipe.config import dataclass_from_dict
 from omnipipe.errors import ConfigError
 from omnipipe.geometry import invert
 from omnipipe.sfm.features import FeatureExtractor, FrameViews
-from omnipipe.sfm.tracking import TrackConfig, track_features
+from omnipipe.sfm.geometry import triangulate_pairs
+from omnipipe.sfm.ransac import estimate_relative_motion
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, corner_features, track_features
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
@@ -89,3 +92,73 @@ def test_nothing_is_tracked_into_a_blank_frame(two_frames) -> None:
 def test_bad_settings_name_their_field(field: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"sfm.tracking.{field}"):
         dataclass_from_dict(TrackConfig, {field: value}, "sfm.tracking")
+
+
+@pytest.mark.slow
+def test_chained_tracks_follow_a_tiled_wall_without_skipping_a_period() -> None:
+    """tiled-culvert-small: 30 mm tiles, 2-7 mm of travel between frames, 22.7 mm over
+    the first 5: a track that jumped a tile would put its step a period (30 mm) off.
+    Followed frame to frame, the tracks land on the true wall points, and the step
+    their triangulation gives is the true one."""
+    scenario = make_scenario("tiled-culvert-small", frames=6, seed=0)
+    renderer, poses, _, _ = build_renderer(scenario)
+    extractor = FeatureExtractor(camera_from_rig(scenario.rig))
+    channel = scenario.rig.laser.channel
+    views = [
+        extractor.frame_views(renderer.expose(renderer.irradiance(p, seed=5 + i)[0], seed=5 + i), channel)
+        for i, p in enumerate(poses)
+    ]
+    key = extractor.detect(views[0])
+    chain = TrackChain(extractor, views[0], key, TrackConfig())
+    for v in views[1:]:
+        tracks = chain.advance(v)
+    assert len(tracks.feature) >= 0.5 * chain.n_followed
+    # The true ray in frame 5 of each keyframe feature: where its ray meets the 600 mm wall.
+    radius = 0.5 * scenario.pipe.inner_diameter_mm
+    rays_w = key.rays_in_rig[tracks.feature] @ poses[0][:3, :3].T
+    o = poses[0][:3, 3]
+    a, b = np.sum(rays_w[:, :2] ** 2, axis=1), 2 * rays_w[:, :2] @ o[:2]
+    s = (-b + np.sqrt(b * b - 4 * a * (o[:2] @ o[:2] - radius**2))) / (2 * a)
+    in_b = (o + s[:, None] * rays_w - poses[5][:3, 3]) @ poses[5][:3, :3]
+    true_b = in_b / np.linalg.norm(in_b, axis=1, keepdims=True)
+    err_px = np.arccos(np.clip(np.sum(true_b * tracks.features.rays_in_rig, axis=1), -1, 1))
+    err_px /= extractor.camera.angular_resolution()
+    # A tile is about 10 px here: the tracks are on their own tile, to a fraction of a px.
+    assert np.median(err_px) < 0.3 and np.mean(err_px > 3.0) < 0.1
+    # The step from the tracks alone (Eq. 10-16 with RANSAC; its length from the
+    # wall's true depth along each ray): within 3 % of the true 22.7 mm, where tracks
+    # a tile off would make it a different step altogether.
+    true_len = float(np.linalg.norm((invert(poses[5]) @ poses[0])[:3, 3]))
+    unit = estimate_relative_motion(key.rays_in_rig[tracks.feature], tracks.features.rays_in_rig).rig2_from_rig1
+    _, depth = triangulate_pairs(key.rays_in_rig[tracks.feature], tracks.features.rays_in_rig, unit)
+    ok = depth[:, 0] > 0
+    # Each track's depth with a unit step, against the wall's true depth along its ray.
+    length = float(np.median(s[ok] / depth[ok, 0]))
+    assert abs(length - true_len) < 0.03 * true_len
+
+
+def test_corners_top_up_a_keyframe_with_few_sift_features(two_frames) -> None:
+    extractor, views_a, views_b, b_from_a = two_frames
+    key = extractor.detect(views_a)
+    few = replace(key, rays_in_rig=key.rays_in_rig[:50], pixels=key.pixels[:50], descriptors=key.descriptors[:50],
+                  view=key.view[:50], view_pixels=key.view_pixels[:50])  # fmt: skip
+    config = TrackConfig(min_corner_points=400)
+    corners = corner_features(extractor, views_a, few, config)
+    assert 200 <= len(corners.view) <= 400 + len(extractor.views)
+    assert not np.any(corners.descriptors)  # never matched by descriptor
+    # Each corner keeps its distance from the SIFT features of its view.
+    for k in range(len(extractor.views)):
+        c, s = corners.view_pixels[corners.view == k], few.view_pixels[few.view == k]
+        if len(c) and len(s):
+            assert np.min(np.linalg.norm(c[:, None] - s[None], axis=2)) >= config.min_corner_distance_px - 1
+    # Followed frame to frame, the corners' tracks are as good as SIFT keypoints'.
+    chain = TrackChain(extractor, views_a, corners, TrackConfig())
+    tracks = chain.advance(views_b)
+    assert len(tracks.feature) >= 0.5 * chain.n_followed
+    err = _epipolar_deg(corners.rays_in_rig[tracks.feature], tracks.features.rays_in_rig, b_from_a)
+    view = extractor.views[0]
+    r = view.rays(np.array([[view.width / 2, view.height / 2], [view.width / 2 + 1, view.height / 2]]))
+    px_deg = math.degrees(math.acos(float(np.clip(r[0] @ r[1], -1, 1))))
+    assert np.median(err) < 0.35 * px_deg
+    # Enough SIFT features: no corners.
+    assert len(corner_features(extractor, views_a, key, TrackConfig(min_corner_points=len(key.view))).view) == 0

@@ -4,9 +4,11 @@ Frames come in order (:func:`moving_frames`: stationary ones, whose robot stood 
 are left out, :mod:`omnipipe.sfm.stations`). :class:`KeyframeLoop` takes each moving
 frame:
 
-- the last keyframe's features are tracked into it by optical flow
-  (:mod:`omnipipe.sfm.tracking`), or matched by SIFT descriptors
-  (:mod:`omnipipe.sfm.features`) when too few were tracked or tracking is off;
+- the last keyframe's features are tracked into it by optical flow from the frame
+  before (:class:`omnipipe.sfm.tracking.TrackChain`), or matched by SIFT descriptors
+  (:mod:`omnipipe.sfm.features`) when too few were tracked or tracking is off; a new
+  keyframe's correspondences are the best RANSAC-verified of its descriptor matches
+  (global, or guided by the tracks) and the tracks themselves;
 - the relative motion of the matched rays (eight-point algorithm with RANSAC,
   Eq. 10-16, :mod:`omnipipe.sfm.ransac`) tells how far the rays turned, rotation
   removed: under ``keyframe_min_parallax_deg`` the frame is *pending* (resected after
@@ -43,7 +45,7 @@ from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
 from omnipipe.sfm.robot_sensors import odometry_moved
 from omnipipe.sfm.stations import StationTracker
 from omnipipe.sfm.tasks import FeatureTask, matched_rays, step_evidence, track_back
-from omnipipe.sfm.tracking import TrackChain, Tracks, corner_features
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, corner_features
 from omnipipe.sfm.types import (
     KeyframeRays,
     Keyframes,
@@ -168,6 +170,7 @@ def follow_keyframes(
     loop = KeyframeLoop(ctx, inputs, grays)
     for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress):
         loop.add(frame)
+    loop.finish()
     return loop.result()
 
 
@@ -197,17 +200,23 @@ class KeyframeLoop:
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
         # The last keyframe's tracks, followed frame to frame (None: tracking off).
         self._chain: TrackChain | None = None
+        self._latest: MovingFrame | None = None  # the last moving frame added
+        # SIFT on every moving frame (once the chained tracks were found to skip a
+        # period of the wall).
+        self._direct = False
         # A new feature this close (rad) to a track carried on is that track.
         self._near = 2.0 * ctx.camera.angular_resolution()
 
-    def add(self, frame: MovingFrame) -> None:
-        """One moving frame: pending (too little parallax) or the next keyframe."""
+    def add(self, frame: MovingFrame, closing: bool = False) -> None:
+        """One moving frame: pending (too little parallax) or the next keyframe (always
+        with ``closing``)."""
+        self._latest = frame
         last = self._last
         features = frame.features
         if last is None:
             self._add_keyframe(frame, self._keyframe_features(frame, features), 0)
             return
-        closing = frame.frame == self.inputs.n_frames - 1  # the last frame is always a keyframe
+        closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
         if step is not None and step.parallax_rad < self._min_parallax and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
@@ -254,18 +263,25 @@ class KeyframeLoop:
         inl = step.inliers
         detected = self._keyframe_features(frame, None)
         radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
-        best, best_count = np.zeros((0, 2), int), 0
-        for m in (
-            match_features(last.features, detected, ratio),
-            guided_matches(
-                last.features, detected, inl[:, 0], step.tracks.features.rays_in_rig[inl[:, 1]],
-                radius, ratio,
-            ),
-        ):  # fmt: skip
-            count = _inlier_count(self.ctx, last.features, detected, m)
-            if count > best_count:
-                best, best_count = m, count
-        if best_count > 0 and config.chain_over_descriptors * best_count >= len(inl):
+        track_rays = step.tracks.features.rays_in_rig[inl[:, 1]]
+        everywhere = _verified(self.ctx, last.features, detected, match_features(last.features, detected, ratio))
+        guided = _verified(
+            self.ctx, last.features, detected,
+            guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
+        )  # fmt: skip
+        best = everywhere if len(everywhere) >= len(guided) else guided
+        if not self._direct and _skipped_period(inl[:, 0], track_rays, everywhere, detected, 2 * radius, config):
+            # The wall moved more than half its period between two frames somewhere: SIFT
+            # on every moving frame from here on, and this step's frames are redone.
+            self.ctx.warnings.append(
+                f"frames {last.frame}->{frame.frame}: the tracks followed frame to frame disagree with "
+                "the descriptor matches (a periodic wall moved more than half its period between "
+                "two frames): matched by SIFT descriptors from here on"
+            )
+            self._direct = True
+            self._redo_pending(last)
+            return detected, everywhere, 0
+        if len(best) and config.chain_over_descriptors * len(best) >= len(inl):
             return detected, best, 0
         continued = _subset(step.tracks.features, inl[:, 1])
         features = self._keyframe_features(frame, detected, continued)
@@ -292,6 +308,21 @@ class KeyframeLoop:
             features = _concat([continued, _subset(features, np.flatnonzero(~np.isfinite(near)))])
         return features
 
+    def _redo_pending(self, last: _Keyframe) -> None:
+        """The frames pending since ``last`` (with views) matched to it again by SIFT
+        descriptors, their chained tracks dropped (no matches when none are verified:
+        they are then resected from the next keyframe's side, or flagged)."""
+        k = len(self.features) - 1
+        ratio = self.ctx.config.features.ratio
+        for j, p in enumerate(self.pending):
+            views = self._pending_views.pop(p.frame, None)
+            if p.keyframe != k or views is None:
+                continue
+            features = self.extractor.detect(views)
+            inliers = _verified(self.ctx, last.features, features, match_features(last.features, features, ratio))
+            self.pending[j] = replace(p, features=features, inliers=inliers)
+            self.tracked[p.frame] = False
+
     def _chained_step(self, key: _Keyframe, frame: MovingFrame) -> TrackedStep | None:
         """The last keyframe's tracks followed on into ``frame``'s views, or None when
         there is no chain (tracking off), too few were tracked or no relative motion fits
@@ -299,8 +330,11 @@ class KeyframeLoop:
         if self._chain is None or frame.views is None:
             return None
         config = self.ctx.config.tracking
+        if self._direct:
+            return None  # the chain skipped a period once: descriptors from here on
+        least = max(config.min_tracks, self.ctx.ransac.min_inliers)
         tracks = self._chain.advance(frame.views)
-        if len(tracks.feature) < max(config.min_tracks, self.ctx.ransac.min_inliers):
+        if len(tracks.feature) < least:
             return None
         m = tracks.matches
         try:
@@ -311,6 +345,22 @@ class KeyframeLoop:
             return None
         pair = StepPair(key.frame, frame.frame, key.features, tracks.features, m)
         return TrackedStep(tracks, m[motion.inliers], _parallax(pair, motion))
+
+    def finish(self) -> None:
+        """After the last moving frame: when it was left pending (the robot stood still
+        from there on), it becomes a keyframe, so that no frame waits for a step that
+        never comes (without it, a plain wall's few tracked frames left no step at all:
+        nothing measured, nothing refused). With the robot's odometry such frames are
+        placed by its travel instead (:func:`omnipipe.sfm.adjust.resect_pending`)."""
+        frame = self._latest
+        if self.inputs.odometry is not None or frame is None:
+            return
+        if not self.pending or self.pending[-1].frame != frame.frame:
+            return
+        self.pending.pop()
+        self._pending_views.pop(frame.frame, None)
+        self.tracked[frame.frame] = False
+        self.add(frame, closing=True)
 
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
@@ -497,13 +547,36 @@ def _relative(ctx: SfmContext, pair: StepPair) -> RelativeMotion | None:
         return None
 
 
-def _inlier_count(ctx: SfmContext, fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray) -> int:
-    """How many of the matches ``m`` one relative motion explains (RANSAC; 0: none)."""
+def _verified(ctx: SfmContext, fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray) -> np.ndarray:
+    """The matches ``m`` (M, 2) one relative motion explains (RANSAC inliers; none when
+    no motion fits)."""
     try:
         motion = estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ctx.ransac)
     except ReconstructionError:
-        return 0
-    return int(motion.inliers.sum())
+        return np.zeros((0, 2), int)
+    return m[motion.inliers]
+
+
+def _skipped_period(
+    feature: np.ndarray,
+    track_rays: np.ndarray,
+    matches: np.ndarray,
+    features_b: FrameFeatures,
+    tolerance_rad: float,
+    config: TrackConfig,
+) -> bool:
+    """True when the tracks of keyframe features ``feature`` (P,), at ``track_rays``
+    (P, 3) in frame b, and RANSAC-verified descriptor ``matches`` (M, 2) into
+    ``features_b`` disagree: of at least ``config.min_tracks`` features both found, at
+    most half are within ``tolerance_rad`` of each other (a track that jumped a period
+    of a periodic wall lands a period from its descriptor match)."""
+    pos = {int(f): i for i, f in enumerate(feature)}
+    common = [(pos[int(a)], int(b)) for a, b in matches if int(a) in pos]
+    if len(common) < config.min_tracks:
+        return False
+    t, b = np.array(common).T
+    cos = np.sum(track_rays[t] * features_b.rays_in_rig[b], axis=1)
+    return bool(np.mean(cos > math.cos(tolerance_rad)) <= 0.5)
 
 
 def _parallax(pair: StepPair, motion: RelativeMotion) -> float:

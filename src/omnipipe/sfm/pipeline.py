@@ -6,10 +6,13 @@
    images (:mod:`omnipipe.sfm.stations`); each stop is one station, its frames share
    one pose and are flagged ``stationary``.
 2. Keyframes: the last keyframe's SIFT features (perspective views,
-   :mod:`omnipipe.sfm.features`) are tracked by optical flow into each station's first
-   frame (:mod:`omnipipe.sfm.tracking`); the station becomes a keyframe once the rays
-   turned ``keyframe_min_parallax_deg`` (rotation removed), and only then is SIFT run
-   on it and matched with the last keyframe (also when too few features were tracked).
+   :mod:`omnipipe.sfm.features`) are tracked by optical flow from each moving frame
+   into the next (:mod:`omnipipe.sfm.tracking`: no track skips a period of a periodic
+   wall); the station becomes a keyframe once the rays turned
+   ``keyframe_min_parallax_deg`` (rotation removed), and only then is SIFT run on it
+   and matched with the last keyframe, over the whole frame or guided by the tracks, or
+   the tracks themselves taken as its correspondences, whichever RANSAC verifies best
+   (also when too few features were tracked: descriptors alone).
 3. Relative motion: eight-point algorithm on ray vectors with RANSAC (Eq. 10-16);
    near-pure rotations are recognised and keep a zero translation.
    Steps 1-3 are the frame loop, :mod:`omnipipe.sfm.keyframes`.

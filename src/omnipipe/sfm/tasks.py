@@ -7,9 +7,9 @@ where it ran:
   perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
   tracked between keyframes) and its grey image (for the later template matching,
   Eq. 17);
-- :func:`track_into` and :func:`matched_rays`: a frame's correspondences with the next
-  keyframe's features (optical flow into its views, :mod:`omnipipe.sfm.tracking`, or
-  descriptor matches), for the frame's resection;
+- :func:`track_back` and :func:`matched_rays`: the pending frames' correspondences with
+  the next keyframe's features (optical flow back frame by frame through their views,
+  :mod:`omnipipe.sfm.tracking`, or descriptor matches), for their resection;
 - :func:`step_evidence`: one keyframe step's two scale measurements, the laser points'
   template matches along the epipolar curves (Eq. 17) and the matched features' depths
   on the light-section wall (:mod:`omnipipe.sfm.scale_check`).
@@ -39,7 +39,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, track_features
+from omnipipe.sfm.tracking import TrackChain, TrackConfig
 from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
@@ -101,21 +101,6 @@ class FeatureTask:
             else:
                 out.append((views, None, gray))
         return out
-
-
-def track_into(
-    rig: Rig,
-    features_config: FeatureConfig,
-    key_views: FrameViews,
-    key_features: FrameFeatures,
-    views: FrameViews,
-    config: TrackConfig,
-) -> KeyframeRays:
-    """The keyframe's features tracked into ``views``
-    (:func:`omnipipe.sfm.tracking.track_features` with this process's extractor of
-    ``rig`` and ``features_config``): the tracked features and their rays in the frame."""
-    tracks = track_features(_extractor(rig, features_config), key_views, key_features, views, config)
-    return KeyframeRays(tracks.feature, tracks.features.rays_in_rig)
 
 
 def track_back(
