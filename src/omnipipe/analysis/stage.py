@@ -42,7 +42,6 @@ from omnipipe.analysis.defects import (
 )
 from omnipipe.analysis.feature_types import Feature
 from omnipipe.analysis.features import FeatureConfig, find_features
-from omnipipe.analysis.point_feature import PointFeature
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
     Section,
@@ -191,7 +190,8 @@ class AnalysisResult:
         radius_mm: reference radius of the unrolled view (the first fit's diameter / 2).
         warnings: human-readable notes.
         stations: each station's cross-section (:class:`.stations.Station`).
-        features: the section features (taper, bend, ovality, water; :mod:`.sections`).
+        features: the pipe's features in axial order (:mod:`.feature_types`): joints and
+            laterals (:mod:`.features`), taper, bend, ovality and water (:mod:`.sections`).
         inner_diameter_min_mm, inner_diameter_max_mm: smallest Dmin and largest Dmax of
             the stations (:func:`.stations.headline`).
         water_depth_mm, water_depth_sigma_mm: median standing water over the wet
@@ -219,7 +219,7 @@ class AnalysisResult:
     noise_mm: float = math.nan
     ring_spacing_mm: float = math.nan
     stations: tuple[Station, ...] = ()
-    features: tuple[Feature | PointFeature, ...] = ()
+    features: tuple[Feature, ...] = ()
     inner_diameter_min_mm: float = math.nan
     inner_diameter_max_mm: float = math.nan
     water_depth_mm: float | None = None
@@ -290,7 +290,7 @@ def run(
         noise_mm=float(search.noise_mm),
         ring_spacing_mm=float(search.ring_spacing_mm),
         stations=tuple(st_list),
-        features=(*feats.features, *features),
+        features=tuple(sorted((*feats.features, *features), key=lambda f: f.position_mm)),
         inner_diameter_min_mm=head.min_mm,
         inner_diameter_max_mm=head.max_mm,
         water_depth_mm=water,
