@@ -26,7 +26,8 @@ takes the neighbours' mean radius instead. Points further out than the threshold
   crossing the hole gives a chord (centre, half-width) at its axial position; the hole's
   outline, an ellipse in (axial, arc), is fitted through the half-widths (h^2 quadratic
   in the axial position); the opening's diameter is the chord 2 R sin(b / R) of its
-  circumferential semi-axis b. Sigmas by jackknife over the rings.
+  circumferential semi-axis b. Sigmas by jackknife over the rings, with the rings'
+  spacing along the hole and a sample's reach at its rim.
 """
 
 from __future__ import annotations
@@ -452,9 +453,11 @@ def _lateral(
     arr = np.array(est)
     n = len(arr) - 1
     jk = np.sqrt((n - 1) / n * np.sum((arr[1:] - arr[1:].mean(axis=0)) ** 2, axis=0)) if n >= 3 else np.zeros(3)
-    s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0) if len(ch) < 3 else 0.0)
+    # Beside the jackknife: where the rings fall along the hole (their spacing), and the
+    # edge samples' reach (a ring's light is lost or half-lit at the rim: up to a sample).
+    s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0))
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
-    s_b = math.hypot(float(jk[2]), sample / math.sqrt(12.0))
+    s_b = math.hypot(float(jk[2]), sample)
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     f = Lateral(
         axial_mm=zc,

@@ -26,6 +26,7 @@ of the rings' frames and returns:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 
@@ -40,7 +41,7 @@ from omnipipe.analysis.defects import (
     fit_wall_profile,
     fourier_design,
 )
-from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.feature_types import Feature, Joint, PointFeature
 from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
@@ -240,14 +241,19 @@ def run(
     """
     pts, frame, poses = _checked(inputs)
     line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor)
-    sigma, rho, theta = line.coordinates(pts, frame)
-    line = recentred(line, _section_centres(config, frame, theta, rho, len(poses)), inputs.reference_from_world, 0.5 * window)
-    sigma, rho, theta = line.coordinates(pts, frame)
-    straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
+    line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, ())
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
     # Joint gaps and lateral openings are not wall: out of the profiles and the defects.
     feats = find_features(config.features, line, sigma, rho, theta, frame, radius)
+    breaks = _offset_breaks(feats.features, line)
+    if breaks:
+        # The sections either side of an offset joint are fitted separately (one window's
+        # cylinder across the step tilts, and the wall beside the joint reads as a ramp).
+        line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor, breaks)
+        line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, breaks)
+        feats = find_features(config.features, line, sigma, rho, theta, frame, radius)
+    straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
         config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor
     )
@@ -352,6 +358,38 @@ def _checked(inputs: AnalysisInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return pts, frame, poses
 
 
+def _recentred_line(
+    config: AnalysisConfig,
+    inputs: AnalysisInputs,
+    line: Centreline,
+    pts: np.ndarray,
+    frame: np.ndarray,
+    window: float,
+    breaks: Sequence[tuple[np.ndarray, np.ndarray]],
+) -> tuple[Centreline, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The centreline re-centred on each station's own section, and the points' (N,)
+    pipe coordinates (sigma, rho, theta) about it."""
+    _, rho, theta = line.coordinates(pts, frame)
+    centres = _section_centres(config, frame, theta, rho, len(line.arc_mm))
+    line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks)
+    return line, line.coordinates(pts, frame)
+
+
+def _offset_breaks(features: Sequence[PointFeature], line: Centreline) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(point, normal) world planes at the joints whose offset is significant (>= 0.5 mm
+    and 3 sigma): the sections either side are fitted separately."""
+    out = []
+    for f in features:
+        if not isinstance(f, Joint) or f.offset_mm is None:
+            continue
+        if f.offset_mm < max(0.5, 3.0 * (f.offset_sigma_mm or 0.0)):
+            continue
+        k = int(np.argmin(np.abs(line.arc_mm - f.axial_mm)))
+        t = line.tangent[k]
+        out.append((line.centre[k] + (f.axial_mm - line.arc_mm[k]) * t, t))
+    return out
+
+
 def _fit_axis(
     config: AnalysisConfig,
     inputs: AnalysisInputs,
@@ -359,9 +397,11 @@ def _fit_axis(
     frame: np.ndarray,
     poses: np.ndarray,
     executor: Executor | None,
+    breaks: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> tuple[Centreline, Cylinder | None, float]:
-    """The piecewise centreline, the single cylinder of the whole run when the
-    centreline is straight (None: it bends) and the window of the piecewise fits (mm)."""
+    """The piecewise centreline (no window across a break plane: :func:`.fit_centreline`),
+    the single cylinder of the whole run when the centreline is straight (None: it
+    bends) and the window of the piecewise fits (mm)."""
     groups = ring_groups(frame, len(poses))
     rings = [pts[g] for g in groups]
     axis_guess = poses[:, :3, 2]
@@ -383,6 +423,7 @@ def _fit_axis(
         window_mm=window,
         loss_scale_mm=config.loss_scale_mm,
         executor=executor,
+        breaks=breaks,
     )
     if line.straightness_mm() > config.straight_tolerance_mm:
         return line, None, window
