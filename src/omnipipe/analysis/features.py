@@ -5,7 +5,8 @@ wall (they would read as dents, and pull the rings' wall profiles). Per ring, a 
 Fourier profile (order 2: the ring's offset and ovality) is fitted; a ring whose mean
 radius stands out from its neighbours' running median (the ring lies in a joint's gap)
 takes the neighbours' mean radius instead. Points further out than the threshold
-(``max(min_depth_mm, noise_factor x noise)``) are candidates.
+(``max(min_depth_mm, noise_factor x noise)``; for joints ``joint_noise_factor``) are
+candidates.
 
 * joint: candidates are grouped along the axis (a gap between them wider than
   ``joint_link_mm`` splits groups); a group whose axial band is seen deep over most
@@ -52,6 +53,8 @@ class FeatureConfig:
     Attributes:
         min_depth_mm: smallest outward step counted as a gap or an opening.
         noise_factor: the threshold is at least this many noise sigmas.
+        joint_noise_factor: the same for a joint's gap (which must also cover most of
+            the circumference: noise does not).
         joint_coverage: a group deep over this fraction of the angles at which rings
             sample its axial band is a joint.
         joint_link_mm: candidates further apart along the axis (and than 1.5 ring
@@ -66,6 +69,7 @@ class FeatureConfig:
 
     min_depth_mm: float = 1.5
     noise_factor: float = 6.0
+    joint_noise_factor: float = 3.5
     joint_coverage: float = 0.6
     joint_link_mm: float = 3.0
     lateral_reach_rel: float = 0.08
@@ -125,8 +129,10 @@ def find_features(
     thr = max(config.min_depth_mm, config.noise_factor * noise)
     ring_of = np.searchsorted(rings, frame)
     r = _Rings(sigma, rho, theta, frame, ring_of, ring_sigma, dev, noise)
-    # Candidates: beyond the threshold, or half of it on a ring lying in a gap.
-    cand = (dev > thr) | (raised[ring_of] & (dev > 0.5 * thr))
+    # Joint candidates: beyond a lower threshold (a gap must also cover most of the
+    # circumference), or half of it on a ring lying in a gap.
+    thr_joint = max(config.min_depth_mm, config.joint_noise_factor * noise)
+    cand = (dev > thr_joint) | (raised[ring_of] & (dev > 0.5 * thr_joint))
     not_wall = np.zeros(len(sigma), bool)
     unseen = _unseen_gap(sigma)
     if cand.sum() < config.min_points:
@@ -152,6 +158,8 @@ def find_features(
                 continue
             if float(np.max(dev[members])) < config.lateral_reach_rel * 2 * radius:
                 continue
+            if len(np.unique(frame[members])) < 2:
+                continue  # one ring's outliers (a reflection), not an opening
             f, mask = _lateral(config, sigma, theta, frame, members, radius, spacing)
             feats.append(f)
             not_wall |= mask
