@@ -59,6 +59,7 @@ class FeatureConfig:
             sample its axial band is a joint.
         joint_link_mm: candidates further apart along the axis (and than 1.5 ring
             spacings) belong to different joints.
+        joint_max_gap_mm: a wider deep band is not a joint's gap.
         lateral_reach_rel: a narrower cluster reaching this fraction of the diameter
             beyond the wall is a lateral (the branch wall seen through the hole).
         min_points: points a cluster needs.
@@ -72,6 +73,7 @@ class FeatureConfig:
     joint_noise_factor: float = 3.5
     joint_coverage: float = 0.6
     joint_link_mm: float = 3.0
+    joint_max_gap_mm: float = 30.0
     lateral_reach_rel: float = 0.08
     min_points: int = 8
     margin_mm: float = 3.0
@@ -142,6 +144,8 @@ def find_features(
     feats: list[PointFeature] = []
     for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing)):
         f, mask = _joint(config, line, r, cand, lo, hi)
+        if not 0.0 < f.gap_mm <= config.joint_max_gap_mm:
+            continue  # a wide outward stretch (a taper's tilted rings), not a gap
         feats.append(f)
         not_wall |= mask
     # Laterals: the rest, linked across rings, narrow and reaching far out.
