@@ -15,7 +15,10 @@ point feature inside the stations' span (a lateral's whole hole), a stretch over
 it by at least 10 mm (truth beyond the span is listed as "outside", not as missed). A
 point feature matches within max(15 mm, 0.6 x a lateral's diameter) axially, a stretch
 by overlap. Sizes of a truncated stretch (it runs past the stations) are lower bounds:
-not scored. A reported defect matching no true defect (axial overlap within 10 mm) is
+not scored. Ovality and water depth are compared with the truth stations' median over
+the reported stretch (depth varies along a taper; a stretch's median includes its
+blends), and per station with the truth there (stations dry in both not counted).
+A reported defect matching no true defect (axial overlap within 10 mm) is
 false; one within 10 mm of a true feature is a feature reported as a defect.
 """
 
@@ -118,7 +121,29 @@ def _match(t: dict, found: list[dict]) -> dict | None:
     return max(cand, key=lambda f: min(b, f["axial_to_mm"]) - max(a, f["axial_from_mm"])) if cand else None
 
 
-def _sizes(t: dict, f: dict, r: Row, d: float) -> None:
+def _truth_over(truth: dict, key: str, a: float, b: float) -> float | None:
+    """Median of the truth stations' ``key`` over [a, b] (interpolated at both ends):
+    the true value of what a stretch reports (water depth varies along a taper or a
+    slope; an ovality stretch's median includes its blends)."""
+    st = truth.get("stations") or []
+    if not st:
+        return None
+    x = np.array([s["axial_mm"] for s in st])
+    y = np.array([s[key] for s in st])
+    grid = np.linspace(a, b, 21)
+    return float(np.median(np.interp(grid, x, y)))
+
+
+def _sizes(t: dict, f: dict, r: Row, d: float, truth: dict) -> None:
+    if t["kind"] in ("ovality", "water"):
+        key, skey, tkey = (("percent", "percent_sigma", "ovality_pct") if t["kind"] == "ovality"
+                           else ("depth_mm", "depth_sigma_mm", "water_depth_mm"))
+        true = _truth_over(truth, tkey, f["axial_from_mm"], f["axial_to_mm"])
+        true = t[key] if true is None else true
+        r.err.append(abs(f[key] - true))
+        r.size_n += 1
+        r.size_in += bool(f.get(skey)) and abs(f[key] - true) <= 3.0 * f[skey]
+        return
     for key in SIZES[t["kind"]]:
         if f.get("truncated") and t["kind"] in ("bend",) and key == "turn_deg":
             continue
@@ -133,13 +158,9 @@ def _sizes(t: dict, f: dict, r: Row, d: float) -> None:
             continue
         r.size_n += 1
         r.size_in += abs(f[key] - t[key]) <= 3.0 * sig
-    if t["kind"] == "ovality":
-        r.err.append(abs(f["percent"] - t["percent"]))
-    if t["kind"] == "water":
-        r.err.append(abs(f["depth_mm"] - t["depth_mm"]))
 
 
-def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict[str, int]) -> None:
+def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict) -> None:
     d = truth.get("inner_diameter_mm") or report.get("inner_diameter_mm", 200.0)
     found = report.get("features") or []
     st = report.get("stations") or []
@@ -162,7 +183,17 @@ def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict[str, in
             r.ax.append(abs(f["axial_mm"] - t["axial_mm"]))
         if t["kind"] == "lateral":
             r.ang.append(abs((f["angle_deg"] - t["angle_deg"] + 180) % 360 - 180))
-        _sizes(t, f, r, d)
+        _sizes(t, f, r, d, truth)
+    tst = truth.get("stations") or []
+    if tst and st:
+        x = np.array([s["axial_mm"] for s in tst])
+        for s in st:
+            for key, tkey in (("ovality_pct", "ovality_pct"), ("water_depth_mm", "water_depth_mm")):
+                if s.get(key) is not None and x[0] <= s["axial_mm"] <= x[-1]:
+                    true = float(np.interp(s["axial_mm"], x, [q[tkey] for q in tst]))
+                    if key == "water_depth_mm" and true < 0.05 * d and not s[key]:
+                        continue  # dry (or too shallow to count) and reported dry
+                    counts.setdefault(key, []).append(abs(s[key] - true))
     spots = [_extent(t) for t in truth.get("features", []) if t["kind"] in POINT_KINDS]
     for dfx in report.get("defects", []):
         a, b = dfx["axial_start_mm"], dfx["axial_start_mm"] + dfx["length_mm"]
@@ -182,7 +213,7 @@ def main() -> int:
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     rows: dict[str, Row] = {}
-    counts = {"false_defects": 0, "feature_defects": 0, "unreliable_runs": 0}
+    counts: dict = {"false_defects": 0, "feature_defects": 0, "unreliable_runs": 0}
     done, failed = [], []
     for seed in _seeds(args.seeds):
         got = _run(seed, args.work, args.size, args.fresh)
@@ -209,6 +240,11 @@ def main() -> int:
         err = f"{np.median(r.err):.2f}/{max(r.err):.2f}" if r.err else "-"
         recall = r.found / r.n if r.n else float("nan")
         print(f"{kind:8} {r.n:>4} {r.outside:>7} {recall:>7.2f} {ax} {axm} {ang} {size:>12} {err:>12}")
+    for key, unit in (("ovality_pct", "pp"), ("water_depth_mm", "mm")):
+        e = np.array(counts.get(key, []))
+        if len(e):
+            print(f"per station |{key} error|: median {np.median(e):.2f} {unit}, 90th percentile "
+                  f"{np.percentile(e, 90):.2f} {unit}, {len(e)} stations")
     print(f"false defects: {counts['false_defects']} (within 10 mm of a joint or a hole: "
           f"{counts['feature_defects']}); runs with unreliable motion: {counts['unreliable_runs']}")
     return 0
