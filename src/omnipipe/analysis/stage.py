@@ -277,6 +277,11 @@ def run(
     st_list = with_deformation(st_list, head)
     features = section_features(st_list, line, head, sec_config)
     warnings = list(search.warnings) + _section_warnings(st_list, wet)
+    if feats.unseen_gap_mm >= 3.0:
+        warnings.append(
+            f"the laser rings left {feats.unseen_gap_mm:.1f} mm of the pipe unsampled between "
+            "two of them: a joint gap narrower than that may lie there unseen"
+        )
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
     return AnalysisResult(
