@@ -64,7 +64,7 @@ def test_oval_pipe_mean_diameter_ovality_and_a_bulge_on_it() -> None:
     assert abs(d.height_mm - 2.0) <= max(3 * (d.height_sigma_mm or 0.0), 0.3)
     assert abs(d.axial_start_mm + 0.5 * d.length_mm - 200.0) < 5.0
     oval = _kinds(res.features, "ovality")
-    assert len(oval) == 1 and abs(oval[0].sizes["percent"] - 6.0) <= 0.3
+    assert len(oval) == 1 and abs(oval[0].percent - 6.0) <= 0.3
     assert not _kinds(res.features, "taper") and not _kinds(res.features, "bend")
     assert not _kinds(res.features, "water") and res.water_depth_mm is None
 
@@ -79,8 +79,8 @@ def test_reducer_is_a_taper_not_a_dent() -> None:
     assert np.max(np.abs(res.stations_diameter_mm - truth)) < 0.5
     (taper,) = _kinds(res.features, "taper")
     assert abs(taper.axial_from_mm - 220.0) < 8.0 and abs(taper.axial_to_mm - 370.0) < 8.0
-    assert abs(taper.sizes["diameter_from_mm"] - 250.0) < 0.5
-    assert abs(taper.sizes["diameter_to_mm"] - 180.0) < 0.5
+    assert abs(taper.diameter_from_mm - 250.0) < 0.5
+    assert abs(taper.diameter_to_mm - 180.0) < 0.5
     assert res.inner_diameter_min_mm < 181.0 and res.inner_diameter_max_mm > 249.0
 
 
@@ -105,10 +105,10 @@ def test_partly_flooded_oval_sewer_water_depth_and_wall_above_it() -> None:
         true_ov = 100 * (2 * r.max() - 2 * r.min()) / (2 * r.mean())
         assert abs(100 * s.ovality - true_ov) <= 0.3
     (water,) = _kinds(res.features, "water")
-    assert abs(water.sizes["depth_mm"] - np.median(true_depth)) <= 2.0 and water.truncated
+    assert abs(water.depth_mm - np.median(true_depth)) <= 2.0 and water.truncated
     (oval,) = _kinds(res.features, "ovality")
     assert 220.0 < oval.axial_from_mm < 260.0 and 400.0 < oval.axial_to_mm < 440.0
-    assert abs(oval.sizes["percent"] - 4.0) <= 0.3
+    assert abs(oval.percent - 4.0) <= 0.3
     fields, _ = report_fields(res, 0.001)
     assert fields["water_depth_mm"] == round(res.water_depth_mm, 2)
     assert {"axial_mm", "inner_diameter_mm", "inner_diameter_sigma_mm", "ovality_pct",
@@ -126,7 +126,7 @@ def test_tight_elbow_is_a_bend_feature() -> None:
     assert res.defects == []
     assert abs(res.inner_diameter_mm - 200.0) <= 3 * res.inner_diameter_sigma_mm
     (bend,) = _kinds(res.features, "bend")
-    assert abs(bend.sizes["radius_mm"] - 300.0) <= 0.03 * 300.0
-    assert abs(bend.sizes["turn_deg"] - 90.0) <= 1.0
+    assert abs(bend.radius_mm - 300.0) <= 0.03 * 300.0
+    assert abs(bend.turn_deg - 90.0) <= 1.0
     assert abs(bend.axial_from_mm - 260.0) < 15.0
     assert abs(bend.axial_to_mm - (260.0 + 300.0 * math.pi / 2)) < 15.0

@@ -11,7 +11,7 @@ same thing all along a bent pipe, as the data contract asks.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
@@ -85,6 +85,7 @@ def recentred(
     offsets: np.ndarray,
     reference_from_world: np.ndarray,
     half_span_mm: float,
+    breaks: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> Centreline:
     """The centreline through corrected station centres.
 
@@ -94,7 +95,8 @@ def recentred(
             the order-1 terms of its wall profile.
         reference_from_world: as for :func:`fit_centreline`.
         half_span_mm: the tangent at a station is the direction of the corrected
-            centres within this distance.
+            centres within this distance (on its side of every break).
+        breaks: planes (point, normal; world mm) between separately fitted sections.
 
     A short window's cylinder can tilt to mimic an oval section (an oblique cut of a
     circular cylinder is an ellipse: 6 % ovality ~ 20 deg), which shifts its station's
@@ -102,7 +104,8 @@ def recentred(
     """
     off = np.asarray(offsets, float)
     centre = line.centre + off[:, :1] * line.normal + off[:, 1:2] * line.binormal
-    tangent = _local_tangents(centre, line.tangent, half_span_mm)
+    side = np.array([np.sign((line.centre - p) @ n) for p, n in breaks]).reshape(len(breaks), len(centre))
+    tangent = _local_tangents(centre, line.tangent, half_span_mm, side)
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.maximum(np.linalg.norm(tangent[1:] + tangent[:-1], axis=1), 1e-12)
     arc = np.concatenate([[0.0], np.cumsum(steps)])
@@ -154,6 +157,7 @@ def fit_centreline(
     loss_scale_mm: float,
     max_points: int = 6000,
     executor: Executor | None = None,
+    breaks: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> Centreline:
     """Piecewise cylinder fit along the rings; the stations' fits run on ``executor``
     (:mod:`omnipipe.executor`; None: here), in order, the same wherever they run.
@@ -166,6 +170,8 @@ def fit_centreline(
         window_mm: axial length of the rings used for each station's cylinder.
         loss_scale_mm: soft-L1 scale of the cylinder fits.
         max_points: points per fit (evenly subsampled; the fit is linear in their number).
+        breaks: planes (point, normal; world mm) no station's window reaches across: the
+            sections either side of an offset joint are fitted separately.
 
     Raises:
         ReconstructionError: fewer than 2 rings with enough points.
@@ -178,38 +184,24 @@ def fit_centreline(
     centroid = np.array([rings_in_world[k].mean(axis=0) for k in usable])
     axes = np.asarray(axis_guess, float)[usable]
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    cylinders: list[Cylinder] = []
-    centres, tangents, radii = [], [], []
-    slot_of = {k: j for j, k in enumerate(usable)}
-
-    def windows() -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
-        # (points, axis guess, loss scale) of each station's window, made as needed
-        for i in range(len(usable)):
-            along = (centroid - centroid[i]) @ axes[i]
-            members = [usable[j] for j in np.flatnonzero(np.abs(along) <= 0.5 * window_mm)]
-            pts = np.concatenate([rings_in_world[j] for j in members])
-            if len(pts) > max_points:
-                pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
-            guess = (
-                axes[i] if len(members) < 3 else np.mean(axes[[slot_of[j] for j in members]], axis=0)
-            )
-            yield pts, guess, loss_scale_mm
-
-    fits = ordered_map(executor or InlineExecutor(), _fit_window, windows())
+    # (B, U) the side of each break each usable ring lies on
+    side = np.array([np.sign((centroid - p) @ n) for p, n in breaks]).reshape(len(breaks), len(usable))
+    windows = _windows(rings_in_world, usable, centroid, axes, side, window_mm, loss_scale_mm, max_points)
+    fits = ordered_map(executor or InlineExecutor(), _fit_window, windows)
     tick = phase("centreline", len(usable))
+    cylinders: list[Cylinder] = []
+    centres, tangents = [], []
     for i, cyl in enumerate(fits):
         tick(i + 1)
         tangent = cyl.axis if cyl.axis @ axes[i] > 0 else -cyl.axis
-        centre = cyl.point + ((centroid[i] - cyl.point) @ tangent) * tangent
-        cylinders.append(cyl)
-        centres.append(centre)
+        centres.append(cyl.point + ((centroid[i] - cyl.point) @ tangent) * tangent)
         tangents.append(tangent)
-        radii.append(cyl.radius_mm)
+        cylinders.append(cyl)
     centre = np.array(centres)
-    tangent = np.array(tangents)
     # In a bend a window's cylinder axis is a chord; the tangent at a station is better
-    # the direction of the station centres around it (a short line fit).
-    tangent = _local_tangents(centre, tangent, 0.25 * window_mm)
+    # the direction of the station centres around it (a short line fit, on its side of
+    # every break).
+    tangent = _local_tangents(centre, np.array(tangents), 0.25 * window_mm, side)
     # Arc length through the centres, each step measured along the mean tangent.
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.linalg.norm(tangent[1:] + tangent[:-1], axis=1)
@@ -217,15 +209,36 @@ def fit_centreline(
     arc, normals = _referenced(arc, centre, tangent, reference_from_world)
     binormals = np.cross(tangent, normals)
     pick = _nearest_usable(usable, len(rings_in_world))
+    radii = np.array([c.radius_mm for c in cylinders])
     return Centreline(
-        arc[pick],
-        centre[pick],
-        tangent[pick],
-        normals[pick],
-        binormals[pick],
-        np.array(radii)[pick],
+        arc[pick], centre[pick], tangent[pick], normals[pick], binormals[pick], radii[pick],
         [cylinders[i] for i in pick],
     )
+
+
+def _windows(
+    rings_in_world: list[np.ndarray],
+    usable: list[int],
+    centroid: np.ndarray,
+    axes: np.ndarray,
+    side: np.ndarray,
+    window_mm: float,
+    loss_scale_mm: float,
+    max_points: int,
+) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+    """(points, axis guess, loss scale) of each station's window, made as needed: the
+    usable rings within ``window_mm`` / 2 along the station's axis guess and on its side
+    of every break (``side``: (B, U) signs)."""
+    slot_of = {k: j for j, k in enumerate(usable)}
+    for i in range(len(usable)):
+        along = (centroid - centroid[i]) @ axes[i]
+        same = np.all(side == side[:, i : i + 1], axis=0)
+        members = [usable[j] for j in np.flatnonzero((np.abs(along) <= 0.5 * window_mm) & same)]
+        pts = np.concatenate([rings_in_world[j] for j in members])
+        if len(pts) > max_points:
+            pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
+        guess = axes[i] if len(members) < 3 else np.mean(axes[[slot_of[j] for j in members]], axis=0)
+        yield pts, guess, loss_scale_mm
 
 
 def _fit_window(window: tuple[np.ndarray, np.ndarray, float]) -> Cylinder:
@@ -240,11 +253,16 @@ def _fit_window(window: tuple[np.ndarray, np.ndarray, float]) -> Cylinder:
 _NONE = np.zeros(0)
 
 
-def _local_tangents(centre: np.ndarray, fallback: np.ndarray, half_span_mm: float) -> np.ndarray:
-    """(K, 3) unit directions of the centres within ``half_span_mm`` of each station."""
+def _local_tangents(
+    centre: np.ndarray, fallback: np.ndarray, half_span_mm: float, side: np.ndarray | None = None
+) -> np.ndarray:
+    """(K, 3) unit directions of the centres within ``half_span_mm`` of each station (and,
+    with ``side`` ((B, K) signs), on its side of every break)."""
     out = fallback.copy()
     for i in range(len(centre)):
         near = np.linalg.norm(centre - centre[i], axis=1) <= half_span_mm
+        if side is not None and len(side):
+            near &= np.all(side == side[:, i : i + 1], axis=0)
         if near.sum() < 3:
             continue
         c = centre[near] - centre[near].mean(axis=0)

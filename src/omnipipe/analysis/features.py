@@ -5,19 +5,30 @@ wall (they would read as dents, and pull the rings' wall profiles). Per ring, a 
 Fourier profile (order 2: the ring's offset and ovality) is fitted; a ring whose mean
 radius stands out from its neighbours' running median (the ring lies in a joint's gap)
 takes the neighbours' mean radius instead. Points further out than the threshold
-(``max(min_depth_mm, noise_factor x noise)``) are linked into clusters across rings; a
-cluster covering most of the observed circumference is a joint, a narrower one reaching
-far out (the branch wall behind the hole) a lateral. Smaller clusters are left to the
-defect finder.
+(``max(min_depth_mm, noise_factor x noise)``; for joints ``joint_noise_factor``) are
+candidates.
 
-* joint: the gap's edges are midway between the last sample deeper than half the gap's
-  depth and the first shallower one (1-sigma: that spacing / sqrt(12)); the offset is
-  the median ring centre downstream minus upstream (rings within ``offset_window_mm``),
-  perpendicular to the axis, its sigma from the centres' scatter.
-* lateral: each ring crossing the hole gives a chord (centre, half-width) at its axial
-  position; the hole's outline, an ellipse in (axial, arc), is fitted through the
-  half-widths (h^2 quadratic in the axial position); the opening's diameter is the chord
-  2 R sin(b / R) of its circumferential semi-axis b. Sigmas by jackknife over the rings.
+* joint: candidates are grouped along the axis (a gap between them wider than
+  ``joint_link_mm`` splits groups); a group whose axial band is seen deep over most
+  (``joint_coverage``) of the angles at which any ring samples that band is a joint. A
+  ring tilted to the axis crosses a narrow gap along a slant, so the gap is seen by the
+  rings together, not by one ring covering the circumference; a gap lying between two
+  rings that no ring crosses cannot be seen (``FeatureSearch.unseen_gap_mm``: the widest
+  axial stretch no ring sampled). Each gap edge (at half the gap's depth) is where deep
+  samples give way to shallow ones: per ring crossing it, the split that misclassifies
+  fewest samples; the edge is their median, 1-sigma their scatter / sqrt(n) (one ring:
+  the spacing of the two samples around it / sqrt(12)). The offset is fitted to the wall
+  within ``window_mm`` on both sides (the gap left out) in a straight frame through the
+  joint: rho = per-ring radius + centre drift (quadratic along the axis, so a bend does
+  not pass for an offset) + ovality + a step of the downstream centre (the offset); its
+  sigma by jackknife over the rings.
+* lateral: the remaining candidates are linked into clusters across rings; a narrow
+  cluster reaching far out (the branch wall behind the hole) is a lateral. Each ring
+  crossing the hole gives a chord (centre, half-width) at its axial position; the hole's
+  outline, an ellipse in (axial, arc), is fitted through the half-widths (h^2 quadratic
+  in the axial position); the opening's diameter is the chord 2 R sin(b / R) of its
+  circumferential semi-axis b. Sigmas by jackknife over the rings, with the rings'
+  spacing along the hole and a sample's reach at its rim.
 """
 
 from __future__ import annotations
@@ -32,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.defects import fit_wall_profile, fourier_design
-from omnipipe.analysis.point_feature import PointFeature as Feature
+from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 
 
 @dataclass(frozen=True)
@@ -42,8 +53,13 @@ class FeatureConfig:
     Attributes:
         min_depth_mm: smallest outward step counted as a gap or an opening.
         noise_factor: the threshold is at least this many noise sigmas.
-        joint_coverage: a cluster covering this fraction of the observed circumference
-            at its position is a joint.
+        joint_noise_factor: the same for a joint's gap (which must also cover most of
+            the circumference: noise does not).
+        joint_coverage: a group deep over this fraction of the angles at which rings
+            sample its axial band is a joint.
+        joint_link_mm: candidates further apart along the axis (and than 1.5 ring
+            spacings) belong to different joints.
+        joint_max_gap_mm: a wider deep band is not a joint's gap.
         lateral_reach_rel: a narrower cluster reaching this fraction of the diameter
             beyond the wall is a lateral (the branch wall seen through the hole).
         min_points: points a cluster needs.
@@ -54,7 +70,10 @@ class FeatureConfig:
 
     min_depth_mm: float = 1.5
     noise_factor: float = 6.0
+    joint_noise_factor: float = 3.5
     joint_coverage: float = 0.6
+    joint_link_mm: float = 3.0
+    joint_max_gap_mm: float = 30.0
     lateral_reach_rel: float = 0.08
     min_points: int = 8
     margin_mm: float = 3.0
@@ -69,11 +88,29 @@ class FeatureSearch:
         features: joints and laterals, ordered along the pipe.
         not_wall: (N,) True for the points inside a gap or an opening (and their margin).
         threshold_mm: outward deviation beyond which a point counted.
+        unseen_gap_mm: the widest axial stretch between the measured rings' first and
+            last samples that no sample fell in (mm): a joint gap narrower than this
+            may lie there unseen.
     """
 
-    features: list[Feature]
+    features: list[PointFeature]
     not_wall: np.ndarray
     threshold_mm: float
+    unseen_gap_mm: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Rings:
+    """The points in pipe coordinates, grouped by ring, and their deviation from it."""
+
+    sigma: np.ndarray
+    rho: np.ndarray
+    theta: np.ndarray
+    frame: np.ndarray
+    ring_of: np.ndarray
+    ring_sigma: np.ndarray
+    dev: np.ndarray
+    noise: float
 
 
 def find_features(
@@ -89,50 +126,33 @@ def find_features(
     rad from the centreline's normal towards its binormal; frame: ring index), ``radius``
     the nominal wall radius (mm)."""
     rings = np.unique(frame)
-    dev, ring_sigma, ring_centre, raised = _deviations(config, line, sigma, rho, theta, frame, rings)
+    dev, ring_sigma, raised = _deviations(config, sigma, rho, theta, frame, rings)
     noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
     thr = max(config.min_depth_mm, config.noise_factor * noise)
-    out = dev > thr
+    ring_of = np.searchsorted(rings, frame)
+    r = _Rings(sigma, rho, theta, frame, ring_of, ring_sigma, dev, noise)
+    # Joint candidates: beyond a lower threshold (a gap must also cover most of the
+    # circumference), or half of it on a ring lying in a gap.
+    thr_joint = max(config.min_depth_mm, config.joint_noise_factor * noise)
+    cand = (dev > thr_joint) | (raised[ring_of] & (dev > 0.5 * thr_joint))
     not_wall = np.zeros(len(sigma), bool)
-    idx = np.flatnonzero(out)
-    if len(idx) < config.min_points:
-        return FeatureSearch([], not_wall, thr)
+    unseen = _unseen_gap(sigma)
+    if cand.sum() < config.min_points:
+        return FeatureSearch([], not_wall, thr, unseen)
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
-    link = max(1.5 * spacing, 3.0)
-    feats: list[Feature] = []
-    # Joints: rings (or runs of neighbouring rings) mostly beyond the threshold.
-    ring_of = np.searchsorted(rings, frame)
-    gap_ring = np.zeros(len(rings), bool)
-    for i in range(len(rings)):
-        on = ring_of == i
-        seen = np.unique((np.degrees(theta[on]) % 360 // 10).astype(int))
-        have = np.unique((np.degrees(theta[on & out]) % 360 // 10).astype(int))
-        gap_ring[i] = raised[i] or len(have) >= config.joint_coverage * max(len(seen), 1)
-    order = np.argsort(ring_sigma)
-    runs: list[list[int]] = []
-    prev_gap = False
-    for i in order:
-        if gap_ring[i] and prev_gap:
-            runs[-1].append(int(i))
-        elif gap_ring[i]:
-            runs.append([int(i)])
-        prev_gap = bool(gap_ring[i])
-    for run in runs:
-        deep = dev > (0.5 * thr if raised[run].any() else thr)
-        members = np.flatnonzero(np.isin(ring_of, run) & deep)
-        if len(members) < config.min_points:
-            continue
-        f, mask = _joint(
-            config, line, sigma, dev, members, ring_sigma, ring_centre, rings, frame, noise
-        )
+    feats: list[PointFeature] = []
+    for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing)):
+        f, mask = _joint(config, line, r, cand, lo, hi)
+        if not 0.0 < f.gap_mm <= config.joint_max_gap_mm:
+            continue  # a wide outward stretch (a taper's tilted rings), not a gap
         feats.append(f)
         not_wall |= mask
     # Laterals: the rest, linked across rings, narrow and reaching far out.
-    idx = np.flatnonzero(out & ~not_wall)
+    idx = np.flatnonzero((dev > thr) & ~not_wall)
     if len(idx) >= config.min_points:
         xyz = np.stack([sigma[idx], radius * np.cos(theta[idx]), radius * np.sin(theta[idx])], axis=1)
-        pairs = cKDTree(xyz).query_pairs(link, output_type="ndarray")
+        pairs = cKDTree(xyz).query_pairs(max(1.5 * spacing, 3.0), output_type="ndarray")
         m = len(idx)
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
         _, label = connected_components(graph, directed=False)
@@ -142,34 +162,40 @@ def find_features(
                 continue
             if float(np.max(dev[members])) < config.lateral_reach_rel * 2 * radius:
                 continue
+            if len(np.unique(frame[members])) < 2:
+                continue  # one ring's outliers (a reflection), not an opening
             f, mask = _lateral(config, sigma, theta, frame, members, radius, spacing)
             feats.append(f)
             not_wall |= mask
     feats.sort(key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, not_wall, thr)
+    return FeatureSearch(feats, not_wall, thr, unseen)
+
+
+def _unseen_gap(sigma: np.ndarray) -> float:
+    """The widest axial stretch (mm) between consecutive samples (sorted along the axis)."""
+    if len(sigma) < 2:
+        return 0.0
+    return float(np.max(np.diff(np.sort(sigma))))
 
 
 def _deviations(
     config: FeatureConfig,
-    line: Centreline,
     sigma: np.ndarray,
     rho: np.ndarray,
     theta: np.ndarray,
     frame: np.ndarray,
     rings: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N,) each point's outward deviation from its ring's wall profile (a ring lying in
-    a gap takes its neighbours' mean radius), (R,) the rings' axial positions, (R, 3)
-    their fitted centres in the world frame and (R,) True for rings raised above their
-    neighbours (lying in a gap)."""
-    coefs, ring_sigma, ring_centre = [], [], []
+    a gap takes its neighbours' mean radius), (R,) the rings' axial positions and (R,)
+    True for rings raised above their neighbours (lying in a gap)."""
+    coefs, ring_sigma = [], []
     for k in rings:
         on = frame == k
         order = 2 if on.sum() >= 20 else 0
         c = fit_wall_profile(theta[on], rho[on], order, 0.5)
         coefs.append(np.pad(c, (0, 5 - len(c))))
         ring_sigma.append(float(np.median(sigma[on])))
-        ring_centre.append(line.centre[k] + c[1] * line.normal[k] + c[2] * line.binormal[k] if order else line.centre[k])
     coef = np.array(coefs)
     rs = np.array(ring_sigma)
     c0 = coef[:, 0].copy()
@@ -186,93 +212,200 @@ def _deviations(
             raised[i] = c[0] > c0[i]
             c[0] = c0[i]
         dev[on] = rho[on] - fourier_design(theta[on], 2) @ c
-    return dev, rs, np.array(ring_centre), raised
+    return dev, rs, raised
 
 
-def _edge(inside: np.ndarray, outside: np.ndarray, lower: bool) -> tuple[float, float]:
-    """A gap edge midway between the outermost inside sample and the nearest outside
-    one beyond it, and its 1-sigma (their spacing / sqrt(12))."""
-    if lower:
-        a = float(inside.min())
-        o = outside[outside < a]
-        b = float(o.max()) if len(o) else a
-    else:
-        a = float(inside.max())
-        o = outside[outside > a]
-        b = float(o.min()) if len(o) else a
-    return 0.5 * (a + b), max(abs(a - b), 0.1) / math.sqrt(12.0)
+def _joint_bands(
+    config: FeatureConfig, r: _Rings, cand: np.ndarray, link: float
+) -> list[tuple[float, float]]:
+    """(lo, hi) axial band of each joint: candidates grouped along the axis (``link``
+    mm: at least the rings' spacing), deep over most of the angles at which any sample
+    lies in the group's band."""
+    idx = np.flatnonzero(cand)
+    s = r.sigma[idx]
+    order = np.argsort(s)
+    s = s[order]
+    cuts = np.flatnonzero(np.diff(s) > link) + 1
+    bands = []
+    for group in np.split(np.arange(len(s)), cuts):
+        if len(group) < config.min_points:
+            continue
+        lo, hi = np.percentile(s[group], [2.0, 98.0])
+        lo, hi = float(lo) - 0.25, float(hi) + 0.25
+        band = (r.sigma >= lo) & (r.sigma <= hi)
+        seen = np.unique((np.degrees(r.theta[band]) % 360 // 10).astype(int))
+        have = np.unique((np.degrees(r.theta[idx[order[group]]]) % 360 // 10).astype(int))
+        if len(seen) >= 9 and len(have) >= config.joint_coverage * len(seen):
+            bands.append((lo, hi))
+    return bands
+
+
+def _split(
+    s: np.ndarray, dev: np.ndarray, level: float, lower: bool
+) -> tuple[float, float] | None:
+    """The edge between shallow samples and deep ones (``dev`` > ``level``) beyond it
+    (``lower``: deep above the edge) that misclassifies fewest samples, placed where the
+    deviation crosses ``level`` between the two samples around it: (position, their
+    spacing); None without both kinds."""
+    deep = dev > level
+    if deep.all() or not deep.any():
+        return None
+    o = np.argsort(s)
+    s, d, v = s[o], deep[o], dev[o]
+    if not lower:
+        s, d, v = -s[::-1], d[::-1], v[::-1]
+    # cost of an edge just before sample i: deep samples below it + shallow ones above.
+    cost = np.concatenate([[0], np.cumsum(d)]) + np.concatenate([np.cumsum((~d)[::-1])[::-1], [0]])
+    i = int(np.argmin(cost[1:-1])) + 1
+    w = s[i] - s[i - 1]
+    a, b = min(v[i - 1], level), max(v[i], level)
+    f = 0.5 if b - a < 1e-9 else (level - a) / (b - a)
+    e = s[i - 1] + f * w
+    return (e, w) if lower else (-e, w)
+
+
+def _edge(
+    r: _Rings, s: np.ndarray, near: np.ndarray, level: float, lower: bool
+) -> tuple[float, float]:
+    """A gap edge (along ``s``, mm) from the samples ``near`` it: the median of the rings' splits, 1-sigma
+    their scatter / sqrt(n) (fewer than 3 rings: the pooled split, its sample spacing /
+    sqrt(12))."""
+    per_ring = []
+    for k in np.unique(r.ring_of[near]):
+        on = near & (r.ring_of == k)
+        got = _split(s[on], r.dev[on], level, lower)
+        if got is not None and got[1] < 3.0:
+            per_ring.append(got)
+    if len(per_ring) >= 3:
+        e = np.array([g[0] for g in per_ring])
+        w = float(np.median([g[1] for g in per_ring]))
+        spread = 1.2533 * float(np.std(e, ddof=1)) / math.sqrt(len(e))
+        return float(np.median(e)), math.hypot(spread, w / math.sqrt(12.0 * len(e)))
+    got = _split(s[near], r.dev[near], level, lower)
+    if got is None:  # no sample on one side: the edge is somewhere in the reach
+        return float(np.median(s[near])), float(np.ptp(s[near])) / math.sqrt(12.0)
+    return got[0], max(got[1], 0.1) / math.sqrt(12.0)
 
 
 def _joint(
-    config: FeatureConfig,
-    line: Centreline,
-    sigma: np.ndarray,
-    dev: np.ndarray,
-    members: np.ndarray,
-    ring_sigma: np.ndarray,
-    ring_centre: np.ndarray,
-    rings: np.ndarray,
-    frame: np.ndarray,
-    noise: float,
-) -> tuple[Feature, np.ndarray]:
-    """A joint from its cluster: gap edges, depth and the sections' offset."""
-    depth = float(np.percentile(dev[members], 90))
-    # Edges between ring positions (a ring's points spread along the axis by its tilt).
-    ring_of = np.searchsorted(rings, frame)
-    frac = np.bincount(ring_of[members], minlength=len(rings)) / np.maximum(
-        np.bincount(ring_of, minlength=len(rings)), 1
-    )
-    inside = ring_sigma[frac >= 0.5]
-    if len(inside) == 0:
-        inside = ring_sigma[[int(np.argmax(frac))]]
-    lo, slo = _edge(inside, ring_sigma[frac < 0.5], True)
-    hi, shi = _edge(inside, ring_sigma[frac < 0.5], False)
-    axial, gap = 0.5 * (lo + hi), hi - lo
-    k = int(np.argmin(np.abs(line.arc_mm - axial)))
-    t, n, b = line.tangent[k], line.normal[k], line.binormal[k]
-    clear = 0.5 * gap + config.margin_mm
-    up = (ring_sigma < axial - clear) & (ring_sigma > axial - config.window_mm)
-    down = (ring_sigma > axial + clear) & (ring_sigma < axial + config.window_mm)
-    off = off_sig = ang = ang_sig = None
-    if up.any() and down.any():
-        pu, pd = ring_centre[up], ring_centre[down]
-        mu, md = pu.mean(axis=0), pd.mean(axis=0)
-        if up.sum() + down.sum() >= 4:
-            # The sections' common direction (the fitted centreline bends through an offset).
-            _, _, vt = np.linalg.svd(np.concatenate([pu - mu, pd - md]))
-            t = vt[0] * np.sign(vt[0] @ t)
-        v = md - mu
-        v -= (v @ t) * t
-        ru = (pu - mu) - np.outer((pu - mu) @ t, t)
-        rd = (pd - md) - np.outer((pd - md) @ t, t)
-        res = np.concatenate([np.linalg.norm(ru, axis=1), np.linalg.norm(rd, axis=1)])
-        spread = float(np.sqrt(np.mean(res**2))) if len(res) > 2 else 0.1
-        # Plus half the wall noise: ring centres share errors the scatter of a few rings
-        # cannot show (water-cut rings, ovality, the ring's blur).
-        off_sig = math.hypot(1.25 * spread * math.sqrt(1.0 / up.sum() + 1.0 / down.sum()), 0.5 * noise)
-        off = float(np.linalg.norm(v))
-        n = n - (n @ t) * t
-        b = np.cross(t, n / np.linalg.norm(n))
-        n = n / np.linalg.norm(n)
-        ang = math.degrees(math.atan2(v @ b, v @ n)) % 360.0
-        ang_sig = min(math.degrees(off_sig / max(off, 1e-9)), 180.0)
-    f = Feature(
-        kind="joint",
+    config: FeatureConfig, line: Centreline, r: _Rings, cand: np.ndarray, lo: float, hi: float
+) -> tuple[Joint, np.ndarray]:
+    """A joint in the axial band [lo, hi]: gap edges at half depth, depth, offset.
+
+    The edges are found along the straight local axis of the wall either side (the
+    fitted centreline tilts through an offset joint: its axial coordinate would slant
+    the gap across the rings)."""
+    inband = cand & (r.sigma >= lo) & (r.sigma <= hi)
+    depth = float(np.percentile(r.dev[inband], 90))
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    reach = max(hi - lo, 4.0)
+    local = _local_axis(config, line, r, mid, half + config.margin_mm)
+    near = np.abs(r.sigma - mid) <= half + 2.0 * reach
+    s = r.sigma - mid
+    if local is not None:
+        s[near] = (_world(line, r, near) - local.centre) @ local.tangent
+    lower = near & (s <= 0.0) & (s >= -half - reach)
+    upper = near & (s >= 0.0) & (s <= half + reach)
+    e_lo, s_lo = _edge(r, s, lower, 0.5 * depth, True)
+    e_hi, s_hi = _edge(r, s, upper, 0.5 * depth, False)
+    axial, gap = mid + 0.5 * (e_lo + e_hi), e_hi - e_lo
+    off: tuple[float | None, ...] = (None, None, None, None)
+    if local is not None:
+        off = local.offset()
+    f = Joint(
         axial_mm=axial,
-        axial_sigma_mm=0.5 * math.hypot(slo, shi),
+        axial_sigma_mm=0.5 * math.hypot(s_lo, s_hi),
         gap_mm=gap,
-        gap_sigma_mm=math.hypot(slo, shi),
+        gap_sigma_mm=math.hypot(s_lo, s_hi),
+        offset_mm=off[0],
+        offset_sigma_mm=off[1],
+        offset_angle_deg=off[2],
+        offset_angle_sigma_deg=off[3],
         depth_mm=depth,
-        offset_mm=off,
-        offset_sigma_mm=off_sig,
-        offset_angle_deg=ang,
-        offset_angle_sigma_deg=ang_sig,
-        points=len(members),
+        points=int(inband.sum()),
     )
-    in_gap = np.abs(ring_sigma - axial) <= clear
-    # The gap's rings, and the deep points of rings crossing its edges.
-    edge = (np.abs(sigma - axial) <= clear) & (dev > 0.5 * float(np.min(dev[members])))
-    return f, edge | in_gap[ring_of]
+    clear = 0.5 * gap + config.margin_mm
+    return f, near & (np.abs(s - 0.5 * (e_lo + e_hi)) <= clear)
+
+
+def _world(line: Centreline, r: _Rings, sel: np.ndarray) -> np.ndarray:
+    """(M, 3) world positions of the selected points (the inverse of
+    :meth:`.Centreline.coordinates`)."""
+    k = r.frame[sel]
+    return (
+        line.centre[k]
+        + (r.sigma[sel] - line.arc_mm[k])[:, None] * line.tangent[k]
+        + (r.rho[sel] * np.cos(r.theta[sel]))[:, None] * line.normal[k]
+        + (r.rho[sel] * np.sin(r.theta[sel]))[:, None] * line.binormal[k]
+    )
+
+
+@dataclass(frozen=True)
+class _LocalAxis:
+    """The straight wall axis through a joint and the downstream section's step.
+
+    Attributes:
+        centre: (3,) the upstream section's axis at the joint (world, mm).
+        tangent: (3,) its direction.
+        step: (2,) the downstream section's displacement along (normal, binormal) mm.
+        cov: (2, 2) its covariance (jackknife over the rings).
+    """
+
+    centre: np.ndarray
+    tangent: np.ndarray
+    step: np.ndarray
+    cov: np.ndarray
+
+    def offset(self) -> tuple[float, float, float, float]:
+        """(offset mm, 1-sigma, direction deg from the normal towards the binormal, 1-sigma)."""
+        off = float(np.hypot(*self.step))
+        u = self.step / max(off, 1e-9)
+        perp = np.array([-u[1], u[0]])
+        sig = math.sqrt(max(float(u @ self.cov @ u), 0.0))
+        ang_sig = math.degrees(math.sqrt(max(float(perp @ self.cov @ perp), 0.0)) / max(off, 1e-9))
+        return off, sig, math.degrees(math.atan2(self.step[1], self.step[0])) % 360.0, min(ang_sig, 180.0)
+
+
+def _local_axis(
+    config: FeatureConfig, line: Centreline, r: _Rings, axial: float, clear: float
+) -> _LocalAxis | None:
+    """The wall within ``config.window_mm`` either side of a joint at ``axial`` (``clear``
+    of it left out) in the centreline's frame there: rho = per-ring radius + centre
+    drift (quadratic along the axis) + ovality + the downstream centre's step. None with
+    fewer than 2 rings on either side."""
+    k0 = int(np.argmin(np.abs(line.arc_mm - axial)))
+    t, n, b = line.tangent[k0], line.normal[k0], line.binormal[k0]
+    c = line.centre[k0] + (axial - line.arc_mm[k0]) * t
+    near = (np.abs(r.sigma - axial) > clear) & (np.abs(r.sigma - axial) <= config.window_mm)
+    near &= r.dev < max(config.min_depth_mm, config.noise_factor * r.noise)
+    p = _world(line, r, near) - c
+    s, x, y = p @ t, p @ n, p @ b
+    down = s > 0
+    ring = r.ring_of[near]
+    if min(len(np.unique(ring[down])), len(np.unique(ring[~down]))) < 2:
+        return None
+    rho, th = np.hypot(x, y), np.arctan2(y, x)
+    u = s / config.window_mm
+    cos, sin = np.cos(th), np.sin(th)
+    cols = np.column_stack(
+        [cos, sin, u * cos, u * sin, u * u * cos, u * u * sin, np.cos(2 * th), np.sin(2 * th), down * cos, down * sin]
+    )
+    _, ring_col = np.unique(ring, return_inverse=True)
+
+    def solve(keep: np.ndarray) -> np.ndarray:
+        A = np.column_stack([cols[keep], np.eye(ring_col.max() + 1)[ring_col[keep]]])
+        coef, *_ = np.linalg.lstsq(A, rho[keep], rcond=None)
+        res = rho[keep] - A @ coef
+        ok = np.abs(res) <= 4.0 * 1.4826 * np.median(np.abs(res)) + 1e-9
+        coef, *_ = np.linalg.lstsq(A[ok], rho[keep][ok], rcond=None)
+        return coef[:10]
+
+    coef = solve(np.ones(len(rho), bool))
+    jack = np.array([solve(ring != q)[8:10] for q in np.unique(ring)])
+    m = len(jack)
+    cov = (m - 1) * np.cov(jack.T, bias=True) if m >= 3 else np.eye(2) * r.noise**2
+    tangent = t + (coef[2] * n + coef[3] * b) / config.window_mm
+    return _LocalAxis(c + coef[0] * n + coef[1] * b, tangent / np.linalg.norm(tangent), coef[8:10], cov)
 
 
 def _chords(
@@ -315,7 +448,7 @@ def _lateral(
     members: np.ndarray,
     radius: float,
     spacing: float,
-) -> tuple[Feature, np.ndarray]:
+) -> tuple[Lateral, np.ndarray]:
     """A lateral's opening from its cluster: centre, angle and diameter (jackknife sigmas)."""
     th0 = math.atan2(float(np.mean(np.sin(theta[members]))), float(np.mean(np.cos(theta[members]))))
     u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
@@ -332,12 +465,13 @@ def _lateral(
     arr = np.array(est)
     n = len(arr) - 1
     jk = np.sqrt((n - 1) / n * np.sum((arr[1:] - arr[1:].mean(axis=0)) ** 2, axis=0)) if n >= 3 else np.zeros(3)
-    s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0) if len(ch) < 3 else 0.0)
+    # Beside the jackknife: where the rings fall along the hole (their spacing), and the
+    # edge samples' reach (a ring's light is lost or half-lit at the rim: up to a sample).
+    s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0))
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
-    s_b = math.hypot(float(jk[2]), sample / math.sqrt(12.0))
+    s_b = math.hypot(float(jk[2]), sample)
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
-    f = Feature(
-        kind="lateral",
+    f = Lateral(
         axial_mm=zc,
         axial_sigma_mm=s_z,
         angle_deg=math.degrees(th0 + uc / radius) % 360.0,

@@ -1,7 +1,8 @@
 """Section features of the measured pipe from its stations and centreline (issue 30):
 taper (a diameter change), bend (the centreline turning), ovality and water stretches.
 
-Each is a :class:`~omnipipe.analysis.feature_types.Feature` in the contract's form. A
+Each is a :class:`~omnipipe.analysis.feature_types.Stretch` (:class:`.Taper`, :class:`.Bend`,
+:class:`.Ovality`, :class:`.Water`). A
 stretch touching the first or last station is ``truncated`` (it may run on beyond the
 measured stations). Extents along the pipe are uncertain by half the local station
 spacing (the feature's edge lies somewhere between two stations).
@@ -14,13 +15,13 @@ import math
 import numpy as np
 
 from omnipipe.analysis.centreline import Centreline
-from omnipipe.analysis.feature_types import Feature
+from omnipipe.analysis.feature_types import Bend, Ovality, Stretch, Taper, Water
 from omnipipe.analysis.stations import Headline, SectionConfig, Station
 
 
 def section_features(
     stations: list[Station], line: Centreline, head: Headline, config: SectionConfig
-) -> list[Feature]:
+) -> list[Stretch]:
     """Taper, bend, ovality and water features of the run, in axial order (a centreline
     turn overlapping a taper is not a bend: the cylinder fits tilt in a cone)."""
     if len(stations) < 3:
@@ -30,12 +31,12 @@ def section_features(
     bends = [b for b in _bends(line, head.diameter_mm, config) if not any(_overlap(b, t) for t in tapers)]
     out = tapers + bends
     out += _ovality_stretches(stations, config) + _water_stretches(stations, config)
-    return sorted(out, key=lambda f: f.axial_from_mm if f.axial_from_mm is not None else 0.0)
+    return sorted(out, key=lambda f: f.axial_from_mm)
 
 
-def _overlap(a: Feature, b: Feature) -> bool:
-    lo = max(a.axial_from_mm or 0.0, b.axial_from_mm or 0.0)
-    hi = min(a.axial_to_mm or 0.0, b.axial_to_mm or 0.0)
+def _overlap(a: Stretch, b: Stretch) -> bool:
+    lo = max(a.axial_from_mm, b.axial_from_mm)
+    hi = min(a.axial_to_mm, b.axial_to_mm)
     return hi > lo
 
 
@@ -56,7 +57,7 @@ def _edge_sigma(axial: np.ndarray) -> float:
     return 0.5 * float(np.median(np.diff(axial))) if len(axial) > 1 else math.nan
 
 
-def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[Feature]:
+def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[Stretch]:
     """Stretches whose ovality is at least ``config.ovality_feature_pct``."""
     ov = np.array([s.ovality for s in stations])
     axial = np.array([s.axial_mm for s in stations])
@@ -72,25 +73,22 @@ def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[F
         asig = np.array([s.ovality_angle_sigma_deg for s in stations[sel]])
         spread = float(np.std(ov[sel])) if n > 2 else float(np.median(osig))
         out.append(
-            Feature(
-                kind="ovality",
+            Ovality(
                 axial_from_mm=float(axial[i0]),
+                axial_from_sigma_mm=edge,
                 axial_to_mm=float(axial[i1]),
+                axial_to_sigma_mm=edge,
+                percent=100.0 * float(np.median(ov[sel])),
+                percent_sigma=100.0 * max(spread, float(np.median(osig))) / math.sqrt(n),
                 angle_deg=angle,
-                sizes={"percent": 100.0 * float(np.median(ov[sel]))},
-                sigmas={
-                    "percent_sigma": 100.0 * max(spread, float(np.median(osig))) / math.sqrt(n),
-                    "angle_sigma_deg": float(np.median(asig)) / math.sqrt(n),
-                    "axial_from_sigma_mm": edge,
-                    "axial_to_sigma_mm": edge,
-                },
+                angle_sigma_deg=float(np.median(asig)) / math.sqrt(n),
                 truncated=i0 == 0 or i1 == len(stations) - 1,
             )
         )
     return out
 
 
-def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Feature]:
+def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Stretch]:
     """Stretches of standing water (stations with a water depth)."""
     depth = np.array([s.water_depth_mm for s in stations])
     axial = np.array([s.axial_mm for s in stations])
@@ -102,16 +100,13 @@ def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Fea
         n = i1 - i0 + 1
         spread = float(np.std(depth[sel])) if n > 2 else 0.0
         out.append(
-            Feature(
-                kind="water",
+            Water(
                 axial_from_mm=float(axial[i0]),
+                axial_from_sigma_mm=edge,
                 axial_to_mm=float(axial[i1]),
-                sizes={"depth_mm": float(np.median(depth[sel]))},
-                sigmas={
-                    "depth_sigma_mm": max(spread, float(np.median(dsig))) / math.sqrt(n),
-                    "axial_from_sigma_mm": edge,
-                    "axial_to_sigma_mm": edge,
-                },
+                axial_to_sigma_mm=edge,
+                depth_mm=float(np.median(depth[sel])),
+                depth_sigma_mm=max(spread, float(np.median(dsig))) / math.sqrt(n),
                 truncated=i0 == 0 or i1 == len(stations) - 1,
             )
         )
@@ -182,7 +177,7 @@ def _explained(z: np.ndarray, cum: np.ndarray, z0: float, a: np.ndarray, b: np.n
     return np.where(ok, (s22 * r1 * r1 - 2.0 * s12 * r1 * r2 + s11 * r2 * r2) / np.where(ok, det, 1.0), 0.0)
 
 
-def _tapers(stations: list[Station], config: SectionConfig) -> list[Feature]:
+def _tapers(stations: list[Station], config: SectionConfig) -> list[Stretch]:
     """A diameter change along the run: a ramp fitted to the stations' mean diameters,
     reported when the change is at least ``config.taper_min_mm`` and 6 sigma and the ramp
     explains the stations much better than one diameter (residuals 4 x smaller)."""
@@ -202,23 +197,21 @@ def _tapers(stations: list[Station], config: SectionConfig) -> list[Feature]:
         return []
     edge = _edge_sigma(axial)
     return [
-        Feature(
-            kind="taper",
+        Taper(
             axial_from_mm=a,
+            axial_from_sigma_mm=edge,
             axial_to_mm=b,
-            sizes={"diameter_from_mm": d1, "diameter_to_mm": d2},
-            sigmas={
-                "diameter_from_sigma_mm": s1,
-                "diameter_to_sigma_mm": s2,
-                "axial_from_sigma_mm": edge,
-                "axial_to_sigma_mm": edge,
-            },
-            truncated=a <= axial[0] or b >= axial[-1],
+            axial_to_sigma_mm=edge,
+            diameter_from_mm=d1,
+            diameter_from_sigma_mm=s1,
+            diameter_to_mm=d2,
+            diameter_to_sigma_mm=s2,
+            truncated=bool(a <= axial[0] or b >= axial[-1]),
         )
     ]
 
 
-def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[Feature]:
+def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[Stretch]:
     """Stretches where the centreline turns faster than ``config.bend_min_curvature`` /
     diameter. Extent: where the curvature crosses half its median inside the stretch (the
     piecewise fits' window smooths the bend's ends symmetrically); turn: the angle
@@ -251,18 +244,16 @@ def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[
         radius = (hi - lo) / max(turn, 1e-9)
         edge = _edge_sigma(arc)
         out.append(
-            Feature(
-                kind="bend",
+            Bend(
                 axial_from_mm=lo,
+                axial_from_sigma_mm=edge,
                 axial_to_mm=hi,
-                sizes={"radius_mm": radius, "turn_deg": math.degrees(turn)},
-                sigmas={
-                    "radius_sigma_mm": radius
-                    * math.hypot(turn_sigma / max(turn, 1e-9), math.sqrt(2) * edge / max(hi - lo, 1e-9)),
-                    "turn_sigma_deg": math.degrees(turn_sigma),
-                    "axial_from_sigma_mm": edge,
-                    "axial_to_sigma_mm": edge,
-                },
+                axial_to_sigma_mm=edge,
+                radius_mm=radius,
+                radius_sigma_mm=radius
+                * math.hypot(turn_sigma / max(turn, 1e-9), math.sqrt(2) * edge / max(hi - lo, 1e-9)),
+                turn_deg=math.degrees(turn),
+                turn_sigma_deg=math.degrees(turn_sigma),
                 truncated=i0 == 0 or i1 == len(kappa) - 1,
             )
         )

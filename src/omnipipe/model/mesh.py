@@ -10,7 +10,9 @@ coordinates, so it follows bends). The wall is a tube, a developable surface: a
 across the pipe, which a 3-D Delaunay of a hollow cylinder would produce everywhere
 (its tetrahedra fill the inside). The angle wraps around: a margin of points is
 duplicated past 2 pi and each triangle is kept once. Triangles with an edge much
-longer than the spacing of the rings are dropped: holes stay holes. A run of more
+longer than the spacing of the rings are dropped: holes stay holes; so are triangles
+touching a point the analysis found not to be wall (a joint's gap, a lateral's opening):
+the mesh shows them as a gap and a hole. A run of more
 points than :data:`~.chunks.CHUNK_POINTS` is triangulated a chunk along the pipe at a
 time (:class:`~.chunks.AxialChunks`: the same triangles; qhull's memory is a chunk's).
 
@@ -93,6 +95,7 @@ def mesh_unrolled(
     circumference_mm: float,
     max_edge_factor: float,
     chunk_points: int = CHUNK_POINTS,
+    hole: np.ndarray | None = None,
 ) -> np.ndarray:
     """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring),
     vertex indices of :func:`face_dtype` (int32 below 2**31 points: half the memory).
@@ -108,6 +111,9 @@ def mesh_unrolled(
             the pipe at a time (:func:`_chunked_triangles`: the same triangles, in
             ascending order of their ascending vertex ids), so that the triangulation's
             memory does not grow with the run.
+        hole: (N,) True for points that are not wall (a joint's gap, a lateral's
+            opening and the branch seen through it): triangles touching them are dropped,
+            so the mesh shows the gap and the hole; None: all wall.
     """
     n = len(points_in_world)
     index = face_dtype(n)
@@ -137,6 +143,8 @@ def mesh_unrolled(
     faces = faces[
         (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     ]
+    if hole is not None and len(hole) == n and hole.any():
+        faces = faces[~np.asarray(hole, bool)[faces].any(axis=1)]
     # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
     longest = longest_edges(points_in_world, faces)
     return faces[longest <= max_edge_factor * float(np.median(longest))]

@@ -118,6 +118,9 @@ class ModelInputs:
             passes them instead of the rings, which then need not be held through the
             stage; None: integrated here.
         point_frame: see ``points_in_world``.
+        not_wall: (N,) True for the points in a joint's gap or a lateral's opening (the
+            analysis' ``point_not_wall``, in :func:`integrate` order): no triangle
+            touches them, so the mesh shows the gap and the hole; None: all wall.
     """
 
     camera_rig: Rig
@@ -131,6 +134,7 @@ class ModelInputs:
     frame_index: np.ndarray | None = None
     points_in_world: np.ndarray | None = None
     point_frame: np.ndarray | None = None
+    not_wall: np.ndarray | None = None
 
 
 @dataclass
@@ -448,7 +452,7 @@ def _run(
         circ = float(inputs.circumference_mm)
     else:
         arc, axial, circ = unrolled_coordinates(points, inputs.world_from_rig)
-    faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor)
+    faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor, hole=inputs.not_wall)
     flip_stats = None
     if config.flips and len(faces):
         from omnipipe.image import gray_without_laser

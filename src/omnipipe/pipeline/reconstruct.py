@@ -572,6 +572,7 @@ def _model(
         frame_index=stations,
         points_in_world=feed.points,
         point_frame=feed.point_frame,
+        not_wall=res.point_not_wall if len(res.point_not_wall) == len(feed.points) else None,
     )
     mdl = model.run(config.model, model_inputs, progress=tick, executor=executor)
     del model_inputs

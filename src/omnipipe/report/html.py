@@ -690,22 +690,38 @@ _DEFECT_COLUMNS = (
 )
 
 
+def _feature_cells(f: dict[str, Any]) -> tuple[str, str]:
+    """(position, sizes) cells of one report.json feature: each value with its sigma."""
+    def pm(key: str) -> str:
+        sig = f.get(key.replace("_mm", "_sigma_mm").replace("_deg", "_sigma_deg") if key != "percent" else "percent_sigma")
+        return value_pm(f[key], sig, digits=2)
+
+    if f.get("axial_mm") is not None:
+        where = pm("axial_mm") + " mm"
+    else:
+        where = f"{pm('axial_from_mm')} to {pm('axial_to_mm')} mm" + (" (truncated)" if f.get("truncated") else "")
+    skip = {"kind", "axial_mm", "axial_from_mm", "axial_to_mm", "truncated", "points"}
+    sizes = [
+        f"{k} {pm(k)}" for k, v in f.items()
+        if k not in skip and "_sigma" not in k and isinstance(v, (int, float)) and not isinstance(v, bool)
+    ]
+    return html.escape(where), html.escape(", ".join(sizes))
+
+
 def _features_section(s: dict[str, Any]) -> str:
-    """The joints' and laterals' table (report.json ``features``; features.csv codes them)."""
+    """The features' table (report.json ``features``: joints, laterals, bends, tapers,
+    ovality and water stretches; features.csv codes them)."""
     feats = s.get("features") or []
     if not feats:
         return ""
-    keys = ("kind", "axial_mm", "axial_sigma_mm", "gap_mm", "offset_mm", "offset_angle_deg",
-            "angle_deg", "diameter_mm", "diameter_sigma_mm")
-    head = "".join(f"<th>{k}</th>" for k in keys)
     rows = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(str(f.get(k, '')) if f.get(k) is not None else '')}</td>" for k in keys)
-        + "</tr>"
+        f"<tr><td>{html.escape(str(f.get('kind')))}</td><td>{a}</td><td>{b}</td></tr>"
         for f in feats
+        for a, b in [_feature_cells(f)]
     )
     return (
-        "<h3>Features (joints, laterals: parts of the pipe, not defects)</h3>"
-        f"<table><tr>{head}</tr>{rows}</table>"
+        "<h3>Features (parts of the pipe, not defects)</h3>"
+        f"<table><tr><th>kind</th><th>where</th><th>sizes (± 1 sigma)</th></tr>{rows}</table>"
     )
 
 

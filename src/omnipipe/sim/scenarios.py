@@ -1083,15 +1083,17 @@ def _draw_features(
 
 def _random_features(width: int, height: int, frames: int | None, seed: int) -> Scenario:
     """The `random` scene of ``seed`` (wall, gait, rig) with features of real pipes drawn
-    from their own stream, inside what the short (24-frame) run sees: from its laser
-    ring's first station to its rig's last (docs/simulator.md)."""
+    from their own stream, inside what the short (24-frame) run's laser ring sweeps: from
+    its first station (start - baseline) over 0.85 of the expected 23 frames of travel
+    (the gait's jitter), 3 mm in from either end (docs/simulator.md). The camera sees
+    further ahead, but only the ring measures: a feature beyond the sweep is not measured."""
     sc = _random(width, height, frames, seed)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), _FEATURE_STREAM]))
     diameter = sc.pipe.inner_diameter_mm
     m = sc.motion
     short_travel = m.stroke_mm * 23.0 / m.frames_per_cycle
-    lo = m.start_mm - sc.rig.laser.distance_mm
-    hi = m.start_mm + short_travel
+    lo = m.start_mm - sc.rig.laser.distance_mm + 3.0
+    hi = lo + max(0.85 * short_travel - 6.0, 1.0)
     features, info = _draw_features(rng, lo, hi, diameter)
     centreline = sc.pipe.centreline
     if rng.uniform() < 0.3:  # a tight elbow starting inside the window
