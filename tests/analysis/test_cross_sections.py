@@ -130,3 +130,20 @@ def test_tight_elbow_is_a_bend_feature() -> None:
     assert abs(bend.turn_deg - 90.0) <= 1.0
     assert abs(bend.axial_from_mm - 260.0) < 15.0
     assert abs(bend.axial_to_mm - (260.0 + 300.0 * math.pi / 2)) < 15.0
+
+
+def test_narrow_laser_dropout_at_a_common_angle_is_not_water() -> None:
+    """A dry 160 mm pipe whose rings all miss 12 deg at the same angle (a mirror strut, a
+    dropout): the chord below such a gap is 0.3 mm deep, under 1 % of the diameter and
+    3 sigma of the wall noise, so no water is reported (the bend scenario's rings showed
+    a 0.27 mm "water" before)."""
+    pipe = Pipe(inner_diameter_mm=160.0)
+    rings = _rings(pipe, 150.0, 6.0, 16, seed=7, noise=0.08)
+    rig_from_world = np.linalg.inv(rings.world_from_rig[rings.frame_index])
+    local = np.einsum("nij,nj->ni", rig_from_world[:, :3, :3], rings.points_in_world) + rig_from_world[:, :3, 3]
+    keep = np.abs(np.arctan2(local[:, 1], local[:, 0]) + np.pi / 2) > math.radians(6.0)
+    dry = AnalysisInputs(rings.points_in_world[keep], rings.frame_index[keep], rings.world_from_rig)
+    res = run(AnalysisConfig(), dry)
+    assert all(s.water_depth_mm == 0.0 for s in res.stations)
+    assert not _kinds(res.features, "water") and res.water_depth_mm is None
+    assert not any("water" in w for w in res.warnings)

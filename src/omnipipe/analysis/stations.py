@@ -43,6 +43,9 @@ class SectionConfig:
         cut_min_deg: a gap in the ring at least this wide (and 4 sample steps) is a cut.
         water_angle_tol_deg: cuts centred within this of the run's median cut angle are
             the same water surface.
+        water_min_pct: a cut is water only when the wall below its chord is at least
+            this deep (percent of the diameter) and 3 sigma: shallower cuts are laser
+            dropouts, not a water level an inspector codes (PACP codes it in 5 % steps).
         min_stations: stations a stretch (ovality, water, bend) needs.
         ovality_feature_pct: ovality stretches reported from this (percent).
         taper_min_mm: smallest diameter change reported as a taper.
@@ -55,6 +58,7 @@ class SectionConfig:
     cut_min_coverage_deg: float = bounded(200.0, gt=0, le=360)
     cut_min_deg: float = bounded(8.0, ge=0, le=360)
     water_angle_tol_deg: float = bounded(35.0, ge=0, le=180)
+    water_min_pct: float = bounded(1.0, ge=0, le=100)
     min_stations: int = bounded(2, ge=1)
     ovality_feature_pct: float = bounded(2.0, ge=0, le=100)
     taper_min_mm: float = bounded(2.0, ge=0)
@@ -256,9 +260,10 @@ def station_from_section(
 def with_water(
     stations: list[Station], sections: list[Section], radial_sigma_mm: float, config: SectionConfig
 ) -> tuple[list[Station], bool]:
-    """The stations with their water depths: cuts at the run's common cut angle on at
-    least ``config.min_stations`` stations are water (returns True then); the other
-    stations are dry (depth 0, sigma the depth of the narrowest cut)."""
+    """The stations with their water depths: cuts at the run's common cut angle, deep
+    enough (``config.water_min_pct``, 3 sigma), on at least ``config.min_stations``
+    stations are water (returns True then); the other stations are dry (depth 0, sigma
+    the depth of the narrowest cut)."""
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
     if len(centres) >= config.min_stations:
@@ -274,6 +279,8 @@ def with_water(
         )
         if is_water:
             depth, sig = water_depth(sec, radial_sigma_mm)
+            is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
+        if is_water:
             wet += 1
             out.append(replace(st, water_depth_mm=depth, water_depth_sigma_mm=sig))
         else:
