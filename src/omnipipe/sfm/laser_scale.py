@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numba
@@ -428,6 +429,136 @@ def _sheet(points: np.ndarray) -> tuple[np.ndarray | None, float]:
     return n, float(-n @ c)
 
 
+class _Templates(NamedTuple):
+    """Frame a's patches on the wall's tangent plane at N laser points, K samples each."""
+
+    points: np.ndarray  # (N, 3) laser points in rig a (mm)
+    ok_a: np.ndarray  # (N,) bool: the point projects into frame a
+    step: np.ndarray  # (N,) sample spacing, about one pixel of frame a (mm)
+    plane: np.ndarray  # (N, K, 3) sample points in rig a (mm)
+    template: np.ndarray  # (N, K) grey levels of frame a, NaN off the image
+    half: np.ndarray  # (N,) half width of the masked stripe (samples)
+    weight: np.ndarray  # (N, K) 0 on the laser stripe, 1 elsewhere
+    basis: np.ndarray | None  # (2, K) brightness-plane basis when detrending, else None
+    std: np.ndarray  # (N,) std of the template off the stripe (grey levels)
+
+
+def _templates(
+    gray_a: np.ndarray, camera: CameraModel, P: np.ndarray, cfg: LaserScaleConfig
+) -> _Templates:
+    """Sample (H, W) ``gray_a`` on a (2 r + 1)^2 grid tangent to the wall at each of
+    the (N, 3) laser points ``P`` (mm, rig a), the stripe masked out of the weights."""
+    # Tangent plane of the wall at each point: radial normal about the rig axis.
+    rho = np.hypot(P[:, 0], P[:, 1])
+    sx = np.stack([-P[:, 1] / rho, P[:, 0] / rho, np.zeros(len(P))], axis=1)  # around the pipe
+    sy = np.tile([0.0, 0.0, 1.0], (len(P), 1))  # along the pipe
+    # Sample spacing: about one pixel of frame a at the point.
+    px_a, ok_a = camera.project(P)
+    step = np.linalg.norm(P, axis=1) * camera.pixel_angle(np.nan_to_num(px_a), (1.0, 0.0))
+    step = np.clip(np.nan_to_num(step, nan=1.0), 0.05, 5.0)
+    r = cfg.patch_radius
+    grid = np.arange(-r, r + 1, dtype=float)
+    gu, gv = np.meshgrid(grid, grid)
+    gu, gv = gu.ravel(), gv.ravel()
+    offsets = (gu[None, :, None] * sx[:, None, :] + gv[None, :, None] * sy[:, None, :]) * step[
+        :, None, None
+    ]
+    plane = P[:, None, :] + offsets  # (N, K, 3) in rig a
+    K = plane.shape[1]
+    px, valid = camera.project(plane.reshape(-1, 3))
+    template = np.where(valid, sample_bilinear(gray_a, np.nan_to_num(px, nan=-10.0)), np.nan).reshape(
+        len(P), K
+    )
+    half = np.maximum(cfg.stripe_half_width_mm / step, cfg.stripe_half_width_px)
+    weight = (np.abs(gv)[None, :] > half[:, None]).astype(float)  # stripe masked
+    basis = np.vstack([gu, gv]) / max(r, 1) if cfg.detrend else None
+    std = np.nanstd(np.where(weight > 0, template, np.nan), axis=1)
+    return _Templates(P, ok_a, step, plane, template, half, weight, basis, std)
+
+
+@dataclass(frozen=True, eq=False)
+class _Scorer:
+    """NCC of frame a's templates with frame b's patches at candidate lengths s (mm):
+    the samples moved to rig b as R x + s d, frame b's own laser sheet left out."""
+
+    gray_b: np.ndarray  # (H, W) frame b without the laser's channel
+    camera: CameraModel
+    projection: CompiledProjection | None  # the camera's compiled projection, if any
+    plane_b0: np.ndarray  # (N, K, 3) template samples rotated into rig b (mm)
+    direction: np.ndarray  # (3,) unit translation direction d
+    sheet_n: np.ndarray | None  # (3,) laser sheet normal (rig a = rig b), or None
+    sheet_o: float  # sheet offset (mm): n.x + o = 0
+    tp: _Templates
+
+    def __call__(self, scales: np.ndarray) -> np.ndarray:
+        """(N, S) candidate lengths (mm) -> (N, S) NCC."""
+        tp = self.tp
+        if self.projection is not None:  # the same values in one compiled pass, without the (N, S, K, 3) points
+            patches, w = _candidate_patches(
+                self.gray_b, self.projection, self.plane_b0,
+                np.ascontiguousarray(scales, dtype=float), self.direction,
+                self.sheet_n, self.sheet_o, tp.step, tp.half, tp.weight,
+            )
+            return _ncc(tp.template, patches, w, tp.basis)
+        pts_b = _translated(  # (N, S, K, 3)
+            self.plane_b0, np.ascontiguousarray(scales, dtype=float), self.direction
+        )
+        pix, ok = self.camera.project(pts_b.reshape(-1, 3))
+        # Only the valid samples are read (the others are NaN, as they were when every
+        # pixel was sampled and then masked: bilinear samples do not depend on each other).
+        vals = np.full(len(pix), np.nan, dtype=np.result_type(self.gray_b.dtype, np.nan))
+        vals[ok] = sample_bilinear(self.gray_b, np.compress(ok, pix, axis=0))  # 6x pix[ok]
+        patches = vals.reshape(len(tp.points), scales.shape[1], tp.plane.shape[1])
+        w = tp.weight[:, None, :]
+        if self.sheet_n is not None:
+            # |pts_b . n + o| / step > half, times the template's weights (one pass).
+            w = _off_sheet_weight(pts_b @ self.sheet_n, self.sheet_o, tp.step, tp.half, tp.weight)
+        return _ncc(tp.template, patches, w, tp.basis)
+
+
+def _coarse_scales(
+    cfg: LaserScaleConfig, s_lo: float, s_hi: float, windowed: bool
+) -> np.ndarray:
+    """(S,) log-spaced candidate lengths in [s_lo, s_hi] (mm); a window keeps the
+    full range's density per log unit."""
+    steps = cfg.scale_steps
+    if windowed:  # same density per log unit as the full search
+        full = math.log(cfg.scale_range_mm[1] / cfg.scale_range_mm[0])
+        steps = max(9, int(math.ceil(cfg.scale_steps * math.log(s_hi / s_lo) / full)) + 1)
+    return np.geomspace(s_lo, s_hi, steps)
+
+
+def _refine(
+    coarse: np.ndarray, ncc: np.ndarray, score: _Scorer
+) -> tuple[np.ndarray, np.ndarray]:
+    """Finer pass around each point's best of the (S,) ``coarse`` lengths (NCC (N, S)),
+    then a parabola through the best three: (N,) log length (log mm) and its NCC."""
+    best = np.argmax(ncc, axis=1)
+    ratio = coarse[1] / coarse[0]
+    fine_offsets = np.geomspace(1 / ratio, ratio, 21)
+    fine = coarse[best][:, None] * fine_offsets[None, :]
+    ncc_f = score(fine)
+    k = np.clip(np.argmax(ncc_f, axis=1), 1, fine.shape[1] - 2)
+    rows = np.arange(len(ncc))
+    y0, y1, y2 = ncc_f[rows, k - 1], ncc_f[rows, k], ncc_f[rows, k + 1]
+    denom = y0 - 2 * y1 + y2
+    safe = np.abs(denom) > 1e-12
+    off = np.where(safe, 0.5 * (y0 - y2) / np.where(safe, denom, 1.0), 0.0).clip(-0.5, 0.5)
+    log_s = np.log(fine[rows, k]) + off * np.log(fine_offsets[1] / fine_offsets[0])
+    return log_s, y1
+
+
+def _combined_scale(s_pt: np.ndarray) -> tuple[float, np.ndarray]:
+    """Eq. (17) over (M,) per-point lengths (mm): the median of the log ratios after
+    dropping outliers (3 MAD); returns the scale (mm) and the (M,) inlier mask."""
+    # Eq. (17): min_l sum_k |log p_k - log l p'_k|, p'_k the unit-scale SfM point: the median.
+    log_ratio = np.log(s_pt)
+    med = float(np.median(log_ratio))
+    mad = float(np.median(np.abs(log_ratio - med))) * 1.4826 + 1e-6
+    inlier = np.abs(log_ratio - med) < 3.0 * mad + 0.02
+    return float(np.exp(np.median(log_ratio[inlier]))), inlier
+
+
 def match_laser_points(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
@@ -464,38 +595,15 @@ def match_laser_points(
         pts_idx = np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)
     else:
         pts_idx = np.arange(len(pts))
-    P = pts[pts_idx]
-    # Tangent plane of the wall at each point: radial normal about the rig axis.
-    rho = np.hypot(P[:, 0], P[:, 1])
-    sx = np.stack([-P[:, 1] / rho, P[:, 0] / rho, np.zeros(len(P))], axis=1)  # around the pipe
-    sy = np.tile([0.0, 0.0, 1.0], (len(P), 1))  # along the pipe
-    # Sample spacing: about one pixel of frame a at the point.
-    px_a, ok_a = camera.project(P)
-    step = np.linalg.norm(P, axis=1) * camera.pixel_angle(np.nan_to_num(px_a), (1.0, 0.0))
-    step = np.clip(np.nan_to_num(step, nan=1.0), 0.05, 5.0)
-    r = cfg.patch_radius
-    grid = np.arange(-r, r + 1, dtype=float)
-    gu, gv = np.meshgrid(grid, grid)
-    gu, gv = gu.ravel(), gv.ravel()
-    offsets = (gu[None, :, None] * sx[:, None, :] + gv[None, :, None] * sy[:, None, :]) * step[
-        :, None, None
-    ]
-    plane = P[:, None, :] + offsets  # (N, K, 3) in rig a
-    K = plane.shape[1]
-    px, valid = camera.project(plane.reshape(-1, 3))
-    template = np.where(valid, sample_bilinear(gray_a, np.nan_to_num(px, nan=-10.0)), np.nan).reshape(
-        len(P), K
-    )
-    half = np.maximum(cfg.stripe_half_width_mm / step, cfg.stripe_half_width_px)
-    weight = (np.abs(gv)[None, :] > half[:, None]).astype(float)  # stripe masked
-    basis = np.vstack([gu, gv]) / max(r, 1) if cfg.detrend else None
+    tp = _templates(gray_a, camera, pts[pts_idx], cfg)
+    P = tp.points
     # Candidate translation lengths: log-spaced, then a finer pass around each best.
     s_lo, s_hi = cfg.scale_range_mm if scale_window_mm is None else scale_window_mm
     if not (0 < s_lo < s_hi):
         return empty
     R = np.asarray(b_from_a_rotation, float)
     d = np.asarray(b_from_a_direction, float) / np.linalg.norm(b_from_a_direction)
-    plane_b0 = plane @ R.T  # (N, K, 3) rotated into rig b, before the translation
+    plane_b0 = tp.plane @ R.T  # (N, K, 3) rotated into rig b, before the translation
 
     # Frame b's own stripe: the laser sheet moved with the robot, so in rig b it lies
     # where it lay in rig a. Its light leaks into the grey image (colour crosstalk, blur)
@@ -503,65 +611,22 @@ def match_laser_points(
     # 585 mm random rig: -9 % with true motion). Samples near the sheet in rig b are
     # left out of each candidate's correlation as they are out of the template.
     sheet_n, sheet_o = _sheet(pts)
-
     projection = camera.compiled_projection()
+    score = _Scorer(gray_b, camera, projection, plane_b0, d, sheet_n, sheet_o, tp)
 
-    def score(scales: np.ndarray) -> np.ndarray:  # scales (N, S) -> NCC (N, S)
-        if projection is not None:  # the same values in one compiled pass, without the (N, S, K, 3) points
-            patches, w = _candidate_patches(
-                gray_b, projection, plane_b0, np.ascontiguousarray(scales, dtype=float), d,
-                sheet_n, sheet_o, step, half, weight,
-            )
-            return _ncc(template, patches, w, basis)
-        pts_b = _translated(plane_b0, np.ascontiguousarray(scales, dtype=float), d)  # (N, S, K, 3)
-        pix, ok = camera.project(pts_b.reshape(-1, 3))
-        # Only the valid samples are read (the others are NaN, as they were when every
-        # pixel was sampled and then masked: bilinear samples do not depend on each other).
-        vals = np.full(len(pix), np.nan, dtype=np.result_type(gray_b.dtype, np.nan))
-        vals[ok] = sample_bilinear(gray_b, np.compress(ok, pix, axis=0))  # 6x pix[ok]
-        patches = vals.reshape(len(P), scales.shape[1], K)
-        w = weight[:, None, :]
-        if sheet_n is not None:
-            # |pts_b . n + o| / step > half, times the template's weights (one pass).
-            w = _off_sheet_weight(pts_b @ sheet_n, sheet_o, step, half, weight)
-        return _ncc(template, patches, w, basis)
-
-    steps = cfg.scale_steps
-    if scale_window_mm is not None:  # same density per log unit as the full search
-        full = math.log(cfg.scale_range_mm[1] / cfg.scale_range_mm[0])
-        steps = max(9, int(math.ceil(cfg.scale_steps * math.log(s_hi / s_lo) / full)) + 1)
-    coarse = np.geomspace(s_lo, s_hi, steps)
-    scales = np.tile(coarse, (len(P), 1))
-    ncc = score(scales)
-    tmpl_ok = np.nanstd(np.where(weight > 0, template, np.nan), axis=1) > cfg.min_template_std
-    peak_s, peak_c = consensus_peaks(coarse, ncc[ok_a & tmpl_ok])
-    best = np.argmax(ncc, axis=1)
-    ratio = coarse[1] / coarse[0]
-    fine_offsets = np.geomspace(1 / ratio, ratio, 21)
-    fine = coarse[best][:, None] * fine_offsets[None, :]
-    ncc_f = score(fine)
-    k = np.clip(np.argmax(ncc_f, axis=1), 1, fine.shape[1] - 2)
-    rows = np.arange(len(P))
-    y0, y1, y2 = ncc_f[rows, k - 1], ncc_f[rows, k], ncc_f[rows, k + 1]
-    denom = y0 - 2 * y1 + y2
-    safe = np.abs(denom) > 1e-12
-    off = np.where(safe, 0.5 * (y0 - y2) / np.where(safe, denom, 1.0), 0.0).clip(-0.5, 0.5)
-    log_s = np.log(fine[rows, k]) + off * np.log(fine_offsets[1] / fine_offsets[0])
-    best_ncc = y1
-    tmpl_std = np.nanstd(np.where(weight > 0, template, np.nan), axis=1)
-    good = ok_a & (best_ncc > cfg.min_ncc) & (tmpl_std > cfg.min_template_std) & np.isfinite(log_s)
+    coarse = _coarse_scales(cfg, s_lo, s_hi, scale_window_mm is not None)
+    ncc = score(np.tile(coarse, (len(P), 1)))
+    tmpl_ok = tp.std > cfg.min_template_std
+    peak_s, peak_c = consensus_peaks(coarse, ncc[tp.ok_a & tmpl_ok])
+    log_s, best_ncc = _refine(coarse, ncc, score)
+    good = tp.ok_a & (best_ncc > cfg.min_ncc) & tmpl_ok & np.isfinite(log_s)
     if not good.any():
         return LaserMatches(
             empty.index, empty.scale_mm, empty.pixels_b, empty.ncc, math.nan, peak_s, peak_c
         )
     s_pt = np.exp(log_s[good])
     pix_b, _ = camera.project(P[good] @ R.T + s_pt[:, None] * d)
-    # Eq. (17): min_l sum_k |log p_k - log l p'_k|, p'_k the unit-scale SfM point: the median.
-    log_ratio = np.log(s_pt)
-    med = float(np.median(log_ratio))
-    mad = float(np.median(np.abs(log_ratio - med))) * 1.4826 + 1e-6
-    inlier = np.abs(log_ratio - med) < 3.0 * mad + 0.02
-    scale = float(np.exp(np.median(log_ratio[inlier])))
+    scale, inlier = _combined_scale(s_pt)
     return LaserMatches(
         index=pts_idx[good][inlier],
         scale_mm=s_pt[inlier],
