@@ -166,14 +166,8 @@ def test_model_outliers_are_read_from_yaml(tmp_path: Path) -> None:
     assert (outliers.k_mad, outliers.max_run, outliers.window) == (8.5, 3, 41)
 
 
-# Numeric settings still without declared bounds, each with its reason.
-UNBOUNDED = {
-    # issue 30's detector (analysis/features.py, its owner's): bounds land with it.
-    "omnipipe.analysis.features.FeatureConfig": {
-        "min_depth_mm", "noise_factor", "joint_coverage", "lateral_reach_rel", "min_points",
-        "margin_mm", "window_mm",
-    },
-}
+# Numeric settings still without declared bounds, each with its reason (none today).
+UNBOUNDED: dict[str, set[str]] = {}
 
 
 def test_every_numeric_setting_declares_its_bounds() -> None:

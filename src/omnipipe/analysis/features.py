@@ -44,6 +44,7 @@ from scipy.spatial import cKDTree
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.defects import fit_wall_profile, fourier_design
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
+from omnipipe.config import bounded
 
 
 @dataclass(frozen=True)
@@ -68,16 +69,16 @@ class FeatureConfig:
         window_mm: running-median window of the rings' mean radius; offset window.
     """
 
-    min_depth_mm: float = 1.5
-    noise_factor: float = 6.0
-    joint_noise_factor: float = 3.5
-    joint_coverage: float = 0.6
-    joint_link_mm: float = 3.0
-    joint_max_gap_mm: float = 30.0
-    lateral_reach_rel: float = 0.08
-    min_points: int = 8
-    margin_mm: float = 3.0
-    window_mm: float = 60.0
+    min_depth_mm: float = bounded(1.5, ge=0)
+    noise_factor: float = bounded(6.0, gt=0)
+    joint_noise_factor: float = bounded(3.5, gt=0)
+    joint_coverage: float = bounded(0.6, gt=0, le=1)
+    joint_link_mm: float = bounded(3.0, gt=0)
+    joint_max_gap_mm: float = bounded(30.0, gt=0)
+    lateral_reach_rel: float = bounded(0.08, gt=0, le=1)
+    min_points: int = bounded(8, ge=1)
+    margin_mm: float = bounded(3.0, ge=0)
+    window_mm: float = bounded(60.0, gt=0)
 
 
 @dataclass(frozen=True)
