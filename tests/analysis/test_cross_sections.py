@@ -147,3 +147,13 @@ def test_narrow_laser_dropout_at_a_common_angle_is_not_water() -> None:
     assert all(s.water_depth_mm == 0.0 for s in res.stations)
     assert not _kinds(res.features, "water") and res.water_depth_mm is None
     assert not any("water" in w for w in res.warnings)
+
+
+def test_section_settings_reach_the_section_measurements() -> None:
+    """Every section setting of AnalysisConfig (YAML ``analysis.*``) is the one the
+    section measurements use, the water threshold included."""
+    from omnipipe.analysis.stage import section_config
+
+    cfg = AnalysisConfig(water_min_pct=7.0, cut_min_deg=9.0, taper_min_mm=3.0)
+    sec = section_config(cfg)
+    assert (sec.water_min_pct, sec.cut_min_deg, sec.taper_min_mm) == (7.0, 9.0, 3.0)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from concurrent.futures import Executor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -98,6 +98,8 @@ class AnalysisConfig:
             model (``ring_blur_mm``, ``axial_blur_mm``): a narrow defect's height depends
             on it (:func:`blur_height_sigma`; the quick demo's 5 mm wide bulge, true
             5 mm, read 4.71 +- 0.11 mm without it; refitted with the blur x 1.25, 5.65 mm).
+        water_min_pct: a ring's cut is standing water only from this depth (percent of
+            the diameter) and 3 sigma (:class:`.stations.SectionConfig`).
     """
 
     window_mm: float | None = bounded(None, gt=0)
@@ -123,20 +125,15 @@ class AnalysisConfig:
     taper_min_mm: float = bounded(2.0, ge=0)
     bend_min_curvature: float = bounded(0.2, ge=0)
     bend_min_turn_deg: float = bounded(10.0, ge=0, le=180)
+    water_min_pct: float = bounded(1.0, ge=0, le=100)
     features: FeatureConfig = field(default_factory=FeatureConfig)
 
 
 def section_config(config: AnalysisConfig) -> SectionConfig:
-    """The section measurements' settings (:class:`.stations.SectionConfig`) of ``config``."""
-    return SectionConfig(
-        min_coverage_deg=config.min_coverage_deg,
-        cut_min_coverage_deg=config.cut_min_coverage_deg,
-        cut_min_deg=config.cut_min_deg,
-        ovality_feature_pct=config.ovality_feature_pct,
-        taper_min_mm=config.taper_min_mm,
-        bend_min_curvature=config.bend_min_curvature,
-        bend_min_turn_deg=config.bend_min_turn_deg,
-    )
+    """The section measurements' settings (:class:`.stations.SectionConfig`) of ``config``:
+    every SectionConfig field that ``config`` also has, by name (the others default)."""
+    shared = {f.name for f in fields(SectionConfig)} & {f.name for f in fields(config)}
+    return SectionConfig(**{name: getattr(config, name) for name in shared})
 
 
 @dataclass
