@@ -7,6 +7,9 @@ recall per kind, features reported as defects, position errors, size coverage
 Each seed: ``omnipipe simulate --scenario random-features-small`` (400x300, 24 frames;
 ``--size WxH`` renders the same scenes at another size) then ``omnipipe reconstruct``;
 datasets and reports already in --work are reused (``--fresh`` reconstructs again).
+``--motion truth`` reconstructs with the simulator's trajectory
+(``sfm.trajectory_from: ground_truth/poses.txt``: the feature detection alone, not the
+camera motion), ``--motion both`` prints both tables.
 
 Counted (the issue's classes): joints with offset >= 1 mm or gap >= 3 mm, laterals >=
 0.2 x the diameter, bends of radius <= 3 x the diameter (the elbows), tapers, ovality >=
@@ -67,8 +70,9 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
-def _run(seed: int, work: Path, size: str | None, fresh: bool) -> tuple[dict, dict] | str:
-    data, out = work / f"s{seed}", work / f"s{seed}-out"
+def _run(seed: int, work: Path, size: str | None, fresh: bool, motion: str) -> tuple[dict, dict] | str:
+    data = work / f"s{seed}"
+    out = work / (f"s{seed}-out" if motion == "estimated" else f"s{seed}-truth-out")
     sim = ["omnipipe", "simulate", "--scenario", "random-features-small", "--seed", str(seed),
            "--out", str(data), "--quiet", "--workers", "1", "--force"]
     if size:
@@ -78,8 +82,12 @@ def _run(seed: int, work: Path, size: str | None, fresh: bool) -> tuple[dict, di
         if p.returncode != 0:
             return "simulate: " + (p.stderr.strip().splitlines() or ["?"])[-1]
     if fresh or not (out / "report.json").exists():
-        p = subprocess.run(["omnipipe", "reconstruct", str(data), "--out", str(out), "--force", "--quiet"],
-                           capture_output=True, text=True)
+        cmd = ["omnipipe", "reconstruct", str(data), "--out", str(out), "--force", "--quiet"]
+        if motion == "truth":
+            cfg = work / "truth-motion.yaml"
+            cfg.write_text("sfm:\n  trajectory_from: ground_truth/poses.txt\n")
+            cmd += ["--config", str(cfg)]
+        p = subprocess.run(cmd, capture_output=True, text=True)
         if p.returncode != 0:
             return "reconstruct: " + (p.stderr.strip().splitlines() or ["?"])[-1]
     truth = json.loads((data / "ground_truth" / "scene.json").read_text())
@@ -204,28 +212,8 @@ def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict) -> Non
             counts["feature_defects"] += any(min(b, hi + 10) > max(a, lo - 10) for lo, hi in spots)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", default="0-29", help="e.g. 0-29 or 0-9,20-25")
-    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_features"))
-    ap.add_argument("--size", default=None, help="WxH (default: the -small scenario's 400x300)")
-    ap.add_argument("--fresh", action="store_true", help="reconstruct again even if a report exists")
-    args = ap.parse_args()
-    args.work.mkdir(parents=True, exist_ok=True)
-    rows: dict[str, Row] = {}
-    counts: dict = {"false_defects": 0, "feature_defects": 0, "unreliable_runs": 0}
-    done, failed = [], []
-    for seed in _seeds(args.seeds):
-        got = _run(seed, args.work, args.size, args.fresh)
-        if isinstance(got, str):
-            failed.append(seed)
-            print(f"seed {seed}: {got}", flush=True)
-            continue
-        done.append(seed)
-        counts["unreliable_runs"] += bool((got[0].get("trajectory_quality") or {}).get("unreliable"))
-        _score(*got, rows, counts)
-        print(f"seed {seed}: done ({len(done)} seeds)", flush=True)
-    print(f"\n{len(done)} seeds scored: {done}; refused/failed: {failed}")
+def _table(title: str, rows: dict[str, Row], counts: dict, done: list[int], failed: list[int]) -> None:
+    print(f"\n{title}: {len(done)} seeds scored: {done}; refused/failed: {failed}")
     print(f"{'kind':8} {'n':>4} {'outside':>7} {'recall':>7} {'ax<=3mm':>8} {'ax med':>7} "
           f"{'ang<=3deg':>9} {'size in 3sig':>12} {'err med/max':>12}")
     for kind in KINDS:
@@ -247,6 +235,34 @@ def main() -> int:
                   f"{np.percentile(e, 90):.2f} {unit}, {len(e)} stations")
     print(f"false defects: {counts['false_defects']} (within 10 mm of a joint or a hole: "
           f"{counts['feature_defects']}); runs with unreliable motion: {counts['unreliable_runs']}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", default="0-29", help="e.g. 0-29 or 0-9,20-25")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_features"))
+    ap.add_argument("--size", default=None, help="WxH (default: the -small scenario's 400x300)")
+    ap.add_argument("--fresh", action="store_true", help="reconstruct again even if a report exists")
+    ap.add_argument("--motion", choices=("estimated", "truth", "both"), default="estimated",
+                    help="camera motion: estimated (the product), truth (ground_truth/poses.txt), both")
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    motions = ("truth", "estimated") if args.motion == "both" else (args.motion,)
+    for motion in motions:
+        rows: dict[str, Row] = {}
+        counts: dict = {"false_defects": 0, "feature_defects": 0, "unreliable_runs": 0}
+        done, failed = [], []
+        for seed in _seeds(args.seeds):
+            got = _run(seed, args.work, args.size, args.fresh, motion)
+            if isinstance(got, str):
+                failed.append(seed)
+                print(f"seed {seed} ({motion} motion): {got}", flush=True)
+                continue
+            done.append(seed)
+            counts["unreliable_runs"] += bool((got[0].get("trajectory_quality") or {}).get("unreliable"))
+            _score(*got, rows, counts)
+            print(f"seed {seed} ({motion} motion): done ({len(done)} seeds)", flush=True)
+        _table(f"{motion} camera motion", rows, counts, done, failed)
     return 0
 
 

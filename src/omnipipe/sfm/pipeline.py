@@ -43,6 +43,7 @@ from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
+from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
@@ -81,6 +82,8 @@ def run(
     """
     if inputs.n_frames < 1:
         raise ReconstructionError("no frames")
+    if config.trajectory_from:  # poses given (a total station, a simulator's truth)
+        return external_motion(trajectory_path(config.trajectory_from, inputs), inputs)
     ctx = _context(config, inputs, executor)
     with ImageStore() as grays:  # keyframe grey images, on disk until the run is decided
         # Steps 1-3: stations, keyframes and their relative motions; each step's two

@@ -68,6 +68,9 @@ class SfmConfig:
         bundle: bundle adjustment settings.
         scale_check: when a step's laser length is trusted (feature depth scale,
             consensus peaks; :mod:`omnipipe.sfm.scale_check`).
+        trajectory_from: a TUM trajectory file (absolute, or relative to the dataset)
+            whose poses replace the estimated motion (:mod:`omnipipe.sfm.external`);
+            empty: the motion is estimated.
     """
 
     stations: StationConfig = field(default_factory=StationConfig)
@@ -85,6 +88,7 @@ class SfmConfig:
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
     scale_check: ScaleCheckConfig = field(default_factory=ScaleCheckConfig)
+    trajectory_from: str = ""
 
 
 @dataclass
