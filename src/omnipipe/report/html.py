@@ -69,6 +69,9 @@ class ReportInputs:
         texture: (H, W, 3) uint8 texture image, or None.
         unrolled: (H, W, 3) uint8 unrolled wall image (rows: along the pipe, columns: angle).
         unrolled_extent: (angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of it.
+        unrolled_alpha: (H, W) bool, True where the wall was measured and textured; the
+            other cells (a joint's gap, a lateral's opening, the unseen) are drawn
+            hatched grey, not as dark wall. None: every cell shown as it is.
         stations_axial_mm, stations_diameter_mm, stations_ovality: per-station profile.
         radius_mm: fitted wall radius, for drawing defect outlines on the unrolled image.
         truth: rows of the measured-vs-true table: (name, measured, 1-sigma, true, unit)
@@ -94,6 +97,7 @@ class ReportInputs:
     texture: np.ndarray | None = None
     unrolled: np.ndarray | None = None
     unrolled_extent: tuple[float, float, float, float] | None = None
+    unrolled_alpha: np.ndarray | None = None
     stations_axial_mm: np.ndarray | None = None
     stations_diameter_mm: np.ndarray | None = None
     stations_ovality: np.ndarray | None = None
@@ -141,10 +145,41 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     if poses.ndim == 3 and len(poses):
         out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
-        out["unrolled"] = _unrolled_plot(inputs, inputs.unrolled, inputs.unrolled_extent)
+        shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha)
+        out["unrolled"] = _unrolled_plot(inputs, shown, inputs.unrolled_extent)
     if inputs.wall is not None and len(inputs.wall.axial_mm):
         out["relief"] = _relief_plot(inputs, inputs.wall)
     return out
+
+
+UNROLLED_MAX_COLUMNS = 1800
+"""The report's unrolled wall is drawn from at most this many columns (area-averaged):
+its figure is about 1000 px wide."""
+
+
+def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
+    """(h, w, 3) uint8 unrolled wall for the report: at most
+    :data:`UNROLLED_MAX_COLUMNS` columns (rows scaled alike), and the cells that are not
+    wall (``alpha`` False: a gap, an opening, unseen) hatched in two greys, so that no
+    missing wall passes for dark wall and nothing is smeared into it."""
+    import cv2
+
+    h, w = image.shape[:2]
+    rgb = np.ascontiguousarray(image[..., :3])
+    seen = None if alpha is None else np.asarray(alpha, bool)
+    if w > UNROLLED_MAX_COLUMNS:
+        f = UNROLLED_MAX_COLUMNS / w
+        size = (UNROLLED_MAX_COLUMNS, max(1, round(h * f)))
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        if seen is not None:
+            # A shown cell is wall when most of the cells it averages are.
+            seen = cv2.resize(seen.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
+    if seen is not None and not seen.all():
+        if rgb is image or np.shares_memory(rgb, image):
+            rgb = rgb.copy()  # the caller's image is never drawn on
+        rr, cc = np.nonzero(~seen)
+        rgb[rr, cc] = np.where((((rr + cc) // 4) % 2)[:, None] == 0, 170, 110).astype(np.uint8)
+    return rgb
 
 
 def _clock_deg(inputs: ReportInputs) -> float:
@@ -516,7 +551,7 @@ def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
 
         ext = inputs.unrolled_extent
         crop = crop_unrolled(
-            inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
+            inputs.unrolled, inputs.unrolled_alpha, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
             2 * math.pi * inputs.radius_mm,
         )
         views.append(_figure_html(_png_data_uri(crop), "wall texture (unrolled)"))
@@ -800,6 +835,10 @@ def _figures(plots: dict[str, str]) -> str:
             )
         if "unrolled" in plots:
             parts.append(f"<img id='unrolled' class='zoomable' alt='unrolled wall' src='{plots['unrolled']}'>")
+            parts.append(
+                "<p class='note'>Hatched grey: no wall there (a joint's gap, a lateral's opening, "
+                "or wall no frame saw); nothing is painted into it.</p>"
+            )
         if "relief" in plots:
             hidden = " style='display:none'" if "unrolled" in plots else ""
             parts.append(
