@@ -585,7 +585,7 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         truth=_truth_table(inputs.truth),
         trajectory_note=_trajectory_note(inputs.evaluation),
         model_view=_model_view(_model_json(inputs, config)),
-        defects=_defects_section(inputs) + _features_section(s),
+        defects=_defects_section(inputs) + _features_section(s, _travel_sign(inputs)),
         figures=_figures(plots),
         files=_files_table(s.get("files")),
     )
@@ -725,38 +725,62 @@ _DEFECT_COLUMNS = (
 )
 
 
-def _feature_cells(f: dict[str, Any]) -> tuple[str, str]:
-    """(position, sizes) cells of one report.json feature: each value with its sigma."""
+def _feature_cells(f: dict[str, Any], reference_deg: float, offset_m: float) -> tuple[str, str, str]:
+    """(distance, clock, sizes) cells of one report.json feature, in the defect table's
+    conventions (metres from the distance origin, clock positions); each value with its
+    sigma."""
+    from omnipipe.report.deliverable import clock_position
+
     def pm(key: str) -> str:
         sig = f.get(key.replace("_mm", "_sigma_mm").replace("_deg", "_sigma_deg") if key != "percent" else "percent_sigma")
         return value_pm(f[key], sig, digits=2)
 
+    def metres(key: str) -> str:
+        sig = f.get(key.replace("_mm", "_sigma_mm"))
+        return value_pm(offset_m + float(f[key]) / 1000.0, None if sig is None else float(sig) / 1000.0, digits=4)
+
     if f.get("axial_mm") is not None:
-        where = pm("axial_mm") + " mm"
+        where = metres("axial_mm") + " m"
     else:
-        where = f"{pm('axial_from_mm')} to {pm('axial_to_mm')} mm" + (" (truncated)" if f.get("truncated") else "")
-    skip = {"kind", "axial_mm", "axial_from_mm", "axial_to_mm", "truncated", "points"}
+        where = f"{metres('axial_from_mm')} – {metres('axial_to_mm')} m" + (" (truncated)" if f.get("truncated") else "")
+    angle_key = "angle_deg"
+    if f.get("kind") == "joint":  # a joint's clock: its offset's direction, when significant
+        off, osig = f.get("offset_mm") or 0.0, f.get("offset_sigma_mm") or 0.0
+        angle_key = "offset_angle_deg" if off > 2.0 * osig else ""
+    clock = ""
+    if angle_key and isinstance(f.get(angle_key), int | float):
+        clock = clock_position(float(f[angle_key]), reference_deg)[0]
+        sig = f.get(angle_key.replace("_deg", "_sigma_deg"))
+        clock += "" if sig is None else f" ± {float(sig):.1f}°"
+    skip = {"kind", "axial_mm", "axial_from_mm", "axial_to_mm", "truncated", "points", "angle_deg", "offset_angle_deg"}
     sizes = [
         f"{k} {pm(k)}" for k, v in f.items()
         if k not in skip and "_sigma" not in k and isinstance(v, (int, float)) and not isinstance(v, bool)
     ]
-    return html.escape(where), html.escape(", ".join(sizes))
+    return html.escape(where), html.escape(clock), html.escape(", ".join(sizes))
 
 
-def _features_section(s: dict[str, Any]) -> str:
+def _features_section(s: dict[str, Any], travel_along_rig_z: float = 1.0) -> str:
     """The features' table (report.json ``features``: joints, laterals, bends, tapers,
-    ovality and water stretches; features.csv codes them)."""
+    ovality and water stretches; features.csv codes them): distances and clock positions
+    as the defect table's."""
+    from omnipipe.report.deliverable import distance_origin, run_clock
+
     feats = s.get("features") or []
     if not feats:
         return ""
+    survey = _survey_of(s)
+    reference = run_clock(s, survey, travel_along_rig_z).angle_deg
+    origin = distance_origin(s, survey)
     rows = "".join(
-        f"<tr><td>{html.escape(str(f.get('kind')))}</td><td>{a}</td><td>{b}</td></tr>"
+        f"<tr><td>{html.escape(str(f.get('kind')))}</td><td>{a}</td><td>{b}</td><td>{c}</td></tr>"
         for f in feats
-        for a, b in [_feature_cells(f)]
+        for a, b, c in [_feature_cells(f, reference, origin.offset_m)]
     )
     return (
         "<h3>Features (parts of the pipe, not defects)</h3>"
-        f"<table><tr><th>kind</th><th>where</th><th>sizes (± 1 sigma)</th></tr>{rows}</table>"
+        f"<table><tr><th>kind</th><th>distance (m) from the {html.escape(origin.name)}</th>"
+        f"<th>clock</th><th>sizes (± 1 sigma)</th></tr>{rows}</table>"
     )
 
 

@@ -105,10 +105,21 @@ def _fill_rows(grid: np.ndarray, max_cells: int) -> None:
 def distance_axis(ax: Axes, offset_m: float, origin: str) -> None:
     """Label the vertical axis (axial mm from the first frame) as the inspector's
     distance: metres from ``origin`` (``offset_m`` + axial / 1000)."""
+    import textwrap
+
     from matplotlib.ticker import FuncFormatter
 
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda z, _pos: f"{offset_m + z / 1000.0:.2f}"))
-    ax.set_ylabel(f"distance (m) from the {origin}")
+    # (+ 0.0: no "-0.00" at a row a hair before the origin)
+    ax.yaxis.set_major_formatter(
+        FuncFormatter(lambda z, _pos: f"{round(offset_m + z / 1000.0, 2) + 0.0:.2f}")
+    )
+    # Wrapped to the axes' height: a long label on a short strip of wall would otherwise
+    # stretch the saved figure (bbox tight) with blank space above and below it.
+    fig = ax.get_figure()
+    height_in = ax.get_position().height * (fig.get_figheight() if fig is not None else 4.0)
+    size = float(ax.yaxis.label.get_fontsize())
+    chars = max(14, int(height_in * 72.0 / (0.6 * size)))
+    ax.set_ylabel("\n".join(textwrap.wrap(f"distance (m) from the {origin}", chars)))
 
 
 def clock_ticks(ax: Axes, a0: float, a1: float, reference_deg: float, step_h: float = 1.0) -> None:
