@@ -244,20 +244,20 @@ def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
     a0, a1, z0, z1 = relief.defect_window(d, wall.radius_mm)
     cell = max(0.25, min(2.0, min(d.width_mm, d.length_mm) / 12.0))
     grid = relief.deviation_grid(wall, (z0, z1), (a0, a1), cell)
-    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    fig, ax = plt.subplots(figsize=(3.2, 3.2))
     vmax = relief.relief_vmax([d.height_mm], inputs.summary.get("wall_noise_mm"))
     im = relief.draw_relief(ax, grid, (a0, a1, z0, z1), vmax)
     relief.outline(ax, d, wall.radius_mm)
     span_h = (a1 - a0) / 30.0
     relief.clock_ticks(ax, a0, a1, _clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
-    ax.set_xlabel("clock", fontsize=8)
+    ax.set_xlabel("clock", fontsize=9)
     _distance_axis(ax, inputs)
-    ax.yaxis.label.set_fontsize(7)
-    ax.tick_params(labelsize=7)
-    ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=9)
+    ax.set_ylabel("distance (m)", fontsize=9)  # from where: the card's heading says
+    ax.tick_params(labelsize=8)
+    ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=10)
     bar = fig.colorbar(im, ax=ax, shrink=0.85)
-    bar.set_label("deviation (mm)", fontsize=8)
-    bar.ax.tick_params(labelsize=7)
+    bar.set_label("deviation (mm)", fontsize=9)
+    bar.ax.tick_params(labelsize=8)
     return _figure_data_uri(fig)
 
 
@@ -586,7 +586,9 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         trajectory_note=_trajectory_note(inputs.evaluation),
         model_view=_model_view(_model_json(inputs, config)),
         defects=_defects_section(inputs) + _features_section(s, _travel_sign(inputs)),
-        figures=_figures(plots),
+        figures=_figures(
+            plots, inputs.unrolled_alpha is not None and not np.asarray(inputs.unrolled_alpha).all()
+        ),
         files=_files_table(s.get("files")),
     )
 
@@ -846,8 +848,9 @@ def _defects_section(inputs: ReportInputs) -> str:
     return "".join(parts)
 
 
-def _figures(plots: dict[str, str]) -> str:
-    """The unrolled wall, the diameter profile and the trajectory (those drawn)."""
+def _figures(plots: dict[str, str], holes: bool = False) -> str:
+    """The unrolled wall, the diameter profile and the trajectory (those drawn); ``holes``:
+    the unrolled wall has cells with no wall (hatched, and said so)."""
     parts = []
     if "unrolled" in plots or "relief" in plots:
         parts.append("<h2>Unrolled wall</h2>")
@@ -859,10 +862,11 @@ def _figures(plots: dict[str, str]) -> str:
             )
         if "unrolled" in plots:
             parts.append(f"<img id='unrolled' class='zoomable' alt='unrolled wall' src='{plots['unrolled']}'>")
-            parts.append(
-                "<p class='note'>Hatched grey: no wall there (a joint's gap, a lateral's opening, "
-                "or wall no frame saw); nothing is painted into it.</p>"
-            )
+            if holes:
+                parts.append(
+                    "<p class='note'>Hatched grey: no wall there (a joint's gap, a lateral's opening, "
+                    "or wall no frame saw); nothing is painted into it.</p>"
+                )
         if "relief" in plots:
             hidden = " style='display:none'" if "unrolled" in plots else ""
             parts.append(
