@@ -9,6 +9,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from omnipipe.cli import COMMAND_MODULES, COMMANDS, build_parser, main
 
 HEAVY = ("cv2", "numba", "llvmlite", "scipy", "numpy", "omnipipe.sim.scene")
@@ -77,3 +79,15 @@ def test_unknown_command_is_refused(capsys) -> None:
     else:  # pragma: no cover - argparse always exits here
         raise AssertionError("argparse accepted an unknown command")
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_reconstruct_help_names_every_output(capsys) -> None:
+    """Issue 31 item 10: ``reconstruct --help`` lists the deliverable's files."""
+    from omnipipe.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["reconstruct", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in ("points.laz", "points.e57", "model.obj", "defects.csv", "model.glb", "report.html"):
+        assert name in text, name
+    assert "Warnings go to stderr" in text

@@ -74,3 +74,22 @@ def test_evaluate_cli(
     assert main(["evaluate", str(out), str(tmp_path / "missing")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "dataset directory not found" in err
+
+
+def test_evaluate_says_outside_the_measured_stretch_not_not_found(
+    small_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A true defect no station came near is "outside the measured stretch"; one inside
+    the measured stretch that was missed stays "NOT FOUND"."""
+    out = tmp_path / "rec"
+    _fake_reconstruction(small_dataset, out, shift_mm=0.0, diameter_error=0.0)
+    report = json.loads((out / "report.json").read_text())
+    for stations, expected in (
+        ([{"axial_mm": 1000.0}, {"axial_mm": 1100.0}], "outside the measured stretch"),
+        ([{"axial_mm": -1000.0}, {"axial_mm": 1000.0}], "NOT FOUND"),
+    ):
+        (out / "report.json").write_text(json.dumps(dict(report, defects=[], stations=stations)))
+        assert main(["evaluate", str(out), str(small_dataset)]) == 0
+        lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("bulge")]
+        assert len(lines) == 1 and expected in lines[0], lines
+        assert "NOT FOUND" not in lines[0] or expected == "NOT FOUND"

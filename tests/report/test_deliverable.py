@@ -143,6 +143,10 @@ def test_crop_shows_the_defect_across_the_seam(tmp_path: Path) -> None:
     # The patch is centred in the crop in both directions (within 2 % of its size).
     assert abs(rows.mean() - crop.shape[0] / 2) < 0.02 * crop.shape[0]
     assert abs(cols.mean() - crop.shape[1] / 2) < 0.02 * crop.shape[1]
+    # No sliver: a 5 x 100 mm bulge's crop is at least half as wide as it is long.
+    long = Defect.from_contract(dict(defect, width_mm=5.0, length_mm=100.0))
+    sliver = crop_unrolled(image, unrolled.alpha, -100.0, mm_per_px, long, circ)
+    assert sliver.shape[0] >= 400 and 0.5 * sliver.shape[0] - 2 <= sliver.shape[1] <= 0.5 * sliver.shape[0] + 4
     summary = {"inner_diameter_mm": 127.3, "defects": [defect], "stations": []}
     files = write_deliverable(tmp_path, summary, _defects(summary), unrolled)
     assert [f.relative_to(tmp_path).as_posix() for f in files] == [

@@ -1,8 +1,9 @@
-"""report.html's features table: every kind, each value with its sigma."""
+"""report.html's features table: every kind, each value with its sigma, distances and clock
+positions in the defect table's conventions."""
 
 from __future__ import annotations
 
-from omnipipe.analysis.feature_types import Joint, Water
+from omnipipe.analysis.feature_types import Joint, Lateral, Water
 from omnipipe.report.html import _features_section
 
 
@@ -13,7 +14,22 @@ def test_features_table_shows_point_and_stretch_features_with_sigmas() -> None:
               depth_mm=40.0, depth_sigma_mm=0.6, truncated=True).to_contract(),
     ]
     out = _features_section({"features": feats})
-    assert "120.00 ± 0.40 mm" in out and "gap_mm 8.00 ± 0.50" in out
+    assert "0.1200 ± 0.0004 m" in out and "gap_mm 8.00 ± 0.50" in out
     assert "offset_mm" not in out  # not measured: no cell
-    assert "0.0 ± 2.0 to 300.0 ± 2.0 mm (truncated)" in out and "depth_mm 40.00 ± 0.60" in out
+    assert "0.0000 ± 0.0020 – 0.3000 ± 0.0020 m (truncated)" in out and "depth_mm 40.00 ± 0.60" in out
     assert _features_section({"features": []}) == ""
+
+
+def test_features_table_reads_clock_and_distance_as_the_defects() -> None:
+    """A lateral at omnipipe angle 30 deg with gravity's 12:00 at 90 deg is at 10:00; its
+    distance counts from the first measured ring (no survey), never negative in the run."""
+    lat = Lateral(axial_mm=-45.0, axial_sigma_mm=4.0, angle_deg=30.0, angle_sigma_deg=1.0,
+                  diameter_mm=100.0, diameter_sigma_mm=3.0).to_contract()
+    summary = {
+        "features": [lat],
+        "clock_reference": {"angle_deg": 90.0, "sigma_deg": 0.5, "source": "gravity (imu.txt)", "gravity": True},
+        "stations": [{"axial_mm": -120.0}, {"axial_mm": 0.0}],
+    }
+    out = _features_section(summary)
+    assert "10:00 ± 1.0°" in out and "0.0750 ± 0.0040 m" in out
+    assert "first measured ring" in out and "angle_deg" not in out

@@ -175,3 +175,37 @@ def test_report_lists_each_model_files_unit() -> None:
     assert "<tr><td>points.ply</td><td>mm</td>" in page
     assert "<tr><td>model.glb</td><td>m</td>" in page
     assert "<h2>Files</h2>" not in render_html(inputs)
+
+
+def test_unrolled_wall_marks_missing_wall_instead_of_dark_wall() -> None:
+    """Cells with no wall (alpha False: a lateral's opening) are hatched grey in the
+    report's unrolled wall, the wall cells unchanged; a wide image is area-averaged to
+    the figure's width; the caller's image is not drawn on."""
+    from omnipipe.report.html import UNROLLED_MAX_COLUMNS, marked_unrolled
+
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 60, (100, 200, 3), dtype=np.uint8)  # a dark wall
+    alpha = np.ones((100, 200), bool)
+    alpha[30:50, 80:120] = False  # an opening
+    img[~alpha] = 0
+    before = img.copy()
+    shown = marked_unrolled(img, alpha)
+    assert np.array_equal(img, before)
+    assert np.array_equal(shown[alpha], img[alpha])
+    hole = shown[~alpha]
+    assert set(np.unique(hole)) == {110, 170}  # hatched, brighter than any wall cell
+    assert np.array_equal(marked_unrolled(img, None), img)
+    wide = np.zeros((50, 3 * UNROLLED_MAX_COLUMNS, 3), np.uint8)
+    wide_alpha = np.ones((50, 3 * UNROLLED_MAX_COLUMNS), bool)
+    wide_alpha[:, :600] = False
+    small = marked_unrolled(wide, wide_alpha)
+    assert small.shape[1] == UNROLLED_MAX_COLUMNS and small.shape[0] == 17
+    assert (small[:, :190] >= 110).all() and (small[:, 210:] == 0).all()
+    page = render_html(replace_unrolled(_inputs(), img, alpha))
+    assert "Hatched grey: no wall there" in page
+
+
+def replace_unrolled(inputs: ReportInputs, img: np.ndarray, alpha: np.ndarray) -> ReportInputs:
+    from dataclasses import replace
+
+    return replace(inputs, unrolled=img, unrolled_extent=(0.0, 360.0, 0.0, 300.0), unrolled_alpha=alpha)

@@ -99,3 +99,30 @@ def test_evaluation_says_where_a_true_defect_lies() -> None:
     assert _coverage(_bulge(axial_start_mm=-60.0, length_mm=40.0), report) == "inside"
     assert _coverage(_bulge(axial_start_mm=150.0, length_mm=40.0), report) == "outside"
     assert _coverage(_bulge(), {}) == "unknown"
+
+
+def test_distance_axis_ticks_round_metres_and_wraps_its_label() -> None:
+    """The inspector's distance axis: ticks at round metres from the origin (not round
+    axial mm shifted by its offset), every label exact, no "-0.00", and a long label
+    wrapped to a short axes (no blank band in the saved figure)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report.relief import distance_axis
+
+    fig, ax = plt.subplots(figsize=(6, 1.2))
+    ax.set_ylim(84.0, -82.0)  # an image's inverted axis: axial mm
+    distance_axis(ax, 0.0821, "first measured ring (no survey.yaml)")
+    fig.canvas.draw()
+    labels = [t.get_text() for t in ax.get_yticklabels()]
+    assert labels == ["0.025", "0.050", "0.075", "0.100", "0.125", "0.150"]
+    assert all(abs(float(t) - (0.0821 + z / 1000.0)) < 1e-9 for t, z in zip(labels, ax.get_yticks(), strict=True))
+    assert ax.get_ylabel().count("\n") >= 1
+    fig, ax = plt.subplots()
+    ax.set_ylim(-0.2, 300.0)
+    distance_axis(ax, 0.0, "start node MH-1")
+    fig.canvas.draw()
+    assert "-0.00" not in [t.get_text() for t in ax.get_yticklabels()]
+    plt.close("all")

@@ -370,7 +370,10 @@ def _texture(
     # the inside of the largest kept triangle (0.6 x its longest edge).
     gap = 0.6 * float(longest_edges(points, faces).max())
     # The grid is evaluated and scored a strip of rows at a time (never held whole).
-    wall = WallGrid(arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
+    # A lateral's opening and a joint's gap stay holes in the texture as in the mesh.
+    wall = WallGrid(
+        arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0), hole=inputs.not_wall
+    )
     h, w = wall.shape
     wall_z0 = wall.axial_min_mm
     seen = np.zeros((h, w), bool)  # the cells some keyframe textures

@@ -5,6 +5,13 @@ around the axis (angle x reference radius), rows distance along the pipe, ``mm_p
 each. Every cell gets a 3-D wall point by linear interpolation of the measured points
 over the unrolled Delaunay triangulation (the same one the mesh uses).
 
+Holes stay holes, as in the mesh (:func:`~omnipipe.model.mesh.mesh_unrolled`): a cell
+is no wall when it is farther than ``max_gap_mm`` from every measured point, or when the
+triangle it lies in touches a point that is not wall (``hole``: a joint's gap, a lateral's
+opening and the branch seen through it), the triangles the mesh drops. Such cells are NaN,
+so no keyframe textures them (the unrolled image's alpha is False there): a lateral shows
+as a hole, a joint as a gap, not smeared over with the branch's wall.
+
 Memory: the grid is evaluated (:class:`WallGrid`) a strip of rows at a time
 (:data:`STRIP_ROWS`), so its float64 intermediates do not grow with the run; the
 interpolation's triangulation of a long run is made a chunk of the run at a time
@@ -65,6 +72,12 @@ strips' rows): the cells' chosen pixels (8 bytes a cell) are held for one sectio
 the run. A keyframe whose cells lie in two sections has its image read twice."""
 
 
+HOLE_WEIGHT = 1e-9
+"""A cell whose interpolated hole flag exceeds this lies in a triangle with a not-wall
+corner (a corner's barycentric weight; cells on an edge between wall points get 0 up to
+round-off)."""
+
+
 class WallGrid:
     """The unrolled grid's wall points (:func:`wall_points_on_grid`), evaluated a strip of
     rows at a time so that the whole (H, W, 3) float64 grid is never held.
@@ -84,6 +97,11 @@ class WallGrid:
     the run, and a row equals the whole set's up to the round-off of the barycentric
     transform (about 1e-12 mm), holes the same.
 
+    With ``hole`` (points that are not wall), each cell also interpolates the points'
+    0/1 hole flag: a positive value means its triangle has a hole corner, and the cell is
+    NaN (the mesh drops that triangle). The wall points of the other cells are the same
+    bits as without the flag (one barycentric weight set, applied per column).
+
     Attributes:
         shape: (H, W) cells; row r at axial ``axial_min_mm + r * mm_per_px``, column c at
             arc ``(c + 0.5) * circumference_mm / W``.
@@ -101,6 +119,7 @@ class WallGrid:
         mm_per_px: float,
         max_gap_mm: float,
         chunk_points: int = CHUNK_POINTS,
+        hole: np.ndarray | None = None,
     ) -> None:
         """Triangulate the points (:func:`wall_points_on_grid` for the arguments; a chunk
         of ``chunk_points`` at a time if there are more)."""
@@ -109,7 +128,12 @@ class WallGrid:
         lo, hi = arc_mm < margin, arc_mm > circ - margin
         u = np.concatenate([arc_mm, arc_mm[lo] + circ, arc_mm[hi] - circ])
         z = np.concatenate([axial_mm, axial_mm[lo], axial_mm[hi]])
-        xyz = np.concatenate([points_in_world, points_in_world[lo], points_in_world[hi]])
+        values = np.asarray(points_in_world, float)
+        self._holes = hole is not None and len(hole) == len(values) and bool(np.any(hole))
+        if self._holes:
+            # A fourth column: the hole flag, interpolated with the same weights.
+            values = np.column_stack([values, np.asarray(hole, bool).astype(float)])
+        xyz = np.concatenate([values, values[lo], values[hi]])
         width = int(np.ceil(circ / mm_per_px))
         z0 = float(np.floor(axial_mm.min()))
         height = int(np.ceil((axial_mm.max() - z0) / mm_per_px)) + 1
@@ -145,6 +169,11 @@ class WallGrid:
             interpolate, tree = block[2], block[3]
         gu, gz = np.meshgrid(self._u, self._z[start:stop])
         grid = interpolate(gu, gz)
+        if self._holes:
+            # Cells in a triangle with a not-wall corner (weight above round-off).
+            in_hole = grid[..., 3] > HOLE_WEIGHT
+            grid = np.ascontiguousarray(grid[..., :3])
+            grid[in_hole] = np.nan
         # Cells far from any measured point (gaps in the rings, the hull's long edges).
         dist, _ = tree.query(np.column_stack([gu.ravel(), gz.ravel()]))
         grid.reshape(-1, 3)[dist > self._max_gap_mm] = np.nan
@@ -184,6 +213,7 @@ def wall_points_on_grid(
     mm_per_px: float,
     max_gap_mm: float,
     strip_rows: int = STRIP_ROWS,
+    hole: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """(H, W, 3) interpolated wall points (NaN outside the measured wall) and the axial origin.
 
@@ -195,8 +225,11 @@ def wall_points_on_grid(
         arc_mm, axial_mm: (N,) unrolled coordinates of the points, arc in [0, circumference).
         points_in_world: (N, 3).
         max_gap_mm: cells farther than this from every point stay NaN (holes stay holes).
+        hole: (N,) True for points that are not wall: cells in their triangles stay NaN.
     """
-    wall = WallGrid(arc_mm, axial_mm, points_in_world, circumference_mm, mm_per_px, max_gap_mm)
+    wall = WallGrid(
+        arc_mm, axial_mm, points_in_world, circumference_mm, mm_per_px, max_gap_mm, hole=hole
+    )
     h, w = wall.shape
     grid = np.empty((h, w, 3))
     step = max(1, int(strip_rows))

@@ -728,6 +728,7 @@ def report_inputs(rec: Reconstruction, evaluation: dict[str, Any] | None = None)
         texture=mdl.texture,
         unrolled=None if mdl.unrolled is None else mdl.unrolled.image,
         unrolled_extent=None if mdl.unrolled is None else mdl.unrolled.extent,
+        unrolled_alpha=None if mdl.unrolled is None else mdl.unrolled.alpha,
         stations_axial_mm=res.stations_axial_mm,
         stations_diameter_mm=res.stations_diameter_mm,
         stations_ovality=res.stations_ovality,

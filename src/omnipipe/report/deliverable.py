@@ -91,6 +91,8 @@ CSV_COLUMNS = (
 # Margin around the defect in a crop: this fraction of its size, at least MIN_MARGIN_MM.
 CROP_MARGIN = 0.5
 MIN_MARGIN_MM = 15.0
+CROP_ASPECT = 0.5
+"""A defect crop's shorter side is at least this fraction of its longer one."""
 
 
 def severity_grade(height_mm: float, diameter_mm: float | None) -> tuple[int | None, float | None]:
@@ -317,6 +319,13 @@ def crop_unrolled(
     width = max(defect.width_mm, circumference_mm / w)
     margin_z = max(CROP_MARGIN * length, MIN_MARGIN_MM)
     margin_u = max(CROP_MARGIN * width, MIN_MARGIN_MM)
+    # No sliver: each side of the window at least CROP_ASPECT x the other (a long narrow
+    # bulge gets the wall beside it, whose texture shows the bulge's edges and shading).
+    span_z, span_u = length + 2 * margin_z, width + 2 * margin_u
+    if span_u < CROP_ASPECT * span_z:
+        margin_u = 0.5 * (CROP_ASPECT * span_z - width)
+    elif span_z < CROP_ASPECT * span_u:
+        margin_z = 0.5 * (CROP_ASPECT * span_u - length)
     z0 = defect.axial_start_mm - margin_z
     z1 = defect.axial_start_mm + length + margin_z
     r0 = int(np.clip(math.floor((z0 - axial_min_mm) / mm_per_px), 0, h - 1))

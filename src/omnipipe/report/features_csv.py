@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from omnipipe.report.deliverable import clock_position, default_clock_reference_deg, header_lines
+from omnipipe.report.deliverable import clock_position, distance_origin, header_lines, run_clock
 
 if TYPE_CHECKING:
     from omnipipe.survey import Survey
@@ -95,15 +95,23 @@ def write_features_csv(path: Path, rows: Sequence[dict[str, str]], comments: Seq
 def write_features(
     out: Path, summary: dict[str, Any], survey: Survey | None, travel_along_rig_z: float = 1.0
 ) -> Path:
-    """Write ``out/features.csv`` from report.json's ``features`` (clock reference and
-    comment lines as defects.csv's); returns its path."""
-    ref = survey.clock_reference_deg if survey is not None else None
-    if ref is None:
-        ref = default_clock_reference_deg(travel_along_rig_z)
-    start = survey.start_offset_m if survey is not None else 0.0
-    rows = feature_rows(summary.get("features") or [], summary.get("inner_diameter_mm"), ref, start)
+    """Write ``out/features.csv`` from report.json's ``features`` with defects.csv's
+    conventions: the run's 12:00 (:func:`~omnipipe.report.deliverable.run_clock`: the
+    survey's, gravity's, else image up), distances from the survey's start node or else
+    the first measured ring (never a negative distance inside the run), the same comment
+    lines; returns its path."""
+    clock = run_clock(summary, survey, travel_along_rig_z)
+    origin = distance_origin(summary, survey)
+    rows = feature_rows(
+        summary.get("features") or [], summary.get("inner_diameter_mm"), clock.angle_deg,
+        origin.offset_m,
+    )
     path = Path(out) / CSV_NAME
-    lines = ["omnipipe features.csv", *header_lines(summary, survey, ref)[1:3],
+    conventions = [
+        line for line in header_lines(summary, survey, travel_along_rig_z)[1:]
+        if not line.startswith(("flags:", "severity_grade:"))
+    ]
+    lines = ["omnipipe features.csv", *conventions,
              "pacp, en13508_2: docs/inspection_coding.md 'Features' (omnipipe's size bands)"]
     write_features_csv(path, rows, lines)
     return path

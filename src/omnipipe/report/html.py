@@ -69,6 +69,9 @@ class ReportInputs:
         texture: (H, W, 3) uint8 texture image, or None.
         unrolled: (H, W, 3) uint8 unrolled wall image (rows: along the pipe, columns: angle).
         unrolled_extent: (angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of it.
+        unrolled_alpha: (H, W) bool, True where the wall was measured and textured; the
+            other cells (a joint's gap, a lateral's opening, the unseen) are drawn
+            hatched grey, not as dark wall. None: every cell shown as it is.
         stations_axial_mm, stations_diameter_mm, stations_ovality: per-station profile.
         radius_mm: fitted wall radius, for drawing defect outlines on the unrolled image.
         truth: rows of the measured-vs-true table: (name, measured, 1-sigma, true, unit)
@@ -94,6 +97,7 @@ class ReportInputs:
     texture: np.ndarray | None = None
     unrolled: np.ndarray | None = None
     unrolled_extent: tuple[float, float, float, float] | None = None
+    unrolled_alpha: np.ndarray | None = None
     stations_axial_mm: np.ndarray | None = None
     stations_diameter_mm: np.ndarray | None = None
     stations_ovality: np.ndarray | None = None
@@ -141,10 +145,41 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     if poses.ndim == 3 and len(poses):
         out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
-        out["unrolled"] = _unrolled_plot(inputs, inputs.unrolled, inputs.unrolled_extent)
+        shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha)
+        out["unrolled"] = _unrolled_plot(inputs, shown, inputs.unrolled_extent)
     if inputs.wall is not None and len(inputs.wall.axial_mm):
         out["relief"] = _relief_plot(inputs, inputs.wall)
     return out
+
+
+UNROLLED_MAX_COLUMNS = 1800
+"""The report's unrolled wall is drawn from at most this many columns (area-averaged):
+its figure is about 1000 px wide."""
+
+
+def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
+    """(h, w, 3) uint8 unrolled wall for the report: at most
+    :data:`UNROLLED_MAX_COLUMNS` columns (rows scaled alike), and the cells that are not
+    wall (``alpha`` False: a gap, an opening, unseen) hatched in two greys, so that no
+    missing wall passes for dark wall and nothing is smeared into it."""
+    import cv2
+
+    h, w = image.shape[:2]
+    rgb = np.ascontiguousarray(image[..., :3])
+    seen = None if alpha is None else np.asarray(alpha, bool)
+    if w > UNROLLED_MAX_COLUMNS:
+        f = UNROLLED_MAX_COLUMNS / w
+        size = (UNROLLED_MAX_COLUMNS, max(1, round(h * f)))
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        if seen is not None:
+            # A shown cell is wall when most of the cells it averages are.
+            seen = cv2.resize(seen.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
+    if seen is not None and not seen.all():
+        if rgb is image or np.shares_memory(rgb, image):
+            rgb = rgb.copy()  # the caller's image is never drawn on
+        rr, cc = np.nonzero(~seen)
+        rgb[rr, cc] = np.where((((rr + cc) // 4) % 2)[:, None] == 0, 170, 110).astype(np.uint8)
+    return rgb
 
 
 def _clock_deg(inputs: ReportInputs) -> float:
@@ -209,20 +244,20 @@ def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
     a0, a1, z0, z1 = relief.defect_window(d, wall.radius_mm)
     cell = max(0.25, min(2.0, min(d.width_mm, d.length_mm) / 12.0))
     grid = relief.deviation_grid(wall, (z0, z1), (a0, a1), cell)
-    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    fig, ax = plt.subplots(figsize=(3.2, 3.2))
     vmax = relief.relief_vmax([d.height_mm], inputs.summary.get("wall_noise_mm"))
     im = relief.draw_relief(ax, grid, (a0, a1, z0, z1), vmax)
     relief.outline(ax, d, wall.radius_mm)
     span_h = (a1 - a0) / 30.0
     relief.clock_ticks(ax, a0, a1, _clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
-    ax.set_xlabel("clock", fontsize=8)
+    ax.set_xlabel("clock", fontsize=9)
     _distance_axis(ax, inputs)
-    ax.yaxis.label.set_fontsize(7)
-    ax.tick_params(labelsize=7)
-    ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=9)
+    ax.set_ylabel("distance (m)", fontsize=9)  # from where: the card's heading says
+    ax.tick_params(labelsize=8)
+    ax.set_title(f"#{k + 1} {d.kind}" + (" (truncated)" if d.truncated else ""), fontsize=10)
     bar = fig.colorbar(im, ax=ax, shrink=0.85)
-    bar.set_label("deviation (mm)", fontsize=8)
-    bar.ax.tick_params(labelsize=7)
+    bar.set_label("deviation (mm)", fontsize=9)
+    bar.ax.tick_params(labelsize=8)
     return _figure_data_uri(fig)
 
 
@@ -516,7 +551,7 @@ def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
 
         ext = inputs.unrolled_extent
         crop = crop_unrolled(
-            inputs.unrolled, None, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
+            inputs.unrolled, inputs.unrolled_alpha, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
             2 * math.pi * inputs.radius_mm,
         )
         views.append(_figure_html(_png_data_uri(crop), "wall texture (unrolled)"))
@@ -550,8 +585,10 @@ def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str
         truth=_truth_table(inputs.truth),
         trajectory_note=_trajectory_note(inputs.evaluation),
         model_view=_model_view(_model_json(inputs, config)),
-        defects=_defects_section(inputs) + _features_section(s),
-        figures=_figures(plots),
+        defects=_defects_section(inputs) + _features_section(s, _travel_sign(inputs)),
+        figures=_figures(
+            plots, inputs.unrolled_alpha is not None and not np.asarray(inputs.unrolled_alpha).all()
+        ),
         files=_files_table(s.get("files")),
     )
 
@@ -690,38 +727,62 @@ _DEFECT_COLUMNS = (
 )
 
 
-def _feature_cells(f: dict[str, Any]) -> tuple[str, str]:
-    """(position, sizes) cells of one report.json feature: each value with its sigma."""
+def _feature_cells(f: dict[str, Any], reference_deg: float, offset_m: float) -> tuple[str, str, str]:
+    """(distance, clock, sizes) cells of one report.json feature, in the defect table's
+    conventions (metres from the distance origin, clock positions); each value with its
+    sigma."""
+    from omnipipe.report.deliverable import clock_position
+
     def pm(key: str) -> str:
         sig = f.get(key.replace("_mm", "_sigma_mm").replace("_deg", "_sigma_deg") if key != "percent" else "percent_sigma")
         return value_pm(f[key], sig, digits=2)
 
+    def metres(key: str) -> str:
+        sig = f.get(key.replace("_mm", "_sigma_mm"))
+        return value_pm(offset_m + float(f[key]) / 1000.0, None if sig is None else float(sig) / 1000.0, digits=4)
+
     if f.get("axial_mm") is not None:
-        where = pm("axial_mm") + " mm"
+        where = metres("axial_mm") + " m"
     else:
-        where = f"{pm('axial_from_mm')} to {pm('axial_to_mm')} mm" + (" (truncated)" if f.get("truncated") else "")
-    skip = {"kind", "axial_mm", "axial_from_mm", "axial_to_mm", "truncated", "points"}
+        where = f"{metres('axial_from_mm')} – {metres('axial_to_mm')} m" + (" (truncated)" if f.get("truncated") else "")
+    angle_key = "angle_deg"
+    if f.get("kind") == "joint":  # a joint's clock: its offset's direction, when significant
+        off, osig = f.get("offset_mm") or 0.0, f.get("offset_sigma_mm") or 0.0
+        angle_key = "offset_angle_deg" if off > 2.0 * osig else ""
+    clock = ""
+    if angle_key and isinstance(f.get(angle_key), int | float):
+        clock = clock_position(float(f[angle_key]), reference_deg)[0]
+        sig = f.get(angle_key.replace("_deg", "_sigma_deg"))
+        clock += "" if sig is None else f" ± {float(sig):.1f}°"
+    skip = {"kind", "axial_mm", "axial_from_mm", "axial_to_mm", "truncated", "points", "angle_deg", "offset_angle_deg"}
     sizes = [
         f"{k} {pm(k)}" for k, v in f.items()
         if k not in skip and "_sigma" not in k and isinstance(v, (int, float)) and not isinstance(v, bool)
     ]
-    return html.escape(where), html.escape(", ".join(sizes))
+    return html.escape(where), html.escape(clock), html.escape(", ".join(sizes))
 
 
-def _features_section(s: dict[str, Any]) -> str:
+def _features_section(s: dict[str, Any], travel_along_rig_z: float = 1.0) -> str:
     """The features' table (report.json ``features``: joints, laterals, bends, tapers,
-    ovality and water stretches; features.csv codes them)."""
+    ovality and water stretches; features.csv codes them): distances and clock positions
+    as the defect table's."""
+    from omnipipe.report.deliverable import distance_origin, run_clock
+
     feats = s.get("features") or []
     if not feats:
         return ""
+    survey = _survey_of(s)
+    reference = run_clock(s, survey, travel_along_rig_z).angle_deg
+    origin = distance_origin(s, survey)
     rows = "".join(
-        f"<tr><td>{html.escape(str(f.get('kind')))}</td><td>{a}</td><td>{b}</td></tr>"
+        f"<tr><td>{html.escape(str(f.get('kind')))}</td><td>{a}</td><td>{b}</td><td>{c}</td></tr>"
         for f in feats
-        for a, b in [_feature_cells(f)]
+        for a, b, c in [_feature_cells(f, reference, origin.offset_m)]
     )
     return (
         "<h3>Features (parts of the pipe, not defects)</h3>"
-        f"<table><tr><th>kind</th><th>where</th><th>sizes (± 1 sigma)</th></tr>{rows}</table>"
+        f"<table><tr><th>kind</th><th>distance (m) from the {html.escape(origin.name)}</th>"
+        f"<th>clock</th><th>sizes (± 1 sigma)</th></tr>{rows}</table>"
     )
 
 
@@ -787,8 +848,9 @@ def _defects_section(inputs: ReportInputs) -> str:
     return "".join(parts)
 
 
-def _figures(plots: dict[str, str]) -> str:
-    """The unrolled wall, the diameter profile and the trajectory (those drawn)."""
+def _figures(plots: dict[str, str], holes: bool = False) -> str:
+    """The unrolled wall, the diameter profile and the trajectory (those drawn); ``holes``:
+    the unrolled wall has cells with no wall (hatched, and said so)."""
     parts = []
     if "unrolled" in plots or "relief" in plots:
         parts.append("<h2>Unrolled wall</h2>")
@@ -800,6 +862,11 @@ def _figures(plots: dict[str, str]) -> str:
             )
         if "unrolled" in plots:
             parts.append(f"<img id='unrolled' class='zoomable' alt='unrolled wall' src='{plots['unrolled']}'>")
+            if holes:
+                parts.append(
+                    "<p class='note'>Hatched grey: no wall there (a joint's gap, a lateral's opening, "
+                    "or wall no frame saw); nothing is painted into it.</p>"
+                )
         if "relief" in plots:
             hidden = " style='display:none'" if "unrolled" in plots else ""
             parts.append(

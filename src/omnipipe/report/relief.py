@@ -105,10 +105,29 @@ def _fill_rows(grid: np.ndarray, max_cells: int) -> None:
 def distance_axis(ax: Axes, offset_m: float, origin: str) -> None:
     """Label the vertical axis (axial mm from the first frame) as the inspector's
     distance: metres from ``origin`` (``offset_m`` + axial / 1000)."""
-    from matplotlib.ticker import FuncFormatter
+    import textwrap
 
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda z, _pos: f"{offset_m + z / 1000.0:.2f}"))
-    ax.set_ylabel(f"distance (m) from the {origin}")
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    # Ticks at round distances (not at round axial mm shifted by the origin's offset).
+    lo, hi = sorted(ax.get_ylim())
+    metres = MaxNLocator(nbins=8, steps=[1, 2, 2.5, 5, 10]).tick_values(
+        offset_m + lo / 1000.0, offset_m + hi / 1000.0
+    )
+    ax.set_yticks([(t - offset_m) * 1000.0 for t in metres if lo <= (t - offset_m) * 1000.0 <= hi])
+    # The fewest decimals (at least 2) that write every tick exactly (0.025 needs 3).
+    digits = next((d for d in range(2, 6) if np.allclose(np.round(metres, d), metres, atol=1e-9)), 5)
+    # (+ 0.0: no "-0.00" at a row a hair before the origin)
+    ax.yaxis.set_major_formatter(
+        FuncFormatter(lambda z, _pos: f"{round(offset_m + z / 1000.0, digits) + 0.0:.{digits}f}")
+    )
+    # Wrapped to the axes' height: a long label on a short strip of wall would otherwise
+    # stretch the saved figure (bbox tight) with blank space above and below it.
+    fig = ax.get_figure()
+    height_in = ax.get_position().height * (fig.get_figheight() if fig is not None else 4.0)
+    size = float(ax.yaxis.label.get_fontsize())
+    chars = max(14, int(height_in * 72.0 / (0.6 * size)))
+    ax.set_ylabel("\n".join(textwrap.wrap(f"distance (m) from the {origin}", chars)))
 
 
 def clock_ticks(ax: Axes, a0: float, a1: float, reference_deg: float, step_h: float = 1.0) -> None:
