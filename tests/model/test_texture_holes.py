@@ -10,7 +10,8 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from omnipipe.model import ModelConfig, ModelInputs, mesh_unrolled, run
-from omnipipe.model.texture_grid import wall_points_on_grid
+from omnipipe.model.mesh import longest_edges
+from omnipipe.model.texture_grid import WallGrid, wall_points_on_grid
 
 R = 100.0
 CIRC = 2 * np.pi * R
@@ -76,12 +77,36 @@ def test_cells_of_an_opening_and_a_gap_are_not_wall_and_the_rest_unchanged() -> 
     assert not hole[faces].any()
 
 
-def test_a_chunked_grid_holes_the_same_cells() -> None:
-    from omnipipe.model.texture_grid import WallGrid
+def test_wall_the_mesh_bridges_with_long_triangles_is_no_wall() -> None:
+    """A sector with no points (the wall under standing water): the mesh drops the long
+    triangles across it; with the mesh's longest kept edge the grid leaves every cell
+    there NaN, where the distance rule alone painted a band ``max_gap_mm`` wide along
+    each side of it."""
+    arc, axial, _, _ = _wall_with_features()
+    dry = (arc < 500.0) | (arc > 560.0)  # 60 mm of wall unmeasured all along
+    arc, axial = arc[dry], axial[dry]
+    pts = np.stack([R * np.cos(arc / R), R * np.sin(arc / R), axial], axis=1)  # plain wall
+    faces = mesh_unrolled(arc, axial, pts, CIRC, 2.5)
+    longest = float(longest_edges(pts, faces).max())
+    assert longest < 15.0  # the gap's triangles are not in the mesh
+    plain, _ = wall_points_on_grid(arc, axial, pts, CIRC, 1.0, 6.0)
+    masked, _ = wall_points_on_grid(arc, axial, pts, CIRC, 1.0, 6.0, max_edge_mm=longest)
+    w = plain.shape[1]
+    cu = (np.arange(w) + 0.5) * (CIRC / w)
+    rows = slice(5, plain.shape[0] - 5)
+    inside = (cu > 503.0) & (cu < 557.0)
+    assert np.isfinite(plain[rows][:, inside, 0]).any()  # painted into the gap before
+    assert np.isnan(masked[rows][:, inside, 0]).all()
+    kept = np.isfinite(masked[..., 0])
+    assert np.array_equal(masked[kept], plain[kept])
+    away = (cu < 480.0) | (cu > 580.0)
+    assert np.isfinite(masked[rows][:, away, 0]).all()
 
+
+def test_a_chunked_grid_holes_the_same_cells() -> None:
     arc, axial, pts, hole = _wall_with_features()
-    whole = WallGrid(arc, axial, pts, CIRC, 1.0, 6.0, hole=hole)
-    chunked = WallGrid(arc, axial, pts, CIRC, 1.0, 6.0, chunk_points=1500, hole=hole)
+    whole = WallGrid(arc, axial, pts, CIRC, 1.0, 6.0, hole=hole, max_edge_mm=12.0)
+    chunked = WallGrid(arc, axial, pts, CIRC, 1.0, 6.0, chunk_points=1500, hole=hole, max_edge_mm=12.0)
     h = whole.shape[0]
     a = np.concatenate([whole.rows(r, min(r + 64, h)) for r in range(0, h, 64)])
     b = np.concatenate([chunked.rows(r, min(r + 64, h)) for r in range(0, h, 64)])

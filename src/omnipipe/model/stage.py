@@ -368,11 +368,14 @@ def _texture(
     n_k = len(inputs.ring_pixels)
     # Holes stay holes: a cell counts as wall when it is no farther from a point than
     # the inside of the largest kept triangle (0.6 x its longest edge).
-    gap = 0.6 * float(longest_edges(points, faces).max())
-    # The grid is evaluated and scored a strip of rows at a time (never held whole).
-    # A lateral's opening and a joint's gap stay holes in the texture as in the mesh.
+    longest = float(longest_edges(points, faces).max())
+    gap = 0.6 * longest
+    # The grid is evaluated and scored a strip of rows at a time (never held whole). The
+    # triangles the mesh drops (a lateral's opening, a joint's gap, an edge longer than
+    # its longest, e.g. across the wall under water) stay holes in the texture too.
     wall = WallGrid(
-        arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0), hole=inputs.not_wall
+        arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0),
+        hole=inputs.not_wall, max_edge_mm=longest,
     )
     h, w = wall.shape
     wall_z0 = wall.axial_min_mm

@@ -7,10 +7,11 @@ over the unrolled Delaunay triangulation (the same one the mesh uses).
 
 Holes stay holes, as in the mesh (:func:`~omnipipe.model.mesh.mesh_unrolled`): a cell
 is no wall when it is farther than ``max_gap_mm`` from every measured point, or when the
-triangle it lies in touches a point that is not wall (``hole``: a joint's gap, a lateral's
-opening and the branch seen through it), the triangles the mesh drops. Such cells are NaN,
-so no keyframe textures them (the unrolled image's alpha is False there): a lateral shows
-as a hole, a joint as a gap, not smeared over with the branch's wall.
+triangle it lies in is one the mesh drops: it touches a point that is not wall (``hole``:
+a joint's gap, a lateral's opening and the branch seen through it) or has an edge longer
+than the mesh's longest (``max_edge_mm``: it bridges a gap, e.g. the wall under standing
+water). Such cells are NaN, so no keyframe textures them (the unrolled image's alpha is
+False there): a lateral shows as a hole, a joint as a gap, not smeared over.
 
 Memory: the grid is evaluated (:class:`WallGrid`) a strip of rows at a time
 (:data:`STRIP_ROWS`), so its float64 intermediates do not grow with the run; the
@@ -72,10 +73,26 @@ strips' rows): the cells' chosen pixels (8 bytes a cell) are held for one sectio
 the run. A keyframe whose cells lie in two sections has its image read twice."""
 
 
-HOLE_WEIGHT = 1e-9
-"""A cell whose interpolated hole flag exceeds this lies in a triangle with a not-wall
-corner (a corner's barycentric weight; cells on an edge between wall points get 0 up to
-round-off)."""
+EDGE_CHUNK = 1 << 16
+"""Triangles whose (T, 3, 3) corners are gathered at a time for their longest edge."""
+
+
+def dropped_triangles(
+    simplices: np.ndarray, xyz: np.ndarray, hole: np.ndarray | None, max_edge_mm: float | None
+) -> np.ndarray:
+    """(T,) True for the (T, 3) triangles the mesh drops: a corner flagged in ``hole``
+    ((N,) bool or None), or a 3-D edge (``xyz``: (N, 3) mm) longer than ``max_edge_mm``."""
+    drop = np.zeros(len(simplices), bool)
+    if hole is not None:
+        drop |= hole[simplices].any(axis=1)
+    if max_edge_mm is not None:
+        for a in range(0, len(simplices), EDGE_CHUNK):
+            p = xyz[simplices[a : a + EDGE_CHUNK]]
+            longest = np.max(
+                [np.linalg.norm(p[:, i] - p[:, (i + 1) % 3], axis=1) for i in range(3)], axis=0
+            )
+            drop[a : a + EDGE_CHUNK] |= longest > max_edge_mm
+    return drop
 
 
 class WallGrid:
@@ -97,10 +114,9 @@ class WallGrid:
     the run, and a row equals the whole set's up to the round-off of the barycentric
     transform (about 1e-12 mm), holes the same.
 
-    With ``hole`` (points that are not wall), each cell also interpolates the points'
-    0/1 hole flag: a positive value means its triangle has a hole corner, and the cell is
-    NaN (the mesh drops that triangle). The wall points of the other cells are the same
-    bits as without the flag (one barycentric weight set, applied per column).
+    With ``hole`` (points that are not wall) or ``max_edge_mm``, the cells in triangles the
+    mesh drops (:func:`dropped_triangles`, found per cell with the triangulation's
+    ``find_simplex``) are NaN; the other cells are the same bits as without them.
 
     Attributes:
         shape: (H, W) cells; row r at axial ``axial_min_mm + r * mm_per_px``, column c at
@@ -120,6 +136,7 @@ class WallGrid:
         max_gap_mm: float,
         chunk_points: int = CHUNK_POINTS,
         hole: np.ndarray | None = None,
+        max_edge_mm: float | None = None,
     ) -> None:
         """Triangulate the points (:func:`wall_points_on_grid` for the arguments; a chunk
         of ``chunk_points`` at a time if there are more)."""
@@ -128,12 +145,13 @@ class WallGrid:
         lo, hi = arc_mm < margin, arc_mm > circ - margin
         u = np.concatenate([arc_mm, arc_mm[lo] + circ, arc_mm[hi] - circ])
         z = np.concatenate([axial_mm, axial_mm[lo], axial_mm[hi]])
-        values = np.asarray(points_in_world, float)
-        self._holes = hole is not None and len(hole) == len(values) and bool(np.any(hole))
-        if self._holes:
-            # A fourth column: the hole flag, interpolated with the same weights.
-            values = np.column_stack([values, np.asarray(hole, bool).astype(float)])
-        xyz = np.concatenate([values, values[lo], values[hi]])
+        xyz = np.concatenate([points_in_world, points_in_world[lo], points_in_world[hi]])
+        holes = None
+        if hole is not None and len(hole) == len(arc_mm) and bool(np.any(hole)):
+            flag = np.asarray(hole, bool)
+            holes = np.concatenate([flag, flag[lo], flag[hi]])
+        self._masked = holes is not None or max_edge_mm is not None
+        self._max_edge_mm = max_edge_mm
         width = int(np.ceil(circ / mm_per_px))
         z0 = float(np.floor(axial_mm.min()))
         height = int(np.ceil((axial_mm.max() - z0) / mm_per_px)) + 1
@@ -143,47 +161,51 @@ class WallGrid:
         self._z = z0 + np.arange(height) * mm_per_px
         self._max_gap_mm = max_gap_mm
         self._chunks: AxialChunks | None = None
-        self._block: tuple[int, int, LinearNDInterpolator, cKDTree] | None = None
+        self._block: _Block | None = None
+        self._drop: np.ndarray | None = None
         if len(u) <= chunk_points:
             uz = np.column_stack([u, z])
             self._interpolate = LinearNDInterpolator(uz, xyz)
             self._tree = cKDTree(uz)
+            if self._masked:
+                self._drop = dropped_triangles(
+                    self._interpolate.tri.simplices, xyz, holes, max_edge_mm
+                )
             return
         self._chunks = AxialChunks(u, z, chunk_points)
         self._xyz = xyz[self._chunks.order]
+        self._holes = None if holes is None else holes[self._chunks.order]
 
     def rows(self, first: int, stop: int) -> np.ndarray:
         """(stop - first, W, 3) wall points of rows [first, stop), mm (NaN: no wall)."""
         if self._chunks is None:
             start = max(first - self.HALO, 0)
-            interpolate, tree = self._interpolate, self._tree
+            interpolate, tree, drop = self._interpolate, self._tree, self._drop
         else:
             start = first
             if stop <= first:
                 return np.zeros((0, self.shape[1], 3))
             block = self._block
-            if block is None or not (block[0] <= first and stop <= block[1]):
+            if block is None or not (block.first <= first and stop <= block.last):
                 self._block = block = None  # the last block's triangulation freed first
                 release_freed_memory()  # (qhull's many small blocks, not left resident)
                 self._block = block = self._build_block(first, stop)
-            interpolate, tree = block[2], block[3]
+            interpolate, tree, drop = block.interpolate, block.tree, block.drop
         gu, gz = np.meshgrid(self._u, self._z[start:stop])
         grid = interpolate(gu, gz)
-        if self._holes:
-            # Cells in a triangle with a not-wall corner (weight above round-off).
-            in_hole = grid[..., 3] > HOLE_WEIGHT
-            grid = np.ascontiguousarray(grid[..., :3])
-            grid[in_hole] = np.nan
+        cells = np.column_stack([gu.ravel(), gz.ravel()])
         # Cells far from any measured point (gaps in the rings, the hull's long edges).
-        dist, _ = tree.query(np.column_stack([gu.ravel(), gz.ravel()]))
+        dist, _ = tree.query(cells)
         grid.reshape(-1, 3)[dist > self._max_gap_mm] = np.nan
+        if drop is not None:
+            # Cells in a triangle the mesh drops (a hole corner, a gap-bridging edge).
+            simplex = interpolate.tri.find_simplex(cells)
+            grid.reshape(-1, 3)[(simplex >= 0) & drop[simplex]] = np.nan
         return grid[first - start :]
 
-    def _build_block(
-        self, first: int, stop: int
-    ) -> tuple[int, int, LinearNDInterpolator, cKDTree]:
-        """(first, stop', interpolation, tree) of rows [first, stop') for stop' >= ``stop``:
-        as many rows as hold about ``chunk_points`` points, on their verified chunk."""
+    def _build_block(self, first: int, stop: int) -> _Block:
+        """The :class:`_Block` of rows [first, stop') for stop' >= ``stop``: as many rows as
+        hold about ``chunk_points`` points, on their verified chunk."""
         chunks = self._chunks
         if chunks is None:
             raise RuntimeError("a block of a wall grid that is not chunked")
@@ -202,7 +224,24 @@ class WallGrid:
         # stall them for seconds.
         with threadpool_limits(limits=1, user_api="blas"):
             tri.transform  # noqa: B018
-        return first, last, LinearNDInterpolator(tri, self._xyz[ids]), cKDTree(tri.points)
+        xyz = self._xyz[ids]
+        drop = None
+        if self._masked:
+            holes = None if self._holes is None else self._holes[ids]
+            drop = dropped_triangles(tri.simplices, xyz, holes, self._max_edge_mm)
+        return _Block(first, last, LinearNDInterpolator(tri, xyz), cKDTree(tri.points), drop)
+
+
+@dataclass(frozen=True)
+class _Block:
+    """Rows [first, last) of a chunked :class:`WallGrid`: their chunk's interpolation, its
+    points' tree (unrolled mm) and its triangles the mesh drops (None: none checked)."""
+
+    first: int
+    last: int
+    interpolate: LinearNDInterpolator
+    tree: cKDTree
+    drop: np.ndarray | None
 
 
 def wall_points_on_grid(
@@ -214,6 +253,7 @@ def wall_points_on_grid(
     max_gap_mm: float,
     strip_rows: int = STRIP_ROWS,
     hole: np.ndarray | None = None,
+    max_edge_mm: float | None = None,
 ) -> tuple[np.ndarray, float]:
     """(H, W, 3) interpolated wall points (NaN outside the measured wall) and the axial origin.
 
@@ -226,9 +266,11 @@ def wall_points_on_grid(
         points_in_world: (N, 3).
         max_gap_mm: cells farther than this from every point stay NaN (holes stay holes).
         hole: (N,) True for points that are not wall: cells in their triangles stay NaN.
+        max_edge_mm: cells in triangles with a longer 3-D edge stay NaN (None: unchecked).
     """
     wall = WallGrid(
-        arc_mm, axial_mm, points_in_world, circumference_mm, mm_per_px, max_gap_mm, hole=hole
+        arc_mm, axial_mm, points_in_world, circumference_mm, mm_per_px, max_gap_mm,
+        hole=hole, max_edge_mm=max_edge_mm,
     )
     h, w = wall.shape
     grid = np.empty((h, w, 3))
