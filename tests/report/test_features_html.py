@@ -33,3 +33,10 @@ def test_features_table_reads_clock_and_distance_as_the_defects() -> None:
     out = _features_section(summary)
     assert "10:00 ± 1.0°" in out and "0.0750 ± 0.0040 m" in out
     assert "first measured ring" in out and "angle_deg" not in out
+
+
+def test_no_negative_zero() -> None:
+    from omnipipe.report.html import value_pm
+
+    assert value_pm(-0.00001, 0.0094, digits=4) == "0.0000 ± 0.0094"
+    assert value_pm(-0.001, None) == "0.00" and value_pm(-0.01, None) == "-0.01"

@@ -452,9 +452,9 @@ def value_pm(value: float | None, sigma: float | None, *, plain: str = "±", dig
     if value is None or not isinstance(value, int | float) or not math.isfinite(value):
         return "-"
     if sigma is None or not isinstance(sigma, int | float) or not math.isfinite(sigma):
-        return f"{value:.{digits}f}"
+        return f"{round(value, digits) + 0.0:.{digits}f}"  # (+ 0.0: never "-0.00")
     nd = max(digits, 3 if sigma < 0.1 else 2) if sigma < 1 else max(1, digits - 1)
-    return f"{value:.{nd}f} {plain} {sigma:.{nd}f}"
+    return f"{round(value, nd) + 0.0:.{nd}f} {plain} {sigma:.{nd}f}"
 
 
 def _fmt(value: Any, digits: int = 2) -> str:
