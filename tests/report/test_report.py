@@ -209,3 +209,17 @@ def replace_unrolled(inputs: ReportInputs, img: np.ndarray, alpha: np.ndarray) -
     from dataclasses import replace
 
     return replace(inputs, unrolled=img, unrolled_extent=(0.0, 360.0, 0.0, 300.0), unrolled_alpha=alpha)
+
+
+def test_unrolled_texture_starts_at_twelve_like_the_deviation_map() -> None:
+    """The texture's columns are rolled so that 12:00 is its left edge (the deviation
+    map's convention): a mark at the 12:00 angle lands in the first column."""
+    from omnipipe.report.html import _from_twelve
+
+    img = np.zeros((4, 360, 3), np.uint8)
+    img[:, 270] = 255  # omnipipe angle 270.5 deg: image up for travel along +z
+    rolled, extent = _from_twelve(img, (0.0, 360.0, 0.0, 10.0), 270.5)
+    assert rolled[:, 0].min() == 255 and rolled[:, 1:].max() == 0
+    assert extent == (270.0, 630.0, 0.0, 10.0)
+    same, ext = _from_twelve(img, (0.0, 360.0, 0.0, 10.0), 0.2)
+    assert np.array_equal(same, img) and ext[0] == 0.0

@@ -146,7 +146,8 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
         out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha)
-        out["unrolled"] = _unrolled_plot(inputs, shown, inputs.unrolled_extent)
+        shown, extent = _from_twelve(shown, inputs.unrolled_extent, _clock_deg(inputs))
+        out["unrolled"] = _unrolled_plot(inputs, shown, extent)
     if inputs.wall is not None and len(inputs.wall.axial_mm):
         out["relief"] = _relief_plot(inputs, inputs.wall)
     return out
@@ -180,6 +181,19 @@ def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
         rr, cc = np.nonzero(~seen)
         rgb[rr, cc] = np.where((((rr + cc) // 4) % 2)[:, None] == 0, 170, 110).astype(np.uint8)
     return rgb
+
+
+def _from_twelve(
+    image: np.ndarray, extent: tuple[float, float, float, float], twelve_deg: float
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The full-turn unrolled image with its columns rolled so that the column nearest
+    12:00 (omnipipe angle ``twelve_deg``) is the left edge, and its new extent: the
+    texture reads like the deviation map (12:00 to 12:00, clockwise)."""
+    a0, a1, s0, s1 = extent
+    w = image.shape[1]
+    per_col = (a1 - a0) / w
+    shift = int(round(((twelve_deg - a0) % 360.0) / per_col)) % w
+    return np.roll(image, -shift, axis=1), (a0 + shift * per_col, a1 + shift * per_col, s0, s1)
 
 
 def _clock_deg(inputs: ReportInputs) -> float:
@@ -341,7 +355,8 @@ def _unrolled_plot(
     )
     ax.imshow(image, extent=(a0, a1, s1, s0), aspect="auto", interpolation="bilinear")
     radius = inputs.radius_mm or 100.0
-    for k, d in enumerate(inputs.defects):
+    for k, defect in enumerate(inputs.defects):
+        d = _shift_angle(defect, a0)  # drawn within the image's turn
         half_w = math.degrees(0.5 * d.width_mm / radius)
         rect = matplotlib.patches.Rectangle(
             (d.angle_deg - half_w, d.axial_start_mm),
