@@ -103,19 +103,26 @@ class Tracks:
         return np.stack([self.feature, np.arange(len(self.feature))], axis=1)
 
 
+# Pyramid levels (the view's own included) that Lucas-Kanade reads high-passed.
+_FINE_LEVELS = 2
+
+
 @dataclass(frozen=True)
 class FlowImage:
     """One view as the flow reads it.
 
     Attributes:
-        raw: (height, width) uint8 the view as it is (CLAHE): the pyramid's coarse levels,
-            which find large displacements.
+        raw: (height, width) uint8 the view as it is (CLAHE).
         highpassed: the same high-passed (:func:`flow_images`), where the finest levels
-            are refined; None when ``highpass_px`` is 0.
+            of the pyramid are tracked; None when ``highpass_px`` is 0.
+        coarse: with ``highpassed``, ``raw`` reduced ``2 ** _FINE_LEVELS`` times
+            (``cv2.pyrDown``): the pyramid's coarse levels, which find displacements
+            larger than the window; None when there are no levels above the fine ones.
     """
 
     raw: np.ndarray
     highpassed: np.ndarray | None
+    coarse: np.ndarray | None = None
 
 
 def _followed(n: int, config: TrackConfig) -> np.ndarray:
@@ -141,14 +148,19 @@ def _lk(
 def _coarse_fine(
     a: FlowImage, b: FlowImage, q0: np.ndarray, config: TrackConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``q0`` (M, 1, 2) from ``a`` into ``b``: the whole pyramid on the views as they are,
-    then (with high-passed views) the two finest levels again on the high-passed ones,
-    from there. Positions (M, 1, 2) and (M,) status."""
-    p1, ok = _lk(a.raw, b.raw, q0, None, config.levels, config)
-    if a.highpassed is not None and b.highpassed is not None:
-        p1, fine = _lk(a.highpassed, b.highpassed, q0, p1, min(1, config.levels), config)
-        ok &= fine
-    return p1, ok
+    """``q0`` (M, 1, 2) from ``a`` into ``b`` over ``config.levels`` pyramid levels above
+    the views': with high-passed views, the levels above the two finest on the views as
+    they are (:attr:`FlowImage.coarse`), then the two finest on the high-passed views
+    from there (as many levels in all as one pyramid). Positions (M, 1, 2) and (M,)
+    status."""
+    if a.highpassed is None or b.highpassed is None:
+        return _lk(a.raw, b.raw, q0, None, config.levels, config)
+    if a.coarse is None or b.coarse is None:
+        return _lk(a.highpassed, b.highpassed, q0, None, config.levels, config)
+    f = float(1 << _FINE_LEVELS)
+    p1, ok = _lk(a.coarse, b.coarse, q0 / f, None, config.levels - _FINE_LEVELS, config)
+    p1, fine = _lk(a.highpassed, b.highpassed, q0, p1 * f, _FINE_LEVELS - 1, config)
+    return p1, ok & fine
 
 
 def _flow(
@@ -171,7 +183,7 @@ def _flow(
     return p1, ok & inside
 
 
-def flow_images(views: FrameViews, sigma_px: float) -> list[FlowImage]:
+def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[FlowImage]:
     """The images the flow runs on: each view as it is and high-passed,
     ``2 (I - B * I) + 128`` (uint8), B two box filters of about a Gaussian of
     ``sigma_px`` (a tenth of the cost of the Gaussian itself at this width).
@@ -184,15 +196,22 @@ def flow_images(views: FrameViews, sigma_px: float) -> list[FlowImage]:
     left, though, and the pyramid's top levels are what finds a displacement larger
     than the window: ``other-rig`` (28 px per frame) kept 15 % of the tracks, a quarter
     of them 40 px wrong, on high-passed views alone, so the coarse levels read the
-    views as they are (:func:`_coarse_fine`)."""
+    views as they are, reduced (``levels``: the pyramid's levels above the view's;
+    :func:`_coarse_fine`)."""
     if sigma_px <= 0:
         return [FlowImage(im, None) for im in views.images]
     # Two boxes of width k: variance 2 (k^2 - 1) / 12.
     k = 2 * int(round(0.5 * (math.sqrt(6.0 * sigma_px**2 + 1.0) - 1.0))) + 1
-    return [
-        FlowImage(im, cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0))
-        for im in views.images
-    ]
+    out = []
+    for im in views.images:
+        coarse = None
+        if levels >= _FINE_LEVELS:
+            coarse = im
+            for _ in range(_FINE_LEVELS):
+                coarse = cv2.pyrDown(coarse)
+        hp = cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0)
+        out.append(FlowImage(im, hp, coarse))
+    return out
 
 
 def _as_tracks(
@@ -260,12 +279,12 @@ class TrackChain:
         self.feature = sel
         self.view = np.asarray(key_features.view, int)[sel]
         self.view_pixels = np.asarray(key_features.view_pixels, np.float32)[sel].reshape(-1, 2)
-        self.images = flow_images(key_views, config.highpass_px)
+        self.images = flow_images(key_views, config.highpass_px, config.levels)
 
     def advance(self, views: FrameViews) -> Tracks:
         """The tracks followed on into ``views`` (the next frame's), which become the
         frame the next call starts from."""
-        images = flow_images(views, self.config.highpass_px)
+        images = flow_images(views, self.config.highpass_px, self.config.levels)
         keep = np.zeros(len(self.feature), bool)
         moved = self.view_pixels.copy()
         for k in np.unique(self.view):
