@@ -46,8 +46,9 @@ class TrackConfig:
         levels: pyramid levels above the view's own resolution.
         max_forward_backward_px: largest distance between a keypoint and where its
             track, followed back, ends (view px).
-        highpass_px: the flow runs on views high-passed at this Gaussian sigma (view px;
-            0: on the views as they are), :func:`flow_images`.
+        highpass_px: the flow's two finest pyramid levels are refined on views
+            high-passed at this Gaussian sigma (view px; 0: on the views as they are),
+            :func:`flow_images`.
         min_tracks: a frame where fewer of the keyframe's tracks are left than this is
             matched by SIFT descriptors instead (its tracks lost: blur, a jump).
         max_points: at most this many of the keyframe's features are followed (the
@@ -102,25 +103,77 @@ class Tracks:
         return np.stack([self.feature, np.arange(len(self.feature))], axis=1)
 
 
+# Pyramid levels (the view's own included) that Lucas-Kanade reads high-passed.
+_FINE_LEVELS = 2
+
+
+@dataclass(frozen=True)
+class FlowImage:
+    """One view as the flow reads it.
+
+    Attributes:
+        raw: (height, width) uint8 the view as it is (CLAHE).
+        highpassed: the same high-passed (:func:`flow_images`), where the finest levels
+            of the pyramid are tracked; None when ``highpass_px`` is 0.
+        coarse: with ``highpassed``, ``raw`` reduced ``2 ** _FINE_LEVELS`` times
+            (``cv2.pyrDown``): the pyramid's coarse levels, which find displacements
+            larger than the window; None when there are no levels above the fine ones.
+    """
+
+    raw: np.ndarray
+    highpassed: np.ndarray | None
+    coarse: np.ndarray | None = None
+
+
 def _followed(n: int, config: TrackConfig) -> np.ndarray:
     """The indices of ``n`` features that are followed (at most ``config.max_points``,
     evenly over the list)."""
     return np.unique(np.linspace(0, n - 1, min(n, config.max_points)).round().astype(int))
 
 
-def _flow(
-    a: np.ndarray, b: np.ndarray, p0: np.ndarray, mask: np.ndarray, config: TrackConfig
+def _lk(
+    a: np.ndarray, b: np.ndarray, q0: np.ndarray, start: np.ndarray | None, levels: int, config: TrackConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Pyramidal Lucas-Kanade of (M, 2) view pixels ``p0`` from view image ``a`` into
-    ``b`` (same view), forward-backward checked: (M, 2) float32 positions in ``b`` and
-    (M,) True where the track holds and lands where ``mask`` (of ``b``) is set."""
+    """One pyramidal Lucas-Kanade of (M, 1, 2) float32 ``q0`` from ``a`` into ``b`` over
+    ``levels`` pyramid levels, from ``start`` (M, 1, 2) when given: positions and (M,)
+    status."""
     win = (config.window_px, config.window_px)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    flags = 0 if start is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+    nxt = None if start is None else start.copy()
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, nxt, winSize=win, maxLevel=levels, criteria=criteria, flags=flags)
+    return p1, st.ravel() == 1
+
+
+def _coarse_fine(
+    a: FlowImage, b: FlowImage, q0: np.ndarray, config: TrackConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """``q0`` (M, 1, 2) from ``a`` into ``b`` over ``config.levels`` pyramid levels above
+    the views': with high-passed views, the levels above the two finest on the views as
+    they are (:attr:`FlowImage.coarse`), then the two finest on the high-passed views
+    from there (as many levels in all as one pyramid). Positions (M, 1, 2) and (M,)
+    status."""
+    if a.highpassed is None or b.highpassed is None:
+        return _lk(a.raw, b.raw, q0, None, config.levels, config)
+    if a.coarse is None or b.coarse is None:
+        return _lk(a.highpassed, b.highpassed, q0, None, config.levels, config)
+    f = float(1 << _FINE_LEVELS)
+    p1, ok = _lk(a.coarse, b.coarse, q0 / f, None, config.levels - _FINE_LEVELS, config)
+    p1, fine = _lk(a.highpassed, b.highpassed, q0, p1 * f, _FINE_LEVELS - 1, config)
+    return p1, ok & fine
+
+
+def _flow(
+    a: FlowImage, b: FlowImage, p0: np.ndarray, mask: np.ndarray, config: TrackConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lucas-Kanade of (M, 2) view pixels ``p0`` from view image ``a`` into ``b`` (same
+    view; :func:`_coarse_fine`), forward-backward checked: (M, 2) float32 positions in
+    ``b`` and (M,) True where the track holds and lands where ``mask`` (of ``b``) is set."""
     q0 = np.ascontiguousarray(p0, np.float32).reshape(-1, 1, 2)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, None, winSize=win, maxLevel=config.levels, criteria=criteria)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, None, winSize=win, maxLevel=config.levels, criteria=criteria)
+    p1, ok = _coarse_fine(a, b, q0, config)
+    back, ok2 = _coarse_fine(b, a, p1, config)
     p1 = p1.reshape(-1, 2)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1)
+    ok &= ok2
     ok &= np.linalg.norm((back - q0).reshape(-1, 2), axis=1) <= config.max_forward_backward_px
     col, row = np.round(p1[:, 0]), np.round(p1[:, 1])
     height, width = mask.shape
@@ -130,22 +183,35 @@ def _flow(
     return p1, ok & inside
 
 
-def flow_images(views: FrameViews, sigma_px: float) -> list[np.ndarray]:
-    """The images the flow runs on: each view high-passed, ``2 (I - B * I) + 128``
-    (uint8), B two box filters of about a Gaussian of ``sigma_px`` (a tenth of the cost
-    of the Gaussian itself at this width). The rig's own lighting falls off across the
-    wall and moves with the rig: on a weakly textured wall (brick faces at low
-    resolution) it holds Lucas-Kanade back to a fraction of the true flow
-    (brick-bend-small, 12.7 mm: 3.4 px median error against the true correspondences,
-    1.0 px high-passed; tiled walls unchanged at 0.11 px)."""
+def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[FlowImage]:
+    """The images the flow runs on: each view as it is and high-passed,
+    ``2 (I - B * I) + 128`` (uint8), B two box filters of about a Gaussian of
+    ``sigma_px`` (a tenth of the cost of the Gaussian itself at this width).
+
+    The rig's own lighting falls off across the wall and moves with the rig: on a weakly
+    textured wall (brick faces at low resolution) it holds Lucas-Kanade back to a
+    fraction of the true flow (brick-bend-small, 12.7 mm: 3.4 px median error against
+    the true correspondences, 1.0 px high-passed; tiled walls unchanged at 0.11 px), so
+    the finest levels are refined high-passed. A high-passed view has no coarse levels
+    left, though, and the pyramid's top levels are what finds a displacement larger
+    than the window: ``other-rig`` (28 px per frame) kept 15 % of the tracks, a quarter
+    of them 40 px wrong, on high-passed views alone, so the coarse levels read the
+    views as they are, reduced (``levels``: the pyramid's levels above the view's;
+    :func:`_coarse_fine`)."""
     if sigma_px <= 0:
-        return list(views.images)
+        return [FlowImage(im, None) for im in views.images]
     # Two boxes of width k: variance 2 (k^2 - 1) / 12.
     k = 2 * int(round(0.5 * (math.sqrt(6.0 * sigma_px**2 + 1.0) - 1.0))) + 1
-    return [
-        cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0)
-        for im in views.images
-    ]
+    out = []
+    for im in views.images:
+        coarse = None
+        if levels >= _FINE_LEVELS:
+            coarse = im
+            for _ in range(_FINE_LEVELS):
+                coarse = cv2.pyrDown(coarse)
+        hp = cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0)
+        out.append(FlowImage(im, hp, coarse))
+    return out
 
 
 def _as_tracks(
@@ -213,12 +279,12 @@ class TrackChain:
         self.feature = sel
         self.view = np.asarray(key_features.view, int)[sel]
         self.view_pixels = np.asarray(key_features.view_pixels, np.float32)[sel].reshape(-1, 2)
-        self.images = flow_images(key_views, config.highpass_px)
+        self.images = flow_images(key_views, config.highpass_px, config.levels)
 
     def advance(self, views: FrameViews) -> Tracks:
         """The tracks followed on into ``views`` (the next frame's), which become the
         frame the next call starts from."""
-        images = flow_images(views, self.config.highpass_px)
+        images = flow_images(views, self.config.highpass_px, self.config.levels)
         keep = np.zeros(len(self.feature), bool)
         moved = self.view_pixels.copy()
         for k in np.unique(self.view):
