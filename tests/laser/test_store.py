@@ -64,3 +64,26 @@ def test_a_ring_without_samples_is_kept_as_is_and_each_frame_once() -> None:
     with pytest.raises(KeyError, match="frame 2 has no ring"):
         store[2]
     store.close()
+
+
+def test_a_store_restored_from_its_index_and_file_holds_the_same_rings(tmp_path) -> None:
+    rng = np.random.default_rng(5)
+    rings = [_ring(rng, n) for n in (40, 0, 9, 0, 120)]
+    store = RingStore(len(rings) + 1)  # the last frame without a ring yet
+    for i, ring in enumerate(rings):
+        store.put(i, ring)
+    with open(tmp_path / "copy", "wb") as fh:
+        store.copy_to(fh)
+    back = RingStore.restore(tmp_path / "copy", store.index())
+    assert all(_same(back[i], rings[i]) for i in range(len(rings)))
+    with pytest.raises(KeyError, match="frame 5 has no ring"):
+        back[5]
+    back.put(5, rings[0])  # the restored store goes on as the original would
+    assert _same(back[5], rings[0]) and _same(back[4], rings[4])
+    # An index that does not fit the file is refused, not read wrong.
+    index = store.index()
+    index.offset[4] = (tmp_path / "copy").stat().st_size
+    with pytest.raises(ValueError, match="beyond the file"):
+        RingStore.restore(tmp_path / "copy", index)
+    store.close()
+    back.close()

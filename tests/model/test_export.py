@@ -228,3 +228,33 @@ def test_every_3d_file_states_its_unit_and_holds_the_same_point_at_its_scale(wri
             ref = expected_gltf_m(res.textured_vertices[:1])[0] * 1e3  # the glTF axes, mm
         scale = 1.0 if unit == "mm" else 1e-3
         assert np.allclose(value, ref * scale, atol=0.01 * scale), name  # LAS: 0.01 mm steps
+
+
+def test_files_written_a_chunk_at_a_time_equal_those_written_whole(
+    written, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each writer converts and writes WRITE_CHUNK points (faces) at a time: with chunks of
+    a few hundred (7,320 points, 14,400 faces) every file is the one-chunk file, byte for
+    byte (E57 handed to libE57 in chunks too: the same points, colours and header); the
+    GLB's vertex normals are trimesh's own (the file trimesh writes alone)."""
+    from omnipipe.model import export
+
+    res, whole, _ = written
+    monkeypatch.setattr(export, "WRITE_CHUNK", 999)
+    monkeypatch.setattr(export, "_ROWS_CHUNK", 333)
+    write_outputs(res, tmp_path)
+    names = sorted(p.name for p in whole.iterdir())
+    assert names == sorted(p.name for p in tmp_path.iterdir())
+    assert {"points.laz", "points.e57", "model.glb", "model.obj", "mesh.ply"} <= set(names)
+    for name in names:
+        assert (tmp_path / name).read_bytes() == (whole / name).read_bytes(), name
+    monkeypatch.setattr(export, "E57_CHUNK", 1001)
+    write_e57(tmp_path / "chunked.e57", res.points_in_world, res.colours)
+    scans = [pye57.E57(str(p)).read_scan_raw(0) for p in (whole / "points.e57", tmp_path / "chunked.e57")]
+    assert scans[0].keys() == scans[1].keys()
+    assert all(np.array_equal(scans[0][k], scans[1][k]) for k in scans[0])
+    mesh = trimesh.Trimesh(
+        export.gltf_from_world_mm(res.textured_vertices), res.textured_faces, process=False
+    )
+    ours = export._vertex_normals(mesh.vertices, np.asarray(res.textured_faces))
+    assert np.array_equal(ours, mesh.vertex_normals)

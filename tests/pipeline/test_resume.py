@@ -236,3 +236,42 @@ def test_sigterm_then_rerun_resumes(tiny_run: Path, uninterrupted: Path, tmp_pat
     assert rerun.returncode == 0, rerun.stderr
     assert "resuming: frames, sfm" in rerun.stderr
     assert _contents(out) == _contents(uninterrupted)
+
+
+def test_a_ring_store_is_saved_and_loaded_without_reading_its_rings(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The frame pass's rings (a RingStore on disk) go into the checkpoint as a copy of
+    the store's file: neither the save nor the load reads every ring into memory."""
+    from omnipipe.laser.extract import LaserRing
+    from omnipipe.laser.store import RingStore
+
+    rng = np.random.default_rng(1)
+    rings = [
+        LaserRing(rng.normal(size=(k, 2)), rng.normal(size=k), rng.normal(size=k),
+                  rng.normal(size=k), scanned=k + 1, warnings=["w"] * (k % 2))
+        for k in (4, 0, 7, 0, 3)
+    ]
+    store = RingStore(len(rings))
+    for i, ring in enumerate(rings):
+        store.put(i, ring)
+    read: list[int] = []
+    getitem = RingStore.__getitem__
+
+    def spy(self: RingStore, index: int) -> LaserRing:
+        read.append(index)
+        return getitem(self, index)
+
+    monkeypatch.setattr(RingStore, "__getitem__", spy)
+    cp = checkpoint.Checkpoints.open(tmp_path / "out", "cd" * 32)
+    cp.save("frames", {"rings": store, "n": 5})
+    back = checkpoint.Checkpoints.open(tmp_path / "out", "cd" * 32).load("frames")
+    assert read == [] and isinstance(back["rings"], RingStore)
+    monkeypatch.setattr(RingStore, "__getitem__", getitem)
+    for a, b in zip(back["rings"], rings, strict=True):
+        assert a.scanned == b.scanned and a.warnings == b.warnings
+        assert np.array_equal(a.pixels, b.pixels) and a.pixels.dtype == b.pixels.dtype
+    folder = checkpoint.checkpoint_dir(tmp_path / "out", "cd" * 32)
+    assert (folder / "frames.rings").is_file()
+    cp.remove()
+    assert not folder.exists()  # the copy is among the files the marker lists

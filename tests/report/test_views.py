@@ -126,3 +126,28 @@ def test_distance_axis_ticks_round_metres_and_wraps_its_label() -> None:
     fig.canvas.draw()
     assert "-0.00" not in [t.get_text() for t in ax.get_yticklabels()]
     plt.close("all")
+
+
+def test_3d_view_thinned_to_max_faces_keeps_only_their_vertices() -> None:
+    """Thinned to max_faces, the view holds the kept triangles' vertices only (their
+    positions and UVs as given), so its size does not grow with the run's vertices."""
+    from dataclasses import replace
+
+    from omnipipe.report import ReportConfig
+    from omnipipe.report.html import ReportInputs, _model_json
+
+    rng = np.random.default_rng(2)
+    verts = rng.normal(0.0, 100.0, (400, 3))
+    uvs = rng.random((400, 2))
+    faces = rng.integers(0, 400, (300, 3))
+    inputs = ReportInputs(summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=verts,
+                          mesh_faces=faces, mesh_uvs=uvs)
+    model = json.loads(_model_json(inputs, replace(ReportConfig(), max_faces=100)))
+    kept = faces[::3]
+    used = np.unique(kept)
+    pos = np.array(model["positions"]).reshape(-1, 3)
+    uv = np.array(model["uvs"]).reshape(-1, 2)
+    tri = np.array(model["indices"]).reshape(-1, 3)
+    assert len(pos) == len(used) and len(tri) == len(kept)
+    assert np.allclose(pos[tri], verts[kept], atol=0.005)  # "%.2f"
+    assert np.allclose(uv[tri], np.stack([uvs[:, 0], 1 - uvs[:, 1]], axis=1)[kept], atol=5e-6)

@@ -11,11 +11,12 @@ laser ring) stays in memory: it holds no array worth writing.
 
 from __future__ import annotations
 
+import shutil
 import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import overload
+from typing import BinaryIO, overload
 
 import numpy as np
 
@@ -33,6 +34,25 @@ class _OnDisk:
     offset: int
     scanned: int
     warnings: tuple[str, ...]
+
+
+@dataclass
+class RingIndex:
+    """Where each frame's ring is in a :class:`RingStore`'s file (what a checkpoint saves
+    beside a copy of the file; a few bytes a frame).
+
+    Attributes:
+        offset: (N,) int64 byte offset of each frame's arrays in the file; -1: the ring
+            is one of ``in_memory``, -2: the frame has no ring yet.
+        scanned: (N,) int64 scan lines of each ring on disk (0 elsewhere).
+        warnings: (N,) each ring's warnings (empty elsewhere).
+        in_memory: the rings without samples, in frame order of ``offset == -1``.
+    """
+
+    offset: np.ndarray
+    scanned: np.ndarray
+    warnings: list[list[str]]
+    in_memory: list[LaserRing]
 
 
 class RingStore(Sequence[LaserRing]):
@@ -93,6 +113,58 @@ class RingStore(Sequence[LaserRing]):
     def __iter__(self) -> Iterator[LaserRing]:
         for i in range(len(self)):
             yield self[i]
+
+    def index(self) -> RingIndex:
+        """Where each ring is (:class:`RingIndex`): with :meth:`copy_to`, what
+        :meth:`restore` builds an equal store from."""
+        n = len(self._items)
+        offset, scanned = np.full(n, -2, np.int64), np.zeros(n, np.int64)
+        warnings: list[list[str]] = [[] for _ in range(n)]
+        in_memory: list[LaserRing] = []
+        for i, item in enumerate(self._items):
+            if isinstance(item, _OnDisk):
+                offset[i], scanned[i], warnings[i] = item.offset, item.scanned, list(item.warnings)
+            elif isinstance(item, LaserRing):
+                offset[i] = -1
+                in_memory.append(item)
+        return RingIndex(offset, scanned, warnings, in_memory)
+
+    def copy_to(self, fh: BinaryIO) -> None:
+        """Write the store's file into the open binary file ``fh``, a block at a time."""
+        with self._lock:
+            self._file.flush()
+            self._file.seek(0)
+            shutil.copyfileobj(self._file, fh, 1 << 20)
+
+    @staticmethod
+    def restore(path: Path, index: RingIndex) -> RingStore:
+        """A store equal to the one whose :meth:`copy_to` wrote ``path`` and whose
+        :meth:`index` is ``index``: ``path`` copied (a block at a time) into the new
+        store's own file, no ring read into memory.
+
+        Raises:
+            ValueError: ``index`` does not describe a store (lengths differ, too few
+                rings in memory, an offset beyond the file).
+        """
+        n = len(index.offset)
+        if not (len(index.scanned) == len(index.warnings) == n) or int(
+            np.sum(index.offset == -1)
+        ) != len(index.in_memory):
+            raise ValueError("ring index: inconsistent lengths")
+        store = RingStore(n)
+        with open(path, "rb") as src:
+            shutil.copyfileobj(src, store._file, 1 << 20)
+        size = store._file.tell()
+        if n and int(index.offset.max()) >= size:
+            store.close()
+            raise ValueError("ring index: an offset beyond the file")
+        memory = iter(index.in_memory)
+        for i, off in enumerate(index.offset.tolist()):
+            if off >= 0:
+                store._items[i] = _OnDisk(off, int(index.scanned[i]), tuple(index.warnings[i]))
+            elif off == -1:
+                store._items[i] = next(memory)
+        return store
 
     def close(self) -> None:
         """Close and remove the file and its folder."""

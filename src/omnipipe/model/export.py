@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import hashlib
 import uuid
+from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 from itertools import count
 from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 from unittest import mock
 
 import numpy as np
@@ -99,6 +100,32 @@ def _fail(path: Path, exc: OSError) -> OutputError:
     return OutputError(f"{path}: cannot write ({exc.strerror or exc})")
 
 
+WRITE_CHUNK = 100_000
+"""Points (or faces) a writer converts and writes at once: its copies are a chunk's,
+not the model's (the files the same, byte for byte, whatever the chunk)."""
+
+E57_CHUNK = 1_000_000
+"""Points the E57 writer hands libE57 at once (its buffers: 27 bytes a point). Up to
+this many points the file is pye57's own, byte for byte; a larger cloud is written in
+chunks whose packets may fall elsewhere than in one call (the same points and values;
+libE57 packs each call's points, so the bytes depend on the chunk: 65536 and 999 gave
+other files than one call, 100,000 the same)."""
+
+
+def _chunks(n: int, size: int | None = None) -> Iterator[tuple[int, int]]:
+    """``(a, b)``: consecutive slices of ``range(n)``, ``size`` (default
+    :data:`WRITE_CHUNK`) long, the last fewer."""
+    size = size or WRITE_CHUNK
+    for a in range(0, n, size):
+        yield a, min(a + size, n)
+
+
+def _extent(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) lowest and highest coordinate of the (N >= 1, 3) ``points``, a chunk at a time."""
+    spans = [(points[a:b].min(axis=0), points[a:b].max(axis=0)) for a, b in _chunks(len(points))]
+    return np.min([s[0] for s in spans], axis=0), np.max([s[1] for s in spans], axis=0)
+
+
 def write_ply(
     path: Path, vertices: np.ndarray, colours: np.ndarray | None, faces: np.ndarray | None = None
 ) -> None:
@@ -131,19 +158,21 @@ def write_ply(
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if colours is not None:
         fields += [("r", "u1"), ("g", "u1"), ("b", "u1")]
-    rec = np.zeros(n, dtype=fields)
-    if n:
-        rec["x"], rec["y"], rec["z"] = vertices[:, 0], vertices[:, 1], vertices[:, 2]
-    if colours is not None and n:
-        rec["r"], rec["g"], rec["b"] = colours[:, 0], colours[:, 1], colours[:, 2]
     try:
         with open(path, "wb") as fh:
             fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(rec.tobytes())
-            if faces is not None and len(faces):
-                frec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+            for a, b in _chunks(n):
+                rec = np.zeros(b - a, dtype=fields)
+                v = vertices[a:b]
+                rec["x"], rec["y"], rec["z"] = v[:, 0], v[:, 1], v[:, 2]
+                if colours is not None:
+                    c = colours[a:b]
+                    rec["r"], rec["g"], rec["b"] = c[:, 0], c[:, 1], c[:, 2]
+                fh.write(rec.tobytes())
+            for a, b in _chunks(0 if faces is None else len(faces)):
+                frec = np.zeros(b - a, dtype=[("n", "u1"), ("i", "<i4", (3,))])
                 frec["n"] = 3
-                frec["i"] = faces
+                frec["i"] = faces[a:b]  # type: ignore[index]
                 fh.write(frec.tobytes())
     except OSError as exc:
         raise _fail(path, exc) from None
@@ -167,22 +196,27 @@ def write_laz(
     import laspy
     from laspy.vlrs.known import WktCoordinateSystemVlr
 
-    pts_m = np.asarray(points_mm, float) * M_PER_MM
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.scales = np.full(3, LAS_SCALE_M)
-    header.offsets = np.floor(pts_m.min(axis=0) * 100) / 100 if len(pts_m) else np.zeros(3)
+    # min(x) * c == min(x * c) for c > 0: the offset of the points in metres.
+    header.offsets = (
+        np.floor(_extent(points_mm)[0] * M_PER_MM * 100) / 100 if len(points_mm) else np.zeros(3)
+    )
     header.system_identifier = "omnipipe world frame, metre"
     header.generating_software = "omnipipe"
     header.global_encoding.wkt = True
     header.vlrs.append(WktCoordinateSystemVlr(LAS_WKT))
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = pts_m[:, 0], pts_m[:, 1], pts_m[:, 2]
-    rgb = np.asarray(colours, np.uint16) * 257
-    las.red, las.green, las.blue = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    if point_frame is not None:
-        las.point_source_id = np.clip(point_frame, 0, 65535).astype(np.uint16)
     try:
-        las.write(str(path), laz_backend=laspy.LazBackend.Lazrs)
+        with laspy.open(str(path), mode="w", header=header, laz_backend=laspy.LazBackend.Lazrs) as las:
+            for a, b in _chunks(len(points_mm)):
+                pts_m = np.asarray(points_mm[a:b], float) * M_PER_MM
+                rec = laspy.ScaleAwarePointRecord.zeros(b - a, header=las.header)
+                rec.x, rec.y, rec.z = pts_m[:, 0], pts_m[:, 1], pts_m[:, 2]
+                rgb = np.asarray(colours[a:b], np.uint16) * 257
+                rec.red, rec.green, rec.blue = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+                if point_frame is not None:
+                    rec.point_source_id = np.clip(point_frame[a:b], 0, 65535).astype(np.uint16)
+                las.write_points(rec)
     except OSError as exc:
         raise _fail(path, exc) from None
 
@@ -203,19 +237,13 @@ def write_e57(path: Path, points_mm: np.ndarray, colours: np.ndarray) -> None:
     import pye57.e57
     from pye57 import libe57
 
-    pts_m = np.asarray(points_mm, float) * M_PER_MM
-    cols = np.asarray(colours, np.uint8)
-    data = {
-        "cartesianX": pts_m[:, 0],
-        "cartesianY": pts_m[:, 1],
-        "cartesianZ": pts_m[:, 2],
-        "colorRed": cols[:, 0],
-        "colorGreen": cols[:, 1],
-        "colorBlue": cols[:, 2],
-    }
     path = Path(path)
-    digest = hashlib.sha256(pts_m.tobytes() + cols.tobytes()).hexdigest()
-    guids = (uuid.uuid5(uuid.NAMESPACE_URL, f"omnipipe:e57:{digest}:{i}") for i in count())
+    digest = hashlib.sha256()
+    for a, b in _chunks(len(points_mm)):
+        digest.update((np.asarray(points_mm[a:b], float) * M_PER_MM).tobytes())
+    for a, b in _chunks(len(points_mm)):
+        digest.update(np.asarray(colours[a:b], np.uint8).tobytes())
+    guids = (uuid.uuid5(uuid.NAMESPACE_URL, f"omnipipe:e57:{digest.hexdigest()}:{i}") for i in count())
     deterministic = SimpleNamespace(uuid4=lambda: next(guids))
     try:
         # pye57 calls ``uuid.uuid4()`` for each GUID: its own reference to the module is
@@ -229,12 +257,86 @@ def write_e57(path: Path, points_mm: np.ndarray, colours: np.ndarray) -> None:
         with patch:
             with pye57.E57(str(path), mode="w") as e57:
                 e57.image_file.extensionsAdd(*E57_EXTENSION)
-                e57.write_scan_raw(data, name=f"omnipipe wall points; {FRAME_NOTE}")
+                _e57_scan(e57, points_mm, colours, f"omnipipe wall points; {FRAME_NOTE}",
+                          str(deterministic.uuid4()))
                 prefix = E57_EXTENSION[0]
                 e57.root.set(f"{prefix}:unit", libe57.StringNode(e57.image_file, "metre"))
                 e57.root.set(f"{prefix}:frame", libe57.StringNode(e57.image_file, FRAME_NOTE))
     except (OSError, RuntimeError) as exc:
         raise OutputError(f"{path}: cannot write E57 ({exc})") from None
+
+
+def _e57_nodes(e57: Any, parent: Any, kind: str, values: dict[str, float | int]) -> None:
+    """Set each of ``values`` on the E57 structure ``parent`` as a FloatNode or IntegerNode."""
+    from pye57 import libe57
+
+    node = getattr(libe57, kind)
+    for key, value in values.items():
+        parent.set(key, node(e57.image_file, value))
+
+
+def _e57_scan(e57: Any, points_mm: np.ndarray, colours: np.ndarray, name: str, guid: str) -> None:
+    """One scan of (N >= 1, 3) ``points_mm`` (stored as single-precision metres) with (N, 3)
+    uint8 ``colours``: the nodes, values and order of pye57's ``write_scan_raw``
+    (identity pose, no intensity), whose metre and buffer copies held every point; here
+    :data:`E57_CHUNK` points at a time (see there), converted :data:`WRITE_CHUNK` at a
+    time."""
+    import pye57.e57
+    from pye57 import libe57
+
+    f, n = e57.image_file, len(points_mm)
+    scan = libe57.StructureNode(f)
+    scan.set("guid", libe57.StringNode(f, f"{{{guid}}}"))
+    scan.set("name", libe57.StringNode(f, name))
+    _e57_nodes(e57, scan, "FloatNode", {"temperature": 0, "relativeHumidity": 0, "atmosphericPressure": 0})
+    scan.set("description", libe57.StringNode(f, f"pye57 v{pye57.e57.__version__}"))
+    box = libe57.StructureNode(f)
+    _e57_nodes(e57, box, "IntegerNode", {"rowMinimum": 0, "rowMaximum": n - 1, "columnMinimum": 0,
+                                         "columnMaximum": 0, "returnMinimum": 0, "returnMaximum": 0})
+    scan.set("indexBounds", box)
+    box = libe57.StructureNode(f)
+    for c in ("Red", "Green", "Blue"):
+        _e57_nodes(e57, box, "IntegerNode", {f"color{c}Minimum": 0, f"color{c}Maximum": 255})
+    scan.set("colorLimits", box)
+    lo, hi = (v * M_PER_MM for v in _extent(points_mm))  # as the metres' min and max
+    rotation, translation = np.array([1, 0, 0, 0]), np.array([0, 0, 0])
+    lo_g = e57.to_global(lo.reshape(-1, 3), rotation, translation)[0]
+    hi_g = e57.to_global(hi.reshape(-1, 3), rotation, translation)[0]
+    box = libe57.StructureNode(f)
+    for i, ax in enumerate("xyz"):
+        _e57_nodes(e57, box, "FloatNode", {f"{ax}Minimum": lo_g[i], f"{ax}Maximum": hi_g[i]})
+    scan.set("cartesianBounds", box)
+    pose = libe57.StructureNode(f)
+    scan.set("pose", pose)
+    for key, axes, values in (("rotation", "wxyz", rotation), ("translation", "xyz", translation)):
+        box = libe57.StructureNode(f)
+        _e57_nodes(e57, box, "FloatNode", dict(zip(axes, values, strict=True)))
+        pose.set(key, box)
+    for key in ("acquisitionStart", "acquisitionEnd"):
+        box = libe57.StructureNode(f)
+        scan.set(key, box)
+        box.set("dateTimeValue", libe57.FloatNode(f, 0))
+        box.set("isAtomicClockReferenced", libe57.IntegerNode(f, False))
+    prototype = libe57.StructureNode(f)
+    centre = (hi + lo) / 2
+    for i, ax in enumerate("XYZ"):
+        prototype.set(f"cartesian{ax}", libe57.FloatNode(f, centre[i], libe57.E57_SINGLE, lo[i], hi[i]))
+    names = ["cartesianX", "cartesianY", "cartesianZ", "colorRed", "colorGreen", "colorBlue"]
+    for c in names[3:]:
+        prototype.set(c, libe57.IntegerNode(f, 0, 0, 255))
+    arrays, buffers = e57.make_buffers(names, min(E57_CHUNK, n))
+    points = libe57.CompressedVectorNode(f, prototype, libe57.VectorNode(f, True))
+    scan.set("points", points)
+    e57.data3d.append(scan)
+    writer = points.writer(buffers)
+    for a, b in _chunks(n, E57_CHUNK):
+        for c, d in _chunks(b - a):  # converted a smaller chunk at a time
+            pts_m = np.asarray(points_mm[a + c : a + d], float) * M_PER_MM
+            cols = np.asarray(colours[a + c : a + d], np.uint8)
+            for i, key in enumerate(names):
+                arrays[key][c:d] = pts_m[:, i] if i < 3 else cols[:, i - 3]
+        writer.write(b - a)
+    writer.close()
 
 
 def write_glb(
@@ -265,11 +367,13 @@ def write_glb(
         roughnessFactor=1.0,
         doubleSided=True,
     )
+    viewer = gltf_from_world_mm(vertices)
     mesh = trimesh.Trimesh(
-        vertices=gltf_from_world_mm(vertices),
+        vertices=viewer,
         faces=faces,
         process=False,
         visual=trimesh.visual.TextureVisuals(uv=uvs, material=material),
+        vertex_normals=_vertex_normals(viewer, np.asarray(faces)),
     )
 
     def annotate(tree: dict) -> None:
@@ -291,6 +395,26 @@ def write_glb(
         raise _fail(path, exc) from None
 
 
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit vertex normals of the mesh (``vertices`` (V, 3), ``faces`` (F, 3)):
+    trimesh's ``Trimesh.vertex_normals`` bit for bit (each face's unit normal weighted by
+    its corner angle, summed face by face in face order, then unitized), computed
+    :data:`WRITE_CHUNK` faces at a time: trimesh's own sparse matrix of every corner and
+    its per-face arrays were the GLB's largest cost (70 MB for 280,000 faces)."""
+    from trimesh import triangles, util
+
+    summed = np.zeros((len(vertices), 3))
+    for a, b in _chunks(len(faces)):
+        tri = vertices[faces[a:b]]
+        unit, valid = triangles.normals(triangles=tri, crosses=triangles.cross(tri))
+        normals = np.zeros((b - a, 3))
+        normals[valid] = unit
+        ok = (normals**2).sum(axis=1) > 0.5  # trimesh's test of a face's normal
+        corners = triangles.angles(tri)[ok][:, :, None] * normals[ok][:, None, :]
+        np.add.at(summed, faces[a:b][ok].ravel(), corners.reshape(-1, 3))
+    return util.unitize(summed)
+
+
 def _rows(fmt: str, values: np.ndarray) -> str:
     """The (N, K) ``values`` as N lines of ``fmt`` (K %-fields), joined by newlines: one
     %-format of the whole table (3x faster than a formatted string per row)."""
@@ -304,12 +428,20 @@ _ROWS_CHUNK = 1 << 15
 a value, are a chunk's, not the model's)."""
 
 
-def _write_rows(fh: TextIO, fmt: str, values: np.ndarray) -> None:
-    """Write :func:`_rows` of ``values`` to ``fh``, a chunk of rows at a time."""
+def _write_rows(
+    fh: TextIO, fmt: str, values: np.ndarray, convert: Callable[[np.ndarray], np.ndarray] = np.asarray
+) -> None:
+    """Write :func:`_rows` of ``convert(chunk)`` for each chunk of rows of ``values`` to
+    ``fh`` (a converted copy of a chunk only, never of all rows)."""
     for a in range(0, len(values), _ROWS_CHUNK):
         if a:
             fh.write("\n")
-        fh.write(_rows(fmt, values[a : a + _ROWS_CHUNK]))
+        fh.write(_rows(fmt, np.asarray(convert(values[a : a + _ROWS_CHUNK]), float)))
+
+
+def _obj_face_rows(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) 0-based faces -> (F, 6) OBJ ``v/vt`` index pairs (1-based)."""
+    return np.repeat(np.asarray(faces, np.int64) + 1, 2, axis=1)
 
 
 def write_obj(
@@ -330,8 +462,6 @@ def write_obj(
 
     path = Path(path)
     mtl = path.with_suffix(".mtl")
-    v = gltf_from_world_mm(vertices)
-    f = np.asarray(faces, np.int64) + 1
     lines = [
         "# omnipipe pipe wall model",
         "# unit: metre",
@@ -342,10 +472,10 @@ def write_obj(
     ]
     body = [
         lambda fh: fh.write("\n".join(lines)),
-        lambda fh: _write_rows(fh, "v %.7f %.7f %.7f", np.asarray(v, float)),
-        lambda fh: _write_rows(fh, "vt %.6f %.6f", np.asarray(uvs, float)),
+        lambda fh: _write_rows(fh, "v %.7f %.7f %.7f", vertices, gltf_from_world_mm),
+        lambda fh: _write_rows(fh, "vt %.6f %.6f", uvs),
         lambda fh: fh.write("usemtl pipe_wall\ns off"),
-        lambda fh: _write_rows(fh, "f %d/%d %d/%d %d/%d", np.repeat(f, 2, axis=1)),
+        lambda fh: _write_rows(fh, "f %d/%d %d/%d %d/%d", faces, _obj_face_rows),
     ]
     material = "\n".join(
         [
@@ -381,12 +511,15 @@ def write_outputs(result: ModelResult, out_dir: Path) -> None:
     Always: points.ply, mesh.ply, points.laz. With points: points.e57. With a texture:
     unrolled.png, model.glb, model.obj, model.mtl, model_texture.png.
     """
+    from omnipipe.memory import release_freed_memory
+
     out_dir = Path(out_dir)
     write_ply(out_dir / "points.ply", result.points_in_world, result.colours)
     write_ply(out_dir / "mesh.ply", result.mesh_vertices, result.colours, result.mesh_faces)
     write_laz(out_dir / "points.laz", result.points_in_world, result.colours, result.point_frame)
     if len(result.points_in_world):
         write_e57(out_dir / "points.e57", result.points_in_world, result.colours)
+    release_freed_memory()  # each writer's chunks: not under the next one's
     if result.unrolled is not None:
         from PIL import Image
 
@@ -404,4 +537,6 @@ def write_outputs(result: ModelResult, out_dir: Path) -> None:
     ):
         args = (result.textured_vertices, result.textured_faces, result.textured_uvs)
         write_glb(out_dir / "model.glb", *args, result.texture)
+        release_freed_memory()
         write_obj(out_dir / "model.obj", *args, result.texture)
+        release_freed_memory()

@@ -11,7 +11,10 @@ input or setting gives another KEY, so a stale checkpoint is never read.
 
 Files: ``checkpoint.json`` (the marker: tool, format, key, the stages saved) and per
 stage ``STAGE.json`` (the result's structure, :func:`encode`) with ``STAGE.npz`` (its
-arrays, loaded without pickle). Results are rebuilt field by field into their
+arrays, loaded without pickle) and, for a result holding a
+:class:`~omnipipe.laser.store.RingStore` (the frame pass's rings), ``STAGE.rings``: a
+copy of the store's file, copied a block at a time both ways, so neither saving nor
+resuming reads every ring into memory. Results are rebuilt field by field into their
 dataclasses (only classes of the ``omnipipe`` package), so a loaded stage is equal, bit
 for bit, to the one saved. A checkpoint that cannot be read (damaged, written by
 another format) is ignored: the stage is computed again.
@@ -36,6 +39,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from omnipipe.laser.store import RingStore
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
@@ -112,6 +117,7 @@ class _Encoder:
 
     def __init__(self) -> None:
         self.arrays: dict[str, np.ndarray] = {}
+        self.store: RingStore | None = None  # the one ring store of the value, if any
 
     def array(self, a: np.ndarray) -> str:
         if a.dtype.hasobject:
@@ -137,6 +143,11 @@ class _Encoder:
             return {"dp": [[self(k), self(x)] for k, x in v.items()]}
         if isinstance(v, tuple):
             return {"t": [self(x) for x in v]}
+        if isinstance(v, RingStore):  # its file copied beside, not its rings read
+            if self.store is not None:
+                raise CheckpointFormatError("a value holds more than one ring store")
+            self.store = v
+            return {"rs": self(v.index())}
         if isinstance(v, (list, Sequence)) or (hasattr(v, "__len__") and hasattr(v, "__getitem__")):
             items = [v[i] for i in range(len(v))]
             kind = type(items[0]) if items else None
@@ -196,8 +207,9 @@ def _build(kind: type, values: dict[str, Any]) -> Any:
     return obj
 
 
-def decode(node: Any, arrays: dict[str, np.ndarray]) -> Any:
-    """The value :class:`_Encoder` turned into ``node`` (arrays from ``arrays``)."""
+def decode(node: Any, arrays: dict[str, np.ndarray], rings: Path | None = None) -> Any:
+    """The value :class:`_Encoder` turned into ``node`` (arrays from ``arrays``, a ring
+    store's file copied from ``rings``)."""
     if node is None or isinstance(node, (bool, int, float, str)):
         return node
     if not isinstance(node, dict) or len(node) not in (1, 2, 3):
@@ -208,19 +220,23 @@ def decode(node: Any, arrays: dict[str, np.ndarray]) -> Any:
         return arrays[node["s"]][()]
     if "c" in node:
         kind = _class(node["c"])
-        return _build(kind, {k: decode(v, arrays) for k, v in node["f"].items()})
+        return _build(kind, {k: decode(v, arrays, rings) for k, v in node["f"].items()})
     if "p" in node:
         return Path(node["p"])
     if "d" in node:
-        return {k: decode(v, arrays) for k, v in node["d"].items()}
+        return {k: decode(v, arrays, rings) for k, v in node["d"].items()}
     if "dp" in node:
-        return {decode(k, arrays): decode(v, arrays) for k, v in node["dp"]}
+        return {decode(k, arrays, rings): decode(v, arrays, rings) for k, v in node["dp"]}
     if "t" in node:
-        return tuple(decode(x, arrays) for x in node["t"])
+        return tuple(decode(x, arrays, rings) for x in node["t"])
     if "l" in node:
-        return [decode(x, arrays) for x in node["l"]]
+        return [decode(x, arrays, rings) for x in node["l"]]
     if "cols" in node:
         return _decode_columns(node, arrays)
+    if "rs" in node:
+        if rings is None:
+            raise CheckpointFormatError("a ring store without its file")
+        return RingStore.restore(rings, decode(node["rs"], arrays))
     raise CheckpointFormatError("unknown node")
 
 
@@ -307,17 +323,17 @@ class Checkpoints:
             self.saved = self.saved[: self.saved.index(stage)]
             return None
 
-    def load_parts(self, stage: str) -> list[Any]:
-        """The parts saved of ``stage``, in order (up to the first unreadable one)."""
-        out: list[Any] = []
+    def load_parts(self, stage: str) -> Iterator[Any]:
+        """The parts saved of ``stage``, in order (up to the first unreadable one), each
+        read when the one before it has been taken: memory holds one part, not all."""
         for k in range(self.parts.get(stage, 0)):
             try:
-                out.append(self._read(_part_name(stage, k)))
+                part = self._read(_part_name(stage, k))
             except _READ_ERRORS as exc:
                 self.problems.append(f"checkpoint of {stage} part {k} not usable ({exc})")
                 self.parts[stage] = k
-                break
-        return out
+                return
+            yield part
 
     def save(self, stage: str, value: Any) -> None:
         """Save ``value`` as the result of ``stage`` (its parts are deleted then); a
@@ -327,7 +343,7 @@ class Checkpoints:
             try:
                 self._write_marker()
                 for k in range(old):
-                    for ext in ("json", "npz"):
+                    for ext in _EXTENSIONS:
                         (self.folder / f"{_part_name(stage, k)}.{ext}").unlink(missing_ok=True)
             except OSError:
                 pass
@@ -343,7 +359,7 @@ class Checkpoints:
         node = json.loads((self.folder / f"{name}.json").read_text(encoding="utf-8"))
         with np.load(self.folder / f"{name}.npz", allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
-        return decode(node, arrays)
+        return decode(node, arrays, self.folder / f"{name}.rings")
 
     def _write(self, name: str, value: Any, record: Callable[[], None]) -> bool:
         """Write ``name``'s files, then ``record()`` it and rewrite the marker; False
@@ -357,6 +373,8 @@ class Checkpoints:
             if _read_marker(self.folder) is None:
                 self._write_marker()
             _write_atomic(self.folder / f"{name}.npz", lambda fh: np.savez(fh, **enc.arrays))
+            if enc.store is not None:
+                _write_atomic(self.folder / f"{name}.rings", enc.store.copy_to)
             text = json.dumps(node, allow_nan=True)
             _write_atomic(self.folder / f"{name}.json", lambda fh: fh.write(text.encode()))
             record()
@@ -368,7 +386,7 @@ class Checkpoints:
 
     def _write_marker(self) -> None:
         names = list(self.saved) + [_part_name(s, k) for s, n in self.parts.items() for k in range(n)]
-        files = [MARKER] + [f"{s}.{ext}" for s in names for ext in ("json", "npz")]
+        files = [MARKER] + [f"{s}.{ext}" for s in names for ext in _EXTENSIONS]
         data = {"tool": "omnipipe", "kind": "checkpoint", "format": FORMAT, "key": self.key,
                 "stages": self.saved, "parts": self.parts, "files": files}
         text = json.dumps(data, indent=1)
@@ -379,6 +397,9 @@ class Checkpoints:
         nothing else is in it (files omnipipe did not write are kept)."""
         remove_checkpoint_dir(self.folder)
 
+
+_EXTENSIONS = ("json", "npz", "rings")
+"""A saved stage's (or part's) files; ``rings`` only where its value holds a ring store."""
 
 _READ_ERRORS = (OSError, ValueError, KeyError, TypeError, AttributeError, ImportError)
 

@@ -24,7 +24,7 @@ frame by frame) for every frame where the rig moved, whatever the chunks.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -177,7 +177,7 @@ def run(
     dataset: Dataset,
     executor: Executor,
     progress: Callable[[int], None] | None = None,
-    parts: Sequence[FramePassPart] = (),
+    parts: Iterable[FramePassPart] = (),
     save_part: Callable[[FramePassPart], None] | None = None,
 ) -> FramePassResult:
     """Decode every frame of ``dataset`` once: its ring and whether the rig moved.
@@ -187,7 +187,8 @@ def run(
         executor: from :func:`omnipipe.executor.open_executor`.
         progress: ``progress(frames_done)`` as frames arrive.
         parts: the consecutive parts an earlier run of the same pass saved (from
-            frame 0): the pass goes on after them, with the same result.
+            frame 0), taken one at a time (each one's rings go to the store before the
+            next is read): the pass goes on after them, with the same result.
         save_part: called with each :data:`PART_FRAMES` frames' part as it is done.
 
     Raises:
@@ -261,7 +262,7 @@ class _Kept:
 
 
 def _restore(
-    parts: Sequence[FramePassPart],
+    parts: Iterable[FramePassPart],
     tracker: StationTracker,
     kept: _Kept,
     moved: np.ndarray,

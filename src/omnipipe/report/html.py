@@ -122,12 +122,17 @@ def _png_data_uri(image: np.ndarray) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
+_FIGURE_DPI = 110
+"""Pixels per inch of the report's figures."""
+
+
 def _figure_data_uri(fig: Figure) -> str:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
     fig.savefig(
-        buf, format="png", dpi=110, bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL}
+        buf, format="png", dpi=_FIGURE_DPI, bbox_inches="tight",
+        pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
     )
     plt.close(fig)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
@@ -347,12 +352,15 @@ def _unrolled_plot(
     import matplotlib.pyplot as plt
 
     a0, a1, s0, s1 = extent
-    fig, ax = plt.subplots(
-        figsize=(
-            9,
-            9 * (s1 - s0) / max(1.0, (a1 - a0) * (inputs.radius_mm or 100) * math.pi / 180) + 1,
-        )
-    )
+    # At most 12 inches tall, as the relief map: a longer run's figure (and the image
+    # matplotlib resamples into it) no longer grows with the run.
+    height = min(12.0, 9 * (s1 - s0) / max(1.0, (a1 - a0) * (inputs.radius_mm or 100) * math.pi / 180) + 1)
+    fig, ax = plt.subplots(figsize=(9, height))
+    rows = int(height * _FIGURE_DPI)
+    if image.shape[0] > 2 * rows:  # area-averaged to twice the figure's rows first
+        import cv2
+
+        image = cv2.resize(image, (image.shape[1], 2 * rows), interpolation=cv2.INTER_AREA)
     ax.imshow(image, extent=(a0, a1, s1, s0), aspect="auto", interpolation="bilinear")
     radius = inputs.radius_mm or 100.0
     for k, defect in enumerate(inputs.defects):
@@ -394,9 +402,13 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         return None
     verts = np.asarray(inputs.mesh_vertices, float)
     faces = np.asarray(inputs.mesh_faces, np.int64)
+    uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
     if len(faces) > config.max_faces:
         faces = faces[:: math.ceil(len(faces) / config.max_faces)]
-    uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
+        # Only the kept faces' vertices: the view's numbers stay within max_faces's
+        # share however long the run (all vertices grew with it).
+        used, faces = np.unique(faces, return_inverse=True)
+        verts, uvs, faces = verts[used], np.asarray(uvs)[used], faces.reshape(-1, 3)
     texture = None
     if inputs.texture is not None:
         import cv2
