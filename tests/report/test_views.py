@@ -151,3 +151,35 @@ def test_3d_view_thinned_to_max_faces_keeps_only_their_vertices() -> None:
     assert len(pos) == len(used) and len(tri) == len(kept)
     assert np.allclose(pos[tri], verts[kept], atol=0.005)  # "%.2f"
     assert np.allclose(uv[tri], np.stack([uvs[:, 0], 1 - uvs[:, 1]], axis=1)[kept], atol=5e-6)
+
+
+def test_joints_and_laterals_are_marked_in_3d_and_on_the_unrolled_wall() -> None:
+    """A lateral's marker sits on the wall at its clock and distance; a joint without an
+    offset direction at 12:00 (image up here: no gravity); both link to the features table.
+    (Their labels on the unrolled wall are pixels: the page renders with them, the
+    screenshots of issue 31's closing note show them.)"""
+    from omnipipe.report import ReportConfig
+    from omnipipe.report.html import ReportInputs, _model_json, render_html
+
+    wall, world = _wall()
+    feats = [
+        {"kind": "lateral", "axial_mm": 200.0, "angle_deg": 30.0, "diameter_mm": 50.0},
+        {"kind": "joint", "axial_mm": 60.0, "gap_mm": 6.0, "offset_mm": 0.2, "offset_sigma_mm": 0.3},
+        {"kind": "water", "axial_from_mm": 0.0, "axial_to_mm": 300.0, "depth_mm": 10.0},
+    ]
+    inputs = ReportInputs(
+        summary={"features": feats}, world_from_rig=np.eye(4)[None], mesh_vertices=world,
+        mesh_faces=np.array([[0, 1, 2]]), wall=wall, wall_points_in_world=world,
+        unrolled=np.full((300, 360, 3), 90, np.uint8), unrolled_extent=(0.0, 360.0, 0.0, 300.0),
+        radius_mm=RADIUS,
+    )
+    model = json.loads(_model_json(inputs, ReportConfig()))
+    lateral, joint = model["markers"]
+    assert lateral["label"] == "lateral" and joint["label"] == "joint"
+    assert lateral["href"] == joint["href"] == "#features"
+    assert abs(lateral["position"][2] - 200.0) <= 2.5
+    assert abs(math.degrees(math.atan2(lateral["position"][1], lateral["position"][0])) - 30.0) <= 0.5
+    # 12:00 without gravity is image up: omnipipe angle 270 deg (-y) for travel along +z.
+    assert abs(joint["position"][2] - 60.0) <= 2.5
+    assert abs(math.degrees(math.atan2(joint["position"][1], joint["position"][0])) % 360.0 - 270.0) <= 0.5
+    assert "id='features'" in render_html(inputs)

@@ -377,6 +377,14 @@ def _unrolled_plot(
         ax.add_patch(rect)
         rect.set_linestyle("--" if d.truncated else "-")
         ax.text(d.angle_deg + half_w + 2, d.axial_start_mm, f"#{k + 1} {d.kind}", color="white", fontsize=8)
+    for kind, axial, angle in _point_features(inputs.summary):
+        if angle is None:  # a joint all round: a line across the wall
+            ax.axhline(axial, color="white", lw=0.8, ls=":")
+            ax.text(a1 - 2, axial, kind, color="white", fontsize=7, ha="right", va="bottom")
+        else:
+            x = a0 + (angle - a0) % 360.0
+            ax.plot([x], [axial], marker="+", color="white", ms=9, mew=1.2)
+            ax.text(x + 2, axial, kind, color="white", fontsize=8, va="center")
     quality = inputs.trajectory_quality
     for u in () if quality is None else quality.unreliable:
         if u.axial_start_mm is not None and u.axial_end_mm is not None:
@@ -437,13 +445,38 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     return text.replace("</", "<\\/")
 
 
+def _point_features(summary: dict[str, Any]) -> list[tuple[str, float, float | None]]:
+    """(label, axial mm, omnipipe angle deg or None) of report.json's point features (joints,
+    laterals): the angle is a lateral's hole centre or a joint's significant offset."""
+    out = []
+    for f in summary.get("features") or []:
+        axial = f.get("axial_mm")
+        if not isinstance(axial, int | float):
+            continue
+        angle = f.get("angle_deg")
+        if f.get("kind") == "joint":
+            off, osig = f.get("offset_mm") or 0.0, f.get("offset_sigma_mm") or 0.0
+            angle = f.get("offset_angle_deg") if off > 2.0 * osig else None
+        out.append((str(f.get("kind")), float(axial), float(angle) if isinstance(angle, int | float) else None))
+    return out
+
+
 def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
-    """The 3-D view's defect labels: each defect's measured centre (world, mm)."""
-    from omnipipe.report.views import centre_point
+    """The 3-D view's labels: each defect's measured centre and each joint's and lateral's
+    position (world, mm; a joint without an offset direction at 12:00)."""
+    from omnipipe.report.views import centre_point, nearest_wall_point
 
     if inputs.wall is None or inputs.wall_points_in_world is None:
         return []
     out = []
+    twelve = None
+    for kind, axial, angle in _point_features(inputs.summary):
+        if angle is None:
+            twelve = _clock_deg(inputs) if twelve is None else twelve
+        at = twelve if angle is None else angle
+        p = nearest_wall_point(axial, at, inputs.wall, inputs.wall_points_in_world)
+        if p is not None:
+            out.append({"label": kind, "position": [round(float(v), 2) for v in p], "href": "#features"})
     for k, d in enumerate(inputs.defects):
         p = centre_point(d, inputs.wall, inputs.wall_points_in_world)
         if p is not None:
@@ -807,7 +840,7 @@ def _features_section(s: dict[str, Any], travel_along_rig_z: float = 1.0) -> str
         for a, b, c in [_feature_cells(f, reference, origin.offset_m)]
     )
     return (
-        "<h3>Features (parts of the pipe, not defects)</h3>"
+        "<h3 id='features'>Features (parts of the pipe, not defects)</h3>"
         f"<table><tr><th>kind</th><th>distance (m) from the {html.escape(origin.name)}</th>"
         f"<th>clock</th><th>sizes (± 1 sigma)</th></tr>{rows}</table>"
     )

@@ -1,7 +1,7 @@
 // omnipipe report: a dependency-free WebGL viewer for the textured pipe model.
 // Data come from <script type="application/json" id="model-data">: positions (flat
 // xyz, mm), uvs (flat uv), indices (flat triangles), texture (data URI), centre,
-// radius, markers ([{label, position: [x, y, z] mm, href}]: the defects, drawn as
+// radius, markers ([{label, position: [x, y, z] mm, href}]: the defects and the joints/laterals, drawn as
 // labels that follow the model and link to their table rows). Drag to orbit, shift+drag or right-drag to pan, wheel to zoom, double
 // click to reset.
 (function () {
@@ -152,7 +152,7 @@
     gl.drawElements(gl.TRIANGLES, idx.length, uintIndex ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT, 0);
     placeMarkers(mul(p, v), w, h);
     status.textContent = (idx.length / 3) + " triangles, " + (pos.length / 3) + " vertices" +
-      (useTex ? ", textured" : "") + (markers.length ? ", " + markers.length + " defect marker(s)" : "") + ". Drag: orbit, shift+drag: pan, wheel: zoom, double-click: reset.";
+      (useTex ? ", textured" : "") + (markers.length ? ", " + markers.length + " marker(s)" : "") + ". Drag: orbit, shift+drag: pan, wheel: zoom, double-click: reset.";
     canvas.setAttribute("data-rendered", "1");
   }
   var drag = null;

@@ -42,10 +42,18 @@ class DefectView:
 
 def centre_point(d: Defect, wall: WallPoints, points_in_world: np.ndarray) -> np.ndarray | None:
     """(3,) world position (mm) of the measured wall point nearest the defect's centre."""
+    return nearest_wall_point(d.axial_centre_mm, d.angle_deg, wall, points_in_world)
+
+
+def nearest_wall_point(
+    axial_mm: float, angle_deg: float, wall: WallPoints, points_in_world: np.ndarray
+) -> np.ndarray | None:
+    """(3,) world position (mm) of the measured wall point nearest (axial, omnipipe angle)
+    on the unrolled wall, or None without points."""
     if len(points_in_world) != len(wall.axial_mm) or not len(points_in_world):
         return None
-    du = ((wall.angle_deg - d.angle_deg + 180.0) % 360.0 - 180.0) * math.pi / 180.0 * wall.radius_mm
-    dz = wall.axial_mm - d.axial_centre_mm
+    du = ((wall.angle_deg - angle_deg + 180.0) % 360.0 - 180.0) * math.pi / 180.0 * wall.radius_mm
+    dz = wall.axial_mm - axial_mm
     k = int(np.argmin(du * du + dz * dz))
     return np.asarray(points_in_world[k], float)
 
