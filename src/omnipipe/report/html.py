@@ -474,7 +474,8 @@ def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
         if angle is None:
             twelve = _clock_deg(inputs) if twelve is None else twelve
         at = twelve if angle is None else angle
-        p = nearest_wall_point(axial, at, inputs.wall, inputs.wall_points_in_world)
+        # On the wall at the opening's rim or the joint, not on the branch behind it.
+        p = nearest_wall_point(axial, at, inputs.wall, inputs.wall_points_in_world, on_wall_mm=2.0)
         if p is not None:
             out.append({"label": kind, "position": [round(float(v), 2) for v in p], "href": "#features"})
     for k, d in enumerate(inputs.defects):

@@ -46,15 +46,25 @@ def centre_point(d: Defect, wall: WallPoints, points_in_world: np.ndarray) -> np
 
 
 def nearest_wall_point(
-    axial_mm: float, angle_deg: float, wall: WallPoints, points_in_world: np.ndarray
+    axial_mm: float,
+    angle_deg: float,
+    wall: WallPoints,
+    points_in_world: np.ndarray,
+    on_wall_mm: float | None = None,
 ) -> np.ndarray | None:
     """(3,) world position (mm) of the measured wall point nearest (axial, omnipipe angle)
-    on the unrolled wall, or None without points."""
+    on the unrolled wall, or None without points. ``on_wall_mm``: only points within this
+    of the fitted wall (not the branch seen through a lateral's opening)."""
     if len(points_in_world) != len(wall.axial_mm) or not len(points_in_world):
         return None
     du = ((wall.angle_deg - angle_deg + 180.0) % 360.0 - 180.0) * math.pi / 180.0 * wall.radius_mm
     dz = wall.axial_mm - axial_mm
-    k = int(np.argmin(du * du + dz * dz))
+    d2 = du * du + dz * dz
+    if on_wall_mm is not None:
+        d2 = np.where(np.abs(wall.deviation_mm) <= on_wall_mm, d2, np.inf)
+        if not np.isfinite(d2).any():
+            return None
+    k = int(np.argmin(d2))
     return np.asarray(points_in_world[k], float)
 
 
