@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import iter_frames, parallelism
+from omnipipe.executor import default_workers, iter_frames, parallelism
 from omnipipe.image import gray_without_laser
 from omnipipe.sfm.features import (
     FeatureExtractor,
@@ -183,6 +183,9 @@ class KeyframeLoop:
         self.ctx = ctx
         self.inputs = inputs
         self.extractor = FeatureExtractor(ctx.camera, ctx.config.features)
+        # With workers, this process's SIFT and flow run the views on every core (the
+        # chain waits for them; the workers are often idle then).
+        self.extractor.threads = default_workers() if ctx.parallel else 1
         self.grays = grays
         self.moved = np.zeros(n, bool)  # filled by moving_frames
         self.keyframe = np.zeros(n, bool)
