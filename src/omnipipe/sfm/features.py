@@ -358,7 +358,7 @@ def two_nearest(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.nd
     return best, np.sqrt(d0sq), np.sqrt(d1sq)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _two_smallest(qq, tt, dot):  # pragma: no cover - compiled
     """Per row of ``qq[:, None] + tt[None, :] - 2 dot`` (float32): argmin, min, second min."""
     n, m = dot.shape
