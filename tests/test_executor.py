@@ -196,3 +196,12 @@ def test_worker_cached_builds_once_per_key_and_keeps_the_last() -> None:
     assert worker_cached("test.cache", (1, 2), lambda: build((1, 2))) is not a  # only the last kept
     assert worker_cached("test.other", (3,), lambda: build((3,))) is not b  # names are separate
     assert built == [(1, 2), (3,), (1, 2), (3,)]
+
+
+def test_thread_map_keeps_the_order_of_the_serial_loop() -> None:
+    from omnipipe.executor import thread_map
+
+    items = list(range(20))
+    assert thread_map(lambda a, b: a * b, items, items[::-1], threads=3) == [a * b for a, b in zip(items, items[::-1], strict=True)]
+    assert thread_map(lambda a: a + 1, items, threads=1) == [a + 1 for a in items]
+    assert thread_map(lambda a: a, [], threads=2) == []

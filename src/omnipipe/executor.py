@@ -32,7 +32,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -384,6 +384,28 @@ def _watch_parent(parent: int) -> None:
         time.sleep(PARENT_POLL_S)
         if os.getppid() != parent:
             os.kill(os.getpid(), signal.SIGKILL)
+
+
+_THREADS: tuple[int, int, ThreadPoolExecutor] | None = None  # (pid, threads, pool)
+
+
+def thread_map(fn: Callable[..., R], *iterables: Iterable[Any], threads: int = 1) -> list[R]:
+    """``[fn(*args) for args in zip(*iterables)]``, in order, on up to ``threads``
+    threads of this process (one pool per process, made on first use).
+
+    For independent calls that release the GIL (OpenCV's SIFT and optical flow per
+    perspective view): the process that chains the frames then uses the cores the
+    workers leave idle. The results are those of the serial loop; ``threads <= 1``
+    is that loop.
+    """
+    args = list(zip(*iterables, strict=True))
+    if threads <= 1 or len(args) <= 1:
+        return [fn(*a) for a in args]
+    global _THREADS
+    if _THREADS is None or _THREADS[0] != os.getpid() or _THREADS[1] != threads:
+        # A forked child inherits the parent's pool object without its threads: new one.
+        _THREADS = (os.getpid(), threads, ThreadPoolExecutor(threads, thread_name_prefix="omnipipe"))
+    return list(_THREADS[2].map(lambda a: fn(*a), args))
 
 
 def parallelism(executor: Executor) -> int:

@@ -213,3 +213,18 @@ def test_tracks_follow_a_step_larger_than_the_highpass(far_step, highpass_px: fl
     # are right.
     assert len(tracks.feature) >= 0.1 * min(len(key.view), config.max_points)
     assert np.median(err) < 1.0 and np.mean(err > 3.0) < 0.15
+
+def test_views_on_threads_give_the_serial_features_and_tracks(two_frames) -> None:
+    extractor, views_a, views_b, _ = two_frames
+    out = []
+    for threads in (1, 2):
+        extractor.threads = threads
+        key = extractor.detect(views_a)
+        tracks = TrackChain(extractor, views_a, key, TrackConfig()).advance(views_b)
+        out.append((key, tracks))
+    extractor.threads = 1
+    (k1, t1), (k2, t2) = out
+    assert len(k1.view) > 100
+    for a, b in ((k1.rays_in_rig, k2.rays_in_rig), (k1.descriptors, k2.descriptors), (k1.view, k2.view),
+                 (t1.feature, t2.feature), (t1.features.view_pixels, t2.features.view_pixels)):
+        assert np.array_equal(a, b)

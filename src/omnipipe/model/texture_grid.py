@@ -21,6 +21,8 @@ interpolation's triangulation of a long run is made a chunk of the run at a time
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -189,23 +191,42 @@ class WallGrid:
             if block is None or not (block.first <= first and stop <= block.last):
                 self._block = block = None  # the last block's triangulation freed first
                 release_freed_memory()  # (qhull's many small blocks, not left resident)
-                self._block = block = self._build_block(first, stop)
+                self._block = block = self._build_block(*self._span(first, stop))
             interpolate, tree, drop = block.interpolate, block.tree, block.drop
-        gu, gz = np.meshgrid(self._u, self._z[start:stop])
-        grid = interpolate(gu, gz)
-        cells = np.column_stack([gu.ravel(), gz.ravel()])
-        # Cells far from any measured point (gaps in the rings, the hull's long edges).
-        dist, _ = tree.query(cells)
-        grid.reshape(-1, 3)[dist > self._max_gap_mm] = np.nan
-        if drop is not None:
-            # Cells in a triangle the mesh drops (a hole corner, a gap-bridging edge).
-            simplex = interpolate.tri.find_simplex(cells)
-            grid.reshape(-1, 3)[(simplex >= 0) & drop[simplex]] = np.nan
+        grid = _evaluate(interpolate, tree, drop, self._u, self._z[start:stop], self._max_gap_mm)
         return grid[first - start :]
 
-    def _build_block(self, first: int, stop: int) -> _Block:
-        """The :class:`_Block` of rows [first, stop') for stop' >= ``stop``: as many rows as
-        hold about ``chunk_points`` points, on their verified chunk."""
+    def deferred_rows(
+        self, spans: list[tuple[int, int]], executor: Executor
+    ) -> Iterator[np.ndarray | GridRows]:
+        """The rows of each ``(first, stop)`` of ``spans`` in turn, as :meth:`rows` gives
+        them, but for a worker to evaluate: a chunked grid's blocks are triangulated on
+        ``executor`` (each block the spans need once, all submitted at once) and each
+        span comes as :class:`GridRows` (its block travels with it); an unchunked grid's
+        rows are evaluated here. The same values bit for bit."""
+        if self._chunks is None:
+            for first, stop in spans:
+                yield self.rows(first, stop)
+            return
+        plan: list[tuple[int, int]] = []
+        current = None if self._block is None else (self._block.first, self._block.last)
+        for first, stop in spans:  # the blocks rows() would build, in turn
+            if current is None or not (current[0] <= first and stop <= current[1]):
+                current = self._span(first, stop)
+            plan.append(current)
+        have = None if self._block is None else (self._block.first, self._block.last)
+        futures = {span: executor.submit(self._build_block, *span) for span in dict.fromkeys(plan) if span != have}
+        for (first, stop), span in zip(spans, plan, strict=True):
+            block = self._block
+            if block is None or (block.first, block.last) != span:
+                self._block = block = None
+                release_freed_memory()
+                self._block = block = futures.pop(span).result()
+            yield GridRows(block, self._u, self._z[first:stop], self._max_gap_mm)
+
+    def _span(self, first: int, stop: int) -> tuple[int, int]:
+        """(first, last): the rows of the block that holds rows [first, stop), as many
+        as hold about ``chunk_points`` points (at least to ``stop``)."""
         chunks = self._chunks
         if chunks is None:
             raise RuntimeError("a block of a wall grid that is not chunked")
@@ -214,7 +235,14 @@ class WallGrid:
         i1 = min(i0 + chunks.chunk_points, len(chunks.z))
         z_cap = chunks.z[i1 - 1] if i1 > i0 else self._z[first]
         last = int(np.searchsorted(self._z, z_cap, side="right"))
-        last = min(max(last, stop, first + 1), h)
+        return first, min(max(last, stop, first + 1), h)
+
+    def _build_block(self, first: int, last: int) -> _Block:
+        """The :class:`_Block` of rows [first, last) (:meth:`_span`), on their verified
+        chunk (also an executor task: the grid pickles with its points)."""
+        chunks = self._chunks
+        if chunks is None:
+            raise RuntimeError("a block of a wall grid that is not chunked")
         ids, tri = chunks.triangulate(
             float(self._z[first]), float(self._z[last - 1]), float(self._u[0]),
             float(self._u[-1]), min_margin_mm=self._max_gap_mm,
@@ -231,6 +259,12 @@ class WallGrid:
             drop = dropped_triangles(tri.simplices, xyz, holes, self._max_edge_mm)
         return _Block(first, last, LinearNDInterpolator(tri, xyz), cKDTree(tri.points), drop)
 
+    def __getstate__(self) -> dict[str, object]:
+        """Pickled without the block in use (a task builds its own)."""
+        state = self.__dict__.copy()
+        state["_block"] = None
+        return state
+
 
 @dataclass(frozen=True)
 class _Block:
@@ -242,6 +276,51 @@ class _Block:
     interpolate: LinearNDInterpolator
     tree: cKDTree
     drop: np.ndarray | None
+
+
+@dataclass(frozen=True, eq=False)
+class GridRows:
+    """Rows of a chunked :class:`WallGrid` to evaluate elsewhere (picklable: their
+    block travels with them).
+
+    Attributes:
+        block: the block that holds the rows.
+        u: (W,) arc of the columns, mm; z: (n,) axial position of the rows, mm.
+        max_gap_mm: cells farther than this from every point are NaN.
+    """
+
+    block: _Block
+    u: np.ndarray
+    z: np.ndarray
+    max_gap_mm: float
+
+    def evaluate(self) -> np.ndarray:
+        """(n, W, 3) wall points of the rows, mm (NaN: no wall), as :meth:`WallGrid.rows`."""
+        b = self.block
+        return _evaluate(b.interpolate, b.tree, b.drop, self.u, self.z, self.max_gap_mm)
+
+
+def _evaluate(
+    interpolate: LinearNDInterpolator,
+    tree: cKDTree,
+    drop: np.ndarray | None,
+    u: np.ndarray,
+    z: np.ndarray,
+    max_gap_mm: float,
+) -> np.ndarray:
+    """(len(z), len(u), 3) interpolated wall points of the cells (u, z), mm; NaN where
+    no point is within ``max_gap_mm`` or the cell's triangle is one of ``drop``."""
+    gu, gz = np.meshgrid(u, z)
+    grid = interpolate(gu, gz)
+    cells = np.column_stack([gu.ravel(), gz.ravel()])
+    # Cells far from any measured point (gaps in the rings, the hull's long edges).
+    dist, _ = tree.query(cells)
+    grid.reshape(-1, 3)[dist > max_gap_mm] = np.nan
+    if drop is not None:
+        # Cells in a triangle the mesh drops (a hole corner, a gap-bridging edge).
+        simplex = interpolate.tri.find_simplex(cells)
+        grid.reshape(-1, 3)[(simplex >= 0) & drop[simplex]] = np.nan
+    return grid
 
 
 def wall_points_on_grid(

@@ -25,7 +25,7 @@ can read each keyframe once for both its ring colours and its texture cells.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
 
@@ -37,7 +37,7 @@ from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
 from omnipipe.model._kernels import MAG_BIN_RAD, STEP_RAD, score_strip
-from omnipipe.model.texture_grid import STRIP_ROWS, WallGrid
+from omnipipe.model.texture_grid import STRIP_ROWS, GridRows, WallGrid
 from omnipipe.model.texture_light import LASER_BAND_PX, laser_line_px
 from omnipipe.rig import Rig
 
@@ -379,12 +379,20 @@ def choose_sources(
     bounds = elevation_bounds(camera)
     magnification = magnification_table(camera)
 
+    starts = range(top, end, step)
+    spans = [(max(r0 - 1, 0), min(r0 + step, end) + 1) for r0 in starts]
+    spans = [(lo, min(hi, h)) for lo, hi in spans]
+    if isinstance(grid, WallGrid) and executor is not None and not isinstance(executor, InlineExecutor):
+        # A long run's grid blocks triangulated and its rows evaluated in the workers.
+        rows: Iterator[np.ndarray | GridRows] = grid.deferred_rows(spans, executor)
+    else:
+        rows = (grid.rows(lo, hi) for lo, hi in spans)
+
     def strips():  # each strip and a row either side (np.gradient along z), made as needed
-        for r0 in range(top, end, step):
+        for r0, (lo, _), ext in zip(starts, spans, rows, strict=True):
             r1 = min(r0 + step, end)
-            lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
             yield (
-                rig, camera, rig_from_world, grid.rows(lo, hi), r0 - lo, r1 - r0, bounds,
+                rig, camera, rig_from_world, ext, r0 - lo, r1 - r0, bounds,
                 mm_per_px, laser_band_mm, windowed, laser_band_px, True, magnification,
             )
 
@@ -436,7 +444,10 @@ def _collect_strips(
 
 
 def _strip_task(args: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Executor task: :func:`_choose_in_strip` of one strip's arguments."""
+    """Executor task: :func:`_choose_in_strip` of one strip's arguments (its grid rows
+    evaluated here when they come as :class:`~omnipipe.model.texture_grid.GridRows`)."""
+    if isinstance(args[3], GridRows):
+        args = (*args[:3], args[3].evaluate(), *args[4:])
     return _choose_in_strip(*args)
 
 

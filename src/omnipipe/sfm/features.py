@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from omnipipe.camera import CameraModel, PerspectiveView
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError
+from omnipipe.executor import thread_map
 from omnipipe.image import gray_without_laser
 
 
@@ -132,6 +133,13 @@ class FeatureExtractor:
             nfeatures=max(1, cfg.max_features // cfg.views),
             contrastThreshold=cfg.contrast_threshold,
         )
+        # One detector per view (the same settings), so that views run on threads share
+        # no detector; ``threads``: how many views at once (:func:`~omnipipe.executor.thread_map`).
+        self.sifts = [self.sift] + [
+            cv2.SIFT_create(nfeatures=max(1, cfg.max_features // cfg.views), contrastThreshold=cfg.contrast_threshold)
+            for _ in range(cfg.views - 1)
+        ]
+        self.threads = 1
         self.clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
         # The mirror's annulus, once (45 ms per frame at 1600x1200 when rebuilt per frame).
         self.annulus = camera.valid_mask().astype(np.uint8) * 255
@@ -167,8 +175,11 @@ class FeatureExtractor:
         """SIFT features of one frame's :meth:`frame_views`, as rays (with view pixels)."""
         cam = self.camera
         rays, descs, vidx, vpx = [], [], [], []
-        for k, (view, img, vmask) in enumerate(zip(self.views, views.images, views.masks, strict=True)):
-            kps, desc = self.sift.detectAndCompute(img, vmask)
+        found = thread_map(
+            lambda sift, img, vmask: sift.detectAndCompute(img, vmask),
+            self.sifts, views.images, views.masks, threads=self.threads,
+        )
+        for k, (view, (kps, desc)) in enumerate(zip(self.views, found, strict=True)):
             if desc is None or not kps:
                 continue
             pts = np.array([kp.pt for kp in kps], float)
@@ -347,7 +358,7 @@ def two_nearest(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.nd
     return best, np.sqrt(d0sq), np.sqrt(d1sq)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _two_smallest(qq, tt, dot):  # pragma: no cover - compiled
     """Per row of ``qq[:, None] + tt[None, :] - 2 dot`` (float32): argmin, min, second min."""
     n, m = dot.shape

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import iter_frames, parallelism
+from omnipipe.executor import default_workers, iter_frames, parallelism, thread_map
 from omnipipe.image import gray_without_laser
 from omnipipe.sfm.features import (
     FeatureExtractor,
@@ -183,6 +183,9 @@ class KeyframeLoop:
         self.ctx = ctx
         self.inputs = inputs
         self.extractor = FeatureExtractor(ctx.camera, ctx.config.features)
+        # With workers, this process's SIFT and flow run the views on every core (the
+        # chain waits for them; the workers are often idle then).
+        self.extractor.threads = default_workers() if ctx.parallel else 1
         self.grays = grays
         self.moved = np.zeros(n, bool)  # filled by moving_frames
         self.keyframe = np.zeros(n, bool)
@@ -264,11 +267,14 @@ class KeyframeLoop:
         detected = self._keyframe_features(frame, None)
         radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
         track_rays = step.tracks.features.rays_in_rig[inl[:, 1]]
-        everywhere = _verified(self.ctx, last.features, detected, match_features(last.features, detected, ratio))
-        guided = _verified(
-            self.ctx, last.features, detected,
-            guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
-        )  # fmt: skip
+        everywhere, guided = thread_map(  # the two candidates at once (independent)
+            lambda match: _verified(self.ctx, last.features, detected, match()),
+            [
+                lambda: match_features(last.features, detected, ratio),
+                lambda: guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
+            ],
+            threads=self.extractor.threads,
+        )
         best = everywhere if len(everywhere) >= len(guided) else guided
         if not self._direct and _skipped_period(inl[:, 0], track_rays, everywhere, detected, 2 * radius, config):
             # The wall moved more than half its period between two frames somewhere: SIFT

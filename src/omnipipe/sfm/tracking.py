@@ -32,6 +32,7 @@ import numpy as np
 
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
+from omnipipe.executor import thread_map
 from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
 
 
@@ -287,9 +288,13 @@ class TrackChain:
         images = flow_images(views, self.config.highpass_px, self.config.levels)
         keep = np.zeros(len(self.feature), bool)
         moved = self.view_pixels.copy()
-        for k in np.unique(self.view):
-            sel = np.flatnonzero(self.view == k)
-            p1, ok = _flow(self.images[k], images[k], self.view_pixels[sel], views.masks[k], self.config)
+        ks = np.unique(self.view)
+        sels = [np.flatnonzero(self.view == k) for k in ks]
+        flows = thread_map(  # the views on the extractor's threads
+            lambda k, sel: _flow(self.images[k], images[k], self.view_pixels[sel], views.masks[k], self.config),
+            ks, sels, threads=self.extractor.threads,
+        )
+        for sel, (p1, ok) in zip(sels, flows, strict=True):
             moved[sel] = p1
             keep[sel] = ok
         self.feature, self.view, self.view_pixels = self.feature[keep], self.view[keep], moved[keep]
