@@ -344,6 +344,10 @@ def _trajectory_plot(inputs: ReportInputs, p: np.ndarray) -> str:
     return _figure_data_uri(fig)
 
 
+_LABEL_BOX = {"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55, "lw": 0}
+"""A feature label's backing on the unrolled wall (readable on bright wall and on hatch)."""
+
+
 def _unrolled_plot(
     inputs: ReportInputs, image: np.ndarray, extent: tuple[float, float, float, float]
 ) -> str:
@@ -380,11 +384,11 @@ def _unrolled_plot(
     for kind, axial, angle in _point_features(inputs.summary):
         if angle is None:  # a joint all round: a line across the wall
             ax.axhline(axial, color="white", lw=0.8, ls=":")
-            ax.text(a1 - 2, axial, kind, color="white", fontsize=7, ha="right", va="bottom")
+            ax.text(a1 - 2, axial, kind, color="white", fontsize=7, ha="right", va="bottom", bbox=_LABEL_BOX)
         else:
             x = a0 + (angle - a0) % 360.0
             ax.plot([x], [axial], marker="+", color="white", ms=9, mew=1.2)
-            ax.text(x + 2, axial, kind, color="white", fontsize=8, va="center")
+            ax.text(x + 3, axial, kind, color="white", fontsize=8, va="center", bbox=_LABEL_BOX)
     quality = inputs.trajectory_quality
     for u in () if quality is None else quality.unreliable:
         if u.axial_start_mm is not None and u.axial_end_mm is not None:
