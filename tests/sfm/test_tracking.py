@@ -228,3 +228,45 @@ def test_views_on_threads_give_the_serial_features_and_tracks(two_frames) -> Non
     for a, b in ((k1.rays_in_rig, k2.rays_in_rig), (k1.descriptors, k2.descriptors), (k1.view, k2.view),
                  (t1.feature, t2.feature), (t1.features.view_pixels, t2.features.view_pixels)):
         assert np.array_equal(a, b)
+
+
+def _true_view_pixels(renderer, extractor, pose_a, pose_b, rays_a, view):
+    """(M, 2) view pixels in frame b of the wall points that rays ``rays_a`` (M, 3) of
+    frame a meet, in views ``view`` (M,)."""
+    hits = renderer.hit(pose_a, rays_a).points_in_world
+    in_b = (hits - pose_b[:3, 3]) @ pose_b[:3, :3]
+    out = np.full((len(view), 2), np.nan)
+    for k in np.unique(view):
+        sel = view == k
+        out[sel], _ = extractor.views[k].pixels_of_rays(in_b[sel] / np.linalg.norm(in_b[sel], axis=1, keepdims=True))
+    return out
+
+
+@pytest.mark.slow
+def test_tracks_keep_their_tile_when_a_frame_step_exceeds_half_the_period() -> None:
+    """random-wide seed 22: mosaic tiles 11.8 mm apart along the pipe, frame steps of
+    2.2, 6.1 and 8.4 mm: the last is more than half the period. Each flow starts from
+    the track's last step, so the tracks stay on their own tile (started from rest,
+    they landed a tile back: that step came out 3.5 mm, backwards)."""
+    scenario = make_scenario("random-wide", frames=4, size=(640, 480), seed=22)
+    assert scenario.random is not None and scenario.random["family"] == "mosaic"
+    renderer, poses, _, _ = build_renderer(scenario)
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    period = scenario.random["axial_period_mm"]
+    assert steps[-1] > 0.6 * period  # mm: the last frame step skips more than half a tile
+    extractor = FeatureExtractor(camera_from_rig(scenario.rig))
+    channel = scenario.rig.laser.channel
+    views = [
+        extractor.frame_views(renderer.expose(renderer.irradiance(p, seed=5 + i)[0], seed=5 + i), channel)
+        for i, p in enumerate(poses)
+    ]
+    key = extractor.detect(views[0])
+    chain = TrackChain(extractor, views[0], key, TrackConfig())
+    for v in views[1:]:
+        tracks = chain.advance(v)
+    truth = _true_view_pixels(
+        renderer, extractor, poses[0], poses[-1], key.rays_in_rig[tracks.feature], tracks.features.view
+    )
+    err = np.linalg.norm(truth - tracks.features.view_pixels, axis=1)
+    assert len(tracks.feature) >= 0.3 * chain.n_followed
+    assert np.median(err) < 1.0 and np.mean(err > 3.0) < 0.1

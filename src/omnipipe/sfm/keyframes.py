@@ -446,11 +446,13 @@ class KeyframeLoop:
         self._last = _Keyframe(frame.frame, features, frame.gray, frame.views)
         config = self.ctx.config
         fresh = np.arange(n_continued, len(features.view))
-        self._chain = None
+        prior, self._chain = self._chain, None
         if frame.views is not None and config.tracking.enabled:
             # The tracks carried on first, then the new features evenly, up to the budget.
             followed = _budget(n_continued, len(features.view), config.tracking.max_points)
-            self._chain = TrackChain(self.extractor, frame.views, features, config.tracking, followed)
+            self._chain = TrackChain(
+                self.extractor, frame.views, features, config.tracking, followed, prior=prior
+            )
         k_new = len(self.features) - 1
         since = [j for j, p in enumerate(self.pending) if p.keyframe == k_new - 1]
         viewed = [j for j in since if self.pending[j].frame in self._pending_views]
