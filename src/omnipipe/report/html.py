@@ -448,8 +448,9 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         f'"uvs":[{_numbers("%.5f", np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]]))}],'
         f'"indices":[{_numbers("%d", faces)}],'
     )
-    text = "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:]
-    return text.replace("</", "<\\/")
+    # Only the JSON part can hold "</" (the number lists cannot): escaped alone, the
+    # long string is not copied once more.
+    return "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:].replace("</", "<\\/")
 
 
 def _point_features(summary: dict[str, Any]) -> list[tuple[str, float, float | None]]:
