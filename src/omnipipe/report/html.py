@@ -360,11 +360,14 @@ def _unrolled_plot(
     # matplotlib resamples into it) no longer grows with the run.
     height = min(12.0, 9 * (s1 - s0) / max(1.0, (a1 - a0) * (inputs.radius_mm or 100) * math.pi / 180) + 1)
     fig, ax = plt.subplots(figsize=(9, height))
-    rows = int(height * _FIGURE_DPI)
-    if image.shape[0] > 2 * rows:  # area-averaged to twice the figure's rows first
+    # Area-averaged to at most the figure's pixels first: matplotlib's resampling costs
+    # about 40 bytes a pixel of the image it is given (60 MB for 3,000 frames' wall).
+    rows, cols = (int(round(v * _FIGURE_DPI)) for v in (height, 9.0))
+    if image.shape[0] > rows or image.shape[1] > cols:
         import cv2
 
-        image = cv2.resize(image, (image.shape[1], 2 * rows), interpolation=cv2.INTER_AREA)
+        size = (min(cols, image.shape[1]), min(rows, image.shape[0]))
+        image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
     ax.imshow(image, extent=(a0, a1, s1, s0), aspect="auto", interpolation="bilinear")
     radius = inputs.radius_mm or 100.0
     for k, defect in enumerate(inputs.defects):
@@ -445,8 +448,9 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         f'"uvs":[{_numbers("%.5f", np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]]))}],'
         f'"indices":[{_numbers("%d", faces)}],'
     )
-    text = "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:]
-    return text.replace("</", "<\\/")
+    # Only the JSON part can hold "</" (the number lists cannot): escaped alone, the
+    # long string is not copied once more.
+    return "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:].replace("</", "<\\/")
 
 
 def _point_features(summary: dict[str, Any]) -> list[tuple[str, float, float | None]]:
