@@ -214,3 +214,31 @@ def test_run_ending_mid_stroke_on_stationary_frames_closes_on_the_last_moving_fr
     assert np.allclose(res.world_from_rig[5:], res.world_from_rig[4])
     errs = trajectory_errors(res.world_from_rig, poses[idx])
     assert errs.ate_rmse_mm < 0.5  # mm over 18 mm of travel at 400x300 (measured 0.17)
+
+
+def test_steps_a_course_off_are_contradicted_by_the_odometry_and_bridged() -> None:
+    """Tiles 7.7 mm apart, 8.4 mm a frame: laser and feature depths agree on a wrong
+    course at 4 of 9 keyframe steps (a course short). The odometry's ratio (3 % slip)
+    comes from the consensus of the right steps (not the median, pulled to 1.4 by the
+    wrong ones); the wrong steps are contradicted, and bridged from the odometry with a
+    sigma covering the truth; the right ones stay trusted."""
+    from omnipipe.inputs.sensors import make_odometry
+    from omnipipe.sfm.robot_sensors import calibrate_odometry, odometry_contradicts, odometry_steps
+
+    rng = np.random.default_rng(11)
+    truth = np.array([8.4, 33.2, 16.1, 8.1, 7.8, 15.7, 7.8, 33.3, 10.9])
+    frames = list(range(len(truth) + 1))
+    times = np.arange(len(frames)) * 0.5
+    counted = np.concatenate([[0.0], np.cumsum(truth)]) * 0.97 + rng.normal(0, 0.05, len(frames))
+    odo = make_odometry("test", times, np.maximum.accumulate(counted), np.hypot(0.03 * counted, 0.05), str)
+    vision = truth.copy()
+    wrong = np.array([1, 2, 5, 7])
+    vision[wrong] = np.array([10.1, 7.7, 8.0, 7.8])
+    steps = calibrate_odometry(odometry_steps(odo, times, frames), vision, np.ones(len(truth), bool))
+    assert steps.calibrated and abs(math.exp(steps.ratio_log) - 1 / 0.97) < 0.01
+    said = [bool(odometry_contradicts(steps, k, float(v))) for k, v in enumerate(vision)]
+    assert [k for k, s in enumerate(said) if s] == wrong.tolist()
+    lengths = np.where(said, np.nan, vision)
+    for k in wrong:
+        est, sig, source = bridge_estimate(int(k), lengths, ~np.array(said), steps)
+        assert source == "odometry" and abs(est - truth[k]) <= 2 * sig

@@ -105,7 +105,13 @@ def run(
             ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
         )
         chain = replace(
-            chain, checks=check_adjusted(chain.checks, adjusted.world_from_kf, config.scale_check)
+            chain,
+            checks=check_adjusted(
+                chain.checks,
+                adjusted.world_from_kf,
+                config.scale_check,
+                math.exp(scale.offset_log) if scale.wall_anchored else 1.0,
+            ),
         )
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)
         if not math.isnan(length.correction_log):
