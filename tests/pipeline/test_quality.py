@@ -117,3 +117,9 @@ def test_a_run_that_moved_without_any_keyframe_step_is_refused() -> None:
     still = np.ones(48, bool)
     still[0] = False
     refuse_untrusted_motion(SimpleNamespace(step_checks=[], stationary=still, unreliable=lost))
+    # The same plain wall with odometry: every moving frame placed along the axis.
+    from omnipipe.sfm.types import ODOMETRY_ONLY
+
+    refuse_untrusted_motion(
+        SimpleNamespace(step_checks=[], stationary=stationary, unreliable=lost, scale_source=ODOMETRY_ONLY)
+    )

@@ -23,6 +23,7 @@ from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
 from omnipipe.sfm import SfmResult
 from omnipipe.sfm.scale_check import StepCheck, steps_checked
+from omnipipe.sfm.types import ODOMETRY_ONLY
 
 
 def station_axial_mm(
@@ -208,14 +209,16 @@ def refuse_untrusted_motion(motion: SfmResult) -> None:
     confirmed made every placeholder step 197 mm long, ATE 129 mm).
 
     A run that moved without a single keyframe step and with frames left unplaced is
-    refused too.
+    refused too, unless the odometry placed them along the axis (flagged:
+    :data:`omnipipe.sfm.types.ODOMETRY_ONLY`; random-wide seed 1, a 963 mm pipe).
 
     Raises:
         ReconstructionError: one line with the most frequent reason.
     """
     checks = motion.step_checks
     moving = 0 if checks else int((~np.asarray(motion.stationary, bool)[1:]).sum())
-    if moving and motion.unreliable:
+    placed = getattr(motion, "scale_source", "") == ODOMETRY_ONLY
+    if moving and motion.unreliable and not placed:
         # No keyframe step at all (seed 10 of random-wide, a plain wall: its 4 moving
         # frames had too little parallax to become keyframes and too few tracks to be
         # resected; every frame was left at frame 0's pose).

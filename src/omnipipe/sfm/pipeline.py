@@ -58,7 +58,7 @@ from omnipipe.sfm.step_scale import (
     run_scale,
 )
 from omnipipe.sfm.step_window import moving_counts
-from omnipipe.sfm.types import SfmConfig, SfmContext, SfmInputs, SfmResult
+from omnipipe.sfm.types import ODOMETRY_ONLY, SfmConfig, SfmContext, SfmInputs, SfmResult
 
 __all__ = ["SfmConfig", "SfmInputs", "SfmResult", "run"]
 
@@ -130,6 +130,9 @@ def run(
             ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames, travel,
             "odometry" if with_odometry else "gait (moving frames)",
         )
+    if not chain.checks and with_odometry:
+        # No keyframe step (a plain wall): the odometry placed the moving frames.
+        length = replace(length, source=ODOMETRY_ONLY)
     result = _result(ctx, followed, adjusted, resected, chain.checks, scale, length)
     if inputs.imu is not None and inputs.timestamps is not None:
         gravity = gravity_world(

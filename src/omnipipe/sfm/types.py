@@ -140,6 +140,10 @@ class SfmInputs:
         )
 
 
+#: :attr:`SfmResult.scale_source` of a run whose frames the odometry alone placed.
+ODOMETRY_ONLY = "odometry (no two frames related: placed along the axis)"
+
+
 @dataclass
 class SfmResult:
     """Poses of every frame.
@@ -164,7 +168,9 @@ class SfmResult:
             matches (Eq. 17) anchoring the bundle adjustment, then (``scale_from_wall``)
             the overall scale set by features placed on the light-section wall; or, when
             the laser runs systematically off the feature depths by more than
-            ``scale_check.max_bias_log``, wall-placed features as the anchors too.
+            ``scale_check.max_bias_log``, wall-placed features as the anchors too;
+            :data:`ODOMETRY_ONLY` when no two frames could be related and the odometry
+            placed every moving frame along the axis.
         laser_offset: run-wide laser / feature-depth length ratio minus one (removed
             before the per-step check).
         wall_scale_log: log of the factor by which the wall's lengths exceed the
