@@ -54,12 +54,12 @@ def window_pace(
 
 
 # A trusted step whose pace is off its window's median pace by more than this
-# (|log| 0.9: a factor 2.5) is not trusted: the gait cannot stretch or shrink a
-# step that much between neighbours, a wrong course on a periodic wall can
-# (random-wide seed 22: 10.1 mm over 6 moving frames among steps of 3.8-4.2 mm per
-# frame, truth 33.2 mm). Looser than GAIT_AGREE_LOG: this overrides two agreeing
+# (|log| 0.7: a factor 2) is not trusted: the gait cannot stretch or shrink a step
+# that much between neighbours, a wrong course on a periodic wall can (random-wide
+# seed 22: 10.1 mm over 6 moving frames among steps of 3.8-4.2 mm per frame, log
+# -0.87, truth 33.2 mm). Looser than GAIT_AGREE_LOG: this overrides two agreeing
 # sources.
-PACE_CONTRADICT_LOG = 0.9
+PACE_CONTRADICT_LOG = 0.7
 
 
 def pace_contradicts(
