@@ -81,22 +81,6 @@ def test_an_unresected_frame_is_placed_by_the_gait_not_left_at_its_keyframe() ->
     assert pose[2, 3] == 0.0 and "keyframe" in how
 
 
-def test_a_trusted_step_whose_pace_is_far_off_its_neighbours_is_contradicted() -> None:
-    """Steps of 2 moving frames at 4 mm/frame; one over 6 moving frames measured 10 mm
-    (a course short: truth 33 mm) is contradicted; the gait's jitter (+-20 %) and a step
-    over twice the frames are not."""
-    from omnipipe.sfm.step_window import pace_contradicts
-
-    rng = np.random.default_rng(2)
-    counts = np.array([2, 6, 2, 2, 2, 2, 2, 2])
-    lengths = 4.0 * counts * (1 + rng.uniform(-0.2, 0.2, 8))
-    trusted = np.ones(8, bool)
-    assert not any(pace_contradicts(k, lengths[k], lengths, trusted, counts) for k in range(8))
-    assert pace_contradicts(1, 10.1, lengths, trusted, counts)
-    # Fewer than three trusted neighbours: the window cannot tell.
-    assert not pace_contradicts(1, 10.1, lengths, np.eye(8, dtype=bool)[0] | np.eye(8, dtype=bool)[2], counts)
-
-
 def test_check_adjusted_compares_decided_lengths_in_the_chain_s_units() -> None:
     """A wall-anchored run (laser 13 % short of the feature depths, 3 steps: too few
     for a run-wide offset): the decided lengths are in laser units; given that unit no

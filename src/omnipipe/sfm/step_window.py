@@ -53,32 +53,6 @@ def window_pace(
     return float(np.median(lengths[idx] / counts[idx])), len(idx)
 
 
-# A trusted step whose pace is off its window's median pace by more than this
-# (|log| 0.7: a factor 2) is not trusted: the gait cannot stretch or shrink a step
-# that much between neighbours, a wrong course on a periodic wall can (random-wide
-# seed 22: 10.1 mm over 6 moving frames among steps of 3.8-4.2 mm per frame, log
-# -0.87, truth 33.2 mm). Looser than GAIT_AGREE_LOG: this overrides two agreeing
-# sources.
-PACE_CONTRADICT_LOG = 0.7
-
-
-def pace_contradicts(
-    k: int, length: float, lengths: np.ndarray, trusted: np.ndarray, counts: np.ndarray
-) -> str:
-    """Why step k's ``length`` (mm) contradicts its window's pace ("" when it does not,
-    or when the window cannot tell)."""
-    pace, n = window_pace(k, lengths, trusted, counts)
-    if not math.isfinite(pace) or not (length > 0) or n < MIN_NEIGHBOURS + 1:
-        return ""
-    mine = length / counts[k]
-    if abs(math.log(mine / pace)) <= PACE_CONTRADICT_LOG:
-        return ""
-    return (
-        f"its pace {mine:.2f} mm/frame contradicts the {n} trusted steps around it "
-        f"({pace:.2f} mm/frame): a wrong course of a periodic wall"
-    )
-
-
 def gait_agrees(k: int, length: float, lengths: np.ndarray, trusted: np.ndarray, counts: np.ndarray) -> str:
     """Why step k's ``length`` (mm) agrees with the window's pace ("" when it does not,
     or when the window cannot tell)."""
