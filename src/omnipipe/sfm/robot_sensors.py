@@ -5,7 +5,11 @@
   odometry's length of the step scaled by the run-wide odometry/vision ratio
   (:func:`odometry_steps`, :func:`calibrate_odometry`), else the gait (the median of
   the trusted steps), each with an honest 1-sigma; the step stays flagged.
-- Weights: the odometry never replaces a trusted vision length; its per-step sigma is
+- Contradiction: a trusted vision length further than :data:`CONTRADICT_SIGMAS` from
+  the calibrated odometry is no longer trusted (:func:`odometry_contradicts`): both
+  vision sources can take the same wrong course of a periodic wall. The step is
+  flagged and bridged from the odometry.
+- Weights: the odometry never replaces a trusted vision length it agrees with; its per-step sigma is
   the spread of the trusted steps' log ratio to it (which holds its random walk and
   the vision noise) times the step, (+) its stated resolution; uncalibrated (no trusted
   vision step) the stated relative sigma (slip) times the step.

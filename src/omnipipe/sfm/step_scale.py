@@ -9,8 +9,11 @@ and the matched features' depths on the light-section wall
   consistent offset is a bias of one source, a large one makes the wall the anchor;
 - every step is decided with it (:func:`decide_step`: trusted, resolved to another
   consensus peak, or untrusted) and chained into metric steps with their bundle
-  adjustment tracks and anchors (:func:`chain_steps`); steps without a relative
-  motion are bridged with the typical step (:func:`bridge_lost_steps`);
+  adjustment tracks and anchors (:func:`chain_steps`); steps measured by their
+  feature depths alone are confirmed by the window of steps around them
+  (:func:`confirm_by_gait`), trusted steps the odometry contradicts are not trusted
+  (:func:`contradict_trusted`), and steps without a length are bridged from the
+  odometry or the gait (:func:`bridge_steps`, :func:`bridge_lost_steps`);
 - after the adjustment, steps that left their sources are flagged
   (:func:`check_adjusted`) and the run's overall scale is combined with the
   wall-placed features' (:func:`run_length`, :func:`combine_scales`), with its
