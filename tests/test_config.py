@@ -95,6 +95,29 @@ def test_yaml_views_survive_a_features_override(tmp_path: Path) -> None:
     assert cfg.sfm.features.views == 6 and cfg.sfm.features.max_features == 500
 
 
+def test_cli_features_keeps_the_yaml_views(
+    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``reconstruct --config c.yaml --features 500`` through the CLI: the config the run
+    gets keeps the YAML's ``views`` (the run itself is stopped before any work)."""
+    import omnipipe.pipeline.cli as reconstruct_cli
+    from omnipipe.cli import main
+
+    seen = []
+
+    def stop(config, *args, **kwargs):
+        seen.append(config)
+        raise ConfigError("test", "stopped before any work")
+
+    monkeypatch.setattr(reconstruct_cli, "run", stop)
+    p = tmp_path / "c.yaml"
+    p.write_text("sfm:\n  features: {views: 6}\n")
+    argv = ["reconstruct", str(tiny_dataset), "--out", str(tmp_path / "out"), "--quiet"]
+    assert main([*argv, "--config", str(p), "--features", "500"]) == 1
+    (cfg,) = seen
+    assert cfg.sfm.features.views == 6 and cfg.sfm.features.max_features == 500
+
+
 def _stage_config_classes() -> list[type]:
     """Every ``*Config`` dataclass of omnipipe's stages (found by walking the package)."""
     import dataclasses
