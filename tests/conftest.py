@@ -7,10 +7,18 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import OmniCamera
 from omnipipe.rig import Rig
 from omnipipe.sim import make_scenario, paper_rig, run
+
+# One BLAS thread in this process and in the commands the tests start: the tests' matrices
+# are small, and a second OpenBLAS thread mostly spins (3.8x the CPU time of one
+# analysis run on a loaded 2-core machine, no faster); worker processes already run
+# with one (omnipipe.executor). Results agree within the tests' tolerances either way.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+threadpool_limits(limits=1, user_api="blas")
 
 
 @pytest.fixture(scope="session")
