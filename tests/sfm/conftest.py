@@ -12,20 +12,36 @@ from omnipipe.sfm.bundle import BundleProblem
 from omnipipe.sim.scenarios import paper_rig
 
 
+def _pipe_scene(
+    rng: np.random.Generator, keyframes: int, rot_sigma: float, xy_sigma: float, n: int, z_mm: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, 4, 4) world_from_rig of ``keyframes`` keyframes 12 mm apart along the z axis
+    (rotation vectors and x, y drawn with sigmas ``rot_sigma`` rad and ``xy_sigma`` mm),
+    and (n,) angles (rad) and (n, 3) points of a 202 mm pipe's wall around it, z uniform
+    in ``z_mm``: the scene of the bundle-adjustment tests."""
+    poses = np.array([
+        make_transform(Rotation.from_rotvec(rng.normal(0, rot_sigma, 3)).as_matrix(),
+                       np.array([rng.normal(0, xy_sigma), rng.normal(0, xy_sigma), 12.0 * k]))
+        for k in range(keyframes)
+    ])
+    th = rng.uniform(-np.pi, np.pi, n)
+    pts = np.column_stack([101 * np.cos(th), 101 * np.sin(th), rng.uniform(*z_mm, n)])
+    return poses, th, pts
+
+
+@pytest.fixture
+def pipe_scene():
+    """``pipe_scene(rng, keyframes, rot_sigma, xy_sigma, n, z_mm) -> (poses, angles, points)``."""
+    return _pipe_scene
+
+
 def _problem(seed: int, fixed: int) -> tuple[OmniCamera, BundleProblem]:
     """A small noisy bundle problem (5 keyframes along a 202 mm pipe, 200 wall points, 80
     laser anchors, 3 of them within one keyframe), seeded; ``fixed`` keyframes held."""
     rng = np.random.default_rng(seed)
     camera = OmniCamera.from_rig(paper_rig(800, 600))
-    K = 5
-    poses = np.array([
-        make_transform(Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix(),
-                       np.array([rng.normal(0, 2), rng.normal(0, 2), 12.0 * k]))
-        for k in range(K)
-    ])
-    n = 200
-    th = rng.uniform(-np.pi, np.pi, n)
-    pts = np.column_stack([101 * np.cos(th), 101 * np.sin(th), rng.uniform(-200, 150, n)])
+    K, n = 5, 200
+    poses, th, pts = _pipe_scene(rng, K, 0.3, 2.0, n, (-200.0, 150.0))
     f, p = np.meshgrid(np.arange(K), np.arange(n), indexing="ij")
     f, p = f.ravel(), p.ravel()
     px, _ = camera.project(np.einsum("nij,nj->ni", np.array([invert(T) for T in poses])[f][:, :3, :3], pts[p])

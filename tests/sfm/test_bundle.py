@@ -11,21 +11,13 @@ from omnipipe.sfm.bundle import BundleConfig, BundleProblem, bundle_adjust, rese
 from omnipipe.sim.scenarios import paper_rig
 
 
-def _scene(seed: int):
+def _scene(pipe_scene, seed: int):
     rng = np.random.default_rng(seed)
     rig = paper_rig(800, 600)
     camera = OmniCamera.from_rig(rig)
     K = 7
-    poses = np.array([
-        make_transform(Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix(),
-                       np.array([rng.normal(0, 0.5), rng.normal(0, 0.5), 12.0 * k]))
-        for k in range(K)
-    ])
     # Wall points of a 202 mm pipe around the z axis.
-    n = 1500
-    th = rng.uniform(-np.pi, np.pi, n)
-    z = rng.uniform(-250, 150, n)
-    pts = np.column_stack([101 * np.cos(th), 101 * np.sin(th), z])
+    poses, _, pts = pipe_scene(rng, K, 0.01, 0.5, 1500, (-250.0, 150.0))
     obs_f, obs_p, obs_px = [], [], []
     for k in range(K):
         px, ok = camera.project(apply(invert(poses[k]), pts))
@@ -47,8 +39,8 @@ def _scene(seed: int):
         np.array(aa), np.array(ab), np.concatenate(aq), np.concatenate(apx))
 
 
-def test_bundle_adjustment_recovers_metric_poses_from_a_scaled_noisy_start() -> None:
-    rng, camera, poses, pts, (f, p, px), (aa, ab, aq, apx) = _scene(3)
+def test_bundle_adjustment_recovers_metric_poses_from_a_scaled_noisy_start(pipe_scene) -> None:
+    rng, camera, poses, pts, (f, p, px), (aa, ab, aq, apx) = _scene(pipe_scene, 3)
     start = poses.copy()
     start[1:, :3, 3] *= 1.05  # 5 % scale error, as a poor laser step would leave
     for k in range(1, len(start)):
@@ -67,8 +59,8 @@ def test_bundle_adjustment_recovers_metric_poses_from_a_scaled_noisy_start() -> 
     assert res.rms_after_px < 0.5 < res.rms_before_px
 
 
-def test_resection_from_rays_to_known_points() -> None:
-    rng, camera, poses, pts, *_ = _scene(5)
+def test_resection_from_rays_to_known_points(pipe_scene) -> None:
+    rng, camera, poses, pts, *_ = _scene(pipe_scene, 5)
     truth = poses[3]
     q = apply(invert(truth), pts)
     _, ok = camera.project(q)
@@ -82,11 +74,11 @@ def test_resection_from_rays_to_known_points() -> None:
     assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.1
 
 
-def test_resection_refits_without_unverified_matches() -> None:
+def test_resection_refits_without_unverified_matches(pipe_scene) -> None:
     # A frame between keyframes: few tracked points, and the next keyframe's descriptor
     # matches (not verified by RANSAC) bring many wrong ones; the refit on the consistent
     # rays keeps the position as good as the verified ones alone would give.
-    rng, camera, poses, pts, *_ = _scene(11)
+    rng, camera, poses, pts, *_ = _scene(pipe_scene, 11)
     truth = poses[3] @ make_transform(np.eye(3), np.array([0.3, -0.2, 4.0]))
     q = apply(invert(truth), pts)
     _, ok = camera.project(q)
