@@ -14,9 +14,10 @@ from omnipipe.rig import Rig
 from omnipipe.sim import make_scenario, paper_rig, run
 
 # One BLAS thread in this process and in the commands the tests start: the tests' matrices
-# are small, and a second OpenBLAS thread mostly spins (3.8x the CPU time of one
-# analysis run on a loaded 2-core machine, no faster); worker processes already run
-# with one (omnipipe.executor). Results agree within the tests' tolerances either way.
+# are small, and a second OpenBLAS thread mostly spins (tests/analysis/test_point_features'
+# first test on a loaded 2-core machine: 3.8x the CPU time and 3.6x the wall time of one
+# thread); worker processes already run with one (omnipipe.executor). Results agree
+# within the tests' tolerances either way.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 threadpool_limits(limits=1, user_api="blas")
 
