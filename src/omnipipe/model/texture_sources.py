@@ -370,11 +370,7 @@ def choose_sources(
     n_k = len(world_from_rig)
     tr = TILE[0]
     step = max(tr, -(-int(strip_rows) // tr) * tr)  # strips of whole tiles
-    top, end = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
-    if not 0 <= top <= end <= h or top % step:
-        raise ShapeError(
-            f"rows: expected 0 <= first <= stop <= {h} with first a multiple of {step}, got {rows}"
-        )
+    top, end = _section(rows, h, step)
     rig_from_world = _rig_from_world(world_from_rig)
     bounds = elevation_bounds(camera)
     magnification = magnification_table(camera)
@@ -382,14 +378,10 @@ def choose_sources(
     starts = range(top, end, step)
     spans = [(max(r0 - 1, 0), min(r0 + step, end) + 1) for r0 in starts]
     spans = [(lo, min(hi, h)) for lo, hi in spans]
-    if isinstance(grid, WallGrid) and executor is not None and not isinstance(executor, InlineExecutor):
-        # A long run's grid blocks triangulated and its rows evaluated in the workers.
-        rows: Iterator[np.ndarray | GridRows] = grid.deferred_rows(spans, executor)
-    else:
-        rows = (grid.rows(lo, hi) for lo, hi in spans)
+    grid_rows = _grid_rows(grid, spans, executor)
 
     def strips():  # each strip and a row either side (np.gradient along z), made as needed
-        for r0, (lo, _), ext in zip(starts, spans, rows, strict=True):
+        for r0, (lo, _), ext in zip(starts, spans, grid_rows, strict=True):
             r1 = min(r0 + step, end)
             yield (
                 rig, camera, rig_from_world, ext, r0 - lo, r1 - r0, bounds,
@@ -404,6 +396,26 @@ def choose_sources(
                 rows_done(min(r0 + step, end - top))
 
     return _collect_strips(scored(), n_k, w, step, end - top)
+
+
+def _section(rows: tuple[int, int] | None, h: int, step: int) -> tuple[int, int]:
+    """``choose_sources``'s ``rows`` as ``(first, stop)``, checked (whole grid when None)."""
+    top, end = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= top <= end <= h or top % step:
+        raise ShapeError(
+            f"rows: expected 0 <= first <= stop <= {h} with first a multiple of {step}, got {rows}"
+        )
+    return top, end
+
+
+def _grid_rows(
+    grid: WallGrid | _ArrayRows, spans: list[tuple[int, int]], executor: Executor | None
+) -> Iterator[np.ndarray | GridRows]:
+    """Each span's grid rows, in order: a long run's grid blocks triangulated and its rows
+    evaluated in the workers when there are workers, else here."""
+    if isinstance(grid, WallGrid) and executor is not None and not isinstance(executor, InlineExecutor):
+        return grid.deferred_rows(spans, executor)
+    return (grid.rows(lo, hi) for lo, hi in spans)
 
 
 def _collect_strips(

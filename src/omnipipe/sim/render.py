@@ -156,13 +156,10 @@ class Renderer:
             -self.rays_in_rig[:, 2], 1e-12
         )
         self.body = (self.rays_in_rig[:, 2] < 0) & (slope < body_slope(rig, self.config))
-        # Angle between neighbouring pixels' rays (rad/px): the footprint per unit distance.
-        ang = np.zeros(len(pixels))
-        for step in ((1.0, 0.0), (0.0, 1.0)):
-            nb = cam.unproject(pixels + np.array(step))
-            cos = np.clip(np.einsum("ij,ij->i", nb, self.rays_in_rig), -1.0, 1.0)
-            ang = np.fmax(ang, np.arccos(cos))
-        self.pixel_angle = np.nan_to_num(ang, nan=1e-2)
+        # Angle between neighbouring pixels' rays (rad/px): the footprint per unit distance
+        # (the larger of the column and row steps; 0 where no ray).
+        steps = (cam.pixel_angle(pixels, (1.0, 0.0)), cam.pixel_angle(pixels, (0.0, 1.0)))
+        self.pixel_angle = np.fmax(0.0, np.fmax(*steps))
         self.vignette = 1.0 - self.config.vignetting * (r.ravel()[self.index] / cam.radius_max) ** 2
         self.laser_normal = rig.laser.normal_in_rig
         self.laser_offset = rig.laser.offset_mm
