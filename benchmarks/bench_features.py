@@ -15,7 +15,10 @@ Counted (the issue's classes): joints with offset >= 1 mm or gap >= 3 mm, latera
 0.2 x the diameter, bends of radius <= 3 x the diameter (the elbows), tapers, ovality >=
 2 %, water >= 5 % of the diameter, and only where the run's laser ring measured them: a
 point feature inside the stations' span (a lateral's whole hole), a stretch overlapping
-it by at least 10 mm (truth beyond the span is listed as "outside", not as missed). A
+it by at least 10 mm, a bend whose part inside the span turns at least 10 degrees
+(``analysis.bend_min_turn_deg``: the 24-frame runs sweep 20-240 mm of pipe, a 10 mm
+piece of an R = 3 D bend turns a degree); truth beyond is listed as "outside", not as
+missed. A
 point feature matches within max(15 mm, 0.6 x a lateral's diameter) axially, a stretch
 by overlap. Sizes of a truncated stretch (it runs past the stations) are lower bounds:
 not scored. Ovality and water depth are compared with the truth stations' median over
@@ -37,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 POINT_KINDS = ("joint", "lateral")
+BEND_MIN_TURN_DEG = 10.0  # analysis.bend_min_turn_deg's default
 KINDS = ("joint", "lateral", "bend", "taper", "ovality", "water")
 SIZES = {
     "joint": ("gap_mm", "offset_mm"),
@@ -178,7 +182,10 @@ def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict) -> Non
             continue
         r = rows.setdefault(t["kind"], Row())
         a, b = _extent(t)
-        inside = (span[0] <= a and b <= span[1]) if t["kind"] in POINT_KINDS else min(b, span[1]) - max(a, span[0]) >= 10.0
+        seen = min(b, span[1]) - max(a, span[0])
+        inside = (span[0] <= a and b <= span[1]) if t["kind"] in POINT_KINDS else seen >= 10.0
+        if t["kind"] == "bend":  # the turn the rings sweep must reach the product's bend_min_turn_deg
+            inside = np.degrees(seen / t["radius_mm"]) >= BEND_MIN_TURN_DEG
         if not inside:
             r.outside += 1
             continue
