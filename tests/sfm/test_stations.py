@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+import pytest
 
-from omnipipe.sfm.stations import StationTracker, noise_sigma
+from omnipipe.sfm.stations import StationConfig, StationTracker, noise_sigma
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
 
@@ -15,13 +17,32 @@ def test_noise_estimate_on_pure_noise() -> None:
     assert abs(noise_sigma(img) - 2.0) < 0.1
 
 
-def test_stops_are_found_exactly() -> None:
+@pytest.fixture(scope="module")
+def stop_and_go() -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """A seeded bend-small run of 20 frames (two strokes, rests of 6 frames): its
+    frames (H, W, 3) uint8, valid mask and true moving flags."""
     scenario = make_scenario("bend-small", frames=20, seed=2)
     renderer, poses, _, moving = build_renderer(scenario)
-    tracker = StationTracker(renderer.camera.valid_mask())
+    images = [renderer.render(pose, seed=100 + i)[0] for i, pose in enumerate(poses)]
+    return images, renderer.camera.valid_mask(), moving
+
+
+def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+
+
+def _flags(tracker: StationTracker, images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    out = [tracker.update(image[..., 1]) for image in images]
+    return np.array([m for m, _ in out]), np.array([r for _, r in out])
+
+
+def test_stops_are_found_exactly(stop_and_go) -> None:
+    images, mask, moving = stop_and_go
+    tracker = StationTracker(mask)
     flags, ratios = [], []
-    for i, pose in enumerate(poses):
-        image, _ = renderer.render(pose, seed=100 + i)
+    for image in images:
         moved, ratio = tracker.update(image[..., 1])
         flags.append(moved)
         ratios.append(ratio)
@@ -187,3 +208,50 @@ def test_the_creep_before_a_stroke_makes_the_stations_last_frame_moving() -> Non
     out = promote_creep(moved, ratio, 1.15)
     assert out.tolist() == [1, 0, 0, 1, 1, 1, 0, 0, 1, 0]
     assert moved[3] == 0  # the input is not changed
+
+
+def test_jpeg_frames_at_rest_stay_stationary(stop_and_go) -> None:
+    """JPEG (quality 85) strips the fine-grain noise the spatial estimate measures
+    (every frame at rest scored about 5 against the threshold 1.7): the floor set by
+    three frames at rest puts them back at about 1, and every stroke is still found."""
+    images, mask, moving = stop_and_go
+    tracker = StationTracker(mask)
+    flags, ratios = _flags(tracker, [_jpeg(image, 85) for image in images])
+    assert 3.0 < tracker.rest_factor < 8.0
+    first_rest = 2 + int(np.flatnonzero(~moving[2:] & ~moving[1:-1] & ~moving[:-2])[0])
+    # The first rest frame before three frames at rest were seen counts as moved (one
+    # extra moving frame a run); every later one is found exactly.
+    assert np.array_equal(flags[first_rest:], moving[first_rest:])
+    assert np.all(flags[moving])
+    assert np.all(ratios[first_rest:][~moving[first_rest:]] < 1.3)
+    # The same frames as PNG (lossless): the spatial estimate alone, as before.
+    png = StationTracker(mask)
+    flags_png, _ = _flags(png, images)
+    assert png.rest_factor == 1.0
+    assert np.array_equal(flags_png[1:], moving[1:])
+
+
+def test_a_run_that_never_rests_stays_all_moving() -> None:
+    """Constant motion makes three frames' differences unlike (the two-frame one about
+    twice the others): no rest floor, lossless or JPEG."""
+    scenario = make_scenario("continuous-small", frames=6, seed=2)
+    renderer, poses, _, moving = build_renderer(scenario)
+    images = [renderer.render(pose, seed=100 + i)[0] for i, pose in enumerate(poses)]
+    assert np.all(moving[1:])
+    for frames in (images, [_jpeg(image, 85) for image in images]):
+        tracker = StationTracker(renderer.camera.valid_mask())
+        flags, _ = _flags(tracker, frames)
+        assert np.all(flags) and tracker.rest_factor == 1.0
+
+
+def test_frames_that_differ_alike_by_more_than_rest_max_are_motion() -> None:
+    """Frames each a texture's width apart (independent textures) differ alike, but far
+    beyond any noise floor: no rest floor, every frame moving."""
+    rng = np.random.default_rng(3)
+    mask = np.ones((64, 64), bool)
+    tracker = StationTracker(mask, StationConfig(downsample=2))
+    for _ in range(6):
+        gray = np.round(rng.normal(120.0, 1.0, (64, 64)) + np.kron(rng.normal(0, 30.0, (8, 8)), np.ones((8, 8))))
+        moved, _ = tracker.update(gray.astype(np.uint8))
+        assert moved
+    assert tracker.rest_factor == 1.0

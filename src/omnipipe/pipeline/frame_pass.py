@@ -46,6 +46,7 @@ from omnipipe.rig import Rig
 from omnipipe.sfm.stations import (
     StationConfig,
     StationSignature,
+    StationState,
     StationTracker,
     frame_signature,
     mask_runs,
@@ -155,7 +156,7 @@ class FramePassPart:
             pass fetches at its end).
         moved, motion_ratio: (M,) as in :class:`FramePassResult`.
         station: (M,) each frame's station (its first frame's index).
-        reference: the stationary test's reference after the last frame
+        reference: the stationary test's state after the last frame
             (:attr:`~omnipipe.sfm.stations.StationTracker.reference`).
     """
 
@@ -164,7 +165,7 @@ class FramePassPart:
     moved: np.ndarray
     motion_ratio: np.ndarray
     station: np.ndarray
-    reference: np.ndarray | None
+    reference: StationState | None
 
 
 # Frames between two parts handed to ``save_part`` (a few seconds of the pass).

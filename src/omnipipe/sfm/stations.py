@@ -5,7 +5,10 @@ consecutive frames show the same station. Two frames of one station differ only 
 sensor noise; any motion shifts the wall texture. The test compares the frames'
 smoothed difference with the difference that noise alone would give, estimated
 from the images themselves (Immerkaer's fast noise estimate), so no threshold
-depends on the camera, exposure or pipe.
+depends on the camera, exposure or pipe. Lossy (JPEG, MJPG) frames lose the
+pixel-scale noise that estimate measures while their box averages keep it; the
+difference of frames at rest, found as three consecutive frames that differ alike
+(:meth:`StationTracker.update_signature`), sets the floor then.
 """
 
 from __future__ import annotations
@@ -42,12 +45,27 @@ class StationConfig:
             1600x1200 frame's 1.1 million interior pixels give every 8th row; an 800x600
             frame's 256 000, and anything smaller, every row. Its median's relative standard
             error is then about 0.3 %, and its cost does not grow with the frame size.
+        rest_spread: three consecutive frames whose three differences (smoothed, as the
+            test compares) lie within this factor of each other are taken for frames at
+            rest: noise alone makes the three alike (1.00-1.05 at rest on PNG and MJPG),
+            motion makes the two-frame difference larger (about twice at constant speed)
+            or smaller (back and forth). Their mean over the spatial estimate's expected
+            difference, the lowest over the run so far and never below 1, scales that
+            expectation: JPEG removes the fine-grain noise Immerkaer's estimate measures
+            (an MJPG of the paper rig: 0.42 grey levels against 1.07 from the difference
+            of frames at rest; rest pairs gave 4.1-4.7 times the expected difference,
+            PNG 0.97-1.05).
+        rest_max: the largest such factor believed: three frames differing alike by more
+            are motion (frames each a texture's width apart differ alike too). A run that
+            never rests keeps factor 1 (the spatial estimate alone).
     """
 
     downsample: int = bounded(4, ge=1)
     noise_factor: float = bounded(1.7, gt=0)
     noise_pixels: int = bounded(2**17, ge=1000)
     creep_factor: float = bounded(1.15, gt=0)
+    rest_spread: float = bounded(1.2, ge=1)
+    rest_max: float = bounded(8.0, ge=1)
 
 
 def promote_creep(moved: np.ndarray, ratio: np.ndarray, creep_factor: float) -> np.ndarray:
@@ -285,6 +303,27 @@ def _block_sums(p, f, sums):  # pragma: no cover - compiled
             sums[by, bx] = total
 
 
+@dataclass(frozen=True)
+class StationState:
+    """The stationary test's state between frames (saved and restored by a resumed run).
+
+    Attributes:
+        reference: (h, w) float32, the current station's first frame's box average.
+        last, before: (h, w) float32, the previous frame's and the one before's (None
+            until seen).
+        last_diff: the mean smoothed difference of ``before`` and ``last`` (grey levels;
+            NaN until both are seen).
+        rest_factor: the noise floor's factor over the spatial estimate's expectation
+            (:attr:`StationConfig.rest_spread`; inf until three frames at rest).
+    """
+
+    reference: np.ndarray
+    last: np.ndarray | None = None
+    before: np.ndarray | None = None
+    last_diff: float = math.nan
+    rest_factor: float = math.inf
+
+
 class StationTracker:
     """Feeds frames one at a time; tells for each whether the rig moved since the station began.
 
@@ -303,7 +342,7 @@ class StationTracker:
         self.mask_small = small > 0.999
         self.mask = mask
         self._inner: np.ndarray | None = None  # the noise estimate's pixels, made by update()
-        self._prev: np.ndarray | None = None
+        self._state: StationState | None = None
 
     def update(self, gray: np.ndarray) -> tuple[bool, float]:
         """Add the next frame (grey, not the laser channel); return (moved, ratio).
@@ -316,33 +355,63 @@ class StationTracker:
         return self.update_signature(station_signature(gray, self._inner, self.config))
 
     @property
-    def reference(self) -> np.ndarray | None:
-        """The current station's first frame's box-averaged image (None before a frame):
-        the tracker's whole state, saved and restored by a resumed run."""
-        return self._prev
+    def reference(self) -> StationState | None:
+        """The tracker's whole state (None before a frame), saved and restored by a
+        resumed run."""
+        return self._state
 
     @reference.setter
-    def reference(self, small: np.ndarray | None) -> None:
-        self._prev = small
+    def reference(self, state: StationState | None) -> None:
+        self._state = state
+
+    @property
+    def rest_factor(self) -> float:
+        """The factor the noise floor of frames at rest puts on the spatial estimate's
+        expected difference (1: none found, or no more than it)."""
+        r = math.inf if self._state is None else self._state.rest_factor
+        return 1.0 if math.isinf(r) else max(r, 1.0)
+
+    def _diff(self, a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.mean(np.abs(a - b)[self.mask_small]))
 
     def update_signature(self, signature: StationSignature) -> tuple[bool, float]:
         """:meth:`update` from the frame's :func:`station_signature` (computed anywhere,
         e.g. in the worker that decoded the frame)."""
-        prev = self._prev
-        if prev is None:
-            self._prev = signature.small
+        state, cur = self._state, signature.small
+        if state is None:
+            self._state = StationState(cur, cur)
             return True, math.inf
         f = self.config.downsample
         sigma = max(signature.noise_sigma, 0.3)
         # Box-averaging f x f pixels divides the noise sigma by f; a difference of two
         # frames multiplies it by sqrt(2); its mean absolute value is sigma sqrt(2/pi).
         expected = sigma / f * math.sqrt(2.0) * math.sqrt(2.0 / math.pi)
-        diff = float(np.mean(np.abs(signature.small - prev)[self.mask_small]))
-        ratio = diff / expected
+        diff = self._diff(cur, state.reference)
+        step = diff if state.last is state.reference else self._diff(cur, state.last)
+        rest = self._rest(state, cur, step, expected)
+        ratio = diff / (expected * (1.0 if math.isinf(rest) else max(rest, 1.0)))
         moved = ratio > self.config.noise_factor
-        if moved:
-            self._prev = signature.small  # a new station starts here
+        reference = cur if moved else state.reference  # a moving frame starts a station
+        self._state = StationState(reference, cur, state.last, step, rest)
         return moved, ratio
+
+    def _rest(self, state: StationState, cur: np.ndarray, step: float, expected: float) -> float:
+        """The state's rest factor, lowered to the current frame's when it and the two
+        before differ alike (:attr:`StationConfig.rest_spread`) and by at most
+        :attr:`StationConfig.rest_max` times ``expected``; ``step``: its difference from
+        the last frame."""
+        cfg = self.config
+        low = state.rest_factor
+        if state.before is None or math.isnan(state.last_diff):
+            return low
+        # The three's mean is at least the largest over rest_spread: nothing lower here.
+        if step / cfg.rest_spread >= min(low, cfg.rest_max) * expected:
+            return low
+        diffs = (state.last_diff, step, self._diff(cur, state.before))
+        factor = sum(diffs) / 3.0 / expected
+        if max(diffs) > cfg.rest_spread * min(diffs) or factor > cfg.rest_max:
+            return low
+        return min(low, factor)
 
 
 @dataclass(frozen=True)
