@@ -255,3 +255,20 @@ def test_frames_that_differ_alike_by_more_than_rest_max_are_motion() -> None:
         moved, _ = tracker.update(gray.astype(np.uint8))
         assert moved
     assert tracker.rest_factor == 1.0
+
+
+def test_a_tracker_resumed_from_the_state_decides_the_same(stop_and_go) -> None:
+    """The state a resumed run restores (:attr:`StationTracker.reference`) carries the
+    rest floor: the tracker goes on exactly as one that saw every frame."""
+    images, mask, _ = stop_and_go
+    frames = [_jpeg(image, 85) for image in images]
+    whole = StationTracker(mask)
+    expected = _flags(whole, frames)
+    first = StationTracker(mask)
+    head = _flags(first, frames[:8])
+    resumed = StationTracker(mask)
+    resumed.reference = first.reference
+    tail = _flags(resumed, frames[8:])
+    assert np.array_equal(np.concatenate([head[0], tail[0]]), expected[0])
+    assert np.array_equal(np.concatenate([head[1], tail[1]]), expected[1])
+    assert resumed.rest_factor == whole.rest_factor > 3.0
