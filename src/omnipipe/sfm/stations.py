@@ -371,9 +371,6 @@ class StationTracker:
         r = math.inf if self._state is None else self._state.rest_factor
         return 1.0 if math.isinf(r) else max(r, 1.0)
 
-    def _diff(self, a: np.ndarray, b: np.ndarray) -> float:
-        return float(np.mean(np.abs(a - b)[self.mask_small]))
-
     def update_signature(self, signature: StationSignature) -> tuple[bool, float]:
         """:meth:`update` from the frame's :func:`station_signature` (computed anywhere,
         e.g. in the worker that decoded the frame)."""
@@ -386,32 +383,50 @@ class StationTracker:
         # Box-averaging f x f pixels divides the noise sigma by f; a difference of two
         # frames multiplies it by sqrt(2); its mean absolute value is sigma sqrt(2/pi).
         expected = sigma / f * math.sqrt(2.0) * math.sqrt(2.0 / math.pi)
-        diff = self._diff(cur, state.reference)
-        step = diff if state.last is state.reference else self._diff(cur, state.last)
-        rest = self._rest(state, cur, step, expected)
+        last = cur if state.last is None else state.last
+        before = cur if state.before is None else state.before
+        sums = np.zeros(4)
+        _masked_abs_sums(cur, state.reference, last, before, self.mask_small, sums)
+        diff, step, skip = (float(x / max(sums[3], 1.0)) for x in sums[:3])
+        rest = self._rest(state, step, skip, expected)
         ratio = diff / (expected * (1.0 if math.isinf(rest) else max(rest, 1.0)))
         moved = ratio > self.config.noise_factor
         reference = cur if moved else state.reference  # a moving frame starts a station
         self._state = StationState(reference, cur, state.last, step, rest)
         return moved, ratio
 
-    def _rest(self, state: StationState, cur: np.ndarray, step: float, expected: float) -> float:
+    def _rest(self, state: StationState, step: float, skip: float, expected: float) -> float:
         """The state's rest factor, lowered to the current frame's when it and the two
         before differ alike (:attr:`StationConfig.rest_spread`) and by at most
-        :attr:`StationConfig.rest_max` times ``expected``; ``step``: its difference from
-        the last frame."""
+        :attr:`StationConfig.rest_max` times ``expected``; ``step``, ``skip``: its mean
+        smoothed difference from the last frame and from the one before."""
         cfg = self.config
         low = state.rest_factor
         if state.before is None or math.isnan(state.last_diff):
             return low
-        # The three's mean is at least the largest over rest_spread: nothing lower here.
-        if step / cfg.rest_spread >= min(low, cfg.rest_max) * expected:
-            return low
-        diffs = (state.last_diff, step, self._diff(cur, state.before))
+        diffs = (state.last_diff, step, skip)
         factor = sum(diffs) / 3.0 / expected
         if max(diffs) > cfg.rest_spread * min(diffs) or factor > cfg.rest_max:
             return low
         return min(low, factor)
+
+
+@numba.njit(cache=True, nogil=True)
+def _masked_abs_sums(cur, ref, last, before, mask, sums):  # pragma: no cover - compiled
+    """``sums`` (4,) float64 = the sums of |cur - ref|, |cur - last| and |cur - before|
+    over the True pixels of ``mask``, and their count (all (h, w))."""
+    h, w = cur.shape
+    a = b = c = 0.0
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if mask[y, x]:
+                v = np.float64(cur[y, x])
+                a += abs(v - ref[y, x])
+                b += abs(v - last[y, x])
+                c += abs(v - before[y, x])
+                n += 1
+    sums[0], sums[1], sums[2], sums[3] = a, b, c, n
 
 
 @dataclass(frozen=True)
