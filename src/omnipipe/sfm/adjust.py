@@ -8,7 +8,9 @@ steps 5 and 6).
   keyframes further ahead with the adjusted motion (``anchor_reach``), then adjusted
   again.
 - :func:`resect_pending`: each moving frame that is not a keyframe is placed against the
-  adjusted tracks of its keyframe and the next (in the executor's workers).
+  adjusted tracks of its keyframe and the next (in the executor's workers); inside a
+  keyframe step whose length was bridged, at its fraction of the travel unless the
+  resection agrees within the step's sigma.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import ordered_map
@@ -324,13 +327,22 @@ def resect_pending(
     n_frames: int,
     travel_mm: np.ndarray | None = None,
     travel_source: str = "odometry",
+    bridged_sigma_mm: dict[int, float] | None = None,
 ) -> Resected:
     """Every pending frame resected in the workers against the adjusted tracks of its
     keyframe k and of k + 1 (``next_matches``: its correspondences with k + 1),
     gathered in frame order. A frame that cannot be resected is placed between its
     keyframes at its fraction of ``travel_mm`` (the ``travel_source``'s cumulative
     travel, e.g. the odometry's or the gait's count of moving frames) or takes its
-    keyframe's pose, with a warning, and the stretch from k to k + 1 is unreliable."""
+    keyframe's pose, with a warning, and the stretch from k to k + 1 is unreliable.
+
+    ``bridged_sigma_mm``: keyframe k -> the 1-sigma (mm) of step k -> k + 1 when its
+    length was bridged (vision's was not taken, e.g. the odometry overruled a step a
+    wall period off). The frames inside such a step are placed at their fraction of
+    ``travel_mm`` with the rotation slerped between the keyframes
+    (:func:`_interpolated_pose`): the wall points they would be resected against
+    follow vision's wrong period. The resected pose is kept only where it agrees with
+    that placement within the step's sigma. The step itself is flagged already."""
     jobs = []
     for p in pending:
         # The next keyframe's tracks too: points on both sides of the frame fix its
@@ -349,8 +361,9 @@ def resect_pending(
         jobs.append((p, job))
     placed: dict[int, np.ndarray] = {}
     stretches = []
+    inside = _BridgedPlacement(adjusted.world_from_kf, kf.frames, travel_mm, bridged_sigma_mm)
     for p, job in jobs:
-        pose = _resection_result(ctx, p.frame, job)
+        pose = inside.place(p.keyframe, p.frame, _resection_result(ctx, p.frame, job))
         if pose is None:
             k = p.keyframe
             pose, how = _unresected_pose(
@@ -361,7 +374,71 @@ def resect_pending(
             end = kf.frames[k + 1] if k + 1 < len(kf.frames) else n_frames - 1
             stretches.append(UnreliableStretch(kf.frames[k], end, "frame could not be resected"))
         placed[p.frame] = pose
+    ctx.warnings.extend(inside.summary(travel_source))
     return Resected(placed, stretches)
+
+
+class _BridgedPlacement:
+    """The frames inside bridged keyframe steps, placed at their fraction of the
+    travel (see :func:`resect_pending`); counts what was done per step."""
+
+    def __init__(
+        self,
+        world_from_kf: np.ndarray,
+        frames: list[int],
+        travel_mm: np.ndarray | None,
+        sigma_mm: dict[int, float] | None,
+    ) -> None:
+        self.world_from_kf, self.frames, self.travel = world_from_kf, frames, travel_mm
+        self.sigma = sigma_mm or {}
+        self.counts: dict[int, list[int]] = {}  # k -> [by travel, resection kept]
+
+    def place(self, k: int, frame: int, resected: np.ndarray | None) -> np.ndarray | None:
+        """The pose of ``frame`` (a frame after keyframe k): ``resected`` (None: not
+        resected) unless step k was bridged and travel is known; then the travel's
+        placement, or ``resected`` when it lies within the step's sigma of it."""
+        sigma = self.sigma.get(k, math.nan)
+        if self.travel is None or k + 1 >= len(self.frames) or not sigma > 0:
+            return resected
+        f = travel_fraction(self.travel, self.frames[k], self.frames[k + 1], frame)
+        if f is None:
+            return resected
+        pose = _interpolated_pose(self.world_from_kf[k], self.world_from_kf[k + 1], f)
+        count = self.counts.setdefault(k, [0, 0])
+        if resected is not None and np.linalg.norm(resected[:3, 3] - pose[:3, 3]) <= sigma:
+            count[1] += 1
+            return resected
+        count[0] += 1
+        return pose
+
+    def summary(self, source: str) -> list[str]:
+        """One warning per bridged step with frames inside it."""
+        return [
+            f"frames {self.frames[k]}->{self.frames[k + 1]}: length bridged; {n} frame(s) "
+            f"inside placed at the {source}'s fraction of the step, {m} resected within "
+            f"its {self.sigma[k]:.1f} mm sigma"
+            for k, (n, m) in sorted(self.counts.items())
+        ]
+
+
+def travel_fraction(travel: np.ndarray, first: int, last: int, frame: int) -> float | None:
+    """``frame``'s share (0..1) of the travel from frame ``first`` to ``last``
+    (``travel`` (N,) cumulative, any unit); None when not finite or not increasing."""
+    d0, d1, d = travel[first], travel[last], travel[frame]
+    if not (np.isfinite([d0, d1, d]).all() and d1 - d0 > 0):
+        return None
+    return float(np.clip((d - d0) / (d1 - d0), 0.0, 1.0))
+
+
+def _interpolated_pose(world_from_a: np.ndarray, world_from_b: np.ndarray, f: float) -> np.ndarray:
+    """The (4, 4) pose at fraction ``f`` (0..1) from ``world_from_a`` to ``world_from_b``:
+    position linear, rotation slerped (about the relative rotation's axis)."""
+    ra = Rotation.from_matrix(world_from_a[:3, :3])
+    rel = (ra.inv() * Rotation.from_matrix(world_from_b[:3, :3])).as_rotvec()
+    pose = np.eye(4)
+    pose[:3, :3] = (ra * Rotation.from_rotvec(f * rel)).as_matrix()
+    pose[:3, 3] = (1 - f) * world_from_a[:3, 3] + f * world_from_b[:3, 3]
+    return pose
 
 
 def _unresected_pose(
@@ -385,10 +462,9 @@ def _unresected_pose(
         if source != "odometry":  # not a length
             return pose, "pose of its keyframe used"
         return _beyond_last(world_from_kf, frames, k, travel_mm[frame] - travel_mm[frames[k]])
-    d0, d1, d = travel_mm[frames[k]], travel_mm[frames[k + 1]], travel_mm[frame]
-    if not (np.isfinite([d0, d1, d]).all() and d1 - d0 > 0):
+    f = travel_fraction(travel_mm, frames[k], frames[k + 1], frame)
+    if f is None:
         return pose, "pose of its keyframe used"
-    f = float(np.clip((d - d0) / (d1 - d0), 0.0, 1.0))
     pose[:3, 3] = (1 - f) * world_from_kf[k][:3, 3] + f * world_from_kf[k + 1][:3, 3]
     return pose, f"placed between its keyframes at the {source}'s fraction {f:.2f}"
 

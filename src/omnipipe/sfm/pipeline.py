@@ -129,6 +129,8 @@ def run(
         resected = resect_pending(
             ctx, adjusted, kf, followed.pending, followed.next_matches, inputs.n_frames, travel,
             "odometry" if with_odometry else "gait (moving frames)",
+            # Inside a bridged step the frames follow the travel, not the wall points.
+            {k: c.bridged_sigma_mm for k, c in enumerate(chain.checks) if c.bridged_from},
         )
     if not chain.checks and with_odometry:
         # No keyframe step (a plain wall): the odometry placed the moving frames.
