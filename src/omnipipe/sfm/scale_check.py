@@ -26,7 +26,7 @@ the stretch.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -95,15 +95,27 @@ class ScaleCheckConfig:
 
 @dataclass(frozen=True)
 class WallCylinder:
-    """The wall around a keyframe, in its rig frame: a cylinder parallel to rig z.
+    """The wall around a keyframe, in its rig frame: a tube whose axis passes the ring's
+    circle centre parallel to rig z, straight or bent.
+
+    Straight (``curvature_xy`` None): a cylinder. Bent: a torus section whose centreline
+    is tangent to rig z at the rig (z = 0), passes the ring's centre at the ring plane
+    and turns towards ``curvature_xy``; in a bend a cylinder through the ring parallel
+    to rig z is off the wall by about curvature * (z_ring**2 - z**2) / 2 at rig z
+    (R 300 mm, ring 78 mm from the features: 10 mm).
 
     Attributes:
         centre_xy: (2,) axis position in the rig's x-y plane (mm).
         radius_mm: wall radius (mm).
+        ring_z_mm: the ring plane's rig z (mm), where the axis is at ``centre_xy``.
+        curvature_xy: (2,) the axis' curvature vector (1/mm) in the rig's x-y plane,
+            pointing to the bend's centre; None: straight.
     """
 
     centre_xy: np.ndarray
     radius_mm: float
+    ring_z_mm: float = 0.0
+    curvature_xy: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -243,11 +255,55 @@ def wall_cylinder(points_in_rig: np.ndarray) -> WallCylinder | None:
     r2 = c + cx * cx + cy * cy
     if not np.isfinite(r2) or r2 <= 0:
         return None
-    return WallCylinder(np.array([cx, cy]), float(math.sqrt(r2)))
+    return WallCylinder(np.array([cx, cy]), float(math.sqrt(r2)), float(np.median(p[:, 2])))
+
+
+# Below this axis turn per step (rad) a wall stays straight: the turn of a straight
+# pipe's step is measurement noise (elbow-small: 0.9 deg per step; straight runs
+# under 0.2 deg), and a torus from noise would only add error.
+MIN_BEND_TURN_RAD = math.radians(0.3)
+
+
+def bent_wall(
+    wall: WallCylinder | None,
+    b_from_a_rotation: np.ndarray,
+    travel_b_from_a: np.ndarray,
+    length_mm: float,
+) -> WallCylinder | None:
+    """The wall of keyframe a bent by the step's axis turn per length.
+
+    The rig's z axis of keyframe b, seen in rig a, is ``R^T e_z``; its turn from rig
+    a's z over the step's length ``length_mm`` is the pipe axis' curvature (the rig
+    follows the axis). Straight when the turn is below :data:`MIN_BEND_TURN_RAD` or
+    the length is not finite.
+
+    Args:
+        wall: the ring's straight wall (None passes through).
+        b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
+        travel_b_from_a: (3,) translation of rig_b_from_rig_a (any length; its
+            direction tells which way the rig travels).
+        length_mm: the step's length (mm).
+    """
+    if wall is None or not math.isfinite(length_mm) or length_mm <= 0:
+        return wall
+    R = np.asarray(b_from_a_rotation, float)
+    z_b = R.T[:, 2]  # rig b's z in rig a
+    turn = math.atan2(math.hypot(z_b[0], z_b[1]), z_b[2])
+    if turn < MIN_BEND_TURN_RAD:
+        return replace(wall, curvature_xy=None)
+    # The axis' tangent along the travel turns towards the bend's centre: rig z's tilt
+    # when the rig travels along +z, its opposite along -z.
+    travel = -R.T @ np.asarray(travel_b_from_a, float)
+    direction = math.copysign(1.0, travel[2]) * z_b[:2] / math.hypot(z_b[0], z_b[1])
+    return replace(wall, curvature_xy=direction * (turn / length_mm))
 
 
 def wall_depth(rays_in_rig: np.ndarray, wall: WallCylinder) -> np.ndarray:
-    """(N,) distance (mm) from the rig origin along each unit ray to the wall (NaN: misses)."""
+    """(N,) distance (mm) from the rig origin along each unit ray to the wall (NaN: misses).
+
+    Straight: the ray-cylinder root. Bent: Newton's method on the distance to the
+    torus centreline from the straight root (NaN where it does not converge).
+    """
     r = np.asarray(rays_in_rig, float)
     cx, cy = wall.centre_xy
     a = r[:, 0] ** 2 + r[:, 1] ** 2
@@ -256,7 +312,39 @@ def wall_depth(rays_in_rig: np.ndarray, wall: WallCylinder) -> np.ndarray:
     disc = b * b - 4 * a * c
     with np.errstate(invalid="ignore", divide="ignore"):
         t = (-b + np.sqrt(disc)) / (2 * a)
-    return np.where((disc > 0) & (a > 1e-6) & (t > 0), t, np.nan)
+    t = np.where((disc > 0) & (a > 1e-6) & (t > 0), t, np.nan)
+    if wall.curvature_xy is None:
+        return t
+    return _torus_depth(r, t, wall)
+
+
+def _torus_depth(rays: np.ndarray, t0: np.ndarray, wall: WallCylinder) -> np.ndarray:
+    """(N,) depths (mm) along unit ``rays`` to the bent wall, refined from ``t0``."""
+    kappa = float(np.hypot(*wall.curvature_xy))
+    bend_r = 1.0 / kappa
+    n = np.array([*(wall.curvature_xy / kappa), 0.0])
+    if abs(wall.ring_z_mm) >= 0.9 * bend_r:
+        return np.full(len(rays), np.nan)
+    # The rig follows the axis: tangent to rig z at the rig (z = 0), through the ring's
+    # centre at the ring plane.
+    sag = bend_r - math.sqrt(bend_r**2 - wall.ring_z_mm**2)
+    centre = np.array([*wall.centre_xy, 0.0]) + (bend_r - sag) * n
+    binormal = np.cross(n, [0.0, 0.0, 1.0])
+
+    def off_wall(t: np.ndarray) -> np.ndarray:
+        q = rays * t[:, None] - centre
+        h = q @ binormal
+        rho = np.linalg.norm(q - h[:, None] * binormal, axis=1)
+        return np.hypot(rho - bend_r, h) - wall.radius_mm
+
+    t = t0.copy()
+    with np.errstate(invalid="ignore"):
+        for _ in range(8):
+            f = off_wall(t)
+            slope = (off_wall(t + 1e-3) - f) / 1e-3
+            t = t - f / np.where(np.abs(slope) > 1e-3, slope, np.nan)
+        ok = (np.abs(off_wall(t)) < 1e-3) & (t > 0)
+    return np.where(ok, t, np.nan)
 
 
 def unit_depths(
@@ -286,6 +374,10 @@ def unit_depths(
     return t, parallax
 
 
+# Passes of feature_log_scales after the straight one: the length sets the curvature.
+BEND_ITERATIONS = 2
+
+
 def feature_log_scales(
     rays_a: np.ndarray,
     rays_b: np.ndarray,
@@ -297,16 +389,27 @@ def feature_log_scales(
     """(N,) log of each match's implied step length (mm): wall depth / unit depth.
 
     NaN where the match cannot say (no wall, too little parallax, behind a camera).
+    A straight ``wall`` is bent by the step's axis turn per length
+    (:func:`bent_wall`), the length taken from the previous pass.
     """
     n = len(rays_a)
     if wall is None or n == 0:
         return np.full(n, np.nan)
     t_unit, parallax = unit_depths(rays_a, rays_b, b_from_a_rotation, direction)
-    t_wall = wall_depth(rays_a, wall)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ls = np.log(t_wall / t_unit)
-    ok = np.isfinite(ls) & (parallax >= math.radians(config.min_parallax_deg))
-    return np.where(ok, ls, np.nan)
+    usable = np.isfinite(t_unit) & (parallax >= math.radians(config.min_parallax_deg))
+    ls = np.full(n, np.nan)
+    for it in range(1 + BEND_ITERATIONS):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ls = np.where(usable, np.log(wall_depth(rays_a, wall) / t_unit), np.nan)
+        if it == BEND_ITERATIONS or not np.isfinite(ls).any():
+            break
+        # The bend's curvature is the axis turn per mm: the length from this pass
+        # bends the wall of the next (the bend's effect is second order in the length).
+        bent = bent_wall(wall, b_from_a_rotation, direction, math.exp(float(np.nanmedian(ls))))
+        if bent is None or bent.curvature_xy is None and wall.curvature_xy is None:
+            break
+        wall = bent
+    return ls
 
 
 def feature_scale(log_scales: np.ndarray, config: ScaleCheckConfig) -> tuple[float, int]:
