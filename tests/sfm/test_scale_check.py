@@ -22,6 +22,7 @@ from omnipipe.sfm.scale_check import (
     feature_log_scales,
     feature_scale,
     merge_stretches,
+    steady_turn,
     steps_checked,
     wall_cylinder,
     wall_depth,
@@ -229,3 +230,20 @@ def test_bent_wall_corrects_the_straight_cylinder_in_an_elbow() -> None:
     # A turn below MIN_BEND_TURN_RAD (straight pipe noise) leaves the wall straight.
     tiny = Rotation.from_rotvec([0.0, 0.5 * MIN_BEND_TURN_RAD, 0.0]).as_matrix()
     assert bent_wall(straight, tiny.T, b_from_a[:3, 3], 12.0).curvature_xy is None
+
+
+def test_steady_turn_tells_a_bend_from_tilt_noise() -> None:
+    """Keyframes 12 mm apart along an R 300 mm arc turn one way; a straight run whose
+    rig tilts 0.6 deg at random does not."""
+    rng = np.random.default_rng(5)
+    arc = np.stack([
+        make_transform(Rotation.from_rotvec([0.0, 12.0 * k / 300.0, 0.0]).as_matrix(),
+                       300.0 * np.array([1 - np.cos(12.0 * k / 300.0), 0.0, np.sin(12.0 * k / 300.0)]))
+        for k in range(8)
+    ])
+    noisy = np.stack([
+        make_transform(Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix(), [0.0, 0.0, 12.0 * k])
+        for k in range(8)
+    ])
+    assert steady_turn(arc)
+    assert not steady_turn(noisy)

@@ -262,10 +262,10 @@ def wall_cylinder(points_in_rig: np.ndarray) -> WallCylinder | None:
     return WallCylinder(np.array([cx, cy]), float(math.sqrt(r2)), float(np.median(p[:, 2])), None, p)
 
 
-# Below this axis turn per step (rad) a wall stays straight: the turn of a straight
-# pipe's step is measurement noise (elbow-small: 0.9 deg per step; straight runs
-# under 0.2 deg), and a torus from noise would only add error.
-MIN_BEND_TURN_RAD = math.radians(0.3)
+# Below this axis turn per keyframe step (rad) a wall stays straight: a torus from
+# the turn noise of a nearly straight pipe would only add error (keyframe steps of
+# paper-small and bend-small turn 0.15-0.27 deg, elbow-small's R 300 mm 3.3-4.0 deg).
+MIN_BEND_TURN_RAD = math.radians(0.5)
 
 
 def bent_wall(
