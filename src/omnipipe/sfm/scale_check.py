@@ -7,7 +7,8 @@ course off. This module gives each step a second length from other evidence and
 decides, step by step, what the trajectory may use:
 
 * **Feature depth scale**: the light section measures the wall (a cylinder around the
-  rig, from the ring points of the earlier keyframe). Every matched feature ray of
+  rig, from the ring points of the earlier keyframe; in a bend a torus section whose
+  curvature is the step's axis turn per length). Every matched feature ray of
   that keyframe meets the wall at a metric depth; triangulating the same match with
   a unit-length translation gives its depth in step units. Their ratio, over all
   matches (median), is the step length in mm, without any template matching. A
