@@ -12,14 +12,17 @@ from omnipipe.geometry import make_transform
 from omnipipe.sfm.laser_scale import consensus_peaks
 from omnipipe.sfm.scale_check import (
     FEATURE_ONLY,
+    MIN_BEND_TURN_RAD,
     WALL_SCALE_SIGMA_FLOOR,
     ScaleCheckConfig,
     StepCheck,
     UnreliableStretch,
+    bent_wall,
     decide,
     feature_log_scales,
     feature_scale,
     merge_stretches,
+    steady_turn,
     steps_checked,
     wall_cylinder,
     wall_depth,
@@ -195,3 +198,52 @@ def test_wall_scale_correction_recovers_the_true_scale(wrong_scale: float) -> No
     # Unreliable steps do not count: too few left, no correction.
     few = [_reliable(k) if k < 2 else StepCheck(k, k + 1, 4.0, 0, 9.0, 50, 4.0, "low") for k in range(n_kf - 1)]
     assert wall_scale_correction(wrong, matches, rays, rings, few, CFG) is None
+
+
+def test_bent_wall_corrects_the_straight_cylinder_in_an_elbow() -> None:
+    """A 200 mm pipe bent at R 300 mm, the rig on its axis at the bend's start, its ring
+    78 mm ahead: the straight cylinder through the ring puts the wall by the rig ~10 mm
+    off; the wall bent by a step's turn per length is within 0.3 mm."""
+    rng = np.random.default_rng(11)
+    bend_r, radius = 300.0, 100.0
+    theta = rng.uniform(-0.1, 0.4, 20000)
+    phi = rng.uniform(0, 2 * np.pi, len(theta))
+    out = np.column_stack([-np.cos(theta), np.zeros_like(theta), np.sin(theta)])
+    axis = bend_r * np.column_stack([1 - np.cos(theta), np.zeros_like(theta), np.sin(theta)])
+    tube = axis + radius * (np.cos(phi)[:, None] * out + np.sin(phi)[:, None] * [0.0, 1.0, 0.0])
+    ring = tube[np.abs(tube[:, 2] - 78.0) < 0.3]
+    near = tube[np.abs(tube[:, 2]) < 15.0][:500]
+    rays, depth = near / np.linalg.norm(near, axis=1)[:, None], np.linalg.norm(near, axis=1)
+    straight = wall_cylinder(ring)
+    assert straight is not None
+    assert np.nanmax(np.abs(wall_depth(rays, straight) - depth)) > 8.0
+    # A 12 mm step along the axis: the rig turns 12 / 300 rad about its y axis.
+    step = 12.0 / bend_r
+    a_from_b = make_transform(Rotation.from_rotvec([0.0, step, 0.0]).as_matrix(),
+                              bend_r * np.array([1 - np.cos(step), 0.0, np.sin(step)]))
+    b_from_a = np.linalg.inv(a_from_b)
+    bent = bent_wall(straight, b_from_a[:3, :3], b_from_a[:3, 3], 12.0)
+    assert bent is not None and bent.curvature_xy is not None
+    assert np.allclose(bent.curvature_xy, [1 / bend_r, 0.0], atol=1e-5)
+    err = np.abs(wall_depth(rays, bent) - depth)
+    assert np.isfinite(err).all() and err.max() < 0.3
+    # A turn below MIN_BEND_TURN_RAD (straight pipe noise) leaves the wall straight.
+    tiny = Rotation.from_rotvec([0.0, 0.5 * MIN_BEND_TURN_RAD, 0.0]).as_matrix()
+    assert bent_wall(straight, tiny.T, b_from_a[:3, 3], 12.0).curvature_xy is None
+
+
+def test_steady_turn_tells_a_bend_from_tilt_noise() -> None:
+    """Keyframes 12 mm apart along an R 300 mm arc turn one way; a straight run whose
+    rig tilts 0.6 deg at random does not."""
+    rng = np.random.default_rng(5)
+    arc = np.stack([
+        make_transform(Rotation.from_rotvec([0.0, 12.0 * k / 300.0, 0.0]).as_matrix(),
+                       300.0 * np.array([1 - np.cos(12.0 * k / 300.0), 0.0, np.sin(12.0 * k / 300.0)]))
+        for k in range(8)
+    ])
+    noisy = np.stack([
+        make_transform(Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix(), [0.0, 0.0, 12.0 * k])
+        for k in range(8)
+    ])
+    assert steady_turn(arc)
+    assert not steady_turn(noisy)

@@ -7,7 +7,8 @@ course off. This module gives each step a second length from other evidence and
 decides, step by step, what the trajectory may use:
 
 * **Feature depth scale**: the light section measures the wall (a cylinder around the
-  rig, from the ring points of the earlier keyframe). Every matched feature ray of
+  rig, from the ring points of the earlier keyframe; in a bend a torus section whose
+  curvature is the step's axis turn per length). Every matched feature ray of
   that keyframe meets the wall at a metric depth; triangulating the same match with
   a unit-length translation gives its depth in step units. Their ratio, over all
   matches (median), is the step length in mm, without any template matching. A
@@ -26,9 +27,10 @@ the stretch.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from omnipipe.config import bounded
 from omnipipe.geometry import make_transform
@@ -95,15 +97,30 @@ class ScaleCheckConfig:
 
 @dataclass(frozen=True)
 class WallCylinder:
-    """The wall around a keyframe, in its rig frame: a cylinder parallel to rig z.
+    """The wall around a keyframe, in its rig frame: a tube, straight or bent.
+
+    Straight (``curvature_xy`` None): a cylinder parallel to rig z through the ring's
+    circle centre. Bent (:func:`bent_wall`): a torus section whose centreline is
+    tangent to rig z at the rig (z = 0; the rig follows the axis) and turns towards
+    ``curvature_xy``, fitted to the ring points. In a bend the straight cylinder is off
+    the wall by about curvature * (z_ring**2 - z**2) / 2 at rig z (R 300 mm, ring
+    78 mm from the features: 10 mm).
 
     Attributes:
-        centre_xy: (2,) axis position in the rig's x-y plane (mm).
-        radius_mm: wall radius (mm).
+        centre_xy: (2,) axis position in the rig's x-y plane (mm): straight, anywhere
+            along it; bent, at the rig (z = 0).
+        radius_mm: wall (tube) radius (mm).
+        ring_z_mm: the ring plane's rig z (mm).
+        curvature_xy: (2,) the axis' curvature vector (1/mm) in the rig's x-y plane,
+            pointing to the bend's centre; None: straight.
+        ring_points: (N, 3) the ring points it was fitted to (mm, rig frame).
     """
 
     centre_xy: np.ndarray
     radius_mm: float
+    ring_z_mm: float = 0.0
+    curvature_xy: np.ndarray | None = None
+    ring_points: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -243,11 +260,93 @@ def wall_cylinder(points_in_rig: np.ndarray) -> WallCylinder | None:
     r2 = c + cx * cx + cy * cy
     if not np.isfinite(r2) or r2 <= 0:
         return None
-    return WallCylinder(np.array([cx, cy]), float(math.sqrt(r2)))
+    return WallCylinder(np.array([cx, cy]), float(math.sqrt(r2)), float(np.median(p[:, 2])), None, p)
+
+
+# Below this axis turn per keyframe step (rad) a wall stays straight: a torus from
+# the turn noise of a nearly straight pipe would only add error (keyframe steps of
+# paper-small and bend-small turn 0.15-0.27 deg, elbow-small's R 300 mm 3.3-4.0 deg).
+MIN_BEND_TURN_RAD = math.radians(0.5)
+
+
+def bent_wall(
+    wall: WallCylinder | None,
+    b_from_a_rotation: np.ndarray,
+    travel_b_from_a: np.ndarray,
+    length_mm: float,
+) -> WallCylinder | None:
+    """The wall of keyframe a bent by the step's axis turn per length.
+
+    The rig's z axis of keyframe b, seen in rig a, is ``R^T e_z``; its turn from rig
+    a's z over the step's length ``length_mm`` is the pipe axis' curvature (the rig
+    follows the axis). Straight when the turn is below :data:`MIN_BEND_TURN_RAD`, the
+    length is not finite or the torus does not fit (:func:`fit_torus`).
+
+    Args:
+        wall: the ring's straight wall from :func:`wall_cylinder` (None passes
+            through).
+        b_from_a_rotation: (3, 3) rotation of rig_b_from_rig_a.
+        travel_b_from_a: (3,) translation of rig_b_from_rig_a (any length; its
+            direction tells which way the rig travels).
+        length_mm: the step's length (mm).
+    """
+    if wall is None or not math.isfinite(length_mm) or length_mm <= 0:
+        return wall
+    R = np.asarray(b_from_a_rotation, float)
+    z_b = R.T[:, 2]  # rig b's z in rig a
+    turn = math.atan2(math.hypot(z_b[0], z_b[1]), z_b[2])
+    if turn < MIN_BEND_TURN_RAD:
+        return replace(wall, curvature_xy=None)
+    # The axis' tangent along the travel turns towards the bend's centre: rig z's tilt
+    # when the rig travels along +z, its opposite along -z.
+    travel = -R.T @ np.asarray(travel_b_from_a, float)
+    direction = math.copysign(1.0, travel[2]) * z_b[:2] / math.hypot(z_b[0], z_b[1])
+    bent = fit_torus(wall, direction * (turn / length_mm))
+    return bent if bent is not None else replace(wall, curvature_xy=None)
+
+
+def fit_torus(wall: WallCylinder, curvature_xy: np.ndarray) -> WallCylinder | None:
+    """The bent wall of curvature ``curvature_xy`` (2,) 1/mm through the ring points:
+    its axis position at the rig and tube radius by least squares, from the straight
+    cylinder's (the ring plane cuts a bent tube obliquely: not a circle). None when
+    the ring is too far along the bend (beyond 0.9 of its radius) or the fit fails."""
+    if wall.ring_points is None:
+        return None
+    bend_r = 1.0 / float(np.hypot(*curvature_xy))
+    if abs(wall.ring_z_mm) >= 0.9 * bend_r:
+        return None
+    n = curvature_xy * bend_r
+    sag = bend_r - math.sqrt(bend_r**2 - wall.ring_z_mm**2)
+    x0 = np.array([*(wall.centre_xy - sag * n), wall.radius_mm])
+    sol = least_squares(
+        lambda x: _off_torus(wall.ring_points, x[:2], x[2], curvature_xy), x0, method="lm"
+    )
+    if not sol.success or not np.all(np.isfinite(sol.x)) or sol.x[2] <= 0:
+        return None
+    return replace(wall, centre_xy=sol.x[:2], radius_mm=float(sol.x[2]), curvature_xy=curvature_xy)
+
+
+def _off_torus(
+    points: np.ndarray, centre_xy: np.ndarray, radius_mm: float, curvature_xy: np.ndarray
+) -> np.ndarray:
+    """(N,) signed distance (mm) of (N, 3) points outside the bent wall whose axis is
+    at ``centre_xy`` at z = 0, tangent to z, turning towards ``curvature_xy``."""
+    bend_r = 1.0 / float(np.hypot(*curvature_xy))
+    n = np.array([*(curvature_xy * bend_r), 0.0])
+    centre = np.array([*centre_xy, 0.0]) + bend_r * n
+    binormal = np.cross(n, [0.0, 0.0, 1.0])
+    q = points - centre
+    h = q @ binormal
+    rho = np.linalg.norm(q - h[:, None] * binormal, axis=1)
+    return np.hypot(rho - bend_r, h) - radius_mm
 
 
 def wall_depth(rays_in_rig: np.ndarray, wall: WallCylinder) -> np.ndarray:
-    """(N,) distance (mm) from the rig origin along each unit ray to the wall (NaN: misses)."""
+    """(N,) distance (mm) from the rig origin along each unit ray to the wall (NaN: misses).
+
+    Straight: the ray-cylinder root. Bent: Newton's method on the distance to the
+    torus centreline from the straight root (NaN where it does not converge).
+    """
     r = np.asarray(rays_in_rig, float)
     cx, cy = wall.centre_xy
     a = r[:, 0] ** 2 + r[:, 1] ** 2
@@ -256,7 +355,26 @@ def wall_depth(rays_in_rig: np.ndarray, wall: WallCylinder) -> np.ndarray:
     disc = b * b - 4 * a * c
     with np.errstate(invalid="ignore", divide="ignore"):
         t = (-b + np.sqrt(disc)) / (2 * a)
-    return np.where((disc > 0) & (a > 1e-6) & (t > 0), t, np.nan)
+    t = np.where((disc > 0) & (a > 1e-6) & (t > 0), t, np.nan)
+    if wall.curvature_xy is None:
+        return t
+    return _torus_depth(r, t, wall)
+
+
+def _torus_depth(rays: np.ndarray, t0: np.ndarray, wall: WallCylinder) -> np.ndarray:
+    """(N,) depths (mm) along unit ``rays`` to the bent wall, Newton from ``t0``."""
+
+    def off_wall(t: np.ndarray) -> np.ndarray:
+        return _off_torus(rays * t[:, None], wall.centre_xy, wall.radius_mm, wall.curvature_xy)
+
+    t = t0.copy()
+    with np.errstate(invalid="ignore"):
+        for _ in range(8):
+            f = off_wall(t)
+            slope = (off_wall(t + 1e-3) - f) / 1e-3
+            t = t - f / np.where(np.abs(slope) > 1e-3, slope, np.nan)
+        ok = (np.abs(off_wall(t)) < 1e-3) & (t > 0)
+    return np.where(ok, t, np.nan)
 
 
 def unit_depths(
@@ -286,6 +404,10 @@ def unit_depths(
     return t, parallax
 
 
+# Passes of feature_log_scales after the straight one: the length sets the curvature.
+BEND_ITERATIONS = 2
+
+
 def feature_log_scales(
     rays_a: np.ndarray,
     rays_b: np.ndarray,
@@ -293,20 +415,33 @@ def feature_log_scales(
     direction: np.ndarray,
     wall: WallCylinder | None,
     config: ScaleCheckConfig,
+    bend: bool = True,
 ) -> np.ndarray:
     """(N,) log of each match's implied step length (mm): wall depth / unit depth.
 
     NaN where the match cannot say (no wall, too little parallax, behind a camera).
+    With ``bend`` a straight ``wall`` is bent by the step's axis turn per length
+    (:func:`bent_wall`), the length taken from the previous pass.
     """
     n = len(rays_a)
     if wall is None or n == 0:
         return np.full(n, np.nan)
     t_unit, parallax = unit_depths(rays_a, rays_b, b_from_a_rotation, direction)
-    t_wall = wall_depth(rays_a, wall)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ls = np.log(t_wall / t_unit)
-    ok = np.isfinite(ls) & (parallax >= math.radians(config.min_parallax_deg))
-    return np.where(ok, ls, np.nan)
+    usable = np.isfinite(t_unit) & (parallax >= math.radians(config.min_parallax_deg))
+    ls = np.full(n, np.nan)
+    model = wall
+    for it in range(1 + BEND_ITERATIONS):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ls = np.where(usable, np.log(wall_depth(rays_a, model) / t_unit), np.nan)
+        if not bend or it == BEND_ITERATIONS or not np.isfinite(ls).any():
+            break
+        # The bend's curvature is the axis turn per mm: the length from this pass
+        # bends the wall of the next (the bend's effect is second order in the length).
+        bent = bent_wall(wall, b_from_a_rotation, direction, math.exp(float(np.nanmedian(ls))))
+        if bent is None or (bent.curvature_xy is None and model.curvature_xy is None):
+            break
+        model = bent
+    return ls
 
 
 def feature_scale(log_scales: np.ndarray, config: ScaleCheckConfig) -> tuple[float, int]:
@@ -426,7 +561,10 @@ def wall_scale_correction(
     each match a depth per unit step; the wall cylinder of keyframe k's ring gives the
     metric depth along the same ray; their robust ratio is the step's length as the
     wall measures it. The log ratio to the adjusted length, medianed over the steps,
-    is the correction.
+    is the correction. The wall is bent (:func:`bent_wall`) only when the run turns
+    steadily (:func:`steady_turn`): one step's turn cannot tell a bend from the rig's
+    tilt in a straight pipe (a wobble of 0.6 deg a 6 mm step would bend it to
+    R 340 mm), and the run's scale must not take that error.
 
     Args:
         world_from_kf: (K, 4, 4) adjusted keyframe poses (mm).
@@ -442,6 +580,7 @@ def wall_scale_correction(
         fewer than ``WALL_SCALE_MIN_STEPS`` usable steps.
     """
     logs = []
+    bend = steady_turn(world_from_kf)
     for k, k1, inl in pair_matches:
         if k >= len(checks) or not checks[k].reliable or inl is None or len(inl) == 0:
             continue
@@ -452,6 +591,7 @@ def wall_scale_correction(
         log_s = feature_log_scales(
             rays_in_rig[k][inl[:, 0]], rays_in_rig[k1][inl[:, 1]],
             b_from_a[:3, :3], b_from_a[:3, 3] / length, wall_cylinder(ring_points[k]), config,
+            bend=bend,
         )
         s_feat, _ = feature_scale(log_s, config)
         if math.isfinite(s_feat) and s_feat > 0:
@@ -459,6 +599,19 @@ def wall_scale_correction(
     if len(logs) < WALL_SCALE_MIN_STEPS:
         return None
     return median_with_sigma(np.array(logs))
+
+
+def steady_turn(world_from_kf: np.ndarray) -> bool:
+    """True when the (K, 4, 4) keyframe poses' z axes turn one way: the run's mean
+    turn per step (world frame) is more than three of its standard errors (a bend
+    turns alike step after step; the tilt noise of a straight pipe does not)."""
+    z = np.asarray(world_from_kf, float)[:, :3, 2]
+    if len(z) < WALL_SCALE_MIN_STEPS:
+        return False
+    d = np.diff(z, axis=0)
+    mean = d.mean(axis=0)
+    se = d.std(axis=0, ddof=1) / math.sqrt(len(d))
+    return bool(np.linalg.norm(mean) > 3.0 * max(float(np.linalg.norm(se)), 1e-12))
 
 
 def median_with_sigma(values: np.ndarray) -> tuple[float, float]:

@@ -41,6 +41,7 @@ from omnipipe.sfm.scale_check import (
     WALL_SCALE_SIGMA_FLOOR,
     ScaleCheckConfig,
     StepCheck,
+    bent_wall,
     decide,
     median_with_sigma,
     wall_cylinder,
@@ -533,7 +534,10 @@ def wall_anchors(kf: Keyframes, k: int, scale_mm: float, config: ScaleCheckConfi
         or len(ev.log_scales) == 0
     ):
         return None
-    wall = wall_cylinder(kf.ring_points[k])
+    # The wall bent by the step's axis turn per length (straight pipe: a cylinder).
+    wall = bent_wall(
+        wall_cylinder(kf.ring_points[k]), ev.b_from_a[:3, :3], ev.b_from_a[:3, 3], scale_mm
+    )
     keep = np.isfinite(ev.log_scales) & (
         np.abs(ev.log_scales - math.log(scale_mm)) <= config.keep_match_log
     )
