@@ -264,9 +264,11 @@ def wall_cylinder(points_in_rig: np.ndarray) -> WallCylinder | None:
 
 
 # Below this axis turn per keyframe step (rad) a wall stays straight: a torus from
-# the turn noise of a nearly straight pipe would only add error (keyframe steps of
-# paper-small and bend-small turn 0.15-0.27 deg, elbow-small's R 300 mm 3.3-4.0 deg).
-MIN_BEND_TURN_RAD = math.radians(0.5)
+# one step's turn estimate only adds error there (keyframe steps of paper-small and
+# bend-small turn 0.15-0.27 deg; the full `bend`, R = 4 D, about 1 deg a step, where
+# the bent wall took the run's ATE from 0.107 to 0.249 mm; elbow-small's R = 1.5 D
+# 3.3-4.0 deg, where it is needed).
+MIN_BEND_TURN_RAD = math.radians(2.0)
 
 
 def bent_wall(
