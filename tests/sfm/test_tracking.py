@@ -12,11 +12,13 @@ from omnipipe.camera import camera_from_rig
 from omnipipe.config import dataclass_from_dict
 from omnipipe.errors import ConfigError
 from omnipipe.geometry import invert
-from omnipipe.sfm.features import FeatureExtractor, FrameViews
+from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
 from omnipipe.sfm.geometry import triangulate_pairs
 from omnipipe.sfm.ransac import estimate_relative_motion
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, corner_features, track_features
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, corner_features, track_features
 from omnipipe.sim import make_scenario
+from omnipipe.sim.render import Renderer
+from omnipipe.sim.scenarios import Scenario
 from omnipipe.sim.writer import build_renderer
 
 
@@ -94,14 +96,11 @@ def test_bad_settings_name_their_field(field: str, value: float) -> None:
         dataclass_from_dict(TrackConfig, {field: value}, "sfm.tracking")
 
 
-@pytest.mark.slow
-def test_chained_tracks_follow_a_tiled_wall_without_skipping_a_period() -> None:
-    """tiled-culvert-small: 30 mm tiles, 2-7 mm of travel between frames, 22.7 mm over
-    the first 5: a track that jumped a tile would put its step a period (30 mm) off.
-    Followed frame to frame, the tracks land on the true wall points, and the step
-    their triangulation gives is the true one."""
-    scenario = make_scenario("tiled-culvert-small", frames=6, seed=0)
-    renderer, poses, _, _ = build_renderer(scenario)
+def _chain_through(
+    scenario: Scenario, renderer: Renderer, poses: np.ndarray
+) -> tuple[FeatureExtractor, FrameFeatures, TrackChain, Tracks]:
+    """Keyframe features of frame 0 followed frame to frame through every rendered pose:
+    (extractor, keyframe features, the chain, the tracks in the last frame)."""
     extractor = FeatureExtractor(camera_from_rig(scenario.rig))
     channel = scenario.rig.laser.channel
     views = [
@@ -112,6 +111,18 @@ def test_chained_tracks_follow_a_tiled_wall_without_skipping_a_period() -> None:
     chain = TrackChain(extractor, views[0], key, TrackConfig())
     for v in views[1:]:
         tracks = chain.advance(v)
+    return extractor, key, chain, tracks
+
+
+@pytest.mark.slow
+def test_chained_tracks_follow_a_tiled_wall_without_skipping_a_period() -> None:
+    """tiled-culvert-small: 30 mm tiles, 2-7 mm of travel between frames, 22.7 mm over
+    the first 5: a track that jumped a tile would put its step a period (30 mm) off.
+    Followed frame to frame, the tracks land on the true wall points, and the step
+    their triangulation gives is the true one."""
+    scenario = make_scenario("tiled-culvert-small", frames=6, seed=0)
+    renderer, poses, _, _ = build_renderer(scenario)
+    extractor, key, chain, tracks = _chain_through(scenario, renderer, poses)
     assert len(tracks.feature) >= 0.5 * chain.n_followed
     # The true ray in frame 5 of each keyframe feature: where its ray meets the 600 mm wall.
     radius = 0.5 * scenario.pipe.inner_diameter_mm
@@ -254,16 +265,7 @@ def test_tracks_keep_their_tile_when_a_frame_step_exceeds_half_the_period() -> N
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     period = scenario.random["axial_period_mm"]
     assert steps[-1] > 0.6 * period  # mm: the last frame step skips more than half a tile
-    extractor = FeatureExtractor(camera_from_rig(scenario.rig))
-    channel = scenario.rig.laser.channel
-    views = [
-        extractor.frame_views(renderer.expose(renderer.irradiance(p, seed=5 + i)[0], seed=5 + i), channel)
-        for i, p in enumerate(poses)
-    ]
-    key = extractor.detect(views[0])
-    chain = TrackChain(extractor, views[0], key, TrackConfig())
-    for v in views[1:]:
-        tracks = chain.advance(v)
+    extractor, key, chain, tracks = _chain_through(scenario, renderer, poses)
     truth = _true_view_pixels(
         renderer, extractor, poses[0], poses[-1], key.rays_in_rig[tracks.feature], tracks.features.view
     )
