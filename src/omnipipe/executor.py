@@ -325,7 +325,8 @@ def kill_workers(pool: ProcessPoolExecutor) -> None:
     """End ``pool``'s worker processes now (SIGKILL), not after their current task: a
     run that stops (error, Ctrl-C, SIGTERM) does not wait for the work in progress."""
     processes = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
+    # Killed before the shutdown: the pool's manager thread then sees the dead workers
+    # (a broken pool) and ends, instead of waiting for their results at interpreter exit.
     for proc in processes:
         try:
             proc.kill()
@@ -336,6 +337,10 @@ def kill_workers(pool: ProcessPoolExecutor) -> None:
             proc.join(timeout=5)
         except (OSError, ValueError, AssertionError):
             pass
+    manager = getattr(pool, "_executor_manager_thread", None)
+    pool.shutdown(wait=False, cancel_futures=True)
+    if manager is not None:
+        manager.join(timeout=5)
 
 
 # Seconds between a worker's checks that its parent is still alive (the fallback of
