@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+import sys
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -20,6 +22,37 @@ from omnipipe.sim import make_scenario, paper_rig, run
 # within the tests' tolerances either way.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 threadpool_limits(limits=1, user_api="blas")
+
+
+def _pool_managers() -> list[threading.Thread]:
+    """The live manager threads of process pools (concurrent.futures.process)."""
+    return [
+        t
+        for t in threading.enumerate()
+        if type(t).__name__ == "_ExecutorManagerThread" and t.is_alive()
+    ]
+
+
+@pytest.fixture(autouse=True)
+def _no_process_pool_outlives_its_test() -> Iterator[None]:
+    """A process pool left running after a test hangs the interpreter's exit (its manager
+    thread waits for results of workers that are gone): the test that left it fails."""
+    before = set(_pool_managers())
+    yield
+    left = [t for t in _pool_managers() if t not in before]
+    for thread in left:
+        thread.join(timeout=5)
+    left = [t for t in left if t.is_alive()]
+    if left:
+        pytest.fail(f"a process pool's manager thread outlived the test: {left}")
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Exit with status 1 instead of hanging when a process pool is still running."""
+    if _pool_managers():
+        sys.stderr.write(f"process pool still running at exit: {_pool_managers()}\n")
+        sys.stderr.flush()
+        os._exit(1)
 
 
 @pytest.fixture(scope="session")
