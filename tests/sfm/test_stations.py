@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -272,3 +274,69 @@ def test_a_tracker_resumed_from_the_state_decides_the_same(stop_and_go) -> None:
     assert np.array_equal(np.concatenate([head[0], tail[0]]), expected[0])
     assert np.array_equal(np.concatenate([head[1], tail[1]]), expected[1])
     assert resumed.rest_factor == whole.rest_factor > 3.0
+
+
+
+def _wall(rng: np.random.Generator, contrast: float, shift_px: int, size: int = 160) -> np.ndarray:
+    """A grey wall texture (smooth blobs of ``contrast`` grey levels, one fixed pattern)
+    shifted by ``shift_px`` columns, with sensor noise sigma 2 from ``rng``."""
+    base = cv2.GaussianBlur(np.random.default_rng(7).normal(0, 1, (size, size + 64)), (0, 0), 6)
+    base = 128 + contrast * base / base.std()
+    return base[:, shift_px : shift_px + size] + rng.normal(0, 2.0, (size, size))
+
+
+def _ratios(frames: list[np.ndarray]) -> np.ndarray:
+    tracker = StationTracker(np.ones(frames[0].shape, bool))
+    return np.array([tracker.update(f.astype(np.float32))[1] for f in frames])
+
+
+def test_a_plain_wall_leaves_standing_frames_unverified_a_textured_one_does_not() -> None:
+    """Stop and go at 0.5 mm per px: frames 0, 1 (+8 px), then frame 2 creeps 3 px
+    (1.5 mm) and 3 stands there, 4 moves on (+8 px). On a plain wall the test takes
+    the creep for standing (silently 1.5 mm off): the station is unverified; on a
+    textured wall it sees the creep (a moving frame), and stationary frames at rest
+    are verified."""
+    from omnipipe.sfm.stations import hidden_steps, texture_gain, unverified_stations
+
+    rng = np.random.default_rng(3)
+    px = [0, 8, 11, 11, 19, 19, 19]
+    positions = np.array([[0.0, 0.0, 0.5 * p] for p in px])
+    for contrast, plain in ((1.5, True), (30.0, False)):
+        ratio = _ratios([_wall(rng, contrast, p) for p in px])
+        moved = ratio > StationConfig().noise_factor
+        assert moved[2] != plain, ratio  # the creep, seen on texture only
+        gain = texture_gain(ratio, positions, np.ones(len(px), bool))
+        hidden = hidden_steps(ratio, moved, gain)
+        found = unverified_stations(hidden, moved, list(np.flatnonzero(moved)))
+        if plain:
+            assert found and found[0][:2] == (1, 4) and found[0][2] > 1.5, (ratio, found)
+        else:
+            assert found == [], (ratio, hidden)
+
+
+def test_hidden_steps_follow_the_quadrature_model() -> None:
+    from omnipipe.sfm.stations import HIDDEN_RATIO_MARGIN, hidden_steps, texture_gain
+
+    g = 0.2  # per mm: r^2 = 1 + (g L)^2
+    positions = np.array([[0, 0, z] for z in (0.0, 10.0, 10.0, 22.0)], float)
+    ratio = np.array([math.inf, math.sqrt(1 + (g * 10) ** 2), 1.2, math.sqrt(1 + (g * 12) ** 2)])
+    gain = texture_gain(ratio, positions, np.ones(4, bool))
+    assert gain == pytest.approx(g, rel=1e-9)
+    moved = ratio > 1.7
+    hidden = hidden_steps(ratio, moved, gain)
+    r = 1.2 + HIDDEN_RATIO_MARGIN
+    assert hidden[2] == pytest.approx(math.sqrt(r * r - 1) / g, rel=1e-9)
+    assert hidden[[0, 1, 3]].tolist() == [0.0, 0.0, 0.0]
+    assert math.isinf(hidden_steps(ratio, moved, math.nan)[2])
+
+
+def test_unverified_stations_widen_to_the_keyframes_and_keep_the_tail() -> None:
+    from omnipipe.sfm.stations import unverified_stations
+
+    moved = np.array([1, 0, 1, 1, 0, 0, 1, 1, 1, 0], bool)
+    hidden = np.array([0, 3.0, 0, 0, 0.2, 2.0, 0, 0, 0, 1.5])
+    # Keyframes 0, 3, 8: station 0 (frame 1) -> 0..2 widened to 0..3; station 3
+    # (frames 4, 5) -> 3..6 widened to 3..8; the tail 8..9 stays.
+    assert unverified_stations(hidden, moved, [0, 3, 8]) == [(0, 3, 3.0), (3, 8, 2.0), (8, 9, 1.5)]
+    assert unverified_stations(hidden, moved) == [(0, 2, 3.0), (3, 6, 2.0), (8, 9, 1.5)]
+    assert unverified_stations(np.minimum(hidden, 0.9), moved, [0, 3, 8]) == []

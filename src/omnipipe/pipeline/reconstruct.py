@@ -428,7 +428,7 @@ def _camera_motion(
     tick = progress("sfm", n)
     motion = sfm.run(
         config.sfm,
-        sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved),
+        sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved, frames.motion_ratio),
         progress=tick,
         executor=executor,
     )

@@ -163,12 +163,17 @@ class Followed:
 
 
 def follow_keyframes(
-    ctx: SfmContext, inputs: SfmInputs, grays: ImageStore, progress: Callable[[int], None] | None
+    ctx: SfmContext,
+    inputs: SfmInputs,
+    grays: ImageStore,
+    progress: Callable[[int], None] | None,
+    ratio: np.ndarray | None = None,
 ) -> Followed:
     """Every moving frame through :class:`KeyframeLoop`; ``grays`` (empty) receives the
-    keyframes' grey images; ``progress`` is told the frames done, over all N."""
+    keyframes' grey images; ``progress`` is told the frames done, over all N; ``ratio``
+    (N,) receives the stationary test's ratios when it runs here (:func:`moving_frames`)."""
     loop = KeyframeLoop(ctx, inputs, grays)
-    for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress):
+    for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress, ratio):
         loop.add(frame)
     loop.finish()
     return loop.result()
@@ -626,9 +631,11 @@ def moving_frames(
     extractor: FeatureExtractor,
     moved: np.ndarray,
     progress: Callable[[int], None] | None,
+    ratios: np.ndarray | None = None,
 ) -> Iterator[MovingFrame]:
-    """Every frame where the rig moved, in order; fills ``moved`` (N,) and reports
-    progress over all N frames. With ``config.tracking`` their views (features None:
+    """Every frame where the rig moved, in order; fills ``moved`` (N,) (and ``ratios``
+    (N,), the stationary test's, when it runs here) and reports progress over all N
+    frames. With ``config.tracking`` their views (features None:
     detected on the keyframes), else their features (views None).
 
     With ``inputs.moved``, ``inputs.dataset`` and a parallel executor, they come from
@@ -684,6 +691,8 @@ def moving_frames(
             gray = gray_without_laser(img, channel)
             if tracker is not None:
                 moved[i], ratio = tracker.update(gray)
+                if ratios is not None:
+                    ratios[i] = ratio
                 moved[i] |= by_odometry[i]
                 if moved[i] and held is not None:  # stations.promote_creep, one frame late
                     moved[held[0]] = True

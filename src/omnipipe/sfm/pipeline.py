@@ -49,6 +49,7 @@ from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps
 from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
+from omnipipe.sfm.stations import hidden_steps, texture_gain, unverified_stations
 from omnipipe.sfm.step_scale import (
     RunLength,
     RunScale,
@@ -58,7 +59,13 @@ from omnipipe.sfm.step_scale import (
     run_scale,
 )
 from omnipipe.sfm.step_window import moving_counts
-from omnipipe.sfm.types import ODOMETRY_ONLY, SfmConfig, SfmContext, SfmInputs, SfmResult
+from omnipipe.sfm.types import (
+    ODOMETRY_ONLY,
+    SfmConfig,
+    SfmContext,
+    SfmInputs,
+    SfmResult,
+)
 
 __all__ = ["SfmConfig", "SfmInputs", "SfmResult", "run"]
 
@@ -88,7 +95,12 @@ def run(
     with ImageStore() as grays:  # keyframe grey images, on disk until the run is decided
         # Steps 1-3: stations, keyframes and their relative motions; each step's two
         # scale measurements (step 4) in the workers.
-        followed = follow_keyframes(ctx, inputs, grays, progress)
+        ratio = (
+            np.asarray(inputs.station_ratio, float)
+            if inputs.station_ratio is not None
+            else np.full(inputs.n_frames, math.nan)
+        )
+        followed = follow_keyframes(ctx, inputs, grays, progress, ratio)
         kf = followed.keyframes
         # Step 4: every step's length decided with the whole run's evidence (the two
         # sources' systematic offset), then chained.
@@ -135,7 +147,12 @@ def run(
     if not chain.checks and with_odometry:
         # No keyframe step (a plain wall): the odometry placed the moving frames.
         length = replace(length, source=ODOMETRY_ONLY)
-    result = _result(ctx, followed, adjusted, resected, chain.checks, scale, length)
+    # The odometry moves frames the images cannot (stations.odometry_moved): it verifies
+    # the stationary ones.
+    result = _result(
+        ctx, followed, adjusted, resected, chain.checks, scale, length,
+        None if with_odometry else ratio,
+    )
     if inputs.imu is not None and inputs.timestamps is not None:
         gravity = gravity_world(
             inputs.imu, inputs.timestamps, result.world_from_rig, result.registered
@@ -167,10 +184,12 @@ def _result(
     checks: list[StepCheck],
     scale: RunScale,
     length: RunLength,
+    ratio: np.ndarray | None = None,
 ) -> SfmResult:
     """Every frame's pose: each station's from its keyframe (adjusted) or its resection;
     the steps' checks and the unreliable stretches (steps not trusted, frames not
-    resected), merged."""
+    resected, stationary frames whose stationary-test ``ratio`` (N,) could hide a step
+    on this wall: :func:`omnipipe.sfm.stations.unverified_stations`), merged."""
     moved = followed.moved
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
@@ -189,9 +208,22 @@ def _result(
         for c in checks
         if not c.reliable
     ]
+    world_from_rig = world_from_station[station]
+    registered = ~lost[first[station]]
+    if ratio is not None and not moved.all():
+        gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
+        stretches += [
+            UnreliableStretch(
+                a, b, f"the stationary test cannot rule out a {worst:.1f} mm step on this "
+                "wall: a frame taken for standing may have moved",
+            )
+            for a, b, worst in unverified_stations(
+                hidden_steps(ratio, moved, gain), moved, followed.keyframes.frames
+            )
+        ]
     return SfmResult(
-        world_from_rig=world_from_station[station],
-        registered=~lost[first[station]],
+        world_from_rig=world_from_rig,
+        registered=registered,
         keyframe=followed.keyframe,
         stationary=~moved,
         station=station,

@@ -110,6 +110,10 @@ class SfmInputs:
         odometry: the robot's odometry (bridges steps vision could not measure, is
             compared with the trusted ones; :mod:`omnipipe.sfm.robot_sensors`), or None.
         imu: the robot's IMU (gravity in the world frame), or None.
+        station_ratio: (N,) the stationary test's ratio of each frame (its difference
+            from its station's first frame over the noise-only expectation;
+            :class:`omnipipe.sfm.stations.StationTracker`) when ``moved`` was given;
+            None: recorded here (with ``moved``).
     """
 
     rig: Rig
@@ -121,10 +125,15 @@ class SfmInputs:
     timestamps: np.ndarray | None = None
     odometry: Odometry | None = None
     imu: Imu | None = None
+    station_ratio: np.ndarray | None = None
 
     @classmethod
     def of_dataset(
-        cls, dataset: Dataset, rings: LaserResult, moved: np.ndarray | None = None
+        cls,
+        dataset: Dataset,
+        rings: LaserResult,
+        moved: np.ndarray | None = None,
+        station_ratio: np.ndarray | None = None,
     ) -> SfmInputs:
         """The inputs of an opened dataset: its rig, frames, times and sensors."""
         return cls(
@@ -137,6 +146,7 @@ class SfmInputs:
             timestamps=dataset.timestamps,
             odometry=dataset.odometry,
             imu=dataset.imu,
+            station_ratio=station_ratio,
         )
 
 
