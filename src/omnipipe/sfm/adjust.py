@@ -125,11 +125,14 @@ def adjust_keyframes(
     wall_anchored: bool,
 ) -> Adjusted:
     """Bundle adjustment of the chained keyframe poses ``world_from_kf`` ((K, 4, 4) mm)
-    with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with fewer
-    than 3 keyframes. ``wall_anchored``: the anchors are wall-placed features (no laser
-    matches further ahead then)."""
+    with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with one
+    keyframe. Two keyframes are adjusted too: the tracks it leaves are what the frames
+    between them are resected against (random-wide seed 1, a 963 mm pipe whose 29 frames
+    made one keyframe step: without them every frame was unresected and flagged).
+    ``wall_anchored``: the anchors are wall-placed features (no laser matches further
+    ahead then)."""
     config = ctx.config
-    if not (config.bundle.enabled and len(world_from_kf) >= 3):
+    if not (config.bundle.enabled and len(world_from_kf) >= 2):
         return Adjusted(world_from_kf, [], np.zeros(len(world_from_kf), int), [])
     # Longer baselines measure the scale better: laser points of keyframe k are also
     # found in k + 2 ... k + reach with the adjusted motion, then adjusted again.
