@@ -246,3 +246,21 @@ def test_steps_a_course_off_are_contradicted_by_the_odometry_and_bridged() -> No
     for k in wrong:
         est, sig, source = bridge_estimate(int(k), lengths, ~np.array(said), steps)
         assert source == "odometry" and abs(est - truth[k]) <= 2 * sig
+
+
+@pytest.mark.slow  # 4 frames rendered at 400x300 and a whole sfm.run
+def test_frames_between_the_only_two_keyframes_are_resected() -> None:
+    """Four moving frames of which only the first and the last (closing) are keyframes:
+    the bundle adjustment of the two leaves the tracks the two frames between them are
+    resected against (without it they were placed by the gait and flagged)."""
+    scenario = make_scenario("paper", frames=40, size=(400, 300), seed=1)
+    renderer, poses, _, moving = build_renderer(scenario)
+    assert np.all(moving[1:4])
+    frames = [renderer.expose(renderer.irradiance(poses[i], seed=50 + i)[0], seed=50 + i) for i in range(4)]
+    rings = laser_run(LaserConfig(), scenario.rig, frames)
+    res = sfm_run(SfmConfig(), SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
+    assert np.flatnonzero(res.keyframe).tolist() == [0, 3]
+    assert res.registered.all()
+    assert not [u for u in res.unreliable if "resected" in u.reason]
+    errs = trajectory_errors(res.world_from_rig, poses[:4])
+    assert errs.ate_rmse_mm < 0.3, errs.ate_rmse_mm  # mm over about 13 mm of travel

@@ -31,6 +31,7 @@ from omnipipe.sfm.bundle import (
     BundleConfig,
     BundleProblem,
     BundleResult,
+    add_wall_prior,
     build_problem,
     bundle_adjust,
     keyframe_windows,
@@ -124,11 +125,14 @@ def adjust_keyframes(
     wall_anchored: bool,
 ) -> Adjusted:
     """Bundle adjustment of the chained keyframe poses ``world_from_kf`` ((K, 4, 4) mm)
-    with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with fewer
-    than 3 keyframes. ``wall_anchored``: the anchors are wall-placed features (no laser
-    matches further ahead then)."""
+    with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with one
+    keyframe. Two keyframes are adjusted too: the tracks it leaves are what the frames
+    between them are resected against (random-wide seed 1, a 963 mm pipe whose 29 frames
+    made one keyframe step: without them every frame was unresected and flagged).
+    ``wall_anchored``: the anchors are wall-placed features (no laser matches further
+    ahead then)."""
     config = ctx.config
-    if not (config.bundle.enabled and len(world_from_kf) >= 3):
+    if not (config.bundle.enabled and len(world_from_kf) >= 2):
         return Adjusted(world_from_kf, [], np.zeros(len(world_from_kf), int), [])
     # Longer baselines measure the scale better: laser points of keyframe k are also
     # found in k + 2 ... k + reach with the adjusted motion, then adjusted again.
@@ -211,6 +215,7 @@ def _adjust_window(
         config,
     )
     problem.fixed = fixed
+    add_wall_prior(problem, obs.kf.ring_points[s:e], config)  # off unless wall_sigma
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
     ba = bundle_adjust(ctx.camera, problem, config)
