@@ -11,11 +11,13 @@ same thing all along a bent pipe, as the data contract asks.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.errors import ReconstructionError
@@ -272,3 +274,114 @@ def _local_tangents(
         d = vt[0] if vt[0] @ fallback[i] > 0 else -vt[0]
         out[i] = d
     return out
+
+
+@dataclass(frozen=True)
+class BendFit:
+    """A bend measured on the centreline (:func:`fit_bend`): straight, turning at a
+    constant rate, straight again.
+
+    Attributes:
+        start_mm, end_mm: arc length where the turning starts and stops.
+        start_sigma_mm, end_sigma_mm: their 1-sigma (mm).
+        turn_rad, turn_sigma_rad: the angle the tangent turns between them, 1-sigma.
+        radius_mm, radius_sigma_mm: (end - start) / turn and its 1-sigma.
+        truncated: the turning reaches the first or last station (it may go on).
+    """
+
+    start_mm: float
+    start_sigma_mm: float
+    end_mm: float
+    end_sigma_mm: float
+    turn_rad: float
+    turn_sigma_rad: float
+    radius_mm: float
+    radius_sigma_mm: float
+    truncated: bool
+
+
+def bend_angles(tangent: np.ndarray) -> np.ndarray:
+    """(K,) unwrapped angle (rad) of (K, 3) unit tangents in the plane they turn in (the
+    plane through the origin nearest to all of them), from the first one's direction."""
+    t = np.asarray(tangent, float)
+    _, _, vt = np.linalg.svd(t, full_matrices=False)
+    n = vt[-1]
+    e1 = t[0] - (t[0] @ n) * n
+    e1 /= max(float(np.linalg.norm(e1)), 1e-12)
+    e2 = np.cross(n, e1)
+    return np.unwrap(np.arctan2(t @ e2, t @ e1))
+
+
+def fit_bend(
+    arc_mm: np.ndarray, tangent: np.ndarray, guess: tuple[float, float], correlated: float = 1.0
+) -> BendFit | None:
+    """Straight - bend - straight fit of the tangent's turn along the centreline.
+
+    The tangent's angle in its plane of turning (:func:`bend_angles`) is modelled as
+    phi(s) = phi0 + turn * clip((s - a) / (b - a), 0, 1): constant before ``a`` and after
+    ``b``, turning at a constant rate (radius (b - a) / turn) between. A robust (soft-L1)
+    least-squares fit from ``guess`` (a, b). The piecewise fits' tangents are smoothed
+    symmetrically along the arc, which rounds the kinks but does not move them.
+
+    Args:
+        arc_mm: (K,) arc length of the stations in the stretch to fit (ascending).
+        tangent: (K, 3) their unit tangents.
+        guess: start (a, b) of the turning (mm).
+        correlated: how many neighbouring stations share each tangent's information
+            (the tangent fits' span over the station spacing): the covariance is scaled
+            by it.
+
+    Returns:
+        The fit, or None with fewer than 5 stations or a failed fit.
+    """
+    s = np.asarray(arc_mm, float)
+    if len(s) < 5:
+        return None
+    phi = bend_angles(tangent)
+    lo, hi = float(s[0]), float(s[-1])
+
+    def model(x: np.ndarray) -> np.ndarray:
+        a, b, phi0, turn = x
+        return phi0 + turn * np.clip((s - a) / max(b - a, 1e-6), 0.0, 1.0)
+
+    a0, b0 = max(min(guess), lo), min(max(guess), hi)
+    if b0 - a0 < 1e-3:
+        return None
+    inside = (s >= a0) & (s <= b0)
+    x0 = np.array([a0, b0, phi[s <= a0].mean() if np.any(s <= a0) else phi[0], 0.0])
+    x0[3] = (phi[s >= b0].mean() if np.any(s >= b0) else phi[-1]) - x0[2]
+    if not inside.any() or abs(x0[3]) < 1e-6:
+        return None
+    noise = max(float(np.std(np.diff(phi[~inside]))) / math.sqrt(2.0) if (~inside).sum() > 2 else 0.0, 1e-4)
+    sol = least_squares(
+        lambda x: (model(x) - phi) / noise, x0, loss="soft_l1",
+        bounds=([lo, lo, -np.inf, -np.inf], [hi, hi, np.inf, np.inf]),
+        x_scale=[10.0, 10.0, 0.01, 0.01],
+    )
+    if not sol.success:
+        return None
+    a, b, _, turn = sol.x
+    if b - a <= 0 or abs(turn) < 1e-6:
+        return None
+    res = (model(sol.x) - phi) / noise
+    dof = max(len(s) - 4, 1)
+    var = float(res @ res) / dof * noise**2 * max(correlated, 1.0)
+    cov = _pinv_cov(sol.jac * noise, var)
+    turn = abs(float(turn))
+    sa, sb, st = (math.sqrt(max(cov[i, i], 0.0)) for i in (0, 1, 3))
+    radius = (b - a) / turn
+    # d radius = (db - da) / turn - radius dturn / turn
+    g = np.array([-1.0 / turn, 1.0 / turn, 0.0, -math.copysign(radius / turn, sol.x[3])])
+    sr = math.sqrt(max(float(g @ cov @ g), 0.0))
+    edge = 0.5 * float(np.median(np.diff(s)))
+    return BendFit(
+        start_mm=float(a), start_sigma_mm=math.hypot(sa, edge), end_mm=float(b),
+        end_sigma_mm=math.hypot(sb, edge), turn_rad=turn, turn_sigma_rad=st,
+        radius_mm=float(radius), radius_sigma_mm=sr,
+        truncated=bool(a <= lo + edge or b >= hi - edge),
+    )
+
+
+def _pinv_cov(jac: np.ndarray, var: float) -> np.ndarray:
+    """(P, P) covariance var (J^T J)^-1 of a least-squares fit with Jacobian ``jac`` (N, P)."""
+    return np.linalg.pinv(jac.T @ jac) * var

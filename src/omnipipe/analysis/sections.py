@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline
+from omnipipe.analysis.centreline import Centreline, fit_bend
 from omnipipe.analysis.feature_types import Bend, Ovality, Stretch, Taper, Water
 from omnipipe.analysis.stations import Headline, SectionConfig, Station
 
@@ -213,61 +213,62 @@ def _tapers(stations: list[Station], config: SectionConfig) -> list[Stretch]:
 
 def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[Stretch]:
     """Stretches where the centreline turns faster than ``config.bend_min_curvature`` /
-    diameter. Extent: where the curvature crosses half its median inside the stretch (the
-    piecewise fits' window smooths the bend's ends symmetrically); turn: the angle
-    between the tangents just outside it; radius: extent / turn."""
+    diameter (runs of the per-step curvature above it, merged across gaps of a station or
+    two: two stations sharing one tangent read as a straight step), each
+    measured by the straight - bend - straight fit of the tangent's turn over the stations
+    from the previous bend to the next (:func:`.centreline.fit_bend`): its start, end,
+    turn and radius with their sigmas."""
     t, arc = np.asarray(line.tangent), np.asarray(line.arc_mm)
     if len(t) < 4:
         return []
     step = np.arccos(np.clip(np.sum(t[1:] * t[:-1], axis=1), -1.0, 1.0))
     ds = np.maximum(np.diff(arc), 1e-6)
     kappa = step / ds
-    mid = 0.5 * (arc[1:] + arc[:-1])
-    chords = np.diff(np.asarray(line.centre), axis=0)
-    chords = chords / np.maximum(np.linalg.norm(chords, axis=1), 1e-9)[:, None]
     straight = kappa[kappa * diameter_mm < config.bend_min_curvature]
     noise = 1.4826 * float(np.median(straight)) if len(straight) >= 3 else 0.0
     thr = max(config.bend_min_curvature / diameter_mm, 6.0 * noise)
+    spacing = float(np.median(ds))
+    runs = _merged(_runs(kappa > thr, 1), arc, 2.5 * spacing)
+    # Runs of noise in a straight stretch turn little: not a bend, nor a fit's bound.
+    half_turn = math.radians(0.5 * config.bend_min_turn_deg)
+    runs = [
+        (i0, i1) for i0, i1 in runs
+        if i1 - i0 + 1 >= config.min_stations
+        and math.acos(float(np.clip(t[max(i0 - 1, 0)] @ t[min(i1 + 2, len(t) - 1)], -1.0, 1.0))) >= half_turn
+    ]
     out = []
-    for i0, i1 in _runs(kappa > thr, config.min_stations):
-        half = 0.5 * float(np.median(kappa[i0 : i1 + 1]))
-        lo, hi = _crossing(mid, kappa, i0, half, -1), _crossing(mid, kappa, i1, half, +1)
-        ta, tb = t[max(i0 - 1, 0)], t[min(i1 + 2, len(t) - 1)]
-        turn = math.acos(float(np.clip(ta @ tb, -1.0, 1.0)))
-        if math.degrees(turn) < config.bend_min_turn_deg:
+    for j, (i0, i1) in enumerate(runs):
+        # The stretch to fit: from midway to the previous bend to midway to the next.
+        k0 = 0 if j == 0 else (runs[j - 1][1] + 1 + i0) // 2
+        k1 = len(t) - 1 if j == len(runs) - 1 else (i1 + 1 + runs[j + 1][0]) // 2
+        sel = slice(k0, k1 + 1)
+        # The tangents are lines through the centres within a quarter diameter either side.
+        fit = fit_bend(arc[sel], t[sel], (float(arc[i0]), float(arc[i1 + 1])), 0.5 * diameter_mm / spacing)
+        if fit is None or math.degrees(fit.turn_rad) < config.bend_min_turn_deg:
             continue
-        # The ring centres' chords turn by the same angle: their disagreement with the
-        # fitted tangents bounds the turn's error from below.
-        ca, cb = chords[max(i0 - 1, 0)], chords[min(i1 + 1, len(chords) - 1)]
-        chord_turn = math.acos(float(np.clip(ca @ cb, -1.0, 1.0)))
-        turn_sigma = math.hypot(math.sqrt(2.0) * noise * float(np.median(ds)), turn - chord_turn)
-        radius = (hi - lo) / max(turn, 1e-9)
-        edge = _edge_sigma(arc)
         out.append(
             Bend(
-                axial_from_mm=lo,
-                axial_from_sigma_mm=edge,
-                axial_to_mm=hi,
-                axial_to_sigma_mm=edge,
-                radius_mm=radius,
-                radius_sigma_mm=radius
-                * math.hypot(turn_sigma / max(turn, 1e-9), math.sqrt(2) * edge / max(hi - lo, 1e-9)),
-                turn_deg=math.degrees(turn),
-                turn_sigma_deg=math.degrees(turn_sigma),
-                truncated=i0 == 0 or i1 == len(kappa) - 1,
+                axial_from_mm=fit.start_mm,
+                axial_from_sigma_mm=fit.start_sigma_mm,
+                axial_to_mm=fit.end_mm,
+                axial_to_sigma_mm=fit.end_sigma_mm,
+                radius_mm=fit.radius_mm,
+                radius_sigma_mm=fit.radius_sigma_mm,
+                turn_deg=math.degrees(fit.turn_rad),
+                turn_sigma_deg=math.degrees(fit.turn_sigma_rad),
+                truncated=fit.truncated,
             )
         )
     return out
 
 
-def _crossing(x: np.ndarray, y: np.ndarray, i: int, level: float, direction: int) -> float:
-    """Where ``y`` falls through ``level`` going from index ``i`` in ``direction``
-    (linear interpolation; the end of the array if it never does)."""
-    j = i
-    while 0 <= j + direction < len(y) and y[j + direction] >= level:
-        j += direction
-    k = j + direction
-    if not 0 <= k < len(y):
-        return float(x[j])
-    f = (y[j] - level) / max(y[j] - y[k], 1e-12)
-    return float(x[j] + f * (x[k] - x[j]))
+def _merged(runs: list[tuple[int, int]], arc: np.ndarray, gap_mm: float) -> list[tuple[int, int]]:
+    """``runs`` of steps (first, last step index; step i joins stations i and i + 1) joined
+    where the arc between one's end and the next's start is at most ``gap_mm``."""
+    out: list[tuple[int, int]] = []
+    for i0, i1 in runs:
+        if out and arc[i0] - arc[out[-1][1] + 1] <= gap_mm:
+            out[-1] = (out[-1][0], i1)
+        else:
+            out.append((i0, i1))
+    return out
