@@ -244,8 +244,10 @@ def find_defects(
         for sign, _, _, d0 in candidates
     )
     fits = ordered_map(executor or InlineExecutor(), _fit_job, jobs)
+    # The light section resolves nothing narrower than its blur's full width at half height.
+    resolution = (2.355 * ring_blur_mm, 2.355 * axial_blur_mm)
     defects, masks = _accepted(
-        samples, sc, candidates, fits, max_width_fraction * samples.circumference_mm, limit, warnings
+        samples, sc, candidates, fits, (max_width_fraction * samples.circumference_mm, limit, resolution), warnings
     )
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
     warnings.extend(
@@ -273,17 +275,26 @@ def _accepted(
     sc: _Scales,
     candidates: list[tuple[float, str, np.ndarray, Defect]],
     fits: Iterable[tuple[Defect, np.ndarray]],
-    max_width_mm: float,
-    limit: float,
+    bounds: tuple[float, float, tuple[float, float]],
     warnings: list[str],
 ) -> tuple[list[Defect], list[np.ndarray]]:
     """The fitted candidates that are reported (truncation flagged, travel added) and
-    their masks; a line is appended to ``warnings`` for each rejected or truncated one."""
+    their masks; a line is appended to ``warnings`` for each rejected or truncated one.
+    ``bounds``: (widest defect mm, detection limit mm, (width, length) resolution mm),
+    :func:`_rejection`."""
     defects: list[Defect] = []
     masks: list[np.ndarray] = []
     for (_, kind, members, d0), (d, mask) in zip(candidates, fits, strict=True):
+        if not d.fitted and _extent_around(samples, members) < bounds[2][0]:
+            warnings.append(
+                f"{kind} candidate at {d0.axial_start_mm:.0f} mm, {d0.angle_deg:.0f} deg ({len(members)} "
+                f"samples up to {d0.height_mm:.2f} mm {'out' if kind == 'dent' else 'in'}, narrower than the "
+                "light section resolves): the model fit failed, so it cannot be sized: flagged here, "
+                "not reported as a defect"
+            )
+            continue
         d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
-        rejected = _rejection(d, kind, max_width_mm, limit)
+        rejected = _rejection(d, kind, *bounds)
         if rejected:
             warnings.append(rejected)
             continue
@@ -373,12 +384,33 @@ def _cut_around(s: WallSamples, d: Defect, members: np.ndarray, sc: _Scales) -> 
     return cut * 2 >= len(rings) > 0
 
 
-def _rejection(d: Defect, kind: str, max_width_mm: float, limit: float) -> str | None:
-    """Why a fitted candidate is not reported (a warning line), or None."""
+def _extent_around(s: WallSamples, members: np.ndarray) -> float:
+    """Arc length (mm) the samples ``members`` span around the pipe (across the seam)."""
+    circ = s.circumference_mm
+    u = s.arc_mm[members]
+    u = (u - u[0] + 0.5 * circ) % circ - 0.5 * circ
+    return float(np.ptp(u)) if len(u) else 0.0
+
+
+def _rejection(
+    d: Defect, kind: str, max_width_mm: float, limit: float, resolution: tuple[float, float] = (0.0, 0.0)
+) -> str | None:
+    """Why a fitted candidate is not reported (a warning line), or None: wider than
+    ``max_width_mm``, lower than the detection limit, or narrower or shorter than the
+    light section resolves (``resolution``: the blur's full widths at half height along
+    the ring and the axis, mm; such a fit's height rests on the blur model alone, and a
+    streak of samples far out that no blurred wall can make is an extraction artefact)."""
     if d.width_mm > max_width_mm:
         return (
             f"{kind} candidate at {d.axial_start_mm:.0f} mm spans {d.width_mm:.0f} mm of the "
             "circumference: a shape change, not reported as a defect"
+        )
+    if d.width_mm < resolution[0] or d.length_mm < resolution[1]:
+        return (
+            f"{kind} candidate at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg ("
+            f"fitted {d.height_mm:.2f} mm high, {d.width_mm:.2f} x {d.length_mm:.2f} mm): narrower than the "
+            f"light section resolves ({resolution[0]:.2f} x {resolution[1]:.2f} mm), so it cannot be sized: "
+            "flagged here, not reported as a defect"
         )
     if not d.height_mm >= limit:
         return (
