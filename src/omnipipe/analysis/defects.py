@@ -244,9 +244,11 @@ def find_defects(
         for sign, _, _, d0 in candidates
     )
     fits = ordered_map(executor or InlineExecutor(), _fit_job, jobs)
-    defects, masks = _accepted(
+    defects, masks, narrow = _accepted(
         samples, sc, candidates, fits, max_width_fraction * samples.circumference_mm, limit, warnings
     )
+    # The light section resolves nothing narrower than its blur's full width at half height.
+    defects, masks = _flank_streaks(defects, masks, narrow, 2.355 * ring_blur_mm, samples.circumference_mm, warnings)
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
     warnings.extend(
         f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
@@ -276,11 +278,14 @@ def _accepted(
     max_width_mm: float,
     limit: float,
     warnings: list[str],
-) -> tuple[list[Defect], list[np.ndarray]]:
-    """The fitted candidates that are reported (truncation flagged, travel added) and
-    their masks; a line is appended to ``warnings`` for each rejected or truncated one."""
+) -> tuple[list[Defect], list[np.ndarray], list[float]]:
+    """The fitted candidates that are reported (truncation flagged, travel added), their
+    masks and how wide each is around the pipe (mm: the fitted width, or the arc its
+    samples span without a fit); a line is appended to ``warnings`` for each rejected or
+    truncated one."""
     defects: list[Defect] = []
     masks: list[np.ndarray] = []
+    widths: list[float] = []
     for (_, kind, members, d0), (d, mask) in zip(candidates, fits, strict=True):
         d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
         rejected = _rejection(d, kind, max_width_mm, limit)
@@ -290,12 +295,55 @@ def _accepted(
         travel = round(_travel(samples, d.axial_start_mm, sc.ring_ids, sc.ring_sigma), 2)
         defects.append(replace(d, points=len(members), travel_mm=travel))
         masks.append(mask)
+        widths.append(d.width_mm if d.fitted else _extent_around(samples, members))
         if cut_by:
             warnings.append(
                 f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
                 f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
             )
-    return defects, masks
+    return defects, masks, widths
+
+
+def _extent_around(s: WallSamples, members: np.ndarray) -> float:
+    """Arc length (mm) the samples ``members`` span around the pipe (across the seam)."""
+    circ = s.circumference_mm
+    u = s.arc_mm[members]
+    u = (u - u[0] + 0.5 * circ) % circ - 0.5 * circ
+    return float(np.ptp(u)) if len(u) else 0.0
+
+
+def _flank_streaks(
+    defects: list[Defect], masks: list[np.ndarray], widths: list[float], resolution_mm: float,
+    circ: float, warnings: list[str],
+) -> tuple[list[Defect], list[np.ndarray]]:
+    """The defects without the streaks beside another one's flank: a detection narrower
+    around the pipe (``widths``, mm) than the light section resolves (``resolution_mm``:
+    the ring blur's full width at half height) whose centre lies within one width of a
+    wider defect of the same kind, beside it, and along its length. Such streaks (one or
+    two samples per ring, the wider defect's depth, at the same angle over several
+    rings) are extraction artefacts of the steep flank (the continuous run's two false
+    dents); they cannot be sized: each is a warning, not a defect."""
+    keep = np.ones(len(defects), bool)
+    for i, d in enumerate(defects):
+        if widths[i] >= resolution_mm:
+            continue
+        zc, uc = d.axial_start_mm + 0.5 * d.length_mm, d.angle_deg / 360.0 * circ
+        for j, e in enumerate(defects):
+            if j == i or e.kind != d.kind or widths[j] < resolution_mm:
+                continue
+            du = abs((e.angle_deg / 360.0 * circ - uc + 0.5 * circ) % circ - 0.5 * circ)
+            along = e.axial_start_mm - 0.5 * e.length_mm <= zc <= e.axial_start_mm + 1.5 * e.length_mm
+            if du <= 1.5 * e.width_mm and along:
+                keep[i] = False
+                warnings.append(
+                    f"{d.kind} candidate at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg ({d.points} samples "
+                    f"up to {d.height_mm:.2f} mm, {widths[i]:.2f} mm wide): narrower than the light section "
+                    f"resolves ({resolution_mm:.2f} mm) beside the flank of the {e.kind} at "
+                    f"{e.axial_start_mm:.0f} mm, {e.angle_deg:.0f} deg: an extraction artefact that cannot be "
+                    "sized, flagged here, not reported as a defect"
+                )
+                break
+    return [d for d, k in zip(defects, keep, strict=True) if k], [m for m, k in zip(masks, keep, strict=True) if k]
 
 
 def _fit_job(
