@@ -419,11 +419,12 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     faces = np.asarray(inputs.mesh_faces, np.int64)
     uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
     if len(faces) > config.max_faces:
-        faces = faces[:: math.ceil(len(faces) / config.max_faces)]
-        # Only the kept faces' vertices: the view's numbers stay within max_faces's
-        # share however long the run (all vertices grew with it).
-        used, faces = np.unique(faces, return_inverse=True)
-        verts, uvs, faces = verts[used], np.asarray(uvs)[used], faces.reshape(-1, 3)
+        from omnipipe.report.thin import thin_mesh
+
+        # Clustered on the texture's grid: the view's vertices and faces stay within
+        # max_faces however long the run.
+        shape = None if inputs.texture is None else np.asarray(inputs.texture).shape[:2]
+        verts, faces, uvs = thin_mesh(verts, faces, uvs, config.max_faces, shape)
     texture = None
     if inputs.texture is not None:
         import cv2
