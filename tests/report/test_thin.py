@@ -56,3 +56,40 @@ def test_uvs_without_spread_fall_back_to_every_kth_face() -> None:
     verts, faces, uvs, shape = pipe_mesh(100)
     v, f, uv = thin_mesh(verts, faces, np.zeros_like(uvs), 500, shape)
     assert len(f) <= 500 and len(v) == len(uv) == len(np.unique(f))
+
+
+def test_an_image_drawn_in_bands_is_the_image_drawn_whole() -> None:
+    """imshow_in_bands (the unrolled wall's figure, a band of rows at a time so that
+    matplotlib's float64 resampling is a band's) gives the same PNG, byte for byte, as
+    one imshow of the whole image: bands that do and do not divide the rows, an image
+    larger and one smaller than the axes' pixels."""
+    import base64
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report.html import imshow_in_bands
+
+    rng = np.random.default_rng(5)
+
+    def png(image: np.ndarray, rows: int | None) -> bytes:
+        fig, ax = plt.subplots(figsize=(3, 4))
+        extent = (40.0, 400.0, 310.0, -20.0)
+        if rows is None:
+            ax.imshow(image, extent=extent, aspect="auto", interpolation="bilinear")
+        else:
+            imshow_in_bands(ax, image, extent, rows)
+        ax.plot([100.0], [50.0], marker="+")  # autoscaling after the image, as the report does
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
+        plt.close(fig)
+        return base64.b64encode(buf.getvalue())
+
+    for shape in ((700, 150, 3), (90, 500, 3)):
+        image = rng.integers(0, 256, shape, dtype=np.uint8)
+        whole = png(image, None)
+        for rows in (64, 100, 1000):
+            assert png(image, rows) == whole, (shape, rows)
