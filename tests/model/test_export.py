@@ -258,3 +258,65 @@ def test_files_written_a_chunk_at_a_time_equal_those_written_whole(
     )
     ours = export._vertex_normals(mesh.vertices, np.asarray(res.textured_faces))
     assert np.array_equal(ours, mesh.vertex_normals)
+
+
+def trimesh_glb(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray) -> bytes:
+    """The GLB trimesh's own ``export_glb`` writes of the same textured mesh (vertex
+    normals, material and ``asset.extras`` as :func:`write_glb` documents them)."""
+    from PIL import Image
+
+    from omnipipe.image import PNG_COMPRESS_LEVEL
+    from omnipipe.model import export
+
+    image = Image.fromarray(np.ascontiguousarray(texture))
+    image.encoderinfo = {"compress_level": PNG_COMPRESS_LEVEL}
+    material = trimesh.visual.material.PBRMaterial(
+        name="pipe_wall", baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0,
+        doubleSided=True,
+    )
+    viewer = export.gltf_from_world_mm(vertices)
+    mesh = trimesh.Trimesh(
+        vertices=viewer, faces=faces, process=False,
+        visual=trimesh.visual.TextureVisuals(uv=uvs, material=material),
+        vertex_normals=export._vertex_normals(viewer, np.asarray(faces)),
+    )
+
+    def annotate(tree: dict) -> None:
+        tree["asset"]["extras"] = {
+            "unit": "metre",
+            "source_frame": export.FRAME_NOTE + ", mm",
+            "gltf_from_world": export.GLTF_FROM_WORLD.tolist(),
+            "gltf_from_world_note": "x = world z (along the pipe), y = -world y, z = world x",
+        }
+
+    return trimesh.exchange.gltf.export_glb(
+        trimesh.Scene(mesh), include_normals=True, tree_postprocessor=annotate
+    )
+
+
+@pytest.mark.parametrize("chunk", [100_000, 997])
+def test_glb_streamed_is_trimeshs_file_byte_for_byte(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, chunk: int
+) -> None:
+    """write_glb streams the binary chunk after a JSON header built from counts and
+    extents: the file is trimesh's export_glb of the same mesh, byte for byte, whether
+    its arrays go in one chunk or in chunks of 997 rows (a pipe mesh with degenerate
+    faces and unused vertices; a texture whose PNG is not a multiple of 4 bytes)."""
+    from omnipipe.model import export
+
+    monkeypatch.setattr(export, "WRITE_CHUNK", chunk)
+    rng = np.random.default_rng(3)
+    cols, rows = 90, 40
+    theta, z = np.meshgrid(np.linspace(0, 2 * np.pi, cols, endpoint=False), np.arange(rows) * 2.0)
+    v = np.column_stack([150 * np.cos(theta.ravel()), 150 * np.sin(theta.ravel()), z.ravel()])
+    v += rng.normal(0, 0.3, v.shape)
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([b, d, c], -1).reshape(-1, 3)])
+    f = f[rng.permutation(len(f))].astype(np.int32)
+    f[:5, 1] = f[:5, 0]  # degenerate faces
+    f = f[f.max(axis=1) < len(v) - 7]  # the last vertices unused
+    uv = rng.random((len(v), 2))
+    tex = rng.integers(0, 256, (31, 43, 3), dtype=np.uint8)
+    export.write_glb(tmp_path / "m.glb", v, f, uv, tex)
+    assert (tmp_path / "m.glb").read_bytes() == trimesh_glb(v, f, uv, tex)

@@ -134,7 +134,7 @@ def _taper_fit(axial: np.ndarray, d: np.ndarray) -> tuple[float, float, float, f
     knots.sort()
     total = float(yc @ yc)
     best = (math.inf, 0, 0)
-    block = max(1, 1_000_000 // max(len(knots), 1))  # rows of pairs per block
+    block = max(1, 100_000 // max(len(knots), 1))  # rows of pairs per block (about 13 MB)
     for i0 in range(0, len(knots) - 1, block):
         ka, kb = _pairs(len(knots), i0, i0 + block)
         rss = total - _explained(z, cum, centre[0], knots[ka], knots[kb])

@@ -24,9 +24,12 @@ world +x. The wall's triangles are wound so their normals point towards the pipe
 from __future__ import annotations
 
 import hashlib
+import json
+import struct
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import nullcontext
+from dataclasses import dataclass
 from itertools import count
 from pathlib import Path
 from types import SimpleNamespace
@@ -346,57 +349,174 @@ def write_glb(
 
     Args:
         vertices: (V, 3) world frame, mm; written as ``gltf_from_world_mm(vertices)``.
-        faces: (F, 3) triangles wound towards the pipe axis (vertex normals follow).
+        faces: (F >= 1, 3) triangles wound towards the pipe axis (vertex normals follow).
         uvs: (V, 2) in [0, 1], v up.
         texture: (H, W, 3) uint8 atlas.
 
     The material is double-sided, fully rough and not metallic; ``asset.extras`` records
-    the unit, the source frame and :data:`GLTF_FROM_WORLD`.
+    the unit, the source frame and :data:`GLTF_FROM_WORLD`. The file is trimesh's
+    ``export_glb`` of the mesh (with vertex normals), byte for byte, written as a stream:
+    a first pass over the arrays (a chunk at a time) gives the JSON header its counts,
+    extents and buffer lengths, a second writes the binary chunk; what is held is the
+    texture's PNG and the (V, 3) vertex normals.
     """
-    import trimesh
+    import io
+
     from PIL import Image
 
-    image = Image.fromarray(np.ascontiguousarray(texture))
-    # trimesh encodes the texture with a plain ``save``: Pillow takes the PNG level from
-    # the image's ``encoderinfo`` (Pillow >= 11; older ones ignore it, only slower).
-    image.encoderinfo = {"compress_level": PNG_COMPRESS_LEVEL}
-    material = trimesh.visual.material.PBRMaterial(
-        name="pipe_wall",
-        baseColorTexture=image,
-        metallicFactor=0.0,
-        roughnessFactor=1.0,
-        doubleSided=True,
+    png = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(texture)).save(
+        png, format="png", compress_level=PNG_COMPRESS_LEVEL
     )
-    viewer = gltf_from_world_mm(vertices)
-    mesh = trimesh.Trimesh(
-        vertices=viewer,
-        faces=faces,
-        process=False,
-        visual=trimesh.visual.TextureVisuals(uv=uvs, material=material),
-        vertex_normals=_vertex_normals(viewer, np.asarray(faces)),
-    )
-
-    def annotate(tree: dict) -> None:
-        for mat in tree.get("materials", []):
-            mat["doubleSided"] = True
-        tree.setdefault("asset", {})["extras"] = {
-            "unit": "metre",
-            "source_frame": FRAME_NOTE + ", mm",
-            "gltf_from_world": GLTF_FROM_WORLD.tolist(),
-            "gltf_from_world_note": "x = world z (along the pipe), y = -world y, z = world x",
-        }
-
-    glb = trimesh.exchange.gltf.export_glb(
-        trimesh.Scene(mesh), include_normals=True, tree_postprocessor=annotate
-    )
+    normals = _vertex_normals(vertices, np.asarray(faces), gltf_from_world_mm)
+    # trimesh's buffers in its order: indices, positions, the texture, UVs, normals.
+    streams: list[Callable[[], Iterator[np.ndarray | bytes]]] = [
+        lambda: (np.asarray(faces[a:b]).astype(np.uint32).ravel() for a, b in _chunks(len(faces))),
+        lambda: (gltf_from_world_mm(vertices[a:b]).astype(np.float32) for a, b in _chunks(len(vertices))),
+        lambda: iter([png.getvalue()]),
+        lambda: (_gltf_uv(uvs[a:b]) for a, b in _chunks(len(uvs))),
+        lambda: (_unitized(normals[a:b]).astype(np.float32) for a, b in _chunks(len(normals))),
+    ]
+    stats = [_GlbStats.of(stream()) for stream in streams]
+    views, view_of = _glb_views(stats)
+    tree = _glb_tree(stats, view_of, len(vertices), views)
+    content = json.dumps(tree, separators=(",", ":"))
+    content += (4 - ((len(content) + 20) % 4)) * " "  # the binary chunk 4-byte aligned
+    text = content.encode("utf-8")
+    body = sum(v["byteLength"] for v in views)
     try:
-        Path(path).write_bytes(glb)
+        with open(path, "wb") as fh:
+            fh.write(struct.pack("<4sII", b"glTF", 2, len(text) + body + 28))
+            fh.write(struct.pack("<I4s", len(text), b"JSON") + text)
+            fh.write(struct.pack("<I4s", body, b"BIN\0"))
+            for k, stream in enumerate(streams):
+                if view_of[k] in view_of[:k]:
+                    continue  # the same bytes as an earlier buffer: its view is shared
+                for part in stream():
+                    fh.write(part if isinstance(part, bytes) else part.tobytes())
+                fh.write(bytes(-stats[k].length % 4))
     except OSError as exc:
         raise _fail(path, exc) from None
 
 
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit vertex normals of the mesh (``vertices`` (V, 3), ``faces`` (F, 3)):
+@dataclass
+class _GlbStats:
+    """One GLB buffer's byte length, content digest and (arrays) value count and
+    per-column extremes, gathered a chunk at a time."""
+
+    length: int = 0
+    digest: str = ""
+    count: int = 0
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
+
+    @staticmethod
+    def of(parts: Iterator[np.ndarray | bytes]) -> _GlbStats:
+        st, h = _GlbStats(), hashlib.sha256()
+        for part in parts:
+            raw = part if isinstance(part, bytes) else part.tobytes()
+            st.length += len(raw)
+            h.update(raw)
+            if isinstance(part, np.ndarray) and len(part):
+                flat = part.reshape(len(part), -1)
+                st.count += len(part)
+                lo, hi = flat.min(axis=0), flat.max(axis=0)
+                st.low = lo if st.low is None else np.minimum(st.low, lo)
+                st.high = hi if st.high is None else np.maximum(st.high, hi)
+        st.digest = h.hexdigest()
+        return st
+
+
+def _gltf_uv(uv: np.ndarray) -> np.ndarray:
+    """(n, 2) UVs, v up -> glTF's (v down), float32 (trimesh's conversion)."""
+    out = np.array(uv, float)[:, :2]
+    out[:, 1] = 1.0 - out[:, 1]
+    return out.astype(np.float32)
+
+
+def _unitized(v: np.ndarray) -> np.ndarray:
+    from trimesh import util
+
+    return util.unitize(v)
+
+
+def _glb_views(stats: list[_GlbStats]) -> tuple[list[dict[str, int]], list[int]]:
+    """The buffer views (each buffer padded to 4 bytes, laid end to end) and each
+    buffer's view: a buffer whose bytes an earlier one holds shares its view (trimesh
+    stores equal bytes once)."""
+    views: list[dict[str, int]] = []
+    view_of: list[int] = []
+    seen: dict[tuple[int, str], int] = {}
+    pos = 0
+    for st in stats:
+        key = (st.length, st.digest)
+        if key not in seen:
+            seen[key] = len(views)
+            size = st.length + (-st.length % 4)
+            views.append({"buffer": 0, "byteOffset": pos, "byteLength": size})
+            pos += size
+        view_of.append(seen[key])
+    return views, view_of
+
+
+def _extremes(st: _GlbStats) -> dict[str, list[float] | list[int]]:
+    if st.low is None or st.high is None:  # an empty array (write_glb is given faces)
+        return {}
+    return {"max": st.high.tolist(), "min": st.low.tolist()}
+
+
+def _glb_tree(
+    stats: list[_GlbStats], view_of: list[int], n_vertices: int, views: list[dict[str, int]]
+) -> dict[str, Any]:
+    """The GLB's JSON: trimesh's tree of one textured mesh with normals (keys in its
+    order) and this module's ``asset.extras``."""
+    faces, positions, _image, uv, normals = stats
+    accessors = [
+        {"componentType": 5125, "type": "SCALAR", "bufferView": view_of[0], "count": faces.count,
+         **_extremes(faces)},
+        {"componentType": 5126, "type": "VEC3", "byteOffset": 0, "bufferView": view_of[1],
+         "count": positions.count, **_extremes(positions)},
+        {"componentType": 5126, "type": "VEC2", "byteOffset": 0, "bufferView": view_of[3],
+         "count": uv.count, **_extremes(uv)},
+        {"componentType": 5126, "count": n_vertices, "type": "VEC3", "byteOffset": 0,
+         "bufferView": view_of[4], **_extremes(normals)},
+    ]
+    return {
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "asset": {
+            "version": "2.0",
+            "generator": "https://github.com/mikedh/trimesh",
+            "extras": {
+                "unit": "metre",
+                "source_frame": FRAME_NOTE + ", mm",
+                "gltf_from_world": GLTF_FROM_WORLD.tolist(),
+                "gltf_from_world_note": "x = world z (along the pipe), y = -world y, z = world x",
+            },
+        },
+        "accessors": accessors,
+        "meshes": [{"name": "geometry_0", "extras": {}, "primitives": [{
+            "attributes": {"POSITION": 1, "TEXCOORD_0": 2, "NORMAL": 3},
+            "indices": 0, "mode": 4, "material": 0}]}],
+        "images": [{"bufferView": view_of[2], "mimeType": "image/png"}],
+        "textures": [{"source": 0}],
+        "materials": [{
+            "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "roughnessFactor": 1.0,
+                                     "metallicFactor": 0.0},
+            "name": "pipe_wall", "doubleSided": True}],
+        "nodes": [{"name": "geometry_0", "mesh": 0}],
+        "buffers": [{"byteLength": sum(v["byteLength"] for v in views)}],
+        "bufferViews": views,
+    }
+
+
+def _vertex_normals(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    convert: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """(V, 3) unit vertex normals of the mesh (``vertices`` (V, 3), ``faces`` (F, 3);
+    ``convert``: applied to the vertices' rows first, e.g. :func:`gltf_from_world_mm`):
     trimesh's ``Trimesh.vertex_normals`` bit for bit (each face's unit normal weighted by
     its corner angle, summed face by face in face order, then unitized), computed
     :data:`WRITE_CHUNK` faces at a time: trimesh's own sparse matrix of every corner and
@@ -405,13 +525,15 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     summed = np.zeros((len(vertices), 3))
     for a, b in _chunks(len(faces)):
-        tri = vertices[faces[a:b]]
+        idx = np.asarray(faces[a:b])
+        tri = vertices[idx.ravel()]
+        tri = (tri if convert is None else convert(tri)).reshape(-1, 3, 3)
         unit, valid = triangles.normals(triangles=tri, crosses=triangles.cross(tri))
         normals = np.zeros((b - a, 3))
         normals[valid] = unit
         ok = (normals**2).sum(axis=1) > 0.5  # trimesh's test of a face's normal
         corners = triangles.angles(tri)[ok][:, :, None] * normals[ok][:, None, :]
-        np.add.at(summed, faces[a:b][ok].ravel(), corners.reshape(-1, 3))
+        np.add.at(summed, idx[ok].ravel(), corners.reshape(-1, 3))
     return util.unitize(summed)
 
 

@@ -368,7 +368,7 @@ def _unrolled_plot(
 
         size = (min(cols, image.shape[1]), min(rows, image.shape[0]))
         image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
-    ax.imshow(image, extent=(a0, a1, s1, s0), aspect="auto", interpolation="bilinear")
+    imshow_in_bands(ax, image, (a0, a1, s1, s0))
     radius = inputs.radius_mm or 100.0
     for k, defect in enumerate(inputs.defects):
         d = _shift_angle(defect, a0)  # drawn within the image's turn
@@ -405,6 +405,49 @@ def _unrolled_plot(
     return _figure_data_uri(fig)
 
 
+BAND_ROWS = 128
+"""Image rows :func:`imshow_in_bands` draws at a time."""
+
+BAND_PAD = 8
+"""Rows of its neighbours each band carries: the bilinear filter's reach where the
+image has up to about 4x the rows of the axes' pixels (the report's images are
+area-averaged to at most the figure's pixels first)."""
+
+
+def imshow_in_bands(
+    ax: Axes, image: np.ndarray, extent: tuple[float, float, float, float], rows: int = BAND_ROWS
+) -> None:
+    """``ax.imshow(image, extent=extent, aspect="auto", interpolation="bilinear")``, drawn
+    as bands of ``rows`` image rows: matplotlib resamples an image through float64 RGBA
+    arrays of the figure's pixels it covers (107 MB for the 12-inch unrolled wall), a
+    band's only. Each band carries :data:`BAND_PAD` rows of its neighbours (the
+    bilinear filter's reach) and is clipped to its own rows: the same pixels as one
+    image.
+
+    Args:
+        image: (H, W, 3) uint8; extent: (left, right, bottom, top) as imshow's, the
+            first row at ``top``.
+    """
+    import matplotlib.patches
+
+    left, right, bottom, top = extent
+    n = image.shape[0]
+
+    def y(r: int) -> float:
+        return bottom if r == n else top + (bottom - top) * r / n
+
+    for r0 in range(0, n, rows):
+        r1 = min(r0 + rows, n)
+        e0, e1 = max(r0 - BAND_PAD, 0), min(r1 + BAND_PAD, n)
+        im = ax.imshow(
+            image[e0:e1], extent=(left, right, y(e1), y(e0)), aspect="auto", interpolation="bilinear"
+        )
+        if e0 < r0 or r1 < e1:
+            im.set_clip_path(
+                matplotlib.patches.Rectangle((left, y(r0)), right - left, y(r1) - y(r0), transform=ax.transData)
+            )
+
+
 def _unreliable_frames(inputs: ReportInputs) -> list[tuple[int, int]]:
     """(first, last) frame of each unreliable stretch, when poses carry frame indices."""
     if inputs.frame_index is None or inputs.trajectory_quality is None:
@@ -419,11 +462,12 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     faces = np.asarray(inputs.mesh_faces, np.int64)
     uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
     if len(faces) > config.max_faces:
-        faces = faces[:: math.ceil(len(faces) / config.max_faces)]
-        # Only the kept faces' vertices: the view's numbers stay within max_faces's
-        # share however long the run (all vertices grew with it).
-        used, faces = np.unique(faces, return_inverse=True)
-        verts, uvs, faces = verts[used], np.asarray(uvs)[used], faces.reshape(-1, 3)
+        from omnipipe.report.thin import thin_mesh
+
+        # Clustered on the texture's grid: the view's vertices and faces stay within
+        # max_faces however long the run.
+        shape = None if inputs.texture is None else np.asarray(inputs.texture).shape[:2]
+        verts, faces, uvs = thin_mesh(verts, faces, uvs, config.max_faces, shape)
     texture = None
     if inputs.texture is not None:
         import cv2

@@ -1,0 +1,79 @@
+"""The report's 3-D view of a long run: the textured mesh thinned to a bounded size.
+
+A run's mesh grows with its length (about 90 faces a frame on the paper rig); the
+view sends at most ``max_faces`` triangles to the browser. Taking every k-th face kept
+most vertices (each vertex is shared by six faces) and left holes between the kept
+faces; :func:`thin_mesh` instead clusters the vertices on a grid of the texture
+(square cells in texture pixels, i.e. in mm of the unrolled wall, grown until at most
+``max_faces // 2`` cells are occupied), keeps one vertex of each cell (its first, with
+its own position and UV) and the faces that still span three cells: a coarser wall
+without holes, whose vertices, faces and page size are bounded whatever the run's
+length. The texture seam stays a seam (its two copies of a vertex lie in cells at
+u = 0 and u = 1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+GROWTH = 1.15
+"""Factor of the cell side between two tries (the first from the texture's area)."""
+
+
+def thin_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    uvs: np.ndarray,
+    max_faces: int,
+    texture_shape: tuple[int, int] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(V', 3) vertices, (F', 3) faces and (V', 2) UVs of the view, F' <= ``max_faces``.
+
+    Args:
+        vertices: (V, 3) mm; faces: (F, 3) vertex indices; uvs: (V, 2) in [0, 1].
+        max_faces: at most this many faces are kept (>= 1).
+        texture_shape: (H, W) pixels of the texture the UVs address (cells square in
+            its pixels); None: square in UV units.
+
+    A mesh of at most ``max_faces`` faces is returned as it is. Otherwise the vertices
+    are clustered on the UV grid (see the module docstring); the vertices kept are
+    those of the faces kept, renumbered in their order. A mesh whose UVs do not spread
+    (all in one cell) keeps every k-th face instead.
+    """
+    faces = np.asarray(faces, np.int64)
+    if len(faces) <= max_faces:
+        return vertices, faces, uvs
+    uv = np.asarray(uvs, float)
+    h, w = texture_shape if texture_shape is not None else (1, 1)
+    span = uv.max(axis=0) - uv.min(axis=0) if len(uv) else np.zeros(2)
+    area_px = max(span[0] * w, 1e-12) * max(span[1] * h, 1e-12)
+    side = math.sqrt(area_px / max(max_faces // 2, 1))  # cell side (texture px)
+    kept = None
+    for _ in range(200):
+        kept = _clustered(uv, faces, side, (h, w))
+        if kept is None or len(kept) <= max_faces:
+            break
+        side *= GROWTH
+    if kept is None or len(kept) > max_faces:  # no spread in UV: every k-th face
+        kept = faces[:: math.ceil(len(faces) / max_faces)]
+    used, kept = np.unique(kept, return_inverse=True)
+    return np.asarray(vertices)[used], kept.reshape(-1, 3), uv[used]
+
+
+def _clustered(uv: np.ndarray, faces: np.ndarray, side: float, shape: tuple[int, int]) -> np.ndarray | None:
+    """The faces renumbered to their cells' first vertices (cells ``side`` texture px
+    square), without the faces that collapsed or repeat another face; None when every
+    vertex falls in one cell."""
+    h, w = shape
+    col = np.floor((uv[:, 0] - uv[:, 0].min()) * (w / side)).astype(np.int64)
+    row = np.floor((uv[:, 1] - uv[:, 1].min()) * (h / side)).astype(np.int64)
+    cell = row * (int(col.max()) + 1) + col
+    _, first, inverse = np.unique(cell, return_index=True, return_inverse=True)
+    if len(first) < 3:
+        return None
+    out = first[inverse][faces]
+    out = out[(out[:, 0] != out[:, 1]) & (out[:, 1] != out[:, 2]) & (out[:, 0] != out[:, 2])]
+    _, once = np.unique(np.sort(out, axis=1), axis=0, return_index=True)
+    return out[np.sort(once)]

@@ -1,0 +1,95 @@
+"""The 3-D view's thinning (omnipipe.report.thin) on a synthetic unrolled pipe mesh."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from omnipipe.report.thin import thin_mesh
+
+
+def pipe_mesh(rows: int, cols: int = 120, radius: float = 100.0, pitch: float = 2.0):
+    """A textured pipe wall as the model stage meshes it: ``rows`` rings of ``cols``
+    vertices plus a seam copy of each ring's first vertex at u = 1 (mm, (V, 2) UVs,
+    faces of two triangles per quad), and its texture's shape (square mm pixels)."""
+    theta = np.linspace(0.0, 2 * np.pi, cols + 1)
+    t, z = np.meshgrid(theta, np.arange(rows) * pitch)
+    verts = np.column_stack([radius * np.cos(t.ravel()), radius * np.sin(t.ravel()), z.ravel()])
+    circ, length = 2 * np.pi * radius, (rows - 1) * pitch
+    uvs = np.column_stack([t.ravel() / (2 * np.pi), z.ravel() / length])
+    idx = np.arange(rows * (cols + 1)).reshape(rows, cols + 1)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([b, d, c], -1).reshape(-1, 3)])
+    return verts, faces, uvs, (int(length), int(circ))
+
+
+def test_a_small_mesh_is_sent_as_it_is() -> None:
+    verts, faces, uvs, shape = pipe_mesh(10)
+    v, f, uv = thin_mesh(verts, faces, uvs, len(faces), shape)
+    assert v is verts and uv is uvs and np.array_equal(f, faces)
+
+
+def test_thinned_mesh_is_bounded_whatever_the_length_and_covers_the_wall() -> None:
+    """Runs 5x apart in length give views within max_faces (the longer one's cells
+    larger); every view vertex is a mesh vertex with its own UV; no face crosses the
+    texture seam; the view still covers the wall: every mesh vertex lies within a few
+    cells of a view vertex (no hole left where faces were taken out)."""
+    max_faces = 3000
+    sizes = []
+    for rows in (200, 1000):
+        verts, faces, uvs, shape = pipe_mesh(rows)
+        v, f, uv = thin_mesh(verts, faces, uvs, max_faces, shape)
+        assert 0.5 * max_faces < len(f) <= max_faces
+        assert len(v) == len(np.unique(f)) <= max_faces
+        mesh_rows = {tuple(r) for r in np.hstack([verts, uvs])}
+        assert all(tuple(r) in mesh_rows for r in np.hstack([v, uv]))
+        assert np.max(np.ptp(uv[f][:, :, 0], axis=1)) < 0.5  # the seam stays a seam
+        # Cell side (mm) of this view: the wall's area over its vertices.
+        side = np.sqrt(2 * np.pi * 100.0 * (rows - 1) * 2.0 / len(v))
+        probe = verts[:: max(1, len(verts) // 4000)]
+        gap = np.min(np.linalg.norm(probe[:, None] - v[None], axis=2), axis=1)
+        assert gap.max() < 2.5 * side
+        sizes.append(len(f))
+    assert sizes[1] <= max_faces
+
+
+def test_uvs_without_spread_fall_back_to_every_kth_face() -> None:
+    verts, faces, uvs, shape = pipe_mesh(100)
+    v, f, uv = thin_mesh(verts, faces, np.zeros_like(uvs), 500, shape)
+    assert len(f) <= 500 and len(v) == len(uv) == len(np.unique(f))
+
+
+def test_an_image_drawn_in_bands_is_the_image_drawn_whole() -> None:
+    """imshow_in_bands (the unrolled wall's figure, a band of rows at a time so that
+    matplotlib's float64 resampling is a band's) gives the same PNG, byte for byte, as
+    one imshow of the whole image: bands that do and do not divide the rows, an image
+    larger and one smaller than the axes' pixels."""
+    import base64
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from omnipipe.report.html import imshow_in_bands
+
+    rng = np.random.default_rng(5)
+
+    def png(image: np.ndarray, rows: int | None) -> bytes:
+        fig, ax = plt.subplots(figsize=(3, 4))
+        extent = (40.0, 400.0, 310.0, -20.0)
+        if rows is None:
+            ax.imshow(image, extent=extent, aspect="auto", interpolation="bilinear")
+        else:
+            imshow_in_bands(ax, image, extent, rows)
+        ax.plot([100.0], [50.0], marker="+")  # autoscaling after the image, as the report does
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
+        plt.close(fig)
+        return base64.b64encode(buf.getvalue())
+
+    for shape in ((700, 150, 3), (90, 500, 3)):
+        image = rng.integers(0, 256, shape, dtype=np.uint8)
+        whole = png(image, None)
+        for rows in (64, 100, 1000):
+            assert png(image, rows) == whole, (shape, rows)
