@@ -122,3 +122,27 @@ def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
     assert np.array_equal(parallel.keyframe, serial.keyframe)
     assert np.array_equal(parallel.world_from_rig, serial.world_from_rig)
     assert parallel.warnings == serial.warnings
+
+
+def test_handed_on_grey_images_give_the_same_motion(stop_and_go: Path) -> None:
+    """The pass leaves each moving frame's grey image for the motion's workers, which
+    take every one of them (so decode none of those frames again): the same motion."""
+    from omnipipe.sfm.image_store import GrayHandoff
+
+    dataset = open_dataset(stop_and_go)
+    config = sfm.SfmConfig()
+    with open_executor(2) as ex:
+        frames = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
+        plain = sfm.run(config, sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved), executor=ex)
+    with open_executor(2) as ex, GrayHandoff(len(dataset)) as handoff:
+        handed = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex, handoff=handoff)
+        left = sorted(int(p.stem) for p in Path(handoff.folder).glob("*.npy"))
+        assert left and all(handed.moved[i] for i in left)  # stationary frames' removed
+        inputs = sfm.SfmInputs.of_dataset(dataset, handed.rings, handed.moved)
+        inputs.handoff = handoff.folder
+        motion = sfm.run(config, inputs, executor=ex)
+        assert not list(Path(handoff.folder).glob("*.npy"))  # every one taken back
+    assert np.array_equal(handed.moved, frames.moved)
+    assert np.array_equal(motion.keyframe, plain.keyframe)
+    assert np.array_equal(motion.world_from_rig, plain.world_from_rig)
+    assert motion.warnings == plain.warnings

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -39,6 +39,7 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.report.relief import WallPoints
     from omnipipe.report.views import DefectView
     from omnipipe.sfm import SfmConfig, SfmResult
+    from omnipipe.sfm.image_store import GrayHandoff
     from omnipipe.survey import Survey
 
 
@@ -310,8 +311,15 @@ def _stages(
     """The frame pass, camera motion, analysis and model, each loaded from its
     checkpoint when there is one (then the frame pass is done only if a later stage
     still needs it), otherwise computed and saved."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from omnipipe.sfm.image_store import GrayHandoff
+
     cp = checkpoints
     frames_box: list[FramePassResult] = []
+    # The moving frames' grey images, from the decoding pass to the motion's workers
+    # (each frame decoded once); a local pool's workers share this file system.
+    handoff = GrayHandoff(len(dataset)) if isinstance(executor, ProcessPoolExecutor) else None
 
     def frames() -> FramePassResult:
         # Needed after the camera motion was loaded: the pass's notes are in the loaded
@@ -320,16 +328,21 @@ def _stages(
         if not frames_box:
             got = _restore(cp, "frames", own)
             if got is None:
-                got = _decode(config, dataset, executor, progress, own, cp)
+                got = _decode(config, dataset, executor, progress, own, cp, handoff)
                 _keep(cp, "frames", got, own)
             frames_box.append(got)
         return frames_box[0]
 
     motion: _Motion | None = None
-    motion = _restore(cp, "sfm", log)
-    if motion is None:
-        motion = _camera_motion(config, dataset, frames(), executor, progress, log)
-        _keep(cp, "sfm", motion, log)
+    try:
+        motion = _restore(cp, "sfm", log)
+        if motion is None:
+            folder = None if handoff is None else handoff.folder
+            motion = _camera_motion(config, dataset, frames(), executor, progress, log, folder)
+            _keep(cp, "sfm", motion, log)
+    finally:
+        if handoff is not None:
+            handoff.close()
     found = _restore(cp, "analysis", log)
     if found is None:
         found = _analyse(config, dataset, frames(), motion, executor, progress, log)
@@ -351,10 +364,12 @@ def _decode(
     progress: ProgressFactory,
     log: _RunLog,
     checkpoints: Checkpoints | None = None,
+    handoff: GrayHandoff | None = None,
 ) -> FramePassResult:
     """The decoding pass (every frame's ring and stationary test), refused without a ring.
     With ``checkpoints``, it goes on after the parts of it an earlier run saved, and
-    saves its own parts as it goes.
+    saves its own parts as it goes. With ``handoff``, the moving frames' grey images are
+    left there for the camera motion (:func:`omnipipe.pipeline.frame_pass.run`).
 
     Raises:
         ReconstructionError: no laser ring in any frame.
@@ -371,6 +386,7 @@ def _decode(
     frames = frame_pass.run(
         config.laser, config.sfm.stations, dataset, executor, progress=tick, parts=parts,
         save_part=None if checkpoints is None else partial(checkpoints.save_part, "frames"),
+        handoff=handoff,
     )
     log.timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
@@ -409,8 +425,11 @@ def _camera_motion(
     executor: Executor,
     progress: ProgressFactory,
     log: _RunLog,
+    handoff: str | None = None,
 ) -> _Motion:
     """The sfm stage, refused when its motion cannot be trusted or nothing registered.
+    ``handoff``: the folder where the decoding pass left the moving frames' grey images
+    (:class:`~omnipipe.sfm.image_store.GrayHandoff`), or None.
 
     Raises:
         ReconstructionError: see :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`;
@@ -428,7 +447,7 @@ def _camera_motion(
     tick = progress("sfm", n)
     motion = sfm.run(
         config.sfm,
-        sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved),
+        replace(sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved), handoff=handoff),
         progress=tick,
         executor=executor,
     )

@@ -651,7 +651,7 @@ def moving_frames(
         moved[:] = inputs.moved | by_odometry
         stream = iter_frames(
             ctx.executor,
-            FeatureTask(config.features, detect=not config.tracking.enabled),
+            FeatureTask(config.features, detect=not config.tracking.enabled, handoff=inputs.handoff),
             inputs.dataset,
             np.flatnonzero(moved),
             most=4,
