@@ -9,9 +9,9 @@ need of it that is small:
 - its :class:`~omnipipe.sfm.stations.StationSignature` (a box-averaged copy and the
   sensor noise), from which the parent decides, in frame order, which frames were
   taken while the robot stood still (:class:`~omnipipe.sfm.stations.StationTracker`);
-- with a :class:`~omnipipe.sfm.image_store.GrayHandoff`, a moving frame's grey image,
-  written to the run's scratch folder for the camera motion's workers, which then do
-  not decode the frame again.
+- with a :class:`~omnipipe.handoff.FrameHandoff`, a moving frame as decoded, written
+  to the run's scratch folder for the camera motion's and the model's workers, which
+  then do not decode it again.
 
 Results are consumed as they arrive and the signatures are dropped once compared; the
 rings go to disk as they arrive (:class:`~omnipipe.laser.store.RingStore`), so memory
@@ -36,6 +36,7 @@ import numpy as np
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.executor import worker_cached
+from omnipipe.handoff import FrameHandoff, hand_on
 from omnipipe.laser import (
     LaserConfig,
     LaserResult,
@@ -46,7 +47,6 @@ from omnipipe.laser import (
 )
 from omnipipe.laser.store import RingStore
 from omnipipe.rig import Rig
-from omnipipe.sfm.image_store import GrayHandoff, hand_on
 from omnipipe.sfm.stations import (
     StationConfig,
     StationSignature,
@@ -57,7 +57,6 @@ from omnipipe.sfm.stations import (
     noise_mask,
     promote_creep,
 )
-from omnipipe.sfm.tasks import frame_gray
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
@@ -126,9 +125,9 @@ class _FrameTask:
     stationary frame's ring is used by no later stage, so its extraction is skipped
     (``None``). The parent fetches the rare ring the run's tracker needs after all
     (:func:`run`), so the result never depends on where chunks begin. With
-    ``handoff`` (a :class:`~omnipipe.sfm.image_store.GrayHandoff`'s folder), each 8-bit
-    frame with a ring has its grey image (:func:`omnipipe.sfm.tasks.frame_gray`)
-    written there (:func:`~omnipipe.sfm.image_store.hand_on`; 0 bytes: not written).
+    ``handoff`` (a :class:`~omnipipe.handoff.FrameHandoff`'s folder), each frame with a
+    ring is written there as decoded (:func:`~omnipipe.handoff.hand_on`; 0 bytes: not
+    written).
     """
 
     def __init__(self, laser: LaserConfig, stations: StationConfig, handoff: str | None = None) -> None:
@@ -152,9 +151,8 @@ class _FrameTask:
                 else None
             )
             written = 0
-            if ring is not None and self.handoff is not None and image.dtype == np.uint8:
-                gray = frame_gray(image, rig.laser.channel)
-                written = hand_on(self.handoff, int(source.frames[k]), gray)
+            if ring is not None and self.handoff is not None:
+                written = hand_on(self.handoff, int(source.frames[k]), image)
             out.append((ring, signature, written))
         return out
 
@@ -194,7 +192,7 @@ def run(
     progress: Callable[[int], None] | None = None,
     parts: Iterable[FramePassPart] = (),
     save_part: Callable[[FramePassPart], None] | None = None,
-    handoff: GrayHandoff | None = None,
+    handoff: FrameHandoff | None = None,
 ) -> FramePassResult:
     """Decode every frame of ``dataset`` once: its ring and whether the rig moved.
 
@@ -206,9 +204,9 @@ def run(
             frame 0), taken one at a time (each one's rings go to the store before the
             next is read): the pass goes on after them, with the same result.
         save_part: called with each :data:`PART_FRAMES` frames' part as it is done.
-        handoff: where the moving frames' grey images are handed on to the camera
-            motion (a local process pool's; None: nowhere). Frames the pass finds
-            stationary in the end are removed from it.
+        handoff: where the moving frames are handed on to the later stages (a local
+            process pool's; None: nowhere). Frames the pass finds stationary in the
+            end are removed from it.
 
     Raises:
         DatasetError: an unreadable frame (naming its file).

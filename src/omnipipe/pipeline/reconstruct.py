@@ -31,6 +31,7 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.analysis import AnalysisConfig, AnalysisResult
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.dataset import Dataset
+    from omnipipe.handoff import FrameHandoff
     from omnipipe.laser import LaserConfig
     from omnipipe.model import ModelConfig, ModelResult
     from omnipipe.pipeline.checkpoint import Checkpoints
@@ -39,7 +40,6 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.report.relief import WallPoints
     from omnipipe.report.views import DefectView
     from omnipipe.sfm import SfmConfig, SfmResult
-    from omnipipe.sfm.image_store import GrayHandoff
     from omnipipe.survey import Survey
 
 
@@ -313,13 +313,31 @@ def _stages(
     still needs it), otherwise computed and saved."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from omnipipe.sfm.image_store import GrayHandoff
+    from omnipipe.handoff import FrameHandoff
 
+    # The moving frames as decoded, from the decoding pass to the motion's and the
+    # model's workers (a local pool's workers share this file system).
+    handoff = FrameHandoff(len(dataset)) if isinstance(executor, ProcessPoolExecutor) else None
+    try:
+        return _stages_handing_on(config, dataset, executor, progress, log, checkpoints, handoff)
+    finally:
+        if handoff is not None:
+            handoff.close()
+
+
+def _stages_handing_on(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+    checkpoints: Checkpoints | None,
+    handoff: FrameHandoff | None,
+) -> tuple[_Motion, _Measured, ModelResult]:
+    """:func:`_stages`, the decoding pass leaving the moving frames in ``handoff``."""
     cp = checkpoints
     frames_box: list[FramePassResult] = []
-    # The moving frames' grey images, from the decoding pass to the motion's workers
-    # (each frame decoded once); a local pool's workers share this file system.
-    handoff = GrayHandoff(len(dataset)) if isinstance(executor, ProcessPoolExecutor) else None
+    folder = None if handoff is None else handoff.folder
 
     def frames() -> FramePassResult:
         # Needed after the camera motion was loaded: the pass's notes are in the loaded
@@ -334,15 +352,10 @@ def _stages(
         return frames_box[0]
 
     motion: _Motion | None = None
-    try:
-        motion = _restore(cp, "sfm", log)
-        if motion is None:
-            folder = None if handoff is None else handoff.folder
-            motion = _camera_motion(config, dataset, frames(), executor, progress, log, folder)
-            _keep(cp, "sfm", motion, log)
-    finally:
-        if handoff is not None:
-            handoff.close()
+    motion = _restore(cp, "sfm", log)
+    if motion is None:
+        motion = _camera_motion(config, dataset, frames(), executor, progress, log, folder)
+        _keep(cp, "sfm", motion, log)
     found = _restore(cp, "analysis", log)
     if found is None:
         found = _analyse(config, dataset, frames(), motion, executor, progress, log)
@@ -352,7 +365,7 @@ def _stages(
     release_freed_memory()
     mdl = _restore(cp, "model", log)
     if mdl is None:
-        mdl = _model(config, dataset, measured, feed, executor, progress, log)
+        mdl = _model(config, dataset, measured, feed, executor, progress, log, folder)
         _keep(cp, "model", mdl, log)
     return motion, measured, mdl
 
@@ -364,12 +377,12 @@ def _decode(
     progress: ProgressFactory,
     log: _RunLog,
     checkpoints: Checkpoints | None = None,
-    handoff: GrayHandoff | None = None,
+    handoff: FrameHandoff | None = None,
 ) -> FramePassResult:
     """The decoding pass (every frame's ring and stationary test), refused without a ring.
     With ``checkpoints``, it goes on after the parts of it an earlier run saved, and
-    saves its own parts as it goes. With ``handoff``, the moving frames' grey images are
-    left there for the camera motion (:func:`omnipipe.pipeline.frame_pass.run`).
+    saves its own parts as it goes. With ``handoff``, the moving frames are left there
+    for the later stages (:func:`omnipipe.pipeline.frame_pass.run`).
 
     Raises:
         ReconstructionError: no laser ring in any frame.
@@ -428,8 +441,8 @@ def _camera_motion(
     handoff: str | None = None,
 ) -> _Motion:
     """The sfm stage, refused when its motion cannot be trusted or nothing registered.
-    ``handoff``: the folder where the decoding pass left the moving frames' grey images
-    (:class:`~omnipipe.sfm.image_store.GrayHandoff`), or None.
+    ``handoff``: the folder where the decoding pass left the moving frames
+    (:class:`~omnipipe.handoff.FrameHandoff`), or None.
 
     Raises:
         ReconstructionError: see :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`;
@@ -560,8 +573,10 @@ def _model(
     executor: Executor,
     progress: ProgressFactory,
     log: _RunLog,
+    handoff: str | None = None,
 ) -> ModelResult:
-    """The model stage on the stations, unrolled by the analysis' centreline."""
+    """The model stage on the stations, unrolled by the analysis' centreline (``handoff``:
+    as in :func:`_camera_motion`)."""
     import numpy as np
 
     from omnipipe import model
@@ -589,6 +604,7 @@ def _model(
         circumference_mm=2 * np.pi * res.radius_mm,
         dataset=dataset,
         frame_index=stations,
+        handoff=handoff,
         points_in_world=feed.points,
         point_frame=feed.point_frame,
         not_wall=res.point_not_wall if len(res.point_not_wall) == len(feed.points) else None,

@@ -651,11 +651,12 @@ def moving_frames(
         moved[:] = inputs.moved | by_odometry
         stream = iter_frames(
             ctx.executor,
-            FeatureTask(config.features, detect=not config.tracking.enabled, handoff=inputs.handoff),
+            FeatureTask(config.features, detect=not config.tracking.enabled),
             inputs.dataset,
             np.flatnonzero(moved),
             most=4,
             payload=lambda i: rings[i].pixels,
+            handoff=inputs.handoff,
         )
         for i, (views, feats, gray) in stream:
             yield MovingFrame(i, views, feats, gray)

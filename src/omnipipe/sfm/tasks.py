@@ -3,9 +3,8 @@
 Each task is a pure function of its arguments, so the motion does not depend on
 where it ran:
 
-- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker (or its
-  grey image taken from the decoding pass's hand-off,
-  :class:`~omnipipe.sfm.image_store.GrayHandoff`): its perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
+- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker (or read
+  as the decoding pass left it, :mod:`omnipipe.handoff`): its perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
   tracked between keyframes) and its grey image (for the later template matching,
   Eq. 17);
 - :func:`track_back` and :func:`matched_rays`: the pending frames' correspondences with
@@ -34,7 +33,6 @@ from omnipipe.sfm.features import (
     FrameViews,
     match_features,
 )
-from omnipipe.sfm.image_store import take_back
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.scale_check import (
     ScaleCheckConfig,
@@ -92,16 +90,12 @@ class FeatureTask:
     them), else its :class:`~omnipipe.sfm.features.FrameViews` (features None: the
     caller tracks into them, and detects on the keyframes). The chunk's ``payload``
     holds each frame's laser-ring pixels (N, 2), masked out of the features. The grey
-    image is :func:`compact_gray` of :func:`omnipipe.image.gray_without_laser`; with
-    ``handoff`` (a :class:`~omnipipe.sfm.image_store.GrayHandoff`'s folder) it is taken
-    from there when the decoding pass handed it on (8-bit frames), and the frame is not
-    decoded: the views are the same, made from that grey image.
+    image is :func:`frame_gray`.
     """
 
-    def __init__(self, config: FeatureConfig, detect: bool = True, handoff: str | None = None) -> None:
+    def __init__(self, config: FeatureConfig, detect: bool = True) -> None:
         self.config = config
         self.detect = detect
-        self.handoff = handoff
 
     def __call__(
         self, source: FrameSource
@@ -111,14 +105,10 @@ class FeatureTask:
         channel = rig.laser.channel
         out: list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray]] = []
         for k in range(len(source)):
+            image = source.read(k)
             ring_pixels = None if source.payload is None else source.payload[k]
-            gray = None if self.handoff is None else take_back(self.handoff, int(source.frames[k]))
-            if gray is None:
-                image = source.read(k)
-                views = extractor.frame_views(image, channel, ring_pixels)
-                gray = frame_gray(image, channel)
-            else:  # an 8-bit frame's grey image: its views' own 8-bit grey (features._gray)
-                views = extractor.frame_views(np.asarray(gray).astype(np.uint8), channel, ring_pixels)
+            views = extractor.frame_views(image, channel, ring_pixels)
+            gray = frame_gray(image, channel)
             if self.detect:
                 out.append((None, extractor.detect(views), gray))
             else:

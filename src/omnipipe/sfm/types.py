@@ -110,9 +110,8 @@ class SfmInputs:
         odometry: the robot's odometry (bridges steps vision could not measure, is
             compared with the trusted ones; :mod:`omnipipe.sfm.robot_sensors`), or None.
         imu: the robot's IMU (gravity in the world frame), or None.
-        handoff: the folder of a :class:`~omnipipe.sfm.image_store.GrayHandoff` where
-            the decoding pass left the moving frames' grey images (those frames are not
-            decoded again), or None.
+        handoff: the folder of a :class:`~omnipipe.handoff.FrameHandoff` where the
+            decoding pass left the moving frames (those are not decoded again), or None.
     """
 
     rig: Rig
