@@ -14,7 +14,10 @@ cache: otherwise the laser stage, the first to read them, also paid for the disk
 (a reused dataset read after other work: 1.38 against 1.13-1.17 once cached).
 Each stage is also reported per moving frame (``continuous``: every frame moves; bend
 has 245 stationary frames of 330, which cost little), and the cores the reconstruction
-kept busy on average (CPU seconds of this process and its workers over the wall time).
+kept busy on average (CPU seconds of this process and its workers over the wall time),
+and each stage's CPU seconds (this process and its workers, sampled from /proc every
+0.2 s on Linux): on a machine shared with other work they, unlike the times, hardly
+depend on that work.
 Nothing is tuned here: the defaults of ``omnipipe reconstruct``.
 
 Several scenarios (``--scenario continuous,bend``, ``--random-seeds 0 1 2`` for members
@@ -29,9 +32,11 @@ again.
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import shutil
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -102,8 +107,9 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         for path in dataset.frame_paths:  # into the OS's file cache, for both timings
             path.read_bytes()
         cpu0 = _cpu_s()
-        t0 = time.perf_counter()
-        rec = run(config, dataset)
+        t0 = t_run = time.perf_counter()
+        with _TreeCpu() as tree:
+            rec = run(config, dataset)
         busy = (_cpu_s() - cpu0) / max(time.perf_counter() - t0, 1e-9)
         # The floor of the laser stage: decode the same frames on the same kind of executor.
         with open_executor(args.workers, args.scheduler) as ex:
@@ -141,6 +147,7 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         )
         stationary = int(rec.summary.get("stationary_frames", 0))
         print(_per_stage(t, n, stationary))
+        print(tree.per_stage(t_run, t))
         print(
             f"laser stage {t['laser']:.2f} s ({n / t['laser']:.1f} frames/s) vs decode only "
             f"{t_decode:.2f} s ({n / t_decode:.1f} frames/s) on the same workers: "
@@ -153,6 +160,71 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
     finally:
         if not keep:
             shutil.rmtree(root, ignore_errors=True)
+
+
+class _TreeCpu:
+    """CPU seconds of this process and its child processes (live and finished), sampled
+    every 0.2 s on a thread while the block runs (Linux /proc; elsewhere nothing)."""
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+    def __enter__(self) -> _TreeCpu:
+        if Path("/proc/self/stat").exists():
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+    def _loop(self) -> None:
+        while True:
+            self.samples.append((time.perf_counter(), self._now()))
+            if self._stop.wait(0.2):
+                self.samples.append((time.perf_counter(), self._now()))
+                return
+
+    def _now(self) -> float:
+        me = os.getpid()
+        ticks = 0
+        for entry in os.scandir("/proc"):
+            if not entry.name.isdigit():
+                continue
+            try:
+                fields = Path(entry.path, "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(entry.name) == me or int(fields[1]) == me:  # fields[1]: the parent's id
+                ticks += int(fields[11]) + int(fields[12])  # utime, stime
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN)  # children already gone
+        return ticks / self._tick + kids.ru_utime + kids.ru_stime
+
+    def at(self, t: float) -> float:
+        """CPU seconds at time ``t`` (perf_counter), interpolated between samples."""
+        import numpy as np
+
+        ts, cpu = zip(*self.samples, strict=True)
+        return float(np.interp(t, ts, cpu))
+
+    def per_stage(self, t0: float, timings: dict[str, float]) -> str:
+        """One line: each stage's CPU seconds, its start taken as the run's start
+        (``t0``) plus the stages' times before it (report.json's ``timings_s``)."""
+        if len(self.samples) < 2:
+            return "CPU seconds per stage: not measured (no /proc)"
+        t = t0 + timings.get("startup", 0.0)
+        parts = []
+        for stage in ("laser", "sfm", "analysis", "model"):
+            dt = timings.get(stage, 0.0)
+            cpu = self.at(t + dt) - self.at(t)
+            parts.append(f"{stage} {cpu:.1f} ({cpu / max(dt, 1e-9):.2f} cores)")
+            t += dt
+        total = self.at(t0 + timings["total"]) - self.at(t0)
+        return "CPU seconds per stage (this process and its workers): " + ", ".join(parts) + f"; total {total:.1f}"
 
 
 def _cpu_s() -> float:

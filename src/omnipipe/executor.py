@@ -484,6 +484,8 @@ class FrameSource:
         arrays: decoded RGB (H, W, 3) / grey (H, W) frames, or None.
         payload: per frame, what the task needs of it besides the image (e.g. the
             laser ring's pixels to mask), or None.
+        handoff: the folder of a :class:`~omnipipe.handoff.FrameHandoff` whose frames
+            are read from there rather than decoded again, or None.
     """
 
     rig: Any
@@ -491,15 +493,21 @@ class FrameSource:
     paths: tuple[Path, ...] | None = None
     arrays: tuple[Any, ...] | None = None
     payload: tuple[Any, ...] | None = None
+    handoff: str | None = None
 
     @staticmethod
-    def take(dataset: Any, frames: Sequence[int], payload: Sequence[Any] | None = None) -> FrameSource:
+    def take(
+        dataset: Any,
+        frames: Sequence[int],
+        payload: Sequence[Any] | None = None,
+        handoff: str | None = None,
+    ) -> FrameSource:
         """The ``frames`` of an opened :class:`omnipipe.dataset.Dataset` (``payload``:
-        one item per frame, carried to the task)."""
+        one item per frame, carried to the task; ``handoff``: see the attribute)."""
         extra = None if payload is None else tuple(payload)
         if dataset.video is None and dataset.source is None:
             paths = tuple(dataset.frame_paths[i] for i in frames)
-            return FrameSource(dataset.rig, frames, paths=paths, payload=extra)
+            return FrameSource(dataset.rig, frames, paths=paths, payload=extra, handoff=handoff)
         arrays = tuple(dataset.read_frame(i) for i in frames)
         return FrameSource(dataset.rig, frames, arrays=arrays, payload=extra)
 
@@ -514,6 +522,12 @@ class FrameSource:
         """
         if self.arrays is not None:
             return self.arrays[k]
+        if self.handoff is not None:
+            from omnipipe.handoff import handed
+
+            image = handed(self.handoff, int(self.frames[k]))
+            if image is not None:
+                return image
         from omnipipe.dataset import read_image
 
         assert self.paths is not None  # one of paths/arrays is always set by take()
@@ -528,6 +542,7 @@ def iter_frames(
     *,
     most: int = 16,
     payload: Callable[[int], Any] | None = None,
+    handoff: str | None = None,
 ) -> Iterator[tuple[int, R]]:
     """Frame-parallel streaming: ``(frame index, fn's result for it)`` in frame order.
 
@@ -537,7 +552,8 @@ def iter_frames(
     memory stays bounded however long the run (a consumer that keeps only what it
     needs holds only that). ``frames``: a subset of the dataset's indices (default:
     all), e.g. only the moving frames. ``payload(i)``: what the task needs of frame i
-    besides its image (:attr:`FrameSource.payload`). Chunks are cut lazily, so a
+    besides its image (:attr:`FrameSource.payload`). ``handoff``: frames read from a
+    :class:`~omnipipe.handoff.FrameHandoff`'s folder where there. Chunks are cut lazily, so a
     video's frames are decoded only as their chunk is submitted.
 
     Raises:
@@ -549,7 +565,7 @@ def iter_frames(
     size = min(len(chunks(len(order), executor, most=most)[0]), max(1, most))
     parts = [order[i : i + size] for i in range(0, len(order), size)]
     sources = (
-        FrameSource.take(dataset, part, None if payload is None else [payload(i) for i in part])
+        FrameSource.take(dataset, part, None if payload is None else [payload(i) for i in part], handoff)
         for part in parts
     )
     for part, result in zip(parts, ordered_map(executor, fn, sources), strict=True):

@@ -122,3 +122,35 @@ def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
     assert np.array_equal(parallel.keyframe, serial.keyframe)
     assert np.array_equal(parallel.world_from_rig, serial.world_from_rig)
     assert parallel.warnings == serial.warnings
+
+
+def test_handed_on_frames_give_the_same_motion(stop_and_go: Path, tmp_path: Path) -> None:
+    """The pass leaves each moving frame as decoded for the later stages' workers,
+    which read it from there: with the moving frames' files gone from the dataset after
+    the pass, the same motion."""
+    import shutil
+
+    from omnipipe.handoff import FrameHandoff
+
+    copy = tmp_path / "ds"
+    shutil.copytree(stop_and_go, copy)
+    dataset = open_dataset(copy)
+    config = sfm.SfmConfig()
+    with open_executor(2) as ex:
+        frames = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
+        plain = sfm.run(config, sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved), executor=ex)
+    with open_executor(2) as ex, FrameHandoff(len(dataset)) as handoff:
+        handed = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex, handoff=handoff)
+        left = sorted(int(p.stem) for p in Path(handoff.folder).glob("*.npy"))
+        assert left == np.flatnonzero(handed.moved).tolist()  # stationary frames' removed
+        for i in left:  # as decoded; then not readable from the dataset any more
+            assert np.array_equal(np.load(Path(handoff.folder) / f"{i:07d}.npy"), dataset.read_frame(i))
+            dataset.frame_paths[i].write_bytes(b"")
+        inputs = sfm.SfmInputs.of_dataset(dataset, handed.rings, handed.moved)
+        inputs.handoff = handoff.folder
+        motion = sfm.run(config, inputs, executor=ex)
+    assert not Path(handoff.folder).exists()
+    assert np.array_equal(handed.moved, frames.moved)
+    assert np.array_equal(motion.keyframe, plain.keyframe)
+    assert np.array_equal(motion.world_from_rig, plain.world_from_rig)
+    assert motion.warnings == plain.warnings

@@ -111,6 +111,8 @@ class ModelInputs:
         circumference_mm: of the unrolled view (2 pi x the fitted radius).
         dataset: the opened dataset of the keyframes; with ``frame_index`` the images
             are decoded in the executor's workers (:func:`run`), not by ``read_frame``.
+        handoff: the folder of a :class:`~omnipipe.handoff.FrameHandoff` where the
+            run's decoding pass left frames: those are read from there, not decoded.
         frame_index: (K,) int, the dataset index of each keyframe.
         points_in_world: (N, 3) the rings already integrated, mm (:func:`integrate` of
             ``world_from_rig`` and the rings, in its order), with ``point_frame`` (N,)
@@ -131,6 +133,7 @@ class ModelInputs:
     unrolled_mm: np.ndarray | None = None
     circumference_mm: float | None = None
     dataset: Dataset | None = None
+    handoff: str | None = None
     frame_index: np.ndarray | None = None
     points_in_world: np.ndarray | None = None
     point_frame: np.ndarray | None = None
@@ -268,7 +271,10 @@ def _sample_frames(
         dataset = inputs.dataset
         items = (
             (
-                FrameSource.take(dataset, [int(frame_index[k]) for k in todo[part.start : part.stop]]),
+                FrameSource.take(
+                    dataset, [int(frame_index[k]) for k in todo[part.start : part.stop]],
+                    handoff=inputs.handoff,
+                ),
                 tuple(work[k] for k in todo[part.start : part.stop]),
             )
             for part in chunks(len(todo), ex)

@@ -8,7 +8,10 @@ need of it that is small:
 - its laser ring, extracted and triangulated (paper Sec. III, Eq. 1-5);
 - its :class:`~omnipipe.sfm.stations.StationSignature` (a box-averaged copy and the
   sensor noise), from which the parent decides, in frame order, which frames were
-  taken while the robot stood still (:class:`~omnipipe.sfm.stations.StationTracker`).
+  taken while the robot stood still (:class:`~omnipipe.sfm.stations.StationTracker`);
+- with a :class:`~omnipipe.handoff.FrameHandoff`, a moving frame as decoded, written
+  to the run's scratch folder for the camera motion's and the model's workers, which
+  then do not decode it again.
 
 Results are consumed as they arrive and the signatures are dropped once compared; the
 rings go to disk as they arrive (:class:`~omnipipe.laser.store.RingStore`), so memory
@@ -33,6 +36,7 @@ import numpy as np
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.executor import worker_cached
+from omnipipe.handoff import FrameHandoff, hand_on
 from omnipipe.laser import (
     LaserConfig,
     LaserResult,
@@ -112,26 +116,31 @@ def warm_up(laser: LaserConfig, stations: StationConfig, rig: Rig) -> None:
 
 
 class _FrameTask:
-    """Picklable task: (ring or None, station signature) of each frame of one chunk.
+    """Picklable task: (ring or None, station signature, bytes handed on) of each frame
+    of one chunk.
 
     The stationary test runs within the chunk too (its own tracker, started at the
     chunk's first frame): a frame that shows the same station as the one before it in
     the chunk is all but certainly stationary for the run's tracker as well, and a
     stationary frame's ring is used by no later stage, so its extraction is skipped
     (``None``). The parent fetches the rare ring the run's tracker needs after all
-    (:func:`run`), so the result never depends on where chunks begin.
+    (:func:`run`), so the result never depends on where chunks begin. With
+    ``handoff`` (a :class:`~omnipipe.handoff.FrameHandoff`'s folder), each frame with a
+    ring is written there as decoded (:func:`~omnipipe.handoff.hand_on`; 0 bytes: not
+    written).
     """
 
-    def __init__(self, laser: LaserConfig, stations: StationConfig) -> None:
+    def __init__(self, laser: LaserConfig, stations: StationConfig, handoff: str | None = None) -> None:
         self.laser = laser
         self.stations = stations
+        self.handoff = handoff
 
-    def __call__(self, source: FrameSource) -> list[tuple[LaserRing | None, StationSignature]]:
+    def __call__(self, source: FrameSource) -> list[tuple[LaserRing | None, StationSignature, int]]:
         rig = source.rig
         camera, extractor = ring_extractor(self.laser, rig)
         valid, inner, runs = _masks(rig, self.stations)
         local = StationTracker(valid, self.stations)
-        out: list[tuple[LaserRing | None, StationSignature]] = []
+        out: list[tuple[LaserRing | None, StationSignature, int]] = []
         for k in range(len(source)):
             image = source.read(k)
             signature = frame_signature(image, rig.laser.channel, inner, self.stations, runs)
@@ -141,7 +150,10 @@ class _FrameTask:
                 if moved
                 else None
             )
-            out.append((ring, signature))
+            written = 0
+            if ring is not None and self.handoff is not None:
+                written = hand_on(self.handoff, int(source.frames[k]), image)
+            out.append((ring, signature, written))
         return out
 
 
@@ -180,6 +192,7 @@ def run(
     progress: Callable[[int], None] | None = None,
     parts: Iterable[FramePassPart] = (),
     save_part: Callable[[FramePassPart], None] | None = None,
+    handoff: FrameHandoff | None = None,
 ) -> FramePassResult:
     """Decode every frame of ``dataset`` once: its ring and whether the rig moved.
 
@@ -191,6 +204,9 @@ def run(
             frame 0), taken one at a time (each one's rings go to the store before the
             next is read): the pass goes on after them, with the same result.
         save_part: called with each :data:`PART_FRAMES` frames' part as it is done.
+        handoff: where the moving frames are handed on to the later stages (a local
+            process pool's; None: nowhere). Frames the pass finds stationary in the
+            end are removed from it.
 
     Raises:
         DatasetError: an unreadable frame (naming its file).
@@ -206,8 +222,10 @@ def run(
     start = _restore(parts, tracker, kept, moved, ratio, station)
     if progress is not None and start:
         progress(start)
-    task = _FrameTask(laser, stations)
-    for i, (ring, signature) in iter_frames(executor, task, dataset, frames=range(start, n)):
+    task = _FrameTask(laser, stations, None if handoff is None else handoff.folder)
+    for i, (ring, signature, written) in iter_frames(executor, task, dataset, frames=range(start, n)):
+        if written and handoff is not None:
+            handoff.note(i, written)
         moved[i], ratio[i] = tracker.update_signature(signature)
         station[i] = i if moved[i] else station[i - 1]
         if moved[i] and ring is not None:
@@ -229,6 +247,8 @@ def run(
         kept.put(i, ring)
     for i in np.flatnonzero(~moved):
         kept.store.put(int(i), _emptied(int(kept.scanned[station[i]])))
+        if handoff is not None:
+            handoff.discard(int(i))
     # A stationary frame shows its station's ring: it counts that ring's samples.
     samples = kept.own[station]
     warnings = [f"frame {i}: {w}" for i in sorted(kept.notes) for w in kept.notes[i]]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,6 +31,7 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.analysis import AnalysisConfig, AnalysisResult
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.dataset import Dataset
+    from omnipipe.handoff import FrameHandoff
     from omnipipe.laser import LaserConfig
     from omnipipe.model import ModelConfig, ModelResult
     from omnipipe.pipeline.checkpoint import Checkpoints
@@ -310,8 +311,33 @@ def _stages(
     """The frame pass, camera motion, analysis and model, each loaded from its
     checkpoint when there is one (then the frame pass is done only if a later stage
     still needs it), otherwise computed and saved."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from omnipipe.handoff import FrameHandoff
+
+    # The moving frames as decoded, from the decoding pass to the motion's and the
+    # model's workers (a local pool's workers share this file system).
+    handoff = FrameHandoff(len(dataset)) if isinstance(executor, ProcessPoolExecutor) else None
+    try:
+        return _stages_handing_on(config, dataset, executor, progress, log, checkpoints, handoff)
+    finally:
+        if handoff is not None:
+            handoff.close()
+
+
+def _stages_handing_on(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    executor: Executor,
+    progress: ProgressFactory,
+    log: _RunLog,
+    checkpoints: Checkpoints | None,
+    handoff: FrameHandoff | None,
+) -> tuple[_Motion, _Measured, ModelResult]:
+    """:func:`_stages`, the decoding pass leaving the moving frames in ``handoff``."""
     cp = checkpoints
     frames_box: list[FramePassResult] = []
+    folder = None if handoff is None else handoff.folder
 
     def frames() -> FramePassResult:
         # Needed after the camera motion was loaded: the pass's notes are in the loaded
@@ -320,7 +346,7 @@ def _stages(
         if not frames_box:
             got = _restore(cp, "frames", own)
             if got is None:
-                got = _decode(config, dataset, executor, progress, own, cp)
+                got = _decode(config, dataset, executor, progress, own, cp, handoff)
                 _keep(cp, "frames", got, own)
             frames_box.append(got)
         return frames_box[0]
@@ -328,7 +354,7 @@ def _stages(
     motion: _Motion | None = None
     motion = _restore(cp, "sfm", log)
     if motion is None:
-        motion = _camera_motion(config, dataset, frames(), executor, progress, log)
+        motion = _camera_motion(config, dataset, frames(), executor, progress, log, folder)
         _keep(cp, "sfm", motion, log)
     found = _restore(cp, "analysis", log)
     if found is None:
@@ -339,7 +365,7 @@ def _stages(
     release_freed_memory()
     mdl = _restore(cp, "model", log)
     if mdl is None:
-        mdl = _model(config, dataset, measured, feed, executor, progress, log)
+        mdl = _model(config, dataset, measured, feed, executor, progress, log, folder)
         _keep(cp, "model", mdl, log)
     return motion, measured, mdl
 
@@ -351,10 +377,12 @@ def _decode(
     progress: ProgressFactory,
     log: _RunLog,
     checkpoints: Checkpoints | None = None,
+    handoff: FrameHandoff | None = None,
 ) -> FramePassResult:
     """The decoding pass (every frame's ring and stationary test), refused without a ring.
     With ``checkpoints``, it goes on after the parts of it an earlier run saved, and
-    saves its own parts as it goes.
+    saves its own parts as it goes. With ``handoff``, the moving frames are left there
+    for the later stages (:func:`omnipipe.pipeline.frame_pass.run`).
 
     Raises:
         ReconstructionError: no laser ring in any frame.
@@ -371,6 +399,7 @@ def _decode(
     frames = frame_pass.run(
         config.laser, config.sfm.stations, dataset, executor, progress=tick, parts=parts,
         save_part=None if checkpoints is None else partial(checkpoints.save_part, "frames"),
+        handoff=handoff,
     )
     log.timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
@@ -409,8 +438,11 @@ def _camera_motion(
     executor: Executor,
     progress: ProgressFactory,
     log: _RunLog,
+    handoff: str | None = None,
 ) -> _Motion:
     """The sfm stage, refused when its motion cannot be trusted or nothing registered.
+    ``handoff``: the folder where the decoding pass left the moving frames
+    (:class:`~omnipipe.handoff.FrameHandoff`), or None.
 
     Raises:
         ReconstructionError: see :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`;
@@ -428,7 +460,10 @@ def _camera_motion(
     tick = progress("sfm", n)
     motion = sfm.run(
         config.sfm,
-        sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved, frames.motion_ratio),
+        replace(
+            sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved, frames.motion_ratio),
+            handoff=handoff,
+        ),
         progress=tick,
         executor=executor,
     )
@@ -541,8 +576,10 @@ def _model(
     executor: Executor,
     progress: ProgressFactory,
     log: _RunLog,
+    handoff: str | None = None,
 ) -> ModelResult:
-    """The model stage on the stations, unrolled by the analysis' centreline."""
+    """The model stage on the stations, unrolled by the analysis' centreline (``handoff``:
+    as in :func:`_camera_motion`)."""
     import numpy as np
 
     from omnipipe import model
@@ -570,6 +607,7 @@ def _model(
         circumference_mm=2 * np.pi * res.radius_mm,
         dataset=dataset,
         frame_index=stations,
+        handoff=handoff,
         points_in_world=feed.points,
         point_frame=feed.point_frame,
         not_wall=res.point_not_wall if len(res.point_not_wall) == len(feed.points) else None,

@@ -663,6 +663,7 @@ def moving_frames(
             np.flatnonzero(moved),
             most=4,
             payload=lambda i: rings[i].pixels,
+            handoff=inputs.handoff,
         )
         for i, (views, feats, gray) in stream:
             yield MovingFrame(i, views, feats, gray)

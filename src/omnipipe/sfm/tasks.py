@@ -3,8 +3,8 @@
 Each task is a pure function of its arguments, so the motion does not depend on
 where it ran:
 
-- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker: its
-  perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
+- :class:`FeatureTask`: a chunk of moving frames, each decoded in the worker (or read
+  as the decoding pass left it, :mod:`omnipipe.handoff`): its perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
   tracked between keyframes) and its grey image (for the later template matching,
   Eq. 17);
 - :func:`track_back` and :func:`matched_rays`: the pending frames' correspondences with
@@ -19,11 +19,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.executor import worker_cached
-from omnipipe.image import gray_without_laser
+from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.features import (
     FeatureConfig,
@@ -59,6 +60,18 @@ def compact_gray(gray: np.ndarray) -> np.ndarray:
     return gray
 
 
+def frame_gray(image: np.ndarray, channel: str) -> np.ndarray:
+    """``compact_gray(gray_without_laser(image, channel))``, the same array: an 8-bit
+    frame whose grey image is one channel (a red laser's green, a one-channel frame) is
+    read as that channel directly (0.2 ms at 1600x1200, not 2 ms through float32)."""
+    if image.dtype == np.uint8:
+        if image.ndim == 2:
+            return image
+        if image.ndim == 3 and image.shape[2] >= 2 and CHANNEL_INDEX.get(channel) == 0:
+            return cv2.extractChannel(image, 1)
+    return compact_gray(gray_without_laser(image, channel))
+
+
 def _extractor(rig: Rig, config: FeatureConfig) -> FeatureExtractor:
     """The feature extractor of ``rig`` with ``config``, built once per process
     (:func:`~omnipipe.executor.worker_cached`; its perspective maps take 0.5 s to build
@@ -77,7 +90,7 @@ class FeatureTask:
     them), else its :class:`~omnipipe.sfm.features.FrameViews` (features None: the
     caller tracks into them, and detects on the keyframes). The chunk's ``payload``
     holds each frame's laser-ring pixels (N, 2), masked out of the features. The grey
-    image is :func:`compact_gray` of :func:`omnipipe.image.gray_without_laser`.
+    image is :func:`frame_gray`.
     """
 
     def __init__(self, config: FeatureConfig, detect: bool = True) -> None:
@@ -95,7 +108,7 @@ class FeatureTask:
             image = source.read(k)
             ring_pixels = None if source.payload is None else source.payload[k]
             views = extractor.frame_views(image, channel, ring_pixels)
-            gray = compact_gray(gray_without_laser(image, channel))
+            gray = frame_gray(image, channel)
             if self.detect:
                 out.append((None, extractor.detect(views), gray))
             else:

@@ -114,6 +114,8 @@ class SfmInputs:
             from its station's first frame over the noise-only expectation;
             :class:`omnipipe.sfm.stations.StationTracker`) when ``moved`` was given;
             None: recorded here (with ``moved``).
+        handoff: the folder of a :class:`~omnipipe.handoff.FrameHandoff` where the
+            decoding pass left the moving frames (those are not decoded again), or None.
     """
 
     rig: Rig
@@ -126,6 +128,7 @@ class SfmInputs:
     odometry: Odometry | None = None
     imu: Imu | None = None
     station_ratio: np.ndarray | None = None
+    handoff: str | None = None
 
     @classmethod
     def of_dataset(

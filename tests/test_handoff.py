@@ -1,0 +1,45 @@
+"""Decoded frames handed on between stages: read back as written, a budget, cleanup."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from omnipipe.executor import FrameSource
+from omnipipe.handoff import FrameHandoff, hand_on, handed, handoff_path
+
+
+def test_round_trip_budget_and_cleanup() -> None:
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (30, 40, 3)).astype(np.uint8)
+    with FrameHandoff(5, budget_bytes=2 * image.nbytes) as handoff:
+        folder = Path(handoff.folder)
+        written = hand_on(handoff.folder, 1, image)
+        assert written >= image.nbytes
+        handoff.note(1, written)
+        back = handed(handoff.folder, 1)
+        assert back is not None and back.dtype == np.uint8 and np.array_equal(back, image)
+        assert handed(handoff.folder, 2) is None  # never handed on
+        handoff.note(2, hand_on(handoff.folder, 2, image))  # the budget is reached now
+        assert hand_on(handoff.folder, 3, image) == 0
+        assert not Path(handoff_path(handoff.folder, 3)).exists()
+        handoff.discard(2)
+        assert handed(handoff.folder, 2) is None
+    assert not folder.exists()
+
+
+def test_a_frame_source_reads_a_handed_frame_else_decodes(tmp_path: Path) -> None:
+    from omnipipe.dataset import write_image
+
+    rng = np.random.default_rng(4)
+    on_disk = rng.integers(0, 256, (12, 16, 3)).astype(np.uint8)
+    other = rng.integers(0, 256, (12, 16, 3)).astype(np.uint8)
+    paths = (tmp_path / "a.png", tmp_path / "b.png")
+    for p in paths:
+        write_image(p, on_disk)
+    with FrameHandoff(9) as handoff:
+        hand_on(handoff.folder, 7, other)
+        source = FrameSource(None, [7, 8], paths=paths, handoff=handoff.folder)
+        assert np.array_equal(source.read(0), other)  # frame 7: handed on
+        assert np.array_equal(source.read(1), on_disk)  # frame 8: decoded
