@@ -7,13 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply, invert, make_transform
-from omnipipe.sfm.bundle import (
-    BundleConfig,
-    BundleProblem,
-    add_wall_prior,
-    bundle_adjust,
-    resect_rays,
-)
+from omnipipe.sfm.bundle import BundleConfig, BundleProblem, bundle_adjust, resect_rays
 from omnipipe.sim.scenarios import paper_rig
 
 
@@ -100,29 +94,3 @@ def test_resection_refits_without_unverified_matches(pipe_scene) -> None:
     err_clean = np.linalg.norm(clean[:3, 3] - truth[:3, 3])
     err = np.linalg.norm(est[:3, 3] - truth[:3, 3])
     assert err < max(1.5 * err_clean, 0.1), (err, err_clean)
-
-
-def test_wall_prior_alone_makes_the_bundle_metric(pipe_scene) -> None:
-    """Without laser anchors a bundle's scale is free: from a start 5 % too long it stays
-    there; with each keyframe's ring (the 202 mm wall 82 mm behind the rig) as the
-    pipe-shape prior, the tracks' depths on that wall fix it."""
-    rng, camera, poses, pts, (f, p, px), _ = _scene(pipe_scene, 5)
-    start = poses.copy()
-    start[1:, :3, 3] *= 1.05
-    pts0 = pts * [1.05, 1.05, 1.0] + rng.normal(0, 1.0, pts.shape)
-    none = np.zeros(0, int)
-    th = np.linspace(-np.pi, np.pi, 90, endpoint=False)
-    rings = []
-    for T in poses:  # the true wall's circle 82 mm behind each rig, in its rig frame
-        ring = np.column_stack([101 * np.cos(th), 101 * np.sin(th), np.full(90, T[2, 3] - 82.0)])
-        rings.append(apply(invert(T), ring))
-    errors = []
-    for sigma in (0.0, 0.01):
-        config = BundleConfig(max_evaluations=60, wall_sigma=sigma)
-        problem = BundleProblem(start, pts0, f, p, px, none, none, np.zeros((0, 3)), np.zeros((0, 2)))
-        add_wall_prior(problem, rings, config)
-        assert (problem.wall is None) == (sigma == 0)
-        res = bundle_adjust(camera, problem, config)
-        errors.append(np.linalg.norm(res.world_from_rig[:, :3, 3] - poses[:, :3, 3], axis=1).max())
-    # 72 mm of travel: 3.6 mm too long without the prior, metric within 0.5 mm with it.
-    assert errors[0] > 2.5 and errors[1] < 0.5, errors

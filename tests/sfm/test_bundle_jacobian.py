@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from omnipipe.camera import CameraModel, OmniCamera
-from omnipipe.sfm.bundle import BundleObjective, WallPrior, _so3_left_jacobian
+from omnipipe.sfm.bundle import BundleObjective, _so3_left_jacobian
 
 
 def _central_differences(fun, x: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -82,22 +82,3 @@ def test_bundle_jacobian_matches_finite_differences(bundle_problem) -> None:
         assert np.all(J[zeroed] == 0)
         # Nothing outside the old sparsity: residual rows touch their own pose(s) and point.
         assert np.abs(fd[ok][J[ok] == 0]).max() < 1e-6 * np.abs(fd).max()
-
-
-def test_bundle_jacobian_with_the_wall_prior_matches_finite_differences(bundle_problem) -> None:
-    camera, problem = bundle_problem(4, 1)
-    rng = np.random.default_rng(4)
-    Q = 60
-    point = rng.choice(len(problem.points_in_world), Q, replace=False)
-    problem.wall = WallPrior(point, rng.integers(0, 5, Q), rng.normal(0, 2.0, (Q, 2)), np.full(Q, 101.0), rng.uniform(0.5, 2.0, Q))
-    objective = BundleObjective(camera, problem, 1.0, 1.5)
-    x0, residuals = objective.x0, objective.residuals
-    r = residuals(x0)
-    rows = slice(len(r) - Q, len(r))
-    assert np.all(r[rows] != 0)
-    J = objective.jacobian(x0).toarray()[rows]
-    fd = _central_differences(lambda x: residuals(x)[rows], x0, 1e-6 * np.maximum(1.0, np.abs(x0)))
-    assert np.abs(J - fd).max() < 1e-5 * np.abs(fd).max()
-    # A term of a fixed keyframe touches its point only; the others their pose and point.
-    assert (np.count_nonzero(J, axis=1) <= 9).all()
-    assert np.all(J[problem.wall.frame == 0, : objective.n_pose] == 0)

@@ -31,7 +31,6 @@ from omnipipe.sfm.bundle import (
     BundleConfig,
     BundleProblem,
     BundleResult,
-    add_wall_prior,
     build_problem,
     bundle_adjust,
     keyframe_windows,
@@ -215,7 +214,6 @@ def _adjust_window(
         config,
     )
     problem.fixed = fixed
-    add_wall_prior(problem, obs.kf.ring_points[s:e], config)  # off unless wall_sigma
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
     ba = bundle_adjust(ctx.camera, problem, config)

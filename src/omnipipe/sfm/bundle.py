@@ -39,11 +39,6 @@ from omnipipe.geometry import invert
 from omnipipe.sfm import schur
 from omnipipe.sfm.features import track_labels
 from omnipipe.sfm.geometry import triangulate_pairs
-from omnipipe.sfm.scale_check import wall_cylinder
-
-# A point further than this share of the wall radius off a ring's cylinder at the start
-# is not taken as a wall point (a defect, a lateral, a wrong track).
-WALL_PRIOR_MAX_OFF = 0.15
 
 
 @dataclass(frozen=True)
@@ -73,12 +68,6 @@ class BundleConfig:
             start far off, tests/sfm/test_bundle.py's 5 % scale error, LM settles in a
             worse local minimum: cost 0.7 % higher, poses 0.45 against 0.23 mm off; on
             paper-small, bend-small and other-rig-small the two agree within 0.001 mm).
-        wall_sigma: the pipe-shape prior (Hansen et al., IJRR 2015): a track point near
-            a keyframe's laser ring lies on the wall the ring measured, its distance from
-            the cylinder's axis within this 1-sigma share of the radius
-            (:func:`add_wall_prior`); 0: off.
-        wall_reach: only points within this many wall radii of the ring's plane, along
-            the axis, take the prior (the cylinder is straight; the pipe may bend).
     """
 
     enabled: bool = True
@@ -91,8 +80,6 @@ class BundleConfig:
     window_keyframes: int = bounded(64, ge=3)
     window_overlap: int = bounded(8, ge=1)
     solver: str = "auto"
-    wall_sigma: float = bounded(0.0, ge=0)
-    wall_reach: float = bounded(0.5, gt=0)
 
     def __post_init__(self) -> None:
         if self.solver not in ("auto", "trf", "schur"):
@@ -115,7 +102,6 @@ class BundleProblem:
         fixed: the first ``fixed`` keyframes keep their poses (at least 1: the first
             defines the world; a window of a long run also holds the keyframes it shares
             with the window before, :func:`keyframe_windows`).
-        wall: the pipe-shape prior's terms (:class:`WallPrior`), None: none.
     """
 
     world_from_rig: np.ndarray
@@ -129,29 +115,6 @@ class BundleProblem:
     anchor_pixels_b: np.ndarray
     feature_point: list[np.ndarray] | None = None
     fixed: int = 1
-    wall: WallPrior | None = None
-
-
-@dataclass(frozen=True)
-class WallPrior:
-    """Track points on the wall a keyframe's laser ring measured (the pipe-shape prior).
-
-    Each term: ``(|q_xy - centre| - radius) / sigma_mm`` with ``q = rig_k_from_world @
-    point`` (the wall a cylinder along rig k's z axis), in units of the soft-L1 scale.
-
-    Attributes:
-        point: (Q,) track point of each term.
-        frame: (Q,) keyframe k whose ring's cylinder it is.
-        centre: (Q, 2) the cylinder's axis (x, y) in rig k, mm.
-        radius: (Q,) its radius, mm.
-        sigma_mm: (Q,) 1-sigma of each point's distance to the wall, mm.
-    """
-
-    point: np.ndarray
-    frame: np.ndarray
-    centre: np.ndarray
-    radius: np.ndarray
-    sigma_mm: np.ndarray
 
 
 @dataclass
@@ -222,14 +185,10 @@ def _check_shapes(problem: BundleProblem) -> None:
         raise ShapeError(f"bundle_adjust: fixed must be 1..{K} keyframes, got {int(problem.fixed)}")
 
 
-def _block_entries(
-    rows: np.ndarray, col0: np.ndarray, width: int, height: int = 2
-) -> tuple[np.ndarray, np.ndarray]:
-    """(row, col) indices of a (height, width) Jacobian block per residual group ``rows``
-    (rows ``height * rows ..``), from column ``col0``."""
-    shape = (len(rows), height, width)
-    r = np.broadcast_to((height * rows)[:, None, None] + np.arange(height)[None, :, None], shape)
-    c = np.broadcast_to(col0[:, None, None] + np.arange(width)[None, None, :], shape)
+def _block_entries(rows: np.ndarray, col0: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col) indices of a (2, width) Jacobian block per residual pair ``rows``, from column ``col0``."""
+    r = np.broadcast_to((2 * rows)[:, None, None] + np.arange(2)[None, :, None], (len(rows), 2, width))
+    c = np.broadcast_to(col0[:, None, None] + np.arange(width)[None, None, :], (len(rows), 2, width))
     return r.ravel(), c.ravel()
 
 
@@ -238,8 +197,8 @@ class BundleObjective:
 
     ``x`` holds the free keyframes' (rotation vector, translation) of rig_from_world
     (6 each), then the points (3 each, mm). Residuals (2M observation rows, then 2L
-    anchor rows, px, then Q wall-prior rows) are in the order of :class:`BundleProblem`'s
-    arrays; an invalid or non-finite projection gives a zero residual.
+    anchor rows, px) are in the order of :class:`BundleProblem`'s arrays; an invalid or
+    non-finite projection gives a zero residual.
 
     Attributes:
         x0: the start (the problem's initial poses and points).
@@ -249,15 +208,9 @@ class BundleObjective:
         ShapeError: inconsistent observation arrays.
     """
 
-    def __init__(
-        self, camera: CameraModel, problem: BundleProblem, w_laser: float, loss_scale: float = 1.0
-    ) -> None:
+    def __init__(self, camera: CameraModel, problem: BundleProblem, w_laser: float) -> None:
         _check_shapes(problem)
         self.camera, self.problem, self.w_laser = camera, problem, w_laser
-        wall = problem.wall
-        self._wall = wall if wall is not None and len(wall.point) else None
-        # A wall term of one sigma weighs as a residual of one soft-L1 scale.
-        self.w_wall = loss_scale / wall.sigma_mm if self._wall is not None else np.zeros(0)
         K, F = len(problem.world_from_rig), int(problem.fixed)
         pose0 = _poses_to_params(problem.world_from_rig)
         self._fixed = pose0[:F].copy()
@@ -281,22 +234,12 @@ class BundleObjective:
             _block_entries(M + self._a_free, 6 * (pr.anchor_a[self._a_free] - F), 6),
             _block_entries(M + self._b_free, 6 * (pr.anchor_b[self._b_free] - F), 6),
         ]
-        Q = 0
-        if self._wall is not None:
-            wall = self._wall
-            Q = len(wall.point)
-            self._w_free = np.flatnonzero(wall.frame >= F)
-            blocks += [
-                _block_entries(2 * M + 2 * L + self._w_free, 6 * (wall.frame[self._w_free] - F), 6, 1),
-                _block_entries(2 * M + 2 * L + np.arange(Q), self.n_pose + 3 * wall.point, 3, 1),
-            ]
         jac_rows = np.concatenate([r for r, _ in blocks])
         jac_cols = np.concatenate([c for _, c in blocks])
         self._order = np.lexsort((jac_cols, jac_rows))
         self._indices = jac_cols[self._order].astype(np.int32)
-        n_rows = 2 * M + 2 * L + Q
-        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=n_rows))]).astype(np.int32)
-        self._shape = (n_rows, len(self.x0))
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L))]).astype(np.int32)
+        self._shape = (2 * M + 2 * L, len(self.x0))
 
     def _poses(self, x: np.ndarray) -> np.ndarray:
         """(K, 6) every keyframe's (rotation vector, translation) of rig_from_world."""
@@ -321,20 +264,7 @@ class BundleObjective:
         qb = np.einsum("nij,nj->ni", R[b], w) + t[b]
         pxb, vb = camera.project(qb)
         r_anc = np.where(vb[:, None], pxb - pr.anchor_pixels_b, 0.0) * self.w_laser
-        parts = [r_obs.ravel(), r_anc.ravel()]
-        if self._wall is not None:
-            _, rho = self._wall_offsets(R, t, pts)
-            parts.append((rho - self._wall.radius) * self.w_wall)
-        return np.nan_to_num(np.concatenate(parts), nan=0.0, posinf=0.0, neginf=0.0)
-
-    def _wall_offsets(self, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(Q, 3) each wall term's point in its rig frame less the cylinder's axis (z
-        zeroed) and (Q,) its distance from the axis, mm."""
-        wall = self._wall
-        k = wall.frame
-        q = np.einsum("nij,nj->ni", R[k], pts[wall.point]) + t[k]
-        u = np.column_stack([q[:, :2] - wall.centre, np.zeros(len(q))])
-        return u, np.linalg.norm(u, axis=1)
+        return np.nan_to_num(np.concatenate([r_obs.ravel(), r_anc.ravel()]), nan=0.0, posinf=0.0, neginf=0.0)
 
     def jacobian(self, x: np.ndarray) -> csr_matrix:
         """(2M + 2L, len(x)) sparse CSR d residuals / d x."""
@@ -342,28 +272,8 @@ class BundleObjective:
         Jl = _so3_left_jacobian(self._poses(x)[:, :3])
         d_pose_obs, d_point = self._observation_blocks(R, t, pts, Jl)
         d_pose_a, d_pose_b = self._anchor_blocks(R, t, Jl)
-        parts = [d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel()]
-        if self._wall is not None:
-            parts += [b.ravel() for b in self._wall_blocks(R, t, pts, Jl)]
-        data = np.concatenate(parts)
+        data = np.concatenate([d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel()])
         return csr_matrix((data[self._order], self._indices, self._indptr), shape=self._shape)
-
-    def _wall_blocks(
-        self, R: np.ndarray, t: np.ndarray, pts: np.ndarray, Jl: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(free terms, 1, 6) d wall term / d pose and (Q, 1, 3) d wall term / d point."""
-        wall = self._wall
-        k = wall.frame
-        u, rho = self._wall_offsets(R, t, pts)
-        # d term / d q = w (u / |u|) (z does not count); chained as an observation's.
-        Jq = (self.w_wall[:, None] * u / np.maximum(rho, 1e-9)[:, None])[:, None, :]
-        Rk = R[k]
-        d_point = Jq @ Rk
-        free = self._w_free
-        Rx = np.einsum("nij,nj->ni", Rk[free], pts[wall.point[free]])
-        Jf = Jq[free]
-        d_pose = np.concatenate([np.cross(Rx[:, None, :], Jf) @ Jl[k[free]], Jf], axis=2)
-        return d_pose, d_point
 
     def _observation_blocks(
         self, R: np.ndarray, t: np.ndarray, pts: np.ndarray, Jl: np.ndarray
@@ -405,9 +315,9 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
         ShapeError: inconsistent observation arrays.
     """
     w_laser = float(config.laser_weight)
-    objective = BundleObjective(camera, problem, w_laser, config.loss_scale_px)
+    objective = BundleObjective(camera, problem, w_laser)
     x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
-    K, M, L = len(problem.world_from_rig), len(problem.obs_frame), len(problem.anchor_a)
+    K, M = len(problem.world_from_rig), len(problem.obs_frame)
     r0 = residuals(x0)
     # Single-threaded BLAS: the result does not depend on the machine's core count
     # (threaded sums round differently: 2e-7 mm in the poses); LSMR's dot products are
@@ -435,7 +345,7 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
         return float(np.sqrt(np.mean(r**2))) if len(r) else 0.0
 
     return BundleResult(
-        world_from_rig, pts, rms(r0[: 2 * M]), rms(r1[: 2 * M]), rms(r1[2 * M : 2 * M + 2 * L] / max(w_laser, 1e-9)), int(sol.nfev)
+        world_from_rig, pts, rms(r0[: 2 * M]), rms(r1[: 2 * M]), rms(r1[2 * M :] / max(w_laser, 1e-9)), int(sol.nfev)
     )
 
 
@@ -554,47 +464,6 @@ def build_problem(
     return BundleProblem(
         world_from_rig, np.array(pts), np.concatenate(obs_f), np.concatenate(obs_p),
         np.concatenate(obs_px).astype(float), aa, ab, aq, apx, feature_point,
-    )
-
-
-def add_wall_prior(problem: BundleProblem, rings_in_rig: list[np.ndarray], config: BundleConfig) -> None:
-    """Set ``problem.wall``: the pipe-shape prior (Hansen et al., IJRR 2015) on the track
-    points near a laser ring.
-
-    Each keyframe's ring points (``rings_in_rig``: (N_k, 3) mm in its rig frame) give
-    its wall cylinder (:func:`omnipipe.sfm.scale_check.wall_cylinder`, axis along rig z).
-    A track point seen by keyframe k takes k's cylinder when it lies within
-    ``config.wall_reach`` radii of k's ring plane along the axis (the nearest such ring
-    of its keyframes) and within :data:`WALL_PRIOR_MAX_OFF` of the radius off the wall at
-    the start; its sigma is ``config.wall_sigma`` x the radius. Nothing is set with
-    ``config.wall_sigma`` 0 or no such point.
-    """
-    if config.wall_sigma <= 0 or not len(problem.points_in_world):
-        return
-    walls = [wall_cylinder(r) if len(r) else None for r in rings_in_rig]
-    P = len(problem.points_in_world)
-    best = np.full(P, np.inf)  # |axial offset| / radius of the chosen ring
-    frame = np.full(P, -1)
-    for k, wall in enumerate(walls):
-        if wall is None:
-            continue
-        pts = np.unique(problem.obs_point[problem.obs_frame == k])
-        q = (invert(problem.world_from_rig[k]) @ np.c_[problem.points_in_world[pts], np.ones(len(pts))].T).T
-        reach = np.abs(q[:, 2] - wall.ring_z_mm) / wall.radius_mm
-        off = np.abs(np.linalg.norm(q[:, :2] - wall.centre_xy, axis=1) - wall.radius_mm) / wall.radius_mm
-        take = (reach <= config.wall_reach) & (off <= WALL_PRIOR_MAX_OFF) & (reach < best[pts])
-        best[pts[take]], frame[pts[take]] = reach[take], k
-    point = np.flatnonzero(frame >= 0)
-    if not len(point):
-        return
-    k = frame[point]
-    radius = np.array([walls[j].radius_mm for j in k])
-    problem.wall = WallPrior(
-        point,
-        k,
-        np.array([walls[j].centre_xy for j in k]).reshape(-1, 2),
-        radius,
-        config.wall_sigma * radius,
     )
 
 

@@ -12,7 +12,8 @@ frame:
 - the relative motion of the matched rays (eight-point algorithm with RANSAC,
   Eq. 10-16, :mod:`omnipipe.sfm.ransac`) tells how far the rays turned, rotation
   removed: under ``keyframe_min_parallax_deg`` the frame is *pending* (resected after
-  the bundle adjustment), else it becomes the next keyframe;
+  the bundle adjustment), else it becomes the next keyframe; when its tracks are running
+  out (``tracking.renew_ratio``), from half that angle on;
 - each keyframe step's two scale measurements (laser template matches, Eq. 17; feature
   depths on the light-section wall) are submitted to the executor's workers, a bounded
   number at a time.
@@ -206,6 +207,7 @@ class KeyframeLoop:
         self._in_flight: deque[Future] = deque()
         self._last: _Keyframe | None = None
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
+        self._step_inliers = 0  # verified matches of the last keyframe step
         # The last keyframe's tracks, followed frame to frame (None: tracking off).
         self._chain: TrackChain | None = None
         self._latest: MovingFrame | None = None  # the last moving frame added
@@ -226,7 +228,9 @@ class KeyframeLoop:
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
-        if step is not None and step.parallax_rad < self._min_parallax and not closing:
+        # Tracks running out: a keyframe from half the parallax on.
+        least = self._min_parallax / 2 if step is not None and self._running_out(step) else self._min_parallax
+        if step is not None and step.parallax_rad < least and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
             self._defer(frame, step.tracks.features, step.inliers)
             self.tracked[frame.frame] = True
@@ -242,14 +246,21 @@ class KeyframeLoop:
         motion = _relative(self.ctx, pair)
         if motion is None:
             self.lost[frame.frame] = True  # its pose (and the chain after it) lacks this step
-        if motion is not None and _parallax(pair, motion) < self._min_parallax and not closing:
+        if motion is not None and _parallax(pair, motion) < least and not closing:
             # Too little baseline for a reliable step: resected after the adjustment.
             self._defer(frame, features, m[motion.inliers])
             return
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
             motion = _refine(self.ctx, pair, motion, last.gray, frame.gray)
         self._measure(pair, motion, last.gray, frame.gray)
+        self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued)
+
+    def _running_out(self, step: TrackedStep) -> bool:
+        """True when ``step``'s verified tracks fell below ``tracking.renew_ratio`` of
+        the last keyframe step's inliers (none yet: False)."""
+        ratio = self.ctx.config.tracking.renew_ratio
+        return ratio > 0 and len(step.inliers) < ratio * self._step_inliers
 
     def _chained_matches(
         self, last: _Keyframe, frame: MovingFrame, step: TrackedStep
