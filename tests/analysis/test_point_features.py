@@ -103,3 +103,19 @@ def test_narrow_joint_between_tilted_rings_is_found() -> None:
     assert abs(j.offset_mm - 2.0) < max(3.0 * j.offset_sigma_mm, 0.3)
     assert abs((j.offset_angle_deg - 200.0 + 180) % 360 - 180) < 10.0
     assert res.defects == []
+
+
+def test_joint_beside_a_lateral_on_sparse_rings_is_its_own_band() -> None:
+    """Rings 20 mm apart (sewer-small): one ring in an 8 mm joint gap 20 mm before a
+    100 mm tee's opening, linked to the opening's rings along the axis. The joint's band
+    is its ring's, not the 120 mm from the joint through the opening: one joint (at the
+    gap, narrower than 10 mm), one lateral, no defect."""
+    joint = Joint(236.0, 8.0, 10.0, 0.0, 0.0)
+    pipe = Pipe(300.0, features=PipeFeatures(joints=(joint,)))
+    inputs = _rings(pipe, seed=5, spacing=20.0)
+    res = run(AnalysisConfig(), inputs)
+    joints = [f for f in res.features if f.kind == "joint"]
+    laterals = [f for f in res.features if f.kind == "lateral"]
+    assert len(joints) == 1 and len(laterals) == 1, res.features
+    assert abs(joints[0].axial_mm - joint.axial_mm) < 10.0 and joints[0].gap_mm < 10.0, joints
+    assert res.defects == []

@@ -19,10 +19,21 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
+from omnipipe.analysis.cylinder import Cylinder, _basis, fit_cylinder
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.progress import phase
+
+AXIS_PRIOR_SIGMA_RAD = float(np.radians(1.0))
+"""Spread of the pipe axis about the rig's z axis where the rig is (rad): the robot's head
+tilts about a degree in the pipe (the simulator's ``tilt_deg`` 0.8)."""
+
+_WEAK_PRIOR_RAD = float(np.radians(3.0))
+"""A prior wider than this (rad) is not used: the station's tangent is the centres' line
+alone, as without a prior."""
+
+_CENTRE_NOISE_FLOOR_MM = 0.1
+"""Least scatter (mm) assumed of the station centres about their line."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +99,7 @@ def recentred(
     reference_from_world: np.ndarray,
     half_span_mm: float,
     breaks: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    axis_prior: AxisPrior | None = None,
 ) -> Centreline:
     """The centreline through corrected station centres.
 
@@ -99,6 +111,8 @@ def recentred(
         half_span_mm: the tangent at a station is the direction of the corrected
             centres within this distance (on its side of every break).
         breaks: planes (point, normal; world mm) between separately fitted sections.
+        axis_prior: the prior of the tangents (:func:`rig_axis_prior`,
+            :func:`_local_tangents`); None: the centres' line alone.
 
     A short window's cylinder can tilt to mimic an oval section (an oblique cut of a
     circular cylinder is an ellipse: 6 % ovality ~ 20 deg), which shifts its station's
@@ -107,7 +121,7 @@ def recentred(
     off = np.asarray(offsets, float)
     centre = line.centre + off[:, :1] * line.normal + off[:, 1:2] * line.binormal
     side = np.array([np.sign((line.centre - p) @ n) for p, n in breaks]).reshape(len(breaks), len(centre))
-    tangent = _local_tangents(centre, line.tangent, half_span_mm, side)
+    tangent = _local_tangents(centre, line.tangent, half_span_mm, side, prior=axis_prior)
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.maximum(np.linalg.norm(tangent[1:] + tangent[:-1], axis=1), 1e-12)
     arc = np.concatenate([[0.0], np.cumsum(steps)])
@@ -256,15 +270,29 @@ _NONE = np.zeros(0)
 
 
 def _local_tangents(
-    centre: np.ndarray, fallback: np.ndarray, half_span_mm: float, side: np.ndarray | None = None
+    centre: np.ndarray,
+    fallback: np.ndarray,
+    half_span_mm: float,
+    side: np.ndarray | None = None,
+    prior: AxisPrior | None = None,
 ) -> np.ndarray:
     """(K, 3) unit directions of the centres within ``half_span_mm`` of each station (and,
-    with ``side`` ((B, K) signs), on its side of every break)."""
+    with ``side`` ((B, K) signs), on its side of every break).
+
+    With a ``prior`` at most ``_WEAK_PRIOR_RAD`` wide at a station, its direction is the
+    line fit of the centres with that Gaussian prior on its slope
+    (:func:`_ridge_direction`): a short run's centres (a few rings over 20-60 mm, each
+    off the axis by a joint's offset, a taper or the wall noise) cannot tilt it by degrees.
+    """
     out = fallback.copy()
     for i in range(len(centre)):
         near = np.linalg.norm(centre - centre[i], axis=1) <= half_span_mm
         if side is not None and len(side):
             near &= np.all(side == side[:, i : i + 1], axis=0)
+        if prior is not None and prior.sigma_rad[i] <= _WEAK_PRIOR_RAD:
+            d = _ridge_direction(centre[near], prior.direction[i], float(prior.sigma_rad[i]))
+            out[i] = d if d @ fallback[i] > 0 else -d
+            continue
         if near.sum() < 3:
             continue
         c = centre[near] - centre[near].mean(axis=0)
@@ -385,3 +413,68 @@ def fit_bend(
 def _pinv_cov(jac: np.ndarray, var: float) -> np.ndarray:
     """(P, P) covariance var (J^T J)^-1 of a least-squares fit with Jacobian ``jac`` (N, P)."""
     return np.linalg.pinv(jac.T @ jac) * var
+
+
+@dataclass(frozen=True)
+class AxisPrior:
+    """The pipe axis expected at each station from the robot's motion (world frame).
+
+    Attributes:
+        direction: (K, 3) unit directions.
+        sigma_rad: (K,) their spread (rad).
+    """
+
+    direction: np.ndarray
+    sigma_rad: np.ndarray
+
+
+def rig_axis_prior(
+    world_from_rig: np.ndarray, centre: np.ndarray, sigma_rad: float = AXIS_PRIOR_SIGMA_RAD
+) -> AxisPrior:
+    """The rig's z axis as the prior of the pipe axis at its own ring (the robot runs
+    along the pipe).
+
+    Args:
+        world_from_rig: (K, 4, 4) the rig pose of each station's frame.
+        centre: (K, 3) the station centres (world, mm).
+        sigma_rad: the prior's spread where the rig is (its head's tilt in the pipe).
+
+    The ring lies a lead L (mm, along z) from the rig, where the pipe may have turned:
+    the spread grows by the turn the rig's z axis makes over the run's travel T, scaled to
+    L (sigma^2 = sigma_rad^2 + (turn L / T)^2): in a bend the prior fades, on a straight
+    run it stays about ``sigma_rad`` (plus the head's wobble, likewise scaled).
+    """
+    z = world_from_rig[:, :3, 2] / np.linalg.norm(world_from_rig[:, :3, 2], axis=1, keepdims=True)
+    pos = world_from_rig[:, :3, 3]
+    travel = float(np.linalg.norm(pos[-1] - pos[0]))
+    turn = float(np.arccos(np.clip(z[0] @ z[-1], -1.0, 1.0)))
+    lead = np.abs(np.einsum("ij,ij->i", centre - pos, z))
+    rate = turn / travel if travel > 1e-6 else np.inf
+    with np.errstate(invalid="ignore"):
+        grow = np.where(lead > 0, rate * lead, 0.0)
+    return AxisPrior(z, np.hypot(sigma_rad, grow))
+
+
+def _ridge_direction(centres: np.ndarray, prior: np.ndarray, prior_sigma_rad: float) -> np.ndarray:
+    """(3,) unit direction of the line through ``centres`` (M, 3) (mm) whose slope against
+    the unit ``prior`` (3,) has a Gaussian prior N(0, ``prior_sigma_rad``^2): with e1, e2
+    orthogonal to the prior and s the centres' coordinate along it, the slopes of
+    x = c.e_j against s are sum(ds dx) / (sum(ds^2) + sigma_c^2 / sigma_p^2), sigma_c the
+    centres' scatter about the unconstrained line (at least ``_CENTRE_NOISE_FLOOR_MM``)."""
+    g = prior / np.linalg.norm(prior)
+    if len(centres) < 2:
+        return g
+    e1, e2 = _basis(g)
+    c = centres - centres.mean(axis=0)
+    ds = c @ g
+    dx = np.column_stack([c @ e1, c @ e2])
+    sss = float(ds @ ds)
+    if sss < 1e-9:
+        return g
+    free = (ds @ dx) / sss
+    scatter = dx - np.outer(ds, free)
+    dof = max(2 * (len(c) - 2), 1)
+    var_c = max(float(np.sum(scatter**2)) / dof, _CENTRE_NOISE_FLOOR_MM**2) if len(c) > 2 else 1e6
+    slope = (ds @ dx) / (sss + var_c / prior_sigma_rad**2)
+    d = g + slope[0] * e1 + slope[1] * e2
+    return d / np.linalg.norm(d)

@@ -229,6 +229,7 @@ def _joint_bands(
     cuts = np.flatnonzero(np.diff(s) > link) + 1
     bands = []
     for group in np.split(np.arange(len(s)), cuts):
+        group = _without_sector_rings(config, r, idx[order[group]], group)
         if len(group) < config.min_points:
             continue
         lo, hi = np.percentile(s[group], [2.0, 98.0])
@@ -239,6 +240,34 @@ def _joint_bands(
         if len(seen) >= 9 and len(have) >= config.joint_coverage * len(seen):
             bands.append((lo, hi))
     return bands
+
+
+def _without_sector_rings(
+    config: FeatureConfig, r: _Rings, members: np.ndarray, group: np.ndarray
+) -> np.ndarray:
+    """``group`` (positions, matching the candidate indices ``members``) without the rings
+    whose candidates, together, fill only a narrow sector (at most 1 - joint_coverage of
+    the angles seen) while the other rings are deep over most of theirs: a lateral's
+    opening next to a joint, linked to it along the axis (sewer-small: the joint's ring at
+    -96 mm and the lateral's five rings at -78 to -1 mm made one 85 mm band), is not part
+    of the joint's gap. Rings of a gap crossed obliquely each hold a sector too, but
+    their sectors turn around the pipe: together they are not narrow."""
+    bins = (np.degrees(r.theta) % 360 // 10).astype(int)
+    rings = r.frame[members]
+    narrow = []
+    for k in np.unique(rings):
+        seen_k = np.unique(bins[r.frame == k])
+        have_k = np.unique(bins[members[rings == k]])
+        if len(have_k) < 0.5 * config.joint_coverage * len(seen_k):
+            narrow.append(k)
+    if not narrow or len(narrow) == len(np.unique(rings)):
+        return group
+    is_narrow = np.isin(rings, narrow)
+    sector = np.unique(bins[members[is_narrow]])
+    seen = np.unique(bins[np.isin(r.frame, np.unique(rings))])
+    if len(sector) > (1.0 - config.joint_coverage) * len(seen):
+        return group
+    return group[~is_narrow]
 
 
 def _split(

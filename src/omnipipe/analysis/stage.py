@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred
+from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred, rig_axis_prior
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
     DefectSearch,
@@ -41,7 +41,7 @@ from omnipipe.analysis.defects import (
     fit_wall_profile,
     fourier_design,
 )
-from omnipipe.analysis.feature_types import Feature, Joint, PointFeature
+from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature
 from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
@@ -272,7 +272,15 @@ def run(
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config)
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
-    features = section_features(st_list, line, head, sec_config)
+    # A ring-shape error shared by the run (radial_sys in cos 2 theta) moves every station's
+    # ovality alike, by up to 4 radial_sys / D: averaging the stations cannot remove it.
+    oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
+    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
+    features = [
+        replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys))
+        if isinstance(f, Ovality) and f.percent_sigma is not None else f
+        for f in section_features(st_list, line, head, sec_config)
+    ]
     warnings = list(search.warnings) + _section_warnings(st_list, wet)
     if feats.unseen_gap_mm >= 3.0:
         warnings.append(
@@ -378,7 +386,8 @@ def _recentred_line(
     pipe coordinates (sigma, rho, theta) about it."""
     _, rho, theta = line.coordinates(pts, frame)
     centres = _section_centres(config, frame, theta, rho, len(line.arc_mm))
-    line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks)
+    prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
+    line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
     return line, line.coordinates(pts, frame)
 
 
