@@ -245,13 +245,14 @@ def _joint_bands(
 def _without_sector_rings(
     config: FeatureConfig, r: _Rings, members: np.ndarray, group: np.ndarray
 ) -> np.ndarray:
-    """``group`` (positions, matching the candidate indices ``members``) without the rings
-    whose candidates, together, fill only a narrow sector (at most 1 - joint_coverage of
-    the angles seen) while the other rings are deep over most of theirs: a lateral's
-    opening next to a joint, linked to it along the axis (sewer-small: the joint's ring at
-    -96 mm and the lateral's five rings at -78 to -1 mm made one 85 mm band), is not part
-    of the joint's gap. Rings of a gap crossed obliquely each hold a sector too, but
-    their sectors turn around the pipe: together they are not narrow."""
+    """``group`` (positions, matching the candidate indices ``members``) without the
+    candidates of a lateral's opening linked to a joint along the axis (sewer-small: the
+    joint's ring at -96 mm and the opening's five rings at -78 to -1 mm made one 85 mm
+    band): those on rings that each hold only a sector (< joint_coverage / 2 of the angles
+    they see), together a narrow one (at most 1 - joint_coverage of the angles seen), and
+    lying along the axis beyond ``margin_mm`` of the candidates of the rings deep all round,
+    reaching as far out as a lateral's (``lateral_reach_rel``). Rings crossing a gap obliquely also hold a sector each, but inside the gap, where a
+    ring lying in it is deep all round: they stay."""
     bins = (np.degrees(r.theta) % 360 // 10).astype(int)
     rings = r.frame[members]
     narrow = []
@@ -267,7 +268,15 @@ def _without_sector_rings(
     seen = np.unique(bins[np.isin(r.frame, np.unique(rings))])
     if len(sector) > (1.0 - config.joint_coverage) * len(seen):
         return group
-    return group[~is_narrow]
+    lo, hi = np.percentile(r.sigma[members[~is_narrow]], [2.0, 98.0])
+    s = r.sigma[members]
+    beyond = is_narrow & ((s < lo - config.margin_mm) | (s > hi + config.margin_mm))
+    # Only an opening: its points reach into the branch as a lateral's do (scattered noise
+    # candidates beyond a joint's rings are left to the joint's measurement).
+    reach = config.lateral_reach_rel * 2.0 * float(np.median(r.rho))
+    if not beyond.any() or float(np.max(r.dev[members[beyond]])) < reach:
+        return group
+    return group[~beyond]
 
 
 def _split(
