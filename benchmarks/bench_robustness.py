@@ -122,6 +122,20 @@ def bridged_cover(checks: list[dict], true_positions: np.ndarray) -> list[tuple[
     return out
 
 
+def flag_causes(unreliable: list[dict], frames_i: np.ndarray) -> dict[str, int]:
+    """Flagged frame steps (i -> i+1 with i in ``frames_i``) counted by the first reason of
+    the stretch that flags them (its text up to the first number, ';' or ':')."""
+    out: dict[str, int] = {}
+    steps = set(int(i) for i in frames_i)
+    for u in unreliable:
+        reason = u["reason"].split(";")[0].split(":")[0]
+        cause = "".join(c for c in reason.split(" (")[0] if not c.isdigit()).replace(" . mm", " X mm")
+        n = sum(i in steps for i in range(u["first_frame"], max(u["last_frame"], u["first_frame"] + 1)))
+        if n:
+            out[cause.strip()] = out.get(cause.strip(), 0) + n
+    return out
+
+
 def clock_error_deg(gravity_world: np.ndarray | None, scene_json: Path) -> float:
     """Angle (deg) between the estimated and true gravity around the rig-0 axis (z): the
     error of every clock position measured from it. NaN without either."""
@@ -222,6 +236,7 @@ def evaluate_seed(
         silent_steps=[int(i) for i in frames_i[silent]],
         worst_unflagged_mm=float(err[~flagged[frames_i]].max()) if (~flagged[frames_i]).any() else 0.0,
         bridged=bridged_cover(checks, true[:, :3, 3]),
+        flag_causes=flag_causes(unreliable, frames_i),
         clock_err_deg=clock_error_deg(gravity, ds / "ground_truth" / "scene.json"),
     )
     return row
@@ -318,6 +333,12 @@ def summarise(rows: list[dict]) -> None:
     steps = sum(r["steps"] for r in done)
     flagged = sum(r["steps_flagged"] for r in done)
     print(f"steps flagged: {flagged} of {steps}")
+    causes: dict[str, int] = {}
+    for r in done:
+        for k, n in r.get("flag_causes", {}).items():
+            causes[k] = causes.get(k, 0) + n
+    for k, n in sorted(causes.items(), key=lambda kv: -kv[1])[:8]:
+        print(f"  {n:>4d} flagged by: {k[:100]}")
     print(
         f"summary: {len(rows)} runs, {len(rows) - len(done)} refused, {flagged} of {steps} steps "
         f"flagged ({100 * flagged / max(steps, 1):.1f} %), {silent} silent failures, "

@@ -153,3 +153,34 @@ def test_wall_without_texture_with_odometry_is_measured_along_the_axis(tmp_path:
     assert result.gravity_world is not None
     angle = math.acos(min(1.0, float(result.gravity_world @ g / np.linalg.norm(g))))
     assert angle <= 3 * result.gravity_sigma_rad + 1e-3, (angle, result.gravity_sigma_rad)
+
+
+@pytest.mark.slow
+def test_plain_wall_steps_the_stationary_test_misses_are_flagged(tmp_path: Path) -> None:
+    """A faint wall (contrast 0.3) and 20 mm strokes over 5 frames: the strokes' slow
+    ends (about 2 mm a frame) look like standing to the stationary test. Without
+    odometry nothing else notices them; every frame step off by more than 1 mm (or 20 %
+    of a step of 2 mm or more) must lie in an unreliable stretch, and the stretch says
+    the stationary test could not rule the step out."""
+    sc = make_scenario("paper-small", frames=16, seed=5)
+    sc.texture = TextureConfig(family="smooth", variant="pvc", contrast=0.3)
+    sc.motion = replace(sc.motion, stroke_mm=20.0, frames_per_cycle=7, moving_frames=5)
+    sc.sensors = replace(sc.sensors, odometry=False, imu=False)
+    simulate(sc, tmp_path / "ds", workers=2)
+    ds = open_dataset(tmp_path / "ds")
+    cfg = ReconstructConfig.default()
+    frames = [ds.read_frame(i) for i in range(len(ds))]
+    rings = laser.run(cfg.laser, ds.rig, iter(frames))
+    result = sfm.run(cfg.sfm, replace(sfm.SfmInputs.of_dataset(ds, rings), read_frame=lambda i: frames[i]))
+    _, true = read_tum(tmp_path / "ds" / "ground_truth" / "poses.txt")
+    lt = np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1)
+    le = np.linalg.norm(np.diff(result.world_from_rig[:, :3, 3], axis=0), axis=1)
+    missed = result.stationary[1:] & (lt > 1.0)
+    assert missed.any(), lt  # the case this test is about: a moving frame taken for standing
+    flagged = np.zeros(len(lt), bool)
+    for u in result.unreliable:
+        flagged[u.first_frame : max(u.last_frame, u.first_frame + 1)] = True
+    err = np.abs(le - lt)
+    wrong = (err > 1.0) | ((err > 0.2 * lt) & (lt >= 2.0))
+    assert wrong.any() and not (wrong & ~flagged).any(), (le, lt, flagged)
+    assert any("cannot rule out" in u.reason for u in result.unreliable)

@@ -214,8 +214,9 @@ def _result(
         gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
         stretches += [
             UnreliableStretch(
-                a, b, f"the stationary test cannot rule out a {worst:.1f} mm step on this "
-                "wall: a frame taken for standing may have moved",
+                a, b, "the stationary test cannot rule out "
+                + (f"a {worst:.1f} mm step" if math.isfinite(worst) else "a step of any length")
+                + " on this wall: a frame taken for standing may have moved",
             )
             for a, b, worst in unverified_stations(
                 hidden_steps(ratio, moved, gain), moved, followed.keyframes.frames
