@@ -43,3 +43,23 @@ def test_a_frame_source_reads_a_handed_frame_else_decodes(tmp_path: Path) -> Non
         source = FrameSource(None, [7, 8], paths=paths, handoff=handoff.folder)
         assert np.array_equal(source.read(0), other)  # frame 7: handed on
         assert np.array_equal(source.read(1), on_disk)  # frame 8: decoded
+
+
+def test_a_video_frame_handed_on_is_not_decoded_again() -> None:
+    """A video's frames are read in the calling process: a handed-on one from the
+    hand-off, without a seek and decode."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(6)
+    decoded = rng.integers(0, 256, (12, 16, 3)).astype(np.uint8)
+    other = rng.integers(0, 256, (12, 16, 3)).astype(np.uint8)
+    read: list[int] = []
+    video = SimpleNamespace(
+        rig=None, video=Path("run.avi"), source=None,
+        read_frame=lambda i: read.append(i) or decoded,
+    )
+    with FrameHandoff(9) as handoff:
+        hand_on(handoff.folder, 7, other)
+        source = FrameSource.take(video, [7, 8], handoff=handoff.folder)
+        assert read == [8]
+        assert np.array_equal(source.read(0), other) and np.array_equal(source.read(1), decoded)

@@ -485,7 +485,8 @@ class FrameSource:
         payload: per frame, what the task needs of it besides the image (e.g. the
             laser ring's pixels to mask), or None.
         handoff: the folder of a :class:`~omnipipe.handoff.FrameHandoff` whose frames
-            are read from there rather than decoded again, or None.
+            are read from there rather than decoded again (a video's or bag's by
+            :meth:`take`, in the calling process), or None.
     """
 
     rig: Any
@@ -508,7 +509,7 @@ class FrameSource:
         if dataset.video is None and dataset.source is None:
             paths = tuple(dataset.frame_paths[i] for i in frames)
             return FrameSource(dataset.rig, frames, paths=paths, payload=extra, handoff=handoff)
-        arrays = tuple(dataset.read_frame(i) for i in frames)
+        arrays = tuple(_read_here(dataset, i, handoff) for i in frames)
         return FrameSource(dataset.rig, frames, arrays=arrays, payload=extra)
 
     def __len__(self) -> int:
@@ -532,6 +533,18 @@ class FrameSource:
 
         assert self.paths is not None  # one of paths/arrays is always set by take()
         return read_image(self.paths[k], self.rig)
+
+
+def _read_here(dataset: Any, i: int, handoff: str | None) -> Any:
+    """Frame ``i`` of a video or bag, read in this process: from ``handoff`` where the
+    decoding pass left it (no seek and decode), else decoded."""
+    if handoff is not None:
+        from omnipipe.handoff import handed
+
+        image = handed(handoff, i)
+        if image is not None:
+            return image
+    return dataset.read_frame(i)
 
 
 def iter_frames(
