@@ -115,6 +115,11 @@ libE57 packs each call's points, so the bytes depend on the chunk: 65536 and 999
 other files than one call, 100,000 the same)."""
 
 
+NORMALS_CHUNK = 1 << 14
+"""Faces whose normals and corner angles :func:`_vertex_normals` computes at once (about
+400 bytes a face in its float64 temporaries)."""
+
+
 def _chunks(n: int, size: int | None = None) -> Iterator[tuple[int, int]]:
     """``(a, b)``: consecutive slices of ``range(n)``, ``size`` (default
     :data:`WRITE_CHUNK`) long, the last fewer."""
@@ -520,11 +525,12 @@ def _vertex_normals(
     trimesh's ``Trimesh.vertex_normals`` bit for bit (each face's unit normal weighted by
     its corner angle, summed face by face in face order, then unitized), computed
     :data:`WRITE_CHUNK` faces at a time: trimesh's own sparse matrix of every corner and
-    its per-face arrays were the GLB's largest cost (70 MB for 280,000 faces)."""
+    its per-face arrays were the GLB's largest cost (70 MB for 280,000 faces); a chunk
+    of :data:`NORMALS_CHUNK` faces costs about 6 MB."""
     from trimesh import triangles, util
 
     summed = np.zeros((len(vertices), 3))
-    for a, b in _chunks(len(faces)):
+    for a, b in _chunks(len(faces), min(WRITE_CHUNK, NORMALS_CHUNK)):
         idx = np.asarray(faces[a:b])
         tri = vertices[idx.ravel()]
         tri = (tri if convert is None else convert(tri)).reshape(-1, 3, 3)
