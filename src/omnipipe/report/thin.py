@@ -52,9 +52,11 @@ def thin_mesh(
     side = math.sqrt(area_px / max(max_faces // 2, 1))  # cell side (texture px)
     kept = None
     for _ in range(200):
-        kept = _clustered(uv, faces, side, (h, w))
-        if kept is None or len(kept) <= max_faces:
-            break
+        # Cells first (cheap): about two faces a kept vertex; the faces once they fit.
+        if _cells(uv, side, (h, w)) <= max(max_faces // 2, 3):
+            kept = _clustered(uv, faces, side, (h, w))
+            if kept is None or len(kept) <= max_faces:
+                break
         side *= GROWTH
     if kept is None or len(kept) > max_faces:  # no spread in UV: every k-th face
         kept = faces[:: math.ceil(len(faces) / max_faces)]
@@ -75,5 +77,18 @@ def _clustered(uv: np.ndarray, faces: np.ndarray, side: float, shape: tuple[int,
         return None
     out = first[inverse][faces]
     out = out[(out[:, 0] != out[:, 1]) & (out[:, 1] != out[:, 2]) & (out[:, 0] != out[:, 2])]
-    _, once = np.unique(np.sort(out, axis=1), axis=0, return_index=True)
+    s = np.sort(out, axis=1)
+    if len(uv) < 1 << 21:  # a face as one int64 (its sorted corners, 21 bits each)
+        key = (s[:, 0] << 42) | (s[:, 1] << 21) | s[:, 2]
+        _, once = np.unique(key, return_index=True)
+    else:
+        _, once = np.unique(s, axis=0, return_index=True)
     return out[np.sort(once)]
+
+
+def _cells(uv: np.ndarray, side: float, shape: tuple[int, int]) -> int:
+    """Occupied cells of ``side`` texture px (as :func:`_clustered`)."""
+    h, w = shape
+    col = np.floor((uv[:, 0] - uv[:, 0].min()) * (w / side)).astype(np.int64)
+    row = np.floor((uv[:, 1] - uv[:, 1].min()) * (h / side)).astype(np.int64)
+    return len(np.unique(row * (int(col.max()) + 1) + col))
