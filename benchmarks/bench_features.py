@@ -209,6 +209,12 @@ def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict) -> Non
                     if key == "water_depth_mm" and true < 0.05 * d and not s[key]:
                         continue  # dry (or too shallow to count) and reported dry
                     counts.setdefault(key, []).append(abs(s[key] - true))
+    for f in found:  # a joint or lateral no true one of its kind (in or out of the run) matches
+        if f["kind"] in POINT_KINDS and not any(
+            _match(t, [f]) is not None for t in truth.get("features", []) if t["kind"] == f["kind"]
+        ):
+            counts.setdefault("false_features", {}).setdefault(f["kind"], 0)
+            counts["false_features"][f["kind"]] += 1
     spots = [_extent(t) for t in truth.get("features", []) if t["kind"] in POINT_KINDS]
     for dfx in report.get("defects", []):
         a, b = dfx["axial_start_mm"], dfx["axial_start_mm"] + dfx["length_mm"]
@@ -240,6 +246,7 @@ def _table(title: str, rows: dict[str, Row], counts: dict, done: list[int], fail
         if len(e):
             print(f"per station |{key} error|: median {np.median(e):.2f} {unit}, 90th percentile "
                   f"{np.percentile(e, 90):.2f} {unit}, {len(e)} stations")
+    print(f"false joints/laterals (no true one within the match tolerance): {counts.get('false_features', {})}")
     print(f"false defects: {counts['false_defects']} (within 10 mm of a joint or a hole: "
           f"{counts['feature_defects']}); runs with unreliable motion: {counts['unreliable_runs']}")
 
