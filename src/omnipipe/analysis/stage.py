@@ -41,10 +41,11 @@ from omnipipe.analysis.defects import (
     fit_wall_profile,
     fourier_design,
 )
-from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature
+from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch
 from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
+    Headline,
     Section,
     SectionConfig,
     Station,
@@ -272,15 +273,7 @@ def run(
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config)
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
-    # A ring-shape error shared by the run (radial_sys in cos 2 theta) moves every station's
-    # ovality alike, by up to 4 radial_sys / D: averaging the stations cannot remove it.
-    oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
-    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
-    features = [
-        replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys))
-        if isinstance(f, Ovality) and f.percent_sigma is not None else f
-        for f in section_features(st_list, line, head, sec_config)
-    ]
+    st_list, features = _with_shared_ovality(st_list, line, head, sec_config, radial_sys)
     warnings = list(search.warnings) + _section_warnings(st_list, wet)
     if feats.unseen_gap_mm >= 3.0:
         warnings.append(
@@ -318,6 +311,27 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _with_shared_ovality(
+    st_list: list[Station],
+    line: Centreline,
+    head: Headline,
+    sec_config: SectionConfig,
+    radial_sys: float,
+) -> tuple[list[Station], list[Stretch]]:
+    """The stations and section features (ovality, tapers, ...) with the ovality's
+    run-wide term: a ring-shape error shared by the run (``radial_sys`` mm in cos 2 theta)
+    moves every station's ovality alike, by up to 4 radial_sys / D; averaging the
+    stations cannot remove it."""
+    oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
+    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
+    features = [
+        replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys))
+        if isinstance(f, Ovality) and f.percent_sigma is not None else f
+        for f in section_features(st_list, line, head, sec_config)
+    ]
+    return st_list, features
 
 
 def _station_list(stations: _Stations) -> list[Station]:

@@ -95,11 +95,7 @@ def run(
     with ImageStore() as grays:  # keyframe grey images, on disk until the run is decided
         # Steps 1-3: stations, keyframes and their relative motions; each step's two
         # scale measurements (step 4) in the workers.
-        ratio = (
-            np.asarray(inputs.station_ratio, float)
-            if inputs.station_ratio is not None
-            else np.full(inputs.n_frames, math.nan)
-        )
+        ratio = _station_ratio(inputs)
         followed = follow_keyframes(ctx, inputs, grays, progress, ratio)
         kf = followed.keyframes
         # Step 4: every step's length decided with the whole run's evidence (the two
@@ -128,10 +124,8 @@ def run(
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))
-        # Step 6: the moving frames that are not keyframes, resected against the
-        # adjusted tracks.
-        # A frame that cannot be resected is placed between its keyframes by the
-        # odometry, else by the gait: its share of their moving frames.
+        # Step 6: the other moving frames, resected against the adjusted tracks; one that
+        # cannot be is placed between its keyframes by the odometry, else by the gait.
         with_odometry = inputs.odometry is not None and inputs.timestamps is not None
         travel = (
             odometry_at(inputs.odometry, inputs.timestamps)[0]
@@ -153,13 +147,24 @@ def run(
         ctx, followed, adjusted, resected, chain.checks, scale, length,
         None if with_odometry else ratio,
     )
-    if inputs.imu is not None and inputs.timestamps is not None:
-        gravity = gravity_world(
-            inputs.imu, inputs.timestamps, result.world_from_rig, result.registered
-        )
-        if gravity is not None:
-            result.gravity_world, result.gravity_sigma_rad = gravity
+    _add_gravity(result, inputs)
     return result
+
+
+def _station_ratio(inputs: SfmInputs) -> np.ndarray:
+    """(N,) the stationary test's ratio of each frame; NaN where it was not recorded."""
+    if inputs.station_ratio is not None:
+        return np.asarray(inputs.station_ratio, float)
+    return np.full(inputs.n_frames, math.nan)
+
+
+def _add_gravity(result: SfmResult, inputs: SfmInputs) -> None:
+    """Gravity in the world frame (and its 1-sigma, rad) from the IMU, when there is one."""
+    if inputs.imu is None or inputs.timestamps is None:
+        return
+    gravity = gravity_world(inputs.imu, inputs.timestamps, result.world_from_rig, result.registered)
+    if gravity is not None:
+        result.gravity_world, result.gravity_sigma_rad = gravity
 
 
 def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) -> SfmContext:
