@@ -13,11 +13,10 @@ share this file system), and only for as long as the run.
 from __future__ import annotations
 
 from pathlib import Path
-from types import TracebackType
 
 import numpy as np
 
-from omnipipe.scratch import scratch_folder
+from omnipipe.scratch import ScratchStore
 
 # Scratch bytes a run may hand on (2 GiB: about 370 frames of 1600x1200 RGB).
 HANDOFF_BUDGET_BYTES = 2 * 2**30
@@ -25,7 +24,7 @@ HANDOFF_BUDGET_BYTES = 2 * 2**30
 _FULL = "FULL"
 
 
-class FrameHandoff:
+class FrameHandoff(ScratchStore):
     """A scratch folder of decoded frames, one ``.npy`` file per frame index.
 
     The decoding pass's workers write (:func:`hand_on`); the parent notes what they
@@ -36,7 +35,7 @@ class FrameHandoff:
     """
 
     def __init__(self, n_frames: int, budget_bytes: int = HANDOFF_BUDGET_BYTES) -> None:
-        self._dir = scratch_folder("omnipipe-frames-")
+        super().__init__("omnipipe-frames-")
         self.folder = self._dir.name
         self.budget_bytes = budget_bytes
         self._bytes = 0
@@ -54,21 +53,6 @@ class FrameHandoff:
         if self._noted[i]:
             Path(handoff_path(self.folder, i)).unlink(missing_ok=True)
             self._noted[i] = False
-
-    def close(self) -> None:
-        """Remove the folder and what is in it."""
-        self._dir.cleanup()
-
-    def __enter__(self) -> FrameHandoff:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def handoff_path(folder: str, i: int) -> str:

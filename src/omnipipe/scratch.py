@@ -24,6 +24,8 @@ import tempfile
 from collections.abc import Iterator
 from contextvars import ContextVar
 from pathlib import Path
+from types import TracebackType
+from typing import Self
 
 MARKER = "omnipipe-scratch.json"
 
@@ -35,6 +37,29 @@ def scratch_folder(prefix: str) -> tempfile.TemporaryDirectory[str]:
     folder (:func:`scratch_beside`), else in the system's temporary folder."""
     base = _base.get()
     return tempfile.TemporaryDirectory(prefix=prefix, dir=None if base is None else str(base))
+
+
+class ScratchStore:
+    """Base of the stores that keep a run's files in a private :func:`scratch_folder`:
+    :meth:`close` (or the end of a ``with`` block) removes the folder and its files."""
+
+    def __init__(self, prefix: str) -> None:
+        self._dir = scratch_folder(prefix)
+
+    def close(self) -> None:
+        """Remove the folder and its files."""
+        self._dir.cleanup()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
 
 
 def _prefix(out: Path) -> str:

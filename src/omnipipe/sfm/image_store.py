@@ -10,14 +10,13 @@ it back when asked (from the page cache, about 1 ms).
 from __future__ import annotations
 
 from pathlib import Path
-from types import TracebackType
 
 import numpy as np
 
-from omnipipe.scratch import scratch_folder
+from omnipipe.scratch import ScratchStore
 
 
-class ImageStore:
+class ImageStore(ScratchStore):
     """An append-only list of arrays kept as ``.npy`` files in a temporary folder.
 
     Use as a context manager (or call :meth:`close`): the folder, which only this
@@ -25,7 +24,7 @@ class ImageStore:
     """
 
     def __init__(self) -> None:
-        self._dir = scratch_folder("omnipipe-keyframes-")
+        super().__init__("omnipipe-keyframes-")
         self._n = 0
 
     def append(self, image: np.ndarray) -> None:
@@ -43,18 +42,3 @@ class ImageStore:
 
     def _path(self, k: int) -> Path:
         return Path(self._dir.name) / f"{k:06d}.npy"
-
-    def close(self) -> None:
-        """Remove the folder and its files."""
-        self._dir.cleanup()
-
-    def __enter__(self) -> ImageStore:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
