@@ -503,17 +503,48 @@ class WallTexture:
         pad = 2
         c = ((col / scale - 0.5 * (1 - 1 / scale)) % w + pad).astype(np.float32)
         r = (row / scale - 0.5 * (1 - 1 / scale)).astype(np.float32)
-        n = len(c)
-        # cv2.remap wants 2-D maps narrower than 32k: fold the samples into rows of 1024.
-        rows = -(-n // 1024)
-        mx = np.zeros(rows * 1024, np.float32)
-        my = np.zeros(rows * 1024, np.float32)
-        mx[:n], my[:n] = c, r
-        res = cv2.remap(
-            padded,
-            mx.reshape(rows, 1024),
-            my.reshape(rows, 1024),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REFLECT,
-        )
-        return res.reshape(-1, 3)[:n]
+        return remap_samples(padded, c, r)
+
+
+# cv2.remap takes images and maps of fewer than 2**15 rows and columns.
+_REMAP_LIMIT = 32000
+
+
+def remap_samples(
+    image: np.ndarray, col: np.ndarray, row: np.ndarray, max_rows: int = _REMAP_LIMIT
+) -> np.ndarray:
+    """Bilinear samples (M, C) of ``image`` (H, W, C) at float pixel positions ``col``,
+    ``row`` (M,), reflected at its borders. Images taller than ``max_rows`` (a long
+    pipe's texture) are sampled band by band, each band with two rows of its
+    neighbours, so the result equals one remap of the whole image."""
+    col = np.asarray(col, np.float32)
+    row = np.asarray(row, np.float32)
+    height = image.shape[0]
+    if height <= max_rows:
+        return _remap(image, col, row)
+    band = max_rows - 8
+    which = np.clip(np.floor(row / band), 0, -(-height // band) - 1).astype(int)
+    out = np.empty((len(col), image.shape[2]), image.dtype)
+    for b in np.unique(which):
+        sel = which == b
+        r0 = max(int(b) * band - 4, 0)
+        r1 = min((int(b) + 1) * band + 4, height)
+        out[sel] = _remap(image[r0:r1], col[sel], row[sel] - np.float32(r0))
+    return out
+
+
+def _remap(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    n = len(col)
+    # cv2.remap wants 2-D maps narrower than 32k: fold the samples into rows of 1024.
+    rows = -(-n // 1024)
+    mx = np.zeros(rows * 1024, np.float32)
+    my = np.zeros(rows * 1024, np.float32)
+    mx[:n], my[:n] = col, row
+    res = cv2.remap(
+        image,
+        mx.reshape(rows, 1024),
+        my.reshape(rows, 1024),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REFLECT,
+    )
+    return res.reshape(-1, image.shape[2])[:n]
