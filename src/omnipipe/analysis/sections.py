@@ -89,14 +89,18 @@ def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[S
 
 
 def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Stretch]:
-    """Stretches of standing water (stations with a water depth)."""
+    """Stretches of standing water (stations with a water depth): the median depth; its
+    sigma the stations' independent part (their spread or stated sigma) / sqrt(n) and
+    the part they share (``water_depth_shared_sigma_mm``) whole."""
     depth = np.array([s.water_depth_mm for s in stations])
     axial = np.array([s.axial_mm for s in stations])
     edge = _edge_sigma(axial)
     out = []
     for i0, i1 in _runs(depth > 0, config.min_stations):
         sel = slice(i0, i1 + 1)
-        dsig = np.array([s.water_depth_sigma_mm for s in stations[sel]])
+        shared = float(np.median([s.water_depth_shared_sigma_mm for s in stations[sel]]))
+        total = np.array([s.water_depth_sigma_mm for s in stations[sel]])
+        dsig = np.sqrt(np.maximum(total**2 - shared**2, 0.0))
         n = i1 - i0 + 1
         spread = float(np.std(depth[sel])) if n > 2 else 0.0
         out.append(
@@ -106,7 +110,7 @@ def _water_stretches(stations: list[Station], config: SectionConfig) -> list[Str
                 axial_to_mm=float(axial[i1]),
                 axial_to_sigma_mm=edge,
                 depth_mm=float(np.median(depth[sel])),
-                depth_sigma_mm=max(spread, float(np.median(dsig))) / math.sqrt(n),
+                depth_sigma_mm=math.hypot(max(spread, float(np.median(dsig))) / math.sqrt(n), shared),
                 truncated=i0 == 0 or i1 == len(stations) - 1,
             )
         )

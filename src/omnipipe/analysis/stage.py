@@ -45,6 +45,7 @@ from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeatur
 from omnipipe.analysis.features import FeatureConfig, find_features
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
+    EdgeReach,
     Headline,
     Section,
     SectionConfig,
@@ -157,6 +158,10 @@ class AnalysisInputs:
             measures, from the rig's calibration (the laser plane's distance,
             :attr:`omnipipe.rig.LaserPlane.scale_sigma_rel`); shared by all points of the
             run, so no fit can see it: added to diameters and defect sizes. 0: none stated.
+        edge_reach_mm, edge_reach_sigma_mm: how far the ring's samples run on past the
+            end of a lit stretch (a water line) and one ring's 1-sigma about that
+            (:func:`omnipipe.laser.extract.edge_reach_mm`); the water depth's chord
+            ends are taken that far back. 0: none.
     """
 
     points_in_world: np.ndarray
@@ -166,6 +171,8 @@ class AnalysisInputs:
     ring_blur_mm: float = 0.0
     calibration_sigma_rel: float = 0.0
     axial_blur_mm: float = 0.0
+    edge_reach_mm: float = 0.0
+    edge_reach_sigma_mm: float = 0.0
 
 
 @dataclass
@@ -270,7 +277,8 @@ def run(
         replace(st, diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm))
         for st in _station_list(stations)
     ]
-    st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config)
+    reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
+    st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
     st_list, features = _with_shared_ovality(st_list, line, head, sec_config, radial_sys)
@@ -342,11 +350,15 @@ def _station_list(stations: _Stations) -> list[Station]:
 
 
 def _run_water(stations: list[Station]) -> tuple[float, float]:
-    """Median water depth over the wet stations and its 1-sigma (mm)."""
-    depth = np.array([s.water_depth_mm for s in stations if s.water_depth_mm > 0])
-    sig = np.array([s.water_depth_sigma_mm for s in stations if s.water_depth_mm > 0])
+    """Median water depth over the wet stations and its 1-sigma (mm): the independent
+    part / sqrt(n), the part all stations share whole."""
+    wet = [s for s in stations if s.water_depth_mm > 0]
+    depth = np.array([s.water_depth_mm for s in wet])
+    shared = float(np.median([s.water_depth_shared_sigma_mm for s in wet]))
+    sig = np.sqrt(np.maximum(np.array([s.water_depth_sigma_mm for s in wet]) ** 2 - shared**2, 0.0))
     spread = float(np.std(depth)) if len(depth) > 2 else 0.0
-    return float(np.median(depth)), 1.2533 * max(spread, float(np.median(sig))) / math.sqrt(len(depth))
+    stat = 1.2533 * max(spread, float(np.median(sig))) / math.sqrt(len(depth))
+    return float(np.median(depth)), math.hypot(stat, shared)
 
 
 def _section_warnings(stations: list[Station], wet: bool) -> list[str]:

@@ -117,6 +117,8 @@ class Station:
             from the first rig frame's x axis towards y.
         water_depth_mm, water_depth_sigma_mm: standing water above the invert (0: none
             seen; its sigma then the shallowest depth a cut would show).
+        water_depth_shared_sigma_mm: the part of that sigma every station of the run
+            shares (:attr:`WaterDepth.reach_mm`): a stretch's average keeps it whole.
         wall_coverage_deg: circumference covered by the ring's wall points.
         deformation_mm, deformation_sigma_mm: mean diameter minus the run's (headline).
     """
@@ -136,6 +138,7 @@ class Station:
     deformation_mm: float = 0.0
     deformation_sigma_mm: float = 0.0
     cut_centre_deg: float | None = None
+    water_depth_shared_sigma_mm: float = 0.0
 
     def to_contract(self) -> dict[str, Any]:
         """The report.json ``stations`` entry: the contract's keys with their sigma
@@ -193,19 +196,50 @@ def profile_radius(coef: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return out
 
 
-def water_depth(section: Section, radial_sigma_mm: float) -> tuple[float, float]:
-    """Depth (mm) of the fitted section below the chord across its cut, and its 1-sigma.
+@dataclass(frozen=True)
+class EdgeReach:
+    """How far (mm along the wall) a ring's samples run on past the end of its lit
+    stretch (the imaged stripe's blur above the extractor's threshold,
+    :func:`omnipipe.laser.extract.edge_reach_mm`), and one ring's 1-sigma about it."""
 
-    The water line lies between the last lit sample and the next: each edge is taken half
-    a sample step into the gap, its position uncertain by step / sqrt(12).
+    mm: float = 0.0
+    sigma_mm: float = 0.0
+
+
+@dataclass(frozen=True)
+class WaterDepth:
+    """One station's water depth (mm) and its 1-sigma with the named terms it holds
+    (mm, each a depth error; ``sigma_mm`` their quadrature sum).
+
+    Attributes:
+        depth_mm: the fitted section's depth below the water line's chord.
+        edge_mm: the chord's ends from the ring's sample spacing (each uncertain by
+            step / sqrt(12), independently).
+        fit_mm: the section fit's covariance carried through the depth (the wall under
+            the water is the fit's extrapolation across the cut).
+        wall_mm: the wall noise of one sample at that range (the chord's ends sit on it).
+        reach_mm: the blur reach's 1-sigma (``EdgeReach.sigma_mm``) moving both ends
+            back alike; shared by every station of the run (the water line meets each
+            ring on the same wall, so its stripe fades alike), not averaged away.
     """
-    cut = section.cut
-    if cut is None:
-        return 0.0, math.nan
-    e1, e2 = cut.start + 0.5 * cut.step, cut.start + cut.width - 0.5 * cut.step
+
+    depth_mm: float
+    edge_mm: float
+    fit_mm: float
+    wall_mm: float
+    reach_mm: float = 0.0
+
+    @property
+    def sigma_mm(self) -> float:
+        return math.hypot(self.edge_mm, self.fit_mm, self.wall_mm, self.reach_mm)
+
+
+def _depth_below_chord(coef: np.ndarray, e1: float, e2: float) -> float:
+    """Largest depth (mm) of the profile ``coef`` between angles e1 < e2 below the chord
+    joining its points at e1 and e2 (away from the axis)."""
 
     def point(a: np.ndarray) -> np.ndarray:
-        r = profile_radius(section.coef, a)
+        r = profile_radius(coef, a)
         return np.stack([r * np.cos(a), r * np.sin(a)], axis=-1)
 
     p1, p2 = point(np.array(e1)), point(np.array(e2))
@@ -214,13 +248,48 @@ def water_depth(section: Section, radial_sigma_mm: float) -> tuple[float, float]
     if normal @ (0.5 * (p1 + p2)) < 0:
         normal = -normal  # away from the axis, towards the cut's wall
     inside = point(np.linspace(e1, e2, 181))
-    depth = float(np.max((inside - p1) @ normal))
-    # Each edge's height error: the wall's slope across the chord x its position error.
+    return float(np.max((inside - p1) @ normal))
+
+
+def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | None = None) -> WaterDepth:
+    """Depth (mm) of the fitted section below the chord across its cut, and its 1-sigma.
+
+    The lit stretch stops between the last lit sample and the next (half a sample step
+    into the gap, uncertain by step / sqrt(12)); the stripe's blur carries the samples
+    ``reach.mm`` past the water line itself, so each chord end is taken that far back
+    towards the lit wall (``reach.sigma_mm`` its ring-to-ring 1-sigma). An edge's error
+    moves the depth by the wall's slope across the chord; the fit's covariance is
+    carried through the depth by its Jacobian in the coefficients.
+    """
+    cut = section.cut
+    if cut is None:
+        return WaterDepth(0.0, math.nan, math.nan, math.nan)
+    reach = reach or EdgeReach()
+    coef = np.asarray(section.coef, float)
+    ends = (cut.start, cut.start + cut.width)
+    rho = [float(profile_radius(coef, np.array(e))) for e in ends]
+    back = [reach.mm / max(r, 1e-9) for r in rho]
+    e1 = ends[0] + 0.5 * cut.step - back[0]
+    e2 = ends[1] - 0.5 * cut.step + back[1]
+    depth = _depth_below_chord(coef, e1, e2)
+    # Each edge's depth error: the depth's change with the edge (mm / rad, signed towards
+    # the gap) x its angle error.
     h = 1e-4
-    slopes = [abs((point(np.array(e + h)) - point(np.array(e - h))) @ normal) / (2 * h) for e in (e1, e2)]
-    edge = cut.step / math.sqrt(12.0)
-    sigma = math.hypot(0.5 * math.hypot(slopes[0] * edge, slopes[1] * edge), radial_sigma_mm)
-    return max(depth, 0.0), sigma
+    slopes = [
+        (_depth_below_chord(coef, e1 + h, e2) - _depth_below_chord(coef, e1 - h, e2)) / (2 * h),
+        (_depth_below_chord(coef, e1, e2 - h) - _depth_below_chord(coef, e1, e2 + h)) / (2 * h),
+    ]
+    quant = cut.step / math.sqrt(12.0)
+    edge = math.hypot(slopes[0] * quant, slopes[1] * quant)
+    reach_err = abs(slopes[0] * reach.sigma_mm / max(rho[0], 1e-9) + slopes[1] * reach.sigma_mm / max(rho[1], 1e-9))
+    jac = np.zeros(len(coef))
+    for k in range(len(coef)):
+        dc = np.zeros(len(coef))
+        dc[k] = 1e-3
+        jac[k] = (_depth_below_chord(coef + dc, e1, e2) - _depth_below_chord(coef - dc, e1, e2)) / 2e-3
+    cov = np.asarray(section.cov, float)[: len(coef), : len(coef)]
+    fit = math.sqrt(max(float(jac @ cov @ jac), 0.0))
+    return WaterDepth(max(depth, 0.0), edge, fit, radial_sigma_mm, reach_err)
 
 
 def station_from_section(
@@ -258,12 +327,17 @@ def station_from_section(
 
 
 def with_water(
-    stations: list[Station], sections: list[Section], radial_sigma_mm: float, config: SectionConfig
+    stations: list[Station],
+    sections: list[Section],
+    radial_sigma_mm: float,
+    config: SectionConfig,
+    reach: EdgeReach | None = None,
 ) -> tuple[list[Station], bool]:
     """The stations with their water depths: cuts at the run's common cut angle, deep
     enough (``config.water_min_pct``, 3 sigma), on at least ``config.min_stations``
     stations are water (returns True then); the other stations are dry (depth 0, sigma
-    the depth of the narrowest cut)."""
+    the depth of the narrowest cut). ``reach``: the stripe's blur past a water line
+    (:func:`water_depth`)."""
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
     if len(centres) >= config.min_stations:
@@ -278,11 +352,14 @@ def with_water(
             and abs((st.cut_centre_deg - common + 180.0) % 360.0 - 180.0) <= config.water_angle_tol_deg
         )
         if is_water:
-            depth, sig = water_depth(sec, radial_sigma_mm)
+            wd = water_depth(sec, radial_sigma_mm, reach)
+            depth, sig, shared = wd.depth_mm, wd.sigma_mm, wd.reach_mm
             is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
         if is_water:
             wet += 1
-            out.append(replace(st, water_depth_mm=depth, water_depth_sigma_mm=sig))
+            out.append(
+                replace(st, water_depth_mm=depth, water_depth_sigma_mm=sig, water_depth_shared_sigma_mm=shared)
+            )
         else:
             out.append(replace(st, water_depth_mm=0.0, water_depth_sigma_mm=shallowest))
     if wet < config.min_stations:

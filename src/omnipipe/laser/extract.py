@@ -311,6 +311,41 @@ def ring_blur_mm(rings: list[LaserRing], max_rings: int = 50) -> float:
     return float(np.median(values)) if values else 0.0
 
 
+def edge_reach_mm(rings: list[LaserRing], max_rings: int = 50) -> tuple[float, float]:
+    """How far (mm along the wall) the light section's samples run on past the end of a
+    lit stretch (a water line, a shadow edge), and the spread of that over the rings.
+
+    Where the stripe stops at an edge its image along the ring is a step blurred by the
+    ring's Gaussian sigma ``s`` (the :func:`ring_blur_mm` of that ring): I(x) = I0 Phi(-x / s)
+    with x measured from the edge into the dark side, half the lit brightness at the edge
+    itself. The extractor keeps a peak down to its detection threshold, a fraction
+    f = (the ring's faintest accepted SNR) / (its median SNR) of the lit stripe, so the
+    last sample lies s Phi^-1(1 - f) beyond the edge. Median over up to ``max_rings``
+    evenly chosen rings with triangulated points.
+
+    Returns:
+        (reach, 1-sigma of one ring's reach about the median) in mm; (0.0, 0.0) when no
+        ring has enough samples.
+    """
+    from scipy.special import ndtri
+
+    values = []
+    for r in _spread_rings(rings, max_rings):
+        dp = np.linalg.norm(np.diff(r.points_in_rig, axis=0), axis=1)
+        dx = np.linalg.norm(np.diff(r.pixels, axis=0), axis=1)
+        ok = (dx > 0.2) & (dx < 5.0)
+        conf = r.confidence[np.isfinite(r.confidence)]
+        if ok.sum() < 10 or len(conf) < 10:
+            continue
+        blur = float(np.median(r.peak_width_px)) * float(np.median(dp[ok] / dx[ok]))
+        frac = float(np.min(conf)) / max(float(np.median(conf)), 1e-9)
+        values.append(blur * float(ndtri(1.0 - min(max(frac, 1e-6), 0.5))))
+    if not values:
+        return 0.0, 0.0
+    v = np.array(values)
+    return float(np.median(v)), float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
 def axial_blur_mm(rings: list[LaserRing], camera: CameraModel, max_rings: int = 50) -> float:
     """Gaussian sigma (mm along the pipe axis) of the light section's smoothing across the ring.
 

@@ -533,7 +533,7 @@ def _analyse(
 
     from omnipipe import analysis, model
     from omnipipe.camera import camera_from_rig
-    from omnipipe.laser.extract import axial_blur_mm, ring_blur_mm
+    from omnipipe.laser.extract import axial_blur_mm, edge_reach_mm, ring_blur_mm
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
 
@@ -546,6 +546,7 @@ def _analyse(
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
     station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
+    reach, reach_sigma = edge_reach_mm(station_rings)
     res = analysis.run(
         config.analysis,
         analysis.AnalysisInputs(
@@ -556,6 +557,8 @@ def _analyse(
             ring_blur_mm=ring_blur_mm(station_rings),
             calibration_sigma_rel=0.0 if rig.laser is None else rig.laser.scale_sigma_rel,
             axial_blur_mm=axial_blur_mm(station_rings, camera_from_rig(rig)),
+            edge_reach_mm=reach,
+            edge_reach_sigma_mm=reach_sigma,
         ),
         executor,
     )
