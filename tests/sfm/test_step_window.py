@@ -94,3 +94,43 @@ def test_check_adjusted_compares_decided_lengths_in_the_chain_s_units() -> None:
     world[1:, 2, 3] = np.cumsum(lengths * 0.98)
     assert all(c.reliable for c in check_adjusted(checks, world, CFG, gain))
     assert not any(c.reliable for c in check_adjusted(checks, world, CFG)[:2])
+
+
+@pytest.mark.parametrize(
+    ("feature_mm", "matches", "wall_anchored", "flagged"),
+    [
+        (12.02, 700, False, False),
+        (12.02, 20, False, True),
+        (10.7, 700, False, True),
+        (12.02, 700, True, True),
+    ],
+)
+def test_an_adjusted_step_that_is_its_feature_depths_length_is_not_flagged(
+    feature_mm: float, matches: int, wall_anchored: bool, flagged: bool
+) -> None:
+    """Eight 12 mm steps; step 3 was decided on a laser length 1.4 mm short (11 %): the
+    adjustment put it back at 12 mm, where its feature depths (700 matches) measured it:
+    confirmed, not flagged. With 20 feature matches, feature depths agreeing with the
+    short laser length instead, or a wall-anchored run (the feature depths are what its
+    anchors used, no independent measurement) it is flagged."""
+    lengths = np.full(8, 12.0)
+    checks = [_check(k, float(v)) for k, v in enumerate(lengths)]
+    checks[3] = StepCheck(3, 4, 10.6, 0.9, feature_mm, matches, 10.6, "high")
+    world = np.tile(np.eye(4), (9, 1, 1))
+    world[1:, 2, 3] = np.cumsum(lengths)
+    out = check_adjusted(checks, world, CFG, wall_anchored=wall_anchored)
+    assert (not out[3].reliable) is flagged
+    assert all(c.reliable for k, c in enumerate(out) if k != 3)
+
+
+def test_feature_depths_in_their_own_unit_confirm_no_step() -> None:
+    """Three steps (too few for the feature depths' run-wide ratio to the chain): a
+    feature-depth length that matches the adjusted one is in another unit, no
+    confirmation; the steps 13 % off their decided lengths stay flagged."""
+    lengths = np.array([21.4, 20.6, 4.9])
+    checks = [
+        StepCheck(k, k + 1, v * 0.87, 0.9, v, 500, v * 0.87, "high") for k, v in enumerate(lengths)
+    ]
+    world = np.tile(np.eye(4), (4, 1, 1))
+    world[1:, 2, 3] = np.cumsum(lengths)
+    assert not any(c.reliable for c in check_adjusted(checks, world, CFG)[:2])
