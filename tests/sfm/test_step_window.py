@@ -118,15 +118,16 @@ def test_an_adjusted_step_that_is_its_feature_depths_length_is_not_flagged(
     checks[3] = StepCheck(3, 4, 10.6, 0.9, feature_mm, matches, 10.6, "high")
     world = np.tile(np.eye(4), (9, 1, 1))
     world[1:, 2, 3] = np.cumsum(lengths)
-    out = check_adjusted(checks, world, CFG, wall_anchored=wall_anchored)
+    out = check_adjusted(checks, world, CFG, feature_unit=None if wall_anchored else 1.0)
     assert (not out[3].reliable) is flagged
     assert all(c.reliable for k, c in enumerate(out) if k != 3)
 
 
-def test_feature_depths_in_their_own_unit_confirm_no_step() -> None:
-    """Three steps (too few for the feature depths' run-wide ratio to the chain): a
-    feature-depth length that matches the adjusted one is in another unit, no
-    confirmation; the steps 13 % off their decided lengths stay flagged."""
+def test_feature_depths_confirm_in_the_chain_s_units() -> None:
+    """Three steps (too few for the feature depths' run-wide ratio to the chain),
+    decided 13 % short of the adjusted lengths: feature depths equal to the adjusted
+    lengths confirm them only in the chain's units (given unit 1); in a unit of their
+    own (none given, or 13 % apart) they do not, and the steps stay flagged."""
     lengths = np.array([21.4, 20.6, 4.9])
     checks = [
         StepCheck(k, k + 1, v * 0.87, 0.9, v, 500, v * 0.87, "high") for k, v in enumerate(lengths)
@@ -134,3 +135,5 @@ def test_feature_depths_in_their_own_unit_confirm_no_step() -> None:
     world = np.tile(np.eye(4), (4, 1, 1))
     world[1:, 2, 3] = np.cumsum(lengths)
     assert not any(c.reliable for c in check_adjusted(checks, world, CFG)[:2])
+    assert not any(c.reliable for c in check_adjusted(checks, world, CFG, 1.0, 0.87)[:2])
+    assert all(c.reliable for c in check_adjusted(checks, world, CFG, 1.0, 1.0))

@@ -119,7 +119,7 @@ def run(
                 adjusted.world_from_kf,
                 config.scale_check,
                 math.exp(scale.offset_log) if scale.wall_anchored else 1.0,
-                scale.wall_anchored,
+                None if scale.wall_anchored else math.exp(scale.offset_log),
             ),
         )
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)

@@ -604,7 +604,7 @@ def check_adjusted(
     world_from_kf: np.ndarray,
     config: ScaleCheckConfig,
     decided_unit: float = 1.0,
-    wall_anchored: bool = False,
+    feature_unit: float | None = None,
 ) -> list[StepCheck]:
     """Flag keyframe steps whose adjusted length left what their sources measured.
 
@@ -626,10 +626,11 @@ def check_adjusted(
     flagged: the adjustment corrected a wrong decided length (random-wide, 640x480: 5
     such steps of seeds 6, 11, 13 were flagged at 11-14 % from a laser length 1.7-2.8 mm
     short, the adjusted length within 0.1-0.6 % of the truth). Only when the feature
-    depths are an independent measurement in the chain's units: the run is anchored by
-    the laser (``wall_anchored`` False; else the wall-placed features the anchors used
-    are that length) and their run-wide ratio to the chain was measured (at least
-    :data:`ADJUSTED_OFFSET_MIN_STEPS` steps; else they are in their own unit).
+    depths are an independent measurement in the chain's units: ``feature_unit``, their
+    unit in the chain's (a laser-anchored run: the run-wide laser / feature-depth gain),
+    is given (None: a wall-anchored run, whose anchors are those feature depths, or an
+    unknown unit); their run-wide ratio to the adjusted lengths replaces it when
+    measured (at least :data:`ADJUSTED_OFFSET_MIN_STEPS` steps).
     """
     lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
     ok = [
@@ -647,7 +648,8 @@ def check_adjusted(
 
     r_dec, m_dec = offsets([checks[k].scale_mm / decided_unit for k in ok])
     r_feat, m_feat = offsets([checks[k].feature_scale_mm for k in ok])
-    confirms = not wall_anchored and np.isfinite(r_feat).sum() >= ADJUSTED_OFFSET_MIN_STEPS
+    if feature_unit is not None and np.isfinite(r_feat).sum() < ADJUSTED_OFFSET_MIN_STEPS:
+        m_feat = -math.log(feature_unit)  # log(chain / feature-depth length) by the unit
     out = list(checks)
     for j, k in enumerate(ok):
         c, length = checks[k], float(lengths[k])
@@ -659,7 +661,7 @@ def check_adjusted(
         # Each source's length in the adjusted run's units, and how far it lies (mm).
         gaps = [abs(length - length * math.exp(-d)) for _, d in devs]
         reason = ""
-        if confirms and _feature_confirms(dict(devs).get("feature depth"), c, length, config):
+        if feature_unit is not None and _feature_confirms(r_feat[j] - m_feat, c, length, config):
             continue
         if devs and abs(devs[0][1]) > config.adjusted_agree_log:
             reason = f"{100 * devs[0][1]:+.0f} % from its measured length"
@@ -672,12 +674,12 @@ def check_adjusted(
 
 
 def _feature_confirms(
-    dev_log: float | None, check: StepCheck, length: float, config: ScaleCheckConfig
+    dev_log: float, check: StepCheck, length: float, config: ScaleCheckConfig
 ) -> bool:
-    """Whether a step's feature depths (``dev_log``: their log deviation from the
-    adjusted ``length`` (mm), run-wide ratio removed; None: not measured) confirm it."""
+    """Whether a step's feature depths (``dev_log``: the adjusted ``length`` (mm) over
+    theirs in the chain's units, log; NaN: not measured) confirm it."""
     return (
-        dev_log is not None
+        math.isfinite(dev_log)
         and abs(dev_log) <= config.anchor_agree_log
         and check.feature_matches >= config.feature_only_min_matches
         and abs(length - length * math.exp(-dev_log)) <= config.adjusted_agree_mm
