@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -125,9 +126,9 @@ def test_an_adjusted_step_that_is_its_feature_depths_length_is_not_flagged(
 
 def test_feature_depths_confirm_in_the_chain_s_units() -> None:
     """Three steps (too few for the feature depths' run-wide ratio to the chain),
-    decided 13 % short of the adjusted lengths: feature depths equal to the adjusted
-    lengths confirm them only in the chain's units (given unit 1); in a unit of their
-    own (none given, or 13 % apart) they do not, and the steps stay flagged."""
+    decided 13 % short of the adjusted lengths: feature-depth lengths confirm the adjusted
+    lengths only in the chain's units (by the given unit); in a unit of their own
+    (none given, or the wrong one) they do not, and the steps stay flagged."""
     lengths = np.array([21.4, 20.6, 4.9])
     checks = [
         StepCheck(k, k + 1, v * 0.87, 0.9, v, 500, v * 0.87, "high") for k, v in enumerate(lengths)
@@ -137,3 +138,7 @@ def test_feature_depths_confirm_in_the_chain_s_units() -> None:
     assert not any(c.reliable for c in check_adjusted(checks, world, CFG)[:2])
     assert not any(c.reliable for c in check_adjusted(checks, world, CFG, 1.0, 0.87)[:2])
     assert all(c.reliable for c in check_adjusted(checks, world, CFG, 1.0, 1.0))
+    # Feature depths 13 % long in their own unit, given as 0.87 of the chain's: confirmed.
+    longer = [replace(c, feature_scale_mm=c.feature_scale_mm / 0.87) for c in checks]
+    assert all(c.reliable for c in check_adjusted(longer, world, CFG, 1.0, 0.87))
+    assert not any(c.reliable for c in check_adjusted(longer, world, CFG, 1.0, 1.0)[:2])

@@ -648,8 +648,10 @@ def check_adjusted(
 
     r_dec, m_dec = offsets([checks[k].scale_mm / decided_unit for k in ok])
     r_feat, m_feat = offsets([checks[k].feature_scale_mm for k in ok])
+    # log(chain / feature-depth length) run-wide for the confirmation: measured, or the unit's
+    m_unit = m_feat
     if feature_unit is not None and np.isfinite(r_feat).sum() < ADJUSTED_OFFSET_MIN_STEPS:
-        m_feat = -math.log(feature_unit)  # log(chain / feature-depth length) by the unit
+        m_unit = math.log(feature_unit)
     out = list(checks)
     for j, k in enumerate(ok):
         c, length = checks[k], float(lengths[k])
@@ -661,7 +663,7 @@ def check_adjusted(
         # Each source's length in the adjusted run's units, and how far it lies (mm).
         gaps = [abs(length - length * math.exp(-d)) for _, d in devs]
         reason = ""
-        if feature_unit is not None and _feature_confirms(r_feat[j] - m_feat, c, length, config):
+        if feature_unit is not None and _feature_confirms(r_feat[j] - m_unit, c, length, config):
             continue
         if devs and abs(devs[0][1]) > config.adjusted_agree_log:
             reason = f"{100 * devs[0][1]:+.0f} % from its measured length"
