@@ -325,6 +325,14 @@ def kill_workers(pool: ProcessPoolExecutor) -> None:
     """End ``pool``'s worker processes now (SIGKILL), not after their current task: a
     run that stops (error, Ctrl-C, SIGTERM) does not wait for the work in progress."""
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    # Tasks still queued for the dead workers: the queue's feeder thread may be blocked
+    # writing one into a full pipe that nothing reads any more, and the pool's manager
+    # thread would wait for that thread at shutdown, and the interpreter for the manager
+    # at exit (a hang seen once after a whole test run). The feeder is a daemon thread:
+    # do not wait for it.
+    call_queue = getattr(pool, "_call_queue", None)
+    if call_queue is not None:
+        call_queue.cancel_join_thread()
     # Killed before the shutdown: the pool's manager thread then sees the dead workers
     # (a broken pool) and ends, instead of waiting for their results at interpreter exit.
     for proc in processes:
