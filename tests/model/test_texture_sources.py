@@ -329,7 +329,7 @@ def test_magnification_table_bounds_the_projection() -> None:
     assert inner.sum() > 1000 and np.all(table[bins[inner]] <= 2.0 * mag.max())
 
 
-def test_a_chunked_wall_grid_evaluated_in_the_workers_gives_the_same_rows_and_choice() -> None:
+def test_a_chunked_wall_grid_gives_the_same_choice_in_the_workers() -> None:
     from omnipipe.executor import open_executor
 
     rig = _rig("hyperboloid")
@@ -341,15 +341,8 @@ def test_a_chunked_wall_grid_evaluated_in_the_workers_gives_the_same_rows_and_ch
     def wall() -> WallGrid:
         return WallGrid(arc, axial, pts, circ, 0.5, 2.0, chunk_points=len(arc) // 5, hole=hole, max_edge_mm=4.0)
 
-    here_wall = wall()
-    h = here_wall.shape[0]
-    spans = [(max(r0 - 1, 0), min(r0 + 17, h)) for r0 in range(0, h, 16)]
+    h = wall().shape[0]
     with open_executor(2) as ex:
-        deferred = list(wall().deferred_rows(spans, ex))
-        assert len({id(d.block) for d in deferred}) >= 3  # several blocks
-        assert any(d.block.drop is not None and d.block.drop.any() for d in deferred)
-        for (lo, hi), d in zip(spans, deferred, strict=True):
-            assert np.array_equal(d.evaluate(), here_wall.rows(lo, hi), equal_nan=True)
         lazy = wall()
         there = [choose_sources(rig, poses, lazy, 0.5, 3.0, strip_rows=16, rows=(t, min(t + 48, h)), executor=ex)
                  for t in range(0, h, 48)]

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from omnipipe.analysis.cylinder import Cylinder, _basis, fit_cylinder
+from omnipipe.analysis.cylinder import Cylinder, basis, fit_cylinder
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.progress import phase
@@ -464,7 +464,7 @@ def _ridge_direction(centres: np.ndarray, prior: np.ndarray, prior_sigma_rad: fl
     g = prior / np.linalg.norm(prior)
     if len(centres) < 2:
         return g
-    e1, e2 = _basis(g)
+    e1, e2 = basis(g)
     c = centres - centres.mean(axis=0)
     ds = c @ g
     dx = np.column_stack([c @ e1, c @ e2])

@@ -41,7 +41,7 @@ class Cylinder:
         return 2.0 * self.radius_mm
 
 
-def _basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors orthogonal to ``axis`` and to each other."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = np.cross(axis, helper)
@@ -77,7 +77,7 @@ class CylinderResidual:
 
     def __init__(self, points: np.ndarray, axis0: np.ndarray, point0: np.ndarray) -> None:
         self.points, self.axis0, self.point0 = points, axis0, point0
-        self.e1, self.e2 = _basis(axis0)
+        self.e1, self.e2 = basis(axis0)
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(axis point (3,), unit axis (3,)) of parameters ``x``."""
@@ -127,7 +127,7 @@ def fit_cylinder(
         raise ShapeError(f"fit_cylinder: points must be (N>=6, 3), got {points.shape}")
     axis0 = np.asarray(axis_guess, float)
     axis0 = axis0 / np.linalg.norm(axis0)
-    e1, e2 = _basis(axis0)
+    e1, e2 = basis(axis0)
     centroid = points.mean(axis=0)
     rel = points - centroid
     centre2, r0 = circle_fit_2d(np.column_stack([rel @ e1, rel @ e2]))

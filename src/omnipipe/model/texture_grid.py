@@ -21,8 +21,6 @@ interpolation's triangulation of a long run is made a chunk of the run at a time
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -196,34 +194,6 @@ class WallGrid:
         grid = _evaluate(interpolate, tree, drop, self._u, self._z[start:stop], self._max_gap_mm)
         return grid[first - start :]
 
-    def deferred_rows(
-        self, spans: list[tuple[int, int]], executor: Executor
-    ) -> Iterator[np.ndarray | GridRows]:
-        """The rows of each ``(first, stop)`` of ``spans`` in turn, as :meth:`rows` gives
-        them, but for a worker to evaluate: a chunked grid's blocks are triangulated on
-        ``executor`` (each block the spans need once, all submitted at once) and each
-        span comes as :class:`GridRows` (its block travels with it); an unchunked grid's
-        rows are evaluated here. The same values bit for bit."""
-        if self._chunks is None:
-            for first, stop in spans:
-                yield self.rows(first, stop)
-            return
-        plan: list[tuple[int, int]] = []
-        current = None if self._block is None else (self._block.first, self._block.last)
-        for first, stop in spans:  # the blocks rows() would build, in turn
-            if current is None or not (current[0] <= first and stop <= current[1]):
-                current = self._span(first, stop)
-            plan.append(current)
-        have = None if self._block is None else (self._block.first, self._block.last)
-        futures = {span: executor.submit(self._build_block, *span) for span in dict.fromkeys(plan) if span != have}
-        for (first, stop), span in zip(spans, plan, strict=True):
-            block = self._block
-            if block is None or (block.first, block.last) != span:
-                self._block = block = None
-                release_freed_memory()
-                self._block = block = futures.pop(span).result()
-            yield GridRows(block, self._u, self._z[first:stop], self._max_gap_mm)
-
     def _span(self, first: int, stop: int) -> tuple[int, int]:
         """(first, last): the rows of the block that holds rows [first, stop), as many
         as hold about ``chunk_points`` points (at least to ``stop``)."""
@@ -276,28 +246,6 @@ class _Block:
     interpolate: LinearNDInterpolator
     tree: cKDTree
     drop: np.ndarray | None
-
-
-@dataclass(frozen=True, eq=False)
-class GridRows:
-    """Rows of a chunked :class:`WallGrid` to evaluate elsewhere (picklable: their
-    block travels with them).
-
-    Attributes:
-        block: the block that holds the rows.
-        u: (W,) arc of the columns, mm; z: (n,) axial position of the rows, mm.
-        max_gap_mm: cells farther than this from every point are NaN.
-    """
-
-    block: _Block
-    u: np.ndarray
-    z: np.ndarray
-    max_gap_mm: float
-
-    def evaluate(self) -> np.ndarray:
-        """(n, W, 3) wall points of the rows, mm (NaN: no wall), as :meth:`WallGrid.rows`."""
-        b = self.block
-        return _evaluate(b.interpolate, b.tree, b.drop, self.u, self.z, self.max_gap_mm)
 
 
 def _evaluate(

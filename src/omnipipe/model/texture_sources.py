@@ -37,7 +37,7 @@ from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
 from omnipipe.model._kernels import MAG_BIN_RAD, STEP_RAD, score_strip
-from omnipipe.model.texture_grid import STRIP_ROWS, GridRows, WallGrid
+from omnipipe.model.texture_grid import STRIP_ROWS, WallGrid
 from omnipipe.model.texture_light import LASER_BAND_PX, laser_line_px
 from omnipipe.rig import Rig
 
@@ -455,10 +455,7 @@ def _collect_strips(
 
 
 def _strip_task(args: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Executor task: :func:`_choose_in_strip` of one strip's arguments (its grid rows
-    evaluated here when they come as :class:`~omnipipe.model.texture_grid.GridRows`)."""
-    if isinstance(args[3], GridRows):
-        args = (*args[:3], args[3].evaluate(), *args[4:])
+    """Executor task: :func:`_choose_in_strip` of one strip's arguments."""
     return _choose_in_strip(*args)
 
 
