@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -413,4 +414,58 @@ def test_signal_during_the_run_removes_the_temporary_folder(
             proc.kill()
     assert proc.returncode == code, err
     assert err.strip() == f"omnipipe simulate: {word}"
+    assert list(work.iterdir()) == []
+
+
+STUCK_WORKER_SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys, time
+    import omnipipe.sim.writer as writer
+    from omnipipe.cli import main
+
+    parent = os.getpid()
+    original = writer._render_station
+
+    def stuck(args):
+        # A render worker that SIGTERM cannot end (as one whose main thread is in a long
+        # C call, or blocked on a lock another thread held at the fork).
+        if os.getpid() != parent and args[4][0] != 0:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+            time.sleep(120)
+        return original(args)
+
+    def ready(done, total):
+        print("ready", flush=True)
+        time.sleep(60)
+
+    original_all = writer._render_all
+    writer._render_station = stuck
+    writer._render_all = lambda *a: original_all(*a[:-1], ready)
+    sys.exit(main(["simulate", "--scenario", "paper-small", "--frames", "6", "--quiet",
+                   "--workers", "2", "--out", sys.argv[1]]))
+    """
+)
+
+
+def test_sigterm_ends_simulate_whose_render_worker_ignores_it(tmp_path: Path) -> None:
+    # The flake: a multiprocessing.Pool's terminate() sent its workers SIGTERM and waited
+    # for them without a timeout; the workers are now killed, as reconstruct's are.
+    work = tmp_path / "work"
+    work.mkdir()
+    script = tmp_path / "stuck.py"
+    script.write_text(STUCK_WORKER_SCRIPT)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(work / "ds")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(0.5)  # the other worker is in its stuck station
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)  # a hang: TimeoutExpired
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, err
+    assert err.strip() == "omnipipe simulate: terminated"
     assert list(work.iterdir()) == []

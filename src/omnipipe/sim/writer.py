@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from omnipipe.dataset import write_image, write_tum
+from omnipipe.executor import open_executor, ordered_map
 from omnipipe.output import atomic_output_dir
 from omnipipe.rig_yaml import save_rig
 from omnipipe.sim.motion import simulate_trajectory
@@ -384,26 +385,34 @@ def _render_station(args: tuple) -> int:
 
 
 def _render_all(renderer, scenario, poses, tmp, names, workers, progress) -> None:
+    """Render every station's frames into ``tmp`` on ``workers`` processes (forked: they
+    take the renderer from :data:`_SHARED`, it is not pickled), ``progress(done, total)``
+    after each station, in order.
+
+    The pool is :func:`omnipipe.executor.open_executor`'s: when the run stops (an error,
+    Ctrl-C, SIGTERM) its workers are killed (SIGKILL) at once, as every other command's.
+    A ``multiprocessing.Pool`` ended by its ``with`` block (``terminate()``) sent them
+    SIGTERM and joined them without a timeout, after taking its task queue's read lock
+    (which an idle worker holds while it waits): a worker whose main thread did not get
+    back to the interpreter to run its inherited handler (a long C call, a lock held by
+    another thread at the fork) kept the simulator alive past the signal.
+    """
+    global _SHARED
     stations = _stations(poses)
+    # Forked workers inherit the renderer; elsewhere the stations are rendered here.
+    if not sys.platform.startswith("linux"):
+        workers = 1
     done = 0
-    if workers > 1 and len(stations) > 1:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("fork")
-        global _SHARED
-        _SHARED = (renderer, scenario, tmp)
-        from omnipipe.executor import worker_init  # the workers die with this process
-
-        with ctx.Pool(min(workers, len(stations)), worker_init, (os.getpid(),)) as pool:
-            for n in pool.imap_unordered(_render_shared, [(poses[st[0]], st) for st in stations]):
+    _SHARED = (renderer, scenario, tmp)
+    try:
+        with open_executor(max(1, workers), tasks=len(stations)) as pool:
+            items = ((poses[st[0]], st) for st in stations)
+            for n in ordered_map(pool, _render_shared, items):
                 done += n
                 if progress:
                     progress(done, len(poses))
-        return
-    for st in stations:
-        done += _render_station((renderer, scenario, poses[st[0]], tmp, st))
-        if progress:
-            progress(done, len(poses))
+    finally:
+        _SHARED = None
 
 
 _SHARED: tuple | None = None
