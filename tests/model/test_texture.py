@@ -34,3 +34,29 @@ def test_texture_samples_take_grey_and_16_bit_images() -> None:
     grey = rgb[..., 0]
     assert np.array_equal(texture_samples(grey, px), np.repeat(grey[[4, 7], [3, 10]][:, None], 3, axis=1))
     assert np.array_equal(texture_samples(rgb.astype(np.uint16) * 257, px), rgb[[4, 7], [3, 10]])
+
+
+def test_textured_mesh_fills_a_given_atlas_in_place() -> None:
+    """The model stage paints into the atlas: given it, textured_mesh fills its wrapped
+    margin in place and returns the same mesh and atlas as from the image alone."""
+    from omnipipe.model.mesh import atlas_margin, textured_mesh
+    from omnipipe.model.texture_grid import UnrolledImage
+
+    rng = np.random.default_rng(3)
+    h, w, circ = 20, 31, 15.5
+    arc = rng.uniform(0, circ, 40)
+    axial = rng.uniform(0, 9.5, 40)
+    points = np.column_stack([np.cos(arc), np.sin(arc), axial])
+    faces = rng.integers(0, 40, (60, 3)).astype(np.int32)
+    image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    unrolled = UnrolledImage(image, np.ones((h, w), bool), 0.5, 0.0, circ)
+    expected = textured_mesh(faces, points, arc, axial, unrolled)
+    atlas = np.zeros((h, w + atlas_margin(w), 3), np.uint8)
+    atlas[:, :w] = image
+    view = UnrolledImage(atlas[:, :w], unrolled.alpha, 0.5, 0.0, circ)
+    got = textured_mesh(faces, points, arc, axial, view, atlas)
+    assert got[3] is atlas
+    for a, b in zip(expected, got, strict=True):
+        assert np.array_equal(a, b)
+    with pytest.raises(ShapeError):
+        textured_mesh(faces, points, arc, axial, view, atlas[:, :-1])

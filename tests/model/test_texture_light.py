@@ -98,3 +98,35 @@ def test_demo_like_run_has_even_light_and_no_laser_band(small_dataset: Path) -> 
     rg_true = (true_rgb[..., 0] + 1e-3) / (true_rgb[..., 1] + 1e-3)
     ratio = [np.median(rg[r][ok[r]] / rg_true[r][ok[r]]) for r in range(len(ok)) if ok[r].sum() > 100]
     assert max(ratio) < 1.1 * np.median(ratio)  # main at 4575a61: 1.20 (the band); now 1.005
+
+
+def test_flat_field_reads_the_light_from_disk_a_band_at_a_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The light grid appended to a :class:`LightStore` in sections and read back in
+    bands: the same image as from the array, bit for bit; in place: the same values in
+    the caller's image (no second image)."""
+    from omnipipe.model import texture_light
+    from omnipipe.model.texture_light import LightStore
+
+    rng = np.random.default_rng(5)
+    h, w = 61, 47
+    img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    light = np.stack([rng.normal(-10, 1, (h, w)), rng.uniform(50, 150, (h, w))], 2).astype(np.float16)
+    light[rng.uniform(size=(h, w)) < 0.1] = np.nan
+    raw = UnrolledImage(img, rng.uniform(size=(h, w)) < 0.9, 0.5, 0.0, 150.0)
+    monkeypatch.setattr(texture_light, "_CELLS_AT_ONCE", 97)  # bands of a few rows
+    whole = flat_field(raw, light).image
+    with LightStore(h, w) as store:
+        for r0 in range(0, h, 16):
+            store.append(light[r0 : r0 + 16])
+        assert np.array_equal(store.rows(0, h), light, equal_nan=True)
+        assert np.array_equal(store.rows(7, 23), light[7:23], equal_nan=True)
+        with pytest.raises(ShapeError):
+            store.append(light[:1])  # more rows than the grid has
+        assert np.array_equal(flat_field(raw, store).image, whole)
+        atlas = np.zeros((h, w + 5, 3), np.uint8)
+        atlas[:, :w] = img
+        view = UnrolledImage(atlas[:, :w], raw.alpha, 0.5, 0.0, 150.0)
+        out = flat_field(view, store, in_place=True)
+        assert np.shares_memory(out.image, atlas) and np.array_equal(atlas[:, :w], whole)
+        folder = Path(store._dir.name)
+    assert not folder.exists()  # the store's scratch folder went with it

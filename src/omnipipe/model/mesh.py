@@ -27,6 +27,7 @@ import math
 import numpy as np
 from scipy.spatial import Delaunay
 
+from omnipipe.errors import ShapeError
 from omnipipe.geometry import apply
 from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
 from omnipipe.model.texture_grid import UnrolledImage
@@ -240,22 +241,36 @@ def orient_towards_axis(
     return faces
 
 
+def atlas_margin(w: int) -> int:
+    """Columns of the texture atlas's wrapped margin for an unrolled image W wide (10 %)."""
+    return int(np.ceil(0.1 * w))
+
+
 def textured_mesh(
     faces: np.ndarray,
     points_in_world: np.ndarray,
     arc_mm: np.ndarray,
     axial_mm: np.ndarray,
     unrolled: UnrolledImage,
+    atlas: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Seam-split mesh and its atlas: (vertices, faces, uvs v-up, texture image).
 
     Triangles across angle 0 get copies of their small-arc vertices shifted by one
-    circumference; the atlas is the unrolled image plus a 10 % wrapped margin on the right.
+    circumference; the atlas is the unrolled image plus a wrapped margin on the right
+    (:func:`atlas_margin` columns). ``atlas``: an (H, W + margin, 3) array whose first W
+    columns hold the unrolled image (the model stage paints into it): its margin is
+    filled in place and it is returned, no copy made.
     """
     circ = unrolled.circumference_mm
     h, w = unrolled.image.shape[:2]
-    extra = int(np.ceil(0.1 * w))
-    atlas = np.concatenate([unrolled.image, unrolled.image[:, :extra]], axis=1)
+    extra = atlas_margin(w)
+    if atlas is None:
+        atlas = np.concatenate([unrolled.image, unrolled.image[:, :extra]], axis=1)
+    elif atlas.shape != (h, w + extra, 3):
+        raise ShapeError(f"atlas: expected shape ({h}, {w + extra}, 3), got {atlas.shape}")
+    else:
+        atlas[:, w:] = atlas[:, :extra]
     # The small-arc corners of the triangles across angle 0, a chunk of triangles at a time.
     shift = np.empty(faces.shape, bool)
     for a in range(0, len(faces), FACE_CHUNK):

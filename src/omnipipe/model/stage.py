@@ -38,6 +38,7 @@ from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
 from omnipipe.memory import release_freed_memory
 from omnipipe.model.mesh import (
+    atlas_margin,
     integrate,
     longest_edges,
     mesh_unrolled,
@@ -48,7 +49,7 @@ from omnipipe.model.mesh import (
 from omnipipe.model.outliers import OutlierConfig
 from omnipipe.model.texture import paint, texture_samples
 from omnipipe.model.texture_grid import SECTION_ROWS, UnrolledImage, WallGrid
-from omnipipe.model.texture_light import flat_field
+from omnipipe.model.texture_light import LightStore, flat_field
 from omnipipe.model.texture_sources import LIGHT_DTYPE, choose_sources
 from omnipipe.progress import phase
 from omnipipe.rig import Rig
@@ -359,8 +360,10 @@ def _texture(
     faces: np.ndarray,
     unrolled_at: tuple[np.ndarray, np.ndarray, float],
     executor: Executor | None,
-) -> UnrolledImage:
-    """The unrolled wall image: each cell from the keyframe that sees it best.
+) -> tuple[UnrolledImage, np.ndarray]:
+    """The unrolled wall image (a view of the atlas) and the texture atlas
+    (:func:`~omnipipe.model.mesh.textured_mesh`'s margin not filled yet): each cell from
+    the keyframe that sees it best.
 
     A section of the pipe at a time: its cells chosen, then sampled in the images of the
     keyframes chosen for them (the chosen pixels, 8 bytes a cell, are a section's, not the
@@ -371,7 +374,6 @@ def _texture(
         unrolled_at: (N,) arc and (N,) axial position of the points (mm), circumference (mm).
     """
     arc, axial, circ = unrolled_at
-    n_k = len(inputs.ring_pixels)
     # Holes stay holes: a cell counts as wall when it is no farther from a point than
     # the inside of the largest kept triangle (0.6 x its longest edge).
     longest = float(longest_edges(points, faces).max())
@@ -386,36 +388,68 @@ def _texture(
     h, w = wall.shape
     wall_z0 = wall.axial_min_mm
     seen = np.zeros((h, w), bool)  # the cells some keyframe textures
-    image = np.zeros((h * w, 3), np.uint8)
-    light = np.full((h, w, 2), np.nan, LIGHT_DTYPE)  # each cell's view, for the flat field
-    for top in range(0, h, SECTION_ROWS):
-        end = min(top + SECTION_ROWS, h)
-        # Progress: a section's rows count half for the choice of its cells (strip by
-        # strip), half for sampling them (keyframe by keyframe).
-        choice = choose_sources(
-            inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
-            config.laser_band_mm, executor=executor, rows=(top, end),
-            rows_done=lambda r, top=top: ticks.to(n_k * (2 * top + r) // (2 * h)),
-        )
-        seen[top:end] = choice.source >= 0
-        light[top:end] = choice.light
-        work: list[_FrameWork | None] = [None] * n_k
-        for k in range(n_k):
-            if choice.count(k):
-                ring = rings.to_sample(k)
-                work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
-        choice = replace(choice, pieces=())  # each keyframe's dropped once sampled
-        todo = max(1, sum(item is not None for item in work))
-        for i, (k, samples) in enumerate(rings.sample(work), start=1):
-            paint(image[top * w : end * w], choice, k, samples)
-            ticks.to(n_k * (2 * top * todo + (end - top) * (todo + i)) // (2 * h * todo))
-        del work, choice
-        release_freed_memory()  # the section's strips, pixels and samples
-        ticks.to(n_k * end // h)
-    del wall
-    release_freed_memory()  # the wall grid's blocks and the strips' results
-    unrolled = UnrolledImage(image.reshape(h, w, 3), seen, config.texture_mm_per_px, wall_z0, circ)
-    return flat_field(unrolled, light)  # the LEDs' falloff and the vignetting out
+    # Painted straight into the texture atlas (the unrolled image plus its wrapped margin,
+    # textured_mesh): the image is held once. Each cell's view, for the flat field, waits
+    # on disk a section at a time (4 bytes a cell, the largest of the grid's arrays).
+    atlas = np.zeros((h, w + atlas_margin(w), 3), np.uint8)
+    light = LightStore(h, w, LIGHT_DTYPE)
+    try:
+        for top in range(0, h, SECTION_ROWS):
+            end = min(top + SECTION_ROWS, h)
+            seen[top:end] = _texture_section(
+                config, inputs, rings, ticks, wall, (top, end), executor, atlas, light
+            )
+        del wall
+        release_freed_memory()  # the wall grid's blocks and the strips' results
+        unrolled = UnrolledImage(atlas[:, :w], seen, config.texture_mm_per_px, wall_z0, circ)
+        # The LEDs' falloff and the vignetting out, in place.
+        return flat_field(unrolled, light, in_place=True), atlas
+    finally:
+        light.close()
+
+
+def _texture_section(
+    config: ModelConfig,
+    inputs: ModelInputs,
+    rings: _RingColours,
+    ticks: _Ticks,
+    wall: WallGrid,
+    rows: tuple[int, int],
+    executor: Executor | None,
+    atlas: np.ndarray,
+    light: LightStore,
+) -> np.ndarray:
+    """Rows ``[top, end)`` of the unrolled wall: their cells chosen, then sampled in the
+    images of the keyframes chosen for them and painted into ``atlas``; their light
+    appended to ``light``. Returns (end - top, W) bool: the cells some keyframe textures."""
+    top, end = rows
+    h, w = wall.shape
+    n_k = len(inputs.ring_pixels)
+    # Progress: a section's rows count half for the choice of its cells (strip by
+    # strip), half for sampling them (keyframe by keyframe).
+    choice = choose_sources(
+        inputs.camera_rig, inputs.world_from_rig, wall, config.texture_mm_per_px,
+        config.laser_band_mm, executor=executor, rows=(top, end),
+        rows_done=lambda r: ticks.to(n_k * (2 * top + r) // (2 * h)),
+    )
+    seen = choice.source >= 0
+    light.append(choice.light)
+    work: list[_FrameWork | None] = [None] * n_k
+    for k in range(n_k):
+        if choice.count(k):
+            ring = rings.to_sample(k)
+            work[k] = _FrameWork(_NO_PIXELS if ring is None else ring, choice.pieces[k])
+    choice = replace(choice, pieces=(), light=None)  # each keyframe's dropped once sampled
+    todo = max(1, sum(item is not None for item in work))
+    image = np.zeros(((end - top) * w, 3), np.uint8)  # the section's cells, row-major
+    for i, (k, samples) in enumerate(rings.sample(work), start=1):
+        paint(image, choice, k, samples)
+        ticks.to(n_k * (2 * top * todo + (end - top) * (todo + i)) // (2 * h * todo))
+    atlas[top:end, :w] = image.reshape(end - top, w, 3)
+    del work, choice, image
+    release_freed_memory()  # the section's strips, pixels and samples
+    ticks.to(n_k * end // h)
+    return seen
 
 
 def run(
@@ -488,8 +522,9 @@ def _run(
     rings = _RingColours(inputs, camera, config.colour_offset_px, executor)
     ticks = _Ticks(progress, n_k)
     unrolled: UnrolledImage | None = None
+    atlas: np.ndarray | None = None
     if config.texture and len(faces):
-        unrolled = _texture(config, inputs, rings, ticks, points, faces, (arc, axial, circ), executor)
+        unrolled, atlas = _texture(config, inputs, rings, ticks, points, faces, (arc, axial, circ), executor)
     # The rings of the keyframes that textured no cell.
     rest = [None if (ring := rings.to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
     for _ in rings.sample(rest):
@@ -499,11 +534,10 @@ def _run(
     del rest
     result = ModelResult(points, colours, frame, points, faces, flip_stats=flip_stats)
     if unrolled is not None:
-        verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled)
+        verts, tfaces, uvs, atlas = textured_mesh(faces, points, arc, axial, unrolled, atlas)
         result.textured_vertices, result.textured_faces, result.textured_uvs = verts, tfaces, uvs
-        # The unrolled image is the atlas's first W columns (textured_mesh): a view of it,
-        # so the image is held once, not twice.
-        view = atlas[:, : unrolled.image.shape[1]]
-        result.texture, result.unrolled = atlas, replace(unrolled, image=view)
+        # The unrolled image is the atlas's first W columns: a view of it, so the image is
+        # held once, not twice.
+        result.texture, result.unrolled = atlas, unrolled
         del unrolled
     return result

@@ -12,12 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import replace
+from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from omnipipe.camera import CameraModel
 from omnipipe.errors import ShapeError
 from omnipipe.model.texture_grid import STRIP_ROWS, UnrolledImage
+from omnipipe.scratch import ScratchStore
 
 LASER_BAND_PX = 4.0
 """Texture is not taken within this many pixels of the laser line's image (its stripe,
@@ -54,7 +57,9 @@ FLAT_FIELD_LEVEL = 128.0
 """Median luminance (8-bit) of the flat-fielded unrolled wall."""
 
 
-def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
+def flat_field(
+    unrolled: UnrolledImage, light: np.ndarray | LightRows, in_place: bool = False
+) -> UnrolledImage:
     """The unrolled wall with the LEDs' falloff and the mirror's vignetting divided out.
 
     Each cell was imaged with gain ``E x V``: ``E = cos(incidence) / range^2`` of its wall
@@ -71,17 +76,20 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
 
     Args:
         unrolled: the painted unrolled wall.
-        light: (H, W, 2) :attr:`CellChoice.light` of its cells.
+        light: (H, W, 2) :attr:`CellChoice.light` of its cells, or its rows on disk
+            (:class:`LightStore`: read a band of rows at a time, never held whole).
+        in_place: correct ``unrolled.image`` itself (no second image is made).
 
     Returns:
         The same image, corrected (cells without ``light`` only scaled).
     """
     img = unrolled.image
     h, w = img.shape[:2]
-    if light.shape != (h, w, 2):
-        raise ShapeError(f"light: expected shape ({h}, {w}, 2), got {light.shape}")
+    if tuple(light.shape) != (h, w, 2):
+        raise ShapeError(f"light: expected shape ({h}, {w}, 2), got {tuple(light.shape)}")
+    rows = _as_rows(light)
     stride = max(1, (h * w) // 2_000_000)  # the estimate from at most ~2 M cells
-    samples = _FlatFieldCells(img, light, unrolled.alpha, stride)
+    samples = _FlatFieldCells(img, rows, unrolled.alpha, stride)
     lum, irr, r_ok = samples.usable()
     if len(lum) < 4 * FLAT_FIELD_BINS:
         return unrolled
@@ -110,9 +118,9 @@ def flat_field(unrolled: UnrolledImage, light: np.ndarray) -> UnrolledImage:
     )
     scale = FLAT_FIELD_LEVEL / max(float(np.median(corrected)), 1e-6)
     del corrected
-    out = np.empty_like(img)
+    out = img if in_place else np.empty_like(img)
     for r0 in range(0, h, STRIP_ROWS):  # float32 intermediates a strip of rows at a time
-        g = gain(light[r0 : r0 + STRIP_ROWS])
+        g = gain(rows.rows(r0, min(r0 + STRIP_ROWS, h)))
         part = img[r0 : r0 + STRIP_ROWS].astype(np.float32) * (scale / g)[..., None]
         out[r0 : r0 + STRIP_ROWS] = np.clip(np.round(part), 0, 255).astype(np.uint8)
     return replace(unrolled, image=out)
@@ -125,18 +133,23 @@ chunk's, not the wall's)."""
 
 class _FlatFieldCells:
     """The cells :func:`flat_field` estimates from (every ``stride``-th, row-major), a
-    chunk at a time: the same values as taken all at once."""
+    band of rows at a time: the same values, in the same order, as taken all at once."""
 
-    def __init__(self, img: np.ndarray, light: np.ndarray, alpha: np.ndarray, stride: int) -> None:
-        self.img, self.light = img.reshape(-1, 3), light.reshape(-1, 2)
-        self.alpha, self.stride = alpha.reshape(-1), stride
+    def __init__(self, img: np.ndarray, light: LightRows, alpha: np.ndarray, stride: int) -> None:
+        self.img, self.light, self.alpha, self.stride = img, light, alpha, stride
 
     def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Per chunk: (n,) float32 luminance, (n, 2) light and (n,) alpha of its cells."""
-        step = self.stride * _CELLS_AT_ONCE  # chunks start on a multiple of the stride
-        for a in range(0, len(self.img), step):
-            sl = slice(a, a + step, self.stride)
-            yield self.img[sl].astype(np.float32).mean(axis=1), self.light[sl], self.alpha[sl]
+        """Per band of rows: (n,) float32 luminance, (n, 2) light and (n,) alpha of its
+        cells (about :data:`_CELLS_AT_ONCE` of them)."""
+        h, w = self.img.shape[:2]
+        band = max(1, (self.stride * _CELLS_AT_ONCE) // max(w, 1))
+        for r0 in range(0, h, band):
+            r1 = min(r0 + band, h)
+            first = (-r0 * w) % self.stride  # the band's first cell on the stride
+            sl = slice(first, None, self.stride)
+            img = self.img[r0:r1].reshape(-1, 3)[sl]
+            light = self.light.rows(r0, r1).reshape(-1, 2)[sl]
+            yield img.astype(np.float32).mean(axis=1), light, self.alpha[r0:r1].reshape(-1)[sl]
 
     def usable(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Luminance, irradiance E (float32) and image radius of the cells fit for the
@@ -162,3 +175,66 @@ def _joined(parts: list[np.ndarray], dtype: type) -> np.ndarray:
         out[at : at + len(part)] = part
         at += len(part)
     return out
+
+
+class LightRows(Protocol):
+    """Rows of a (H, W, 2) :attr:`CellChoice.light` grid."""
+
+    @property
+    def shape(self) -> tuple[int, int, int]: ...
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, W, 2) rows [first, stop)."""
+        ...
+
+
+class _ArrayLight:
+    """An in-memory (H, W, 2) light grid as :class:`LightRows` (rows are views)."""
+
+    def __init__(self, light: np.ndarray) -> None:
+        self._light = light
+        self.shape = light.shape
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        return self._light[first:stop]
+
+
+def _as_rows(light: np.ndarray | LightRows) -> LightRows:
+    return _ArrayLight(light) if isinstance(light, np.ndarray) else light
+
+
+class LightStore(ScratchStore):
+    """The (H, W, 2) :data:`LIGHT_DTYPE` light grid on disk (the run's scratch folder),
+    written a band of rows at a time in order and read back a band at a time: the model
+    stage holds a section's rows, not the run's (4 bytes a cell).
+
+    Attributes:
+        shape: (H, W, 2).
+    """
+
+    def __init__(self, h: int, w: int, dtype: type = np.float16) -> None:
+        super().__init__("omnipipe-light-")
+        self.shape = (h, w, 2)
+        self._dtype = np.dtype(dtype)
+        self._path = Path(self._dir.name) / "light.bin"
+        self._written = 0
+        self._path.write_bytes(b"")
+
+    def append(self, rows: np.ndarray) -> None:
+        """Write the next (n, W, 2) rows."""
+        if rows.shape[1:] != self.shape[1:] or self._written + len(rows) > self.shape[0]:
+            raise ShapeError(f"light rows: expected (n <= {self.shape[0] - self._written}, "
+                             f"{self.shape[1]}, 2), got {rows.shape}")
+        with self._path.open("ab") as fh:
+            fh.write(np.ascontiguousarray(rows, self._dtype).tobytes())
+        self._written += len(rows)
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, W, 2) rows [first, stop) (written ones only)."""
+        first, stop = max(first, 0), min(stop, self._written)
+        w = self.shape[1]
+        n = max(stop - first, 0) * w * 2
+        with self._path.open("rb") as fh:
+            fh.seek(first * w * 2 * self._dtype.itemsize)
+            data = np.fromfile(fh, self._dtype, n)
+        return data.reshape(-1, w, 2)
