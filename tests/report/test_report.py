@@ -223,3 +223,22 @@ def test_unrolled_texture_starts_at_twelve_like_the_deviation_map() -> None:
     assert extent == (270.0, 630.0, 0.0, 10.0)
     same, ext = _from_twelve(img, (0.0, 360.0, 0.0, 10.0), 0.2)
     assert np.array_equal(same, img) and ext[0] == 0.0
+
+
+def test_report_is_written_a_piece_at_a_time_as_the_page(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """run() writes the page in pieces (the 3-D view's number lists a chunk at a time,
+    never the whole page held): the same bytes as render_html's page; the unrolled wall
+    hatched and rolled to 12:00 in one pass is the hatched wall rolled."""
+    from omnipipe.report import html as report_html
+    from omnipipe.report.html import _from_twelve, marked_unrolled
+
+    monkeypatch.setattr(report_html, "_NUMBERS_CHUNK", 101)
+    inputs = _inputs()
+    page = render_html(inputs)
+    assert run(ReportConfig(), inputs, tmp_path / "report.html").read_text(encoding="utf-8") == page
+    assert page.count("id='model-data'") == 1
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (600, 90, 3), dtype=np.uint8)
+    alpha = rng.uniform(size=(600, 90)) < 0.7
+    rolled, _ = _from_twelve(marked_unrolled(img, alpha), (0.0, 360.0, 0.0, 300.0), 100.0)
+    assert np.array_equal(marked_unrolled(img, alpha, 25), rolled)  # 100 deg = 25 columns

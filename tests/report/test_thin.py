@@ -93,3 +93,18 @@ def test_an_image_drawn_in_bands_is_the_image_drawn_whole() -> None:
         whole = png(image, None)
         for rows in (64, 100, 1000):
             assert png(image, rows) == whole, (shape, rows)
+
+
+def test_thinning_a_chunk_of_faces_at_a_time_keeps_the_same_view(monkeypatch) -> None:
+    """The faces renumbered a chunk at a time (their temporaries a chunk's, not the
+    mesh's): the same view as all at once, the repeats across chunks dropped too."""
+    from omnipipe.report import thin
+
+    verts, faces, uvs, shape = pipe_mesh(400)
+    monkeypatch.setattr(thin, "FACE_CHUNK", len(faces))
+    whole = thin_mesh(verts, faces, uvs, 2000, shape)
+    monkeypatch.setattr(thin, "FACE_CHUNK", 997)
+    chunked = thin_mesh(verts, faces.astype(np.int32), uvs, 2000, shape)
+    for a, b in zip(whole, chunked, strict=True):
+        assert np.array_equal(a, b)
+    assert len(np.unique(np.sort(chunked[1], axis=1), axis=0)) == len(chunked[1])  # no repeats

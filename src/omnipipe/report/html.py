@@ -18,6 +18,7 @@ import html
 import io
 import json
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -150,8 +151,10 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     if poses.ndim == 3 and len(poses):
         out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
-        shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha)
-        shown, extent = _from_twelve(shown, inputs.unrolled_extent, _clock_deg(inputs))
+        # Hatched and rolled to 12:00 in one pass (the report's one copy of the wall).
+        w = min(np.asarray(inputs.unrolled).shape[1], UNROLLED_MAX_COLUMNS)
+        shift, extent = _twelve_shift(w, inputs.unrolled_extent, _clock_deg(inputs))
+        shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha, shift)
         out["unrolled"] = _unrolled_plot(inputs, shown, extent)
     if inputs.wall is not None and len(inputs.wall.axial_mm):
         out["relief"] = _relief_plot(inputs, inputs.wall)
@@ -163,29 +166,53 @@ UNROLLED_MAX_COLUMNS = 1800
 its figure is about 1000 px wide."""
 
 
-def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
+_MARK_ROWS = 256
+"""Rows of the unrolled wall :func:`marked_unrolled` hatches and rolls at a time."""
+
+
+def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None, roll: int = 0) -> np.ndarray:
     """(h, w, 3) uint8 unrolled wall for the report: at most
     :data:`UNROLLED_MAX_COLUMNS` columns (rows scaled alike), and the cells that are not
     wall (``alpha`` False: a gap, an opening, unseen) hatched in two greys, so that no
-    missing wall passes for dark wall and nothing is smeared into it."""
+    missing wall passes for dark wall and nothing is smeared into it; then its columns
+    rolled ``roll`` to the left (:func:`_from_twelve`). A new array (the caller's image
+    is never drawn on), made a band of :data:`_MARK_ROWS` rows at a time: one copy of
+    the wall, not three."""
     import cv2
 
     h, w = image.shape[:2]
-    rgb = np.ascontiguousarray(image[..., :3])
+    rgb = image[..., :3]
     seen = None if alpha is None else np.asarray(alpha, bool)
+    out = None
     if w > UNROLLED_MAX_COLUMNS:
         f = UNROLLED_MAX_COLUMNS / w
         size = (UNROLLED_MAX_COLUMNS, max(1, round(h * f)))
-        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        rgb = out = cv2.resize(np.ascontiguousarray(rgb), size, interpolation=cv2.INTER_AREA)
         if seen is not None:
             # A shown cell is wall when most of the cells it averages are.
             seen = cv2.resize(seen.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
-    if seen is not None and not seen.all():
-        if rgb is image or np.shares_memory(rgb, image):
-            rgb = rgb.copy()  # the caller's image is never drawn on
-        rr, cc = np.nonzero(~seen)
-        rgb[rr, cc] = np.where((((rr + cc) // 4) % 2)[:, None] == 0, 170, 110).astype(np.uint8)
-    return rgb
+    if out is None:
+        out = np.empty((h, w, 3), np.uint8)
+    for r0 in range(0, rgb.shape[0], _MARK_ROWS):
+        r1 = min(r0 + _MARK_ROWS, rgb.shape[0])
+        band = np.array(rgb[r0:r1])
+        if seen is not None and not seen[r0:r1].all():
+            rr, cc = np.nonzero(~seen[r0:r1])
+            band[rr, cc] = np.where((((rr + r0 + cc) // 4) % 2)[:, None] == 0, 170, 110).astype(np.uint8)
+        out[r0:r1] = np.roll(band, -roll, axis=1) if roll else band
+    return out
+
+
+def _twelve_shift(
+    w: int, extent: tuple[float, float, float, float], twelve_deg: float
+) -> tuple[int, tuple[float, float, float, float]]:
+    """The columns to roll a full-turn unrolled image ``w`` columns wide left so that its
+    column nearest 12:00 (omnipipe angle ``twelve_deg``) is the left edge, and its new
+    extent."""
+    a0, a1, s0, s1 = extent
+    per_col = (a1 - a0) / w
+    shift = int(round(((twelve_deg - a0) % 360.0) / per_col)) % w
+    return shift, (a0 + shift * per_col, a1 + shift * per_col, s0, s1)
 
 
 def _from_twelve(
@@ -194,11 +221,8 @@ def _from_twelve(
     """The full-turn unrolled image with its columns rolled so that the column nearest
     12:00 (omnipipe angle ``twelve_deg``) is the left edge, and its new extent: the
     texture reads like the deviation map (12:00 to 12:00, clockwise)."""
-    a0, a1, s0, s1 = extent
-    w = image.shape[1]
-    per_col = (a1 - a0) / w
-    shift = int(round(((twelve_deg - a0) % 360.0) / per_col)) % w
-    return np.roll(image, -shift, axis=1), (a0 + shift * per_col, a1 + shift * per_col, s0, s1)
+    shift, rolled = _twelve_shift(image.shape[1], extent, twelve_deg)
+    return np.roll(image, -shift, axis=1), rolled
 
 
 def _clock_deg(inputs: ReportInputs) -> float:
@@ -456,10 +480,18 @@ def _unreliable_frames(inputs: ReportInputs) -> list[tuple[int, int]]:
 
 
 def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
+    """The 3-D view's JSON (:func:`_model_json_parts` joined), or None without a mesh."""
+    parts = _model_json_parts(inputs, config)
+    return None if parts is None else "".join(parts)
+
+
+def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str] | None:
+    """The 3-D view's JSON in pieces (the number lists a chunk of values at a time, so
+    the page is written without holding it whole), or None without a mesh."""
     if inputs.mesh_vertices is None or inputs.mesh_faces is None or not len(inputs.mesh_faces):
         return None
     verts = np.asarray(inputs.mesh_vertices, float)
-    faces = np.asarray(inputs.mesh_faces, np.int64)
+    faces = np.asarray(inputs.mesh_faces)
     uvs = inputs.mesh_uvs if inputs.mesh_uvs is not None else np.zeros((len(verts), 2))
     if len(faces) > config.max_faces:
         from omnipipe.report.thin import thin_mesh
@@ -477,6 +509,7 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         if scale < 1:
             tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         texture = _png_data_uri(tex)
+        del tex
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     rest = {
         "markers": _markers(inputs),
@@ -484,17 +517,20 @@ def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
         "centre": ((lo + hi) / 2).tolist(),
         "radius": float(max(np.linalg.norm(hi - lo) / 2, 1.0)),
     }
-    # The long arrays as JSON number lists in one %-format each (5x faster than lists of
-    # Python floats through json.dumps; the viewer reads the same values).
-    arrays = (
-        f'"positions":[{_numbers("%.2f", verts)}],'
-        # WebGL samples textures with v = 0 at the first uploaded row (the image top).
-        f'"uvs":[{_numbers("%.5f", np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]]))}],'
-        f'"indices":[{_numbers("%d", faces)}],'
-    )
-    # Only the JSON part can hold "</" (the number lists cannot): escaped alone, the
-    # long string is not copied once more.
-    return "{" + arrays + json.dumps(rest, separators=(",", ":"))[1:].replace("</", "<\\/")
+    # WebGL samples textures with v = 0 at the first uploaded row (the image top).
+    uv_rows = np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]])
+
+    def parts() -> Iterator[str]:
+        # The long arrays as JSON number lists in one %-format a chunk (5x faster than
+        # lists of Python floats through json.dumps; the viewer reads the same values).
+        for name, fmt, values in (("positions", "%.2f", verts), ("uvs", "%.5f", uv_rows), ("indices", "%d", faces)):
+            yield f'{"{" if name == "positions" else ""}"{name}":['
+            yield from _number_chunks(fmt, values)
+            yield "],"
+        # Only the JSON part can hold "</" (the number lists cannot): escaped alone.
+        yield json.dumps(rest, separators=(",", ":"))[1:].replace("</", "<\\/")
+
+    return parts()
 
 
 def _point_features(summary: dict[str, Any]) -> list[tuple[str, float, float | None]]:
@@ -550,12 +586,17 @@ each, are a chunk's, not the mesh's)."""
 
 def _numbers(fmt: str, values: np.ndarray) -> str:
     """The values of ``values`` (any shape, row-major) in ``fmt``, comma-separated."""
+    return "".join(_number_chunks(fmt, values))
+
+
+def _number_chunks(fmt: str, values: np.ndarray) -> Iterator[str]:
+    """:func:`_numbers` in pieces of :data:`_NUMBERS_CHUNK` values (a comma between
+    pieces, none after the last)."""
     flat = np.asarray(values).ravel()
-    parts = [
-        (fmt + ",") * len(chunk) % tuple(chunk.tolist())
-        for chunk in (flat[a : a + _NUMBERS_CHUNK] for a in range(0, len(flat), _NUMBERS_CHUNK))
-    ]
-    return "".join(parts)[:-1]
+    for a in range(0, len(flat), _NUMBERS_CHUNK):
+        chunk = flat[a : a + _NUMBERS_CHUNK]
+        text = (fmt + ",") * len(chunk) % tuple(chunk.tolist())
+        yield text if a + _NUMBERS_CHUNK < len(flat) else text[:-1]
 
 
 def value_pm(value: float | None, sigma: float | None, *, plain: str = "±", digits: int = 2) -> str:
@@ -685,25 +726,41 @@ def _zoomable(uri: str, alt: str) -> str:
 
 def render_html(inputs: ReportInputs, config: ReportConfig | None = None) -> str:
     """The report page as one self-contained HTML string (``templates/report.html``)."""
-    config = config or ReportConfig()
+    return "".join(_page_parts(inputs, config or ReportConfig()))
+
+
+_MODEL_SLOT = "\x00omnipipe-model-view\x00"
+"""Stands for the 3-D view in the filled template until the page is written out."""
+
+
+def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
+    """The report page in pieces: the template filled in, with the 3-D view's JSON
+    (the page's longest part) written a chunk at a time into it."""
     s = inputs.summary
     plots = _plots(inputs)
     template = resources.files("omnipipe.report").joinpath("templates", "report.html")
     page = Template(template.read_text(encoding="utf-8"))
-    return page.substitute(
+    filled = page.substitute(
         title=html.escape(config.title),
         survey=_survey_html(s.get("survey")),
         summary_rows=_summary_rows(s) + _motion_rows(s, inputs.trajectory_quality) + _calibration_row(s),
         warnings="".join(f"<p class='warn'>warning: {html.escape(str(w))}</p>" for w in s.get("warnings", [])),
         truth=_truth_table(inputs.truth),
         trajectory_note=_trajectory_note(inputs.evaluation),
-        model_view=_model_view(_model_json(inputs, config)),
+        model_view=_MODEL_SLOT,
         defects=_defects_section(inputs) + _features_section(s, _travel_sign(inputs)),
         figures=_figures(
             plots, inputs.unrolled_alpha is not None and not np.asarray(inputs.unrolled_alpha).all()
         ),
         files=_files_table(s.get("files")),
     )
+    del plots
+    before, after = filled.split(_MODEL_SLOT, 1)
+    del filled
+    yield before
+    del before
+    yield from _model_view_parts(_model_json_parts(inputs, config))
+    yield after
 
 
 def _summary_rows(s: dict[str, Any]) -> str:
@@ -822,15 +879,22 @@ def _trajectory_note(ev: dict[str, Any] | None) -> str:
 
 def _model_view(model: str | None) -> str:
     """The 3-D view: the model's JSON and the viewer (viewer.js), or a note without a mesh."""
+    return "".join(_model_view_parts(None if model is None else iter([model])))
+
+
+def _model_view_parts(model: Iterator[str] | None) -> Iterator[str]:
+    """:func:`_model_view` in pieces, the model's JSON as its pieces come."""
     if model is None:
-        return "<p class='note'>No mesh was built.</p>"
+        yield "<p class='note'>No mesh was built.</p>"
+        return
     viewer_js = resources.files("omnipipe.report").joinpath("viewer.js").read_text(encoding="utf-8")
-    return (
+    yield (
         "<div id='model-wrap'><canvas id='model-view'></canvas></div>"
         "<p id='model-status' class='note'>loading…</p>"
-        f"<script type='application/json' id='model-data'>{model}</script>"
-        f"<script>{viewer_js}</script>"
+        "<script type='application/json' id='model-data'>"
     )
+    yield from model
+    yield f"</script><script>{viewer_js}</script>"
 
 
 _DEFECT_COLUMNS = (
@@ -1013,7 +1077,10 @@ def _files_table(files: dict[str, dict[str, Any]] | None) -> str:
 
 
 def run(config: ReportConfig, inputs: ReportInputs, out_path: Path) -> Path:
-    """Write report.html to ``out_path`` and return it."""
+    """Write report.html to ``out_path`` and return it (a piece at a time: the page is
+    not held whole)."""
     out_path = Path(out_path)
-    out_path.write_text(render_html(inputs, config), encoding="utf-8")
+    with out_path.open("w", encoding="utf-8") as fh:
+        for part in _page_parts(inputs, config):
+            fh.write(part)
     return out_path

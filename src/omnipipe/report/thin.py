@@ -42,9 +42,9 @@ def thin_mesh(
     those of the faces kept, renumbered in their order. A mesh whose UVs do not spread
     (all in one cell) keeps every k-th face instead.
     """
-    faces = np.asarray(faces, np.int64)
     if len(faces) <= max_faces:
-        return vertices, faces, uvs
+        return vertices, np.asarray(faces, np.int64), uvs
+    faces = np.asarray(faces)
     uv = np.asarray(uvs, float)
     h, w = texture_shape if texture_shape is not None else (1, 1)
     span = uv.max(axis=0) - uv.min(axis=0) if len(uv) else np.zeros(2)
@@ -64,26 +64,46 @@ def thin_mesh(
     return np.asarray(vertices)[used], kept.reshape(-1, 3), uv[used]
 
 
+FACE_CHUNK = 1 << 17
+"""Faces :func:`_clustered` renumbers at a time (its int64 temporaries a chunk's, not
+the mesh's)."""
+
+
 def _clustered(uv: np.ndarray, faces: np.ndarray, side: float, shape: tuple[int, int]) -> np.ndarray | None:
     """The faces renumbered to their cells' first vertices (cells ``side`` texture px
-    square), without the faces that collapsed or repeat another face; None when every
-    vertex falls in one cell."""
+    square), without the faces that collapsed or repeat another face (the first of each
+    kept, in the faces' order); None when every vertex falls in one cell. A chunk of
+    :data:`FACE_CHUNK` faces at a time: each chunk's repeats dropped, then the repeats
+    across chunks among the (few) faces left."""
     h, w = shape
     col = np.floor((uv[:, 0] - uv[:, 0].min()) * (w / side)).astype(np.int64)
     row = np.floor((uv[:, 1] - uv[:, 1].min()) * (h / side)).astype(np.int64)
     cell = row * (int(col.max()) + 1) + col
+    del col, row
     _, first, inverse = np.unique(cell, return_index=True, return_inverse=True)
     if len(first) < 3:
         return None
-    out = first[inverse][faces]
-    out = out[(out[:, 0] != out[:, 1]) & (out[:, 1] != out[:, 2]) & (out[:, 0] != out[:, 2])]
-    s = np.sort(out, axis=1)
-    if len(uv) < 1 << 21:  # a face as one int64 (its sorted corners, 21 bits each)
+    rep = first[inverse]  # (V,) each vertex's cell's first vertex
+    del cell, inverse
+    wide = len(uv) >= 1 << 21  # a face no longer fits one int64 key (21 bits a corner)
+    kept: list[np.ndarray] = []
+    for a in range(0, len(faces), FACE_CHUNK):
+        out = rep[np.asarray(faces[a : a + FACE_CHUNK], np.int64)]
+        out = out[(out[:, 0] != out[:, 1]) & (out[:, 1] != out[:, 2]) & (out[:, 0] != out[:, 2])]
+        kept.append(out[_first_of_each(out, wide)])
+    out = np.concatenate(kept) if kept else np.zeros((0, 3), np.int64)
+    return out[_first_of_each(out, wide)]
+
+
+def _first_of_each(faces: np.ndarray, wide: bool) -> np.ndarray:
+    """Ascending indices of the first of each set of (F, 3) faces with the same corners."""
+    s = np.sort(faces, axis=1)
+    if not wide:
         key = (s[:, 0] << 42) | (s[:, 1] << 21) | s[:, 2]
         _, once = np.unique(key, return_index=True)
     else:
         _, once = np.unique(s, axis=0, return_index=True)
-    return out[np.sort(once)]
+    return np.sort(once)
 
 
 def _cells(uv: np.ndarray, side: float, shape: tuple[int, int]) -> int:
