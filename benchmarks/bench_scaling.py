@@ -2,6 +2,7 @@
 
     python benchmarks/bench_scaling.py [--frames 150 600 2400] [--scenario paper]
         [--size 400x300] [--workers N] [--cache DIR] [--video [--decoded-png]] [--rest N]
+        [--write] [--steps]
 
 Simulates one run per length (small images; ``--cache`` keeps them for the next call),
 reconstructs each in a fresh process (``omnipipe.pipeline.run``, nothing written) and
@@ -14,7 +15,10 @@ JPEG's artefacts change the reconstruction's work). ``--rest N``
 replaces the scenario's gait by 6-frame strokes each followed by N frames at rest. The
 last lines compare each longer run of each input with its shortest (issue 13's
 acceptance: frames/s within 20 %, peak RSS within 30 % from 600 to 2400 frames; issue
-27: within 20 % and 10 % from 1,000 to 10,000). It only measures.
+27: within 20 % and 10 % from 1,000 to 10,000). ``--steps`` also prints the peak
+resident memory of the reconstructing process during each step (VmRSS sampled every
+10 ms by a thread; the steps are the functions of :data:`STEPS`, timed by wrapping them)
+per run length: where the memory that grows with the run is held. It only measures.
 """
 
 from __future__ import annotations
@@ -41,10 +45,59 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB -> MiB
 
 
-def _child(dataset: str, workers: int | None, write_to: str | None) -> None:
+STEPS = (
+    ("omnipipe.pipeline.reconstruct", ("_decode", "_camera_motion", "_analyse", "_model", "_summary", "_defect_views")),
+    ("omnipipe.model.stage", ("mesh_unrolled", "orient_towards_axis", "choose_sources", "flat_field", "textured_mesh")),
+    ("omnipipe.model.export", ("write_ply", "write_laz", "write_e57", "write_glb", "write_obj")),
+    ("omnipipe.report", ("run",)),
+)
+"""(module, functions) whose calls ``--steps`` measures: the pipeline's stages, the model
+stage's steps, the writers and the report (``report.run``)."""
+
+
+class _StepPeaks:
+    """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (and between
+    them, as ``after STEP``), sampled every 10 ms by a daemon thread."""
+
+    def __init__(self) -> None:
+        import functools
+        import importlib
+        import threading
+
+        self.peaks: dict[str, float] = {}
+        self.tag = "start"
+        for module, names in STEPS:
+            mod = importlib.import_module(module)
+            for name in names:
+                label = f"{module.rsplit('.', 1)[-1]}.{name}" if name == "run" else name
+                setattr(mod, name, functools.wraps(getattr(mod, name))(self._wrap(getattr(mod, name), label)))
+        threading.Thread(target=self._sample, daemon=True).start()
+
+    def _wrap(self, f, label: str):
+        def wrapped(*a, **k):
+            self.tag = label
+            try:
+                return f(*a, **k)
+            finally:
+                self.tag = f"after {label}"
+
+        return wrapped
+
+    def _sample(self) -> None:
+        while True:
+            with open("/proc/self/status", encoding="ascii") as fh:
+                rss = next(int(line.split()[1]) / 1024.0 for line in fh if line.startswith("VmRSS:"))
+            tag = self.tag
+            self.peaks[tag] = max(self.peaks.get(tag, 0.0), rss)
+            time.sleep(0.01)
+
+
+def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool = False) -> None:
     """Reconstruct ``dataset`` in this process (and write its outputs into ``write_to``)
-    and print one JSON line of measurements."""
+    and print one JSON line of measurements (``steps``: with each step's peak RSS)."""
     from dataclasses import replace
+
+    peaks = _StepPeaks() if steps else None
 
     from omnipipe.dataset import open_dataset
     from omnipipe.pipeline import ReconstructConfig, run, write
@@ -75,6 +128,7 @@ def _child(dataset: str, workers: int | None, write_to: str | None) -> None:
                 "rss_with_write_mb": written,
                 "worker_rss_mb": workers_rss,
                 "executor": s.get("executor"),
+                "steps": None if peaks is None else dict(peaks.peaks),
             }
         )
     )
@@ -147,12 +201,14 @@ def _video(png: Path, decoded_png: bool) -> tuple[Path, Path]:
     return video, decoded
 
 
-def _measure(path: Path, workers: int | None, write: bool) -> dict | None:
+def _measure(path: Path, workers: int | None, write: bool, steps: bool = False) -> dict | None:
     """Reconstruct ``path`` in a fresh process (``write``: and write its outputs, into a
     temporary folder removed after); its JSON line of measurements, or None."""
     cmd = [sys.executable, __file__, "--child", str(path)]
     if workers is not None:
         cmd += ["--workers", str(workers)]
+    if steps:
+        cmd += ["--steps"]
     with tempfile.TemporaryDirectory(prefix="omnipipe-scaling-out-") as out:
         done = subprocess.run(
             cmd + (["--write-to", out] if write else []), capture_output=True, text=True, check=False
@@ -197,6 +253,21 @@ def _compare(kind: str, a: dict, b: dict) -> None:
         print(f"  {stage:9s} frames/s {fa:8.2f} -> {fb:8.2f} ({100 * (fb / fa - 1):+.0f} %)")
 
 
+def _print_steps(kind: str, done: list[dict]) -> None:
+    """Each step's peak RSS per run length (MB), and the growth per 1,000 frames."""
+    if len(done) < 1 or not done[0].get("steps"):
+        return
+    order = list(done[-1]["steps"])
+    print(f"{kind}: peak RSS per step (MB)")
+    print(f"  {'step':28s}" + "".join(f"{r['frames']:>9d}" for r in done) + "   MB per 1,000 frames")
+    for step in order:
+        vals = [r["steps"].get(step) for r in done]
+        per = ""
+        if len(done) > 1 and vals[0] is not None and vals[-1] is not None:
+            per = f"{1000 * (vals[-1] - vals[0]) / (done[-1]['frames'] - done[0]['frames']):+9.1f}"
+        print(f"  {step:28s}" + "".join("        -" if v is None else f"{v:9.0f}" for v in vals) + "   " + per)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, nargs="+", default=[150, 600, 2400])
@@ -219,11 +290,16 @@ def main() -> None:
         "--write", action="store_true",
         help="also write each run's outputs (omnipipe.pipeline.write) and its peak RSS with it",
     )
+    parser.add_argument(
+        "--steps", action="store_true",
+        help="also the reconstructing process's peak RSS during each step (pipeline stages, "
+        "model steps, writers, report)",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--write-to", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        _child(args.child, args.workers, args.write_to)
+        _child(args.child, args.workers, args.write_to, args.steps)
         return
     size = tuple(int(v) for v in args.size.split("x"))
     cache = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="omnipipe-scaling-"))
@@ -237,13 +313,14 @@ def main() -> None:
                 video, decoded = _video(path, args.decoded_png)
                 inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
             for kind, source in inputs:
-                row = _measure(source, args.workers, args.write)
+                row = _measure(source, args.workers, args.write, args.steps)
                 if row is not None:
                     rows[kind].append(row)
                     _print_row(kind, row)
         for kind, done in rows.items():
             for later in done[1:]:  # each longer run against the shortest
                 _compare(kind, done[0], later)
+            _print_steps(kind, done)
     finally:
         if not args.cache:
             shutil.rmtree(cache, ignore_errors=True)
