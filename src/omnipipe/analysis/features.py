@@ -143,7 +143,7 @@ def find_features(
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
     feats: list[PointFeature] = []
-    for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing)):
+    for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
         f, mask = _joint(config, line, r, cand, lo, hi)
         if not 0.0 < f.gap_mm <= config.joint_max_gap_mm:
             continue  # a wide outward stretch (a taper's tilted rings), not a gap
@@ -206,18 +206,39 @@ def _deviations(
     dev = np.zeros(len(sigma))
     raised = np.zeros(len(rings), bool)
     noise0 = 1.4826 * float(np.median(np.abs(coef[:, 0] - c0))) + 1e-9
+    peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm)
     for i, k in enumerate(rings):
         on = frame == k
         c = coef[i].copy()
         if abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0):
             raised[i] = c[0] > c0[i]
             c[0] = c0[i]
+        elif peak[i] is not None:
+            raised[i] = True
+            c[0] = peak[i]
         dev[on] = rho[on] - fourier_design(theta[on], 2) @ c
     return dev, rs, raised
 
 
+def _local_peaks(c0: np.ndarray, rs: np.ndarray, min_depth_mm: float) -> list[float | None]:
+    """Per ring (ordered along the axis by ``rs``), the mean radius its two neighbours
+    give at its position (linear between them) if the ring stands more than
+    ``min_depth_mm`` above both of them (a ring lying in a joint's gap inside a taper,
+    whose running median lags the taper by more than the gap's depth), else None.
+    Only rings with a neighbour on both sides; a taper or a bend raises no ring above
+    both its neighbours."""
+    out: list[float | None] = [None] * len(c0)
+    order = np.argsort(rs)
+    for j in range(1, len(order) - 1):
+        a, i, b = order[j - 1], order[j], order[j + 1]
+        if c0[i] - max(c0[a], c0[b]) > min_depth_mm:
+            f = (rs[i] - rs[a]) / max(rs[b] - rs[a], 1e-9)
+            out[i] = float(c0[a] + f * (c0[b] - c0[a]))
+    return out
+
+
 def _joint_bands(
-    config: FeatureConfig, r: _Rings, cand: np.ndarray, link: float
+    config: FeatureConfig, r: _Rings, cand: np.ndarray, link: float, raised: np.ndarray
 ) -> list[tuple[float, float]]:
     """(lo, hi) axial band of each joint: candidates grouped along the axis (``link``
     mm: at least the rings' spacing), deep over most of the angles at which any sample
@@ -227,8 +248,18 @@ def _joint_bands(
     order = np.argsort(s)
     s = s[order]
     cuts = np.flatnonzero(np.diff(s) > link) + 1
-    bands = []
+    groups = []
     for group in np.split(np.arange(len(s)), cuts):
+        on_raised = raised[r.ring_of[idx[order[group]]]]
+        if len(group) and s[group[-1]] - s[group[0]] > config.joint_max_gap_mm and on_raised.any():
+            # Too wide for a gap: rings far apart linked the candidates of rings lying
+            # in a gap with scattered ones. The gap is the raised rings' band.
+            a, b = s[group[on_raised]].min(), s[group[on_raised]].max()
+            groups.append(group[(s[group] >= a - config.joint_link_mm) & (s[group] <= b + config.joint_link_mm)])
+        else:
+            groups.append(group)
+    bands = []
+    for group in groups:
         group = _without_sector_rings(config, r, idx[order[group]], group)
         if len(group) < config.min_points:
             continue
@@ -238,8 +269,35 @@ def _joint_bands(
         seen = np.unique((np.degrees(r.theta[band]) % 360 // 10).astype(int))
         have = np.unique((np.degrees(r.theta[idx[order[group]]]) % 360 // 10).astype(int))
         if len(seen) >= 9 and len(have) >= config.joint_coverage * len(seen):
-            bands.append((lo, hi))
+            if max(_deep_share(config, r, idx[order[group]], lo, hi)) >= 0.5:
+                bands.append((lo, hi))
     return bands
+
+
+def _deep_share(config: FeatureConfig, r: _Rings, members: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """Share of the 10-degree sectors whose samples in the gap's band lie deep (median
+    beyond half the joint threshold): the band along the axis (``lo``, ``hi``) and the
+    band of the candidates ``members`` along their own plane (sigma - a cos theta - b sin
+    theta fitted to them: a gap crossed by tilted rings, or seen along a tilted
+    centreline, is a plane across the axial coordinate)."""
+    thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
+    th, s = r.theta[members], r.sigma[members]
+    A = np.column_stack([np.ones(len(s)), np.cos(th), np.sin(th)])
+    keep = np.ones(len(s), bool)
+    for _ in range(3):
+        p, *_ = np.linalg.lstsq(A[keep], s[keep], rcond=None)
+        res = s - A @ p
+        keep = np.abs(res) <= max(2.5 * 1.4826 * float(np.median(np.abs(res[keep]))), 1.0)
+    out = []
+    for coord, a, b in (
+        (r.sigma, lo, hi),
+        (r.sigma - p[1] * np.cos(r.theta) - p[2] * np.sin(r.theta), *np.percentile(res[keep], [2.0, 98.0]) + p[0]),
+    ):
+        band = (coord >= a - 0.25) & (coord <= b + 0.25)
+        sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
+        med = np.array([np.median(r.dev[band][sect == q]) for q in np.unique(sect)])
+        out.append(float(np.mean(med > thr)) if len(med) else 0.0)
+    return out[0], out[1]
 
 
 def _without_sector_rings(
