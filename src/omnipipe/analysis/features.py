@@ -16,8 +16,8 @@ candidates.
   rings that no ring crosses cannot be seen (``FeatureSearch.unseen_gap_mm``: the widest
   axial stretch no ring sampled). Each gap edge (at half the gap's depth) is where deep
   samples give way to shallow ones: per ring crossing it, the split that misclassifies
-  fewest samples; the edge is their median, 1-sigma their scatter / sqrt(n) (one ring:
-  the spacing of the two samples around it / sqrt(12)). The offset is fitted to the wall
+  fewest samples; the edge is their median, 1-sigma their scatter / sqrt(n) (fewer than
+  3 rings: the rings' spacing / sqrt(12)). The offset is fitted to the wall
   within ``window_mm`` on both sides (the gap left out) in a straight frame through the
   joint: rho = per-ring radius + centre drift (quadratic along the axis, so a bend does
   not pass for an offset) + ovality + a step of the downstream centre (the offset); its
@@ -63,6 +63,12 @@ class FeatureConfig:
         joint_max_gap_mm: a wider deep band is not a joint's gap.
         lateral_reach_rel: a narrower cluster reaching this fraction of the diameter
             beyond the wall is a lateral (the branch wall seen through the hole).
+        lateral_reach_thr: a cluster reaching this many thresholds beyond the wall, and
+            ``lateral_reach_width`` x its widest chord, is a lateral too (a small branch
+            is seen only a little way in; on the bench's 34 true-motion captures at
+            400x300, small openings reached 2.2-5.4 thresholds and 0.7-0.9 chords, the
+            other clusters at most 1.5 thresholds).
+        lateral_reach_width: see ``lateral_reach_thr`` (a dent is far wider than deep).
         min_points: points a cluster needs.
         margin_mm: wall points this close to a gap or an opening are excluded too
             (the edges' ramps and the ring's blur).
@@ -76,6 +82,8 @@ class FeatureConfig:
     joint_link_mm: float = bounded(3.0, gt=0)
     joint_max_gap_mm: float = bounded(30.0, gt=0)
     lateral_reach_rel: float = bounded(0.08, gt=0, le=1)
+    lateral_reach_thr: float = bounded(2.0, gt=0)
+    lateral_reach_width: float = bounded(0.5, gt=0)
     min_points: int = bounded(8, ge=1)
     margin_mm: float = bounded(3.0, ge=0)
     window_mm: float = bounded(60.0, gt=0)
@@ -161,15 +169,37 @@ def find_features(
             members = idx[label == lab]
             if len(members) < config.min_points:
                 continue
-            if float(np.max(dev[members])) < config.lateral_reach_rel * 2 * radius:
-                continue
             if len(np.unique(frame[members])) < 2:
                 continue  # one ring's outliers (a reflection), not an opening
+            if not _opening(config, members, dev, theta, frame, radius, thr):
+                continue
             f, mask = _lateral(config, sigma, theta, frame, members, radius, spacing)
             feats.append(f)
             not_wall |= mask
     feats.sort(key=lambda f: f.axial_mm)
     return FeatureSearch(feats, not_wall, thr, unseen)
+
+
+def _opening(
+    config: FeatureConfig,
+    members: np.ndarray,
+    dev: np.ndarray,
+    theta: np.ndarray,
+    frame: np.ndarray,
+    radius: float,
+    thr: float,
+) -> bool:
+    """True if the cluster ``members`` reaches as far beyond the wall as a lateral's
+    opening does: ``lateral_reach_rel`` of the diameter, or (a small branch, whose wall
+    is seen only a little way in) ``lateral_reach_thr`` x the threshold ``thr`` and
+    ``lateral_reach_width`` x its widest chord (a dent is far wider than deep)."""
+    reach = float(np.max(dev[members]))
+    if reach >= config.lateral_reach_rel * 2.0 * radius:
+        return True
+    th0 = math.atan2(float(np.mean(np.sin(theta[members]))), float(np.mean(np.cos(theta[members]))))
+    u = ((theta[members] - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
+    width = max(float(np.ptp(u[frame[members] == k])) for k in np.unique(frame[members]))
+    return reach >= config.lateral_reach_thr * thr and reach >= config.lateral_reach_width * width
 
 
 def _unseen_gap(sigma: np.ndarray) -> float:
@@ -207,17 +237,50 @@ def _deviations(
     raised = np.zeros(len(rings), bool)
     noise0 = 1.4826 * float(np.median(np.abs(coef[:, 0] - c0))) + 1e-9
     peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm)
+    # A running median lags a taper by up to a ring spacing's drop: a ring counts as
+    # raised only above the lines both sides' rings give it too.
+    _, hi = _wall_level(coef[:, 0], rs, config.window_mm)
     for i, k in enumerate(rings):
         on = frame == k
         c = coef[i].copy()
-        if abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0):
-            raised[i] = c[0] > c0[i]
-            c[0] = c0[i]
-        elif peak[i] is not None:
+        off = abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0)
+        if peak[i] is not None:
             raised[i] = True
             c[0] = peak[i]
+        elif off and (c[0] < c0[i] or c[0] - hi[i] > config.min_depth_mm):
+            raised[i] = c[0] > c0[i]
+            c[0] = c0[i]
         dev[on] = rho[on] - fourier_design(theta[on], 2) @ c
     return dev, rs, raised
+
+
+def _side_level(c0: np.ndarray, rs: np.ndarray, nb: np.ndarray, at: float) -> float:
+    """The mean radius the rings ``nb`` (on one side) give at ``at``: their Theil-Sen
+    line (median of the pairwise slopes) there; one ring: its radius."""
+    if len(nb) == 1:
+        return float(c0[nb[0]])
+    a, b = np.triu_indices(len(nb), 1)
+    dz = rs[nb][b] - rs[nb][a]
+    ok = np.abs(dz) > 1e-6
+    slope = float(np.median((c0[nb][b] - c0[nb][a])[ok] / dz[ok])) if ok.any() else 0.0
+    return float(np.median(c0[nb] + slope * (at - rs[nb])))
+
+
+def _wall_level(c0: np.ndarray, rs: np.ndarray, window_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) low and (R,) high bounds of each ring's mean radius as the rings either side
+    within ``window_mm`` give it: the lower and higher of the two sides' lines carried
+    to the ring (:func:`_side_level`; one side only at the run's ends; none: the ring's
+    own). A ring in a joint's gap stands above both; one on a taper (whose rings a
+    running median lags by up to a ring spacing's drop) or at a taper's kink (above a
+    line through both sides) does not."""
+    lo, hi = c0.copy(), c0.copy()
+    for i in range(len(c0)):
+        near = (np.abs(rs - rs[i]) <= window_mm) & (np.arange(len(c0)) != i)
+        sides = [np.flatnonzero(near & (rs < rs[i])), np.flatnonzero(near & (rs >= rs[i]))]
+        got = [_side_level(c0, rs, nb, float(rs[i])) for nb in sides if len(nb)]
+        if got:
+            lo[i], hi[i] = min(got), max(got)
+    return lo, hi
 
 
 def _local_peaks(c0: np.ndarray, rs: np.ndarray, min_depth_mm: float) -> list[float | None]:
@@ -379,9 +442,13 @@ def _edge(
         spread = 1.2533 * float(np.std(e, ddof=1)) / math.sqrt(len(e))
         return float(np.median(e)), math.hypot(spread, w / math.sqrt(12.0 * len(e)))
     got = _split(s[near], r.dev[near], level, lower)
-    if got is None:  # no sample on one side: the edge is somewhere in the reach
-        return float(np.median(s[near])), float(np.ptp(s[near])) / math.sqrt(12.0)
-    return got[0], max(got[1], 0.1) / math.sqrt(12.0)
+    # Fewer than 3 rings cross the edge: it lies somewhere between two rings' samples
+    # (a ring lying in the gap ends short of it), 1-sigma the rings' spacing / sqrt(12).
+    gaps = np.diff(np.sort(r.ring_sigma))
+    ring_spacing = float(np.median(gaps)) if len(gaps) else 0.0
+    if got is None:  # no shallow sample this side: the edge is beyond the deep ones
+        return float(np.median(s[near])), max(float(np.ptp(s[near])), ring_spacing) / math.sqrt(12.0)
+    return got[0], max(got[1], ring_spacing, 0.1) / math.sqrt(12.0)
 
 
 def _joint(
@@ -399,7 +466,7 @@ def _joint(
     local = _local_axis(config, line, r, mid, half + config.margin_mm)
     near = np.abs(r.sigma - mid) <= half + 2.0 * reach
     s = r.sigma - mid
-    if local is not None:
+    if local is not None and local.axis_from_both_sides:
         s[near] = (_world(line, r, near) - local.centre) @ local.tangent
     lower = near & (s <= 0.0) & (s >= -half - reach)
     upper = near & (s >= 0.0) & (s <= half + reach)
@@ -446,12 +513,16 @@ class _LocalAxis:
         tangent: (3,) its direction.
         step: (2,) the downstream section's displacement along (normal, binormal) mm.
         cov: (2, 2) its covariance (jackknife over the rings).
+        axis_from_both_sides: False with one ring on a side: the axis (``centre``,
+            ``tangent``) then rests on the other side's rings, too weak to measure the
+            gap's edges along.
     """
 
     centre: np.ndarray
     tangent: np.ndarray
     step: np.ndarray
     cov: np.ndarray
+    axis_from_both_sides: bool = True
 
     def offset(self) -> tuple[float, float, float, float]:
         """(offset mm, 1-sigma, direction deg from the normal towards the binormal, 1-sigma)."""
@@ -468,8 +539,8 @@ def _local_axis(
 ) -> _LocalAxis | None:
     """The wall within ``config.window_mm`` either side of a joint at ``axial`` (``clear``
     of it left out) in the centreline's frame there: rho = per-ring radius + centre
-    drift (quadratic along the axis) + ovality + the downstream centre's step. None with
-    fewer than 2 rings on either side."""
+    drift (quadratic along the axis; linear with one ring on a side) + ovality + the
+    downstream centre's step. None without a ring on either side or with fewer than 3."""
     k0 = int(np.argmin(np.abs(line.arc_mm - axial)))
     t, n, b = line.tangent[k0], line.normal[k0], line.binormal[k0]
     c = line.centre[k0] + (axial - line.arc_mm[k0]) * t
@@ -479,30 +550,46 @@ def _local_axis(
     s, x, y = p @ t, p @ n, p @ b
     down = s > 0
     ring = r.ring_of[near]
-    if min(len(np.unique(ring[down])), len(np.unique(ring[~down]))) < 2:
+    sides = (len(np.unique(ring[~down])), len(np.unique(ring[down])))
+    if min(sides) < 1 or sum(sides) < 3:
         return None
+    # One ring on a side (a joint near the run's end): the drift straight, from the
+    # other side's rings.
+    quad = min(sides) >= 2
     rho, th = np.hypot(x, y), np.arctan2(y, x)
     u = s / config.window_mm
     cos, sin = np.cos(th), np.sin(th)
-    cols = np.column_stack(
-        [cos, sin, u * cos, u * sin, u * u * cos, u * u * sin, np.cos(2 * th), np.sin(2 * th), down * cos, down * sin]
-    )
+    drift = [u * cos, u * sin] + ([u * u * cos, u * u * sin] if quad else [])
+    cols = np.column_stack([cos, sin, *drift, np.cos(2 * th), np.sin(2 * th), down * cos, down * sin])
+    nc = cols.shape[1]
     _, ring_col = np.unique(ring, return_inverse=True)
 
-    def solve(keep: np.ndarray) -> np.ndarray:
+    def solve(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         A = np.column_stack([cols[keep], np.eye(ring_col.max() + 1)[ring_col[keep]]])
         coef, *_ = np.linalg.lstsq(A, rho[keep], rcond=None)
         res = rho[keep] - A @ coef
         ok = np.abs(res) <= 4.0 * 1.4826 * np.median(np.abs(res)) + 1e-9
         coef, *_ = np.linalg.lstsq(A[ok], rho[keep][ok], rcond=None)
-        return coef[:10]
+        res = rho[keep][ok] - A[ok] @ coef
+        # The step's least-squares covariance (residual variance x (A^T A)^-1).
+        var = float(res @ res) / max(int(ok.sum()) - A.shape[1], 1)
+        ls = var * np.linalg.pinv(A[ok].T @ A[ok])[nc - 2 : nc, nc - 2 : nc]
+        return coef[:nc], ls
 
-    coef = solve(np.ones(len(rho), bool))
-    jack = np.array([solve(ring != q)[8:10] for q in np.unique(ring)])
+    coef, ls_cov = solve(np.ones(len(rho), bool))
+    # Jackknife over the rings (only leaving wall on both sides).
+    jack = np.array(
+        [solve(ring != q)[0][nc - 2 : nc] for q in np.unique(ring)
+         if len(np.unique(ring[~down & (ring != q)])) and len(np.unique(ring[down & (ring != q)]))]
+    ).reshape(-1, 2)
     m = len(jack)
     cov = (m - 1) * np.cov(jack.T, bias=True) if m >= 3 else np.eye(2) * r.noise**2
+    if not quad:
+        cov = cov + ls_cov
     tangent = t + (coef[2] * n + coef[3] * b) / config.window_mm
-    return _LocalAxis(c + coef[0] * n + coef[1] * b, tangent / np.linalg.norm(tangent), coef[8:10], cov)
+    return _LocalAxis(
+        c + coef[0] * n + coef[1] * b, tangent / np.linalg.norm(tangent), coef[nc - 2 : nc], cov, quad
+    )
 
 
 def _chords(
