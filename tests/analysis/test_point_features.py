@@ -186,3 +186,22 @@ def test_narrow_deep_dent_stays_a_dent() -> None:
     res = run(AnalysisConfig(), _rings(pipe, seed=19, hole=(0.0, 0.0, 1.0)))
     assert not [f for f in res.features if f.kind == "lateral"], res.features
     assert len(res.defects) == 1 and res.defects[0].kind == "dent", res.defects
+
+
+def test_offset_joint_between_rings_is_found_by_its_offset() -> None:
+    """A 3 mm gap no ring samples (rings 8 mm apart) with a 5 mm offset: found by the
+    step of the sections, its position and gap within the unsampled stretch (3 sigma),
+    its offset within 3 sigma; a plain run of the same rings has no joint."""
+    joint = Joint(200.0, 3.0, 8.0, 5.0, 45.0)
+    pipe = Pipe(300.0, features=PipeFeatures(joints=(joint,)))
+    res = run(AnalysisConfig(), _rings(pipe, seed=23, spacing=8.0))
+    joints = [f for f in res.features if f.kind == "joint"]
+    assert len(joints) == 1, res.features
+    j = joints[0]
+    assert abs(j.axial_mm - joint.axial_mm) < 3.0 * j.axial_sigma_mm
+    assert abs(j.gap_mm - joint.gap_mm) < 3.0 * j.gap_sigma_mm
+    assert abs(j.offset_mm - joint.offset_mm) < max(3.0 * j.offset_sigma_mm, 0.3)
+    assert abs((j.offset_angle_deg - joint.offset_angle_deg + 180) % 360 - 180) < 10.0
+    assert res.defects == []
+    plain = run(AnalysisConfig(), _rings(Pipe(300.0), seed=23, spacing=8.0))
+    assert not [f for f in plain.features if f.kind == "joint"], plain.features

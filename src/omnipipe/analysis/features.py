@@ -61,6 +61,12 @@ class FeatureConfig:
         joint_link_mm: candidates further apart along the axis (and than 1.5 ring
             spacings) belong to different joints.
         joint_max_gap_mm: a wider deep band is not a joint's gap.
+        joint_offset_min_mm: a joint no ring's samples fell in is found by its offset
+            alone: the centreline's sideways step between two rings of at least this
+            and ``joint_offset_factor`` x the run's median step (on the bench's 34
+            true-motion captures: offset joints stepped 5.8-8.1 mm, other steps up to
+            2.4 mm).
+        joint_offset_factor: see ``joint_offset_min_mm``.
         lateral_reach_rel: a narrower cluster reaching this fraction of the diameter
             beyond the wall is a lateral (the branch wall seen through the hole).
         lateral_reach_thr: a cluster reaching this many thresholds beyond the wall, and
@@ -81,6 +87,8 @@ class FeatureConfig:
     joint_coverage: float = bounded(0.6, gt=0, le=1)
     joint_link_mm: float = bounded(3.0, gt=0)
     joint_max_gap_mm: float = bounded(30.0, gt=0)
+    joint_offset_min_mm: float = bounded(3.0, gt=0)
+    joint_offset_factor: float = bounded(4.0, gt=0)
     lateral_reach_rel: float = bounded(0.08, gt=0, le=1)
     lateral_reach_thr: float = bounded(2.0, gt=0)
     lateral_reach_width: float = bounded(0.5, gt=0)
@@ -147,7 +155,7 @@ def find_features(
     not_wall = np.zeros(len(sigma), bool)
     unseen = _unseen_gap(sigma)
     if cand.sum() < config.min_points:
-        return FeatureSearch([], not_wall, thr, unseen)
+        return FeatureSearch(list(_offset_joints(config, line, r, [])), not_wall, thr, unseen)
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
     feats: list[PointFeature] = []
@@ -157,6 +165,8 @@ def find_features(
             continue  # a wide outward stretch (a taper's tilted rings), not a gap
         feats.append(f)
         not_wall |= mask
+    for f in _offset_joints(config, line, r, feats):
+        feats.append(f)
     # Laterals: the rest, linked across rings, narrow and reaching far out.
     idx = np.flatnonzero((dev > thr) & ~not_wall)
     if len(idx) >= config.min_points:
@@ -178,6 +188,65 @@ def find_features(
             not_wall |= mask
     feats.sort(key=lambda f: f.axial_mm)
     return FeatureSearch(feats, not_wall, thr, unseen)
+
+
+def _offset_joints(
+    config: FeatureConfig, line: Centreline, r: _Rings, found: list[PointFeature]
+) -> list[Joint]:
+    """Joints seen by their offset alone: a gap that lies between two rings (no ring
+    sampled it) but whose downstream section is displaced. The recentred centreline
+    steps sideways there (by the offset) between the two rings' stations: a step of at
+    least ``joint_offset_min_mm`` and ``joint_offset_factor`` x the median step of the
+    run (a bend's or a taper's drift), away from the joints already found, whose offset
+    the wall either side then confirms (:func:`_local_axis`: >= 3 sigma, and the same
+    as the step within half of it and 3 sigma). The joint
+    lies somewhere in the unsampled stretch between the rings (tilted rings overlapping
+    along the axis: between their middles): its centre and 1-sigma (stretch /
+    sqrt(12)); the gap, unseen, is half the stretch with the same sigma; no depth."""
+    ks = np.unique(r.frame)
+    if len(ks) < 4:
+        return []
+    order = np.argsort(line.arc_mm[ks])
+    ks = ks[order]
+    d = np.diff(line.centre[ks], axis=0)
+    t = line.tangent[ks[:-1]]
+    step = np.linalg.norm(d - np.sum(d * t, axis=1)[:, None] * t, axis=1)
+    out: list[Joint] = []
+    for i in np.flatnonzero(step >= config.joint_offset_min_mm):
+        others = np.delete(step, i)
+        if step[i] < config.joint_offset_factor * float(np.median(others)):
+            continue
+        a = float(np.max(r.sigma[r.frame == ks[i]]))
+        b = float(np.min(r.sigma[r.frame == ks[i + 1]]))
+        if b <= a:  # tilted rings overlapping along the axis: between their middles
+            a, b = (float(np.median(r.sigma[r.frame == k])) for k in ks[i : i + 2])
+        near = [f for f in [*found, *out] if isinstance(f, Joint)
+                and f.axial_mm - 0.5 * f.gap_mm <= b + config.joint_link_mm
+                and f.axial_mm + 0.5 * f.gap_mm >= a - config.joint_link_mm]
+        if b <= a or near:
+            continue  # a joint found there
+        local = _local_axis(config, line, r, 0.5 * (a + b), 0.5 * (b - a))
+        if local is None:
+            continue
+        off = local.offset()
+        if off[0] < max(config.joint_offset_min_mm, 3.0 * off[1]) or abs(off[0] - step[i]) > 0.5 * step[i] + 3.0 * off[1]:
+            continue  # not confirmed by the wall, or a different step (a taper's wall)
+        w = (b - a) / math.sqrt(12.0)
+        out.append(
+            Joint(
+                axial_mm=0.5 * (a + b),
+                axial_sigma_mm=w,
+                gap_mm=0.5 * (b - a),
+                gap_sigma_mm=w,
+                offset_mm=off[0],
+                offset_sigma_mm=off[1],
+                offset_angle_deg=off[2],
+                offset_angle_sigma_deg=off[3],
+                depth_mm=None,
+                points=0,
+            )
+        )
+    return out
 
 
 def _opening(
