@@ -190,6 +190,24 @@ def find_features(
     return FeatureSearch(feats, not_wall, thr, unseen)
 
 
+def with_offset_joints_kept(first: FeatureSearch, second: FeatureSearch) -> FeatureSearch:
+    """``second`` (the search after the sections either side of the offset joints were
+    fitted apart) with the joints ``first`` found by their offset alone
+    (:func:`_offset_joints`) that it lost: the break at such a joint straightens the
+    centreline's step the search saw, and the wall either side then fits one cylinder
+    each with the joint's step between them."""
+    kept = [
+        f for f in first.features
+        if isinstance(f, Joint) and f.points == 0 and f.offset_mm is not None
+        and not any(isinstance(g, Joint) and abs(g.axial_mm - f.axial_mm) <= 3.0 * f.axial_sigma_mm + 0.5 * g.gap_mm
+                    for g in second.features)
+    ]
+    if not kept:
+        return second
+    feats = sorted([*second.features, *kept], key=lambda f: f.axial_mm)
+    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm)
+
+
 def _offset_joints(
     config: FeatureConfig, line: Centreline, r: _Rings, found: list[PointFeature]
 ) -> list[Joint]:
