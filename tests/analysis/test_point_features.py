@@ -10,23 +10,30 @@ import pytest
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, run
 from omnipipe.analysis.stage import AnalysisResult
 from omnipipe.geometry import make_transform
-from omnipipe.sim.features import Joint, PipeFeatures
+from omnipipe.sim.features import Joint, PipeFeatures, Taper
 from omnipipe.sim.scene import Defect, Pipe
 
 JOINT = Joint(200.0, 8.0, 10.0, 3.0, 90.0)
 HOLE = (300.0, 120.0, 100.0)  # a square tee: centre axial mm, angle deg, diameter mm
 
 
-def _rings(pipe: Pipe, seed: int, spacing: float = 4.0, tilt_deg: float = 0.0) -> AnalysisInputs:
+def _rings(
+    pipe: Pipe,
+    seed: int,
+    spacing: float = 4.0,
+    tilt_deg: float = 0.0,
+    hole: tuple[float, float, float] = HOLE,
+    reach: tuple[float, float] = (40.0, 100.0),
+) -> AnalysisInputs:
     """Rings every ``spacing`` mm (jittered) over 100-400 mm of ``pipe``, tilted by
     ``tilt_deg`` to the axis (as a robot leaning in the pipe: a ring's samples spread
-    along the axis); points in the tee's hole lie on the branch wall, 40-140 mm beyond
-    the main wall."""
+    along the axis); points in the tee's ``hole`` (centre axial mm, angle deg, diameter
+    mm) lie on the branch wall, ``reach`` (first + up to second) mm beyond the main wall."""
     rng = np.random.default_rng(seed)
     sig = np.arange(100.0, 400.0, spacing) + rng.uniform(-0.5, 0.5, int(np.ceil(300 / spacing)))
     theta = np.linspace(-np.pi, np.pi, 360, endpoint=False)
     R = 0.5 * pipe.inner_diameter_mm
-    zc, ac, dia = HOLE
+    zc, ac, dia = hole
     pts, frame, poses = [], [], []
     for k in range(len(sig)):
         s = sig[k] + R * np.tan(np.radians(tilt_deg)) * np.cos(theta - 0.7)
@@ -34,8 +41,8 @@ def _rings(pipe: Pipe, seed: int, spacing: float = 4.0, tilt_deg: float = 0.0) -
         r = pipe.wall_radius(s, theta) + rng.normal(0, 0.1, theta.size)
         u = ((theta - np.radians(ac) + np.pi) % (2 * np.pi) - np.pi) * R
         half = R * np.arcsin(0.5 * dia / R)  # the hole's chord is its diameter
-        hole = (u / half) ** 2 + ((s - zc) / (0.5 * dia)) ** 2 < 1.0
-        r[hole] += 40.0 + 100.0 * rng.random(hole.sum())
+        in_hole = (u / half) ** 2 + ((s - zc) / (0.5 * dia)) ** 2 < 1.0
+        r[in_hole] += reach[0] + reach[1] * rng.random(in_hole.sum())
         pts.append(centre + (r * np.cos(theta))[:, None] * normal + (r * np.sin(theta))[:, None] * binormal)
         frame.append(np.full(theta.size, k))
         c0, n0, b0, t0 = (a[0] for a in pipe.frame_at(np.array([sig[k]])))
@@ -119,3 +126,82 @@ def test_joint_beside_a_lateral_on_sparse_rings_is_its_own_band() -> None:
     assert len(joints) == 1 and len(laterals) == 1, res.features
     assert abs(joints[0].axial_mm - joint.axial_mm) < 10.0 and joints[0].gap_mm < 10.0, joints
     assert res.defects == []
+
+
+def test_joint_inside_a_taper_on_sparse_rings_is_found() -> None:
+    """Rings 20 mm apart through a reducer (300 -> 250 mm over 140 mm): one ring lies in
+    a 10 mm gap, 3 mm deep, and stands above both its neighbours though the running
+    median of the rings' radii lags the taper. One joint, at the gap, its gap and
+    position within 3 sigma; no false joint elsewhere in the taper; no defect."""
+    joint = Joint(240.0, 10.0, 6.0, 0.0, 0.0)
+    taper = Taper(180.0, 320.0, 250.0)
+    pipe = Pipe(300.0, features=PipeFeatures(joints=(joint,), tapers=(taper,)))
+    res = run(AnalysisConfig(), _rings(pipe, seed=11, spacing=20.0))
+    joints = [f for f in res.features if f.kind == "joint"]
+    assert len(joints) == 1, res.features
+    j = joints[0]
+    assert abs(j.axial_mm - joint.axial_mm) < max(3.0 * j.axial_sigma_mm, 1.0)
+    assert abs(j.gap_mm - joint.gap_mm) < max(3.0 * j.gap_sigma_mm, 1.0)
+    assert res.defects == []
+
+
+def test_offset_of_a_joint_one_ring_from_the_run_start_is_measured() -> None:
+    """A 3 mm offset joint 10 mm into the run (rings 8 mm apart, one of them upstream of
+    the gap): the offset is measured (within 3 sigma, direction within 15 deg), not
+    left out."""
+    joint = Joint(110.0, 5.0, 8.0, 3.0, 90.0)
+    pipe = Pipe(300.0, features=PipeFeatures(joints=(joint,)))
+    res = run(AnalysisConfig(), _rings(pipe, seed=13, spacing=8.0))
+    joints = [f for f in res.features if f.kind == "joint"]
+    assert len(joints) == 1, res.features
+    j = joints[0]
+    assert abs(j.axial_mm - joint.axial_mm) < 3.0
+    assert j.offset_mm is not None and j.offset_sigma_mm is not None
+    assert abs(j.offset_mm - joint.offset_mm) < max(3.0 * j.offset_sigma_mm, 0.3)
+    assert abs((j.offset_angle_deg - joint.offset_angle_deg + 180) % 360 - 180) < 15.0
+
+
+def test_small_lateral_seen_a_little_way_in_is_a_feature_not_a_dent() -> None:
+    """A 40 mm branch (0.1 D) in a 400 mm pipe whose wall is seen only 20-28 mm beyond
+    the main wall (less than 0.08 D): a lateral at its place, no dent there."""
+    pipe = Pipe(400.0)
+    hole = (250.0, 60.0, 40.0)
+    res = run(AnalysisConfig(), _rings(pipe, seed=17, spacing=4.0, hole=hole, reach=(20.0, 8.0)))
+    laterals = [f for f in res.features if f.kind == "lateral"]
+    assert len(laterals) == 1, res.features
+    lat = laterals[0]
+    assert abs(lat.axial_mm - hole[0]) < 3.0
+    assert abs((lat.angle_deg - hole[1] + 180) % 360 - 180) < 3.0
+    assert abs(lat.diameter_mm - hole[2]) < max(3.0 * lat.diameter_sigma_mm, 3.0)
+    assert res.defects == []
+    assert not [f for f in res.features if f.kind == "joint"]
+
+
+def test_narrow_deep_dent_stays_a_dent() -> None:
+    """An 8 mm deep, 30 mm wide dent where the wall is clean (noise 0.1 mm, threshold
+    1.5 mm): far beyond the small-opening threshold, but wider than deep: a dent, no
+    lateral."""
+    dent = Defect("dent", 8.0, 30.0, 20.0, 215.0, 270.0)
+    pipe = Pipe(300.0, defects=[dent])
+    res = run(AnalysisConfig(), _rings(pipe, seed=19, hole=(0.0, 0.0, 1.0)))
+    assert not [f for f in res.features if f.kind == "lateral"], res.features
+    assert len(res.defects) == 1 and res.defects[0].kind == "dent", res.defects
+
+
+def test_offset_joint_between_rings_is_found_by_its_offset() -> None:
+    """A 3 mm gap no ring samples (rings 8 mm apart) with a 5 mm offset: found by the
+    step of the sections, its position and gap within the unsampled stretch (3 sigma),
+    its offset within 3 sigma; a plain run of the same rings has no joint."""
+    joint = Joint(200.0, 3.0, 8.0, 5.0, 45.0)
+    pipe = Pipe(300.0, features=PipeFeatures(joints=(joint,)))
+    res = run(AnalysisConfig(), _rings(pipe, seed=23, spacing=8.0))
+    joints = [f for f in res.features if f.kind == "joint"]
+    assert len(joints) == 1, res.features
+    j = joints[0]
+    assert abs(j.axial_mm - joint.axial_mm) < 3.0 * j.axial_sigma_mm
+    assert abs(j.gap_mm - joint.gap_mm) < 3.0 * j.gap_sigma_mm
+    assert abs(j.offset_mm - joint.offset_mm) < max(3.0 * j.offset_sigma_mm, 0.3)
+    assert abs((j.offset_angle_deg - joint.offset_angle_deg + 180) % 360 - 180) < 10.0
+    assert res.defects == []
+    plain = run(AnalysisConfig(), _rings(Pipe(300.0), seed=23, spacing=8.0))
+    assert not [f for f in plain.features if f.kind == "joint"], plain.features

@@ -16,8 +16,8 @@ candidates.
   rings that no ring crosses cannot be seen (``FeatureSearch.unseen_gap_mm``: the widest
   axial stretch no ring sampled). Each gap edge (at half the gap's depth) is where deep
   samples give way to shallow ones: per ring crossing it, the split that misclassifies
-  fewest samples; the edge is their median, 1-sigma their scatter / sqrt(n) (one ring:
-  the spacing of the two samples around it / sqrt(12)). The offset is fitted to the wall
+  fewest samples; the edge is their median, 1-sigma their scatter / sqrt(n) (fewer than
+  3 rings: the rings' spacing / sqrt(12)). The offset is fitted to the wall
   within ``window_mm`` on both sides (the gap left out) in a straight frame through the
   joint: rho = per-ring radius + centre drift (quadratic along the axis, so a bend does
   not pass for an offset) + ovality + a step of the downstream centre (the offset); its
@@ -61,8 +61,20 @@ class FeatureConfig:
         joint_link_mm: candidates further apart along the axis (and than 1.5 ring
             spacings) belong to different joints.
         joint_max_gap_mm: a wider deep band is not a joint's gap.
+        joint_offset_min_mm: a joint no ring's samples fell in is found by its offset
+            alone: the centreline's sideways step between two rings of at least this
+            and ``joint_offset_factor`` x the run's median step (on the bench's 34
+            true-motion captures: offset joints stepped 5.8-8.1 mm, other steps up to
+            2.4 mm).
+        joint_offset_factor: see ``joint_offset_min_mm``.
         lateral_reach_rel: a narrower cluster reaching this fraction of the diameter
             beyond the wall is a lateral (the branch wall seen through the hole).
+        lateral_reach_thr: a cluster reaching this many thresholds beyond the wall, and
+            ``lateral_reach_width`` x its widest chord, is a lateral too (a small branch
+            is seen only a little way in; on the bench's 34 true-motion captures at
+            400x300, small openings reached 2.2-5.4 thresholds and 0.7-0.9 chords, the
+            other clusters at most 1.5 thresholds).
+        lateral_reach_width: see ``lateral_reach_thr`` (a dent is far wider than deep).
         min_points: points a cluster needs.
         margin_mm: wall points this close to a gap or an opening are excluded too
             (the edges' ramps and the ring's blur).
@@ -75,7 +87,11 @@ class FeatureConfig:
     joint_coverage: float = bounded(0.6, gt=0, le=1)
     joint_link_mm: float = bounded(3.0, gt=0)
     joint_max_gap_mm: float = bounded(30.0, gt=0)
+    joint_offset_min_mm: float = bounded(3.0, gt=0)
+    joint_offset_factor: float = bounded(4.0, gt=0)
     lateral_reach_rel: float = bounded(0.08, gt=0, le=1)
+    lateral_reach_thr: float = bounded(2.0, gt=0)
+    lateral_reach_width: float = bounded(0.5, gt=0)
     min_points: int = bounded(8, ge=1)
     margin_mm: float = bounded(3.0, ge=0)
     window_mm: float = bounded(60.0, gt=0)
@@ -139,16 +155,18 @@ def find_features(
     not_wall = np.zeros(len(sigma), bool)
     unseen = _unseen_gap(sigma)
     if cand.sum() < config.min_points:
-        return FeatureSearch([], not_wall, thr, unseen)
+        return FeatureSearch(list(_offset_joints(config, line, r, [])), not_wall, thr, unseen)
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
     feats: list[PointFeature] = []
-    for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing)):
+    for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
         f, mask = _joint(config, line, r, cand, lo, hi)
         if not 0.0 < f.gap_mm <= config.joint_max_gap_mm:
             continue  # a wide outward stretch (a taper's tilted rings), not a gap
         feats.append(f)
         not_wall |= mask
+    for f in _offset_joints(config, line, r, feats):
+        feats.append(f)
     # Laterals: the rest, linked across rings, narrow and reaching far out.
     idx = np.flatnonzero((dev > thr) & ~not_wall)
     if len(idx) >= config.min_points:
@@ -161,15 +179,114 @@ def find_features(
             members = idx[label == lab]
             if len(members) < config.min_points:
                 continue
-            if float(np.max(dev[members])) < config.lateral_reach_rel * 2 * radius:
-                continue
             if len(np.unique(frame[members])) < 2:
                 continue  # one ring's outliers (a reflection), not an opening
+            if not _opening(config, members, dev, theta, frame, radius, thr):
+                continue
             f, mask = _lateral(config, sigma, theta, frame, members, radius, spacing)
             feats.append(f)
             not_wall |= mask
     feats.sort(key=lambda f: f.axial_mm)
     return FeatureSearch(feats, not_wall, thr, unseen)
+
+
+def with_offset_joints_kept(first: FeatureSearch, second: FeatureSearch) -> FeatureSearch:
+    """``second`` (the search after the sections either side of the offset joints were
+    fitted apart) with the joints ``first`` found by their offset alone
+    (:func:`_offset_joints`) that it lost: the break at such a joint straightens the
+    centreline's step the search saw, and the wall either side then fits one cylinder
+    each with the joint's step between them."""
+    kept = [
+        f for f in first.features
+        if isinstance(f, Joint) and f.points == 0 and f.offset_mm is not None
+        and not any(isinstance(g, Joint) and abs(g.axial_mm - f.axial_mm) <= 3.0 * f.axial_sigma_mm + 0.5 * g.gap_mm
+                    for g in second.features)
+    ]
+    if not kept:
+        return second
+    feats = sorted([*second.features, *kept], key=lambda f: f.axial_mm)
+    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm)
+
+
+def _offset_joints(
+    config: FeatureConfig, line: Centreline, r: _Rings, found: list[PointFeature]
+) -> list[Joint]:
+    """Joints seen by their offset alone: a gap that lies between two rings (no ring
+    sampled it) but whose downstream section is displaced. The recentred centreline
+    steps sideways there (by the offset) between the two rings' stations: a step of at
+    least ``joint_offset_min_mm`` and ``joint_offset_factor`` x the median step of the
+    run (a bend's or a taper's drift), away from the joints already found, whose offset
+    the wall either side then confirms (:func:`_local_axis`: >= 3 sigma, and the same
+    as the step within half of it and 3 sigma). The joint
+    lies somewhere in the unsampled stretch between the rings (tilted rings overlapping
+    along the axis: between their middles): its centre and 1-sigma (stretch /
+    sqrt(12)); the gap, unseen, is half the stretch with the same sigma; no depth."""
+    ks = np.unique(r.frame)
+    if len(ks) < 4:
+        return []
+    order = np.argsort(line.arc_mm[ks])
+    ks = ks[order]
+    d = np.diff(line.centre[ks], axis=0)
+    t = line.tangent[ks[:-1]]
+    step = np.linalg.norm(d - np.sum(d * t, axis=1)[:, None] * t, axis=1)
+    out: list[Joint] = []
+    for i in np.flatnonzero(step >= config.joint_offset_min_mm):
+        others = np.delete(step, i)
+        if step[i] < config.joint_offset_factor * float(np.median(others)):
+            continue
+        a = float(np.max(r.sigma[r.frame == ks[i]]))
+        b = float(np.min(r.sigma[r.frame == ks[i + 1]]))
+        if b <= a:  # tilted rings overlapping along the axis: between their middles
+            a, b = (float(np.median(r.sigma[r.frame == k])) for k in ks[i : i + 2])
+        near = [f for f in [*found, *out] if isinstance(f, Joint)
+                and f.axial_mm - 0.5 * f.gap_mm <= b + config.joint_link_mm
+                and f.axial_mm + 0.5 * f.gap_mm >= a - config.joint_link_mm]
+        if b <= a or near:
+            continue  # a joint found there
+        local = _local_axis(config, line, r, 0.5 * (a + b), 0.5 * (b - a))
+        if local is None:
+            continue
+        off = local.offset()
+        if off[0] < max(config.joint_offset_min_mm, 3.0 * off[1]) or abs(off[0] - step[i]) > 0.5 * step[i] + 3.0 * off[1]:
+            continue  # not confirmed by the wall, or a different step (a taper's wall)
+        w = (b - a) / math.sqrt(12.0)
+        out.append(
+            Joint(
+                axial_mm=0.5 * (a + b),
+                axial_sigma_mm=w,
+                gap_mm=0.5 * (b - a),
+                gap_sigma_mm=w,
+                offset_mm=off[0],
+                offset_sigma_mm=off[1],
+                offset_angle_deg=off[2],
+                offset_angle_sigma_deg=off[3],
+                depth_mm=None,
+                points=0,
+            )
+        )
+    return out
+
+
+def _opening(
+    config: FeatureConfig,
+    members: np.ndarray,
+    dev: np.ndarray,
+    theta: np.ndarray,
+    frame: np.ndarray,
+    radius: float,
+    thr: float,
+) -> bool:
+    """True if the cluster ``members`` reaches as far beyond the wall as a lateral's
+    opening does: ``lateral_reach_rel`` of the diameter, or (a small branch, whose wall
+    is seen only a little way in) ``lateral_reach_thr`` x the threshold ``thr`` and
+    ``lateral_reach_width`` x its widest chord (a dent is far wider than deep)."""
+    reach = float(np.max(dev[members]))
+    if reach >= config.lateral_reach_rel * 2.0 * radius:
+        return True
+    th0 = math.atan2(float(np.mean(np.sin(theta[members]))), float(np.mean(np.cos(theta[members]))))
+    u = ((theta[members] - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
+    width = max(float(np.ptp(u[frame[members] == k])) for k in np.unique(frame[members]))
+    return reach >= config.lateral_reach_thr * thr and reach >= config.lateral_reach_width * width
 
 
 def _unseen_gap(sigma: np.ndarray) -> float:
@@ -206,18 +323,72 @@ def _deviations(
     dev = np.zeros(len(sigma))
     raised = np.zeros(len(rings), bool)
     noise0 = 1.4826 * float(np.median(np.abs(coef[:, 0] - c0))) + 1e-9
+    peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm)
+    # A running median lags a taper by up to a ring spacing's drop: a ring counts as
+    # raised only above the lines both sides' rings give it too.
+    _, hi = _wall_level(coef[:, 0], rs, config.window_mm)
     for i, k in enumerate(rings):
         on = frame == k
         c = coef[i].copy()
-        if abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0):
+        off = abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0)
+        if peak[i] is not None:
+            raised[i] = True
+            c[0] = peak[i]
+        elif off and (c[0] < c0[i] or c[0] - hi[i] > config.min_depth_mm):
             raised[i] = c[0] > c0[i]
             c[0] = c0[i]
         dev[on] = rho[on] - fourier_design(theta[on], 2) @ c
     return dev, rs, raised
 
 
+def _side_level(c0: np.ndarray, rs: np.ndarray, nb: np.ndarray, at: float) -> float:
+    """The mean radius the rings ``nb`` (on one side) give at ``at``: their Theil-Sen
+    line (median of the pairwise slopes) there; one ring: its radius."""
+    if len(nb) == 1:
+        return float(c0[nb[0]])
+    a, b = np.triu_indices(len(nb), 1)
+    dz = rs[nb][b] - rs[nb][a]
+    ok = np.abs(dz) > 1e-6
+    slope = float(np.median((c0[nb][b] - c0[nb][a])[ok] / dz[ok])) if ok.any() else 0.0
+    return float(np.median(c0[nb] + slope * (at - rs[nb])))
+
+
+def _wall_level(c0: np.ndarray, rs: np.ndarray, window_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) low and (R,) high bounds of each ring's mean radius as the rings either side
+    within ``window_mm`` give it: the lower and higher of the two sides' lines carried
+    to the ring (:func:`_side_level`; one side only at the run's ends; none: the ring's
+    own). A ring in a joint's gap stands above both; one on a taper (whose rings a
+    running median lags by up to a ring spacing's drop) or at a taper's kink (above a
+    line through both sides) does not."""
+    lo, hi = c0.copy(), c0.copy()
+    for i in range(len(c0)):
+        near = (np.abs(rs - rs[i]) <= window_mm) & (np.arange(len(c0)) != i)
+        sides = [np.flatnonzero(near & (rs < rs[i])), np.flatnonzero(near & (rs >= rs[i]))]
+        got = [_side_level(c0, rs, nb, float(rs[i])) for nb in sides if len(nb)]
+        if got:
+            lo[i], hi[i] = min(got), max(got)
+    return lo, hi
+
+
+def _local_peaks(c0: np.ndarray, rs: np.ndarray, min_depth_mm: float) -> list[float | None]:
+    """Per ring (ordered along the axis by ``rs``), the mean radius its two neighbours
+    give at its position (linear between them) if the ring stands more than
+    ``min_depth_mm`` above both of them (a ring lying in a joint's gap inside a taper,
+    whose running median lags the taper by more than the gap's depth), else None.
+    Only rings with a neighbour on both sides; a taper or a bend raises no ring above
+    both its neighbours."""
+    out: list[float | None] = [None] * len(c0)
+    order = np.argsort(rs)
+    for j in range(1, len(order) - 1):
+        a, i, b = order[j - 1], order[j], order[j + 1]
+        if c0[i] - max(c0[a], c0[b]) > min_depth_mm:
+            f = (rs[i] - rs[a]) / max(rs[b] - rs[a], 1e-9)
+            out[i] = float(c0[a] + f * (c0[b] - c0[a]))
+    return out
+
+
 def _joint_bands(
-    config: FeatureConfig, r: _Rings, cand: np.ndarray, link: float
+    config: FeatureConfig, r: _Rings, cand: np.ndarray, link: float, raised: np.ndarray
 ) -> list[tuple[float, float]]:
     """(lo, hi) axial band of each joint: candidates grouped along the axis (``link``
     mm: at least the rings' spacing), deep over most of the angles at which any sample
@@ -227,8 +398,18 @@ def _joint_bands(
     order = np.argsort(s)
     s = s[order]
     cuts = np.flatnonzero(np.diff(s) > link) + 1
-    bands = []
+    groups = []
     for group in np.split(np.arange(len(s)), cuts):
+        on_raised = raised[r.ring_of[idx[order[group]]]]
+        if len(group) and s[group[-1]] - s[group[0]] > config.joint_max_gap_mm and on_raised.any():
+            # Too wide for a gap: rings far apart linked the candidates of rings lying
+            # in a gap with scattered ones. The gap is the raised rings' band.
+            a, b = s[group[on_raised]].min(), s[group[on_raised]].max()
+            groups.append(group[(s[group] >= a - config.joint_link_mm) & (s[group] <= b + config.joint_link_mm)])
+        else:
+            groups.append(group)
+    bands = []
+    for group in groups:
         group = _without_sector_rings(config, r, idx[order[group]], group)
         if len(group) < config.min_points:
             continue
@@ -238,8 +419,35 @@ def _joint_bands(
         seen = np.unique((np.degrees(r.theta[band]) % 360 // 10).astype(int))
         have = np.unique((np.degrees(r.theta[idx[order[group]]]) % 360 // 10).astype(int))
         if len(seen) >= 9 and len(have) >= config.joint_coverage * len(seen):
-            bands.append((lo, hi))
+            if max(_deep_share(config, r, idx[order[group]], lo, hi)) >= 0.5:
+                bands.append((lo, hi))
     return bands
+
+
+def _deep_share(config: FeatureConfig, r: _Rings, members: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """Share of the 10-degree sectors whose samples in the gap's band lie deep (median
+    beyond half the joint threshold): the band along the axis (``lo``, ``hi``) and the
+    band of the candidates ``members`` along their own plane (sigma - a cos theta - b sin
+    theta fitted to them: a gap crossed by tilted rings, or seen along a tilted
+    centreline, is a plane across the axial coordinate)."""
+    thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
+    th, s = r.theta[members], r.sigma[members]
+    A = np.column_stack([np.ones(len(s)), np.cos(th), np.sin(th)])
+    keep = np.ones(len(s), bool)
+    for _ in range(3):
+        p, *_ = np.linalg.lstsq(A[keep], s[keep], rcond=None)
+        res = s - A @ p
+        keep = np.abs(res) <= max(2.5 * 1.4826 * float(np.median(np.abs(res[keep]))), 1.0)
+    out = []
+    for coord, a, b in (
+        (r.sigma, lo, hi),
+        (r.sigma - p[1] * np.cos(r.theta) - p[2] * np.sin(r.theta), *np.percentile(res[keep], [2.0, 98.0]) + p[0]),
+    ):
+        band = (coord >= a - 0.25) & (coord <= b + 0.25)
+        sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
+        med = np.array([np.median(r.dev[band][sect == q]) for q in np.unique(sect)])
+        out.append(float(np.mean(med > thr)) if len(med) else 0.0)
+    return out[0], out[1]
 
 
 def _without_sector_rings(
@@ -321,9 +529,13 @@ def _edge(
         spread = 1.2533 * float(np.std(e, ddof=1)) / math.sqrt(len(e))
         return float(np.median(e)), math.hypot(spread, w / math.sqrt(12.0 * len(e)))
     got = _split(s[near], r.dev[near], level, lower)
-    if got is None:  # no sample on one side: the edge is somewhere in the reach
-        return float(np.median(s[near])), float(np.ptp(s[near])) / math.sqrt(12.0)
-    return got[0], max(got[1], 0.1) / math.sqrt(12.0)
+    # Fewer than 3 rings cross the edge: it lies somewhere between two rings' samples
+    # (a ring lying in the gap ends short of it), 1-sigma the rings' spacing / sqrt(12).
+    gaps = np.diff(np.sort(r.ring_sigma))
+    ring_spacing = float(np.median(gaps)) if len(gaps) else 0.0
+    if got is None:  # no shallow sample this side: the edge is beyond the deep ones
+        return float(np.median(s[near])), max(float(np.ptp(s[near])), ring_spacing) / math.sqrt(12.0)
+    return got[0], max(got[1], ring_spacing, 0.1) / math.sqrt(12.0)
 
 
 def _joint(
@@ -341,7 +553,7 @@ def _joint(
     local = _local_axis(config, line, r, mid, half + config.margin_mm)
     near = np.abs(r.sigma - mid) <= half + 2.0 * reach
     s = r.sigma - mid
-    if local is not None:
+    if local is not None and local.axis_from_both_sides:
         s[near] = (_world(line, r, near) - local.centre) @ local.tangent
     lower = near & (s <= 0.0) & (s >= -half - reach)
     upper = near & (s >= 0.0) & (s <= half + reach)
@@ -388,12 +600,16 @@ class _LocalAxis:
         tangent: (3,) its direction.
         step: (2,) the downstream section's displacement along (normal, binormal) mm.
         cov: (2, 2) its covariance (jackknife over the rings).
+        axis_from_both_sides: False with one ring on a side: the axis (``centre``,
+            ``tangent``) then rests on the other side's rings, too weak to measure the
+            gap's edges along.
     """
 
     centre: np.ndarray
     tangent: np.ndarray
     step: np.ndarray
     cov: np.ndarray
+    axis_from_both_sides: bool = True
 
     def offset(self) -> tuple[float, float, float, float]:
         """(offset mm, 1-sigma, direction deg from the normal towards the binormal, 1-sigma)."""
@@ -410,8 +626,8 @@ def _local_axis(
 ) -> _LocalAxis | None:
     """The wall within ``config.window_mm`` either side of a joint at ``axial`` (``clear``
     of it left out) in the centreline's frame there: rho = per-ring radius + centre
-    drift (quadratic along the axis) + ovality + the downstream centre's step. None with
-    fewer than 2 rings on either side."""
+    drift (quadratic along the axis; linear with one ring on a side) + ovality + the
+    downstream centre's step. None without a ring on either side or with fewer than 3."""
     k0 = int(np.argmin(np.abs(line.arc_mm - axial)))
     t, n, b = line.tangent[k0], line.normal[k0], line.binormal[k0]
     c = line.centre[k0] + (axial - line.arc_mm[k0]) * t
@@ -421,30 +637,46 @@ def _local_axis(
     s, x, y = p @ t, p @ n, p @ b
     down = s > 0
     ring = r.ring_of[near]
-    if min(len(np.unique(ring[down])), len(np.unique(ring[~down]))) < 2:
+    sides = (len(np.unique(ring[~down])), len(np.unique(ring[down])))
+    if min(sides) < 1 or sum(sides) < 3:
         return None
+    # One ring on a side (a joint near the run's end): the drift straight, from the
+    # other side's rings.
+    quad = min(sides) >= 2
     rho, th = np.hypot(x, y), np.arctan2(y, x)
     u = s / config.window_mm
     cos, sin = np.cos(th), np.sin(th)
-    cols = np.column_stack(
-        [cos, sin, u * cos, u * sin, u * u * cos, u * u * sin, np.cos(2 * th), np.sin(2 * th), down * cos, down * sin]
-    )
+    drift = [u * cos, u * sin] + ([u * u * cos, u * u * sin] if quad else [])
+    cols = np.column_stack([cos, sin, *drift, np.cos(2 * th), np.sin(2 * th), down * cos, down * sin])
+    nc = cols.shape[1]
     _, ring_col = np.unique(ring, return_inverse=True)
 
-    def solve(keep: np.ndarray) -> np.ndarray:
+    def solve(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         A = np.column_stack([cols[keep], np.eye(ring_col.max() + 1)[ring_col[keep]]])
         coef, *_ = np.linalg.lstsq(A, rho[keep], rcond=None)
         res = rho[keep] - A @ coef
         ok = np.abs(res) <= 4.0 * 1.4826 * np.median(np.abs(res)) + 1e-9
         coef, *_ = np.linalg.lstsq(A[ok], rho[keep][ok], rcond=None)
-        return coef[:10]
+        res = rho[keep][ok] - A[ok] @ coef
+        # The step's least-squares covariance (residual variance x (A^T A)^-1).
+        var = float(res @ res) / max(int(ok.sum()) - A.shape[1], 1)
+        ls = var * np.linalg.pinv(A[ok].T @ A[ok])[nc - 2 : nc, nc - 2 : nc]
+        return coef[:nc], ls
 
-    coef = solve(np.ones(len(rho), bool))
-    jack = np.array([solve(ring != q)[8:10] for q in np.unique(ring)])
+    coef, ls_cov = solve(np.ones(len(rho), bool))
+    # Jackknife over the rings (only leaving wall on both sides).
+    jack = np.array(
+        [solve(ring != q)[0][nc - 2 : nc] for q in np.unique(ring)
+         if len(np.unique(ring[~down & (ring != q)])) and len(np.unique(ring[down & (ring != q)]))]
+    ).reshape(-1, 2)
     m = len(jack)
     cov = (m - 1) * np.cov(jack.T, bias=True) if m >= 3 else np.eye(2) * r.noise**2
+    if not quad:
+        cov = cov + ls_cov
     tangent = t + (coef[2] * n + coef[3] * b) / config.window_mm
-    return _LocalAxis(c + coef[0] * n + coef[1] * b, tangent / np.linalg.norm(tangent), coef[8:10], cov)
+    return _LocalAxis(
+        c + coef[0] * n + coef[1] * b, tangent / np.linalg.norm(tangent), coef[nc - 2 : nc], cov, quad
+    )
 
 
 def _chords(

@@ -42,7 +42,7 @@ from omnipipe.analysis.defects import (
     fourier_design,
 )
 from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch
-from omnipipe.analysis.features import FeatureConfig, find_features
+from omnipipe.analysis.features import FeatureConfig, find_features, with_offset_joints_kept
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
     EdgeReach,
@@ -262,7 +262,7 @@ def run(
         # cylinder across the step tilts, and the wall beside the joint reads as a ramp).
         line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor, breaks)
         line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, breaks)
-        feats = find_features(config.features, line, sigma, rho, theta, frame, radius)
+        feats = with_offset_joints_kept(feats, find_features(config.features, line, sigma, rho, theta, frame, radius))
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
         config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor
