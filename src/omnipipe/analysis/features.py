@@ -575,8 +575,12 @@ def _joint(
         depth_mm=depth,
         points=int(inband.sum()),
     )
-    clear = 0.5 * gap + config.margin_mm
-    return f, near & (np.abs(s - 0.5 * (e_lo + e_hi)) <= clear)
+    # Not wall: the gap, its margin, and each edge's 2-sigma (an edge placed short of
+    # the true one leaves its ramp, or an offset's step, in the wall).
+    mid_s = 0.5 * (e_lo + e_hi)
+    lo_clear = 0.5 * gap + config.margin_mm + 2.0 * min(s_lo, config.margin_mm)
+    hi_clear = 0.5 * gap + config.margin_mm + 2.0 * min(s_hi, config.margin_mm)
+    return f, near & (s - mid_s >= -lo_clear) & (s - mid_s <= hi_clear)
 
 
 def _world(line: Centreline, r: _Rings, sel: np.ndarray) -> np.ndarray:
