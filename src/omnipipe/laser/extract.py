@@ -5,14 +5,15 @@ brightest other channel), is resampled along radial lines from the principal poi
 (one line per angle, 1 px radial steps, cv2.remap) over the valid annulus, or, when
 the laser plane is known, over its radii whose rays can meet the plane (the others can
 hold no ring sample that triangulates: bend's 211 of 508). On each line the strongest
-peak is located by the centroid of the background-free signal within
-``centroid_half_px`` of it; its width comes from the three-point Gaussian fit
-(log-parabola, Fisher & Naidu [20]), which also locates the peak when
-``centroid_half_px`` is 0 (the paper's choice). The three-point fit pulls a ring about
-a pixel wide, its top clipped, towards the scan line's samples (random-features-small,
-400x300: an oval ring's 0.5 px cos 2 theta read 21 % low, a saturated ring 0.4-0.6 px
-inside); the centroid over +-3 px is unbiased for any symmetric profile it spans
-(measured there: 0.5 % low, 0.06-0.15 px inside, half the scatter). Each sample gets a confidence (peak height
+peak is refined with the three-point Gaussian fit (log-parabola, Fisher & Naidu [20]);
+a peak with clipped samples is located instead by the centroid of the background-free
+signal within ``centroid_half_px`` of it (0: the Gaussian fit for all). A clipped top,
+with the laser's crosstalk lifting the other channels, is no Gaussian: the three-point
+fit pulled such a ring about a pixel wide towards the scan line's samples
+(random-features-small, 400x300: an oval ring's 0.5 px cos 2 theta read 21 % low, a
+saturated ring 0.24-0.60 px inside); the centroid over +-3 px: 1 % low, 0.04-0.15 px
+inside, half the scatter. On unclipped peaks the centroid only adds its tails' noise
+(paper 800x600: RMS 0.38 mm against the fit's 0.20). Each sample gets a confidence (peak height
 over the line's robust noise); weak, saturated-flat or ambiguous peaks (a second
 separate peak of comparable height: reflections, bright texture) are rejected and
 left as gaps, never filled in.
@@ -54,9 +55,10 @@ class ExtractionConfig:
         max_width_factor: reject peaks wider than this x the ring's median width (0: off).
         min_ring_fraction: a frame whose peaks cover fewer scan lines than this has no
             laser ring (measured: real rings 0.92-1.0; texture in a wrong channel 0.04-0.27).
-        centroid_half_px: the peak's position is the centroid of the background-free
-            signal within this many px of the strongest sample (a few times the ring's
-            width: the whole profile); 0: the three-point Gaussian fit's centre.
+        centroid_half_px: a peak with clipped samples is located by the centroid of the
+            background-free signal within this many px of its strongest sample (a few
+            times the ring's width: the whole profile); 0: by the three-point Gaussian
+            fit, as the unclipped ones.
     """
 
     angles: int = bounded(720, ge=8)
