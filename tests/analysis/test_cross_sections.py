@@ -118,6 +118,21 @@ def test_partly_flooded_oval_sewer_water_depth_and_wall_above_it() -> None:
     assert {f["kind"] for f in fields["features"]} == {"water", "ovality"}
 
 
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_short_ovality_stretch_is_sized_from_its_plateau(seed: int) -> None:
+    """A 37 mm stretch of 5 % ovality (16 mm blends) on rings 11 mm apart: four stations
+    are oval, the first and last (3.3-3.8 %) in the blends; the stretch's size is the
+    plateau's within 0.3 percentage points and 3 sigma (the median of all four:
+    4.24-4.36 %)."""
+    rng = np.random.default_rng(seed)
+    start = 205.5 + rng.uniform(0.0, 1.0)
+    features = PipeFeatures(ovalities=(Ovality(start, start + 37.0, 5.0, angle_deg=rng.uniform(0, 180), blend_mm=16.0),))
+    pipe = Pipe(inner_diameter_mm=300.0, features=features)
+    res = run(AnalysisConfig(), _rings(pipe, 120.0, 11.0, 16, seed=seed, noise=0.3))
+    (oval,) = _kinds(res.features, "ovality")
+    assert abs(oval.percent - 5.0) <= min(0.3, 3 * oval.percent_sigma)
+
+
 @pytest.mark.slow
 def test_tight_elbow_is_a_bend_feature() -> None:
     pipe = Pipe(

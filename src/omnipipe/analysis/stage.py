@@ -41,7 +41,7 @@ from omnipipe.analysis.defects import (
     fit_wall_profile,
     fourier_design,
 )
-from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch
+from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch, Taper
 from omnipipe.analysis.features import FeatureConfig, find_features, with_offset_joints_kept
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
@@ -281,7 +281,7 @@ def run(
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
-    st_list, features = _with_shared_ovality(st_list, line, head, sec_config, radial_sys)
+    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared)
     warnings = list(search.warnings) + _section_warnings(st_list, wet)
     if feats.unseen_gap_mm >= 3.0:
         warnings.append(
@@ -321,25 +321,39 @@ def run(
     )
 
 
-def _with_shared_ovality(
+def _with_shared_terms(
     st_list: list[Station],
     line: Centreline,
     head: Headline,
     sec_config: SectionConfig,
     radial_sys: float,
+    shared_diameter_mm: float,
 ) -> tuple[list[Station], list[Stretch]]:
-    """The stations and section features (ovality, tapers, ...) with the ovality's
-    run-wide term: a ring-shape error shared by the run (``radial_sys`` mm in cos 2 theta)
-    moves every station's ovality alike, by up to 4 radial_sys / D; averaging the
-    stations cannot remove it."""
+    """The stations and section features (ovality, tapers, ...) with the run-wide terms
+    averaging the stations cannot remove: a ring-shape error shared by the run
+    (``radial_sys`` mm in cos 2 theta) moves every station's ovality alike, by up to
+    4 radial_sys / D; the diameter's shared part (``shared_diameter_mm``: the systematic
+    ring radius, the rig calibration; as in the headline's sigma) moves both ends of a
+    taper with every station, as it moves the headline (the ends' sigmas were the
+    stations' scatter / sqrt(n) alone)."""
     oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
     st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
-    features = [
-        replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys))
-        if isinstance(f, Ovality) and f.percent_sigma is not None else f
-        for f in section_features(st_list, line, head, sec_config)
-    ]
+    features: list[Stretch] = []
+    for f in section_features(st_list, line, head, sec_config):
+        if isinstance(f, Ovality) and f.percent_sigma is not None:
+            f = replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys))
+        elif isinstance(f, Taper):
+            f = replace(
+                f,
+                diameter_from_sigma_mm=_hypot_or_none(f.diameter_from_sigma_mm, shared_diameter_mm),
+                diameter_to_sigma_mm=_hypot_or_none(f.diameter_to_sigma_mm, shared_diameter_mm),
+            )
+        features.append(f)
     return st_list, features
+
+
+def _hypot_or_none(sigma: float | None, shared: float) -> float | None:
+    return None if sigma is None else math.hypot(sigma, shared)
 
 
 def _station_list(stations: _Stations) -> list[Station]:
