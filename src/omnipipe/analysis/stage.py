@@ -282,12 +282,7 @@ def run(
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
     st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared)
-    warnings = list(search.warnings) + _section_warnings(st_list, wet)
-    if feats.unseen_gap_mm >= 3.0:
-        warnings.append(
-            f"the laser rings left {feats.unseen_gap_mm:.1f} mm of the pipe unsampled between "
-            "two of them: a joint gap narrower than that may lie there unseen"
-        )
+    warnings = [*search.warnings, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
     return AnalysisResult(
@@ -319,6 +314,16 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _unseen_gap_warning(unseen_gap_mm: float) -> list[str]:
+    """The warning for a stretch (mm) no laser ring sampled that could hide a joint gap."""
+    if unseen_gap_mm < 3.0:
+        return []
+    return [
+        f"the laser rings left {unseen_gap_mm:.1f} mm of the pipe unsampled between "
+        "two of them: a joint gap narrower than that may lie there unseen"
+    ]
 
 
 def _with_shared_terms(
