@@ -47,7 +47,7 @@ from omnipipe.evaluation import EvaluationConfig, EvaluationInputs
 from omnipipe.evaluation import run as evaluate
 from omnipipe.evaluation.cli import format_result
 from omnipipe.executor import describe, map_frames, open_executor
-from omnipipe.laser import decode_only
+from omnipipe.laser import DecodeHandOn, decode_only
 from omnipipe.pipeline import ReconstructConfig, run, table_one, write
 from omnipipe.pipeline.cli import format_table_one
 from omnipipe.sim import make_scenario
@@ -111,12 +111,15 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         with _TreeCpu() as tree:
             rec = run(config, dataset)
         busy = (_cpu_s() - cpu0) / max(time.perf_counter() - t0, 1e-9)
-        # The floor of the laser stage: decode the same frames on the same kind of executor.
+        # The floor of the laser stage: decode the same frames on the same kind of executor;
+        # and decode them and hand the moving ones on, as the laser stage does for the
+        # later stages (which then decode none again).
         with open_executor(args.workers, args.scheduler) as ex:
             t0 = time.perf_counter()
             map_frames(ex, decode_only, dataset)
             t_decode = time.perf_counter() - t0
             where = describe(ex)
+            t_handing = _decode_hand_on(ex, dataset, rec.summary)
         t0 = time.perf_counter()
         write(rec, root / "reconstruction", force=True)
         t_write = time.perf_counter() - t0
@@ -152,6 +155,11 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
             f"laser stage {t['laser']:.2f} s ({n / t['laser']:.1f} frames/s) vs decode only "
             f"{t_decode:.2f} s ({n / t_decode:.1f} frames/s) on the same workers: "
             f"ratio {t['laser'] / t_decode:.2f}"
+            + (
+                ""
+                if t_handing is None
+                else f"; vs decode and hand the moving frames on {t_handing:.2f} s: ratio {t['laser'] / t_handing:.2f}"
+            )
         )
         for w in rec.summary["warnings"][:10]:
             print("warning:", w)
@@ -160,6 +168,31 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
     finally:
         if not keep:
             shutil.rmtree(root, ignore_errors=True)
+
+
+def _decode_hand_on(ex, dataset, summary: dict) -> float | None:
+    """Seconds to decode every frame of ``dataset`` on ``ex`` and hand its moving frames
+    (the stations of ``summary``, report.json's) on to a scratch folder, as the laser
+    stage's decoding pass does (:class:`omnipipe.handoff.FrameHandoff`: only with a local
+    process pool); None without one."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    import numpy as np
+
+    from omnipipe.handoff import FrameHandoff
+
+    if not isinstance(ex, ProcessPoolExecutor):
+        return None
+    moving = np.zeros(len(dataset), bool)
+    moving[[int(s["frame"]) for s in summary.get("stations", []) if "frame" in s]] = True
+    with FrameHandoff(len(dataset)) as handoff:
+        # The pass hands frames on up to its budget of bytes (the first ones).
+        cam = dataset.rig.camera
+        per_frame = cam.width * cam.height * 3
+        moving[np.flatnonzero(moving)[int(-(-handoff.budget_bytes // per_frame)) :]] = False
+        t0 = time.perf_counter()
+        map_frames(ex, DecodeHandOn(handoff.folder, moving), dataset)
+        return time.perf_counter() - t0
 
 
 class _TreeCpu:
