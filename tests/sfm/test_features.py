@@ -113,3 +113,45 @@ def test_guided_matching_keeps_each_feature_in_its_own_period() -> None:
     f2.descriptors[:] = 0
     assert len(guided_matches(f1, f2, np.arange(36), predicted, radius_rad=0.04)) == 0
     assert len(match_features(f1, f2)) == 0
+
+
+def _textured_view(rng: np.random.Generator, contrast: float) -> np.ndarray:
+    """A (240, 200) uint8 view of blurred noise (blobs of many sizes) at ``contrast``."""
+    noise = rng.random((240, 200)).astype(np.float32)
+    img = sum(cv2.GaussianBlur(noise, (0, 0), s) * s for s in (1.0, 2.0, 4.0))
+    img = (img - img.mean()) / img.std()
+    return np.clip(128 + contrast * img, 0, 255).astype(np.uint8)
+
+
+def _keypoint_set(pts: np.ndarray, desc: np.ndarray) -> list[tuple]:
+    return sorted((float(x), float(y), d.tobytes()) for (x, y), d in zip(pts, desc, strict=True))
+
+
+def test_view_features_are_opencvs_masked_keypoints_in_a_canonical_order() -> None:
+    """``_view_features`` (quick detector first) gives the keypoints and descriptors of
+    ``detectAndCompute(image, mask)`` at the configured threshold, strongest first:
+    on a high-contrast view (the quick detector finds the budget) and a faint one
+    (fewer pass it: the configured detector runs), with a masked band."""
+    from omnipipe.sfm.features import QUICK_CONTRAST_FACTOR, _view_features
+
+    rng = np.random.default_rng(7)
+    budget, threshold = 150, 0.01
+    sift = cv2.SIFT_create(nfeatures=budget, contrastThreshold=threshold)
+    quick = cv2.SIFT_create(nfeatures=budget, contrastThreshold=QUICK_CONTRAST_FACTOR * threshold)
+    mask = np.full((240, 200), 255, np.uint8)
+    mask[100:130] = 0
+    paths = set()
+    for contrast in (40.0, 3.0):
+        img = _textured_view(rng, contrast)
+        paths.add(len(quick.detectAndCompute(img, None)[0]) >= budget)
+        kps, desc = sift.detectAndCompute(img, mask)
+        ref = _keypoint_set(np.array([k.pt for k in kps]), desc)
+        pts, got_desc = _view_features(quick, sift, budget, img, mask)
+        assert len(pts) == len(kps) > 0
+        assert _keypoint_set(pts, got_desc) == ref
+        assert not np.any(mask[(pts[:, 1] + 0.5).astype(int), (pts[:, 0] + 0.5).astype(int)] == 0)
+        # Canonical order: strongest response first (the same whatever detector ran).
+        resp = {k.pt: k.response for k in kps}
+        got_resp = np.array([resp[tuple(p)] for p in pts])
+        assert np.all(np.diff(got_resp) <= 0)
+    assert paths == {True, False}  # both paths were taken
