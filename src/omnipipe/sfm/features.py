@@ -139,15 +139,6 @@ class FeatureExtractor:
             cv2.SIFT_create(nfeatures=max(1, cfg.max_features // cfg.views), contrastThreshold=cfg.contrast_threshold)
             for _ in range(cfg.views - 1)
         ]
-        # The same detectors at QUICK_CONTRAST_FACTOR x the threshold: the first try of
-        # :meth:`detect` (:func:`_view_features`).
-        self.quick = [
-            cv2.SIFT_create(
-                nfeatures=max(1, cfg.max_features // cfg.views),
-                contrastThreshold=QUICK_CONTRAST_FACTOR * cfg.contrast_threshold,
-            )
-            for _ in range(cfg.views)
-        ]
         self.threads = 1
         self.clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
         # The mirror's annulus, once (45 ms per frame at 1600x1200 when rebuilt per frame).
@@ -184,17 +175,17 @@ class FeatureExtractor:
         """SIFT features of one frame's :meth:`frame_views`, as rays (with view pixels)."""
         cam = self.camera
         rays, descs, vidx, vpx = [], [], [], []
-        budget = max(1, self.config.max_features // self.config.views)
         found = thread_map(
-            lambda quick, sift, img, vmask: _view_features(quick, sift, budget, img, vmask),
-            self.quick, self.sifts, views.images, views.masks, threads=self.threads,
+            lambda sift, img, vmask: sift.detectAndCompute(img, vmask),
+            self.sifts, views.images, views.masks, threads=self.threads,
         )
-        for k, (view, (pts, desc)) in enumerate(zip(self.views, found, strict=True)):
-            if not len(pts):
+        for k, (view, (kps, desc)) in enumerate(zip(self.views, found, strict=True)):
+            if desc is None or not kps:
                 continue
+            pts = np.array([kp.pt for kp in kps], float)
             rays.append(view.rays(pts))
             descs.append(desc)
-            vidx.append(np.full(len(pts), k))
+            vidx.append(np.full(len(kps), k))
             vpx.append(pts.astype(np.float32))
         if not rays:
             return FrameFeatures.empty()
@@ -210,42 +201,6 @@ class FeatureExtractor:
         r, d, v, p = r[keep], d[keep], v[keep], p[keep]
         px, _ = cam.project(r)
         return FrameFeatures(r, px, d, v, p)
-
-
-# SIFT first runs at this many times the configured contrast threshold (fewer weak
-# extrema to refine and orient: 25 % less time on the simulated walls); its keypoints
-# are those of the configured threshold whenever at least the budget pass it.
-QUICK_CONTRAST_FACTOR = 2.5
-
-
-def _view_features(
-    quick: cv2.SIFT, sift: cv2.SIFT, budget: int, image: np.ndarray, mask: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT keypoints (K, 2) float64 (col, row; view px) and descriptors (K, 128) of
-    one view, the same as ``sift.detectAndCompute(image, mask)`` up to their order,
-    which is made canonical (strongest response first, ties by position, size, angle).
-
-    OpenCV keeps the ``budget`` strongest extrema (every one as strong as the
-    ``budget``-th), then drops those off ``mask``. ``quick`` (the same detector at a
-    higher contrast threshold, :data:`QUICK_CONTRAST_FACTOR`) finds exactly the extrema
-    of ``sift`` that pass its threshold, each with the same response and descriptor:
-    when at least ``budget`` pass, the ``budget`` strongest of either are the same, and
-    so are the keypoints kept. Otherwise ``sift`` runs. The mask is applied here, as
-    OpenCV applies it (the pixel nearest to the keypoint)."""
-    kps, desc = quick.detectAndCompute(image, None)
-    if len(kps) < budget:
-        kps, desc = sift.detectAndCompute(image, None)
-    if desc is None or not kps:
-        return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
-    pts = np.array([kp.pt for kp in kps], float)
-    attrs = np.array([(kp.response, kp.size, kp.angle) for kp in kps], float)
-    h, w = mask.shape
-    rows = np.clip((pts[:, 1] + 0.5).astype(int), 0, h - 1)
-    cols = np.clip((pts[:, 0] + 0.5).astype(int), 0, w - 1)
-    on = mask[rows, cols] != 0
-    order = np.lexsort((attrs[:, 2], attrs[:, 1], pts[:, 1], pts[:, 0], -attrs[:, 0]))
-    order = order[on[order]]
-    return pts[order], desc[order]
 
 
 def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
