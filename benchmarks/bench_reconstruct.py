@@ -8,7 +8,10 @@ Prints the trajectory errors, Table I (diameter, defects) against ground truth, 
 wall time and frames/s of each stage (report.json's ``timings_s``: the computation), the
 time writing the outputs takes on top (model files, report.html; what ``omnipipe
 reconstruct`` also does), and the time it takes merely to decode the same frames on the
-same workers (the floor of the laser stage, which decodes and extracts). The frames'
+same workers (the floor of the laser stage, which decodes and extracts); and, on
+workers of its own, the time to decode them and hand the moving ones on as the laser
+stage does (:class:`omnipipe.laser.DecodeHandOn`: the writes that spare
+the later stages decoding them again). The frames'
 files are read once before either is timed, so that both find them in the OS's file
 cache: otherwise the laser stage, the first to read them, also paid for the disk
 (a reused dataset read after other work: 1.38 against 1.13-1.17 once cached).
@@ -114,11 +117,13 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         # The floor of the laser stage: decode the same frames on the same kind of executor;
         # and decode them and hand the moving ones on, as the laser stage does for the
         # later stages (which then decode none again).
+        # Each on workers of its own, started as the run's were.
         with open_executor(args.workers, args.scheduler) as ex:
             t0 = time.perf_counter()
             map_frames(ex, decode_only, dataset)
             t_decode = time.perf_counter() - t0
             where = describe(ex)
+        with open_executor(args.workers, args.scheduler) as ex:
             t_handing = _decode_hand_on(ex, dataset, rec.summary)
         t0 = time.perf_counter()
         write(rec, root / "reconstruction", force=True)
