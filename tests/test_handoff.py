@@ -63,3 +63,24 @@ def test_a_video_frame_handed_on_is_not_decoded_again() -> None:
         source = FrameSource.take(video, [7, 8], handoff=handoff.folder)
         assert read == [8]
         assert np.array_equal(source.read(0), other) and np.array_equal(source.read(1), decoded)
+
+
+def test_decode_hand_on_writes_the_moving_frames_as_decoded(tmp_path: Path) -> None:
+    """The benchmark's floor of the laser stage (:class:`omnipipe.laser.DecodeHandOn`):
+    every frame decoded (its shape returned, as ``decode_only``), only the moving ones
+    handed on, each as decoded."""
+    from omnipipe.dataset import write_image
+    from omnipipe.laser import DecodeHandOn, decode_only
+
+    rng = np.random.default_rng(8)
+    images = [rng.integers(0, 256, (12, 16, 3)).astype(np.uint8) for _ in range(3)]
+    paths = tuple(tmp_path / f"{i}.png" for i in range(3))
+    for p, image in zip(paths, images, strict=True):
+        write_image(p, image)
+    moving = np.array([True, False, True, False])
+    with FrameHandoff(4) as handoff:
+        source = FrameSource(None, [0, 1, 2], paths=paths)
+        assert DecodeHandOn(handoff.folder, moving)(source) == decode_only(source)
+        assert np.array_equal(handed(handoff.folder, 0), images[0])
+        assert handed(handoff.folder, 1) is None
+        assert np.array_equal(handed(handoff.folder, 2), images[2])

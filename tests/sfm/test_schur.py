@@ -65,3 +65,39 @@ def test_solve_stops_at_the_cap_and_keeps_the_best(bundle_problem) -> None:
     assert capped.nfev == 2 and not capped.converged
     assert capped.cost <= start
     assert np.array_equal(capped.fun, residuals(capped.x))
+
+
+def test_schur_blocks_are_the_dense_products() -> None:
+    """The compiled point-by-point ``W V^-1 W^T`` and ``W V^-1 gp`` against NumPy's dense
+    products, with a duplicate entry (summed, as SciPy does), a point no pose sees and a
+    point seen by every pose."""
+    from omnipipe.sfm._kernels import schur_blocks
+
+    rng = np.random.default_rng(11)
+    n_pose, n_pts = 18, 7
+    W = np.zeros((n_pose, 3 * n_pts))
+    for p in range(n_pts):
+        for k in rng.choice(n_pose // 6, size=rng.integers(1, 3), replace=False):
+            W[6 * k : 6 * k + 6, 3 * p : 3 * p + 3] = rng.normal(size=(6, 3))
+    W[:, 3:6] = 0.0  # point 1: seen by no pose
+    W[:, 6:9] = rng.normal(size=(n_pose, 3))  # point 2: every pose
+    A = rng.normal(size=(n_pts, 3, 3))
+    vinv = np.linalg.inv(A @ np.transpose(A, (0, 2, 1)) + 3 * np.eye(3))
+    gp = rng.normal(size=3 * n_pts)
+    Wc = sp.csc_matrix(W)
+    # The same matrix with entry (row 0, column 6) stored twice, in halves.
+    at = int(Wc.indptr[6])
+    assert Wc.indices[at] == 0
+    data = np.insert(Wc.data, at, Wc.data[at] / 2)
+    data[at + 1] = Wc.data[at] / 2
+    indptr = Wc.indptr.copy()
+    indptr[7:] += 1
+    Wd = sp.csc_matrix((data, np.insert(Wc.indices, at, 0), indptr), shape=W.shape)
+    assert Wd.nnz == Wc.nnz + 1
+    Vinv = np.zeros((3 * n_pts, 3 * n_pts))
+    for p in range(n_pts):
+        Vinv[3 * p : 3 * p + 3, 3 * p : 3 * p + 3] = vinv[p]
+    for m in (Wc, Wd):
+        S, b = schur_blocks(m.indptr.astype(np.int64), m.indices.astype(np.int64), m.data, vinv, gp, n_pose)
+        assert np.allclose(S, W @ Vinv @ W.T, rtol=1e-12, atol=1e-12)
+        assert np.allclose(b, W @ Vinv @ gp, rtol=1e-12, atol=1e-12)

@@ -9,6 +9,7 @@ ring (:mod:`~omnipipe.laser.ring`), triangulation on the laser plane
 from omnipipe.laser.extract import ExtractionConfig, RingExtractor
 from omnipipe.laser.ring import LaserRing
 from omnipipe.laser.stage import (
+    DecodeHandOn,
     LaserConfig,
     LaserResult,
     RingTask,
@@ -20,6 +21,7 @@ from omnipipe.laser.stage import (
 from omnipipe.laser.triangulate import intersect_plane, triangulate_ring
 
 __all__ = [
+    "DecodeHandOn",
     "ExtractionConfig",
     "LaserConfig",
     "LaserResult",

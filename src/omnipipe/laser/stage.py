@@ -127,3 +127,25 @@ def decode_only(source: FrameSource) -> list[tuple[int, ...]]:
     """Decode a chunk of frames and return only their shapes (benchmarks: the decode cost
     on the same workers, to compare with :func:`run_dataset`)."""
     return [tuple(source.read(k).shape) for k in range(len(source))]
+
+
+class DecodeHandOn:
+    """Picklable task: decode a chunk of frames and hand the ``moving`` ones ((N,) bool
+    over the dataset) on to ``folder`` (a :class:`~omnipipe.handoff.FrameHandoff`'s), as
+    the decoding pass does; returns their shapes (benchmarks: the floor of a laser stage
+    that also hands its moving frames on to the later stages)."""
+
+    def __init__(self, folder: str, moving: np.ndarray) -> None:
+        self.folder = folder
+        self.moving = np.asarray(moving, bool)
+
+    def __call__(self, source: FrameSource) -> list[tuple[int, ...]]:
+        from omnipipe.handoff import hand_on
+
+        out = []
+        for k in range(len(source)):
+            image = source.read(k)
+            if self.moving[int(source.frames[k])]:
+                hand_on(self.folder, int(source.frames[k]), image)
+            out.append(tuple(image.shape))
+        return out

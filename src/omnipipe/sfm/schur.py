@@ -26,6 +26,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from omnipipe.errors import ShapeError
+from omnipipe.sfm._kernels import schur_blocks
 
 
 @dataclass(frozen=True)
@@ -146,8 +147,9 @@ def _damped_search(
         step too short to matter (SciPy's ftol, xtol) or no lowering step at any damping;
         neither when the evaluation cap stopped the search.
     """
+    reduced = _Reduced(H, g, n_pose)
     while state.nfev < max_nfev:
-        dx = _damped_step(H, g, n_pose, state.lam)
+        dx = reduced.step(state.lam)
         predicted = -(g @ dx + 0.5 * dx @ (H @ dx))  # the model's reduction
         x_new = state.x + dx
         r_new = fun(x_new)
@@ -172,29 +174,50 @@ def _damped_search(
 
 def _damped_step(H: sp.csr_matrix, g: np.ndarray, n_pose: int, lam: float) -> np.ndarray:
     """The Levenberg-Marquardt step (H + lam diag(H)) dx = -g, with the points eliminated."""
-    n = H.shape[0]
-    n_pts = (n - n_pose) // 3
-    diag = H.diagonal()
-    # Unknowns no residual touches keep a unit diagonal (they do not move).
-    damp = lam * np.where(diag > 0, diag, 1.0)
-    U = H[:n_pose, :n_pose].toarray() + np.diag(damp[:n_pose])
-    W = H[:n_pose, n_pose:]
-    # The points' 3 x 3 diagonal blocks of H, damped, and their inverses.
-    Vcoo = H[n_pose:, n_pose:].tocoo()
-    same = (Vcoo.row // 3) == (Vcoo.col // 3)
-    V = np.zeros((n_pts, 3, 3))
-    np.add.at(V, (Vcoo.row[same] // 3, Vcoo.row[same] % 3, Vcoo.col[same] % 3), Vcoo.data[same])
-    V[:, np.arange(3), np.arange(3)] += damp[n_pose:].reshape(n_pts, 3)
-    V[:, np.arange(3), np.arange(3)] += np.where(diag[n_pose:] > 0, 0.0, 1.0).reshape(n_pts, 3)
-    Vinv = np.linalg.inv(V)
-    Vinv_sp = sp.bsr_matrix((Vinv, np.arange(n_pts), np.arange(n_pts + 1)), shape=(3 * n_pts, 3 * n_pts))
-    gc, gp = g[:n_pose], g[n_pose:]
-    WVinv = W @ Vinv_sp
-    S = U - (WVinv @ W.T).toarray()
-    rhs = -gc + WVinv @ gp
-    try:
-        dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs) if n_pose else np.zeros(0)
-    except np.linalg.LinAlgError:
-        dc = scipy.linalg.lstsq(S, rhs)[0]
-    dp = -(Vinv @ (gp + W.T @ dc).reshape(n_pts, 3, 1)).reshape(-1) if n_pts else np.zeros(0)
-    return np.concatenate([dc, dp])
+    return _Reduced(H, g, n_pose).step(lam)
+
+
+class _Reduced:
+    """One normal matrix ``H`` and gradient ``g``, split for the Schur complement once:
+    the damping changes between the steps tried on them, the blocks do not."""
+
+    def __init__(self, H: sp.csr_matrix, g: np.ndarray, n_pose: int) -> None:
+        n = H.shape[0]
+        self.n_pose = n_pose
+        self.n_pts = n_pts = (n - n_pose) // 3
+        self.diag = H.diagonal()
+        self.U = H[:n_pose, :n_pose].toarray()
+        self.W = H[:n_pose, n_pose:]
+        Wc = self.W.tocsc()
+        Wc.sort_indices()
+        self.Wc = Wc
+        # The points' 3 x 3 diagonal blocks of H (undamped).
+        Vcoo = H[n_pose:, n_pose:].tocoo()
+        same = (Vcoo.row // 3) == (Vcoo.col // 3)
+        V = np.zeros((n_pts, 3, 3))
+        np.add.at(V, (Vcoo.row[same] // 3, Vcoo.row[same] % 3, Vcoo.col[same] % 3), Vcoo.data[same])
+        self.V = V
+        self.gc, self.gp = g[:n_pose], g[n_pose:]
+
+    def step(self, lam: float) -> np.ndarray:
+        """The step ``dx`` (n,) at damping ``lam``."""
+        n_pose, n_pts = self.n_pose, self.n_pts
+        # Unknowns no residual touches keep a unit diagonal (they do not move).
+        damp = lam * np.where(self.diag > 0, self.diag, 1.0)
+        U = self.U + np.diag(damp[:n_pose])
+        V = self.V.copy()
+        V[:, np.arange(3), np.arange(3)] += damp[n_pose:].reshape(n_pts, 3)
+        V[:, np.arange(3), np.arange(3)] += np.where(self.diag[n_pose:] > 0, 0.0, 1.0).reshape(n_pts, 3)
+        Vinv = np.linalg.inv(V)
+        Wc = self.Wc
+        WVW, WVg = schur_blocks(
+            Wc.indptr.astype(np.int64), Wc.indices.astype(np.int64), Wc.data, Vinv, self.gp, n_pose
+        )
+        S = U - WVW
+        rhs = -self.gc + WVg
+        try:
+            dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs) if n_pose else np.zeros(0)
+        except np.linalg.LinAlgError:
+            dc = scipy.linalg.lstsq(S, rhs)[0]
+        dp = -(Vinv @ (self.gp + self.W.T @ dc).reshape(n_pts, 3, 1)).reshape(-1) if n_pts else np.zeros(0)
+        return np.concatenate([dc, dp])
