@@ -471,8 +471,8 @@ TRACKED_MIN_MATCHES = 100
 # walls, corrugation, a short step's small parallax).
 TRACKED_MAX_SPREAD_LOG = 0.04
 # Relative 1-sigma floor of a feature-depth length: the wall model and the relative
-# motion's direction, which the matches' spread does not show (those 135 steps: 1.0 %
-# makes 2 sigma cover all of them; the spread over sqrt(n) alone covered a third).
+# motion's direction, which the matches' spread does not show (those 135 steps: with
+# 1.0 % 2 sigma covers 134, 3 sigma all; the spread over sqrt(n) alone covered a third).
 FEATURE_DEPTH_SIGMA_FLOOR = 0.01
 
 
