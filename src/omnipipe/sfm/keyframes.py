@@ -237,7 +237,9 @@ class KeyframeLoop:
             return
         if step is not None:
             features, m, n_continued = self._chained_matches(last, frame, step)
+            tracked = not self._direct  # chained tracks, or descriptors they verified
         else:
+            tracked = False
             if features is None:
                 features = self._keyframe_features(frame, None)
             n_continued = 0
@@ -252,7 +254,7 @@ class KeyframeLoop:
             return
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
             motion = _refine(self.ctx, pair, motion, last.gray, frame.gray)
-        self._measure(pair, motion, last.gray, frame.gray)
+        self._measure(pair, motion, last.gray, frame.gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued)
 
@@ -411,11 +413,17 @@ class KeyframeLoop:
             self._pending_views[frame.frame] = frame.views
 
     def _measure(
-        self, pair: StepPair, motion: RelativeMotion | None, gray_a: np.ndarray, gray_b: np.ndarray
+        self,
+        pair: StepPair,
+        motion: RelativeMotion | None,
+        gray_a: np.ndarray,
+        gray_b: np.ndarray,
+        tracked: bool = False,
     ) -> None:
         """The step's evidence: its status, and for a translation both scale sources
         (laser Eq. 17 with its peaks, feature depths) measured in a worker; at most
-        twice the executor's parallelism in flight (each holds two images)."""
+        twice the executor's parallelism in flight (each holds two images). ``tracked``:
+        the matches were verified frame to frame (:attr:`StepEvidence.tracked`)."""
         a, b = pair.a, pair.b
         if motion is None:
             self._jobs.append(_EvidenceJob(StepEvidence.unmeasured(a, b, np.eye(4), None, "lost")))
@@ -442,7 +450,7 @@ class KeyframeLoop:
             config.laser_scale,
             config.scale_check,
         )
-        evidence = StepEvidence.unmeasured(a, b, b_from_a, inl, "ok")
+        evidence = replace(StepEvidence.unmeasured(a, b, b_from_a, inl, "ok"), tracked=tracked)
         self._jobs.append(_EvidenceJob(evidence, future))
         self._in_flight.append(future)
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):

@@ -257,6 +257,8 @@ class StepEvidence:
         feature_matches: matches behind ``feature_scale_mm``.
         status: ``"ok"``, ``"rotation"`` (no measurable translation) or ``"lost"`` (no
             relative motion).
+        tracked: True when the matches were verified by tracks followed frame to frame
+            (:mod:`omnipipe.sfm.tracking`: no period of a periodic wall skipped).
     """
 
     a: int
@@ -268,6 +270,7 @@ class StepEvidence:
     feature_scale_mm: float
     feature_matches: int
     status: str
+    tracked: bool = False
 
     @classmethod
     def unmeasured(
