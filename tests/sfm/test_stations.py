@@ -340,3 +340,20 @@ def test_unverified_stations_widen_to_the_keyframes_and_keep_the_tail() -> None:
     assert unverified_stations(hidden, moved, [0, 3, 8]) == [(0, 3, 3.0), (3, 8, 2.0), (8, 9, 1.5)]
     assert unverified_stations(hidden, moved) == [(0, 2, 3.0), (3, 6, 2.0), (8, 9, 1.5)]
     assert unverified_stations(np.minimum(hidden, 0.9), moved, [0, 3, 8]) == []
+
+
+def test_the_strokes_tail_starts_the_station_where_it_ends() -> None:
+    """Frames 0, 1 (+8 px), then 2 moves 1 px on (the stroke's tail: ratio 1.4, under
+    the noise factor) and stands there with 3, 4; 5 moves on (+8 px) and stands. The
+    tail is a moving frame and its station's frames are compared with it (ratios of
+    rest, verified); at rest right after a stroke a frame stays stationary."""
+    rng = np.random.default_rng(3)
+    px = [0, 8, 9, 9, 9, 17, 17, 17]
+    tracker = StationTracker(np.ones((160, 160), bool))
+    out = [tracker.update(_wall(rng, 6.0, p).astype(np.float32)) for p in px]
+    moved = [m for m, _ in out]
+    ratio = np.array([r for _, r in out])
+    cfg = StationConfig()
+    assert cfg.creep_factor < ratio[2] < cfg.noise_factor, ratio  # the test alone: standing
+    assert moved == [True, True, True, False, False, True, False, False], ratio
+    assert np.all(ratio[[3, 4, 6, 7]] < 1.1), ratio  # against the tail's frame: at rest

@@ -37,7 +37,11 @@ class StationConfig:
             paper and bend keep the same motion.
         creep_factor: a frame taken for stationary whose ratio exceeds this, followed by
             a moving frame, is a moving frame too (:func:`promote_creep`): the creep
-            before a stroke. Stationary frames of the random family gave 0.93-1.03, a
+            before a stroke; so is a frame right after a moving frame whose ratio (then
+            against that frame) exceeds it: the stroke's tail (random-wide seed 38, a
+            brick wall: the first frame of each stop 0.8 mm past the stroke's last at
+            ratio 1.42-1.51, its stop left at the stroke's last pose and the creep given to
+            the next stroke). Stationary frames of the random family gave 0.93-1.03, a
             0.3-0.8 mm creep 1.16-1.6 (640x480); left at its station's pose, the next
             step absorbed it (bench_robustness seed 4: five steps off by 0.5-1.6 mm).
         noise_pixels: the noise estimate takes every k-th row of the mask's interior, k
@@ -315,6 +319,7 @@ class StationState:
             NaN until both are seen).
         rest_factor: the noise floor's factor over the spatial estimate's expectation
             (:attr:`StationConfig.rest_spread`; inf until three frames at rest).
+        after_move: the last frame was a moving one (``reference`` is that frame).
     """
 
     reference: np.ndarray
@@ -322,6 +327,7 @@ class StationState:
     before: np.ndarray | None = None
     last_diff: float = math.nan
     rest_factor: float = math.inf
+    after_move: bool = True
 
 
 class StationTracker:
@@ -390,9 +396,13 @@ class StationTracker:
         diff, step, skip = (float(x / max(sums[3], 1.0)) for x in sums[:3])
         rest = self._rest(state, step, skip, expected)
         ratio = diff / (expected * (1.0 if math.isinf(rest) else max(rest, 1.0)))
-        moved = ratio > self.config.noise_factor
+        moved = ratio > self.config.noise_factor or (
+            # The stroke's tail: a frame right after a moving one that moved a little from
+            # it (more than a creep) ends the stroke, and its station begins there.
+            state.after_move and ratio > self.config.creep_factor
+        )
         reference = cur if moved else state.reference  # a moving frame starts a station
-        self._state = StationState(reference, cur, state.last, step, rest)
+        self._state = StationState(reference, cur, state.last, step, rest, bool(moved))
         return moved, ratio
 
     def _rest(self, state: StationState, step: float, skip: float, expected: float) -> float:
