@@ -43,6 +43,7 @@ from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
+from omnipipe.sfm.adjusted_steps import confirm_adjusted
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
@@ -122,6 +123,11 @@ def run(
                 None if scale.wall_anchored else math.exp(scale.offset_log),
             ),
         )
+        if scale.wall_anchored:  # the feature depths are the anchors: the gait judges too
+            chain = replace(chain, checks=confirm_adjusted(
+                chain.checks, adjusted.world_from_kf, moving_counts(followed.moved, kf.frames),
+                config.scale_check, ctx.warnings,
+            ))
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))

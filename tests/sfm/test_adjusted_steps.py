@@ -1,0 +1,50 @@
+"""Bundle-adjusted steps of a wall-anchored run confirmed by their feature depths and the gait."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from omnipipe.sfm.adjusted_steps import MOVED, confirm_adjusted
+from omnipipe.sfm.scale_check import ScaleCheckConfig, StepCheck
+
+
+def _poses(lengths: list[float]) -> np.ndarray:
+    """(K, 4, 4) keyframes along z, the given step lengths apart (mm)."""
+    z = np.concatenate([[0.0], np.cumsum(lengths)])
+    out = np.tile(np.eye(4), (len(z), 1, 1))
+    out[:, 2, 3] = z
+    return out
+
+
+def _moved(k: int, decided: float, feature: float, adjusted: float) -> StepCheck:
+    reason = f"{MOVED} to {adjusted:.1f} mm, {100 * np.log(adjusted / decided):+.0f} % from its measured length"
+    return StepCheck(k, k + 1, decided, 0.9, feature, 700, decided, "none", reason)
+
+
+def test_a_step_moved_to_its_feature_depths_at_the_gaits_pace_is_trusted() -> None:
+    """Random-wide seed 13's case: the laser's wrong peak 8.9 mm decided, the adjustment
+    moved the step to its feature depths' 10.6 mm (true 10.65) at the pace of its
+    neighbours: trusted. A step the adjustment moved where its feature depths do not
+    put it, and one moved a wall period (+8 mm) off the gait with its feature depths
+    (a wrong course both sources share), stay flagged."""
+    adjusted = [10.6, 12.7, 10.3, 14.5, 12.0, 20.3, 12.1]
+    checks = [StepCheck(k, k + 1, v, 0.9, v, 700, v, "high") for k, v in enumerate(adjusted)]
+    checks[0] = _moved(0, 8.9, 10.64, 10.6)  # right: features and pace agree
+    checks[2] = _moved(2, 8.7, 8.9, 10.3)  # the features say 8.9: stays flagged
+    checks[5] = _moved(5, 12.3, 20.3, 20.3)  # a period off: pace 2x the neighbours'
+    counts = np.full(len(adjusted), 3)
+    warnings: list[str] = []
+    out = confirm_adjusted(checks, _poses(adjusted), counts, ScaleCheckConfig(), warnings)
+    assert out[0].confidence == "resolved" and "confirm the adjusted length" in out[0].reason
+    assert not out[2].reliable and not out[5].reliable
+    assert [c.confidence for k, c in enumerate(out) if k not in (0, 2, 5)] == ["high"] * 4
+    assert len(warnings) == 1 and warnings[0].startswith("frames 0->1")
+
+
+def test_other_flags_and_too_few_matches_are_left_alone() -> None:
+    adjusted = [10.0, 10.0, 10.0, 10.0]
+    checks = [StepCheck(k, k + 1, v, 0.9, v, 700, v, "high") for k, v in enumerate(adjusted)]
+    checks[1] = StepCheck(1, 2, 8.0, 0.9, 10.0, 700, 8.0, "none", "laser scale 8.0 mm and feature depth scale 10.0 mm disagree")
+    checks[2] = StepCheck(2, 3, 8.0, 0.9, 10.0, 5, 8.0, "none", f"{MOVED} to 10.0 mm, +22 % from its measured length")
+    out = confirm_adjusted(checks, _poses(adjusted), np.full(4, 2), ScaleCheckConfig())
+    assert out[1] == checks[1] and out[2] == checks[2]
