@@ -41,6 +41,7 @@ import numpy as np
 from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor
+from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
@@ -50,7 +51,12 @@ from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps
 from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
-from omnipipe.sfm.stations import hidden_steps, texture_gain, unverified_stations
+from omnipipe.sfm.stations import (
+    flow_hidden_steps,
+    hidden_steps,
+    texture_gain,
+    unverified_stations,
+)
 from omnipipe.sfm.step_scale import (
     RunLength,
     RunScale,
@@ -153,6 +159,7 @@ def run(
     result = _result(
         ctx, followed, adjusted, resected, chain.checks, scale, length,
         None if with_odometry else ratio,
+        lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
     )
     _add_gravity(result, inputs)
     return result
@@ -197,11 +204,14 @@ def _result(
     scale: RunScale,
     length: RunLength,
     ratio: np.ndarray | None = None,
+    read_gray: Callable[[int], np.ndarray] | None = None,
 ) -> SfmResult:
     """Every frame's pose: each station's from its keyframe (adjusted) or its resection;
     the steps' checks and the unreliable stretches (steps not trusted, frames not
     resected, stationary frames whose stationary-test ``ratio`` (N,) could hide a step
-    on this wall: :func:`omnipipe.sfm.stations.unverified_stations`), merged."""
+    on this wall: :func:`omnipipe.sfm.stations.unverified_stations`; the tracked flow of
+    ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`),
+    merged."""
     moved = followed.moved
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
@@ -224,15 +234,18 @@ def _result(
     registered = ~lost[first[station]]
     if ratio is not None and not moved.all():
         gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
+        hidden = hidden_steps(ratio, moved, gain)
+        if read_gray is not None:
+            hidden = flow_hidden_steps(
+                hidden, moved, world_from_rig[:, :3, 3], registered, read_gray, ctx.camera.valid_mask()
+            )
         stretches += [
             UnreliableStretch(
                 a, b, "the stationary test cannot rule out "
                 + (f"a {worst:.1f} mm step" if math.isfinite(worst) else "a step of any length")
                 + " on this wall: a frame taken for standing may have moved",
             )
-            for a, b, worst in unverified_stations(
-                hidden_steps(ratio, moved, gain), moved, followed.keyframes.frames
-            )
+            for a, b, worst in unverified_stations(hidden, moved, followed.keyframes.frames)
         ]
     return SfmResult(
         world_from_rig=world_from_rig,

@@ -14,6 +14,7 @@ difference of frames at rest, found as three consecutive frames that differ alik
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -570,3 +571,126 @@ def unverified_stations(
             (int(before[-1]) if len(before) else int(f), int(after[0]) if len(after) else end, worst)
         )
     return out
+
+
+# The flow test's bound (:func:`flow_hidden_steps`): its fraction of the reference step
+# is the median over the tracked points plus this many of its standard errors.
+FLOW_SIGMAS = 3.0
+# ... and its fraction is taken this much larger: Lucas-Kanade on a plain wall's faint
+# texture reads a 3 px shift 6 % short against an 8 px ruler (a 1.5 contrast wall).
+FLOW_REL_MARGIN = 0.1
+# Fewest tracked points (with a reference flow of at least FLOW_MIN_PX) for a bound.
+FLOW_MIN_POINTS = 30
+FLOW_MIN_PX = 1.0
+# Largest forward-backward error (px) of a kept track.
+FLOW_FB_PX = 0.5
+# The reference step must be at least this long (mm): its flow is the ruler.
+FLOW_MIN_REF_MM = 1.0
+
+
+def flow_fraction(
+    before: np.ndarray, ref: np.ndarray, frames: list[np.ndarray], mask: np.ndarray
+) -> list[tuple[float, float]]:
+    """How far each of ``frames`` moved from ``ref`` as a fraction of the step
+    ``before`` -> ``ref``, measured by the tracked flow of the wall's texture.
+
+    Corners of ``ref`` (inside ``mask``) are followed by pyramidal Lucas-Kanade into
+    ``before`` and into each frame (kept when the flow back returns within
+    :data:`FLOW_FB_PX`). A point's reference flow r (``ref`` -> ``before``, reversed) and its
+    flow f into a frame give its fraction ``f . r / |r|^2``; for a small step along the
+    same direction (the robot's axial creep) every point gives the same fraction, the
+    noise of the flow scatters it.
+
+    Args:
+        before, ref: (H, W) grey images of the frame before the station and of the
+            station's first frame.
+        frames: (H, W) grey images of the station's other frames.
+        mask: (H, W) bool, the pixels that see the wall.
+
+    Returns:
+        per frame (median fraction, its standard error); (NaN, NaN) with fewer than
+        :data:`FLOW_MIN_POINTS` points.
+    """
+    r8, b8 = _u8(ref), _u8(before)
+    pts = cv2.goodFeaturesToTrack(r8, 2000, 0.005, 5, mask=mask.astype(np.uint8))
+    nan = [(math.nan, math.nan)] * len(frames)
+    if pts is None or len(pts) < FLOW_MIN_POINTS:
+        return nan
+    back_flow, ok = _tracked(r8, b8, pts)
+    r = -back_flow  # before -> ref
+    rn2 = np.sum(r * r, axis=1)
+    ok &= rn2 >= FLOW_MIN_PX**2
+    out = []
+    for frame in frames:
+        f, fok = _tracked(r8, _u8(frame), pts)
+        use = ok & fok
+        if use.sum() < FLOW_MIN_POINTS:
+            out.append((math.nan, math.nan))
+            continue
+        s = np.sum(f[use] * r[use], axis=1) / rn2[use]
+        med = float(np.median(s))
+        # The median's standard error: 1.2533 sigma / sqrt(n), sigma from the MAD.
+        sigma = 1.4826 * float(np.median(np.abs(s - med)))
+        out.append((med, 1.2533 * sigma / math.sqrt(len(s))))
+    return out
+
+
+def _u8(gray: np.ndarray) -> np.ndarray:
+    g = np.asarray(gray)
+    if g.dtype == np.uint8:
+        return g
+    if g.dtype == np.uint16:
+        return (g >> 8).astype(np.uint8)
+    return np.clip(g, 0, 255).astype(np.uint8)
+
+
+def _tracked(a: np.ndarray, b: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) flow of ``pts`` (M, 1, 2) from ``a`` into ``b`` and (M,) bool, kept."""
+    lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, pts, None, **lk)
+    p0, st0, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, None, **lk)
+    fb = np.linalg.norm((p0 - pts).reshape(-1, 2), axis=1)
+    ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < FLOW_FB_PX)
+    return (p1 - pts).reshape(-1, 2), ok
+
+
+def flow_hidden_steps(
+    hidden_mm: np.ndarray,
+    moved: np.ndarray,
+    positions: np.ndarray,
+    registered: np.ndarray,
+    read_gray: Callable[[int], np.ndarray],
+    mask: np.ndarray,
+) -> np.ndarray:
+    """(N,) ``hidden_mm`` (:func:`hidden_steps`) lowered by the tracked flow where it
+    exceeds :data:`HIDDEN_STEP_MM`: the frames of such a station are measured against
+    its first frame with the step into it as the ruler (:func:`flow_fraction`), and a
+    frame's bound becomes ``(1.1 |fraction| + FLOW_SIGMAS x its standard error) x`` that
+    step's length (mm, from ``positions`` (N, 3)) when that is lower. On a plain wall
+    the stationary test's ratio barely rises with a step, while the few corners there
+    are still tracked to a tenth of a pixel.
+
+    Args:
+        moved: (N,) the stationary test's result.
+        registered: (N,) True where the position is valid.
+        read_gray: frame index -> its (H, W) grey image without the laser.
+        mask: (H, W) bool, the pixels that see the wall.
+    """
+    h = np.asarray(hidden_mm, float).copy()
+    m = np.asarray(moved, bool)
+    starts = np.flatnonzero(m)
+    for j, f in enumerate(starts):
+        end = int(starts[j + 1]) if j + 1 < len(starts) else len(m)
+        frames = list(range(f + 1, end))
+        if f < 1 or not frames or not (h[frames].max() > HIDDEN_STEP_MM):
+            continue
+        if not (registered[f] and registered[f - 1]):
+            continue
+        ref_mm = float(np.linalg.norm(positions[f] - positions[f - 1]))
+        if ref_mm < FLOW_MIN_REF_MM:
+            continue
+        fractions = flow_fraction(read_gray(f - 1), read_gray(f), [read_gray(i) for i in frames], mask)
+        for i, (s, se) in zip(frames, fractions, strict=True):
+            if math.isfinite(s):
+                h[i] = min(h[i], ((1.0 + FLOW_REL_MARGIN) * abs(s) + FLOW_SIGMAS * se) * ref_mm)
+    return h
