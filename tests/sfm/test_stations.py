@@ -361,22 +361,28 @@ def test_the_strokes_tail_starts_the_station_where_it_ends() -> None:
 
 def test_the_tracked_flow_verifies_a_plain_walls_standing_frames_and_sees_its_creep() -> None:
     """A wall too plain for the stationary test's ratio (contrast 1.0, noise 2 grey
-    levels; a 4 mm step gives 1.5, under its threshold): frame 1 moved 8 px (4 mm at
-    0.5 mm per px) from frame 0 and starts a station; frame 2 stands there, frame 3
-    crept 3 px (1.5 mm) on. The ratio cannot bound either; the flow bounds frame 2's
-    step well under 1 mm and frame 3's over it, near its 1.5 mm."""
+    levels; a 4 mm step gives 1.5, under its threshold): frames 0, 1, 2 move 8 px each
+    (4 mm at 0.5 mm per px), frame 2 starts a station; frame 3 stands there, frame 4
+    crept 3 px (1.5 mm) on. The ratio cannot bound either; the flow bounds frame 3's
+    step well under 1 mm and frame 4's over it, near its 1.5 mm. With positions that
+    contradict the flow's ruler (frame 0 placed 3 mm behind frame 2, not 8) it verifies
+    nothing."""
     from omnipipe.sfm.stations import HIDDEN_STEP_MM, flow_hidden_steps, hidden_steps, texture_gain
 
     rng = np.random.default_rng(3)
-    px = [0, 8, 8, 11]
+    px = [0, 8, 16, 16, 19]
     frames = [_wall(rng, 1.0, p, size=320) for p in px]
-    positions = np.array([[0.0, 0.0, 0.5 * p] for p in (0, 8, 8, 8)])  # as estimated
+    positions = np.array([[0.0, 0.0, 0.5 * p] for p in (0, 8, 16, 16, 16)])  # as estimated
     ratio = _ratios(frames)
-    moved = np.array([True, True, False, False])
-    registered = np.ones(4, bool)
+    moved = np.array([True, True, True, False, False])
+    registered = np.ones(5, bool)
     hidden = hidden_steps(ratio, moved, texture_gain(ratio, positions, registered))
-    assert np.all(hidden[2:] > HIDDEN_STEP_MM), (ratio, hidden)  # the ratio alone: unverified
-    out = flow_hidden_steps(hidden, moved, positions, registered, lambda i: frames[i], np.ones((320, 320), bool))
-    assert out[2] < 0.3, out
-    assert 1.4 < out[3] < 1.8, out
-    assert out[0] == out[1] == 0.0
+    assert np.all(hidden[3:] > HIDDEN_STEP_MM), (ratio, hidden)  # the ratio alone: unverified
+    mask = np.ones((320, 320), bool)
+    out = flow_hidden_steps(hidden, moved, positions, registered, lambda i: frames[i], mask)
+    assert out[3] < 0.3, out
+    assert 1.5 < out[4] < 2.2, out
+    assert np.all(out[:3] == 0.0)
+    wrong = positions.copy()
+    wrong[0, 2] = 5.0
+    assert np.array_equal(flow_hidden_steps(hidden, moved, wrong, registered, lambda i: frames[i], mask), hidden)
