@@ -58,6 +58,7 @@ from omnipipe.sfm.stations import (
     unverified_stations,
 )
 from omnipipe.sfm.step_scale import (
+    ChainedSteps,
     RunLength,
     RunScale,
     chain_steps,
@@ -68,6 +69,7 @@ from omnipipe.sfm.step_scale import (
 from omnipipe.sfm.step_window import moving_counts
 from omnipipe.sfm.types import (
     ODOMETRY_ONLY,
+    Keyframes,
     SfmConfig,
     SfmContext,
     SfmInputs,
@@ -116,24 +118,7 @@ def run(
         chain = chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames))
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
-        adjusted = adjust_keyframes(
-            ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
-        )
-        chain = replace(
-            chain,
-            checks=check_adjusted(
-                chain.checks,
-                adjusted.world_from_kf,
-                config.scale_check,
-                math.exp(scale.offset_log) if scale.wall_anchored else 1.0,
-                None if scale.wall_anchored else math.exp(scale.offset_log),
-            ),
-        )
-        if scale.wall_anchored:  # the feature depths are the anchors: the gait judges too
-            chain = replace(chain, checks=confirm_adjusted(
-                chain.checks, adjusted.world_from_kf, moving_counts(followed.moved, kf.frames),
-                config.scale_check, ctx.warnings,
-            ))
+        adjusted, chain = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved)
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))
@@ -163,6 +148,35 @@ def run(
     )
     _add_gravity(result, inputs)
     return result
+
+
+def _adjusted_and_checked(
+    ctx: SfmContext,
+    config: SfmConfig,
+    kf: Keyframes,
+    chain: ChainedSteps,
+    scale: RunScale,
+    moved: np.ndarray,
+) -> tuple[Adjusted, ChainedSteps]:
+    """Step 5: the bundle adjustment of the chained keyframes, and the chain's checks
+    with the steps it moved away from their sources flagged (in a wall-anchored run,
+    where the feature depths are the anchors, the gait judges such steps too)."""
+    adjusted = adjust_keyframes(
+        ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
+    )
+    offset = math.exp(scale.offset_log)
+    checks = check_adjusted(
+        chain.checks,
+        adjusted.world_from_kf,
+        config.scale_check,
+        offset if scale.wall_anchored else 1.0,
+        None if scale.wall_anchored else offset,
+    )
+    if scale.wall_anchored:
+        checks = confirm_adjusted(
+            checks, adjusted.world_from_kf, moving_counts(moved, kf.frames), config.scale_check, ctx.warnings
+        )
+    return adjusted, replace(chain, checks=checks)
 
 
 def _station_ratio(inputs: SfmInputs) -> np.ndarray:
