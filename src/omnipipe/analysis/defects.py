@@ -23,7 +23,7 @@ uncertainties. A fitted defect lower than the run's detection limit
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from itertools import pairwise
@@ -99,6 +99,35 @@ def fourier_design(theta: np.ndarray, order: int) -> np.ndarray:
     for k in range(1, order + 1):
         cols += [np.cos(k * theta), np.sin(k * theta)]
     return np.stack(cols, axis=1)
+
+
+@dataclass(frozen=True)
+class FeatureZone:
+    """Where a found feature (a joint's gap, a lateral's opening) may reach, with its
+    uncertainty: a detection there seen by one ring cannot be told from the feature's rim.
+
+    Attributes:
+        axial_from_mm, axial_to_mm: the axial band (contract convention, mm).
+        arc_mm: centre of the zone around the pipe (mm, as :attr:`WallSamples.arc_mm`), or
+            None: all around (a joint).
+        half_arc_mm: half its extent around the pipe (mm; ignored without ``arc_mm``).
+        label: what it is, for the warning (e.g. "the joint at -69.3 mm").
+    """
+
+    axial_from_mm: float
+    axial_to_mm: float
+    label: str
+    arc_mm: float | None = None
+    half_arc_mm: float = 0.0
+
+    def holds(self, sigma_mm: np.ndarray, arc_mm: np.ndarray, circumference_mm: float) -> bool:
+        """Whether every point (sigma_mm, arc_mm) lies inside the zone."""
+        inside = (sigma_mm >= self.axial_from_mm) & (sigma_mm <= self.axial_to_mm)
+        if self.arc_mm is not None:
+            c = circumference_mm
+            du = np.abs((arc_mm - self.arc_mm + 0.5 * c) % c - 0.5 * c)
+            inside &= du <= self.half_arc_mm
+        return bool(inside.all())
 
 
 @dataclass
@@ -201,6 +230,7 @@ def find_defects(
     limit_length_mm: float = 20.0,
     ring_blur_mm: float = 0.0,
     axial_blur_mm: float = 0.0,
+    zones: Sequence[FeatureZone] = (),
     executor: Executor | None = None,
 ) -> DefectSearch:
     """Detect and measure bulges and dents (the candidates' model fits on ``executor``,
@@ -219,6 +249,9 @@ def find_defects(
         ring_blur_mm: the light section's Gaussian smoothing along the ring (mm), fitted
             with each defect (:func:`omnipipe.analysis.sizing.seen_bump_model`).
         axial_blur_mm: the same along the pipe axis (mm).
+        zones: the found features' reach (:class:`FeatureZone`): a candidate seen by one
+            ring inside one is a warning, not a defect (:func:`_one_sided`), as is one seen
+            by one ring at the edge of the measured wall.
     """
     warnings: list[str] = []
     if len(samples.deviation_mm) < 10:
@@ -237,6 +270,7 @@ def find_defects(
         (sign, kind, members, _rough(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing))
         for sign, kind in ((-1.0, "bulge"), (1.0, "dent"))
         for members in _clusters(samples, sc, sign, min_points)
+        if not _one_sided(samples, sc, members, kind, zones, warnings)
     ]
     # The candidates' model fits are independent: on the executor's workers, in order.
     jobs = (
@@ -466,6 +500,48 @@ def _clusters(
             # cluster (seen beside deep, steep defects), below any size the run resolves.
             continue
         yield members
+
+
+def _one_sided(
+    s: WallSamples, sc: _Scales, members: np.ndarray, kind: str, zones: Sequence[FeatureZone], warnings: list[str]
+) -> bool:
+    """Whether a candidate seen by one ring only has one-sided support: on one side
+    along the axis no other ring measured the wall at its angles within 3 wide ring
+    spacings (and 5 mm) - the run's first or last ring, a ring beside a feature's
+    excluded band or an unmeasured stretch - or it lies inside a found feature's zone.
+    The wall beyond it was not measured (or is the feature's rim): it cannot be told
+    from the run's end or the feature and cannot be sized; a warning line is appended
+    and it is not a defect. A candidate seen by two rings or more is never dropped here."""
+    rings = np.unique(s.ring[members])
+    if len(rings) != 1:
+        return False
+    circ = s.circumference_mm
+    zs, arc = s.sigma_mm[members], s.arc_mm[members]
+    ref = float(arc[0])
+    du = (arc - ref + 0.5 * circ) % circ - 0.5 * circ
+    u_all = (s.arc_mm - ref + 0.5 * circ) % circ - 0.5 * circ
+    wide = max(3.0 * sc.spacing, 5.0)
+    near = (s.ring != rings[0]) & (u_all >= du.min() - sc.du) & (u_all <= du.max() + sc.du)
+    before = near & (s.sigma_mm < zs.min()) & (s.sigma_mm >= zs.min() - wide)
+    after = near & (s.sigma_mm > zs.max()) & (s.sigma_mm <= zs.max() + wide)
+    why = None
+    if not before.any() or not after.any():
+        side = "before" if not before.any() else "after"
+        why = f"one ring, with no measured wall {side} it along the pipe"
+    else:
+        zone = next((q for q in zones if q.holds(zs, arc, circ)), None)
+        if zone is not None:
+            why = f"one ring inside the reach of {zone.label}"
+    if why is None:
+        return False
+    dev = np.abs(s.deviation_mm[members])
+    angle = (ref + float(np.median(du))) % circ / circ * 360.0
+    warnings.append(
+        f"{kind} candidate at {float(np.median(zs)):.0f} mm, {angle:.0f} deg ({len(members)} samples up to "
+        f"{float(dev.max()):.2f} mm) seen by {why}: one-sided, it cannot be told from the run's end or "
+        "a feature's rim and cannot be sized; flagged here, not reported as a defect"
+    )
+    return True
 
 
 def _supported(samples: WallSamples, value: np.ndarray, sc: _Scales) -> np.ndarray:

@@ -42,7 +42,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from omnipipe.analysis.centreline import Centreline
-from omnipipe.analysis.defects import fit_wall_profile, fourier_design
+from omnipipe.analysis.defects import FeatureZone, fit_wall_profile, fourier_design
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 from omnipipe.config import bounded
 
@@ -188,6 +188,35 @@ def find_features(
             not_wall |= mask
     feats.sort(key=lambda f: f.axial_mm)
     return FeatureSearch(feats, not_wall, thr, unseen)
+
+
+def feature_zones(features: list[PointFeature], radius: float, margin_mm: float) -> list[FeatureZone]:
+    """Each joint's and lateral's reach with its uncertainty, for the defect search
+    (:class:`~omnipipe.analysis.defects.FeatureZone`): a joint all around the pipe, over
+    its gap plus ``margin_mm`` plus 3 sigma of its edges (centre and half-gap sigmas in
+    quadrature) each side; a lateral over its opening's semi-axes (the circumferential
+    one the arc of its chord on the ``radius`` mm wall) plus the margin plus 3 sigma of
+    centre and radius, along the axis and around the pipe."""
+    out: list[FeatureZone] = []
+    for f in features:
+        if isinstance(f, Joint):
+            half = 0.5 * f.gap_mm + margin_mm + 3.0 * math.hypot(_sd(f.axial_sigma_mm), 0.5 * _sd(f.gap_sigma_mm))
+            out.append(FeatureZone(f.axial_mm - half, f.axial_mm + half, f"the joint at {f.axial_mm:.1f} mm"))
+        elif isinstance(f, Lateral):
+            b = radius * math.asin(min(0.5 * f.diameter_mm / radius, 1.0))
+            s_r = 0.5 * _sd(f.diameter_sigma_mm)
+            along = b + margin_mm + 3.0 * math.hypot(_sd(f.axial_sigma_mm), s_r)
+            around = b + margin_mm + 3.0 * math.hypot(radius * math.radians(_sd(f.angle_sigma_deg)), s_r)
+            out.append(FeatureZone(
+                f.axial_mm - along, f.axial_mm + along, f"the lateral at {f.axial_mm:.1f} mm",
+                arc_mm=math.radians(f.angle_deg % 360.0) * radius, half_arc_mm=around,
+            ))
+    return out
+
+
+def _sd(value: float | None) -> float:
+    """A sigma, 0 when unknown (None or not finite)."""
+    return float(value) if value is not None and math.isfinite(value) else 0.0
 
 
 def with_offset_joints_kept(first: FeatureSearch, second: FeatureSearch) -> FeatureSearch:

@@ -36,13 +36,19 @@ from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred, 
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
     DefectSearch,
+    FeatureZone,
     WallSamples,
     find_defects,
     fit_wall_profile,
     fourier_design,
 )
 from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch, Taper
-from omnipipe.analysis.features import FeatureConfig, find_features, with_offset_joints_kept
+from omnipipe.analysis.features import (
+    FeatureConfig,
+    feature_zones,
+    find_features,
+    with_offset_joints_kept,
+)
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
     EdgeReach,
@@ -265,7 +271,8 @@ def run(
         feats = with_offset_joints_kept(feats, find_features(config.features, line, sigma, rho, theta, frame, radius))
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
-        config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor
+        config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor,
+        feature_zones(feats.features, radius, config.features.margin_mm),
     )
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
@@ -526,6 +533,7 @@ def _measure_wall(
     radius: float,
     not_wall: np.ndarray,
     executor: Executor | None = None,
+    zones: Sequence[FeatureZone] = (),
 ) -> tuple[_Stations, DefectSearch]:
     """The stations' wall profiles and the defects in the deviations from them.
 
@@ -562,6 +570,7 @@ def _measure_wall(
             limit_length_mm=config.limit_length_mm,
             ring_blur_mm=inputs.ring_blur_mm,
             axial_blur_mm=inputs.axial_blur_mm,
+            zones=zones,
             executor=executor,
         )
         tick(done)
