@@ -284,13 +284,7 @@ def find_defects(
     # The light section resolves nothing narrower than its blur's full width at half height.
     defects, masks = _flank_streaks(defects, masks, narrow, 2.355 * ring_blur_mm, samples.circumference_mm, warnings)
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
-    warnings.extend(
-        f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
-        "failed (a crest extrapolated far above the samples, or too few samples); its size is "
-        "the rough grid measurement, without uncertainty"
-        for d in defects
-        if not d.fitted
-    )
+    warnings.extend(_unfitted_warnings(defects))
     order_h = np.argsort([-d.height_mm for d in defects], kind="stable")
     return DefectSearch(
         [defects[i] for i in order_h],
@@ -302,6 +296,17 @@ def find_defects(
         sample_spacing_mm=sc.sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _unfitted_warnings(defects: Sequence[Defect]) -> list[str]:
+    """A warning per defect whose model fit failed (its size is the rough measurement)."""
+    return [
+        f"{d.kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: the model fit "
+        "failed (a crest extrapolated far above the samples, or too few samples); its size is "
+        "the rough grid measurement, without uncertainty"
+        for d in defects
+        if not d.fitted
+    ]
 
 
 def _accepted(
