@@ -430,6 +430,14 @@ def parallelism(executor: Executor) -> int:
     return int(getattr(executor, "omnipipe_parallelism", default_workers()))
 
 
+def shares_files(executor: Executor) -> bool:
+    """True when ``executor``'s tasks run in other processes of this machine (a local
+    process pool): they can read this run's scratch files by path rather than be sent
+    the arrays through a pipe (inline: nothing is sent; a Dask cluster: its workers may
+    be elsewhere)."""
+    return isinstance(executor, ProcessPoolExecutor)
+
+
 def describe(executor: Executor) -> dict[str, Any]:
     """``{"kind": "inline"|"processes"|"dask", "workers": N}`` for report.json."""
     if isinstance(executor, InlineExecutor):

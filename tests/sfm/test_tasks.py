@@ -31,3 +31,57 @@ def test_frame_gray_is_the_compact_grey_image_without_the_laser() -> None:
             fast = frame_gray(image, channel)
             slow = compact_gray(gray_without_laser(image, channel))
             assert fast.dtype == slow.dtype and np.array_equal(fast, slow), (image.dtype, image.ndim, channel)
+
+
+def test_gray_for_worker_sends_a_reference_only_where_the_store_holds_the_same_values() -> None:
+    """Keyframe grey images go to a local pool's workers as references into the keyframe
+    store when its uint16 copy is exact (8- or 16-bit); the pixels themselves inline
+    (nothing to send), to other executors, and for a float grey image (fallback)."""
+    from omnipipe.executor import InlineExecutor, open_executor
+    from omnipipe.sfm.image_store import ImageStore, StoredImage
+    from omnipipe.sfm.keyframes import gray_for_worker
+
+    rng = np.random.default_rng(6)
+    eight = rng.integers(0, 256, (24, 32)).astype(np.uint8)
+    fractional = eight.astype(np.float32) + np.float32(0.25)
+    with ImageStore() as store, open_executor(workers=2) as pool:
+        for gray in (eight, fractional):
+            store.append(np.clip(gray, 0, 65535).astype(np.uint16))
+        ref = gray_for_worker(store, 0, eight, pool)
+        assert isinstance(ref, StoredImage)
+        assert np.array_equal(ref.load().astype(np.float32), eight.astype(np.float32))
+        assert gray_for_worker(store, 1, fractional, pool) is fractional
+        assert gray_for_worker(store, 0, eight, InlineExecutor()) is eight
+
+
+def test_laser_matches_read_by_reference_in_a_worker_equal_those_sent_as_arrays() -> None:
+    """Eq. 17 matched in a local worker that reads both keyframes' stored grey images
+    itself gives bit for bit the matches of the grey images sent as arrays."""
+    from omnipipe.executor import open_executor
+    from omnipipe.geometry import invert
+    from omnipipe.sfm.image_store import ImageStore
+    from omnipipe.sfm.laser_scale import LaserScaleConfig
+    from omnipipe.sfm.tasks import frame_gray, laser_matches
+    from omnipipe.sim import make_scenario
+    from omnipipe.sim.writer import build_renderer
+
+    scenario = make_scenario("paper", frames=12, size=(640, 480), seed=4)
+    renderer, poses, _, moving = build_renderer(scenario)
+    b = int(np.flatnonzero(moving)[2])
+    a = b - 2
+    (img_a, truth_a), (img_b, _) = renderer.render(poses[a], seed=1), renderer.render(poses[b], seed=2)
+    ring = truth_a["points_in_rig"][np.abs(truth_a["laser_h"]) < 0.3]
+    b_from_a = invert(poses[b]) @ poses[a]
+    direction = b_from_a[:3, 3] / np.linalg.norm(b_from_a[:3, 3])
+    gray_a, gray_b = frame_gray(img_a, "red"), frame_gray(img_b, "red")
+    assert gray_a.dtype == np.uint8
+    rest = (renderer.camera, ring, b_from_a[:3, :3], direction, LaserScaleConfig())
+    sent = laser_matches(gray_a, gray_b, *rest)
+    with ImageStore() as store, open_executor(workers=2) as pool:
+        for gray in (gray_a, gray_b):
+            store.append(np.clip(gray, 0, 65535).astype(np.uint16))
+        read = pool.submit(laser_matches, store.ref(0), store.ref(1), *rest).result()
+    assert len(sent.index) > 20
+    for name in ("index", "scale_mm", "pixels_b", "ncc", "peak_scales_mm", "peak_scores"):
+        assert np.array_equal(getattr(read, name), getattr(sent, name), equal_nan=True), name
+    assert read.scale == sent.scale or (np.isnan(read.scale) and np.isnan(sent.scale))

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import ordered_map
+from omnipipe.executor import ordered_map, shares_files
 from omnipipe.geometry import invert
 from omnipipe.progress import phase
 from omnipipe.sfm.bundle import (
@@ -261,7 +261,7 @@ def _far_anchors(
 ) -> list[Anchor]:
     """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
     poses), matched in the executor's workers, a bounded number at a time (each task
-    holds two images); in (k, k + j) order.
+    holds two images, or for a local pool their files' paths); in (k, k + j) order.
 
     ``world_from_kf``: (W, 4, 4) the poses of keyframes ``first .. first + W - 1`` (an
     adjustment window; ``kf`` counts from keyframe 0); pairs of two of its first
@@ -282,10 +282,12 @@ def _far_anchors(
     # The adjusted length is known to a few per cent: search only around it, so that a
     # periodic wall cannot offer the next course.
     w = math.exp(config.scale_check.agree_log)
+    # A local pool's workers read the images themselves (the files' paths, not the pixels).
+    gray = kf.grays.ref if shares_files(ctx.executor) else kf.grays.__getitem__
     jobs = (
         (
-            kf.grays[first + p.a],
-            kf.grays[first + p.b],
+            gray(first + p.a),
+            gray(first + p.b),
             ctx.camera,
             p.points_in_a,
             p.b_from_a[:3, :3],

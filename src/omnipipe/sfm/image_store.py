@@ -4,16 +4,39 @@ The scale decisions (Eq. 17 re-matching around a chosen length) and the longer-b
 laser anchors need every keyframe's grey image after the whole run's evidence is in.
 Holding them costs 3.8 MB per keyframe at 1600x1200 (uint16), gigabytes over a long
 run; :class:`ImageStore` writes each to a private temporary folder as it comes and reads
-it back when asked (from the page cache, about 1 ms).
+it back when asked (from the page cache, about 1 ms). A local process pool's workers read
+them there too, by :class:`StoredImage` (the file's path through the pipe, not the pixels).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from omnipipe.scratch import ScratchStore
+
+
+@dataclass(frozen=True)
+class StoredImage:
+    """A picklable reference to one item of an :class:`ImageStore`, for a worker on the
+    same file system (a local process pool) to read itself while the store is open.
+
+    Attributes:
+        path: the item's ``.npy`` file.
+    """
+
+    path: str
+
+    def load(self) -> np.ndarray:
+        """The stored array (the same dtype and values as appended)."""
+        return np.load(self.path, allow_pickle=False)
+
+
+def load_image(image: np.ndarray | StoredImage) -> np.ndarray:
+    """``image`` itself, or the array a :class:`StoredImage` refers to."""
+    return image.load() if isinstance(image, StoredImage) else image
 
 
 class ImageStore(ScratchStore):
@@ -36,6 +59,12 @@ class ImageStore(ScratchStore):
         if not -self._n <= k < self._n:
             raise IndexError(f"image {k} of {self._n}")
         return np.load(self._path(k % self._n), allow_pickle=False)
+
+    def ref(self, k: int) -> StoredImage:
+        """Item ``k``'s file, for a worker on this file system to read (:meth:`StoredImage.load`)."""
+        if not -self._n <= k < self._n:
+            raise IndexError(f"image {k} of {self._n}")
+        return StoredImage(str(self._path(k % self._n)))
 
     def __len__(self) -> int:
         return self._n

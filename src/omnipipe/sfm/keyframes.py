@@ -24,14 +24,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import default_workers, iter_frames, parallelism, thread_map
+from omnipipe.executor import default_workers, iter_frames, parallelism, shares_files, thread_map
 from omnipipe.image import gray_without_laser
 from omnipipe.sfm.features import (
     FeatureExtractor,
@@ -40,7 +40,7 @@ from omnipipe.sfm.features import (
     guided_matches,
     match_features,
 )
-from omnipipe.sfm.image_store import ImageStore
+from omnipipe.sfm.image_store import ImageStore, StoredImage
 from omnipipe.sfm.planes import refine_matches
 from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
 from omnipipe.sfm.robot_sensors import odometry_moved
@@ -224,6 +224,7 @@ class KeyframeLoop:
         last = self._last
         features = frame.features
         if last is None:
+            self._keep_gray(frame)
             self._add_keyframe(frame, self._keyframe_features(frame, features), 0)
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
@@ -254,6 +255,7 @@ class KeyframeLoop:
             return
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
             motion = _refine(self.ctx, pair, motion, last.gray, frame.gray)
+        self._keep_gray(frame)  # before the step's evidence, which may read it from there
         self._measure(pair, motion, last.gray, frame.gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued)
@@ -439,8 +441,8 @@ class KeyframeLoop:
         config = self.ctx.config
         future = self.ctx.executor.submit(
             step_evidence,
-            gray_a,
-            gray_b,
+            gray_for_worker(self.grays, -2, gray_a, self.ctx.executor),
+            gray_for_worker(self.grays, -1, gray_b, self.ctx.executor),
             self.ctx.camera,
             self.inputs.rings.rings[a].points_in_rig,
             b_from_a[:3, :3],
@@ -456,6 +458,10 @@ class KeyframeLoop:
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):
             self._in_flight.popleft().result()
 
+    def _keep_gray(self, frame: MovingFrame) -> None:
+        """The next keyframe's grey image into ``grays`` (uint16)."""
+        self.grays.append(np.clip(frame.gray, 0, 65535).astype(np.uint16))
+
     def _add_keyframe(self, frame: MovingFrame, features: FrameFeatures, n_continued: int) -> None:
         """``frame`` the next keyframe (its first ``n_continued`` features carried on from
         the last one); its features are followed on from it. The frames pending since
@@ -464,7 +470,6 @@ class KeyframeLoop:
         frames' views, or matched to the descriptors of frames without views); then
         nothing more is matched to them or to the last keyframe, whose descriptors go."""
         self.features.append(features)
-        self.grays.append(np.clip(frame.gray, 0, 65535).astype(np.uint16))
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
         self._last = _Keyframe(frame.frame, features, frame.gray, frame.views)
@@ -505,6 +510,17 @@ class KeyframeLoop:
         self._pending_views.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _slim(self.features[k_new - 1])
+
+
+def gray_for_worker(
+    grays: ImageStore, k: int, gray: np.ndarray, executor: Executor
+) -> np.ndarray | StoredImage:
+    """Keyframe ``k``'s grey image ``gray`` (H, W) as sent to ``executor``'s worker: a
+    reference to its file in ``grays`` (the keyframe store, ``k`` an index into it) for
+    a local pool's worker when the stored uint16 copy holds the same values (an 8- or
+    16-bit grey image), else the array itself (inline, a Dask cluster, a float image)."""
+    exact = gray.dtype in (np.uint8, np.uint16)
+    return grays.ref(k) if exact and shares_files(executor) else gray
 
 
 def _budget(n_first: int, n: int, most: int) -> np.ndarray:

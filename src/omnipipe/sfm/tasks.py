@@ -13,6 +13,10 @@ where it ran:
 - :func:`step_evidence`: one keyframe step's two scale measurements, the laser points'
   template matches along the epipolar curves (Eq. 17) and the matched features' depths
   on the light-section wall (:mod:`omnipipe.sfm.scale_check`).
+
+The grey images of :func:`step_evidence` and :func:`laser_matches` come either as arrays
+or, for a local pool's workers, as :class:`~omnipipe.sfm.image_store.StoredImage`
+references to the run's keyframe image store, read by the worker itself.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from omnipipe.sfm.features import (
     FrameViews,
     match_features,
 )
+from omnipipe.sfm.image_store import StoredImage, load_image
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
 from omnipipe.sfm.scale_check import (
     ScaleCheckConfig,
@@ -144,8 +149,8 @@ def matched_rays(key_features: FrameFeatures, features: FrameFeatures, ratio: fl
 
 
 def laser_matches(
-    gray_a: np.ndarray,
-    gray_b: np.ndarray,
+    gray_a: np.ndarray | StoredImage,
+    gray_b: np.ndarray | StoredImage,
     camera: CameraModel,
     laser_points_a: np.ndarray,
     b_from_a_rotation: np.ndarray,
@@ -154,16 +159,20 @@ def laser_matches(
     scale_window_mm: tuple[float, float] | None = None,
 ) -> LaserMatches:
     """:func:`omnipipe.sfm.laser_scale.match_laser_points` (Eq. 17) on grey images of any
-    real dtype (sent compact, e.g. uint16; matched as float32)."""
+    real dtype (sent compact, e.g. uint16, or read here from a
+    :class:`~omnipipe.sfm.image_store.StoredImage`; matched as float32)."""
     return match_laser_points(
-        np.asarray(gray_a, np.float32), np.asarray(gray_b, np.float32), camera, laser_points_a,
+        np.asarray(load_image(gray_a), np.float32),
+        np.asarray(load_image(gray_b), np.float32),
+        camera,
+        laser_points_a,
         b_from_a_rotation, b_from_a_direction, config, scale_window_mm,
     )
 
 
 def step_evidence(
-    gray_a: np.ndarray,
-    gray_b: np.ndarray,
+    gray_a: np.ndarray | StoredImage,
+    gray_b: np.ndarray | StoredImage,
     camera: CameraModel,
     laser_points_a: np.ndarray,
     b_from_a_rotation: np.ndarray,
@@ -177,7 +186,7 @@ def step_evidence(
 
     Args:
         gray_a, gray_b: (H, W) grey images of keyframes a and b (any real dtype; used
-            as float32).
+            as float32), or references to them in the run's keyframe image store.
         camera: the omni camera.
         laser_points_a: (N, 3) keyframe a's laser-ring points in rig a, mm.
         b_from_a_rotation: (3, 3) and b_from_a_direction: (3,) unit translation of
