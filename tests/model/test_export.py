@@ -7,6 +7,7 @@ trimesh (GLB, OBJ, PLY), laspy (LAZ) and pye57 (E57) read the files back.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import struct
@@ -320,3 +321,14 @@ def test_glb_streamed_is_trimeshs_file_byte_for_byte(
     tex = rng.integers(0, 256, (31, 43, 3), dtype=np.uint8)
     export.write_glb(tmp_path / "m.glb", v, f, uv, tex)
     assert (tmp_path / "m.glb").read_bytes() == trimesh_glb(v, f, uv, tex)
+    # Given the texture's PNG file (as write_outputs does: encoded once for GLB and OBJ),
+    # read a few bytes at a time: the same file.
+    monkeypatch.setattr(export, "_file_parts", functools.partial(export._file_parts, size=1000))
+    export.texture_png(tmp_path / "t.png", tex)
+    export.write_glb(tmp_path / "p.glb", v, f, uv, tmp_path / "t.png")
+    assert (tmp_path / "p.glb").read_bytes() == trimesh_glb(v, f, uv, tex)
+    (tmp_path / "a").mkdir()
+    export.write_obj(tmp_path / "a" / "m.obj", v, f, uv, tex)
+    export.write_obj(tmp_path / "m.obj", v, f, uv, tmp_path / "t.png")
+    for name in ("m.obj", "m.mtl", export.OBJ_TEXTURE):
+        assert (tmp_path / name).read_bytes() == (tmp_path / "a" / name).read_bytes(), name

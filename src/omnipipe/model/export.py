@@ -23,8 +23,10 @@ world +x. The wall's triangles are wound so their normals point towards the pipe
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
+import shutil
 import struct
 import uuid
 from collections.abc import Callable, Iterator
@@ -33,7 +35,7 @@ from dataclasses import dataclass
 from itertools import count
 from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 from unittest import mock
 
 import numpy as np
@@ -348,7 +350,7 @@ def _e57_scan(e57: Any, points_mm: np.ndarray, colours: np.ndarray, name: str, g
 
 
 def write_glb(
-    path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray
+    path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray | Path
 ) -> None:
     """Textured binary glTF in metres, y up (opens in Blender, three.js, Windows 3D Viewer).
 
@@ -356,29 +358,30 @@ def write_glb(
         vertices: (V, 3) world frame, mm; written as ``gltf_from_world_mm(vertices)``.
         faces: (F >= 1, 3) triangles wound towards the pipe axis (vertex normals follow).
         uvs: (V, 2) in [0, 1], v up.
-        texture: (H, W, 3) uint8 atlas.
+        texture: (H, W, 3) uint8 atlas, or the path of its PNG as :func:`texture_png`
+            wrote it (embedded as read, a chunk at a time: the same file).
 
     The material is double-sided, fully rough and not metallic; ``asset.extras`` records
     the unit, the source frame and :data:`GLTF_FROM_WORLD`. The file is trimesh's
     ``export_glb`` of the mesh (with vertex normals), byte for byte, written as a stream:
     a first pass over the arrays (a chunk at a time) gives the JSON header its counts,
     extents and buffer lengths, a second writes the binary chunk; what is held is the
-    texture's PNG and the (V, 3) vertex normals.
+    (V, 3) vertex normals (and, given the atlas, its PNG).
     """
     import io
 
-    from PIL import Image
-
-    png = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(texture)).save(
-        png, format="png", compress_level=PNG_COMPRESS_LEVEL
-    )
+    if isinstance(texture, Path):
+        png_parts = functools.partial(_file_parts, texture)
+    else:
+        png = io.BytesIO()
+        texture_png(png, texture)
+        png_parts = lambda: iter([png.getbuffer()])  # noqa: E731 - the PNG's bytes in place
     normals = _vertex_normals(vertices, np.asarray(faces), gltf_from_world_mm)
     # trimesh's buffers in its order: indices, positions, the texture, UVs, normals.
-    streams: list[Callable[[], Iterator[np.ndarray | bytes]]] = [
+    streams: list[Callable[[], Iterator[np.ndarray | memoryview]]] = [
         lambda: (np.asarray(faces[a:b]).astype(np.uint32).ravel() for a, b in _chunks(len(faces))),
         lambda: (gltf_from_world_mm(vertices[a:b]).astype(np.float32) for a, b in _chunks(len(vertices))),
-        lambda: iter([png.getvalue()]),
+        png_parts,
         lambda: (_gltf_uv(uvs[a:b]) for a, b in _chunks(len(uvs))),
         lambda: (_unitized(normals[a:b]).astype(np.float32) for a, b in _chunks(len(normals))),
     ]
@@ -398,10 +401,27 @@ def write_glb(
                 if view_of[k] in view_of[:k]:
                     continue  # the same bytes as an earlier buffer: its view is shared
                 for part in stream():
-                    fh.write(part if isinstance(part, bytes) else part.tobytes())
+                    fh.write(part if isinstance(part, memoryview) else part.tobytes())
                 fh.write(bytes(-stats[k].length % 4))
     except OSError as exc:
         raise _fail(path, exc) from None
+
+
+def texture_png(dst: Path | BinaryIO, texture: np.ndarray) -> None:
+    """The (H, W, 3) uint8 ``texture`` as PNG into ``dst`` (a path or a binary file):
+    the bytes model.glb embeds and model_texture.png holds."""
+    from PIL import Image
+
+    Image.fromarray(np.ascontiguousarray(texture)).save(
+        dst, format="png", compress_level=PNG_COMPRESS_LEVEL
+    )
+
+
+def _file_parts(path: Path, size: int = 1 << 20) -> Iterator[memoryview]:
+    """The bytes of the file ``path``, ``size`` at a time."""
+    with open(path, "rb") as fh:
+        while chunk := fh.read(size):
+            yield memoryview(chunk)
 
 
 @dataclass
@@ -416,10 +436,10 @@ class _GlbStats:
     high: np.ndarray | None = None
 
     @staticmethod
-    def of(parts: Iterator[np.ndarray | bytes]) -> _GlbStats:
+    def of(parts: Iterator[np.ndarray | memoryview]) -> _GlbStats:
         st, h = _GlbStats(), hashlib.sha256()
         for part in parts:
-            raw = part if isinstance(part, bytes) else part.tobytes()
+            raw = part if isinstance(part, memoryview) else part.tobytes()
             st.length += len(raw)
             h.update(raw)
             if isinstance(part, np.ndarray) and len(part):
@@ -540,7 +560,9 @@ def _vertex_normals(
         ok = (normals**2).sum(axis=1) > 0.5  # trimesh's test of a face's normal
         corners = triangles.angles(tri)[ok][:, :, None] * normals[ok][:, None, :]
         np.add.at(summed, idx[ok].ravel(), corners.reshape(-1, 3))
-    return util.unitize(summed)
+    for a, b in _chunks(len(summed)):  # row by row: in place, not a second (V, 3) array
+        summed[a:b] = util.unitize(summed[a:b])
+    return summed
 
 
 def _rows(fmt: str, values: np.ndarray) -> str:
@@ -573,7 +595,7 @@ def _obj_face_rows(faces: np.ndarray) -> np.ndarray:
 
 
 def write_obj(
-    path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray
+    path: Path, vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray | Path
 ) -> None:
     """Wavefront OBJ + MTL + PNG texture, in metres with the GLB's axes.
 
@@ -581,13 +603,12 @@ def write_obj(
         vertices: (V, 3) world frame, mm; written as ``gltf_from_world_mm(vertices)``.
         faces: (F, 3) triangles wound towards the pipe axis.
         uvs: (V, 2) in [0, 1], v up (OBJ's own convention).
-        texture: (H, W, 3) uint8, written as :data:`OBJ_TEXTURE` beside ``path``.
+        texture: (H, W, 3) uint8, written as :data:`OBJ_TEXTURE` beside ``path``, or
+            the path of that file already written by :func:`texture_png` (kept as it is).
 
     OBJ has no unit field: comment lines at the top state unit and axes. ``path.stem +
     ".mtl"`` holds one material whose ``map_Kd`` is the texture.
     """
-    from PIL import Image
-
     path = Path(path)
     mtl = path.with_suffix(".mtl")
     lines = [
@@ -626,9 +647,10 @@ def write_obj(
                 part(fh)
             fh.write("\n")
         mtl.write_text(material + "\n", encoding="ascii")
-        Image.fromarray(np.ascontiguousarray(texture)).save(
-            path.parent / OBJ_TEXTURE, compress_level=PNG_COMPRESS_LEVEL
-        )
+        if not isinstance(texture, Path):
+            texture_png(path.parent / OBJ_TEXTURE, texture)
+        elif texture.resolve() != (path.parent / OBJ_TEXTURE).resolve():
+            shutil.copyfile(texture, path.parent / OBJ_TEXTURE)
     except OSError as exc:
         raise _fail(path, exc) from None
 
@@ -664,7 +686,15 @@ def write_outputs(result: ModelResult, out_dir: Path) -> None:
         and len(result.textured_faces)
     ):
         args = (result.textured_vertices, result.textured_faces, result.textured_uvs)
-        write_glb(out_dir / "model.glb", *args, result.texture)
+        # The atlas's PNG encoded once (PIL copies the image whole to encode it): the
+        # OBJ's texture file, which the GLB embeds as read.
+        png = out_dir / OBJ_TEXTURE
+        try:
+            texture_png(png, result.texture)
+        except OSError as exc:
+            raise _fail(png, exc) from None
         release_freed_memory()
-        write_obj(out_dir / "model.obj", *args, result.texture)
+        write_glb(out_dir / "model.glb", *args, png)
+        release_freed_memory()
+        write_obj(out_dir / "model.obj", *args, png)
         release_freed_memory()
