@@ -112,7 +112,7 @@ def test_oval_ring_keeps_its_ovality_when_overexposed(small_rig: Rig, seed: int)
         c = fit_wall_profile(np.arctan2(p[:, 1], p[:, 0]), np.hypot(p[:, 0], p[:, 1]), 2, 0.5)
         return 100 * 2 * np.hypot(c[3], c[4]) / c[0]
 
-    assert abs(ovality(ExtractionConfig()) - 4.0) <= 0.2
+    assert abs(ovality(ExtractionConfig(centroid_half_px=3.0)) - 4.0) <= 0.2
 
 
 def test_rendered_rings_are_metric() -> None:

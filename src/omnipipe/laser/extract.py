@@ -7,7 +7,7 @@ the laser plane is known, over its radii whose rays can meet the plane (the othe
 hold no ring sample that triangulates: bend's 211 of 508). On each line the strongest
 peak is refined with the three-point Gaussian fit (log-parabola, Fisher & Naidu [20]);
 a peak with clipped samples is located instead by the centroid of the background-free
-signal within ``centroid_half_px`` of it (0: the Gaussian fit for all). A clipped top,
+signal within ``centroid_half_px`` of it (0, the default: the Gaussian fit for all). A clipped top,
 with the laser's crosstalk lifting the other channels, is no Gaussian: the three-point
 fit pulled such a ring about a pixel wide towards the scan line's samples
 (random-features-small, 400x300: an oval ring's 0.5 px cos 2 theta read 21 % low, a
@@ -57,8 +57,11 @@ class ExtractionConfig:
             laser ring (measured: real rings 0.92-1.0; texture in a wrong channel 0.04-0.27).
         centroid_half_px: a peak with clipped samples is located by the centroid of the
             background-free signal within this many px of its strongest sample (a few
-            times the ring's width: the whole profile); 0: by the three-point Gaussian
-            fit, as the unclipped ones.
+            times the ring's width: the whole profile; 3 suits a ring about a pixel wide);
+            0 (default): by the three-point Gaussian fit, as the unclipped ones. Off by
+            default: with 3 px the 640x480 robustness runs (benchmarks/bench_robustness.py,
+            40 seeds) had one camera step wrong without a flag and two plain walls refused
+            (benchmarks/RESULTS.md, lead 2026-11-26 10:15).
     """
 
     angles: int = bounded(720, ge=8)
@@ -71,7 +74,7 @@ class ExtractionConfig:
     tophat_px: int = bounded(8, ge=0)
     max_width_factor: float = bounded(0.0, ge=0)
     min_ring_fraction: float = bounded(0.4, ge=0, le=1)
-    centroid_half_px: float = bounded(3.0, ge=0)
+    centroid_half_px: float = bounded(0.0, ge=0)
 
 
 def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:
