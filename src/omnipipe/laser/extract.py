@@ -61,7 +61,7 @@ class ExtractionConfig:
             0 (default): by the three-point Gaussian fit, as the unclipped ones. Off by
             default: with 3 px the 640x480 robustness runs (benchmarks/bench_robustness.py,
             40 seeds) had one camera step wrong without a flag and two plain walls refused
-            (benchmarks/RESULTS.md, lead 2026-11-26 10:15).
+            (benchmarks/RESULTS.md, the lead's final entry of 2026-11-26).
     """
 
     angles: int = bounded(720, ge=8)
