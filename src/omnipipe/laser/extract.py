@@ -6,17 +6,14 @@ brightest other channel), is resampled along radial lines from the principal poi
 the laser plane is known, over its radii whose rays can meet the plane (the others can
 hold no ring sample that triangulates: bend's 211 of 508). On each line the strongest
 peak is refined with the three-point Gaussian fit (log-parabola, Fisher & Naidu [20]);
-a peak with clipped samples is located instead by the centroid of the background-free
-signal within ``centroid_half_px`` of it (0, the default: the Gaussian fit for all). A clipped top,
-with the laser's crosstalk lifting the other channels, is no Gaussian: the three-point
-fit pulled such a ring about a pixel wide towards the scan line's samples
-(random-features-small, 400x300: an oval ring's 0.5 px cos 2 theta read 21 % low, a
-saturated ring 0.24-0.60 px inside); the centroid over +-3 px: 1 % low, 0.04-0.15 px
-inside, half the scatter. On unclipped peaks the centroid only adds its tails' noise
-(paper 800x600: RMS 0.38 mm against the fit's 0.20). Each sample gets a confidence (peak height
-over the line's robust noise); weak, saturated-flat or ambiguous peaks (a second
-separate peak of comparable height: reflections, bright texture) are rejected and
-left as gaps, never filled in.
+optionally (``centroid_half_px`` > 0), a peak with clipped samples is located instead by
+the centroid of the background-free signal within that many px of it: a clipped top,
+lifted by the laser's crosstalk in the other channels, is no Gaussian, and the
+three-point fit pulls a ring about a pixel wide towards the scan line's samples (an oval
+reads low); on unclipped peaks the centroid would only add its tails' noise. Each
+sample gets a confidence (peak height over the line's robust noise); weak,
+saturated-flat or ambiguous peaks (a second separate peak of comparable height:
+reflections, bright texture) are rejected and left as gaps, never filled in.
 """
 
 from __future__ import annotations
@@ -58,10 +55,9 @@ class ExtractionConfig:
         centroid_half_px: a peak with clipped samples is located by the centroid of the
             background-free signal within this many px of its strongest sample (a few
             times the ring's width: the whole profile; 3 suits a ring about a pixel wide);
-            0 (default): by the three-point Gaussian fit, as the unclipped ones. Off by
-            default: with 3 px the 640x480 robustness runs (benchmarks/bench_robustness.py,
-            40 seeds) had one camera step wrong without a flag and two plain walls refused
-            (benchmarks/RESULTS.md, the lead's final entry of 2026-11-26).
+            0 (default): by the three-point Gaussian fit, as the unclipped ones (on, it
+            cost the camera motion a step wrong without a flag on the robustness bench:
+            benchmarks/RESULTS.md).
     """
 
     angles: int = bounded(720, ge=8)
