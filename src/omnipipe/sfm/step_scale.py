@@ -62,11 +62,9 @@ from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, SfmContext, StepE
 SHARED_SCALE_SIGMA = 0.0025
 
 # The laser's decided lengths replace the adjusted run as its reading of the laser only
-# when they differ by more than this many of the laser's sigmas (random-wide, 640x480:
-# seeds 0 and 21, 3.0 and 1.8 % = 3.4 and 2.6 sigma, scale error 2.58 -> 1.63 % and
-# 1.61 -> 1.34 %; below 2 sigma, seeds 5, 9, 22, 23 at 1.2, 1.6, 1.0, 1.1 sigma, it
-# moved the scale error 0.1-0.3 % the wrong way: the adjustment's pixel-weighted fit of
-# the laser points reads them as well as their lengths' median).
+# when they differ by more than this many of the laser's sigmas: within it, the
+# adjustment's pixel-weighted fit of the laser points reads them as well as their
+# lengths' median (measured on bench_robustness: benchmarks/RESULTS.md, depth5).
 DECIDED_SIGMAS = 2.0
 
 # Most wall-placed features per step used as anchors (evenly over the step's matches).
@@ -755,9 +753,8 @@ def run_length(
     applied = math.nan
     if config.scale_from_wall and wall is not None:
         # The laser's say is its decided lengths against the adjusted ones. (Without the
-        # wall's, too few steps, the adjusted run is kept: taking the decided lengths
-        # back there helped random-wide seeds 8 and 20, 1.1 -> 0.1 % and 3.2 -> 1.7 %,
-        # but seed 1, whose one step the adjustment had right, went 0.2 -> 1.9 %.)
+        # wall's, too few steps, the adjusted run is kept: a run whose one step the
+        # adjustment had right would lose it; benchmarks/RESULTS.md, depth5.)
         decided = decided_log(
             chain.checks, chain.scales_mm, world_from_kf, config.scale_check.adjusted_agree_log
         )
