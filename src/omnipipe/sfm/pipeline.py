@@ -49,7 +49,7 @@ from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
-from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps
+from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps, rotation_linked
 from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
 from omnipipe.sfm.stations import (
     flow_hidden_steps,
@@ -146,7 +146,8 @@ def run(
         None if with_odometry else ratio,
         lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
     )
-    _add_gravity(result, inputs)
+    untrusted = [c.first_frame for c in chain.checks if not c.reliable]
+    _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable])
     return result
 
 
@@ -186,11 +187,14 @@ def _station_ratio(inputs: SfmInputs) -> np.ndarray:
     return np.full(inputs.n_frames, math.nan)
 
 
-def _add_gravity(result: SfmResult, inputs: SfmInputs) -> None:
-    """Gravity in the world frame (and its 1-sigma, rad) from the IMU, when there is one."""
+def _add_gravity(result: SfmResult, inputs: SfmInputs, untrusted_from: list[int]) -> None:
+    """Gravity in the world frame (and its 1-sigma, rad) from the IMU, when there is one,
+    over the frames linked to frame 0 by trusted steps (``untrusted_from``: where the
+    untrusted stretches begin; :func:`omnipipe.sfm.robot_sensors.rotation_linked`)."""
     if inputs.imu is None or inputs.timestamps is None:
         return
-    gravity = gravity_world(inputs.imu, inputs.timestamps, result.world_from_rig, result.registered)
+    linked = rotation_linked(result.station, untrusted_from)
+    gravity = gravity_world(inputs.imu, inputs.timestamps, result.world_from_rig, result.registered & linked)
     if gravity is not None:
         result.gravity_world, result.gravity_sigma_rad = gravity
 
