@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -131,15 +132,34 @@ class FlowImage:
         coarse: with ``highpassed``, ``raw`` reduced ``2 ** _FINE_LEVELS`` times
             (``cv2.pyrDown``): the pyramid's coarse levels, which find displacements
             larger than the window; None when there are no levels above the fine ones.
-        coarse_highpassed: ``highpassed`` reduced alike: the coarse levels of the
-            second try for the tracks the first lost (:func:`_flow`); None with
-            ``coarse``.
+        band_px: with ``coarse``, the high-pass sigma (view px) of the second try's
+            coarse levels (:attr:`coarse_band`).
     """
 
     raw: np.ndarray
     highpassed: np.ndarray | None
     coarse: np.ndarray | None = None
-    coarse_highpassed: np.ndarray | None = None
+    band_px: float = 0.0
+
+    @cached_property
+    def coarse_band(self) -> np.ndarray | None:
+        """``raw`` high-passed at ``band_px`` and reduced as ``coarse`` is: the coarse
+        levels of the second try for the tracks the first lost (:func:`_flow`); made
+        when first asked for. None without ``coarse``."""
+        if self.coarse is None or self.band_px <= 0:
+            return None
+        out = _highpass(self.raw, self.band_px)
+        for _ in range(_FINE_LEVELS):
+            out = cv2.pyrDown(out)
+        return out
+
+
+def _highpass(im: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``2 (I - B * I) + 128`` (uint8), B two box filters of about a Gaussian of
+    ``sigma_px``."""
+    # Two boxes of width k: variance 2 (k^2 - 1) / 12.
+    k = 2 * int(round(0.5 * (math.sqrt(6.0 * sigma_px**2 + 1.0) - 1.0))) + 1
+    return cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0)
 
 
 def _followed(n: int, config: TrackConfig) -> np.ndarray:
@@ -173,8 +193,8 @@ def _coarse_fine(
     """``q0`` (M, 1, 2) from ``a`` into ``b`` over ``config.levels`` pyramid levels above
     the views', from the predicted positions ``start`` (M, 1, 2): with high-passed views,
     the levels above the two finest on the views as they are (:attr:`FlowImage.coarse`;
-    with ``coarse_highpassed`` on the high-passed ones reduced,
-    :attr:`FlowImage.coarse_highpassed`), then the two finest on the high-passed ones
+    with ``coarse_highpassed`` on the views high-passed at a coarser scale,
+    :attr:`FlowImage.coarse_band`), then the two finest on the high-passed ones
     from there (as many levels in all as one pyramid). Positions (M, 1, 2) and (M,)
     status."""
     if a.highpassed is None or b.highpassed is None:
@@ -182,7 +202,7 @@ def _coarse_fine(
     if a.coarse is None or b.coarse is None:
         return _lk(a.highpassed, b.highpassed, q0, start, config.levels, config)
     f = float(1 << _FINE_LEVELS)
-    ca, cb = (a.coarse_highpassed, b.coarse_highpassed) if coarse_highpassed else (a.coarse, b.coarse)
+    ca, cb = (a.coarse_band, b.coarse_band) if coarse_highpassed else (a.coarse, b.coarse)
     p1, ok = _lk(ca, cb, q0 / f, start / f, config.levels - _FINE_LEVELS, config)
     p1, fine = _lk(a.highpassed, b.highpassed, q0, p1 * f, _FINE_LEVELS - 1, config)
     return p1, ok & fine
@@ -203,7 +223,7 @@ def _flow(
     where the track holds and lands where ``mask`` (of ``b``) is set.
 
     The tracks the first flow lost are tried again with the coarse levels high-passed
-    too (:attr:`FlowImage.coarse_highpassed`): on a dim, fine-grained wall the coarse
+    too (:attr:`FlowImage.coarse_band`): on a dim, fine-grained wall the coarse
     levels of the views as they are hold little but the rig's own light, which moves
     with the rig, and lose every track whose frame step the window cannot span
     (random-wide seed 31, concrete in a 108 mm pipe, 6-9 mm frame steps: 116 of 1094
@@ -214,7 +234,7 @@ def _flow(
     v = np.zeros_like(q0) if shift is None else np.ascontiguousarray(shift, np.float32).reshape(-1, 1, 2)
     p1, ok = _checked_flow(a, b, q0, v, config)
     retry = np.flatnonzero(~ok)
-    if len(retry) and a.coarse_highpassed is not None and b.coarse_highpassed is not None:
+    if len(retry) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
         p2, ok2 = _checked_flow(a, b, q0[retry], v[retry], config, coarse_highpassed=True)
         p1[retry[ok2]] = p2[ok2]
         ok[retry[ok2]] = True
@@ -258,23 +278,19 @@ def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[Flo
     than the window: ``other-rig`` (28 px per frame) kept 15 % of the tracks, a quarter
     of them 40 px wrong, on high-passed views alone, so the coarse levels read the
     views as they are, reduced (``levels``: the pyramid's levels above the view's;
-    :func:`_coarse_fine`)."""
+    :func:`_coarse_fine`). The tracks they lose get a second try on coarse levels
+    high-passed at :data:`COARSE_HIGHPASS_FACTOR` times ``sigma_px``
+    (:attr:`FlowImage.coarse_band`, :func:`_flow`)."""
     if sigma_px <= 0:
         return [FlowImage(im, None) for im in views.images]
-    # Two boxes of width k: variance 2 (k^2 - 1) / 12.
-    k = 2 * int(round(0.5 * (math.sqrt(6.0 * sigma_px**2 + 1.0) - 1.0))) + 1
     out = []
-    # The coarse levels' band: high-passed at COARSE_HIGHPASS_FACTOR times the sigma.
-    kc = 2 * int(round(0.5 * (math.sqrt(6.0 * (COARSE_HIGHPASS_FACTOR * sigma_px) ** 2 + 1.0) - 1.0))) + 1
     for im in views.images:
-        hp = cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0)
-        coarse = coarse_hp = None
+        coarse = None
         if levels >= _FINE_LEVELS:
             coarse = im
-            coarse_hp = cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (kc, kc)), (kc, kc)), -2.0, 128.0)
             for _ in range(_FINE_LEVELS):
-                coarse, coarse_hp = cv2.pyrDown(coarse), cv2.pyrDown(coarse_hp)
-        out.append(FlowImage(im, hp, coarse, coarse_hp))
+                coarse = cv2.pyrDown(coarse)
+        out.append(FlowImage(im, _highpass(im, sigma_px), coarse, COARSE_HIGHPASS_FACTOR * sigma_px))
     return out
 
 
