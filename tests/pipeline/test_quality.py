@@ -123,3 +123,21 @@ def test_a_run_that_moved_without_any_keyframe_step_is_refused() -> None:
     refuse_untrusted_motion(
         SimpleNamespace(step_checks=[], stationary=stationary, unreliable=lost, scale_source=ODOMETRY_ONLY)
     )
+
+
+def test_feature_depths_alone_on_a_plain_wall_are_no_scale() -> None:
+    """Every step ``low``: feature depths from a few dozen matches that the laser does
+    not confirm (a smooth wall of low contrast, random-wide seed 10: 48 matches, 20.0 mm
+    against the laser's 13.6) are no length: refused in one line naming the matches.
+    The same step from a textured wall (>= TRACKED_MIN_MATCHES matches; seed 3, a joints
+    wall: 678) or with the laser agreeing within 10 % is a length: flagged, not refused."""
+    from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES
+
+    def low(laser: float, feature: float, matches: int) -> StepCheck:
+        return StepCheck(0, 27, laser, 0.99, feature, matches, feature, "low", "feature depth scale alone")
+
+    with pytest.raises(ReconstructionError, match="at most 48 feature matches a step"):
+        refuse_untrusted_motion(SimpleNamespace(step_checks=[low(13.57, 19.99, 48)]))
+    refuse_untrusted_motion(SimpleNamespace(step_checks=[low(20.61, 29.7, TRACKED_MIN_MATCHES)]))
+    refuse_untrusted_motion(SimpleNamespace(step_checks=[low(19.0, 19.99, 48)]))
+    refuse_untrusted_motion(SimpleNamespace(step_checks=[low(math.nan, 29.7, 678)]))
