@@ -249,12 +249,18 @@ def wall_points(res: AnalysisResult) -> WallPoints | None:
     import numpy as np
 
     from omnipipe.report.relief import WallPoints
+    from omnipipe.spill import zeros_on_disk
 
     if not len(res.point_sigma_mm):
         return None
+    # Each point's angle in degrees, in the run's scratch (omnipipe.spill) a chunk at a time.
+    theta = res.point_theta_rad
+    angle = zeros_on_disk(theta.shape, np.result_type(theta.dtype, np.float16))
+    for a in range(0, len(theta), 1 << 16):
+        angle[a : a + (1 << 16)] = np.degrees(theta[a : a + (1 << 16)]) % 360.0
     return WallPoints(
         axial_mm=res.point_sigma_mm,
-        angle_deg=np.degrees(res.point_theta_rad) % 360.0,
+        angle_deg=angle,
         deviation_mm=res.point_deviation_mm,
         radius_mm=res.radius_mm,
     )
