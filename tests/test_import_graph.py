@@ -36,7 +36,7 @@ PACKAGE_DIR = Path(omnipipe.__file__).parent
 LAYERS: tuple[tuple[str, ...], ...] = (
     # 0 foundation: errors, YAML, small numeric and image helpers, output folders
     ("omnipipe", "errors", "safe_yaml", "geometry", "native", "memory", "image", "config",
-     "survey", "output", "progress", "scratch", "handoff"),
+     "survey", "output", "progress", "scratch", "spill", "handoff"),
     # 1 the contract's data classes: the calibration, report.json's records
     ("rig", "contract"),
     # 2 the camera models (one interface, CameraModel)

@@ -15,11 +15,16 @@ def release_freed_memory() -> None:
 
     A stage's many small freed blocks (rings, features, matches, qhull's work) otherwise
     stay resident under the next stage's arrays, so the process's peak grew with the run
-    by what the earlier stages had freed. No effect on any result; a no-op where the C
-    library has no ``malloc_trim``.
+    by what the earlier stages had freed. Also unmaps the pages of the arrays kept in
+    the run's scratch (:func:`omnipipe.spill.drop_pages`): the next step maps only
+    what it reads. No effect on any result; ``malloc_trim`` a no-op where the C
+    library has none.
     """
     import ctypes
 
+    from omnipipe.spill import drop_pages
+
+    drop_pages()
     try:
         trim = ctypes.CDLL(None).malloc_trim
     except (OSError, AttributeError):

@@ -39,6 +39,13 @@ def scratch_folder(prefix: str) -> tempfile.TemporaryDirectory[str]:
     return tempfile.TemporaryDirectory(prefix=prefix, dir=None if base is None else str(base))
 
 
+def scratch_dir() -> str | None:
+    """The run's scratch folder (:func:`scratch_beside`), or None: the system's temporary
+    folder is used."""
+    base = _base.get()
+    return None if base is None else str(base)
+
+
 class ScratchStore:
     """Base of the stores that keep a run's files in a private :func:`scratch_folder`:
     :meth:`close` (or the end of a ``with`` block) removes the folder and its files."""

@@ -7,6 +7,7 @@ import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import trimesh
 
@@ -143,3 +144,28 @@ def test_the_analysis_runs_without_the_stations_rings_held(
     monkeypatch.setattr(analysis, "run", checked)
     assert main(["reconstruct", str(small_dataset), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert held == ["checked"]
+
+
+def test_results_held_to_the_end_wait_in_the_scratch(small_dataset: Path, reconstruction: Path, tmp_path: Path) -> None:
+    """The arrays that grow with the run (model, per-point analysis) are held in scratch
+    files (omnipipe.spill), and written out they are the CLI's outputs byte for byte."""
+    from dataclasses import replace
+
+    from omnipipe.dataset import open_dataset
+    from omnipipe.pipeline import ReconstructConfig, run, write
+    from omnipipe.spill import is_on_disk
+
+    rec = run(replace(ReconstructConfig.default(), workers=1), open_dataset(small_dataset))
+    mdl, res = rec.model, rec.analysis
+    held = {
+        "points": mdl.points_in_world, "colours": mdl.colours, "faces": mdl.mesh_faces,
+        "textured vertices": mdl.textured_vertices, "textured faces": mdl.textured_faces,
+        "uvs": mdl.textured_uvs, "atlas": mdl.texture, "alpha": mdl.unrolled.alpha,
+        "axial": res.point_sigma_mm, "angle": res.point_theta_rad, "deviation": res.point_deviation_mm,
+    }
+    assert [name for name, a in held.items() if not is_on_disk(a)] == []
+    w = mdl.unrolled.image.shape[1]
+    assert np.shares_memory(mdl.unrolled.image, mdl.texture[:, :w])  # one image, not two
+    write(rec, tmp_path / "out")
+    for name in ("points.ply", "mesh.ply", "model.glb", "model.obj", "model_texture.png", "unrolled.png", "trajectory.txt"):
+        assert (tmp_path / "out" / name).read_bytes() == (reconstruction / name).read_bytes(), name

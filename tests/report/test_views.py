@@ -193,3 +193,29 @@ def test_joints_and_laterals_are_marked_in_3d_and_on_the_unrolled_wall() -> None
     assert abs(joint["position"][2] - 60.0) <= 2.5
     assert abs(math.degrees(math.atan2(joint["position"][1], joint["position"][0])) % 360.0 - 270.0) <= 0.5
     assert "id='features'" in render_html(inputs)
+
+
+def test_deviation_grid_a_chunk_of_points_at_a_time_is_the_one_pass_grid(monkeypatch) -> None:
+    """Binned a chunk of points at a time (bounded temporaries), the grid is bit for bit
+    the one the whole run's points binned at once give (same sums in the same order)."""
+    import omnipipe.report.relief as relief
+
+    rng = np.random.default_rng(11)
+    n = 5000
+    dev = rng.normal(0.0, 0.3, n)
+    dev[rng.integers(0, n, 40)] = np.nan  # unmeasured deviations are left out
+    wall = WallPoints(rng.uniform(-20, 320, n), rng.uniform(0, 360, n), dev, radius_mm=100.0)
+    whole = deviation_grid(wall, (0.0, 300.0), (30.0, 390.0), cell_mm=2.0)
+    monkeypatch.setattr(relief, "_POINTS_AT_ONCE", 333)  # many chunks, a ragged last one
+    chunked = deviation_grid(wall, (0.0, 300.0), (30.0, 390.0), cell_mm=2.0)
+    assert np.array_equal(whole, chunked, equal_nan=True)
+    # The one-pass binning written out (the grid before its gaps are filled).
+    cell_deg = np.degrees(2.0 / 100.0)
+    rows, cols = 150, int(np.ceil(360.0 / cell_deg))
+    r = np.floor(wall.axial_mm / 2.0).astype(np.int64)
+    c = np.floor(((wall.angle_deg - 30.0) % 360.0) / cell_deg).astype(np.int64)
+    keep = (r >= 0) & (r < rows) & (c < cols) & np.isfinite(dev)
+    total = np.bincount(r[keep] * cols + c[keep], dev[keep], rows * cols)
+    count = np.bincount(r[keep] * cols + c[keep], None, rows * cols)
+    measured = count > 0
+    assert np.array_equal(chunked.reshape(-1)[measured], total[measured] / count[measured])

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from omnipipe.errors import ShapeError
+from omnipipe.spill import on_disk
 
 CHUNK_POINTS = 1 << 16
 """Points per axial chunk of the unrolled triangulations (:class:`AxialChunks`). A set of
@@ -91,6 +92,12 @@ class AxialChunks:
         self.hull = cand[_hull_or_all(self.u[cand], self.z[cand])]
         self.margin_mm = MARGIN_EDGES * self._typical_edge()
         self.u_range = (float(self.u.min()), float(self.u.max())) if n else (0.0, 0.0)
+
+    def to_disk(self) -> None:
+        """Keep :attr:`order`, :attr:`u` and :attr:`z` in the run's scratch
+        (:mod:`omnipipe.spill`: the same values, resident while read), for a holder that
+        keeps the chunks through a long step."""
+        self.order, self.u, self.z = on_disk(self.order), on_disk(self.u), on_disk(self.z)
 
     def _typical_edge(self) -> float:
         """Median longest edge (mm) of the Delaunay triangles of a slab of points around the

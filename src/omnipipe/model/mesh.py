@@ -172,13 +172,17 @@ def _chunked_triangles(
     """
     axial = AxialChunks(uu, vv, chunk_points)
     parts = []
+    # Kept as the smallest index type (int64 triangles were twice the mesh's faces,
+    # and the parts and their concatenation were held together).
+    index = np.int32 if len(uu) < np.iinfo(np.int32).max else np.int64
     for z_lo, z_hi in axial.cores():
         ids, tri = axial.triangulate(z_lo, z_hi, u_lo, u_hi)
         t = np.sort(axial.order[ids[tri.simplices]], axis=1)
         del tri
         cu = (uu[t[:, 0]] + uu[t[:, 1]] + uu[t[:, 2]]) / 3.0
         cv = (vv[t[:, 0]] + vv[t[:, 1]] + vv[t[:, 2]]) / 3.0
-        parts.append(t[(cu >= u_lo) & (cu < u_hi) & (cv >= z_lo) & (cv < z_hi)])
+        parts.append(t[(cu >= u_lo) & (cu < u_hi) & (cv >= z_lo) & (cv < z_hi)].astype(index))
+        del t, cu, cv
     return np.concatenate(parts)
 
 

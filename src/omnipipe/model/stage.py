@@ -53,6 +53,7 @@ from omnipipe.model.texture_light import LightStore, flat_field
 from omnipipe.model.texture_sources import LIGHT_DTYPE, choose_sources
 from omnipipe.progress import phase
 from omnipipe.rig import Rig
+from omnipipe.spill import on_disk, zeros_on_disk
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
@@ -387,11 +388,12 @@ def _texture(
     )
     h, w = wall.shape
     wall_z0 = wall.axial_min_mm
-    seen = np.zeros((h, w), bool)  # the cells some keyframe textures
+    seen = zeros_on_disk((h, w), bool)  # the cells some keyframe textures
     # Painted straight into the texture atlas (the unrolled image plus its wrapped margin,
-    # textured_mesh): the image is held once. Each cell's view, for the flat field, waits
+    # textured_mesh): the image is held once, in the run's scratch (omnipipe.spill: a
+    # section's rows resident at a time). Each cell's view, for the flat field, waits
     # on disk a section at a time (4 bytes a cell, the largest of the grid's arrays).
-    atlas = np.zeros((h, w + atlas_margin(w), 3), np.uint8)
+    atlas = zeros_on_disk((h, w + atlas_margin(w), 3), np.uint8)
     light = LightStore(h, w, LIGHT_DTYPE)
     try:
         for top in range(0, h, SECTION_ROWS):
@@ -516,7 +518,7 @@ def _run(
             faces, points, np.column_stack([arc, axial]), circ, camera, inputs.world_from_rig,
             read_gray, passes=config.flip_passes,
         )
-    faces = orient_towards_axis(faces, arc, axial, circ, points, frame)
+    faces = on_disk(orient_towards_axis(faces, arc, axial, circ, points, frame))
     release_freed_memory()  # the triangulation's chunks (qhull's many small blocks)
     n_k = len(inputs.ring_pixels)
     rings = _RingColours(inputs, camera, config.colour_offset_px, executor)

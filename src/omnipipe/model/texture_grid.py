@@ -30,6 +30,7 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.memory import release_freed_memory
 from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
+from omnipipe.spill import on_disk
 
 
 @dataclass(frozen=True)
@@ -173,7 +174,12 @@ class WallGrid:
                 )
             return
         self._chunks = AxialChunks(u, z, chunk_points)
-        self._xyz = xyz[self._chunks.order]
+        del u, z
+        # Held through the texture's sections, read a block at a time: in the run's
+        # scratch (omnipipe.spill), 48 bytes a point.
+        self._chunks.to_disk()
+        self._xyz = on_disk(xyz[self._chunks.order])
+        del xyz
         self._holes = None if holes is None else holes[self._chunks.order]
 
     def rows(self, first: int, stop: int) -> np.ndarray:

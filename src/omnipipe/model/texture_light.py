@@ -21,6 +21,7 @@ from omnipipe.camera import CameraModel
 from omnipipe.errors import ShapeError
 from omnipipe.model.texture_grid import STRIP_ROWS, UnrolledImage
 from omnipipe.scratch import ScratchStore
+from omnipipe.spill import drop_pages
 
 LASER_BAND_PX = 4.0
 """Texture is not taken within this many pixels of the laser line's image (its stripe,
@@ -123,6 +124,7 @@ def flat_field(
         g = gain(rows.rows(r0, min(r0 + STRIP_ROWS, h)))
         part = img[r0 : r0 + STRIP_ROWS].astype(np.float32) * (scale / g)[..., None]
         out[r0 : r0 + STRIP_ROWS] = np.clip(np.round(part), 0, 255).astype(np.uint8)
+        drop_pages()  # an image in the run's scratch (omnipipe.spill): a strip resident
     return replace(unrolled, image=out)
 
 
@@ -150,6 +152,7 @@ class _FlatFieldCells:
             img = self.img[r0:r1].reshape(-1, 3)[sl]
             light = self.light.rows(r0, r1).reshape(-1, 2)[sl]
             yield img.astype(np.float32).mean(axis=1), light, self.alpha[r0:r1].reshape(-1)[sl]
+            drop_pages()  # an image in the run's scratch: a band resident at a time
 
     def usable(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Luminance, irradiance E (float32) and image radius of the cells fit for the

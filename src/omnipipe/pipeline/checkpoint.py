@@ -262,6 +262,21 @@ def _decode_columns(node: dict[str, Any], arrays: dict[str, np.ndarray]) -> list
 # --- the folder ----------------------------------------------------------------------
 
 
+def _savez(fh: Any, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez(fh, **arrays)`` (the same archive), the pages of the arrays kept in the
+    run's scratch (:mod:`omnipipe.spill`) unmapped after each: the save holds one
+    array's, not the stage's."""
+    import zipfile
+
+    from omnipipe.spill import drop_pages
+
+    with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for key, value in arrays.items():
+            with zf.open(key + ".npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+            drop_pages()
+
+
 def _write_atomic(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     try:
@@ -372,7 +387,7 @@ class Checkpoints:
             self.folder.mkdir(parents=True, exist_ok=True)  # as OUT's parent at the end
             if _read_marker(self.folder) is None:
                 self._write_marker()
-            _write_atomic(self.folder / f"{name}.npz", lambda fh: np.savez(fh, **enc.arrays))
+            _write_atomic(self.folder / f"{name}.npz", lambda fh: _savez(fh, enc.arrays))
             if enc.store is not None:
                 _write_atomic(self.folder / f"{name}.rings", enc.store.copy_to)
             text = json.dumps(node, allow_nan=True)

@@ -249,12 +249,18 @@ def wall_points(res: AnalysisResult) -> WallPoints | None:
     import numpy as np
 
     from omnipipe.report.relief import WallPoints
+    from omnipipe.spill import zeros_on_disk
 
     if not len(res.point_sigma_mm):
         return None
+    # Each point's angle in degrees, in the run's scratch (omnipipe.spill) a chunk at a time.
+    theta = res.point_theta_rad
+    angle = zeros_on_disk(theta.shape, np.result_type(theta.dtype, np.float16))
+    for a in range(0, len(theta), 1 << 16):
+        angle[a : a + (1 << 16)] = np.degrees(theta[a : a + (1 << 16)]) % 360.0
     return WallPoints(
         axial_mm=res.point_sigma_mm,
-        angle_deg=np.degrees(res.point_theta_rad) % 360.0,
+        angle_deg=angle,
         deviation_mm=res.point_deviation_mm,
         radius_mm=res.radius_mm,
     )
@@ -360,13 +366,17 @@ def _stages_handing_on(
     if found is None:
         found = _analyse(config, dataset, frames(), motion, executor, progress, log)
         _keep(cp, "analysis", found, log)
-    measured, feed = found
+    # What grows with the run waits in its scratch (omnipipe.spill), also when loaded.
+    measured, feed = _analysis_on_disk(*found)
+    del found
     frames_box.clear()
     release_freed_memory()
     mdl = _restore(cp, "model", log)
     if mdl is None:
         mdl = _model(config, dataset, measured, feed, executor, progress, log, folder)
         _keep(cp, "model", mdl, log)
+    mdl = model_on_disk(mdl)
+    release_freed_memory()
     return motion, measured, mdl
 
 
@@ -536,6 +546,7 @@ def _analyse(
     from omnipipe.laser.extract import axial_blur_mm, edge_reach_mm, ring_blur_mm
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
+    from omnipipe.spill import on_disk, pieces_on_disk
 
     rig, stations, sfm_result = dataset.rig, motion.stations, motion.result
     t0 = time.perf_counter()
@@ -548,10 +559,14 @@ def _analyse(
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
     reach, reach_sigma = edge_reach_mm(station_rings)
     blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera_from_rig(rig))
-    pixels = [r.pixels for r in station_rings]
+    # What the model stage reads of the rings waits in the run's scratch (omnipipe.spill):
+    # not resident under the analysis.
+    pixels = pieces_on_disk([r.pixels for r in station_rings])
+    points, point_frame = on_disk(points), on_disk(point_frame)
     # The rings' other per-sample arrays (64 of their 80 bytes a sample: 29 MB at 10,000
     # frames) not held under the analysis: its inputs are the integrated points.
     del station_rings
+    release_freed_memory()
     res = analysis.run(
         config.analysis,
         analysis.AnalysisInputs(
@@ -573,7 +588,25 @@ def _analyse(
         sfm_result, stations, quality.station_axial_mm(res.point_sigma_mm, point_frame, len(stations))
     )
     feed = _ModelFeed(points, point_frame, pixels)
-    return _Measured(res, traj_quality, stations, station_poses, outliers_removed), feed
+    return _analysis_on_disk(_Measured(res, traj_quality, stations, station_poses, outliers_removed), feed)
+
+
+def _analysis_on_disk(measured: _Measured, feed: _ModelFeed) -> tuple[_Measured, _ModelFeed]:
+    """The analysis' per-point results and the model's feed in the run's scratch
+    (:mod:`omnipipe.spill`: equal values, resident only while a later step reads them)."""
+    from omnipipe.spill import is_on_disk, on_disk, pieces_on_disk
+
+    res = measured.result
+    res = replace(
+        res,
+        point_sigma_mm=on_disk(res.point_sigma_mm),
+        point_theta_rad=on_disk(res.point_theta_rad),
+        point_deviation_mm=on_disk(res.point_deviation_mm),
+        point_not_wall=on_disk(res.point_not_wall),
+    )
+    pixels = feed.ring_pixels if all(map(is_on_disk, feed.ring_pixels)) else pieces_on_disk(feed.ring_pixels)
+    feed = _ModelFeed(on_disk(feed.points), on_disk(feed.point_frame), pixels)
+    return replace(measured, result=res), feed
 
 
 def _model(
@@ -591,6 +624,7 @@ def _model(
     import numpy as np
 
     from omnipipe import model
+    from omnipipe.spill import zeros_on_disk
 
     res, stations = measured.result, measured.stations
     t0 = time.perf_counter()
@@ -603,15 +637,18 @@ def _model(
             bar.append(progress("model", len(stations)))
         bar[0](done)
 
+    # The points' unrolled coordinates, in the run's scratch (omnipipe.spill) a column at
+    # a time.
+    unrolled_mm = zeros_on_disk((len(res.point_sigma_mm), 2), float)
+    unrolled_mm[:, 0] = (res.point_theta_rad % (2 * np.pi)) * res.radius_mm
+    unrolled_mm[:, 1] = res.point_sigma_mm
     model_inputs = model.ModelInputs(
         camera_rig=dataset.rig,
         world_from_rig=measured.station_poses,
         ring_points_in_rig=[],
         ring_pixels=feed.ring_pixels,
         read_frame=lambda k: dataset.read_frame(int(stations[k])),
-        unrolled_mm=np.column_stack(
-            [(res.point_theta_rad % (2 * np.pi)) * res.radius_mm, res.point_sigma_mm]
-        ),
+        unrolled_mm=unrolled_mm,
         circumference_mm=2 * np.pi * res.radius_mm,
         dataset=dataset,
         frame_index=stations,
@@ -621,9 +658,42 @@ def _model(
         not_wall=res.point_not_wall if len(res.point_not_wall) == len(feed.points) else None,
     )
     mdl = model.run(config.model, model_inputs, progress=tick, executor=executor)
-    del model_inputs
+    del model_inputs, unrolled_mm
     log.timings["model"] = time.perf_counter() - t0
-    return mdl
+    return model_on_disk(mdl)  # before its checkpoint: not held twice
+
+
+def model_on_disk(mdl: ModelResult) -> ModelResult:
+    """``mdl`` with its arrays in the run's scratch (:mod:`omnipipe.spill`: equal values,
+    resident only while a later step reads them); the unrolled image stays a view of the
+    texture atlas."""
+    import numpy as np
+
+    from omnipipe.spill import on_disk
+
+    def opt(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else on_disk(a)
+
+    points = on_disk(mdl.points_in_world)
+    texture, unrolled = opt(mdl.texture), mdl.unrolled
+    if unrolled is not None:
+        w = unrolled.image.shape[1]
+        shares = texture is not None and np.may_share_memory(mdl.texture, unrolled.image)
+        image = texture[:, :w] if shares else on_disk(unrolled.image)
+        unrolled = replace(unrolled, image=image, alpha=on_disk(unrolled.alpha))
+    return replace(
+        mdl,
+        points_in_world=points,
+        colours=on_disk(mdl.colours),
+        point_frame=on_disk(mdl.point_frame),
+        mesh_vertices=points if mdl.mesh_vertices is mdl.points_in_world else on_disk(mdl.mesh_vertices),
+        mesh_faces=on_disk(mdl.mesh_faces),
+        textured_vertices=opt(mdl.textured_vertices),
+        textured_faces=opt(mdl.textured_faces),
+        textured_uvs=opt(mdl.textured_uvs),
+        texture=texture,
+        unrolled=unrolled,
+    )
 
 
 def _summary(

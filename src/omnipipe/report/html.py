@@ -29,6 +29,8 @@ import numpy as np
 
 from omnipipe.config import bounded
 from omnipipe.image import PNG_COMPRESS_LEVEL
+from omnipipe.memory import release_freed_memory
+from omnipipe.spill import drop_pages, zeros_on_disk
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -156,8 +158,11 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
         shift, extent = _twelve_shift(w, inputs.unrolled_extent, _clock_deg(inputs))
         shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha, shift)
         out["unrolled"] = _unrolled_plot(inputs, shown, extent)
+        del shown
+        release_freed_memory()  # the wall's pages (omnipipe.spill) not under the next plot
     if inputs.wall is not None and len(inputs.wall.axial_mm):
         out["relief"] = _relief_plot(inputs, inputs.wall)
+        release_freed_memory()
     return out
 
 
@@ -191,8 +196,8 @@ def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None, roll: int = 0) 
         if seen is not None:
             # A shown cell is wall when most of the cells it averages are.
             seen = cv2.resize(seen.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
-    if out is None:
-        out = np.empty((h, w, 3), np.uint8)
+    if out is None:  # in the run's scratch (omnipipe.spill): a band resident at a time
+        out = zeros_on_disk((h, w, 3), np.uint8)
     for r0 in range(0, rgb.shape[0], _MARK_ROWS):
         r1 = min(r0 + _MARK_ROWS, rgb.shape[0])
         band = np.array(rgb[r0:r1])
@@ -200,6 +205,7 @@ def marked_unrolled(image: np.ndarray, alpha: np.ndarray | None, roll: int = 0) 
             rr, cc = np.nonzero(~seen[r0:r1])
             band[rr, cc] = np.where((((rr + r0 + cc) // 4) % 2)[:, None] == 0, 170, 110).astype(np.uint8)
         out[r0:r1] = np.roll(band, -roll, axis=1) if roll else band
+        drop_pages()
     return out
 
 
@@ -287,6 +293,7 @@ def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
     a0, a1, z0, z1 = relief.defect_window(d, wall.radius_mm)
     cell = max(0.25, min(2.0, min(d.width_mm, d.length_mm) / 12.0))
     grid = relief.deviation_grid(wall, (z0, z1), (a0, a1), cell)
+    drop_pages()  # every wall point was read (omnipipe.spill): not under the figure
     fig, ax = plt.subplots(figsize=(3.2, 3.2))
     vmax = relief.relief_vmax([d.height_mm], inputs.summary.get("wall_noise_mm"))
     im = relief.draw_relief(ax, grid, (a0, a1, z0, z1), vmax)
@@ -507,6 +514,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         # max_faces however long the run.
         shape = None if inputs.texture is None else np.asarray(inputs.texture).shape[:2]
         verts, faces, uvs = thin_mesh(verts, faces, uvs, config.max_faces, shape)
+        release_freed_memory()  # the whole mesh's pages (omnipipe.spill) and temporaries
     texture = None
     if inputs.texture is not None:
         import cv2
@@ -517,6 +525,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         texture = _png_data_uri(tex)
         del tex
+        release_freed_memory()  # the atlas's pages
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     rest = {
         "markers": _markers(inputs),
@@ -762,6 +771,7 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
         files=_files_table(s.get("files")),
     )
     del plots
+    release_freed_memory()  # the defects' relief maps read every wall point
     before, after = filled.split(_MODEL_SLOT, 1)
     del filled
     yield before

@@ -57,13 +57,10 @@ def deviation_grid(
     cell_deg = math.degrees(cell_mm / wall.radius_mm)
     rows = max(1, int(math.ceil((z1 - z0) / cell_mm)))
     cols = max(1, int(math.ceil((a1 - a0) / cell_deg)))
-    ang = (wall.angle_deg - a0) % 360.0
-    r = np.floor((wall.axial_mm - z0) / cell_mm).astype(np.int64)
-    c = np.floor(ang / cell_deg).astype(np.int64)
-    keep = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & np.isfinite(wall.deviation_mm)
-    flat = r[keep] * cols + c[keep]
-    total = np.bincount(flat, wall.deviation_mm[keep], rows * cols)
+    flat, values = _binned(wall, (z0, a0), (cell_mm, cell_deg), (rows, cols))
+    total = np.bincount(flat, values, rows * cols)
     count = np.bincount(flat, None, rows * cols)
+    del flat, values
     with np.errstate(invalid="ignore", divide="ignore"):
         grid = (total / count).reshape(rows, cols)
     centres = z0 + (np.arange(rows) + 0.5) * cell_mm
@@ -83,6 +80,34 @@ def deviation_grid(
         col[fill] = filled[fill]
     _fill_rows(grid, max(1, int(round(max_gap_mm / 5.0 / cell_mm))))
     return grid
+
+
+_POINTS_AT_ONCE = 1 << 16
+"""Points :func:`_binned` takes at a time (its temporaries a chunk's, not the run's)."""
+
+
+def _binned(
+    wall: WallPoints, origin: tuple[float, float], cell: tuple[float, float], shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) int64 flat cell (row-major in ``shape``) and (n,) deviation (mm) of each wall
+    point inside the grid with a finite deviation, in the points' order; ``origin`` =
+    (axial mm, angle deg) of cell (0, 0)'s corner, ``cell`` its (mm, deg) sides.
+    A chunk of :data:`_POINTS_AT_ONCE` points at a time."""
+    (z0, a0), (cell_mm, cell_deg), (rows, cols) = origin, cell, shape
+    flats: list[np.ndarray] = []
+    values: list[np.ndarray] = []
+    for i in range(0, len(wall.axial_mm), _POINTS_AT_ONCE):
+        part = slice(i, i + _POINTS_AT_ONCE)
+        dev = np.asarray(wall.deviation_mm[part])
+        ang = (np.asarray(wall.angle_deg[part]) - a0) % 360.0
+        r = np.floor((np.asarray(wall.axial_mm[part]) - z0) / cell_mm).astype(np.int64)
+        c = np.floor(ang / cell_deg).astype(np.int64)
+        keep = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & np.isfinite(dev)
+        flats.append(r[keep] * cols + c[keep])
+        values.append(dev[keep])
+    if not flats:
+        return np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(flats), np.concatenate(values)
 
 
 def _fill_rows(grid: np.ndarray, max_cells: int) -> None:

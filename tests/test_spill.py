@@ -1,0 +1,89 @@
+"""omnipipe.spill: arrays kept in the run's scratch, resident only while read."""
+
+from __future__ import annotations
+
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnipipe.memory import release_freed_memory
+from omnipipe.scratch import scratch_beside
+from omnipipe.spill import drop_pages, is_on_disk, on_disk, pieces_on_disk, zeros_on_disk
+
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self")
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status", encoding="ascii") as fh:
+        return next(int(line.split()[1]) / 1024.0 for line in fh if line.startswith("VmRSS:"))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64, np.int16, np.uint8, bool])
+def test_on_disk_is_an_equal_writable_array(dtype) -> None:
+    rng = np.random.default_rng(4)
+    a = (rng.random((37, 3)) * 100).astype(dtype)
+    b = on_disk(a)
+    assert is_on_disk(b) and is_on_disk(b[5:9, 1]) and not is_on_disk(a)
+    assert b.dtype == a.dtype and b.shape == a.shape and np.array_equal(a, b)
+    assert b.flags.writeable and b.flags.c_contiguous
+    b[0, 0] = a[1, 1]
+    drop_pages()  # the write survives the unmapping: it is in the file
+    assert b[0, 0] == a[1, 1] and np.array_equal(a[1:], b[1:])
+    back = pickle.loads(pickle.dumps(b))  # to a worker: an ordinary array
+    assert not is_on_disk(back) and np.array_equal(back, b)
+
+
+def test_on_disk_of_a_view_of_a_noncontiguous_array_and_edge_cases() -> None:
+    a = np.arange(60.0).reshape(5, 12)[:, ::3].T  # not contiguous
+    assert np.array_equal(on_disk(a), a)
+    empty = np.zeros((0, 3))
+    assert on_disk(empty) is empty  # nothing to keep
+    objects = np.array([None, "x"], dtype=object)
+    assert on_disk(objects) is objects  # Python objects cannot live in a file
+    b = on_disk(np.ones(4))
+    assert on_disk(b) is b  # on disk already: not copied again
+    z = zeros_on_disk((4, 5, 3), np.uint8)
+    assert is_on_disk(z) and z.shape == (4, 5, 3) and z.dtype == np.uint8 and not z.any()
+    assert zeros_on_disk((0, 3), float).shape == (0, 3)
+
+
+def test_pieces_on_disk_are_views_of_one_file_equal_to_the_pieces() -> None:
+    rng = np.random.default_rng(5)
+    pieces = [rng.random((n, 2)).astype(np.float32) for n in (3, 0, 7, 1)]
+    got = pieces_on_disk(pieces)
+    assert len(got) == 4 and all(is_on_disk(g) for g in got if len(g))
+    for p, g in zip(pieces, got, strict=True):
+        assert g.dtype == p.dtype and g.shape == p.shape and np.array_equal(g, p)
+    assert pieces_on_disk([]) == []
+
+
+@linux_only
+def test_pages_are_resident_only_while_read() -> None:
+    a = np.random.default_rng(6).random(48 * 2**20 // 8)  # 48 MB
+    b = on_disk(a)
+    total = float(a.sum())
+    del a
+    drop_pages()
+    low = _rss_mb()
+    assert float(b.sum()) == total  # read: its pages mapped
+    assert _rss_mb() > low + 40
+    release_freed_memory()  # between a run's steps: unmapped again
+    assert _rss_mb() < low + 8
+    assert float(b.sum()) == total
+
+
+@linux_only
+def test_the_file_lies_in_the_runs_scratch_and_has_no_name(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    with scratch_beside(out) as scratch:
+        assert scratch is not None
+        b = on_disk(np.arange(1000.0))
+        maps = Path("/proc/self/maps").read_text().splitlines()
+        ours = [line for line in maps if str(scratch) in line]
+        assert ours and all(line.endswith("(deleted)") for line in ours)  # unnamed
+        assert [p.name for p in scratch.iterdir() if not p.name.endswith(".json")] == []
+    assert not scratch.exists()  # the scratch folder went at the end of the run ...
+    assert float(b.sum()) == 499500.0  # ... the mapped file lives on with its array
