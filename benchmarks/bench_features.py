@@ -98,6 +98,64 @@ def _run(seed: int, work: Path, size: str | None, fresh: bool, motion: str) -> t
     return json.loads((out / "report.json").read_text()), truth
 
 
+def _ring_spans(data: Path, truth: dict) -> list[tuple[float, float]] | None:
+    """Each frame's true laser ring as an axial stretch (contract axial mm, from..to):
+    the rig.yaml laser plane at the true pose (ground_truth/poses.txt) cut with the true
+    pipe (a cylinder of the truth stations' diameter about the centreline polyline,
+    straight locally); None without the files. Every frame counts (one whose ring was
+    lost still covers its stretch here: the unseen stretches are never overstated)."""
+    import yaml  # the bench's only use; PyYAML comes with omnipipe's config loading
+
+    poses_f, rig_f = data / "ground_truth" / "poses.txt", data / "rig.yaml"
+    line = truth.get("centreline_polyline_mm")
+    if not (poses_f.exists() and rig_f.exists() and line and truth.get("stations")):
+        return None
+    plane = np.array(yaml.safe_load(rig_f.read_text())["laser"]["plane"], float)
+    n_rig = plane[:3] / np.linalg.norm(plane[:3])
+    p_rig = -plane[3] / np.linalg.norm(plane[:3]) * n_rig
+    pts, arc = np.array(line["points"], float), np.array(line["sigma"], float)
+    base = float(truth.get("first_station_sigma_mm", 0.0))
+    st_x = np.array([s["axial_mm"] for s in truth["stations"]])
+    st_d = np.array([s["inner_diameter_mm"] for s in truth["stations"]])
+    spans = []
+    for row in np.loadtxt(poses_f, ndmin=2):
+        x, y, z, w = row[4:8]
+        rot = np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ])
+        n, p0 = rot @ n_rig, rot @ p_rig + row[1:4]
+        j = int(np.clip(np.argmin(np.linalg.norm(pts - p0, axis=1)), 0, len(pts) - 2))
+        tan = (pts[j + 1] - pts[j]) / np.linalg.norm(pts[j + 1] - pts[j])
+        s0 = arc[j] + float((p0 - pts[j]) @ tan)
+        c = pts[j] + (s0 - arc[j]) * tan  # the axis point abreast of the plane's centre
+        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        rad = 0.5 * float(np.interp(s0 - base, st_x, st_d))
+        phi = np.linspace(0.0, 2.0 * np.pi, 180, endpoint=False)
+        u = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+        # p0 + s u on the cylinder |(q - c) - ((q - c).tan) tan| = rad: a quadratic in s.
+        q0 = (p0 - c) - float((p0 - c) @ tan) * tan
+        uu = u - (u @ tan)[:, None] * tan
+        a, b, cc = np.sum(uu * uu, axis=1), 2.0 * (uu @ q0), float(q0 @ q0) - rad**2
+        s = (-b + np.sqrt(np.maximum(b * b - 4 * a * cc, 0.0))) / (2.0 * np.maximum(a, 1e-12))
+        along = s0 + float((p0 - c) @ tan) + s * (u @ tan) - base
+        spans.append((float(along.min()), float(along.max())))
+    return spans
+
+
+def _unseen(t: dict, spans: list[tuple[float, float]] | None) -> bool:
+    """A joint counted for its gap alone (offset < 1 mm) whose gap no frame's ring
+    crossed: nothing of it was measured (a joint with an offset shows it in the wall
+    either side, and stays counted)."""
+    if t["kind"] != "joint" or spans is None or t.get("offset_mm", 0.0) >= 1.0:
+        return False
+    a, b = _extent(t)
+    return not any(lo <= b and hi >= a for lo, hi in spans)
+
+
 def _eligible(t: dict, d: float) -> bool:
     kind = t["kind"]
     if kind == "joint":
@@ -172,7 +230,11 @@ def _sizes(t: dict, f: dict, r: Row, d: float, truth: dict) -> None:
         r.size_in += abs(f[key] - t[key]) <= 3.0 * sig
 
 
-def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict) -> None:
+def _score(
+    report: dict, truth: dict, rows: dict[str, Row], counts: dict,
+    spans: list[tuple[float, float]] | None = None,
+) -> None:
+    """Tally one run (``spans``: the frames' true ring stretches, :func:`_ring_spans`)."""
     d = truth.get("inner_diameter_mm") or report.get("inner_diameter_mm", 200.0)
     found = report.get("features") or []
     st = report.get("stations") or []
@@ -186,7 +248,7 @@ def _score(report: dict, truth: dict, rows: dict[str, Row], counts: dict) -> Non
         inside = (span[0] <= a and b <= span[1]) if t["kind"] in POINT_KINDS else seen >= 10.0
         if t["kind"] == "bend":  # the turn the rings sweep must reach the product's bend_min_turn_deg
             inside = np.degrees(seen / t["radius_mm"]) >= BEND_MIN_TURN_DEG
-        if not inside:
+        if not inside or _unseen(t, spans):
             r.outside += 1
             continue
         r.n += 1
@@ -274,7 +336,7 @@ def main() -> int:
                 continue
             done.append(seed)
             counts["unreliable_runs"] += bool((got[0].get("trajectory_quality") or {}).get("unreliable"))
-            _score(*got, rows, counts)
+            _score(*got, rows, counts, _ring_spans(args.work / f"s{seed}", got[1]))
             print(f"seed {seed} ({motion} motion): done ({len(done)} seeds)", flush=True)
         _table(f"{motion} camera motion", rows, counts, done, failed)
     return 0

@@ -144,9 +144,14 @@ def find_features(
     the nominal wall radius (mm)."""
     rings = np.unique(frame)
     dev, ring_sigma, raised = _deviations(config, sigma, rho, theta, frame, rings)
-    noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
-    thr = max(config.min_depth_mm, config.noise_factor * noise)
     ring_of = np.searchsorted(rings, frame)
+    # The wall's noise without the rings raised together in a block (a wide gap crossed
+    # by tilted rings: each ring's wall samples stand off its neighbours' level by the
+    # gap's share of its circumference, a large share of the run's samples).
+    wall = ~_raised_blocks(raised, ring_sigma)[ring_of]
+    wall = wall if wall.any() else np.ones(len(dev), bool)
+    noise = 1.4826 * float(np.median(np.abs(dev[wall] - np.median(dev[wall]))))
+    thr = max(config.min_depth_mm, config.noise_factor * noise)
     r = _Rings(sigma, rho, theta, frame, ring_of, ring_sigma, dev, noise)
     # Joint candidates: beyond a lower threshold (a gap must also cover most of the
     # circumference), or half of it on a ring lying in a gap.
@@ -159,8 +164,8 @@ def find_features(
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
     feats: list[PointFeature] = []
-    for lo, hi in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
-        f, mask = _joint(config, line, r, cand, lo, hi)
+    for band in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
+        f, mask = _joint(config, line, r, cand, band)
         if not 0.0 < f.gap_mm <= config.joint_max_gap_mm:
             continue  # a wide outward stretch (a taper's tilted rings), not a gap
         feats.append(f)
@@ -318,6 +323,18 @@ def _opening(
     return reach >= config.lateral_reach_thr * thr and reach >= config.lateral_reach_width * width
 
 
+def _raised_blocks(raised: np.ndarray, ring_sigma: np.ndarray) -> np.ndarray:
+    """(R,) True for the raised rings whose neighbour along the axis is raised too."""
+    order = np.argsort(ring_sigma)
+    r = raised[order]
+    nb = np.zeros(len(r), bool)
+    nb[1:] |= r[:-1]
+    nb[:-1] |= r[1:]
+    out = np.zeros(len(raised), bool)
+    out[order] = r & nb
+    return out
+
+
 def _unseen_gap(sigma: np.ndarray) -> float:
     """The widest axial stretch (mm) between consecutive samples (sorted along the axis)."""
     if len(sigma) < 2:
@@ -352,7 +369,7 @@ def _deviations(
     dev = np.zeros(len(sigma))
     raised = np.zeros(len(rings), bool)
     noise0 = 1.4826 * float(np.median(np.abs(coef[:, 0] - c0))) + 1e-9
-    peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm)
+    peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm, config.joint_max_gap_mm)
     # A running median lags a taper by up to a ring spacing's drop: a ring counts as
     # raised only above the lines both sides' rings give it too.
     _, hi = _wall_level(coef[:, 0], rs, config.window_mm)
@@ -399,29 +416,66 @@ def _wall_level(c0: np.ndarray, rs: np.ndarray, window_mm: float) -> tuple[np.nd
     return lo, hi
 
 
-def _local_peaks(c0: np.ndarray, rs: np.ndarray, min_depth_mm: float) -> list[float | None]:
-    """Per ring (ordered along the axis by ``rs``), the mean radius its two neighbours
-    give at its position (linear between them) if the ring stands more than
-    ``min_depth_mm`` above both of them (a ring lying in a joint's gap inside a taper,
-    whose running median lags the taper by more than the gap's depth), else None.
-    Only rings with a neighbour on both sides; a taper or a bend raises no ring above
-    both its neighbours."""
+def _local_peaks(
+    c0: np.ndarray, rs: np.ndarray, min_depth_mm: float, max_width_mm: float = math.inf, max_rings: int = 6
+) -> list[float | None]:
+    """Per ring (ordered along the axis by ``rs``), the mean radius its block's two
+    neighbours give at its position (linear between them) if the ring stands more than
+    ``min_depth_mm`` above both of them, else None. A block is up to ``max_rings``
+    consecutive rings within ``max_width_mm`` along the axis, each standing so (the rings
+    lying in a joint's gap: one in a narrow gap, several in a wide one crossed by tilted
+    rings, whose running median lags a taper or whose raised rings inflate the median's
+    scatter; bench seed 13: four rings 16 mm apart partly in a 10 mm gap); the widest
+    block first (a ring of it may stand above its block neighbours alone too). Only
+    blocks with a neighbour on both sides; a taper or a bend raises no ring above both
+    ends of its block."""
     out: list[float | None] = [None] * len(c0)
     order = np.argsort(rs)
-    for j in range(1, len(order) - 1):
-        a, i, b = order[j - 1], order[j], order[j + 1]
-        if c0[i] - max(c0[a], c0[b]) > min_depth_mm:
-            f = (rs[i] - rs[a]) / max(rs[b] - rs[a], 1e-9)
-            out[i] = float(c0[a] + f * (c0[b] - c0[a]))
+    for m in range(max_rings, 0, -1):  # the widest block first: its rings stand together
+        for j in range(1, len(order) - m):
+            a, b = order[j - 1], order[j + m]
+            block = order[j : j + m]
+            if any(out[i] is not None for i in block) or rs[block[-1]] - rs[block[0]] > max_width_mm:
+                continue
+            if float(np.min(c0[block])) - max(c0[a], c0[b]) > min_depth_mm:
+                for i in block:
+                    f = (rs[i] - rs[a]) / max(rs[b] - rs[a], 1e-9)
+                    out[i] = float(c0[a] + f * (c0[b] - c0[a]))
     return out
+
+
+@dataclass(frozen=True)
+class _Band:
+    """A joint's band: ``lo`` <= sigma - a cos theta - b sin theta <= ``hi`` (mm; a, b 0:
+    across the axis; else the plane of a gap the centreline crosses at a slant)."""
+
+    lo: float
+    hi: float
+    a: float = 0.0
+    b: float = 0.0
+
+    def coordinate(self, r: _Rings) -> np.ndarray:
+        """(N,) each point's position along the axis across the band's plane (mm)."""
+        if self.a == 0.0 and self.b == 0.0:
+            return r.sigma
+        return r.sigma - self.a * np.cos(r.theta) - self.b * np.sin(r.theta)
+
+    @property
+    def slant_mm(self) -> float:
+        """How far the plane strays along the axis from a cross-section (mm)."""
+        return math.hypot(self.a, self.b)
 
 
 def _joint_bands(
     config: FeatureConfig, r: _Rings, cand: np.ndarray, link: float, raised: np.ndarray
-) -> list[tuple[float, float]]:
-    """(lo, hi) axial band of each joint: candidates grouped along the axis (``link``
-    mm: at least the rings' spacing), deep over most of the angles at which any sample
-    lies in the group's band."""
+) -> list[_Band]:
+    """The band of each joint: candidates grouped along the axis (``link`` mm: at least
+    the rings' spacing), deep over most of the angles at which any sample lies in the
+    group's band: across the axis, or else (a gap the centreline crosses at a slant:
+    its rings tilted to it, deep each over a part of the circumference) along the plane
+    fitted to the candidates, when it strays further along the axis than
+    ``joint_link_mm`` (a smaller slant: the band across the axis, whose edges are then
+    found along the wall's local axis)."""
     idx = np.flatnonzero(cand)
     s = r.sigma[idx]
     order = np.argsort(s)
@@ -448,17 +502,25 @@ def _joint_bands(
         seen = np.unique((np.degrees(r.theta[band]) % 360 // 10).astype(int))
         have = np.unique((np.degrees(r.theta[idx[order[group]]]) % 360 // 10).astype(int))
         if len(seen) >= 9 and len(have) >= config.joint_coverage * len(seen):
-            if max(_deep_share(config, r, idx[order[group]], lo, hi)) >= 0.5:
-                bands.append((lo, hi))
+            along, slanted, plane = _deep_share(config, r, idx[order[group]], lo, hi)
+            if along >= 0.5:
+                bands.append(_Band(lo, hi))
+            elif slanted >= 0.5 and plane is not None and plane.slant_mm > config.joint_link_mm:
+                bands.append(plane)
+            elif slanted >= 0.5:  # a slant within the link's reach: the local axis's edges
+                bands.append(_Band(lo, hi))
     return bands
 
 
-def _deep_share(config: FeatureConfig, r: _Rings, members: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+def _deep_share(
+    config: FeatureConfig, r: _Rings, members: np.ndarray, lo: float, hi: float
+) -> tuple[float, float, _Band | None]:
     """Share of the 10-degree sectors whose samples in the gap's band lie deep (median
     beyond half the joint threshold): the band along the axis (``lo``, ``hi``) and the
     band of the candidates ``members`` along their own plane (sigma - a cos theta - b sin
     theta fitted to them: a gap crossed by tilted rings, or seen along a tilted
-    centreline, is a plane across the axial coordinate)."""
+    centreline, is a plane across the axial coordinate); and that plane's band (None: one
+    ring holds the candidates)."""
     thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
     th, s = r.theta[members], r.sigma[members]
     A = np.column_stack([np.ones(len(s)), np.cos(th), np.sin(th)])
@@ -468,15 +530,17 @@ def _deep_share(config: FeatureConfig, r: _Rings, members: np.ndarray, lo: float
         res = s - A @ p
         keep = np.abs(res) <= max(2.5 * 1.4826 * float(np.median(np.abs(res[keep]))), 1.0)
     out = []
-    for coord, a, b in (
-        (r.sigma, lo, hi),
-        (r.sigma - p[1] * np.cos(r.theta) - p[2] * np.sin(r.theta), *np.percentile(res[keep], [2.0, 98.0]) + p[0]),
-    ):
+    lo_p, hi_p = np.percentile(res[keep], [2.0, 98.0]) + p[0]
+    plane = _Band(float(lo_p), float(hi_p), float(p[1]), float(p[2]))
+    for coord, a, b in ((r.sigma, lo, hi), (plane.coordinate(r), plane.lo, plane.hi)):
         band = (coord >= a - 0.25) & (coord <= b + 0.25)
         sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
         med = np.array([np.median(r.dev[band][sect == q]) for q in np.unique(sect)])
         out.append(float(np.mean(med > thr)) if len(med) else 0.0)
-    return out[0], out[1]
+    # The plane stands for the gap's only if two rings or more hold its candidates (one
+    # ring's candidates span that ring's own plane, whatever the gap's).
+    held = np.bincount(r.ring_of[members[keep]])
+    return out[0], out[1], plane if int(np.sum(held >= 0.1 * keep.sum())) >= 2 else None
 
 
 def _without_sector_rings(
@@ -568,21 +632,23 @@ def _edge(
 
 
 def _joint(
-    config: FeatureConfig, line: Centreline, r: _Rings, cand: np.ndarray, lo: float, hi: float
+    config: FeatureConfig, line: Centreline, r: _Rings, cand: np.ndarray, band: _Band
 ) -> tuple[Joint, np.ndarray]:
-    """A joint in the axial band [lo, hi]: gap edges at half depth, depth, offset.
+    """A joint in ``band``: gap edges at half depth, depth, offset.
 
     The edges are found along the straight local axis of the wall either side (the
     fitted centreline tilts through an offset joint: its axial coordinate would slant
-    the gap across the rings)."""
-    inband = cand & (r.sigma >= lo) & (r.sigma <= hi)
+    the gap across the rings); a slanted band's along its own plane (the candidates
+    showed the gap's plane; the wall either side is then cleared by the slant too)."""
+    coord, lo, hi = band.coordinate(r), band.lo, band.hi
+    inband = cand & (coord >= lo) & (coord <= hi)
     depth = float(np.percentile(r.dev[inband], 90))
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     reach = max(hi - lo, 4.0)
-    local = _local_axis(config, line, r, mid, half + config.margin_mm)
-    near = np.abs(r.sigma - mid) <= half + 2.0 * reach
-    s = r.sigma - mid
-    if local is not None and local.axis_from_both_sides:
+    local = _local_axis(config, line, r, mid, half + config.margin_mm + band.slant_mm)
+    near = np.abs(coord - mid) <= half + 2.0 * reach
+    s = coord - mid
+    if local is not None and local.axis_from_both_sides and band.slant_mm == 0.0:
         s[near] = (_world(line, r, near) - local.centre) @ local.tangent
     lower = near & (s <= 0.0) & (s >= -half - reach)
     upper = near & (s >= 0.0) & (s <= half + reach)
