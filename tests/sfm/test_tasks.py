@@ -85,3 +85,29 @@ def test_laser_matches_read_by_reference_in_a_worker_equal_those_sent_as_arrays(
     for name in ("index", "scale_mm", "pixels_b", "ncc", "peak_scales_mm", "peak_scores"):
         assert np.array_equal(getattr(read, name), getattr(sent, name), equal_nan=True), name
     assert read.scale == sent.scale or (np.isnan(read.scale) and np.isnan(sent.scale))
+
+
+def test_feature_task_leaves_handed_frames_grey_images_in_the_handoff(tiny_dataset) -> None:
+    """A frame the worker read from the hand-off comes back without its grey image (the
+    caller reads it there, :func:`handed_gray`, only for the keyframes); a frame it
+    decoded comes back with it; the views and the grey image are the same either way."""
+    from omnipipe.dataset import open_dataset
+    from omnipipe.executor import FrameSource
+    from omnipipe.handoff import FrameHandoff, hand_on
+    from omnipipe.sfm.features import FeatureConfig
+    from omnipipe.sfm.tasks import FeatureTask, frame_gray, handed_gray
+
+    dataset = open_dataset(tiny_dataset)
+    channel = dataset.rig.laser.channel
+    task = FeatureTask(FeatureConfig(), detect=False)
+    plain = task(FrameSource.take(dataset, [1, 2]))
+    with FrameHandoff(len(dataset)) as handoff:
+        hand_on(handoff.folder, 1, dataset.read_frame(1))
+        got = task(FrameSource.take(dataset, [1, 2], handoff=handoff.folder))
+        assert got[0][2] is None  # frame 1: handed on, its grey image left there
+        assert np.array_equal(handed_gray(handoff.folder, 1, channel), plain[0][2])
+    assert np.array_equal(got[1][2], plain[1][2])  # frame 2: decoded, sent back
+    assert np.array_equal(plain[0][2], frame_gray(dataset.read_frame(1), channel))
+    for (views, _, _), (views0, _, _) in zip(got, plain, strict=True):
+        for a, b in zip(views.images + views.masks, views0.images + views0.masks, strict=True):
+            assert np.array_equal(a, b)

@@ -45,7 +45,7 @@ from omnipipe.sfm.planes import refine_matches
 from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
 from omnipipe.sfm.robot_sensors import odometry_moved
 from omnipipe.sfm.stations import StationTracker
-from omnipipe.sfm.tasks import FeatureTask, matched_rays, step_evidence, track_back
+from omnipipe.sfm.tasks import FeatureTask, handed_gray, matched_rays, step_evidence, track_back
 from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, corner_features
 from omnipipe.sfm.types import (
     KeyframeRays,
@@ -67,13 +67,16 @@ class MovingFrame:
         views: its perspective views (None: its features were detected in a worker).
         features: its SIFT features (None: not detected yet, ``views`` are set).
         gray: (H, W) its grey image without the laser (float32, or uint8/uint16 as
-            :func:`omnipipe.sfm.tasks.compact_gray` sends it).
+            :func:`omnipipe.sfm.tasks.compact_gray` sends it); None: the worker read the
+            frame from the run's hand-off folder (``SfmInputs.handoff``), where the
+            loop reads it should the frame become a keyframe
+            (:func:`omnipipe.sfm.tasks.handed_gray`).
     """
 
     frame: int
     views: FrameViews | None
     features: FrameFeatures | None
-    gray: np.ndarray
+    gray: np.ndarray | None
 
 
 @dataclass(frozen=True)
@@ -224,8 +227,9 @@ class KeyframeLoop:
         last = self._last
         features = frame.features
         if last is None:
-            self._keep_gray(frame)
-            self._add_keyframe(frame, self._keyframe_features(frame, features), 0)
+            gray = self._gray_of(frame)
+            self._keep_gray(gray)
+            self._add_keyframe(frame, self._keyframe_features(frame, features), 0, gray)
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
@@ -253,12 +257,13 @@ class KeyframeLoop:
             # Too little baseline for a reliable step: resected after the adjustment.
             self._defer(frame, features, m[motion.inliers])
             return
+        gray = self._gray_of(frame)  # a keyframe: its grey image is needed now
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
-            motion = _refine(self.ctx, pair, motion, last.gray, frame.gray)
-        self._keep_gray(frame)  # before the step's evidence, which may read it from there
-        self._measure(pair, motion, last.gray, frame.gray, tracked)
+            motion = _refine(self.ctx, pair, motion, last.gray, gray)
+        self._keep_gray(gray)  # before the step's evidence, which may read it from there
+        self._measure(pair, motion, last.gray, gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
-        self._add_keyframe(frame, features, n_continued)
+        self._add_keyframe(frame, features, n_continued, gray)
 
     def _running_out(self, step: TrackedStep) -> bool:
         """True when ``step``'s verified tracks fell below ``tracking.renew_ratio`` of
@@ -458,11 +463,22 @@ class KeyframeLoop:
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):
             self._in_flight.popleft().result()
 
-    def _keep_gray(self, frame: MovingFrame) -> None:
-        """The next keyframe's grey image into ``grays`` (uint16)."""
-        self.grays.append(np.clip(frame.gray, 0, 65535).astype(np.uint16))
+    def _gray_of(self, frame: MovingFrame) -> np.ndarray:
+        """``frame``'s grey image: as it came, or read from the run's hand-off folder
+        where the worker left the frame (:class:`omnipipe.sfm.tasks.FeatureTask`)."""
+        if frame.gray is not None:
+            return frame.gray
+        if self.inputs.handoff is None:
+            raise ReconstructionError(f"frame {frame.frame}: no grey image and no hand-off folder")
+        return handed_gray(self.inputs.handoff, frame.frame, self.inputs.rig.laser.channel)
 
-    def _add_keyframe(self, frame: MovingFrame, features: FrameFeatures, n_continued: int) -> None:
+    def _keep_gray(self, gray: np.ndarray) -> None:
+        """The next keyframe's grey image into ``grays`` (uint16)."""
+        self.grays.append(np.clip(gray, 0, 65535).astype(np.uint16))
+
+    def _add_keyframe(
+        self, frame: MovingFrame, features: FrameFeatures, n_continued: int, gray: np.ndarray
+    ) -> None:
         """``frame`` the next keyframe (its first ``n_continued`` features carried on from
         the last one); its features are followed on from it. The frames pending since
         the last one also see its tracks: their correspondences with it go to the
@@ -472,7 +488,7 @@ class KeyframeLoop:
         self.features.append(features)
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
-        self._last = _Keyframe(frame.frame, features, frame.gray, frame.views)
+        self._last = _Keyframe(frame.frame, features, gray, frame.views)
         config = self.ctx.config
         fresh = np.arange(n_continued, len(features.view))
         prior, self._chain = self._chain, None

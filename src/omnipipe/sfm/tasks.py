@@ -27,7 +27,9 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel, camera_from_rig
+from omnipipe.errors import ReconstructionError
 from omnipipe.executor import worker_cached
+from omnipipe.handoff import handed
 from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.features import (
@@ -88,14 +90,17 @@ def _extractor(rig: Rig, config: FeatureConfig) -> FeatureExtractor:
 
 
 class FeatureTask:
-    """Picklable task: (views or None, features or None, grey image) of each frame of a
-    chunk.
+    """Picklable task: (views or None, features or None, grey image or None) of each
+    frame of a chunk.
 
     With ``detect`` the frame's SIFT features (views None: nothing more is read from
     them), else its :class:`~omnipipe.sfm.features.FrameViews` (features None: the
     caller tracks into them, and detects on the keyframes). The chunk's ``payload``
     holds each frame's laser-ring pixels (N, 2), masked out of the features. The grey
-    image is :func:`frame_gray`.
+    image is :func:`frame_gray`; None for a frame read from the chunk's
+    :attr:`~omnipipe.executor.FrameSource.handoff` (the caller, which needs the grey
+    images of the keyframes only, reads it there: :func:`handed_gray`), so that no
+    frame's 2 MB grey image goes through the pipe for nothing.
     """
 
     def __init__(self, config: FeatureConfig, detect: bool = True) -> None:
@@ -104,21 +109,44 @@ class FeatureTask:
 
     def __call__(
         self, source: FrameSource
-    ) -> list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray]]:
+    ) -> list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray | None]]:
         rig = source.rig
         extractor = _extractor(rig, self.config)
         channel = rig.laser.channel
-        out: list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray]] = []
+        out: list[tuple[FrameViews | None, FrameFeatures | None, np.ndarray | None]] = []
         for k in range(len(source)):
-            image = source.read(k)
+            image, was_handed = _read(source, k)
             ring_pixels = None if source.payload is None else source.payload[k]
             views = extractor.frame_views(image, channel, ring_pixels)
-            gray = frame_gray(image, channel)
+            gray = None if was_handed else frame_gray(image, channel)
             if self.detect:
                 out.append((None, extractor.detect(views), gray))
             else:
                 out.append((views, None, gray))
         return out
+
+
+def _read(source: FrameSource, k: int) -> tuple[np.ndarray, bool]:
+    """Frame ``k`` of ``source`` and whether it came from the source's hand-off folder."""
+    if source.arrays is None and source.handoff is not None:
+        image = handed(source.handoff, int(source.frames[k]))
+        if image is not None:
+            return image, True
+    return source.read(k), False
+
+
+def handed_gray(folder: str, frame: int, channel: str) -> np.ndarray:
+    """:func:`frame_gray` of ``frame`` as the decoding pass left it in a
+    :class:`~omnipipe.handoff.FrameHandoff`'s ``folder`` (where :class:`FeatureTask`
+    read it, so it is there).
+
+    Raises:
+        ReconstructionError: the frame is not there (the hand-off closed under the run).
+    """
+    image = handed(folder, frame)
+    if image is None:
+        raise ReconstructionError(f"frame {frame}: no longer in the run's hand-off folder {folder}")
+    return frame_gray(image, channel)
 
 
 def track_back(
