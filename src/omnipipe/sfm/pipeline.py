@@ -147,7 +147,7 @@ def run(
         lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
     )
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
-    _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable])
+    _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
     return result
 
 
@@ -187,14 +187,20 @@ def _station_ratio(inputs: SfmInputs) -> np.ndarray:
     return np.full(inputs.n_frames, math.nan)
 
 
-def _add_gravity(result: SfmResult, inputs: SfmInputs, untrusted_from: list[int]) -> None:
+def _add_gravity(
+    result: SfmResult, inputs: SfmInputs, untrusted_from: list[int], kf_frames: list[int]
+) -> None:
     """Gravity in the world frame (and its 1-sigma, rad) from the IMU, when there is one,
     over the frames linked to frame 0 by trusted steps (``untrusted_from``: where the
-    untrusted stretches begin; :func:`omnipipe.sfm.robot_sensors.rotation_linked`)."""
+    untrusted stretches begin; :func:`omnipipe.sfm.robot_sensors.rotation_linked`), each
+    weighted by its keyframe steps from frame 0 (``kf_frames``: the keyframes)."""
     if inputs.imu is None or inputs.timestamps is None:
         return
     linked = rotation_linked(result.station, untrusted_from)
-    gravity = gravity_world(inputs.imu, inputs.timestamps, result.world_from_rig, result.registered & linked)
+    steps = np.searchsorted(np.asarray(kf_frames, int), np.arange(len(result.station)), side="left")
+    gravity = gravity_world(
+        inputs.imu, inputs.timestamps, result.world_from_rig, result.registered & linked, steps
+    )
     if gravity is not None:
         result.gravity_world, result.gravity_sigma_rad = gravity
 
