@@ -8,9 +8,9 @@ import pytest
 from omnipipe.analysis.defects import fit_wall_profile
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply
-from omnipipe.laser import LaserConfig, RingExtractor, intersect_plane, run
+from omnipipe.laser import LaserConfig, LaserRing, RingExtractor, intersect_plane, run
 from omnipipe.laser.extract import ExtractionConfig
-from omnipipe.laser.triangulate import triangulate_ring
+from omnipipe.laser.triangulate import centroid_ring, triangulate_ring
 from omnipipe.rig import Rig
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
@@ -95,24 +95,78 @@ def _overexposed_oval_ring(
     return np.clip(img, 0, 255).astype(np.uint8), cam
 
 
+def _ovality_pct(ring: LaserRing) -> float:
+    p = ring.points_in_rig
+    c = fit_wall_profile(np.arctan2(p[:, 1], p[:, 0]), np.hypot(p[:, 0], p[:, 1]), 2, 0.5)
+    return 100 * 2 * np.hypot(c[3], c[4]) / c[0]
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_oval_ring_keeps_its_ovality_when_overexposed(small_rig: Rig, seed: int) -> None:
-    """A saturated ring about a pixel wide: the peak's centroid keeps the section's
-    ovality through the station fit (:func:`fit_wall_profile`) within 0.2 percentage
-    points of 4 %; the three-point Gaussian fit's centre pulls the samples towards the
-    scan line's samples (``centroid_half_px=0``: 3.5-5.1 % on these four)."""
+    """A saturated ring about a pixel wide: the analysis's ring (:func:`centroid_ring`,
+    clipped peaks at their centroids) keeps the section's ovality through the station fit
+    (:func:`fit_wall_profile`) within 0.2 percentage points of 4 %; the three-point
+    Gaussian fit's centre, which camera motion keeps, pulls the samples towards the scan
+    line's samples (3.5-5.1 % on these four)."""
     rng = np.random.default_rng(seed)
     radius, angle = rng.uniform(90, 110), rng.uniform(0, np.pi)
     img, cam = _overexposed_oval_ring(small_rig, radius, 0.04, angle, rng)
+    ring = triangulate_ring(RingExtractor(cam, ExtractionConfig(), small_rig.laser).extract(img, "red"), cam, small_rig.laser)
+    assert ring.fraction > 0.95
+    assert abs(_ovality_pct(centroid_ring(ring, cam, small_rig.laser)) - 4.0) <= 0.2
 
-    def ovality(config: ExtractionConfig) -> float:
-        ring = triangulate_ring(RingExtractor(cam, config, small_rig.laser).extract(img, "red"), cam, small_rig.laser)
-        assert ring.fraction > 0.95
-        p = ring.points_in_rig
-        c = fit_wall_profile(np.arctan2(p[:, 1], p[:, 0]), np.hypot(p[:, 0], p[:, 1]), 2, 0.5)
-        return 100 * 2 * np.hypot(c[3], c[4]) / c[0]
 
-    assert abs(ovality(ExtractionConfig(centroid_half_px=3.0)) - 4.0) <= 0.2
+def test_centroid_moves_only_the_analysis_ring(small_rig: Rig) -> None:
+    """With the centroid asked for, the ring's own positions and points (camera motion's)
+    are the three-point fit's, bit for bit as without it; its clipped samples carry the
+    move to their centroid (a few tenths of a px here), which :func:`centroid_ring`
+    applies (each moved sample's radius grows by it) and then drops."""
+    rng = np.random.default_rng(7)
+    img, cam = _overexposed_oval_ring(small_rig, 100.0, 0.04, 0.3, rng)
+    rings = {
+        half: triangulate_ring(
+            RingExtractor(cam, ExtractionConfig(centroid_half_px=half), small_rig.laser).extract(img, "red"),
+            cam,
+            small_rig.laser,
+        )
+        for half in (0.0, 3.0)
+    }
+    off, on = rings[0.0], rings[3.0]
+    np.testing.assert_array_equal(on.pixels, off.pixels)
+    np.testing.assert_array_equal(on.points_in_rig, off.points_in_rig)
+    assert len(off.centroid_shift_px) == 0 and centroid_ring(off, cam, small_rig.laser) is off
+    shift = on.centroid_shift_px
+    assert shift.shape == (len(on.pixels),) and shift.dtype == np.float32
+    assert np.mean(shift != 0) > 0.9 and 0.02 < np.median(np.abs(shift)) < 1.0
+    moved = centroid_ring(on, cam, small_rig.laser)
+    assert len(moved.centroid_shift_px) == 0 and len(moved.pixels) == len(on.pixels)
+    centre = np.array([cam.cx, cam.cy])
+    grown = np.hypot(*(moved.pixels - centre).T) - np.hypot(*(on.pixels - centre).T)
+    np.testing.assert_allclose(grown, shift, atol=1e-5)
+    np.testing.assert_array_equal(on.pixels, off.pixels)  # the motion's ring is untouched
+
+
+def test_triangulation_drops_every_per_sample_array_alike(small_rig: Rig) -> None:
+    """A sample whose ray misses the plane leaves all of the ring's per-sample arrays
+    (the peak widths and the centroid moves too), so they stay aligned."""
+    cam = OmniCamera.from_rig(small_rig)
+    centre = np.array([cam.cx, cam.cy])
+    pixels = centre + np.array([[60.0, 0.0], [0.0, 70.0], [0.0, 120.0], [-65.0, 0.0]])
+    n = len(pixels)
+    ring = LaserRing(
+        pixels=pixels,
+        angle_rad=np.arange(n, dtype=float),
+        confidence=np.full(n, 20.0),
+        radius_sigma_px=np.full(n, 0.1),
+        peak_width_px=np.arange(n, dtype=float) + 1.0,
+        scanned=n,
+        centroid_shift_px=np.arange(n, dtype=np.float32) / 10,
+    )
+    out = triangulate_ring(ring, cam, small_rig.laser)
+    kept = np.isin(np.arange(n), out.angle_rad.astype(int))
+    np.testing.assert_array_equal(kept, [True, True, False, True])  # 120 px: its ray looks forward
+    np.testing.assert_array_equal(out.peak_width_px, np.arange(n)[kept] + 1.0)
+    np.testing.assert_array_equal(out.centroid_shift_px, (np.arange(n, dtype=np.float32) / 10)[kept])
 
 
 def test_rendered_rings_are_metric() -> None:
@@ -164,7 +218,7 @@ def test_bad_frames_give_empty_rings_and_warnings(small_rig: Rig, kind: str) -> 
 def test_scan_lines_cover_every_radius_that_meets_the_plane(small_rig: Rig) -> None:
     """With the plane known, the scan skips only radii whose rays cannot meet it, and
     finds the same ring as the full scan."""
-    from omnipipe.laser.triangulate import triangulate_ring
+    from omnipipe.laser.triangulate import centroid_ring, triangulate_ring
 
     rng = np.random.default_rng(4)
     img, cam = _synthetic_ring(small_rig, 101.0, rng)

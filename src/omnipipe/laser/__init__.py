@@ -18,7 +18,7 @@ from omnipipe.laser.stage import (
     run,
     run_dataset,
 )
-from omnipipe.laser.triangulate import intersect_plane, triangulate_ring
+from omnipipe.laser.triangulate import centroid_ring, intersect_plane, triangulate_ring
 
 __all__ = [
     "DecodeHandOn",
@@ -28,6 +28,7 @@ __all__ = [
     "LaserRing",
     "RingExtractor",
     "RingTask",
+    "centroid_ring",
     "decode_only",
     "intersect_plane",
     "ring_extractor",

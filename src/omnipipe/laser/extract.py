@@ -5,15 +5,18 @@ brightest other channel), is resampled along radial lines from the principal poi
 (one line per angle, 1 px radial steps, cv2.remap) over the valid annulus, or, when
 the laser plane is known, over its radii whose rays can meet the plane (the others can
 hold no ring sample that triangulates: bend's 211 of 508). On each line the strongest
-peak is refined with the three-point Gaussian fit (log-parabola, Fisher & Naidu [20]);
-optionally (``centroid_half_px`` > 0), a peak with clipped samples is located instead by
-the centroid of the background-free signal within that many px of it: a clipped top,
-lifted by the laser's crosstalk in the other channels, is no Gaussian, and the
-three-point fit pulls a ring about a pixel wide towards the scan line's samples (an oval
-reads low); on unclipped peaks the centroid would only add its tails' noise. Each
-sample gets a confidence (peak height over the line's robust noise); weak,
-saturated-flat or ambiguous peaks (a second separate peak of comparable height:
-reflections, bright texture) are rejected and left as gaps, never filled in.
+peak is refined with the three-point Gaussian fit (log-parabola, Fisher & Naidu [20]).
+A peak with clipped samples is also located by the centroid of its background-free
+signal within ``centroid_half_px`` of it: a clipped top, lifted by the laser's crosstalk
+in the other channels, is no Gaussian, and the three-point fit pulls a ring about a
+pixel wide towards the scan line's samples (an oval reads low); on unclipped peaks the
+centroid would only add its tails' noise. The ring keeps both: the three-point
+positions (``pixels``, what camera motion uses) and each sample's move to its centroid
+(``centroid_shift_px``, what the analysis's rings apply:
+:func:`~omnipipe.laser.triangulate.centroid_ring`). Each sample gets a confidence (peak
+height over the line's robust noise); weak, saturated-flat or ambiguous peaks (a second
+separate peak of comparable height: reflections, bright texture) are rejected and left
+as gaps, never filled in.
 """
 
 from __future__ import annotations
@@ -52,12 +55,12 @@ class ExtractionConfig:
         max_width_factor: reject peaks wider than this x the ring's median width (0: off).
         min_ring_fraction: a frame whose peaks cover fewer scan lines than this has no
             laser ring (measured: real rings 0.92-1.0; texture in a wrong channel 0.04-0.27).
-        centroid_half_px: a peak with clipped samples is located by the centroid of the
-            background-free signal within this many px of its strongest sample (a few
-            times the ring's width: the whole profile; 3 suits a ring about a pixel wide);
-            0 (default): by the three-point Gaussian fit, as the unclipped ones (on, it
-            cost the camera motion a step wrong without a flag on the robustness bench:
-            benchmarks/RESULTS.md).
+        centroid_half_px: a peak with clipped samples is also located by the centroid of
+            the background-free signal within this many px of its strongest sample (a few
+            times the ring's width: the whole profile; 3 suits a ring about a pixel wide),
+            for the analysis's rings (:attr:`LaserRing.centroid_shift_px`); camera motion
+            keeps the three-point fit (the centroid's rings there moved steps on the
+            robustness bench: benchmarks/RESULTS.md). 0: the three-point fit only.
     """
 
     angles: int = bounded(720, ge=8)
@@ -70,7 +73,7 @@ class ExtractionConfig:
     tophat_px: int = bounded(8, ge=0)
     max_width_factor: float = bounded(0.0, ge=0)
     min_ring_fraction: float = bounded(0.4, ge=0, le=1)
-    centroid_half_px: float = bounded(0.0, ge=0)
+    centroid_half_px: float = bounded(3.0, ge=0)
 
 
 def laser_signal(image: np.ndarray, channel: str) -> tuple[np.ndarray, float]:
@@ -162,6 +165,7 @@ class RingExtractor:
             radius_sigma_px=peaks.radius_sigma[ok],
             peak_width_px=peaks.width[ok],
             scanned=n_lines,
+            centroid_shift_px=peaks.centroid_shift[ok] if peaks.centroid_shift.size else peaks.centroid_shift,
         )
         if not ok.any():
             ring.warnings.append("no laser ring visible (no scan line with a clear peak)")
@@ -228,12 +232,8 @@ class RingExtractor:
         off, width = _gaussian_fit(stats.around)
         ok &= np.isfinite(off) & (np.abs(off) <= 1.0)
         off = off * step  # samples
-        half = int(round(cfg.centroid_half_px / cfg.radial_step_px))
-        clipped_top = run_len > 0
-        if half > 0 and clipped_top.any():
-            cen = _centroid_offset(polar[clipped_top], stats.background[clipped_top], k[clipped_top], half)
-            off[clipped_top] = np.where(np.isfinite(cen), cen, off[clipped_top])
         radius = self.radii[0] + (k + off) * cfg.radial_step_px
+        shift = _centroid_shift(cfg, polar, stats.background, k, off, (run_len > 0) & ok)
         # Sub-pixel uncertainty of a Gaussian peak's centre ~ width / SNR.
         rad_sigma = np.where(ok, width / np.maximum(snr, 1e-6), np.nan)
         if cfg.max_width_factor > 0 and np.sum(ok) > 10:
@@ -242,13 +242,15 @@ class RingExtractor:
             typical = float(np.nanmedian(width[ok]))
             ok &= width <= cfg.max_width_factor * typical
         ok &= radius <= self.camera.radius_max
-        return _LinePeaks(ok, radius, snr, width, rad_sigma, run_len > 0)
+        return _LinePeaks(ok, radius, snr, width, rad_sigma, run_len > 0, shift)
 
 
 @dataclass(frozen=True)
 class _LinePeaks:
     """Per scan line (L,): accepted, peak radius (px), SNR, Gaussian sigma (px), radius
-    sigma (px, NaN where not accepted) and whether the peak's top is clipped."""
+    sigma (px, NaN where not accepted), whether the peak's top is clipped and the
+    move (px, float32) from the peak's centre to its clipped-peak centroid (empty: no
+    centroid asked for)."""
 
     ok: np.ndarray
     radius: np.ndarray
@@ -256,6 +258,25 @@ class _LinePeaks:
     width: np.ndarray
     radius_sigma: np.ndarray
     saturated: np.ndarray
+    centroid_shift: np.ndarray
+
+
+def _centroid_shift(
+    cfg: ExtractionConfig, polar: np.ndarray, background: np.ndarray, k: np.ndarray, off: np.ndarray, use: np.ndarray
+) -> np.ndarray:
+    """(L,) float32 radial move (px) from each line's three-point centre (``k`` + ``off``
+    samples) to the centroid (:func:`_centroid_offset`) of the lines ``use`` (clipped,
+    accepted peaks), 0 elsewhere and where the centroid is undefined; (0,) when
+    ``cfg.centroid_half_px`` is 0."""
+    half = int(round(cfg.centroid_half_px / cfg.radial_step_px))
+    if half <= 0:
+        return np.zeros(0, np.float32)
+    shift = np.zeros(len(k), np.float32)
+    if use.any():
+        cen = _centroid_offset(polar[use], background[use], k[use], half)
+        move = (cen - off[use]) * cfg.radial_step_px
+        shift[use] = np.where(np.isfinite(move), move, 0.0)
+    return shift
 
 
 def _gaussian_fit(around: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,12 @@ class LaserRing:
         sigma_mm: (N,) 1-sigma depth uncertainty of each point (mm).
         scanned: number of scan lines.
         warnings: why samples or the whole frame were rejected.
+        centroid_shift_px: (N,) float32 radial move (px, outwards positive) from each
+            peak's three-point Gaussian centre (``pixels``) to its clipped-peak centroid
+            (:class:`~omnipipe.laser.extract.ExtractionConfig` ``centroid_half_px``; 0 on
+            unclipped peaks), or empty: none. Camera motion uses ``pixels`` and
+            ``points_in_rig``; the analysis the ring moved by it
+            (:func:`~omnipipe.laser.triangulate.centroid_ring`).
     """
 
     pixels: np.ndarray
@@ -32,6 +38,7 @@ class LaserRing:
     sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     scanned: int = 0
     warnings: list[str] = field(default_factory=list)
+    centroid_shift_px: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
     @property
     def fraction(self) -> float:

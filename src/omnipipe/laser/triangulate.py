@@ -1,6 +1,13 @@
-"""Metric ring points: each ring pixel's ray meets the calibrated laser plane (Eq. 4-5)."""
+"""Metric ring points: each ring pixel's ray meets the calibrated laser plane (Eq. 4-5).
+
+:func:`triangulate_ring` fills a ring's points from its three-point peak positions (what
+camera motion uses); :func:`centroid_ring` gives the analysis's ring, its clipped peaks
+moved to their centroids (:attr:`~omnipipe.laser.ring.LaserRing.centroid_shift_px`).
+"""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -49,8 +56,33 @@ def triangulate_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) ->
     p_minus, ok_m = intersect_plane(camera.unproject(ring.pixels - h * radial), plane)
     deriv = np.linalg.norm(p_plus - p_minus, axis=1) / (2 * h)
     ok &= ok_p & ok_m & np.isfinite(pts).all(axis=1)
-    for name in ("pixels", "angle_rad", "confidence", "radius_sigma_px"):
-        setattr(ring, name, getattr(ring, name)[ok])
+    n = len(ok)
+    for name in ("pixels", "angle_rad", "confidence", "radius_sigma_px", "peak_width_px", "centroid_shift_px"):
+        if len(getattr(ring, name)) == n:
+            setattr(ring, name, getattr(ring, name)[ok])
     ring.points_in_rig = pts[ok]
     ring.sigma_mm = deriv[ok] * ring.radius_sigma_px
     return ring
+
+
+def centroid_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) -> LaserRing:
+    """``ring`` (triangulated) as the analysis measures it: each sample moved along its
+    scan line by ``ring.centroid_shift_px`` (a clipped peak to its centroid) and
+    triangulated again (:func:`triangulate_ring`: a sample whose moved ray misses the
+    plane is dropped). A new ring with an empty ``centroid_shift_px``; ``ring`` itself
+    when it has no move (unclipped peaks, or no centroid asked for)."""
+    shift = np.asarray(ring.centroid_shift_px, float)
+    if len(shift) != len(ring.pixels) or not np.any(shift):
+        if len(shift) == 0:
+            return ring
+        return replace(ring, centroid_shift_px=np.zeros(0, np.float32), warnings=list(ring.warnings))
+    centre = np.array([camera.cx, camera.cy])
+    radial = ring.pixels - centre
+    radial = radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+    moved = replace(
+        ring,
+        pixels=ring.pixels + shift[:, None] * radial,
+        centroid_shift_px=np.zeros(0, np.float32),
+        warnings=list(ring.warnings),
+    )
+    return triangulate_ring(moved, camera, plane)

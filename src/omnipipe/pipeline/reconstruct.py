@@ -544,6 +544,7 @@ def _analyse(
     from omnipipe import analysis, model
     from omnipipe.camera import camera_from_rig
     from omnipipe.laser.extract import axial_blur_mm, edge_reach_mm, ring_blur_mm
+    from omnipipe.laser.triangulate import centroid_ring
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
     from omnipipe.spill import on_disk, pieces_on_disk
@@ -553,12 +554,15 @@ def _analyse(
     # The stage's bars: its centreline's stations and its defect search's passes
     # (omnipipe.progress.phase).
     station_poses = sfm_result.world_from_rig[stations]
-    station_rings = [frames.rings.rings[i] for i in stations]
+    # The analysis's rings: clipped peaks at their centroids (camera motion kept the
+    # three-point fit's).
+    camera = camera_from_rig(rig)
+    station_rings = [centroid_ring(frames.rings.rings[i], camera, rig.laser) for i in stations]
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
     station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
     reach, reach_sigma = edge_reach_mm(station_rings)
-    blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera_from_rig(rig))
+    blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
     # What the model stage reads of the rings waits in the run's scratch (omnipipe.spill):
     # not resident under the analysis.
     pixels = pieces_on_disk([r.pixels for r in station_rings])
