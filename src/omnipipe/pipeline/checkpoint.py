@@ -45,7 +45,7 @@ from omnipipe.laser.store import RingStore
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
 
-FORMAT = 1
+FORMAT = 2  # 2: rings hold centroid_shift_px (a RingStore record has one more array)
 MARKER = "checkpoint.json"
 STAGES = ("frames", "sfm", "analysis", "model")
 
