@@ -218,7 +218,7 @@ def test_bad_frames_give_empty_rings_and_warnings(small_rig: Rig, kind: str) -> 
 def test_scan_lines_cover_every_radius_that_meets_the_plane(small_rig: Rig) -> None:
     """With the plane known, the scan skips only radii whose rays cannot meet it, and
     finds the same ring as the full scan."""
-    from omnipipe.laser.triangulate import centroid_ring, triangulate_ring
+    from omnipipe.laser.triangulate import triangulate_ring
 
     rng = np.random.default_rng(4)
     img, cam = _synthetic_ring(small_rig, 101.0, rng)

@@ -98,6 +98,13 @@ class AnalysisConfig:
             noise: added to every diameter (x 2). One run cannot observe them; the factors
             are set from ``benchmarks/bench_metrology.py`` (0.08: +-2 sigma covers 96.7 %
             of 30 runs' inner diameters and 95.3 % of their stations, seeds 100-129).
+        systematic_peak_px: 1-sigma (px of image radius) of the laser peaks' sub-pixel
+            bias shared by a ring's samples (a sampled, blurred or clipped stripe), times
+            each station's radial pixel scale (``AnalysisInputs.radial_mm_per_px``): added
+            to its diameter (x 2), and with the run's median scale to the headline and the
+            taper ends. 0.03: the synthetic ring test's bound on the mean peak error
+            (tests/laser/test_laser.py); on the 34 true-motion random-features captures
+            the straight stations' errors read -0.012 +- 0.023 px (MAD).
         systematic_height_factor: the same for a defect's height against the wall beside
             it (the blurred ring on the defect's flanks), as a fraction of the wall noise.
         width_resolution_samples: lateral resolution of the light section in samples along
@@ -124,6 +131,7 @@ class AnalysisConfig:
     fallback_scale_sigma_rel: float = bounded(0.01, ge=0)
     angle_pose_sigma_deg: float = bounded(0.3, ge=0)
     systematic_radius_factor: float = bounded(0.08, ge=0)
+    systematic_peak_px: float = bounded(0.03, ge=0)
     systematic_height_factor: float = bounded(0.5, ge=0)
     width_resolution_samples: float = bounded(0.35, gt=0)
     blur_sigma_rel: float = bounded(0.3, ge=0)
@@ -164,6 +172,9 @@ class AnalysisInputs:
             measures, from the rig's calibration (the laser plane's distance,
             :attr:`omnipipe.rig.LaserPlane.scale_sigma_rel`); shared by all points of the
             run, so no fit can see it: added to diameters and defect sizes. 0: none stated.
+        radial_mm_per_px: (K,) each ring's radial pixel scale (mm per px of image radius,
+            :func:`omnipipe.laser.triangulate.radial_mm_per_px`; NaN: unknown); empty:
+            not known (no pixel-scale term).
         edge_reach_mm, edge_reach_sigma_mm: how far the ring's samples run on past the
             end of a lit stretch (a water line) and one ring's 1-sigma about that
             (:func:`omnipipe.laser.extract.edge_reach_mm`); the water depth's chord
@@ -179,6 +190,7 @@ class AnalysisInputs:
     axial_blur_mm: float = 0.0
     edge_reach_mm: float = 0.0
     edge_reach_sigma_mm: float = 0.0
+    radial_mm_per_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass
@@ -278,11 +290,16 @@ def run(
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
     defects = _with_systematics(config, search, cal, (inputs.ring_blur_mm, inputs.axial_blur_mm))
-    shared = math.hypot(2.0 * radial_sys, cal * float(diameter))
+    peak_mm = _peak_bias_mm(config, inputs, frame, len(poses))
+    run_peak = float(np.median(peak_mm)) if len(peak_mm) else 0.0
+    shared = math.hypot(2.0 * radial_sys, cal * float(diameter), 2.0 * run_peak)
     sec_config = section_config(config)
     st_list = [
-        replace(st, diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm))
-        for st in _station_list(stations)
+        replace(
+            st,
+            diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm, 2.0 * pk),
+        )
+        for st, pk in zip(_station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
     ]
     reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
@@ -321,6 +338,23 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndarray, k: int) -> np.ndarray:
+    """(S,) each measured station's radius error (mm) from the peaks' shared sub-pixel
+    bias (``config.systematic_peak_px`` x its ring's radial pixel scale; a ring of unknown
+    scale takes the run's median), in the order of the stations with enough points
+    (:func:`_station_profiles`); empty when the inputs state no scale."""
+    scale = np.asarray(inputs.radial_mm_per_px, float)
+    if len(scale) != k or not np.isfinite(scale).any():
+        return np.zeros(0)
+    scale = np.where(np.isfinite(scale), scale, float(np.nanmedian(scale)))
+    measured = np.bincount(frame, minlength=k)[:k] >= 12
+    return config.systematic_peak_px * scale[measured]
+
+
+def _or_zeros(x: np.ndarray, n: int) -> np.ndarray:
+    return x if len(x) == n else np.zeros(n)
 
 
 def _unseen_gap_warning(unseen_gap_mm: float) -> list[str]:

@@ -18,7 +18,12 @@ from omnipipe.laser.stage import (
     run,
     run_dataset,
 )
-from omnipipe.laser.triangulate import centroid_ring, intersect_plane, triangulate_ring
+from omnipipe.laser.triangulate import (
+    centroid_ring,
+    intersect_plane,
+    radial_mm_per_px,
+    triangulate_ring,
+)
 
 __all__ = [
     "DecodeHandOn",
@@ -31,6 +36,7 @@ __all__ = [
     "centroid_ring",
     "decode_only",
     "intersect_plane",
+    "radial_mm_per_px",
     "ring_extractor",
     "run",
     "run_dataset",

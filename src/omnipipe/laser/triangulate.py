@@ -86,3 +86,17 @@ def centroid_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) -> La
         warnings=list(ring.warnings),
     )
     return triangulate_ring(moved, camera, plane)
+
+
+def radial_mm_per_px(ring: LaserRing) -> float:
+    """The ring's radial pixel scale: the median over its samples of |d point / d radius|
+    (mm on the laser plane per px of image radius, :func:`triangulate_ring`'s derivative,
+    ``sigma_mm / radius_sigma_px``): what a sub-pixel error of the peaks shared by the
+    ring moves its points by. NaN for a ring without triangulated samples."""
+    sig, rad = np.asarray(ring.sigma_mm, float), np.asarray(ring.radius_sigma_px, float)
+    if len(sig) == 0 or len(sig) != len(rad):
+        return float("nan")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = sig / rad
+    ratio = ratio[np.isfinite(ratio)]
+    return float(np.median(ratio)) if len(ratio) else float("nan")

@@ -544,7 +544,7 @@ def _analyse(
     from omnipipe import analysis, model
     from omnipipe.camera import camera_from_rig
     from omnipipe.laser.extract import axial_blur_mm, edge_reach_mm, ring_blur_mm
-    from omnipipe.laser.triangulate import centroid_ring
+    from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
     from omnipipe.spill import on_disk, pieces_on_disk
@@ -563,6 +563,7 @@ def _analyse(
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
     reach, reach_sigma = edge_reach_mm(station_rings)
     blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
+    mm_per_px = np.array([radial_mm_per_px(r) for r in station_rings])
     # What the model stage reads of the rings waits in the run's scratch (omnipipe.spill):
     # not resident under the analysis.
     pixels = pieces_on_disk([r.pixels for r in station_rings])
@@ -583,6 +584,7 @@ def _analyse(
             axial_blur_mm=axial_blur,
             edge_reach_mm=reach,
             edge_reach_sigma_mm=reach_sigma,
+            radial_mm_per_px=mm_per_px,
         ),
         executor,
     )
