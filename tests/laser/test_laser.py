@@ -10,7 +10,7 @@ from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply
 from omnipipe.laser import LaserConfig, LaserRing, RingExtractor, intersect_plane, run
 from omnipipe.laser.extract import ExtractionConfig
-from omnipipe.laser.triangulate import centroid_ring, triangulate_ring
+from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px, triangulate_ring
 from omnipipe.rig import Rig
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
@@ -167,6 +167,23 @@ def test_triangulation_drops_every_per_sample_array_alike(small_rig: Rig) -> Non
     np.testing.assert_array_equal(kept, [True, True, False, True])  # 120 px: its ray looks forward
     np.testing.assert_array_equal(out.peak_width_px, np.arange(n)[kept] + 1.0)
     np.testing.assert_array_equal(out.centroid_shift_px, (np.arange(n, dtype=np.float32) / 10)[kept])
+
+
+def test_radial_pixel_scale_is_how_far_a_radial_px_moves_a_point(small_rig: Rig) -> None:
+    """:func:`radial_mm_per_px`: the ring's median mm on the laser plane per px of image
+    radius, as moving each sample half a px out and in and triangulating again measures
+    it; NaN for a ring without samples."""
+    cam = OmniCamera.from_rig(small_rig)
+    img, _ = _synthetic_ring(small_rig, 100.0, np.random.default_rng(3))
+    ring = triangulate_ring(RingExtractor(cam, ExtractionConfig(), small_rig.laser).extract(img, "red"), cam, small_rig.laser)
+    centre = np.array([cam.cx, cam.cy])
+    unit = (ring.pixels - centre) / np.linalg.norm(ring.pixels - centre, axis=1, keepdims=True)
+    outer, _ = intersect_plane(cam.unproject(ring.pixels + 0.5 * unit), small_rig.laser)
+    inner, _ = intersect_plane(cam.unproject(ring.pixels - 0.5 * unit), small_rig.laser)
+    expected = float(np.median(np.linalg.norm(outer - inner, axis=1)))
+    assert radial_mm_per_px(ring) == pytest.approx(expected, rel=0.01)
+    assert 0.5 < expected < 20.0
+    assert np.isnan(radial_mm_per_px(LaserRing(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0))))
 
 
 def test_rendered_rings_are_metric() -> None:
