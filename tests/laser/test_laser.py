@@ -10,7 +10,12 @@ from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply
 from omnipipe.laser import LaserConfig, LaserRing, RingExtractor, intersect_plane, run
 from omnipipe.laser.extract import ExtractionConfig
-from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px, triangulate_ring
+from omnipipe.laser.triangulate import (
+    centroid_ring,
+    radial_mm_per_px,
+    ring_roughness_px,
+    triangulate_ring,
+)
 from omnipipe.rig import Rig
 from omnipipe.sim import make_scenario
 from omnipipe.sim.writer import build_renderer
@@ -144,6 +149,36 @@ def test_centroid_moves_only_the_analysis_ring(small_rig: Rig) -> None:
     grown = np.hypot(*(moved.pixels - centre).T) - np.hypot(*(on.pixels - centre).T)
     np.testing.assert_allclose(grown, shift, atol=1e-5)
     np.testing.assert_array_equal(on.pixels, off.pixels)  # the motion's ring is untouched
+
+
+def test_centroid_ring_keeps_the_three_point_ring_where_the_moves_roughen_it(small_rig: Rig) -> None:
+    """Moves that would make the ring rougher (here: noise of 0.1 px on a smooth ring)
+    are not applied: the analysis's ring is the three-point one, without moves; moves
+    that smooth it (the same noise taken out again) are."""
+    cam = OmniCamera.from_rig(small_rig)
+    rng = np.random.default_rng(5)
+    angle = np.arange(0, 2 * np.pi, 2 * np.pi / 720)
+    centre = np.array([cam.cx, cam.cy])
+    smooth = 60.0 + 2.0 * np.cos(2 * angle)
+    noise = rng.normal(0, 0.1, angle.size).astype(np.float32)
+
+    def ring(radius: np.ndarray, shift: np.ndarray) -> LaserRing:
+        n = angle.size
+        px = centre + radius[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+        return triangulate_ring(
+            LaserRing(px, angle, np.full(n, 20.0), np.full(n, 0.05), np.full(n, 0.8), scanned=n, centroid_shift_px=shift),
+            cam,
+            small_rig.laser,
+        )
+
+    rough = ring(smooth, noise)
+    kept = centroid_ring(rough, cam, small_rig.laser)
+    np.testing.assert_array_equal(kept.points_in_rig, rough.points_in_rig)
+    assert len(kept.centroid_shift_px) == 0
+    noisy = ring(smooth + noise, -noise)
+    moved = centroid_ring(noisy, cam, small_rig.laser)
+    assert ring_roughness_px(angle, np.hypot(*(moved.pixels - centre).T)) < 0.01
+    assert ring_roughness_px(angle, smooth + noise) == pytest.approx(0.1, rel=0.2)
 
 
 def test_triangulation_drops_every_per_sample_array_alike(small_rig: Rig) -> None:

@@ -7,6 +7,7 @@ moved to their centroids (:attr:`~omnipipe.laser.ring.LaserRing.centroid_shift_p
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -69,23 +70,39 @@ def centroid_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) -> La
     """``ring`` (triangulated) as the analysis measures it: each sample moved along its
     scan line by ``ring.centroid_shift_px`` (a clipped peak to its centroid) and
     triangulated again (:func:`triangulate_ring`: a sample whose moved ray misses the
-    plane is dropped). A new ring with an empty ``centroid_shift_px``; ``ring`` itself
-    when it has no move (unclipped peaks, or no centroid asked for)."""
+    plane is dropped), when that makes the ring smoother (:func:`ring_roughness_px`; on
+    a ring clipped throughout the centroid halves the roughness, on one clipped here and
+    there by a sample it adds some). A new ring with an empty ``centroid_shift_px``;
+    ``ring`` itself when it has no move (unclipped peaks, or no centroid asked for)."""
     shift = np.asarray(ring.centroid_shift_px, float)
+    if len(shift) == 0:
+        return ring
+    keep = replace(ring, centroid_shift_px=np.zeros(0, np.float32), warnings=list(ring.warnings))
     if len(shift) != len(ring.pixels) or not np.any(shift):
-        if len(shift) == 0:
-            return ring
-        return replace(ring, centroid_shift_px=np.zeros(0, np.float32), warnings=list(ring.warnings))
+        return keep
     centre = np.array([camera.cx, camera.cy])
-    radial = ring.pixels - centre
-    radial = radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
-    moved = replace(
-        ring,
-        pixels=ring.pixels + shift[:, None] * radial,
-        centroid_shift_px=np.zeros(0, np.float32),
-        warnings=list(ring.warnings),
-    )
-    return triangulate_ring(moved, camera, plane)
+    radius = np.linalg.norm(ring.pixels - centre, axis=1)
+    if ring_roughness_px(ring.angle_rad, radius + shift) >= ring_roughness_px(ring.angle_rad, radius):
+        return keep
+    radial = (ring.pixels - centre) / np.maximum(radius, 1e-9)[:, None]
+    return triangulate_ring(replace(keep, pixels=ring.pixels + shift[:, None] * radial), camera, plane)
+
+
+def ring_roughness_px(angle_rad: np.ndarray, radius_px: np.ndarray) -> float:
+    """Robust sample-to-sample noise (px) of a ring's image radius ``radius_px`` (N,) on
+    scan lines at ``angle_rad`` (N,, increasing): the MAD of the second differences of
+    neighbouring lines' samples (three consecutive lines, same angular step) / sqrt(6);
+    inf with fewer than 10 such triples."""
+    a, r = np.asarray(angle_rad, float), np.asarray(radius_px, float)
+    if len(r) < 12:
+        return math.inf
+    da = np.diff(a)
+    step = float(np.median(da))
+    even = np.abs(da[1:] - da[:-1]) <= 0.25 * step
+    d2 = (r[2:] - 2.0 * r[1:-1] + r[:-2])[even & (np.abs(da[1:] - step) <= 0.25 * step)]
+    if len(d2) < 10:
+        return math.inf
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
 def radial_mm_per_px(ring: LaserRing) -> float:
