@@ -49,6 +49,7 @@ from omnipipe.analysis.features import (
     find_features,
     with_offset_joints_kept,
 )
+from omnipipe.analysis.footprint import footprint_mm, footprint_terms, with_footprint_terms
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
     EdgeReach,
@@ -301,11 +302,14 @@ def run(
         )
         for st, pk in zip(_station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
     ]
+    # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
+    measured = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
+    mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
     reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
-    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared)
+    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
     warnings = [*search.warnings, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
@@ -374,32 +378,45 @@ def _with_shared_terms(
     sec_config: SectionConfig,
     radial_sys: float,
     shared_diameter_mm: float,
+    mixing: tuple[np.ndarray, np.ndarray],
 ) -> tuple[list[Station], list[Stretch]]:
-    """The stations and section features (ovality, tapers, ...) with the run-wide terms
-    averaging the stations cannot remove: a ring-shape error shared by the run
-    (``radial_sys`` mm in cos 2 theta) moves every station's ovality alike, by up to
-    4 radial_sys / D; the diameter's shared part (``shared_diameter_mm``: the systematic
-    ring radius, the rig calibration; as in the headline's sigma) moves both ends of a
-    taper with every station, as it moves the headline (the ends' sigmas were the
-    stations' scatter / sqrt(n) alone)."""
+    """The stations and section features (ovality, tapers, ...) with the terms averaging
+    the stations cannot remove: a ring-shape error shared by the run (``radial_sys`` mm
+    in cos 2 theta) moves every station's ovality alike, by up to 4 radial_sys / D; the
+    diameter's shared part (``shared_diameter_mm``: the systematic ring radius, the
+    peaks' sub-pixel bias, the rig calibration; as in the headline's sigma) moves both
+    ends of a taper with every station, as it moves the headline; the sections each ring
+    mixes (``mixing``: :func:`.footprint.footprint_terms`, (S,) diameter mm and ovality
+    per station) move neighbouring stations alike, so a taper end or an ovality stretch
+    takes its stations' median of them whole. The features are found on the stations
+    without the mixing terms (a taper's own ramp is no noise), which are then added."""
     oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
     st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
+    axial = np.array([st.axial_mm for st in st_list])
+    d_mix, o_mix = mixing
+
+    def median_over(term: np.ndarray, sel: np.ndarray) -> float:
+        return float(np.median(term[sel])) if sel.any() else 0.0
+
     features: list[Stretch] = []
     for f in section_features(st_list, line, head, sec_config):
         if isinstance(f, Ovality) and f.percent_sigma is not None:
-            f = replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys))
+            inside = (axial >= f.axial_from_mm) & (axial <= f.axial_to_mm)
+            mix = 100.0 * median_over(o_mix, inside)
+            f = replace(f, percent_sigma=math.hypot(f.percent_sigma, 100.0 * oval_sys, mix))
         elif isinstance(f, Taper):
+            start, end = median_over(d_mix, axial <= f.axial_from_mm), median_over(d_mix, axial >= f.axial_to_mm)
             f = replace(
                 f,
-                diameter_from_sigma_mm=_hypot_or_none(f.diameter_from_sigma_mm, shared_diameter_mm),
-                diameter_to_sigma_mm=_hypot_or_none(f.diameter_to_sigma_mm, shared_diameter_mm),
+                diameter_from_sigma_mm=_hypot_or_none(f.diameter_from_sigma_mm, shared_diameter_mm, start),
+                diameter_to_sigma_mm=_hypot_or_none(f.diameter_to_sigma_mm, shared_diameter_mm, end),
             )
         features.append(f)
-    return st_list, features
+    return with_footprint_terms(st_list, d_mix, o_mix), features
 
 
-def _hypot_or_none(sigma: float | None, shared: float) -> float | None:
-    return None if sigma is None else math.hypot(sigma, shared)
+def _hypot_or_none(sigma: float | None, *terms: float) -> float | None:
+    return None if sigma is None else math.hypot(sigma, *terms)
 
 
 def _station_list(stations: _Stations) -> list[Station]:
