@@ -178,7 +178,8 @@ def test_centroid_ring_keeps_the_three_point_ring_where_the_moves_roughen_it(sma
     noisy = ring(smooth + noise, -noise)
     moved = centroid_ring(noisy, cam, small_rig.laser)
     assert ring_roughness_px(angle, np.hypot(*(moved.pixels - centre).T)) < 0.01
-    assert ring_roughness_px(angle, smooth + noise) == pytest.approx(0.1, rel=0.2)
+    assert ring_roughness_px(angle, smooth + noise) == pytest.approx(0.1, rel=0.15)
+    assert ring_roughness_px(angle, smooth) < 1e-6
 
 
 def test_triangulation_drops_every_per_sample_array_alike(small_rig: Rig) -> None:

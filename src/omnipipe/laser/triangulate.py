@@ -88,21 +88,19 @@ def centroid_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) -> La
     return triangulate_ring(replace(keep, pixels=ring.pixels + shift[:, None] * radial), camera, plane)
 
 
-def ring_roughness_px(angle_rad: np.ndarray, radius_px: np.ndarray) -> float:
-    """Robust sample-to-sample noise (px) of a ring's image radius ``radius_px`` (N,) on
-    scan lines at ``angle_rad`` (N,, increasing): the MAD of the second differences of
-    neighbouring lines' samples (three consecutive lines, same angular step) / sqrt(6);
-    inf with fewer than 10 such triples."""
+def ring_roughness_px(angle_rad: np.ndarray, radius_px: np.ndarray, order: int = 8) -> float:
+    """Robust spread (px) of a ring's image radius ``radius_px`` (N,) on scan lines at
+    ``angle_rad`` (N,) about a smooth ring: 1.4826 x the median absolute residual from
+    its least-squares Fourier series of ``order`` in the angle (the wall's shape and the
+    rig's offset are smooth; the peaks' scatter and their sampling pattern are not); inf
+    with fewer than 4 samples per coefficient."""
     a, r = np.asarray(angle_rad, float), np.asarray(radius_px, float)
-    if len(r) < 12:
+    if len(r) < 4 * (2 * order + 1):
         return math.inf
-    da = np.diff(a)
-    step = float(np.median(da))
-    even = np.abs(da[1:] - da[:-1]) <= 0.25 * step
-    d2 = (r[2:] - 2.0 * r[1:-1] + r[:-2])[even & (np.abs(da[1:] - step) <= 0.25 * step)]
-    if len(d2) < 10:
-        return math.inf
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+    k = np.arange(1, order + 1)[None, :] * a[:, None]
+    design = np.column_stack([np.ones_like(a), np.cos(k), np.sin(k)])
+    coef, *_ = np.linalg.lstsq(design, r, rcond=None)
+    return float(1.4826 * np.median(np.abs(r - design @ coef)))
 
 
 def radial_mm_per_px(ring: LaserRing) -> float:
