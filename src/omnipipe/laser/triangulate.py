@@ -82,25 +82,31 @@ def centroid_ring(ring: LaserRing, camera: CameraModel, plane: LaserPlane) -> La
         return keep
     centre = np.array([camera.cx, camera.cy])
     radius = np.linalg.norm(ring.pixels - centre, axis=1)
-    if ring_roughness_px(ring.angle_rad, radius + shift) >= ring_roughness_px(ring.angle_rad, radius):
+    three_point, moved = ring_roughness_px(ring.angle_rad, np.stack([radius, radius + shift]))
+    if moved >= three_point:
         return keep
     radial = (ring.pixels - centre) / np.maximum(radius, 1e-9)[:, None]
     return triangulate_ring(replace(keep, pixels=ring.pixels + shift[:, None] * radial), camera, plane)
 
 
-def ring_roughness_px(angle_rad: np.ndarray, radius_px: np.ndarray, order: int = 8) -> float:
-    """Robust spread (px) of a ring's image radius ``radius_px`` (N,) on scan lines at
-    ``angle_rad`` (N,) about a smooth ring: 1.4826 x the median absolute residual from
-    its least-squares Fourier series of ``order`` in the angle (the wall's shape and the
-    rig's offset are smooth; the peaks' scatter and their sampling pattern are not); inf
-    with fewer than 4 samples per coefficient."""
+def ring_roughness_px(angle_rad: np.ndarray, radius_px: np.ndarray, order: int = 8) -> np.ndarray:
+    """Robust spread (px) of a ring's image radius about a smooth ring: for each row of
+    ``radius_px`` ((N,) or (M, N): M versions of the ring's samples on scan lines at
+    ``angle_rad`` (N,)), 1.4826 x the median absolute residual from its least-squares
+    Fourier series of ``order`` in the angle (the wall's shape and the rig's offset are
+    smooth; the peaks' scatter and their sampling pattern are not); inf with fewer than
+    4 samples per coefficient. A float for (N,), (M,) for (M, N)."""
     a, r = np.asarray(angle_rad, float), np.asarray(radius_px, float)
-    if len(r) < 4 * (2 * order + 1):
-        return math.inf
-    k = np.arange(1, order + 1)[None, :] * a[:, None]
-    design = np.column_stack([np.ones_like(a), np.cos(k), np.sin(k)])
-    coef, *_ = np.linalg.lstsq(design, r, rcond=None)
-    return float(1.4826 * np.median(np.abs(r - design @ coef)))
+    rows = np.atleast_2d(r)
+    if len(a) < 4 * (2 * order + 1):
+        out = np.full(len(rows), math.inf)
+    else:
+        k = np.arange(1, order + 1)[None, :] * a[:, None]
+        design = np.column_stack([np.ones_like(a), np.cos(k), np.sin(k)])
+        # Normal equations (a 17 x 17 solve), not an SVD per ring.
+        coef = np.linalg.solve(design.T @ design, design.T @ rows.T)
+        out = 1.4826 * np.median(np.abs(rows - (design @ coef).T), axis=1)
+    return out if r.ndim == 2 else float(out[0])
 
 
 def radial_mm_per_px(ring: LaserRing) -> float:
