@@ -291,17 +291,8 @@ def run(
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
     defects = _with_systematics(config, search, cal, (inputs.ring_blur_mm, inputs.axial_blur_mm))
-    peak_mm = _peak_bias_mm(config, inputs, frame, len(poses))
-    run_peak = float(np.median(peak_mm)) if len(peak_mm) else 0.0
-    shared = math.hypot(2.0 * radial_sys, cal * float(diameter), 2.0 * run_peak)
+    st_list, shared = _with_ring_terms(config, inputs, frame, len(poses), stations, radial_sys, diameter)
     sec_config = section_config(config)
-    st_list = [
-        replace(
-            st,
-            diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm, 2.0 * pk),
-        )
-        for st, pk in zip(_station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
-    ]
     # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
     measured = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
     mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
@@ -342,6 +333,32 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _with_ring_terms(
+    config: AnalysisConfig,
+    inputs: AnalysisInputs,
+    frame: np.ndarray,
+    k: int,
+    stations: _Stations,
+    radial_sys: float,
+    diameter: float,
+) -> tuple[list[Station], float]:
+    """The stations with the terms whole rings share in their diameter sigmas (radial
+    systematics, calibration, the peaks' sub-pixel bias), and the run's shared term (mm)
+    for the headline."""
+    cal = float(inputs.calibration_sigma_rel)
+    peak_mm = _peak_bias_mm(config, inputs, frame, k)
+    run_peak = float(np.median(peak_mm)) if len(peak_mm) else 0.0
+    shared = math.hypot(2.0 * radial_sys, cal * float(diameter), 2.0 * run_peak)
+    st_list = [
+        replace(
+            st,
+            diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm, 2.0 * pk),
+        )
+        for st, pk in zip(_station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
+    ]
+    return st_list, shared
 
 
 def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndarray, k: int) -> np.ndarray:
