@@ -1,0 +1,54 @@
+"""benchmarks/bench_features.py's unseen joints: a gap no frame's true laser ring crossed
+is counted outside the run (nothing of it was measured), never as missed."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import bench_features as bench
+
+R, LEAD = 150.0, 70.0  # pipe radius, laser plane behind the rig (mm)
+
+
+def _dataset(tmp_path: Path, stations: list[float], tilt_deg: float) -> tuple[Path, dict]:
+    """Frames at pipe arc ``stations`` (mm) in a straight pipe along world z, the rig
+    tilted ``tilt_deg`` about x; the laser plane at rig z = -LEAD."""
+    (tmp_path / "ground_truth").mkdir()
+    h = math.radians(tilt_deg) / 2.0
+    rows = [f"{i * 0.1:.1f} 0 0 {s + 200.0:.3f} {math.sin(h):.9f} 0 0 {math.cos(h):.9f}"
+            for i, s in enumerate(stations)]
+    (tmp_path / "ground_truth" / "poses.txt").write_text("\n".join(rows) + "\n")
+    (tmp_path / "rig.yaml").write_text(f"laser:\n  plane: [0.0, 0.0, 1.0, {LEAD}]\n  channel: red\n")
+    z = np.arange(-200.0, 1000.0, 10.0)
+    truth = {
+        "first_station_sigma_mm": 200.0,
+        "centreline_polyline_mm": {"sigma": z.tolist(), "points": [[0.0, 0.0, float(v)] for v in z]},
+        "stations": [{"axial_mm": float(v - 200.0), "inner_diameter_mm": 2 * R} for v in z],
+    }
+    return tmp_path, truth
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 3.0])
+def test_ring_spans_follow_the_laser_plane_and_its_tilt(tmp_path: Path, tilt_deg: float) -> None:
+    data, truth = _dataset(tmp_path, [0.0, 40.0], tilt_deg)
+    spans = bench._ring_spans(data, truth)
+    assert spans is not None and len(spans) == 2
+    for (lo, hi), s in zip(spans, [0.0, 40.0], strict=True):
+        assert abs(0.5 * (lo + hi) - (s - LEAD)) < 0.5
+        assert abs((hi - lo) - 2 * R * math.tan(math.radians(tilt_deg))) < 0.3
+
+
+def test_a_gap_between_rings_is_unseen_unless_offset(tmp_path: Path) -> None:
+    data, truth = _dataset(tmp_path, [0.0, 40.0], 1.0)
+    spans = bench._ring_spans(data, truth)
+    between = {"kind": "joint", "axial_mm": 20.0 - LEAD, "gap_mm": 5.0, "offset_mm": 0.0}
+    crossed = {**between, "axial_mm": 40.0 - LEAD}
+    assert bench._unseen(between, spans)
+    assert not bench._unseen(crossed, spans)
+    assert not bench._unseen({**between, "offset_mm": 2.0}, spans)  # its offset shows in the wall
