@@ -82,9 +82,12 @@ def pieces_on_disk(pieces: list[np.ndarray]) -> list[np.ndarray]:
 def drop_pages() -> None:
     """Unmap the resident pages of every array :func:`on_disk` made (their values stay
     in the files: the next read maps them again, from the page cache or the disk)."""
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    if advice is None:  # a platform without madvise: the kernel reclaims them alone
+        return
     for mapping in list(_MAPS):
         try:
-            mapping.madvise(mmap.MADV_DONTNEED)
+            mapping.madvise(advice)
         except (ValueError, OSError):  # closed meanwhile
             continue
 

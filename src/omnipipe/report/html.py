@@ -249,6 +249,7 @@ def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
     a0 = ref  # 12:00 at the left edge: columns run clockwise through a full turn
     cell = max(1.0, (z1 - z0) / 400.0)
     grid = relief.deviation_grid(wall, (z0, z1), (a0, a0 + 360.0), cell)
+    drop_pages()  # every wall point was read (omnipipe.spill): not under the figure
     circ = 2 * math.pi * wall.radius_mm
     fig, ax = plt.subplots(figsize=(9, min(12.0, 9 * (z1 - z0) / circ + 1.2)))
     vmax = relief.relief_vmax([d.height_mm for d in inputs.defects], inputs.summary.get("wall_noise_mm"))
@@ -399,6 +400,7 @@ def _unrolled_plot(
 
         size = (min(cols, image.shape[1]), min(rows, image.shape[0]))
         image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
+        drop_pages()  # the whole wall's (omnipipe.spill): not under the drawing
     imshow_in_bands(ax, image, (a0, a1, s1, s0))
     radius = inputs.radius_mm or 100.0
     for k, defect in enumerate(inputs.defects):
@@ -523,6 +525,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         scale = config.texture_max_px / max(tex.shape[:2])
         if scale < 1:
             tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
         texture = _png_data_uri(tex)
         del tex
         release_freed_memory()  # the atlas's pages
