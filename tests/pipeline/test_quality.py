@@ -7,9 +7,15 @@ from types import SimpleNamespace
 
 import pytest
 
+from omnipipe.analysis.feature_types import Joint, Ovality
 from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
-from omnipipe.pipeline.quality import flag_defects, refuse_untrusted_motion, widen_for_unreliable
+from omnipipe.pipeline.quality import (
+    flag_defects,
+    flag_features,
+    refuse_untrusted_motion,
+    widen_for_unreliable,
+)
 from omnipipe.sfm.scale_check import StepCheck
 
 
@@ -65,6 +71,20 @@ def test_a_defect_across_a_stretch_is_flagged() -> None:
     flagged, warnings = flag_defects(_defects(), quality)
     assert [d.motion_unreliable for d in flagged] == [False, True, False]
     assert len(warnings) == 1 and "defect 2 (dent, at 150 mm)" in warnings[0]
+    assert flagged[1].to_contract()["motion_unreliable"] is True
+    assert "motion_unreliable" not in flagged[0].to_contract()
+
+
+def test_features_in_a_stretch_are_flagged() -> None:
+    quality = TrajectoryQuality(
+        steps_checked=3, unreliable=(UnreliableSpan(10, 14, "x", axial_start_mm=160.0, axial_end_mm=170.0),)
+    )
+    far = Joint(axial_mm=100.0, axial_sigma_mm=2.0, gap_mm=5.0)
+    near = Joint(axial_mm=175.0, axial_sigma_mm=2.0, gap_mm=5.0)  # within 3 sigma of the stretch
+    across = Ovality(axial_from_mm=120.0, axial_to_mm=165.0, percent=4.0, angle_deg=30.0)
+    flagged, warnings = flag_features((far, near, across), quality)
+    assert [f.motion_unreliable for f in flagged] == [False, True, True]
+    assert len(warnings) == 2 and "joint at 175 mm" in warnings[0]
     assert flagged[1].to_contract()["motion_unreliable"] is True
     assert "motion_unreliable" not in flagged[0].to_contract()
 

@@ -63,10 +63,13 @@ class PointFeature(Feature):
     Attributes:
         axial_mm: joint: centre of the gap; lateral: centre of the hole (mm).
         axial_sigma_mm: its 1-sigma.
+        motion_unreliable: it lies in a stretch of unreliable camera motion (its position
+            and axial sizes rest on untrusted motion; omnipipe extension).
     """
 
     axial_mm: float
     axial_sigma_mm: float | None = None
+    motion_unreliable: bool = False
 
     @property
     def position_mm(self) -> float:
@@ -123,6 +126,8 @@ class Stretch(Feature):
             local station spacing: the edge lies between two stations).
         truncated: the stretch runs past the measured stations: its extent (and a bend's
             turn) are lower bounds.
+        motion_unreliable: it overlaps a stretch of unreliable camera motion (omnipipe
+            extension).
     """
 
     axial_from_mm: float
@@ -130,6 +135,7 @@ class Stretch(Feature):
     axial_to_mm: float
     axial_to_sigma_mm: float | None = None
     truncated: bool = False
+    motion_unreliable: bool = False
 
     @property
     def position_mm(self) -> float:

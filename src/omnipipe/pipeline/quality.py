@@ -5,8 +5,9 @@ omnipipe adds, compatibly: per unreliable stretch its extent along the pipe
 (``axial_start_mm``, ``axial_end_mm``, the defects' axial convention) so that
 report.html can mark it on the unrolled wall, and ``keyframe_steps``: every keyframe
 step's evidence (laser length and consensus peaks, feature depth length, confidence).
-Defects whose axial extent touches an unreliable stretch get ``"motion_unreliable":
-true`` and a warning: their length and position rest on untrusted motion. The records
+Defects whose axial extent touches an unreliable stretch, and features in one, get
+``"motion_unreliable": true`` and a warning: their length and position rest on untrusted
+motion. The records
 are :class:`~omnipipe.contract.TrajectoryQuality` and :class:`~omnipipe.contract.Defect`,
 changed by ``dataclasses.replace`` only.
 """
@@ -19,6 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from omnipipe.analysis.feature_types import Feature, PointFeature, Stretch
 from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
 from omnipipe.sfm import SfmResult
@@ -86,6 +88,45 @@ def _pct(log_value: float) -> float | None:
     return round(100 * math.expm1(log_value), 3) if math.isfinite(log_value) else None
 
 
+def _overlaps_unreliable(start: float, end: float, quality: TrajectoryQuality) -> UnreliableSpan | None:
+    """The first unreliable stretch overlapping ``[start, end]`` (mm along the pipe)."""
+    for u in quality.unreliable:
+        if u.axial_start_mm is None or u.axial_end_mm is None:
+            continue
+        if start <= u.axial_end_mm and end >= u.axial_start_mm:
+            return u
+    return None
+
+
+def flag_features(
+    features: Sequence[Feature], quality: TrajectoryQuality
+) -> tuple[tuple[Feature, ...], list[str]]:
+    """The pipe's features, those within 3 sigma of (point features) or overlapping
+    (stretches) an unreliable stretch flagged ``motion_unreliable``; one warning per
+    flagged feature. Their positions and axial sizes rest on untrusted motion."""
+    out: list[Feature] = []
+    warnings = []
+    for f in features:
+        if isinstance(f, Stretch):
+            start, end = f.axial_from_mm, f.axial_to_mm
+        elif isinstance(f, PointFeature):
+            margin = 3.0 * (f.axial_sigma_mm or 0.0)
+            start, end = f.axial_mm - margin, f.axial_mm + margin
+        else:
+            out.append(f)
+            continue
+        u = _overlaps_unreliable(start, end, quality)
+        if u is not None:
+            f = replace(f, motion_unreliable=True)
+            warnings.append(
+                f"{f.kind} at {f.position_mm:.0f} mm lies in frames {u.first_frame}-"
+                f"{u.last_frame}, whose motion is unreliable: its position and axial sizes "
+                "are not trustworthy"
+            )
+        out.append(f)
+    return tuple(out), warnings
+
+
 def flag_defects(
     defects: Sequence[Defect], quality: TrajectoryQuality
 ) -> tuple[list[Defect], list[str]]:
@@ -95,17 +136,14 @@ def flag_defects(
     out = []
     for k, d in enumerate(defects):
         start, end = d.axial_start_mm, d.axial_end_mm
-        for u in quality.unreliable:
-            if u.axial_start_mm is None or u.axial_end_mm is None:
-                continue
-            if start <= u.axial_end_mm and end >= u.axial_start_mm:
-                d = replace(d, motion_unreliable=True)
-                warnings.append(
-                    f"defect {k + 1} ({d.kind}, at {start:.0f} mm) lies across frames "
-                    f"{u.first_frame}-{u.last_frame}, whose motion is unreliable: its "
-                    "length and position are not trustworthy"
-                )
-                break
+        u = _overlaps_unreliable(start, end, quality)
+        if u is not None:
+            d = replace(d, motion_unreliable=True)
+            warnings.append(
+                f"defect {k + 1} ({d.kind}, at {start:.0f} mm) lies across frames "
+                f"{u.first_frame}-{u.last_frame}, whose motion is unreliable: its "
+                "length and position are not trustworthy"
+            )
         out.append(d)
     return out, warnings
 

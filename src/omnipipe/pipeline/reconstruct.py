@@ -723,12 +723,14 @@ def _summary(
     sfm_result, stations, traj_quality = motion.result, measured.stations, measured.quality
     # Every measurement with its 1-sigma (lengths along the pipe: the motion's scale sigma).
     scale_rel = getattr(sfm_result, "scale_sigma_rel", float("nan"))
-    fields, measure_warnings = analysis.report_fields(measured.result, scale_rel, config.analysis)
-    log.warnings.extend(measure_warnings)
+    features, feature_warnings = quality.flag_features(measured.result.features, traj_quality)
+    result = replace(measured.result, features=features)
+    fields, measure_warnings = analysis.report_fields(result, scale_rel, config.analysis)
+    log.warnings.extend([*measure_warnings, *feature_warnings])
     if len(fields.get("stations", [])) == len(stations):
         for entry, frame in zip(fields["stations"], stations, strict=True):
             entry["frame"] = int(frame)  # the frame whose ring this station is
-    defects = analysis.scaled_defects(measured.result, scale_rel, config.analysis)
+    defects = analysis.scaled_defects(result, scale_rel, config.analysis)
     defects, flag_warnings = quality.flag_defects(defects, traj_quality)
     log.warnings.extend(flag_warnings)
     widened = quality.widen_for_unreliable(fields["run_length_sigma_mm"], defects, traj_quality)

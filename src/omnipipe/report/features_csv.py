@@ -64,6 +64,8 @@ def feature_rows(
     rows = []
     for i, f in enumerate(features, 1):
         pacp, en, note = codes(f, diameter_mm)
+        if f.get("motion_unreliable"):
+            note += "; on unreliable camera motion: position not trustworthy"
         angle = f.get("angle_deg")
         if f.get("kind") == "joint" and (f.get("offset_mm") or 0.0) > 2.0 * (f.get("offset_sigma_mm") or 0.0):
             angle = f.get("offset_angle_deg")  # a joint's clock: its offset's direction

@@ -942,6 +942,8 @@ def _feature_cells(f: dict[str, Any], reference_deg: float, offset_m: float) -> 
         where = metres("axial_mm") + " m"
     else:
         where = f"{metres('axial_from_mm')} – {metres('axial_to_mm')} m" + (" (truncated)" if f.get("truncated") else "")
+    if f.get("motion_unreliable"):
+        where += " (on unreliable camera motion)"
     angle_key = "angle_deg"
     if f.get("kind") == "joint":  # a joint's clock: its offset's direction, when significant
         off, osig = f.get("offset_mm") or 0.0, f.get("offset_sigma_mm") or 0.0
