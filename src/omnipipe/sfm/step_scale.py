@@ -557,7 +557,10 @@ def resolve_by_wall(
             (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1])),
             ev.b_from_a,
         )
-        reading = step_wall_length(*pair, candidate_window([v for v, _, _ in cand]))
+        window = candidate_window([v for v, _, _ in cand])
+        if peak_chosen:  # the wall may find the step far below every candidate
+            window = (VETO_REACH_DOWN * window[0], window[1])
+        reading = step_wall_length(*pair, window)
         if not reading.measured:
             continue
         wall_mm = reading.length_mm
@@ -577,6 +580,7 @@ def resolve_by_wall(
                 f"the {names} length agrees with the wall's own shift {wall_mm:.1f} +- "
                 f"{sigma:.1f} mm (unrolled wall, correlation {reading.shift.ncc:.2f}), the other "
                 "candidates do not",
+                (wall_mm, ACCEPT_SIGMAS * sigma),
             )
         else:
             _wall_alone(ctx, decided, lengths, k, pair, reading, unit)
@@ -584,10 +588,14 @@ def resolve_by_wall(
 
 # A laser peak chosen over the best because the feature depths agree with it
 # (scale_check.decide) is withdrawn when the wall's own shift lies further than this
-# many of its sigmas from it and has no second peak above WALL_ALONE_MAX_AMBIGUITY:
-# both sources then sit on one wrong course (random-wide seed 19, smooth: laser peak
-# 10.9 and feature depths 11.9 mm for 8.95 true).
+# many of its sigmas from it (a reading: no second peak above
+# wall_shift.MAX_AMBIGUITY; withdrawing only flags the step): both sources then sit on
+# one wrong course (random-wide seed 19, smooth: laser peak 10.9 and feature depths
+# 11.9 mm for 8.95 true).
 VETO_SIGMAS = 4.0
+# ... searched down to this fraction of the candidates' window (the right course may be
+# a period below all of them).
+VETO_REACH_DOWN = 0.4
 
 
 def _wall_vetoes(
@@ -602,10 +610,7 @@ def _wall_vetoes(
     :data:`VETO_SIGMAS`); if so, in place: untrusted, no length, no laser anchors."""
     step = decided[k]
     c = step.check
-    if (
-        reading.shift.ambiguity > WALL_ALONE_MAX_AMBIGUITY
-        or abs(c.scale_mm - reading.length_mm) <= VETO_SIGMAS * sigma
-    ):
+    if abs(c.scale_mm - reading.length_mm) <= VETO_SIGMAS * sigma:
         return False
     reason = (
         f"{c.reason}; but the wall's own shift {reading.length_mm:.1f} +- {sigma:.1f} mm "
@@ -685,15 +690,19 @@ def _resolve_to(
     chosen: float,
     scale: RunScale,
     why: str,
+    within: tuple[float, float] | None = None,
 ) -> None:
     """Step k resolved to ``chosen`` (mm, the chain's units) in place, ``why`` said in its
-    reason and a warning: the laser re-matched around it (its length taken when found),
-    the matches whose own depth ratio contradicts it dropped."""
+    reason and a warning: the laser re-matched around it (its length taken when found
+    and, with ``within`` = (length, tolerance) in laser mm, within it; otherwise no laser
+    anchors), the matches whose own depth ratio contradicts it dropped."""
     gain = math.exp(scale.offset_log)
     unit = gain if scale.wall_anchored else 1.0  # chain length = laser length / unit
     step, ev = decided[k], kf.evidence[k]
     c = step.check
     lm = _laser_around(ctx, kf, k, chosen * unit)
+    if within is not None and not abs(lm.scale - within[0]) <= within[1]:
+        lm = replace(lm, scale=math.nan)
     if math.isfinite(lm.scale):
         chosen = lm.scale / unit
     inl = ev.inliers

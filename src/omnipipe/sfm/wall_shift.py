@@ -65,6 +65,7 @@ MIN_TEMPLATE_MM = 15.0
 GRID_MM = (0.25, 2.0)
 MAX_COLUMNS = 2048
 MAX_AXIAL_RADII = 3.0
+MAX_FOOTPRINT_GRIDS = 4.0
 
 
 @dataclass(frozen=True)
@@ -121,13 +122,24 @@ def wall_grid(camera: CameraModel, radius_mm: float) -> WallGrid | None:
     step = float(np.clip(0.5 * radius_mm * camera.angular_resolution(), *GRID_MM))
     lo, hi = camera.elevation_range()
     reach = MAX_AXIAL_RADII * radius_mm
-    z_lo = max(radius_mm * math.tan(lo), -reach) + 2 * step
-    z_hi = min(radius_mm * math.tan(hi), reach) - 2 * step
-    if z_hi - z_lo < 3 * MIN_TEMPLATE_MM:
+    z = np.arange(
+        max(radius_mm * math.tan(lo), -reach) + 2 * step,
+        min(radius_mm * math.tan(hi), reach) - 2 * step,
+        step,
+    )
+    # Only rows the image resolves: along the wall a pixel covers at most
+    # MAX_FOOTPRINT_GRIDS grid steps (beyond, the wall's finer texture aliases and does
+    # not move with the wall: a synthetic faint wall read 12 % short with them).
+    near, _ = camera.project(np.column_stack([np.full(len(z), radius_mm), np.zeros(len(z)), z]))
+    ahead, _ = camera.project(np.column_stack([np.full(len(z), radius_mm), np.zeros(len(z)), z + step]))
+    px_per_step = np.linalg.norm(ahead - near, axis=1)
+    z = z[np.isfinite(px_per_step) & (px_per_step * MAX_FOOTPRINT_GRIDS >= 1.0)]
+    if len(z) == 0 or z[-1] - z[0] < 3 * MIN_TEMPLATE_MM:
         return None
+    z_lo, z_hi = float(z[0]), float(z[-1])
     n_cols = int(min(max(2 * math.pi * radius_mm / step, 180), MAX_COLUMNS))
     return WallGrid(
-        np.arange(z_lo, z_hi, step), np.arange(n_cols) * (2 * math.pi / n_cols), step
+        np.arange(z_lo, z_hi + 0.5 * step, step), np.arange(n_cols) * (2 * math.pi / n_cols), step
     )
 
 
@@ -180,13 +192,38 @@ def axial_band_pass(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(valid & (w_wide > 0.9), band, 0.0).astype(np.float32)
 
 
-def _curve(
-    a: np.ndarray, b: np.ndarray, margin: int, roll: int
-) -> np.ndarray:
-    """(2 margin + 1, 2 roll + 1) NCC of ``a``'s rows margin..-margin against ``b``
-    shifted by -margin..margin rows and -roll..roll columns (columns wrap)."""
-    tpl = a[margin : a.shape[0] - margin]
-    search = np.concatenate([b[:, b.shape[1] - roll :], b, b[:, :roll]], axis=1) if roll else b
+@dataclass(frozen=True)
+class _Rows:
+    """Which rows of two unrolled walls are compared: keyframe a's rows t0..t1 (the
+    template) against b's rows shifted by k_lo..k_hi rows (b's row = a's row + k; a
+    shift s mm is k = -s / grid step)."""
+
+    t0: int
+    t1: int
+    k_lo: int
+    k_hi: int
+
+
+def _rows(n_rows: int, lo_mm: float, hi_mm: float, step_mm: float) -> _Rows:
+    """The rows compared for shifts lo..hi mm (two rows beyond each end for the peak's
+    fit): the template is every row of a whose partner stays inside b for every
+    shift."""
+    k_lo = int(math.floor(-hi_mm / step_mm)) - 2
+    k_hi = int(math.ceil(-lo_mm / step_mm)) + 2
+    return _Rows(max(0, -k_lo), min(n_rows, n_rows - k_hi), k_lo, k_hi)
+
+
+def _padded(b: np.ndarray, roll: int) -> np.ndarray:
+    """``b`` with ``roll`` columns wrapped onto either side (the angle is periodic)."""
+    return np.concatenate([b[:, b.shape[1] - roll :], b, b[:, :roll]], axis=1) if roll else b
+
+
+def _curve(a: np.ndarray, b_padded: np.ndarray, rows: _Rows, j0: int, j1: int) -> np.ndarray:
+    """(j1 - j0, 2 roll + 1) NCC of a's template rows against b at row offsets
+    k_lo + j0 .. k_lo + j1 - 1 and every roll (``b_padded``: :func:`_padded`)."""
+    tpl = a[rows.t0 : rows.t1]
+    start = rows.t0 + rows.k_lo + j0
+    search = b_padded[start : start + tpl.shape[0] + (j1 - j0) - 1]
     return cv2.matchTemplate(search, tpl, cv2.TM_CCORR_NORMED)
 
 
@@ -253,27 +290,31 @@ def wall_shift(
     if grid is None:
         return _none("too little wall in view")
     lo, hi = sorted(window_mm)
-    margin = int(math.ceil(max(abs(lo), abs(hi)) / grid.step_mm)) + 2
-    if len(grid.z_mm) - 2 * margin < MIN_TEMPLATE_MM / grid.step_mm:
+    rows = _rows(len(grid.z_mm), lo, hi, grid.step_mm)
+    if rows.t1 - rows.t0 < MIN_TEMPLATE_MM / grid.step_mm:
         return _none("the step is too long for the wall in view")
     a = axial_band_pass(*unrolled_wall(camera, gray_a, wall_a, grid))
-    b = axial_band_pass(*unrolled_wall(camera, gray_b, wall_b, grid))
-    roll = max(1, int(math.ceil(MAX_ROLL_RAD / (grid.theta[1] - grid.theta[0]))))
-    curve2d = _curve(a, b, margin, roll)
-    # Row k of the curve matched a's row r with b's row r + k - margin: a wall point at
-    # z in rig a lies at z - shift in rig b.
-    shifts = -(np.arange(curve2d.shape[0]) - margin) * grid.step_mm
-    curve = curve2d.max(axis=1)
+    b = _padded(
+        axial_band_pass(*unrolled_wall(camera, gray_b, wall_b, grid)),
+        max(1, int(math.ceil(MAX_ROLL_RAD / (grid.theta[1] - grid.theta[0])))),
+    )
+    n_k = rows.k_hi - rows.k_lo + 1
+    curve = _curve(a, b, rows, 0, n_k).max(axis=1)
+    # A wall point at z in rig a lies at z - shift in rig b: b's row = a's row + k.
+    shifts = -(rows.k_lo + np.arange(n_k)) * grid.step_mm
     keep = (shifts >= lo) & (shifts <= hi)
     shift, ncc, k = _peak(curve, shifts, keep)
     if not math.isfinite(shift):
         return _none("empty window")
+    if not (0 < k < n_k - 1 and curve[k - 1] < curve[k] > curve[k + 1]):
+        # The best correlation at the window's edge: still rising beyond it.
+        return _none("no correlation peak inside the window", float(curve[k]))
     ambiguity = _ambiguity(curve, k, keep)
     if ncc < MIN_NCC:
         return _none(f"weak wall correlation ({ncc:.2f})", ncc, ambiguity)
     if ambiguity > MAX_AMBIGUITY:
         return _none(f"another shift correlates nearly as well ({ambiguity:.2f})", ncc, ambiguity)
-    found = _sector_shifts(a, b, margin, roll, shifts, shift, k)
+    found = _sector_shifts(a, b, rows, shifts, shift, k, keep)
     n = int(np.isfinite(found).sum())
     if n < MIN_SECTORS:
         return _none(f"only {n} of {SECTORS} sectors agree", ncc, ambiguity, n)
@@ -287,34 +328,33 @@ def wall_shift(
 
 def _sector_shifts(
     a: np.ndarray,
-    b: np.ndarray,
-    margin: int,
-    roll: int,
+    b_padded: np.ndarray,
+    rows: _Rows,
     shifts: np.ndarray,
     shift: float,
     k: int,
+    keep: np.ndarray,
 ) -> np.ndarray:
-    """(SECTORS,) each angular sector's own peak shift (mm) within the whole wall's
-    peak half-width of ``shift`` (NaN where a sector has no texture or peaks
-    elsewhere: then it is no witness)."""
+    """(SECTORS,) each angular sector's own peak shift (mm) near the whole wall's peak
+    ``shift`` (index ``k`` of ``shifts``) and inside the window (``keep``); NaN where a
+    sector has no texture or peaks elsewhere: then it is no witness."""
     n_cols = a.shape[1]
+    roll = (b_padded.shape[1] - n_cols) // 2
     width = n_cols // SECTORS
+    step = abs(float(shifts[1] - shifts[0]))
     out = np.full(SECTORS, math.nan)
-    half = max(3, int(round(6.0 / max(abs(shifts[1] - shifts[0]), 1e-9))))
-    rows = slice(max(k - half, 0), min(k + half + 1, len(shifts)))
-    padded = np.concatenate([b[:, n_cols - roll :], b, b[:, :roll]], axis=1)
+    half = max(3, int(round(6.0 / max(step, 1e-9))))
+    j0, j1 = max(k - half, 0), min(k + half + 1, len(shifts))
     for q in range(SECTORS):
         cols = slice(q * width, (q + 1) * width)
-        tpl = a[margin : a.shape[0] - margin, cols]
-        if not np.any(tpl):
+        if not np.any(a[rows.t0 : rows.t1, cols]):
             continue
-        # Search rows matching the window rows only (the peak's neighbourhood).
-        r0, r1 = rows.start, rows.stop - 1
-        search = padded[r0 : r1 + tpl.shape[0], q * width : (q + 1) * width + 2 * roll]
-        c = cv2.matchTemplate(search, tpl, cv2.TM_CCORR_NORMED).max(axis=1)
-        s = shifts[rows]
-        sq, val, _ = _peak(c, s, np.ones(len(c), bool))
-        if math.isfinite(sq) and val > 0 and abs(sq - shift) < 0.8 * half * abs(shifts[1] - shifts[0]):
+        c = _curve(
+            a[:, cols], b_padded[:, q * width : (q + 1) * width + 2 * roll], rows, j0, j1
+        ).max(axis=1)
+        sq, val, kq = _peak(c, shifts[j0:j1], keep[j0:j1])
+        inside = 0 < kq < len(c) - 1 and c[kq - 1] < c[kq] > c[kq + 1]
+        if inside and val > 0 and abs(sq - shift) < 0.8 * half * step:
             out[q] = sq
     return out
 
