@@ -5,6 +5,7 @@ model: the truth is the shift the images were rendered with."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ RADIUS = 101.0  # mm, the paper rig's 202 mm pipe
 RING_Z = -82.0  # mm, the ring plane's rig z (the paper rig's baseline)
 
 
-def _bricks(rng: np.random.Generator, period: float) -> callable:
+def _bricks(rng: np.random.Generator, period: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """A brick wall: courses ``period`` mm high along z, bricks 2.5 periods long around
     the wall (every other course offset by half a brick), a random tone per brick and a
     faint grain (:func:`_faint`) over it, dark mortar lines; (z, s) mm -> brightness (s:
@@ -40,7 +41,7 @@ def _bricks(rng: np.random.Generator, period: float) -> callable:
     return f
 
 
-def _faint(rng: np.random.Generator) -> callable:
+def _faint(rng: np.random.Generator) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """A faint wall: smooth random tone (sum of random cosines, 4-20 mm scales), +-10 %."""
     k = rng.uniform(2 * np.pi / 20, 2 * np.pi / 4, (24, 2)) * rng.choice([-1, 1], (24, 2))
     ph = rng.uniform(0, 2 * np.pi, 24)
@@ -53,7 +54,7 @@ def _faint(rng: np.random.Generator) -> callable:
 
 
 def _render(
-    camera: OmniCamera, wall: callable, z_mm: float, offset_xy: tuple[float, float], roll: float,
+    camera: OmniCamera, wall: Callable[[np.ndarray, np.ndarray], np.ndarray], z_mm: float, offset_xy: tuple[float, float], roll: float,
     rng: np.random.Generator,
 ) -> np.ndarray:
     """(H, W) grey image of the wall seen from a rig at axial position ``z_mm``, off the
@@ -87,8 +88,8 @@ def _ring(offset_xy: tuple[float, float]) -> np.ndarray:
     )
 
 
-def _b_from_a(shift: float) -> np.ndarray:
-    """rig_b_from_rig_a of a rig that moved ``shift`` mm along +z (unit translation)."""
+def _forward() -> np.ndarray:
+    """rig_b_from_rig_a of a rig that moved along +z (unit translation, no rotation)."""
     m = np.eye(4)
     m[2, 3] = -1.0
     return m
@@ -117,7 +118,7 @@ def test_a_faint_wall_s_rig_fixed_shading_does_not_pull_the_shift_to_zero(small_
     img_a = _render(small_camera, wall, 0.0, (0.0, 0.0), 0.0, rng)
     img_b = _render(small_camera, wall, 6.0, (0.0, 0.0), 0.0, rng)
     walls = (wall_cylinder(_ring((0, 0))), wall_cylinder(_ring((0, 0))))
-    got = step_wall_length(small_camera, (img_a, img_b), walls, _b_from_a(6.0), (0.5, 12.0))
+    got = step_wall_length(small_camera, (img_a, img_b), walls, _forward(), (0.5, 12.0))
     assert got.measured
     assert got.length_mm == pytest.approx(6.0, abs=max(2 * got.sigma_mm, 0.1))
 
@@ -144,7 +145,7 @@ def _one_step(
     rng = np.random.default_rng(seed)
     wall = _bricks(rng, period)
     grays = [_render(camera, wall, 0.0, (0, 0), 0.0, rng), _render(camera, wall, step, (0, 0), 0.0, rng)]
-    ev = StepEvidence(0, 4, _b_from_a(step), None, None, np.zeros(0), feature, 40, "ok")
+    ev = StepEvidence(0, 4, _forward(), None, None, np.zeros(0), feature, 40, "ok")
     check = StepCheck(0, 4, peaks[0], 0.95, feature, 40, math.nan, "none", "ambiguous laser scale", peaks)
     kf = Keyframes([0, 4], [], grays, [_ring((0, 0)), _ring((0, 0))], [ev])
     return _context(camera), kf, [DecidedStep(ev.b_from_a, math.nan, None, None, check)], np.array([math.nan])

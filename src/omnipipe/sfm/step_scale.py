@@ -55,7 +55,13 @@ from omnipipe.sfm.scale_check import (
 )
 from omnipipe.sfm.step_window import gait_agrees
 from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, SfmContext, StepEvidence
-from omnipipe.sfm.wall_shift import SECTORS, WallLength, candidate_window, step_wall_length
+from omnipipe.sfm.wall_shift import (
+    SECTORS,
+    StepImages,
+    WallLength,
+    candidate_window,
+    step_wall_length,
+)
 
 # Relative 1-sigma both scale sources share, added to every run's: the laser (Eq. 17)
 # and the wall-placed features both rest on the light-section ring and the relative
@@ -551,7 +557,7 @@ def resolve_by_wall(
             cand.append((c.feature_scale_mm, c.feature_scale_mm * gain / unit, "feature depth"))
         if not cand:
             continue
-        pair = (
+        pair: StepImages = (
             ctx.camera,
             (kf.grays[k], kf.grays[k + 1]),
             (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1])),
@@ -644,7 +650,7 @@ def _wall_alone(
     decided: list[DecidedStep],
     lengths: np.ndarray,
     k: int,
-    pair: tuple,
+    pair: StepImages,
     reading: WallLength,
     unit: float,
 ) -> None:

@@ -405,6 +405,16 @@ def candidate_window(candidates_mm: list[float]) -> tuple[float, float]:
     return (WINDOW[0] * min(c), WINDOW[1] * max(c)) if c else (math.nan, math.nan)
 
 
+#: A keyframe step's inputs to :func:`step_wall_length` before its window: the camera,
+#: the two grey images, their wall cylinders and rig_b_from_rig_a.
+StepImages = tuple[
+    CameraModel,
+    tuple[np.ndarray, np.ndarray],
+    tuple[WallCylinder | None, WallCylinder | None],
+    np.ndarray,
+]
+
+
 @dataclass(frozen=True)
 class WallLength:
     """A keyframe step's length from the wall's shift (:func:`step_wall_length`).
