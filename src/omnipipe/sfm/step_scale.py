@@ -563,7 +563,7 @@ def resolve_by_wall(
             (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1])),
             ev.b_from_a,
         )
-        window = candidate_window([v for v, _, _ in cand])
+        window = candidate_window(_plausible([v for v, _, _ in cand], c.feature_scale_mm))
         if peak_chosen:  # the wall may find the step far below every candidate
             window = (VETO_REACH_DOWN * window[0], window[1])
         reading = step_wall_length(*pair, window)
@@ -590,6 +590,21 @@ def resolve_by_wall(
             )
         else:
             _wall_alone(ctx, decided, lengths, k, pair, reading, unit)
+
+
+# The wall's window spans the laser peaks within this factor of the feature-depth length
+# (all of them without one): a wild peak (random-wide seed 29: 62.5 mm for a 19 mm step)
+# would widen it so far that the template left is too short to read (no peak inside).
+PLAUSIBLE_FACTOR = 2.0
+
+
+def _plausible(candidates_mm: list[float], feature_mm: float) -> list[float]:
+    """The candidate lengths (mm) the wall's window spans: with a feature-depth length
+    ``feature_mm``, those within :data:`PLAUSIBLE_FACTOR` of it; else all."""
+    if not (math.isfinite(feature_mm) and feature_mm > 0):
+        return candidates_mm
+    f = PLAUSIBLE_FACTOR
+    return [v for v in candidates_mm if feature_mm / f <= v <= feature_mm * f]
 
 
 # A laser peak chosen over the best because the feature depths agree with it
