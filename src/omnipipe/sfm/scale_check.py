@@ -42,6 +42,8 @@ CONFIDENCE = ("high", "resolved", "low", "none")
 #: consensus peaks ambiguous); the window of steps around it may confirm it
 #: (:func:`omnipipe.sfm.step_window.confirm_by_gait`).
 FEATURE_ONLY = "feature depth scale alone:"
+#: How the reason of a step resolved to another laser consensus peak begins.
+PEAK_CHOSEN = "laser peak "
 
 
 @dataclass(frozen=True)
@@ -541,7 +543,7 @@ def decide(
             ):
                 return check(
                     float(s), "resolved",
-                    f"laser peak {s:.1f} mm chosen over {laser_scale_mm:.1f} mm: it agrees with "
+                    f"{PEAK_CHOSEN}{s:.1f} mm chosen over {laser_scale_mm:.1f} mm: it agrees with "
                     f"the feature depth scale {feature_scale_mm:.1f} mm",
                 )
         if amb >= config.ambiguous_ratio and feature_matches >= config.feature_only_min_matches:
