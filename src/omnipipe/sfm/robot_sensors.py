@@ -49,35 +49,24 @@ GAIT_PACE_SIGMA_FLOOR_REL = 0.25
 
 
 # Least travel (mm) by which the odometry alone makes a frame a moving one (where the
-# images could not tell: a plain wall, a creep of a fraction of a pixel), and the
-# sigmas of its noise (:func:`odometry_noise`: random walk, resolution, the
-# interpolation around both frames' times, i.e. the lag at stops) the travel must
-# exceed. A flat 1 mm (the former rule) missed 81 of the 134 creeps under 1 mm of the
-# random-wide seeds (seed 3: the robot never stands, 0.5 mm frame steps taken for
-# standing); this rule misses 5 and marks 1 of 258 standing frames (as the former did).
-MOVED_MIN_MM = 0.25
-MOVED_SIGMAS = 3.0
+# images could not tell: a plain wall); also at least 3 of its resolution sigmas.
+MOVED_MIN_MM = 1.0
 
 
 def odometry_moved(odometry: Odometry, timestamps: np.ndarray) -> np.ndarray:
     """(N,) True for the frames (times ``timestamps``, s) by which the odometry counted
-    more than :data:`MOVED_MIN_MM` and :data:`MOVED_SIGMAS` of its noise since the last
+    more than :data:`MOVED_MIN_MM` (and 3 sqrt(2) resolution sigmas) since the last
     such frame; frame 0 and frames outside its span False."""
-    t = np.asarray(timestamps, float)
-    d, _ = odometry_at(odometry, t)
-    _, walk, floor = stated_error_model(odometry)
+    d, _ = odometry_at(odometry, np.asarray(timestamps, float))
+    threshold = max(MOVED_MIN_MM, 3 * math.sqrt(2) * float(np.min(odometry.sigma_mm)))
     out = np.zeros(len(d), bool)
-    ref = 0
+    ref = d[0] if len(d) else math.nan
     for i in range(1, len(d)):
-        if not math.isfinite(d[ref]):
-            ref = i
-            continue
-        if not math.isfinite(d[i]):
-            continue
-        noise = float(odometry_noise(odometry, t[[ref, i]], walk, floor)[0])
-        if d[i] - d[ref] > max(MOVED_MIN_MM, MOVED_SIGMAS * noise):
+        if not math.isfinite(ref):
+            ref = d[i]
+        elif math.isfinite(d[i]) and d[i] - ref > threshold:
             out[i] = True
-            ref = i
+            ref = d[i]
     return out
 
 
