@@ -14,7 +14,7 @@ from omnipipe import laser, sfm
 from omnipipe.cli import main
 from omnipipe.dataset import open_dataset, read_tum
 from omnipipe.pipeline import ReconstructConfig
-from omnipipe.sfm import step_scale
+from omnipipe.sfm import step_decide
 from omnipipe.sfm import tasks as sfm_tasks
 from omnipipe.sfm.laser_scale import LaserMatches
 from omnipipe.sim import TextureConfig, make_scenario
@@ -44,7 +44,7 @@ def _motion(ds_dir: Path, monkeypatch: pytest.MonkeyPatch | None = None, trap: b
     frames = [ds.read_frame(i) for i in range(len(ds))]
     rings = laser.run(cfg.laser, ds.rig, iter(frames))
     if trap and monkeypatch is not None:
-        original = step_scale.match_laser_points
+        original = step_decide.match_laser_points
 
         def wrong_course_scores_best(*args, **kwargs) -> LaserMatches:
             lm = original(*args, **kwargs)
@@ -59,7 +59,7 @@ def _motion(ds_dir: Path, monkeypatch: pytest.MonkeyPatch | None = None, trap: b
                 peak_scores=np.concatenate([[1.0], lm.peak_scores]),
             )
 
-        monkeypatch.setattr(step_scale, "match_laser_points", wrong_course_scores_best)
+        monkeypatch.setattr(step_decide, "match_laser_points", wrong_course_scores_best)
         # The steps' first, unwindowed matches run as executor tasks (inline here).
         monkeypatch.setattr(sfm_tasks, "match_laser_points", wrong_course_scores_best)
     result = sfm.run(

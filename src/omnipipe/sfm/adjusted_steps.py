@@ -1,13 +1,13 @@
 """Bundle-adjusted keyframe steps that the wall and the gait confirm.
 
-:func:`omnipipe.sfm.step_scale.check_adjusted` flags a step the bundle adjustment moved
-away from the length it was decided on. In a run whose scale the wall anchors (the
-laser runs off the feature depths throughout, :class:`omnipipe.sfm.step_scale.RunScale`)
+:func:`check_adjusted` flags a step the bundle adjustment moved away from the length it
+was decided on. In a run whose scale the wall anchors (the
+laser runs off the feature depths throughout, :class:`omnipipe.sfm.step_decide.RunScale`)
 the decided length is often the laser's wrong peak: the adjustment, held by the feature
 tracks over several keyframes and by the wall-placed features, moves the step to its
 feature depths' length. Those feature depths are then no independent witness (they are
 the anchors), so such a step is judged as a step measured by its feature depths alone
-is (:func:`omnipipe.sfm.step_scale.confirm_by_gait`): it is trusted when its adjusted
+is (:func:`omnipipe.sfm.step_resolve.confirm_by_gait`): it is trusted when its adjusted
 length is its feature depths' and its pace agrees with the trusted steps around it
 (:func:`omnipipe.sfm.step_window.gait_agrees`); otherwise it stays flagged.
 
@@ -79,4 +79,99 @@ def _features_agree(check: StepCheck, length: float, config: ScaleCheckConfig) -
         abs(math.log(length / f)) <= config.anchor_agree_log
         and abs(length - f) <= config.adjusted_agree_mm
         and check.feature_matches >= config.feature_only_min_matches
+    )
+
+
+# Fewest reliable steps for check_adjusted to remove a source's run-wide ratio: with 3
+# (random-wide seed 21, 32 frames) the adjustment's own +8 % drift of two of them was
+# taken for the laser's bias and no step was flagged.
+ADJUSTED_OFFSET_MIN_STEPS = 5
+
+
+def check_adjusted(
+    checks: list[StepCheck],
+    world_from_kf: np.ndarray,
+    config: ScaleCheckConfig,
+    decided_unit: float = 1.0,
+    feature_unit: float | None = None,
+) -> list[StepCheck]:
+    """Flag keyframe steps whose adjusted length left what their sources measured.
+
+    The sources are the length the step was decided on (``scale_mm``: the laser's,
+    re-matched, or the feature depths') and its feature-depth length; each is compared
+    after removing its run-wide ratio to the adjusted lengths (a consistent bias is
+    not a jump). A step is flagged when it left the decided length by more than
+    ``adjusted_agree_log``, or every source by more than ``adjusted_agree_mm``. (The
+    laser's best peak is not a source here: on a resolved step it is the wrong course.)
+
+    ``decided_unit``: the decided lengths' unit in the chain's (the run-wide laser /
+    feature-depth gain when the wall anchors the scale: the decided lengths are in
+    laser units, the chain in feature-depth units). Without it a run with fewer than
+    :data:`ADJUSTED_OFFSET_MIN_STEPS` steps flagged every step by the gain itself
+    (random-wide seed 20: gain -13 %, 28 of 31 frame steps flagged, all right).
+
+    A step whose adjusted length is its feature depths' (within ``anchor_agree_log`` and
+    ``adjusted_agree_mm``, from at least ``feature_only_min_matches`` matches) is not
+    flagged: the adjustment corrected a wrong decided length (random-wide, 640x480: 5
+    such steps of seeds 6, 11, 13 were flagged at 11-14 % from a laser length 1.7-2.8 mm
+    short, the adjusted length within 0.1-0.6 % of the truth). Only when the feature
+    depths are an independent measurement in the chain's units: ``feature_unit``, their
+    unit in the chain's (a laser-anchored run: the run-wide laser / feature-depth gain),
+    is given (None: a wall-anchored run, whose anchors are those feature depths, or an
+    unknown unit); their run-wide ratio to the adjusted lengths replaces it when
+    measured (at least :data:`ADJUSTED_OFFSET_MIN_STEPS` steps).
+    """
+    lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
+    ok = [
+        k
+        for k, c in enumerate(checks)
+        if k < len(lengths) and c.reliable and lengths[k] > 1e-9 and math.isfinite(c.scale_mm)
+    ]
+
+    def offsets(values: list[float]) -> tuple[np.ndarray, float]:
+        v = np.array(values, float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.log(lengths[ok] / v) if ok else np.zeros(0)
+        good = r[np.isfinite(r)]
+        return r, float(np.median(good)) if len(good) >= ADJUSTED_OFFSET_MIN_STEPS else 0.0
+
+    r_dec, m_dec = offsets([checks[k].scale_mm / decided_unit for k in ok])
+    r_feat, m_feat = offsets([checks[k].feature_scale_mm for k in ok])
+    # log(chain / feature-depth length) run-wide for the confirmation: measured, or the unit's
+    m_unit = m_feat
+    if feature_unit is not None and np.isfinite(r_feat).sum() < ADJUSTED_OFFSET_MIN_STEPS:
+        m_unit = math.log(feature_unit)
+    out = list(checks)
+    for j, k in enumerate(ok):
+        c, length = checks[k], float(lengths[k])
+        devs = [
+            (name, float(r - m))
+            for name, r, m in (("decided", r_dec[j], m_dec), ("feature depth", r_feat[j], m_feat))
+            if np.isfinite(r)
+        ]
+        # Each source's length in the adjusted run's units, and how far it lies (mm).
+        gaps = [abs(length - length * math.exp(-d)) for _, d in devs]
+        reason = ""
+        if feature_unit is not None and _feature_confirms(r_feat[j] - m_unit, c, length, config):
+            continue
+        if devs and abs(devs[0][1]) > config.adjusted_agree_log:
+            reason = f"{100 * devs[0][1]:+.0f} % from its measured length"
+        elif gaps and min(gaps) > config.adjusted_agree_mm:
+            reason = f"{min(gaps):.1f} mm from the nearest of its measured lengths"
+        if reason:
+            reason = f"bundle adjustment moved the step to {length:.1f} mm, {reason}"
+            out[k] = replace(c, confidence="none", reason=reason)
+    return out
+
+
+def _feature_confirms(
+    dev_log: float, check: StepCheck, length: float, config: ScaleCheckConfig
+) -> bool:
+    """Whether a step's feature depths (``dev_log``: the adjusted ``length`` (mm) over
+    theirs in the chain's units, log; NaN: not measured) confirm it."""
+    return (
+        math.isfinite(dev_log)
+        and abs(dev_log) <= config.anchor_agree_log
+        and check.feature_matches >= config.feature_only_min_matches
+        and abs(length - length * math.exp(-dev_log)) <= config.adjusted_agree_mm
     )

@@ -1,0 +1,209 @@
+"""Flagged keyframe steps resolved by the wall's own shift (paper Sec. V-D).
+
+:func:`resolve_by_wall`: the unrolled walls of a step's two keyframes aligned densely
+(:func:`omnipipe.sfm.wall_shift.step_wall_length`), a length independent of the laser
+(Eq. 17) and of the feature depths, confirms one of the step's candidates, withdraws a
+laser peak both sources chose on a wrong course, or (one clear peak over a wide window)
+gives the step's length alone.
+
+Conventions: lengths in mm; each source compared in its own mm.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from omnipipe.sfm.scale_check import FEATURE_DEPTH_SIGMA_FLOOR, PEAK_CHOSEN, wall_cylinder
+from omnipipe.sfm.step_decide import DecidedStep, RunScale, resolve_to
+from omnipipe.sfm.step_resolve import ACCEPT_SIGMAS, confirmed_candidates
+from omnipipe.sfm.types import Keyframes, SfmContext
+from omnipipe.sfm.wall_shift import (
+    SECTORS,
+    StepImages,
+    WallLength,
+    candidate_window,
+    step_wall_length,
+)
+
+
+def resolve_by_wall(
+    ctx: SfmContext,
+    kf: Keyframes,
+    decided: list[DecidedStep],
+    lengths: np.ndarray,
+    scale: RunScale,
+    counts: np.ndarray | None = None,
+) -> None:
+    """Flagged steps whose vision candidates (every laser consensus peak, the feature
+    depth length) include exactly one the wall's own shift confirms
+    (:func:`omnipipe.sfm.wall_shift.step_wall_length`: the unrolled walls of the two
+    keyframes aligned densely, a third source independent of both) and exclude the
+    others, resolved to it in place with a warning (as :func:`resolve_by_prior`). The
+    comparison is in each source's own mm; the wall reading's 1-sigma is widened by the
+    candidate's (:data:`~omnipipe.sfm.scale_check.FEATURE_DEPTH_SIGMA_FLOOR`), and two
+    of it over the step's ``counts[k]`` moving frames must stay within
+    ``adjusted_agree_mm`` a frame (a frame step off by more is wrong)."""
+    gain = math.exp(scale.offset_log)
+    unit = gain if scale.wall_anchored else 1.0  # chain length = laser length / unit
+    config = ctx.config.scale_check
+    for k, (step, ev) in enumerate(zip(decided, kf.evidence, strict=True)):
+        c = step.check
+        peak_chosen = c.confidence == "resolved" and c.reason.startswith(PEAK_CHOSEN)
+        if (c.reliable and not peak_chosen) or ev.status != "ok":
+            continue
+        # (own mm, chain units, name) of every candidate
+        cand = [(p, p / unit, "laser peak") for p in c.laser_peaks_mm if p > 0]
+        if math.isfinite(c.feature_scale_mm) and c.feature_scale_mm > 0:
+            cand.append((c.feature_scale_mm, c.feature_scale_mm * gain / unit, "feature depth"))
+        if not cand:
+            continue
+        pair: StepImages = (
+            ctx.camera,
+            (kf.grays[k], kf.grays[k + 1]),
+            (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1])),
+            ev.b_from_a,
+        )
+        window = candidate_window(_plausible([v for v, _, _ in cand], c.feature_scale_mm))
+        if peak_chosen:  # the wall may find the step far below every candidate
+            window = (VETO_REACH_DOWN * window[0], window[1])
+        reading = step_wall_length(*pair, window)
+        if not reading.measured:
+            continue
+        wall_mm = reading.length_mm
+        sigma = math.hypot(reading.sigma_mm, FEATURE_DEPTH_SIGMA_FLOOR * wall_mm)
+        if peak_chosen:
+            if not _wall_vetoes(ctx, decided, lengths, k, reading, sigma, gain):
+                continue
+            c = decided[k].check
+        moving = int(counts[k]) if counts is not None and k < len(counts) else 1
+        if 2.0 * sigma > config.adjusted_agree_mm * max(moving, 1):
+            continue
+        near = confirmed_candidates(np.array([v for v, _, _ in cand]), wall_mm, sigma, config.agree_log)
+        if near is not None:
+            names = " and ".join(sorted({cand[i][2] for i in near}))
+            resolve_to(
+                ctx, kf, decided, lengths, k, float(np.median([cand[i][1] for i in near])), scale,
+                f"the {names} length agrees with the wall's own shift {wall_mm:.1f} +- "
+                f"{sigma:.1f} mm (unrolled wall, correlation {reading.shift.ncc:.2f}), the other "
+                "candidates do not",
+                (wall_mm, ACCEPT_SIGMAS * sigma),
+            )
+        else:
+            _wall_alone(ctx, decided, lengths, k, pair, reading, unit)
+
+
+# The wall's window spans the laser peaks within this factor of the feature-depth length
+# (all of them without one): a wild peak (random-wide seed 29: 62.5 mm for a 19 mm step)
+# would widen it so far that the template left is too short to read (no peak inside).
+PLAUSIBLE_FACTOR = 2.0
+
+
+def _plausible(candidates_mm: list[float], feature_mm: float) -> list[float]:
+    """The candidate lengths (mm) the wall's window spans: with a feature-depth length
+    ``feature_mm``, those within :data:`PLAUSIBLE_FACTOR` of it; else all."""
+    if not (math.isfinite(feature_mm) and feature_mm > 0):
+        return candidates_mm
+    f = PLAUSIBLE_FACTOR
+    return [v for v in candidates_mm if feature_mm / f <= v <= feature_mm * f]
+
+
+# A laser peak chosen over the best because the feature depths agree with it
+# (scale_check.decide) is withdrawn when the wall's own shift lies further than this
+# many of its sigmas from it (a reading: no second peak above
+# wall_shift.MAX_AMBIGUITY; withdrawing only flags the step): both sources then sit on
+# one wrong course (random-wide seed 19, smooth: laser peak 10.9 and feature depths
+# 11.9 mm for 8.95 true).
+VETO_SIGMAS = 4.0
+# ... searched down to this fraction of the candidates' window (the right course may be
+# a period below all of them).
+VETO_REACH_DOWN = 0.4
+
+
+def _wall_vetoes(
+    ctx: SfmContext,
+    decided: list[DecidedStep],
+    lengths: np.ndarray,
+    k: int,
+    reading: WallLength,
+    sigma: float,
+    gain: float,
+) -> bool:
+    """Whether step k's chosen laser peak is withdrawn by the wall (see
+    :data:`VETO_SIGMAS`); if so, in place: untrusted, no length, no laser anchors."""
+    step = decided[k]
+    c = step.check
+    # The chosen peak in laser mm, and in feature-depth mm (the run's laser / feature
+    # gain removed): withdrawn only when neither agrees (random-wide seed 11: the laser
+    # runs 10 % short throughout, its right peaks 10 % below the wall).
+    if min(abs(v - reading.length_mm) for v in (c.scale_mm, c.scale_mm / gain)) <= VETO_SIGMAS * sigma:
+        return False
+    reason = (
+        f"{c.reason}; but the wall's own shift {reading.length_mm:.1f} +- {sigma:.1f} mm "
+        "(unrolled wall) disagrees"
+    )
+    ctx.warnings.append(f"frames {c.first_frame}->{c.last_frame}: {reason}")
+    decided[k] = replace(
+        step, scale_mm=math.nan, laser=None,
+        check=replace(c, scale_mm=math.nan, confidence="none", reason=reason),
+    )
+    lengths[k] = math.nan
+    return True
+
+
+# A step no candidate of which the wall confirms takes the wall's own length only when
+# its shift is the one clear peak over a wide window: every length from WALL_ALONE_BACK_MM
+# back to WALL_ALONE_REACH times its own (at least WALL_ALONE_MIN_MM), so a brick, tile or
+# corrugation period within it shows as a second peak (an alias beyond it would need a
+# true step longer than a period: no frame-to-frame method survives that); that peak at most
+# WALL_ALONE_MAX_AMBIGUITY of the best, the correlation at least WALL_ALONE_MIN_NCC and
+# every sector agreeing.
+WALL_ALONE_BACK_MM = 2.0
+WALL_ALONE_REACH = 2.5
+WALL_ALONE_MIN_MM = 20.0
+WALL_ALONE_MAX_AMBIGUITY = 0.5
+WALL_ALONE_MIN_NCC = 0.2
+
+
+def _wall_alone(
+    ctx: SfmContext,
+    decided: list[DecidedStep],
+    lengths: np.ndarray,
+    k: int,
+    pair: StepImages,
+    reading: WallLength,
+    unit: float,
+) -> None:
+    """Step k resolved to the wall's own length in place when its shift is unambiguous
+    over a wide window (the constants above), with a warning; its laser matches do not
+    anchor it (none of their lengths is right) and its matches stay (the adjustment's
+    tracks: a step it then moves is flagged by :func:`check_adjusted`)."""
+    reach = max(WALL_ALONE_REACH * reading.length_mm, WALL_ALONE_MIN_MM)
+    wide = step_wall_length(*pair, (-WALL_ALONE_BACK_MM, reach))
+    if (
+        not wide.measured
+        or wide.shift.ambiguity > WALL_ALONE_MAX_AMBIGUITY
+        or wide.shift.ncc < WALL_ALONE_MIN_NCC
+        or wide.shift.sectors < SECTORS
+        or abs(wide.length_mm - reading.length_mm) > reading.sigma_mm
+    ):
+        return
+    step = decided[k]
+    c = step.check
+    chosen = reading.length_mm / unit
+    reason = (
+        f"{c.reason}; resolved to {chosen:.1f} mm: the wall's own shift "
+        f"{reading.length_mm:.1f} +- {reading.sigma_mm:.1f} mm (unrolled wall, correlation "
+        f"{wide.shift.ncc:.2f}, no other shift within {reach:.0f} mm above "
+        f"{wide.shift.ambiguity:.2f} of it); none of the other candidates agrees"
+    )
+    ctx.warnings.append(f"frames {c.first_frame}->{c.last_frame}: {reason}")
+    decided[k] = replace(
+        step,
+        scale_mm=chosen * unit,
+        laser=None,
+        check=replace(c, scale_mm=chosen * unit, confidence="resolved", reason=reason),
+    )
+    lengths[k] = chosen
