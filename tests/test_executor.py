@@ -205,3 +205,37 @@ def test_thread_map_keeps_the_order_of_the_serial_loop() -> None:
     assert thread_map(lambda a, b: a * b, items, items[::-1], threads=3) == [a * b for a, b in zip(items, items[::-1], strict=True)]
     assert thread_map(lambda a: a + 1, items, threads=1) == [a + 1 for a in items]
     assert thread_map(lambda a: a, [], threads=2) == []
+
+
+def _length(a: np.ndarray) -> int:
+    return len(a)
+
+
+def _feeder_bytes() -> int:
+    """Bytes still allocated by the pickling of a multiprocessing queue's feeder thread."""
+    import tracemalloc
+
+    snap = tracemalloc.take_snapshot().filter_traces(
+        [tracemalloc.Filter(True, "*multiprocessing/reduction.py")]
+    )
+    return sum(s.size for s in snap.statistics("filename"))
+
+
+def test_a_pool_does_not_keep_the_last_task_pickled() -> None:
+    """The feeder thread's last pickle (a task's 8 MB array) is not held after the map."""
+    import tracemalloc
+
+    big = np.arange(1 << 20, dtype=np.float64)  # 8 MB
+    tracemalloc.start(1)
+    try:
+        with open_executor(workers=2) as pool:
+            assert list(ordered_map(pool, _length, [big, big])) == [len(big)] * 2
+            held = _feeder_bytes()
+            for _ in range(200):  # the empty task is pickled by the feeder thread
+                if held < 1 << 20:
+                    break
+                time.sleep(0.01)
+                held = _feeder_bytes()
+    finally:
+        tracemalloc.stop()
+    assert held < 1 << 20, f"{held / 1e6:.1f} MB of pickled tasks still held"

@@ -474,6 +474,27 @@ def ordered_map(
     finally:
         for future in pending:
             future.cancel()
+    forget_last_task(executor)
+
+
+def _nothing() -> None:
+    """The task :func:`forget_last_task` sends (it does nothing)."""
+
+
+def forget_last_task(executor: Executor) -> None:
+    """Let a local pool's queue drop the last task it sent (no effect on other executors).
+
+    The pool's queue pickles each task in a feeder thread of this process, which keeps
+    the last task's pickle (its local variable) until it sends the next: after a stage
+    whose tasks carry large arrays (the defect search's wall samples: 16 MB at 10,000
+    frames) that pickle stayed resident until the next stage sent something. An empty
+    task sent now takes its place.
+    """
+    if isinstance(executor, ProcessPoolExecutor):
+        try:
+            executor.submit(_nothing)
+        except RuntimeError:  # shut down (or broken) meanwhile: nothing to send
+            pass
 
 
 def chunks(n: int, executor: Executor, *, per_worker: int = 4, most: int = 16) -> list[range]:
