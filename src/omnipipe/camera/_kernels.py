@@ -76,12 +76,74 @@ def project_point(kind, params, x, y, z):  # pragma: no cover - compiled
     return np.nan, np.nan, False
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def project_block(kind, params, x, y, z, shift, n, col, row, valid):  # pragma: no cover - compiled
+    """:func:`project_point` of the ``n`` points (``x[i] + shift[0]``, ``y[i] + shift[1]``,
+    ``z[i] + shift[2]``) into ``col``, ``row`` (NaN where not seen) and ``valid``, bit for
+    bit (``shift``: a tuple of 3 floats).
+
+    For the hyperboloid, the arithmetic of :func:`hyperboloid_point` in one loop without
+    branches (every step computed, validity as a mask), which the compiler vectorises:
+    a block of points costs a fifth of point-by-point projection. The rare points whose
+    radius lies within 1e-9 of a valid-annulus radius (where ``hypot`` decides) are then
+    projected again by :func:`hyperboloid_point` (with the rest of their block). Other
+    kinds: point by point.
+    """
+    if kind != HYPERBOLOID:
+        for i in range(n):
+            col[i], row[i], valid[i] = project_point(
+                kind, params, x[i] + shift[0], y[i] + shift[1], z[i] + shift[2]
+            )
+        return
+    a, b, c, f, cx, cy = params[0], params[1], params[2], params[3], params[4], params[5]
+    width, height, radius_min, radius_max = params[6], params[7], params[8], params[9]
+    aa = a * a
+    c2 = 2.0 * c
+    b_over_c = b / c
+    col_max = width - 0.5
+    row_max = height - 0.5
+    tol_min = 1e-9 * (1.0 + radius_min)
+    tol_max = 1e-9 * (1.0 + radius_max)
+    s0, s1, s2 = shift[0], shift[1], shift[2]
+    n_near = 0
+    for i in range(n):
+        xi, yi, zi = x[i] + s0, y[i] + s1, z[i] + s2
+        norm = math.sqrt(xi * xi + yi * yi + zi * zi)
+        dx, dy, dz = xi / norm, yi / norm, zi / norm
+        t = aa / (b - c * dz)
+        mz = t * dz + c2
+        ci = f * t * dx / mz + cx
+        ri = f * t * dy / mz + cy
+        du, dv = ci - cx, ri - cy
+        r = math.sqrt(du * du + dv * dv)
+        seen = (norm > 0) & (dz < b_over_c) & (mz > 0)
+        inside = seen & (ci >= -0.5) & (ci <= col_max) & (ri >= -0.5) & (ri <= row_max)
+        near = inside & ((abs(r - radius_min) <= tol_min) | (abs(r - radius_max) <= tol_max))
+        n_near += near
+        valid[i] = inside & (r >= radius_min) & (r <= radius_max)
+        col[i] = ci if seen else np.nan
+        row[i] = ri if seen else np.nan
+    if n_near:  # rare: the whole block again, point by point
+        for i in range(n):
+            col[i], row[i], valid[i] = hyperboloid_point(
+                x[i] + s0, y[i] + s1, z[i] + s2, a, b, c, f, cx, cy, width, height, radius_min, radius_max
+            )
+
+
 @numba.njit(cache=True, error_model="numpy")
 def project_points(pts, kind, params, pixels, valid):  # pragma: no cover - compiled
-    """(N, 3) points into (N, 2) ``pixels`` and (N,) ``valid``, one :func:`project_point`
-    per point."""
-    for i in range(pts.shape[0]):
-        col, row, ok = project_point(kind, params, pts[i, 0], pts[i, 1], pts[i, 2])
-        pixels[i, 0] = col
-        pixels[i, 1] = row
-        valid[i] = ok
+    """(N, 3) points into (N, 2) ``pixels`` and (N,) ``valid``: :func:`project_point` of
+    each, bit for bit, 256 points at a time through :func:`project_block`."""
+    block = 256
+    x, y, z = np.empty(block), np.empty(block), np.empty(block)
+    col, row = np.empty(block), np.empty(block)
+    ok = np.empty(block, np.bool_)
+    for lo in range(0, pts.shape[0], block):
+        m = min(block, pts.shape[0] - lo)
+        for i in range(m):
+            x[i], y[i], z[i] = pts[lo + i, 0], pts[lo + i, 1], pts[lo + i, 2]
+        project_block(kind, params, x, y, z, (0.0, 0.0, 0.0), m, col, row, ok)
+        for i in range(m):
+            pixels[lo + i, 0] = col[i]
+            pixels[lo + i, 1] = row[i]
+            valid[lo + i] = ok[i]

@@ -19,7 +19,7 @@ import math
 import numba
 import numpy as np
 
-from omnipipe.camera._kernels import project_point
+from omnipipe.camera._kernels import project_block, project_point
 
 STEP_RAD = 0.05
 """The largest turn of the ray (rad) over a cell's step that :func:`_bound` bounds."""
@@ -94,11 +94,13 @@ def _bound(p, su, sz, m, mag, mm_per_px):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, error_model="numpy")
-def score_strip(
+def score_strip_by_cell(
     rig_from_world, spans, order, mag, kind, params, p, step_u, step_z, normal, plane, bands,
     mm_per_px, centre, best, best_score, best_px, best_light,
 ):  # pragma: no cover - compiled
-    """Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
+    """:func:`score_strip` cell by cell (its reference in the tests).
+
+    Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
     is better than ``best_score`` (equal: the earlier keyframe wins), ``best``,
     ``best_score``, ``best_px`` and ``best_light`` (log2 of cos(incidence) / range^2 and
     the pixel's distance from ``centre``) are updated in place. The keyframes are taken
@@ -138,3 +140,173 @@ def score_strip(
             cos_i = abs(nx * qx + ny * qy + nz * qz) / dist
             best_light[i, 0] = math.log2(max(cos_i, 1e-6) / (dist * dist))
             best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)
+
+
+BLOCK = 32
+"""Cells :func:`score_strip` bounds and projects as one block."""
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _block_geometry(p, step_u, step_z, n):  # pragma: no cover - compiled
+    """Per :data:`BLOCK` of the (n, 3) cells ``p``: (B, 3) centre, (B,) radius (the
+    farthest cell from it) and (B, 2) the longest steps along the rows and columns (mm)."""
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    centre = np.zeros((n_blocks, 3))
+    radius = np.zeros(n_blocks)
+    steps = np.zeros((n_blocks, 2))
+    for b in range(n_blocks):
+        lo, hi = b * BLOCK, min(b * BLOCK + BLOCK, n)
+        for i in range(lo, hi):
+            for a in range(3):
+                centre[b, a] += p[i, a]
+        for a in range(3):
+            centre[b, a] /= hi - lo
+        for i in range(lo, hi):
+            dx, dy, dz = p[i, 0] - centre[b, 0], p[i, 1] - centre[b, 1], p[i, 2] - centre[b, 2]
+            radius[b] = max(radius[b], math.sqrt(dx * dx + dy * dy + dz * dz))
+            su = math.sqrt(step_u[i, 0] ** 2 + step_u[i, 1] ** 2 + step_u[i, 2] ** 2)
+            sz = math.sqrt(step_z[i, 0] ** 2 + step_z[i, 1] ** 2 + step_z[i, 2] ** 2)
+            steps[b, 0] = max(steps[b, 0], su)
+            steps[b, 1] = max(steps[b, 1], sz)
+    return centre, radius, steps
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _block_bound(m, centre, radius, steps, mag, mm_per_px):  # pragma: no cover - compiled
+    """An upper bound of :func:`_bound` over the cells of one block (``centre`` (3,),
+    ``radius``, ``steps`` (2,): :func:`_block_geometry`'s) seen from ``m``: each cell is
+    at least ``|centre| - radius`` away, its steps are at most the block's, its elevation
+    within asin(radius / |centre|) of the centre's, and :func:`_bound` falls with the
+    distance and rises with the steps (1e-6 to spare for rounding). inf where a cell's
+    bound may be inf."""
+    rx, ry, rz = _rotate(m, centre[0], centre[1], centre[2])
+    qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+    dc = math.sqrt(qx * qx + qy * qy + qz * qz)
+    d = dc - radius * (1.0 + 1e-9) - 1e-9
+    lu, lz = steps[0], steps[1]
+    if not (lu < STEP_RAD * (d - lu) and lz < STEP_RAD * (d - lz)):
+        return math.inf
+    top = mag[0] if len(mag) == 1 else 0.0
+    if len(mag) > 1:
+        elev = math.asin(min(max(qz / dc, -1.0), 1.0))
+        spread = math.asin(min(radius / dc, 1.0)) + 1e-9
+        j0 = min(max(int((elev - spread + 0.5 * math.pi) / MAG_BIN_RAD) - 1, 0), len(mag) - 1)
+        j1 = min(max(int((elev + spread + 0.5 * math.pi) / MAG_BIN_RAD) + 1, 0), len(mag) - 1)
+        for j in range(j0, j1 + 1):
+            top = max(top, mag[j])
+    return top * math.sqrt(lu * lz / ((d - lu) * (d - lz))) / mm_per_px / max(d * d, 1e-6) * (1.0 + 1e-6)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _laser_band_hit(m, kind, params, p, plane, bands, col, row):  # pragma: no cover - compiled
+    """True where the cell ``p`` seen from ``m`` (at ``col``, ``row``) lies in the laser's
+    bands: :func:`_score_cell`'s test, in its operations."""
+    rx, ry, rz = _rotate(m, p[0], p[1], p[2])
+    qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+    side = qx * plane[0] + qy * plane[1] + qz * plane[2] + plane[3]
+    if not abs(side) > bands[0]:
+        return True
+    if bands[1] > 0 and abs(plane[2]) >= 1e-6:
+        lc, lr, lok = project_point(kind, params, qx, qy, qz - side / plane[2])
+        d = math.sqrt((lc - col) ** 2 + (lr - row) ** 2)
+        if lok and math.isfinite(d) and not d > bands[1]:
+            return True
+    return False
+
+
+@numba.njit(cache=True, error_model="numpy")
+def score_strip(
+    rig_from_world, spans, order, mag, kind, params, p, step_u, step_z, normal, plane, bands,
+    mm_per_px, centre, best, best_score, best_px, best_light,
+):  # pragma: no cover - compiled
+    """Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
+    is better than ``best_score`` (equal: the earlier keyframe wins), ``best``,
+    ``best_score``, ``best_px`` and ``best_light`` (log2 of cos(incidence) / range^2 and
+    the pixel's distance from ``centre``) are updated in place. The keyframes are taken
+    in ``order`` (near ones first: a good view found early lets :func:`_bound` skip the
+    views that cannot beat it; the result does not depend on the order).
+
+    Bit for bit :func:`score_strip_by_cell`, :data:`BLOCK` cells at a time: the cells
+    :func:`_bound` does not skip, their points and their two steps projected as blocks
+    (:func:`~omnipipe.camera._kernels.project_block`); the laser band's test only for a
+    view that would win (a cell in the band scores 0, which wins nothing).
+
+    Args:
+        rig_from_world: (K, 4, 4) inverse keyframe poses (mm).
+        spans: (K, 2) int64 cell ranges each keyframe scores.
+        order: (K,) int64 the keyframes in the order they are scored.
+        mag: (N,) the camera's largest px per radian by elevation (:func:`_bound`;
+            [inf]: no view skipped).
+        kind, params: the camera's compiled projection.
+        p, step_u, step_z, normal: (n, 3) cells' world points, their steps along the rows
+            and columns (mm) and unit wall normals.
+        plane: (4,) laser plane (normal in the rig frame, offset mm).
+        bands: (2,) the laser band (mm from the plane, px from its line's image).
+        mm_per_px: the cell size (mm).
+        centre: (2,) principal point (px).
+    """
+    cand = np.empty(BLOCK, np.int64)
+    q = np.empty((3, BLOCK))
+    u = np.empty((3, BLOCK))
+    z = np.empty((3, BLOCK))
+    cols = np.empty((3, BLOCK))
+    rows = np.empty((3, BLOCK))
+    seen = np.empty((3, BLOCK), np.bool_)
+    no_shift = (0.0, 0.0, 0.0)
+    b_centre, b_radius, b_steps = _block_geometry(p, step_u, step_z, len(p))
+    for k in order:
+        m = rig_from_world[k]
+        for b in range(spans[k, 0] // BLOCK, (spans[k, 1] + BLOCK - 1) // BLOCK):
+            lo, hi = max(b * BLOCK, spans[k, 0]), min(b * BLOCK + BLOCK, spans[k, 1])
+            # The whole block skipped when no cell of it can win (the cells' own
+            # bounds would skip each: the same choice).
+            worst = math.inf
+            for i in range(lo, hi):
+                worst = min(worst, best_score[i] if best[i] >= 0 else -1.0)
+            if worst > 0 and _block_bound(m, b_centre[b], b_radius[b], b_steps[b], mag, mm_per_px) < worst:
+                continue
+            n = 0
+            for i in range(lo, hi):
+                if best[i] >= 0 and _bound(p[i], step_u[i], step_z[i], m, mag, mm_per_px) < best_score[i]:
+                    continue
+                cand[n] = i
+                n += 1
+            if n == 0:
+                continue
+            for c in range(n):
+                i = cand[c]
+                rx, ry, rz = _rotate(m, p[i, 0], p[i, 1], p[i, 2])
+                qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+                q[0, c], q[1, c], q[2, c] = qx, qy, qz
+                ux, uy, uz = _rotate(m, step_u[i, 0], step_u[i, 1], step_u[i, 2])
+                u[0, c], u[1, c], u[2, c] = qx + ux, qy + uy, qz + uz
+                zx, zy, zz = _rotate(m, step_z[i, 0], step_z[i, 1], step_z[i, 2])
+                z[0, c], z[1, c], z[2, c] = qx + zx, qy + zy, qz + zz
+            project_block(kind, params, q[0], q[1], q[2], no_shift, n, cols[0], rows[0], seen[0])
+            project_block(kind, params, u[0], u[1], u[2], no_shift, n, cols[1], rows[1], seen[1])
+            project_block(kind, params, z[0], z[1], z[2], no_shift, n, cols[2], rows[2], seen[2])
+            for c in range(n):
+                if not seen[0, c]:
+                    continue
+                i = cand[c]
+                col, row = cols[0, c], rows[0, c]
+                qx, qy, qz = q[0, c], q[1, c], q[2, c]
+                a0, a1 = cols[1, c] - col, rows[1, c] - row
+                b0, b1 = cols[2, c] - col, rows[2, c] - row
+                dist2 = max(qx * qx + qy * qy + qz * qz, 1e-6)
+                score = math.sqrt(abs(a0 * b1 - a1 * b0)) / mm_per_px / dist2
+                if not math.isfinite(score):
+                    continue
+                if not (score > best_score[i] or (score == best_score[i] and score > 0 and k < best[i])):
+                    continue
+                if _laser_band_hit(m, kind, params, p[i], plane, bands, col, row):
+                    continue
+                best[i] = k
+                best_score[i] = score
+                best_px[i, 0] = col
+                best_px[i, 1] = row
+                dist = math.sqrt(max(qx * qx + qy * qy + qz * qz, 1e-6))
+                nx, ny, nz = _rotate(m, normal[i, 0], normal[i, 1], normal[i, 2])
+                cos_i = abs(nx * qx + ny * qy + nz * qz) / dist
+                best_light[i, 0] = math.log2(max(cos_i, 1e-6) / (dist * dist))
+                best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)

@@ -2,12 +2,17 @@
 
 :func:`schur_blocks`: the reduced camera system's point terms, point by point
 (:mod:`omnipipe.sfm.schur`).
+
+:func:`candidate_maps`: Eq. (17)'s candidate pixels, a template's samples projected in
+one block per candidate length (:mod:`omnipipe.sfm.laser_scale`).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from omnipipe.camera._kernels import project_block
 
 
 @numba.njit(cache=True, nogil=True)
@@ -49,3 +54,43 @@ def schur_blocks(indptr, indices, data, vinv, gp, n_pose):  # pragma: no cover -
         for a in range(nr):
             slot[rows[a]] = -1
     return S, b
+
+
+@numba.njit(cache=True, error_model="numpy")
+def candidate_maps(
+    plane, scales, direction, kind, params, with_sheet, normal, offset, step, half, weight,
+    outside, map_x, map_y, w,
+):  # pragma: no cover - compiled
+    """The pixels (float32 remap maps, ``outside`` where not valid) and, with the sheet,
+    the weights ``w`` (N, S, K) of Eq. (17)'s candidates: template sample k of point n
+    (``plane`` (N, K, 3), rig b, mm) moved by ``scales[n, s]`` (N, S) along ``direction``
+    (3,), projected by the compiled camera (``kind``, ``params``); a weight is
+    ``weight[n, k]`` where the moved sample lies farther than ``half[n]`` samples of
+    ``step[n]`` mm from the laser sheet (``normal`` . x + ``offset`` = 0), else 0.
+
+    Bit for bit :func:`omnipipe.sfm.laser_scale._candidate_maps` (the point-by-point
+    reference), the K samples of a candidate projected as one block
+    (:func:`~omnipipe.camera._kernels.project_block`).
+    """
+    n_pts, k_len = plane.shape[0], plane.shape[1]
+    n_s = scales.shape[1]
+    px, py, pz = np.empty(k_len), np.empty(k_len), np.empty(k_len)
+    col, row = np.empty(k_len), np.empty(k_len)
+    valid = np.empty(k_len, np.bool_)
+    for i in range(n_pts):
+        for k in range(k_len):
+            px[k], py[k], pz[k] = plane[i, k, 0], plane[i, k, 1], plane[i, k, 2]
+        for j in range(n_s):
+            s0 = scales[i, j] * direction[0]
+            s1 = scales[i, j] * direction[1]
+            s2 = scales[i, j] * direction[2]
+            project_block(kind, params, px, py, pz, (s0, s1, s2), k_len, col, row, valid)
+            base = (i * n_s + j) * k_len
+            for k in range(k_len):
+                map_x[base + k] = col[k] if valid[k] else outside
+                map_y[base + k] = row[k] if valid[k] else outside
+            if with_sheet:
+                for k in range(k_len):
+                    along = (px[k] + s0) * normal[0] + (py[k] + s1) * normal[1] + (pz[k] + s2) * normal[2]
+                    rows = abs(along + offset) / step[i]
+                    w[i, j, k] = weight[i, k] * (1.0 if rows > half[i] else 0.0)

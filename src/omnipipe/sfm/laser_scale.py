@@ -26,6 +26,7 @@ from omnipipe.camera._kernels import project_point
 from omnipipe.camera.base import CompiledProjection
 from omnipipe.config import bounded
 from omnipipe.image import sample_bilinear
+from omnipipe.sfm._kernels import candidate_maps
 
 
 @dataclass(frozen=True)
@@ -331,8 +332,8 @@ def _candidate_patches(
     with_sheet = sheet_n is not None
     w = np.empty((n_pts, n_s, k_len)) if with_sheet else np.empty((0, 0, 0))
     normal = np.asarray(sheet_n if with_sheet else np.zeros(3), float)
-    _candidate_maps(
-        plane_b0, scales, direction, projection.kind, projection.params, with_sheet, normal, float(sheet_o), step, half, weight, map_x, map_y, w,
+    candidate_maps(  # bit for bit _candidate_maps (the reference), a candidate's samples as a block
+        plane_b0, scales, direction, projection.kind, projection.params, with_sheet, normal, float(sheet_o), step, half, weight, _OUTSIDE, map_x, map_y, w,
     )
     fill = np.nan if gray_b.dtype.kind == "f" else 0
     out = cv2.remap(
