@@ -160,15 +160,16 @@ def test_sift_at_full_size_is_opencvs_detection() -> None:
 
 def test_detection_scale_keeps_small_views_at_full_size() -> None:
     """Half size where the half view's shorter side keeps ``detect_min_side_px`` (the
-    1600x1200 views, 335x484 px); full size for 640x480's (131x189 px) and when off."""
+    1600x1200 views, 335x484 px); full size for other-rig's (285x398 px), 640x480's
+    (131x189 px) and when off."""
     from omnipipe.sfm.features import FeatureConfig, detection_scale
 
     cfg = FeatureConfig()
-    assert cfg.detect_scale == 0.5 and cfg.detect_min_side_px == 128
+    assert cfg.detect_scale == 0.5 and cfg.detect_min_side_px == 160
     assert detection_scale(cfg, 335, 484) == 0.5
-    assert detection_scale(cfg, 285, 398) == 0.5
-    assert detection_scale(cfg, 256, 300) == 0.5
-    assert detection_scale(cfg, 255, 300) == 1.0
+    assert detection_scale(cfg, 320, 400) == 0.5
+    assert detection_scale(cfg, 319, 400) == 1.0
+    assert detection_scale(cfg, 285, 398) == 1.0
     assert detection_scale(cfg, 131, 189) == 1.0
     assert detection_scale(FeatureConfig(detect_scale=1.0), 335, 484) == 1.0
-    assert detection_scale(FeatureConfig(detect_min_side_px=200), 335, 484) == 1.0
+    assert detection_scale(FeatureConfig(detect_min_side_px=100), 285, 398) == 0.5
