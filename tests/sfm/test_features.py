@@ -113,3 +113,63 @@ def test_guided_matching_keeps_each_feature_in_its_own_period() -> None:
     f2.descriptors[:] = 0
     assert len(guided_matches(f1, f2, np.arange(36), predicted, radius_rad=0.04)) == 0
     assert len(match_features(f1, f2)) == 0
+
+
+def test_sift_on_a_reduced_view_reports_keypoints_in_the_views_pixels() -> None:
+    """``detect_scale`` 0.5: SIFT on the half-size view, keypoints back in the view's
+    pixels: each blob found where it is (within 0.25 px; OpenCV's own full-size
+    keypoints lie a quarter pixel off), at the size found on the full view."""
+    from omnipipe.sfm.features import _sift_view
+
+    rng = np.random.default_rng(11)
+    h, w = 200, 260
+    yy, xx = np.mgrid[0:h, 0:w]
+    centres = np.array([[x, y] for x in range(40, 240, 50) for y in range(40, 180, 50)], float)
+    centres += rng.uniform(-3, 3, centres.shape)
+    img = np.full((h, w), 40.0)
+    for cx, cy in centres:
+        img += 180.0 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 5.0**2))
+    img = img.clip(0, 255).astype(np.uint8)
+    mask = np.full((h, w), 255, np.uint8)
+    sift = cv2.SIFT_create(nfeatures=500, contrastThreshold=0.01)
+    sizes = {}
+    for scale, tol in ((1.0, 0.45), (0.5, 0.25)):
+        kps, desc = _sift_view(sift, img, mask, scale)
+        assert desc is not None and len(desc) == len(kps)
+        pts = np.array([kp.pt for kp in kps])
+        near = np.linalg.norm(pts[:, None] - centres[None], axis=2)
+        assert np.all(near.min(axis=0) < tol), (scale, near.min(axis=0))
+        sizes[scale] = np.median([kps[i].size for i in near.argmin(axis=0)])
+    assert abs(sizes[0.5] / sizes[1.0] - 1.0) < 0.2
+
+
+def test_sift_at_full_size_is_opencvs_detection() -> None:
+    """At scale 1 (small views) the detection is OpenCV's on the view as it is."""
+    from omnipipe.sfm.features import _sift_view
+
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (120, 90), dtype=np.uint8), (0, 0), 2.0)
+    mask = np.full(img.shape, 255, np.uint8)
+    mask[:, :20] = 0
+    sift = cv2.SIFT_create(nfeatures=200, contrastThreshold=0.01)
+    ka, da = sift.detectAndCompute(img, mask)
+    kb, db = _sift_view(sift, img, mask, 1.0)
+    assert len(ka) > 10
+    assert [k.pt for k in ka] == [k.pt for k in kb] and np.array_equal(da, db)
+
+
+def test_detection_scale_keeps_small_views_at_full_size() -> None:
+    """Half size where the half view's shorter side keeps ``detect_min_side_px`` (the
+    1600x1200 views, 335x484 px); full size for other-rig's (285x398 px), 640x480's
+    (131x189 px) and when off."""
+    from omnipipe.sfm.features import FeatureConfig, detection_scale
+
+    cfg = FeatureConfig()
+    assert cfg.detect_scale == 0.5 and cfg.detect_min_side_px == 160
+    assert detection_scale(cfg, 335, 484) == 0.5
+    assert detection_scale(cfg, 320, 400) == 0.5
+    assert detection_scale(cfg, 319, 400) == 1.0
+    assert detection_scale(cfg, 285, 398) == 1.0
+    assert detection_scale(cfg, 131, 189) == 1.0
+    assert detection_scale(FeatureConfig(detect_scale=1.0), 335, 484) == 1.0
+    assert detection_scale(FeatureConfig(detect_min_side_px=100), 285, 398) == 0.5
