@@ -36,7 +36,12 @@ def scratch_folder(prefix: str) -> tempfile.TemporaryDirectory[str]:
     """A new private temporary folder (removed by its ``cleanup``) in the run's scratch
     folder (:func:`scratch_beside`), else in the system's temporary folder."""
     base = _base.get()
-    return tempfile.TemporaryDirectory(prefix=prefix, dir=None if base is None else str(base))
+    # A store closed while a run unwinds from an error may still see a dying worker's
+    # last file appear: its removal then leaves the rest to scratch_beside's final sweep
+    # (after the pool is gone) rather than replacing the run's error with its own.
+    return tempfile.TemporaryDirectory(
+        prefix=prefix, dir=None if base is None else str(base), ignore_cleanup_errors=True
+    )
 
 
 def scratch_dir() -> str | None:
