@@ -49,7 +49,7 @@ from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
-from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps, rotation_linked
+from omnipipe.sfm.robot_sensors import gravity_world, odometry_creeps, odometry_steps, rotation_linked
 from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
 from omnipipe.sfm.stations import (
     flow_hidden_steps,
@@ -146,6 +146,8 @@ def run(
         None if with_odometry else ratio,
         lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
     )
+    if with_odometry:
+        _add_creeps(result, inputs)
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
     return result
@@ -178,6 +180,21 @@ def _adjusted_and_checked(
             checks, adjusted.world_from_kf, moving_counts(moved, kf.frames), config.scale_check, ctx.warnings
         )
     return adjusted, replace(chain, checks=checks)
+
+
+def _add_creeps(result: SfmResult, inputs: SfmInputs) -> None:
+    """Stations whose frames the odometry counted creeping (it moves a frame only from
+    1 mm on: :func:`omnipipe.sfm.robot_sensors.odometry_creeps`), flagged."""
+    if inputs.odometry is None or inputs.timestamps is None:
+        return
+    creeps = [
+        UnreliableStretch(
+            a, b, f"the odometry counted {mm:.1f} mm at a frame taken for standing: it may have crept"
+        )
+        for a, b, mm in odometry_creeps(inputs.odometry, inputs.timestamps, ~result.stationary)
+    ]
+    if creeps:
+        result.unreliable = merge_stretches(list(result.unreliable) + creeps)
 
 
 def _station_ratio(inputs: SfmInputs) -> np.ndarray:

@@ -113,7 +113,8 @@ def contradict_trusted(
     course on seed 22 -0.87; taking the pace's length made them 4.5 mm wrong."""
     trusted = np.array([d.check.reliable for d in decided], bool) & np.isfinite(lengths)
     for k in np.flatnonzero(trusted):
-        why = odometry_contradicts(odometry, int(k), float(lengths[k]))
+        weak = decided[k].check.feature_matches < TRACKED_MIN_MATCHES
+        why = odometry_contradicts(odometry, int(k), float(lengths[k]), weak)
         if not why:
             continue
         step = decided[k]
