@@ -245,3 +245,15 @@ def bridge_lost_steps(
             step = np.eye(4)
             step[:3, 3] = direction * lengths[k]
             steps_b_from_a[k] = step
+            if checks[k].bridged_from:
+                # Only the length is known (random-wide plain walls with odometry, e.g.
+                # seed 34s: ATE 2.0 mm, 1.2 / 1.6 mm across the axis, 0.4 mm along it).
+                checks[k] = replace(checks[k], reason=f"{checks[k].reason}{LOST_DIRECTION}")
+
+
+# Said of a step without relative motion whose length was bridged: its direction and
+# rotation are assumed, not measured.
+LOST_DIRECTION = (
+    " (its direction assumed along the robot's travel, its rotation zero: the rig's "
+    "sideways shift and turn there are not measured)"
+)
