@@ -191,12 +191,18 @@ def test_bridged_step_from_odometry_covers_the_truth() -> None:
     assert abs(est - truth[9]) <= 2 * sig
 
 
-def test_run_ending_mid_stroke_on_stationary_frames_closes_on_the_last_moving_frame() -> None:
+@pytest.mark.parametrize("with_odometry", [False, True])
+def test_run_ending_mid_stroke_on_stationary_frames_closes_on_the_last_moving_frame(with_odometry: bool) -> None:
     """The robot stops after 4 moving frames (frame 4 too little parallax after keyframe
     3 to be a keyframe by itself) and stands for 3 frames: the last *moving* frame is
     the closing keyframe (sfm.keyframes.KeyframeLoop.finish), the stationary frames
     share its pose, and no stretch is left unresected (without the closing keyframe:
-    2 keyframes, no adjustment, frame 4 placed by the gait, flagged, ATE 3.7 mm)."""
+    2 keyframes, no adjustment, frame 4 placed by the gait, flagged, ATE 3.7 mm).
+    With the robot's odometry too: the wall has texture there (random-wide seed 1s, a
+    963 mm pipe whose 28 mm never made a second keyframe: every frame was left to the
+    odometry and flagged "frame could not be resected")."""
+    from omnipipe.inputs.sensors import make_odometry
+
     scenario = make_scenario("paper", frames=40, size=(400, 300), seed=1)  # 8 rendered
     renderer, poses, _, moving = build_renderer(scenario)
     assert np.all(moving[1:5])  # the first stroke's first four frames move
@@ -207,7 +213,14 @@ def test_run_ending_mid_stroke_on_stationary_frames_closes_on_the_last_moving_fr
             irradiance = renderer.irradiance(poses[i], seed=50 + i)[0]
         frames.append(renderer.expose(irradiance, seed=50 + j))  # new sensor noise
     rings = laser_run(LaserConfig(), scenario.rig, frames)
-    res = sfm_run(SfmConfig(), SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings))
+    inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
+    if with_odometry:  # 2 % slip, 0.1 mm counts, read at the frames' times
+        times = np.arange(len(idx)) * 0.25
+        travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[idx][:, :3, 3], axis=0), axis=1))])
+        counted = np.round(travel * 1.02, 1)
+        odo = make_odometry("test", times, counted, np.hypot(0.03 * counted, 0.03), str)
+        inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings, timestamps=times, odometry=odo)
+    res = sfm_run(SfmConfig(), inputs)
     assert res.keyframe[4] and not res.keyframe[5:].any()
     assert res.registered.all()
     assert not [u for u in res.unreliable if "resected" in u.reason]

@@ -170,3 +170,52 @@ def test_calibrated_odometry_covers_lost_steps_and_owns_its_noise() -> None:
             assert (z_arr <= 2).mean() >= 0.75 and (z_arr <= 2).mean() > (np.array(z_flat) <= 2).mean() + 0.15
         else:
             assert (z_arr <= 2).mean() >= 0.9 and z_arr.max() <= 3.0, z_arr.round(2)
+
+
+def test_creeps_at_frames_taken_for_standing_are_flagged_from_the_odometry() -> None:
+    """8 simulated gaits whose strokes begin and end with a 0.5 mm creep (under the
+    odometry's 1 mm moved bar; at 757 mm and 640x480 a fraction of a pixel, random-wide
+    seed 3s): with the creeps taken for standing, every station holding one is flagged;
+    with them seen moving (only truly standing frames left), >= 95 % of the stations
+    are not (the odometry's lag at a stop is inside its noise)."""
+    from omnipipe.sfm.robot_sensors import odometry_creeps
+
+    missed = flagged_standing = standing_stations = 0
+    for seed in range(8):
+        times, travel, odo = _simulated_odometry(30 + seed, slip=0.03)
+        inc = np.diff(travel)
+        taken = np.concatenate([[True], inc > 0.8])  # the creeps taken for standing
+        found = {a for a, _, _ in odometry_creeps(odo, times, taken)}
+        starts = np.flatnonzero(taken)
+        for j, f in enumerate(starts):
+            end = starts[j + 1] if j + 1 < len(starts) else len(taken)
+            crept = (inc[f:end - 1] > 0.1).any()
+            missed += int(crept and f not in found)
+        seen = np.concatenate([[True], inc > 0.1])  # every creep seen: standing frames only
+        standing = [f for f in np.flatnonzero(seen) if f + 1 < len(seen) and not seen[f + 1]]
+        standing_stations += len(standing)
+        flagged_standing += len({a for a, _, _ in odometry_creeps(odo, times, seen)} & set(standing))
+    assert missed == 0
+    assert standing_stations > 30 and flagged_standing <= 0.05 * standing_stations
+
+
+def test_odometry_contradicts_a_weak_step_beyond_two_sigma_not_a_strong_one() -> None:
+    """A step measured from a few dozen feature matches (a plain wall) 9 % short,
+    random-wide seed 25s's 9.4 mm for 10.3: under the wrong-course bar (25 %), but
+    3 sigma of the odometry: contradicted when weak, not when strong; a weak step
+    within 1 sigma is not."""
+    from omnipipe.inputs.sensors import make_odometry
+    from omnipipe.sfm.robot_sensors import odometry_contradicts, odometry_steps
+
+    rng = np.random.default_rng(5)
+    truth = np.array([12.1, 9.1, 10.3, 10.1])
+    frames = list(range(len(truth) + 1))
+    times = np.arange(len(frames)) * 1.0
+    counted = np.concatenate([[0.0], np.cumsum(truth)]) * 1.01 + rng.normal(0, 0.05, len(frames))
+    odo = make_odometry("test", times, np.maximum.accumulate(counted), np.hypot(0.03 * counted, 0.05), str)
+    steps = odometry_steps(odo, times, frames)
+    assert not steps.calibrated  # four steps: the stated sigma alone
+    short = truth[2] * 0.91
+    assert odometry_contradicts(steps, 2, short, weak=True)
+    assert not odometry_contradicts(steps, 2, short, weak=False)
+    assert not odometry_contradicts(steps, 2, truth[2] * 0.99, weak=True)

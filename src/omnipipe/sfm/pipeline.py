@@ -49,7 +49,12 @@ from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
-from omnipipe.sfm.robot_sensors import gravity_world, odometry_creeps, odometry_steps, rotation_linked
+from omnipipe.sfm.robot_sensors import (
+    gravity_world,
+    odometry_creeps,
+    odometry_steps,
+    rotation_linked,
+)
 from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
 from omnipipe.sfm.stations import (
     flow_hidden_steps,
