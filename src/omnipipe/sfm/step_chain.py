@@ -89,11 +89,9 @@ def chain_steps(
     )
     if counts is not None:
         confirm_by_gait(ctx, decided, lengths, counts, kf.evidence)
-    if odometry is None:
-        # Measured without odometry only (40 random-wide seeds: 0 silent); with odometry it
-        # trusted creeps of 1-2 mm as rest on a plain wall (seed 25s: 4 silent frame steps),
-        # and there a flagged step is bridged by the odometry with its sigma anyway.
-        resolve_by_wall(ctx, kf, decided, lengths, scale, counts)
+    # With odometry, only where it agrees with the wall's reading (alone, the wall took
+    # creeps of 1-2 mm for rest on a plain wall: seed 25s, 4 silent frame steps).
+    resolve_by_wall(ctx, kf, decided, lengths, scale, counts, odometry)
     checks = [d.check for d in decided]
     if odometry is not None:
         trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
