@@ -183,3 +183,26 @@ def test_the_wall_withdraws_a_laser_peak_chosen_on_the_wrong_course(small_camera
 def test_the_window_spans_the_candidates() -> None:
     assert candidate_window([4.0, math.nan, 10.0, -1.0]) == (2.0, 16.0)
     assert all(math.isnan(v) for v in candidate_window([]))
+
+
+@pytest.mark.parametrize(("counted_mm", "resolved"), [(5.1, True), (8.0, False)])
+def test_with_odometry_the_wall_resolves_only_what_the_odometry_confirms(
+    small_camera: OmniCamera, counted_mm: float, resolved: bool
+) -> None:
+    """The alias step above with the robot's odometry: counting 5.1 mm (2 % slip) it
+    confirms the wall's 5 mm, which resolves the step; counting 8 mm (a reading 10
+    sigma off the wall's) nothing is resolved: the step stays flagged (and is bridged)."""
+    from omnipipe.inputs.sensors import make_odometry
+    from omnipipe.sfm.robot_sensors import odometry_steps
+
+    ctx, kf, decided, lengths = _one_step(small_camera, 15.0, 5.0, (20.0, 5.05), math.nan, 11)
+    times = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    counted = np.linspace(0.0, counted_mm, 5)
+    odo = make_odometry("test", times, counted, np.hypot(0.03 * counted, 0.05), str)
+    steps = odometry_steps(odo, times, [0, 4])
+    resolve_by_wall(ctx, kf, decided, lengths, RunScale(0.0, False), np.array([4]), steps)
+    assert (decided[0].check.confidence == "resolved") == resolved, decided[0].check.reason
+    if resolved:
+        assert lengths[0] == pytest.approx(5.0, abs=0.15)
+    else:
+        assert math.isnan(lengths[0])
