@@ -78,8 +78,8 @@ def chain_steps(
     1-sigma, recorded in its check; it stays flagged. A step measured by its feature
     depths alone is trusted when its pace agrees with its neighbours'
     (:func:`confirm_by_gait`, ``counts``: (K-1,) moving frames per step,
-    :func:`omnipipe.sfm.step_window.moving_counts`); without odometry, a flagged step the
-    wall's own shift decides is resolved (:func:`resolve_by_wall`)."""
+    :func:`omnipipe.sfm.step_window.moving_counts`); a flagged step the wall's own shift
+    decides is resolved (:func:`resolve_by_wall`; with odometry only where it agrees)."""
     decided = [decide_step(ctx, kf, k, scale.offset_log) for k in range(len(kf.evidence))]
     gain = math.exp(scale.offset_log) if scale.wall_anchored else 1.0
     # Feature-depth units when the wall anchors (the laser's bias removed).
