@@ -289,7 +289,8 @@ def refuse_untrusted_motion(motion: SfmResult) -> None:
 
     A run that moved without a single keyframe step and with frames left unplaced is
     refused too, unless the odometry placed them along the axis (flagged:
-    :data:`omnipipe.sfm.types.ODOMETRY_ONLY`; random-wide seed 1, a 963 mm pipe).
+    :data:`omnipipe.sfm.types.ODOMETRY_ONLY`; a plain wall whose moving frames made no
+    keyframe step).
 
     Raises:
         ReconstructionError: one line with the most frequent reason.
