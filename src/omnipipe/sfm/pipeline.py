@@ -45,12 +45,19 @@ from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
+from omnipipe.sfm.creep import place_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.robot_sensors import gravity_world, odometry_steps, rotation_linked
-from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
+from omnipipe.sfm.scale_check import (
+    StepCheck,
+    UnreliableStretch,
+    WallCylinder,
+    merge_stretches,
+    wall_cylinder,
+)
 from omnipipe.sfm.stations import (
     flow_hidden_steps,
     hidden_steps,
@@ -145,6 +152,7 @@ def run(
         ctx, followed, adjusted, resected, chain.checks, scale, length,
         None if with_odometry else ratio,
         lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
+        lambda i: wall_cylinder(inputs.rings.rings[i].points_in_rig),
     )
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
@@ -229,13 +237,15 @@ def _result(
     length: RunLength,
     ratio: np.ndarray | None = None,
     read_gray: Callable[[int], np.ndarray] | None = None,
+    read_wall: Callable[[int], WallCylinder | None] | None = None,
 ) -> SfmResult:
     """Every frame's pose: each station's from its keyframe (adjusted) or its resection;
     the steps' checks and the unreliable stretches (steps not trusted, frames not
     resected, stationary frames whose stationary-test ``ratio`` (N,) could hide a step
     on this wall: :func:`omnipipe.sfm.stations.unverified_stations`; the tracked flow of
-    ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`),
-    merged."""
+    ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`,
+    and the wall's shift (``read_wall``: a frame's wall cylinder) measure and place their
+    frames: :func:`omnipipe.sfm.creep.place_creeps`), merged."""
     moved = followed.moved
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
@@ -256,6 +266,7 @@ def _result(
     ]
     world_from_rig = world_from_station[station]
     registered = ~lost[first[station]]
+    moved_out = moved
     if ratio is not None and not moved.all():
         gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
         hidden = hidden_steps(ratio, moved, gain)
@@ -263,19 +274,29 @@ def _result(
             hidden = flow_hidden_steps(
                 hidden, moved, world_from_rig[:, :3, 3], registered, read_gray, ctx.camera.valid_mask()
             )
+        spans = unverified_stations(hidden, moved, followed.keyframes.frames)
+        if read_gray is not None and read_wall is not None and spans:
+            crept = place_creeps(spans, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera)
+            spans, world_from_rig, moved_out = crept.unverified, crept.world_from_rig, crept.moved
+            station = np.cumsum(moved_out) - 1
+            ctx.warnings.extend(
+                f"frames {a}->{b}: the frames between the keyframes placed by the wall's own "
+                "shift (the stationary test could not tell standing from creeping)"
+                for a, b in crept.placed
+            )
         stretches += [
             UnreliableStretch(
                 a, b, "the stationary test cannot rule out "
                 + (f"a {worst:.1f} mm step" if math.isfinite(worst) else "a step of any length")
                 + " on this wall: a frame taken for standing may have moved",
             )
-            for a, b, worst in unverified_stations(hidden, moved, followed.keyframes.frames)
+            for a, b, worst in spans
         ]
     return SfmResult(
         world_from_rig=world_from_rig,
         registered=registered,
         keyframe=followed.keyframe,
-        stationary=~moved,
+        stationary=~moved_out,
         station=station,
         wall_scale_log=length.wall_log,
         scale_correction_log=length.correction_log,

@@ -44,6 +44,8 @@ MIN_SECTORS = 6
 # at radius R' of a wall at R is R' / R of the true one) and on the renders brick and
 # smooth walls came out 1-2 % off with sector spreads of 0.3-1 %.
 REL_SIGMA_FLOOR = 0.015
+# The 1-sigma's floor of a keyframe step's shift, as a fraction of the grid step.
+GRID_SIGMA_FLOOR = 0.25
 # Weakest normalised cross-correlation peak of the whole wall to read a shift from.
 MIN_NCC = 0.1
 # Highest second peak (another shift: a course off) relative to the best one.
@@ -273,6 +275,7 @@ def wall_shift(
     wall_a: WallCylinder | None,
     wall_b: WallCylinder | None,
     window_mm: tuple[float, float],
+    grid_floor: float = GRID_SIGMA_FLOOR,
 ) -> WallShift:
     """The rig's axial travel from keyframe a to b read off the unrolled wall.
 
@@ -283,11 +286,14 @@ def wall_shift(
         window_mm: (lo, hi) signed shifts (mm) searched: bound it by what is known of
             the step (its candidates, the gait) so that a period of a periodic wall
             cannot alias beyond it; the ambiguity test catches one inside it.
+        grid_floor: the 1-sigma's floor as a fraction of the grid step
+            (:data:`GRID_SIGMA_FLOOR` for keyframe steps; frame-to-frame creeps,
+            :mod:`omnipipe.sfm.creep`, state their own).
 
     Returns:
         The shift with its 1-sigma (the sectors' scatter about their first harmonic,
-        :func:`_harmonic_mean`; at least :data:`REL_SIGMA_FLOOR` of the shift and a
-        quarter of the grid), or a reason why not.
+        :func:`_harmonic_mean`; at least :data:`REL_SIGMA_FLOOR` of the shift and
+        ``grid_floor`` of the grid), or a reason why not.
     """
     if wall_a is None or wall_b is None:
         return _none("no wall cylinder")
@@ -324,7 +330,7 @@ def wall_shift(
     if n < MIN_SECTORS:
         return _none(f"only {n} of {SECTORS} sectors agree", ncc, ambiguity, n)
     mean, sigma_stat = _harmonic_mean(found)
-    sigma = math.hypot(sigma_stat, REL_SIGMA_FLOOR * abs(mean), 0.25 * grid.step_mm)
+    sigma = math.hypot(sigma_stat, REL_SIGMA_FLOOR * abs(mean), grid_floor * grid.step_mm)
     halves = _half_shifts(a, b, rows, shifts, keep)
     seen = halves[np.isfinite(halves)]
     if not len(seen) or np.any(np.abs(seen - shift) > max(HALVES_SIGMAS * sigma, 2 * grid.step_mm)):
