@@ -45,7 +45,7 @@ from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
-from omnipipe.sfm.creep import place_creeps
+from omnipipe.sfm.creep import place_creeps, wall_resolved
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
@@ -292,6 +292,20 @@ def _result(
             )
             for a, b, worst in spans
         ]
+    elif ratio is None and read_gray is not None and read_wall is not None:
+        # With odometry: the frames inside a step the wall's shift decided, placed by it.
+        inside = [(c.first_frame, c.last_frame, math.inf) for c in checks if wall_resolved(c)]
+        if inside:
+            crept = place_creeps(inside, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera)
+            world_from_rig, moved_out = crept.world_from_rig, crept.moved
+            station = np.cumsum(moved_out) - 1
+            stretches += [
+                UnreliableStretch(
+                    a, b, "the frames inside a step the wall's own shift measured could not be "
+                    "placed by it: a frame may be off its step",
+                )
+                for a, b, _ in crept.unverified
+            ]
     return SfmResult(
         world_from_rig=world_from_rig,
         registered=registered,

@@ -78,8 +78,8 @@ def chain_steps(
     1-sigma, recorded in its check; it stays flagged. A step measured by its feature
     depths alone is trusted when its pace agrees with its neighbours'
     (:func:`confirm_by_gait`, ``counts``: (K-1,) moving frames per step,
-    :func:`omnipipe.sfm.step_window.moving_counts`); without odometry, a flagged step the
-    wall's own shift decides is resolved (:func:`resolve_by_wall`)."""
+    :func:`omnipipe.sfm.step_window.moving_counts`); a flagged step the wall's own shift
+    decides is resolved (:func:`resolve_by_wall`)."""
     decided = [decide_step(ctx, kf, k, scale.offset_log) for k in range(len(kf.evidence))]
     gain = math.exp(scale.offset_log) if scale.wall_anchored else 1.0
     # Feature-depth units when the wall anchors (the laser's bias removed).
@@ -89,11 +89,8 @@ def chain_steps(
     )
     if counts is not None:
         confirm_by_gait(ctx, decided, lengths, counts, kf.evidence)
-    if odometry is None:
-        # Measured without odometry only (40 random-wide seeds: 0 silent); with odometry it
-        # trusted creeps of 1-2 mm as rest on a plain wall (seed 25s: 4 silent frame steps),
-        # and there a flagged step is bridged by the odometry with its sigma anyway.
-        resolve_by_wall(ctx, kf, decided, lengths, scale, counts)
+    # The frames inside a step it decides are placed by the wall too (sfm.creep.wall_resolved).
+    resolve_by_wall(ctx, kf, decided, lengths, scale, counts)
     checks = [d.check for d in decided]
     if odometry is not None:
         trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
