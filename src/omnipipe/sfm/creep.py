@@ -19,8 +19,11 @@ adjusted keyframe step is the ruler, so a reading's gain (a rig-fixed shading pu
 faint wall's shift towards zero: seed 3 read 10-12 % short) cancels, and the frame
 steps sum to the keyframe step. The stretch is placed only when every step is read
 (no ambiguity, sectors and halves agree: ``wall_shift``'s tests) and its gain g lies
-within :data:`MAX_GAIN_LOG` of 1 and within :data:`MAX_GAIN_SPREAD_LOG` of the run's
-median; else it stays as it was, flagged. The gain test is also the closure test: a
+within :data:`MAX_GAIN_LOG` of 1, within :data:`MAX_GAIN_SPREAD_LOG` of the run's
+median and within :data:`GAIN_SIGMAS` of the ruler's and the readings' sigmas: where
+the wall and the keyframe step disagree, one of them is wrong (random-wide seed 25, a
+smooth wall: the frame steps' sum 13 % longer than a keyframe step from 20-40
+feature matches); else it stays as it was, flagged. The gain test is also the closure test: a
 reading biased by a constant b (random-wide seed 10, a smooth wall with axial streaks:
 -0.4 to -0.9 mm on every pair, standing frames included) moves the sum by n b, and
 the gain with it (a bias within the tests is at most a fifth of the mean step).
@@ -56,9 +59,15 @@ CREEP_GRID_FLOOR = 0.1
 # Shortest keyframe travel a -> b (mm, along rig a's axis) used as a ruler.
 MIN_RULER_MM = 0.5
 # Largest |log| of a stretch's gain (its keyframes' travel over the wall's shift), and
-# of its difference from the run's median gain.
+# of its difference from the run's median gain; and within GAIN_SIGMAS of the ruler's
+# and the wall's relative sigmas (the run's stated scale sigma, the readings' sum's)
+# with GAIN_FLOOR (the wall's own gain: seed 3's frame steps read 3 % short).
 MAX_GAIN_LOG = 0.25
 MAX_GAIN_SPREAD_LOG = 0.15
+GAIN_SIGMAS = 3.0
+GAIN_FLOOR = 0.03
+# The ruler's relative sigma when the run states none.
+DEFAULT_SCALE_SIGMA = 0.05
 # Fewest stretches with a ruler for a run-wide gain (the run's last stretch).
 MIN_RULERS = 2
 # A frame within this many sigmas of its station's first frame stays standing.
@@ -134,6 +143,7 @@ def place_creeps(
     read_gray: Callable[[int], np.ndarray],
     read_wall: Callable[[int], WallCylinder | None],
     camera: CameraModel,
+    scale_sigma_rel: float = math.nan,
 ) -> CreepPlacement:
     """The unverified ``spans`` (:func:`omnipipe.sfm.stations.unverified_stations`:
     first, last frame, bound mm) measured and placed by the wall's shift (module
@@ -146,8 +156,11 @@ def place_creeps(
         read_gray: frame index -> its (H, W) grey image without the laser.
         read_wall: frame index -> its wall cylinder (rig frame), None without one.
         camera: the rig's camera model.
+        scale_sigma_rel: the run's stated relative scale sigma (the ruler's; NaN:
+            :data:`DEFAULT_SCALE_SIGMA`).
     """
     m = np.asarray(moved, bool)
+    ruler_rel = scale_sigma_rel if math.isfinite(scale_sigma_rel) else DEFAULT_SCALE_SIGMA
     pose = np.array(world_from_rig, float, copy=True)
     out_moved = m.copy()
     worst: dict[tuple[int, int], float] = {}
@@ -175,7 +188,7 @@ def place_creeps(
     placed = []
     bounds = np.full(len(m), math.nan)
     for s, gain in zip(stretches, gains, strict=True):
-        pos = _positions(s, gain, run_gain, spread, int(ok.sum()))
+        pos = _positions(s, gain, run_gain, spread, int(ok.sum()), ruler_rel)
         if pos is None:
             continue
         bound = _apply(s, pos, m, pose, out_moved, bounds)
@@ -233,7 +246,7 @@ def _gain_spread(gains: np.ndarray) -> float:
 
 
 def _positions(
-    s: _Stretch, gain: float, run_gain: float, spread: float, rulers: int
+    s: _Stretch, gain: float, run_gain: float, spread: float, rulers: int, ruler_rel: float
 ) -> dict[int, tuple[float, float]] | None:
     """Frame -> (position along the stretch's travel mm, its step's 1-sigma mm) for
     a..b, or None when a check fails (module docstring)."""
@@ -242,6 +255,10 @@ def _positions(
             return None
         if math.isfinite(run_gain) and abs(math.log(gain / run_gain)) > MAX_GAIN_SPREAD_LOG:
             return None
+        total = s.travel_mm / gain
+        wall_rel = math.sqrt(sum(r.sigma_mm**2 for r in s.steps)) / total
+        if abs(math.log(gain)) > GAIN_SIGMAS * math.hypot(ruler_rel, wall_rel, GAIN_FLOOR):
+            return None  # the wall and the keyframe step disagree: one of them is wrong
         g, rel = gain, 0.0
     elif rulers >= MIN_RULERS and math.isfinite(run_gain):
         g, rel = run_gain, spread

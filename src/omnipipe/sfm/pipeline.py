@@ -276,7 +276,9 @@ def _result(
             )
         spans = unverified_stations(hidden, moved, followed.keyframes.frames)
         if read_gray is not None and read_wall is not None and spans:
-            crept = place_creeps(spans, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera)
+            crept = place_creeps(
+                spans, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
+            )
             spans, world_from_rig, moved_out = crept.unverified, crept.world_from_rig, crept.moved
             station = np.cumsum(moved_out) - 1
             ctx.warnings.extend(
@@ -296,7 +298,9 @@ def _result(
         # With odometry: the frames inside a step the wall's shift decided, placed by it.
         inside = [(c.first_frame, c.last_frame, math.inf) for c in checks if wall_resolved(c)]
         if inside:
-            crept = place_creeps(inside, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera)
+            crept = place_creeps(
+                inside, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
+            )
             world_from_rig, moved_out = crept.world_from_rig, crept.moved
             station = np.cumsum(moved_out) - 1
             stretches += [
