@@ -79,14 +79,14 @@ WINDOW_BACK_MM = 2.0
 WINDOW_AHEAD = 1.3
 
 
-# What :func:`omnipipe.sfm.step_scale.resolve_by_wall` writes into the reason of a
+# What :func:`omnipipe.sfm.wall_resolve.resolve_by_wall` writes into the reason of a
 # step whose length the wall's shift decided.
 WALL_REASON = "the wall's own shift"
 
 
 def wall_resolved(check: StepCheck) -> bool:
     """Whether a trusted keyframe step's length was decided by the wall's shift
-    (:func:`omnipipe.sfm.step_scale.resolve_by_wall`). Such a step was flagged before:
+    (:func:`omnipipe.sfm.wall_resolve.resolve_by_wall`). Such a step was flagged before:
     the frames inside it are not verified by its length (with odometry, random-wide
     seed 25s, a smooth wall: two resected frames 1.3-1.6 mm off and two 1 mm creeps
     the odometry took for standing inside a step the wall measured right)."""
