@@ -45,6 +45,7 @@ from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
+from omnipipe.sfm.creep import place_creeps, wall_resolved
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
@@ -55,7 +56,13 @@ from omnipipe.sfm.robot_sensors import (
     odometry_steps,
     rotation_linked,
 )
-from omnipipe.sfm.scale_check import StepCheck, UnreliableStretch, merge_stretches
+from omnipipe.sfm.scale_check import (
+    StepCheck,
+    UnreliableStretch,
+    WallCylinder,
+    merge_stretches,
+    wall_cylinder,
+)
 from omnipipe.sfm.stations import (
     flow_hidden_steps,
     hidden_steps,
@@ -150,6 +157,7 @@ def run(
         ctx, followed, adjusted, resected, chain.checks, scale, length,
         None if with_odometry else ratio,
         lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
+        lambda i: wall_cylinder(inputs.rings.rings[i].points_in_rig),
     )
     if with_odometry:
         _add_creeps(result, inputs)
@@ -251,13 +259,15 @@ def _result(
     length: RunLength,
     ratio: np.ndarray | None = None,
     read_gray: Callable[[int], np.ndarray] | None = None,
+    read_wall: Callable[[int], WallCylinder | None] | None = None,
 ) -> SfmResult:
     """Every frame's pose: each station's from its keyframe (adjusted) or its resection;
     the steps' checks and the unreliable stretches (steps not trusted, frames not
     resected, stationary frames whose stationary-test ``ratio`` (N,) could hide a step
     on this wall: :func:`omnipipe.sfm.stations.unverified_stations`; the tracked flow of
-    ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`),
-    merged."""
+    ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`,
+    and the wall's shift (``read_wall``: a frame's wall cylinder) measure and place their
+    frames: :func:`omnipipe.sfm.creep.place_creeps`), merged."""
     moved = followed.moved
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
@@ -278,6 +288,7 @@ def _result(
     ]
     world_from_rig = world_from_station[station]
     registered = ~lost[first[station]]
+    moved_out = moved
     if ratio is not None and not moved.all():
         gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
         hidden = hidden_steps(ratio, moved, gain)
@@ -285,19 +296,47 @@ def _result(
             hidden = flow_hidden_steps(
                 hidden, moved, world_from_rig[:, :3, 3], registered, read_gray, ctx.camera.valid_mask()
             )
+        spans = unverified_stations(hidden, moved, followed.keyframes.frames)
+        if read_gray is not None and read_wall is not None and spans:
+            crept = place_creeps(
+                spans, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
+            )
+            spans, world_from_rig, moved_out = crept.unverified, crept.world_from_rig, crept.moved
+            station = np.cumsum(moved_out) - 1
+            ctx.warnings.extend(
+                f"frames {a}->{b}: the frames between the keyframes placed by the wall's own "
+                "shift (the stationary test could not tell standing from creeping)"
+                for a, b in crept.placed
+            )
         stretches += [
             UnreliableStretch(
                 a, b, "the stationary test cannot rule out "
                 + (f"a {worst:.1f} mm step" if math.isfinite(worst) else "a step of any length")
                 + " on this wall: a frame taken for standing may have moved",
             )
-            for a, b, worst in unverified_stations(hidden, moved, followed.keyframes.frames)
+            for a, b, worst in spans
         ]
+    elif ratio is None and read_gray is not None and read_wall is not None:
+        # With odometry: the frames inside a step the wall's shift decided, placed by it.
+        inside = [(c.first_frame, c.last_frame, math.inf) for c in checks if wall_resolved(c)]
+        if inside:
+            crept = place_creeps(
+                inside, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
+            )
+            world_from_rig, moved_out = crept.world_from_rig, crept.moved
+            station = np.cumsum(moved_out) - 1
+            stretches += [
+                UnreliableStretch(
+                    a, b, "the frames inside a step the wall's own shift measured could not be "
+                    "placed by it: a frame may be off its step",
+                )
+                for a, b, _ in crept.unverified
+            ]
     return SfmResult(
         world_from_rig=world_from_rig,
         registered=registered,
         keyframe=followed.keyframe,
-        stationary=~moved,
+        stationary=~moved_out,
         station=station,
         wall_scale_log=length.wall_log,
         scale_correction_log=length.correction_log,

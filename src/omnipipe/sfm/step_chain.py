@@ -79,7 +79,8 @@ def chain_steps(
     depths alone is trusted when its pace agrees with its neighbours'
     (:func:`confirm_by_gait`, ``counts``: (K-1,) moving frames per step,
     :func:`omnipipe.sfm.step_window.moving_counts`); a flagged step the wall's own shift
-    decides is resolved (:func:`resolve_by_wall`; with odometry only where it agrees)."""
+    decides is resolved (:func:`resolve_by_wall`; with odometry only where it agrees),
+    and the frames inside it are placed by the wall too (:func:`omnipipe.sfm.creep.wall_resolved`)."""
     decided = [decide_step(ctx, kf, k, scale.offset_log) for k in range(len(kf.evidence))]
     gain = math.exp(scale.offset_log) if scale.wall_anchored else 1.0
     # Feature-depth units when the wall anchors (the laser's bias removed).
@@ -90,7 +91,8 @@ def chain_steps(
     if counts is not None:
         confirm_by_gait(ctx, decided, lengths, counts, kf.evidence)
     # With odometry, only where it agrees with the wall's reading (alone, the wall took
-    # creeps of 1-2 mm for rest on a plain wall: seed 25s, 4 silent frame steps).
+    # creeps of 1-2 mm for rest on a plain wall: seed 25s, 4 silent frame steps); the
+    # frames inside a step it decides are placed by the wall too (sfm.creep.wall_resolved).
     resolve_by_wall(ctx, kf, decided, lengths, scale, counts, odometry)
     checks = [d.check for d in decided]
     if odometry is not None:

@@ -44,6 +44,8 @@ MIN_SECTORS = 6
 # at radius R' of a wall at R is R' / R of the true one) and on the renders brick and
 # smooth walls came out 1-2 % off with sector spreads of 0.3-1 %.
 REL_SIGMA_FLOOR = 0.015
+# The 1-sigma's floor of a keyframe step's shift, as a fraction of the grid step.
+GRID_SIGMA_FLOOR = 0.25
 # Weakest normalised cross-correlation peak of the whole wall to read a shift from.
 MIN_NCC = 0.1
 # Highest second peak (another shift: a course off) relative to the best one.
@@ -217,6 +219,47 @@ def _rows(n_rows: int, lo_mm: float, hi_mm: float, step_mm: float) -> _Rows:
     return _Rows(max(0, -k_lo), min(n_rows, n_rows - k_hi), k_lo, k_hi)
 
 
+# A row of an unrolled wall counts as valid when at least this fraction of its columns
+# carries the band-passed wall (the rest: beyond the mirror's view or the band's reach),
+# and unless it lies in a run of rows at either end of the grid whose band energy
+# exceeds this factor times the median row's.
+VALID_ROW_FRACTION = 0.5
+EDGE_ENERGY_FACTOR = 4.0
+
+
+def _valid_rows(x: np.ndarray) -> tuple[int, int]:
+    """[first, last + 1) of the (R, C) band-passed wall's valid rows (see
+    :data:`EDGE_ENERGY_FACTOR`); (0, 0) without any."""
+    frac = (x != 0).mean(axis=1)
+    ok = frac >= VALID_ROW_FRACTION * max(float(frac.max()), 1e-9)
+    idx = np.flatnonzero(ok)
+    if not len(idx):
+        return 0, 0
+    energy = (x.astype(np.float64) ** 2).mean(axis=1)
+    high = energy > EDGE_ENERGY_FACTOR * float(np.median(energy[idx]))
+    lo, hi = int(idx[0]), int(idx[-1]) + 1
+    while lo < hi and high[lo]:
+        lo += 1
+    while hi > lo and high[hi - 1]:
+        hi -= 1
+    return lo, hi
+
+
+def _inside_valid(rows: _Rows, a: np.ndarray, b: np.ndarray) -> _Rows:
+    """``rows`` with the template trimmed to a's valid rows (:func:`_valid_rows`) whose
+    partners in b stay within b's valid rows at every shift. The view's ends (the
+    mirror's rim, the vignetting: rig-fixed, the log image's steepest) band-pass to
+    rows of up to 100 times the wall's energy, a ramp that matches itself at every
+    shift, so the correlation there is flat and whichever part of it the window's
+    template held decided a faint wall's shift (random-wide seed 10, a smooth wall,
+    frames at rest: -0.84 / -0.46 / -0.14 mm over windows -2..6 / -4..4 / -6..2 mm)."""
+    a0, a1 = _valid_rows(a)
+    b0, b1 = _valid_rows(b)
+    t0 = max(rows.t0, a0, b0 - rows.k_lo)
+    t1 = min(rows.t1, a1, b1 - rows.k_hi)
+    return _Rows(t0, max(t1, t0), rows.k_lo, rows.k_hi)
+
+
 def _padded(b: np.ndarray, roll: int) -> np.ndarray:
     """``b`` with ``roll`` columns wrapped onto either side (the angle is periodic)."""
     return np.concatenate([b[:, b.shape[1] - roll :], b, b[:, :roll]], axis=1) if roll else b
@@ -273,6 +316,8 @@ def wall_shift(
     wall_a: WallCylinder | None,
     wall_b: WallCylinder | None,
     window_mm: tuple[float, float],
+    grid_floor: float = GRID_SIGMA_FLOOR,
+    trim_rim: bool = False,
 ) -> WallShift:
     """The rig's axial travel from keyframe a to b read off the unrolled wall.
 
@@ -283,11 +328,16 @@ def wall_shift(
         window_mm: (lo, hi) signed shifts (mm) searched: bound it by what is known of
             the step (its candidates, the gait) so that a period of a periodic wall
             cannot alias beyond it; the ambiguity test catches one inside it.
+        grid_floor: the 1-sigma's floor as a fraction of the grid step
+            (:data:`GRID_SIGMA_FLOOR` for keyframe steps; frame-to-frame creeps,
+            :mod:`omnipipe.sfm.creep`, state their own).
+        trim_rim: the template kept off the view's ends (:func:`_inside_valid`); on for
+            frame-to-frame creeps, not yet measured on keyframe steps.
 
     Returns:
         The shift with its 1-sigma (the sectors' scatter about their first harmonic,
-        :func:`_harmonic_mean`; at least :data:`REL_SIGMA_FLOOR` of the shift and a
-        quarter of the grid), or a reason why not.
+        :func:`_harmonic_mean`; at least :data:`REL_SIGMA_FLOOR` of the shift and
+        ``grid_floor`` of the grid), or a reason why not.
     """
     if wall_a is None or wall_b is None:
         return _none("no wall cylinder")
@@ -303,6 +353,10 @@ def wall_shift(
         axial_band_pass(*unrolled_wall(camera, gray_b, wall_b, grid)),
         max(1, int(math.ceil(MAX_ROLL_RAD / (grid.theta[1] - grid.theta[0])))),
     )
+    if trim_rim:
+        rows = _inside_valid(rows, a, b)
+        if rows.t1 - rows.t0 < MIN_TEMPLATE_MM / grid.step_mm:
+            return _none("the step is too long for the wall in view")
     n_k = rows.k_hi - rows.k_lo + 1
     curve = _curve(a, b, rows, 0, n_k).max(axis=1)
     # A wall point at z in rig a lies at z - shift in rig b: b's row = a's row + k.
@@ -324,7 +378,7 @@ def wall_shift(
     if n < MIN_SECTORS:
         return _none(f"only {n} of {SECTORS} sectors agree", ncc, ambiguity, n)
     mean, sigma_stat = _harmonic_mean(found)
-    sigma = math.hypot(sigma_stat, REL_SIGMA_FLOOR * abs(mean), 0.25 * grid.step_mm)
+    sigma = math.hypot(sigma_stat, REL_SIGMA_FLOOR * abs(mean), grid_floor * grid.step_mm)
     halves = _half_shifts(a, b, rows, shifts, keep)
     seen = halves[np.isfinite(halves)]
     if not len(seen) or np.any(np.abs(seen - shift) > max(HALVES_SIGMAS * sigma, 2 * grid.step_mm)):
