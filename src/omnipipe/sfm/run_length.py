@@ -23,6 +23,7 @@ from omnipipe.sfm.scale_check import (
     median_with_sigma,
     wall_scale_correction,
 )
+from omnipipe.sfm.shift_scale import ShiftScale, shift_scale
 from omnipipe.sfm.step_chain import ChainedSteps
 from omnipipe.sfm.step_decide import RunScale
 from omnipipe.sfm.types import Anchor, Keyframes, SfmContext
@@ -33,6 +34,20 @@ from omnipipe.sfm.types import Anchor, Keyframes, SfmContext
 # off (bench_robustness seeds 15, 24, 25 at 800x600; cause not found). 0.25 % makes
 # the +-2 sigma interval cover those runs; their spread alone does not.
 SHARED_SCALE_SIGMA = 0.0025
+
+# When the laser and wall-placed features' correction and the wall's own shift disagree
+# by more than this chi-square (3 sigma), the shift is taken: on the random-wide runs
+# where the laser and feature depths ran short together (tiles, seeds 32 and 35: their
+# step lengths' medians 5-6 % and 2-5 % short) the shift's steps' median was within
+# 0.7 % of the truth on every seed read (benchmarks/RESULTS.md, scale32).
+SHIFT_OVERRULES_CHI2 = 9.0
+
+# Relative 1-sigma of a bias the laser and the wall-placed features share, which their
+# agreement and spread do not show, when a third source can see it: on the random-wide
+# renders at 640x480 the feature depths' step lengths ran a median 0.6-6.2 % short on all
+# six seeds read (0, 8, 18, 21, 32, 35), the laser's -6 to +0.4 %, and the wall-set
+# correction of seed 35 stated +-0.11 % for a 1.9 % error (benchmarks/RESULTS.md, scale32).
+SOURCES_BIAS_SIGMA = 0.01
 
 # The laser's decided lengths replace the adjusted run as its reading of the laser only
 # when they differ by more than this many of the laser's sigmas: within it, the
@@ -95,8 +110,39 @@ def run_length(
             sigma = math.hypot(sigma, abs(scale.offset_log) / 2)  # as scale_sigma's
         if not scale.wall_anchored:
             source = "laser (Eq. 17), combined with feature depths on the light-section wall"
+    if config.scale_from_wall:
+        shift = shift_scale(ctx, kf, world_from_kf, chain.checks)
+        if shift is not None:
+            applied, sigma = combine_shift(applied, sigma, shift)
+            source = f"{source}, and the wall's own shift ({shift.steps} steps)"
     wall_log = math.nan if wall is None else wall[0]
     return RunLength(applied, math.hypot(sigma, SHARED_SCALE_SIGMA), wall_log, source)
+
+
+def combine_shift(applied_log: float, sigma: float, shift: ShiftScale) -> tuple[float, float]:
+    """The run's log correction ``applied_log`` (NaN: none, the adjusted run as it is)
+    with relative 1-sigma ``sigma`` (laser and wall-placed features) combined with the
+    wall's own shift (:func:`omnipipe.sfm.shift_scale.shift_scale`), ``sigma`` widened by
+    :data:`SOURCES_BIAS_SIGMA`: inverse-variance
+    mean, its sigma scaled by sqrt(chi-square) when the two disagree beyond their sigmas
+    (as :func:`combine_scales`); beyond :data:`SHIFT_OVERRULES_CHI2` the shift alone,
+    half the gap added to its sigma. Without a finite ``sigma`` the shift alone.
+
+    Returns:
+        (log correction to apply to every length, relative 1-sigma).
+    """
+    if not (math.isfinite(sigma) and sigma > 0):
+        return shift.log, shift.sigma
+    base = 0.0 if math.isnan(applied_log) else applied_log
+    sigma = math.hypot(sigma, SOURCES_BIAS_SIGMA)
+    chi2 = (base - shift.log) ** 2 / (sigma**2 + shift.sigma**2)
+    if chi2 > SHIFT_OVERRULES_CHI2:
+        # Both can't be right: the shift, with half the gap in its sigma (the other
+        # value stays within 2 sigma).
+        return shift.log, math.hypot(shift.sigma, abs(base - shift.log) / 2)
+    w_base, w_shift = 1.0 / sigma**2, 1.0 / shift.sigma**2
+    mean = (w_base * base + w_shift * shift.log) / (w_base + w_shift)
+    return mean, math.sqrt(max(chi2, 1.0) / (w_base + w_shift))
 
 
 def decided_log(
