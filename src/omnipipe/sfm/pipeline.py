@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from concurrent.futures import Executor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -288,50 +288,14 @@ def _result(
     ]
     world_from_rig = world_from_station[station]
     registered = ~lost[first[station]]
-    moved_out = moved
+    placed = _Placed(world_from_rig, moved, [])
     if ratio is not None and not moved.all():
-        gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
-        hidden = hidden_steps(ratio, moved, gain)
-        if read_gray is not None:
-            hidden = flow_hidden_steps(
-                hidden, moved, world_from_rig[:, :3, 3], registered, read_gray, ctx.camera.valid_mask()
-            )
-        spans = unverified_stations(hidden, moved, followed.keyframes.frames)
-        if read_gray is not None and read_wall is not None and spans:
-            crept = place_creeps(
-                spans, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
-            )
-            spans, world_from_rig, moved_out = crept.unverified, crept.world_from_rig, crept.moved
-            station = np.cumsum(moved_out) - 1
-            ctx.warnings.extend(
-                f"frames {a}->{b}: the frames between the keyframes placed by the wall's own "
-                "shift (the stationary test could not tell standing from creeping)"
-                for a, b in crept.placed
-            )
-        stretches += [
-            UnreliableStretch(
-                a, b, "the stationary test cannot rule out "
-                + (f"a {worst:.1f} mm step" if math.isfinite(worst) else "a step of any length")
-                + " on this wall: a frame taken for standing may have moved",
-            )
-            for a, b, worst in spans
-        ]
+        placed = _place_unverified(ctx, followed, placed, registered, ratio, length, read_gray, read_wall)
     elif ratio is None and read_gray is not None and read_wall is not None:
-        # With odometry: the frames inside a step the wall's shift decided, placed by it.
-        inside = [(c.first_frame, c.last_frame, math.inf) for c in checks if wall_resolved(c)]
-        if inside:
-            crept = place_creeps(
-                inside, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
-            )
-            world_from_rig, moved_out = crept.world_from_rig, crept.moved
-            station = np.cumsum(moved_out) - 1
-            stretches += [
-                UnreliableStretch(
-                    a, b, "the frames inside a step the wall's own shift measured could not be "
-                    "placed by it: a frame may be off its step",
-                )
-                for a, b, _ in crept.unverified
-            ]
+        placed = _place_wall_resolved(ctx, checks, placed, registered, length, read_gray, read_wall)
+    world_from_rig, moved_out = placed.world_from_rig, placed.moved
+    station = np.cumsum(moved_out) - 1
+    stretches += placed.stretches
     return SfmResult(
         world_from_rig=world_from_rig,
         registered=registered,
@@ -350,3 +314,84 @@ def _result(
         laser_offset=math.exp(scale.offset_log) - 1.0,
         tracked=followed.tracked,
     )
+
+
+@dataclass
+class _Placed:
+    """Every frame's pose (N, 4, 4) world_from_rig, which frames moved (N,) and the
+    stretches left unreliable by :func:`_place_unverified` / :func:`_place_wall_resolved`."""
+
+    world_from_rig: np.ndarray
+    moved: np.ndarray
+    stretches: list[UnreliableStretch]
+
+
+def _place_unverified(
+    ctx: SfmContext,
+    followed: Followed,
+    placed: _Placed,
+    registered: np.ndarray,
+    ratio: np.ndarray,
+    length: RunLength,
+    read_gray: Callable[[int], np.ndarray] | None,
+    read_wall: Callable[[int], WallCylinder | None] | None,
+) -> _Placed:
+    """Without odometry: the stationary frames whose test ``ratio`` could hide a step on
+    this wall (:func:`omnipipe.sfm.stations.unverified_stations`), verified by the
+    tracked flow (:func:`omnipipe.sfm.stations.flow_hidden_steps`) or measured and placed
+    by the wall's shift (:func:`omnipipe.sfm.creep.place_creeps`); the rest flagged."""
+    moved, world_from_rig = placed.moved, placed.world_from_rig
+    gain = texture_gain(ratio, world_from_rig[:, :3, 3], registered, ctx.config.stations)
+    hidden = hidden_steps(ratio, moved, gain)
+    if read_gray is not None:
+        hidden = flow_hidden_steps(
+            hidden, moved, world_from_rig[:, :3, 3], registered, read_gray, ctx.camera.valid_mask()
+        )
+    spans = unverified_stations(hidden, moved, followed.keyframes.frames)
+    if read_gray is not None and read_wall is not None and spans:
+        crept = place_creeps(
+            spans, moved, world_from_rig, registered, read_gray, read_wall, ctx.camera, length.sigma_rel
+        )
+        spans, world_from_rig, moved = crept.unverified, crept.world_from_rig, crept.moved
+        ctx.warnings.extend(
+            f"frames {a}->{b}: the frames between the keyframes placed by the wall's own "
+            "shift (the stationary test could not tell standing from creeping)"
+            for a, b in crept.placed
+        )
+    stretches = [
+        UnreliableStretch(
+            a, b, "the stationary test cannot rule out "
+            + (f"a {worst:.1f} mm step" if math.isfinite(worst) else "a step of any length")
+            + " on this wall: a frame taken for standing may have moved",
+        )
+        for a, b, worst in spans
+    ]
+    return _Placed(world_from_rig, moved, stretches)
+
+
+def _place_wall_resolved(
+    ctx: SfmContext,
+    checks: list[StepCheck],
+    placed: _Placed,
+    registered: np.ndarray,
+    length: RunLength,
+    read_gray: Callable[[int], np.ndarray],
+    read_wall: Callable[[int], WallCylinder | None],
+) -> _Placed:
+    """With odometry: the frames inside a step the wall's shift decided, placed by it
+    (:func:`omnipipe.sfm.creep.place_creeps`); those it cannot place flagged."""
+    inside = [(c.first_frame, c.last_frame, math.inf) for c in checks if wall_resolved(c)]
+    if not inside:
+        return placed
+    crept = place_creeps(
+        inside, placed.moved, placed.world_from_rig, registered, read_gray, read_wall, ctx.camera,
+        length.sigma_rel,
+    )
+    stretches = [
+        UnreliableStretch(
+            a, b, "the frames inside a step the wall's own shift measured could not be "
+            "placed by it: a frame may be off its step",
+        )
+        for a, b, _ in crept.unverified
+    ]
+    return _Placed(crept.world_from_rig, crept.moved, stretches)
