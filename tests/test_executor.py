@@ -239,3 +239,25 @@ def test_a_pool_does_not_keep_the_last_task_pickled() -> None:
     finally:
         tracemalloc.stop()
     assert held < 1 << 20, f"{held / 1e6:.1f} MB of pickled tasks still held"
+
+
+def test_shared_fields_are_equal_and_by_reference_only_on_a_local_pool() -> None:
+    from dataclasses import dataclass
+
+    from omnipipe.executor import shared_fields
+    from omnipipe.spill import is_on_disk
+
+    @dataclass(frozen=True)
+    class Samples:
+        z: np.ndarray
+        ring: np.ndarray
+        scale: float
+
+    rng = np.random.default_rng(7)
+    s = Samples(rng.random(500), rng.integers(0, 9, 500), 2.5)
+    assert shared_fields(s, InlineExecutor()) is s
+    with open_executor(workers=2) as pool:
+        sent = shared_fields(s, pool)
+        assert list(ordered_map(pool, _length, [sent.z, sent.ring])) == [500, 500]
+    assert sent.scale == 2.5 and np.array_equal(sent.z, s.z) and np.array_equal(sent.ring, s.ring)
+    assert is_on_disk(sent.z) and not sent.z.flags.writeable and not is_on_disk(s.z)

@@ -107,3 +107,35 @@ def test_a_checkpoint_saves_the_same_archive_holding_one_arrays_pages(tmp_path: 
     # Each array's pages unmapped once written (mapped, both would add 64 MB); numpy's
     # 16 MB write buffer may stay with the allocator.
     assert after < low + 40
+
+
+def _sum_and_touch(a: np.ndarray) -> tuple[float, bool, bool]:
+    """In a worker: the sum, whether the array arrived writable, and a write into it."""
+    total = float(a.sum())
+    writable = bool(a.flags.writeable)
+    a.reshape(-1)[0] = -1  # its own copy: the sender's stays as it was
+    return total, writable, is_on_disk(a)
+
+
+@linux_only
+def test_shared_on_disk_goes_to_a_local_pool_by_reference() -> None:
+    from multiprocessing.reduction import ForkingPickler
+
+    from omnipipe.executor import open_executor, ordered_map
+    from omnipipe.spill import shared_on_disk
+
+    rng = np.random.default_rng(6)
+    a = rng.random((4000, 3))
+    s = shared_on_disk(a)
+    assert is_on_disk(s) and not s.flags.writeable and np.array_equal(s, a)
+    views = [s, s[::-7, 1], s[100:300].T, s[5:6]]
+    with open_executor(workers=2) as pool:
+        # Sent by reference: a few hundred bytes, not the 96 KB of values.
+        assert len(ForkingPickler.dumps(s)) < 1000
+        assert len(ForkingPickler.dumps(np.array(s))) > a.nbytes  # an ordinary array: by value
+        got = list(ordered_map(pool, _sum_and_touch, views))
+    for v, (total, writable, _) in zip(views, got, strict=True):
+        assert total == float(np.array(v).sum()) and writable
+    assert np.array_equal(s, a)  # the workers' writes stayed theirs
+    back = pickle.loads(pickle.dumps(s))  # plain pickle (e.g. Dask's): by value
+    assert np.array_equal(back, a) and not is_on_disk(back)

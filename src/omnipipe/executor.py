@@ -305,6 +305,9 @@ def open_executor(
         return
     import multiprocessing as mp
 
+    from omnipipe.spill import share_with_local_workers
+
+    share_with_local_workers()  # read-only scratch arrays go to the workers by reference
     ctx = mp.get_context("fork") if sys.platform.startswith("linux") else None
     # Ctrl-C reaches the whole process group: the workers ignore it and the parent
     # (which owns the output folder) stops the pool, so one line is printed, not N
@@ -475,6 +478,27 @@ def ordered_map(
         for future in pending:
             future.cancel()
     forget_last_task(executor)
+
+
+def shared_fields(value: T, executor: Executor) -> T:
+    """``value`` (a dataclass) for tasks on ``executor``: on a local pool, its array fields
+    copied into the run's scratch, read-only (:func:`omnipipe.spill.shared_on_disk`), so
+    that each task carries a reference to them rather than their values (the same values
+    in the task); ``value`` itself on other executors."""
+    import dataclasses
+
+    import numpy as np
+
+    if not shares_files(executor) or not dataclasses.is_dataclass(value):
+        return value
+    from omnipipe.spill import shared_on_disk
+
+    arrays = {
+        f.name: shared_on_disk(v)
+        for f in dataclasses.fields(value)
+        if isinstance(v := getattr(value, f.name), np.ndarray)
+    }
+    return dataclasses.replace(value, **arrays)  # type: ignore[type-var]
 
 
 def _nothing() -> None:

@@ -13,13 +13,21 @@ resident memory only while a step reads them, and :func:`drop_pages` (called by
 the run's peak holds what its current step reads, not every result made so far. The
 kernel writes the file back and reclaims its pages under memory pressure, as it does
 with any file's.
+
+:func:`shared_on_disk` makes such an array read-only: sent to a worker of a local
+process pool (:mod:`omnipipe.executor`), it travels by reference (the file, through
+``/proc/PID/fd``, and where in it) rather than pickled whole, and the worker maps it
+copy-on-write (writable, its writes its own, as an unpickled array's would be).
 """
 
 from __future__ import annotations
 
 import mmap
+import os
+import pickle
 import tempfile
 import weakref
+from typing import Any
 
 import numpy as np
 
@@ -27,6 +35,10 @@ from omnipipe.scratch import scratch_dir
 
 _MAPS: weakref.WeakSet[mmap.mmap] = weakref.WeakSet()
 """Every live mapping made here (gone when its last array is)."""
+
+_FILES: weakref.WeakKeyDictionary[mmap.mmap, tuple[int, int, int]] = weakref.WeakKeyDictionary()
+"""Each live mapping's (process that made it, its own descriptor of the file, the
+address of its first byte): what a worker needs to map it too (:func:`shared_on_disk`)."""
 
 _COPY_BYTES = 1 << 22
 """Bytes copied into the file at a time by :func:`on_disk` (no second whole copy)."""
@@ -45,7 +57,10 @@ def _mapped(nbytes: int, fill: np.ndarray | None) -> mmap.mmap:
                 fh.write(memoryview(np.ascontiguousarray(flat[a : a + step])).cast("B"))
             fh.flush()
         mapping = mmap.mmap(fh.fileno(), nbytes)  # holds its own copy of the descriptor
+        fd = os.dup(fh.fileno())  # for the workers that map it too (closed with the mapping)
     _MAPS.add(mapping)
+    _FILES[mapping] = (os.getpid(), fd, np.frombuffer(mapping, np.uint8, count=1).ctypes.data)
+    weakref.finalize(mapping, os.close, fd)
     return mapping
 
 
@@ -100,3 +115,77 @@ def is_on_disk(a: np.ndarray) -> bool:
     if isinstance(base, memoryview):
         base = base.obj
     return isinstance(base, mmap.mmap) and base in _MAPS
+
+
+def shared_on_disk(a: np.ndarray) -> np.ndarray:
+    """``a``'s values in a scratch file (:func:`on_disk`), read-only: pickled for a local
+    pool's worker (``multiprocessing``'s pickler, which :func:`share_with_local_workers`
+    told), it is sent by reference (module docstring), not by value. ``a`` itself
+    (pickled by value) when it cannot be on disk (no bytes, Python objects)."""
+    b = on_disk(a)
+    if not is_on_disk(b):
+        return b
+    b = b.view()
+    b.flags.writeable = False  # what the workers read cannot change under them
+    return b
+
+
+def share_with_local_workers() -> None:
+    """Let ``multiprocessing``'s pickler (a local process pool's queues) send the arrays
+    :func:`shared_on_disk` made by reference (once per process; a no-op without
+    ``/proc``)."""
+    from multiprocessing.reduction import ForkingPickler
+
+    if os.path.isdir(f"/proc/{os.getpid()}/fd"):
+        ForkingPickler.register(np.ndarray, _reduce)
+
+
+def _reduce(a: np.ndarray) -> tuple[Any, ...]:
+    """How ``multiprocessing`` pickles an ndarray: by reference when it is one of
+    :func:`shared_on_disk`'s made by this process, else as numpy does."""
+    ref = _reference(a)
+    if ref is None:
+        return a.__reduce_ex__(pickle.DEFAULT_PROTOCOL)
+    return _attach, ref
+
+
+def _reference(a: np.ndarray) -> tuple[int, int, int, int, str, tuple[int, ...], tuple[int, ...]] | None:
+    """(pid, fd, offset of a's lowest byte in the file, bytes spanned, dtype, shape,
+    strides) of a read-only array in a scratch file this process made; None otherwise."""
+    if a.flags.writeable or a.size == 0 or a.dtype.hasobject:
+        return None
+    base = a
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    if isinstance(base, memoryview):
+        base = base.obj
+    known = _FILES.get(base) if isinstance(base, mmap.mmap) else None
+    if known is None or known[0] != os.getpid():
+        return None
+    pid, fd, start = known
+    low, high = _byte_bounds(a)
+    return (pid, fd, low - start, high - low, a.dtype.str, a.shape, tuple(int(v) for v in a.strides))
+
+
+def _byte_bounds(a: np.ndarray) -> tuple[int, int]:
+    """Addresses of ``a``'s lowest byte and one past its highest."""
+    low = high = a.ctypes.data
+    for n, stride in zip(a.shape, a.strides, strict=True):
+        if stride < 0:
+            low += (n - 1) * stride
+        else:
+            high += (n - 1) * stride
+    return low, high + a.itemsize
+
+
+def _attach(
+    pid: int, fd: int, offset: int, span: int, dtype: str, shape: tuple[int, ...], strides: tuple[int, ...]
+) -> np.ndarray:
+    """The array :func:`_reference` describes, mapped copy-on-write from the file of
+    process ``pid`` (writable; its writes stay in this process)."""
+    first = offset - offset % mmap.ALLOCATIONGRANULARITY
+    with open(f"/proc/{pid}/fd/{fd}", "rb") as fh:
+        mapping = mmap.mmap(fh.fileno(), offset + span - first, access=mmap.ACCESS_COPY, offset=first)
+    below = sum(s * (n - 1) for n, s in zip(shape, strides, strict=True) if s < 0)  # <= 0
+    at = offset - first - below  # the first element's byte in the mapping
+    return np.ndarray(shape, np.dtype(dtype), buffer=mapping, offset=at, strides=strides)

@@ -112,3 +112,19 @@ def test_thinning_a_chunk_of_faces_at_a_time_keeps_the_same_view(monkeypatch) ->
     for a, b in zip(whole, chunked, strict=True):
         assert np.array_equal(a, b)
     assert len(np.unique(np.sort(chunked[1], axis=1), axis=0)) == len(chunked[1])  # no repeats
+
+
+def test_cells_a_chunk_of_vertices_at_a_time_keep_the_same_view(monkeypatch) -> None:
+    """The vertices' cells found a chunk at a time (their int64 temporaries a chunk's):
+    the same cells, the same first vertex of each, the same view as all at once."""
+    from omnipipe.report import thin
+
+    verts, faces, uvs, shape = pipe_mesh(400)
+    monkeypatch.setattr(thin, "VERTEX_CHUNK", len(uvs))
+    whole = thin_mesh(verts, faces, uvs, 2000, shape)
+    n_whole = thin._cells(uvs, 3.0, shape)
+    monkeypatch.setattr(thin, "VERTEX_CHUNK", 997)
+    chunked = thin_mesh(verts, faces, uvs, 2000, shape)
+    assert thin._cells(uvs, 3.0, shape) == n_whole > 1000
+    for a, b in zip(whole, chunked, strict=True):
+        assert np.array_equal(a, b)

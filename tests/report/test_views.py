@@ -219,3 +219,32 @@ def test_deviation_grid_a_chunk_of_points_at_a_time_is_the_one_pass_grid(monkeyp
     count = np.bincount(r[keep] * cols + c[keep], None, rows * cols)
     measured = count > 0
     assert np.array_equal(chunked.reshape(-1)[measured], total[measured] / count[measured])
+
+
+def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) -> None:
+    """The texture's data URI goes into the 3-D view's JSON a piece of base64 at a time
+    (never held whole, nor copied by the JSON's escaping): the same text as the whole
+    URI in the JSON, "</" in a label still escaped."""
+    import omnipipe.report.html as H
+    from omnipipe.report import ReportConfig
+
+    rng = np.random.default_rng(3)
+    texture = rng.integers(0, 256, (61, 47, 3), dtype=np.uint8)  # noisy: a PNG of many pieces
+    verts = rng.normal(0.0, 10.0, (5, 3))
+    inputs = H.ReportInputs(
+        summary={"features": [{"kind": "joint", "axial_mm": 1.0, "gap_mm": 1.0, "offset_mm": 0.1,
+                               "offset_sigma_mm": 0.1}]},
+        world_from_rig=np.eye(4)[None], mesh_vertices=verts, mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]),
+        mesh_uvs=rng.random((5, 2)), texture=texture,
+    )
+    monkeypatch.setattr(H, "_BASE64_PIECE", 3 * 11)
+    parts = list(H._model_json_parts(inputs, ReportConfig()))
+    text = "".join(parts)
+    assert len(parts) > 100  # the URI in pieces
+    uri = H._png_data_uri(texture)
+    model = json.loads(text)
+    assert model["texture"] == uri
+    # Byte for byte the JSON of the whole URI (json.dumps as before, "</" escaped).
+    tail = {k: model[k] for k in ("markers", "texture", "centre", "radius")}
+    whole = json.dumps(tail, separators=(",", ":"))[1:].replace("</", "<\\/")
+    assert text.endswith(whole)

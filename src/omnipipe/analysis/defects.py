@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from omnipipe.analysis.sizing import detection_limit, fit_bump, plateau
 from omnipipe.contract import Defect
-from omnipipe.executor import InlineExecutor, ordered_map
+from omnipipe.executor import InlineExecutor, ordered_map, shared_fields
 
 
 @dataclass(frozen=True)
@@ -272,9 +272,11 @@ def find_defects(
         for members in _clusters(samples, sc, sign, min_points)
         if not _one_sided(samples, sc, members, kind, zones, warnings)
     ]
-    # The candidates' model fits are independent: on the executor's workers, in order.
+    # The candidates' model fits are independent: on the executor's workers, in order
+    # (a local pool's read the samples from the run's scratch: not pickled per candidate).
+    sent = shared_fields(samples, executor or InlineExecutor()) if candidates else samples
     jobs = (
-        (samples, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm)
+        (sent, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm)
         for sign, _, _, d0 in candidates
     )
     fits = ordered_map(executor or InlineExecutor(), _fit_job, jobs)

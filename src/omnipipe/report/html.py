@@ -116,13 +116,32 @@ class ReportInputs:
 
 
 def _png_data_uri(image: np.ndarray) -> str:
+    return _PNG_URI_HEAD + base64.b64encode(_png_bytes(image)).decode("ascii")
+
+
+_PNG_URI_HEAD = "data:image/png;base64,"
+
+
+def _png_bytes(image: np.ndarray) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(image)).save(
         buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL
     )
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    return buf.getvalue()
+
+
+_BASE64_PIECE = 3 << 18
+"""Bytes encoded at a time by :func:`_base64_parts` (a multiple of 3: the pieces' text
+joins to the whole's)."""
+
+
+def _base64_parts(data: bytes) -> Iterator[str]:
+    """``base64.b64encode(data)`` as text in pieces (a long page text not held whole)."""
+    view = memoryview(data)
+    for a in range(0, len(view), _BASE64_PIECE):
+        yield base64.b64encode(view[a : a + _BASE64_PIECE]).decode("ascii")
 
 
 _FIGURE_DPI = 110
@@ -517,7 +536,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         shape = None if inputs.texture is None else np.asarray(inputs.texture).shape[:2]
         verts, faces, uvs = thin_mesh(verts, faces, uvs, config.max_faces, shape)
         release_freed_memory()  # the whole mesh's pages (omnipipe.spill) and temporaries
-    texture = None
+    png = None  # the texture's PNG, its data URI's text written a piece at a time
     if inputs.texture is not None:
         import cv2
 
@@ -526,13 +545,13 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         if scale < 1:
             tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
-        texture = _png_data_uri(tex)
+        png = _png_bytes(tex)
         del tex
         release_freed_memory()  # the atlas's pages
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     rest = {
         "markers": _markers(inputs),
-        "texture": texture,
+        "texture": None if png is None else _TEXTURE_SLOT,
         "centre": ((lo + hi) / 2).tolist(),
         "radius": float(max(np.linalg.norm(hi - lo) / 2, 1.0)),
     }
@@ -546,10 +565,22 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             yield f'{"{" if name == "positions" else ""}"{name}":['
             yield from _number_chunks(fmt, values)
             yield "],"
-        # Only the JSON part can hold "</" (the number lists cannot): escaped alone.
-        yield json.dumps(rest, separators=(",", ":"))[1:].replace("</", "<\\/")
+        # Only the JSON part can hold "</" (the number lists and base64 cannot): escaped
+        # alone. The texture's URI (JSON needs no escapes in it) goes in where its slot is.
+        text = json.dumps(rest, separators=(",", ":"))[1:].replace("</", "<\\/")
+        if png is None:
+            yield text
+            return
+        head, tail = text.split(json.dumps(_TEXTURE_SLOT), 1)
+        yield f'{head}"{_PNG_URI_HEAD}'
+        yield from _base64_parts(png)
+        yield f'"{tail}'
 
     return parts()
+
+
+_TEXTURE_SLOT = "\x00omnipipe-texture\x00"
+"""Stands for the texture's data URI in the 3-D view's JSON until it is written out."""
 
 
 def _point_features(summary: dict[str, Any]) -> list[tuple[str, float, float | None]]:

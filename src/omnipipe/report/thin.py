@@ -15,6 +15,7 @@ u = 0 and u = 1).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -74,17 +75,16 @@ def _clustered(uv: np.ndarray, faces: np.ndarray, side: float, shape: tuple[int,
     square), without the faces that collapsed or repeat another face (the first of each
     kept, in the faces' order); None when every vertex falls in one cell. A chunk of
     :data:`FACE_CHUNK` faces at a time: each chunk's repeats dropped, then the repeats
-    across chunks among the (few) faces left."""
-    h, w = shape
-    col = np.floor((uv[:, 0] - uv[:, 0].min()) * (w / side)).astype(np.int64)
-    row = np.floor((uv[:, 1] - uv[:, 1].min()) * (h / side)).astype(np.int64)
-    cell = row * (int(col.max()) + 1) + col
-    del col, row
-    _, first, inverse = np.unique(cell, return_index=True, return_inverse=True)
+    across chunks among the (few) faces left. The cells' first vertices are found a
+    chunk of vertices at a time too (:func:`_cell_firsts`)."""
+    keys, first = _cell_firsts(uv, side, shape)
     if len(first) < 3:
         return None
-    rep = first[inverse]  # (V,) each vertex's cell's first vertex
-    del cell, inverse
+    # (V,) each vertex's cell's first vertex, a chunk of vertices at a time.
+    rep = np.empty(len(uv), np.int64)
+    for a, cell in _cell_chunks(uv, side, shape):
+        rep[a : a + len(cell)] = first[np.searchsorted(keys, cell)]
+    del keys, first
     wide = len(uv) >= 1 << 21  # a face no longer fits one int64 key (21 bits a corner)
     kept: list[np.ndarray] = []
     for a in range(0, len(faces), FACE_CHUNK):
@@ -93,6 +93,39 @@ def _clustered(uv: np.ndarray, faces: np.ndarray, side: float, shape: tuple[int,
         kept.append(out[_first_of_each(out, wide)])
     out = np.concatenate(kept) if kept else np.zeros((0, 3), np.int64)
     return out[_first_of_each(out, wide)]
+
+
+VERTEX_CHUNK = 1 << 17
+"""Vertices whose cells are computed at a time (the cells' int64 temporaries a chunk's,
+not the mesh's: about 50 bytes a vertex held whole)."""
+
+
+def _cell_chunks(uv: np.ndarray, side: float, shape: tuple[int, int]) -> Iterator[tuple[int, np.ndarray]]:
+    """(first vertex, (n,) int64 cell of each vertex) per chunk of :data:`VERTEX_CHUNK`
+    vertices: cell = row x (columns) + column on the grid of ``side`` texture px."""
+    h, w = shape
+    lo = uv.min(axis=0)
+    # The largest column: that of the largest u (floor is monotonic).
+    cols = int(np.floor((uv[:, 0].max() - lo[0]) * (w / side))) + 1
+    for a in range(0, len(uv), VERTEX_CHUNK):
+        part = np.asarray(uv[a : a + VERTEX_CHUNK], float)
+        col = np.floor((part[:, 0] - lo[0]) * (w / side)).astype(np.int64)
+        row = np.floor((part[:, 1] - lo[1]) * (h / side)).astype(np.int64)
+        yield a, row * cols + col
+
+
+def _cell_firsts(uv: np.ndarray, side: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The occupied cells, ascending, and the first vertex of each (``np.unique`` with
+    ``return_index`` of every vertex's cell, a chunk of vertices at a time)."""
+    keys = np.zeros(0, np.int64)
+    first = np.zeros(0, np.int64)
+    for a, cell in _cell_chunks(uv, side, shape):
+        k, i = np.unique(cell, return_index=True)
+        # The cells seen before keep their first vertex (they come first, and
+        # np.unique's index is the first occurrence).
+        keys, at = np.unique(np.concatenate([keys, k]), return_index=True)
+        first = np.concatenate([first, i + a])[at]
+    return keys, first
 
 
 def _first_of_each(faces: np.ndarray, wide: bool) -> np.ndarray:
@@ -108,7 +141,7 @@ def _first_of_each(faces: np.ndarray, wide: bool) -> np.ndarray:
 
 def _cells(uv: np.ndarray, side: float, shape: tuple[int, int]) -> int:
     """Occupied cells of ``side`` texture px (as :func:`_clustered`)."""
-    h, w = shape
-    col = np.floor((uv[:, 0] - uv[:, 0].min()) * (w / side)).astype(np.int64)
-    row = np.floor((uv[:, 1] - uv[:, 1].min()) * (h / side)).astype(np.int64)
-    return len(np.unique(row * (int(col.max()) + 1) + col))
+    keys = np.zeros(0, np.int64)
+    for _, cell in _cell_chunks(uv, side, shape):
+        keys = np.union1d(keys, cell)
+    return len(keys)
