@@ -238,6 +238,11 @@ def _laterals(
     the other clusters it meets along the axis (the branch wall lit near the rim);
     (lateral, its not-wall mask) each."""
     deep, others = _deep_clusters(config, r, radius, spacing, thr, not_wall)
+    for i, m in enumerate(others):
+        seen = _one_ring_opening(config, r, m, radius, spacing, thr, not_wall)
+        if seen is not None:
+            deep.append(seen)
+            others[i] = np.zeros(0, int)
     holes = [(m, []) for m in deep]
     for cluster in _lost_openings(config, r, radius, spacing, joints):
         hit = [h for h in holes if _meets(r, h[0], cluster, radius, spacing)]
@@ -255,6 +260,38 @@ def _laterals(
                     grown = True
         holes.append((members, list(cluster)))
     return [_lateral(config, r.sigma, r.theta, r.frame, m, radius, spacing, g) for m, g in holes]
+
+
+def _one_ring_opening(
+    config: FeatureConfig,
+    r: _Rings,
+    members: np.ndarray,
+    radius: float,
+    spacing: float,
+    thr: float,
+    not_wall: np.ndarray,
+) -> np.ndarray | None:
+    """A lateral seen deep by one ring only (rings far apart: seed 5's 43 mm branch in a
+    579 mm pipe, rings 15 mm apart, lit 5-20 mm beyond the wall on one ring): the
+    cluster ``members`` reaches as an opening's does (:func:`_opening`) and a ring next
+    to it along the axis (within 1.5 ring spacings) is disturbed at the same angles (two
+    samples or more beyond ``thr`` either way: the branch's far wall, the rim's stray
+    light). Returns the cluster with those samples, or None."""
+    rings = np.unique(r.frame[members])
+    if len(rings) != 1 or float(np.mean(r.dev[members])) <= 0:
+        return None
+    if not _opening(config, members, r.dev, r.theta, r.frame, radius, thr):
+        return None
+    th0 = math.atan2(float(np.mean(np.sin(r.theta[members]))), float(np.mean(np.cos(r.theta[members]))))
+    d = (r.theta - th0 + np.pi) % (2 * np.pi) - np.pi
+    step = float(np.median(np.diff(np.sort(r.theta[r.frame == rings[0]]))))
+    lo, hi = float(d[members].min()) - 3.0 * step, float(d[members].max()) + 3.0 * step
+    z = float(np.median(r.sigma[members]))
+    near = (r.frame != rings[0]) & (np.abs(r.ring_sigma[r.ring_of] - z) <= 1.5 * spacing)
+    extra = np.flatnonzero(near & (np.abs(r.dev) > thr) & (d >= lo) & (d <= hi) & ~not_wall)
+    if len(extra) < 2:
+        return None
+    return np.concatenate([members, extra])
 
 
 def _lost_openings(
