@@ -56,8 +56,11 @@ def test_a_hole_is_one_opening_at_its_place_with_its_chords() -> None:
 
 
 def test_lost_returns_on_every_ring_or_in_pieces_are_no_opening() -> None:
-    """A band lost along the whole run, and a ring broken into many pieces: nothing."""
+    """A band lost along the whole run, a stretch lost on the first rings (not seen to
+    close before them), and a ring broken into many pieces: nothing."""
     sig, th, fr = _rings(2, None, band_deg=(10.0, 30.0))
+    assert _openings(sig, th, fr) == []
+    sig, th, fr = _rings(4, (0.0, 40.0, 60.0))
     assert _openings(sig, th, fr) == []
     sig, th, fr = _rings(3, None)
     ragged = (fr >= 10) & (fr <= 12) & (np.degrees(th) % 10 < 3.0)  # 36 pieces on 3 rings
