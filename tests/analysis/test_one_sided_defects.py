@@ -96,3 +96,17 @@ def test_feature_zones_reach_three_sigma() -> None:
     b = RADIUS * math.asin(0.2)
     assert zl.axial_to_mm - zl.axial_from_mm == pytest.approx(2 * (b + 3.0 + 1.5))
     assert zl.arc_mm == pytest.approx(0.5 * math.pi * RADIUS) and zl.half_arc_mm == pytest.approx(b + 3.0)
+
+
+def test_spike_deeper_than_wide_is_no_defect_but_a_dent_is() -> None:
+    """Three samples 200 mm beyond the wall on two neighbouring rings (stray light off
+    standing water): a warning, no defect; a 3 mm dent 20 mm wide over the same rings
+    stays a defect."""
+    sig, arc, dev, ring = _wall(13)
+    du = (arc - math.radians(120.0) * RADIUS + CIRC / 2) % CIRC - CIRC / 2
+    spike = (np.abs(du) < 2.0) & ((np.abs(sig - 100.0) < 1.0) | (np.abs(sig - 105.0) < 1.0))
+    res = _search(sig, arc, dev + 200.0 * spike, ring)
+    assert res.defects == []
+    assert any("spike" in w for w in res.warnings), res.warnings
+    dent = _search(sig, arc, dev + _streak(sig, arc, 100.0, 120.0, 3.0) + _streak(sig, arc, 105.0, 120.0, 3.0), ring)
+    assert len(dent.defects) == 1 and dent.defects[0].kind == "dent", dent.defects

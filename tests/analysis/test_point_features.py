@@ -24,11 +24,16 @@ def _rings(
     tilt_deg: float = 0.0,
     hole: tuple[float, float, float] = HOLE,
     reach: tuple[float, float] = (40.0, 100.0),
+    lost: float = 0.0,
+    dry_band: tuple[float, float] | None = None,
 ) -> AnalysisInputs:
     """Rings every ``spacing`` mm (jittered) over 100-400 mm of ``pipe``, tilted by
     ``tilt_deg`` to the axis (as a robot leaning in the pipe: a ring's samples spread
     along the axis); points in the tee's ``hole`` (centre axial mm, angle deg, diameter
-    mm) lie on the branch wall, ``reach`` (first + up to second) mm beyond the main wall."""
+    mm) lie on the branch wall, ``reach`` (first + up to second) mm beyond the main wall,
+    except the hole's middle ``lost`` (fraction of its semi-axes) where the light is lost
+    in the branch (no sample); ``dry_band`` (from, to deg): no ring returns there (a
+    shadow along the whole run)."""
     rng = np.random.default_rng(seed)
     sig = np.arange(100.0, 400.0, spacing) + rng.uniform(-0.5, 0.5, int(np.ceil(300 / spacing)))
     theta = np.linspace(-np.pi, np.pi, 360, endpoint=False)
@@ -43,8 +48,12 @@ def _rings(
         half = R * np.arcsin(0.5 * dia / R)  # the hole's chord is its diameter
         in_hole = (u / half) ** 2 + ((s - zc) / (0.5 * dia)) ** 2 < 1.0
         r[in_hole] += reach[0] + reach[1] * rng.random(in_hole.sum())
-        pts.append(centre + (r * np.cos(theta))[:, None] * normal + (r * np.sin(theta))[:, None] * binormal)
-        frame.append(np.full(theta.size, k))
+        keep = (u / half) ** 2 + ((s - zc) / (0.5 * dia)) ** 2 >= lost**2
+        if dry_band is not None:
+            keep &= ~((np.degrees(theta) % 360 >= dry_band[0]) & (np.degrees(theta) % 360 <= dry_band[1]))
+        p = centre + (r * np.cos(theta))[:, None] * normal + (r * np.sin(theta))[:, None] * binormal
+        pts.append(p[keep])
+        frame.append(np.full(int(keep.sum()), k))
         c0, n0, b0, t0 = (a[0] for a in pipe.frame_at(np.array([sig[k]])))
         poses.append(make_transform(np.stack([n0, b0, t0], axis=1), c0 + 82 * t0))
     return AnalysisInputs(np.concatenate(pts), np.concatenate(frame), np.array(poses))
@@ -205,3 +214,29 @@ def test_offset_joint_between_rings_is_found_by_its_offset() -> None:
     assert res.defects == []
     plain = run(AnalysisConfig(), _rings(Pipe(300.0), seed=23, spacing=8.0))
     assert not [f for f in plain.features if f.kind == "joint"], plain.features
+
+
+@pytest.mark.parametrize("lost", [1.0, 0.6])
+def test_lateral_seen_as_lost_returns_is_a_feature_not_a_dent(lost: float) -> None:
+    """A 60 mm branch (0.2 D) whose light is lost in the branch: no sample at all in the
+    hole (lost 1.0), or the branch wall lit only near the rim (lost 0.6). A lateral at
+    its place (axial, clock within 3 mm / 3 deg, diameter within 3 sigma), no defect,
+    no joint, no water."""
+    pipe = Pipe(300.0)
+    hole = (260.0, 75.0, 60.0)
+    res = run(AnalysisConfig(), _rings(pipe, seed=29, hole=hole, reach=(15.0, 10.0), lost=lost))
+    laterals = [f for f in res.features if f.kind == "lateral"]
+    assert len(laterals) == 1, res.features
+    lat = laterals[0]
+    assert abs(lat.axial_mm - hole[0]) < 3.0
+    assert abs((lat.angle_deg - hole[1] + 180) % 360 - 180) < 3.0
+    assert abs(lat.diameter_mm - hole[2]) < max(3.0 * lat.diameter_sigma_mm, 3.0)
+    assert res.defects == []
+    assert not [f for f in res.features if f.kind in ("joint", "water")], res.features
+
+
+def test_returns_lost_along_the_whole_run_are_no_lateral() -> None:
+    """No ring returns light between 250 and 280 deg over the whole run (a shadow, a
+    dropout band): not an opening."""
+    res = run(AnalysisConfig(), _rings(Pipe(300.0), seed=31, hole=(0.0, 0.0, 1.0), dry_band=(250.0, 280.0)))
+    assert not [f for f in res.features if f.kind == "lateral"], res.features

@@ -34,6 +34,7 @@ candidates.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,7 @@ from scipy.spatial import cKDTree
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.defects import FeatureZone, fit_wall_profile, fourier_design
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
+from omnipipe.analysis.openings import ReturnGap, gap_clusters, local_gaps, return_gaps
 from omnipipe.config import bounded
 
 
@@ -75,6 +77,12 @@ class FeatureConfig:
             400x300, small openings reached 2.2-5.4 thresholds and 0.7-0.9 chords, the
             other clusters at most 1.5 thresholds).
         lateral_reach_width: see ``lateral_reach_thr`` (a dent is far wider than deep).
+        lateral_gap_mm: a ring's stretch without returns (the light lost in a branch)
+            at least this long around the wall (and 4 sample steps) is an opening's
+            where the other rings of the run sample those angles (:mod:`.openings`).
+        lateral_gap_rings: rings such stretches of one opening need.
+        lateral_max_length_rel: the rings without returns there span at most this
+            fraction of the diameter along the axis (a branch at 45 deg, 0.7 D wide).
         min_points: points a cluster needs.
         margin_mm: wall points this close to a gap or an opening are excluded too
             (the edges' ramps and the ring's blur).
@@ -92,6 +100,9 @@ class FeatureConfig:
     lateral_reach_rel: float = bounded(0.08, gt=0, le=1)
     lateral_reach_thr: float = bounded(2.0, gt=0)
     lateral_reach_width: float = bounded(0.5, gt=0)
+    lateral_gap_mm: float = bounded(6.0, gt=0)
+    lateral_gap_rings: int = bounded(2, ge=1)
+    lateral_max_length_rel: float = bounded(1.0, gt=0)
     min_points: int = bounded(8, ge=1)
     margin_mm: float = bounded(3.0, ge=0)
     window_mm: float = bounded(60.0, gt=0)
@@ -159,10 +170,14 @@ def find_features(
     cand = (dev > thr_joint) | (raised[ring_of] & (dev > 0.5 * thr_joint))
     not_wall = np.zeros(len(sigma), bool)
     unseen = _unseen_gap(sigma)
-    if cand.sum() < config.min_points:
-        return FeatureSearch(list(_offset_joints(config, line, r, [])), not_wall, thr, unseen)
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
+    if cand.sum() < config.min_points:
+        feats = list(_offset_joints(config, line, r, []))
+        for f, mask in _laterals(config, r, radius, spacing, thr, not_wall, feats):
+            feats.append(f)
+            not_wall |= mask
+        return FeatureSearch(sorted(feats, key=lambda f: f.axial_mm), not_wall, thr, unseen)
     feats: list[PointFeature] = []
     for band in _joint_bands(config, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
         f, mask = _joint(config, line, r, cand, band)
@@ -172,10 +187,28 @@ def find_features(
         not_wall |= mask
     for f in _offset_joints(config, line, r, feats):
         feats.append(f)
-    # Laterals: the rest, linked across rings, narrow and reaching far out.
-    idx = np.flatnonzero((dev > thr) & ~not_wall)
-    if len(idx) >= config.min_points:
-        xyz = np.stack([sigma[idx], radius * np.cos(theta[idx]), radius * np.sin(theta[idx])], axis=1)
+    # Laterals: the rest, linked across rings, narrow and reaching far out, and the
+    # rings' stretches without returns (the light lost in the branch).
+    for f, mask in _laterals(config, r, radius, spacing, thr, not_wall, feats):
+        feats.append(f)
+        not_wall |= mask
+    feats.sort(key=lambda f: f.axial_mm)
+    return FeatureSearch(feats, not_wall, thr, unseen)
+
+
+def _deep_clusters(
+    config: FeatureConfig, r: _Rings, radius: float, spacing: float, thr: float, not_wall: np.ndarray
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The samples beyond ``thr`` either way (not yet taken) linked into clusters of at
+    least ``min_points``: (the outward ones on two rings or more reaching as far as an
+    opening's, :func:`_opening`; all the others, one ring's too: a lost-return opening
+    takes those it meets, the branch wall lit near its rim or the rim's stray samples)."""
+    deep, others = [], []
+    for sign in (1.0, -1.0):
+        idx = np.flatnonzero((sign * r.dev > thr) & ~not_wall)
+        if len(idx) < config.min_points:
+            continue
+        xyz = np.stack([r.sigma[idx], radius * np.cos(r.theta[idx]), radius * np.sin(r.theta[idx])], axis=1)
         pairs = cKDTree(xyz).query_pairs(max(1.5 * spacing, 3.0), output_type="ndarray")
         m = len(idx)
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
@@ -184,15 +217,123 @@ def find_features(
             members = idx[label == lab]
             if len(members) < config.min_points:
                 continue
-            if len(np.unique(frame[members])) < 2:
-                continue  # one ring's outliers (a reflection), not an opening
-            if not _opening(config, members, dev, theta, frame, radius, thr):
-                continue
-            f, mask = _lateral(config, sigma, theta, frame, members, radius, spacing)
-            feats.append(f)
-            not_wall |= mask
-    feats.sort(key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, not_wall, thr, unseen)
+            # One ring's outliers (a reflection) are no opening by themselves.
+            opening = (sign > 0 and len(np.unique(r.frame[members])) >= 2
+                       and _opening(config, members, r.dev, r.theta, r.frame, radius, thr))
+            (deep if opening else others).append(members)
+    return deep, others
+
+
+def _laterals(
+    config: FeatureConfig,
+    r: _Rings,
+    radius: float,
+    spacing: float,
+    thr: float,
+    not_wall: np.ndarray,
+    joints: Sequence[PointFeature],
+) -> list[tuple[Lateral, np.ndarray]]:
+    """The laterals: the deep clusters reaching as far as an opening's, and the
+    openings seen as lost returns (:mod:`.openings`) away from the joints, each with
+    the other clusters it meets along the axis (the branch wall lit near the rim);
+    (lateral, its not-wall mask) each."""
+    deep, others = _deep_clusters(config, r, radius, spacing, thr, not_wall)
+    for i, m in enumerate(others):
+        seen = _one_ring_opening(config, r, m, radius, spacing, thr, not_wall)
+        if seen is not None:
+            deep.append(seen)
+            others[i] = np.zeros(0, int)
+    holes = [(m, []) for m in deep]
+    for cluster in _lost_openings(config, r, radius, spacing, joints):
+        hit = [h for h in holes if _meets(r, h[0], cluster, radius, spacing)]
+        if hit:
+            hit[0][1].extend(cluster)
+            continue
+        members = np.zeros(0, int)
+        grown = True
+        while grown:  # the clusters it meets, and those the grown opening meets
+            grown = False
+            for i, m in enumerate(others):
+                if len(m) and _meets(r, m, cluster, radius, spacing, members):
+                    members = np.concatenate([members, m])
+                    others[i] = np.zeros(0, int)
+                    grown = True
+        holes.append((members, list(cluster)))
+    return [_lateral(config, r.sigma, r.theta, r.frame, m, radius, spacing, g) for m, g in holes]
+
+
+def _one_ring_opening(
+    config: FeatureConfig,
+    r: _Rings,
+    members: np.ndarray,
+    radius: float,
+    spacing: float,
+    thr: float,
+    not_wall: np.ndarray,
+) -> np.ndarray | None:
+    """A lateral seen deep by one ring only (rings far apart: seed 5's 43 mm branch in a
+    579 mm pipe, rings 15 mm apart, lit 5-20 mm beyond the wall on one ring): the
+    cluster ``members`` reaches as an opening's does (:func:`_opening`) and a ring next
+    to it along the axis (within 1.5 ring spacings) is disturbed at the same angles (two
+    samples or more beyond ``thr`` either way: the branch's far wall, the rim's stray
+    light). Returns the cluster with those samples, or None."""
+    rings = np.unique(r.frame[members])
+    if len(rings) != 1 or float(np.mean(r.dev[members])) <= 0:
+        return None
+    if not _opening(config, members, r.dev, r.theta, r.frame, radius, thr):
+        return None
+    th0 = math.atan2(float(np.mean(np.sin(r.theta[members]))), float(np.mean(np.cos(r.theta[members]))))
+    d = (r.theta - th0 + np.pi) % (2 * np.pi) - np.pi
+    step = float(np.median(np.diff(np.sort(r.theta[r.frame == rings[0]]))))
+    lo, hi = float(d[members].min()) - 3.0 * step, float(d[members].max()) + 3.0 * step
+    z = float(np.median(r.sigma[members]))
+    near = (r.frame != rings[0]) & (np.abs(r.ring_sigma[r.ring_of] - z) <= 1.5 * spacing)
+    extra = np.flatnonzero(near & (np.abs(r.dev) > thr) & (d >= lo) & (d <= hi) & ~not_wall)
+    if len(extra) < 2:
+        return None
+    return np.concatenate([members, extra])
+
+
+def _lost_openings(
+    config: FeatureConfig, r: _Rings, radius: float, spacing: float, joints: Sequence[PointFeature]
+) -> list[list[ReturnGap]]:
+    """The rings' local stretches without returns (:func:`.openings.local_gaps`) outside
+    the joints' gaps (a groove's edge hides a tilted ring's samples), linked into
+    openings over ``lateral_gap_rings`` rings or more."""
+    gaps = return_gaps(r.sigma, r.theta, r.frame, radius, config.lateral_gap_mm)
+    if not gaps:
+        return []
+    rings = np.unique(r.frame)
+    axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
+    gaps = local_gaps(gaps, r.theta, r.frame, axial, config.lateral_max_length_rel * 2.0 * radius)
+    clear = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
+             for f in joints if isinstance(f, Joint)]
+    gaps = [g for g in gaps if not any(a <= g.axial_mm <= b for a, b in clear)]
+    return gap_clusters(gaps, max(1.5 * spacing, 3.0), config.lateral_gap_rings)
+
+
+def _meets(
+    r: _Rings,
+    members: np.ndarray,
+    cluster: Sequence[ReturnGap],
+    radius: float,
+    spacing: float,
+    taken: np.ndarray | None = None,
+) -> bool:
+    """Whether the samples ``members`` lie at a lost-return opening ``cluster`` (with
+    the samples ``taken`` into it already): within 1.5 ring spacings of it along the
+    axis and within its widest gap (plus 3 sample steps) of its centre around the pipe."""
+    if not len(members):
+        return False
+    z = r.sigma[members]
+    zs = np.array([g.axial_mm for g in cluster] + ([] if taken is None else list(r.sigma[taken])))
+    if z.max() < zs.min() - 1.5 * spacing or z.min() > zs.max() + 1.5 * spacing:
+        return False
+    c = math.atan2(float(np.mean([math.sin(g.centre) for g in cluster])),
+                   float(np.mean([math.cos(g.centre) for g in cluster])))
+    half = max(0.5 * g.width + 3.0 * g.step for g in cluster)
+    d = np.abs((r.theta[members] - c + np.pi) % (2 * np.pi) - np.pi)
+    return bool(np.any(d <= half))
 
 
 def feature_zones(features: list[PointFeature], radius: float, margin_mm: float) -> list[FeatureZone]:
@@ -781,16 +922,16 @@ def _local_axis(
 def _chords(
     sigma: np.ndarray, u: np.ndarray, frame: np.ndarray, members: np.ndarray, sample: float
 ) -> np.ndarray:
-    """(M, 3) per ring crossing the hole: axial position, chord centre and half-width
-    (arc mm; half a sample added: the edges lie between samples)."""
+    """(M, 4) per ring crossing the hole: axial position, chord centre and half-width
+    (arc mm; half a sample added: the edges lie between samples), ring index."""
     rows = []
     for k in np.unique(frame[members]):
         m = members[frame[members] == k]
         if len(m) < 2:
             continue
         rows.append((float(np.median(sigma[m])), 0.5 * (u[m].max() + u[m].min()),
-                     0.5 * (u[m].max() - u[m].min()) + 0.5 * sample))
-    return np.array(rows).reshape(-1, 3)
+                     0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
+    return np.array(rows).reshape(-1, 4)
 
 
 def _ellipse(ch: np.ndarray) -> tuple[float, float, float, float]:
@@ -818,16 +959,21 @@ def _lateral(
     members: np.ndarray,
     radius: float,
     spacing: float,
+    gaps: Sequence[ReturnGap] = (),
 ) -> tuple[Lateral, np.ndarray]:
-    """A lateral's opening from its cluster: centre, angle and diameter (jackknife sigmas)."""
-    th0 = math.atan2(float(np.mean(np.sin(theta[members]))), float(np.mean(np.cos(theta[members]))))
+    """A lateral's opening from its cluster of deep samples ``members`` and the rings'
+    stretches without returns across it (``gaps``; either may be empty, not both):
+    centre, angle and diameter (jackknife sigmas)."""
+    th = np.concatenate([theta[members], [g.centre for g in gaps]])
+    th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
     u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
+    rings = np.unique(np.concatenate([frame[members], [g.ring for g in gaps]]).astype(int))
     steps = []
-    for k in np.unique(frame[members]):
+    for k in rings:
         d_u = np.diff(np.sort(u[frame == k]))
         steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
     sample = float(np.median(steps))
-    ch = _chords(sigma, u, frame, members, sample)
+    ch = _merged_chords(_chords(sigma, u, frame, members, sample), _gap_chords(gaps, th0, radius))[:, :3]
     zc, uc, b, a = _ellipse(ch)
     est = [(zc, uc, b)]
     if len(ch) >= 4:
@@ -854,3 +1000,30 @@ def _lateral(
     inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
     inside[members] = True
     return f, inside
+
+
+def _gap_chords(gaps: Sequence[ReturnGap], th0: float, radius: float) -> np.ndarray:
+    """(M, 4) per gap: axial position, chord centre and half-width (arc mm about
+    ``th0``), ring index. The hole's rim lies between the last lit sample and where the
+    next one would fall: the chord is the gap less one sample step (half at each end)."""
+    rows = []
+    for g in gaps:
+        c = ((g.centre - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
+        rows.append((g.axial_mm, c, max(0.5 * (g.width - g.step), 0.5 * g.step) * radius, float(g.ring)))
+    return np.array(rows).reshape(-1, 4)
+
+
+def _merged_chords(deep: np.ndarray, lost: np.ndarray) -> np.ndarray:
+    """(M, 4) chords (axial, centre, half-width, ring) of a hole from its deep samples'
+    and its lost returns' chords: where both lie on one ring and meet around it, one
+    chord spanning both (the branch wall lit near the rim, the light lost beyond)."""
+    rows = [list(r) for r in deep]
+    for z, c, h, k in lost:
+        for r in rows:
+            if r[3] == k and abs(r[1] - c) <= r[2] + h + 1e-6:
+                lo, hi = min(r[1] - r[2], c - h), max(r[1] + r[2], c + h)
+                r[1], r[2] = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                break
+        else:
+            rows.append([z, c, h, k])
+    return np.array(sorted(rows)).reshape(-1, 4)

@@ -618,7 +618,7 @@ def _measure_wall(
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     tick = phase("defects", 2)
     for done in range(1, 3):
-        stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude)
+        stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius)
         ok = np.isfinite(stations.deviation) & ~not_wall
         samples = WallSamples(
             sigma_mm=sigma[ok],
@@ -727,6 +727,17 @@ class _Stations:
     sections: tuple[Section, ...] = ()
 
 
+def _with_openings(theta: np.ndarray, axial: float, zones: Sequence[FeatureZone], radius: float) -> np.ndarray:
+    """A ring's angles (rad) with the lateral openings it crosses filled in (at 0.5 deg
+    steps): where the ring lost its light in a branch it is not cut by water."""
+    fill = [theta]
+    for z in zones:
+        if z.arc_mm is not None and z.axial_from_mm <= axial <= z.axial_to_mm:
+            c, h = z.arc_mm / radius, z.half_arc_mm / radius
+            fill.append(np.linspace(c - h, c + h, max(int(np.degrees(2 * h) / 0.5), 2)))
+    return np.concatenate(fill) if len(fill) > 1 else theta
+
+
 def ring_groups(frame: np.ndarray, n_rings: int) -> list[np.ndarray]:
     """(n_rings,) the indices of each ring's points, ascending (``frame == k`` for every k
     in one stable sort instead of one pass over the points per ring)."""
@@ -743,6 +754,8 @@ def _station_profiles(
     sigma: np.ndarray,
     ok_station: np.ndarray,
     exclude: np.ndarray,
+    zones: Sequence[FeatureZone] = (),
+    radius: float = 1.0,
 ) -> _Stations:
     """Each station's wall profile (fitted without the ``exclude`` points) and every
     point's deviation from it.
@@ -751,6 +764,8 @@ def _station_profiles(
     spread. A ring cut off by water (one gap) keeps the order while the wall above it
     covers ``cut_min_coverage_deg`` (:func:`.stations.section_order`). Ovality is
     2 |(a2, b2)| / c0, bias-corrected (:func:`.stations.station_from_section`).
+    A lateral's opening (``zones`` with an arc, on the ``radius`` mm wall) is no cut:
+    the light lost in the branch is not a water line.
     """
     deviation = np.full(len(exclude), np.nan)
     sec_config = section_config(config)
@@ -763,7 +778,7 @@ def _station_profiles(
         th = theta[use]
         # The cut (water) is where the ring has no points at all; the coverage for the
         # order is that of the points fitted (a defect's samples left out open a gap).
-        cut, coverage = ring_cut(theta[on], sec_config)
+        cut, coverage = ring_cut(_with_openings(theta[on], float(np.median(sigma[on])), zones, radius), sec_config)
         _, fitted_coverage = ring_cut(th, sec_config)
         order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
         coef = fit_wall_profile(th, rho[use], order, config.loss_scale_mm)

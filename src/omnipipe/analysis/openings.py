@@ -1,0 +1,166 @@
+"""Openings in the wall seen as missing laser returns (issue 30): a lateral's hole.
+
+Where the ring crosses a lateral's opening the light goes on into the branch: its wall
+is lit only where it is close (a large branch, a steep angle), and otherwise the ring
+returns nothing there. The deep samples of a lit branch wall are found by
+:mod:`.features`; this module finds the other half of the evidence, the stretches of a
+ring without samples:
+
+* per ring, every angular gap between consecutive samples wider than ``min_steps``
+  sample steps and ``min_arc_mm`` of wall (:func:`return_gaps`); a ring broken into
+  more than ``max_gaps`` pieces (the shadow of a joint's step or a taper's edge on a
+  tilted ring: random-features-small seeds 0 and 3 lost 6-14 stretches on such rings)
+  tells no opening, nor does a ring spread along the axis over more than
+  ``max_spread_rel`` x the radius (tilted some 15 deg or more to the fitted axis: a
+  ring straddling a step in the section, whose angles do not map onto one wall; seed
+  7's rings at a 95 mm reducer step spread over 0.9 R);
+* a gap is an opening's only where the wall is seen at those angles by other rings
+  of the run: the rings without samples across the gap's middle form one block along
+  the axis around it, no longer than ``max_length_rel`` x the diameter, with a ring on
+  both sides sampling those angles (:func:`local_gaps`; seed 21's first eight rings,
+  bunched within 7 mm at a slow start, lost a shrinking stretch that no earlier ring
+  could show to close). Standing water, a
+  shadow of the rig or a dropout along the whole run miss the same angles on every
+  ring, and are left to the stations' water cut (:mod:`.stations`);
+* local gaps on rings next to each other along the axis (within 1.5 ring spacings)
+  whose angles overlap are one opening (:func:`gap_clusters`), one chord per ring: a
+  ring losing its light there in several pieces is a ragged shadow (seed 11's rings
+  behind a steep reducer step lost 2-3 stretches each), not a hole's clean chord.
+
+Angles are radians about the centreline (theta of :meth:`.Centreline.coordinates`),
+axial positions mm.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ReturnGap:
+    """One ring's stretch without laser returns.
+
+    Attributes:
+        ring: the ring's index (the points' ``frame``).
+        axial_mm: where the ring crosses the gap (the two bounding samples' mean axial
+            position).
+        start: angle (rad, [0, 2 pi)) of the last sample before the gap.
+        width: angle (rad) from it to the first sample after the gap.
+        step: the ring's median sample step (rad).
+    """
+
+    ring: int
+    axial_mm: float
+    start: float
+    width: float
+    step: float
+
+    @property
+    def centre(self) -> float:
+        return (self.start + 0.5 * self.width) % (2.0 * math.pi)
+
+    def covers(self, theta: np.ndarray) -> np.ndarray:
+        """(M,) True for the angles inside the gap's middle half."""
+        d = (np.asarray(theta) - self.start - 0.25 * self.width) % (2.0 * math.pi)
+        return d <= 0.5 * self.width
+
+
+def return_gaps(
+    sigma: np.ndarray,
+    theta: np.ndarray,
+    frame: np.ndarray,
+    radius_mm: float,
+    min_arc_mm: float,
+    min_steps: float = 4.0,
+    max_gaps: int = 3,
+    max_spread_rel: float = 0.5,
+) -> list[ReturnGap]:
+    """Every ring's gaps between consecutive samples (sorted by angle, around the seam)
+    at least ``min_steps`` x its median sample step and ``min_arc_mm`` of wall wide
+    (``radius_mm``: the wall radius the arc is taken at); none of a ring with more
+    than ``max_gaps`` of them, or spread along the axis over ``max_spread_rel`` x
+    ``radius_mm``."""
+    out: list[ReturnGap] = []
+    for k in np.unique(frame):
+        on = np.flatnonzero(frame == k)
+        if len(on) < 12 or np.ptp(sigma[on]) > max_spread_rel * radius_mm:
+            continue
+        o = np.argsort(np.mod(theta[on], 2.0 * math.pi))
+        t = np.mod(theta[on], 2.0 * math.pi)[o]
+        s = sigma[on][o]
+        gaps = np.diff(np.concatenate([t, [t[0] + 2.0 * math.pi]]))
+        step = float(np.median(gaps))
+        wide = np.flatnonzero(gaps >= max(min_steps * step, min_arc_mm / radius_mm))
+        if len(wide) > max_gaps:
+            continue
+        for i in wide:
+            j = (i + 1) % len(t)
+            out.append(ReturnGap(int(k), 0.5 * float(s[i] + s[j]), float(t[i]), float(gaps[i]), step))
+    return out
+
+
+def local_gaps(
+    gaps: list[ReturnGap],
+    theta: np.ndarray,
+    frame: np.ndarray,
+    ring_axial: dict[int, float],
+    max_length_mm: float,
+) -> list[ReturnGap]:
+    """The gaps whose angles other rings of the run sample (see the module's
+    docstring): the rings (ordered along the axis, ``ring_axial``: each ring's axial
+    position) without a sample in the gap's middle half form a block around the gap's
+    ring at most ``max_length_mm`` long, and a ring on either side of the block samples
+    there."""
+    rings = sorted(ring_axial, key=lambda k: ring_axial[k])
+    if len(rings) < 3:
+        return []
+    by_ring = {k: theta[frame == k] for k in rings}
+    out = []
+    for g in gaps:
+        seen = np.array([bool(g.covers(by_ring[k]).any()) for k in rings])
+        i = rings.index(g.ring)
+        seen[i] = False
+        lo = i
+        while lo > 0 and not seen[lo - 1]:
+            lo -= 1
+        hi = i
+        while hi < len(rings) - 1 and not seen[hi + 1]:
+            hi += 1
+        if lo == 0 or hi == len(rings) - 1:
+            continue  # not seen to close on both sides: water, a shadow, the run's end
+        if ring_axial[rings[hi]] - ring_axial[rings[lo]] > max_length_mm:
+            continue
+        out.append(g)
+    return out
+
+
+def gap_clusters(gaps: list[ReturnGap], link_mm: float, min_rings: int = 2) -> list[list[ReturnGap]]:
+    """The gaps linked into openings: two gaps on different rings within ``link_mm``
+    along the axis whose angles overlap are one; each cluster spanning at least
+    ``min_rings`` rings with one gap on each (see the module's docstring), largest
+    first."""
+    n = len(gaps)
+    parent = list(range(n))
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a in range(n):
+        for b in range(a + 1, n):
+            ga, gb = gaps[a], gaps[b]
+            if ga.ring == gb.ring or abs(ga.axial_mm - gb.axial_mm) > link_mm:
+                continue
+            d = abs((ga.centre - gb.centre + math.pi) % (2.0 * math.pi) - math.pi)
+            if d < 0.5 * (ga.width + gb.width):
+                parent[root(a)] = root(b)
+    groups: dict[int, list[ReturnGap]] = {}
+    for a in range(n):
+        groups.setdefault(root(a), []).append(gaps[a])
+    out = [g for g in groups.values() if len({x.ring for x in g}) >= min_rings and len({x.ring for x in g}) == len(g)]
+    return sorted(out, key=len, reverse=True)

@@ -1,0 +1,67 @@
+"""Openings seen as lost laser returns (analysis.openings) on seeded synthetic rings."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from omnipipe.analysis.openings import gap_clusters, local_gaps, return_gaps
+
+RADIUS = 150.0
+
+
+def _rings(seed: int, hole: tuple[float, float, float] | None, band_deg: tuple[float, float] | None = None):
+    """Rings every 5 mm over 0-200 mm, 720 samples each (angle jitter 0.05 deg); the
+    samples inside ``hole`` (axial centre mm, angle deg, diameter mm: a round hole on the
+    wall) and inside ``band_deg`` (on every ring) are lost."""
+    rng = np.random.default_rng(seed)
+    sig, th, fr = [], [], []
+    for k, z in enumerate(np.arange(0.0, 200.0, 5.0)):
+        t = np.linspace(0, 2 * np.pi, 720, endpoint=False) + np.radians(rng.normal(0, 0.05, 720))
+        keep = np.ones(720, bool)
+        if hole is not None:
+            u = ((t - math.radians(hole[1]) + np.pi) % (2 * np.pi) - np.pi) * RADIUS
+            keep &= (u / (0.5 * hole[2])) ** 2 + ((z - hole[0]) / (0.5 * hole[2])) ** 2 >= 1.0
+        if band_deg is not None:
+            d = np.degrees(t) % 360
+            keep &= ~((d >= band_deg[0]) & (d <= band_deg[1]))
+        sig.append(np.full(keep.sum(), z) + rng.normal(0, 0.2, keep.sum()))
+        th.append(t[keep])
+        fr.append(np.full(keep.sum(), k))
+    return np.concatenate(sig), np.concatenate(th), np.concatenate(fr)
+
+
+def _openings(sig, th, fr):
+    gaps = return_gaps(sig, th, fr, RADIUS, 6.0)
+    axial = {int(k): float(np.median(sig[fr == k])) for k in np.unique(fr)}
+    return gap_clusters(local_gaps(gaps, th, fr, axial, 2 * RADIUS), 7.5)
+
+
+def test_a_hole_is_one_opening_at_its_place_with_its_chords() -> None:
+    """A 60 mm hole at 100 mm, 40 deg: one opening over the rings crossing it (the
+    middle 11), centred within a ring spacing and a degree, its widest chord within a
+    sample step of 60 mm; water-like lost returns on every ring (200-260 deg) are none."""
+    sig, th, fr = _rings(1, (100.0, 40.0, 60.0), band_deg=(200.0, 260.0))
+    found = _openings(sig, th, fr)
+    assert len(found) == 1, found
+    op = found[0]
+    z = np.array([g.axial_mm for g in op])
+    assert abs(float(np.mean(z)) - 100.0) < 5.0 and z.min() > 70.0 and z.max() < 130.0
+    assert 10 <= len(op) <= 12
+    c = math.degrees(math.atan2(np.mean([math.sin(g.centre) for g in op]), np.mean([math.cos(g.centre) for g in op])))
+    assert abs(c - 40.0) < 1.0
+    widest = max((g.width - g.step) * RADIUS for g in op)
+    assert abs(widest - 60.0) < 2.0 * (2 * np.pi / 720) * RADIUS
+
+
+def test_lost_returns_on_every_ring_or_in_pieces_are_no_opening() -> None:
+    """A band lost along the whole run, a stretch lost on the first rings (not seen to
+    close before them), and a ring broken into many pieces: nothing."""
+    sig, th, fr = _rings(2, None, band_deg=(10.0, 30.0))
+    assert _openings(sig, th, fr) == []
+    sig, th, fr = _rings(4, (0.0, 40.0, 60.0))
+    assert _openings(sig, th, fr) == []
+    sig, th, fr = _rings(3, None)
+    ragged = (fr >= 10) & (fr <= 12) & (np.degrees(th) % 10 < 3.0)  # 36 pieces on 3 rings
+    assert return_gaps(sig[~ragged], th[~ragged], fr[~ragged], RADIUS, 6.0) == []
