@@ -265,48 +265,73 @@ def score_strip(
                 worst = min(worst, best_score[i] if best[i] >= 0 else -1.0)
             if worst > 0 and _block_bound(m, b_centre[b], b_radius[b], b_steps[b], mag, mm_per_px) < worst:
                 continue
-            n = 0
-            for i in range(lo, hi):
-                if best[i] >= 0 and _bound(p[i], step_u[i], step_z[i], m, mag, mm_per_px) < best_score[i]:
-                    continue
-                cand[n] = i
-                n += 1
+            n = _block_candidates(m, lo, hi, p, step_u, step_z, mag, mm_per_px, best, best_score, cand, q, u, z)
             if n == 0:
                 continue
-            for c in range(n):
-                i = cand[c]
-                rx, ry, rz = _rotate(m, p[i, 0], p[i, 1], p[i, 2])
-                qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
-                q[0, c], q[1, c], q[2, c] = qx, qy, qz
-                ux, uy, uz = _rotate(m, step_u[i, 0], step_u[i, 1], step_u[i, 2])
-                u[0, c], u[1, c], u[2, c] = qx + ux, qy + uy, qz + uz
-                zx, zy, zz = _rotate(m, step_z[i, 0], step_z[i, 1], step_z[i, 2])
-                z[0, c], z[1, c], z[2, c] = qx + zx, qy + zy, qz + zz
             project_block(kind, params, q[0], q[1], q[2], no_shift, n, cols[0], rows[0], seen[0])
             project_block(kind, params, u[0], u[1], u[2], no_shift, n, cols[1], rows[1], seen[1])
             project_block(kind, params, z[0], z[1], z[2], no_shift, n, cols[2], rows[2], seen[2])
-            for c in range(n):
-                if not seen[0, c]:
-                    continue
-                i = cand[c]
-                col, row = cols[0, c], rows[0, c]
-                qx, qy, qz = q[0, c], q[1, c], q[2, c]
-                a0, a1 = cols[1, c] - col, rows[1, c] - row
-                b0, b1 = cols[2, c] - col, rows[2, c] - row
-                dist2 = max(qx * qx + qy * qy + qz * qz, 1e-6)
-                score = math.sqrt(abs(a0 * b1 - a1 * b0)) / mm_per_px / dist2
-                if not math.isfinite(score):
-                    continue
-                if not (score > best_score[i] or (score == best_score[i] and score > 0 and k < best[i])):
-                    continue
-                if _laser_band_hit(m, kind, params, p[i], plane, bands, col, row):
-                    continue
-                best[i] = k
-                best_score[i] = score
-                best_px[i, 0] = col
-                best_px[i, 1] = row
-                dist = math.sqrt(max(qx * qx + qy * qy + qz * qz, 1e-6))
-                nx, ny, nz = _rotate(m, normal[i, 0], normal[i, 1], normal[i, 2])
-                cos_i = abs(nx * qx + ny * qy + nz * qz) / dist
-                best_light[i, 0] = math.log2(max(cos_i, 1e-6) / (dist * dist))
-                best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)
+            _take_block(
+                k, m, n, cand, q, cols, rows, seen, kind, params, p, normal, plane, bands, mm_per_px,
+                centre, best, best_score, best_px, best_light,
+            )
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _block_candidates(
+    m, lo, hi, p, step_u, step_z, mag, mm_per_px, best, best_score, cand, q, u, z
+):  # pragma: no cover - compiled
+    """The cells ``lo:hi`` view ``m`` (4, 4 rig_from_world) may win (:func:`_bound`) into
+    ``cand``, their points and the points one step along the rows/columns away in the
+    rig frame into ``q``, ``u``, ``z`` (3, BLOCK); returns how many."""
+    n = 0
+    for i in range(lo, hi):
+        if best[i] >= 0 and _bound(p[i], step_u[i], step_z[i], m, mag, mm_per_px) < best_score[i]:
+            continue
+        cand[n] = i
+        n += 1
+    for c in range(n):
+        i = cand[c]
+        rx, ry, rz = _rotate(m, p[i, 0], p[i, 1], p[i, 2])
+        qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+        q[0, c], q[1, c], q[2, c] = qx, qy, qz
+        ux, uy, uz = _rotate(m, step_u[i, 0], step_u[i, 1], step_u[i, 2])
+        u[0, c], u[1, c], u[2, c] = qx + ux, qy + uy, qz + uz
+        zx, zy, zz = _rotate(m, step_z[i, 0], step_z[i, 1], step_z[i, 2])
+        z[0, c], z[1, c], z[2, c] = qx + zx, qy + zy, qz + zz
+    return n
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _take_block(
+    k, m, n, cand, q, cols, rows, seen, kind, params, p, normal, plane, bands, mm_per_px,
+    centre, best, best_score, best_px, best_light,
+):  # pragma: no cover - compiled
+    """Keyframe ``k``'s projected block (``cols``/``rows``/``seen``: (3, BLOCK) of the
+    cells' points and their steps) scored; where it wins, :func:`score_strip`'s outputs
+    updated in place."""
+    for c in range(n):
+        if not seen[0, c]:
+            continue
+        i = cand[c]
+        col, row = cols[0, c], rows[0, c]
+        qx, qy, qz = q[0, c], q[1, c], q[2, c]
+        a0, a1 = cols[1, c] - col, rows[1, c] - row
+        b0, b1 = cols[2, c] - col, rows[2, c] - row
+        dist2 = max(qx * qx + qy * qy + qz * qz, 1e-6)
+        score = math.sqrt(abs(a0 * b1 - a1 * b0)) / mm_per_px / dist2
+        if not math.isfinite(score):
+            continue
+        if not (score > best_score[i] or (score == best_score[i] and score > 0 and k < best[i])):
+            continue
+        if _laser_band_hit(m, kind, params, p[i], plane, bands, col, row):
+            continue
+        best[i] = k
+        best_score[i] = score
+        best_px[i, 0] = col
+        best_px[i, 1] = row
+        dist = math.sqrt(max(qx * qx + qy * qy + qz * qz, 1e-6))
+        nx, ny, nz = _rotate(m, normal[i, 0], normal[i, 1], normal[i, 2])
+        cos_i = abs(nx * qx + ny * qy + nz * qz) / dist
+        best_light[i, 0] = math.log2(max(cos_i, 1e-6) / (dist * dist))
+        best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)
