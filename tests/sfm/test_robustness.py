@@ -113,7 +113,10 @@ def test_wall_without_texture_is_refused_in_one_line(
     code = main(["reconstruct", str(tmp_path / "ds"), "--out", str(tmp_path / "rec"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1
-    assert len(err) == 1 and "could not be trusted" in err[0]
+    # Refused for its texture (nothing verified at any step, or frame steps flagged with
+    # no step of 100 feature matches: pipeline.quality.refuse_untrusted_motion).
+    assert len(err) == 1 and "camera motion could not be" in err[0]
+    assert "too little usable wall texture" in err[0]
     assert not (tmp_path / "rec").exists()
 
 
