@@ -65,12 +65,18 @@ def test_a_disagreeing_shift_overrules_with_a_sigma_that_spans_both() -> None:
     mean, sigma = combine_shift(0.003, 0.009, ShiftScale(0.069, 0.008, 10))
     assert mean == pytest.approx(0.069)
     assert abs(mean - 0.003) <= 2 * sigma
-    # Sources within their sigmas (the others' widened by their shared bias): the
-    # inverse-variance mean, between them, a sigma below either's.
-    base_sigma = math.hypot(0.004, SOURCES_BIAS_SIGMA)
+    # Sources within their own sigmas (a full-size clean run: no bias shown): the
+    # inverse-variance mean of their own sigmas, between them, below either's sigma.
     mean, sigma = combine_shift(0.010, 0.004, ShiftScale(0.016, 0.008, 10))
-    w1, w2 = base_sigma**-2, 0.008**-2
+    w1, w2 = 0.004**-2, 0.008**-2
     assert mean == pytest.approx((w1 * 0.010 + w2 * 0.016) / (w1 + w2))
+    assert sigma == pytest.approx((w1 + w2) ** -0.5)
+    # A gap beyond their own sigmas (1.5 sigma) but within the widened ones: the
+    # others widened by their shared bias, then the inverse-variance mean.
+    base_sigma = math.hypot(0.004, SOURCES_BIAS_SIGMA)
+    mean, sigma = combine_shift(0.004, 0.004, ShiftScale(0.0174, 0.008, 10))
+    w1, w2 = base_sigma**-2, 0.008**-2
+    assert mean == pytest.approx((w1 * 0.004 + w2 * 0.0174) / (w1 + w2))
     assert sigma == pytest.approx((w1 + w2) ** -0.5)
     # No other source: the shift alone.
     assert combine_shift(math.nan, math.nan, ShiftScale(0.02, 0.01, 5)) == (0.02, 0.01)
