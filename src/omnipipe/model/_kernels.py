@@ -40,37 +40,8 @@ def _rotate(m, x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _score_cell(m, kind, params, p, su, sz, plane, bands, mm_per_px):  # pragma: no cover - compiled
-    """(score, col, row, qx, qy, qz) of one cell from one keyframe; score 0 where the
-    keyframe does not see it or sees it in the laser's bands (``bands`` = (mm, px))."""
-    rx, ry, rz = _rotate(m, p[0], p[1], p[2])
-    qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
-    col, row, ok = project_point(kind, params, qx, qy, qz)
-    side = qx * plane[0] + qy * plane[1] + qz * plane[2] + plane[3]
-    if not ok or not abs(side) > bands[0]:
-        return 0.0, col, row, qx, qy, qz
-    if bands[1] > 0 and abs(plane[2]) >= 1e-6:
-        # The laser line's image at the cell's azimuth (the point moved along the rig's
-        # z axis onto the plane): the cell must image farther from it than bands[1] px.
-        lc, lr, lok = project_point(kind, params, qx, qy, qz - side / plane[2])
-        d = math.sqrt((lc - col) ** 2 + (lr - row) ** 2)
-        if lok and math.isfinite(d) and not d > bands[1]:
-            return 0.0, col, row, qx, qy, qz
-    ux, uy, uz = _rotate(m, su[0], su[1], su[2])
-    cu, ru, _ = project_point(kind, params, qx + ux, qy + uy, qz + uz)
-    zx, zy, zz = _rotate(m, sz[0], sz[1], sz[2])
-    cz, rz2, _ = project_point(kind, params, qx + zx, qy + zy, qz + zz)
-    a0, a1, b0, b1 = cu - col, ru - row, cz - col, rz2 - row
-    dist2 = max(qx * qx + qy * qy + qz * qz, 1e-6)
-    score = math.sqrt(abs(a0 * b1 - a1 * b0)) / mm_per_px / dist2
-    if not math.isfinite(score):
-        score = 0.0
-    return score, col, row, qx, qy, qz
-
-
-@numba.njit(cache=True, error_model="numpy")
 def _bound(p, su, sz, m, mag, mm_per_px):  # pragma: no cover - compiled
-    """An upper bound of :func:`_score_cell`'s score of the cell ``p`` from ``m``.
+    """An upper bound of the cell's score (``tests/model/test_kernels.py``'s reference ``score_cell``) of the cell ``p`` from ``m``.
 
     Seen from distance d, a step s turns the ray by at most |s| / (d - |s|) (while
     that is below :data:`STEP_RAD`), and the pixel moves by at most that times the
@@ -91,55 +62,6 @@ def _bound(p, su, sz, m, mag, mm_per_px):  # pragma: no cover - compiled
         elev = math.asin(min(max(qz / d, -1.0), 1.0))
         j = min(max(int((elev + 0.5 * math.pi) / MAG_BIN_RAD), 0), len(mag) - 1)
     return mag[j] * math.sqrt(lu * lz / ((d - lu) * (d - lz))) / mm_per_px / max(d2, 1e-6)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def score_strip_by_cell(
-    rig_from_world, spans, order, mag, kind, params, p, step_u, step_z, normal, plane, bands,
-    mm_per_px, centre, best, best_score, best_px, best_light,
-):  # pragma: no cover - compiled
-    """:func:`score_strip` cell by cell (its reference in the tests).
-
-    Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
-    is better than ``best_score`` (equal: the earlier keyframe wins), ``best``,
-    ``best_score``, ``best_px`` and ``best_light`` (log2 of cos(incidence) / range^2 and
-    the pixel's distance from ``centre``) are updated in place. The keyframes are taken
-    in ``order`` (near ones first: a good view found early lets :func:`_bound` skip the
-    views that cannot beat it; the result does not depend on the order).
-
-    Args:
-        rig_from_world: (K, 4, 4) inverse keyframe poses (mm).
-        spans: (K, 2) int64 cell ranges each keyframe scores.
-        order: (K,) int64 the keyframes in the order they are scored.
-        mag: (N,) the camera's largest px per radian by elevation (:func:`_bound`;
-            [inf]: no view skipped).
-        kind, params: the camera's compiled projection.
-        p, step_u, step_z, normal: (n, 3) cells' world points, their steps along the rows
-            and columns (mm) and unit wall normals.
-        plane: (4,) laser plane (normal in the rig frame, offset mm).
-        bands: (2,) the laser band (mm from the plane, px from its line's image).
-        mm_per_px: the cell size (mm).
-        centre: (2,) principal point (px).
-    """
-    for k in order:
-        m = rig_from_world[k]
-        for i in range(spans[k, 0], spans[k, 1]):
-            if best[i] >= 0 and _bound(p[i], step_u[i], step_z[i], m, mag, mm_per_px) < best_score[i]:
-                continue
-            score, col, row, qx, qy, qz = _score_cell(
-                m, kind, params, p[i], step_u[i], step_z[i], plane, bands, mm_per_px
-            )
-            if not (score > best_score[i] or (score == best_score[i] and score > 0 and k < best[i])):
-                continue
-            best[i] = k
-            best_score[i] = score
-            best_px[i, 0] = col
-            best_px[i, 1] = row
-            dist = math.sqrt(max(qx * qx + qy * qy + qz * qz, 1e-6))
-            nx, ny, nz = _rotate(m, normal[i, 0], normal[i, 1], normal[i, 2])
-            cos_i = abs(nx * qx + ny * qy + nz * qz) / dist
-            best_light[i, 0] = math.log2(max(cos_i, 1e-6) / (dist * dist))
-            best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)
 
 
 BLOCK = 32
@@ -200,7 +122,7 @@ def _block_bound(m, centre, radius, steps, mag, mm_per_px):  # pragma: no cover 
 @numba.njit(cache=True, error_model="numpy")
 def _laser_band_hit(m, kind, params, p, plane, bands, col, row):  # pragma: no cover - compiled
     """True where the cell ``p`` seen from ``m`` (at ``col``, ``row``) lies in the laser's
-    bands: :func:`_score_cell`'s test, in its operations."""
+    bands: the reference ``score_cell``'s test (tests/model/test_kernels.py), in its operations."""
     rx, ry, rz = _rotate(m, p[0], p[1], p[2])
     qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
     side = qx * plane[0] + qy * plane[1] + qz * plane[2] + plane[3]
@@ -226,7 +148,7 @@ def score_strip(
     in ``order`` (near ones first: a good view found early lets :func:`_bound` skip the
     views that cannot beat it; the result does not depend on the order).
 
-    Bit for bit :func:`score_strip_by_cell`, :data:`BLOCK` cells at a time: the cells
+    Bit for bit the cell-by-cell reference in tests/model/test_kernels.py, :data:`BLOCK` cells at a time: the cells
     :func:`_bound` does not skip, their points and their two steps projected as blocks
     (:func:`~omnipipe.camera._kernels.project_block`); the laser band's test only for a
     view that would win (a cell in the band scores 0, which wins nothing).
