@@ -257,3 +257,95 @@ def _take_block(
         cos_i = abs(nx * qx + ny * qy + nz * qz) / dist
         best_light[i, 0] = math.log2(max(cos_i, 1e-6) / (dist * dist))
         best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)
+
+
+@numba.njit(cache=True)
+def faces_by_row(faces, axial, z0, mm_per_px, height):  # pragma: no cover - compiled
+    """The (F, 3) triangles (vertex indices into the (N,) ``axial`` positions, mm) in
+    order of the first grid row they may cover (row r at ``z0 + r * mm_per_px``; one
+    row early to spare for rounding): (F,) ``order``, (height + 1,) ``start`` (the
+    triangles of first row r are ``order[start[r]:start[r + 1]]``) and the most rows
+    one triangle spans. A counting sort: linear in triangles and rows."""
+    n = len(faces)
+    first = np.empty(n, np.int64)
+    span = 0
+    for f in range(n):
+        lo = min(axial[faces[f, 0]], axial[faces[f, 1]], axial[faces[f, 2]])
+        hi = max(axial[faces[f, 0]], axial[faces[f, 1]], axial[faces[f, 2]])
+        r0 = min(max(int(math.floor((lo - z0) / mm_per_px)) - 1, 0), height - 1)
+        r1 = min(max(int(math.ceil((hi - z0) / mm_per_px)) + 1, 0), height - 1)
+        first[f] = r0
+        span = max(span, r1 - r0 + 1)
+    start = np.zeros(height + 1, np.int64)
+    for f in range(n):
+        start[first[f] + 1] += 1
+    for r in range(height):
+        start[r + 1] += start[r]
+    at = start[:-1].copy()
+    order = np.empty(n, faces.dtype)
+    for f in range(n):
+        order[at[first[f]]] = f
+        at[first[f]] += 1
+    return order, start, span
+
+
+@numba.njit(cache=True, error_model="numpy")
+def rasterise_faces(
+    faces, order, arc, axial, points, circ, z0, mm_per_px, first, max_gap_mm, grid, far
+):  # pragma: no cover - compiled
+    """Each triangle ``faces[order]`` linearly interpolated onto the cells it covers of
+    the rows ``first .. first + len(grid)`` of the unrolled grid; ``tests/model/
+    test_mesh_grid.py``'s ``rasterise_by_cell`` is its reference, bit for bit.
+
+    The grid's cell (r, c) lies at arc ``(c + 0.5) * (circ / W)`` (and that plus or minus
+    ``circ``: a triangle across angle 0 is unwrapped about its first corner) and axial
+    ``z0 + r * mm_per_px``; it is in a triangle when its three barycentric coordinates
+    are at least -1e-12 (a cell on an edge shared by two triangles takes the later one's
+    value: the same to rounding). Its point is the coordinates' sum of the corners'
+    ``points`` (mm).
+
+    Args:
+        faces: (F, 3) vertex indices; ``order``: the triangles to draw, in order.
+        arc, axial: (N,) unrolled coordinates of the vertices (mm), arc in [0, circ).
+        points: (N, 3) their 3-D points (mm).
+        grid: (h, W, 3) float64, written where a triangle covers a cell (NaN elsewhere,
+            as given).
+        far: (h, W) bool, set True where a drawn cell's nearest corner is farther than
+            ``max_gap_mm`` (unrolled): whether another point is nearer is left to the
+            caller.
+    """
+    h, w = grid.shape[0], grid.shape[1]
+    du = circ / w
+    gap2 = max_gap_mm * max_gap_mm * (1.0 - 1e-9)
+    for f in order:
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        u0 = arc[i0]
+        u1 = u0 + ((arc[i1] - u0 + 0.5 * circ) % circ - 0.5 * circ)
+        u2 = u0 + ((arc[i2] - u0 + 0.5 * circ) % circ - 0.5 * circ)
+        v0, v1, v2 = axial[i0], axial[i1], axial[i2]
+        den = (v1 - v2) * (u0 - u2) + (u2 - u1) * (v0 - v2)
+        if den == 0.0 or not math.isfinite(den):
+            continue
+        r_lo = max(int(math.ceil((min(v0, v1, v2) - z0) / mm_per_px)) - 1, first)
+        r_hi = min(int(math.floor((max(v0, v1, v2) - z0) / mm_per_px)) + 1, first + h - 1)
+        u_lo, u_hi = min(u0, u1, u2), max(u0, u1, u2)
+        for shift in (-circ, 0.0, circ):
+            c_lo = max(int(math.ceil((u_lo - shift) / du - 0.5)) - 1, 0)
+            c_hi = min(int(math.floor((u_hi - shift) / du - 0.5)) + 1, w - 1)
+            for r in range(r_lo, r_hi + 1):
+                zc = z0 + r * mm_per_px
+                for c in range(c_lo, c_hi + 1):
+                    uc = (c + 0.5) * du + shift
+                    l0 = ((v1 - v2) * (uc - u2) + (u2 - u1) * (zc - v2)) / den
+                    l1 = ((v2 - v0) * (uc - u2) + (u0 - u2) * (zc - v2)) / den
+                    l2 = 1.0 - l0 - l1
+                    if l0 < -1e-12 or l1 < -1e-12 or l2 < -1e-12:
+                        continue
+                    for a in range(3):
+                        grid[r - first, c, a] = l0 * points[i0, a] + l1 * points[i1, a] + l2 * points[i2, a]
+                    d2 = min(
+                        (uc - u0) ** 2 + (zc - v0) ** 2,
+                        (uc - u1) ** 2 + (zc - v1) ** 2,
+                        (uc - u2) ** 2 + (zc - v2) ** 2,
+                    )
+                    far[r - first, c] = d2 > gap2

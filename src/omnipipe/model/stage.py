@@ -48,7 +48,7 @@ from omnipipe.model.mesh import (
 )
 from omnipipe.model.outliers import OutlierConfig
 from omnipipe.model.texture import paint, texture_samples
-from omnipipe.model.texture_grid import SECTION_ROWS, UnrolledImage, WallGrid
+from omnipipe.model.texture_grid import SECTION_ROWS, MeshGrid, UnrolledImage
 from omnipipe.model.texture_light import LightStore, flat_field
 from omnipipe.model.texture_sources import LIGHT_DTYPE, choose_sources
 from omnipipe.progress import phase
@@ -379,13 +379,11 @@ def _texture(
     # the inside of the largest kept triangle (0.6 x its longest edge).
     longest = float(longest_edges(points, faces).max())
     gap = 0.6 * longest
-    # The grid is evaluated and scored a strip of rows at a time (never held whole). The
-    # triangles the mesh drops (a lateral's opening, a joint's gap, an edge longer than
-    # its longest, e.g. across the wall under water) stay holes in the texture too.
-    wall = WallGrid(
-        arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0),
-        hole=inputs.not_wall, max_edge_mm=longest,
-    )
+    # The grid is evaluated and scored a strip of rows at a time (never held whole), on
+    # the mesh's own triangles: the ones it drops (a lateral's opening, a joint's gap, an
+    # edge longer than its longest, e.g. across the wall under water) stay holes in the
+    # texture too.
+    wall = MeshGrid(faces, arc, axial, points, circ, config.texture_mm_per_px, max(gap, 2.0))
     h, w = wall.shape
     wall_z0 = wall.axial_min_mm
     seen = zeros_on_disk((h, w), bool)  # the cells some keyframe textures
@@ -415,7 +413,7 @@ def _texture_section(
     inputs: ModelInputs,
     rings: _RingColours,
     ticks: _Ticks,
-    wall: WallGrid,
+    wall: MeshGrid,
     rows: tuple[int, int],
     executor: Executor | None,
     atlas: np.ndarray,

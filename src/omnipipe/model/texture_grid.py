@@ -242,6 +242,97 @@ class WallGrid:
         return state
 
 
+class MeshGrid:
+    """The unrolled grid's wall points interpolated over the wall mesh's own triangles (the
+    model stage's: :func:`~omnipipe.model.mesh.mesh_unrolled`, one triangulation for the
+    mesh and the texture), evaluated a strip of rows at a time.
+
+    The same grid as :class:`WallGrid` of the mesh's points with its ``hole`` and
+    ``max_edge_mm`` (the mesh's triangles are the unrolled Delaunay's, less the ones it
+    drops: those are the cells :class:`WallGrid` leaves NaN), to rounding: a cell in a
+    triangle is the triangle's linear interpolation (barycentric coordinates of the
+    unrolled cell, :func:`~omnipipe.model._kernels.rasterise_faces`); a cell in no
+    triangle, or farther than ``max_gap_mm`` from every point (unrolled, the arc's wrap
+    included), is NaN. Each strip draws only the triangles over its rows (the triangles
+    in order of their rows, :func:`~omnipipe.model._kernels.faces_by_row`: 4 or 8 bytes
+    a triangle, in the run's scratch), so a strip costs its cells and triangles, and
+    nothing of the grid is triangulated again.
+
+    Attributes:
+        shape: (H, W) cells; row r at axial ``axial_min_mm + r * mm_per_px``, column c at
+            arc ``(c + 0.5) * circumference_mm / W``.
+        axial_min_mm: axial position of row 0 (mm).
+    """
+
+    def __init__(
+        self,
+        faces: np.ndarray,
+        arc_mm: np.ndarray,
+        axial_mm: np.ndarray,
+        points_in_world: np.ndarray,
+        circumference_mm: float,
+        mm_per_px: float,
+        max_gap_mm: float,
+    ) -> None:
+        """Order the (F, 3) ``faces`` (vertex indices into the (N,) ``arc_mm``,
+        ``axial_mm``, (N, 3) ``points_in_world``; mm) by their rows."""
+        from omnipipe.model._kernels import faces_by_row
+
+        circ = float(circumference_mm)
+        width = int(np.ceil(circ / mm_per_px))
+        z0 = float(np.floor(np.min(axial_mm)))
+        height = int(np.ceil((np.max(axial_mm) - z0) / mm_per_px)) + 1
+        self.shape = (height, width)
+        self.axial_min_mm = z0
+        self._circ, self._mm, self._gap = circ, float(mm_per_px), float(max_gap_mm)
+        self._faces = np.ascontiguousarray(faces)
+        self._arc = np.ascontiguousarray(arc_mm, float)
+        self._axial = np.ascontiguousarray(axial_mm, float)
+        self._points = np.ascontiguousarray(points_in_world, float)
+        order, self._start, self._span = faces_by_row(self._faces, self._axial, z0, self._mm, height)
+        self._order = on_disk(order)
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, W, 3) wall points of rows [first, stop), mm (NaN: no wall)."""
+        from omnipipe.model._kernels import rasterise_faces
+
+        h, w = self.shape
+        first, stop = max(int(first), 0), min(int(stop), h)
+        grid = np.full((max(stop - first, 0), w, 3), np.nan)
+        if stop <= first:
+            return grid
+        far = np.zeros(grid.shape[:2], bool)
+        a = int(self._start[max(first - self._span, 0)])
+        b = int(self._start[stop])
+        rasterise_faces(
+            self._faces, np.asarray(self._order[a:b]), self._arc, self._axial, self._points,
+            self._circ, self.axial_min_mm, self._mm, first, self._gap, grid, far,
+        )
+        if far.any():
+            self._unfar(grid, far, first)
+        return grid
+
+    def _unfar(self, grid: np.ndarray, far: np.ndarray, first: int) -> None:
+        """NaN the ``far`` cells of ``grid`` (rows from ``first``) that no point (their
+        triangle's corners are not) is within the gap of: a tree of the points near them."""
+        rr, cc = np.nonzero(far)
+        z = self.axial_min_mm + (first + rr) * self._mm
+        u = (cc + 0.5) * (self._circ / self.shape[1])
+        near = np.flatnonzero(
+            (self._axial >= z.min() - self._gap) & (self._axial <= z.max() + self._gap)
+        )
+        pu, pz = self._arc[near], self._axial[near]
+        margin = 0.1 * self._circ
+        lo, hi = pu < margin, pu > self._circ - margin
+        uz = np.column_stack([
+            np.concatenate([pu, pu[lo] + self._circ, pu[hi] - self._circ]),
+            np.concatenate([pz, pz[lo], pz[hi]]),
+        ])
+        dist = cKDTree(uz).query(np.column_stack([u, z]))[0] if len(uz) else np.full(len(u), np.inf)
+        out = dist > self._gap
+        grid[rr[out], cc[out]] = np.nan
+
+
 @dataclass(frozen=True)
 class _Block:
     """Rows [first, last) of a chunked :class:`WallGrid`: their chunk's interpolation, its

@@ -37,7 +37,7 @@ from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
 from omnipipe.model._kernels import MAG_BIN_RAD, STEP_RAD, score_strip
-from omnipipe.model.texture_grid import STRIP_ROWS, WallGrid
+from omnipipe.model.texture_grid import STRIP_ROWS, MeshGrid, WallGrid
 from omnipipe.model.texture_light import LASER_BAND_PX, laser_line_px
 from omnipipe.rig import Rig
 
@@ -322,7 +322,7 @@ def visible_rows(
 def choose_sources(
     rig: Rig,
     world_from_rig: np.ndarray,
-    grid_points: np.ndarray | WallGrid,
+    grid_points: np.ndarray | WallGrid | MeshGrid,
     mm_per_px: float,
     laser_band_mm: float = 3.0,
     windowed: bool = True,
@@ -351,7 +351,7 @@ def choose_sources(
         rig: calibration (camera model and laser plane).
         world_from_rig: (K, 4, 4) keyframe poses (mm).
         grid_points: (H, W, 3) wall point of each cell, mm (NaN: none), or a
-            :class:`WallGrid` evaluated a strip at a time.
+            :class:`WallGrid` or :class:`MeshGrid` evaluated a strip at a time.
         mm_per_px: cell size (mm).
         laser_band_mm: cells within this distance of the laser plane are not taken.
         laser_band_px: nor cells that image within this many pixels of the laser line
@@ -364,7 +364,7 @@ def choose_sources(
 
     Ties go to the earliest keyframe.
     """
-    grid = grid_points if isinstance(grid_points, WallGrid) else _ArrayRows(grid_points)
+    grid = _ArrayRows(grid_points) if isinstance(grid_points, np.ndarray) else grid_points
     camera = camera_from_rig(rig)
     h, w = grid.shape
     n_k = len(world_from_rig)
@@ -408,7 +408,7 @@ def _section(rows: tuple[int, int] | None, h: int, step: int) -> tuple[int, int]
     return top, end
 
 
-def _grid_rows(grid: WallGrid | _ArrayRows, spans: list[tuple[int, int]]) -> Iterator[np.ndarray]:
+def _grid_rows(grid: WallGrid | MeshGrid | _ArrayRows, spans: list[tuple[int, int]]) -> Iterator[np.ndarray]:
     """Each span's grid rows, in order, evaluated here as the strips are submitted (a
     long run's grid a block at a time: one block's triangulation held). Evaluating them
     in the workers sent each strip its whole block (21 MB pickled at 3,000 frames) and

@@ -1,0 +1,141 @@
+"""The texture's wall grid drawn from the mesh's own triangles (:class:`MeshGrid`): its
+compiled rasteriser against a cell-by-cell reference, bit for bit, and the grid against
+the one interpolated over a Delaunay triangulation of its own (:class:`WallGrid`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_chunks import _rings, _tube
+from test_texture_holes import CIRC, _wall_with_features
+from threadpoolctl import threadpool_limits
+
+from omnipipe.model import mesh_unrolled
+from omnipipe.model._kernels import faces_by_row, rasterise_faces
+from omnipipe.model.mesh import longest_edges, orient_towards_axis
+from omnipipe.model.texture_grid import MeshGrid, WallGrid
+
+RING_CIRC = 2 * np.pi * 20.0  # test_chunks' tube
+
+
+@pytest.fixture(autouse=True)
+def _one_blas_thread():
+    """As in the model stage (the reference grid's barycentric transforms)."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+def rasterise_by_cell(faces, order, arc, axial, points, circ, z0, mm_per_px, first, max_gap_mm, grid, far):
+    """:func:`omnipipe.model._kernels.rasterise_faces` with every triangle tested against
+    every cell of the rows (the later one wins): its reference, in its operations."""
+    h, w = grid.shape[:2]
+    du = circ / w
+    gap2 = max_gap_mm * max_gap_mm * (1.0 - 1e-9)
+    for f in order:
+        i = faces[f]
+        u0 = arc[i[0]]
+        u1 = u0 + ((arc[i[1]] - u0 + 0.5 * circ) % circ - 0.5 * circ)
+        u2 = u0 + ((arc[i[2]] - u0 + 0.5 * circ) % circ - 0.5 * circ)
+        v0, v1, v2 = axial[i[0]], axial[i[1]], axial[i[2]]
+        den = (v1 - v2) * (u0 - u2) + (u2 - u1) * (v0 - v2)
+        if den == 0.0:
+            continue
+        zc = (z0 + (first + np.arange(h)) * mm_per_px)[:, None]
+        for shift in (-circ, 0.0, circ):
+            uc = ((np.arange(w) + 0.5) * du + shift)[None, :]
+            l0 = ((v1 - v2) * (uc - u2) + (u2 - u1) * (zc - v2)) / den
+            l1 = ((v2 - v0) * (uc - u2) + (u0 - u2) * (zc - v2)) / den
+            l2 = 1.0 - l0 - l1
+            cell = (l0 >= -1e-12) & (l1 >= -1e-12) & (l2 >= -1e-12)
+            for a in range(3):
+                value = l0 * points[i[0], a] + l1 * points[i[1], a] + l2 * points[i[2], a]
+                grid[..., a][cell] = value[cell]
+            d2 = np.minimum(np.minimum((uc - u0) ** 2 + (zc - v0) ** 2, (uc - u1) ** 2 + (zc - v1) ** 2),
+                            (uc - u2) ** 2 + (zc - v2) ** 2)
+            far[cell] = (d2 > gap2)[cell]
+
+
+def _mesh(arc, axial, pts, circ, hole=None):
+    faces = mesh_unrolled(arc, axial, pts, circ, 2.5, hole=hole)
+    frame = np.zeros(len(arc), int)
+    return orient_towards_axis(faces, arc, axial, circ, pts, frame)
+
+
+def test_the_rasteriser_is_its_cell_by_cell_reference_bit_for_bit() -> None:
+    """A few dozen triangles across angle 0 and a strip of rows: the same cells, points
+    and far flags, bit for bit."""
+    rng = np.random.default_rng(4)
+    arc, axial = _rings(6, 14, seed=2)
+    pts = _tube(arc, axial)
+    faces = _mesh(arc, axial, pts, RING_CIRC)
+    assert len(faces) > 40
+    mm, z0, w = 0.7, float(np.floor(axial.min())), int(np.ceil(RING_CIRC / 0.7))
+    h = int(np.ceil((axial.max() - z0) / mm)) + 1
+    first, stop = 3, h - 2
+    order = rng.permutation(len(faces)).astype(faces.dtype)
+    out = []
+    for fn in (rasterise_faces, rasterise_by_cell):
+        grid = np.full((stop - first, w, 3), np.nan)
+        far = np.zeros((stop - first, w), bool)
+        fn(faces, order, arc, axial, pts, RING_CIRC, z0, mm, first, 1.2, grid, far)
+        out.append((grid, far))
+    (g1, f1), (g2, f2) = out
+    assert np.array_equal(g1.view(np.uint8), g2.view(np.uint8)) and np.array_equal(f1, f2)
+    assert np.isfinite(g1).mean() > 0.8 and 0 < f1.sum() < f1.size
+
+
+def test_faces_by_row_orders_every_triangle_by_its_first_row() -> None:
+    arc, axial = _rings(30, 40, seed=1)
+    faces = _mesh(arc, axial, _tube(arc, axial), RING_CIRC)
+    z0, mm = float(np.floor(axial.min())), 0.5
+    h = int(np.ceil((axial.max() - z0) / mm)) + 1
+    order, start, span = faces_by_row(faces, axial, z0, mm, h)
+    assert np.array_equal(np.sort(order), np.arange(len(faces)))
+    zf = axial[faces]
+    first = np.clip(np.floor((zf.min(axis=1) - z0) / mm).astype(int) - 1, 0, h - 1)
+    last = np.clip(np.ceil((zf.max(axis=1) - z0) / mm).astype(int) + 1, 0, h - 1)
+    assert np.array_equal(np.diff(first[order]) >= 0, np.ones(len(faces) - 1, bool))
+    assert start[0] == 0 and start[-1] == len(faces)
+    for r in (0, h // 3, h - 1):
+        assert np.array_equal(np.sort(order[start[r] : start[r + 1]]), np.flatnonzero(first == r))
+    assert span == int((last - first).max()) + 1
+
+
+def _both(arc, axial, pts, circ, mm, gap, hole=None, chunk=None):
+    faces = _mesh(arc, axial, pts, circ, hole)
+    longest = float(longest_edges(pts, faces).max())
+    kw = {} if chunk is None else {"chunk_points": chunk}
+    wall = WallGrid(arc, axial, pts, circ, mm, gap, hole=hole, max_edge_mm=longest, **kw)
+    mesh = MeshGrid(faces, arc, axial, pts, circ, mm, gap)
+    assert mesh.shape == wall.shape and mesh.axial_min_mm == wall.axial_min_mm
+    h = wall.shape[0]
+    a = np.concatenate([wall.rows(r, min(r + 50, h)) for r in range(0, h, 50)])
+    b = np.concatenate([mesh.rows(r, min(r + 37, h)) for r in range(0, h, 37)])
+    return a, b
+
+
+@pytest.mark.parametrize("gap", [6.0, 2.2])
+def test_the_mesh_grid_is_the_delaunay_grid_with_its_holes(gap: float) -> None:
+    """A wall with a lateral's opening and a joint's gap (not wall), ~4 mm spacing: the same
+    NaN cells and the same points to 1e-9 mm. With a gap of 2.2 mm many cells lie farther
+    than that from their triangle's corners: the points near them decide, as the
+    Delaunay grid's nearest-point rule does."""
+    arc, axial, pts, hole = _wall_with_features()
+    a, b = _both(arc, axial, pts, CIRC, 1.0, gap, hole=hole)
+    nan_a, nan_b = np.isnan(a[..., 0]), np.isnan(b[..., 0])
+    assert np.array_equal(nan_a, nan_b)
+    assert np.allclose(a[~nan_a], b[~nan_b], rtol=0, atol=1e-9)
+    assert 0.05 < nan_a.mean() < (0.6 if gap < 3 else 0.2)
+
+
+def test_a_long_runs_mesh_grid_is_the_chunked_delaunay_grid() -> None:
+    """Rings along a wavy tube with a stretch unseen, the mesh triangulated a chunk at a
+    time: the same grid as the chunked Delaunay grid's."""
+    arc, axial = _rings(120, 60, seed=3, gap=(150.0, 170.0))
+    pts = _tube(arc, axial)
+    faces = mesh_unrolled(arc, axial, pts, RING_CIRC, 2.5, chunk_points=1500)
+    assert len(faces) > 10000
+    a, b = _both(arc, axial, pts, RING_CIRC, 0.5, 2.0, chunk=1500)
+    nan_a, nan_b = np.isnan(a[..., 0]), np.isnan(b[..., 0])
+    assert np.array_equal(nan_a, nan_b)
+    assert np.allclose(a[~nan_a], b[~nan_b], rtol=0, atol=1e-9)
