@@ -7,7 +7,15 @@ from scipy.spatial.transform import Rotation
 
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply, invert, make_transform
-from omnipipe.sfm.bundle import BundleConfig, BundleProblem, bundle_adjust, resect_rays
+from omnipipe.sfm.bundle import (
+    BundleConfig,
+    BundleProblem,
+    _select_tracks,
+    build_problem,
+    bundle_adjust,
+    resect_rays,
+)
+from omnipipe.sfm.geometry import triangulate_pairs
 from omnipipe.sim.scenarios import paper_rig
 
 
@@ -94,3 +102,78 @@ def test_resection_refits_without_unverified_matches(pipe_scene) -> None:
     err_clean = np.linalg.norm(clean[:3, 3] - truth[:3, 3])
     err = np.linalg.norm(est[:3, 3] - truth[:3, 3])
     assert err < max(1.5 * err_clean, 0.1), (err, err_clean)
+
+
+def _triangulate_track_reference(camera, world_from_rig, rays_in_rig, f, li, obs, config):
+    """build_problem's former per-track triangulation, the reference of the batched one."""
+    R = world_from_rig[:, :3, :3]
+    C = world_from_rig[:, :3, 3]
+    d = np.array([R[k] @ rays_in_rig[k][j] for k, j in zip(f, li, strict=True)])
+    if d[0] @ d[-1] > np.cos(np.radians(config.min_parallax_deg)):
+        return None
+    k1, k2 = f[0], f[-1]
+    pair, depth = triangulate_pairs(
+        rays_in_rig[k1][li[0]][None], rays_in_rig[k2][li[-1]][None],
+        invert(world_from_rig[k2]) @ world_from_rig[k1],
+    )
+    if not (depth[0, 0] > 0 and depth[0, 1] > 0):
+        return None
+    X = R[k1] @ pair[0] + C[k1]
+    q = np.einsum("nji,nj->ni", R[f], X - C[f])
+    px, valid = camera.project(q)
+    if not valid.all() or np.max(np.linalg.norm(px - obs, axis=1)) > config.max_reprojection_px:
+        return None
+    return X
+
+
+def test_build_problem_triangulates_tracks_as_one_at_a_time(pipe_scene) -> None:
+    """The batched track triangulation keeps the same tracks with the same points as the
+    track-by-track reference: parallax, behind-the-rig and reprojection rejections
+    included."""
+    rng = np.random.default_rng(5)
+    camera = OmniCamera.from_rig(paper_rig(800, 600))
+    K = 6
+    poses, _, pts = pipe_scene(rng, K, 0.01, 0.5, 600, (-250.0, 150.0))
+    pixels, rays, ids = [], [], []
+    for k in range(K):
+        q = apply(invert(poses[k]), pts)
+        px, ok = camera.project(q)
+        sel = rng.permutation(np.flatnonzero(ok))[: int(0.8 * ok.sum())]
+        noisy = px[sel] + rng.normal(0, 0.3, (len(sel), 2))
+        noisy[rng.random(len(sel)) < 0.05] += 12.0  # a few far off: rejected by reprojection
+        pixels.append(noisy)
+        r = q[sel] / np.linalg.norm(q[sel], axis=1, keepdims=True)
+        r[rng.random(len(sel)) < 0.03] *= -1  # a few behind the rig
+        rays.append(r)
+        ids.append(sel)
+    matches = []
+    for a in range(K - 1):
+        for b in (a + 1, a + 2):
+            if b >= K:
+                continue
+            common, ia, ib = np.intersect1d(ids[a], ids[b], return_indices=True)
+            keep = rng.random(len(common)) < 0.7
+            matches.append((a, b, np.stack([ia[keep], ib[keep]], axis=1)))
+    config = BundleConfig(min_parallax_deg=2.0)
+    problem = build_problem(camera, poses, pixels, rays, matches, [], config)
+    ref_pts, ref_f, ref_p, ref_px = [], [], [], []
+    ref_fp = [np.full(len(p), -1) for p in pixels]
+    for f, li in _select_tracks(pixels, matches, config.max_tracks):
+        obs = np.array([pixels[k][j] for k, j in zip(f, li, strict=True)])
+        X = _triangulate_track_reference(camera, poses, rays, f, li, obs, config)
+        if X is None:
+            continue
+        for k, j in zip(f, li, strict=True):
+            ref_fp[k][j] = len(ref_pts)
+        ref_f.append(f)
+        ref_p.append(np.full(len(f), len(ref_pts)))
+        ref_px.append(obs)
+        ref_pts.append(X)
+    n_tracks = len(_select_tracks(pixels, matches, config.max_tracks))
+    assert 50 < len(ref_pts) < n_tracks - 20  # some of each rejection happened
+    np.testing.assert_allclose(problem.points_in_world, np.array(ref_pts), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(problem.obs_frame, np.concatenate(ref_f))
+    np.testing.assert_array_equal(problem.obs_point, np.concatenate(ref_p))
+    np.testing.assert_array_equal(problem.obs_pixels, np.concatenate(ref_px))
+    for got, want in zip(problem.feature_point, ref_fp, strict=True):
+        np.testing.assert_array_equal(got, want)

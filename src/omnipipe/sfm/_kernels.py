@@ -5,6 +5,9 @@
 
 :func:`candidate_maps`: Eq. (17)'s candidate pixels, a template's samples projected in
 one block per candidate length (:mod:`omnipipe.sfm.laser_scale`).
+
+:func:`two_smallest_columns`: the backward nearest-descriptor search read off the
+forward search's product (:func:`omnipipe.sfm.features.match_features`).
 """
 
 from __future__ import annotations
@@ -94,3 +97,34 @@ def candidate_maps(
                     along = (px[k] + s0) * normal[0] + (py[k] + s1) * normal[1] + (pz[k] + s2) * normal[2]
                     rows = abs(along + offset) / step[i]
                     w[i, j, k] = weight[i, k] * (1.0 if rows > half[i] else 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def two_smallest_columns(qq, tt, dot, cols):  # pragma: no cover - compiled
+    """Per column ``c`` of ``cols`` (C,): over the rows r of ``tt[c] + qq[r] - 2 dot[r, c]``
+    (float32; ``qq`` (R,), ``tt`` (T,), ``dot`` (R, T)) the argmin, min and second min
+    (clipped at 0): the two nearest rows of each column, in the order and with the
+    comparisons of a row-wise scan of the transposed product (the first of equal
+    minima wins), so the same result as a search of its own on ``dot[:, cols].T``.
+    """
+    n_rows = dot.shape[0]
+    n_cols = cols.shape[0]
+    best = np.zeros(n_cols, np.int64)
+    b0 = np.full(n_cols, np.float32(np.inf))
+    b1 = np.full(n_cols, np.float32(np.inf))
+    two = np.float32(2.0)
+    for r in range(n_rows):
+        for i in range(n_cols):
+            c = cols[i]
+            d = tt[c] + qq[r] - two * dot[r, c]
+            if d < b0[i]:
+                b1[i] = b0[i]
+                b0[i] = d
+                best[i] = r
+            elif d < b1[i]:
+                b1[i] = d
+    zero = np.float32(0.0)
+    for i in range(n_cols):
+        b0[i] = max(b0[i], zero)
+        b1[i] = max(b1[i], zero)
+    return best, b0, b1

@@ -380,37 +380,59 @@ def _select_tracks(
     return out
 
 
-def _triangulate_track(
+def _triangulate_tracks(
     camera: CameraModel,
     world_from_rig: np.ndarray,
-    rays_in_rig: list[np.ndarray],
-    f: np.ndarray,
-    li: np.ndarray,
+    frames: np.ndarray,
+    rays: np.ndarray,
     obs: np.ndarray,
+    start: np.ndarray,
     config: BundleConfig,
-) -> np.ndarray | None:
-    """(3,) world point of a track (keyframes ``f``, features ``li``, pixels ``obs``): the
-    midpoint of its first and last rays (the widest baseline), or None if their parallax
-    is below ``min_parallax_deg``, the point is behind either, or it reprojects anywhere
-    worse than ``max_reprojection_px``."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points of T tracks at once: each the midpoint of its first and last rays
+    (the widest baseline), kept unless their parallax is below ``min_parallax_deg``,
+    the point is behind either, or it reprojects anywhere worse than
+    ``max_reprojection_px``.
+
+    Args:
+        world_from_rig: (K, 4, 4) keyframe poses.
+        frames, rays, obs: (M,) keyframe, (M, 3) unit ray in its rig and (M, 2) omni
+            pixel of each observation, track after track (each in keyframe order).
+        start: (T,) where each track's observations start (the next one's start, or
+            M, ends it).
+
+    Returns:
+        (T, 3) points (mm) and (T,) True for the tracks kept.
+    """
     R = world_from_rig[:, :3, :3]
     C = world_from_rig[:, :3, 3]
-    d = np.array([R[k] @ rays_in_rig[k][j] for k, j in zip(f, li, strict=True)])
-    if d[0] @ d[-1] > np.cos(np.radians(config.min_parallax_deg)):
-        return None
-    k1, k2 = f[0], f[-1]
-    pair, depth = triangulate_pairs(
-        rays_in_rig[k1][li[0]][None], rays_in_rig[k2][li[-1]][None],
-        invert(world_from_rig[k2]) @ world_from_rig[k1],
-    )
-    if not (depth[0, 0] > 0 and depth[0, 1] > 0):
-        return None
-    X = R[k1] @ pair[0] + C[k1]
-    q = np.einsum("nji,nj->ni", R[f], X - C[f])
-    px, valid = camera.project(q)
-    if not valid.all() or np.max(np.linalg.norm(px - obs, axis=1)) > config.max_reprojection_px:
-        return None
-    return X
+    first, last = start, np.r_[start[1:], len(frames)] - 1
+    k1, k2 = frames[first], frames[last]
+    d1 = np.einsum("nij,nj->ni", R[k1], rays[first])
+    d2 = np.einsum("nij,nj->ni", R[k2], rays[last])
+    ok = ~(np.einsum("ni,ni->n", d1, d2) > np.cos(np.radians(config.min_parallax_deg)))
+    X = np.full((len(start), 3), np.nan)
+    pair_id = k1 * len(R) + k2
+    for key in np.unique(pair_id[ok]):  # one two-view triangulation per keyframe pair
+        sel = np.flatnonzero(ok & (pair_id == key))
+        a, b = int(k1[sel[0]]), int(k2[sel[0]])
+        pts, depth = triangulate_pairs(
+            rays[first[sel]], rays[last[sel]], invert(world_from_rig[b]) @ world_from_rig[a]
+        )
+        front = (depth[:, 0] > 0) & (depth[:, 1] > 0)
+        ok[sel[~front]] = False
+        X[sel[front]] = pts[front] @ R[a].T + C[a]
+    track = np.repeat(np.arange(len(start)), np.diff(np.r_[start, len(frames)]))
+    on = np.flatnonzero(ok[track])  # the observations of the tracks triangulated
+    valid = np.zeros(len(frames), bool)
+    err = np.zeros(len(frames))
+    if len(on):
+        q = np.einsum("nji,nj->ni", R[frames[on]], X[track[on]] - C[frames[on]])
+        px, valid[on] = camera.project(q)
+        err[on] = np.linalg.norm(px - obs[on], axis=1)
+    seen = np.minimum.reduceat(valid, start)
+    worst = np.maximum.reduceat(np.where(valid, err, 0.0), start)
+    return X, ok & seen & ~(worst > config.max_reprojection_px)
 
 
 def _stack_anchors(
@@ -443,28 +465,32 @@ def build_problem(
         pair_matches: (a, b, (M, 2) feature indices in a and b) of RANSAC inliers.
         anchors: (a, b, (L, 3) laser points in rig a, (L, 2) matched pixels in b).
     """
-    obs_f, obs_p, obs_px, pts = [], [], [], []
     feature_point = [np.full(len(p), -1) for p in pixels]
-    for f, li in _select_tracks(pixels, pair_matches, config.max_tracks):
-        obs = np.array([pixels[k][j] for k, j in zip(f, li, strict=True)])
-        X = _triangulate_track(camera, world_from_rig, rays_in_rig, f, li, obs, config)
-        if X is None:
-            continue
-        feature_point_id = len(pts)
-        for k, j in zip(f, li, strict=True):
-            feature_point[k][j] = feature_point_id
-        obs_f.append(f)
-        obs_p.append(np.full(len(f), feature_point_id))
-        obs_px.append(obs)
-        pts.append(X)
+    tracks = _select_tracks(pixels, pair_matches, config.max_tracks)
     aa, ab, aq, apx = _stack_anchors(anchors)
-    if not pts:
-        return BundleProblem(world_from_rig, np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int),
-                             np.zeros((0, 2)), aa, ab, aq, apx, feature_point)
-    return BundleProblem(
-        world_from_rig, np.array(pts), np.concatenate(obs_f), np.concatenate(obs_p),
-        np.concatenate(obs_px).astype(float), aa, ab, aq, apx, feature_point,
-    )
+    if tracks:
+        frames = np.concatenate([f for f, _ in tracks]).astype(int)
+        local = np.concatenate([li for _, li in tracks]).astype(int)
+        start = np.r_[0, np.cumsum([len(f) for f, _ in tracks])[:-1]].astype(int)
+        offset = np.r_[0, np.cumsum([len(p) for p in pixels])].astype(int)
+        flat = offset[frames] + local
+        obs = np.concatenate(pixels)[flat].astype(float)
+        X, kept = _triangulate_tracks(
+            camera, world_from_rig, frames, np.concatenate(rays_in_rig)[flat], obs, start, config
+        )
+        track = np.repeat(np.arange(len(tracks)), np.diff(np.r_[start, len(frames)]))
+        point_of = np.cumsum(kept) - 1  # each kept track's point, in track order
+        seen = kept[track]
+        for k in range(len(pixels)):
+            mine = seen & (frames == k)
+            feature_point[k][local[mine]] = point_of[track[mine]]
+        if kept.any():
+            return BundleProblem(
+                world_from_rig, X[kept], frames[seen], point_of[track[seen]], obs[seen],
+                aa, ab, aq, apx, feature_point,
+            )
+    return BundleProblem(world_from_rig, np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int),
+                         np.zeros((0, 2)), aa, ab, aq, apx, feature_point)
 
 
 def resect_rays(

@@ -25,6 +25,7 @@ from omnipipe.config import bounded
 from omnipipe.errors import ConfigError
 from omnipipe.executor import thread_map
 from omnipipe.image import gray_without_laser
+from omnipipe.sfm._kernels import two_smallest_columns
 
 
 @dataclass(frozen=True)
@@ -269,22 +270,41 @@ def match_features(f1: FrameFeatures, f2: FrameFeatures, ratio: float = 0.8) -> 
         m = match_features(sub1, sub2, ratio)
         return np.stack([i1[m[:, 0]], i2[m[:, 1]]], axis=1) if len(m) else m
 
-    def one_way(a: np.ndarray, b: np.ndarray) -> dict[int, int]:
-        best, d0, d1 = two_nearest(a, b)
-        # In double precision, as the distances of cv2.DMatch compare in Python.
-        keep = np.flatnonzero(d0.astype(np.float64) < ratio * d1.astype(np.float64))
-        return dict(zip(keep.tolist(), best[keep].tolist(), strict=True))
-
-    fwd = one_way(f1.descriptors, f2.descriptors)
+    q = np.ascontiguousarray(f1.descriptors, np.float32)
+    t = np.ascontiguousarray(f2.descriptors, np.float32)
+    exact = _whole_bytes(q, t)
+    if exact:  # two_nearest's exact path, its product kept for the backward search
+        dot = q @ t.T
+        qq, tt = np.einsum("ij,ij->i", q, q), np.einsum("ij,ij->i", t, t)
+        best, d0sq, d1sq = _two_smallest(qq, tt, dot)
+        d0, d1 = np.sqrt(d0sq), np.sqrt(d1sq)
+    else:
+        best, d0, d1 = two_nearest(q, t)
+    fwd = _passed(best, d0, d1, ratio)
     # Only the features of f2 that some f1 feature chose can pass the mutual check: the
     # backward search is run for those alone. Each query's neighbours depend on its own
-    # distances only, so this is the full backward search restricted to them.
+    # distances only, so this is the full backward search restricted to them; with
+    # whole-number descriptors it reads the forward product's columns (the same whole
+    # numbers a product of its own would give).
     targets = np.unique(np.fromiter(fwd.values(), int, len(fwd)))
     if len(targets) == 0:
         return np.zeros((0, 2), int)
-    bwd = {int(targets[q]): i for q, i in one_way(f2.descriptors[targets], f1.descriptors).items()}
+    if exact:
+        best, d0sq, d1sq = two_smallest_columns(qq, tt, dot, targets)
+        d0, d1 = np.sqrt(d0sq), np.sqrt(d1sq)
+    else:
+        best, d0, d1 = two_nearest(t[targets], q)
+    bwd = {int(targets[i]): j for i, j in _passed(best, d0, d1, ratio).items()}
     pairs = [(i, j) for i, j in fwd.items() if bwd.get(j) == i]
     return np.array(pairs, int).reshape(-1, 2)
+
+
+def _passed(best: np.ndarray, d0: np.ndarray, d1: np.ndarray, ratio: float) -> dict[int, int]:
+    """Query -> nearest train index for the queries whose (N,) nearest distance ``d0``
+    passes Lowe's ratio test against the second ``d1`` (float32, compared in double
+    precision, as the distances of cv2.DMatch compare in Python)."""
+    keep = np.flatnonzero(d0.astype(np.float64) < ratio * d1.astype(np.float64))
+    return dict(zip(keep.tolist(), best[keep].tolist(), strict=True))
 
 
 def guided_matches(
@@ -388,12 +408,7 @@ def two_nearest(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.nd
     """
     q = np.ascontiguousarray(query, np.float32)
     t = np.ascontiguousarray(train, np.float32)
-    exact = (
-        q.size and t.size and float(q.min()) >= 0 and float(t.min()) >= 0
-        and float(q.max()) <= 255 and float(t.max()) <= 255
-        and np.array_equal(q, np.round(q)) and np.array_equal(t, np.round(t))
-    )
-    if not exact:
+    if not _whole_bytes(q, t):
         found = cv2.BFMatcher(cv2.NORM_L2).knnMatch(q, t, k=2)
         best = np.array([m[0].trainIdx for m in found], int)
         d0 = np.array([m[0].distance for m in found], np.float32)
@@ -402,6 +417,16 @@ def two_nearest(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.nd
     dot = q @ t.T
     best, d0sq, d1sq = _two_smallest(np.einsum("ij,ij->i", q, q), np.einsum("ij,ij->i", t, t), dot)
     return best, np.sqrt(d0sq), np.sqrt(d1sq)
+
+
+def _whole_bytes(q: np.ndarray, t: np.ndarray) -> bool:
+    """True when the float32 descriptors ``q`` and ``t`` (both non-empty) hold whole
+    numbers in 0..255 only (:func:`two_nearest`'s exact path)."""
+    return bool(
+        q.size and t.size and float(q.min()) >= 0 and float(t.min()) >= 0
+        and float(q.max()) <= 255 and float(t.max()) <= 255
+        and np.array_equal(q, np.round(q)) and np.array_equal(t, np.round(t))
+    )
 
 
 @numba.njit(cache=True, nogil=True)

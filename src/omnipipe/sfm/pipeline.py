@@ -37,6 +37,7 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
@@ -112,6 +113,22 @@ def run(
         raise ReconstructionError("no frames")
     if config.trajectory_from:  # poses given (a total station, a simulator's truth)
         return external_motion(trajectory_path(config.trajectory_from, inputs), inputs)
+    # Single-threaded BLAS: this process's products are small or short (descriptor
+    # distances, RANSAC's eight-point fits); a second OpenBLAS thread mostly spins, on
+    # cores the workers and this process's SIFT and flow threads need (a descriptor
+    # match 15 CPU-ms with one thread, 33 with two), and the motion does not depend on
+    # the machine's core count.
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(config, inputs, progress, executor)
+
+
+def _run(
+    config: SfmConfig,
+    inputs: SfmInputs,
+    progress: Callable[[int], None] | None,
+    executor: Executor | None,
+) -> SfmResult:
+    """:func:`run` with the poses estimated here (not given)."""
     ctx = _context(config, inputs, executor)
     with ImageStore() as grays:  # keyframe grey images, on disk until the run is decided
         # Steps 1-3: stations, keyframes and their relative motions; each step's two

@@ -341,7 +341,7 @@ class TrackChain:
     Each flow starts where the track's last step would take it again (constant
     velocity; ``prior``: the chain of the keyframe before, advanced into this
     keyframe's frame, lends each new track the last step of its nearest track in the
-    same view). The robot's gait changes speed smoothly, so the flow only has to find
+    same view, and its flow images of ``key_views`` when it ended there). The robot's gait changes speed smoothly, so the flow only has to find
     the change of the step: a periodic wall (mosaic tiles, 11.8 mm) whose frame steps
     reach 8.4 mm, more than half its period, no longer pulls a track a period back
     (random-wide seed 22).
@@ -368,7 +368,11 @@ class TrackChain:
         self.feature = sel
         self.view = np.asarray(key_features.view, int)[sel]
         self.view_pixels = np.asarray(key_features.view_pixels, np.float32)[sel].reshape(-1, 2)
-        self.images = flow_images(key_views, config.highpass_px, config.levels)
+        if prior is not None and prior.views is key_views and prior.config == config:
+            self.images = prior.images  # the prior chain advanced into these views
+        else:
+            self.images = flow_images(key_views, config.highpass_px, config.levels)
+        self.views = key_views  # the views the next flow starts from
         # Each track's last step (view px), where the next flow starts from.
         self.step = np.zeros_like(self.view_pixels)
         if prior is not None:
@@ -394,7 +398,7 @@ class TrackChain:
         step = moved - self.view_pixels
         self.feature, self.view, self.view_pixels = self.feature[keep], self.view[keep], moved[keep]
         self.step = step[keep]
-        self.images = images
+        self.images, self.views = images, views
         return _as_tracks(self.extractor, self.feature, self.view, self.view_pixels)
 
 
