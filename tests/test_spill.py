@@ -139,3 +139,48 @@ def test_shared_on_disk_goes_to_a_local_pool_by_reference() -> None:
     assert np.array_equal(s, a)  # the workers' writes stayed theirs
     back = pickle.loads(pickle.dumps(s))  # plain pickle (e.g. Dask's): by value
     assert np.array_equal(back, a) and not is_on_disk(back)
+
+
+def test_a_pack_holds_many_arrays_equal_in_few_files() -> None:
+    from omnipipe.spill import Pack
+
+    rng = np.random.default_rng(8)
+    arrays = [rng.random((int(rng.integers(1, 200)), 3)) for _ in range(40)]
+    arrays += [np.arange(7, dtype=np.int32), rng.random((5, 2)).astype(np.float32), np.array(3.5)]
+    arrays += [np.arange(30.0).reshape(5, 6)[:, ::2]]  # not contiguous
+    pack = Pack(1 << 16)
+    got = [pack.put(a) for a in arrays]
+    for a, g in zip(arrays, got, strict=True):
+        assert is_on_disk(g) and g.flags.writeable and g.dtype == a.dtype and g.shape == a.shape
+        assert np.array_equal(g, a) and g.ctypes.data % 64 == 0
+    files = {id(_file_of(g)) for g in got}
+    assert 1 < len(files) <= sum(a.nbytes for a in arrays) // (1 << 14) + 1  # packed, new files as they fill
+    got[0][0, 0] = -1.0  # writes go to its own place only
+    drop_pages()
+    assert got[0][0, 0] == -1.0 and all(np.array_equal(g, a) for a, g in zip(arrays[1:], got[1:], strict=True))
+    empty = np.zeros((0, 3))
+    assert pack.put(empty) is empty and pack.put(got[3]) is got[3]
+    big = rng.random(1 << 14)  # over a quarter of a file: a file of its own
+    g = pack.put(big)
+    assert is_on_disk(g) and np.array_equal(g, big) and _file_of(g) is not _file_of(got[-1])
+
+
+@linux_only
+def test_putting_into_a_pack_maps_none_of_its_pages() -> None:
+    from omnipipe.spill import Pack
+
+    pack = Pack()
+    drop_pages()
+    rng = np.random.default_rng(9)
+    chunks = [rng.random(2**20 // 8) for _ in range(24)]  # 24 MB in 1 MB arrays
+    low = _rss_mb()
+    got = [pack.put(c) for c in chunks]
+    assert _rss_mb() < low + 6
+    assert all(np.array_equal(g, c) for g, c in zip(got, chunks, strict=True))
+
+
+def _file_of(a: np.ndarray) -> object:
+    base = a
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    return base.obj if isinstance(base, memoryview) else base

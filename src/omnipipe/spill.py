@@ -94,6 +94,49 @@ def pieces_on_disk(pieces: list[np.ndarray]) -> list[np.ndarray]:
     return [whole[a:b] for a, b in zip(np.concatenate([[0], ends[:-1]]).tolist(), ends.tolist(), strict=True)]
 
 
+class Pack:
+    """Many small arrays (a keyframe's features, a step's matches) in a few scratch files:
+    :meth:`put` appends one to the current file (:data:`SEGMENT_BYTES` each, a new one
+    when it is full) and returns an array mapped onto it, as :func:`on_disk` does (the
+    same dtype, shape and values; writable; resident only while read, :func:`drop_pages`).
+    A file per array would cost two descriptors each: thousands on a long run.
+
+    The values are written into the file (not through the mapping), so putting an array
+    maps none of its pages into the process."""
+
+    def __init__(self, segment_bytes: int | None = None) -> None:
+        self._segment = int(segment_bytes or SEGMENT_BYTES)
+        self._map: mmap.mmap | None = None
+        self._used = 0
+
+    def put(self, a: np.ndarray) -> np.ndarray:
+        """``a``'s values appended to the pack's file: an array on disk equal to ``a``
+        (``a`` itself when it holds no bytes or Python objects, or is on disk already;
+        a file of its own, :func:`on_disk`, when it would take over a quarter of one)."""
+        a = np.asarray(a)
+        if a.nbytes == 0 or a.dtype.hasobject or is_on_disk(a):
+            return a
+        if 4 * a.nbytes > self._segment:
+            return on_disk(a)
+        start = -(-self._used // _ALIGN) * _ALIGN
+        if self._map is None or start + a.nbytes > self._segment:
+            self._map, start = _mapped(self._segment, None), 0
+        fd = _FILES[self._map][1]
+        data = memoryview(np.ascontiguousarray(a).reshape(-1)).cast("B")
+        done = 0
+        while done < len(data):
+            done += os.pwrite(fd, data[done:], start + done)
+        self._used = start + a.nbytes
+        return np.frombuffer(self._map, a.dtype, count=a.size, offset=start).reshape(a.shape)
+
+
+SEGMENT_BYTES = 1 << 24
+"""Size of each of a :class:`Pack`'s files (sparse: only what was put takes disk)."""
+
+_ALIGN = 64
+"""Each array in a :class:`Pack`'s file starts at a multiple of this many bytes."""
+
+
 def drop_pages() -> None:
     """Unmap the resident pages of every array :func:`on_disk` made (their values stay
     in the files: the next read maps them again, from the page cache or the disk)."""

@@ -277,3 +277,42 @@ def test_frames_between_the_only_two_keyframes_are_resected() -> None:
     assert not [u for u in res.unreliable if "resected" in u.reason]
     errs = trajectory_errors(res.world_from_rig, poses[:4])
     assert errs.ate_rmse_mm < 0.3, errs.ate_rmse_mm  # mm over about 13 mm of travel
+
+
+@pytest.mark.slow  # two sfm runs of 20 frames at 640x480
+def test_keyframe_arrays_wait_on_disk_with_the_same_result(short_run, monkeypatch) -> None:
+    """What the frame loop keeps for the adjustment and the resection (the slimmed
+    features of every keyframe but the last and of the pending frames, the steps'
+    matches, the keyframes' ring points) waits in the run's scratch
+    (:class:`omnipipe.spill.Pack`), and the run's poses are those of a run that keeps
+    them in memory, bit for bit."""
+    from omnipipe.sfm import keyframes, pipeline
+    from omnipipe.spill import is_on_disk
+
+    scenario, _, _, frames, rings = short_run("paper-small")
+    seen = []
+
+    def follow(*args, **kwargs):
+        got = keyframes.follow_keyframes(*args, **kwargs)
+        seen.append(got)
+        return got
+
+    monkeypatch.setattr(pipeline, "follow_keyframes", follow)
+    inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
+    on_disk = sfm_run(SfmConfig(), inputs)
+    kf = seen[0].keyframes
+    assert len(kf.frames) >= 3
+    for f in kf.features[:-1] + [p.features for p in seen[0].pending]:
+        assert is_on_disk(f.rays_in_rig) and is_on_disk(f.pixels) and is_on_disk(f.view)
+        assert len(f.descriptors) == 0
+    assert all(is_on_disk(p) for p in kf.ring_points if len(p))
+    assert all(is_on_disk(e.inliers) for e in kf.evidence if e.inliers is not None and len(e.inliers))
+
+    class InMemory:
+        def put(self, a: np.ndarray) -> np.ndarray:
+            return np.array(a)
+
+    monkeypatch.setattr(keyframes, "Pack", InMemory)
+    in_memory = sfm_run(SfmConfig(), inputs)
+    assert np.array_equal(on_disk.world_from_rig, in_memory.world_from_rig)
+    assert np.array_equal(on_disk.registered, in_memory.registered)

@@ -30,6 +30,7 @@ import numpy as np
 from omnipipe.config import bounded
 from omnipipe.image import PNG_COMPRESS_LEVEL
 from omnipipe.memory import release_freed_memory
+from omnipipe.report.bands import imshow_in_bands
 from omnipipe.spill import drop_pages, zeros_on_disk
 
 if TYPE_CHECKING:
@@ -455,56 +456,6 @@ def _unrolled_plot(
     ax.set_xlabel("clock position (looking in the direction of travel)")
     _distance_axis(ax, inputs)
     return _figure_data_uri(fig)
-
-
-BAND_ROWS = 128
-"""Image rows :func:`imshow_in_bands` draws at a time."""
-
-BAND_PAD = 8
-"""Rows of its neighbours each band carries: the bilinear filter's reach where the
-image has up to about 4x the rows of the axes' pixels (the report's images are
-area-averaged to at most the figure's pixels first)."""
-
-
-def imshow_in_bands(
-    ax: Axes, image: np.ndarray, extent: tuple[float, float, float, float], rows: int = BAND_ROWS
-) -> None:
-    """``ax.imshow(image, extent=extent, aspect="auto", interpolation="bilinear")``, drawn
-    as bands of ``rows`` image rows: matplotlib resamples an image through float64 RGBA
-    arrays of the figure's pixels it covers (107 MB for the 12-inch unrolled wall), a
-    band's only. Each band carries :data:`BAND_PAD` rows of its neighbours (the
-    bilinear filter's reach) and is clipped to its own rows: the same pixels as one
-    image.
-
-    Args:
-        image: (H, W, 3) uint8; extent: (left, right, bottom, top) as imshow's, the
-            first row at ``top``.
-    """
-    import matplotlib.patches
-
-    left, right, bottom, top = extent
-    n = image.shape[0]
-
-    def y(r: int) -> float:
-        return bottom if r == n else top + (bottom - top) * r / n
-
-    for r0 in range(0, n, rows):
-        r1 = min(r0 + rows, n)
-        e0, e1 = max(r0 - BAND_PAD, 0), min(r1 + BAND_PAD, n)
-        im = ax.imshow(
-            image[e0:e1], extent=(left, right, y(e1), y(e0)), aspect="auto", interpolation="bilinear"
-        )
-        if e0 < r0 or r1 < e1:
-            im.set_clip_path(
-                matplotlib.patches.Rectangle((left, y(r0)), right - left, y(r1) - y(r0), transform=ax.transData)
-            )
-    # Each imshow set the view to its own band's extent; the whole image's, as one
-    # imshow leaves it (else a figure with nothing autoscaled after it shows the last
-    # band, and matplotlib resamples the others at that zoom: +120 MB at 538 rows).
-    if ax.get_autoscalex_on():
-        ax.set_xlim((left, right), auto=None)
-    if ax.get_autoscaley_on():
-        ax.set_ylim((bottom, top), auto=None)
 
 
 def _unreliable_frames(inputs: ReportInputs) -> list[tuple[int, int]]:

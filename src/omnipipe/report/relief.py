@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from omnipipe.report.bands import imshow_in_bands
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
@@ -184,13 +186,9 @@ def draw_relief(
 
     cmap = mpl.colormaps["RdBu_r"].with_extremes(bad="#bbbbbb")
     a0, a1, z0, z1 = extent
-    return ax.imshow(
-        np.ma.masked_invalid(grid),
-        extent=(a0, a1, z1, z0),
-        aspect="auto",
-        cmap=cmap,
-        vmin=-vmax,
-        vmax=vmax,
+    # A band of rows at a time: the figure's resampling a band's, the same pixels.
+    return imshow_in_bands(
+        ax, np.ma.masked_invalid(grid), (a0, a1, z1, z0), cmap=cmap, vmin=-vmax, vmax=vmax,
         interpolation="nearest",
     )
 

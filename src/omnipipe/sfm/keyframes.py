@@ -57,6 +57,7 @@ from omnipipe.sfm.types import (
     StepEvidence,
     StepScales,
 )
+from omnipipe.spill import Pack
 
 
 @dataclass(frozen=True)
@@ -208,6 +209,9 @@ class KeyframeLoop:
         # The tracked pending frames' views, until the next keyframe.
         self._pending_views: dict[int, FrameViews] = {}
         self._jobs: list[_EvidenceJob] = []
+        # What waits for the adjustment and the resection (features of the keyframes and
+        # pending frames once nothing more is matched to them): in the run's scratch.
+        self._pack = Pack()
         self._in_flight: deque[Future] = deque()
         self._last: _Keyframe | None = None
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
@@ -409,8 +413,8 @@ class KeyframeLoop:
             self.frames,
             self.features,
             self.grays,
-            [rings[f].points_in_rig for f in self.frames],
-            [job.result() for job in self._jobs],
+            [self._pack.put(rings[f].points_in_rig) for f in self.frames],
+            [_evidence_held(self._pack, job.result()) for job in self._jobs],
         )
         return Followed(
             keyframes,
@@ -531,10 +535,12 @@ class KeyframeLoop:
                 self.next_matches[p.frame] = self.ctx.executor.submit(
                     matched_rays, features, p.features, config.features.ratio
                 )
-            self.pending[j] = replace(p, features=_slim(p.features))
+            self.pending[j] = replace(
+                p, features=_held(self._pack, p.features), inliers=self._pack.put(p.inliers)
+            )
         self._pending_views.clear()
         if k_new >= 1:
-            self.features[k_new - 1] = _slim(self.features[k_new - 1])
+            self.features[k_new - 1] = _held(self._pack, self.features[k_new - 1])
 
 
 def gray_for_worker(
@@ -605,6 +611,28 @@ def _slim(features: FrameFeatures) -> FrameFeatures:
     """``features`` without their descriptors (once nothing more is matched to them:
     the rays and pixels are what the adjustment and resection read)."""
     return replace(features, descriptors=np.zeros((0, 128), np.float32))
+
+
+def _held(pack: Pack, features: FrameFeatures) -> FrameFeatures:
+    """``features`` slimmed (:func:`_slim`), their arrays in ``pack`` (the run's scratch,
+    :class:`omnipipe.spill.Pack`: the same values, resident only while read)."""
+    vpx = None if features.view_pixels is None else pack.put(features.view_pixels)
+    return FrameFeatures(
+        pack.put(features.rays_in_rig), pack.put(features.pixels), np.zeros((0, 128), np.float32),
+        pack.put(features.view), vpx,
+    )
+
+
+def _evidence_held(pack: Pack, evidence: StepEvidence) -> StepEvidence:
+    """``evidence`` with its per-match arrays in ``pack`` (as :func:`_held`)."""
+    laser = evidence.laser
+    if laser is not None:
+        laser = replace(
+            laser, index=pack.put(laser.index), scale_mm=pack.put(laser.scale_mm),
+            pixels_b=pack.put(laser.pixels_b), ncc=pack.put(laser.ncc),
+        )
+    inliers = None if evidence.inliers is None else pack.put(evidence.inliers)
+    return replace(evidence, inliers=inliers, log_scales=pack.put(evidence.log_scales), laser=laser)
 
 
 def _relative(ctx: SfmContext, pair: StepPair) -> RelativeMotion | None:
