@@ -50,6 +50,7 @@ from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
+from omnipipe.sfm.ring_follow import add_ring_follow
 from omnipipe.sfm.robot_sensors import (
     gravity_world,
     odometry_creeps,
@@ -161,6 +162,7 @@ def run(
     )
     if with_odometry:
         _add_creeps(result, inputs)
+    add_ring_follow(result, inputs)  # bridged steps: the gyro's turn, the ring's centre
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
     return result
