@@ -159,8 +159,14 @@ def test_frames_after_a_stretch_keep_their_relative_poses():
     rel_old = np.linalg.inv(chain[6]) @ chain[7:]
     rel_new = np.linalg.inv(new[6]) @ new[7:]
     assert np.allclose(rel_old, rel_new, atol=1e-9)
-    # a frame without a ring centre leaves its stretch as it was
+    # a frame without a ring (a standing frame's, not extracted) takes its neighbours'
+    # centre; the stretch's end frames without one leave it as it was
     centres[4] = None
+    again, _, done = follow_rings(
+        chain, np.zeros(12, bool), [(3, 6)], gyro_rotations(imu, t), centres
+    )
+    assert done == [(3, 6)] and np.linalg.norm(again[4, :3, 3] - new[4, :3, 3]) < 0.1
+    centres[3] = None
     same, _, done = follow_rings(
         chain, np.zeros(12, bool), [(3, 6)], gyro_rotations(imu, t), centres
     )

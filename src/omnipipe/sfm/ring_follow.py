@@ -215,7 +215,8 @@ def follow_rings(
         anchor = fix @ old[fa]
         travel = old[fb, :3, 3] - old[fa, :3, 3]
         length = float(np.linalg.norm(travel))
-        if any(centres[i] is None for i in frames) or length < 1e-6:
+        c = _filled(centres, frames)
+        if c is None or length < 1e-6:
             new[fa : fb + 1] = fix[None] @ old[fa : fb + 1]
             start = fb + 1
             continue
@@ -231,7 +232,6 @@ def follow_rings(
             moving = np.abs(np.diff(odo)) * (s[-1] / odo[-1]) >= CREEP_MIN_MM
             still[frames[1:]] &= ~moving
         on_axis = anchor[:3, 3] + anchor[:3, :3] @ centres[fa]
-        c = np.array([centres[i] for i in frames])
         pos = on_axis[None] + s[:, None] * u[None] - np.einsum("nij,nj->ni", rot, c)
         for j, i in enumerate(frames):
             if j and still[i]:
@@ -243,6 +243,18 @@ def follow_rings(
         start = fb + 1
     new[start:] = fix[None] @ old[start:]
     return new, still, done
+
+
+def _filled(centres: Sequence[np.ndarray | None], frames: np.ndarray) -> np.ndarray | None:
+    """(len(frames), 3) the frames' ring centres, a missing one (a frame whose ring the
+    decoding pass did not extract: a standing frame's) interpolated between its
+    neighbours; None when the stretch's end frames or half its frames have none."""
+    have = np.array([centres[i] is not None for i in frames])
+    if not (have[0] and have[-1]) or have.sum() * 2 < len(frames):
+        return None
+    known = np.array([centres[i] for i in frames[have]])
+    j = np.arange(len(frames))
+    return np.column_stack([np.interp(j, j[have], known[:, k]) for k in range(3)])
 
 
 def followed_reasons(
