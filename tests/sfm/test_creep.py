@@ -134,3 +134,28 @@ def test_a_biased_reading_fails_the_gain_test_and_stays_flagged(
     assert got.placed == []
     assert got.unverified == [(0, len(z) - 1, 3.0)]
     np.testing.assert_array_equal(got.world_from_rig, _poses(z, moved))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frames_inside_a_wall_resolved_step_are_verified_by_the_odometry(seed: int) -> None:
+    """Frames the wall's shift could not place: the odometry (2 % slip, 0.05 mm noise)
+    confirms every frame step whose advance it matches; a frame 0.8 mm off its step is
+    left flagged, and so is every step when the odometry is too coarse to bound one
+    within HIDDEN_STEP_MM."""
+    rng = np.random.default_rng(seed)
+    n = 12
+    true_steps = rng.choice([0.0, 0.5, 2.0, 6.0], size=n - 1)
+    along = np.r_[0.0, np.cumsum(true_steps)]
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 2, 3] = along
+    poses[:, 0, 3] = 0.02 * along  # a travel not along the rig's z
+    odometry = 5.0 + along * 1.02 + rng.normal(0, 0.05, n)
+    noise = np.full(n - 1, 0.1)
+    ok = creep.odometry_verified_steps(poses, 0, n - 1, odometry, noise)
+    assert ok.all()
+    off = poses.copy()
+    off[6, 2, 3] += 0.8
+    ok = creep.odometry_verified_steps(off, 0, n - 1, odometry, noise)
+    assert list(np.flatnonzero(~ok)) == [5, 6]
+    assert creep.unverified_runs(ok, 10) == [(15, 17)]
+    assert not creep.odometry_verified_steps(poses, 0, n - 1, odometry, np.full(n - 1, 0.5)).any()

@@ -46,11 +46,12 @@ from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
-from omnipipe.sfm.creep import place_creeps, wall_resolved
+from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_frames, wall_resolved
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
 from omnipipe.sfm.ransac import RansacConfig
+from omnipipe.sfm.ring_follow import add_ring_follow
 from omnipipe.sfm.robot_sensors import (
     gravity_world,
     odometry_creeps,
@@ -177,7 +178,9 @@ def _run(
         lambda i: wall_cylinder(inputs.rings.rings[i].points_in_rig),
     )
     if with_odometry:
+        verify_wall_frames(result, inputs)  # the odometry confirms frames the wall could not place
         _add_creeps(result, inputs)
+    add_ring_follow(result, inputs)  # bridged steps: the gyro's turn, the ring's centre
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
     return result
@@ -404,11 +407,5 @@ def _place_wall_resolved(
         inside, placed.moved, placed.world_from_rig, registered, read_gray, read_wall, ctx.camera,
         length.sigma_rel,
     )
-    stretches = [
-        UnreliableStretch(
-            a, b, "the frames inside a step the wall's own shift measured could not be "
-            "placed by it: a frame may be off its step",
-        )
-        for a, b, _ in crept.unverified
-    ]
+    stretches = [UnreliableStretch(a, b, WALL_FRAMES_REASON) for a, b, _ in crept.unverified]
     return _Placed(crept.world_from_rig, crept.moved, stretches)
