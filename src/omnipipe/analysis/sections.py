@@ -253,8 +253,10 @@ def _tapers(stations: list[Station], config: SectionConfig, mixing_mm: np.ndarra
     """A diameter change along the run: a ramp fitted to the stations' mean diameters
     (weighted, :func:`taper_weights`), reported when the change is at least
     ``config.taper_min_mm`` and 6 sigma and the ramp explains the stations much better
-    than one diameter (residuals 3 x smaller: on the 34 random-features runs the
-    runs without a taper read at most 1.9 x, a ramp through a bent, oval stretch 3.2 x)."""
+    than one diameter (residuals 3 x smaller; 4 x missed random-features seed 9's
+    ramp through a bent, oval stretch, 3.2 x; the runs without a taper whose best ramp
+    changes by over 2 mm read 1.1-1.6 x, but seed 21's 3.2 mm step 13 x, refused at
+    5.8 sigma only)."""
     axial = np.array([s.axial_mm for s in stations])
     d = np.array([s.diameter_mm for s in stations])
     dsig = np.array([s.diameter_sigma_mm for s in stations])
