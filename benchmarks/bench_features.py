@@ -232,6 +232,25 @@ def _sizes(t: dict, f: dict, r: Row, d: float, truth: dict) -> None:
         r.size_in += abs(f[key] - t[key]) <= 3.0 * sig
 
 
+def _headline(report: dict, truth: dict, x: np.ndarray, st: list[dict], counts: dict) -> None:
+    """The headline ``inner_diameter_mm`` against the truth's mean diameter over the
+    reported stations (their median: the headline's own definition), tallied per class of
+    run (out-of-round, reducing, partly flooded: truth features overlapping the stations;
+    plain otherwise): (covered within 3 sigma, error mm, error in sigmas)."""
+    d, sig = report.get("inner_diameter_mm"), report.get("inner_diameter_sigma_mm")
+    if d is None:
+        return
+    at = np.array([s["axial_mm"] for s in st])
+    true = float(np.median(np.interp(at, x, [q["inner_diameter_mm"] for q in truth["stations"]])))
+    span = (float(at.min()), float(at.max()))
+    kinds = {t["kind"] for t in truth.get("features", []) if t["kind"] in ("taper", "ovality", "water")
+             and min(_extent(t)[1], span[1]) > max(_extent(t)[0], span[0])}
+    err = abs(d - true)
+    for cls in sorted(kinds) or ["plain"]:
+        counts.setdefault("headline", {}).setdefault(cls, []).append(
+            (bool(sig) and err <= 3.0 * sig, err, err / sig if sig else np.inf))
+
+
 def _score(
     report: dict, truth: dict, rows: dict[str, Row], counts: dict,
     spans: list[tuple[float, float]] | None = None,
@@ -267,6 +286,7 @@ def _score(
     tst = truth.get("stations") or []
     if tst and st:
         x = np.array([s["axial_mm"] for s in tst])
+        _headline(report, truth, x, st, counts)
         for s in st:
             for key, tkey in (("ovality_pct", "ovality_pct"), ("water_depth_mm", "water_depth_mm")):
                 if s.get(key) is not None and x[0] <= s["axial_mm"] <= x[-1]:
@@ -311,6 +331,11 @@ def _table(title: str, rows: dict[str, Row], counts: dict, done: list[int], fail
         if len(e):
             print(f"per station |{key} error|: median {np.median(e):.2f} {unit}, 90th percentile "
                   f"{np.percentile(e, 90):.2f} {unit}, {len(e)} stations")
+    for cls, got in sorted(counts.get("headline", {}).items()):
+        e = np.array([g[1] for g in got])
+        z = np.array([g[2] for g in got])
+        print(f"headline inner_diameter_mm, {cls:8} runs: within 3 sigma {sum(g[0] for g in got)} of {len(got)}, "
+              f"|error| median {np.median(e):.2f} mm, max {e.max():.2f} mm ({z.max():.1f} sigma)")
     print(f"false joints/laterals (no true one within the match tolerance): {counts.get('false_features', {})}")
     print(f"false defects: {counts['false_defects']} (within 10 mm of a joint or a hole: "
           f"{counts['feature_defects']}); runs with unreliable motion: {counts['unreliable_runs']}")

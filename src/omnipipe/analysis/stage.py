@@ -58,6 +58,7 @@ from omnipipe.analysis.stations import (
     SectionConfig,
     Station,
     headline,
+    headline_on_a_taper,
     ring_cut,
     section_order,
     station_from_section,
@@ -301,6 +302,8 @@ def run(
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
     st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
+    if any(isinstance(f, Taper) for f in features):
+        head = headline_on_a_taper(head, st_list)
     warnings = [*search.warnings, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
@@ -416,7 +419,7 @@ def _with_shared_terms(
         return float(np.median(term[sel])) if sel.any() else 0.0
 
     features: list[Stretch] = []
-    for f in section_features(st_list, line, head, sec_config):
+    for f in section_features(st_list, line, head, sec_config, d_mix):
         if isinstance(f, Ovality) and f.percent_sigma is not None:
             inside = (axial >= f.axial_from_mm) & (axial <= f.axial_to_mm)
             mix = 100.0 * median_over(o_mix, inside)

@@ -1,0 +1,73 @@
+"""Section stretches' sizes and sigmas against seeded synthetic truth (issue 30): level
+water over a reducer, a taper read through a ring tilted off the centreline, the
+headline on a reducing run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from omnipipe.analysis.feature_types import Taper
+from omnipipe.analysis.sections import _tapers, _water_stretches
+from omnipipe.analysis.stations import Headline, SectionConfig, Station, headline_on_a_taper
+
+
+def _station(axial: float, diameter: float, depth: float, depth_sigma: float, shared: float) -> Station:
+    return Station(
+        axial_mm=axial, diameter_mm=diameter, diameter_sigma_mm=0.4, diameter_min_mm=diameter,
+        diameter_max_mm=diameter, ovality=0.0, ovality_sigma=0.001, ovality_angle_deg=0.0,
+        ovality_angle_sigma_deg=10.0, water_depth_mm=depth, water_depth_sigma_mm=depth_sigma,
+        water_depth_shared_sigma_mm=shared,
+    )
+
+
+def test_level_water_over_a_reducer_is_two_stretches() -> None:
+    """65 mm of water above a 543 -> 477 mm reducer is 32.5 mm below it (the water stays
+    level, the invert rises): two stretches on the reported reducer, each with its own
+    depth within 3 sigma, not one whose median is either and whose sigma is the
+    stations' spread / sqrt(n)."""
+    rng = np.random.default_rng(3)
+    axial = np.arange(12) * 6.0 - 250.0
+    true = np.where(axial < -222.0, 65.5, 32.5)
+    stations = [
+        _station(a, 543.0 if t > 40 else 477.0, t + rng.normal(0, 1.0), 1.5, 0.4)
+        for a, t in zip(axial, true, strict=True)
+    ]
+    reducer = Taper(
+        axial_from_mm=-235.0, axial_from_sigma_mm=3.0, axial_to_mm=-214.0, axial_to_sigma_mm=3.0,
+        diameter_from_mm=543.0, diameter_to_mm=477.0,
+    )
+    water = _water_stretches(stations, SectionConfig(), [reducer])
+    assert len(water) == 2
+    for w, t in zip(water, (65.5, 32.5), strict=True):
+        assert abs(w.depth_mm - t) <= 3.0 * w.depth_sigma_mm
+    # Without a taper the invert does not move: one stretch.
+    assert len(_water_stretches(stations, SectionConfig())) == 1
+
+
+def test_taper_found_through_a_ring_tilted_off_the_centreline() -> None:
+    """A 250 -> 214 mm reducer sampled by 11 stations; the last ring, tilted far off the
+    centreline, reads 156 mm (random-features seed 9). Weighted by its sigma with the
+    sections it mixes (26 mm), it no longer decides the ramp: the taper is found and its
+    wide end is right; unweighted, the ramp chases that station and is not reported."""
+    rng = np.random.default_rng(9)
+    axial = np.linspace(-113.0, -40.0, 11)
+    true = np.interp(axial, [-115.0, -56.0], [251.6, 214.1])
+    d = [*list(true + rng.normal(0, 0.4, len(axial))), 155.8]
+    axial = [*list(axial), -23.8]
+    stations = [_station(a, x, 0.0, 0.3, 0.0) for a, x in zip(axial, d, strict=True)]
+    mixing = np.array([1.0] * 11 + [26.0])
+    assert not _tapers(stations, SectionConfig())
+    (taper,) = _tapers(stations, SectionConfig(), mixing)
+    assert abs(taper.diameter_from_mm - 251.6) <= 3.0 * taper.diameter_from_sigma_mm + 1.0
+    assert taper.axial_from_mm < -100.0 and taper.axial_to_mm > -70.0
+
+
+def test_headline_on_a_taper_holds_its_median_station() -> None:
+    """On a reducing run the median reads one station of the ramp: the headline's sigma
+    holds that station's whole sigma, not the average's scatter / sqrt(n) alone."""
+    stations = [_station(float(a), float(x), 0.0, 0.3, 0.0) for a, x in zip(range(5), (250, 240, 230, 220, 210), strict=True)]
+    stations[2] = Station(**{**stations[2].__dict__, "diameter_sigma_mm": 3.0})
+    head = Headline(diameter_mm=230.0, sigma_mm=0.2, min_mm=210.0, max_mm=250.0, stations_used=5)
+    assert math.isclose(headline_on_a_taper(head, stations).sigma_mm, math.hypot(0.2, 3.0))
