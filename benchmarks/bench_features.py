@@ -1,11 +1,12 @@
 """Features of real pipes on random-features seeds against scene.json's ground truth:
 recall per kind (laterals under 0.2 x the diameter on a row of their own,
-``lat<0.2D``: the random family's are all that small), features reported as defects, position errors, size coverage
+``lat<0.2D``: a few of the random family's), features reported as defects, position errors, size coverage
 (|error| <= 3 sigma), ovality and water depth errors (issue 30's acceptance table).
 
     PYTHONPATH=src nice python benchmarks/bench_features.py --seeds 0-29 --work /tmp/bf
 
 Each seed: ``omnipipe simulate --scenario random-features-small`` (400x300, 24 frames;
+a seed with a lateral 48-188: the run lengthened until its ring sweeps the hole;
 ``--size WxH`` renders the same scenes at another size) then ``omnipipe reconstruct``;
 datasets and reports already in --work are reused (``--fresh`` reconstructs again).
 ``--motion truth`` reconstructs with the simulator's trajectory

@@ -26,6 +26,7 @@ def _rings(
     reach: tuple[float, float] = (40.0, 100.0),
     lost: float = 0.0,
     dry_band: tuple[float, float] | None = None,
+    in_plane: bool = False,
 ) -> AnalysisInputs:
     """Rings every ``spacing`` mm (jittered) over 100-400 mm of ``pipe``, tilted by
     ``tilt_deg`` to the axis (as a robot leaning in the pipe: a ring's samples spread
@@ -33,7 +34,9 @@ def _rings(
     mm) lie on the branch wall, ``reach`` (first + up to second) mm beyond the main wall,
     except the hole's middle ``lost`` (fraction of its semi-axes) where the light is lost
     in the branch (no sample); ``dry_band`` (from, to deg): no ring returns there (a
-    shadow along the whole run)."""
+    shadow along the whole run); ``in_plane``: the branch wall's samples lie in the
+    tilted ring's plane (their axial position moves with their reach, as the laser's
+    light does), else abreast of the wall sample they replace."""
     rng = np.random.default_rng(seed)
     sig = np.arange(100.0, 400.0, spacing) + rng.uniform(-0.5, 0.5, int(np.ceil(300 / spacing)))
     theta = np.linspace(-np.pi, np.pi, 360, endpoint=False)
@@ -48,6 +51,9 @@ def _rings(
         half = R * np.arcsin(0.5 * dia / R)  # the hole's chord is its diameter
         in_hole = (u / half) ** 2 + ((s - zc) / (0.5 * dia)) ** 2 < 1.0
         r[in_hole] += reach[0] + reach[1] * rng.random(in_hole.sum())
+        if in_plane:
+            s = sig[k] + r * np.tan(np.radians(tilt_deg)) * np.cos(theta - 0.7)
+            centre, normal, binormal, _ = pipe.frame_at(s)
         keep = (u / half) ** 2 + ((s - zc) / (0.5 * dia)) ** 2 >= lost**2
         if dry_band is not None:
             keep &= ~((np.degrees(theta) % 360 >= dry_band[0]) & (np.degrees(theta) % 360 <= dry_band[1]))
@@ -240,3 +246,20 @@ def test_returns_lost_along_the_whole_run_are_no_lateral() -> None:
     dropout band): not an opening."""
     res = run(AnalysisConfig(), _rings(Pipe(300.0), seed=31, hole=(0.0, 0.0, 1.0), dry_band=(250.0, 280.0)))
     assert not [f for f in res.features if f.kind == "lateral"], res.features
+
+
+def test_lateral_on_tilted_rings_is_placed_by_the_rings_not_the_branch_wall() -> None:
+    """Rings tilted 6 deg to the axis: the branch wall lit through a 60 mm hole lies in
+    each ring's plane, 40-140 mm beyond the main wall, so 4-15 mm further along the axis
+    than the ring at the rim. The lateral is placed by the rings (axial within 3 mm and
+    3 sigma, clock within 3 deg, diameter within 3 sigma), not by the branch wall."""
+    pipe = Pipe(300.0)
+    hole = (250.0, 40.0, 60.0)
+    res = run(AnalysisConfig(), _rings(pipe, seed=37, tilt_deg=6.0, hole=hole, reach=(40.0, 100.0), in_plane=True))
+    laterals = [f for f in res.features if f.kind == "lateral"]
+    assert len(laterals) == 1, res.features
+    lat = laterals[0]
+    assert abs(lat.axial_mm - hole[0]) < min(3.0, 3.0 * lat.axial_sigma_mm), lat
+    assert abs((lat.angle_deg - hole[1] + 180) % 360 - 180) < 3.0
+    assert abs(lat.diameter_mm - hole[2]) < max(3.0 * lat.diameter_sigma_mm, 3.0)
+    assert res.defects == []

@@ -199,6 +199,32 @@ def test_feature_scenarios_deterministic_and_described() -> None:
         make_scenario("random-features", seed=-1)
 
 
+def test_random_feature_laterals_lie_inside_the_lengthened_sweep() -> None:
+    # Laterals of the issue's class (>= 0.2 D) and a few smaller ones, each beyond the
+    # other features' window; the short run is lengthened until its laser ring (the
+    # baseline behind the rig) sweeps the whole hole; runs without one keep 24 frames.
+    big = small = 0
+    for seed in range(16):
+        sc = make_scenario("random-features-small", seed=seed)
+        lo, hi = sc.random["features"]["window_mm"]
+        if not sc.pipe.features.laterals:
+            assert sc.frames == 24
+            continue
+        (v,) = sc.pipe.features.laterals
+        half = 0.5 * v.diameter_mm / math.sin(math.radians(v.branch_angle_deg))
+        assert v.axial_mm - half >= hi + 15.0 - 1e-9
+        _, sigma, _ = simulate_trajectory(sc.pipe, sc.motion, sc.frames, sc.seed)
+        ring = sigma - sc.rig.laser.distance_mm
+        assert ring[0] <= lo and ring[-1] >= v.axial_mm + half
+        assert sc.random["features"]["frames"] == sc.frames > 24
+        big += v.diameter_mm >= 0.2 * sc.pipe.inner_diameter_mm
+        small += v.diameter_mm < 0.2 * sc.pipe.inner_diameter_mm
+        # An explicit frame count is kept (the scene's features unchanged).
+        short = make_scenario("random-features-small", seed=seed, frames=24)
+        assert short.frames == 24 and short.pipe == sc.pipe
+    assert big >= 5 and small >= 1
+
+
 def test_sewer_scene_json_in_the_contract_convention() -> None:
     sc = make_scenario("sewer-small", frames=6)
     poses, sigma, moving = simulate_trajectory(sc.pipe, sc.motion, sc.frames, sc.seed)

@@ -920,18 +920,38 @@ def _local_axis(
 
 
 def _chords(
-    sigma: np.ndarray, u: np.ndarray, frame: np.ndarray, members: np.ndarray, sample: float
+    sigma: np.ndarray, u: np.ndarray, frame: np.ndarray, members: np.ndarray, sample: float, radius: float
 ) -> np.ndarray:
     """(M, 4) per ring crossing the hole: axial position, chord centre and half-width
-    (arc mm; half a sample added: the edges lie between samples), ring index."""
+    (arc mm; half a sample added: the edges lie between samples), ring index. The axial
+    position is the ring's own at the chord's centre (:func:`_ring_axial`), not its deep
+    samples': those lie out in the branch, where the pipe coordinates of a ring tilted
+    to the axis, or of a centreline through a bend, stray along the axis by their depth
+    (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm)."""
     rows = []
     for k in np.unique(frame[members]):
         m = members[frame[members] == k]
         if len(m) < 2:
             continue
-        rows.append((float(np.median(sigma[m])), 0.5 * (u[m].max() + u[m].min()),
-                     0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
+        c = 0.5 * (u[m].max() + u[m].min())
+        on = np.flatnonzero(frame == k)
+        wall = on[~np.isin(on, m)]
+        z = _ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
+        rows.append((z, c, 0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
     return np.array(rows).reshape(-1, 4)
+
+
+def _ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
+    """Axial position (mm) at angle ``at`` (rad) of a ring whose wall samples lie at
+    (``sigma`` mm, ``phi`` rad): the plane sigma = a + b cos phi + c sin phi fitted to
+    them (twice, without the samples beyond 3 robust sigmas: the rim's stray ones)."""
+    A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
+    keep = np.ones(len(phi), bool)
+    for _ in range(2):
+        p, *_ = np.linalg.lstsq(A[keep], sigma[keep], rcond=None)
+        res = sigma - A @ p
+        keep = np.abs(res) <= max(3.0 * 1.4826 * float(np.median(np.abs(res[keep]))), 0.5)
+    return float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at))
 
 
 def _ellipse(ch: np.ndarray) -> tuple[float, float, float, float]:
@@ -973,7 +993,7 @@ def _lateral(
         d_u = np.diff(np.sort(u[frame == k]))
         steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
     sample = float(np.median(steps))
-    ch = _merged_chords(_chords(sigma, u, frame, members, sample), _gap_chords(gaps, th0, radius))[:, :3]
+    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))[:, :3]
     zc, uc, b, a = _ellipse(ch)
     est = [(zc, uc, b)]
     if len(ch) >= 4:

@@ -872,6 +872,11 @@ def make_wide_scenario(
 # -- real pipes: joints, laterals, elbows, reducers, ovality, water (docs/simulator.md) --
 # Feature draws of random-features: their own stream, so `random` is unchanged.
 _FEATURE_STREAM = 0x46454154
+# A random-features lateral's diameter: U(a, b) x the pipe's (most of them in the issue's
+# class, >= 0.2 D; a few under it).
+LATERAL_DIAMETERS = (0.15, 0.4)
+# The share of the expected travel the window relies on (the gait's speed and rest jitter).
+_TRAVEL_SHARE = 0.85
 
 
 def clock_to_angle_deg(clock_deg: float) -> float:
@@ -994,13 +999,13 @@ def make_feature_scenario(
             raise ConfigError("size", f"must be at least 64x48, got {width}x{height}")
     if frames is not None and frames < 1:
         raise ConfigError("frames", f"must be >= 1, got {frames}")
-    if frames is None and small:
-        frames = 24
     if base == "random-features":
         if seed < 0:
             raise ConfigError("seed", f"must be >= 0 for {name}, got {seed}")
-        scenario = _random_features(width, height, frames, seed)
+        scenario = _random_features(width, height, frames, seed, small)
     else:
+        if frames is None and small:
+            frames = 24
         scenario = builder(width, height, n_default if frames is None else frames, small)
         scenario.seed = seed
     scenario.name = name
@@ -1024,7 +1029,8 @@ def _place(
 def _draw_features(
     rng: np.random.Generator, lo: float, hi: float, diameter: float
 ) -> tuple[PipeFeatures, dict]:
-    """Joints, a lateral, ovality, a taper and water inside [lo, hi] (arc length, mm)."""
+    """Joints, ovality, a taper and water inside [lo, hi] (arc length, mm); a lateral
+    beyond ``hi`` (its hole 15-35 mm past it: the run sweeping it is lengthened)."""
     kinds = ("joints", "lateral", "ovality", "taper", "water")
     on = {k: bool(rng.uniform() < p) for k, p in zip(kinds, (0.6, 0.5, 0.5, 0.3, 0.4), strict=True)}
     if not any(on.values()):
@@ -1034,14 +1040,12 @@ def _draw_features(
     laterals: tuple[Lateral, ...] = ()
     if on["lateral"]:
         beta = float(rng.uniform(45.0, 135.0))
-        # The hole (d_b / sin(beta) long) fits in half the window.
-        fit = 0.5 * (hi - lo) * math.sin(math.radians(beta))
-        d_b = min(diameter * float(rng.uniform(0.25, 0.6)), fit)
+        d_b = diameter * float(rng.uniform(*LATERAL_DIAMETERS))
         clock = float(rng.uniform(-100.0, 100.0)) if water else float(rng.uniform(0.0, 360.0))
-        half = 0.5 * d_b / math.sin(math.radians(beta)) + 5.0
-        c = _place(rng, lo, hi, half, taken)
-        if c is not None:
-            laterals = (Lateral(c, clock_to_angle_deg(clock), d_b, branch_angle_deg=beta),)
+        # Beyond the window, 15 mm clear of the others (the run is lengthened to sweep it).
+        half = 0.5 * d_b / math.sin(math.radians(beta))
+        c = hi + 15.0 + half + float(rng.uniform(0.0, 20.0))
+        laterals = (Lateral(c, clock_to_angle_deg(clock), d_b, branch_angle_deg=beta),)
     joints = []
     for _ in range(int(rng.integers(1, 4)) if on["joints"] else 0):
         gap = float(rng.uniform(2.0, 15.0))
@@ -1081,20 +1085,30 @@ def _draw_features(
     return features, info
 
 
-def _random_features(width: int, height: int, frames: int | None, seed: int) -> Scenario:
+def _random_features(
+    width: int, height: int, frames: int | None, seed: int, small: bool
+) -> Scenario:
     """The `random` scene of ``seed`` (wall, gait, rig) with features of real pipes drawn
     from their own stream, inside what the short (24-frame) run's laser ring sweeps: from
     its first station (start - baseline) over 0.85 of the expected 23 frames of travel
-    (the gait's jitter), 3 mm in from either end (docs/simulator.md). The camera sees
+    (the gait's jitter), 3 mm in from either end (docs/simulator.md). A lateral lies beyond
+    that window, and the run (``frames`` None: 24 frames for ``small``, else the random
+    family's) is lengthened until its ring sweeps the whole hole likewise. The camera sees
     further ahead, but only the ring measures: a feature beyond the sweep is not measured."""
-    sc = _random(width, height, frames, seed)
+    sc = _random(width, height, frames if frames is not None or not small else 24, seed)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), _FEATURE_STREAM]))
     diameter = sc.pipe.inner_diameter_mm
     m = sc.motion
     short_travel = m.stroke_mm * 23.0 / m.frames_per_cycle
     lo = m.start_mm - sc.rig.laser.distance_mm + 3.0
-    hi = lo + max(0.85 * short_travel - 6.0, 1.0)
+    hi = lo + max(_TRAVEL_SHARE * short_travel - 6.0, 1.0)
     features, info = _draw_features(rng, lo, hi, diameter)
+    if frames is None and features.laterals:
+        v = features.laterals[0]
+        end = v.axial_mm + 0.5 * v.diameter_mm / math.sin(math.radians(v.branch_angle_deg))
+        need = 1 + math.ceil(23.0 * (end + 3.0 - (lo - 3.0)) / (_TRAVEL_SHARE * short_travel))
+        sc.frames = max(sc.frames, need)
+        info["frames"] = sc.frames
     centreline = sc.pipe.centreline
     if rng.uniform() < 0.3:  # a tight elbow starting inside the window
         radius = diameter * float(rng.uniform(1.5, 3.0))
