@@ -69,6 +69,7 @@ from omnipipe.sfm.stations import (
     texture_gain,
     unverified_stations,
 )
+from omnipipe.sfm.step_priors import wall_priors
 from omnipipe.sfm.step_scale import (
     ChainedSteps,
     RunLength,
@@ -180,6 +181,16 @@ def _adjusted_and_checked(
     adjusted = adjust_keyframes(
         ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
     )
+    # Where the adjustment left the wall's own shift, the wall's step lengths hold it.
+    priors = wall_priors(ctx, kf, adjusted.world_from_kf, chain.checks) if config.scale_from_wall else ()
+    if priors:
+        adjusted = adjust_keyframes(
+            ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored, priors
+        )
+        ctx.warnings.append(
+            f"bundle adjustment held to the wall's own shift on {len(priors)} steps (it had moved "
+            "a step away from the wall's reading)"
+        )
     offset = math.exp(scale.offset_log)
     checks = check_adjusted(
         chain.checks,

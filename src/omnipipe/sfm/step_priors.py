@@ -1,0 +1,134 @@
+"""The wall's own shift as each keyframe step's length prior in the bundle adjustment.
+
+The adjustment fits the feature tracks and the metric anchors (laser points found again,
+Eq. 17, or wall-placed features). Where those run short together it shortens steps
+unevenly: random-wide seed 32 (tiles, 640x480) had its adjusted steps 10-18 % below every
+source on some steps and 4-6 % above on others, so that one run-wide factor
+(:func:`omnipipe.sfm.run_length.run_length`) left 2.4 % of scale error and an ATE of
+2.6 mm per 300 mm; seed 24 (joints), one keyframe step 0 -> 31, came out 12.2 mm for
+13.04 true (the wall read 13.06 +- 0.34). The wall's dense axial shift
+(:func:`omnipipe.sfm.wall_shift.step_wall_length`: both keyframes unrolled onto the
+laser-measured wall cylinder and aligned by correlation) read every step of seed 32
+within 1.6 %.
+
+:func:`wall_priors` reads the wall on up to :data:`MAX_TRIGGER_STEPS` steps of the
+adjusted run (evenly). Only when a reading leaves the adjusted step beyond
+:data:`TRIGGER_SIGMAS` of its sigma (after the readings' run-wide median ratio is
+removed: a uniform offset is the run's scale, which the run's length combines; with
+fewer than :data:`MIN_RATIO_STEPS` readings the ratio itself counts, beyond
+:data:`FEW_TRIGGER_SIGMAS` with :data:`RATIO_FLOOR` in its sigma) is every step read and each reading that agrees with
+one of the step's sources within :data:`MAX_SOURCE_LOG` made a
+:class:`~omnipipe.sfm.bundle.LengthPrior`; the run is then adjusted again with them. A
+run the adjustment left consistent with the wall is not touched (a full-size run's
+laser reads the scale better than the wall's 1 %: bend).
+
+Conventions: lengths in mm along the travel, log ratios natural.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from omnipipe.sfm.bundle import LengthPrior
+from omnipipe.sfm.scale_check import StepCheck, wall_cylinder
+from omnipipe.sfm.types import Keyframes, SfmContext
+from omnipipe.sfm.wall_shift import candidate_window, step_wall_length
+
+# Steps read to decide whether the adjustment left the wall (evenly over the run).
+MAX_TRIGGER_STEPS = 12
+# A reading further than this many of its sigmas from its adjusted step (its run-wide
+# median ratio removed) shows the adjustment moved that step.
+TRIGGER_SIGMAS = 3.0
+# Fewest readings for their median ratio to stand for the run's scale; with fewer the
+# ratio itself is judged, RATIO_FLOOR (the wall's run-wide bias: shift_scale's floor)
+# added to each reading's sigma.
+MIN_RATIO_STEPS = 4
+RATIO_FLOOR = 0.01
+# ... and its ratio judged at this many sigmas (random-wide seed 24, one step: the wall
+# 13.06 +- 0.34 mm, the adjusted 12.21, 2.4 sigma with the floor; true 13.04).
+FEW_TRIGGER_SIGMAS = 2.0
+# A reading becomes a prior only within this |log| of the step's adjusted, decided or
+# feature-depth length (a periodic wall's next course is further).
+MAX_SOURCE_LOG = 0.25
+
+
+def wall_priors(
+    ctx: SfmContext, kf: Keyframes, world_from_kf: np.ndarray, checks: list[StepCheck]
+) -> tuple[LengthPrior, ...]:
+    """Each keyframe step's length read off the wall, as priors for adjusting the run
+    again; empty when the adjusted run ``world_from_kf`` ((K, 4, 4) mm) agrees with the
+    wall (see the module docstring). ``checks``: (K-1,) the steps' decisions (their
+    sources' lengths)."""
+    steps = _readable_steps(world_from_kf, kf)
+    if not steps:
+        return ()
+    first = steps
+    if len(steps) > MAX_TRIGGER_STEPS:
+        first = [steps[i] for i in np.linspace(0, len(steps) - 1, MAX_TRIGGER_STEPS).round().astype(int)]
+    readings = {k: _read(ctx, kf, k, b_from_a, length, checks[k]) for k, b_from_a, length in first}
+    if not _moved(readings, {k: length for k, _, length in steps}):
+        return ()
+    for k, b_from_a, length in steps:
+        if k not in readings:
+            readings[k] = _read(ctx, kf, k, b_from_a, length, checks[k])
+    priors = []
+    for k, _, length in steps:
+        wall, sigma = readings[k]
+        if math.isfinite(wall) and _agrees(wall, length, checks[k]):
+            priors.append(LengthPrior(k, k + 1, wall, sigma))
+    return tuple(priors)
+
+
+def _read(
+    ctx: SfmContext, kf: Keyframes, k: int, b_from_a: np.ndarray, length: float, check: StepCheck
+) -> tuple[float, float]:
+    """(length, 1-sigma) mm of step k read off the wall (NaN: not measured), searched
+    around its adjusted ``length`` and its sources'."""
+    cands = [length] + [
+        v for v in (check.scale_mm, check.feature_scale_mm) if _near(v, length, math.log(1.5))
+    ]
+    walls = (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1]))
+    r = step_wall_length(ctx.camera, (kf.grays[k], kf.grays[k + 1]), walls, b_from_a, candidate_window(cands))
+    if not (r.shift.measured and r.length_mm > 0 and r.sigma_mm > 0):
+        return math.nan, math.nan
+    return r.length_mm, r.sigma_mm
+
+
+def _moved(readings: dict[int, tuple[float, float]], adjusted: dict[int, float]) -> bool:
+    """Whether a reading leaves its adjusted step beyond :data:`TRIGGER_SIGMAS`."""
+    ks = [k for k, (w, _) in readings.items() if math.isfinite(w)]
+    if not ks:
+        return False
+    r = np.array([math.log(readings[k][0] / adjusted[k]) for k in ks])
+    rel = np.array([readings[k][1] / readings[k][0] for k in ks])
+    if len(ks) >= MIN_RATIO_STEPS:
+        return bool(np.any(np.abs(r - np.median(r)) > TRIGGER_SIGMAS * rel))
+    return bool(np.any(np.abs(r) > FEW_TRIGGER_SIGMAS * np.hypot(rel, RATIO_FLOOR)))
+
+
+def _agrees(wall: float, adjusted: float, check: StepCheck) -> bool:
+    """Whether the wall's length lies within :data:`MAX_SOURCE_LOG` of a source's."""
+    return any(_near(v, wall, MAX_SOURCE_LOG) for v in (adjusted, check.scale_mm, check.feature_scale_mm))
+
+
+def _near(value: float, length: float, max_log: float) -> bool:
+    return math.isfinite(value) and value > 0 and abs(math.log(value / length)) <= max_log
+
+
+def _readable_steps(world_from_kf: np.ndarray, kf: Keyframes) -> list[tuple[int, np.ndarray, float]]:
+    """(k, rig_b_from_rig_a with unit translation, adjusted length mm) of every step
+    with a relative motion that translates."""
+    out = []
+    for k in range(min(len(world_from_kf) - 1, len(kf.evidence))):
+        if kf.evidence[k].status != "ok":
+            continue
+        b_from_a = np.linalg.inv(world_from_kf[k + 1]) @ world_from_kf[k]
+        length = float(np.linalg.norm(b_from_a[:3, 3]))
+        if length <= 1e-6:
+            continue
+        b_from_a = b_from_a.copy()
+        b_from_a[:3, 3] /= length
+        out.append((k, b_from_a, length))
+    return out
