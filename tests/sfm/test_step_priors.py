@@ -32,8 +32,9 @@ def test_steps_the_adjustment_shortened_get_the_wall_s_length_within_its_sigma(
     kf, world_from_kf, checks, true = _run(small_camera, seed, 1.0)
     # Steps 1 and 3 12 % short (random-wide seed 32: 10-18 %), the others right.
     moved = _unevenly_shortened(world_from_kf, [1.0, 0.88, 1.0, 0.88, 1.0])
-    priors = wall_priors(_context(small_camera), kf, moved, checks)
-    assert len(priors) >= 4
+    got = wall_priors(_context(small_camera), kf, moved, checks)
+    priors = got.priors
+    assert len(priors) >= 4 and len(got.readings) == len(true)
     for p in priors:
         assert p.b == p.a + 1
         assert abs(p.length_mm - true[p.a]) <= 2 * p.sigma_mm, (p, true[p.a])
@@ -46,7 +47,8 @@ def test_a_run_the_wall_agrees_with_is_left_alone(small_camera: OmniCamera, gain
     # Every step right, or every step 5 % short (the run's scale: run_length's to
     # combine, not the steps' to move).
     kf, world_from_kf, checks, _ = _run(small_camera, 2, gain)
-    assert wall_priors(_context(small_camera), kf, world_from_kf, checks) == ()
+    got = wall_priors(_context(small_camera), kf, world_from_kf, checks)
+    assert got.priors == () and len(got.readings) == 5  # the readings kept for shift_scale
 
 
 def test_the_adjustment_follows_step_priors_where_nothing_else_fixes_the_scale(bundle_problem) -> None:

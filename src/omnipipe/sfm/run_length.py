@@ -81,12 +81,19 @@ class RunLength:
 
 
 def run_length(
-    ctx: SfmContext, world_from_kf: np.ndarray, chain: ChainedSteps, kf: Keyframes, scale: RunScale
+    ctx: SfmContext,
+    world_from_kf: np.ndarray,
+    chain: ChainedSteps,
+    kf: Keyframes,
+    scale: RunScale,
+    readings: dict[int, tuple[float, float]] | None = None,
 ) -> RunLength:
     """The run's scale after the adjustment (``world_from_kf``, (K, 4, 4) mm; ``chain``
     with the checks of :func:`check_adjusted`): the anchors' spread and the sources' gap give its
     sigma; with ``scale_from_wall`` it is combined with the features placed on the
-    light-section wall (:func:`combine_scales`)."""
+    light-section wall (:func:`combine_scales`) and the wall's own shift
+    (:func:`combine_shift`; ``readings``: steps already read off the wall on these poses,
+    :class:`omnipipe.sfm.step_priors.WallPriors`)."""
     config = ctx.config
     wall = wall_scale_correction(
         world_from_kf,
@@ -116,7 +123,7 @@ def run_length(
         if not scale.wall_anchored:
             source = "laser (Eq. 17), combined with feature depths on the light-section wall"
     if config.scale_from_wall:
-        shift = shift_scale(ctx, kf, world_from_kf, chain.checks)
+        shift = shift_scale(ctx, kf, world_from_kf, chain.checks, readings)
         if shift is not None:
             applied, sigma = combine_shift(applied, sigma, shift)
             source = f"{source}, and the wall's own shift ({shift.steps} steps)"

@@ -68,7 +68,11 @@ class ShiftScale:
 
 
 def shift_scale(
-    ctx: SfmContext, kf: Keyframes, world_from_kf: np.ndarray, checks: list[StepCheck]
+    ctx: SfmContext,
+    kf: Keyframes,
+    world_from_kf: np.ndarray,
+    checks: list[StepCheck],
+    known: dict[int, tuple[float, float]] | None = None,
 ) -> ShiftScale | None:
     """The run's scale as the wall's own shift reads it (see the module docstring);
     None with fewer than :data:`MIN_SHIFT_STEPS` readings.
@@ -78,6 +82,8 @@ def shift_scale(
         kf: the keyframes (grey images, ring points, evidence).
         world_from_kf: (K, 4, 4) adjusted keyframe poses, mm.
         checks: (K-1,) each step's check (reliable steps only are read).
+        known: step -> (length, 1-sigma) mm already read on these poses
+            (:class:`omnipipe.sfm.step_priors.WallPriors`), not read again.
     """
     steps = _candidate_steps(world_from_kf, checks, kf)
     if len(steps) > MAX_SHIFT_STEPS:
@@ -87,7 +93,7 @@ def shift_scale(
         c = checks[k]
         cands = [length] + [v for v in (c.scale_mm, c.feature_scale_mm) if _near(v, length)]
         pair_walls = (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1]))
-        wall, sigma = trimmed_wall_length(
+        wall, sigma = (known or {}).get(k) or trimmed_wall_length(
             ctx.camera, (kf.grays[k], kf.grays[k + 1]), pair_walls, b_from_a, candidate_window(cands)
         )
         if math.isfinite(wall):

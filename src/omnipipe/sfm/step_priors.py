@@ -28,6 +28,7 @@ Conventions: lengths in mm along the travel, log ratios natural.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -55,22 +56,37 @@ FEW_TRIGGER_SIGMAS = 2.0
 MAX_SOURCE_LOG = 0.25
 
 
+@dataclass(frozen=True)
+class WallPriors:
+    """What :func:`wall_priors` read.
+
+    Attributes:
+        priors: the steps' lengths to hold the adjustment to (empty: leave it).
+        readings: step -> (length, 1-sigma) mm of every step read on the adjusted poses
+            given (NaN: not measured); :func:`omnipipe.sfm.shift_scale.shift_scale` reuses
+            them when the run is not adjusted again.
+    """
+
+    priors: tuple[LengthPrior, ...] = ()
+    readings: dict[int, tuple[float, float]] = field(default_factory=dict)
+
+
 def wall_priors(
     ctx: SfmContext, kf: Keyframes, world_from_kf: np.ndarray, checks: list[StepCheck]
-) -> tuple[LengthPrior, ...]:
+) -> WallPriors:
     """Each keyframe step's length read off the wall, as priors for adjusting the run
-    again; empty when the adjusted run ``world_from_kf`` ((K, 4, 4) mm) agrees with the
-    wall (see the module docstring). ``checks``: (K-1,) the steps' decisions (their
+    again; no priors when the adjusted run ``world_from_kf`` ((K, 4, 4) mm) agrees with
+    the wall (see the module docstring). ``checks``: (K-1,) the steps' decisions (their
     sources' lengths)."""
     steps = _readable_steps(world_from_kf, kf)
     if not steps:
-        return ()
+        return WallPriors()
     first = steps
     if len(steps) > MAX_TRIGGER_STEPS:
         first = [steps[i] for i in np.linspace(0, len(steps) - 1, MAX_TRIGGER_STEPS).round().astype(int)]
     readings = {k: _read(ctx, kf, k, b_from_a, length, checks[k]) for k, b_from_a, length in first}
     if not _moved(readings, {k: length for k, _, length in steps}):
-        return ()
+        return WallPriors((), readings)
     for k, b_from_a, length in steps:
         if k not in readings:
             readings[k] = _read(ctx, kf, k, b_from_a, length, checks[k])
@@ -79,7 +95,7 @@ def wall_priors(
         wall, sigma = readings[k]
         if math.isfinite(wall) and _agrees(wall, length, checks[k]):
             priors.append(LengthPrior(k, k + 1, wall, sigma))
-    return tuple(priors)
+    return WallPriors(tuple(priors), readings)
 
 
 def _read(
