@@ -82,3 +82,26 @@ def test_bundle_jacobian_matches_finite_differences(bundle_problem) -> None:
         assert np.all(J[zeroed] == 0)
         # Nothing outside the old sparsity: residual rows touch their own pose(s) and point.
         assert np.abs(fd[ok][J[ok] == 0]).max() < 1e-6 * np.abs(fd).max()
+
+
+def test_step_length_prior_jacobian_matches_finite_differences(bundle_problem) -> None:
+    """The step-length priors' rows (each touches its two poses) against central
+    differences; a prior on a fixed keyframe pair's first has entries for the free one only."""
+    camera, problem = bundle_problem(4, 2)
+    problem.prior_a = np.array([0, 1, 2, 3, 1])
+    problem.prior_b = np.array([1, 2, 3, 4, 3])
+    problem.prior_mm = np.array([20.0, 25.0, 30.0, 22.0, 50.0])
+    problem.prior_sigma_mm = np.array([0.3, 0.5, 0.4, 0.2, 1.0])
+    objective = BundleObjective(camera, problem, 1.0, 7.0)
+    x0 = objective.x0
+    r = objective.residuals(x0)
+    S = len(problem.prior_a)
+    J = objective.jacobian(x0).toarray()[-S:]
+    h = 1e-6 * np.maximum(1.0, np.abs(x0))
+    fd = _central_differences(lambda x: objective.residuals(x)[-S:], x0, h)
+    assert np.abs(J - fd).max() < 1e-5 * np.abs(fd).max()
+    assert np.abs(fd[0]).max() == 0 and np.all(J[0] == 0)  # keyframes 0, 1 fixed: constant
+    # Residual: weight (|C_b - C_a| - length) / sigma.
+    C = problem.world_from_rig[:, :3, 3]
+    want = 7.0 * (np.linalg.norm(C[problem.prior_b] - C[problem.prior_a], axis=1) - problem.prior_mm) / problem.prior_sigma_mm
+    assert np.allclose(r[-S:], want, atol=1e-6)

@@ -31,10 +31,12 @@ from omnipipe.sfm.bundle import (
     BundleConfig,
     BundleProblem,
     BundleResult,
+    LengthPrior,
     build_problem,
     bundle_adjust,
     keyframe_windows,
     resect_rays,
+    set_priors,
 )
 from omnipipe.sfm.laser_scale import LaserMatches
 from omnipipe.sfm.scale_check import UnreliableStretch
@@ -107,12 +109,15 @@ class _Observations:
         anchors: each step's metric anchors.
         far: with the laser's anchors and ``anchor_reach`` > 1, laser points are also
             matched to the keyframes further ahead.
+        priors: steps whose length the wall's shift measured
+            (:mod:`omnipipe.sfm.step_priors`).
     """
 
     kf: Keyframes
     pair_matches: list[PairMatches]
     anchors: list[Anchor]
     far: bool
+    priors: tuple[LengthPrior, ...] = ()
 
 
 def adjust_keyframes(
@@ -122,6 +127,7 @@ def adjust_keyframes(
     pair_matches: list[PairMatches],
     anchors: list[Anchor],
     wall_anchored: bool,
+    priors: tuple[LengthPrior, ...] = (),
 ) -> Adjusted:
     """Bundle adjustment of the chained keyframe poses ``world_from_kf`` ((K, 4, 4) mm)
     with the steps' ``pair_matches`` and ``anchors``; unchanged when off or with one
@@ -129,14 +135,15 @@ def adjust_keyframes(
     between them are resected against (random-wide seed 1, a 963 mm pipe whose 29 frames
     made one keyframe step: without them every frame was unresected and flagged).
     ``wall_anchored``: the anchors are wall-placed features (no laser matches further
-    ahead then)."""
+    ahead then); ``priors``: steps' lengths the adjustment is held to
+    (:class:`omnipipe.sfm.bundle.LengthPrior`)."""
     config = ctx.config
     if not (config.bundle.enabled and len(world_from_kf) >= 2):
         return Adjusted(world_from_kf, [], np.zeros(len(world_from_kf), int), [])
     # Longer baselines measure the scale better: laser points of keyframe k are also
     # found in k + 2 ... k + reach with the adjusted motion, then adjusted again.
     far = config.anchor_reach > 1 and not wall_anchored
-    return _adjust_windows(ctx, world_from_kf, _Observations(kf, pair_matches, anchors, far))
+    return _adjust_windows(ctx, world_from_kf, _Observations(kf, pair_matches, anchors, far, priors))
 
 
 def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observations) -> Adjusted:
@@ -214,6 +221,7 @@ def _adjust_window(
         config,
     )
     problem.fixed = fixed
+    set_priors(problem, [replace(p, a=p.a - s, b=p.b - s) for p in obs.priors if p.a >= s and p.b < e])
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
     ba = bundle_adjust(ctx.camera, problem, config)

@@ -10,6 +10,9 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
   observation of that fixed point, ``project(rig_b_from_world @ world_from_rig_a @
   laser_point_in_a) - pixel_b``. These tie the translation lengths to millimetres, so
   the scale cannot drift along the run.
+* step-length priors (optional): a keyframe step a -> b whose length an independent
+  source measured (the wall's own shift, :mod:`omnipipe.sfm.step_priors`),
+  ``weight (|C_b - C_a| - length) / sigma`` with C_k the rig's centre in the world.
 
 Robust soft-L1 loss with an analytic sparse Jacobian (:class:`BundleObjective`): each
 residual touches one or two poses and one point, chained through q = R(omega) X + t,
@@ -24,7 +27,7 @@ in 7-39 evaluations of 50, 5-20x faster and at a lower cost (``BundleConfig.solv
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -49,6 +52,8 @@ class BundleConfig:
         enabled: run it (off: the pairwise chain is the result).
         loss_scale_px: soft-L1 scale: residuals beyond a few of these count linearly.
         laser_weight: weight of a laser anchor residual relative to a feature's.
+        length_prior_weight: a step-length prior's residual per sigma of its length, px
+            (:class:`BundleProblem`'s ``prior_*``).
         max_reprojection_px: tracks worse than this at the start are dropped.
         min_parallax_deg: tracks whose rays meet at a smaller angle are dropped
             (their depth is unconstrained).
@@ -73,6 +78,7 @@ class BundleConfig:
     enabled: bool = True
     loss_scale_px: float = bounded(1.0, gt=0)
     laser_weight: float = bounded(1.0, ge=0)
+    length_prior_weight: float = bounded(10.0, ge=0)
     max_reprojection_px: float = bounded(4.0, gt=0)
     min_parallax_deg: float = bounded(1.0, ge=0, lt=180)
     max_tracks: int = bounded(4000, ge=1)
@@ -102,6 +108,8 @@ class BundleProblem:
         fixed: the first ``fixed`` keyframes keep their poses (at least 1: the first
             defines the world; a window of a long run also holds the keyframes it shares
             with the window before, :func:`keyframe_windows`).
+        prior_a, prior_b: (S,) keyframes of each step-length prior.
+        prior_mm, prior_sigma_mm: (S,) each prior's length and its 1-sigma, mm.
     """
 
     world_from_rig: np.ndarray
@@ -115,6 +123,34 @@ class BundleProblem:
     anchor_pixels_b: np.ndarray
     feature_point: list[np.ndarray] | None = None
     fixed: int = 1
+    prior_a: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    prior_b: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    prior_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    prior_sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass(frozen=True)
+class LengthPrior:
+    """A keyframe step's length measured by a source outside the adjustment.
+
+    Attributes:
+        a, b: the step's keyframes.
+        length_mm: its length, mm.
+        sigma_mm: its 1-sigma, mm.
+    """
+
+    a: int
+    b: int
+    length_mm: float
+    sigma_mm: float
+
+
+def set_priors(problem: BundleProblem, priors: list[LengthPrior]) -> None:
+    """Put ``priors`` (keyframes counted from the problem's first) into ``problem``."""
+    problem.prior_a = np.array([p.a for p in priors], int)
+    problem.prior_b = np.array([p.b for p in priors], int)
+    problem.prior_mm = np.array([p.length_mm for p in priors], float)
+    problem.prior_sigma_mm = np.array([p.sigma_mm for p in priors], float)
 
 
 @dataclass
@@ -183,6 +219,9 @@ def _check_shapes(problem: BundleProblem) -> None:
         raise ShapeError(f"bundle_adjust: anchors of inconsistent shapes {problem.anchor_points_in_a.shape}")
     if not 1 <= int(problem.fixed) <= K:
         raise ShapeError(f"bundle_adjust: fixed must be 1..{K} keyframes, got {int(problem.fixed)}")
+    S = len(problem.prior_a)
+    if not (len(problem.prior_b) == len(problem.prior_mm) == len(problem.prior_sigma_mm) == S):
+        raise ShapeError("bundle_adjust: step-length priors of inconsistent shapes")
 
 
 def _block_entries(rows: np.ndarray, col0: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -197,8 +236,9 @@ class BundleObjective:
 
     ``x`` holds the free keyframes' (rotation vector, translation) of rig_from_world
     (6 each), then the points (3 each, mm). Residuals (2M observation rows, then 2L
-    anchor rows, px) are in the order of :class:`BundleProblem`'s arrays; an invalid or
-    non-finite projection gives a zero residual.
+    anchor rows, then S step-length prior rows, px) are in the order of
+    :class:`BundleProblem`'s arrays; an invalid or non-finite projection gives a zero
+    residual.
 
     Attributes:
         x0: the start (the problem's initial poses and points).
@@ -208,9 +248,12 @@ class BundleObjective:
         ShapeError: inconsistent observation arrays.
     """
 
-    def __init__(self, camera: CameraModel, problem: BundleProblem, w_laser: float) -> None:
+    def __init__(
+        self, camera: CameraModel, problem: BundleProblem, w_laser: float, w_prior: float = 0.0
+    ) -> None:
         _check_shapes(problem)
         self.camera, self.problem, self.w_laser = camera, problem, w_laser
+        self.w_prior = w_prior
         K, F = len(problem.world_from_rig), int(problem.fixed)
         pose0 = _poses_to_params(problem.world_from_rig)
         self._fixed = pose0[:F].copy()
@@ -234,12 +277,22 @@ class BundleObjective:
             _block_entries(M + self._a_free, 6 * (pr.anchor_a[self._a_free] - F), 6),
             _block_entries(M + self._b_free, 6 * (pr.anchor_b[self._b_free] - F), 6),
         ]
+        # A prior row touches its two poses (unless fixed).
+        S = len(pr.prior_a)
+        self._pa_free = np.flatnonzero(pr.prior_a >= F)
+        self._pb_free = np.flatnonzero(pr.prior_b >= F)
+        for free, k in ((self._pa_free, pr.prior_a), (self._pb_free, pr.prior_b)):
+            rows = np.repeat(2 * M + 2 * L + free, 6)
+            cols = (6 * (k[free] - F))[:, None] + np.arange(6)[None, :]
+            blocks.append((rows, cols.ravel()))
         jac_rows = np.concatenate([r for r, _ in blocks])
         jac_cols = np.concatenate([c for _, c in blocks])
         self._order = np.lexsort((jac_cols, jac_rows))
         self._indices = jac_cols[self._order].astype(np.int32)
-        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L))]).astype(np.int32)
-        self._shape = (2 * M + 2 * L, len(self.x0))
+        self._indptr = np.concatenate(
+            [[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L + S))]
+        ).astype(np.int32)
+        self._shape = (2 * M + 2 * L + S, len(self.x0))
 
     def _poses(self, x: np.ndarray) -> np.ndarray:
         """(K, 6) every keyframe's (rotation vector, translation) of rig_from_world."""
@@ -251,7 +304,7 @@ class BundleObjective:
         return R, t, x[self.n_pose :].reshape(len(self.problem.points_in_world), 3)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        """(2M + 2L,) observation then (weighted) anchor residuals, px."""
+        """(2M + 2L + S,) observation, then (weighted) anchor, then prior residuals, px."""
         pr, camera = self.problem, self.camera
         R, t, pts = self.unpack(x)
         k, p = pr.obs_frame, pr.obs_point
@@ -264,7 +317,11 @@ class BundleObjective:
         qb = np.einsum("nij,nj->ni", R[b], w) + t[b]
         pxb, vb = camera.project(qb)
         r_anc = np.where(vb[:, None], pxb - pr.anchor_pixels_b, 0.0) * self.w_laser
-        return np.nan_to_num(np.concatenate([r_obs.ravel(), r_anc.ravel()]), nan=0.0, posinf=0.0, neginf=0.0)
+        C = -np.einsum("nji,nj->ni", R, t)  # the rigs' centres in the world
+        length = np.linalg.norm(C[pr.prior_b] - C[pr.prior_a], axis=1)
+        r_len = self.w_prior * (length - pr.prior_mm) / pr.prior_sigma_mm
+        r = np.concatenate([r_obs.ravel(), r_anc.ravel(), r_len])
+        return np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)
 
     def jacobian(self, x: np.ndarray) -> csr_matrix:
         """(2M + 2L, len(x)) sparse CSR d residuals / d x."""
@@ -272,8 +329,30 @@ class BundleObjective:
         Jl = _so3_left_jacobian(self._poses(x)[:, :3])
         d_pose_obs, d_point = self._observation_blocks(R, t, pts, Jl)
         d_pose_a, d_pose_b = self._anchor_blocks(R, t, Jl)
-        data = np.concatenate([d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel()])
+        d_prior_a, d_prior_b = self._prior_blocks(R, t, Jl)
+        data = np.concatenate(
+            [d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel(),
+             d_prior_a.ravel(), d_prior_b.ravel()]
+        )
         return csr_matrix((data[self._order], self._indices, self._indptr), shape=self._shape)
+
+    def _prior_blocks(self, R: np.ndarray, t: np.ndarray, Jl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(free a, 6) and (free b, 6): d prior residual / d pose a and / d pose b.
+
+        C = -R^T t; with R -> exp(d) R, d C = -R^T [t]x d, d = Jl d omega; d C / d t = -R^T.
+        """
+        pr = self.problem
+        C = -np.einsum("nji,nj->ni", R, t)
+        diff = C[pr.prior_b] - C[pr.prior_a]
+        u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-12)[:, None]
+        u = u * (self.w_prior / pr.prior_sigma_mm)[:, None]
+
+        def d_centre(k: np.ndarray, ui: np.ndarray) -> np.ndarray:
+            uR = np.einsum("ni,nji->nj", ui, R[k])  # u^T R^T
+            return -np.concatenate([np.einsum("ni,nij->nj", uR, _skew(t[k]) @ Jl[k]), uR], axis=1)
+
+        fa, fb = self._pa_free, self._pb_free
+        return -d_centre(pr.prior_a[fa], u[fa]), d_centre(pr.prior_b[fb], u[fb])
 
     def _observation_blocks(
         self, R: np.ndarray, t: np.ndarray, pts: np.ndarray, Jl: np.ndarray
@@ -315,9 +394,9 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
         ShapeError: inconsistent observation arrays.
     """
     w_laser = float(config.laser_weight)
-    objective = BundleObjective(camera, problem, w_laser)
+    objective = BundleObjective(camera, problem, w_laser, float(config.length_prior_weight))
     x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
-    K, M = len(problem.world_from_rig), len(problem.obs_frame)
+    K, M, L = len(problem.world_from_rig), len(problem.obs_frame), len(problem.anchor_a)
     r0 = residuals(x0)
     # Single-threaded BLAS: the result does not depend on the machine's core count
     # (threaded sums round differently: 2e-7 mm in the poses); LSMR's dot products are
@@ -345,7 +424,8 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
         return float(np.sqrt(np.mean(r**2))) if len(r) else 0.0
 
     return BundleResult(
-        world_from_rig, pts, rms(r0[: 2 * M]), rms(r1[: 2 * M]), rms(r1[2 * M :] / max(w_laser, 1e-9)), int(sol.nfev)
+        world_from_rig, pts, rms(r0[: 2 * M]), rms(r1[: 2 * M]),
+        rms(r1[2 * M : 2 * M + 2 * L] / max(w_laser, 1e-9)), int(sol.nfev)
     )
 
 

@@ -71,6 +71,7 @@ from omnipipe.sfm.stations import (
     texture_gain,
     unverified_stations,
 )
+from omnipipe.sfm.step_priors import WallPriors, wall_priors
 from omnipipe.sfm.step_scale import (
     ChainedSteps,
     RunLength,
@@ -148,8 +149,8 @@ def _run(
         chain = chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames))
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
-        adjusted, chain = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved)
-        length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale)
+        adjusted, chain, walls = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved)
+        length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale, walls.readings)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))
         # Step 6: the other moving frames, resected against the adjusted tracks; one that
@@ -193,13 +194,26 @@ def _adjusted_and_checked(
     chain: ChainedSteps,
     scale: RunScale,
     moved: np.ndarray,
-) -> tuple[Adjusted, ChainedSteps]:
-    """Step 5: the bundle adjustment of the chained keyframes, and the chain's checks
-    with the steps it moved away from their sources flagged (in a wall-anchored run,
-    where the feature depths are the anchors, the gait judges such steps too)."""
+) -> tuple[Adjusted, ChainedSteps, WallPriors]:
+    """Step 5: the bundle adjustment of the chained keyframes (again with the wall's step
+    lengths as priors where it left them: :func:`omnipipe.sfm.step_priors.wall_priors`),
+    and the chain's checks with the steps it moved away from their sources flagged (in a
+    wall-anchored run, where the feature depths are the anchors, the gait judges such
+    steps too); the wall's readings on the returned poses."""
     adjusted = adjust_keyframes(
         ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
     )
+    # Where the adjustment left the wall's own shift, the wall's step lengths hold it.
+    walls = wall_priors(ctx, kf, adjusted.world_from_kf, chain.checks) if config.scale_from_wall else WallPriors()
+    if walls.priors:
+        adjusted = adjust_keyframes(
+            ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored, walls.priors
+        )
+        ctx.warnings.append(
+            f"bundle adjustment held to the wall's own shift on {len(walls.priors)} steps (it "
+            "had moved a step away from the wall's reading)"
+        )
+        walls = WallPriors(walls.priors)  # read on the poses before: not the new ones'
     offset = math.exp(scale.offset_log)
     checks = check_adjusted(
         chain.checks,
@@ -212,7 +226,7 @@ def _adjusted_and_checked(
         checks = confirm_adjusted(
             checks, adjusted.world_from_kf, moving_counts(moved, kf.frames), config.scale_check, ctx.warnings
         )
-    return adjusted, replace(chain, checks=checks)
+    return adjusted, replace(chain, checks=checks), walls
 
 
 def _add_creeps(result: SfmResult, inputs: SfmInputs) -> None:

@@ -6,8 +6,8 @@ points matched between two keyframes; on some walls both run short together (til
 640x480, random-wide seeds 32 and 35: the laser's and the feature depths' step lengths
 a median 5-6 % and 2-5 % below the truth, the adjusted run 7 % and 1.4 %), so no sigma
 from them covers the truth. The wall's dense axial shift
-(:func:`omnipipe.sfm.wall_shift.step_wall_length`: both keyframes unrolled onto the
-laser-measured wall cylinder and aligned by correlation) needs neither: on those runs
+(:func:`omnipipe.sfm.step_priors.trimmed_wall_length`: both keyframes unrolled onto the
+laser-measured wall cylinder and aligned by correlation, the view's rim rows left out) needs neither: on those runs
 it read every step within 1.7 % (median +0.7 % and -0.2 %).
 
 :func:`shift_scale` reads it on up to :data:`MAX_SHIFT_STEPS` reliable adjusted steps
@@ -28,8 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from omnipipe.sfm.scale_check import StepCheck, wall_cylinder
+from omnipipe.sfm.step_priors import trimmed_wall_length
 from omnipipe.sfm.types import Keyframes, SfmContext
-from omnipipe.sfm.wall_shift import candidate_window, step_wall_length
+from omnipipe.sfm.wall_shift import candidate_window
 
 # Most steps read (evenly over the run's reliable ones): each reading unrolls two
 # keyframes, so a long run's cost stays bounded; a dozen readings put the median's
@@ -67,7 +68,11 @@ class ShiftScale:
 
 
 def shift_scale(
-    ctx: SfmContext, kf: Keyframes, world_from_kf: np.ndarray, checks: list[StepCheck]
+    ctx: SfmContext,
+    kf: Keyframes,
+    world_from_kf: np.ndarray,
+    checks: list[StepCheck],
+    known: dict[int, tuple[float, float]] | None = None,
 ) -> ShiftScale | None:
     """The run's scale as the wall's own shift reads it (see the module docstring);
     None with fewer than :data:`MIN_SHIFT_STEPS` readings.
@@ -77,6 +82,8 @@ def shift_scale(
         kf: the keyframes (grey images, ring points, evidence).
         world_from_kf: (K, 4, 4) adjusted keyframe poses, mm.
         checks: (K-1,) each step's check (reliable steps only are read).
+        known: step -> (length, 1-sigma) mm already read on these poses
+            (:class:`omnipipe.sfm.step_priors.WallPriors`), not read again.
     """
     steps = _candidate_steps(world_from_kf, checks, kf)
     if len(steps) > MAX_SHIFT_STEPS:
@@ -86,12 +93,12 @@ def shift_scale(
         c = checks[k]
         cands = [length] + [v for v in (c.scale_mm, c.feature_scale_mm) if _near(v, length)]
         pair_walls = (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1]))
-        reading = step_wall_length(
+        wall, sigma = (known or {}).get(k) or trimmed_wall_length(
             ctx.camera, (kf.grays[k], kf.grays[k + 1]), pair_walls, b_from_a, candidate_window(cands)
         )
-        if reading.measured and reading.length_mm > 0:
-            walls.append(reading.length_mm)
-            sigmas.append(reading.sigma_mm)
+        if math.isfinite(wall):
+            walls.append(wall)
+            sigmas.append(sigma)
             adjusted.append(length)
     return _total_ratio(np.array(walls), np.array(sigmas), np.array(adjusted))
 

@@ -1,0 +1,74 @@
+"""The wall's own shift as the bundle adjustment's step-length priors (sfm.step_priors,
+sfm.bundle's prior rows), on seeded synthetic walls rendered through the camera model and
+a seeded bundle problem: the truth is the travel the images and points were made with."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_shift_scale import _run
+from test_wall_shift import _context
+
+from omnipipe.camera import OmniCamera
+from omnipipe.sfm.bundle import BundleConfig, LengthPrior, bundle_adjust, set_priors
+from omnipipe.sfm.step_priors import wall_priors
+
+
+def _unevenly_shortened(world_from_kf: np.ndarray, gains: list[float]) -> np.ndarray:
+    """The poses with step k's length times ``gains[k]`` (an adjustment that shortened
+    some steps and not others)."""
+    z = np.diff(world_from_kf[:, 2, 3]) * np.array(gains)
+    out = world_from_kf.copy()
+    out[1:, 2, 3] = np.cumsum(z)
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_steps_the_adjustment_shortened_get_the_wall_s_length_within_its_sigma(
+    small_camera: OmniCamera, seed: int
+) -> None:
+    kf, world_from_kf, checks, true = _run(small_camera, seed, 1.0)
+    # Steps 1 and 3 12 % short (random-wide seed 32: 10-18 %), the others right.
+    moved = _unevenly_shortened(world_from_kf, [1.0, 0.88, 1.0, 0.88, 1.0])
+    got = wall_priors(_context(small_camera), kf, moved, checks)
+    priors = got.priors
+    assert len(priors) >= 4 and len(got.readings) == len(true)
+    for p in priors:
+        assert p.b == p.a + 1
+        assert abs(p.length_mm - true[p.a]) <= 2 * p.sigma_mm, (p, true[p.a])
+        assert p.sigma_mm <= 0.05 * true[p.a]
+    assert {1, 3} <= {p.a for p in priors}
+
+
+@pytest.mark.parametrize("gain", [1.0, 0.95])
+def test_a_run_the_wall_agrees_with_is_left_alone(small_camera: OmniCamera, gain: float) -> None:
+    # Every step right, or every step 5 % short (the run's scale: run_length's to
+    # combine, not the steps' to move).
+    kf, world_from_kf, checks, _ = _run(small_camera, 2, gain)
+    got = wall_priors(_context(small_camera), kf, world_from_kf, checks)
+    assert got.priors == () and len(got.readings) == 5  # the readings kept for shift_scale
+
+
+def test_the_adjustment_follows_step_priors_where_nothing_else_fixes_the_scale(bundle_problem) -> None:
+    camera, problem = bundle_problem(5, 1)
+    true = problem.world_from_rig.copy()
+    lengths = np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1)
+    # No laser anchors (the scale is free), a start 10 % short.
+    for name in ("anchor_a", "anchor_b"):
+        setattr(problem, name, np.zeros(0, int))
+    problem.anchor_points_in_a, problem.anchor_pixels_b = np.zeros((0, 3)), np.zeros((0, 2))
+    start = true.copy()
+    start[:, :3, 3] *= 0.9
+    problem.world_from_rig = start
+    problem.points_in_world = problem.points_in_world * 0.9
+    rng = np.random.default_rng(5)
+    sigma = 0.02 * lengths
+    measured = lengths + rng.normal(0, 1, len(lengths)) * sigma
+    set_priors(problem, [LengthPrior(k, k + 1, float(measured[k]), float(sigma[k])) for k in range(len(lengths))])
+    got = bundle_adjust(camera, problem, BundleConfig(solver="trf", max_evaluations=100))
+    adjusted = np.linalg.norm(np.diff(got.world_from_rig[:, :3, 3], axis=0), axis=1)
+    # The run's length is the priors' (their mean's sigma: 2 % / sqrt(4)).
+    assert abs(math.log(adjusted.sum() / lengths.sum())) <= 2 * 0.02 / math.sqrt(len(lengths))
+    assert np.all(np.abs(adjusted - lengths) <= 2 * sigma)
