@@ -19,6 +19,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from omnipipe.spill import drop_pages
+
 GROWTH = 1.15
 """Factor of the cell side between two tries (the first from the texture's area)."""
 
@@ -48,7 +50,8 @@ def thin_mesh(
     faces = np.asarray(faces)
     uv = np.asarray(uvs, float)
     h, w = texture_shape if texture_shape is not None else (1, 1)
-    span = uv.max(axis=0) - uv.min(axis=0) if len(uv) else np.zeros(2)
+    lo, hi = _bounds(uv)
+    span = hi - lo if len(uv) else np.zeros(2)
     area_px = max(span[0] * w, 1e-12) * max(span[1] * h, 1e-12)
     side = math.sqrt(area_px / max(max_faces // 2, 1))  # cell side (texture px)
     kept = None
@@ -62,7 +65,7 @@ def thin_mesh(
     if kept is None or len(kept) > max_faces:  # no spread in UV: every k-th face
         kept = faces[:: math.ceil(len(faces) / max_faces)]
     used, kept = np.unique(kept, return_inverse=True)
-    return np.asarray(vertices)[used], kept.reshape(-1, 3), uv[used]
+    return _take(np.asarray(vertices), used), kept.reshape(-1, 3), _take(uv, used)
 
 
 FACE_CHUNK = 1 << 17
@@ -80,15 +83,17 @@ def _clustered(uv: np.ndarray, faces: np.ndarray, side: float, shape: tuple[int,
     keys, first = _cell_firsts(uv, side, shape)
     if len(first) < 3:
         return None
-    # (V,) each vertex's cell's first vertex, a chunk of vertices at a time.
-    rep = np.empty(len(uv), np.int64)
+    # (V,) each vertex's cell's first vertex, a chunk of vertices at a time (int32 where
+    # the vertices' indices fit: 4 bytes a vertex, the only array of the mesh's length).
+    rep = np.empty(len(uv), np.int32 if len(uv) < 1 << 31 else np.int64)
     for a, cell in _cell_chunks(uv, side, shape):
         rep[a : a + len(cell)] = first[np.searchsorted(keys, cell)]
     del keys, first
     wide = len(uv) >= 1 << 21  # a face no longer fits one int64 key (21 bits a corner)
     kept: list[np.ndarray] = []
     for a in range(0, len(faces), FACE_CHUNK):
-        out = rep[np.asarray(faces[a : a + FACE_CHUNK], np.int64)]
+        out = rep[np.asarray(faces[a : a + FACE_CHUNK], np.int64)].astype(np.int64)
+        drop_pages()  # this chunk's faces read (omnipipe.spill): a chunk's pages resident
         out = out[(out[:, 0] != out[:, 1]) & (out[:, 1] != out[:, 2]) & (out[:, 0] != out[:, 2])]
         kept.append(out[_first_of_each(out, wide)])
     out = np.concatenate(kept) if kept else np.zeros((0, 3), np.int64)
@@ -104,14 +109,40 @@ def _cell_chunks(uv: np.ndarray, side: float, shape: tuple[int, int]) -> Iterato
     """(first vertex, (n,) int64 cell of each vertex) per chunk of :data:`VERTEX_CHUNK`
     vertices: cell = row x (columns) + column on the grid of ``side`` texture px."""
     h, w = shape
-    lo = uv.min(axis=0)
+    lo, hi = _bounds(uv)
     # The largest column: that of the largest u (floor is monotonic).
-    cols = int(np.floor((uv[:, 0].max() - lo[0]) * (w / side))) + 1
+    cols = int(np.floor((hi[0] - lo[0]) * (w / side))) + 1
     for a in range(0, len(uv), VERTEX_CHUNK):
         part = np.asarray(uv[a : a + VERTEX_CHUNK], float)
         col = np.floor((part[:, 0] - lo[0]) * (w / side)).astype(np.int64)
         row = np.floor((part[:, 1] - lo[1]) * (h / side)).astype(np.int64)
+        del part
+        drop_pages()  # this chunk's UVs read (omnipipe.spill): a chunk's pages resident
         yield a, row * cols + col
+
+
+def _take(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``a[idx]`` (``idx`` ascending), a chunk of :data:`VERTEX_CHUNK` indices at a time:
+    the kept vertices lie all along a long run's mesh, whose pages (in the run's scratch,
+    :mod:`omnipipe.spill`) are then a chunk's resident, not the whole mesh's."""
+    out = np.empty((len(idx), *a.shape[1:]), a.dtype)
+    for i in range(0, len(idx), VERTEX_CHUNK):
+        out[i : i + VERTEX_CHUNK] = a[idx[i : i + VERTEX_CHUNK]]
+        drop_pages()
+    return out
+
+
+def _bounds(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(2,) the smallest and (2,) the largest of the (V, 2) ``uv``'s columns, a chunk of
+    :data:`VERTEX_CHUNK` rows at a time (a mesh in the run's scratch, :mod:`omnipipe.spill`:
+    a chunk's pages resident)."""
+    lo, hi = np.full(uv.shape[1], np.inf), np.full(uv.shape[1], -np.inf)
+    for a in range(0, len(uv), VERTEX_CHUNK):
+        part = uv[a : a + VERTEX_CHUNK]
+        lo, hi = np.minimum(lo, part.min(axis=0)), np.maximum(hi, part.max(axis=0))
+        del part
+        drop_pages()
+    return lo, hi
 
 
 def _cell_firsts(uv: np.ndarray, side: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
