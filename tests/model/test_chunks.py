@@ -87,6 +87,17 @@ def test_the_chunked_mesh_is_the_whole_delaunay_mesh(kind: str, chunk: int) -> N
     assert np.array_equal(chunked, np.unique(np.sort(chunked, axis=1), axis=0))
 
 
+def test_the_chunks_triangulated_by_worker_processes_give_the_same_mesh() -> None:
+    from omnipipe.executor import open_executor
+
+    arc, axial = _rings(60, 100, seed=4, gap=(80.0, 120.0))
+    pts = _tube(arc, axial)
+    here = mesh_unrolled(arc, axial, pts, CIRC_MM, 2.0, chunk_points=700)
+    with open_executor(2) as ex:
+        there = mesh_unrolled(arc, axial, pts, CIRC_MM, 2.0, chunk_points=700, executor=ex)
+    assert len(here) > 9000 and np.array_equal(here, there)
+
+
 def test_the_chunked_mesh_has_no_hole_or_overlap_at_the_seams() -> None:
     arc, axial = _scattered(5000, 120.0, seed=5)
     pts = _tube(arc, axial)

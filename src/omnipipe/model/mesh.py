@@ -23,14 +23,17 @@ the wall is seen from inside.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 
 import numpy as np
 from scipy.spatial import Delaunay
 
 from omnipipe.errors import ShapeError
+from omnipipe.executor import InlineExecutor, ordered_map, shares_files
 from omnipipe.geometry import apply
 from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
 from omnipipe.model.texture_grid import UnrolledImage
+from omnipipe.spill import shared_on_disk
 
 
 def integrate(
@@ -97,6 +100,7 @@ def mesh_unrolled(
     max_edge_factor: float,
     chunk_points: int = CHUNK_POINTS,
     hole: np.ndarray | None = None,
+    executor: Executor | None = None,
 ) -> np.ndarray:
     """(F, 3) triangles of an unrolled Delaunay over the points (see module docstring),
     vertex indices of :func:`face_dtype` (int32 below 2**31 points: half the memory).
@@ -115,6 +119,8 @@ def mesh_unrolled(
         hole: (N,) True for points that are not wall (a joint's gap, a lateral's
             opening and the branch seen through it): triangles touching them are dropped,
             so the mesh shows the gap and the hole; None: all wall.
+        executor: where a long run's chunks are triangulated (:mod:`omnipipe.executor`;
+            None: here); the triangles do not depend on it.
     """
     n = len(points_in_world)
     index = face_dtype(n)
@@ -133,7 +139,7 @@ def mesh_unrolled(
         tri = tri[(cu >= 0.5 * margin) & (cu < circ + 0.5 * margin)]
         faces = ids[tri]
     else:
-        tri = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points)
+        tri = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points, executor)
         faces = ids[tri]
         del tri
         # In an order of the triangles alone (ascending vertex ids, ascending triangles).
@@ -159,11 +165,18 @@ def face_dtype(points: int) -> type[np.signedinteger]:
 
 
 def _chunked_triangles(
-    uu: np.ndarray, vv: np.ndarray, u_lo: float, u_hi: float, chunk_points: int
+    uu: np.ndarray,
+    vv: np.ndarray,
+    u_lo: float,
+    u_hi: float,
+    chunk_points: int,
+    executor: Executor | None = None,
 ) -> np.ndarray:
     """(T, 3) indices into the (n,) points (``uu``, ``vv``; mm) of the triangles of their
     Delaunay triangulation whose centroid has ``u_lo <= u < u_hi``, a chunk along ``vv`` at
-    a time (:class:`~omnipipe.model.chunks.AxialChunks`).
+    a time (:class:`~omnipipe.model.chunks.AxialChunks`), the chunks triangulated on
+    ``executor`` (None: here; a local pool's workers read the points from the run's
+    scratch, :func:`~omnipipe.spill.shared_on_disk`).
 
     Each chunk keeps its verified triangles whose centroid lies in its core interval of
     ``vv``; the cores partition the axis, so every triangle is kept once: its centroid is
@@ -171,19 +184,38 @@ def _chunked_triangles(
     Triangles of ascending vertices, chunk after chunk.
     """
     axial = AxialChunks(uu, vv, chunk_points)
-    parts = []
     # Kept as the smallest index type (int64 triangles were twice the mesh's faces,
     # and the parts and their concatenation were held together).
     index = np.int32 if len(uu) < np.iinfo(np.int32).max else np.int64
-    for z_lo, z_hi in axial.cores():
-        ids, tri = axial.triangulate(z_lo, z_hi, u_lo, u_hi)
-        t = np.sort(axial.order[ids[tri.simplices]], axis=1)
+    ex = executor if executor is not None else InlineExecutor()
+    if shares_files(ex):
+        axial.order, axial.u, axial.z = (shared_on_disk(a) for a in (axial.order, axial.u, axial.z))
+        uu, vv = shared_on_disk(uu), shared_on_disk(vv)
+    task = _CoreTriangles(axial, uu, vv, u_lo, u_hi, index)
+    parts = list(ordered_map(ex, task, axial.cores()))
+    return np.concatenate(parts)
+
+
+class _CoreTriangles:
+    """Picklable task: the triangles of one core ``(z_lo, z_hi)`` of
+    :func:`_chunked_triangles` (ascending vertices, int ``index``)."""
+
+    def __init__(
+        self, axial: AxialChunks, uu: np.ndarray, vv: np.ndarray, u_lo: float, u_hi: float,
+        index: type[np.signedinteger],
+    ) -> None:
+        self.axial, self.uu, self.vv, self.u_lo, self.u_hi, self.index = axial, uu, vv, u_lo, u_hi, index
+
+    def __call__(self, core: tuple[float, float]) -> np.ndarray:
+        z_lo, z_hi = core
+        uu, vv = self.uu, self.vv
+        ids, tri = self.axial.triangulate(z_lo, z_hi, self.u_lo, self.u_hi)
+        t = np.sort(self.axial.order[ids[tri.simplices]], axis=1)
         del tri
         cu = (uu[t[:, 0]] + uu[t[:, 1]] + uu[t[:, 2]]) / 3.0
         cv = (vv[t[:, 0]] + vv[t[:, 1]] + vv[t[:, 2]]) / 3.0
-        parts.append(t[(cu >= u_lo) & (cu < u_hi) & (cv >= z_lo) & (cv < z_hi)].astype(index))
-        del t, cu, cv
-    return np.concatenate(parts)
+        keep = (cu >= self.u_lo) & (cu < self.u_hi) & (cv >= z_lo) & (cv < z_hi)
+        return t[keep].astype(self.index)
 
 
 def orient_towards_axis(

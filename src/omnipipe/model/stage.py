@@ -498,7 +498,9 @@ def _run(
         circ = float(inputs.circumference_mm)
     else:
         arc, axial, circ = unrolled_coordinates(points, inputs.world_from_rig)
-    faces = mesh_unrolled(arc, axial, points, circ, config.max_edge_factor, hole=inputs.not_wall)
+    faces = mesh_unrolled(
+        arc, axial, points, circ, config.max_edge_factor, hole=inputs.not_wall, executor=executor
+    )
     flip_stats = None
     if config.flips and len(faces):
         from omnipipe.image import gray_without_laser

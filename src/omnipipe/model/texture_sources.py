@@ -260,7 +260,7 @@ def _seen_rows(
         station, node, bl, bh = station[keep], node[keep], bl[keep], bh[keep]
         corners = np.where(corner[None], bh[:, None], bl[:, None])  # (P, 8, 3) world
         m = rig_from_world[station]
-        q = np.einsum("pij,pcj->pci", m[:, :3, :3], corners) + m[:, None, :3, 3]
+        q = np.matmul(corners, m[:, :3, :3].transpose(0, 2, 1)) + m[:, None, :3, 3]
         bottom, top = _box_elevations(q.min(axis=1), q.max(axis=1))
         seen = (top >= e_lo) & (bottom <= e_hi)
         station, node = station[seen], node[seen]
