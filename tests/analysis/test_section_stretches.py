@@ -71,3 +71,39 @@ def test_headline_on_a_taper_holds_its_median_station() -> None:
     stations[2] = Station(**{**stations[2].__dict__, "diameter_sigma_mm": 3.0})
     head = Headline(diameter_mm=230.0, sigma_mm=0.2, min_mm=210.0, max_mm=250.0, stations_used=5)
     assert math.isclose(headline_on_a_taper(head, stations).sigma_mm, math.hypot(0.2, 3.0))
+
+
+def test_headline_on_a_taper_carries_the_run_scale_along_its_ramp() -> None:
+    """A 339 -> 281 mm reducer over 70 mm read by 21 stations under a camera motion whose
+    scale is 10 % uncertain (random-features seed 25): the median station, 70 mm into
+    the run, is placed to 0.1 x sqrt(70 x 130) mm, so the diameter it stands for moves
+    by the ramp's slope times that; a straight run gets nothing."""
+    from omnipipe.analysis import report_fields
+    from omnipipe.analysis.centreline import Centreline
+    from omnipipe.analysis.stage import AnalysisResult
+    from omnipipe.analysis.uncertainty import headline_position_sigma, position_sigma
+
+    axial = np.linspace(-166.0, -36.0, 21)
+    d = np.interp(axial, [-148.0, -77.0], [339.0, 281.0])
+    stations = tuple(_station(float(a), float(x), 0.0, 0.3, 0.0) for a, x in zip(axial, d, strict=True))
+    taper = Taper(
+        axial_from_mm=-148.0, axial_from_sigma_mm=3.0, axial_to_mm=-77.0, axial_to_sigma_mm=3.0,
+        diameter_from_mm=339.0, diameter_from_sigma_mm=2.0, diameter_to_mm=281.0, diameter_to_sigma_mm=2.0,
+    )
+    k = len(axial)
+    line = Centreline(axial, np.zeros((k, 3)), np.tile([0.0, 0.0, 1.0], (k, 1)), np.tile([1.0, 0.0, 0.0], (k, 1)),
+                      np.tile([0.0, 1.0, 0.0], (k, 1)), 0.5 * d, [])
+    head = float(np.median(d))
+    res = AnalysisResult(
+        inner_diameter_mm=head, straight=True, ovality_max=0.0, stations_axial_mm=axial,
+        stations_diameter_mm=d, stations_ovality=np.zeros(k), defects=[], centreline=line,
+        point_sigma_mm=np.zeros(0), point_theta_rad=np.zeros(0), point_deviation_mm=np.zeros(0),
+        radius_mm=0.5 * head, inner_diameter_sigma_mm=0.85, stations=stations, features=(taper,),
+    )
+    at = float(axial[int(np.argmin(np.abs(d - head)))])
+    want = 58.0 / 71.0 * position_sigma(at - axial[0], 0.10, 130.0, 0.0)
+    assert math.isclose(headline_position_sigma(res, 0.10, 0.0), want, rel_tol=1e-9)
+    fields, _ = report_fields(res, 0.10)
+    assert math.isclose(fields["inner_diameter_sigma_mm"], math.hypot(0.85, want), rel_tol=1e-3)
+    straight = AnalysisResult(**{**res.__dict__, "features": ()})
+    assert headline_position_sigma(straight, 0.10, 0.0) == 0.0
