@@ -14,6 +14,7 @@ from test_wall_shift import _context
 from omnipipe.camera import OmniCamera
 from omnipipe.sfm.bundle import BundleConfig, LengthPrior, bundle_adjust, set_priors
 from omnipipe.sfm.step_priors import wall_priors
+from omnipipe.sfm.types import Keyframes
 
 
 def _unevenly_shortened(world_from_kf: np.ndarray, gains: list[float]) -> np.ndarray:
@@ -72,3 +73,17 @@ def test_the_adjustment_follows_step_priors_where_nothing_else_fixes_the_scale(b
     # The run's length is the priors' (their mean's sigma: 2 % / sqrt(4)).
     assert abs(math.log(adjusted.sum() / lengths.sum())) <= 2 * 0.02 / math.sqrt(len(lengths))
     assert np.all(np.abs(adjusted - lengths) <= 2 * sigma)
+
+
+@pytest.mark.parametrize(("gain", "held"), [(0.95, True), (1.0, False)])
+def test_a_run_too_short_for_a_run_wide_ratio_is_held_where_the_wall_disagrees(
+    small_camera: OmniCamera, gain: float, held: bool
+) -> None:
+    # Two steps (shift_scale needs 4: the wall has no other say on this run's scale),
+    # both 5 % short (random-wide seed 24: one step, 6 % short), or both right.
+    kf, world_from_kf, checks, true = _run(small_camera, 3, gain)
+    kf = Keyframes(kf.frames[:3], [], kf.grays[:3], kf.ring_points[:3], kf.evidence[:2])
+    got = wall_priors(_context(small_camera), kf, world_from_kf[:3], checks[:2])
+    assert bool(got.priors) == held
+    for p in got.priors:
+        assert abs(p.length_mm - true[p.a]) <= 2 * p.sigma_mm
