@@ -345,6 +345,28 @@ def _accepted(
     return defects, masks, widths
 
 
+def measured_only(defects: Sequence[Defect]) -> tuple[list[Defect], list[str]]:
+    """The defects whose height stands clear of its 1-sigma (the fit's with the terms it
+    cannot see: a candidate shorter or narrower than the light section's blur has a
+    height the blur's uncertainty leaves open), and a warning line per other one: its
+    height is not measured, nothing tells it from the wall (random-features-small seed
+    30: a dent 7.4 +- 10.4 mm, 3.4 mm long, on a ring straddling a reducer's start;
+    seed 1: 12.6 +- 56 mm on the first ring of a 15 mm long reducer). A defect without a
+    sigma (its fit failed, a warning of its own) is kept."""
+    kept, warnings = [], []
+    for d in defects:
+        if d.height_sigma_mm is not None and d.height_sigma_mm >= d.height_mm:
+            warnings.append(
+                f"{d.kind} candidate at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg: height "
+                f"{d.height_mm:.1f} +- {d.height_sigma_mm:.1f} mm, not measured (within its "
+                f"1-sigma of the wall; {d.width_mm:.1f} x {d.length_mm:.1f} mm across): not "
+                "reported as a defect"
+            )
+        else:
+            kept.append(d)
+    return kept, warnings
+
+
 def _extent_around(s: WallSamples, members: np.ndarray) -> float:
     """Arc length (mm) the samples ``members`` span around the pipe (across the seam)."""
     circ = s.circumference_mm

@@ -41,6 +41,7 @@ from omnipipe.analysis.defects import (
     find_defects,
     fit_wall_profile,
     fourier_design,
+    measured_only,
 )
 from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch, Taper
 from omnipipe.analysis.features import (
@@ -291,7 +292,9 @@ def run(
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
-    defects = _with_systematics(config, search, cal, (inputs.ring_blur_mm, inputs.axial_blur_mm))
+    defects, unmeasured = measured_only(
+        _with_systematics(config, search, cal, (inputs.ring_blur_mm, inputs.axial_blur_mm))
+    )
     st_list, shared = _with_ring_terms(config, inputs, frame, len(poses), stations, radial_sys, diameter)
     sec_config = section_config(config)
     # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
@@ -304,7 +307,7 @@ def run(
     st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
     if any(isinstance(f, Taper) for f in features):
         head = headline_on_a_taper(head, st_list)
-    warnings = [*search.warnings, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
+    warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
     return AnalysisResult(
