@@ -14,6 +14,7 @@ from omnipipe.pipeline.quality import (
     flag_defects,
     flag_features,
     refuse_untrusted_motion,
+    weak_texture_warnings,
     widen_for_unreliable,
 )
 from omnipipe.sfm.scale_check import StepCheck
@@ -192,3 +193,26 @@ def test_a_fully_flagged_run_on_a_wall_without_texture_is_refused() -> None:
     refuse_untrusted_motion(SimpleNamespace(step_checks=run.step_checks, stationary=moving, unreliable=[]))
     odometry = [step(0, 10, 39, "odometry"), step(10, 22, 20), step(22, 29, 42)]
     refuse_untrusted_motion(SimpleNamespace(step_checks=odometry, stationary=moving, unreliable=flagged))
+
+
+def test_a_measured_run_on_a_wall_without_texture_warns() -> None:
+    """Nothing flagged, every keyframe step from fewer than TRACKED_MIN_MATCHES matches
+    (a smooth wall, random-wide seed 25: 12-42): measured, with one warning naming the
+    matches; a textured step, the odometry bridging or no step at all: no warning."""
+    import numpy as np
+
+    from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES
+
+    def step(matches: int, bridged: str = "") -> StepCheck:
+        return StepCheck(0, 10, 12.9, 0.5, 11.5, matches, 12.9, "high", "", bridged_from=bridged)
+
+    moving = np.zeros(32, bool)
+    plain = SimpleNamespace(step_checks=[step(39), step(42)], stationary=moving, unreliable=[])
+    refuse_untrusted_motion(plain)
+    (line,) = weak_texture_warnings(plain)
+    assert "at most 42 feature matches" in line
+    textured = SimpleNamespace(step_checks=[step(39), step(TRACKED_MIN_MATCHES)], stationary=moving)
+    assert weak_texture_warnings(textured) == []
+    bridged = SimpleNamespace(step_checks=[step(39, "odometry"), step(42)], stationary=moving)
+    assert weak_texture_warnings(bridged) == []
+    assert weak_texture_warnings(SimpleNamespace(step_checks=[], stationary=moving)) == []

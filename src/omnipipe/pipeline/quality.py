@@ -273,6 +273,27 @@ def _unverified_plain_run(motion: SfmResult) -> bool:
     return bool(covered.any())
 
 
+def weak_texture_warnings(motion: SfmResult) -> list[str]:
+    """One line for a run measured (not refused) without odometry on a wall none of whose
+    keyframe steps had :data:`TRACKED_MIN_MATCHES` feature matches: its steps were checked
+    along the pipe, but the rig's position across it rests on a few dozen features
+    (random-wide seed 25, a smooth wall, 12-42 matches a step, nothing flagged: 0.9 mm
+    off across the pipe over 42 mm of travel). Empty for any other run."""
+    checks = motion.step_checks
+    stationary = getattr(motion, "stationary", None)
+    if not checks or stationary is None or any(c.bridged_from == "odometry" for c in checks):
+        return []
+    most = max(c.feature_matches for c in checks)
+    if most >= TRACKED_MIN_MATCHES:
+        return []
+    return [
+        f"the wall gave at most {most} feature matches a keyframe step (fewer than "
+        f"{TRACKED_MIN_MATCHES}): the steps' lengths were checked, but the rig's position "
+        "across the pipe rests on few features and may be off by a millimetre or more; "
+        "odometry and an IMU (odometry.txt, imu.txt) would hold it"
+    ]
+
+
 def refuse_untrusted_motion(motion: SfmResult) -> None:
     """A run that moved but has no step with a usable length is refused.
 

@@ -480,6 +480,7 @@ def _camera_motion(
     log.timings["sfm"] = time.perf_counter() - t0
     quality.refuse_untrusted_motion(motion)
     log.warnings.extend(motion.warnings)
+    log.warnings.extend(quality.weak_texture_warnings(motion))
     log.warnings.extend(
         f"frames {u.first_frame}-{u.last_frame}: motion unreliable ({u.reason})"
         for u in motion.unreliable
