@@ -316,3 +316,26 @@ def test_keyframe_arrays_wait_on_disk_with_the_same_result(short_run, monkeypatc
     in_memory = sfm_run(SfmConfig(), inputs)
     assert np.array_equal(on_disk.world_from_rig, in_memory.world_from_rig)
     assert np.array_equal(on_disk.registered, in_memory.registered)
+
+
+def test_a_frame_without_a_ring_reads_the_nearest_frames_wall() -> None:
+    """reconstruct's decoding pass extracts no ring at a frame it takes for standing: the
+    wall's shift there uses the nearest frame's wall (ties: the earlier); each frame with
+    a ring keeps its own; no ring anywhere: None."""
+    from types import SimpleNamespace
+
+    from omnipipe.sfm.pipeline import nearest_wall
+
+    rng = np.random.default_rng(3)
+
+    def ring(radius: float) -> SimpleNamespace:
+        a = rng.uniform(0, 2 * np.pi, 200)
+        xyz = np.column_stack([radius * np.cos(a), radius * np.sin(a), np.full(200, 50.0)])
+        return SimpleNamespace(points_in_rig=xyz)
+
+    empty = SimpleNamespace(points_in_rig=np.zeros((0, 3)))
+    rings = [ring(100.0), empty, empty, ring(110.0), empty]
+    read = nearest_wall(rings)
+    radii = [read(i).radius_mm for i in range(5)]
+    assert np.allclose(radii, [100.0, 100.0, 110.0, 110.0, 110.0], atol=1e-9)
+    assert nearest_wall([empty, empty])(1) is None

@@ -32,9 +32,10 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -90,6 +91,9 @@ from omnipipe.sfm.types import (
     SfmInputs,
     SfmResult,
 )
+
+if TYPE_CHECKING:
+    from omnipipe.laser.ring import LaserRing
 
 __all__ = ["SfmConfig", "SfmInputs", "SfmResult", "run"]
 
@@ -176,7 +180,7 @@ def _run(
         ctx, followed, adjusted, resected, chain.checks, scale, length,
         None if with_odometry else ratio,
         lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
-        lambda i: wall_cylinder(inputs.rings.rings[i].points_in_rig),
+        nearest_wall(inputs.rings.rings),
     )
     if with_odometry:
         verify_wall_frames(result, inputs)  # the odometry confirms frames the wall could not place
@@ -185,6 +189,30 @@ def _run(
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
     return result
+
+
+def nearest_wall(rings: Sequence[LaserRing]) -> Callable[[int], WallCylinder | None]:
+    """Frame index -> the wall cylinder (rig frame) of its own ring or, for a frame
+    without one, of the nearest frame's ring (ties: the earlier); None when no frame
+    has one. ``reconstruct``'s decoding pass extracts no ring at a frame it takes for
+    standing, and the wall's shift between such frames still needs the wall around
+    the rig (a creep moves it by a few mm: robustness seeds 3 and 24, joints walls,
+    every frame step flagged by the stationary test without it)."""
+    cache: dict[int, WallCylinder | None] = {}
+
+    def own(i: int) -> WallCylinder | None:
+        if i not in cache:
+            cache[i] = wall_cylinder(rings[i].points_in_rig)
+        return cache[i]
+
+    def read(i: int) -> WallCylinder | None:
+        for d in range(len(rings)):
+            for j in (i - d, i + d):
+                if 0 <= j < len(rings) and (w := own(j)) is not None:
+                    return w
+        return None
+
+    return read
 
 
 def _adjusted_and_checked(
