@@ -2,12 +2,13 @@
 
     python benchmarks/bench_robustness.py --seeds 30 [--first 0] [--scenario random-wide]
         [--size 800 | --size 800x600] [--frames N] [--no-sensors | --both] [--keep DIR]
-        [--json FILE]
+        [--out DIR] [--motion-only] [--json FILE]
 
 For each seed: ``omnipipe simulate --scenario random-wide`` (default; the wide family of
 docs/simulator.md: periodic walls at many periods, 100-1000 mm pipes, 640x480-2448x2048
 sensors, other mirrors, laser planes and gaits) or ``--scenario random`` (the original
-family), ``reconstruct`` with default settings, and a comparison with the true poses.
+family), ``omnipipe reconstruct`` with default settings (the whole of it, as the user runs
+it: the acceptance counts this path), and a comparison with the true poses.
 ``--size W`` renders each run W px wide at its drawn sensor's aspect (``WxH``: exactly
 that size); the scene does not depend on it. The datasets carry the robot's odometry.txt
 and imu.txt unless ``--no-sensors``; ``--both`` runs each seed with and without them
@@ -32,10 +33,14 @@ A run refused with one line (no trustworthy step at all) counts as flagged, not 
 The last line checks issue 32's acceptance targets (silent, refusals where the wall has
 texture, flagged share, ATE per 300 mm, median scale error, bridged sigma, clock).
 
-By default only the stages that decide the motion run (light section, camera motion,
-the step check: the same code that fills report.json's ``trajectory_quality``); the
-model stage's texture of a 600 mm pipe alone takes minutes. ``--full`` runs the whole
-of ``reconstruct`` and reads the flagged stretches from the written report.json.
+The flagged stretches, the scale sigma, the bridged steps and the gravity reference are
+read from the run's report. ``--motion-only`` runs only the stages that decide the motion
+(light section, camera motion, the step check: the code that fills report.json's
+``trajectory_quality``, but without the decoding pass's stationary test, so its numbers
+can differ from the user's; the model stage's texture of a 600 mm pipe alone takes
+minutes). ``--keep DIR`` keeps (and reuses) the datasets under DIR/seedN/dataset and the
+reconstructions under DIR/seedN/reconstruction, or under ``--out DIR``/seedN when given
+(datasets rendered by someone else stay untouched).
 """
 
 from __future__ import annotations
@@ -165,18 +170,22 @@ def evaluate_seed(
     size: str | None,
     frames: int | None,
     root: Path,
-    full: bool = False,
+    full: bool = True,
     scenario_name: str = "random-wide",
     sensors: bool = True,
     use_sensors: bool = True,
+    out_root: Path | None = None,
 ) -> dict:
     """One seed's row; the dataset rendered with the robot's sensors when ``sensors``,
-    read without them unless ``use_sensors``."""
+    read without them unless ``use_sensors``; ``full``: the whole of reconstruct, written
+    to ``out_root``/seedN (default: beside the dataset)."""
     wh = scenario_size(scenario_name, seed, size)
     scenario = make_scenario(scenario_name, seed=seed, size=wh, frames=frames)
     scenario.sensors = replace(scenario.sensors, odometry=sensors, imu=sensors)
     info = scenario.random or {}
     ds, out = root / f"seed{seed}" / "dataset", root / f"seed{seed}" / "reconstruction"
+    if out_root is not None:
+        out = out_root / f"seed{seed}{'s' if sensors and use_sensors else ''}"
     if not (ds / "ground_truth" / "poses.txt").is_file():  # --keep DIR reuses datasets
         simulate(scenario, ds, force=True, workers=2)
     row: dict = {
@@ -200,7 +209,8 @@ def evaluate_seed(
             sigma_rel = float(rec.summary.get("scale_sigma_rel", float("nan")))
             steps = rec.summary["trajectory_quality"].get("keyframe_steps", ())
             checks = [c if isinstance(c, dict) else c.to_dict() for c in steps]
-            gravity = None
+            # report.json's up is the first registered frame's; the bench's truth is frame 0's
+            gravity = None if rec.up_in_rig is None else -np.asarray(rec.up_in_rig, float)
         else:
             ts_est, est, unreliable, sigma_rel, checks, gravity = _motion_only(dataset)
     except OmnipipeError as exc:
@@ -374,9 +384,23 @@ def main() -> None:
     )
     parser.add_argument("--keep", default=None, help="keep datasets and reconstructions here")
     parser.add_argument("--json", default=None, help="also write the rows as JSON")
-    parser.add_argument("--full", action="store_true", help="run the whole of reconstruct")
+    parser.add_argument(
+        "--out", default=None,
+        help="write the reconstructions here (DIR/seedN[s]) instead of beside the datasets",
+    )
+    parser.add_argument(
+        "--motion-only", action="store_true",
+        help="only the stages that decide the motion (faster; not the user's path)",
+    )
+    parser.add_argument(
+        "--full", action="store_true",
+        help="the whole of reconstruct (the default; kept for old command lines)",
+    )
     args = parser.parse_args()
+    if args.full and args.motion_only:
+        parser.error("--full and --motion-only exclude each other")
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="omnipipe-robust-"))
+    out_root = Path(args.out) if args.out else None
     rows = []
     print(
         f"{'seed':>4} {'family':>10} {'D mm':>5} {'size':>9} {'frames':>6} {'steps':>5} "
@@ -388,8 +412,8 @@ def main() -> None:
         for seed in range(args.first, args.first + args.seeds):
             for use in modes:
                 r = evaluate_seed(
-                    seed, args.size, args.frames, root, args.full, args.scenario,
-                    args.both or not args.no_sensors, use,
+                    seed, args.size, args.frames, root, not args.motion_only, args.scenario,
+                    args.both or not args.no_sensors, use, out_root,
                 )
                 rows.append(r)
                 _print_row(r)
