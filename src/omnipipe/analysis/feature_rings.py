@@ -1,0 +1,204 @@
+"""What the feature finders (:mod:`.features`, :mod:`.joints`) share: their settings, and
+the rings in pipe coordinates with each point's deviation from its ring's wall profile.
+
+Per ring, a robust Fourier profile (order 2: the ring's offset and ovality) is fitted; a
+ring whose mean radius stands out from its neighbours' running median (the ring lies in
+a joint's gap) takes the neighbours' mean radius instead.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from omnipipe.analysis.defects import fit_wall_profile, fourier_design
+from omnipipe.config import bounded
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Feature finder settings.
+
+    Attributes:
+        min_depth_mm: smallest outward step counted as a gap or an opening.
+        noise_factor: the threshold is at least this many noise sigmas.
+        joint_noise_factor: the same for a joint's gap (which must also cover most of
+            the circumference: noise does not).
+        joint_coverage: a group deep over this fraction of the angles at which rings
+            sample its axial band is a joint.
+        joint_link_mm: candidates further apart along the axis (and than 1.5 ring
+            spacings) belong to different joints.
+        joint_max_gap_mm: a wider deep band is not a joint's gap.
+        joint_offset_min_mm: a joint no ring's samples fell in is found by its offset
+            alone: the centreline's sideways step between two rings of at least this
+            and ``joint_offset_factor`` x the run's median step (on the bench's 34
+            true-motion captures: offset joints stepped 5.8-8.1 mm, other steps up to
+            2.4 mm).
+        joint_offset_factor: see ``joint_offset_min_mm``.
+        lateral_reach_rel: a narrower cluster reaching this fraction of the diameter
+            beyond the wall is a lateral (the branch wall seen through the hole).
+        lateral_reach_thr: a cluster reaching this many thresholds beyond the wall, and
+            ``lateral_reach_width`` x its widest chord, is a lateral too (a small branch
+            is seen only a little way in; on the bench's 34 true-motion captures at
+            400x300, small openings reached 2.2-5.4 thresholds and 0.7-0.9 chords, the
+            other clusters at most 1.5 thresholds).
+        lateral_reach_width: see ``lateral_reach_thr`` (a dent is far wider than deep).
+        lateral_gap_mm: a ring's stretch without returns (the light lost in a branch)
+            at least this long around the wall (and 4 sample steps) is an opening's
+            where the other rings of the run sample those angles (:mod:`.openings`).
+        lateral_gap_rings: rings such stretches of one opening need.
+        lateral_max_length_rel: the rings without returns there span at most this
+            fraction of the diameter along the axis (a branch at 45 deg, 0.7 D wide).
+        min_points: points a cluster needs.
+        margin_mm: wall points this close to a gap or an opening are excluded too
+            (the edges' ramps and the ring's blur).
+        window_mm: running-median window of the rings' mean radius; offset window.
+    """
+
+    min_depth_mm: float = bounded(1.5, ge=0)
+    noise_factor: float = bounded(6.0, gt=0)
+    joint_noise_factor: float = bounded(3.5, gt=0)
+    joint_coverage: float = bounded(0.6, gt=0, le=1)
+    joint_link_mm: float = bounded(3.0, gt=0)
+    joint_max_gap_mm: float = bounded(30.0, gt=0)
+    joint_offset_min_mm: float = bounded(3.0, gt=0)
+    joint_offset_factor: float = bounded(4.0, gt=0)
+    lateral_reach_rel: float = bounded(0.08, gt=0, le=1)
+    lateral_reach_thr: float = bounded(2.0, gt=0)
+    lateral_reach_width: float = bounded(0.5, gt=0)
+    lateral_gap_mm: float = bounded(6.0, gt=0)
+    lateral_gap_rings: int = bounded(2, ge=1)
+    lateral_max_length_rel: float = bounded(1.0, gt=0)
+    min_points: int = bounded(8, ge=1)
+    margin_mm: float = bounded(3.0, ge=0)
+    window_mm: float = bounded(60.0, gt=0)
+
+
+@dataclass(frozen=True)
+class Rings:
+    """The points in pipe coordinates, grouped by ring, and their deviation from it."""
+
+    sigma: np.ndarray
+    rho: np.ndarray
+    theta: np.ndarray
+    frame: np.ndarray
+    ring_of: np.ndarray
+    ring_sigma: np.ndarray
+    dev: np.ndarray
+    noise: float
+
+
+def ring_deviations(
+    config: FeatureConfig,
+    sigma: np.ndarray,
+    rho: np.ndarray,
+    theta: np.ndarray,
+    frame: np.ndarray,
+    rings: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,) each point's outward deviation from its ring's wall profile (a ring lying in
+    a gap takes its neighbours' mean radius), (R,) the rings' axial positions and (R,)
+    True for rings raised above their neighbours (lying in a gap)."""
+    coefs, ring_sigma = [], []
+    for k in rings:
+        on = frame == k
+        order = 2 if on.sum() >= 20 else 0
+        c = fit_wall_profile(theta[on], rho[on], order, 0.5)
+        coefs.append(np.pad(c, (0, 5 - len(c))))
+        ring_sigma.append(float(np.median(sigma[on])))
+    coef = np.array(coefs)
+    rs = np.array(ring_sigma)
+    c0 = coef[:, 0].copy()
+    for i in range(len(rings)):
+        nb = np.abs(rs - rs[i]) <= config.window_mm
+        c0[i] = float(np.median(coef[nb, 0]))
+    dev = np.zeros(len(sigma))
+    raised = np.zeros(len(rings), bool)
+    noise0 = 1.4826 * float(np.median(np.abs(coef[:, 0] - c0))) + 1e-9
+    peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm, config.joint_max_gap_mm)
+    # A running median lags a taper by up to a ring spacing's drop: a ring counts as
+    # raised only above the lines both sides' rings give it too.
+    _, hi = _wall_level(coef[:, 0], rs, config.window_mm)
+    for i, k in enumerate(rings):
+        on = frame == k
+        c = coef[i].copy()
+        off = abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0)
+        if peak[i] is not None:
+            raised[i] = True
+            c[0] = peak[i]
+        elif off and (c[0] < c0[i] or c[0] - hi[i] > config.min_depth_mm):
+            raised[i] = c[0] > c0[i]
+            c[0] = c0[i]
+        dev[on] = rho[on] - fourier_design(theta[on], 2) @ c
+    return dev, rs, raised
+
+
+def _side_level(c0: np.ndarray, rs: np.ndarray, nb: np.ndarray, at: float) -> float:
+    """The mean radius the rings ``nb`` (on one side) give at ``at``: their Theil-Sen
+    line (median of the pairwise slopes) there; one ring: its radius."""
+    if len(nb) == 1:
+        return float(c0[nb[0]])
+    a, b = np.triu_indices(len(nb), 1)
+    dz = rs[nb][b] - rs[nb][a]
+    ok = np.abs(dz) > 1e-6
+    slope = float(np.median((c0[nb][b] - c0[nb][a])[ok] / dz[ok])) if ok.any() else 0.0
+    return float(np.median(c0[nb] + slope * (at - rs[nb])))
+
+
+def _wall_level(c0: np.ndarray, rs: np.ndarray, window_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) low and (R,) high bounds of each ring's mean radius as the rings either side
+    within ``window_mm`` give it: the lower and higher of the two sides' lines carried
+    to the ring (:func:`_side_level`; one side only at the run's ends; none: the ring's
+    own). A ring in a joint's gap stands above both; one on a taper (whose rings a
+    running median lags by up to a ring spacing's drop) or at a taper's kink (above a
+    line through both sides) does not."""
+    lo, hi = c0.copy(), c0.copy()
+    for i in range(len(c0)):
+        near = (np.abs(rs - rs[i]) <= window_mm) & (np.arange(len(c0)) != i)
+        sides = [np.flatnonzero(near & (rs < rs[i])), np.flatnonzero(near & (rs >= rs[i]))]
+        got = [_side_level(c0, rs, nb, float(rs[i])) for nb in sides if len(nb)]
+        if got:
+            lo[i], hi[i] = min(got), max(got)
+    return lo, hi
+
+
+def _local_peaks(
+    c0: np.ndarray, rs: np.ndarray, min_depth_mm: float, max_width_mm: float = math.inf, max_rings: int = 6
+) -> list[float | None]:
+    """Per ring (ordered along the axis by ``rs``), the mean radius its block's two
+    neighbours give at its position (linear between them) if the ring stands more than
+    ``min_depth_mm`` above both of them, else None. A block is up to ``max_rings``
+    consecutive rings within ``max_width_mm`` along the axis, each standing so (the rings
+    lying in a joint's gap: one in a narrow gap, several in a wide one crossed by tilted
+    rings, whose running median lags a taper or whose raised rings inflate the median's
+    scatter; bench seed 13: four rings 16 mm apart partly in a 10 mm gap); the widest
+    block first (a ring of it may stand above its block neighbours alone too). Only
+    blocks with a neighbour on both sides; a taper or a bend raises no ring above both
+    ends of its block."""
+    out: list[float | None] = [None] * len(c0)
+    order = np.argsort(rs)
+    for m in range(max_rings, 0, -1):  # the widest block first: its rings stand together
+        for j in range(1, len(order) - m):
+            a, b = order[j - 1], order[j + m]
+            block = order[j : j + m]
+            if any(out[i] is not None for i in block) or rs[block[-1]] - rs[block[0]] > max_width_mm:
+                continue
+            if float(np.min(c0[block])) - max(c0[a], c0[b]) > min_depth_mm:
+                for i in block:
+                    f = (rs[i] - rs[a]) / max(rs[b] - rs[a], 1e-9)
+                    out[i] = float(c0[a] + f * (c0[b] - c0[a]))
+    return out
+
+
+def raised_blocks(raised: np.ndarray, ring_sigma: np.ndarray) -> np.ndarray:
+    """(R,) True for the raised rings whose neighbour along the axis is raised too."""
+    order = np.argsort(ring_sigma)
+    r = raised[order]
+    nb = np.zeros(len(r), bool)
+    nb[1:] |= r[:-1]
+    nb[:-1] |= r[1:]
+    out = np.zeros(len(raised), bool)
+    out[order] = r & nb
+    return out
