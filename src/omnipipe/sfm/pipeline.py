@@ -48,6 +48,7 @@ from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
 from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_frames, wall_resolved
+from omnipipe.sfm.creep_odometry import place_odometry_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
@@ -55,7 +56,6 @@ from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.ring_follow import add_ring_follow
 from omnipipe.sfm.robot_sensors import (
     gravity_world,
-    odometry_creeps,
     odometry_steps,
     rotation_linked,
 )
@@ -176,15 +176,20 @@ def _run(
         length = replace(length, source=ODOMETRY_ONLY)
     # The odometry moves frames the images cannot (stations.odometry_moved): it verifies
     # the stationary ones.
+    def read_gray(i: int) -> np.ndarray:
+        return gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel)
+
+    read_wall = nearest_wall(inputs.rings.rings)
     result = _result(
         ctx, followed, adjusted, resected, chain.checks, scale, length,
-        None if with_odometry else ratio,
-        lambda i: gray_without_laser(inputs.read_frame(i), inputs.rig.laser.channel),
-        nearest_wall(inputs.rings.rings),
+        None if with_odometry else ratio, read_gray, read_wall,
     )
-    if with_odometry:
+    if inputs.odometry is not None and inputs.timestamps is not None:
         verify_wall_frames(result, inputs)  # the odometry confirms frames the wall could not place
-        _add_creeps(result, inputs)
+        # Frames the odometry counted creeping: placed by the wall, else by it (flagged).
+        place_odometry_creeps(
+            result, inputs.odometry, inputs.timestamps, ctx.camera, read_gray, read_wall, ctx.warnings
+        )
     add_ring_follow(result, inputs)  # bridged steps: the gyro's turn, the ring's centre
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
@@ -255,21 +260,6 @@ def _adjusted_and_checked(
             checks, adjusted.world_from_kf, moving_counts(moved, kf.frames), config.scale_check, ctx.warnings
         )
     return adjusted, replace(chain, checks=checks), walls
-
-
-def _add_creeps(result: SfmResult, inputs: SfmInputs) -> None:
-    """Stations whose frames the odometry counted creeping (it moves a frame only from
-    1 mm on: :func:`omnipipe.sfm.robot_sensors.odometry_creeps`), flagged."""
-    if inputs.odometry is None or inputs.timestamps is None:
-        return
-    creeps = [
-        UnreliableStretch(
-            a, b, f"the odometry counted {mm:.1f} mm at a frame taken for standing: it may have crept"
-        )
-        for a, b, mm in odometry_creeps(inputs.odometry, inputs.timestamps, ~result.stationary)
-    ]
-    if creeps:
-        result.unreliable = merge_stretches(list(result.unreliable) + creeps)
 
 
 def _station_ratio(inputs: SfmInputs) -> np.ndarray:
