@@ -101,3 +101,56 @@ def test_schur_blocks_are_the_dense_products() -> None:
         S, b = schur_blocks(m.indptr.astype(np.int64), m.indices.astype(np.int64), m.data, vinv, gp, n_pose)
         assert np.allclose(S, W @ Vinv @ W.T, rtol=1e-12, atol=1e-12)
         assert np.allclose(b, W @ Vinv @ gp, rtol=1e-12, atol=1e-12)
+
+
+def _bundle_jacobian(rng: np.random.Generator, n_pose: int, n_pts: int) -> sp.csr_matrix:
+    """A bundle-shaped Jacobian: observation row pairs touching one pose's six columns and
+    one point's three, anchor rows touching two poses, a masked (all-zero) observation."""
+    n = n_pose + 3 * n_pts
+    rows = []
+    for p in range(n_pts):
+        for k in rng.choice(n_pose // 6, size=rng.integers(1, n_pose // 6 + 1), replace=False):
+            for _ in range(2):
+                row = np.zeros(n)
+                row[6 * k : 6 * k + 6] = rng.normal(size=6)
+                row[n_pose + 3 * p : n_pose + 3 * p + 3] = rng.normal(size=3)
+                rows.append(row)
+    for _ in range(5):
+        row = np.zeros(n)
+        a, b = rng.choice(n_pose // 6, size=2, replace=False)
+        row[6 * a : 6 * a + 6], row[6 * b : 6 * b + 6] = rng.normal(size=6), rng.normal(size=6)
+        rows.append(row)
+    J = sp.csr_matrix(np.array(rows))
+    J.data[J.indptr[2] : J.indptr[3]] = 0.0  # an invalid projection: explicit zeros
+    return J
+
+
+def test_reduced_system_from_the_jacobian_is_the_normal_matrix_split() -> None:
+    """The blocks read off J's rows (no Js, no H) bit for bit those of SciPy's
+    ``Js.T @ Js`` split, H dx bit for bit ``H @ dx``, and the steps the same; a row that
+    touches two points goes through H."""
+    from omnipipe.sfm.schur import _Reduced, _robust_normal_equations, _robust_reduced
+
+    rng = np.random.default_rng(5)
+    n_pose, n_pts = 24, 30
+    J = _bundle_jacobian(rng, n_pose, n_pts)
+    r = rng.normal(scale=2.0, size=J.shape[0])
+    want = _Reduced.from_normal_matrix(*_robust_normal_equations(J, r, 1.5), n_pose)
+    got = _robust_reduced(J, r, 1.5, n_pose)
+    for name in ("U", "V", "diag", "g"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    for part in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(got.Wc, part), getattr(want.Wc, part)), part
+    H, _ = _robust_normal_equations(J, r, 1.5)
+    dx = rng.normal(size=J.shape[1])
+    assert np.array_equal(got.times(dx), H @ dx)
+    assert np.array_equal(got.step(1e-3), want.step(1e-3))
+    # A row touching two points: through H (the same blocks as H's split).
+    row = np.zeros(J.shape[1])
+    row[n_pose : n_pose + 6] = 1.0
+    J2 = sp.csr_matrix(sp.vstack([J, sp.csr_matrix(row)]))
+    r2 = np.r_[r, 0.5]
+    mixed = _robust_reduced(J2, r2, 1.5, n_pose)
+    ref = _Reduced.from_normal_matrix(*_robust_normal_equations(J2, r2, 1.5), n_pose)
+    H2, _ = _robust_normal_equations(J2, r2, 1.5)
+    assert np.array_equal(mixed.V, ref.V) and np.array_equal(mixed.times(dx), H2 @ dx)

@@ -287,8 +287,11 @@ class BundleObjective:
             blocks.append((rows, cols.ravel()))
         jac_rows = np.concatenate([r for r, _ in blocks])
         jac_cols = np.concatenate([c for _, c in blocks])
-        self._order = np.lexsort((jac_cols, jac_rows))
-        self._indices = jac_cols[self._order].astype(np.int32)
+        order = np.lexsort((jac_cols, jac_rows))
+        self._indices = jac_cols[order].astype(np.int32)
+        # Where each entry of the blocks (concatenated in jacobian's order) goes in CSR order.
+        self._place = np.empty(len(order), np.int32 if len(order) < 2**31 else np.int64)
+        self._place[order] = np.arange(len(order))
         self._indptr = np.concatenate(
             [[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L + S))]
         ).astype(np.int32)
@@ -330,11 +333,12 @@ class BundleObjective:
         d_pose_obs, d_point = self._observation_blocks(R, t, pts, Jl)
         d_pose_a, d_pose_b = self._anchor_blocks(R, t, Jl)
         d_prior_a, d_prior_b = self._prior_blocks(R, t, Jl)
-        data = np.concatenate(
-            [d_pose_obs.ravel(), d_point.ravel(), d_pose_a.ravel(), d_pose_b.ravel(),
-             d_prior_a.ravel(), d_prior_b.ravel()]
-        )
-        return csr_matrix((data[self._order], self._indices, self._indptr), shape=self._shape)
+        data = np.empty(len(self._place))
+        at = 0
+        for block in (d_pose_obs, d_point, d_pose_a, d_pose_b, d_prior_a, d_prior_b):
+            data[self._place[at : at + block.size]] = block.ravel()  # straight into CSR order
+            at += block.size
+        return csr_matrix((data, self._indices, self._indptr), shape=self._shape)
 
     def _prior_blocks(self, R: np.ndarray, t: np.ndarray, Jl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(free a, 6) and (free b, 6): d prior residual / d pose a and / d pose b.

@@ -27,6 +27,7 @@ import scipy.sparse as sp
 
 from omnipipe.errors import ShapeError
 from omnipipe.sfm._kernels import schur_blocks
+from omnipipe.sfm._normal_kernels import hessian_times, robust_blocks
 
 
 @dataclass(frozen=True)
@@ -92,11 +93,11 @@ def solve(
     state = _LmState(x, r, soft_l1_cost(r, f_scale), nfev=1, lam=lam0)
     converged = False
     while state.nfev < max_nfev:
-        H, g = _robust_normal_equations(jac(state.x).tocsr(), state.r, f_scale)
-        if np.max(np.abs(g), initial=0.0) < gtol:
+        reduced = _robust_reduced(jac(state.x).tocsr(), state.r, f_scale, n_pose)
+        if np.max(np.abs(reduced.g), initial=0.0) < gtol:
             converged = True
             break
-        step_taken, converged = _damped_search(fun, H, g, n_pose, state, f_scale, max_nfev, ftol, xtol)
+        step_taken, converged = _damped_search(fun, reduced, state, f_scale, max_nfev, ftol, xtol)
         if converged or not step_taken:  # done, or the cap was reached mid-search
             break
     return LmResult(state.x, state.r, state.cost, state.nfev, converged)
@@ -129,11 +130,35 @@ def _robust_normal_equations(
     return (Js.T @ Js).tocsr(), g
 
 
+def _robust_reduced(J: sp.csr_matrix, r: np.ndarray, f_scale: float, n_pose: int) -> _Reduced:
+    """:func:`_robust_normal_equations` split for the Schur complement, its blocks read
+    straight off ``J``'s rows (:func:`omnipipe.sfm._normal_kernels.robust_blocks`: no
+    copy of ``J``, no ``H``; bit for bit the same blocks); through ``H`` when a row of
+    ``J`` touches two points or repeats a column."""
+    z = (r / f_scale) ** 2
+    rho1 = 1.0 / np.sqrt(1.0 + z)
+    rho2 = -0.5 / (1.0 + z) ** 1.5
+    scale = np.sqrt(np.maximum(rho1 + 2.0 * rho2 * z, np.finfo(float).eps))  # (1 + z)^-3/4
+    rs = r * rho1 / scale
+    n_pts = (J.shape[1] - n_pose) // 3
+    ok = J.has_canonical_format
+    if ok:
+        ok, U, w_indptr, w_indices, w_data, V, g = robust_blocks(
+            J.indptr, J.indices, J.data, scale, rs, n_pose, n_pts,
+        )
+    if not ok:
+        H, g = _robust_normal_equations(J, r, f_scale)
+        return _Reduced.from_normal_matrix(H, g, n_pose)
+    U += 0.0  # -0.0 -> 0.0, as H (which leaves zero sums out) holds them
+    V += 0.0
+    diag = np.concatenate([np.diagonal(U), V[:, np.arange(3), np.arange(3)].reshape(-1)])
+    W = sp.csc_matrix((w_data, w_indices, w_indptr), shape=(n_pose, 3 * n_pts))
+    return _Reduced(U, W, V, diag, g, n_pose)
+
+
 def _damped_search(
     fun: Callable[[np.ndarray], np.ndarray],
-    H: sp.csr_matrix,
-    g: np.ndarray,
-    n_pose: int,
+    reduced: _Reduced,
     state: _LmState,
     f_scale: float,
     max_nfev: int,
@@ -147,10 +172,10 @@ def _damped_search(
         step too short to matter (SciPy's ftol, xtol) or no lowering step at any damping;
         neither when the evaluation cap stopped the search.
     """
-    reduced = _Reduced(H, g, n_pose)
+    g = reduced.g
     while state.nfev < max_nfev:
         dx = reduced.step(state.lam)
-        predicted = -(g @ dx + 0.5 * dx @ (H @ dx))  # the model's reduction
+        predicted = -(g @ dx + 0.5 * dx @ reduced.times(dx))  # the model's reduction
         x_new = state.x + dx
         r_new = fun(x_new)
         state.nfev += 1
@@ -174,30 +199,54 @@ def _damped_search(
 
 def _damped_step(H: sp.csr_matrix, g: np.ndarray, n_pose: int, lam: float) -> np.ndarray:
     """The Levenberg-Marquardt step (H + lam diag(H)) dx = -g, with the points eliminated."""
-    return _Reduced(H, g, n_pose).step(lam)
+    return _Reduced.from_normal_matrix(H, g, n_pose).step(lam)
 
 
 class _Reduced:
-    """One normal matrix ``H`` and gradient ``g``, split for the Schur complement once:
-    the damping changes between the steps tried on them, the blocks do not."""
+    """One normal matrix ``H = [[U, W], [W^T, V]]`` and gradient ``g``, split for the
+    Schur complement once: the damping changes between the steps tried on them, the
+    blocks do not. ``U`` (n_pose, n_pose) dense, ``W`` (n_pose, 3 P) column-wise with
+    each column's rows ascending, ``V`` (P, 3, 3) the points' diagonal blocks, ``diag``
+    H's diagonal."""
 
-    def __init__(self, H: sp.csr_matrix, g: np.ndarray, n_pose: int) -> None:
-        n = H.shape[0]
+    def __init__(
+        self, U: np.ndarray, W: sp.csc_matrix, V: np.ndarray, diag: np.ndarray, g: np.ndarray, n_pose: int
+    ) -> None:
         self.n_pose = n_pose
-        self.n_pts = n_pts = (n - n_pose) // 3
-        self.diag = H.diagonal()
-        self.U = H[:n_pose, :n_pose].toarray()
-        self.W = H[:n_pose, n_pose:]
-        Wc = self.W.tocsc()
+        self.n_pts = len(V)
+        self.diag = diag
+        self.U = U
+        self.Wc = W
+        self.V = V
+        self.g = g
+        self.gc, self.gp = g[:n_pose], g[n_pose:]
+        self.H: sp.csr_matrix | None = None
+
+    @classmethod
+    def from_normal_matrix(cls, H: sp.csr_matrix, g: np.ndarray, n_pose: int) -> _Reduced:
+        """The blocks of a normal matrix ``H`` (sparse) and its gradient ``g``."""
+        n_pts = (H.shape[0] - n_pose) // 3
+        Wc = H[:n_pose, n_pose:].tocsc()
         Wc.sort_indices()
-        self.Wc = Wc
         # The points' 3 x 3 diagonal blocks of H (undamped).
         Vcoo = H[n_pose:, n_pose:].tocoo()
         same = (Vcoo.row // 3) == (Vcoo.col // 3)
         V = np.zeros((n_pts, 3, 3))
         np.add.at(V, (Vcoo.row[same] // 3, Vcoo.row[same] % 3, Vcoo.col[same] % 3), Vcoo.data[same])
-        self.V = V
-        self.gc, self.gp = g[:n_pose], g[n_pose:]
+        reduced = cls(H[:n_pose, :n_pose].toarray(), Wc, V, H.diagonal(), g, n_pose)
+        reduced.H = H  # H dx with whatever H holds beyond the blocks (a row of two points)
+        return reduced
+
+    def times(self, dx: np.ndarray) -> np.ndarray:
+        """``H dx`` (n,) (:func:`omnipipe.sfm._normal_kernels.hessian_times`: SciPy's
+        CSR product's order, bit for bit; ``H`` itself where it was given)."""
+        if self.H is not None:
+            return self.H @ dx
+        W = self.Wc
+        return hessian_times(
+            self.U, W.indptr.astype(np.int64, copy=False), W.indices.astype(np.int64, copy=False),
+            W.data, self.V, dx,
+        )
 
     def step(self, lam: float) -> np.ndarray:
         """The step ``dx`` (n,) at damping ``lam``."""
@@ -211,7 +260,8 @@ class _Reduced:
         Vinv = np.linalg.inv(V)
         Wc = self.Wc
         WVW, WVg = schur_blocks(
-            Wc.indptr.astype(np.int64), Wc.indices.astype(np.int64), Wc.data, Vinv, self.gp, n_pose
+            Wc.indptr.astype(np.int64, copy=False), Wc.indices.astype(np.int64, copy=False), Wc.data,
+            Vinv, self.gp, n_pose,
         )
         S = U - WVW
         rhs = -self.gc + WVg
@@ -219,5 +269,5 @@ class _Reduced:
             dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs) if n_pose else np.zeros(0)
         except np.linalg.LinAlgError:
             dc = scipy.linalg.lstsq(S, rhs)[0]
-        dp = -(Vinv @ (self.gp + self.W.T @ dc).reshape(n_pts, 3, 1)).reshape(-1) if n_pts else np.zeros(0)
+        dp = -(Vinv @ (self.gp + Wc.T @ dc).reshape(n_pts, 3, 1)).reshape(-1) if n_pts else np.zeros(0)
         return np.concatenate([dc, dp])
