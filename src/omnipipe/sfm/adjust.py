@@ -39,6 +39,13 @@ from omnipipe.sfm.bundle import (
     set_priors,
 )
 from omnipipe.sfm.laser_scale import LaserMatches
+from omnipipe.sfm.ring_axis import (
+    RING_TRIGGER_SIGMAS,
+    RingCentre,
+    axis_rows,
+    fit_ring_centre,
+    ring_offsets,
+)
 from omnipipe.sfm.scale_check import UnreliableStretch
 from omnipipe.sfm.tasks import laser_matches
 from omnipipe.sfm.types import (
@@ -111,6 +118,8 @@ class _Observations:
             matched to the keyframes further ahead.
         priors: steps whose length the wall's shift measured
             (:mod:`omnipipe.sfm.step_priors`).
+        centres: per keyframe, its laser ring's centre (None: no ring, or the ring
+            rows are off), :mod:`omnipipe.sfm.ring_axis`.
     """
 
     kf: Keyframes
@@ -118,6 +127,7 @@ class _Observations:
     anchors: list[Anchor]
     far: bool
     priors: tuple[LengthPrior, ...] = ()
+    centres: tuple[RingCentre | None, ...] = ()
 
 
 def adjust_keyframes(
@@ -143,7 +153,12 @@ def adjust_keyframes(
     # Longer baselines measure the scale better: laser points of keyframe k are also
     # found in k + 2 ... k + reach with the adjusted motion, then adjusted again.
     far = config.anchor_reach > 1 and not wall_anchored
-    return _adjust_windows(ctx, world_from_kf, _Observations(kf, pair_matches, anchors, far, priors))
+    centres = (
+        tuple(fit_ring_centre(p) for p in kf.ring_points)
+        if config.bundle.ring_weight > 0 and len(kf.ring_points) == len(world_from_kf)
+        else ()
+    )
+    return _adjust_windows(ctx, world_from_kf, _Observations(kf, pair_matches, anchors, far, priors, centres))
 
 
 def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observations) -> Adjusted:
@@ -232,7 +247,41 @@ def _adjust_window(
         problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
         _append_anchors(problem, extra)
         ba = bundle_adjust(ctx.camera, problem, config)
+    if obs.centres:
+        ba = _held_to_rings(ctx, config, problem, ba, list(obs.centres[s:e]), s)
     return ba, problem
+
+
+def _held_to_rings(
+    ctx: SfmContext,
+    config: BundleConfig,
+    problem: BundleProblem,
+    ba: BundleResult,
+    centres: list[RingCentre | None],
+    first: int,
+) -> BundleResult:
+    """``ba`` adjusted again with the laser rings' centres as rows
+    (:mod:`omnipipe.sfm.ring_axis`) when it left a keyframe's centre off its neighbours'
+    chord by more than :data:`~omnipipe.sfm.ring_axis.RING_TRIGGER_SIGMAS` of its sigma
+    (a kink across the pipe's axis that the rings rule out); else ``ba``. ``first``: the
+    window's first keyframe (for the warning)."""
+    rows = axis_rows(ba.world_from_rig, centres)
+    if not len(rows):
+        return ba
+    z = np.linalg.norm(ring_offsets(ba.world_from_rig, rows), axis=1) / rows.sigma_mm
+    if z.max() <= RING_TRIGGER_SIGMAS:
+        return ba
+    worst = int(np.argmax(z))
+    problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
+    problem.rings = rows
+    held = bundle_adjust(ctx.camera, problem, config)
+    after = np.linalg.norm(ring_offsets(held.world_from_rig, rows), axis=1) / rows.sigma_mm
+    ctx.warnings.append(
+        f"bundle adjustment held to the laser rings' centres on {len(rows)} keyframes (it had "
+        f"left keyframe {first + int(rows.kf[worst, 1])}'s {z[worst]:.1f} sigma "
+        f"({z[worst] * rows.sigma_mm[worst]:.2f} mm) off the pipe's axis; now {after[worst]:.1f} sigma)"
+    )
+    return held
 
 
 def _append_anchors(problem: BundleProblem, extra: list[Anchor]) -> None:

@@ -13,6 +13,10 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
 * step-length priors (optional): a keyframe step a -> b whose length an independent
   source measured (the wall's own shift, :mod:`omnipipe.sfm.step_priors`),
   ``weight (|C_b - C_a| - length) / sigma`` with C_k the rig's centre in the world.
+* ring rows (optional): the laser ring's centre of keyframe k on the pipe's axis
+  between its neighbours' (:mod:`omnipipe.sfm.ring_axis`), ``ring_weight P (X_k -
+  (1 - f) X_a - f X_b) / sigma`` with ``X_j = world_from_rig_j @ c_j`` and P the two
+  directions across the axis.
 
 Robust soft-L1 loss with an analytic sparse Jacobian (:class:`BundleObjective`): each
 residual touches one or two poses and one point, chained through q = R(omega) X + t,
@@ -42,6 +46,7 @@ from omnipipe.geometry import invert
 from omnipipe.sfm import schur
 from omnipipe.sfm.features import track_labels
 from omnipipe.sfm.geometry import triangulate_pairs
+from omnipipe.sfm.ring_axis import AxisRows
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,13 @@ class BundleConfig:
         laser_weight: weight of a laser anchor residual relative to a feature's.
         length_prior_weight: a step-length prior's residual per sigma of its length, px
             (:class:`BundleProblem`'s ``prior_*``).
+        ring_weight: a ring row's residual per sigma of its centre across the axis, px
+            (:class:`BundleProblem`'s ``rings``; 0: none). Large: the rows are added only
+            where the adjustment without them left a centre beyond 3 sigma off the axis
+            (:func:`omnipipe.sfm.adjust` ``_held_to_rings``), and the soft-L1 loss makes
+            each a bounded pull; at 1-10 a step 61 matches had turned 1.2 deg too far
+            stayed (robustness seed 31: ATE 1.78 -> 2.07 / 1.24 mm per 300 mm), at 30 it
+            is pulled back (0.87).
         max_reprojection_px: tracks worse than this at the start are dropped.
         min_parallax_deg: tracks whose rays meet at a smaller angle are dropped
             (their depth is unconstrained).
@@ -79,6 +91,7 @@ class BundleConfig:
     loss_scale_px: float = bounded(1.0, gt=0)
     laser_weight: float = bounded(1.0, ge=0)
     length_prior_weight: float = bounded(10.0, ge=0)
+    ring_weight: float = bounded(30.0, ge=0)
     max_reprojection_px: float = bounded(4.0, gt=0)
     min_parallax_deg: float = bounded(1.0, ge=0, lt=180)
     max_tracks: int = bounded(4000, ge=1)
@@ -110,6 +123,7 @@ class BundleProblem:
             with the window before, :func:`keyframe_windows`).
         prior_a, prior_b: (S,) keyframes of each step-length prior.
         prior_mm, prior_sigma_mm: (S,) each prior's length and its 1-sigma, mm.
+        rings: the ring rows (:class:`omnipipe.sfm.ring_axis.AxisRows`).
     """
 
     world_from_rig: np.ndarray
@@ -127,6 +141,7 @@ class BundleProblem:
     prior_b: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     prior_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     prior_sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rings: AxisRows = field(default_factory=AxisRows.empty)
 
 
 @dataclass(frozen=True)
@@ -249,11 +264,19 @@ class BundleObjective:
     """
 
     def __init__(
-        self, camera: CameraModel, problem: BundleProblem, w_laser: float, w_prior: float = 0.0
+        self, camera: CameraModel, problem: BundleProblem, w_laser: float, w_prior: float = 0.0,
+        w_ring: float = 0.0,
     ) -> None:
         _check_shapes(problem)
         self.camera, self.problem, self.w_laser = camera, problem, w_laser
         self.w_prior = w_prior
+        rings = problem.rings
+        # Each ring row's weight on X_a, X_k, X_b, per mm: -(1 - f), 1, -f over sigma.
+        self._ring_coef = (
+            w_ring
+            * np.column_stack([-(1.0 - rings.fraction), np.ones(len(rings)), -rings.fraction])
+            / np.maximum(rings.sigma_mm, 1e-9)[:, None]
+        )
         K, F = len(problem.world_from_rig), int(problem.fixed)
         pose0 = _poses_to_params(problem.world_from_rig)
         self._fixed = pose0[:F].copy()
@@ -285,6 +308,12 @@ class BundleObjective:
             rows = np.repeat(2 * M + 2 * L + free, 6)
             cols = (6 * (k[free] - F))[:, None] + np.arange(6)[None, :]
             blocks.append((rows, cols.ravel()))
+        # A ring row pair touches its three poses (unless fixed).
+        T = len(pr.rings)
+        self._ring_free = [np.flatnonzero(pr.rings.kf[:, j] >= F) for j in range(3)]
+        for j, free in enumerate(self._ring_free):
+            r, c = _block_entries(free, 6 * (pr.rings.kf[free, j] - F), 6)
+            blocks.append((r + 2 * M + 2 * L + S, c))
         jac_rows = np.concatenate([r for r, _ in blocks])
         jac_cols = np.concatenate([c for _, c in blocks])
         order = np.lexsort((jac_cols, jac_rows))
@@ -292,10 +321,9 @@ class BundleObjective:
         # Where each entry of the blocks (concatenated in jacobian's order) goes in CSR order.
         self._place = np.empty(len(order), np.int32 if len(order) < 2**31 else np.int64)
         self._place[order] = np.arange(len(order))
-        self._indptr = np.concatenate(
-            [[0], np.cumsum(np.bincount(jac_rows, minlength=2 * M + 2 * L + S))]
-        ).astype(np.int32)
-        self._shape = (2 * M + 2 * L + S, len(self.x0))
+        self._n_rows = 2 * M + 2 * L + S + 2 * T
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=self._n_rows))]).astype(np.int32)
+        self._shape = (self._n_rows, len(self.x0))
 
     def _poses(self, x: np.ndarray) -> np.ndarray:
         """(K, 6) every keyframe's (rotation vector, translation) of rig_from_world."""
@@ -307,7 +335,7 @@ class BundleObjective:
         return R, t, x[self.n_pose :].reshape(len(self.problem.points_in_world), 3)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        """(2M + 2L + S,) observation, then (weighted) anchor, then prior residuals, px."""
+        """(2M + 2L + S + 2T,) observation, then (weighted) anchor, prior and ring residuals, px."""
         pr, camera = self.problem, self.camera
         R, t, pts = self.unpack(x)
         k, p = pr.obs_frame, pr.obs_point
@@ -323,7 +351,7 @@ class BundleObjective:
         C = -np.einsum("nji,nj->ni", R, t)  # the rigs' centres in the world
         length = np.linalg.norm(C[pr.prior_b] - C[pr.prior_a], axis=1)
         r_len = self.w_prior * (length - pr.prior_mm) / pr.prior_sigma_mm
-        r = np.concatenate([r_obs.ravel(), r_anc.ravel(), r_len])
+        r = np.concatenate([r_obs.ravel(), r_anc.ravel(), r_len, self._ring_residuals(R, t)])
         return np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)
 
     def jacobian(self, x: np.ndarray) -> csr_matrix:
@@ -335,7 +363,8 @@ class BundleObjective:
         d_prior_a, d_prior_b = self._prior_blocks(R, t, Jl)
         data = np.empty(len(self._place))
         at = 0
-        for block in (d_pose_obs, d_point, d_pose_a, d_pose_b, d_prior_a, d_prior_b):
+        blocks = (d_pose_obs, d_point, d_pose_a, d_pose_b, d_prior_a, d_prior_b, *self._ring_blocks(R, t, Jl))
+        for block in blocks:
             data[self._place[at : at + block.size]] = block.ravel()  # straight into CSR order
             at += block.size
         return csr_matrix((data, self._indices, self._indptr), shape=self._shape)
@@ -357,6 +386,31 @@ class BundleObjective:
 
         fa, fb = self._pa_free, self._pb_free
         return -d_centre(pr.prior_a[fa], u[fa]), d_centre(pr.prior_b[fb], u[fb])
+
+    def _ring_residuals(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(2T,) the ring rows: the centre of k off its neighbours' chord, across the axis, px."""
+        rings = self.problem.rings
+        if not len(rings):
+            return np.zeros(0)
+        k = rings.kf
+        # X_j = R_j^T (c_j - t_j): the ring centre in the world.
+        X = np.einsum("tjip,tjp->tji", np.transpose(R[k], (0, 1, 3, 2)), rings.centres_in_rig - t[k])
+        off = np.einsum("tj,tji->ti", self._ring_coef, X)
+        return np.einsum("tpi,ti->tp", rings.across, off).ravel()
+
+    def _ring_blocks(self, R: np.ndarray, t: np.ndarray, Jl: np.ndarray) -> list[np.ndarray]:
+        """Per role (a, k, b), (free rows, 2, 6) d ring residual / d pose.
+
+        d X / d t = -R^T; d X / d omega = R^T [y]x Jl(omega), y = c - t.
+        """
+        rings = self.problem.rings
+        out = []
+        for j, free in enumerate(self._ring_free):
+            k = rings.kf[free, j]
+            G = self._ring_coef[free, j][:, None, None] * (rings.across[free] @ np.transpose(R[k], (0, 2, 1)))
+            y = rings.centres_in_rig[free, j] - t[k]
+            out.append(np.concatenate([np.cross(G, y[:, None, :]) @ Jl[k], -G], axis=2))
+        return out
 
     def _observation_blocks(
         self, R: np.ndarray, t: np.ndarray, pts: np.ndarray, Jl: np.ndarray
@@ -398,7 +452,9 @@ def bundle_adjust(camera: CameraModel, problem: BundleProblem, config: BundleCon
         ShapeError: inconsistent observation arrays.
     """
     w_laser = float(config.laser_weight)
-    objective = BundleObjective(camera, problem, w_laser, float(config.length_prior_weight))
+    objective = BundleObjective(
+        camera, problem, w_laser, float(config.length_prior_weight), float(config.ring_weight)
+    )
     x0, residuals, jacobian = objective.x0, objective.residuals, objective.jacobian
     K, M, L = len(problem.world_from_rig), len(problem.obs_frame), len(problem.anchor_a)
     r0 = residuals(x0)
