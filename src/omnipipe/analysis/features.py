@@ -84,23 +84,19 @@ def find_features(
     unseen = _unseen_gap(sigma)
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(gaps) else 5.0
-    if cand.sum() < config.min_points:
-        feats = list(offset_joints(config, line, r, []))
-        for f, mask in _laterals(config, r, radius, spacing, thr, not_wall, feats):
+    feats: list[PointFeature] = []
+    if cand.sum() >= config.min_points:
+        for f, mask in gap_joints(config, line, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
             feats.append(f)
             not_wall |= mask
-        return FeatureSearch(sorted(feats, key=lambda f: f.axial_mm), not_wall, thr, unseen)
-    feats: list[PointFeature] = []
-    for f, mask in gap_joints(config, line, r, cand, max(config.joint_link_mm, 1.5 * spacing), raised):
-        feats.append(f)
-        not_wall |= mask
-    for f in offset_joints(config, line, r, feats):
-        feats.append(f)
     # Laterals: the rest, linked across rings, narrow and reaching far out, and the
     # rings' stretches without returns (the light lost in the branch).
     for f, mask in _laterals(config, r, radius, spacing, thr, not_wall, feats):
         feats.append(f)
         not_wall |= mask
+    # Then the joints seen by their offset alone, away from the openings (whose hole
+    # pulls its rings' section centres sideways).
+    feats += offset_joints(config, line, r, feats)
     feats.sort(key=lambda f: f.axial_mm)
     return FeatureSearch(feats, not_wall, thr, unseen)
 

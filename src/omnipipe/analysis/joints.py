@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.feature_rings import FeatureConfig, Rings
-from omnipipe.analysis.feature_types import Joint, PointFeature
+from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 
 
 def gap_joints(
@@ -67,7 +67,9 @@ def offset_joints(
     sampled it) but whose downstream section is displaced. The recentred centreline
     steps sideways there (by the offset) between the two rings' stations: a step of at
     least ``joint_offset_min_mm`` and ``joint_offset_factor`` x the median step of the
-    run (a bend's or a taper's drift), away from the joints already found, whose offset
+    run (a bend's or a taper's drift), away from the joints and laterals already found
+    (a hole's missing or branch-lit samples pull its rings' section centres sideways:
+    bench seeds 4, 18, 27 stepped 4.9-9.8 mm within a lateral's reach), whose offset
     the wall either side then confirms (:func:`_local_axis`: >= 3 sigma, and the same
     as the step within half of it and 3 sigma). The joint
     lies somewhere in the unsampled stretch between the rings (tilted rings overlapping
@@ -93,8 +95,8 @@ def offset_joints(
         near = [f for f in [*found, *out] if isinstance(f, Joint)
                 and f.axial_mm - 0.5 * f.gap_mm <= b + config.joint_link_mm
                 and f.axial_mm + 0.5 * f.gap_mm >= a - config.joint_link_mm]
-        if b <= a or near:
-            continue  # a joint found there
+        if b <= a or near or _at_an_opening(config, found, a, b):
+            continue  # a joint found there, or a lateral's hole pulling the centres
         local = _local_axis(config, line, r, 0.5 * (a + b), 0.5 * (b - a))
         if local is None:
             continue
@@ -119,15 +121,28 @@ def offset_joints(
     return out
 
 
+def _at_an_opening(config: FeatureConfig, found: Sequence[PointFeature], a: float, b: float) -> bool:
+    """Whether the axial stretch ``a``..``b`` (mm) meets a found lateral's reach: its
+    opening's diameter / 2 + ``margin_mm`` + 3 axial sigmas either side of its centre."""
+    for f in found:
+        if isinstance(f, Lateral):
+            half = 0.5 * f.diameter_mm + config.margin_mm + 3.0 * (f.axial_sigma_mm or 0.0)
+            if a <= f.axial_mm + half and b >= f.axial_mm - half:
+                return True
+    return False
+
+
 @dataclass(frozen=True)
 class _Band:
     """A joint's band: ``lo`` <= sigma - a cos theta - b sin theta <= ``hi`` (mm; a, b 0:
-    across the axis; else the plane of a gap the centreline crosses at a slant)."""
+    across the axis; else the plane of a gap the centreline crosses at a slant;
+    ``ring_plane``: the plane of one ring lying in the gap, square to it)."""
 
     lo: float
     hi: float
     a: float = 0.0
     b: float = 0.0
+    ring_plane: bool = False
 
     def coordinate(self, r: Rings) -> np.ndarray:
         """(N,) each point's position along the axis across the band's plane (mm)."""
@@ -161,9 +176,8 @@ def _joint_bands(
         on_raised = raised[r.ring_of[idx[order[group]]]]
         if len(group) and s[group[-1]] - s[group[0]] > config.joint_max_gap_mm and on_raised.any():
             # Too wide for a gap: rings far apart linked the candidates of rings lying
-            # in a gap with scattered ones. The gap is the raised rings' band.
-            a, b = s[group[on_raised]].min(), s[group[on_raised]].max()
-            groups.append(group[(s[group] >= a - config.joint_link_mm) & (s[group] <= b + config.joint_link_mm)])
+            # in a gap with scattered ones. Each block of raised rings is a gap's band.
+            groups += _raised_groups(config, r, idx[order[group]], group, s[group], raised)
         else:
             groups.append(group)
     bands = []
@@ -177,7 +191,7 @@ def _joint_bands(
         seen = np.unique((np.degrees(r.theta[band]) % 360 // 10).astype(int))
         have = np.unique((np.degrees(r.theta[idx[order[group]]]) % 360 // 10).astype(int))
         if len(seen) >= 9 and len(have) >= config.joint_coverage * len(seen):
-            along, slanted, plane = _deep_share(config, r, idx[order[group]], lo, hi)
+            along, slanted, plane = _deep_share(config, r, idx[order[group]], lo, hi, raised)
             if along >= 0.5:
                 bands.append(_Band(lo, hi))
             elif slanted >= 0.5 and plane is not None and plane.slant_mm > config.joint_link_mm:
@@ -187,15 +201,39 @@ def _joint_bands(
     return bands
 
 
+def _raised_groups(
+    config: FeatureConfig, r: Rings, members: np.ndarray, group: np.ndarray, s: np.ndarray, raised: np.ndarray
+) -> list[np.ndarray]:
+    """``group`` (positions, matching the candidate indices ``members`` at axial ``s``)
+    split at its blocks of raised rings (consecutive along the axis: the rings lying in
+    one gap; bench seed 31: two joints 37 mm apart on 6-mm spaced rings, tilted 3-10 deg
+    to the fitted axis, their candidates linked over the whole run): per block, its
+    rings' candidates and the other rings' within ``joint_link_mm`` of their axial
+    extent (rings crossing the gap's edges at a slant)."""
+    ring = r.ring_of[members]
+    pos = np.empty(len(r.ring_sigma), int)
+    pos[np.argsort(r.ring_sigma)] = np.arange(len(r.ring_sigma))
+    up = np.unique(ring[raised[ring]])
+    up = up[np.argsort(pos[up])]
+    blocks = np.split(up, np.flatnonzero(np.diff(pos[up]) > 1) + 1)
+    out = []
+    for block in blocks:
+        own = np.isin(ring, block)
+        a, b = s[own].min(), s[own].max()
+        near = ~raised[ring] & (s >= a - config.joint_link_mm) & (s <= b + config.joint_link_mm)
+        out.append(group[own | near])
+    return out
+
+
 def _deep_share(
-    config: FeatureConfig, r: Rings, members: np.ndarray, lo: float, hi: float
+    config: FeatureConfig, r: Rings, members: np.ndarray, lo: float, hi: float, raised: np.ndarray
 ) -> tuple[float, float, _Band | None]:
     """Share of the 10-degree sectors whose samples in the gap's band lie deep (median
     beyond half the joint threshold): the band along the axis (``lo``, ``hi``) and the
     band of the candidates ``members`` along their own plane (sigma - a cos theta - b sin
     theta fitted to them: a gap crossed by tilted rings, or seen along a tilted
     centreline, is a plane across the axial coordinate); and that plane's band (None: one
-    ring holds the candidates)."""
+    ring holds the candidates, unless it lies in the gap: ``raised``, (R,) per ring)."""
     thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
     th, s = r.theta[members], r.sigma[members]
     A = np.column_stack([np.ones(len(s)), np.cos(th), np.sin(th)])
@@ -214,8 +252,12 @@ def _deep_share(
         out.append(float(np.mean(med > thr)) if len(med) else 0.0)
     # The plane stands for the gap's only if two rings or more hold its candidates (one
     # ring's candidates span that ring's own plane, whatever the gap's).
-    held = np.bincount(r.ring_of[members[keep]])
-    return out[0], out[1], plane if int(np.sum(held >= 0.1 * keep.sum())) >= 2 else None
+    held = np.flatnonzero(np.bincount(r.ring_of[members[keep]]) >= 0.1 * keep.sum())
+    # Or else one ring raised all round (lying in the gap, square to it: its plane is
+    # the gap's; bench seed 31's rings, tilted to a centreline fitted off the axis).
+    if len(held) >= 2:
+        return out[0], out[1], plane
+    return out[0], out[1], replace(plane, ring_plane=True) if raised[held].all() else None
 
 
 def _without_sector_rings(
@@ -319,7 +361,11 @@ def _joint(
     inband = cand & (coord >= lo) & (coord <= hi)
     depth = float(np.percentile(r.dev[inband], 90))
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    reach = max(hi - lo, 4.0)
+    # The edges are sought a band's width beyond it; a ring's plane lying in the gap, at
+    # least to the next rings' samples (its edges lie between rings).
+    spacing = np.diff(np.sort(r.ring_sigma))
+    between = 1.5 * float(np.median(spacing)) if band.ring_plane and len(spacing) else 0.0
+    reach = max(hi - lo, 4.0, between)
     local = _local_axis(config, line, r, mid, half + config.margin_mm + band.slant_mm)
     near = np.abs(coord - mid) <= half + 2.0 * reach
     s = coord - mid
