@@ -253,11 +253,14 @@ def _deep_share(
     # The plane stands for the gap's only if two rings or more hold its candidates (one
     # ring's candidates span that ring's own plane, whatever the gap's).
     held = np.flatnonzero(np.bincount(r.ring_of[members[keep]]) >= 0.1 * keep.sum())
-    # Or else one ring raised all round (lying in the gap, square to it: its plane is
-    # the gap's; bench seed 31's rings, tilted to a centreline fitted off the axis).
     if len(held) >= 2:
         return out[0], out[1], plane
-    return out[0], out[1], replace(plane, ring_plane=True) if raised[held].all() else None
+    # Or else one ring raised all round (lying in the gap, square to it: its plane is the
+    # gap's; bench seed 31's rings, tilted to a centreline fitted off the axis), not at
+    # the run's end (with rings on one side only its level says no gap: bench seed 1's
+    # first ring in an elbow, 14 deg to the fitted axis).
+    inner = len(held) == 1 and r.ring_sigma.min() < r.ring_sigma[held[0]] < r.ring_sigma.max()
+    return out[0], out[1], replace(plane, ring_plane=True) if inner and raised[held].all() else None
 
 
 def _without_sector_rings(
