@@ -352,3 +352,17 @@ def test_lost_tracks_get_a_second_try_on_band_passed_coarse_levels(dim_concrete,
     assert right[second] >= 1.5 * right[0.0]
     assert np.mean(errors[second] > 3.0) <= np.mean(errors[0.0] > 3.0)
     assert np.median(errors[second]) < 1.0
+
+
+def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks() -> None:
+    """The new keyframe's features are followed back (latest pending frame first) only
+    as far as the earliest pending frame with fewer than ``back_below`` verified tracks
+    of its own keyframe; every frame at the default, none when all have enough."""
+    from omnipipe.sfm.keyframes import followed_back
+
+    assert followed_back([800, 650, 420, 150], 200) == [3]
+    assert followed_back([800, 120, 420, 600], 200) == [3, 2, 1]
+    assert followed_back([800, 650], 200) == []
+    assert followed_back([], 200) == []
+    assert followed_back([800, 650, 20], TrackConfig().back_below) == [2, 1, 0]
+    assert followed_back([800, 650], 0) == []

@@ -514,9 +514,11 @@ class KeyframeLoop:
         k_new = len(self.features) - 1
         since = [j for j, p in enumerate(self.pending) if p.keyframe == k_new - 1]
         viewed = [j for j in since if self.pending[j].frame in self._pending_views]
-        if viewed and frame.views is not None:
-            # Backwards from the new keyframe: its latest pending frame first.
-            back = viewed[::-1]
+        back = [
+            viewed[i]
+            for i in followed_back([len(self.pending[j].inliers) for j in viewed], config.tracking.back_below)
+        ]
+        if back and frame.views is not None:
             whole = self.ctx.executor.submit(
                 track_back,
                 self.inputs.rig,
@@ -531,7 +533,7 @@ class KeyframeLoop:
                 self.next_matches[self.pending[j].frame] = part
         for j in since:
             p = self.pending[j]
-            if p.frame not in self.next_matches:
+            if p.frame not in self.next_matches and len(p.features.descriptors):
                 self.next_matches[p.frame] = self.ctx.executor.submit(
                     matched_rays, features, p.features, config.features.ratio
                 )
@@ -552,6 +554,16 @@ def gray_for_worker(
     16-bit grey image), else the array itself (inline, a Dask cluster, a float image)."""
     exact = gray.dtype in (np.uint8, np.uint16)
     return grays.ref(k) if exact and shares_files(executor) else gray
+
+
+def followed_back(counts: list[int], below: int) -> list[int]:
+    """Which pending frames (``counts``: each one's verified tracks of its keyframe, in
+    frame order) the new keyframe's features are followed back into, as positions in
+    ``counts``, latest first: from the latest down to the earliest with fewer than
+    ``below`` tracks (the chain goes frame by frame, so the later ones on the way are
+    followed too); none when every frame has ``below`` or more."""
+    needs = [i for i, n in enumerate(counts) if n < below]
+    return list(range(len(counts) - 1, needs[0] - 1, -1)) if needs else []
 
 
 def _budget(n_first: int, n: int, most: int) -> np.ndarray:

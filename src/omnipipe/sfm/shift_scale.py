@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from omnipipe.sfm.scale_check import StepCheck, wall_cylinder
-from omnipipe.sfm.step_priors import trimmed_wall_length
+from omnipipe.sfm.step_priors import submit_wall_length
 from omnipipe.sfm.types import Keyframes, SfmContext
 from omnipipe.sfm.wall_shift import candidate_window
 
@@ -89,13 +89,15 @@ def shift_scale(
     if len(steps) > MAX_SHIFT_STEPS:
         steps = [steps[i] for i in np.linspace(0, len(steps) - 1, MAX_SHIFT_STEPS).round().astype(int)]
     walls, sigmas, adjusted = [], [], []
+    jobs = {}  # the steps not read yet, on the executor's workers
     for k, b_from_a, length in steps:
         c = checks[k]
         cands = [length] + [v for v in (c.scale_mm, c.feature_scale_mm) if _near(v, length)]
         pair_walls = (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1]))
-        wall, sigma = (known or {}).get(k) or trimmed_wall_length(
-            ctx.camera, (kf.grays[k], kf.grays[k + 1]), pair_walls, b_from_a, candidate_window(cands)
-        )
+        if not (known or {}).get(k):
+            jobs[k] = submit_wall_length(ctx, kf, k, pair_walls, b_from_a, candidate_window(cands))
+    for k, _, length in steps:
+        wall, sigma = (known or {}).get(k) or jobs[k].result()
         if math.isfinite(wall):
             walls.append(wall)
             sigmas.append(sigma)

@@ -28,12 +28,15 @@ Conventions: lengths in mm along the travel, log ratios natural.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.executor import shares_files
 from omnipipe.sfm.bundle import LengthPrior
+from omnipipe.sfm.image_store import ImageStore, StoredImage, load_image
 from omnipipe.sfm.scale_check import StepCheck, WallCylinder, wall_cylinder
 from omnipipe.sfm.types import Keyframes, SfmContext
 from omnipipe.sfm.wall_shift import MIN_AXIAL_COS, candidate_window, wall_shift
@@ -87,12 +90,12 @@ def wall_priors(
     first = steps
     if len(steps) > MAX_TRIGGER_STEPS:
         first = [steps[i] for i in np.linspace(0, len(steps) - 1, MAX_TRIGGER_STEPS).round().astype(int)]
-    readings = {k: _read(ctx, kf, k, b_from_a, length, checks[k]) for k, b_from_a, length in first}
+    readings = _read_all(ctx, kf, [(k, b_from_a, length, checks[k]) for k, b_from_a, length in first])
     if not _moved(readings, {k: length for k, _, length in steps}):
         return WallPriors((), readings)
-    for k, b_from_a, length in steps:
-        if k not in readings:
-            readings[k] = _read(ctx, kf, k, b_from_a, length, checks[k])
+    readings |= _read_all(
+        ctx, kf, [(k, b_from_a, length, checks[k]) for k, b_from_a, length in steps if k not in readings]
+    )
     priors = []
     for k, _, length in steps:
         wall, sigma = readings[k]
@@ -101,16 +104,48 @@ def wall_priors(
     return WallPriors(tuple(priors), readings)
 
 
-def _read(
-    ctx: SfmContext, kf: Keyframes, k: int, b_from_a: np.ndarray, length: float, check: StepCheck
+def _read_all(
+    ctx: SfmContext, kf: Keyframes, steps: list[tuple[int, np.ndarray, float, StepCheck]]
+) -> dict[int, tuple[float, float]]:
+    """Step k -> (length, 1-sigma) mm read off the wall (NaN: not measured), searched
+    around its adjusted length and its sources', for each (k, b_from_a, length, check)
+    of ``steps``; the readings run on the executor's workers (:func:`read_wall_length`)."""
+    jobs = {}
+    for k, b_from_a, length, check in steps:
+        cands = [length] + [
+            v for v in (check.scale_mm, check.feature_scale_mm) if _near(v, length, math.log(1.5))
+        ]
+        walls = (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1]))
+        jobs[k] = submit_wall_length(ctx, kf, k, walls, b_from_a, candidate_window(cands))
+    return {k: job.result() for k, job in jobs.items()}
+
+
+def submit_wall_length(
+    ctx: SfmContext,
+    kf: Keyframes,
+    k: int,
+    walls: tuple[WallCylinder | None, WallCylinder | None],
+    b_from_a: np.ndarray,
+    window_mm: tuple[float, float],
+) -> Future[tuple[float, float]]:
+    """:func:`trimmed_wall_length` of keyframe step k -> k + 1 submitted to the run's
+    executor (a local pool's worker reads the two grey images from their files)."""
+    pair = tuple(
+        kf.grays.ref(j) if shares_files(ctx.executor) and isinstance(kf.grays, ImageStore) else kf.grays[j]
+        for j in (k, k + 1)
+    )
+    return ctx.executor.submit(read_wall_length, ctx.camera, pair, walls, b_from_a, window_mm)
+
+
+def read_wall_length(
+    camera: CameraModel,
+    grays: tuple[np.ndarray | StoredImage, ...],
+    walls: tuple[WallCylinder | None, WallCylinder | None],
+    b_from_a: np.ndarray,
+    window_mm: tuple[float, float],
 ) -> tuple[float, float]:
-    """(length, 1-sigma) mm of step k read off the wall (NaN: not measured), searched
-    around its adjusted ``length`` and its sources'."""
-    cands = [length] + [
-        v for v in (check.scale_mm, check.feature_scale_mm) if _near(v, length, math.log(1.5))
-    ]
-    walls = (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1]))
-    return trimmed_wall_length(ctx.camera, (kf.grays[k], kf.grays[k + 1]), walls, b_from_a, candidate_window(cands))
+    """:func:`trimmed_wall_length` of two grey images given or stored (a worker's task)."""
+    return trimmed_wall_length(camera, (load_image(grays[0]), load_image(grays[1])), walls, b_from_a, window_mm)
 
 
 def trimmed_wall_length(

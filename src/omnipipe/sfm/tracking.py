@@ -72,6 +72,11 @@ class TrackConfig:
             ``keyframe_min_parallax_deg``: the tracks are running out (large image motion
             between frames; random-wide seed 17, 11 mm frame steps in a 123 mm pipe:
             511 -> 80 -> 36 -> 16 verified tracks in three frames, the step lost). 0: off.
+        back_below: a pending frame (between keyframes) is also given the next
+            keyframe's new features, followed back to it frame by frame, only when it
+            has fewer verified tracks of its own keyframe than this (it is then resected
+            from both sides; the frames after it back to the next keyframe are followed
+            through on the way); 0: never, a large number: always.
     """
 
     enabled: bool = True
@@ -87,6 +92,7 @@ class TrackConfig:
     corner_quality: float = bounded(0.01, gt=0, lt=1)
     min_corner_distance_px: float = bounded(5.0, gt=0)
     renew_ratio: float = bounded(0.3, ge=0, le=1)
+    back_below: int = bounded(1_000_000, ge=0)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
