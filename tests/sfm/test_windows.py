@@ -51,11 +51,14 @@ def long_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.mark.slow  # 5 s: two sfm runs of 48 frames; the sfm stage stays covered by tests/sfm/test_pipeline.py
 def test_windowed_adjustment_keeps_the_trajectory(long_run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from omnipipe.sfm import schur
+    from omnipipe.sfm import adjust, schur
 
     solved: list[int] = []  # the windows go to Levenberg-Marquardt on the reduced system
     solve = schur.solve
     monkeypatch.setattr(schur, "solve", lambda *a, **k: solved.append(1) or solve(*a, **k))
+    released: list[int] = []  # each window's transient handed back before the next
+    release = adjust.release_freed_memory
+    monkeypatch.setattr(adjust, "release_freed_memory", lambda: released.append(1) or release())
     dataset = open_dataset(long_run)
     _, true = read_tum(long_run / "ground_truth" / "poses.txt")
     config = sfm.SfmConfig()
@@ -71,6 +74,7 @@ def test_windowed_adjustment_keeps_the_trajectory(long_run: Path, monkeypatch: p
     n_kf = int(whole.keyframe.sum())
     assert len(keyframe_windows(n_kf, 5, 2)) >= 3  # the run really is cut into windows
     assert len(solved) >= 3
+    assert len(released) >= 1 + len(keyframe_windows(n_kf, 5, 2))  # the global run's, then each window's
     e_whole = trajectory_errors(whole.world_from_rig, true)
     e_win = trajectory_errors(windowed.world_from_rig, true)
     print(n_kf, e_whole.to_dict(), e_win.to_dict())

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import ordered_map, shares_files
 from omnipipe.geometry import invert
+from omnipipe.memory import release_freed_memory
 from omnipipe.progress import phase
 from omnipipe.sfm.bundle import (
     BundleConfig,
@@ -194,6 +195,9 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
             ctx, config, init, obs, (s, e, fixed), lambda k, w=w: tick(3 * w + k)
         )
         tick(3 * w + 3)
+        # The window's transient (its Jacobians, the reduced systems: tens of MB) freed
+        # back to the system: glibc kept it, and the heap grew window by window.
+        release_freed_memory()
         if ba is None:
             where = "" if len(windows) == 1 else f" of keyframes {s}-{e - 1}"
             ctx.warnings.append(

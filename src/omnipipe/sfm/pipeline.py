@@ -45,6 +45,7 @@ from omnipipe.errors import ReconstructionError
 from omnipipe.executor import InlineExecutor
 from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
+from omnipipe.memory import release_freed_memory
 from omnipipe.sfm.adjust import Adjusted, Resected, adjust_keyframes, resect_pending
 from omnipipe.sfm.adjusted_steps import confirm_adjusted
 from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_frames, wall_resolved
@@ -151,6 +152,9 @@ def _run(
             else None
         )
         chain = chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames))
+        # The frame loop's freed blocks and the keyframes' arrays the chain read (pages of
+        # the run's scratch) handed back before the adjustment: they grew with the keyframes.
+        release_freed_memory()
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
         adjusted, chain, walls = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved)
