@@ -329,6 +329,21 @@ def test_magnification_table_bounds_the_projection() -> None:
     assert inner.sum() > 1000 and np.all(table[bins[inner]] <= 2.0 * mag.max())
 
 
+
+def test_largest_singular_value_in_closed_form_equals_the_svd() -> None:
+    """The table's px per radian: the closed form of a 2 x 3 matrix's largest singular
+    value against NumPy's SVD norm (random, rank-one, zero and infinite matrices)."""
+    from omnipipe.model.texture_sources import _largest_singular_2x3
+
+    rng = np.random.default_rng(4)
+    jac = rng.normal(0, 300, (500, 2, 3))
+    jac[:50, 1] = 2.5 * jac[:50, 0]  # rank one: the smaller singular value 0
+    jac[50:60] = 0.0
+    want = np.linalg.norm(jac, ord=2, axis=(1, 2))
+    np.testing.assert_allclose(_largest_singular_2x3(jac), want, rtol=1e-12, atol=1e-12)
+    jac[60, 0, 2] = np.inf
+    assert np.isinf(_largest_singular_2x3(jac)[60]) and np.isfinite(_largest_singular_2x3(jac)[61])
+
 def test_a_chunked_wall_grid_gives_the_same_choice_in_the_workers() -> None:
     from omnipipe.executor import open_executor
 

@@ -176,7 +176,7 @@ def magnification_table(camera: CameraModel, factor: float = 1.25) -> np.ndarray
     rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         jac = camera.project_jacobian(rays).reshape(len(elev), len(azim), 2, 3)
-        sampled = np.linalg.norm(np.nan_to_num(jac, nan=np.inf), ord=2, axis=(2, 3)).max(axis=1)
+        sampled = _largest_singular_2x3(np.nan_to_num(jac, nan=np.inf)).max(axis=1)
     fine = np.full(n_bins, np.inf)
     fine[first:stop] = np.where(np.isfinite(sampled), sampled, np.inf).reshape(-1, 4).max(axis=1)
     reach = int(np.ceil(STEP_RAD / MAG_BIN_RAD)) + 1  # bins a step may turn the ray across
@@ -188,6 +188,18 @@ def magnification_table(camera: CameraModel, factor: float = 1.25) -> np.ndarray
 
 
 _MAGNIFICATION: dict[tuple, np.ndarray] = {}
+
+
+def _largest_singular_2x3(jac: np.ndarray) -> np.ndarray:
+    """(...,) largest singular value of each (..., 2, 3) matrix J: the square root of
+    the larger eigenvalue of the 2 x 2 J J^T, in closed form (an SVD per matrix cost
+    0.2 s for the table's 130,000); inf where J has an infinite entry, NaN where NaN."""
+    a = np.einsum("...j,...j->...", jac[..., 0, :], jac[..., 0, :])
+    d = np.einsum("...j,...j->...", jac[..., 1, :], jac[..., 1, :])
+    b = np.einsum("...j,...j->...", jac[..., 0, :], jac[..., 1, :])
+    with np.errstate(invalid="ignore", over="ignore"):
+        top = 0.5 * (a + d) + np.hypot(0.5 * (a - d), b)
+        return np.where(np.isinf(jac).any(axis=(-2, -1)), np.inf, np.sqrt(top))
 
 
 def _box_elevations(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
