@@ -252,7 +252,7 @@ def _adjust_window(
         _append_anchors(problem, extra)
         ba = bundle_adjust(ctx.camera, problem, config)
     if obs.centres:
-        ba = _held_to_rings(ctx, config, problem, ba, list(obs.centres[s:e]), s)
+        ba = _held_to_rings(ctx, config, problem, ba, list(obs.centres[s:e]), obs.kf.frames[s:e])
     return ba, problem
 
 
@@ -262,13 +262,13 @@ def _held_to_rings(
     problem: BundleProblem,
     ba: BundleResult,
     centres: list[RingCentre | None],
-    first: int,
+    frames: list[int],
 ) -> BundleResult:
     """``ba`` adjusted again with the laser rings' centres as rows
     (:mod:`omnipipe.sfm.ring_axis`) when it left a keyframe's centre off its neighbours'
     chord by more than :data:`~omnipipe.sfm.ring_axis.RING_TRIGGER_SIGMAS` of its sigma
-    (a kink across the pipe's axis that the rings rule out); else ``ba``. ``first``: the
-    window's first keyframe (for the warning)."""
+    (a kink across the pipe's axis that the rings rule out); else ``ba``. ``frames``: the
+    window's keyframes' frame indices (for the warning)."""
     rows = axis_rows(ba.world_from_rig, centres)
     if not len(rows):
         return ba
@@ -282,7 +282,7 @@ def _held_to_rings(
     after = np.linalg.norm(ring_offsets(held.world_from_rig, rows), axis=1) / rows.sigma_mm
     ctx.warnings.append(
         f"bundle adjustment held to the laser rings' centres on {len(rows)} keyframes (it had "
-        f"left keyframe {first + int(rows.kf[worst, 1])}'s {z[worst]:.1f} sigma "
+        f"left frame {frames[int(rows.kf[worst, 1])]}'s centre {z[worst]:.1f} sigma "
         f"({z[worst] * rows.sigma_mm[worst]:.2f} mm) off the pipe's axis; now {after[worst]:.1f} sigma)"
     )
     return held
