@@ -28,23 +28,24 @@ def section_features(
     mixing_mm: np.ndarray | None = None,
 ) -> list[Stretch]:
     """Taper, bend, ovality and water features of the run, in axial order (a centreline
-    turn overlapping a taper is not a bend: the cylinder fits tilt in a cone);
+    turn lying mostly on a taper is not a bend: the cylinder fits tilt in a cone);
     ``mixing_mm`` (S,): the diameter term of the sections each station's ring mixes
     (:func:`taper_weights`)."""
     if len(stations) < 3:
         return []
     tapers = _tapers(stations, config, mixing_mm)
-    # The piecewise cylinder fits tilt their axes in a cone: no bend inside a taper.
-    bends = [b for b in _bends(line, head.diameter_mm, config) if not any(_overlap(b, t) for t in tapers)]
+    # The piecewise cylinder fits tilt their axes in a cone: no bend mostly inside a taper.
+    bends = [b for b in _bends(line, head.diameter_mm, config) if not any(_within(b, t) for t in tapers)]
     out = tapers + bends
     out += _ovality_stretches(stations, config) + _water_stretches(stations, config, tapers)
     return sorted(out, key=lambda f: f.axial_from_mm)
 
 
-def _overlap(a: Stretch, b: Stretch) -> bool:
+def _within(a: Stretch, b: Stretch) -> bool:
+    """Half of stretch ``a`` or more lies inside ``b``."""
     lo = max(a.axial_from_mm, b.axial_from_mm)
     hi = min(a.axial_to_mm, b.axial_to_mm)
-    return hi > lo
+    return hi - lo >= 0.5 * max(a.axial_to_mm - a.axial_from_mm, 0.0)
 
 
 def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
@@ -290,21 +291,24 @@ def _tapers(stations: list[Station], config: SectionConfig, mixing_mm: np.ndarra
 
 def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[Stretch]:
     """Stretches where the centreline turns faster than ``config.bend_min_curvature`` /
-    diameter (runs of the per-step curvature above it, merged across gaps of a station or
-    two: two stations sharing one tangent read as a straight step), each
-    measured by the straight - bend - straight fit of the tangent's turn over the stations
-    from the previous bend to the next (:func:`.centreline.fit_bend`): its start, end,
-    turn and radius with their sigmas."""
+    diameter: runs of steps whose curvature over a diameter of centreline
+    (:func:`smoothed_curvature`) is above it and above the tangents' noise, merged across
+    gaps of a station or two, each measured by the straight - bend - straight fit of the
+    tangent's turn over the stations from the previous bend to the next
+    (:func:`.centreline.fit_bend`): its start, end, turn and radius with their sigmas.
+
+    The per-step turn of neighbouring stations a few mm apart is noise-dominated where
+    rings ride a taper's cone or cross a lateral or joint (random-features seed 9: steps of
+    up to 2.6 / D for an R = 2 D bend's 0.5 / D), so the curvature is a line fit of the
+    tangents over a diameter of arc, its noise from the stations' own scatter."""
     t, arc = np.asarray(line.tangent), np.asarray(line.arc_mm)
     if len(t) < 4:
         return []
-    step = np.arccos(np.clip(np.sum(t[1:] * t[:-1], axis=1), -1.0, 1.0))
-    ds = np.maximum(np.diff(arc), 1e-6)
-    kappa = step / ds
-    straight = kappa[kappa * diameter_mm < config.bend_min_curvature]
-    noise = 1.4826 * float(np.median(straight)) if len(straight) >= 3 else 0.0
-    thr = max(config.bend_min_curvature / diameter_mm, 6.0 * noise)
-    spacing = float(np.median(ds))
+    kappa_st, noise_st = smoothed_curvature(t, arc, diameter_mm)
+    kappa = 0.5 * (kappa_st[1:] + kappa_st[:-1])  # per step (step i joins stations i, i + 1)
+    noise = np.maximum(noise_st[1:], noise_st[:-1])
+    thr = np.maximum(config.bend_min_curvature / diameter_mm, 4.0 * noise)
+    spacing = float(np.median(np.maximum(np.diff(arc), 1e-6)))
     runs = _merged(_runs(kappa > thr, 1), arc, 2.5 * spacing)
     # Runs of noise in a straight stretch turn little: not a bend, nor a fit's bound.
     half_turn = math.radians(0.5 * config.bend_min_turn_deg)
@@ -321,7 +325,9 @@ def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[
         sel = slice(k0, k1 + 1)
         # The tangents are lines through the centres within a quarter diameter either side.
         fit = fit_bend(arc[sel], t[sel], (float(arc[i0]), float(arc[i1 + 1])), 0.5 * diameter_mm / spacing)
-        if fit is None or math.degrees(fit.turn_rad) < config.bend_min_turn_deg:
+        # A turn tighter than the pipe's own radius is a kink (a joint's offset, a
+        # lateral's edge tilting the tangents), not a bend a pipe can make.
+        if fit is None or math.degrees(fit.turn_rad) < config.bend_min_turn_deg or fit.radius_mm < 0.5 * diameter_mm:
             continue
         out.append(
             Bend(
@@ -337,6 +343,37 @@ def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[
             )
         )
     return out
+
+
+def smoothed_curvature(tangent: np.ndarray, arc_mm: np.ndarray, span_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) curvature (1/mm) at each station and its noise level (1/mm): the slope of the
+    unit tangents (K, 3) against arc length (K,) mm in a line fit over the stations within
+    +-``span_mm`` / 2 (at least 3; 0 otherwise), its part normal to their mean direction.
+    The noise: the tangents' scatter about their local lines (a robust sigma per
+    component, from second differences) over the fit's lever arm, sqrt(sum (s - mean)^2)."""
+    t, arc = np.asarray(tangent, float), np.asarray(arc_mm, float)
+    n = len(t)
+    kappa, noise = np.zeros(n), np.zeros(n)
+    if n < 3:
+        return kappa, noise
+    # Second differences of neighbouring tangents: sqrt(6) sigma per component for white noise.
+    d2 = t[2:] - 2.0 * t[1:-1] + t[:-2]
+    sigma_t = 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0)
+    for i in range(n):
+        near = np.abs(arc - arc[i]) <= 0.5 * span_mm
+        if near.sum() < 3:
+            continue
+        s = arc[near] - arc[near].mean()
+        ss = float(s @ s)
+        if ss <= 1e-9:
+            continue
+        m = t[near].mean(axis=0)
+        m /= max(float(np.linalg.norm(m)), 1e-12)
+        k = (s @ (t[near] - m)) / ss
+        k = k - (k @ m) * m
+        kappa[i] = float(np.linalg.norm(k))
+        noise[i] = sigma_t / math.sqrt(ss)
+    return kappa, noise
 
 
 def _merged(runs: list[tuple[int, int]], arc: np.ndarray, gap_mm: float) -> list[tuple[int, int]]:
