@@ -31,7 +31,15 @@ from omnipipe.analysis.defects import FeatureZone
 from omnipipe.analysis.feature_rings import FeatureConfig, Rings, raised_blocks, ring_deviations
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 from omnipipe.analysis.joints import gap_joints, offset_joints, offset_joints_kept
-from omnipipe.analysis.openings import ReturnGap, gap_clusters, local_gaps, return_gaps
+from omnipipe.analysis.openings import (
+    HoleExtent,
+    ReturnGap,
+    gap_clusters,
+    hole_extent,
+    local_gaps,
+    return_gaps,
+    ring_axial,
+)
 
 
 @dataclass(frozen=True)
@@ -164,7 +172,49 @@ def _laterals(
                     others[i] = np.zeros(0, int)
                     grown = True
         holes.append((members, list(cluster)))
-    return [_lateral(config, r.sigma, r.theta, r.frame, m, radius, spacing, g) for m, g in holes]
+    stops = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
+             for f in joints if isinstance(f, Joint)]
+    out = [_lateral(config, r, m, radius, spacing, thr, g, stops) for m, g in holes]
+    # Pieces of one hole (the branch wall lit in parts, the light lost between them)
+    # whose openings overlap: one lateral from them all.
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            j = next((j for j in range(i + 1, len(out)) if _one_hole(r, out[i][1], out[j][1], 0.5 * thr)), None)
+            if j is not None:
+                holes[i] = (np.union1d(holes[i][0], holes[j][0]), [*holes[i][1], *holes[j][1]])
+                del holes[j], out[j]
+                out[i] = _lateral(config, r, holes[i][0], radius, spacing, thr, holes[i][1], stops)
+                merged = True
+                break
+    return out
+
+
+def _one_hole(r: Rings, a: np.ndarray, b: np.ndarray, low: float) -> bool:
+    """Whether two openings' not-wall masks are pieces of one hole: they share samples,
+    or they lie side by side around the pipe (their axial spans overlapping over half
+    the shorter one) with no wall between them on most of the rings both cross (no
+    sample within ``low`` of the wall: the branch wall lit on both sides of a hole whose
+    middle returns nothing, or strays inwards)."""
+    if (a & b).any():
+        return True
+    za, zb = r.sigma[a], r.sigma[b]
+    over = min(za.max(), zb.max()) - max(za.min(), zb.min())
+    if over < 0.5 * min(np.ptp(za), np.ptp(zb)):
+        return False
+    ca = math.atan2(float(np.mean(np.sin(r.theta[a]))), float(np.mean(np.cos(r.theta[a]))))
+    u = (r.theta - ca + np.pi) % (2 * np.pi) - np.pi
+    shared = np.intersect1d(r.frame[a], r.frame[b])
+    if not len(shared):
+        return False
+    walled = 0
+    for k in shared:
+        ua, ub = u[a & (r.frame == k)], u[b & (r.frame == k)]
+        lo, hi = (ua.max(), ub.min()) if np.median(ua) < np.median(ub) else (ub.max(), ua.min())
+        between = (r.frame == k) & (u > lo) & (u < hi) & ~a & ~b
+        walled += bool(np.any(between & (np.abs(r.dev) <= low)))
+    return 2 * walled < len(shared)
 
 
 def _one_ring_opening(
@@ -315,7 +365,7 @@ def _chords(
 ) -> np.ndarray:
     """(M, 4) per ring crossing the hole: axial position, chord centre and half-width
     (arc mm; half a sample added: the edges lie between samples), ring index. The axial
-    position is the ring's own at the chord's centre (:func:`_ring_axial`), not its deep
+    position is the ring's own at the chord's centre (:func:`.openings.ring_axial`), not its deep
     samples': those lie out in the branch, where the pipe coordinates of a ring tilted
     to the axis, or of a centreline through a bend, stray along the axis by their depth
     (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm)."""
@@ -327,22 +377,9 @@ def _chords(
         c = 0.5 * (u[m].max() + u[m].min())
         on = np.flatnonzero(frame == k)
         wall = on[~np.isin(on, m)]
-        z = _ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
+        z = ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
         rows.append((z, c, 0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
     return np.array(rows).reshape(-1, 4)
-
-
-def _ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
-    """Axial position (mm) at angle ``at`` (rad) of a ring whose wall samples lie at
-    (``sigma`` mm, ``phi`` rad): the plane sigma = a + b cos phi + c sin phi fitted to
-    them (twice, without the samples beyond 3 robust sigmas: the rim's stray ones)."""
-    A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
-    keep = np.ones(len(phi), bool)
-    for _ in range(2):
-        p, *_ = np.linalg.lstsq(A[keep], sigma[keep], rcond=None)
-        res = sigma - A @ p
-        keep = np.abs(res) <= max(3.0 * 1.4826 * float(np.median(np.abs(res[keep]))), 0.5)
-    return float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at))
 
 
 def _ellipse(ch: np.ndarray) -> tuple[float, float, float, float]:
@@ -364,17 +401,21 @@ def _ellipse(ch: np.ndarray) -> tuple[float, float, float, float]:
 
 def _lateral(
     config: FeatureConfig,
-    sigma: np.ndarray,
-    theta: np.ndarray,
-    frame: np.ndarray,
+    r: Rings,
     members: np.ndarray,
     radius: float,
     spacing: float,
+    thr: float,
     gaps: Sequence[ReturnGap] = (),
+    stops: Sequence[tuple[float, float]] = (),
 ) -> tuple[Lateral, np.ndarray]:
     """A lateral's opening from its cluster of deep samples ``members`` and the rings'
     stretches without returns across it (``gaps``; either may be empty, not both):
-    centre, angle and diameter (jackknife sigmas)."""
+    centre, angle and diameter (jackknife sigmas). Where the rings disturbed at its
+    angles show it closing on both sides along the axis (:func:`.openings.hole_extent`;
+    ``stops``: the joints' bands, which end that growth), the centre is the middle of
+    that reach, 1-sigma from the rings' spacing at its ends."""
+    sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
     u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
@@ -384,11 +425,12 @@ def _lateral(
         d_u = np.diff(np.sort(u[frame == k]))
         steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
     sample = float(np.median(steps))
-    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))[:, :3]
-    zc, uc, b, a = _ellipse(ch)
+    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))
+    ch = _main_block(ch, max(3.0 * spacing, 10.0))
+    zc, uc, b, a = _ellipse(ch[:, :3])
     est = [(zc, uc, b)]
     if len(ch) >= 4:
-        est += [_ellipse(np.delete(ch, i, axis=0))[:3] for i in range(len(ch))]
+        est += [_ellipse(np.delete(ch[:, :3], i, axis=0))[:3] for i in range(len(ch))]
     arr = np.array(est)
     n = len(arr) - 1
     jk = np.sqrt((n - 1) / n * np.sum((arr[1:] - arr[1:].mean(axis=0)) ** 2, axis=0)) if n >= 3 else np.zeros(3)
@@ -397,6 +439,10 @@ def _lateral(
     s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0))
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
+    ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops)
+    if ext is not None:
+        zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
+        s_z = 0.5 * math.hypot(ext.lo_sigma_mm, ext.hi_sigma_mm)
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     f = Lateral(
         axial_mm=zc,
@@ -411,6 +457,35 @@ def _lateral(
     inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
     inside[members] = True
     return f, inside
+
+
+def _extent(
+    r: Rings, u: np.ndarray, ch: np.ndarray, at: float, half: float, thr: float,
+    stops: Sequence[tuple[float, float]],
+) -> HoleExtent | None:
+    """The hole's reach along the axis (:func:`.openings.hole_extent`) from its chords
+    ``ch`` (M, 4): each ring's axial position at the hole's angle ``at`` (rad) from its
+    wall samples, disturbance beyond half the feature threshold ``thr`` within ``half``
+    arc mm of the centre (``u``: the samples' arc about it)."""
+    wall = np.abs(r.dev) <= thr
+    ring_z = {}
+    for k in np.unique(r.frame):
+        on = (r.frame == k) & wall
+        if on.sum() >= 8:
+            ring_z[int(k)] = ring_axial(r.sigma[on], r.theta[on], at)
+    inside = {int(k) for k in ch[:, 3]} & set(ring_z)
+    return hole_extent(ring_z, u, r.dev, r.frame, inside, half, 0.5 * thr, list(stops))
+
+
+def _main_block(ch: np.ndarray, link_mm: float) -> np.ndarray:
+    """The chords (M, 4: axial, centre, half-width, ring) along the axis around the
+    widest one, up to a step wider than ``link_mm`` between consecutive ones (a joint's
+    lost stretch on a ring far from the hole joined by its angles)."""
+    if len(ch) < 2:
+        return ch
+    ch = ch[np.argsort(ch[:, 0])]
+    part = np.concatenate([[0], np.cumsum(np.diff(ch[:, 0]) > link_mm)])
+    return ch[part == part[int(np.argmax(ch[:, 2]))]]
 
 
 def _gap_chords(gaps: Sequence[ReturnGap], th0: float, radius: float) -> np.ndarray:
