@@ -53,12 +53,16 @@ class FeatureSearch:
         unseen_gap_mm: the widest axial stretch between the measured rings' first and
             last samples that no sample fell in (mm): a joint gap narrower than this
             may lie there unseen.
+        opening_zones: each lateral's opening (its outline's semi-axes along the axis
+            and around the pipe, plus the margin and 3 sigma of its centre) for the
+            defect search (:func:`feature_zones`).
     """
 
     features: list[PointFeature]
     not_wall: np.ndarray
     threshold_mm: float
     unseen_gap_mm: float = 0.0
+    opening_zones: tuple[FeatureZone, ...] = ()
 
 
 def find_features(
@@ -99,14 +103,16 @@ def find_features(
             not_wall |= mask
     # Laterals: the rest, linked across rings, narrow and reaching far out, and the
     # rings' stretches without returns (the light lost in the branch).
-    for f, mask in _laterals(config, r, radius, spacing, thr, not_wall, feats):
+    zones = []
+    for f, mask, zone in _laterals(config, r, radius, spacing, thr, not_wall, feats):
         feats.append(f)
         not_wall |= mask
+        zones.append(zone)
     # Then the joints seen by their offset alone, away from the openings (whose hole
     # pulls its rings' section centres sideways).
     feats += offset_joints(config, line, r, feats)
     feats.sort(key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, not_wall, thr, unseen)
+    return FeatureSearch(feats, not_wall, thr, unseen, tuple(zones))
 
 
 def _deep_clusters(
@@ -145,11 +151,11 @@ def _laterals(
     thr: float,
     not_wall: np.ndarray,
     joints: Sequence[PointFeature],
-) -> list[tuple[Lateral, np.ndarray]]:
+) -> list[tuple[Lateral, np.ndarray, FeatureZone]]:
     """The laterals: the deep clusters reaching as far as an opening's, and the
     openings seen as lost returns (:mod:`.openings`) away from the joints, each with
     the other clusters it meets along the axis (the branch wall lit near the rim);
-    (lateral, its not-wall mask) each."""
+    (lateral, its not-wall mask, its opening's zone) each."""
     deep, others = _deep_clusters(config, r, radius, spacing, thr, not_wall)
     for i, m in enumerate(others):
         seen = _one_ring_opening(config, r, m, radius, spacing, thr, not_wall)
@@ -291,19 +297,24 @@ def _meets(
     return bool(np.any(d <= half))
 
 
-def feature_zones(features: list[PointFeature], radius: float, margin_mm: float) -> list[FeatureZone]:
+def feature_zones(
+    features: list[PointFeature], radius: float, margin_mm: float, openings: Sequence[FeatureZone] = ()
+) -> list[FeatureZone]:
     """Each joint's and lateral's reach with its uncertainty, for the defect search
     (:class:`~omnipipe.analysis.defects.FeatureZone`): a joint all around the pipe, over
     its gap plus ``margin_mm`` plus 3 sigma of its edges (centre and half-gap sigmas in
     quadrature) each side; a lateral over its opening's semi-axes (the circumferential
     one the arc of its chord on the ``radius`` mm wall) plus the margin plus 3 sigma of
-    centre and radius, along the axis and around the pipe."""
-    out: list[FeatureZone] = []
+    centre and radius, along the axis and around the pipe; with ``openings`` (the
+    laterals' own zones, :attr:`FeatureSearch.opening_zones`: along the axis the
+    outline's axial semi-axis, longer than the circumferential one where the branch
+    leans) those instead."""
+    out: list[FeatureZone] = list(openings)
     for f in features:
         if isinstance(f, Joint):
             half = 0.5 * f.gap_mm + margin_mm + 3.0 * math.hypot(_sd(f.axial_sigma_mm), 0.5 * _sd(f.gap_sigma_mm))
             out.append(FeatureZone(f.axial_mm - half, f.axial_mm + half, f"the joint at {f.axial_mm:.1f} mm"))
-        elif isinstance(f, Lateral):
+        elif isinstance(f, Lateral) and not openings:
             b = radius * math.asin(min(0.5 * f.diameter_mm / radius, 1.0))
             s_r = 0.5 * _sd(f.diameter_sigma_mm)
             along = b + margin_mm + 3.0 * math.hypot(_sd(f.axial_sigma_mm), s_r)
@@ -328,7 +339,7 @@ def with_offset_joints_kept(first: FeatureSearch, second: FeatureSearch) -> Feat
     if not kept:
         return second
     feats = sorted([*second.features, *kept], key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm)
+    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm, second.opening_zones)
 
 
 def _opening(
@@ -408,13 +419,14 @@ def _lateral(
     thr: float,
     gaps: Sequence[ReturnGap] = (),
     stops: Sequence[tuple[float, float]] = (),
-) -> tuple[Lateral, np.ndarray]:
+) -> tuple[Lateral, np.ndarray, FeatureZone]:
     """A lateral's opening from its cluster of deep samples ``members`` and the rings'
     stretches without returns across it (``gaps``; either may be empty, not both):
     centre, angle and diameter (jackknife sigmas). Where the rings disturbed at its
     angles show it closing on both sides along the axis (:func:`.openings.hole_extent`;
     ``stops``: the joints' bands, which end that growth), the centre is the middle of
-    that reach, 1-sigma from the rings' spacing at its ends."""
+    that reach, 1-sigma from the rings' spacing at its ends. Returns the lateral, its
+    not-wall mask (the outline plus the margin) and its zone for the defect search."""
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
@@ -456,7 +468,12 @@ def _lateral(
     m = config.margin_mm
     inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
     inside[members] = True
-    return f, inside
+    along, around = a + m + 3.0 * math.hypot(s_z, s_b), b + m + 3.0 * math.hypot(s_u, s_b)
+    zone = FeatureZone(
+        zc - along, zc + along, f"the lateral at {zc:.1f} mm",
+        arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
+    )
+    return f, inside, zone
 
 
 def _extent(
