@@ -559,20 +559,20 @@ def _one_sided(
     The wall beyond it was not measured (or is the feature's rim): it cannot be told
     from the run's end or the feature and cannot be sized; a warning line is appended
     and it is not a defect. A candidate seen by two rings or more is dropped here only
-    where its samples beyond the threshold reach into a found feature's zone: it is that
-    feature's rim (the wall around a lateral's opening lit by the branch, a joint's
-    edge), not a deformation of the wall (random-features-small seeds 6, 9, 14, 16, 20:
-    bulges and dents 4-90 mm high at the holes' rims and beside the joints' gaps); a
-    dent beside a feature, clear of its zone, stays a defect."""
+    where its samples beyond the threshold reach into a found lateral's zone: it is the
+    opening's rim (the wall around it lit by the branch, the rim's stray light), not a
+    deformation of the wall (random-features-small seeds 6, 9, 14, 20, 31: bulges and
+    dents 4-90 mm high at the holes' rims); a dent beside the opening, clear of its
+    zone, stays a defect, and so does one seen by several rings in a joint's zone."""
     circ = s.circumference_mm
     zs, arc = s.sigma_mm[members], s.arc_mm[members]
-    rim = next((q for q in zones if q.inside(zs, arc, circ).any()), None)
+    rim = next((q for q in zones if q.arc_mm is not None and q.inside(zs, arc, circ).any()), None)
     if rim is not None:
         dev = np.abs(s.deviation_mm[members])
         warnings.append(
             f"{kind} candidate at {float(np.median(zs)):.0f} mm ({len(members)} samples up to "
-            f"{float(dev.max()):.2f} mm) reaches into {rim.label}: that feature's rim, flagged "
-            "here, not reported as a defect"
+            f"{float(dev.max()):.2f} mm) lies partly within the reach of {rim.label}: the "
+            "opening's rim, flagged here, not reported as a defect"
         )
         return True
     rings = np.unique(s.ring[members])
@@ -585,9 +585,13 @@ def _one_sided(
     near = (s.ring != rings[0]) & (u_all >= du.min() - sc.du) & (u_all <= du.max() + sc.du)
     before = near & (s.sigma_mm < zs.min()) & (s.sigma_mm >= zs.min() - wide)
     after = near & (s.sigma_mm > zs.max()) & (s.sigma_mm <= zs.max() + wide)
-    if before.any() and after.any():
-        return False
-    why = f"one ring, with no measured wall {'before' if not before.any() else 'after'} it along the pipe"
+    if not before.any() or not after.any():
+        why = f"one ring, with no measured wall {'before' if not before.any() else 'after'} it along the pipe"
+    else:
+        zone = next((q for q in zones if q.holds(zs, arc, circ)), None)
+        if zone is None:
+            return False
+        why = f"one ring inside the reach of {zone.label}"
     dev = np.abs(s.deviation_mm[members])
     angle = (ref + float(np.median(du))) % circ / circ * 360.0
     warnings.append(
