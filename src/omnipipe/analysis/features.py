@@ -425,7 +425,8 @@ def _lateral(
     centre, angle and diameter (jackknife sigmas). Where the rings disturbed at its
     angles show it closing on both sides along the axis (:func:`.openings.hole_extent`;
     ``stops``: the joints' bands, which end that growth), the centre is the middle of
-    that reach, 1-sigma from the rings' spacing at its ends. Returns the lateral, its
+    that reach, 1-sigma from the rings' spacing at its ends; where it runs to the run's
+    end (or a joint), the fitted centre stays and the reach is not wall. Returns the lateral, its
     not-wall mask (the outline plus the margin) and its zone for the defect search."""
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
@@ -452,9 +453,13 @@ def _lateral(
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
     ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops)
-    if ext is not None:
+    reach = (zc - a, zc + a)
+    if ext is not None and all(ext.closed):
         zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
         s_z = 0.5 * math.hypot(ext.lo_sigma_mm, ext.hi_sigma_mm)
+        reach = (zc - a, zc + a)
+    elif ext is not None:  # seen to the run's end (or a joint): the grown rings not wall
+        reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     f = Lateral(
         axial_mm=zc,
@@ -466,11 +471,13 @@ def _lateral(
         points=len(members),
     )
     m = config.margin_mm
+    zr, ar = 0.5 * (reach[0] + reach[1]), 0.5 * (reach[1] - reach[0])
     inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
+    inside |= ((sigma - zr) / (ar + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
     inside[members] = True
-    along, around = a + m + 3.0 * math.hypot(s_z, s_b), b + m + 3.0 * math.hypot(s_u, s_b)
+    along, around = ar + m + 3.0 * math.hypot(s_z, s_b), b + m + 3.0 * math.hypot(s_u, s_b)
     zone = FeatureZone(
-        zc - along, zc + along, f"the lateral at {zc:.1f} mm",
+        zr - along, zr + along, f"the lateral at {zc:.1f} mm",
         arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
     )
     return f, inside, zone

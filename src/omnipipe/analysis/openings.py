@@ -177,6 +177,9 @@ class HoleExtent:
         chords: (M, 4) per ring disturbed there outside the chords it was grown from:
             axial position at the hole's angle, chord centre and half-width (arc mm),
             ring index.
+        closed: (lower, upper) whether the hole was seen to close on that side; where
+            not (the growth reached the run's end or a joint), the end is the last
+            disturbed ring's position, a bound only.
     """
 
     lo_mm: float
@@ -184,6 +187,7 @@ class HoleExtent:
     lo_sigma_mm: float
     hi_sigma_mm: float
     chords: np.ndarray
+    closed: tuple[bool, bool] = (True, True)
 
 
 def ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
@@ -241,23 +245,21 @@ def hole_extent(
     an obtuse angle, it stays within the feature threshold, or the rings keep a few
     samples in the hole, and the deep samples and the rings' lost stretches see only
     part of it. ``ring_z``: each ring's axial position at the hole's angle. Rings in
-    ``stops`` (axial bands: the joints' gaps) end the growth. None if a side reaches
-    the run's end or a stop (the hole is not seen to close there)."""
+    ``stops`` (axial bands: the joints' gaps) end the growth: a side reaching one or
+    the run's end is open (:attr:`HoleExtent.closed`). None without a ring inside."""
     order = sorted(ring_z, key=lambda k: ring_z[k])
     pos = [i for i, k in enumerate(order) if k in inside]
     if not pos:
         return None
-    ends, sig, rows = [], [], []
+    ends, sig, rows, closed = [], [], [], []
     for direction, start in ((-1, min(pos)), (1, max(pos))):
         i = start
         while True:
             j = i + direction
-            if j < 0 or j >= len(order):
-                return None
+            if j < 0 or j >= len(order) or any(a <= ring_z[order[j]] <= b for a, b in stops):
+                break
             k = order[j]
             z = ring_z[k]
-            if any(a <= z <= b for a, b in stops):
-                return None
             on = frame == k
             uk = u[on]
             step = float(np.median(np.diff(np.sort(uk)))) if on.sum() >= 12 else 0.0
@@ -266,7 +268,11 @@ def hole_extent(
                 break
             rows.append((z, got[0], got[1], float(k)))
             i = j
-        z_in, z_out = ring_z[order[i]], ring_z[order[i + direction]]
+        j = i + direction
+        shut = 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops)
+        z_in = ring_z[order[i]]
+        z_out = ring_z[order[j]] if shut else z_in
         ends.append(0.5 * (z_in + z_out))
         sig.append(abs(z_out - z_in) / math.sqrt(12.0))
-    return HoleExtent(ends[0], ends[1], sig[0], sig[1], np.array(rows).reshape(-1, 4))
+        closed.append(shut)
+    return HoleExtent(ends[0], ends[1], sig[0], sig[1], np.array(rows).reshape(-1, 4), (closed[0], closed[1]))
