@@ -203,14 +203,17 @@ def ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
     return float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at))
 
 
-def _disturbed_chord(u: np.ndarray, dev: np.ndarray, half: float, step: float, low: float) -> tuple[float, float] | None:
-    """(centre, half-width) arc mm of what disturbs one ring within ``half`` of the hole's
-    centre (``u``: its samples' arc about it, ``dev``: their deviations): its stretches
-    without samples wider than 2.5 sample ``step`` s, and its samples beyond ``low``
-    either way with a neighbour that is too; None if nothing does."""
+def _disturbed_chord(
+    u: np.ndarray, dev: np.ndarray, half: float, step: float, low: float
+) -> tuple[float, float, bool] | None:
+    """(centre, half-width arc mm, whether samples stray) of what disturbs one ring
+    within ``half`` of the hole's centre (``u``: its samples' arc about it, ``dev``:
+    their deviations): its stretches without samples wider than 2.5 sample ``step`` s,
+    and its samples beyond ``low`` either way with a neighbour that is too (then the
+    flag is set); None if nothing does."""
     inw = np.abs(u) <= half + step
     if not inw.any():
-        return 0.0, half  # the whole window dark: the light lost in the hole
+        return 0.0, half, False  # the whole window dark: the light lost in the hole
     o = np.argsort(u[inw])
     uu, dd = u[inw][o], dev[inw][o]
     ends: list[float] = []
@@ -221,11 +224,12 @@ def _disturbed_chord(u: np.ndarray, dev: np.ndarray, half: float, step: float, l
     nb = np.zeros(len(off), bool)
     nb[1:] |= off[:-1]
     nb[:-1] |= off[1:]
-    ends += [float(x) for x in uu[off & nb]]
+    stray = off & nb
+    ends += [float(x) for x in uu[stray]]
     if not ends:
         return None
     lo, hi = max(min(ends), -half), min(max(ends), half)
-    return 0.5 * (lo + hi), 0.5 * max(hi - lo, step)
+    return 0.5 * (lo + hi), 0.5 * max(hi - lo, step), bool(stray.any())
 
 
 def hole_extent(
@@ -253,21 +257,22 @@ def hole_extent(
         return None
     ends, sig, rows, closed = [], [], [], []
     for direction, start in ((-1, min(pos)), (1, max(pos))):
-        i = start
-        while True:
-            j = i + direction
-            if j < 0 or j >= len(order) or any(a <= ring_z[order[j]] <= b for a, b in stops):
-                break
+        i, j, dark = start, start + direction, []
+        while 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops):
             k = order[j]
-            z = ring_z[k]
             on = frame == k
             uk = u[on]
             step = float(np.median(np.diff(np.sort(uk)))) if on.sum() >= 12 else 0.0
             got = _disturbed_chord(uk, dev[on], half_width, step, low) if step > 0 else None
             if got is None:
                 break
-            rows.append((z, got[0], got[1], float(k)))
-            i = j
+            # Rings only missing samples there count when a ring beyond them shows
+            # stray samples (the hole's light lost, not a shadow past its rim).
+            dark.append((ring_z[k], got[0], got[1], float(k)))
+            if got[2]:
+                rows += dark
+                dark, i = [], j
+            j += direction
         j = i + direction
         shut = 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops)
         z_in = ring_z[order[i]]
