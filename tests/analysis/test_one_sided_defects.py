@@ -110,3 +110,33 @@ def test_spike_deeper_than_wide_is_no_defect_but_a_dent_is() -> None:
     assert any("spike" in w for w in res.warnings), res.warnings
     dent = _search(sig, arc, dev + _streak(sig, arc, 100.0, 120.0, 3.0) + _streak(sig, arc, 105.0, 120.0, 3.0), ring)
     assert len(dent.defects) == 1 and dent.defects[0].kind == "dent", dent.defects
+
+
+def test_bump_reaching_into_a_laterals_zone_is_its_rim_one_clear_of_it_a_dent() -> None:
+    """A 4 mm bump over three rings whose samples reach into a found lateral's zone (the
+    rim lit by the branch, random-features-small seeds 6, 9, 14, 31): the opening's rim,
+    a warning; the same bump 30 mm along the pipe from the zone stays a dent."""
+    sig, arc, dev, ring = _wall(17)
+    du = (arc - math.radians(90.0) * RADIUS + CIRC / 2) % CIRC - CIRC / 2
+    zone = FeatureZone(40.0, 90.0, "the lateral at 65.0 mm", arc_mm=math.radians(90.0) * RADIUS, half_arc_mm=20.0)
+
+    def bump(z0: float) -> np.ndarray:
+        return 4.0 * plateau(du, 20.0, 5.0) * plateau(sig - z0, 15.0, 5.0)
+
+    rim = _search(sig, arc, dev + bump(95.0), ring, zones=[zone])
+    assert rim.defects == [], rim.defects
+    assert any("opening's rim" in w and "the lateral at 65.0 mm" in w for w in rim.warnings), rim.warnings
+    clear = _search(sig, arc, dev + bump(125.0), ring, zones=[zone])
+    assert len(clear.defects) == 1 and clear.defects[0].kind == "dent", clear.defects
+    assert abs(clear.defects[0].height_mm - 4.0) < 0.3
+
+
+def test_laterals_own_zones_replace_the_circular_estimate() -> None:
+    """With the openings' zones (their outline's axial semi-axis), a lateral's zone is
+    that one; a joint's stays its band."""
+    j = Joint(axial_mm=50.0, axial_sigma_mm=1.0, gap_mm=6.0, gap_sigma_mm=2.0)
+    lat = Lateral(axial_mm=-20.0, axial_sigma_mm=0.5, angle_deg=90.0, diameter_mm=40.0)
+    own = FeatureZone(-60.0, 20.0, "the lateral at -20.0 mm", arc_mm=0.5 * math.pi * RADIUS, half_arc_mm=25.0)
+    zones = feature_zones([j, lat], RADIUS, 3.0, [own])
+    assert own in zones and len(zones) == 2
+    assert next(z for z in zones if z.arc_mm is None).axial_from_mm < 50.0

@@ -31,7 +31,15 @@ from omnipipe.analysis.defects import FeatureZone
 from omnipipe.analysis.feature_rings import FeatureConfig, Rings, raised_blocks, ring_deviations
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 from omnipipe.analysis.joints import gap_joints, offset_joints, offset_joints_kept
-from omnipipe.analysis.openings import ReturnGap, gap_clusters, local_gaps, return_gaps
+from omnipipe.analysis.openings import (
+    HoleExtent,
+    ReturnGap,
+    gap_clusters,
+    hole_extent,
+    local_gaps,
+    return_gaps,
+    ring_axial,
+)
 
 
 @dataclass(frozen=True)
@@ -45,12 +53,16 @@ class FeatureSearch:
         unseen_gap_mm: the widest axial stretch between the measured rings' first and
             last samples that no sample fell in (mm): a joint gap narrower than this
             may lie there unseen.
+        opening_zones: each lateral's opening (its outline's semi-axes along the axis
+            and around the pipe, plus the margin and 3 sigma of its centre) for the
+            defect search (:func:`feature_zones`).
     """
 
     features: list[PointFeature]
     not_wall: np.ndarray
     threshold_mm: float
     unseen_gap_mm: float = 0.0
+    opening_zones: tuple[FeatureZone, ...] = ()
 
 
 def find_features(
@@ -91,14 +103,16 @@ def find_features(
             not_wall |= mask
     # Laterals: the rest, linked across rings, narrow and reaching far out, and the
     # rings' stretches without returns (the light lost in the branch).
-    for f, mask in _laterals(config, r, radius, spacing, thr, not_wall, feats):
+    zones = []
+    for f, mask, zone in _laterals(config, r, radius, spacing, thr, not_wall, feats):
         feats.append(f)
         not_wall |= mask
+        zones.append(zone)
     # Then the joints seen by their offset alone, away from the openings (whose hole
     # pulls its rings' section centres sideways).
     feats += offset_joints(config, line, r, feats)
     feats.sort(key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, not_wall, thr, unseen)
+    return FeatureSearch(feats, not_wall, thr, unseen, tuple(zones))
 
 
 def _deep_clusters(
@@ -137,11 +151,11 @@ def _laterals(
     thr: float,
     not_wall: np.ndarray,
     joints: Sequence[PointFeature],
-) -> list[tuple[Lateral, np.ndarray]]:
+) -> list[tuple[Lateral, np.ndarray, FeatureZone]]:
     """The laterals: the deep clusters reaching as far as an opening's, and the
     openings seen as lost returns (:mod:`.openings`) away from the joints, each with
     the other clusters it meets along the axis (the branch wall lit near the rim);
-    (lateral, its not-wall mask) each."""
+    (lateral, its not-wall mask, its opening's zone) each."""
     deep, others = _deep_clusters(config, r, radius, spacing, thr, not_wall)
     for i, m in enumerate(others):
         seen = _one_ring_opening(config, r, m, radius, spacing, thr, not_wall)
@@ -164,7 +178,49 @@ def _laterals(
                     others[i] = np.zeros(0, int)
                     grown = True
         holes.append((members, list(cluster)))
-    return [_lateral(config, r.sigma, r.theta, r.frame, m, radius, spacing, g) for m, g in holes]
+    stops = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
+             for f in joints if isinstance(f, Joint)]
+    out = [_lateral(config, r, m, radius, spacing, thr, g, stops) for m, g in holes]
+    # Pieces of one hole (the branch wall lit in parts, the light lost between them)
+    # whose openings overlap: one lateral from them all.
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            j = next((j for j in range(i + 1, len(out)) if _one_hole(r, out[i][1], out[j][1], 0.5 * thr)), None)
+            if j is not None:
+                holes[i] = (np.union1d(holes[i][0], holes[j][0]), [*holes[i][1], *holes[j][1]])
+                del holes[j], out[j]
+                out[i] = _lateral(config, r, holes[i][0], radius, spacing, thr, holes[i][1], stops)
+                merged = True
+                break
+    return out
+
+
+def _one_hole(r: Rings, a: np.ndarray, b: np.ndarray, low: float) -> bool:
+    """Whether two openings' not-wall masks are pieces of one hole: they share samples,
+    or they lie side by side around the pipe (their axial spans overlapping over half
+    the shorter one) with no wall between them on most of the rings both cross (no
+    sample within ``low`` of the wall: the branch wall lit on both sides of a hole whose
+    middle returns nothing, or strays inwards)."""
+    if (a & b).any():
+        return True
+    za, zb = r.sigma[a], r.sigma[b]
+    over = min(za.max(), zb.max()) - max(za.min(), zb.min())
+    if over < 0.5 * min(np.ptp(za), np.ptp(zb)):
+        return False
+    ca = math.atan2(float(np.mean(np.sin(r.theta[a]))), float(np.mean(np.cos(r.theta[a]))))
+    u = (r.theta - ca + np.pi) % (2 * np.pi) - np.pi
+    shared = np.intersect1d(r.frame[a], r.frame[b])
+    if not len(shared):
+        return False
+    walled = 0
+    for k in shared:
+        ua, ub = u[a & (r.frame == k)], u[b & (r.frame == k)]
+        lo, hi = (ua.max(), ub.min()) if np.median(ua) < np.median(ub) else (ub.max(), ua.min())
+        between = (r.frame == k) & (u > lo) & (u < hi) & ~a & ~b
+        walled += bool(np.any(between & (np.abs(r.dev) <= low)))
+    return 2 * walled < len(shared)
 
 
 def _one_ring_opening(
@@ -241,19 +297,24 @@ def _meets(
     return bool(np.any(d <= half))
 
 
-def feature_zones(features: list[PointFeature], radius: float, margin_mm: float) -> list[FeatureZone]:
+def feature_zones(
+    features: list[PointFeature], radius: float, margin_mm: float, openings: Sequence[FeatureZone] = ()
+) -> list[FeatureZone]:
     """Each joint's and lateral's reach with its uncertainty, for the defect search
     (:class:`~omnipipe.analysis.defects.FeatureZone`): a joint all around the pipe, over
     its gap plus ``margin_mm`` plus 3 sigma of its edges (centre and half-gap sigmas in
     quadrature) each side; a lateral over its opening's semi-axes (the circumferential
     one the arc of its chord on the ``radius`` mm wall) plus the margin plus 3 sigma of
-    centre and radius, along the axis and around the pipe."""
-    out: list[FeatureZone] = []
+    centre and radius, along the axis and around the pipe; with ``openings`` (the
+    laterals' own zones, :attr:`FeatureSearch.opening_zones`: along the axis the
+    outline's axial semi-axis, longer than the circumferential one where the branch
+    leans) those instead."""
+    out: list[FeatureZone] = list(openings)
     for f in features:
         if isinstance(f, Joint):
             half = 0.5 * f.gap_mm + margin_mm + 3.0 * math.hypot(_sd(f.axial_sigma_mm), 0.5 * _sd(f.gap_sigma_mm))
             out.append(FeatureZone(f.axial_mm - half, f.axial_mm + half, f"the joint at {f.axial_mm:.1f} mm"))
-        elif isinstance(f, Lateral):
+        elif isinstance(f, Lateral) and not openings:
             b = radius * math.asin(min(0.5 * f.diameter_mm / radius, 1.0))
             s_r = 0.5 * _sd(f.diameter_sigma_mm)
             along = b + margin_mm + 3.0 * math.hypot(_sd(f.axial_sigma_mm), s_r)
@@ -278,7 +339,7 @@ def with_offset_joints_kept(first: FeatureSearch, second: FeatureSearch) -> Feat
     if not kept:
         return second
     feats = sorted([*second.features, *kept], key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm)
+    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm, second.opening_zones)
 
 
 def _opening(
@@ -315,7 +376,7 @@ def _chords(
 ) -> np.ndarray:
     """(M, 4) per ring crossing the hole: axial position, chord centre and half-width
     (arc mm; half a sample added: the edges lie between samples), ring index. The axial
-    position is the ring's own at the chord's centre (:func:`_ring_axial`), not its deep
+    position is the ring's own at the chord's centre (:func:`.openings.ring_axial`), not its deep
     samples': those lie out in the branch, where the pipe coordinates of a ring tilted
     to the axis, or of a centreline through a bend, stray along the axis by their depth
     (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm)."""
@@ -327,22 +388,9 @@ def _chords(
         c = 0.5 * (u[m].max() + u[m].min())
         on = np.flatnonzero(frame == k)
         wall = on[~np.isin(on, m)]
-        z = _ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
+        z = ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
         rows.append((z, c, 0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
     return np.array(rows).reshape(-1, 4)
-
-
-def _ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
-    """Axial position (mm) at angle ``at`` (rad) of a ring whose wall samples lie at
-    (``sigma`` mm, ``phi`` rad): the plane sigma = a + b cos phi + c sin phi fitted to
-    them (twice, without the samples beyond 3 robust sigmas: the rim's stray ones)."""
-    A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
-    keep = np.ones(len(phi), bool)
-    for _ in range(2):
-        p, *_ = np.linalg.lstsq(A[keep], sigma[keep], rcond=None)
-        res = sigma - A @ p
-        keep = np.abs(res) <= max(3.0 * 1.4826 * float(np.median(np.abs(res[keep]))), 0.5)
-    return float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at))
 
 
 def _ellipse(ch: np.ndarray) -> tuple[float, float, float, float]:
@@ -364,17 +412,23 @@ def _ellipse(ch: np.ndarray) -> tuple[float, float, float, float]:
 
 def _lateral(
     config: FeatureConfig,
-    sigma: np.ndarray,
-    theta: np.ndarray,
-    frame: np.ndarray,
+    r: Rings,
     members: np.ndarray,
     radius: float,
     spacing: float,
+    thr: float,
     gaps: Sequence[ReturnGap] = (),
-) -> tuple[Lateral, np.ndarray]:
+    stops: Sequence[tuple[float, float]] = (),
+) -> tuple[Lateral, np.ndarray, FeatureZone]:
     """A lateral's opening from its cluster of deep samples ``members`` and the rings'
     stretches without returns across it (``gaps``; either may be empty, not both):
-    centre, angle and diameter (jackknife sigmas)."""
+    centre, angle and diameter (jackknife sigmas). Where the rings disturbed at its
+    angles show it closing on both sides along the axis (:func:`.openings.hole_extent`;
+    ``stops``: the joints' bands, which end that growth), the centre is the middle of
+    that reach, 1-sigma from the rings' spacing at its ends; where it runs to the run's
+    end (or a joint), the fitted centre stays and the reach is not wall. Returns the lateral, its
+    not-wall mask (the outline plus the margin) and its zone for the defect search."""
+    sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
     u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
@@ -384,11 +438,12 @@ def _lateral(
         d_u = np.diff(np.sort(u[frame == k]))
         steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
     sample = float(np.median(steps))
-    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))[:, :3]
-    zc, uc, b, a = _ellipse(ch)
+    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))
+    ch = _main_block(ch, max(3.0 * spacing, 10.0))
+    zc, uc, b, a = _ellipse(ch[:, :3])
     est = [(zc, uc, b)]
     if len(ch) >= 4:
-        est += [_ellipse(np.delete(ch, i, axis=0))[:3] for i in range(len(ch))]
+        est += [_ellipse(np.delete(ch[:, :3], i, axis=0))[:3] for i in range(len(ch))]
     arr = np.array(est)
     n = len(arr) - 1
     jk = np.sqrt((n - 1) / n * np.sum((arr[1:] - arr[1:].mean(axis=0)) ** 2, axis=0)) if n >= 3 else np.zeros(3)
@@ -397,6 +452,14 @@ def _lateral(
     s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0))
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
+    ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops)
+    reach = (zc - a, zc + a)
+    if ext is not None and all(ext.closed):
+        zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
+        s_z = 0.5 * math.hypot(ext.lo_sigma_mm, ext.hi_sigma_mm)
+        reach = (zc - a, zc + a)
+    elif ext is not None:  # seen to the run's end (or a joint): the grown rings not wall
+        reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     f = Lateral(
         axial_mm=zc,
@@ -408,9 +471,45 @@ def _lateral(
         points=len(members),
     )
     m = config.margin_mm
+    zr, ar = 0.5 * (reach[0] + reach[1]), 0.5 * (reach[1] - reach[0])
     inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
+    inside |= ((sigma - zr) / (ar + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
     inside[members] = True
-    return f, inside
+    along, around = ar + m + 3.0 * math.hypot(s_z, s_b), b + m + 3.0 * math.hypot(s_u, s_b)
+    zone = FeatureZone(
+        zr - along, zr + along, f"the lateral at {zc:.1f} mm",
+        arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
+    )
+    return f, inside, zone
+
+
+def _extent(
+    r: Rings, u: np.ndarray, ch: np.ndarray, at: float, half: float, thr: float,
+    stops: Sequence[tuple[float, float]],
+) -> HoleExtent | None:
+    """The hole's reach along the axis (:func:`.openings.hole_extent`) from its chords
+    ``ch`` (M, 4): each ring's axial position at the hole's angle ``at`` (rad) from its
+    wall samples, disturbance beyond half the feature threshold ``thr`` within ``half``
+    arc mm of the centre (``u``: the samples' arc about it)."""
+    wall = np.abs(r.dev) <= thr
+    ring_z = {}
+    for k in np.unique(r.frame):
+        on = (r.frame == k) & wall
+        if on.sum() >= 8:
+            ring_z[int(k)] = ring_axial(r.sigma[on], r.theta[on], at)
+    inside = {int(k) for k in ch[:, 3]} & set(ring_z)
+    return hole_extent(ring_z, u, r.dev, r.frame, inside, half, 0.5 * thr, list(stops))
+
+
+def _main_block(ch: np.ndarray, link_mm: float) -> np.ndarray:
+    """The chords (M, 4: axial, centre, half-width, ring) along the axis around the
+    widest one, up to a step wider than ``link_mm`` between consecutive ones (a joint's
+    lost stretch on a ring far from the hole joined by its angles)."""
+    if len(ch) < 2:
+        return ch
+    ch = ch[np.argsort(ch[:, 0])]
+    part = np.concatenate([[0], np.cumsum(np.diff(ch[:, 0]) > link_mm)])
+    return ch[part == part[int(np.argmax(ch[:, 2]))]]
 
 
 def _gap_chords(gaps: Sequence[ReturnGap], th0: float, radius: float) -> np.ndarray:

@@ -164,3 +164,120 @@ def gap_clusters(gaps: list[ReturnGap], link_mm: float, min_rings: int = 2) -> l
         groups.setdefault(root(a), []).append(gaps[a])
     out = [g for g in groups.values() if len({x.ring for x in g}) >= min_rings and len({x.ring for x in g}) == len(g)]
     return sorted(out, key=len, reverse=True)
+
+
+@dataclass(frozen=True)
+class HoleExtent:
+    """A hole's reach along the axis on its meridian, from the rings disturbed there.
+
+    Attributes:
+        lo_mm, hi_mm: its ends (axial mm): halfway between the last ring disturbed at
+            the hole's angles and the first clean one beyond it.
+        lo_sigma_mm, hi_sigma_mm: their 1-sigma (that spacing / sqrt(12)).
+        chords: (M, 4) per ring disturbed there outside the chords it was grown from:
+            axial position at the hole's angle, chord centre and half-width (arc mm),
+            ring index.
+        closed: (lower, upper) whether the hole was seen to close on that side; where
+            not (the growth reached the run's end or a joint), the end is the last
+            disturbed ring's position, a bound only.
+    """
+
+    lo_mm: float
+    hi_mm: float
+    lo_sigma_mm: float
+    hi_sigma_mm: float
+    chords: np.ndarray
+    closed: tuple[bool, bool] = (True, True)
+
+
+def ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
+    """Axial position (mm) at angle ``at`` (rad) of a ring whose wall samples lie at
+    (``sigma`` mm, ``phi`` rad): the plane sigma = a + b cos phi + c sin phi fitted to
+    them (twice, without the samples beyond 3 robust sigmas: the rim's stray ones)."""
+    A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
+    keep = np.ones(len(phi), bool)
+    for _ in range(2):
+        p, *_ = np.linalg.lstsq(A[keep], sigma[keep], rcond=None)
+        res = sigma - A @ p
+        keep = np.abs(res) <= max(3.0 * 1.4826 * float(np.median(np.abs(res[keep]))), 0.5)
+    return float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at))
+
+
+def _disturbed_chord(
+    u: np.ndarray, dev: np.ndarray, half: float, step: float, low: float
+) -> tuple[float, float, bool] | None:
+    """(centre, half-width arc mm, whether samples stray) of what disturbs one ring
+    within ``half`` of the hole's centre (``u``: its samples' arc about it, ``dev``:
+    their deviations): its stretches without samples wider than 2.5 sample ``step`` s,
+    and its samples beyond ``low`` either way with a neighbour that is too (then the
+    flag is set); None if nothing does."""
+    inw = np.abs(u) <= half + step
+    if not inw.any():
+        return 0.0, half, False  # the whole window dark: the light lost in the hole
+    o = np.argsort(u[inw])
+    uu, dd = u[inw][o], dev[inw][o]
+    ends: list[float] = []
+    edges = np.concatenate([[-half - step], uu, [half + step]])
+    for i in np.flatnonzero(np.diff(edges) > 2.5 * step):
+        ends += [float(edges[i]), float(edges[i + 1])]
+    off = np.abs(dd) > low
+    nb = np.zeros(len(off), bool)
+    nb[1:] |= off[:-1]
+    nb[:-1] |= off[1:]
+    stray = off & nb
+    ends += [float(x) for x in uu[stray]]
+    if not ends:
+        return None
+    lo, hi = max(min(ends), -half), min(max(ends), half)
+    return 0.5 * (lo + hi), 0.5 * max(hi - lo, step), bool(stray.any())
+
+
+def hole_extent(
+    ring_z: dict[int, float],
+    u: np.ndarray,
+    dev: np.ndarray,
+    frame: np.ndarray,
+    inside: set[int],
+    half_width: float,
+    low: float,
+    stops: list[tuple[float, float]],
+) -> HoleExtent | None:
+    """Grow a hole seen by the rings ``inside`` along the axis over the rings next to it
+    that are disturbed at its angles (:func:`_disturbed_chord`, within ``half_width`` arc
+    mm of its centre; ``u``: every sample's arc about it, ``dev`` its deviation, ``low``
+    the deviation that counts): on the side where the branch wall meets the main wall at
+    an obtuse angle, it stays within the feature threshold, or the rings keep a few
+    samples in the hole, and the deep samples and the rings' lost stretches see only
+    part of it. ``ring_z``: each ring's axial position at the hole's angle. Rings in
+    ``stops`` (axial bands: the joints' gaps) end the growth: a side reaching one or
+    the run's end is open (:attr:`HoleExtent.closed`). None without a ring inside."""
+    order = sorted(ring_z, key=lambda k: ring_z[k])
+    pos = [i for i, k in enumerate(order) if k in inside]
+    if not pos:
+        return None
+    ends, sig, rows, closed = [], [], [], []
+    for direction, start in ((-1, min(pos)), (1, max(pos))):
+        i, j, dark = start, start + direction, []
+        while 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops):
+            k = order[j]
+            on = frame == k
+            uk = u[on]
+            step = float(np.median(np.diff(np.sort(uk)))) if on.sum() >= 12 else 0.0
+            got = _disturbed_chord(uk, dev[on], half_width, step, low) if step > 0 else None
+            if got is None:
+                break
+            # Rings only missing samples there count when a ring beyond them shows
+            # stray samples (the hole's light lost, not a shadow past its rim).
+            dark.append((ring_z[k], got[0], got[1], float(k)))
+            if got[2]:
+                rows += dark
+                dark, i = [], j
+            j += direction
+        j = i + direction
+        shut = 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops)
+        z_in = ring_z[order[i]]
+        z_out = ring_z[order[j]] if shut else z_in
+        ends.append(0.5 * (z_in + z_out))
+        sig.append(abs(z_out - z_in) / math.sqrt(12.0))
+        closed.append(shut)
+    return HoleExtent(ends[0], ends[1], sig[0], sig[1], np.array(rows).reshape(-1, 4), (closed[0], closed[1]))

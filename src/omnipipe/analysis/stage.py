@@ -287,7 +287,7 @@ def run(
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
         config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor,
-        feature_zones(feats.features, radius, config.features.margin_mm),
+        feature_zones(feats.features, radius, config.features.margin_mm, feats.opening_zones),
     )
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
