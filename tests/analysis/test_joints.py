@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from omnipipe.analysis.centreline import Centreline
-from omnipipe.analysis.feature_types import Joint
+from omnipipe.analysis.feature_rings import Rings
+from omnipipe.analysis.feature_types import Joint, Lateral
 from omnipipe.analysis.features import FeatureConfig, find_features
+from omnipipe.analysis.joints import offset_joints
 
 R = 267.0
 GAP_AT, GAP_MM, DEPTH_MM = -190.0, 10.0, 11.5
@@ -106,3 +108,42 @@ def test_two_gaps_of_raised_rings_linked_along_the_run_are_two_joints(seed: int)
         # Rings ~6 mm apart: the edges lie between two rings' centres.
         assert abs(j.axial_mm - g) <= max(3.0 * j.axial_sigma_mm, 3.0), (j, g)
         assert abs(j.gap_mm - w) <= max(3.0 * j.gap_sigma_mm, 3.0), (j, w)
+
+
+def _offset_step(seed: int) -> tuple[Centreline, Rings]:
+    """Rings every ~6 mm over 120 mm of a 300 mm pipe, square to it, wall noise 0.3 mm;
+    the section beyond axial 0 displaced 6 mm sideways (an offset joint whose gap lies
+    between two rings): the rings' centres step 6 mm there."""
+    rng = np.random.default_rng(seed)
+    radius = 150.0
+    centres = -60.0 + np.cumsum(rng.uniform(5.0, 7.0, 20))
+    k = len(centres)
+    theta = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    sig = np.repeat(centres, theta.size)
+    rho = radius + rng.normal(0.0, 0.3, sig.size)
+    th = np.tile(theta, k)
+    frame = np.repeat(np.arange(k), theta.size)
+    z = np.tile([0.0, 0.0, 1.0], (k, 1))
+    world = centres[:, None] * z + 6.0 * (centres > 0.0)[:, None] * np.array([1.0, 0.0, 0.0])
+    line = Centreline(centres, world, z, np.tile([1.0, 0.0, 0.0], (k, 1)), np.tile([0.0, 1.0, 0.0], (k, 1)),
+                      np.full(k, radius), [])
+    rings = Rings(sig, rho, th, frame, frame, centres, np.zeros(sig.size), 0.3)
+    return line, rings
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_offset_step_is_a_joint_unless_a_lateral_opening_is_there(seed: int) -> None:
+    """The step alone is a joint (offset within 3 sigma of 6 mm); within a found
+    lateral's reach it is not (a hole's samples pull its rings' section centres)."""
+    line, rings = _offset_step(seed)
+    found = offset_joints(FeatureConfig(), line, rings, [])
+    assert len(found) == 1, found
+    j = found[0]
+    assert abs(j.offset_mm - 6.0) <= max(3.0 * j.offset_sigma_mm, 0.3), j
+    assert abs(j.axial_mm) <= 3.0 * j.axial_sigma_mm + 3.5, j
+    hole = Lateral(axial_mm=30.0, axial_sigma_mm=2.0, angle_deg=90.0, angle_sigma_deg=1.0,
+                   diameter_mm=60.0, diameter_sigma_mm=2.0, points=50)
+    assert offset_joints(FeatureConfig(), line, rings, [hole]) == []
+    away = Lateral(axial_mm=100.0, axial_sigma_mm=2.0, angle_deg=90.0, angle_sigma_deg=1.0,
+                   diameter_mm=60.0, diameter_sigma_mm=2.0, points=50)
+    assert len(offset_joints(FeatureConfig(), line, rings, [away])) == 1
