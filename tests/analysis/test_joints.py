@@ -147,3 +147,39 @@ def test_offset_step_is_a_joint_unless_a_lateral_opening_is_there(seed: int) -> 
     away = Lateral(axial_mm=100.0, axial_sigma_mm=2.0, angle_deg=90.0, angle_sigma_deg=1.0,
                    diameter_mm=60.0, diameter_sigma_mm=2.0, points=50)
     assert len(offset_joints(FeatureConfig(), line, rings, [away])) == 1
+
+
+def _reducer(seed: int, gap: bool) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Seven rings 12 mm apart (jittered) through a 275 -> 222 mm reducer 41 mm long
+    (bench seed 30), square to the pipe, wall noise 0.5 mm; with ``gap``, a joint 11 mm
+    wide at -75.3 mm on the ramp, the ring at -79 lying in it raised 5 mm (seed 30's
+    stood 4.5 mm above its neighbours' chord): below the flat upstream wall's level."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([-103.4, -91.5, -79.3, -66.8, -54.3, -42.0, -29.9]) + rng.uniform(-0.5, 0.5, 7)
+    theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    radius = np.interp(centres, [-88.0, -47.0], [137.5, 111.0])
+    sig, rho, th, frame = [], [], [], []
+    for k, (c, r0) in enumerate(zip(centres, radius, strict=True)):
+        r = r0 + rng.normal(0.0, 0.5, theta.size) + (5.0 if gap and abs(c + 75.3) <= 5.5 else 0.0)
+        sig.append(np.full(theta.size, c))
+        rho.append(r)
+        th.append(theta)
+        frame.append(np.full(theta.size, k))
+    k = len(centres)
+    z = np.tile([0.0, 0.0, 1.0], (k, 1))
+    line = Centreline(centres, centres[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)),
+                      np.tile([0.0, 1.0, 0.0], (k, 1)), radius, [])
+    return line, *(np.concatenate(a) for a in (sig, rho, th, frame))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_joint_on_a_reducers_ramp_is_found_and_the_ramp_alone_is_none(seed: int) -> None:
+    line, sigma, rho, theta, frame = _reducer(seed, gap=True)
+    found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 125.0)
+    joints = [f for f in found.features if isinstance(f, Joint)]
+    assert len(joints) == 1, found.features
+    # One ring in the gap, 12 mm from the next: the joint lies between its neighbours.
+    assert abs(joints[0].axial_mm + 75.3) <= max(3.0 * joints[0].axial_sigma_mm, 6.0), joints
+    line, sigma, rho, theta, frame = _reducer(seed, gap=False)
+    plain = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 125.0)
+    assert not [f for f in plain.features if isinstance(f, Joint)], plain.features
