@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from omnipipe.analysis.centreline import Centreline
-from omnipipe.analysis.feature_types import Joint
+from omnipipe.analysis.feature_rings import Rings
+from omnipipe.analysis.feature_types import Joint, Lateral
 from omnipipe.analysis.features import FeatureConfig, find_features
+from omnipipe.analysis.joints import offset_joints
 
 R = 267.0
 GAP_AT, GAP_MM, DEPTH_MM = -190.0, 10.0, 11.5
@@ -106,3 +108,78 @@ def test_two_gaps_of_raised_rings_linked_along_the_run_are_two_joints(seed: int)
         # Rings ~6 mm apart: the edges lie between two rings' centres.
         assert abs(j.axial_mm - g) <= max(3.0 * j.axial_sigma_mm, 3.0), (j, g)
         assert abs(j.gap_mm - w) <= max(3.0 * j.gap_sigma_mm, 3.0), (j, w)
+
+
+def _offset_step(seed: int) -> tuple[Centreline, Rings]:
+    """Rings every ~6 mm over 120 mm of a 300 mm pipe, square to it, wall noise 0.3 mm;
+    the section beyond axial 0 displaced 6 mm sideways (an offset joint whose gap lies
+    between two rings): the rings' centres step 6 mm there."""
+    rng = np.random.default_rng(seed)
+    radius = 150.0
+    centres = -60.0 + np.cumsum(rng.uniform(5.0, 7.0, 20))
+    k = len(centres)
+    theta = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    sig = np.repeat(centres, theta.size)
+    rho = radius + rng.normal(0.0, 0.3, sig.size)
+    th = np.tile(theta, k)
+    frame = np.repeat(np.arange(k), theta.size)
+    z = np.tile([0.0, 0.0, 1.0], (k, 1))
+    world = centres[:, None] * z + 6.0 * (centres > 0.0)[:, None] * np.array([1.0, 0.0, 0.0])
+    line = Centreline(centres, world, z, np.tile([1.0, 0.0, 0.0], (k, 1)), np.tile([0.0, 1.0, 0.0], (k, 1)),
+                      np.full(k, radius), [])
+    rings = Rings(sig, rho, th, frame, frame, centres, np.zeros(sig.size), 0.3)
+    return line, rings
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_offset_step_is_a_joint_unless_a_lateral_opening_is_there(seed: int) -> None:
+    """The step alone is a joint (offset within 3 sigma of 6 mm); within a found
+    lateral's reach it is not (a hole's samples pull its rings' section centres)."""
+    line, rings = _offset_step(seed)
+    found = offset_joints(FeatureConfig(), line, rings, [])
+    assert len(found) == 1, found
+    j = found[0]
+    assert abs(j.offset_mm - 6.0) <= max(3.0 * j.offset_sigma_mm, 0.3), j
+    assert abs(j.axial_mm) <= 3.0 * j.axial_sigma_mm + 3.5, j
+    hole = Lateral(axial_mm=30.0, axial_sigma_mm=2.0, angle_deg=90.0, angle_sigma_deg=1.0,
+                   diameter_mm=60.0, diameter_sigma_mm=2.0, points=50)
+    assert offset_joints(FeatureConfig(), line, rings, [hole]) == []
+    away = Lateral(axial_mm=100.0, axial_sigma_mm=2.0, angle_deg=90.0, angle_sigma_deg=1.0,
+                   diameter_mm=60.0, diameter_sigma_mm=2.0, points=50)
+    assert len(offset_joints(FeatureConfig(), line, rings, [away])) == 1
+
+
+def _reducer(seed: int, gap: bool) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Seven rings 12 mm apart (jittered) through a 275 -> 222 mm reducer 41 mm long
+    (bench seed 30), square to the pipe, wall noise 0.5 mm; with ``gap``, a joint 11 mm
+    wide at -75.3 mm on the ramp, the ring at -79 lying in it raised 5 mm (seed 30's
+    stood 4.5 mm above its neighbours' chord): below the flat upstream wall's level."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([-103.4, -91.5, -79.3, -66.8, -54.3, -42.0, -29.9]) + rng.uniform(-0.5, 0.5, 7)
+    theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    radius = np.interp(centres, [-88.0, -47.0], [137.5, 111.0])
+    sig, rho, th, frame = [], [], [], []
+    for k, (c, r0) in enumerate(zip(centres, radius, strict=True)):
+        r = r0 + rng.normal(0.0, 0.5, theta.size) + (5.0 if gap and abs(c + 75.3) <= 5.5 else 0.0)
+        sig.append(np.full(theta.size, c))
+        rho.append(r)
+        th.append(theta)
+        frame.append(np.full(theta.size, k))
+    k = len(centres)
+    z = np.tile([0.0, 0.0, 1.0], (k, 1))
+    line = Centreline(centres, centres[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)),
+                      np.tile([0.0, 1.0, 0.0], (k, 1)), radius, [])
+    return line, *(np.concatenate(a) for a in (sig, rho, th, frame))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_joint_on_a_reducers_ramp_is_found_and_the_ramp_alone_is_none(seed: int) -> None:
+    line, sigma, rho, theta, frame = _reducer(seed, gap=True)
+    found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 125.0)
+    joints = [f for f in found.features if isinstance(f, Joint)]
+    assert len(joints) == 1, found.features
+    # One ring in the gap, 12 mm from the next: the joint lies between its neighbours.
+    assert abs(joints[0].axial_mm + 75.3) <= max(3.0 * joints[0].axial_sigma_mm, 6.0), joints
+    line, sigma, rho, theta, frame = _reducer(seed, gap=False)
+    plain = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 125.0)
+    assert not [f for f in plain.features if isinstance(f, Joint)], plain.features

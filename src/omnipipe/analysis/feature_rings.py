@@ -118,6 +118,7 @@ def ring_deviations(
     raised = np.zeros(len(rings), bool)
     noise0 = 1.4826 * float(np.median(np.abs(coef[:, 0] - c0))) + 1e-9
     peak = _local_peaks(coef[:, 0], rs, config.min_depth_mm, config.joint_max_gap_mm)
+    peak = [p if p is not None else q for p, q in zip(peak, _ramp_peaks(coef[:, 0], rs, config.min_depth_mm), strict=True)]
     # A running median lags a taper by up to a ring spacing's drop: a ring counts as
     # raised only above the lines both sides' rings give it too.
     _, hi = _wall_level(coef[:, 0], rs, config.window_mm)
@@ -201,4 +202,24 @@ def raised_blocks(raised: np.ndarray, ring_sigma: np.ndarray) -> np.ndarray:
     nb[:-1] |= r[1:]
     out = np.zeros(len(raised), bool)
     out[order] = r & nb
+    return out
+
+
+def _ramp_peaks(c0: np.ndarray, rs: np.ndarray, min_depth_mm: float) -> list[float | None]:
+    """Per ring (ordered along the axis by ``rs``), its two neighbours' chord at its
+    position if the ring stands more than ``min_depth_mm`` above that chord and above
+    the line its two nearer rings on one side give it (a ring in a joint's gap on a
+    reducer's ramp: bench seed 30, whose upstream rings lie before the ramp), else None.
+    A taper's kink raises its ring above the chord but onto both sides' lines."""
+    out: list[float | None] = [None] * len(c0)
+    o = np.argsort(rs)
+    for j in range(2, len(o) - 2):
+        i, a, b = o[j], o[j - 1], o[j + 1]
+        chord = float(c0[a] + (rs[i] - rs[a]) / max(rs[b] - rs[a], 1e-9) * (c0[b] - c0[a]))
+        sides = []
+        for p, q in ((o[j - 2], a), (b, o[j + 2])):
+            slope = (c0[q] - c0[p]) / max(abs(rs[q] - rs[p]), 1e-9) * np.sign(rs[q] - rs[p])
+            sides.append(float(c0[q] + slope * (rs[i] - rs[q])))
+        if c0[i] - chord > min_depth_mm and c0[i] - min(sides) > min_depth_mm:
+            out[i] = chord
     return out
