@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnipipe.sfm.adjusted_steps import MOVED, confirm_adjusted
+from omnipipe.sfm.adjusted_steps import MOVED, check_adjusted, confirm_adjusted
 from omnipipe.sfm.scale_check import ScaleCheckConfig, StepCheck
 
 
@@ -48,3 +48,28 @@ def test_other_flags_and_too_few_matches_are_left_alone() -> None:
     checks[2] = StepCheck(2, 3, 8.0, 0.9, 10.0, 5, 8.0, "none", f"{MOVED} to 10.0 mm, +22 % from its measured length")
     out = confirm_adjusted(checks, _poses(adjusted), np.full(4, 2), ScaleCheckConfig())
     assert out[1] == checks[1] and out[2] == checks[2]
+
+
+def test_a_step_held_to_the_wall_s_reading_is_not_flagged() -> None:
+    """Seed 29's case (smooth, 8 steps of 20-27 mm): two steps' sources 4-7 % short of
+    the truth, the adjustment held to the wall's readings (true within 0.3 %): the
+    adjusted steps lie 1.2-1.5 mm from their sources and were flagged; the wall's
+    reading confirms them. A reading a wall period off (+60 %) or one the step left
+    confirms nothing."""
+    cfg = ScaleCheckConfig()
+    rng = np.random.default_rng(29)
+    truth = rng.uniform(18.0, 27.0, 8)
+    measured = truth * (1 + rng.normal(0, 0.003, 8))
+    measured[[2, 3]] = truth[[2, 3]] * np.array([0.93, 0.95])  # the sources short
+    checks = [StepCheck(k, k + 1, v, 0.1, v, 150, v, "high") for k, v in enumerate(measured)]
+    world = np.tile(np.eye(4), (9, 1, 1))
+    world[1:, 2, 3] = np.cumsum(truth)  # held to the wall: right
+    walls = {k: (float(v) * (1 + rng.normal(0, 0.003)), 0.37) for k, v in enumerate(truth)}
+    flagged = [k for k, c in enumerate(check_adjusted(checks, world, cfg)) if not c.reliable]
+    assert flagged == [2, 3]
+    assert all(c.reliable for c in check_adjusted(checks, world, cfg, wall_mm=walls))
+    off = dict(walls)
+    off[2] = (walls[2][0] * 1.6, 0.37)  # a course off: no witness
+    off[3] = (walls[3][0] + 1.5, 0.37)  # the step left the reading by 4 sigma
+    flagged = [k for k, c in enumerate(check_adjusted(checks, world, cfg, wall_mm=off)) if not c.reliable]
+    assert flagged == [2, 3]

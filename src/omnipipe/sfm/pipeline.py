@@ -258,6 +258,7 @@ def _adjusted_and_checked(
         config.scale_check,
         offset if scale.wall_anchored else 1.0,
         None if scale.wall_anchored else offset,
+        {p.a: (p.length_mm, p.sigma_mm) for p in walls.priors},
     )
     if scale.wall_anchored:
         checks = confirm_adjusted(
