@@ -26,8 +26,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from omnipipe.errors import ShapeError
-from omnipipe.sfm._kernels import schur_blocks
-from omnipipe.sfm._normal_kernels import hessian_times, robust_blocks
+from omnipipe.sfm._kernels import hessian_times, robust_blocks, schur_blocks
 
 
 @dataclass(frozen=True)
