@@ -153,6 +153,18 @@ def robust_blocks(indptr, indices, data, scale, rs, n_pose, n_pts):  # pragma: n
         V: (n_pts, 3, 3) the points' diagonal blocks.
         g: (n,) the gradient.
     """
+    ok, U, V, g, point, count = _diagonal_blocks(indptr, indices, data, scale, rs, n_pose, n_pts)
+    if not ok:
+        return False, U, np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), V, g
+    start, order = _rows_by_point(point, count, n_pts)
+    w_indptr, w_indices, w_data = _w_columns(indptr, indices, data, scale, start, order, n_pose, n_pts)
+    return True, U, w_indptr, w_indices, w_data, V, g
+
+
+@numba.njit(cache=True)
+def _diagonal_blocks(indptr, indices, data, scale, rs, n_pose, n_pts):  # pragma: no cover - compiled
+    """``U``, ``V`` and ``g`` of :func:`robust_blocks`, each row's point (-1: none) and
+    the rows per point (``count[p + 1]``); ok False when a row touches two points."""
     m = indptr.shape[0] - 1
     n = n_pose + 3 * n_pts
     U = np.zeros((n_pose, n_pose))
@@ -176,28 +188,37 @@ def robust_blocks(indptr, indices, data, scale, rs, n_pose, n_pts):  # pragma: n
                 if point[i] < 0:
                     point[i] = p
                 elif point[i] != p:
-                    return False, U, np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), V, g
+                    return False, U, V, g, point, count
                 for jb in range(indptr[i], indptr[i + 1]):
                     cb = indices[jb]
                     if cb >= n_pose and (cb - n_pose) // 3 == p:
                         V[p, (ca - n_pose) % 3, (cb - n_pose) % 3] += va * (s * data[jb])
         if point[i] >= 0:
             count[point[i] + 1] += 1
-    # The rows of each point, in ascending order (a stable counting sort).
+    return True, U, V, g, point, count
+
+
+@numba.njit(cache=True)
+def _rows_by_point(point, count, n_pts):  # pragma: no cover - compiled
+    """(start (n_pts + 1,), order): each point's rows ascending at order[start[p]:start[p + 1]]
+    (a stable counting sort)."""
     start = np.cumsum(count)
     order = np.empty(start[n_pts], np.int64)
     fill = start[:n_pts].copy()
-    for i in range(m):
+    for i in range(point.shape[0]):
         if point[i] >= 0:
             order[fill[point[i]]] = i
             fill[point[i]] += 1
-    # W's columns: the pose columns of each point's rows, ascending; zeros left out.
+    return start, order
+
+
+@numba.njit(cache=True)
+def _w_capacity(indptr, indices, start, order, n_pose, n_pts):  # pragma: no cover - compiled
+    """An upper bound of ``W``'s entries: 3 x the poses each point's rows touch."""
     seen = np.zeros(n_pose, np.bool_)
-    acc = np.zeros((n_pose, 3))
     rows = np.empty(n_pose, np.int64)
-    w_indptr = np.zeros(3 * n_pts + 1, np.int64)
     cap = 0
-    for p in range(n_pts):  # an upper bound of W's entries
+    for p in range(n_pts):
         nr = 0
         for q in range(start[p], start[p + 1]):
             i = order[q]
@@ -210,6 +231,18 @@ def robust_blocks(indptr, indices, data, scale, rs, n_pose, n_pts):  # pragma: n
         for a in range(nr):
             seen[rows[a]] = False
         cap += 3 * nr
+    return cap
+
+
+@numba.njit(cache=True)
+def _w_columns(indptr, indices, data, scale, start, order, n_pose, n_pts):  # pragma: no cover - compiled
+    """``W`` of :func:`robust_blocks` column-wise: the pose columns of each point's rows,
+    ascending, exact zeros left out."""
+    seen = np.zeros(n_pose, np.bool_)
+    acc = np.zeros((n_pose, 3))
+    rows = np.empty(n_pose, np.int64)
+    w_indptr = np.zeros(3 * n_pts + 1, np.int64)
+    cap = _w_capacity(indptr, indices, start, order, n_pose, n_pts)
     w_indices = np.empty(cap, np.int64)
     w_data = np.empty(cap)
     nnz = 0
@@ -245,7 +278,7 @@ def robust_blocks(indptr, indices, data, scale, rs, n_pose, n_pts):  # pragma: n
             acc[sel[a], 0] = 0.0
             acc[sel[a], 1] = 0.0
             acc[sel[a], 2] = 0.0
-    return True, U, w_indptr, w_indices[:nnz], w_data[:nnz], V, g
+    return w_indptr, w_indices[:nnz], w_data[:nnz]
 
 
 @numba.njit(cache=True)

@@ -108,14 +108,11 @@ def check_adjusted(
     ``decided_unit``: the decided lengths' unit in the chain's (the run-wide laser /
     feature-depth gain when the wall anchors the scale: the decided lengths are in
     laser units, the chain in feature-depth units). Without it a run with fewer than
-    :data:`ADJUSTED_OFFSET_MIN_STEPS` steps flagged every step by the gain itself
-    (random-wide seed 20: gain -13 %, 28 of 31 frame steps flagged, all right).
+    :data:`ADJUSTED_OFFSET_MIN_STEPS` steps would flag every step by the gain itself.
 
     A step whose adjusted length is its feature depths' (within ``anchor_agree_log`` and
     ``adjusted_agree_mm``, from at least ``feature_only_min_matches`` matches) is not
-    flagged: the adjustment corrected a wrong decided length (random-wide, 640x480: 5
-    such steps of seeds 6, 11, 13 were flagged at 11-14 % from a laser length 1.7-2.8 mm
-    short, the adjusted length within 0.1-0.6 % of the truth). Only when the feature
+    flagged: the adjustment corrected a wrong decided length. Only when the feature
     depths are an independent measurement in the chain's units: ``feature_unit``, their
     unit in the chain's (a laser-anchored run: the run-wide laser / feature-depth gain),
     is given (None: a wall-anchored run, whose anchors are those feature depths, or an
