@@ -171,7 +171,13 @@ def place_creeps(
     gray: dict[int, np.ndarray] = {}
 
     def g_of(i: int) -> np.ndarray:
+        # Steps are read in order (i - 1, i): only frame i - 1 is kept for the next
+        # step (a whole run's images kept grew the memory with the run).
         if i not in gray:
+            last = gray.get(i - 1)
+            gray.clear()
+            if last is not None:
+                gray[i - 1] = last
             gray[i] = read_gray(i)
         return gray[i]
 
