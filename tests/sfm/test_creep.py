@@ -4,6 +4,7 @@ axial position each frame was rendered at."""
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -159,3 +160,31 @@ def test_frames_inside_a_wall_resolved_step_are_verified_by_the_odometry(seed: i
     assert list(np.flatnonzero(~ok)) == [5, 6]
     assert creep.unverified_runs(ok, 10) == [(15, 17)]
     assert not creep.odometry_verified_steps(poses, 0, n - 1, odometry, np.full(n - 1, 0.5)).any()
+
+
+def test_images_read_are_not_kept_beyond_the_next_step(small_camera: OmniCamera) -> None:
+    """Each frame's image is read once and released once its step is read: a whole
+    run's images held grew the memory with the run (10,000 frames at rest: 818 MB)."""
+    rng = np.random.default_rng(7)
+    wall = _joints_wall(rng)
+    z = np.array([0.0] * 6 + [2.5])
+    moved = np.zeros(len(z), bool)
+    moved[[0, -1]] = True
+    images = [_render(small_camera, wall, float(zi), rng) for zi in z]
+    reads: list[int] = []
+    alive: list[weakref.ref] = []
+    most_alive = 0
+
+    def read(i: int) -> np.ndarray:
+        nonlocal most_alive
+        reads.append(i)
+        img = images[i].copy()
+        alive.append(weakref.ref(img))
+        most_alive = max(most_alive, sum(r() is not None for r in alive))
+        return img
+
+    walls = wall_cylinder(_ring())
+    n = len(z)
+    place_creeps([(0, n - 1, 3.0)], moved, _poses(z, moved), np.ones(n, bool), read, lambda i: walls, small_camera)
+    assert reads == list(range(n))  # every frame read once, in order
+    assert most_alive <= 2  # the step's two frames, never more
