@@ -64,3 +64,14 @@ def skew(v: np.ndarray) -> np.ndarray:
 def rotation_angle(rotation: np.ndarray) -> float:
     """Angle (rad) of a (3, 3) rotation."""
     return float(Rotation.from_matrix(rotation).magnitude())
+
+
+def interpolated_pose(world_from_a: np.ndarray, world_from_b: np.ndarray, f: float) -> np.ndarray:
+    """The (4, 4) pose at fraction ``f`` (0..1) from ``world_from_a`` to ``world_from_b``:
+    position linear, rotation slerped (about the relative rotation's axis)."""
+    ra = Rotation.from_matrix(world_from_a[:3, :3])
+    rel = (ra.inv() * Rotation.from_matrix(world_from_b[:3, :3])).as_rotvec()
+    pose = np.eye(4)
+    pose[:3, :3] = (ra * Rotation.from_rotvec(f * rel)).as_matrix()
+    pose[:3, 3] = (1 - f) * world_from_a[:3, 3] + f * world_from_b[:3, 3]
+    return pose

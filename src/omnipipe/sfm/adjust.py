@@ -21,11 +21,10 @@ from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import ordered_map, shares_files
-from omnipipe.geometry import invert
+from omnipipe.geometry import interpolated_pose, invert
 from omnipipe.memory import release_freed_memory
 from omnipipe.progress import phase
 from omnipipe.sfm.bundle import (
@@ -406,7 +405,7 @@ def resect_pending(
     length was bridged (vision's was not taken, e.g. the odometry overruled a step a
     wall period off). The frames inside such a step are placed at their fraction of
     ``travel_mm`` with the rotation slerped between the keyframes
-    (:func:`_interpolated_pose`): the wall points they would be resected against
+    (:func:`omnipipe.geometry.interpolated_pose`): the wall points they would be resected against
     follow vision's wrong period. The resected pose is kept only where it agrees with
     that placement within the step's sigma. The step itself is flagged already."""
     jobs = []
@@ -469,7 +468,7 @@ class _BridgedPlacement:
         f = travel_fraction(self.travel, self.frames[k], self.frames[k + 1], frame)
         if f is None:
             return resected
-        pose = _interpolated_pose(self.world_from_kf[k], self.world_from_kf[k + 1], f)
+        pose = interpolated_pose(self.world_from_kf[k], self.world_from_kf[k + 1], f)
         count = self.counts.setdefault(k, [0, 0])
         if resected is not None and np.linalg.norm(resected[:3, 3] - pose[:3, 3]) <= sigma:
             count[1] += 1
@@ -494,17 +493,6 @@ def travel_fraction(travel: np.ndarray, first: int, last: int, frame: int) -> fl
     if not (np.isfinite([d0, d1, d]).all() and d1 - d0 > 0):
         return None
     return float(np.clip((d - d0) / (d1 - d0), 0.0, 1.0))
-
-
-def _interpolated_pose(world_from_a: np.ndarray, world_from_b: np.ndarray, f: float) -> np.ndarray:
-    """The (4, 4) pose at fraction ``f`` (0..1) from ``world_from_a`` to ``world_from_b``:
-    position linear, rotation slerped (about the relative rotation's axis)."""
-    ra = Rotation.from_matrix(world_from_a[:3, :3])
-    rel = (ra.inv() * Rotation.from_matrix(world_from_b[:3, :3])).as_rotvec()
-    pose = np.eye(4)
-    pose[:3, :3] = (ra * Rotation.from_rotvec(f * rel)).as_matrix()
-    pose[:3, 3] = (1 - f) * world_from_a[:3, 3] + f * world_from_b[:3, 3]
-    return pose
 
 
 def _unresected_pose(

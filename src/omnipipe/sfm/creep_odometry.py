@@ -28,9 +28,9 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from omnipipe.camera import CameraModel
+from omnipipe.geometry import interpolated_pose
 from omnipipe.inputs.sensors import Odometry, odometry_at
 from omnipipe.sfm.adjust import travel_fraction
 from omnipipe.sfm.creep import place_creeps
@@ -51,17 +51,6 @@ def creep_reason(travel_mm: float, how: str) -> str:
     """The flag of a creeping station (``how``: :data:`BY_ODOMETRY`,
     :data:`BY_WALL_UNBOUND` or :data:`LEFT_STANDING`)."""
     return f"the odometry counted {travel_mm:.1f} mm at a frame taken for standing: {how}"
-
-
-def interpolated(world_from_a: np.ndarray, world_from_b: np.ndarray, f: float) -> np.ndarray:
-    """(4, 4) the pose at fraction ``f`` (0..1) from a to b: position linear, rotation
-    slerped."""
-    ra = Rotation.from_matrix(world_from_a[:3, :3])
-    rel = (ra.inv() * Rotation.from_matrix(world_from_b[:3, :3])).as_rotvec()
-    pose = np.eye(4)
-    pose[:3, :3] = (ra * Rotation.from_rotvec(f * rel)).as_matrix()
-    pose[:3, 3] = (1 - f) * world_from_a[:3, 3] + f * world_from_b[:3, 3]
-    return pose
 
 
 def widened(
@@ -99,7 +88,7 @@ def odometry_placed(
         f = travel_fraction(travel_mm, first, end, i)
         if f is None:
             return None
-        pose[i] = interpolated(world_from_rig[first], world_from_rig[end], f)
+        pose[i] = interpolated_pose(world_from_rig[first], world_from_rig[end], f)
     return pose
 
 

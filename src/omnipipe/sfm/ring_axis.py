@@ -70,8 +70,22 @@ def fit_ring_centre(points_in_rig: np.ndarray) -> RingCentre | None:
     are dropped over :data:`RING_PASSES` passes. None with fewer than
     :data:`MIN_RING_POINTS` points or no ellipse.
     """
+    fit = robust_ellipse_centre(points_in_rig, MIN_RING_POINTS, RING_OUTLIER_FLOOR_MM)
+    if fit is None or not math.isfinite(fit[1]):
+        return None
+    return RingCentre(fit[0], max(CENTRE_SIGMA_GAIN * fit[1], CENTRE_SIGMA_FLOOR_MM))
+
+
+def robust_ellipse_centre(
+    points_in_rig: np.ndarray, min_points: int, floor_mm: float
+) -> tuple[np.ndarray, float] | None:
+    """((3,) the ring's ellipse centre in the rig (mm), the radial residuals' robust
+    sigma (mm)) of (N, 3) ring points: the conic fit of :func:`fit_ring_centre`, points
+    beyond max(:data:`RING_OUTLIER_SIGMAS` sigmas, ``floor_mm``) dropped over
+    :data:`RING_PASSES` passes. None with fewer than ``min_points`` points (kept) or no
+    ellipse."""
     p = np.asarray(points_in_rig, float)
-    if p.ndim != 2 or len(p) < MIN_RING_POINTS:
+    if p.ndim != 2 or len(p) < min_points:
         return None
     mean = p.mean(axis=0)
     _, _, vt = np.linalg.svd(p - mean, full_matrices=False)
@@ -79,7 +93,7 @@ def fit_ring_centre(points_in_rig: np.ndarray) -> RingCentre | None:
     keep = np.ones(len(xy), bool)
     centre, mad = None, math.inf
     for _ in range(RING_PASSES):
-        if keep.sum() < MIN_RING_POINTS:
+        if keep.sum() < min_points:
             return None
         x, y = xy[keep, 0], xy[keep, 1]
         s, *_ = np.linalg.lstsq(np.column_stack([x * x, x * y, y * y, x, y]), np.ones(len(x)), rcond=None)
@@ -92,12 +106,10 @@ def fit_ring_centre(points_in_rig: np.ndarray) -> RingCentre | None:
         r = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", d, q, d), 0) / k_c)  # 1 on the ellipse
         res = (r - 1.0) * math.sqrt(k_c / np.linalg.eigvalsh(q).mean())  # mm
         mad = 1.4826 * float(np.median(np.abs(res[keep] - np.median(res[keep]))))
-        keep = np.abs(res) <= max(RING_OUTLIER_SIGMAS * mad, RING_OUTLIER_FLOOR_MM)
-    if centre is None or not math.isfinite(mad):
+        keep = np.abs(res) <= max(RING_OUTLIER_SIGMAS * mad, floor_mm)
+    if centre is None:
         return None
-    return RingCentre(
-        mean + centre[0] * vt[0] + centre[1] * vt[1], max(CENTRE_SIGMA_GAIN * mad, CENTRE_SIGMA_FLOOR_MM)
-    )
+    return mean + centre[0] * vt[0] + centre[1] * vt[1], mad
 
 
 @dataclass

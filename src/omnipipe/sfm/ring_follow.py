@@ -39,6 +39,7 @@ from dataclasses import replace
 import numpy as np
 
 from omnipipe.inputs.sensors import Imu, odometry_at
+from omnipipe.sfm.ring_axis import robust_ellipse_centre
 from omnipipe.sfm.robot_sensors import CREEP_MIN_MM
 from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES, StepCheck, UnreliableStretch
 from omnipipe.sfm.step_chain import LOST_DIRECTION
@@ -47,11 +48,9 @@ from omnipipe.sfm.types import SfmInputs, SfmResult
 # Fewest accepted ring points for a centre (a conic has five parameters; the robust
 # passes drop defects and water).
 MIN_RING_POINTS = 50
-# Ring points beyond this many robust sigmas (and RING_OUTLIER_FLOOR_MM) of the conic are
-# dropped, in RING_PASSES passes.
-RING_OUTLIER_SIGMAS = 3.0
+# The conic's outlier floor (mm): ring points beyond it and ring_axis.RING_OUTLIER_SIGMAS
+# robust sigmas are dropped, in ring_axis.RING_PASSES passes.
 RING_OUTLIER_FLOOR_MM = 0.3
-RING_PASSES = 3
 # Fewest frames of a stretch with a ring centre of their own for the others' to be
 # interpolated.
 MIN_KNOWN_CENTRES = 3
@@ -109,39 +108,13 @@ def ring_centre(points_in_rig: np.ndarray) -> np.ndarray | None:
 
     A tilted cylinder cuts the plane in an ellipse: a general conic
     ``a x^2 + b xy + c y^2 + d x + e y = 1`` is fitted in the plane's own 2-D basis (the
-    points' principal directions), points beyond :data:`RING_OUTLIER_SIGMAS` robust
-    sigmas of it (defects, water, spurious peaks) dropped over :data:`RING_PASSES`
-    passes. None with fewer than :data:`MIN_RING_POINTS` points or no ellipse.
+    points' principal directions), points beyond :data:`~omnipipe.sfm.ring_axis.RING_OUTLIER_SIGMAS`
+    robust sigmas of it (defects, water, spurious peaks) dropped over
+    :data:`~omnipipe.sfm.ring_axis.RING_PASSES` passes
+    (:func:`~omnipipe.sfm.ring_axis.robust_ellipse_centre`). None with fewer than :data:`MIN_RING_POINTS` points or no ellipse.
     """
-    p = np.asarray(points_in_rig, float)
-    if len(p) < MIN_RING_POINTS:
-        return None
-    mean = p.mean(axis=0)
-    _, _, vt = np.linalg.svd(p - mean, full_matrices=False)
-    e1, e2 = vt[0], vt[1]
-    xy = np.column_stack([(p - mean) @ e1, (p - mean) @ e2])
-    keep = np.ones(len(xy), bool)
-    centre = None
-    for _ in range(RING_PASSES):
-        if keep.sum() < MIN_RING_POINTS:
-            return None
-        x, y = xy[keep, 0], xy[keep, 1]
-        a = np.column_stack([x * x, x * y, y * y, x, y])
-        s, *_ = np.linalg.lstsq(a, np.ones(len(x)), rcond=None)
-        q = np.array([[s[0], s[1] / 2], [s[1] / 2, s[2]]])
-        if np.linalg.det(q) <= 0 or s[0] <= 0:
-            return None
-        centre = np.linalg.solve(2 * q, -s[3:5])
-        d = xy - centre
-        k_c = 1.0 + float(centre @ q @ centre)  # the conic centred: d^T q d = k_c
-        r = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", d, q, d), 0) / k_c)  # 1 on the ellipse
-        scale = np.sqrt(k_c / np.linalg.eigvalsh(q).mean())  # the ellipse's mean radius, mm
-        res = (r - 1.0) * scale
-        mad = 1.4826 * float(np.median(np.abs(res[keep] - np.median(res[keep]))))
-        keep = np.abs(res) <= max(RING_OUTLIER_SIGMAS * mad, RING_OUTLIER_FLOOR_MM)
-    if centre is None:
-        return None
-    return mean + centre[0] * e1 + centre[1] * e2
+    fit = robust_ellipse_centre(points_in_rig, MIN_RING_POINTS, RING_OUTLIER_FLOOR_MM)
+    return None if fit is None else fit[0]
 
 
 def unmeasured(check: StepCheck) -> bool:
