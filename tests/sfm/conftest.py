@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -64,3 +66,19 @@ def _problem(seed: int, fixed: int) -> tuple[OmniCamera, BundleProblem]:
 def bundle_problem():
     """``bundle_problem(seed, fixed) -> (camera, BundleProblem)``."""
     return _problem
+
+
+def _central_differences(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    J = np.empty((len(fun(x)), len(x)))
+    for i in range(len(x)):
+        e = np.zeros(len(x))
+        e[i] = h[i]
+        J[:, i] = (fun(x + e) - fun(x - e)) / (2 * h[i])
+    return J
+
+
+@pytest.fixture
+def central_differences() -> Callable[..., np.ndarray]:
+    """``(fun, x, h) -> (m, n)``: the Jacobian of ``fun`` at ``x`` (n,) by central
+    differences with steps ``h`` (n,): the reference of the analytic Jacobians."""
+    return _central_differences

@@ -9,16 +9,7 @@ from omnipipe.camera import CameraModel, OmniCamera
 from omnipipe.sfm.bundle import BundleObjective, _so3_left_jacobian
 
 
-def _central_differences(fun, x: np.ndarray, h: np.ndarray) -> np.ndarray:
-    J = np.empty((len(fun(x)), len(x)))
-    for i in range(len(x)):
-        e = np.zeros(len(x))
-        e[i] = h[i]
-        J[:, i] = (fun(x + e) - fun(x - e)) / (2 * h[i])
-    return J
-
-
-def test_so3_left_jacobian_matches_finite_differences() -> None:
+def test_so3_left_jacobian_matches_finite_differences(central_differences) -> None:
     rng = np.random.default_rng(0)
     rotvecs = np.concatenate([
         rng.normal(0, 1.0, (20, 3)),
@@ -31,7 +22,7 @@ def test_so3_left_jacobian_matches_finite_differences() -> None:
     X = rng.normal(0, 100.0, 3)
     for w, Jl in zip(rotvecs, _so3_left_jacobian(rotvecs), strict=True):
         R = Rotation.from_rotvec(w).as_matrix()
-        fd = _central_differences(lambda v: Rotation.from_rotvec(v).as_matrix() @ X, w, np.full(3, 1e-6))
+        fd = central_differences(lambda v: Rotation.from_rotvec(v).as_matrix() @ X, w, np.full(3, 1e-6))
         # d (R(w) X) / d w = -[R X]x Jl(w)
         q = R @ X
         skew = np.array([[0, -q[2], q[1]], [q[2], 0, -q[0]], [-q[1], q[0], 0]])
@@ -51,7 +42,7 @@ class _GenericJacobianCamera(CameraModel):
         return self._camera.unproject(pixels)
 
 
-def test_bundle_jacobian_matches_finite_differences(bundle_problem) -> None:
+def test_bundle_jacobian_matches_finite_differences(bundle_problem, central_differences) -> None:
     for seed, fixed, wrap in [(1, 1, False), (2, 2, False), (3, 1, True)]:
         camera, problem = bundle_problem(seed, fixed)
         if wrap:
@@ -64,7 +55,7 @@ def test_bundle_jacobian_matches_finite_differences(bundle_problem) -> None:
         J = jacobian(x0)
         assert J.shape == (len(r), len(x0))
         J = J.toarray()
-        fd = _central_differences(residuals, x0, 1e-6 * np.maximum(1.0, np.abs(x0)))
+        fd = central_differences(residuals, x0, 1e-6 * np.maximum(1.0, np.abs(x0)))
         # Rows whose validity flips within the step are not differentiable: skip them.
         h = 1e-6 * np.maximum(1.0, np.abs(x0))
         flips = np.zeros(len(r), bool)
@@ -84,7 +75,7 @@ def test_bundle_jacobian_matches_finite_differences(bundle_problem) -> None:
         assert np.abs(fd[ok][J[ok] == 0]).max() < 1e-6 * np.abs(fd).max()
 
 
-def test_step_length_prior_jacobian_matches_finite_differences(bundle_problem) -> None:
+def test_step_length_prior_jacobian_matches_finite_differences(bundle_problem, central_differences) -> None:
     """The step-length priors' rows (each touches its two poses) against central
     differences; a prior on a fixed keyframe pair's first has entries for the free one only."""
     camera, problem = bundle_problem(4, 2)
@@ -98,7 +89,7 @@ def test_step_length_prior_jacobian_matches_finite_differences(bundle_problem) -
     S = len(problem.prior_a)
     J = objective.jacobian(x0).toarray()[-S:]
     h = 1e-6 * np.maximum(1.0, np.abs(x0))
-    fd = _central_differences(lambda x: objective.residuals(x)[-S:], x0, h)
+    fd = central_differences(lambda x: objective.residuals(x)[-S:], x0, h)
     assert np.abs(J - fd).max() < 1e-5 * np.abs(fd).max()
     assert np.abs(fd[0]).max() == 0 and np.all(J[0] == 0)  # keyframes 0, 1 fixed: constant
     # Residual: weight (|C_b - C_a| - length) / sigma.

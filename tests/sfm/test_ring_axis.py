@@ -23,15 +23,6 @@ from omnipipe.sim.scenarios import paper_rig
 LASER_Z = -82.0
 
 
-def _central_differences(fun, x: np.ndarray, h: np.ndarray) -> np.ndarray:
-    J = np.empty((len(fun(x)), len(x)))
-    for i in range(len(x)):
-        e = np.zeros(len(x))
-        e[i] = h[i]
-        J[:, i] = (fun(x + e) - fun(x - e)) / (2 * h[i])
-    return J
-
-
 def _axis_centre(world_from_rig: np.ndarray) -> np.ndarray:
     """Where the world's z axis (the pipe's axis) pierces the rig's laser plane z = LASER_Z, in the rig."""
     T = invert(world_from_rig)
@@ -40,7 +31,7 @@ def _axis_centre(world_from_rig: np.ndarray) -> np.ndarray:
     return T[:3, :3] @ np.array([0.0, 0.0, s]) + T[:3, 3]
 
 
-def test_ring_rows_jacobian_matches_finite_differences(bundle_problem) -> None:
+def test_ring_rows_jacobian_matches_finite_differences(bundle_problem, central_differences) -> None:
     """Ring rows (each touches three poses) against central differences, after an odd
     number of step-length priors; rows on held keyframes have entries for free ones only."""
     camera, problem = bundle_problem(5, 2)
@@ -54,7 +45,7 @@ def test_ring_rows_jacobian_matches_finite_differences(bundle_problem) -> None:
     x0 = objective.x0
     T2 = 2 * len(problem.rings)
     J = objective.jacobian(x0).toarray()[-T2:]
-    fd = _central_differences(lambda x: objective.residuals(x)[-T2:], x0, 1e-6 * np.maximum(1.0, np.abs(x0)))
+    fd = central_differences(lambda x: objective.residuals(x)[-T2:], x0, 1e-6 * np.maximum(1.0, np.abs(x0)))
     assert np.abs(J - fd).max() < 1e-5 * np.abs(fd).max()
     assert np.all(J[:, objective.n_pose :] == 0)  # no point enters a ring row
 
