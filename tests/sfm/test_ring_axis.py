@@ -166,3 +166,42 @@ def test_rows_are_added_only_where_the_adjustment_left_a_kink(pipe_scene) -> Non
     rows = axis_rows(ba.world_from_rig, centres)
     assert (np.linalg.norm(ring_offsets(ba.world_from_rig, rows), axis=1) / rows.sigma_mm).max() <= 3.0
     assert _held_to_rings(ctx, config, straight, ba, centres, frames) is ba and not ctx.warnings
+
+
+def _pierce(world_from_rig: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """Where the pipe's axis (the world z axis moved by ``shift`` (2,) mm across)
+    pierces the rig's laser plane z = LASER_Z, in the rig."""
+    moved = world_from_rig.copy()
+    moved[:2, 3] -= shift
+    return _axis_centre(moved)
+
+
+def test_rows_leave_out_a_step_of_the_pipe_axis() -> None:
+    """Seeded: 7 keyframes 12 mm apart along a straight path (0.05 mm / 0.02 deg wobble),
+    the pipe's next section displaced 4 mm across between keyframes 3 and 4 (a joint's
+    offset: the rings' centres move in the rigs, the rigs go on straight): the two
+    triples spanning the step make no row (held to them, the adjustment would bend the
+    path to erase the offset), the other three lie within 3 sigma. The same path with
+    keyframe 3 kinked instead (1.5 mm sideways, 0.5 deg) and no step: all five rows,
+    the kink's beyond 3 sigma."""
+    rng = np.random.default_rng(5)
+    truth = np.array([
+        make_transform(Rotation.from_rotvec(np.r_[rng.normal(0, np.radians(0.02), 2), 0.0]).as_matrix(),
+                       np.r_[rng.normal(0, 0.05, 2), 12.0 * k])
+        for k in range(7)
+    ])
+    step = np.array([2.4, -3.2])
+    shifts = [np.zeros(2) if k <= 3 else step for k in range(7)]
+    centres = [RingCentre(_pierce(T, s) + np.r_[rng.normal(0, 0.01, 2), 0.0], 0.02) for T, s in zip(truth, shifts, strict=True)]
+    rows = axis_rows(truth, centres)
+    assert sorted(map(tuple, rows.kf[:, :2].tolist())) == [(0, 1), (1, 2), (4, 5)]
+    assert (np.linalg.norm(ring_offsets(truth, rows), axis=1) / rows.sigma_mm).max() < 3.0
+    kinked = truth.copy()
+    kinked[3] = make_transform(
+        Rotation.from_rotvec([np.radians(0.5), 0.0, 0.0]).as_matrix() @ truth[3, :3, :3], truth[3, :3, 3] + [1.5, 0.0, 0.0]
+    )
+    centres = [RingCentre(_pierce(T, np.zeros(2)) + np.r_[rng.normal(0, 0.01, 2), 0.0], 0.02) for T in truth]
+    rows = axis_rows(kinked, centres)
+    assert len(rows) == 5
+    z = np.linalg.norm(ring_offsets(kinked, rows), axis=1) / rows.sigma_mm
+    assert z[rows.kf[:, 1] == 3][0] > 3.0
