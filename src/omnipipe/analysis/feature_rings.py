@@ -136,6 +136,24 @@ def ring_deviations(
     return dev, rs, raised
 
 
+def robust_sine_fit(
+    sigma: np.ndarray, phi: np.ndarray, passes: int, k_sigmas: float, floor_mm: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plane sigma = p0 + p1 cos phi + p2 sin phi (a ring's or a gap's: an axial
+    position, mm, that varies once round the pipe, angle phi rad) fitted to (M,)
+    samples by least squares ``passes`` times, each time without the samples beyond
+    max(``k_sigmas`` robust sigmas (1.4826 x the median absolute residual of the samples
+    kept), ``floor_mm``) of the last fit. ((3,) p of the last fit, (M,) every sample's
+    residual to it, (M,) the samples within the bound of those residuals)."""
+    A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
+    keep = np.ones(len(phi), bool)
+    for _ in range(passes):
+        p, *_ = np.linalg.lstsq(A[keep], sigma[keep], rcond=None)
+        res = sigma - A @ p
+        keep = np.abs(res) <= max(k_sigmas * 1.4826 * float(np.median(np.abs(res[keep]))), floor_mm)
+    return p, res, keep
+
+
 def _side_level(c0: np.ndarray, rs: np.ndarray, nb: np.ndarray, at: float) -> float:
     """The mean radius the rings ``nb`` (on one side) give at ``at``: their Theil-Sen
     line (median of the pairwise slopes) there; one ring: its radius."""

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from omnipipe.analysis.centreline import Centreline
-from omnipipe.analysis.feature_rings import FeatureConfig, Rings
+from omnipipe.analysis.feature_rings import FeatureConfig, Rings, robust_sine_fit
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 
 
@@ -235,13 +235,7 @@ def _deep_share(
     centreline, is a plane across the axial coordinate); and that plane's band (None: one
     ring holds the candidates, unless it lies in the gap: ``raised``, (R,) per ring)."""
     thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
-    th, s = r.theta[members], r.sigma[members]
-    A = np.column_stack([np.ones(len(s)), np.cos(th), np.sin(th)])
-    keep = np.ones(len(s), bool)
-    for _ in range(3):
-        p, *_ = np.linalg.lstsq(A[keep], s[keep], rcond=None)
-        res = s - A @ p
-        keep = np.abs(res) <= max(2.5 * 1.4826 * float(np.median(np.abs(res[keep]))), 1.0)
+    p, res, keep = robust_sine_fit(r.sigma[members], r.theta[members], 3, 2.5, 1.0)
     out = []
     lo_p, hi_p = np.percentile(res[keep], [2.0, 98.0]) + p[0]
     plane = _Band(float(lo_p), float(hi_p), float(p[1]), float(p[2]))

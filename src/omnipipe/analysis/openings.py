@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from omnipipe.analysis.feature_rings import robust_sine_fit
+
 
 @dataclass(frozen=True)
 class ReturnGap:
@@ -193,13 +195,9 @@ class HoleExtent:
 def ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
     """Axial position (mm) at angle ``at`` (rad) of a ring whose wall samples lie at
     (``sigma`` mm, ``phi`` rad): the plane sigma = a + b cos phi + c sin phi fitted to
-    them (twice, without the samples beyond 3 robust sigmas: the rim's stray ones)."""
-    A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
-    keep = np.ones(len(phi), bool)
-    for _ in range(2):
-        p, *_ = np.linalg.lstsq(A[keep], sigma[keep], rcond=None)
-        res = sigma - A @ p
-        keep = np.abs(res) <= max(3.0 * 1.4826 * float(np.median(np.abs(res[keep]))), 0.5)
+    them (:func:`.feature_rings.robust_sine_fit`: twice, without the samples beyond 3
+    robust sigmas and 0.5 mm: the rim's stray ones)."""
+    p, _, _ = robust_sine_fit(sigma, phi, 2, 3.0, 0.5)
     return float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at))
 
 
