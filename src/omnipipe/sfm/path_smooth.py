@@ -34,40 +34,71 @@ PASSES = 4
 OUTLIER_SIGMAS = 2.0
 # A station moves across the path at most this many of its window's robust sigmas.
 MAX_SHIFT_SIGMAS = 3.0
+# Floor of that sigma (mm): a path without scatter is left as it is.
+SIGMA_FLOOR_MM = 1e-6
+# Stations fitted at once (memory: CHUNK x the widest window x 3 x 3 floats).
+CHUNK = 256
 
 
 def smooth_across(positions: np.ndarray) -> np.ndarray:
     """(S, 3) station positions (mm, in path order) with their offsets across the path
     from the local robust quadratic fit removed (see the module docstring); (S, 3)."""
     p = np.asarray(positions, float)
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
-    second = _second_differences(p)
     out = p.copy()
-    for i in range(len(p)):
-        idx = np.flatnonzero(np.abs(s - s[i]) <= WINDOW_MM)
-        if len(idx) < MIN_STATIONS:
-            continue
-        # The scatter's scale from the window's second differences across the path: a
-        # real sideways move spoils two of them, not the median.
-        inner = idx[(idx > 0) & (idx < len(p) - 1)]
-        sigma = float(np.median(second[inner - 1])) / np.sqrt(6.0) + 1e-9 if len(inner) else 0.0
-        x = s[idx] - s[i]
-        design = np.vander(x, DEGREE + 1)  # columns x^2, x, 1: the fit at s_i is the last
-        tricube = (1.0 - (np.abs(x) / (WINDOW_MM * (1 + 1e-9))) ** 3) ** 3
-        robust = np.ones(len(idx))
-        for _ in range(PASSES):
-            w = np.sqrt(tricube * robust)[:, None]
-            coef, *_ = np.linalg.lstsq(design * w, p[idx] * w, rcond=None)
-            res = np.linalg.norm(p[idx] - design @ coef, axis=1)
-            robust = np.minimum(1.0, OUTLIER_SIGMAS * sigma / np.maximum(res, 1e-12))
-        direction = coef[-2] / (np.linalg.norm(coef[-2]) + 1e-12)
-        shift = coef[-1] - p[i]
-        shift -= (shift @ direction) * direction
-        norm = float(np.linalg.norm(shift))
-        if norm > MAX_SHIFT_SIGMAS * sigma:
-            shift *= MAX_SHIFT_SIGMAS * sigma / max(norm, 1e-12)
-        out[i] = p[i] + shift
+    if len(p) < MIN_STATIONS:
+        return out
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+    lo = np.searchsorted(s, s - WINDOW_MM, "left")
+    hi = np.searchsorted(s, s + WINDOW_MM, "right")
+    second = np.r_[np.nan, _second_differences(p), np.nan]  # per station; none at the ends
+    width = int((hi - lo).max())
+    for first in range(0, len(p), CHUNK):
+        rows = np.arange(first, min(first + CHUNK, len(p)))
+        out[rows] += _shifts(p, s, second, rows, lo[rows], hi[rows], width)
     return out
+
+
+def _shifts(
+    p: np.ndarray,
+    s: np.ndarray,
+    second: np.ndarray,
+    rows: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    width: int,
+) -> np.ndarray:
+    """(R, 3) the shifts across the path of the stations ``rows`` (R,), each fitted over
+    the stations lo..hi-1 of its window (``width`` the widest window); zero where a
+    window holds fewer than :data:`MIN_STATIONS`."""
+    j = lo[:, None] + np.arange(width)[None, :]
+    valid = j < hi[:, None]
+    j = np.minimum(j, len(p) - 1)
+    x = np.where(valid, s[j] - s[rows][:, None], 0.0)
+    tricube = np.where(valid, (1.0 - (np.abs(x) / (WINDOW_MM * (1 + 1e-9))) ** 3) ** 3, 0.0)
+    # The scatter's scale from the window's second differences across the path: a real
+    # sideways move spoils two of them, not the median.
+    with np.errstate(all="ignore"):
+        d2 = np.where(valid, second[j], np.nan)
+        counted = np.isfinite(d2).any(axis=1)
+        sigma = np.zeros(len(rows))
+        sigma[counted] = np.nanmedian(d2[counted], axis=1) / np.sqrt(6.0)
+    sigma = np.maximum(sigma, SIGMA_FLOOR_MM)
+    design = np.stack([x * x, x, np.ones_like(x)], axis=2)  # (R, M, 3): the fit at s_i is the last
+    robust = np.ones_like(x)
+    pts = p[j]
+    for _ in range(PASSES):
+        w = tricube * robust
+        weighted = np.swapaxes(design * w[:, :, None], 1, 2)  # (R, 3, M)
+        coef = np.linalg.solve(weighted @ design + 1e-12 * np.eye(3), weighted @ pts)  # (R, 3, 3)
+        res = np.linalg.norm(pts - design @ coef, axis=2)
+        robust = np.minimum(1.0, OUTLIER_SIGMAS * sigma[:, None] / np.maximum(res, 1e-12))
+    direction = coef[:, 1] / np.maximum(np.linalg.norm(coef[:, 1], axis=1, keepdims=True), 1e-12)
+    shift = coef[:, 2] - p[rows]
+    shift -= np.sum(shift * direction, axis=1, keepdims=True) * direction
+    norm = np.linalg.norm(shift, axis=1)
+    shift *= np.minimum(1.0, MAX_SHIFT_SIGMAS * sigma / np.maximum(norm, 1e-12))[:, None]
+    shift[valid.sum(axis=1) < MIN_STATIONS] = 0.0
+    return shift
 
 
 def _second_differences(p: np.ndarray) -> np.ndarray:
