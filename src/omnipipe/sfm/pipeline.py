@@ -53,6 +53,7 @@ from omnipipe.sfm.creep_odometry import place_odometry_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import Followed, follow_keyframes
+from omnipipe.sfm.path_smooth import smooth_path
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.ring_follow import add_ring_follow
 from omnipipe.sfm.robot_sensors import (
@@ -195,6 +196,7 @@ def _run(
             result, inputs.odometry, inputs.timestamps, ctx.camera, read_gray, read_wall, ctx.warnings
         )
     add_ring_follow(result, inputs)  # bridged steps: the gyro's turn, the ring's centre
+    smooth_path(result)  # the resected frames' scatter across the path
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
     return result
