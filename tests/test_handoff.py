@@ -20,6 +20,11 @@ def test_round_trip_budget_and_cleanup() -> None:
         handoff.note(1, written)
         back = handed(handoff.folder, 1)
         assert back is not None and back.dtype == np.uint8 and np.array_equal(back, image)
+        assert written == Path(handoff_path(handoff.folder, 1)).stat().st_size
+        mapped = handed(handoff.folder, 1, mapped=True)  # the file's pages, read-only
+        assert type(mapped) is np.ndarray and not mapped.flags.writeable
+        assert mapped.dtype == np.uint8 and np.array_equal(mapped, image)
+        assert handed(handoff.folder, 4, mapped=True) is None
         assert handed(handoff.folder, 2) is None  # never handed on
         handoff.note(2, hand_on(handoff.folder, 2, image))  # the budget is reached now
         assert hand_on(handoff.folder, 3, image) == 0

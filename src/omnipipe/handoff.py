@@ -12,6 +12,7 @@ share this file system), and only for as long as the run.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -57,23 +58,30 @@ class FrameHandoff(ScratchStore):
 
 def handoff_path(folder: str, i: int) -> str:
     """Frame ``i``'s file in a :class:`FrameHandoff`'s ``folder``."""
-    return str(Path(folder) / f"{i:07d}.npy")
+    return os.path.join(folder, f"{i:07d}.npy")
 
 
 def hand_on(folder: str, i: int, image: np.ndarray) -> int:
     """Write frame ``i`` (as decoded) into a :class:`FrameHandoff`'s ``folder`` (in a
     worker); returns the bytes written, 0 when the hand-off is full."""
-    if (Path(folder) / _FULL).exists():
+    if os.path.exists(os.path.join(folder, _FULL)):
         return 0
-    path = Path(handoff_path(folder, i))
-    np.save(path, np.ascontiguousarray(image), allow_pickle=False)
-    return int(path.stat().st_size)
+    image = np.ascontiguousarray(image)
+    with open(handoff_path(folder, i), "wb") as fh:
+        np.lib.format.write_array(fh, image, allow_pickle=False)
+        return fh.tell()
 
 
-def handed(folder: str, i: int) -> np.ndarray | None:
+def handed(folder: str, i: int, mapped: bool = False) -> np.ndarray | None:
     """Frame ``i`` as the decoding pass left it in ``folder``; None when it did not (a
-    stationary frame, a full hand-off, a folder already closed)."""
+    stationary frame, a full hand-off, a folder already closed).
+
+    ``mapped``: a read-only array on the file's pages in the OS's cache instead of a
+    copy of them, for a reader that takes one channel of it (no frame-sized copy).
+    """
     try:
+        if mapped:
+            return np.asarray(np.load(handoff_path(folder, i), mmap_mode="r"))
         return np.load(handoff_path(folder, i), allow_pickle=False)
     except FileNotFoundError:
         return None

@@ -51,7 +51,18 @@ def test_rings_read_back_as_put_in_any_order() -> None:
     # What a reader changes stays with the reader.
     store[0].pixels[:] = 0
     assert _same(store[0], rings[0])
+    shifted = _ring(rng, 5)
+    shifted.centroid_shift_px = rng.normal(0, 0.1, 5).astype(np.float32)
+    shifted.pixels = np.asfortranarray(shifted.pixels)  # read back in C order, equal
+    store2 = RingStore(2)
+    store2.put(1, shifted)
+    back = store2[1]
+    assert _same(back, shifted) and np.array_equal(back.centroid_shift_px, shifted.centroid_shift_px)
+    assert back.centroid_shift_px.dtype == np.float32 and back.pixels.flags.writeable
+    with pytest.raises(ValueError, match="dimensions is not stored"):
+        store2.put(0, LaserRing(np.zeros((1, 1, 1, 2)), np.zeros(1), np.zeros(1), np.zeros(1)))
     store.close()
+    store2.close()
 
 
 def test_a_ring_without_samples_is_kept_as_is_and_each_frame_once() -> None:

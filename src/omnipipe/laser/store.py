@@ -7,10 +7,16 @@ cost about 80 bytes a sample (12 KB a frame on the paper run at 400x300, 1.2 GB 
 temporary folder as it arrives and reads a ring back when indexed (from the page cache:
 tens of microseconds). A ring without samples (a stationary frame's, a frame without a
 laser ring) stays in memory: it holds no array worth writing.
+
+A ring's record in the file: a header (:data:`_HEADER`: each array's dtype and shape)
+followed by the arrays' bytes in C order, written with one call and read with two (an
+``np.save`` per array parsed a text header for each: 2 ms a ring read back, 0.9 ms
+written).
 """
 
 from __future__ import annotations
 
+import math
 import shutil
 import threading
 from collections.abc import Iterator, Sequence
@@ -25,6 +31,43 @@ from omnipipe.scratch import scratch_folder
 
 _ARRAYS = tuple(f.name for f in fields(LaserRing) if f.name not in ("scanned", "warnings"))
 """The ring's per-sample arrays, written in this order."""
+
+_HEADER = np.dtype([("dtype", "S8"), ("ndim", "<i8"), ("shape", "<i8", (3,))])
+"""One record per array of :data:`_ARRAYS` at the start of a ring's record: its dtype
+(``numpy.dtype.str``), its number of dimensions (at most 3) and its shape."""
+
+
+def _record(arrays: list[np.ndarray]) -> bytes:
+    """A ring's record: the header of ``arrays`` and their bytes.
+
+    Raises:
+        ValueError: an array of more than 3 dimensions or of an object dtype.
+    """
+    head = np.zeros(len(arrays), _HEADER)
+    for k, a in enumerate(arrays):
+        if a.ndim > 3 or a.dtype.hasobject:
+            raise ValueError(f"ring array {_ARRAYS[k]}: {a.dtype} of {a.ndim} dimensions is not stored")
+        head[k]["dtype"] = a.dtype.str.encode()
+        head[k]["ndim"] = a.ndim
+        head[k]["shape"][: a.ndim] = a.shape
+    return b"".join([head.tobytes(), *(np.ascontiguousarray(a).tobytes() for a in arrays)])
+
+
+def _arrays(fh: BinaryIO) -> dict[str, np.ndarray]:
+    """The arrays of the ring record at ``fh``'s position, each writable and its own
+    (views of one buffer read for them)."""
+    head = np.frombuffer(fh.read(len(_ARRAYS) * _HEADER.itemsize), _HEADER)
+    dtypes = [np.dtype(d.decode()) for d in head["dtype"]]
+    shapes = [tuple(int(x) for x in shape[:ndim]) for shape, ndim in zip(head["shape"], head["ndim"], strict=True)]
+    sizes = [dt.itemsize * math.prod(shape) for dt, shape in zip(dtypes, shapes, strict=True)]
+    data = bytearray(sum(sizes))
+    if fh.readinto(data) != len(data):
+        raise ValueError("ring record: the file ends inside it")
+    out, start = {}, 0
+    for name, dt, shape, size in zip(_ARRAYS, dtypes, shapes, sizes, strict=True):
+        out[name] = np.frombuffer(data, dt, math.prod(shape), start).reshape(shape)
+        start += size
+    return out
 
 
 @dataclass(frozen=True)
@@ -80,11 +123,11 @@ class RingStore(Sequence[LaserRing]):
         if not any(a.size for a in arrays):
             self._items[index] = ring
             return
+        record = _record(arrays)
         with self._lock:
             self._file.seek(0, 2)
             offset = self._file.tell()
-            for a in arrays:
-                np.save(self._file, a, allow_pickle=False)
+            self._file.write(record)
         self._items[index] = _OnDisk(offset, ring.scanned, tuple(ring.warnings))
 
     def __len__(self) -> int:
@@ -107,7 +150,7 @@ class RingStore(Sequence[LaserRing]):
         with self._lock:
             self._file.flush()
             self._file.seek(item.offset)
-            arrays = {name: np.load(self._file, allow_pickle=False) for name in _ARRAYS}
+            arrays = _arrays(self._file)
         return LaserRing(**arrays, scanned=item.scanned, warnings=list(item.warnings))
 
     def __iter__(self) -> Iterator[LaserRing]:

@@ -45,7 +45,7 @@ from omnipipe.laser.store import RingStore
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
 
-FORMAT = 2  # 2: rings hold centroid_shift_px (a RingStore record has one more array)
+FORMAT = 3  # 2: rings hold centroid_shift_px (a RingStore record has one more array); 3: one header per RingStore record
 MARKER = "checkpoint.json"
 STAGES = ("frames", "sfm", "analysis", "model")
 

@@ -107,6 +107,9 @@ def warm_up(laser: LaserConfig, stations: StationConfig, rig: Rig) -> None:
     this process and inherit both. Otherwise each worker paid for them on its first
     frame (bend, 2 workers: about 0.5 s each, half of it the compiler's start-up).
     """
+    from omnipipe.inputs.png import warm_up as png_warm_up
+
+    png_warm_up()
     camera, extractor = ring_extractor(laser, rig)
     _, inner, runs = _masks(rig, stations)
     channels = 3 if rig.laser.channel in ("red", "green", "blue") else 1

@@ -129,7 +129,8 @@ class FeatureTask:
 def _read(source: FrameSource, k: int) -> tuple[np.ndarray, bool]:
     """Frame ``k`` of ``source`` and whether it came from the source's hand-off folder."""
     if source.arrays is None and source.handoff is not None:
-        image = handed(source.handoff, int(source.frames[k]))
+        # Mapped, not copied: the views take only its grey channel.
+        image = handed(source.handoff, int(source.frames[k]), mapped=True)
         if image is not None:
             return image, True
     return source.read(k), False
@@ -143,7 +144,7 @@ def handed_gray(folder: str, frame: int, channel: str) -> np.ndarray:
     Raises:
         ReconstructionError: the frame is not there (the hand-off closed under the run).
     """
-    image = handed(folder, frame)
+    image = handed(folder, frame, mapped=True)  # mapped, not copied: one channel is taken
     if image is None:
         raise ReconstructionError(f"frame {frame}: no longer in the run's hand-off folder {folder}")
     return frame_gray(image, channel)
