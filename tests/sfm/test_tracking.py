@@ -354,15 +354,26 @@ def test_lost_tracks_get_a_second_try_on_band_passed_coarse_levels(dim_concrete,
     assert np.median(errors[second]) < 1.0
 
 
-def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks() -> None:
+def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() -> None:
     """The new keyframe's features are followed back (latest pending frame first) only
     as far as the earliest pending frame with fewer than ``back_below`` verified tracks
-    of its own keyframe; every frame at the default, none when all have enough."""
+    of its own keyframe, or whose rays turned ``back_beyond`` of the step's parallax or
+    more (or an unknown share); none when every frame has enough tracks and is near its
+    own keyframe."""
     from omnipipe.sfm.keyframes import followed_back
 
-    assert followed_back([800, 650, 420, 150], 200) == [3]
-    assert followed_back([800, 120, 420, 600], 200) == [3, 2, 1]
-    assert followed_back([800, 650], 200) == []
-    assert followed_back([], 200) == []
-    assert followed_back([800, 650, 20], TrackConfig().back_below) == [2, 1, 0]
-    assert followed_back([800, 650], 0) == []
+    near = [0.1, 0.2, 0.3, 0.4]
+    by_count = TrackConfig(back_below=200, back_beyond=1.0)
+    assert followed_back([800, 650, 420, 150], near, by_count) == [3]
+    assert followed_back([800, 120, 420, 600], near, by_count) == [3, 2, 1]
+    assert followed_back([800, 650], near[:2], by_count) == []
+    assert followed_back([], [], by_count) == []
+    always = TrackConfig(back_below=1_000_000, back_beyond=1.0)
+    assert followed_back([800, 650, 20], near[:3], always) == [2, 1, 0]
+    assert followed_back([800, 650], near[:2], TrackConfig(back_below=0, back_beyond=1.0)) == []
+    by_share = TrackConfig(back_below=200, back_beyond=0.5)
+    assert followed_back([800, 650, 420, 600], [0.2, 0.45, 0.55, 0.8], by_share) == [3, 2]
+    assert followed_back([800, 650, 420], [0.2, 0.3, 0.4], by_share) == []
+    assert followed_back([800, 150, 420], [0.2, 0.3, 0.4], by_share) == [2, 1]
+    assert followed_back([800, 650, 420], [float("nan"), 0.3, 0.4], by_share) == [2, 1, 0]
+    assert followed_back([800, 650], [0.1, 0.2], TrackConfig(back_below=0, back_beyond=0.0)) == [1, 0]

@@ -208,6 +208,8 @@ class KeyframeLoop:
         self.next_matches: dict[int, Future[KeyframeRays]] = {}
         # The tracked pending frames' views, until the next keyframe.
         self._pending_views: dict[int, FrameViews] = {}
+        # The pending frames' parallax (rad) from their keyframe, until the next keyframe.
+        self._pending_parallax: dict[int, float] = {}
         self._jobs: list[_EvidenceJob] = []
         # What waits for the adjustment and the resection (features of the keyframes and
         # pending frames once nothing more is matched to them): in the run's scratch.
@@ -238,11 +240,10 @@ class KeyframeLoop:
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
-        # Tracks running out: a keyframe from half the parallax on.
-        least = self._min_parallax / 2 if step is not None and self._running_out(step) else self._min_parallax
+        least = self._least_parallax(step)
         if step is not None and step.parallax_rad < least and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
-            self._defer(frame, step.tracks.features, step.inliers)
+            self._defer(frame, step.tracks.features, step.inliers, step.parallax_rad)
             self.tracked[frame.frame] = True
             return
         if step is not None:
@@ -258,9 +259,10 @@ class KeyframeLoop:
         motion = _relative(self.ctx, pair)
         if motion is None:
             self.lost[frame.frame] = True  # its pose (and the chain after it) lacks this step
-        if motion is not None and _parallax(pair, motion) < least and not closing:
+        parallax = _parallax(pair, motion) if motion is not None else math.nan
+        if motion is not None and parallax < least and not closing:
             # Too little baseline for a reliable step: resected after the adjustment.
-            self._defer(frame, features, m[motion.inliers])
+            self._defer(frame, features, m[motion.inliers], parallax)
             return
         gray = self._gray_of(frame)  # a keyframe: its grey image is needed now
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
@@ -268,7 +270,15 @@ class KeyframeLoop:
         self._keep_gray(gray)  # before the step's evidence, which may read it from there
         self._measure(pair, motion, last.gray, gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
-        self._add_keyframe(frame, features, n_continued, gray)
+        self._add_keyframe(frame, features, n_continued, gray, parallax)
+
+    def _least_parallax(self, step: TrackedStep | None) -> float:
+        """The parallax (rad) from which the frame of ``step`` (its tracks; None: none)
+        becomes a keyframe: ``keyframe_min_parallax_deg``, half that when its tracks
+        are running out (:meth:`_running_out`)."""
+        if step is not None and self._running_out(step):
+            return self._min_parallax / 2
+        return self._min_parallax
 
     def _running_out(self, step: TrackedStep) -> bool:
         """True when ``step``'s verified tracks fell below ``tracking.renew_ratio`` of
@@ -426,9 +436,11 @@ class KeyframeLoop:
             self.tracked,
         )
 
-    def _defer(self, frame: MovingFrame, features: FrameFeatures, inliers: np.ndarray) -> None:
-        """``frame`` pending, with its ``inliers`` to the last keyframe."""
+    def _defer(self, frame: MovingFrame, features: FrameFeatures, inliers: np.ndarray, parallax: float) -> None:
+        """``frame`` pending, with its ``inliers`` to the last keyframe and the
+        ``parallax`` (rad) of its rays from it."""
         self.pending.append(PendingFrame(frame.frame, len(self.features) - 1, features, inliers))
+        self._pending_parallax[frame.frame] = parallax
         if frame.views is not None:
             self._pending_views[frame.frame] = frame.views
 
@@ -490,14 +502,20 @@ class KeyframeLoop:
         self.grays.append(np.clip(gray, 0, 65535).astype(np.uint16))
 
     def _add_keyframe(
-        self, frame: MovingFrame, features: FrameFeatures, n_continued: int, gray: np.ndarray
+        self,
+        frame: MovingFrame,
+        features: FrameFeatures,
+        n_continued: int,
+        gray: np.ndarray,
+        parallax: float = math.nan,
     ) -> None:
         """``frame`` the next keyframe (its first ``n_continued`` features carried on from
         the last one); its features are followed on from it. The frames pending since
         the last one also see its tracks: their correspondences with it go to the
         workers (its other features followed back frame by frame through the pending
         frames' views, or matched to the descriptors of frames without views); then
-        nothing more is matched to them or to the last keyframe, whose descriptors go."""
+        nothing more is matched to them or to the last keyframe, whose descriptors go.
+        ``parallax``: the step's (rad; :func:`followed_back`)."""
         self.features.append(features)
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
@@ -516,7 +534,11 @@ class KeyframeLoop:
         viewed = [j for j in since if self.pending[j].frame in self._pending_views]
         back = [
             viewed[i]
-            for i in followed_back([len(self.pending[j].inliers) for j in viewed], config.tracking.back_below)
+            for i in followed_back(
+                [len(self.pending[j].inliers) for j in viewed],
+                [_share(self._pending_parallax.get(self.pending[j].frame, math.nan), parallax) for j in viewed],
+                config.tracking,
+            )
         ]
         if back and frame.views is not None:
             whole = self.ctx.executor.submit(
@@ -541,6 +563,7 @@ class KeyframeLoop:
                 p, features=_held(self._pack, p.features), inliers=self._pack.put(p.inliers)
             )
         self._pending_views.clear()
+        self._pending_parallax.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _held(self._pack, self.features[k_new - 1])
 
@@ -556,14 +579,25 @@ def gray_for_worker(
     return grays.ref(k) if exact and shares_files(executor) else gray
 
 
-def followed_back(counts: list[int], below: int) -> list[int]:
+def followed_back(counts: list[int], shares: list[float], config: TrackConfig) -> list[int]:
     """Which pending frames (``counts``: each one's verified tracks of its keyframe, in
-    frame order) the new keyframe's features are followed back into, as positions in
+    frame order; ``shares``: its parallax as a share of the new keyframe's, NaN where
+    not known) the new keyframe's features are followed back into, as positions in
     ``counts``, latest first: from the latest down to the earliest with fewer than
-    ``below`` tracks (the chain goes frame by frame, so the later ones on the way are
-    followed too); none when every frame has ``below`` or more."""
-    needs = [i for i, n in enumerate(counts) if n < below]
+    ``config.back_below`` tracks, or a share of at least ``config.back_beyond`` (or not
+    known), whichever is earlier (the chain goes frame by frame, so the later ones on
+    the way are followed too); none when no frame needs it."""
+    needs = [
+        i
+        for i, (n, share) in enumerate(zip(counts, shares, strict=True))
+        if n < config.back_below or not share < config.back_beyond
+    ]
     return list(range(len(counts) - 1, needs[0] - 1, -1)) if needs else []
+
+
+def _share(part: float, whole: float) -> float:
+    """``part / whole``; NaN when ``whole`` is not positive or either is NaN."""
+    return part / whole if whole > 0 else math.nan
 
 
 def _budget(n_first: int, n: int, most: int) -> np.ndarray:

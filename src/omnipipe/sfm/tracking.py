@@ -73,10 +73,14 @@ class TrackConfig:
             between frames; random-wide seed 17, 11 mm frame steps in a 123 mm pipe:
             511 -> 80 -> 36 -> 16 verified tracks in three frames, the step lost). 0: off.
         back_below: a pending frame (between keyframes) is also given the next
-            keyframe's new features, followed back to it frame by frame, only when it
-            has fewer verified tracks of its own keyframe than this (it is then resected
+            keyframe's new features, followed back to it frame by frame, when it has
+            fewer verified tracks of its own keyframe than this (it is then resected
             from both sides; the frames after it back to the next keyframe are followed
-            through on the way); 0: never, a large number: always.
+            through on the way); 0: never by count, a large number: always.
+        back_beyond: ... or when its rays turned at least this share of the next
+            keyframe's parallax from its own keyframe (the far part of a long step,
+            where its own keyframe's tracks alone let it drift; robustness seed 1, a
+            31-frame step); 0: every pending frame.
     """
 
     enabled: bool = True
@@ -92,7 +96,8 @@ class TrackConfig:
     corner_quality: float = bounded(0.01, gt=0, lt=1)
     min_corner_distance_px: float = bounded(5.0, gt=0)
     renew_ratio: float = bounded(0.3, ge=0, le=1)
-    back_below: int = bounded(1_000_000, ge=0)
+    back_below: int = bounded(200, ge=0)
+    back_beyond: float = bounded(0.5, ge=0, le=1)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
