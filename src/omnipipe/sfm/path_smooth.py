@@ -3,17 +3,18 @@
 A frame between two keyframes is resected on its own against the adjusted wall points
 (:func:`omnipipe.sfm.adjust.resect_pending`): on a large pipe's far wall at 640x480 its
 position across the axis scatters 0.1-0.2 mm from frame to frame (the robustness
-bench's corrugated 963 mm run: 0.096 mm RMS across against 0.013 along), while the
-robot crawling inside the pipe moves sideways smoothly over tens of millimetres of
-travel. Each station's position is therefore fitted, robustly, with a quadratic in the
-travel over the stations within :data:`WINDOW_MM` of it (tricube weights, residuals
-beyond :data:`OUTLIER_SIGMAS` sigmas down-weighted), and only the part of its offset
-from the fit ACROSS the path is removed, at most :data:`MAX_SHIFT_SIGMAS` sigmas (a
-real sideways move larger than the noise, e.g. over an offset joint, is kept). The
-sigma is the scatter's own, from the window's second differences across the path
-(median size / sqrt(6): the trend's share of a second difference is negligible over
-a few millimetres, and a sideways move spoils only two of them). Along the path nothing changes: step lengths, the stationary frames
-and the run's scale are the laser's, the wall's and the adjustment's.
+bench's corrugated 963 mm run: 0.096 mm RMS across against 0.013 along). The robot
+crawling inside the pipe is assumed to move sideways smoothly over a few tens of
+millimetres of travel; a sideways jump larger than the scatter (an offset joint) is
+kept. Each station's position is fitted, robustly, with a quadratic in the travel
+over the stations within :data:`WINDOW_MM` of it (tricube weights, residuals beyond
+:data:`OUTLIER_SIGMAS` sigmas down-weighted), and only the part of its offset from the
+fit ACROSS the path is removed, at most :data:`MAX_SHIFT_SIGMAS` sigmas. The sigma is
+the scatter's own, the typical size of a station's offset across the path from the
+window's second differences (their median / sqrt(6): the trend's share of a second
+difference is negligible over a few millimetres, and a sideways jump spoils only two
+of them). Along the path nothing changes: step lengths, the stationary frames and the
+run's scale stay the laser's, the wall's and the adjustment's; rotations are kept.
 """
 
 from __future__ import annotations
@@ -24,8 +25,6 @@ from omnipipe.sfm.types import SfmResult
 
 # Stations within this travel (mm) of a station shape its fit.
 WINDOW_MM = 25.0
-# Polynomial degree of the fit in the travel.
-DEGREE = 2
 # Fewer stations than this in the window: left as it is.
 MIN_STATIONS = 5
 # Reweighting passes and the residual (robust sigmas) beyond which a station is
