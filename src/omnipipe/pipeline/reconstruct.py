@@ -172,6 +172,22 @@ def run(
 
         with open_executor(config.workers, config.scheduler, tasks=len(dataset)) as pool:
             return run(config, dataset, progress, pool, checkpoints)
+    from omnipipe.spill import dropping_pages
+
+    # Passes over the whole run map the scratch's pages of every keyframe and frame:
+    # dropped as the run goes (omnipipe.spill).
+    with dropping_pages():
+        return _run(config, dataset, progress, executor, checkpoints)
+
+
+def _run(
+    config: ReconstructConfig,
+    dataset: Dataset,
+    progress: ProgressFactory,
+    executor: Executor,
+    checkpoints: Checkpoints | None,
+) -> Reconstruction:
+    """:func:`run` with its executor open."""
     if dataset.rig.laser is None:  # a camera-only rig (rig.yaml without a laser section)
         raise ReconstructionError(
             "rig.yaml has no laser section: a camera-only rig cannot reconstruct "
@@ -807,7 +823,9 @@ def write(
     rec.summary["clock_reference"] = clock_reference(
         rec.survey, rec.up_in_rig, travel, rec.up_sigma_rad
     ).to_dict()
-    with atomic_output_dir(out, force=force, protect=protect) as tmp:
+    from omnipipe.spill import dropping_pages
+
+    with dropping_pages(), atomic_output_dir(out, force=force, protect=protect) as tmp:
         tick = progress("output", 3)
         write_tum(tmp / "trajectory.txt", rec.timestamps, rec.world_from_rig)
         model_stage.write_outputs(rec.model, tmp)
