@@ -51,12 +51,13 @@ STEPS = (
         "omnipipe.sfm.pipeline",
         ("follow_keyframes", "chain_steps", "_adjusted_and_checked", "run_length", "resect_pending", "_result"),
     ),
+    ("omnipipe.analysis", ("run",)),
     ("omnipipe.model.stage", ("mesh_unrolled", "orient_towards_axis", "choose_sources", "flat_field", "textured_mesh")),
     ("omnipipe.model.export", ("write_ply", "write_laz", "write_e57", "write_glb", "write_obj")),
     ("omnipipe.report", ("run",)),
 )
 """(module, functions) whose calls ``--steps`` measures: the pipeline's stages, the camera
-motion's passes, the model stage's steps, the writers and the report (``report.run``)."""
+motion's passes, the analysis (``analysis.run``), the model stage's steps, the writers and the report (``report.run``)."""
 
 
 class _StepPeaks:
