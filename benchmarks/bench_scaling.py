@@ -47,17 +47,23 @@ def _peak_rss_mb() -> float:
 
 STEPS = (
     ("omnipipe.pipeline.reconstruct", ("_decode", "_camera_motion", "_analyse", "_model", "_summary", "_defect_views")),
+    (
+        "omnipipe.sfm.pipeline",
+        ("follow_keyframes", "chain_steps", "_adjusted_and_checked", "run_length", "resect_pending", "_result"),
+    ),
+    ("omnipipe.analysis", ("run",)),
     ("omnipipe.model.stage", ("mesh_unrolled", "orient_towards_axis", "choose_sources", "flat_field", "textured_mesh")),
     ("omnipipe.model.export", ("write_ply", "write_laz", "write_e57", "write_glb", "write_obj")),
     ("omnipipe.report", ("run",)),
 )
-"""(module, functions) whose calls ``--steps`` measures: the pipeline's stages, the model
-stage's steps, the writers and the report (``report.run``)."""
+"""(module, functions) whose calls ``--steps`` measures: the pipeline's stages, the camera
+motion's passes, the analysis (``analysis.run``), the model stage's steps, the writers and the report (``report.run``)."""
 
 
 class _StepPeaks:
     """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (and between
-    them, as ``after STEP``), sampled every 10 ms by a daemon thread."""
+    them, as ``after STEP``), sampled every 10 ms by a daemon thread, and the part of it
+    that was file-backed pages (RssFile: the run's scratch mapped) at that peak."""
 
     def __init__(self) -> None:
         import functools
@@ -65,6 +71,7 @@ class _StepPeaks:
         import threading
 
         self.peaks: dict[str, float] = {}
+        self.files: dict[str, float] = {}
         self.tag = "start"
         for module, names in STEPS:
             mod = importlib.import_module(module)
@@ -86,9 +93,10 @@ class _StepPeaks:
     def _sample(self) -> None:
         while True:
             with open("/proc/self/status", encoding="ascii") as fh:
-                rss = next(int(line.split()[1]) / 1024.0 for line in fh if line.startswith("VmRSS:"))
-            tag = self.tag
-            self.peaks[tag] = max(self.peaks.get(tag, 0.0), rss)
+                kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in fh) if k in ("VmRSS", "RssFile")}
+            tag, rss = self.tag, kb["VmRSS"] / 1024.0
+            if rss > self.peaks.get(tag, 0.0):
+                self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
             time.sleep(0.01)
 
 
@@ -129,6 +137,7 @@ def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool 
                 "worker_rss_mb": workers_rss,
                 "executor": s.get("executor"),
                 "steps": None if peaks is None else dict(peaks.peaks),
+                "steps_file": None if peaks is None else dict(peaks.files),
             }
         )
     )
@@ -254,18 +263,23 @@ def _compare(kind: str, a: dict, b: dict) -> None:
 
 
 def _print_steps(kind: str, done: list[dict]) -> None:
-    """Each step's peak RSS per run length (MB), and the growth per 1,000 frames."""
+    """Each step's peak RSS per run length (MB; in brackets its file-backed part at that
+    peak), and the growth per 1,000 frames."""
     if len(done) < 1 or not done[0].get("steps"):
         return
     order = list(done[-1]["steps"])
     print(f"{kind}: peak RSS per step (MB)")
-    print(f"  {'step':28s}" + "".join(f"{r['frames']:>9d}" for r in done) + "   MB per 1,000 frames")
+    print(f"  {'step':28s}" + "".join(f"{r['frames']:>13d}" for r in done) + "   MB per 1,000 frames")
     for step in order:
         vals = [r["steps"].get(step) for r in done]
         per = ""
         if len(done) > 1 and vals[0] is not None and vals[-1] is not None:
             per = f"{1000 * (vals[-1] - vals[0]) / (done[-1]['frames'] - done[0]['frames']):+9.1f}"
-        print(f"  {step:28s}" + "".join("        -" if v is None else f"{v:9.0f}" for v in vals) + "   " + per)
+        files = [(r.get("steps_file") or {}).get(step) for r in done]
+        cells = "".join(
+            "            -" if v is None else f"{v:7.0f} ({f or 0:3.0f})" for v, f in zip(vals, files, strict=True)
+        )
+        print(f"  {step:28s}" + cells + "   " + per)
 
 
 def main() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -184,3 +185,41 @@ def _file_of(a: np.ndarray) -> object:
     while isinstance(base, np.ndarray) and base.base is not None:
         base = base.base
     return base.obj if isinstance(base, memoryview) else base
+
+
+def _pass_over(arrays: list[np.ndarray], low: float) -> tuple[float, float]:
+    """(sum of every array, the most RSS above ``low`` while reading them one by one)."""
+    total, most = 0.0, 0.0
+    for a in arrays:
+        total += float(a.sum())
+        most = max(most, _rss_mb() - low)
+        time.sleep(0.01)
+    return total, most
+
+
+@linux_only
+def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
+    from omnipipe.spill import Pack, dropping_pages
+
+    pack = Pack()
+    rng = np.random.default_rng(10)
+    chunks = [rng.random(2**20 // 8) for _ in range(48)]  # 48 MB in 1 MB arrays
+    want = sum(float(c.sum()) for c in chunks)
+    got = [pack.put(c) for c in chunks]
+    del chunks
+    drop_pages()
+    low = _rss_mb()
+    total, most = _pass_over(got, low)  # every keyframe's arrays read in turn
+    assert total == want and most > 40  # without: all of them stay mapped
+    drop_pages()
+    low = _rss_mb()
+    with dropping_pages(interval_s=0.02):
+        total, most = _pass_over(got, low)
+        # Written through the mapping while the thread drops pages: kept.
+        z = zeros_on_disk((2**20,), np.float64)
+        for a in range(0, len(z), 4096):
+            z[a : a + 4096] = np.arange(a, a + 4096)
+            time.sleep(0.0005)
+    assert total == want and most < 16
+    drop_pages()
+    assert np.array_equal(z, np.arange(len(z), dtype=np.float64))

@@ -12,7 +12,10 @@ resident memory only while a step reads them, and :func:`drop_pages` (called by
 :func:`omnipipe.memory.release_freed_memory` between the steps) unmaps them again, so
 the run's peak holds what its current step reads, not every result made so far. The
 kernel writes the file back and reclaims its pages under memory pressure, as it does
-with any file's.
+with any file's. A step that passes over every keyframe or frame maps the pages of all
+of them in turn; within :func:`dropping_pages` (the reconstruction's stages and its
+writers) a thread unmaps them every :data:`DROP_INTERVAL_S`, so such a pass holds what
+it read in the last fraction of a second.
 
 :func:`shared_on_disk` makes such an array read-only: sent to a worker of a local
 process pool (:mod:`omnipipe.executor`), it travels by reference (the file, through
@@ -22,11 +25,14 @@ copy-on-write (writable, its writes its own, as an unpickled array's would be).
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import pickle
 import tempfile
+import threading
 import weakref
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -35,6 +41,20 @@ from omnipipe.scratch import scratch_dir
 
 _MAPS: weakref.WeakSet[mmap.mmap] = weakref.WeakSet()
 """Every live mapping made here (gone when its last array is)."""
+
+_MAPS_LOCK = threading.Lock()
+"""Held while :data:`_MAPS` gains a mapping or is listed (the two may be in two threads:
+:func:`dropping_pages`)."""
+
+
+def _new_lock_in_child() -> None:
+    """A forked worker's own lock (the parent's may have been held by its dropping
+    thread at the fork, which the worker does not have)."""
+    global _MAPS_LOCK
+    _MAPS_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_new_lock_in_child)
 
 _FILES: weakref.WeakKeyDictionary[mmap.mmap, tuple[int, int, int]] = weakref.WeakKeyDictionary()
 """Each live mapping's (process that made it, its own descriptor of the file, the
@@ -58,7 +78,8 @@ def _mapped(nbytes: int, fill: np.ndarray | None) -> mmap.mmap:
             fh.flush()
         mapping = mmap.mmap(fh.fileno(), nbytes)  # holds its own copy of the descriptor
         fd = os.dup(fh.fileno())  # for the workers that map it too (closed with the mapping)
-    _MAPS.add(mapping)
+    with _MAPS_LOCK:
+        _MAPS.add(mapping)
     _FILES[mapping] = (os.getpid(), fd, np.frombuffer(mapping, np.uint8, count=1).ctypes.data)
     weakref.finalize(mapping, os.close, fd)
     return mapping
@@ -143,11 +164,40 @@ def drop_pages() -> None:
     advice = getattr(mmap, "MADV_DONTNEED", None)
     if advice is None:  # a platform without madvise: the kernel reclaims them alone
         return
-    for mapping in list(_MAPS):
+    with _MAPS_LOCK:
+        mappings = list(_MAPS)
+    for mapping in mappings:
         try:
             mapping.madvise(advice)
         except (ValueError, OSError):  # closed meanwhile
             continue
+
+
+DROP_INTERVAL_S = 0.25
+"""Seconds between two :func:`drop_pages` of :func:`dropping_pages`' thread."""
+
+
+@contextlib.contextmanager
+def dropping_pages(interval_s: float = DROP_INTERVAL_S) -> Iterator[None]:
+    """Within the block, a daemon thread calls :func:`drop_pages` every ``interval_s``
+    seconds: the pages of the scratch's arrays a pass over the whole run maps (every
+    keyframe's features, every frame's ring) are resident for at most about that long
+    after their last read. No value changes (a dropped page is read again from the page
+    cache or the file); the mappings are this process's shared ones only (a worker's
+    copy-on-write mappings, :func:`shared_on_disk`, are never dropped)."""
+    stop = threading.Event()
+
+    def drop_until_stopped() -> None:
+        while not stop.wait(interval_s):
+            drop_pages()
+
+    thread = threading.Thread(target=drop_until_stopped, name="omnipipe-drop-pages", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def is_on_disk(a: np.ndarray) -> bool:

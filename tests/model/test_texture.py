@@ -60,3 +60,43 @@ def test_textured_mesh_fills_a_given_atlas_in_place() -> None:
         assert np.array_equal(a, b)
     with pytest.raises(ShapeError):
         textured_mesh(faces, points, arc, axial, view, atlas[:, :-1])
+
+
+def test_textured_mesh_makes_its_outputs_in_the_scratch_equal_to_the_formula(monkeypatch) -> None:
+    """The seam-split mesh (vertices, faces, uvs: they grow with the run) is made in the
+    run's scratch (omnipipe.spill), equal bit for bit to the formula in memory (the
+    vertices of the small-arc corners of triangles across angle 0 copied one
+    circumference on); the faces given are left as they were."""
+    from omnipipe.model import mesh
+    from omnipipe.model.mesh import atlas_margin, textured_mesh
+    from omnipipe.model.texture_grid import UnrolledImage
+    from omnipipe.spill import is_on_disk
+
+    monkeypatch.setattr(mesh, "FACE_CHUNK", 7)  # several chunks
+    rng = np.random.default_rng(4)
+    h, w, circ, n = 20, 31, 15.5, 50
+    arc = rng.uniform(0, circ, n)
+    axial = rng.uniform(0, 9.5, n)
+    points = np.column_stack([np.cos(arc), np.sin(arc), axial])
+    faces = rng.integers(0, n, (80, 3)).astype(np.int32)
+    before = faces.copy()
+    unrolled = UnrolledImage(rng.integers(0, 256, (h, w, 3), dtype=np.uint8), np.ones((h, w), bool), 0.5, 1.0, circ)
+    verts, tfaces, uvs, _ = textured_mesh(faces, points, arc, axial, unrolled)
+    u = arc[faces]
+    shift = (np.ptp(u, axis=1) > 0.5 * circ)[:, None] & (u < 0.5 * circ)
+    dup = np.unique(faces[shift])
+    assert len(dup) > 3
+    new_id = np.full(n, -1, np.int32)
+    new_id[dup] = n + np.arange(len(dup))
+    want_faces = faces.copy()
+    want_faces[shift] = new_id[faces[shift]]
+    all_arc = np.concatenate([arc, arc[dup] + circ])
+    all_axial = np.concatenate([axial, axial[dup]])
+    want_uvs = np.column_stack([
+        all_arc / (circ * (w + atlas_margin(w)) / w), 1.0 - ((all_axial - 1.0) / 0.5 + 0.5) / h
+    ])
+    assert np.array_equal(faces, before)
+    assert np.array_equal(tfaces, want_faces) and tfaces.dtype == faces.dtype
+    assert np.array_equal(verts, np.concatenate([points, points[dup]]))
+    assert np.array_equal(uvs, want_uvs) and uvs.dtype == want_uvs.dtype
+    assert is_on_disk(verts) and is_on_disk(tfaces) and is_on_disk(uvs)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 import trimesh
 
 from omnipipe.cli import main
+from omnipipe.laser.ring import LaserRing
 
 
 @pytest.fixture(scope="module")
@@ -144,6 +146,38 @@ def test_the_analysis_runs_without_the_stations_rings_held(
     monkeypatch.setattr(analysis, "run", checked)
     assert main(["reconstruct", str(small_dataset), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert held == ["checked"]
+
+
+def test_the_stations_rings_wait_in_the_scratch_until_integrated(
+    small_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before the analysis the stations' rings are integrated from the run's scratch
+    (omnipipe.spill), not held in memory all at once; the result is the same."""
+    from omnipipe import model
+    from omnipipe.pipeline.reconstruct import ring_on_disk
+    from omnipipe.spill import Pack, is_on_disk
+
+    integrate = model.integrate
+    seen: list[bool] = []
+
+    def checked(poses: np.ndarray, points: list[np.ndarray]) -> object:
+        seen.extend(is_on_disk(p) for p in points if len(p))
+        return integrate(poses, points)
+
+    monkeypatch.setattr(model, "integrate", checked)
+    assert main(["reconstruct", str(small_dataset), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert seen and all(seen)
+    ring = LaserRing(
+        np.arange(8.0).reshape(4, 2), np.arange(4.0), np.ones(4), np.ones(4, np.float32),
+        points_in_rig=np.arange(12.0).reshape(4, 3)[:, ::-1], warnings=["w"],
+    )
+    held = ring_on_disk(Pack(), ring)
+    for f in fields(LaserRing):
+        a, b = getattr(ring, f.name), getattr(held, f.name)
+        if isinstance(a, np.ndarray):
+            assert b.dtype == a.dtype and np.array_equal(a, b) and (is_on_disk(b) or a.size == 0), f.name
+        else:
+            assert a == b, f.name
 
 
 def test_results_held_to_the_end_wait_in_the_scratch(small_dataset: Path, reconstruction: Path, tmp_path: Path) -> None:

@@ -33,7 +33,7 @@ from omnipipe.executor import InlineExecutor, ordered_map, shares_files
 from omnipipe.geometry import apply
 from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
 from omnipipe.model.texture_grid import UnrolledImage
-from omnipipe.spill import shared_on_disk
+from omnipipe.spill import shared_on_disk, zeros_on_disk
 
 
 def integrate(
@@ -317,11 +317,21 @@ def textured_mesh(
     dup = np.unique(faces[shift])
     new_id = np.full(n, -1, faces.dtype)
     new_id[dup] = n + np.arange(len(dup))
-    faces = faces.copy()
-    faces[shift] = new_id[faces[shift]]
-    verts = np.concatenate([points_in_world, points_in_world[dup]])
-    arc = np.concatenate([arc_mm, arc_mm[dup] + circ])
-    axial = np.concatenate([axial_mm, axial_mm[dup]])
-    uu = arc / (circ * (w + extra) / w)
-    vv = 1.0 - ((axial - unrolled.axial_min_mm) / unrolled.mm_per_px + 0.5) / h
-    return verts, faces, np.column_stack([uu, vv]), atlas
+    # The outputs grow with the run: made in the run's scratch (omnipipe.spill), not
+    # in memory beside the inputs.
+    out_faces = zeros_on_disk(faces.shape, faces.dtype)
+    out_faces[:] = faces
+    out_faces[shift] = new_id[faces[shift]]
+    verts = zeros_on_disk((n + len(dup), 3), points_in_world.dtype)
+    verts[:n], verts[n:] = points_in_world, points_in_world[dup]
+    span = circ * (w + extra) / w
+
+    def uv(arc: np.ndarray, axial: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return arc / span, 1.0 - ((axial - unrolled.axial_min_mm) / unrolled.mm_per_px + 0.5) / h
+
+    uvs = zeros_on_disk((n + len(dup), 2), np.result_type(*uv(arc_mm[:0], axial_mm[:0])))
+    for a in range(0, n, FACE_CHUNK):
+        b = min(a + FACE_CHUNK, n)
+        uvs[a:b] = np.column_stack(uv(arc_mm[a:b], axial_mm[a:b]))
+    uvs[n:] = np.column_stack(uv(arc_mm[dup] + circ, axial_mm[dup]))
+    return verts, out_faces, uvs, atlas
