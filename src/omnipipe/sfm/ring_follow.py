@@ -22,10 +22,11 @@ With the frames' rotations R_i and ring centres c_i (rig frame), a straight pipe
 
 f the stretch's first frame (its pose kept), s_i the frame's travel along the axis (the
 bridged chain's, from the odometry). The axis direction u is the rig's mean axis over
-the stretch (R_i's z): a tilt of the robot in the pipe is not measured (the ring's
-ellipse shows its size but not its sign), so it is stated: the stretch stays flagged,
-its reason saying what was measured and what assumed. Frames after the stretch keep
-their poses relative to its last frame.
+the stretch (R_i's z); where the gyro shows the rig turning through a bend, the axis
+turns with it (:func:`axis_directions`) and the centres follow it step by step. A tilt
+of the robot in the pipe is not measured (the ring's ellipse shows its size but not its
+sign), so it is stated: the stretch stays flagged, its reason saying what was measured
+and what assumed. Frames after the stretch keep their poses relative to its last frame.
 
 Conventions: world = rig frame of frame 0, poses world_from_rig (4, 4), mm, radians.
 """
