@@ -101,8 +101,9 @@ def _run(seed: int, work: Path, size: str | None, fresh: bool, motion: str) -> t
     return json.loads((out / "report.json").read_text()), truth
 
 
-def _ring_spans(data: Path, truth: dict) -> list[tuple[float, float]] | None:
-    """Each frame's true laser ring as an axial stretch (contract axial mm, from..to):
+def _ring_spans(data: Path, truth: dict) -> list[tuple[float, float, float, float]] | None:
+    """Each frame's true laser ring as an axial stretch (contract axial mm, from..to), its
+    median axial position and the truth stations' mean diameter around it (mm):
     the rig.yaml laser plane at the true pose (ground_truth/poses.txt) cut with the true
     pipe (a cylinder of the truth stations' diameter about the centreline polyline,
     straight locally); None without the files. Every frame counts (one whose ring was
@@ -145,18 +146,19 @@ def _ring_spans(data: Path, truth: dict) -> list[tuple[float, float]] | None:
         a, b, cc = np.sum(uu * uu, axis=1), 2.0 * (uu @ q0), float(q0 @ q0) - rad**2
         s = (-b + np.sqrt(np.maximum(b * b - 4 * a * cc, 0.0))) / (2.0 * np.maximum(a, 1e-12))
         along = s0 + float((p0 - c) @ tan) + s * (u @ tan) - base
-        spans.append((float(along.min()), float(along.max())))
+        d_ring = float(np.mean(np.interp(along, st_x, st_d)))
+        spans.append((float(along.min()), float(along.max()), float(np.median(along)), d_ring))
     return spans
 
 
-def _unseen(t: dict, spans: list[tuple[float, float]] | None) -> bool:
+def _unseen(t: dict, spans: list[tuple[float, float, float, float]] | None) -> bool:
     """A joint counted for its gap alone (offset < 1 mm) whose gap no frame's ring
     crossed: nothing of it was measured (a joint with an offset shows it in the wall
     either side, and stays counted)."""
     if t["kind"] != "joint" or spans is None or t.get("offset_mm", 0.0) >= 1.0:
         return False
     a, b = _extent(t)
-    return not any(lo <= b and hi >= a for lo, hi in spans)
+    return not any(lo <= b and hi >= a for lo, hi, *_ in spans)
 
 
 def _eligible(t: dict, d: float) -> bool:
@@ -233,16 +235,38 @@ def _sizes(t: dict, f: dict, r: Row, d: float, truth: dict) -> None:
         r.size_in += abs(f[key] - t[key]) <= 3.0 * sig
 
 
-def _headline(report: dict, truth: dict, x: np.ndarray, st: list[dict], counts: dict) -> None:
-    """The headline ``inner_diameter_mm`` against the truth's mean diameter over the
-    reported stations (their median: the headline's own definition), tallied per class of
-    run (out-of-round, reducing, partly flooded: truth features overlapping the stations;
-    plain otherwise): (covered within 3 sigma, error mm, error in sigmas)."""
+def _headline_truth(truth: dict, spans: list[tuple[float, float, float, float]]) -> float:
+    """The true headline (the data contract's definition): the median over the frames'
+    true rings of the mean diameter around each; where a true taper lies among the rings
+    and one side of its ramp holds at least twice the other's rings, over that side's
+    (the constant section most of the run measured). From the true poses, so the camera motion's axial placement of
+    the stations does not move the truth."""
+    mid = np.array([sp[2] for sp in spans])
+    dia = np.array([sp[3] for sp in spans])
+    for t in truth.get("features", []):
+        if t["kind"] != "taper" or not (mid.min() < t["axial_to_mm"] and mid.max() > t["axial_from_mm"]):
+            continue
+        before, after = mid < t["axial_from_mm"], mid > t["axial_to_mm"]
+        big, small = (before, after) if before.sum() >= after.sum() else (after, before)
+        if big.any() and big.sum() >= 2 * small.sum():  # analysis.stations.CLEAR_MAJORITY
+            return float(np.median(dia[big]))
+    return float(np.median(dia))
+
+
+def _headline(report: dict, truth: dict, x: np.ndarray, st: list[dict], counts: dict,
+              spans: list[tuple[float, float, float, float]] | None = None) -> None:
+    """The headline ``inner_diameter_mm`` against the truth (:func:`_headline_truth`
+    with the true rings ``spans``; without them, the truth's mean diameter over the
+    reported stations, their median), tallied per class of run (out-of-round, reducing,
+    partly flooded: truth features overlapping the stations; plain otherwise): (covered
+    within 3 sigma, error mm, error in sigmas)."""
     d, sig = report.get("inner_diameter_mm"), report.get("inner_diameter_sigma_mm")
     if d is None:
         return
     at = np.array([s["axial_mm"] for s in st])
     true = float(np.median(np.interp(at, x, [q["inner_diameter_mm"] for q in truth["stations"]])))
+    if spans:
+        true = _headline_truth(truth, spans)
     span = (float(at.min()), float(at.max()))
     kinds = {t["kind"] for t in truth.get("features", []) if t["kind"] in ("taper", "ovality", "water")
              and min(_extent(t)[1], span[1]) > max(_extent(t)[0], span[0])}
@@ -254,7 +278,7 @@ def _headline(report: dict, truth: dict, x: np.ndarray, st: list[dict], counts: 
 
 def _score(
     report: dict, truth: dict, rows: dict[str, Row], counts: dict,
-    spans: list[tuple[float, float]] | None = None,
+    spans: list[tuple[float, float, float, float]] | None = None,
 ) -> None:
     """Tally one run (``spans``: the frames' true ring stretches, :func:`_ring_spans`)."""
     d = truth.get("inner_diameter_mm") or report.get("inner_diameter_mm", 200.0)
@@ -287,7 +311,7 @@ def _score(
     tst = truth.get("stations") or []
     if tst and st:
         x = np.array([s["axial_mm"] for s in tst])
-        _headline(report, truth, x, st, counts)
+        _headline(report, truth, x, st, counts, spans)
         for s in st:
             for key, tkey in (("ovality_pct", "ovality_pct"), ("water_depth_mm", "water_depth_mm")):
                 if s.get(key) is not None and x[0] <= s["axial_mm"] <= x[-1]:

@@ -1,5 +1,6 @@
-"""benchmarks/bench_features.py's unseen joints: a gap no frame's true laser ring crossed
-is counted outside the run (nothing of it was measured), never as missed."""
+"""benchmarks/bench_features.py's unseen joints (a gap no frame's true laser ring crossed
+is counted outside the run: nothing of it was measured, never as missed) and the true
+headline of a reducing run (the constant section most rings measured)."""
 
 from __future__ import annotations
 
@@ -39,9 +40,10 @@ def test_ring_spans_follow_the_laser_plane_and_its_tilt(tmp_path: Path, tilt_deg
     data, truth = _dataset(tmp_path, [0.0, 40.0], tilt_deg)
     spans = bench._ring_spans(data, truth)
     assert spans is not None and len(spans) == 2
-    for (lo, hi), s in zip(spans, [0.0, 40.0], strict=True):
-        assert abs(0.5 * (lo + hi) - (s - LEAD)) < 0.5
+    for (lo, hi, mid, d), s in zip(spans, [0.0, 40.0], strict=True):
+        assert abs(0.5 * (lo + hi) - (s - LEAD)) < 0.5 and abs(mid - (s - LEAD)) < 0.5
         assert abs((hi - lo) - 2 * R * math.tan(math.radians(tilt_deg))) < 0.3
+        assert abs(d - 2 * R) < 1e-9
 
 
 def test_a_gap_between_rings_is_unseen_unless_offset(tmp_path: Path) -> None:
@@ -52,3 +54,20 @@ def test_a_gap_between_rings_is_unseen_unless_offset(tmp_path: Path) -> None:
     assert bench._unseen(between, spans)
     assert not bench._unseen(crossed, spans)
     assert not bench._unseen({**between, "offset_mm": 2.0}, spans)  # its offset shows in the wall
+
+
+def test_the_true_headline_of_a_reducing_run_is_its_longer_section(tmp_path: Path) -> None:
+    """Seven rings, two before a 300 -> 260 mm reducer, one on its ramp, four after it:
+    the truth is the narrow section's 260 mm (the median ring would read the ramp's 280
+    on a run placed a few mm off); without a taper, the median of the rings."""
+    data, truth = _dataset(tmp_path, [0.0, 10.0, 40.0, 70.0, 80.0, 90.0, 100.0], 0.0)
+    z = np.array(truth["centreline_polyline_mm"]["sigma"]) - 200.0
+    truth["stations"] = [{"axial_mm": float(v), "inner_diameter_mm": float(np.interp(v, [-40.0, -20.0], [300.0, 260.0]))}
+                         for v in z]
+    truth["features"] = [{"kind": "taper", "axial_from_mm": -40.0, "axial_to_mm": -20.0}]
+    spans = bench._ring_spans(data, truth)
+    assert spans is not None
+    assert abs(bench._headline_truth(truth, spans) - 260.0) < 1e-6
+    truth["features"] = []
+    assert abs(bench._headline_truth(truth, spans) - 260.0) < 1e-6  # four of seven at 260
+    assert abs(bench._headline_truth({"features": []}, spans[:3]) - 300.0) < 1e-6

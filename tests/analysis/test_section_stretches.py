@@ -107,3 +107,29 @@ def test_headline_on_a_taper_carries_the_run_scale_along_its_ramp() -> None:
     assert math.isclose(fields["inner_diameter_sigma_mm"], math.hypot(0.85, want), rel_tol=1e-3)
     straight = AnalysisResult(**{**res.__dict__, "features": ()})
     assert headline_position_sigma(straight, 0.10, 0.0) == 0.0
+
+
+def test_headline_of_a_reducing_run_is_its_longer_section() -> None:
+    """A 543 -> 477 mm reducer under 11 stations, 2 before its ramp, 4 on it, 5 after
+    (random-features seed 0, the stations placed 6 mm off by the camera motion): the
+    median station reads the ramp 9 mm from the truth there; the headline is the narrow
+    section's, within 3 sigma of it. With 3 stations either side neither section is the
+    run's: the median station stands, its sigma spanning both."""
+    from omnipipe.analysis.stations import headline, headline_of_a_section
+
+    rng = np.random.default_rng(0)
+    axial = np.linspace(-245.0, -185.0, 11)
+    true = np.interp(axial, [-235.0, -214.0], [543.0, 477.0])
+    placed = axial + 6.0  # where the motion put them
+    stations = [_station(float(a), float(x + rng.normal(0, 0.5)), 0.0, 0.3, 0.0) for a, x in zip(placed, true, strict=True)]
+    ramp, ends = (-229.0, -208.0), (543.0, 477.0)
+    head = headline(stations, 0.3)
+    assert abs(head.diameter_mm - 477.0) > 5.0 * head.sigma_mm  # the median station: on the ramp
+    own = headline_of_a_section(head, stations, ramp, ends, 0.3)
+    assert own.stations_used == 5 and abs(own.diameter_mm - 477.0) <= 3.0 * own.sigma_mm
+    assert own.min_mm == head.min_mm and own.max_mm == head.max_mm
+    even = stations[:3] + stations[-3:]
+    mid = headline_of_a_section(headline(even, 0.3), even, ramp, ends, 0.3)
+    assert mid.sigma_mm > (543.0 - 477.0) / math.sqrt(12.0)
+    for truth in (543.0, 477.0):
+        assert abs(mid.diameter_mm - truth) <= 3.0 * mid.sigma_mm

@@ -303,3 +303,20 @@ def test_laser_lights_the_branch_wall_through_the_hole() -> None:
     off_sheet = (truth["surface"] == 1) & (near[truth["index"]] == 0)
     assert off_sheet.sum() > 50
     assert image.reshape(-1, 3)[truth["index"][off_sheet], 0].max() < 3
+
+
+@pytest.mark.parametrize("joints", [(), (Joint(145.25, 7.93, 8.14),)])
+def test_rays_past_a_reducer_meet_its_narrow_wall(joints) -> None:
+    """Past a 195.75 -> 164.16 mm reducer (random-features seed 18, with and without its
+    joint at the ramp's start) every ray meets the narrow section's wall: the ray
+    casting's bracket began on that wall itself and the rings there were drawn at up to
+    93.4 mm radius (187 mm read for 164)."""
+    pipe = Pipe(195.75, features=PipeFeatures(joints=joints, tapers=(Taper(142.3, 196.0, 164.16),)), defects=[])
+    r = _renderer(pipe)
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, 0.0, 400.0]
+    hits = r.hit(pose, r.rays_in_rig[~r.body])
+    _, rho, *_ = pipe.pipe_coordinates(hits.points_in_world)
+    past = hits.sigma > 200.0
+    assert past.sum() > 1000
+    np.testing.assert_allclose(rho[past], 82.08, atol=1e-3)

@@ -11,8 +11,9 @@ of the rings' frames and returns:
   station (ring) a robust Fourier fit of the radius around the axis: mean diameter
   (Dmax + Dmin) / 2, ovality (Dmax - Dmin) / D and its axis, standing water from the
   ring's cut-off chord (:mod:`.stations`); the headline inner diameter is the stations'
-  mean (:func:`.stations.headline`) and the section features (taper, bend, ovality,
-  water) follow from the stations and the centreline (:mod:`.sections`);
+  mean (:func:`.stations.headline`), on a reducing run that of the section most stations
+  measured (:func:`.stations.headline_of_a_section`), and the section features (taper,
+  bend, ovality, water) follow from the stations and the centreline (:mod:`.sections`);
 * the radial deviation of every point from that wall, and the bulges and dents found
   in it (:mod:`.defects`, sized by a model fit, :mod:`.sizing`), in the data contract's
   convention (axial position along the centreline from the first frame's origin, angle
@@ -59,7 +60,7 @@ from omnipipe.analysis.stations import (
     SectionConfig,
     Station,
     headline,
-    headline_on_a_taper,
+    headline_of_a_section,
     ring_cut,
     section_order,
     station_from_section,
@@ -202,7 +203,8 @@ class AnalysisResult:
 
     Attributes:
         inner_diameter_mm: the mean diameter (Dmax + Dmin) / 2, averaged over the stations
-            (:func:`.stations.headline`).
+            (:func:`.stations.headline`); on a reducing run over the stations of the
+            section that holds most of them (:func:`.stations.headline_of_a_section`).
         straight: True when one cylinder describes the whole run.
         ovality_max: the largest station ovality (Dmax - Dmin) / D.
         stations_axial_mm, stations_diameter_mm, stations_ovality: (K,) per ring
@@ -305,8 +307,14 @@ def run(
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
     st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
-    if any(isinstance(f, Taper) for f in features):
-        head = headline_on_a_taper(head, st_list)
+    tapers = [f for f in features if isinstance(f, Taper)]
+    if tapers:
+        # On a reducer the headline is the section most stations measured, not the ramp.
+        t = tapers[0]
+        head = headline_of_a_section(
+            head, st_list, (t.axial_from_mm, t.axial_to_mm), (t.diameter_from_mm, t.diameter_to_mm), shared
+        )
+        st_list = with_deformation(st_list, head)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]

@@ -22,10 +22,11 @@ With the frames' rotations R_i and ring centres c_i (rig frame), a straight pipe
 
 f the stretch's first frame (its pose kept), s_i the frame's travel along the axis (the
 bridged chain's, from the odometry). The axis direction u is the rig's mean axis over
-the stretch (R_i's z): a tilt of the robot in the pipe is not measured (the ring's
-ellipse shows its size but not its sign), so it is stated: the stretch stays flagged,
-its reason saying what was measured and what assumed. Frames after the stretch keep
-their poses relative to its last frame.
+the stretch (R_i's z); where the gyro shows the rig turning through a bend, the axis
+turns with it (:func:`axis_directions`) and the centres follow it step by step. A tilt
+of the robot in the pipe is not measured (the ring's ellipse shows its size but not its
+sign), so it is stated: the stretch stays flagged, its reason saying what was measured
+and what assumed. Frames after the stretch keep their poses relative to its last frame.
 
 Conventions: world = rig frame of frame 0, poses world_from_rig (4, 4), mm, radians.
 """
@@ -57,6 +58,11 @@ MIN_KNOWN_CENTRES = 3
 # Largest gap (s) between a frame's time and the nearest gyro readings: outside them the
 # rotation is not integrated.
 MAX_GYRO_GAP_S = 0.5
+
+# Smallest turn (deg) of the rig's z axes over an unmeasured stretch taken for the pipe
+# bending (:func:`axis_directions`): the robot's tilt wobbles by about a degree in
+# straight pipe (the simulator's 0.8 deg).
+MIN_FOLLOWED_TURN_DEG = 3.0
 
 # Said of a bridged stretch whose frames the gyro turned and the ring centres placed.
 FOLLOWED = (
@@ -197,18 +203,19 @@ def follow_rings(
             new[fa : fb + 1] = fix[None] @ old[fa : fb + 1]
             start = fb + 1
             continue
-        u = rot[:, :, 2].mean(axis=0)
-        u /= np.linalg.norm(u)
-        if u @ (fix[:3, :3] @ travel) < 0:
-            u = -u
         s = (old[frames, :3, 3] - old[fa, :3, 3]) @ (travel / length)
         odo = None if travel_mm is None else travel_mm[frames] - travel_mm[fa]
         if odo is not None and np.isfinite(odo).all() and odo[-1] > 0:
             s = odo * (s[-1] / odo[-1])
             moving = np.abs(np.diff(odo)) * (s[-1] / odo[-1]) >= CREEP_MIN_MM
             still[frames[1:]] &= ~moving
+        # The rings' axis points lie ahead of (or behind) their rigs along the pipe by
+        # their centres' depth along the rig's z; where the pipe bends, the axis turns
+        # there as it turns at the rig that far on.
+        forward = 1.0 if rot[:, :, 2].mean(axis=0) @ (fix[:3, :3] @ travel) >= 0 else -1.0
+        u = forward * axis_directions(rot[:, :, 2], s, s + forward * c[:, 2])
         on_axis = anchor[:3, 3] + anchor[:3, :3] @ c[0]
-        pos = on_axis[None] + s[:, None] * u[None] - np.einsum("nij,nj->ni", rot, c)
+        pos = axis_points(on_axis, u, s) - np.einsum("nij,nj->ni", rot, c)
         for j, i in enumerate(frames):
             if j and still[i]:
                 new[i] = new[i - 1]
@@ -219,6 +226,53 @@ def follow_rings(
         start = fb + 1
     new[start:] = fix[None] @ old[start:]
     return new, still, done
+
+
+def axis_directions(rig_z: np.ndarray, s: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3) the pipe axis' unit direction (world frame) at travel ``at`` (n,) mm (None:
+    ``s``) from a stretch's rig z axes ``rig_z`` (n, 3) (world_from_rig's third column,
+    the gyro's turn) at their travel ``s`` (n,) mm.
+
+    The robot rides along the pipe, so where the pipe bends its rig turns with it: the
+    z axes' straight-line fit in the travel (normalised) follows an elbow's turn, the
+    rig's tilt in the pipe staying as it was (not measured: the same assumption as in
+    straight pipe); evaluated at ``at``, where the laser ring cuts the axis (the rig
+    turns there that much further on). Only a turn that stands out of the rig's wobble
+    is followed: the fit's turn over the stretch at least :data:`MIN_FOLLOWED_TURN_DEG`
+    and 3 x the z axes' rms scatter about the fit (rad); otherwise the axis is straight
+    along the z axes' mean (a degree of wobble taken for a bend would swing a 50 mm
+    stretch's positions by tenths of a mm)."""
+    z = np.asarray(rig_z, float)
+    s = np.asarray(s, float)
+    mean = z.mean(axis=0) / np.linalg.norm(z.mean(axis=0))
+    straight = np.tile(mean, (len(z), 1))
+    x = s - float(np.mean(s))
+    if len(z) < 3 or float(x @ x) <= 0:
+        return straight
+    slope = (x @ (z - z.mean(axis=0))) / float(x @ x)
+    fit = z.mean(axis=0)[None] + x[:, None] * slope[None]
+    scatter = float(np.sqrt(np.mean(np.sum((z - fit) ** 2, axis=1))))
+    ends = fit[[int(np.argmin(s)), int(np.argmax(s))]]
+    ends /= np.linalg.norm(ends, axis=1, keepdims=True)
+    turn = math.acos(float(np.clip(ends[0] @ ends[1], -1.0, 1.0)))
+    if turn < max(math.radians(MIN_FOLLOWED_TURN_DEG), 3.0 * scatter):
+        return straight
+    xa = (s if at is None else np.asarray(at, float)) - float(np.mean(s))
+    out = z.mean(axis=0)[None] + xa[:, None] * slope[None]
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def axis_points(start: np.ndarray, u: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(n, 3) points along an axis from ``start`` (3,), the first frame's, with unit
+    directions ``u`` (n, 3) at travel ``s`` (n,) mm: each step along its ends' mean
+    direction (a bend's chord)."""
+    start = np.asarray(start, float)
+    if len(s) < 2:
+        return np.tile(start, (len(s), 1))
+    mid = 0.5 * (u[1:] + u[:-1])
+    mid /= np.maximum(np.linalg.norm(mid, axis=1, keepdims=True), 1e-12)
+    steps = np.diff(np.asarray(s, float))[:, None] * mid
+    return start[None] + np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
 
 
 def _filled(

@@ -118,6 +118,10 @@ class WallHits:
 SURFACE_WALL = 0
 SURFACE_WATER = -1
 SURFACE_DARK = -2
+BRACKET_MARGIN_MM = 1.0
+"""How far inside the smallest and outside the largest wall radius the shaped wall's ray
+casting starts and ends its samples (mm; :meth:`Renderer._intersect_shaped`)."""
+
 # Standing water: a dark, almost black surface (no laser return: the sheet does not
 # scatter back from a still water surface).
 WATER_ALBEDO = (0.025, 0.03, 0.028)
@@ -328,6 +332,11 @@ class Renderer:
         """
         pipe = self.pipe
         lo, hi = pipe.wall_bounds()
+        # The bracket strictly inside and outside the wall: a ray starting its samples on
+        # the narrowest section's wall itself (residual 0, not < 0) found no crossing and
+        # landed in the bracket's last interval (random-features seed 18: the rings past
+        # a 196 -> 164 mm reducer drawn at 187 mm).
+        lo, hi = lo - BRACKET_MARGIN_MM, hi + BRACKET_MARGIN_MM
         t0 = self._solve_radius(o, D, pipe.radius_mm)
         t_in = self._solve_radius(o, D, lo, start=t0)
         t_out = np.maximum(self._solve_radius(o, D, hi, start=t0), t_in)
