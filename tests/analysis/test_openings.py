@@ -65,3 +65,40 @@ def test_lost_returns_on_every_ring_or_in_pieces_are_no_opening() -> None:
     sig, th, fr = _rings(3, None)
     ragged = (fr >= 10) & (fr <= 12) & (np.degrees(th) % 10 < 3.0)  # 36 pieces on 3 rings
     assert return_gaps(sig[~ragged], th[~ragged], fr[~ragged], RADIUS, 6.0) == []
+
+
+def _holed_rings(seed: int, strays: int):
+    """Rings every 5 mm over 0-200 mm (720 samples over the circumference at RADIUS,
+    wall noise 0.2 mm) with a 40 mm round hole centred at 102.5 mm (its rim 82.5-122.5
+    mm): the samples inside it lost; the first ring past its upper rim (125 mm) keeps
+    ``strays`` consecutive samples 3 mm deep at the hole's angle (light scattered at the
+    rim). Returns (ring_z, u, dev, frame, rings inside)."""
+    rng = np.random.default_rng(seed)
+    us, devs, frs, ring_z, inside = [], [], [], {}, set()
+    for k, z in enumerate(np.arange(0.0, 200.0, 5.0)):
+        u = (np.linspace(-np.pi, np.pi, 720, endpoint=False) + np.radians(rng.normal(0, 0.05, 720))) * RADIUS
+        dev = rng.normal(0, 0.2, 720)
+        keep = (u / 20.0) ** 2 + ((z - 102.5) / 20.0) ** 2 >= 1.0
+        if not keep.all():
+            inside.add(k)
+        if z == 125.0:
+            dev[np.argsort(np.abs(u))[:strays]] = 3.0
+        us.append(u[keep]), devs.append(dev[keep]), frs.append(np.full(keep.sum(), k))
+        ring_z[k] = float(z)
+    return ring_z, np.concatenate(us), np.concatenate(devs), np.concatenate(frs), inside
+
+
+def test_hole_growth_stops_at_the_rim_despite_a_few_scattered_samples() -> None:
+    from omnipipe.analysis.openings import hole_extent
+
+    for seed in range(3):
+        ring_z, u, dev, fr, inside = _holed_rings(seed, 3)
+        ext = hole_extent(ring_z, u, dev, fr, {min(inside), max(inside)}, 22.0, 1.0, [])
+        assert ext is not None and all(ext.closed)
+        # The true rim at 82.5 / 122.5 mm; the ends halfway between the last ring in the
+        # hole and the first clean one: 82.5 and 122.5 (main: 127.5, one ring past).
+        assert abs(ext.lo_mm - 82.5) < 1e-6 and abs(ext.hi_mm - 122.5) < 1e-6
+        # A ring with as many deep samples as a lit branch wall's is still the hole's.
+        ring_z, u, dev, fr, inside = _holed_rings(seed, 8)
+        ext = hole_extent(ring_z, u, dev, fr, {min(inside), max(inside)}, 22.0, 1.0, [])
+        assert ext is not None and abs(ext.hi_mm - 127.5) < 1e-6
