@@ -67,7 +67,8 @@ MIN_FOLLOWED_TURN_DEG = 3.0
 # Said of a bridged stretch whose frames the gyro turned and the ring centres placed.
 FOLLOWED = (
     " (its turn from the gyro and its sideways shift from the laser ring's centre; its "
-    "direction assumed along the rig's mean axis: the robot's tilt in the pipe is not measured)"
+    "direction along the rig's axes where the gyro shows a bend, else along their mean: "
+    "the robot's tilt in the pipe is not measured)"
 )
 
 
