@@ -76,7 +76,9 @@ class TrackConfig:
             keyframe's new features, followed back to it frame by frame, when it has
             fewer verified tracks of its own keyframe than this (it is then resected
             from both sides; the frames after it back to the next keyframe are followed
-            through on the way); 0: never by count, a large number: always.
+            through on the way); 0: never by count, a large number (the default): always
+            (200 saves ~2 s of a 300-frame continuous run but moved robustness seeds 20 and
+            37 by +0.09 / +0.26 mm per 300 mm: benchmarks/RESULTS.md).
         back_beyond: ... or when its rays turned at least this share of the next
             keyframe's parallax from its own keyframe (the far part of a long step,
             where its own keyframe's tracks alone let it drift; robustness seed 1, a
@@ -96,7 +98,7 @@ class TrackConfig:
     corner_quality: float = bounded(0.01, gt=0, lt=1)
     min_corner_distance_px: float = bounded(5.0, gt=0)
     renew_ratio: float = bounded(0.3, ge=0, le=1)
-    back_below: int = bounded(200, ge=0)
+    back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
 
     def __post_init__(self) -> None:
