@@ -304,17 +304,7 @@ def run(
     mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
     reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
-    head = headline(st_list, shared)
-    st_list = with_deformation(st_list, head)
-    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
-    tapers = [f for f in features if isinstance(f, Taper)]
-    if tapers:
-        # On a reducer the headline is the section most stations measured, not the ramp.
-        t = tapers[0]
-        head = headline_of_a_section(
-            head, st_list, (t.axial_from_mm, t.axial_to_mm), (t.diameter_from_mm, t.diameter_to_mm), shared
-        )
-        st_list = with_deformation(st_list, head)
+    st_list, features, head = _sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
     finite = stations.ovality[np.isfinite(stations.ovality)]
@@ -347,6 +337,30 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _sections_and_headline(
+    st_list: list[Station],
+    line: Centreline,
+    sec_config: SectionConfig,
+    radial_sys: float,
+    shared: float,
+    mixing: tuple[np.ndarray, np.ndarray],
+) -> tuple[list[Station], list[Stretch], Headline]:
+    """The stations with their deformation and shared terms, the section features
+    (taper, bend, ovality, water) and the headline diameter: the stations' mean diameter,
+    or on a reducer the section most stations measured, not the ramp."""
+    head = headline(st_list, shared)
+    st_list = with_deformation(st_list, head)
+    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
+    tapers = [f for f in features if isinstance(f, Taper)]
+    if tapers:
+        t = tapers[0]
+        head = headline_of_a_section(
+            head, st_list, (t.axial_from_mm, t.axial_to_mm), (t.diameter_from_mm, t.diameter_to_mm), shared
+        )
+        st_list = with_deformation(st_list, head)
+    return st_list, features, head
 
 
 def _with_ring_terms(
