@@ -44,6 +44,13 @@ def _ring(world_from_rig: np.ndarray, axis_point: np.ndarray, axis: np.ndarray, 
     return pts, centre
 
 
+def _bridged_chain(world: np.ndarray) -> np.ndarray:
+    """A bridged chain (N, 4, 4): the true step lengths along the rig's own z, no rotation."""
+    chain = np.tile(np.eye(4), (len(world), 1, 1))
+    chain[1:, 2, 3] = np.cumsum(np.linalg.norm(np.diff(world[:, :3, 3], axis=0), axis=1))
+    return chain
+
+
 def test_ring_centre_is_where_the_tilted_axis_pierces_the_plane():
     rng = np.random.default_rng(3)
     pose = np.eye(4)
@@ -118,9 +125,7 @@ def test_a_bridged_run_is_turned_by_the_gyro_and_placed_by_the_rings():
     ap, ax = np.linalg.inv(truth[0]) @ np.r_[axis_point, 1.0], truth[0, :3, :3].T @ axis
     centres = [ring_centre(_ring(world[i], ap[:3], ax, rng)[0]) for i in range(n)]
     # the bridged chain: the right lengths along the rig's -z... its own z, no rotation
-    lengths = np.linalg.norm(np.diff(world[:, :3, 3], axis=0), axis=1)
-    chain = np.tile(np.eye(4), (n, 1, 1))
-    chain[1:, 2, 3] = np.cumsum(lengths)
+    chain = _bridged_chain(world)
     rotations = gyro_rotations(imu, t)
     new, _, done = follow_rings(chain, np.zeros(n, bool), [(0, n - 1)], rotations, centres)
     assert done == [(0, n - 1)]
@@ -232,10 +237,8 @@ def test_sparse_rings_the_decoding_pass_left_are_interpolated_in_the_travel():
     centres = [
         ring_centre(_ring(world[i], ap[:3], ax, rng)[0]) if i in with_ring else None for i in range(n)
     ]
-    lengths = np.linalg.norm(np.diff(world[:, :3, 3], axis=0), axis=1)
-    chain = np.tile(np.eye(4), (n, 1, 1))
-    chain[1:, 2, 3] = np.cumsum(lengths)
-    odometry = np.r_[0.0, np.cumsum(lengths)] * 1.02 + rng.normal(0, 0.02, n)
+    chain = _bridged_chain(world)
+    odometry = chain[:, 2, 3] * 1.02 + rng.normal(0, 0.02, n)
     new, _, done = follow_rings(
         chain, np.zeros(n, bool), [(0, n - 1)], gyro_rotations(imu, t), centres, odometry
     )
@@ -317,9 +320,7 @@ def test_a_bridged_bend_is_followed_as_the_rig_turns(monkeypatch, wobble_deg, bo
         point, axis = rings[i]
         ap, ax = inv0 @ np.r_[point, 1.0], inv0[:3, :3] @ axis
         centres.append(ring_centre(_ring(world[i], ap[:3], ax, rng)[0]))
-    lengths = np.linalg.norm(np.diff(world[:, :3, 3], axis=0), axis=1)
-    chain = np.tile(np.eye(4), (n, 1, 1))
-    chain[1:, 2, 3] = np.cumsum(lengths)
+    chain = _bridged_chain(world)
     rotations = gyro_rotations(imu, t)
     new, _, done = follow_rings(chain, np.zeros(n, bool), [(0, n - 1)], rotations, centres)
     assert done == [(0, n - 1)]

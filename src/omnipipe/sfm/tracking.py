@@ -77,8 +77,7 @@ class TrackConfig:
             fewer verified tracks of its own keyframe than this (it is then resected
             from both sides; the frames after it back to the next keyframe are followed
             through on the way); 0: never by count, a large number (the default): always
-            (200 saves ~2 s of a 300-frame continuous run but moved robustness seeds 20 and
-            37 by +0.09 / +0.26 mm per 300 mm: benchmarks/RESULTS.md).
+            (why always: benchmarks/RESULTS.md).
         back_beyond: ... or when its rays turned at least this share of the next
             keyframe's parallax from its own keyframe (the far part of a long step,
             where its own keyframe's tracks alone let it drift; robustness seed 1, a
