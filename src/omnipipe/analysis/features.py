@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -34,6 +34,7 @@ from omnipipe.analysis.joints import gap_joints, offset_joints, offset_joints_ke
 from omnipipe.analysis.openings import (
     HoleExtent,
     ReturnGap,
+    closes_both_sides,
     gap_clusters,
     hole_extent,
     local_gaps,
@@ -56,6 +57,9 @@ class FeatureSearch:
         opening_zones: each lateral's opening (its outline's semi-axes along the axis
             and around the pipe, plus the margin and 3 sigma of its centre) for the
             defect search (:func:`feature_zones`).
+        stray: (N,) True for the samples far off the wall in a cut no ring is seen to
+            close (standing water's texture peaks, :func:`_closed_openings`); also in
+            ``not_wall``, and no wall for the stations' water cut either.
     """
 
     features: list[PointFeature]
@@ -63,6 +67,7 @@ class FeatureSearch:
     threshold_mm: float
     unseen_gap_mm: float = 0.0
     opening_zones: tuple[FeatureZone, ...] = ()
+    stray: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def find_features(
@@ -104,15 +109,17 @@ def find_features(
     # Laterals: the rest, linked across rings, narrow and reaching far out, and the
     # rings' stretches without returns (the light lost in the branch).
     zones = []
-    for f, mask, zone in _laterals(config, r, radius, spacing, thr, not_wall, feats):
+    lats, stray = _laterals(config, r, radius, spacing, thr, not_wall, feats)
+    for f, mask, zone in lats:
         feats.append(f)
         not_wall |= mask
         zones.append(zone)
+    not_wall |= stray
     # Then the joints seen by their offset alone, away from the openings (whose hole
     # pulls its rings' section centres sideways).
     feats += offset_joints(config, line, r, feats)
     feats.sort(key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, not_wall, thr, unseen, tuple(zones))
+    return FeatureSearch(feats, not_wall, thr, unseen, tuple(zones), stray)
 
 
 def _deep_clusters(
@@ -151,19 +158,24 @@ def _laterals(
     thr: float,
     not_wall: np.ndarray,
     joints: Sequence[PointFeature],
-) -> list[tuple[Lateral, np.ndarray, FeatureZone]]:
-    """The laterals: the deep clusters reaching as far as an opening's, and the
-    openings seen as lost returns (:mod:`.openings`) away from the joints, each with
-    the other clusters it meets along the axis (the branch wall lit near the rim);
-    (lateral, its not-wall mask, its opening's zone) each."""
+) -> tuple[list[tuple[Lateral, np.ndarray, FeatureZone]], np.ndarray]:
+    """The laterals: the deep clusters reaching as far as an opening's and closing on
+    both sides along the axis, and the openings seen as lost returns (:mod:`.openings`)
+    away from the joints, each with the other clusters it meets along the axis (the
+    branch wall lit near the rim); (lateral, its not-wall mask, its opening's zone)
+    each, and the (N,) mask of the stray samples (:func:`_closed_openings`)."""
     deep, others = _deep_clusters(config, r, radius, spacing, thr, not_wall)
     for i, m in enumerate(others):
         seen = _one_ring_opening(config, r, m, radius, spacing, thr, not_wall)
         if seen is not None:
             deep.append(seen)
             others[i] = np.zeros(0, int)
+    deep, stray, open_cuts = _closed_openings(config, r, deep, radius, thr, not_wall)
+    others = [m[~stray[m]] for m in others]
     holes = [(m, []) for m in deep]
-    for cluster in _lost_openings(config, r, radius, spacing, joints):
+    for cluster in _lost_openings(config, r, radius, spacing, joints, stray):
+        if any(_meets(r, m, cluster, radius, spacing) for m in open_cuts):
+            continue  # the cut's own end (water shallowing: ragged, narrower), no hole
         hit = [h for h in holes if _meets(r, h[0], cluster, radius, spacing)]
         if hit:
             hit[0][1].extend(cluster)
@@ -194,7 +206,42 @@ def _laterals(
                 out[i] = _lateral(config, r, holes[i][0], radius, spacing, thr, holes[i][1], stops)
                 merged = True
                 break
-    return out
+    return out, stray
+
+
+def _closed_openings(
+    config: FeatureConfig, r: Rings, deep: list[np.ndarray], radius: float, thr: float, not_wall: np.ndarray
+) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray]]:
+    """The deep clusters that close on both sides along the axis
+    (:func:`.openings.closes_both_sides` about the cluster's middle half around the
+    pipe); the (N,) mask of the others' samples and their rings' samples beyond ``thr``
+    outwards over each ring's share of their angles: stray laser peaks in a cut the run
+    never sees closing (standing water returns nothing, and the strongest peak on those
+    scan lines is texture, triangulated far off the wall: random-features-small seed 25,
+    45-270 mm out), not wall, and no wall missing there either (the stations' water
+    cut); and those other clusters."""
+    stray = np.zeros(len(r.dev), bool)
+    rings = np.unique(r.frame)
+    axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
+    wall = (np.abs(r.dev) <= thr) & ~not_wall
+    wall_theta = {int(k): r.theta[(r.frame == k) & wall] for k in rings}
+    kept, cuts = [], []
+    for m in deep:
+        c = math.atan2(float(np.mean(np.sin(r.theta[m]))), float(np.mean(np.cos(r.theta[m]))))
+        d = (r.theta - c + np.pi) % (2 * np.pi) - np.pi
+        lo, hi = float(d[m].min()), float(d[m].max())
+        inside = {int(k) for k in np.unique(r.frame[m])}
+        half = max(0.25 * (hi - lo), 0.5 * config.lateral_gap_mm / radius)
+        if closes_both_sides(axial, wall_theta, inside, 0.5 * (lo + hi) + c, half,
+                             config.lateral_max_length_rel * 2.0 * radius):
+            kept.append(m)
+            continue
+        cuts.append(m)
+        stray[m] = True
+        for k in inside:
+            dk = d[m[r.frame[m] == k]]
+            stray |= (r.frame == k) & (d >= dk.min()) & (d <= dk.max()) & (r.dev > thr)
+    return kept, stray, cuts
 
 
 def _one_hole(r: Rings, a: np.ndarray, b: np.ndarray, low: float) -> bool:
@@ -256,17 +303,25 @@ def _one_ring_opening(
 
 
 def _lost_openings(
-    config: FeatureConfig, r: Rings, radius: float, spacing: float, joints: Sequence[PointFeature]
+    config: FeatureConfig,
+    r: Rings,
+    radius: float,
+    spacing: float,
+    joints: Sequence[PointFeature],
+    stray: np.ndarray | None = None,
 ) -> list[list[ReturnGap]]:
     """The rings' local stretches without returns (:func:`.openings.local_gaps`) outside
     the joints' gaps (a groove's edge hides a tilted ring's samples), linked into
-    openings over ``lateral_gap_rings`` rings or more."""
-    gaps = return_gaps(r.sigma, r.theta, r.frame, radius, config.lateral_gap_mm)
+    openings over ``lateral_gap_rings`` rings or more; the ``stray`` samples
+    (:func:`_closed_openings`) are no returns."""
+    lit = np.flatnonzero(~stray) if stray is not None and stray.any() else np.arange(len(r.dev))
+    sigma, theta, frame = r.sigma[lit], r.theta[lit], r.frame[lit]
+    gaps = return_gaps(sigma, theta, frame, radius, config.lateral_gap_mm)
     if not gaps:
         return []
     rings = np.unique(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
-    gaps = local_gaps(gaps, r.theta, r.frame, axial, config.lateral_max_length_rel * 2.0 * radius)
+    gaps = local_gaps(gaps, theta, frame, axial, config.lateral_max_length_rel * 2.0 * radius)
     clear = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
              for f in joints if isinstance(f, Joint)]
     gaps = [g for g in gaps if not any(a <= g.axial_mm <= b for a, b in clear)]
@@ -339,7 +394,9 @@ def with_offset_joints_kept(first: FeatureSearch, second: FeatureSearch) -> Feat
     if not kept:
         return second
     feats = sorted([*second.features, *kept], key=lambda f: f.axial_mm)
-    return FeatureSearch(feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm, second.opening_zones)
+    return FeatureSearch(
+        feats, second.not_wall, second.threshold_mm, second.unseen_gap_mm, second.opening_zones, second.stray
+    )
 
 
 def _opening(

@@ -139,6 +139,41 @@ def local_gaps(
     return out
 
 
+def closes_both_sides(
+    ring_axial: dict[int, float],
+    wall_theta: dict[int, np.ndarray],
+    inside: set[int],
+    centre: float,
+    half: float,
+    max_length_mm: float,
+) -> bool:
+    """Whether an opening seen by the rings ``inside`` closes along the axis on both
+    sides (the rule of :func:`local_gaps` for deep samples): the rings (ordered along the
+    axis, ``ring_axial``) without a wall sample (``wall_theta``: each ring's wall
+    samples' angles, rad) within ``half`` rad of ``centre`` form a block around them no
+    longer than ``max_length_mm``, with a ring on either side sampling the wall there.
+    Standing water cuts the rings at the same angles to the run's end, and the laser
+    peaks found there on texture (no return from the water) stand far off the wall
+    like a branch's: such a block reaches the first or last ring."""
+    rings = sorted(ring_axial, key=lambda k: ring_axial[k])
+    pos = [i for i, k in enumerate(rings) if k in inside]
+    if len(rings) < 3 or not pos:
+        return False
+
+    def seen(k: int) -> bool:
+        d = np.abs((wall_theta[k] - centre + math.pi) % (2.0 * math.pi) - math.pi)
+        return bool(np.any(d <= half))
+
+    lo, hi = min(pos), max(pos)
+    while lo > 0 and not seen(rings[lo - 1]):
+        lo -= 1
+    while hi < len(rings) - 1 and not seen(rings[hi + 1]):
+        hi += 1
+    if lo == 0 or hi == len(rings) - 1:
+        return False
+    return ring_axial[rings[hi]] - ring_axial[rings[lo]] <= max_length_mm
+
+
 def gap_clusters(gaps: list[ReturnGap], link_mm: float, min_rings: int = 2) -> list[list[ReturnGap]]:
     """The gaps linked into openings: two gaps on different rings within ``link_mm``
     along the axis whose angles overlap are one; each cluster spanning at least

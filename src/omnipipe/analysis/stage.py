@@ -289,7 +289,7 @@ def run(
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
         config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor,
-        feature_zones(feats.features, radius, config.features.margin_mm, feats.opening_zones),
+        feature_zones(feats.features, radius, config.features.margin_mm, feats.opening_zones), feats.stray,
     )
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
@@ -630,6 +630,7 @@ def _measure_wall(
     not_wall: np.ndarray,
     executor: Executor | None = None,
     zones: Sequence[FeatureZone] = (),
+    stray: np.ndarray | None = None,
 ) -> tuple[_Stations, DefectSearch]:
     """The stations' wall profiles and the defects in the deviations from them.
 
@@ -646,7 +647,7 @@ def _measure_wall(
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     tick = phase("defects", 2)
     for done in range(1, 3):
-        stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius)
+        stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
         ok = np.isfinite(stations.deviation) & ~not_wall
         samples = WallSamples(
             sigma_mm=sigma[ok],
@@ -784,6 +785,7 @@ def _station_profiles(
     exclude: np.ndarray,
     zones: Sequence[FeatureZone] = (),
     radius: float = 1.0,
+    stray: np.ndarray | None = None,
 ) -> _Stations:
     """Each station's wall profile (fitted without the ``exclude`` points) and every
     point's deviation from it.
@@ -793,7 +795,8 @@ def _station_profiles(
     covers ``cut_min_coverage_deg`` (:func:`.stations.section_order`). Ovality is
     2 |(a2, b2)| / c0, bias-corrected (:func:`.stations.station_from_section`).
     A lateral's opening (``zones`` with an arc, on the ``radius`` mm wall) is no cut:
-    the light lost in the branch is not a water line.
+    the light lost in the branch is not a water line; ``stray`` samples (off the wall
+    in a cut: :attr:`.features.FeatureSearch.stray`) do not close a cut.
     """
     deviation = np.full(len(exclude), np.nan)
     sec_config = section_config(config)
@@ -806,7 +809,8 @@ def _station_profiles(
         th = theta[use]
         # The cut (water) is where the ring has no points at all; the coverage for the
         # order is that of the points fitted (a defect's samples left out open a gap).
-        cut, coverage = ring_cut(_with_openings(theta[on], float(np.median(sigma[on])), zones, radius), sec_config)
+        lit = on if stray is None or not len(stray) else on[~stray[on]]
+        cut, coverage = ring_cut(_with_openings(theta[lit], float(np.median(sigma[on])), zones, radius), sec_config)
         _, fitted_coverage = ring_cut(th, sec_config)
         order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
         coef = fit_wall_profile(th, rho[use], order, config.loss_scale_mm)
