@@ -104,27 +104,47 @@ def _depth_steps(
     sigma: np.ndarray,
     runs: list[tuple[int, int]],
     min_len: int,
-    on_taper: np.ndarray,
+    moved: np.ndarray,
 ) -> list[tuple[int, int]]:
     """``runs`` (first, last) of wet stations split where the depth steps between
-    neighbours on a taper (``on_taper`` (S,) bool: both inside a reported taper) by more
-    than 4 sigma (their independent ``sigma`` in quadrature) and 5 % of the shallower:
-    level water over a reducer, a different depth on each side (random-features seed 0:
-    65 mm above a 543 -> 477 mm reducer, 33 mm below it). Each piece keeps ``min_len``
-    stations. Elsewhere the invert does not move and a step is the stations' own error
-    (sewer-small: 42 and 39 mm either side of a lateral over 40 mm of water)."""
+    neighbours whose invert may have moved (``moved`` (S - 1,) bool, between station i
+    and i + 1: both inside a reported taper, or the section's diameter stepping between
+    them, :func:`_section_moved`) by more than 4 sigma (their independent ``sigma`` in
+    quadrature) and 5 % of the shallower: level water over a reducer, a different depth
+    on each side (random-features seed 0: 65 mm above a 543 -> 477 mm reducer, 33 mm
+    below it). Each piece keeps ``min_len`` stations. Elsewhere the invert does not move
+    and a step is the stations' own error (sewer-small: 42 and 39 mm either side of a
+    lateral over 40 mm of water)."""
     out = []
     for i0, i1 in runs:
         start = i0
         for i in range(i0, i1):
             jump = abs(depth[i + 1] - depth[i])
             big = jump > max(4.0 * math.hypot(sigma[i], sigma[i + 1]), 0.05 * min(depth[i], depth[i + 1]))
-            big = big and bool(on_taper[i] and on_taper[i + 1])
+            big = big and bool(moved[i])
             if big and i + 1 - start >= min_len and i1 - i >= min_len:
                 out.append((start, i))
                 start = i + 1
         out.append((start, i1))
     return out
+
+
+def _section_moved(stations: list[Station], config: SectionConfig, tapers: Sequence[Stretch]) -> np.ndarray:
+    """(S - 1,) True between neighbouring stations where the invert may have moved: both
+    inside one of the ``tapers`` (within half a station spacing), or their diameters
+    differing by ``config.taper_min_mm`` and 4 sigma (a reducer no taper was reported
+    for: random-features-small seed 23's 280 -> 245 mm one, 10 mm long beside a joint,
+    its wide side's stations mixing both sections; one water stretch over it read
+    26.4 mm, the median of 8 stations below the step, 41.5 mm above it)."""
+    axial = np.array([s.axial_mm for s in stations])
+    d = np.array([s.diameter_mm for s in stations])
+    dsig = np.array([s.diameter_sigma_mm for s in stations])
+    edge = _edge_sigma(axial)
+    on_taper = np.zeros(len(stations), bool)
+    for t in tapers:
+        on_taper |= (axial >= t.axial_from_mm - edge) & (axial <= t.axial_to_mm + edge)
+    step = np.abs(np.diff(d)) >= np.maximum(config.taper_min_mm, 4.0 * np.hypot(dsig[:-1], dsig[1:]))
+    return (on_taper[:-1] & on_taper[1:]) | step
 
 
 def _water_stretches(
@@ -140,10 +160,8 @@ def _water_stretches(
         math.sqrt(max(s.water_depth_sigma_mm**2 - s.water_depth_shared_sigma_mm**2, 0.0)) for s in stations
     ])
     edge = _edge_sigma(axial)
-    on_taper = np.zeros(len(stations), bool)
-    for t in tapers:
-        on_taper |= (axial >= t.axial_from_mm - edge) & (axial <= t.axial_to_mm + edge)
-    runs = _depth_steps(depth, own, _runs(depth > 0, config.min_stations), config.min_stations, on_taper)
+    runs = _runs(depth > 0, config.min_stations)
+    runs = _depth_steps(depth, own, runs, config.min_stations, _section_moved(stations, config, tapers))
     out = []
     for i0, i1 in runs:
         sel = slice(i0, i1 + 1)
