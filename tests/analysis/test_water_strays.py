@@ -6,6 +6,7 @@ neither a lateral nor wall: the water is found and measured as without them."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, run
 from omnipipe.geometry import make_transform
@@ -85,17 +86,19 @@ def test_water_ending_at_a_reducer_with_strays_is_no_lateral() -> None:
             assert s.water_depth_mm > 0 and abs(s.water_depth_mm - t) <= max(2.0, 3 * s.water_depth_sigma_mm)
 
 
-def test_a_tee_at_the_run_end_whose_branch_wall_rises_from_the_rim_stays_a_lateral() -> None:
-    """A 90 mm tee at 60 deg reaching past the run's last ring (never seen to close, as
-    sewer-small's): its lit branch wall rises from the rim (4-7 mm out there, 60 mm at
-    the middle), so it is a lateral, not a water cut's strays; dry pipe, no water."""
+@pytest.mark.parametrize("angle", [60.0, 180.0])
+def test_a_tee_at_the_run_end_whose_branch_wall_rises_from_the_rim_stays_a_lateral(angle: float) -> None:
+    """A 90 mm tee (at 60 deg, and across the angles' seam at 180 deg) reaching past the
+    run's last ring (never seen to close, as sewer-small's): its lit branch wall rises
+    from the rim (4-7 mm out there, 60 mm at the middle), so it is a lateral, not a
+    water cut's strays; dry pipe, no water."""
     pipe = Pipe(inner_diameter_mm=300.0)
     rng = np.random.default_rng(7)
     sig = 100.0 + 6.0 * np.arange(34) + rng.uniform(-0.5, 0.5, 34)
     theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
     centre, normal, binormal, tangent = pipe.frame_at(sig)
     zc, half = 290.0, 45.0
-    u = ((theta - np.radians(60.0) + np.pi) % (2 * np.pi) - np.pi) * 150.0
+    u = ((theta - np.radians(angle) + np.pi) % (2 * np.pi) - np.pi) * 150.0
     pts, frame, poses = [], [], []
     for k in range(len(sig)):
         r = 150.0 + rng.normal(0, 0.1, theta.size)
@@ -109,5 +112,5 @@ def test_a_tee_at_the_run_end_whose_branch_wall_rises_from_the_rim_stays_a_later
         poses.append(make_transform(rot, centre[k] + 82 * tangent[k]))
     res = run(AnalysisConfig(), AnalysisInputs(np.concatenate(pts), np.concatenate(frame), np.array(poses)))
     (lat,) = [f for f in res.features if f.kind == "lateral"]
-    assert abs((lat.angle_deg - 60.0 + 180.0) % 360.0 - 180.0) <= 3.0
+    assert abs((lat.angle_deg - angle + 180.0) % 360.0 - 180.0) <= 3.0
     assert res.water_depth_mm is None and res.defects == []

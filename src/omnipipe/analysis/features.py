@@ -313,11 +313,13 @@ def _rises_from_the_wall(r: Rings, members: np.ndarray, thr: float, max_steps: f
     7-37 steps of the cut from the wall, or next to it as far out as the deepest
     (random-features-small seed 25: 45-93 mm, 0.3-1.0 of the deepest)."""
     rings = np.unique(r.frame[members])
+    c = math.atan2(float(np.mean(np.sin(r.theta[members]))), float(np.mean(np.cos(r.theta[members]))))
     rising = 0
     for k in rings:
         on = np.flatnonzero(r.frame == k)
-        o = on[np.argsort(r.theta[on])]
-        t = r.theta[o]
+        u = (r.theta[on] - c + np.pi) % (2 * np.pi) - np.pi  # about the cluster: no seam inside it
+        o = on[np.argsort(u)]
+        t = np.sort(u)
         step = float(np.median(np.diff(t))) if len(t) > 2 else 0.0
         pos = np.flatnonzero(np.isin(o, members))
         low = max(4.0 * thr, 0.25 * float(np.max(r.dev[o[pos]])))
