@@ -72,7 +72,9 @@ class _StepPeaks:
 
         self.peaks: dict[str, float] = {}
         self.files: dict[str, float] = {}
+        self.where: dict[str, str] = {}
         self.tag = "start"
+        self._main = threading.get_ident()
         for module, names in STEPS:
             mod = importlib.import_module(module)
             for name in names:
@@ -97,7 +99,20 @@ class _StepPeaks:
             tag, rss = self.tag, kb["VmRSS"] / 1024.0
             if rss > self.peaks.get(tag, 0.0):
                 self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
+                self.where[tag] = self._main_at()
             time.sleep(0.01)
+
+    def _main_at(self) -> str:
+        """The main thread's innermost omnipipe lines (at most 3, innermost first) when
+        the sample was taken: where a step's peak is held."""
+        frame = sys._current_frames().get(self._main)
+        out = []
+        while frame is not None and len(out) < 3:
+            name = frame.f_code.co_filename
+            if "omnipipe" in name and "bench_scaling" not in name:
+                out.append(f"{name.rsplit('omnipipe/', 1)[-1]}:{frame.f_lineno} {frame.f_code.co_name}")
+            frame = frame.f_back
+        return " < ".join(out)
 
 
 def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool = False) -> None:
@@ -138,6 +153,7 @@ def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool 
                 "executor": s.get("executor"),
                 "steps": None if peaks is None else dict(peaks.peaks),
                 "steps_file": None if peaks is None else dict(peaks.files),
+                "steps_where": None if peaks is None else dict(peaks.where),
             }
         )
     )
@@ -280,6 +296,11 @@ def _print_steps(kind: str, done: list[dict]) -> None:
             "            -" if v is None else f"{v:7.0f} ({f or 0:3.0f})" for v, f in zip(vals, files, strict=True)
         )
         print(f"  {step:28s}" + cells + "   " + per)
+    where = done[-1].get("steps_where") or {}
+    if where:
+        print(f"{kind}: where each step peaked ({done[-1]['frames']} frames; innermost omnipipe lines)")
+        for step in order:
+            print(f"  {step:28s} {where.get(step, '')}")
 
 
 def main() -> None:
