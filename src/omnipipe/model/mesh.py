@@ -130,14 +130,20 @@ def mesh_unrolled(
     circ = circumference_mm
     margin = 0.1 * circ
     wrap = np.flatnonzero(arc_mm < margin)
+    if n + len(wrap) > chunk_points:
+        # The unrolled points with their wrapped copies in the run's scratch
+        # (omnipipe.spill), each chunk's triangles filtered as it comes and kept there;
+        # then sorted a block of first vertices at a time (_sorted_wall_faces).
+        uu = _joined_on_disk(arc_mm, arc_mm[wrap] + circ)
+        vv = _joined_on_disk(axial_mm, axial_mm[wrap])
+        ids = _joined_on_disk(np.arange(n, dtype=index), wrap.astype(index))
+        del wrap
+        parts = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points, executor)
+        del uu, vv
+        return _sorted_wall_faces(parts, ids, n, points_in_world, max_edge_factor, hole)
     uu = np.concatenate([arc_mm, arc_mm[wrap] + circ])
     vv = np.concatenate([axial_mm, axial_mm[wrap]])
     ids = np.concatenate([np.arange(n), wrap]).astype(index)
-    if len(uu) > chunk_points:
-        # Each chunk's triangles filtered as it comes and kept in the run's scratch;
-        # then sorted a block of first vertices at a time (_sorted_wall_faces).
-        parts = _chunked_triangles(uu, vv, 0.5 * margin, circ + 0.5 * margin, chunk_points, executor)
-        return _sorted_wall_faces(parts, ids, n, points_in_world, max_edge_factor, hole)
     tri = Delaunay(np.stack([uu, vv], axis=1)).simplices
     # Keep each triangle once: those whose centroid lies in the main period.
     cu = uu[tri].mean(axis=1)
@@ -147,6 +153,18 @@ def mesh_unrolled(
     # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
     longest = longest_edges(points_in_world, faces)
     return faces[longest <= max_edge_factor * float(np.median(longest))]
+
+
+def _joined_on_disk(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.concatenate([a, b])`` of two 1-D arrays, made in the run's scratch
+    (:func:`~omnipipe.spill.zeros_on_disk`) a chunk at a time (no copy in memory)."""
+    out = zeros_on_disk((len(a) + len(b),), np.result_type(a, b))
+    for i in range(0, len(a), FACE_CHUNK):
+        j = min(i + FACE_CHUNK, len(a))
+        out[i:j] = a[i:j]
+        drop_pages()
+    out[len(a) :] = b
+    return out
 
 
 def _wall(faces: np.ndarray, n: int, hole: np.ndarray | None) -> np.ndarray:

@@ -31,7 +31,7 @@ from omnipipe.config import bounded
 from omnipipe.image import PNG_COMPRESS_LEVEL
 from omnipipe.memory import release_freed_memory
 from omnipipe.report.bands import imshow_in_bands
-from omnipipe.spill import drop_pages, zeros_on_disk
+from omnipipe.spill import drop_pages, dropping_pages, zeros_on_disk
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -184,6 +184,12 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
         out["relief"] = _relief_plot(inputs, inputs.wall)
         release_freed_memory()
     return out
+
+
+RESIZE_DROP_S = 0.005
+"""Seconds between two drops of the scratch's pages (:func:`omnipipe.spill.dropping_pages`)
+while one call reads a whole image kept there (the atlas, the unrolled wall): the pages
+it read in the last few milliseconds resident, not the image's."""
 
 
 UNROLLED_MAX_COLUMNS = 1800
@@ -419,7 +425,8 @@ def _unrolled_plot(
         import cv2
 
         size = (min(cols, image.shape[1]), min(rows, image.shape[0]))
-        image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
+        with dropping_pages(RESIZE_DROP_S):  # the whole wall read in one call
+            image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
         drop_pages()  # the whole wall's (omnipipe.spill): not under the drawing
     imshow_in_bands(ax, image, (a0, a1, s1, s0))
     radius = inputs.radius_mm or 100.0
@@ -494,7 +501,10 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         tex = np.asarray(inputs.texture)
         scale = config.texture_max_px / max(tex.shape[:2])
         if scale < 1:
-            tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            # The atlas (omnipipe.spill) read whole in one call: its pages dropped as the
+            # call goes, not only after it.
+            with dropping_pages(RESIZE_DROP_S):
+                tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
         png = _png_bytes(tex)
         del tex
