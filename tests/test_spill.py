@@ -223,3 +223,18 @@ def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
     assert total == want and most < 16
     drop_pages()
     assert np.array_equal(z, np.arange(len(z), dtype=np.float64))
+
+
+def test_on_disk_writes_a_strided_array_a_block_at_a_time_in_c_order(monkeypatch) -> None:
+    """A column, a transpose, a strided 1-D and a 3-D view go into the file a block of
+    their first axis (or of values) at a time: the same values in C order."""
+    import omnipipe.spill as spill
+
+    monkeypatch.setattr(spill, "_COPY_BYTES", 40)  # many blocks, a ragged last one
+    rng = np.random.default_rng(13)
+    base = rng.normal(size=(37, 6))
+    cases = [base[:, 1], base.T, base[::3], base.reshape(37, 3, 2)[:, ::2], np.float32(2.5) * base[::-1]]
+    for a in cases:
+        got = on_disk(a)
+        assert got.shape == a.shape and got.dtype == a.dtype and np.array_equal(got, a)
+        assert got.flags.c_contiguous and is_on_disk(got)
