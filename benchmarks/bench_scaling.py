@@ -52,6 +52,11 @@ STEPS = (
         ("follow_keyframes", "chain_steps", "_adjusted_and_checked", "run_length", "resect_pending", "_result"),
     ),
     ("omnipipe.analysis", ("run",)),
+    (
+        "omnipipe.analysis.stage",
+        ("_fit_axis", "_recentred_line", "find_features", "_measure_wall", "_with_ring_terms", "with_water",
+         "_sections_and_headline"),
+    ),
     ("omnipipe.model.stage", ("mesh_unrolled", "orient_towards_axis", "choose_sources", "flat_field", "textured_mesh")),
     ("omnipipe.model.export", ("write_ply", "write_laz", "write_e57", "write_glb", "write_obj")),
     ("omnipipe.report", ("run",)),
@@ -61,9 +66,10 @@ motion's passes, the analysis (``analysis.run``), the model stage's steps, the w
 
 
 class _StepPeaks:
-    """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (and between
-    them, as ``after STEP``), sampled every 10 ms by a daemon thread, and the part of it
-    that was file-backed pages (RssFile: the run's scratch mapped) at that peak."""
+    """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (a step inside
+    another counts for both; between the outermost ones as ``after STEP``), sampled every
+    10 ms by a daemon thread, the part of it that was file-backed pages (RssFile: the
+    run's scratch mapped) at that peak, and where the main thread was then."""
 
     def __init__(self) -> None:
         import functools
@@ -74,6 +80,7 @@ class _StepPeaks:
         self.files: dict[str, float] = {}
         self.where: dict[str, str] = {}
         self.tag = "start"
+        self.active: tuple[str, ...] = ()  # the steps running, outermost first (nested: each)
         self._main = threading.get_ident()
         for module, names in STEPS:
             mod = importlib.import_module(module)
@@ -84,11 +91,13 @@ class _StepPeaks:
 
     def _wrap(self, f, label: str):
         def wrapped(*a, **k):
-            self.tag = label
+            self.active = (*self.active, label)
             try:
                 return f(*a, **k)
             finally:
-                self.tag = f"after {label}"
+                self.active = self.active[:-1]
+                if not self.active:
+                    self.tag = f"after {label}"
 
         return wrapped
 
@@ -96,10 +105,11 @@ class _StepPeaks:
         while True:
             with open("/proc/self/status", encoding="ascii") as fh:
                 kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in fh) if k in ("VmRSS", "RssFile")}
-            tag, rss = self.tag, kb["VmRSS"] / 1024.0
-            if rss > self.peaks.get(tag, 0.0):
-                self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
-                self.where[tag] = self._main_at()
+            tags, rss = self.active or (self.tag,), kb["VmRSS"] / 1024.0
+            for tag in tags:
+                if rss > self.peaks.get(tag, 0.0):
+                    self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
+                    self.where[tag] = self._main_at()
             time.sleep(0.01)
 
     def _main_at(self) -> str:
