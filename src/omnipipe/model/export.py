@@ -546,10 +546,14 @@ def _vertex_normals(
     its corner angle, summed face by face in face order, then unitized), computed
     :data:`WRITE_CHUNK` faces at a time: trimesh's own sparse matrix of every corner and
     its per-face arrays were the GLB's largest cost (70 MB for 280,000 faces); a chunk
-    of :data:`NORMALS_CHUNK` faces costs about 6 MB."""
+    of :data:`NORMALS_CHUNK` faces costs about 6 MB. The normals are made in the run's
+    scratch (:mod:`omnipipe.spill`)."""
     from trimesh import triangles, util
 
-    summed = np.zeros((len(vertices), 3))
+    from omnipipe.spill import zeros_on_disk
+
+    # (V, 3) float64, held through the GLB's writing: in the run's scratch (omnipipe.spill).
+    summed = zeros_on_disk((len(vertices), 3), np.float64)
     for a, b in _chunks(len(faces), min(WRITE_CHUNK, NORMALS_CHUNK)):
         idx = np.asarray(faces[a:b])
         tri = vertices[idx.ravel()]
