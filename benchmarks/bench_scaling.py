@@ -71,7 +71,7 @@ class _StepPeaks:
     10 ms by a daemon thread, the part of it that was file-backed pages (RssFile: the
     run's scratch mapped) at that peak, and where the main thread was then."""
 
-    def __init__(self) -> None:
+    def __init__(self, held: tuple[str, ...] = ()) -> None:
         import functools
         import importlib
         import threading
@@ -79,6 +79,8 @@ class _StepPeaks:
         self.peaks: dict[str, float] = {}
         self.files: dict[str, float] = {}
         self.where: dict[str, str] = {}
+        self.held_at = held
+        self.held: dict[str, list[str]] = {}
         self.tag = "start"
         self.active: tuple[str, ...] = ()  # the steps running, outermost first (nested: each)
         self._main = threading.get_ident()
@@ -91,6 +93,8 @@ class _StepPeaks:
 
     def _wrap(self, f, label: str):
         def wrapped(*a, **k):
+            if label in self.held_at and label not in self.held:
+                self.held[label] = _held_arrays()
             self.active = (*self.active, label)
             try:
                 return f(*a, **k)
@@ -125,12 +129,38 @@ class _StepPeaks:
         return " < ".join(out)
 
 
-def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool = False) -> None:
+def _held_arrays(top: int = 12) -> list[str]:
+    """The arrays in this process's memory (not in the run's scratch) that some object
+    refers to: their total and the ``top`` largest (MB, dtype, shape, the referrer's type)."""
+    import gc
+
+    import numpy as np
+
+    from omnipipe.spill import is_on_disk
+
+    found: dict[int, tuple[int, str]] = {}
+    for obj in gc.get_objects():
+        for ref in gc.get_referents(obj):
+            if not isinstance(ref, np.ndarray) or is_on_disk(ref):
+                continue
+            base = ref
+            while isinstance(base, np.ndarray) and base.base is not None:
+                base = base.base
+            if isinstance(base, np.ndarray) and id(base) not in found:
+                found[id(base)] = (base.nbytes, f"{base.dtype}{base.shape} in {type(obj).__name__}")
+    items = sorted(found.values(), reverse=True)
+    total = sum(n for n, _ in items) / 2**20
+    return [f"total {total:.1f} MB in {len(items)} arrays"] + [f"{n / 2**20:6.1f} MB {what}" for n, what in items[:top]]
+
+
+def _child(
+    dataset: str, workers: int | None, write_to: str | None, steps: bool = False, held: tuple[str, ...] = ()
+) -> None:
     """Reconstruct ``dataset`` in this process (and write its outputs into ``write_to``)
     and print one JSON line of measurements (``steps``: with each step's peak RSS)."""
     from dataclasses import replace
 
-    peaks = _StepPeaks() if steps else None
+    peaks = _StepPeaks(held) if steps else None
 
     from omnipipe.dataset import open_dataset
     from omnipipe.pipeline import ReconstructConfig, run, write
@@ -164,6 +194,7 @@ def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool 
                 "steps": None if peaks is None else dict(peaks.peaks),
                 "steps_file": None if peaks is None else dict(peaks.files),
                 "steps_where": None if peaks is None else dict(peaks.where),
+                "held": None if peaks is None else dict(peaks.held),
             }
         )
     )
@@ -236,14 +267,16 @@ def _video(png: Path, decoded_png: bool) -> tuple[Path, Path]:
     return video, decoded
 
 
-def _measure(path: Path, workers: int | None, write: bool, steps: bool = False) -> dict | None:
+def _measure(
+    path: Path, workers: int | None, write: bool, steps: bool = False, held: tuple[str, ...] = ()
+) -> dict | None:
     """Reconstruct ``path`` in a fresh process (``write``: and write its outputs, into a
     temporary folder removed after); its JSON line of measurements, or None."""
     cmd = [sys.executable, __file__, "--child", str(path)]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     if steps:
-        cmd += ["--steps"]
+        cmd += ["--steps"] + (["--held", ",".join(held)] if held else [])
     with tempfile.TemporaryDirectory(prefix="omnipipe-scaling-out-") as out:
         done = subprocess.run(
             cmd + (["--write-to", out] if write else []), capture_output=True, text=True, check=False
@@ -306,6 +339,10 @@ def _print_steps(kind: str, done: list[dict]) -> None:
             "            -" if v is None else f"{v:7.0f} ({f or 0:3.0f})" for v, f in zip(vals, files, strict=True)
         )
         print(f"  {step:28s}" + cells + "   " + per)
+    for step, lines in (done[-1].get("held") or {}).items():
+        print(f"{kind}: arrays in memory when {step} began ({done[-1]['frames']} frames)")
+        for line in lines:
+            print(f"  {line}")
     where = done[-1].get("steps_where") or {}
     if where:
         print(f"{kind}: where each step peaked ({done[-1]['frames']} frames; innermost omnipipe lines)")
@@ -340,11 +377,15 @@ def main() -> None:
         help="also the reconstructing process's peak RSS during each step (pipeline stages, "
         "model steps, writers, report)",
     )
+    parser.add_argument(
+        "--held", default="",
+        help="with --steps: list the arrays in memory when these steps (comma-separated) begin",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--write-to", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        _child(args.child, args.workers, args.write_to, args.steps)
+        _child(args.child, args.workers, args.write_to, args.steps, tuple(filter(None, args.held.split(","))))
         return
     size = tuple(int(v) for v in args.size.split("x"))
     cache = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="omnipipe-scaling-"))
@@ -358,7 +399,7 @@ def main() -> None:
                 video, decoded = _video(path, args.decoded_png)
                 inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
             for kind, source in inputs:
-                row = _measure(source, args.workers, args.write, args.steps)
+                row = _measure(source, args.workers, args.write, args.steps, tuple(filter(None, args.held.split(","))))
                 if row is not None:
                     rows[kind].append(row)
                     _print_row(kind, row)

@@ -121,11 +121,24 @@ def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
 
 def pieces_on_disk(pieces: list[np.ndarray]) -> list[np.ndarray]:
     """Arrays of equal trailing shape and dtype (e.g. each ring's (M_k, 2) pixels) in one
-    scratch file (:func:`on_disk`): views of it, one per piece, equal to the pieces."""
+    scratch file (as :func:`on_disk` of their concatenation, written piece by piece: no
+    concatenation in memory; the pages read and written dropped every
+    :data:`_COPY_BYTES`): views of it, one per piece, equal to the pieces."""
     if not pieces:
         return []
-    whole = on_disk(np.concatenate(pieces))
     ends = np.cumsum([len(p) for p in pieces])
+    dtype = np.result_type(*pieces)
+    if dtype.hasobject or int(ends[-1]) * np.prod(pieces[0].shape[1:], dtype=np.int64) * dtype.itemsize == 0:
+        whole = on_disk(np.concatenate(pieces))
+    else:
+        whole = zeros_on_disk((int(ends[-1]), *pieces[0].shape[1:]), dtype)
+        done = 0
+        for a, p in zip(np.concatenate([[0], ends[:-1]]).tolist(), pieces, strict=True):
+            whole[a : a + len(p)] = p
+            done += p.nbytes
+            if done >= _COPY_BYTES:
+                drop_pages()
+                done = 0
     return [whole[a:b] for a, b in zip(np.concatenate([[0], ends[:-1]]).tolist(), ends.tolist(), strict=True)]
 
 

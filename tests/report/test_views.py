@@ -285,3 +285,26 @@ def test_nearest_wall_point_a_chunk_at_a_time_is_the_one_pass_argmin(monkeypatch
             assert got is None or np.array_equal(got, want)
     axial[2500] = np.nan  # a NaN distance: argmin's first NaN
     assert np.array_equal(views.nearest_wall_point(10.0, 10.0, wall, pts), pts[2500])
+
+
+@pytest.mark.parametrize("max_px", [40, 23, 61])
+def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) -> None:
+    """A texture larger than ``texture_max_px`` is area-averaged into an array in the
+    run's scratch: the same PNG as cv2's resize into a new array."""
+    import cv2
+
+    import omnipipe.report.html as H
+    from omnipipe.report import ReportConfig
+
+    rng = np.random.default_rng(16)
+    from omnipipe.spill import on_disk
+
+    texture = on_disk(rng.integers(0, 256, (61, 47, 3), dtype=np.uint8))
+    inputs = H.ReportInputs(
+        summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=rng.normal(0.0, 10.0, (5, 3)),
+        mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]), mesh_uvs=rng.random((5, 2)), texture=texture,
+    )
+    model = json.loads("".join(H._model_json_parts(inputs, ReportConfig(texture_max_px=max_px))))
+    scale = max_px / 61
+    want = texture if scale >= 1 else cv2.resize(np.array(texture), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    assert model["texture"] == H._png_data_uri(want)

@@ -412,9 +412,11 @@ def texture_png(dst: Path | BinaryIO, texture: np.ndarray) -> None:
     the bytes model.glb embeds and model_texture.png holds."""
     from PIL import Image
 
-    Image.fromarray(np.ascontiguousarray(texture)).save(
-        dst, format="png", compress_level=PNG_COMPRESS_LEVEL
-    )
+    from omnipipe.spill import drop_pages
+
+    copy = Image.fromarray(np.ascontiguousarray(texture))
+    drop_pages()  # PIL's own copy made: an atlas in the scratch (omnipipe.spill) not mapped
+    copy.save(dst, format="png", compress_level=PNG_COMPRESS_LEVEL)
 
 
 def _file_parts(path: Path, size: int = 1 << 20) -> Iterator[memoryview]:

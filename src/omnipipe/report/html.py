@@ -127,9 +127,9 @@ def _png_bytes(image: np.ndarray) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(
-        buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL
-    )
+    copy = Image.fromarray(np.ascontiguousarray(image))
+    drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
+    copy.save(buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
     return buf.getvalue()
 
 
@@ -503,8 +503,12 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         if scale < 1:
             # The atlas (omnipipe.spill) read whole in one call: its pages dropped as the
             # call goes, not only after it.
+            # Made in the scratch too (cv2 writes into ``dst`` when its size is the one
+            # it computes, else it returns a new array: the same values either way).
+            h, w = tex.shape[:2]
+            dst = zeros_on_disk((round(h * scale), round(w * scale), *tex.shape[2:]), tex.dtype)
             with dropping_pages(RESIZE_DROP_S):
-                tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+                tex = cv2.resize(tex, None, dst=dst, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
         png = _png_bytes(tex)
         del tex
