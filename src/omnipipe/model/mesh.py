@@ -206,8 +206,8 @@ def _sorted_wall_faces(
         n: points; points_in_world: (n, 3) mm; hole: (n,) bool or None (:func:`_wall`).
     """
     blocks = (max(n - 1, 0) >> BUCKET_BITS) + 1
-    kept: list[tuple[np.ndarray, np.ndarray]] = []  # (faces by block, first of each block)
-    longest: list[np.ndarray] = []
+    # Per chunk: its faces and their longest edges by block, and where each block begins.
+    kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     for tri in parts:
         f = ids[tri]
         del tri
@@ -215,18 +215,18 @@ def _sorted_wall_faces(
         f = _wall(f, n, hole)
         block = f[:, 0] >> BUCKET_BITS
         first = np.concatenate([[0], np.cumsum(np.bincount(block, minlength=blocks))])
-        kept.append((on_disk(f[np.argsort(block, kind="stable")]), first))
-        longest.append(on_disk(longest_edges(points_in_world, f)))
-        del f, block
+        by_block = np.argsort(block, kind="stable")
+        kept.append((on_disk(f[by_block]), on_disk(longest_edges(points_in_world, f)[by_block]), first))
+        del f, block, by_block
         drop_pages()
-    limit = max_edge_factor * median_of_parts(longest)
-    del longest
-    out = zeros_on_disk((sum(int(first[-1]) for _, first in kept), 3), ids.dtype)
+    limit = max_edge_factor * median_of_parts([longest for _, longest, _ in kept])
+    out = zeros_on_disk((sum(int(first[-1]) for _, _, first in kept), 3), ids.dtype)
     done = 0
     for b in range(blocks):
-        f = np.concatenate([part[first[b] : first[b + 1]] for part, first in kept] or [out[:0]])
-        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
-        f = f[longest_edges(points_in_world, f) <= limit]
+        f = np.concatenate([part[first[b] : first[b + 1]] for part, _, first in kept] or [out[:0]])
+        longest = np.concatenate([lg[first[b] : first[b + 1]] for _, lg, first in kept] or [np.zeros(0)])
+        order = np.lexsort((f[:, 2], f[:, 1], f[:, 0]))
+        f = f[order[longest[order] <= limit]]
         out[done : done + len(f)] = f
         done += len(f)
         drop_pages()
