@@ -18,12 +18,13 @@ import html
 import io
 import json
 import math
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from string import Template
-from typing import TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -131,6 +132,29 @@ def _png_bytes(image: np.ndarray) -> bytes:
     drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
     copy.save(buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
     return buf.getvalue()
+
+
+def _png_file(image: np.ndarray) -> IO[bytes]:
+    """:func:`_png_bytes` of ``image`` in an unnamed file of the run's scratch
+    (:func:`omnipipe.scratch.scratch_dir`; gone when closed), positioned at its start:
+    the encoded bytes are not held in memory (nor copied out of a growing buffer)."""
+    from PIL import Image
+
+    from omnipipe.scratch import scratch_dir
+
+    fh = tempfile.TemporaryFile(prefix="omnipipe-png-", dir=scratch_dir())
+    copy = Image.fromarray(np.ascontiguousarray(image))
+    drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
+    copy.save(fh, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
+    del copy
+    fh.seek(0)
+    return fh
+
+
+def _base64_file_parts(fh: IO[bytes]) -> Iterator[str]:
+    """:func:`_base64_parts` of the rest of the file ``fh``, read a piece at a time."""
+    while piece := fh.read(_BASE64_PIECE):
+        yield base64.b64encode(piece).decode("ascii")
 
 
 _BASE64_PIECE = 3 << 18
@@ -510,7 +534,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             with dropping_pages(RESIZE_DROP_S):
                 tex = cv2.resize(tex, None, dst=dst, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
-        png = _png_bytes(tex)
+        png = _png_file(tex)
         del tex
         release_freed_memory()  # the atlas's pages
     lo, hi = verts.min(axis=0), verts.max(axis=0)
@@ -538,7 +562,8 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             return
         head, tail = text.split(json.dumps(_TEXTURE_SLOT), 1)
         yield f'{head}"{_PNG_URI_HEAD}'
-        yield from _base64_parts(png)
+        with png:
+            yield from _base64_file_parts(png)
         yield f'"{tail}'
 
     return parts()
