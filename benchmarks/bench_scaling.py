@@ -52,6 +52,11 @@ STEPS = (
         ("follow_keyframes", "chain_steps", "_adjusted_and_checked", "run_length", "resect_pending", "_result"),
     ),
     ("omnipipe.analysis", ("run",)),
+    (
+        "omnipipe.analysis.stage",
+        ("_fit_axis", "_recentred_line", "find_features", "_measure_wall", "_with_ring_terms", "with_water",
+         "_sections_and_headline"),
+    ),
     ("omnipipe.model.stage", ("mesh_unrolled", "orient_towards_axis", "choose_sources", "flat_field", "textured_mesh")),
     ("omnipipe.model.export", ("write_ply", "write_laz", "write_e57", "write_glb", "write_obj")),
     ("omnipipe.report", ("run",)),
@@ -61,18 +66,24 @@ motion's passes, the analysis (``analysis.run``), the model stage's steps, the w
 
 
 class _StepPeaks:
-    """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (and between
-    them, as ``after STEP``), sampled every 10 ms by a daemon thread, and the part of it
-    that was file-backed pages (RssFile: the run's scratch mapped) at that peak."""
+    """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (a step inside
+    another counts for both; between the outermost ones as ``after STEP``), sampled every
+    10 ms by a daemon thread, the part of it that was file-backed pages (RssFile: the
+    run's scratch mapped) at that peak, and where the main thread was then."""
 
-    def __init__(self) -> None:
+    def __init__(self, held: tuple[str, ...] = ()) -> None:
         import functools
         import importlib
         import threading
 
         self.peaks: dict[str, float] = {}
         self.files: dict[str, float] = {}
+        self.where: dict[str, str] = {}
+        self.held_at = held
+        self.held: dict[str, list[str]] = {}
         self.tag = "start"
+        self.active: tuple[str, ...] = ()  # the steps running, outermost first (nested: each)
+        self._main = threading.get_ident()
         for module, names in STEPS:
             mod = importlib.import_module(module)
             for name in names:
@@ -82,11 +93,15 @@ class _StepPeaks:
 
     def _wrap(self, f, label: str):
         def wrapped(*a, **k):
-            self.tag = label
+            if label in self.held_at and label not in self.held:
+                self.held[label] = _held_arrays()
+            self.active = (*self.active, label)
             try:
                 return f(*a, **k)
             finally:
-                self.tag = f"after {label}"
+                self.active = self.active[:-1]
+                if not self.active:
+                    self.tag = f"after {label}"
 
         return wrapped
 
@@ -94,18 +109,58 @@ class _StepPeaks:
         while True:
             with open("/proc/self/status", encoding="ascii") as fh:
                 kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in fh) if k in ("VmRSS", "RssFile")}
-            tag, rss = self.tag, kb["VmRSS"] / 1024.0
-            if rss > self.peaks.get(tag, 0.0):
-                self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
+            tags, rss = self.active or (self.tag,), kb["VmRSS"] / 1024.0
+            for tag in tags:
+                if rss > self.peaks.get(tag, 0.0):
+                    self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
+                    self.where[tag] = self._main_at()
             time.sleep(0.01)
 
+    def _main_at(self) -> str:
+        """The main thread's innermost omnipipe lines (at most 3, innermost first) when
+        the sample was taken: where a step's peak is held."""
+        frame = sys._current_frames().get(self._main)
+        out = []
+        while frame is not None and len(out) < 3:
+            name = frame.f_code.co_filename
+            if "omnipipe" in name and "bench_scaling" not in name:
+                out.append(f"{name.rsplit('omnipipe/', 1)[-1]}:{frame.f_lineno} {frame.f_code.co_name}")
+            frame = frame.f_back
+        return " < ".join(out)
 
-def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool = False) -> None:
+
+def _held_arrays(top: int = 12) -> list[str]:
+    """The arrays in this process's memory (not in the run's scratch) that some object
+    refers to: their total and the ``top`` largest (MB, dtype, shape, the referrer's type)."""
+    import gc
+
+    import numpy as np
+
+    from omnipipe.spill import is_on_disk
+
+    found: dict[int, tuple[int, str]] = {}
+    for obj in gc.get_objects():
+        for ref in gc.get_referents(obj):
+            if not isinstance(ref, np.ndarray) or is_on_disk(ref):
+                continue
+            base = ref
+            while isinstance(base, np.ndarray) and base.base is not None:
+                base = base.base
+            if isinstance(base, np.ndarray) and id(base) not in found:
+                found[id(base)] = (base.nbytes, f"{base.dtype}{base.shape} in {type(obj).__name__}")
+    items = sorted(found.values(), reverse=True)
+    total = sum(n for n, _ in items) / 2**20
+    return [f"total {total:.1f} MB in {len(items)} arrays"] + [f"{n / 2**20:6.1f} MB {what}" for n, what in items[:top]]
+
+
+def _child(
+    dataset: str, workers: int | None, write_to: str | None, steps: bool = False, held: tuple[str, ...] = ()
+) -> None:
     """Reconstruct ``dataset`` in this process (and write its outputs into ``write_to``)
     and print one JSON line of measurements (``steps``: with each step's peak RSS)."""
     from dataclasses import replace
 
-    peaks = _StepPeaks() if steps else None
+    peaks = _StepPeaks(held) if steps else None
 
     from omnipipe.dataset import open_dataset
     from omnipipe.pipeline import ReconstructConfig, run, write
@@ -138,6 +193,8 @@ def _child(dataset: str, workers: int | None, write_to: str | None, steps: bool 
                 "executor": s.get("executor"),
                 "steps": None if peaks is None else dict(peaks.peaks),
                 "steps_file": None if peaks is None else dict(peaks.files),
+                "steps_where": None if peaks is None else dict(peaks.where),
+                "held": None if peaks is None else dict(peaks.held),
             }
         )
     )
@@ -210,14 +267,16 @@ def _video(png: Path, decoded_png: bool) -> tuple[Path, Path]:
     return video, decoded
 
 
-def _measure(path: Path, workers: int | None, write: bool, steps: bool = False) -> dict | None:
+def _measure(
+    path: Path, workers: int | None, write: bool, steps: bool = False, held: tuple[str, ...] = ()
+) -> dict | None:
     """Reconstruct ``path`` in a fresh process (``write``: and write its outputs, into a
     temporary folder removed after); its JSON line of measurements, or None."""
     cmd = [sys.executable, __file__, "--child", str(path)]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     if steps:
-        cmd += ["--steps"]
+        cmd += ["--steps"] + (["--held", ",".join(held)] if held else [])
     with tempfile.TemporaryDirectory(prefix="omnipipe-scaling-out-") as out:
         done = subprocess.run(
             cmd + (["--write-to", out] if write else []), capture_output=True, text=True, check=False
@@ -280,6 +339,15 @@ def _print_steps(kind: str, done: list[dict]) -> None:
             "            -" if v is None else f"{v:7.0f} ({f or 0:3.0f})" for v, f in zip(vals, files, strict=True)
         )
         print(f"  {step:28s}" + cells + "   " + per)
+    for step, lines in (done[-1].get("held") or {}).items():
+        print(f"{kind}: arrays in memory when {step} began ({done[-1]['frames']} frames)")
+        for line in lines:
+            print(f"  {line}")
+    where = done[-1].get("steps_where") or {}
+    if where:
+        print(f"{kind}: where each step peaked ({done[-1]['frames']} frames; innermost omnipipe lines)")
+        for step in order:
+            print(f"  {step:28s} {where.get(step, '')}")
 
 
 def main() -> None:
@@ -309,11 +377,15 @@ def main() -> None:
         help="also the reconstructing process's peak RSS during each step (pipeline stages, "
         "model steps, writers, report)",
     )
+    parser.add_argument(
+        "--held", default="",
+        help="with --steps: list the arrays in memory when these steps (comma-separated) begin",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--write-to", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        _child(args.child, args.workers, args.write_to, args.steps)
+        _child(args.child, args.workers, args.write_to, args.steps, tuple(filter(None, args.held.split(","))))
         return
     size = tuple(int(v) for v in args.size.split("x"))
     cache = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="omnipipe-scaling-"))
@@ -327,7 +399,7 @@ def main() -> None:
                 video, decoded = _video(path, args.decoded_png)
                 inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
             for kind, source in inputs:
-                row = _measure(source, args.workers, args.write, args.steps)
+                row = _measure(source, args.workers, args.write, args.steps, tuple(filter(None, args.held.split(","))))
                 if row is not None:
                     rows[kind].append(row)
                     _print_row(kind, row)

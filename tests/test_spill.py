@@ -223,3 +223,31 @@ def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
     assert total == want and most < 16
     drop_pages()
     assert np.array_equal(z, np.arange(len(z), dtype=np.float64))
+
+
+def test_on_disk_writes_a_strided_array_a_block_at_a_time_in_c_order(monkeypatch) -> None:
+    """A column, a transpose, a strided 1-D and a 3-D view go into the file a block of
+    their first axis (or of values) at a time: the same values in C order."""
+    import omnipipe.spill as spill
+
+    monkeypatch.setattr(spill, "_COPY_BYTES", 40)  # many blocks, a ragged last one
+    rng = np.random.default_rng(13)
+    base = rng.normal(size=(37, 6))
+    cases = [base[:, 1], base.T, base[::3], base.reshape(37, 3, 2)[:, ::2], np.float32(2.5) * base[::-1]]
+    for a in cases:
+        got = on_disk(a)
+        assert got.shape == a.shape and got.dtype == a.dtype and np.array_equal(got, a)
+        assert got.flags.c_contiguous and is_on_disk(got)
+
+
+def test_pieces_on_disk_written_piece_by_piece_equal_the_concatenation(monkeypatch) -> None:
+    import omnipipe.spill as spill
+
+    monkeypatch.setattr(spill, "_COPY_BYTES", 64)  # pages dropped between pieces
+    rng = np.random.default_rng(15)
+    pieces = [on_disk(rng.random((n, 2))) if n % 2 else rng.random((n, 2)) for n in (5, 0, 40, 3, 17)]
+    got = pieces_on_disk(pieces)
+    whole = np.concatenate(pieces)
+    assert np.array_equal(np.concatenate(got), whole) and all(g.base is not None for g in got)
+    assert [g.shape for g in got] == [p.shape for p in pieces] and is_on_disk(got[0])
+    assert [g.shape for g in pieces_on_disk([np.zeros((0, 2)), np.zeros((0, 2))])] == [(0, 2), (0, 2)]

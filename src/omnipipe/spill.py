@@ -71,10 +71,8 @@ def _mapped(nbytes: int, fill: np.ndarray | None) -> mmap.mmap:
         if fill is None:
             fh.truncate(nbytes)
         else:
-            flat = fill.reshape(-1)  # C order (a copy only if ``fill`` is not contiguous)
-            step = max(1, _COPY_BYTES // max(fill.itemsize, 1))
-            for a in range(0, len(flat), step):
-                fh.write(memoryview(np.ascontiguousarray(flat[a : a + step])).cast("B"))
+            for piece in _c_order_pieces(fill):
+                fh.write(memoryview(piece).cast("B"))
             fh.flush()
         mapping = mmap.mmap(fh.fileno(), nbytes)  # holds its own copy of the descriptor
         fd = os.dup(fh.fileno())  # for the workers that map it too (closed with the mapping)
@@ -83,6 +81,22 @@ def _mapped(nbytes: int, fill: np.ndarray | None) -> mmap.mmap:
     _FILES[mapping] = (os.getpid(), fd, np.frombuffer(mapping, np.uint8, count=1).ctypes.data)
     weakref.finalize(mapping, os.close, fd)
     return mapping
+
+
+def _c_order_pieces(a: np.ndarray) -> Iterator[np.ndarray]:
+    """``a``'s values in C order, in contiguous 1-D pieces of about :data:`_COPY_BYTES`
+    (a strided ``a``, e.g. a column, copied a block of its first axis at a time: no
+    whole copy)."""
+    if a.flags.c_contiguous or a.ndim < 2:
+        flat = a.reshape(-1) if a.flags.c_contiguous else a  # 1-D: strided slices copy
+        step = max(1, _COPY_BYTES // max(a.itemsize, 1))
+        for i in range(0, len(flat), step):
+            yield np.ascontiguousarray(flat[i : i + step])
+        return
+    row = max(1, a[0].size * a.itemsize)
+    rows = max(1, _COPY_BYTES // row)
+    for i in range(0, len(a), rows):
+        yield np.ascontiguousarray(a[i : i + rows]).reshape(-1)
 
 
 def on_disk(a: np.ndarray) -> np.ndarray:
@@ -107,11 +121,24 @@ def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
 
 def pieces_on_disk(pieces: list[np.ndarray]) -> list[np.ndarray]:
     """Arrays of equal trailing shape and dtype (e.g. each ring's (M_k, 2) pixels) in one
-    scratch file (:func:`on_disk`): views of it, one per piece, equal to the pieces."""
+    scratch file (as :func:`on_disk` of their concatenation, written piece by piece: no
+    concatenation in memory; the pages read and written dropped every
+    :data:`_COPY_BYTES`): views of it, one per piece, equal to the pieces."""
     if not pieces:
         return []
-    whole = on_disk(np.concatenate(pieces))
     ends = np.cumsum([len(p) for p in pieces])
+    dtype = np.result_type(*pieces)
+    if dtype.hasobject or int(ends[-1]) * np.prod(pieces[0].shape[1:], dtype=np.int64) * dtype.itemsize == 0:
+        whole = on_disk(np.concatenate(pieces))
+    else:
+        whole = zeros_on_disk((int(ends[-1]), *pieces[0].shape[1:]), dtype)
+        done = 0
+        for a, p in zip(np.concatenate([[0], ends[:-1]]).tolist(), pieces, strict=True):
+            whole[a : a + len(p)] = p
+            done += p.nbytes
+            if done >= _COPY_BYTES:
+                drop_pages()
+                done = 0
     return [whole[a:b] for a, b in zip(np.concatenate([[0], ends[:-1]]).tolist(), ends.tolist(), strict=True)]
 
 

@@ -332,3 +332,24 @@ def test_glb_streamed_is_trimeshs_file_byte_for_byte(
     export.write_obj(tmp_path / "m.obj", v, f, uv, tmp_path / "t.png")
     for name in ("m.obj", "m.mtl", export.OBJ_TEXTURE):
         assert (tmp_path / name).read_bytes() == (tmp_path / "a" / name).read_bytes(), name
+
+
+def test_unrolled_png_from_the_scratch_is_the_png_of_the_stacked_image(monkeypatch, tmp_path: Path) -> None:
+    """unrolled.png's RGBA is made in the run's scratch a band of rows at a time and
+    encoded in place: the same pixels and the same file as PIL's of ``np.dstack``."""
+    from PIL import Image
+
+    import omnipipe.model.export as export
+    from omnipipe.image import PNG_COMPRESS_LEVEL
+    from omnipipe.spill import is_on_disk
+
+    monkeypatch.setattr(export, "_RGBA_ROWS", 7)  # many bands, a ragged last one
+    rng = np.random.default_rng(14)
+    image = rng.integers(0, 256, (45, 33, 3), dtype=np.uint8)
+    alpha = rng.random((45, 33)) < 0.8
+    rgba = export._rgba_on_disk(image, alpha)
+    want = np.dstack([image, np.where(alpha, 255, 0).astype(np.uint8)])
+    assert is_on_disk(rgba) and rgba.dtype == np.uint8 and np.array_equal(rgba, want)
+    Image.fromarray(rgba).save(tmp_path / "a.png", compress_level=PNG_COMPRESS_LEVEL)
+    Image.fromarray(want).save(tmp_path / "b.png", compress_level=PNG_COMPRESS_LEVEL)
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()

@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from omnipipe.analysis.sizing import plateau
 from omnipipe.camera import camera_from_rig
@@ -248,3 +249,62 @@ def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) ->
     tail = {k: model[k] for k in ("markers", "texture", "centre", "radius")}
     whole = json.dumps(tail, separators=(",", ":"))[1:].replace("</", "<\\/")
     assert text.endswith(whole)
+
+
+def _nearest_reference(axial: float, angle: float, wall: WallPoints, pts: np.ndarray, on_wall: float | None):
+    """nearest_wall_point as it was: the distances of every point at once, one np.argmin."""
+    du = ((wall.angle_deg - angle + 180.0) % 360.0 - 180.0) * np.pi / 180.0 * wall.radius_mm
+    dz = wall.axial_mm - axial
+    d2 = du * du + dz * dz
+    if on_wall is not None:
+        d2 = np.where(np.abs(wall.deviation_mm) <= on_wall, d2, np.inf)
+        if not np.isfinite(d2).any():
+            return None
+    return pts[int(np.argmin(d2))]
+
+
+@pytest.mark.parametrize("chunk", [7, 1000, 1 << 16])
+def test_nearest_wall_point_a_chunk_at_a_time_is_the_one_pass_argmin(monkeypatch, chunk: int) -> None:
+    """The first nearest point, as one argmin over every point: ties to the first, a NaN
+    distance first of all, points off the wall left out (None when all are)."""
+    import omnipipe.report.views as views
+
+    monkeypatch.setattr(views, "_POINTS_AT_ONCE", chunk)
+    rng = np.random.default_rng(12)
+    n = 3000
+    axial = np.round(rng.uniform(0, 300, n), 0)  # many ties
+    angle = np.round(rng.uniform(0, 360, n), 0)
+    dev = rng.normal(0.0, 2.0, n)
+    pts = rng.normal(0.0, 50.0, (n, 3))
+    wall = WallPoints(axial, angle, dev, radius_mm=100.0)
+    for z, a in [(150.0, 20.0), (0.0, 359.0), (299.0, 181.0)]:
+        for on_wall in (None, 1.0, -1.0):
+            want = _nearest_reference(z, a, wall, pts, on_wall)
+            got = views.nearest_wall_point(z, a, wall, pts, on_wall)
+            assert (got is None) == (want is None)
+            assert got is None or np.array_equal(got, want)
+    axial[2500] = np.nan  # a NaN distance: argmin's first NaN
+    assert np.array_equal(views.nearest_wall_point(10.0, 10.0, wall, pts), pts[2500])
+
+
+@pytest.mark.parametrize("max_px", [40, 23, 61])
+def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) -> None:
+    """A texture larger than ``texture_max_px`` is area-averaged into an array in the
+    run's scratch: the same PNG as cv2's resize into a new array."""
+    import cv2
+
+    import omnipipe.report.html as H
+    from omnipipe.report import ReportConfig
+
+    rng = np.random.default_rng(16)
+    from omnipipe.spill import on_disk
+
+    texture = on_disk(rng.integers(0, 256, (61, 47, 3), dtype=np.uint8))
+    inputs = H.ReportInputs(
+        summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=rng.normal(0.0, 10.0, (5, 3)),
+        mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]), mesh_uvs=rng.random((5, 2)), texture=texture,
+    )
+    model = json.loads("".join(H._model_json_parts(inputs, ReportConfig(texture_max_px=max_px))))
+    scale = max_px / 61
+    want = texture if scale >= 1 else cv2.resize(np.array(texture), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    assert model["texture"] == H._png_data_uri(want)

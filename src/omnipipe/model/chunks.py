@@ -80,9 +80,11 @@ class AxialChunks:
         if u.shape != z.shape or u.ndim != 1:
             raise ShapeError(f"u, z: expected two (n,) arrays, got {u.shape} and {z.shape}")
         self.chunk_points = max(3, int(chunk_points))
-        self.order = np.argsort(z, kind="stable")
-        self.u = np.asarray(u, float)[self.order]
-        self.z = np.asarray(z, float)[self.order]
+        # Kept in the run's scratch (omnipipe.spill: read a chunk at a time), each made
+        # in turn: one array of the points' length in memory at a time.
+        self.order = on_disk(np.argsort(z, kind="stable"))
+        self.u = on_disk(np.asarray(u, float)[self.order])
+        self.z = on_disk(np.asarray(z, float)[self.order])
         n = len(self.z)
         block = self.chunk_points
         cand = np.concatenate(
@@ -96,7 +98,8 @@ class AxialChunks:
     def to_disk(self) -> None:
         """Keep :attr:`order`, :attr:`u` and :attr:`z` in the run's scratch
         (:mod:`omnipipe.spill`: the same values, resident while read), for a holder that
-        keeps the chunks through a long step."""
+        keeps the chunks through a long step (made there already: a no-op unless they
+        were replaced)."""
         self.order, self.u, self.z = on_disk(self.order), on_disk(self.u), on_disk(self.z)
 
     def _typical_edge(self) -> float:

@@ -412,9 +412,11 @@ def texture_png(dst: Path | BinaryIO, texture: np.ndarray) -> None:
     the bytes model.glb embeds and model_texture.png holds."""
     from PIL import Image
 
-    Image.fromarray(np.ascontiguousarray(texture)).save(
-        dst, format="png", compress_level=PNG_COMPRESS_LEVEL
-    )
+    from omnipipe.spill import drop_pages
+
+    copy = Image.fromarray(np.ascontiguousarray(texture))
+    drop_pages()  # PIL's own copy made: an atlas in the scratch (omnipipe.spill) not mapped
+    copy.save(dst, format="png", compress_level=PNG_COMPRESS_LEVEL)
 
 
 def _file_parts(path: Path, size: int = 1 << 20) -> Iterator[memoryview]:
@@ -546,10 +548,14 @@ def _vertex_normals(
     its corner angle, summed face by face in face order, then unitized), computed
     :data:`WRITE_CHUNK` faces at a time: trimesh's own sparse matrix of every corner and
     its per-face arrays were the GLB's largest cost (70 MB for 280,000 faces); a chunk
-    of :data:`NORMALS_CHUNK` faces costs about 6 MB."""
+    of :data:`NORMALS_CHUNK` faces costs about 6 MB. The normals are made in the run's
+    scratch (:mod:`omnipipe.spill`)."""
     from trimesh import triangles, util
 
-    summed = np.zeros((len(vertices), 3))
+    from omnipipe.spill import zeros_on_disk
+
+    # (V, 3) float64, held through the GLB's writing: in the run's scratch (omnipipe.spill).
+    summed = zeros_on_disk((len(vertices), 3), np.float64)
     for a, b in _chunks(len(faces), min(WRITE_CHUNK, NORMALS_CHUNK)):
         idx = np.asarray(faces[a:b])
         tri = vertices[idx.ravel()]
@@ -655,6 +661,27 @@ def write_obj(
         raise _fail(path, exc) from None
 
 
+def _rgba_on_disk(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint8: the (H, W, 3) ``image`` with the (H, W) bool ``alpha`` as 255 / 0,
+    as ``np.dstack`` gives it, made in the run's scratch (:mod:`omnipipe.spill`) a band of
+    rows at a time: PIL encodes an RGBA array in place (no copy), so neither the image nor
+    its copy is held in memory whole."""
+    from omnipipe.spill import drop_pages, zeros_on_disk
+
+    h, w = alpha.shape
+    rgba = zeros_on_disk((h, w, 4), np.uint8)
+    for top in range(0, h, _RGBA_ROWS):
+        rows = slice(top, top + _RGBA_ROWS)
+        rgba[rows, :, :3] = image[rows]
+        rgba[rows, :, 3] = np.where(alpha[rows], 255, 0)
+        drop_pages()
+    return rgba
+
+
+_RGBA_ROWS = 256
+"""Rows of the unrolled image :func:`_rgba_on_disk` copies at a time."""
+
+
 def write_outputs(result: ModelResult, out_dir: Path) -> None:
     """All model files into ``out_dir`` (see the module docstring for units and axes).
 
@@ -673,9 +700,7 @@ def write_outputs(result: ModelResult, out_dir: Path) -> None:
     if result.unrolled is not None:
         from PIL import Image
 
-        rgba = np.dstack(
-            [result.unrolled.image, np.where(result.unrolled.alpha, 255, 0).astype(np.uint8)]
-        )
+        rgba = _rgba_on_disk(result.unrolled.image, result.unrolled.alpha)
         try:
             Image.fromarray(rgba).save(out_dir / "unrolled.png", compress_level=PNG_COMPRESS_LEVEL)
         except OSError as exc:

@@ -30,7 +30,7 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.memory import release_freed_memory
 from omnipipe.model.chunks import CHUNK_POINTS, AxialChunks
-from omnipipe.spill import on_disk
+from omnipipe.spill import drop_pages, is_on_disk, on_disk, zeros_on_disk
 
 
 @dataclass(frozen=True)
@@ -242,6 +242,25 @@ class WallGrid:
         return state
 
 
+def _contiguous_on_disk(a: np.ndarray, dtype: type | None) -> np.ndarray:
+    """``np.ascontiguousarray(a, dtype)``'s values in the run's scratch
+    (:func:`~omnipipe.spill.zeros_on_disk`), copied a block of rows at a time (no whole
+    copy in memory); ``a`` itself where it is there, contiguous and of the dtype already."""
+    a = np.asarray(a)
+    dt = a.dtype if dtype is None else np.dtype(dtype)
+    if a.dtype == dt and a.flags.c_contiguous and is_on_disk(a):
+        return a
+    out = zeros_on_disk(a.shape, dt)
+    for i in range(0, len(a), _COPY_ROWS):
+        out[i : i + _COPY_ROWS] = a[i : i + _COPY_ROWS]
+        drop_pages()
+    return out
+
+
+_COPY_ROWS = 1 << 16
+"""Rows :func:`_contiguous_on_disk` copies at a time."""
+
+
 class MeshGrid:
     """The unrolled grid's wall points interpolated over the wall mesh's own triangles (the
     model stage's: :func:`~omnipipe.model.mesh.mesh_unrolled`, one triangulation for the
@@ -285,10 +304,12 @@ class MeshGrid:
         self.shape = (height, width)
         self.axial_min_mm = z0
         self._circ, self._mm, self._gap = circ, float(mm_per_px), float(max_gap_mm)
-        self._faces = np.ascontiguousarray(faces)
-        self._arc = np.ascontiguousarray(arc_mm, float)
-        self._axial = np.ascontiguousarray(axial_mm, float)
-        self._points = np.ascontiguousarray(points_in_world, float)
+        # Contiguous copies (the kernels' inputs) held through the texture: in the run's
+        # scratch (omnipipe.spill; no copy where they are there and contiguous already).
+        self._faces, self._arc, self._axial, self._points = (
+            _contiguous_on_disk(a, dt)
+            for a, dt in ((faces, None), (arc_mm, float), (axial_mm, float), (points_in_world, float))
+        )
         order, self._start, self._span = faces_by_row(self._faces, self._axial, z0, self._mm, height)
         self._order = on_disk(order)
 

@@ -18,12 +18,13 @@ import html
 import io
 import json
 import math
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from string import Template
-from typing import TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from omnipipe.config import bounded
 from omnipipe.image import PNG_COMPRESS_LEVEL
 from omnipipe.memory import release_freed_memory
 from omnipipe.report.bands import imshow_in_bands
-from omnipipe.spill import drop_pages, zeros_on_disk
+from omnipipe.spill import drop_pages, dropping_pages, zeros_on_disk
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -127,10 +128,33 @@ def _png_bytes(image: np.ndarray) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(
-        buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL
-    )
+    copy = Image.fromarray(np.ascontiguousarray(image))
+    drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
+    copy.save(buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
     return buf.getvalue()
+
+
+def _png_file(image: np.ndarray) -> IO[bytes]:
+    """:func:`_png_bytes` of ``image`` in an unnamed file of the run's scratch
+    (:func:`omnipipe.scratch.scratch_dir`; gone when closed), positioned at its start:
+    the encoded bytes are not held in memory (nor copied out of a growing buffer)."""
+    from PIL import Image
+
+    from omnipipe.scratch import scratch_dir
+
+    fh = tempfile.TemporaryFile(prefix="omnipipe-png-", dir=scratch_dir())
+    copy = Image.fromarray(np.ascontiguousarray(image))
+    drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
+    copy.save(fh, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
+    del copy
+    fh.seek(0)
+    return fh
+
+
+def _base64_file_parts(fh: IO[bytes]) -> Iterator[str]:
+    """:func:`_base64_parts` of the rest of the file ``fh``, read a piece at a time."""
+    while piece := fh.read(_BASE64_PIECE):
+        yield base64.b64encode(piece).decode("ascii")
 
 
 _BASE64_PIECE = 3 << 18
@@ -184,6 +208,12 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
         out["relief"] = _relief_plot(inputs, inputs.wall)
         release_freed_memory()
     return out
+
+
+RESIZE_DROP_S = 0.005
+"""Seconds between two drops of the scratch's pages (:func:`omnipipe.spill.dropping_pages`)
+while one call reads a whole image kept there (the atlas, the unrolled wall): the pages
+it read in the last few milliseconds resident, not the image's."""
 
 
 UNROLLED_MAX_COLUMNS = 1800
@@ -419,7 +449,8 @@ def _unrolled_plot(
         import cv2
 
         size = (min(cols, image.shape[1]), min(rows, image.shape[0]))
-        image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
+        with dropping_pages(RESIZE_DROP_S):  # the whole wall read in one call
+            image = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
         drop_pages()  # the whole wall's (omnipipe.spill): not under the drawing
     imshow_in_bands(ax, image, (a0, a1, s1, s0))
     radius = inputs.radius_mm or 100.0
@@ -494,9 +525,16 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         tex = np.asarray(inputs.texture)
         scale = config.texture_max_px / max(tex.shape[:2])
         if scale < 1:
-            tex = cv2.resize(tex, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            # The atlas (omnipipe.spill) read whole in one call: its pages dropped as the
+            # call goes, not only after it.
+            # Made in the scratch too (cv2 writes into ``dst`` when its size is the one
+            # it computes, else it returns a new array: the same values either way).
+            h, w = tex.shape[:2]
+            dst = zeros_on_disk((round(h * scale), round(w * scale), *tex.shape[2:]), tex.dtype)
+            with dropping_pages(RESIZE_DROP_S):
+                tex = cv2.resize(tex, None, dst=dst, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
-        png = _png_bytes(tex)
+        png = _png_file(tex)
         del tex
         release_freed_memory()  # the atlas's pages
     lo, hi = verts.min(axis=0), verts.max(axis=0)
@@ -524,7 +562,8 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             return
         head, tail = text.split(json.dumps(_TEXTURE_SLOT), 1)
         yield f'{head}"{_PNG_URI_HEAD}'
-        yield from _base64_parts(png)
+        with png:
+            yield from _base64_file_parts(png)
         yield f'"{tail}'
 
     return parts()

@@ -59,10 +59,7 @@ def deviation_grid(
     cell_deg = math.degrees(cell_mm / wall.radius_mm)
     rows = max(1, int(math.ceil((z1 - z0) / cell_mm)))
     cols = max(1, int(math.ceil((a1 - a0) / cell_deg)))
-    flat, values = _binned(wall, (z0, a0), (cell_mm, cell_deg), (rows, cols))
-    total = np.bincount(flat, values, rows * cols)
-    count = np.bincount(flat, None, rows * cols)
-    del flat, values
+    total, count = _binned(wall, (z0, a0), (cell_mm, cell_deg), (rows, cols))
     with np.errstate(invalid="ignore", divide="ignore"):
         grid = (total / count).reshape(rows, cols)
     centres = z0 + (np.arange(rows) + 0.5) * cell_mm
@@ -91,13 +88,14 @@ _POINTS_AT_ONCE = 1 << 16
 def _binned(
     wall: WallPoints, origin: tuple[float, float], cell: tuple[float, float], shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(n,) int64 flat cell (row-major in ``shape``) and (n,) deviation (mm) of each wall
-    point inside the grid with a finite deviation, in the points' order; ``origin`` =
-    (axial mm, angle deg) of cell (0, 0)'s corner, ``cell`` its (mm, deg) sides.
-    A chunk of :data:`_POINTS_AT_ONCE` points at a time."""
+    """(rows x cols,) float64 sum and int64 count of the finite deviations (mm) of the wall
+    points in each cell (row-major in ``shape``; ``origin`` = (axial mm, angle deg) of cell
+    (0, 0)'s corner, ``cell`` its (mm, deg) sides). A chunk of :data:`_POINTS_AT_ONCE`
+    points at a time, the sums in the points' order (as one ``np.bincount`` over them
+    all: the same bits), nothing of the points' length held."""
     (z0, a0), (cell_mm, cell_deg), (rows, cols) = origin, cell, shape
-    flats: list[np.ndarray] = []
-    values: list[np.ndarray] = []
+    total = np.zeros(rows * cols)
+    count = np.zeros(rows * cols, np.int64)
     for i in range(0, len(wall.axial_mm), _POINTS_AT_ONCE):
         part = slice(i, i + _POINTS_AT_ONCE)
         dev = np.asarray(wall.deviation_mm[part])
@@ -105,11 +103,10 @@ def _binned(
         r = np.floor((np.asarray(wall.axial_mm[part]) - z0) / cell_mm).astype(np.int64)
         c = np.floor(ang / cell_deg).astype(np.int64)
         keep = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & np.isfinite(dev)
-        flats.append(r[keep] * cols + c[keep])
-        values.append(dev[keep])
-    if not flats:
-        return np.zeros(0, np.int64), np.zeros(0)
-    return np.concatenate(flats), np.concatenate(values)
+        flat = r[keep] * cols + c[keep]
+        np.add.at(total, flat, dev[keep].astype(np.float64))
+        count += np.bincount(flat, None, rows * cols)
+    return total, count
 
 
 def _fill_rows(grid: np.ndarray, max_cells: int) -> None:

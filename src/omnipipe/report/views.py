@@ -57,15 +57,30 @@ def nearest_wall_point(
     of the fitted wall (not the branch seen through a lateral's opening)."""
     if len(points_in_world) != len(wall.axial_mm) or not len(points_in_world):
         return None
-    du = ((wall.angle_deg - angle_deg + 180.0) % 360.0 - 180.0) * math.pi / 180.0 * wall.radius_mm
-    dz = wall.axial_mm - axial_mm
-    d2 = du * du + dz * dz
-    if on_wall_mm is not None:
-        d2 = np.where(np.abs(wall.deviation_mm) <= on_wall_mm, d2, np.inf)
-        if not np.isfinite(d2).any():
-            return None
-    k = int(np.argmin(d2))
+    # A chunk of points at a time (the distances' temporaries a chunk's, not the run's):
+    # the first nearest point, as np.argmin over them all (a NaN distance wins, as there).
+    best, k, finite = np.inf, 0, False
+    for a in range(0, len(points_in_world), _POINTS_AT_ONCE):
+        part = slice(a, a + _POINTS_AT_ONCE)
+        du = ((wall.angle_deg[part] - angle_deg + 180.0) % 360.0 - 180.0) * math.pi / 180.0 * wall.radius_mm
+        dz = wall.axial_mm[part] - axial_mm
+        d2 = du * du + dz * dz
+        if on_wall_mm is not None:
+            d2 = np.where(np.abs(wall.deviation_mm[part]) <= on_wall_mm, d2, np.inf)
+            finite = finite or bool(np.isfinite(d2).any())
+        i = int(np.argmin(d2))
+        if np.isnan(d2[i]):
+            k = a + i
+            break
+        if d2[i] < best or a == 0:
+            best, k = float(d2[i]), a + i
+    if on_wall_mm is not None and not finite:
+        return None
     return np.asarray(points_in_world[k], float)
+
+
+_POINTS_AT_ONCE = 1 << 16
+"""Wall points :func:`nearest_wall_point` measures at a time."""
 
 
 def best_frame(
