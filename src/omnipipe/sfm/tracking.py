@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import thread_map
-from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
+from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews, concat_features
 
 
 @dataclass(frozen=True)
@@ -426,6 +426,19 @@ def _inherited_steps(prior: TrackChain, view: np.ndarray, view_pixels: np.ndarra
         _, nearest = cKDTree(prior.view_pixels[have]).query(view_pixels[sel])
         step[sel] = prior.step[have[nearest]]
     return step
+
+
+def keyframe_detection(extractor: FeatureExtractor, views: FrameViews, config: TrackConfig) -> FrameFeatures:
+    """A keyframe's own features on its ``views``: SIFT (``extractor.detect``), then,
+    with ``config.enabled``, Shi-Tomasi corners where SIFT found few
+    (:func:`corner_features`). The same wherever it runs (this process or a worker:
+    :func:`omnipipe.sfm.tasks.keyframe_candidate`)."""
+    features = extractor.detect(views)
+    if config.enabled:
+        corners = corner_features(extractor, views, features, config)
+        if len(corners.view):
+            features = concat_features([features, corners])
+    return features
 
 
 def corner_features(
