@@ -320,7 +320,8 @@ class KeyframeLoop:
         (:func:`omnipipe.sfm.tasks.keyframe_candidate`), when not started yet: the
         first whose rays will have turned the last frame's keyframe parallax, at the
         rate of the last two frames (of the last keyframe step's average right after a
-        keyframe); every one of them once SIFT runs on every moving frame. Only with
+        keyframe); every one of them once SIFT runs on every moving frame. One started
+        for a frame no longer predicted is cancelled when it has not started. Only with
         workers, and with views (tracking)."""
         last = self._last
         if last is None or not self.ctx.parallel or not self.ctx.config.tracking.enabled:
@@ -328,6 +329,10 @@ class KeyframeLoop:
         frames = [f for f in upcoming if f.views is not None and f.features is None]
         if not self._direct:
             frames = _predicted_keyframe(frames, self._turns, self._step_turn, self._least)
+        chosen = {f.frame for f in frames}
+        for f in [f.frame for f in upcoming if f.frame in self._ahead and f.frame not in chosen]:
+            if self._ahead[f].cancel():  # no longer predicted, and not started: dropped
+                del self._ahead[f]
         config = self.ctx.config
         for f in frames:
             if f.frame not in self._ahead:
