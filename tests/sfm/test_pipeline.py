@@ -341,7 +341,7 @@ def test_a_frame_without_a_ring_reads_the_nearest_frames_wall() -> None:
     assert nearest_wall([empty, empty])(1) is None
 
 
-@pytest.mark.slow  # three sfm runs of 20 frames at 640x480 with two workers
+@pytest.mark.slow  # four sfm runs of 20 frames at 640x480 with two workers
 def test_keyframes_found_ahead_in_workers_give_the_loops_own_result(short_run, monkeypatch) -> None:
     """The next keyframe's SIFT features and matches started in a worker ahead of the
     frame loop (as predicted; for every upcoming frame, most of them mispredicted; for
@@ -373,7 +373,12 @@ def test_keyframes_found_ahead_in_workers_give_the_loops_own_result(short_run, m
         with open_executor(workers=2) as pool:
             runs[name] = sfm_run(SfmConfig(), inputs, executor=pool)
         runs[name].taken = sum(taken)
+    taken.clear()
+    with open_executor(workers=2) as pool:  # and the loop alone (look_ahead 0)
+        runs["off"] = sfm_run(SfmConfig(tracking=TrackConfig(look_ahead=0)), inputs, executor=pool)
+    runs["off"].taken = sum(taken)
     assert runs["predicted"].taken >= 2 and runs["every frame"].taken >= 2 and runs["none"].taken == 0
-    for name in ("every frame", "none"):
+    assert runs["off"].taken == 0
+    for name in ("every frame", "none", "off"):
         assert np.array_equal(runs[name].world_from_rig, runs["predicted"].world_from_rig), name
         assert np.array_equal(runs[name].registered, runs["predicted"].registered), name

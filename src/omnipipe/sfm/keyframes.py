@@ -16,7 +16,7 @@ frame:
   out (``tracking.renew_ratio``), from half that angle on;
 - the frame predicted to cross that parallax next (its rays turning at the rate of the
   frames before it) gets its SIFT features and descriptor matches to the last keyframe
-  in a worker, ``LOOK_AHEAD`` frames ahead of the loop
+  in a worker, ``tracking.look_ahead`` frames ahead of the loop
   (:func:`omnipipe.sfm.tasks.keyframe_candidate`): the loop takes them when the frame
   does become the keyframe, the same values it would compute itself; a frame predicted
   wrongly costs only the worker's time;
@@ -74,10 +74,6 @@ from omnipipe.sfm.types import (
     StepScales,
 )
 from omnipipe.spill import Pack
-
-# How many moving frames ahead of the frame loop the next keyframe's features are
-# started in a worker (the frames whose views are held for it).
-LOOK_AHEAD = 2
 
 
 @dataclass(frozen=True)
@@ -202,7 +198,7 @@ def follow_keyframes(
     ahead: deque[MovingFrame] = deque()  # the next moving frames, seen before their turn
     for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress, ratio):
         ahead.append(frame)
-        if len(ahead) > LOOK_AHEAD:
+        if len(ahead) > ctx.config.tracking.look_ahead:
             loop.add(ahead.popleft(), upcoming=list(ahead))
     while ahead:
         loop.add(ahead.popleft(), upcoming=list(ahead))
