@@ -339,3 +339,46 @@ def test_a_frame_without_a_ring_reads_the_nearest_frames_wall() -> None:
     radii = [read(i).radius_mm for i in range(5)]
     assert np.allclose(radii, [100.0, 100.0, 110.0, 110.0, 110.0], atol=1e-9)
     assert nearest_wall([empty, empty])(1) is None
+
+
+@pytest.mark.slow  # four sfm runs of 20 frames at 640x480 with two workers
+def test_keyframes_found_ahead_in_workers_give_the_loops_own_result(short_run, monkeypatch) -> None:
+    """The next keyframe's SIFT features and matches started in a worker ahead of the
+    frame loop (as predicted; for every upcoming frame, most of them mispredicted; for
+    none) give the run the loop's own poses, bit for bit, and the predicted ones are
+    taken."""
+    from omnipipe.executor import open_executor
+    from omnipipe.sfm import keyframes
+
+    scenario, _, _, frames, rings = short_run("paper-small")
+    inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
+    taken: list[bool] = []
+    candidate = keyframes.KeyframeLoop._candidate
+
+    def counted(self, last, frame):
+        got = candidate(self, last, frame)
+        taken.append(got is not None)
+        return got
+
+    monkeypatch.setattr(keyframes.KeyframeLoop, "_candidate", counted)
+    predicted = keyframes._predicted_keyframe
+    runs = {}
+    for name, rule in (
+        ("predicted", predicted),
+        ("every frame", lambda frames, *_: frames),
+        ("none", lambda *_: []),
+    ):
+        monkeypatch.setattr(keyframes, "_predicted_keyframe", rule)
+        taken.clear()
+        with open_executor(workers=2) as pool:
+            runs[name] = sfm_run(SfmConfig(), inputs, executor=pool)
+        runs[name].taken = sum(taken)
+    taken.clear()
+    with open_executor(workers=2) as pool:  # and the loop alone (look_ahead 0)
+        runs["off"] = sfm_run(SfmConfig(tracking=TrackConfig(look_ahead=0)), inputs, executor=pool)
+    runs["off"].taken = sum(taken)
+    assert runs["predicted"].taken >= 2 and runs["every frame"].taken >= 2 and runs["none"].taken == 0
+    assert runs["off"].taken == 0
+    for name in ("every frame", "none", "off"):
+        assert np.array_equal(runs[name].world_from_rig, runs["predicted"].world_from_rig), name
+        assert np.array_equal(runs[name].registered, runs["predicted"].registered), name

@@ -111,3 +111,45 @@ def test_feature_task_leaves_handed_frames_grey_images_in_the_handoff(tiny_datas
     for (views, _, _), (views0, _, _) in zip(got, plain, strict=True):
         for a, b in zip(views.images + views.masks, views0.images + views0.masks, strict=True):
             assert np.array_equal(a, b)
+
+
+def test_a_keyframe_candidate_found_in_a_worker_is_what_the_loop_finds_itself() -> None:
+    """The next keyframe's features, descriptor matches and RANSAC-verified matches found
+    ahead in a local worker (:func:`omnipipe.sfm.tasks.keyframe_candidate`) are bit for
+    bit those the frame loop computes itself (SIFT on two threads, corners, the ratio
+    test, RANSAC), on a seeded rendered pair."""
+    from omnipipe.camera import camera_from_rig
+    from omnipipe.executor import open_executor
+    from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, match_features
+    from omnipipe.sfm.ransac import RansacConfig
+    from omnipipe.sfm.tasks import keyframe_candidate, verified_matches
+    from omnipipe.sfm.tracking import TrackConfig, keyframe_detection
+    from omnipipe.sim import make_scenario
+    from omnipipe.sim.writer import build_renderer
+
+    scenario = make_scenario("paper-small", frames=12, size=(640, 480), seed=3)
+    renderer, poses, _, moving = build_renderer(scenario)
+    b = int(np.flatnonzero(moving)[2])
+    a = b - 2
+    config, tracking = FeatureConfig(), TrackConfig(min_corner_points=3000)  # corners too
+    camera = camera_from_rig(scenario.rig)
+    extractor = FeatureExtractor(camera, config)
+    extractor.threads = 2
+    views = [
+        extractor.frame_views(renderer.expose(renderer.irradiance(poses[f], seed=7 + f)[0], seed=7 + f),
+                              scenario.rig.laser.channel)
+        for f in (a, b)
+    ]
+    ransac = RansacConfig(threshold_rad=camera.angular_resolution())
+    key = keyframe_detection(extractor, views[0], tracking)
+    here = keyframe_detection(extractor, views[1], tracking)
+    m = match_features(key, here, config.ratio)
+    verified = verified_matches(key, here, m, ransac)
+    assert len(verified) > 50 and len(here.view) > len(np.flatnonzero(here.descriptors.any(axis=1)))
+    with open_executor(workers=2) as pool:
+        got = pool.submit(keyframe_candidate, scenario.rig, config, tracking, ransac, b, a, views[1], key).result()
+    assert (got.frame, got.keyframe) == (b, a)
+    for x, y in ((got.features.rays_in_rig, here.rays_in_rig), (got.features.pixels, here.pixels),
+                 (got.features.descriptors, here.descriptors), (got.features.view, here.view),
+                 (got.features.view_pixels, here.view_pixels), (got.matches, m), (got.verified, verified)):
+        assert x.dtype == y.dtype and np.array_equal(x, y)

@@ -218,6 +218,26 @@ class FeatureExtractor:
         return FrameFeatures(r, px, d, v, p)
 
 
+def concat_features(parts: list[FrameFeatures]) -> FrameFeatures:
+    """The features of ``parts`` one after the other (each with descriptors or as
+    many zero rows; view pixels when every part has them)."""
+    def desc(f: FrameFeatures) -> np.ndarray:
+        return f.descriptors if len(f.descriptors) == len(f.view) else np.zeros((len(f.view), 128), np.float32)
+
+    vpx = (
+        np.concatenate([f.view_pixels for f in parts]).astype(np.float32)
+        if all(f.view_pixels is not None for f in parts)
+        else None
+    )
+    return FrameFeatures(
+        np.concatenate([f.rays_in_rig for f in parts]),
+        np.concatenate([f.pixels for f in parts]),
+        np.concatenate([desc(f) for f in parts]).astype(np.float32),
+        np.concatenate([f.view for f in parts]),
+        vpx,
+    )
+
+
 def detection_scale(config: FeatureConfig, width: int, height: int) -> float:
     """The factor SIFT resizes a ``width`` x ``height`` px view by: ``config.detect_scale``
     unless the resized view's shorter side would fall below ``config.detect_min_side_px``

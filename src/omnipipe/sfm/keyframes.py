@@ -14,6 +14,12 @@ frame:
   removed: under ``keyframe_min_parallax_deg`` the frame is *pending* (resected after
   the bundle adjustment), else it becomes the next keyframe; when its tracks are running
   out (``tracking.renew_ratio``), from half that angle on;
+- the frame predicted to cross that parallax next (its rays turning at the rate of the
+  frames before it) gets its SIFT features and descriptor matches to the last keyframe
+  in a worker, ``tracking.look_ahead`` frames ahead of the loop
+  (:func:`omnipipe.sfm.tasks.keyframe_candidate`): the loop takes them when the frame
+  does become the keyframe, the same values it would compute itself; a frame predicted
+  wrongly costs only the worker's time;
 - each keyframe step's two scale measurements (laser template matches, Eq. 17; feature
   depths on the light-section wall) are submitted to the executor's workers, a bounded
   number at a time.
@@ -23,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, replace
 
@@ -37,6 +43,7 @@ from omnipipe.sfm.features import (
     FeatureExtractor,
     FrameFeatures,
     FrameViews,
+    concat_features,
     guided_matches,
     match_features,
 )
@@ -46,9 +53,18 @@ from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
 from omnipipe.sfm.robot_sensors import odometry_moved
 from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES
 from omnipipe.sfm.stations import StationTracker
-from omnipipe.sfm.tasks import FeatureTask, handed_gray, matched_rays, step_evidence, track_back
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, corner_features
+from omnipipe.sfm.tasks import (
+    FeatureTask,
+    handed_gray,
+    keyframe_candidate,
+    matched_rays,
+    step_evidence,
+    track_back,
+    verified_matches,
+)
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, keyframe_detection
 from omnipipe.sfm.types import (
+    KeyframeCandidate,
     KeyframeRays,
     Keyframes,
     PendingFrame,
@@ -179,8 +195,13 @@ def follow_keyframes(
     keyframes' grey images; ``progress`` is told the frames done, over all N; ``ratio``
     (N,) receives the stationary test's ratios when it runs here (:func:`moving_frames`)."""
     loop = KeyframeLoop(ctx, inputs, grays)
+    ahead: deque[MovingFrame] = deque()  # the next moving frames, seen before their turn
     for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress, ratio):
-        loop.add(frame)
+        ahead.append(frame)
+        if len(ahead) > ctx.config.tracking.look_ahead:
+            loop.add(ahead.popleft(), upcoming=list(ahead))
+    while ahead:
+        loop.add(ahead.popleft(), upcoming=list(ahead))
     loop.finish()
     return loop.result()
 
@@ -226,10 +247,26 @@ class KeyframeLoop:
         self._direct = False
         # A new feature this close (rad) to a track carried on is that track.
         self._near = 2.0 * ctx.camera.angular_resolution()
+        # Frames predicted to become the next keyframe -> their features being found
+        # in a worker (:meth:`_look_ahead`).
+        self._ahead: dict[int, Future[KeyframeCandidate]] = {}
+        # The last keyframe step's parallax (rad) and moving frames; the parallax of
+        # the frames pending since the last keyframe, in order.
+        self._step_turn = (math.nan, 0)
+        self._turns: list[float] = []
+        self._least = self._min_parallax  # the last frame's keyframe parallax (rad)
 
-    def add(self, frame: MovingFrame, closing: bool = False) -> None:
+    def add(self, frame: MovingFrame, closing: bool = False, upcoming: Sequence[MovingFrame] = ()) -> None:
         """One moving frame: pending (too little parallax) or the next keyframe (always
-        with ``closing``)."""
+        with ``closing``). ``upcoming``: the moving frames after it, as far as they are
+        known (:meth:`_look_ahead`)."""
+        self._add(frame, closing)
+        for f in [f for f in self._ahead if f <= frame.frame]:  # not taken: wasted work
+            self._ahead.pop(f).cancel()
+        self._look_ahead(upcoming)
+
+    def _add(self, frame: MovingFrame, closing: bool) -> None:
+        """:meth:`add` of ``frame`` alone."""
         self._latest = frame
         last = self._last
         features = frame.features
@@ -240,7 +277,7 @@ class KeyframeLoop:
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
-        least = self._least_parallax(step)
+        self._least = least = self._least_parallax(step)
         if step is not None and step.parallax_rad < least and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
             self._defer(frame, step.tracks.features, step.inliers, step.parallax_rad)
@@ -251,10 +288,11 @@ class KeyframeLoop:
             tracked = not self._direct  # chained tracks, or descriptors they verified
         else:
             tracked = False
+            got = self._candidate(last, frame) if features is None else None
             if features is None:
-                features = self._keyframe_features(frame, None)
+                features = got.features if got is not None else self._keyframe_features(frame, None)
             n_continued = 0
-            m = match_features(last.features, features, self.ctx.config.features.ratio)
+            m = got.matches if got is not None else match_features(last.features, features, self.ctx.config.features.ratio)
         pair = StepPair(last.frame, frame.frame, last.features, features, m)
         motion = _relative(self.ctx, pair)
         if motion is None:
@@ -271,6 +309,47 @@ class KeyframeLoop:
         self._measure(pair, motion, last.gray, gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued, gray, parallax)
+
+    def _look_ahead(self, upcoming: Sequence[MovingFrame]) -> None:
+        """Start the features of the frame of ``upcoming`` (the next moving frames, in
+        order) predicted to become the next keyframe in a worker
+        (:func:`omnipipe.sfm.tasks.keyframe_candidate`), when not started yet: the
+        first whose rays will have turned the last frame's keyframe parallax, at the
+        rate of the last two frames (of the last keyframe step's average right after a
+        keyframe); every one of them once SIFT runs on every moving frame. One started
+        for a frame no longer predicted is cancelled when it has not started. Only with
+        workers, and with views (tracking)."""
+        last = self._last
+        if last is None or not self.ctx.parallel or not self.ctx.config.tracking.enabled:
+            return
+        frames = [f for f in upcoming if f.views is not None and f.features is None]
+        if not self._direct:
+            frames = _predicted_keyframe(frames, self._turns, self._step_turn, self._least)
+        chosen = {f.frame for f in frames}
+        for f in [f.frame for f in upcoming if f.frame in self._ahead and f.frame not in chosen]:
+            if self._ahead[f].cancel():  # no longer predicted, and not started: dropped
+                del self._ahead[f]
+        config = self.ctx.config
+        for f in frames:
+            if f.frame not in self._ahead:
+                self._ahead[f.frame] = self.ctx.executor.submit(
+                    keyframe_candidate, self.inputs.rig, config.features, config.tracking, self.ctx.ransac,
+                    f.frame, last.frame, f.views, last.features,
+                )
+
+    def _candidate(self, last: _Keyframe, frame: MovingFrame) -> KeyframeCandidate | None:
+        """``frame``'s features and descriptor matches to ``last`` found ahead
+        (:meth:`_look_ahead`; the matches found here again when they were to an earlier
+        keyframe), or None when they were not started, or not yet (then cancelled: the
+        loop finds them itself)."""
+        future = self._ahead.pop(frame.frame, None)
+        if future is None or future.cancel():
+            return None
+        got = future.result()
+        if got.keyframe != last.frame:
+            m = match_features(last.features, got.features, self.ctx.config.features.ratio)
+            got = replace(got, keyframe=last.frame, matches=m, verified=_verified(self.ctx, last.features, got.features, m))
+        return got
 
     def _least_parallax(self, step: TrackedStep | None) -> float:
         """The parallax (rad) from which the frame of ``step`` (its tracks; None: none)
@@ -304,14 +383,20 @@ class KeyframeLoop:
         config = self.ctx.config.tracking
         ratio = self.ctx.config.features.ratio
         inl = step.inliers
-        detected = self._keyframe_features(frame, None)
+        got = self._candidate(last, frame)  # found ahead in a worker, or None
+        detected = got.features if got is not None else self._keyframe_features(frame, None)
         radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
         track_rays = step.tracks.features.rays_in_rig[inl[:, 1]]
         everywhere, guided = thread_map(  # the two candidates at once (independent)
-            lambda match: _verified(self.ctx, last.features, detected, match()),
+            lambda verify: verify(),
             [
-                lambda: match_features(last.features, detected, ratio),
-                lambda: guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
+                lambda: got.verified if got is not None else _verified(
+                    self.ctx, last.features, detected, match_features(last.features, detected, ratio)
+                ),
+                lambda: _verified(
+                    self.ctx, last.features, detected,
+                    guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
+                ),
             ],
             threads=self.extractor.threads,
         )
@@ -344,14 +429,10 @@ class KeyframeLoop:
         that are not where a continued track is, then Shi-Tomasi corners where SIFT
         found few (:func:`omnipipe.sfm.tracking.corner_features`; with views only)."""
         if features is None:
-            features = self.extractor.detect(frame.views)
-            if frame.views is not None and self.ctx.config.tracking.enabled:
-                corners = corner_features(self.extractor, frame.views, features, self.ctx.config.tracking)
-                if len(corners.view):
-                    features = _concat([features, corners])
+            features = keyframe_detection(self.extractor, frame.views, self.ctx.config.tracking)
         if continued is not None and len(continued.view):
             near = cKDTree(continued.rays_in_rig).query(features.rays_in_rig, distance_upper_bound=self._near)[0]
-            features = _concat([continued, _subset(features, np.flatnonzero(~np.isfinite(near)))])
+            features = concat_features([continued, _subset(features, np.flatnonzero(~np.isfinite(near)))])
         return features
 
     def _redo_pending(self, last: _Keyframe) -> None:
@@ -441,6 +522,7 @@ class KeyframeLoop:
         ``parallax`` (rad) of its rays from it."""
         self.pending.append(PendingFrame(frame.frame, len(self.features) - 1, features, inliers))
         self._pending_parallax[frame.frame] = parallax
+        self._turns.append(parallax)
         if frame.views is not None:
             self._pending_views[frame.frame] = frame.views
 
@@ -519,6 +601,7 @@ class KeyframeLoop:
         self.features.append(features)
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
+        self._step_turn, self._turns = (parallax, len(self._turns) + 1), []
         self._last = _Keyframe(frame.frame, features, gray, frame.views)
         config = self.ctx.config
         fresh = np.arange(n_continued, len(features.view))
@@ -566,6 +649,29 @@ class KeyframeLoop:
         self._pending_parallax.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _held(self._pack, self.features[k_new - 1])
+
+
+def _predicted_keyframe(
+    frames: list[MovingFrame], turns: list[float], step_turn: tuple[float, int], least: float
+) -> list[MovingFrame]:
+    """The first of ``frames`` (the moving frames after the last one added, in order)
+    predicted to turn ``least`` (rad) from the last keyframe, as a list (empty: none).
+    ``turns``: the parallax (rad) of the frames pending since the last keyframe, in
+    order; the next ones turn on by the last increment (the first: its own). Right
+    after a keyframe (``turns`` empty) at the average rate of its step, ``step_turn``
+    (parallax rad, moving frames; NaN: not known)."""
+    if turns:
+        now = turns[-1]
+        rate = turns[-1] - turns[-2] if len(turns) >= 2 else turns[-1]
+    else:
+        turn, n = step_turn
+        now, rate = 0.0, turn / n if n > 0 else math.nan
+    if not rate > 0 or not math.isfinite(now):
+        return []
+    for j, f in enumerate(frames, 1):
+        if now + j * rate >= least:
+            return [f]
+    return []
 
 
 def gray_for_worker(
@@ -633,26 +739,6 @@ def _subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:
     return FrameFeatures(features.rays_in_rig[idx], features.pixels[idx], desc, features.view[idx], vpx)
 
 
-def _concat(parts: list[FrameFeatures]) -> FrameFeatures:
-    """The features of ``parts`` one after the other (each with descriptors or as
-    many zero rows; view pixels when every part has them)."""
-    def desc(f: FrameFeatures) -> np.ndarray:
-        return f.descriptors if len(f.descriptors) == len(f.view) else np.zeros((len(f.view), 128), np.float32)
-
-    vpx = (
-        np.concatenate([f.view_pixels for f in parts]).astype(np.float32)
-        if all(f.view_pixels is not None for f in parts)
-        else None
-    )
-    return FrameFeatures(
-        np.concatenate([f.rays_in_rig for f in parts]),
-        np.concatenate([f.pixels for f in parts]),
-        np.concatenate([desc(f) for f in parts]).astype(np.float32),
-        np.concatenate([f.view for f in parts]),
-        vpx,
-    )
-
-
 def _slim(features: FrameFeatures) -> FrameFeatures:
     """``features`` without their descriptors (once nothing more is matched to them:
     the rays and pixels are what the adjustment and resection read)."""
@@ -696,12 +782,8 @@ def _relative(ctx: SfmContext, pair: StepPair) -> RelativeMotion | None:
 
 def _verified(ctx: SfmContext, fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray) -> np.ndarray:
     """The matches ``m`` (M, 2) one relative motion explains (RANSAC inliers; none when
-    no motion fits)."""
-    try:
-        motion = estimate_relative_motion(fa.rays_in_rig[m[:, 0]], fb.rays_in_rig[m[:, 1]], ctx.ransac)
-    except ReconstructionError:
-        return np.zeros((0, 2), int)
-    return m[motion.inliers]
+    no motion fits; :func:`omnipipe.sfm.tasks.verified_matches`)."""
+    return verified_matches(fa, fb, m, ctx.ransac)
 
 
 def _skipped_period(

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import thread_map
-from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
+from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews, concat_features
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,10 @@ class TrackConfig:
             from both sides; the frames after it back to the next keyframe are followed
             through on the way); 0: never by count, a large number (the default): always
             (why always: benchmarks/RESULTS.md).
+        look_ahead: the frame loop sees this many moving frames before their turn, and
+            the one of them predicted to become the next keyframe gets its features
+            and descriptor matches in a worker (:mod:`omnipipe.sfm.keyframes`; the
+            same result, taken only when it does; 0: found in the loop only).
         back_beyond: ... or when its rays turned at least this share of the next
             keyframe's parallax from its own keyframe (the far part of a long step,
             where its own keyframe's tracks alone let it drift; robustness seed 1, a
@@ -99,6 +103,7 @@ class TrackConfig:
     renew_ratio: float = bounded(0.3, ge=0, le=1)
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
+    look_ahead: int = bounded(2, ge=0)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -426,6 +431,19 @@ def _inherited_steps(prior: TrackChain, view: np.ndarray, view_pixels: np.ndarra
         _, nearest = cKDTree(prior.view_pixels[have]).query(view_pixels[sel])
         step[sel] = prior.step[have[nearest]]
     return step
+
+
+def keyframe_detection(extractor: FeatureExtractor, views: FrameViews, config: TrackConfig) -> FrameFeatures:
+    """A keyframe's own features on its ``views``: SIFT (``extractor.detect``), then,
+    with ``config.enabled``, Shi-Tomasi corners where SIFT found few
+    (:func:`corner_features`). The same wherever it runs (this process or a worker:
+    :func:`omnipipe.sfm.tasks.keyframe_candidate`)."""
+    features = extractor.detect(views)
+    if config.enabled:
+        corners = corner_features(extractor, views, features, config)
+        if len(corners.view):
+            features = concat_features([features, corners])
+    return features
 
 
 def corner_features(
