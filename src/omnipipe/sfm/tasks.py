@@ -43,13 +43,13 @@ from omnipipe.sfm.features import (
 )
 from omnipipe.sfm.image_store import StoredImage, load_image
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
+from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
 from omnipipe.sfm.scale_check import (
     ScaleCheckConfig,
     feature_log_scales,
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
 from omnipipe.sfm.tracking import TrackChain, TrackConfig, keyframe_detection
 from omnipipe.sfm.types import KeyframeCandidate, KeyframeRays, StepScales
 
