@@ -37,3 +37,35 @@ def test_tilted_cylinder_is_recovered() -> None:
     assert abs(abs(cyl.axis @ axis) - 1.0) < 1e-6
     off = (cyl.point - centre) - ((cyl.point - centre) @ axis) * axis
     assert np.linalg.norm(off) < 0.02
+
+
+def _residuals_reference(points: np.ndarray, point: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarray:
+    """NumPy reference of :func:`omnipipe.analysis._kernels.cylinder_residuals`."""
+    rel = points - point
+    perp = rel - (rel @ axis)[:, None] * axis
+    return np.sqrt(np.einsum("ij,ij->i", perp, perp)) - radius
+
+
+def _jacobian_reference(residual: CylinderResidual, x: np.ndarray) -> np.ndarray:
+    """NumPy reference of :meth:`CylinderResidual.jacobian` (the compiled kernel's)."""
+    norm_m = float(np.linalg.norm(residual.axis0 + x[0] * residual.e1 + x[1] * residual.e2))
+    point, axis = residual.unpack(x)
+    rel = residual.points - point
+    along = rel @ axis
+    q = rel - along[:, None] * axis
+    d = np.maximum(np.sqrt(np.einsum("ij,ij->i", q, q)), 1e-12)
+    q1, q2 = q @ residual.e1 / d, q @ residual.e2 / d
+    tilt = -along / norm_m
+    return np.column_stack([tilt * q1, tilt * q2, -q1, -q2, -np.ones(len(residual.points))])
+
+
+def test_compiled_cylinder_residuals_and_jacobian_equal_the_numpy_reference() -> None:
+    rng = np.random.default_rng(7)
+    pts = rng.normal(0, 60.0, (400, 3))
+    pts[:3] = [[1.0, 2.0, 5.0], [1.0, 2.0, -5.0], [1.0, 2.0, 0.0]]  # on the axis: d clipped
+    axis0 = np.array([0.0, 0.0, 1.0])
+    residual = CylinderResidual(pts, axis0, np.array([1.0, 2.0, 0.0]))
+    for x in (np.zeros(5), np.array([0.05, -0.03, 0.5, -0.7, 79.0]), np.array([-0.3, 0.2, 4.0, 3.0, 60.0])):
+        point, axis = residual.unpack(x)
+        np.testing.assert_allclose(residual(x), _residuals_reference(pts, point, axis, x[4]), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(residual.jacobian(x), _jacobian_reference(residual, x), rtol=1e-12, atol=1e-12)

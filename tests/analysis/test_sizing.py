@@ -413,3 +413,49 @@ def test_streaks_beside_a_defects_flank_are_flagged_not_defects() -> None:
         assert abs(found.angle_deg - 120.0) < 2.0 and abs(found.height_mm - 3.0) < 0.3, found
         flagged = [w for w in search.warnings if "flagged here, not reported as a defect" in w]
         assert len(flagged) == 2, search.warnings
+
+
+def test_flank_streaks_are_told_before_their_fit_and_the_dent_keeps_its_size(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The two streaks beside the dent's flank (as above) are recognised from their rough
+    extent before any fit: the model is fitted once (the dent), the streaks' warnings stay
+    and the dent's sizes and sigmas are those of a search that fits every candidate."""
+    from omnipipe.analysis import defects
+
+    rng = np.random.default_rng(41)
+    t = {
+        "kind": "dent", "height_mm": 3.0, "width_mm": 20.0, "length_mm": 30.0,
+        "axial_start_mm": 40.0, "angle_deg": 120.0, "ramp_u": 1.0, "ramp_z": 1.0,
+    }
+    samples = _map(rng, [t])
+    dev = samples.deviation_mm.copy()
+    for angle in (90.0, 150.0):
+        uc = np.radians(angle) * RADIUS
+        for r in np.unique(samples.ring)[8:14]:
+            on = np.flatnonzero(samples.ring == r)
+            u = np.abs((samples.arc_mm[on] - uc + 0.5 * CIRC) % CIRC - 0.5 * CIRC)
+            dev[on[np.argsort(u)[:2]]] = rng.uniform(2.5, 3.0, 2)
+    streaked = WallSamples(samples.sigma_mm, samples.arc_mm, dev, samples.ring, CIRC)
+    fitted: list[int] = []
+    real = defects.fit_bump
+
+    def counted(*args, **kwargs):
+        fitted.append(len(args[0]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(defects, "fit_bump", counted)
+
+    def search():
+        return find_defects(
+            streaked, min_height_mm=1.0, noise_factor=6.0, min_points=4, grid_mm=0.25, ring_blur_mm=0.6,
+        )
+
+    told = search()
+    assert len(fitted) == 1, fitted  # the dent only
+    monkeypatch.setattr(defects, "streak_candidates", lambda *a: [])
+    every = search()
+    assert len(fitted) == 1 + 3, fitted  # the dent and both streaks fitted
+    (dent,) = told.defects
+    assert dent == every.defects[0]
+    assert abs(dent.height_mm - 3.0) < 0.3 and abs(dent.angle_deg - 120.0) < 2.0, dent
+    flagged = [w for w in told.warnings if "beside the flank of the dent" in w and "not reported as a defect" in w]
+    assert len(flagged) == 2, told.warnings

@@ -1,4 +1,13 @@
-"""The defect sizing's bump model and its analytic Jacobian, compiled.
+"""The analysis' compiled kernels: the defect sizing's bump model and its analytic
+Jacobian, and the cylinder fit's residuals and Jacobian.
+
+Cylinder (:class:`omnipipe.analysis.cylinder.CylinderResidual`): :func:`cylinder_residuals`
+and :func:`cylinder_jacobian` evaluate the points' distance to the axis minus the radius
+and its derivatives in one pass over the points each (the NumPy reference is in
+tests/analysis/test_cylinder.py): the centreline's window fits spend most of their time
+there.
+
+Bump:
 
 :func:`omnipipe.analysis.sizing.seen_bump_model` is the NumPy reference (the tests
 compare the two); the least-squares fits of :mod:`omnipipe.analysis.sizing` call
@@ -118,3 +127,57 @@ def seen_bump_with_jacobian(
         model, jac,
     )
     return model, jac
+
+
+@numba.njit(cache=True)
+def _cylinder_residuals(points: np.ndarray, point: np.ndarray, axis: np.ndarray, radius: float, out: np.ndarray) -> None:
+    for i in range(points.shape[0]):
+        r0, r1, r2 = points[i, 0] - point[0], points[i, 1] - point[1], points[i, 2] - point[2]
+        along = r0 * axis[0] + r1 * axis[1] + r2 * axis[2]
+        q0, q1, q2 = r0 - along * axis[0], r1 - along * axis[1], r2 - along * axis[2]
+        out[i] = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2) - radius
+
+
+@numba.njit(cache=True)
+def _cylinder_jacobian(
+    points: np.ndarray, point: np.ndarray, axis: np.ndarray, e1: np.ndarray, e2: np.ndarray, norm_m: float,
+    jac: np.ndarray,
+) -> None:
+    for i in range(points.shape[0]):
+        r0, r1, r2 = points[i, 0] - point[0], points[i, 1] - point[1], points[i, 2] - point[2]
+        along = r0 * axis[0] + r1 * axis[1] + r2 * axis[2]
+        q0, q1, q2 = r0 - along * axis[0], r1 - along * axis[1], r2 - along * axis[2]
+        d = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2), 1e-12)
+        c1 = (q0 * e1[0] + q1 * e1[1] + q2 * e1[2]) / d
+        c2 = (q0 * e2[0] + q1 * e2[1] + q2 * e2[2]) / d
+        tilt = -along / norm_m
+        jac[i, 0] = tilt * c1
+        jac[i, 1] = tilt * c2
+        jac[i, 2] = -c1
+        jac[i, 3] = -c2
+        jac[i, 4] = -1.0
+
+
+def cylinder_residuals(points: np.ndarray, point: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) distance (mm) of ``points`` (N, 3; C-contiguous float64) from the line through
+    ``point`` (3,) along the unit ``axis`` (3,), minus ``radius`` (mm)."""
+    out = np.empty(points.shape[0])
+    _cylinder_residuals(points, np.ascontiguousarray(point, np.float64), np.ascontiguousarray(axis, np.float64), float(radius), out)
+    return out
+
+
+def cylinder_jacobian(
+    points: np.ndarray, point: np.ndarray, axis: np.ndarray, basis: tuple[np.ndarray, np.ndarray], norm_m: float
+) -> np.ndarray:
+    """(N, 5) derivatives of :func:`cylinder_residuals` with respect to the cylinder's
+    parameters (two tilts of the axis along ``basis`` (e1, e2), the axis point's offsets
+    along them, the radius; :class:`omnipipe.analysis.cylinder.CylinderResidual`), at the
+    axis ``point`` and unit ``axis`` they give; ``norm_m``: the length of the untilted
+    axis plus the tilts (the unit axis times it)."""
+    jac = np.empty((points.shape[0], 5))
+    e1, e2 = (np.ascontiguousarray(e, np.float64) for e in basis)
+    _cylinder_jacobian(
+        points, np.ascontiguousarray(point, np.float64), np.ascontiguousarray(axis, np.float64), e1, e2,
+        float(norm_m), jac,
+    )
+    return jac

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 
 from omnipipe.analysis.cylinder import Cylinder, basis, fit_cylinder
 from omnipipe.errors import ReconstructionError
@@ -285,15 +286,18 @@ def _local_tangents(
     off the axis by a joint's offset, a taper or the wall noise) cannot tilt it by degrees.
     """
     out = fallback.copy()
+    # The centres near each one from a tree (then the exact test on those): linear in the run.
+    tree = cKDTree(centre) if len(centre) else None
     for i in range(len(centre)):
-        near = np.linalg.norm(centre - centre[i], axis=1) <= half_span_mm
+        cand = np.sort(np.asarray(tree.query_ball_point(centre[i], half_span_mm * (1 + 1e-9) + 1e-9), int))
+        near = cand[np.linalg.norm(centre[cand] - centre[i], axis=1) <= half_span_mm]
         if side is not None and len(side):
-            near &= np.all(side == side[:, i : i + 1], axis=0)
+            near = near[np.all(side[:, near] == side[:, i : i + 1], axis=0)]
         if prior is not None and prior.sigma_rad[i] <= _WEAK_PRIOR_RAD:
             d = _ridge_direction(centre[near], prior.direction[i], float(prior.sigma_rad[i]))
             out[i] = d if d @ fallback[i] > 0 else -d
             continue
-        if near.sum() < 3:
+        if len(near) < 3:
             continue
         c = centre[near] - centre[near].mean(axis=0)
         _, sv, vt = np.linalg.svd(c, full_matrices=False)

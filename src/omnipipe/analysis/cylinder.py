@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from omnipipe.analysis._kernels import cylinder_jacobian, cylinder_residuals
 from omnipipe.errors import ShapeError
 
 
@@ -58,13 +59,6 @@ def circle_fit_2d(xy: np.ndarray) -> tuple[np.ndarray, float]:
     return centre, float(np.sqrt(max(sol[2] + centre @ centre, 0.0)))
 
 
-def radial_distance(points: np.ndarray, point: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """(N,) distance of ``points`` (N, 3) from the line through ``point`` along unit ``axis``."""
-    rel = points - point
-    perp = rel - (rel @ axis)[:, None] * axis
-    return np.sqrt(np.einsum("ij,ij->i", perp, perp))
-
-
 class CylinderResidual:
     """Signed distance to the axis minus the radius of every point, and its Jacobian, for
     parameters x = (two tilts of ``axis0`` along its basis e1, e2; the axis point's offsets
@@ -76,7 +70,7 @@ class CylinderResidual:
     """
 
     def __init__(self, points: np.ndarray, axis0: np.ndarray, point0: np.ndarray) -> None:
-        self.points, self.axis0, self.point0 = points, axis0, point0
+        self.points, self.axis0, self.point0 = np.ascontiguousarray(points, np.float64), axis0, point0
         self.e1, self.e2 = basis(axis0)
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -87,19 +81,13 @@ class CylinderResidual:
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         point, axis = self.unpack(x)
-        return radial_distance(self.points, point, axis) - x[4]
+        return cylinder_residuals(self.points, point, axis, float(x[4]))
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """(N, 5) d residual / d x."""
+        """(N, 5) d residual / d x (compiled: :func:`._kernels.cylinder_jacobian`)."""
         norm_m = float(np.linalg.norm(self.axis0 + x[0] * self.e1 + x[1] * self.e2))
         point, axis = self.unpack(x)
-        rel = self.points - point
-        along = rel @ axis
-        q = rel - along[:, None] * axis
-        d = np.maximum(np.sqrt(np.einsum("ij,ij->i", q, q)), 1e-12)
-        q1, q2 = q @ self.e1 / d, q @ self.e2 / d
-        tilt = -along / norm_m
-        return np.column_stack([tilt * q1, tilt * q2, -q1, -q2, -np.ones(len(self.points))])
+        return cylinder_jacobian(self.points, point, axis, (self.e1, self.e2), norm_m)
 
 
 def fit_cylinder(

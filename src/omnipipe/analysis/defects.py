@@ -276,19 +276,9 @@ def find_defects(
         for members in _clusters(samples, sc, sign, min_points)
         if not _one_sided(samples, sc, members, kind, zones, warnings)
     ]
-    # The candidates' model fits are independent: on the executor's workers, in order
-    # (a local pool's read the samples from the run's scratch: not pickled per candidate).
-    sent = shared_fields(samples, executor or InlineExecutor()) if candidates else samples
-    jobs = (
-        (sent, d0, sign, sc.sample_spacing, sc.typical_spacing, ring_blur_mm, axial_blur_mm)
-        for sign, _, _, d0 in candidates
-    )
-    fits = ordered_map(executor or InlineExecutor(), _fit_job, jobs)
-    defects, masks, narrow = _accepted(
-        samples, sc, candidates, fits, max_width_fraction * samples.circumference_mm, limit, warnings
-    )
     # The light section resolves nothing narrower than its blur's full width at half height.
-    defects, masks = _flank_streaks(defects, masks, narrow, 2.355 * ring_blur_mm, samples.circumference_mm, warnings)
+    limits = (max_width_fraction * samples.circumference_mm, limit, 2.355 * ring_blur_mm)
+    defects, masks = _reported(samples, sc, candidates, limits, (ring_blur_mm, axial_blur_mm), executor, warnings)
     defects, masks = _merge_overlapping(defects, masks, samples.circumference_mm)
     warnings.extend(_unfitted_warnings(defects))
     order_h = np.argsort([-d.height_mm for d in defects], kind="stable")
@@ -302,6 +292,111 @@ def find_defects(
         sample_spacing_mm=sc.sample_spacing,
         masks=[masks[i] for i in order_h],
     )
+
+
+def _reported(
+    samples: WallSamples,
+    sc: _Scales,
+    candidates: list[tuple[float, str, np.ndarray, Defect]],
+    limits: tuple[float, float, float],
+    blur: tuple[float, float],
+    executor: Executor | None,
+    warnings: list[str],
+) -> tuple[list[Defect], list[np.ndarray]]:
+    """The candidates' model fits that are reported and their masks (:func:`_accepted_unstreaked`;
+    ``limits`` as there, ``blur``: the ring's and the axial blur, mm).
+
+    A streak beside a wider candidate's flank (:func:`streak_candidates`) is told before
+    its fit, which cannot converge (nothing pins its width), and keeps its rough
+    measurement for its warning. Should the fitted neighbours not confirm it (it is not
+    flagged after the fits), it is fitted after all and the fits are accepted again: the
+    result is the one of fitting every candidate, up to the streaks' warnings' numbers."""
+    streaks = set(streak_candidates(samples, [(members, d0) for _, _, members, d0 in candidates], limits[2]))
+    fits = _fits(samples, sc, candidates, streaks, blur, executor)
+    told = len(warnings)
+    defects, masks, flagged = _accepted_unstreaked(samples, sc, candidates, fits, limits, warnings)
+    if streaks - flagged:
+        del warnings[told:]
+        for i in sorted(streaks - flagged):
+            sign, _, _, d0 = candidates[i]
+            fits[i] = _fit(samples, d0, sign, sc.sample_spacing, sc.typical_spacing, *blur)
+        defects, masks, _ = _accepted_unstreaked(samples, sc, candidates, fits, limits, warnings)
+    return defects, masks
+
+
+def _fits(
+    samples: WallSamples,
+    sc: _Scales,
+    candidates: list[tuple[float, str, np.ndarray, Defect]],
+    streaks: set[int],
+    blur: tuple[float, float],
+    executor: Executor | None,
+) -> list[tuple[Defect, np.ndarray]]:
+    """Each candidate's model fit and mask (:func:`_fit`, on ``executor``'s workers, in
+    order; a local pool's read the samples from the run's scratch: not pickled per
+    candidate); the ``streaks`` (candidate indices) keep their rough measurement
+    (:func:`_unfitted`), unfitted."""
+    ex = executor or InlineExecutor()
+    todo = [i for i in range(len(candidates)) if i not in streaks]
+    sent = shared_fields(samples, ex) if todo else samples
+    jobs = ((sent, candidates[i][3], candidates[i][0], sc.sample_spacing, sc.typical_spacing, *blur) for i in todo)
+    out: list[tuple[Defect, np.ndarray]] = [
+        _unfitted(samples, d0, sign, sc.sample_spacing, sc.typical_spacing) if i in streaks else (d0, np.zeros(0, bool))
+        for i, (sign, _, _, d0) in enumerate(candidates)
+    ]
+    for i, fit in zip(todo, ordered_map(ex, _fit_job, jobs), strict=True):
+        out[i] = fit
+    return out
+
+
+def _accepted_unstreaked(
+    samples: WallSamples,
+    sc: _Scales,
+    candidates: list[tuple[float, str, np.ndarray, Defect]],
+    fits: list[tuple[Defect, np.ndarray]],
+    limits: tuple[float, float, float],
+    warnings: list[str],
+) -> tuple[list[Defect], list[np.ndarray], set[int]]:
+    """The reported defects (:func:`_accepted`) without the streaks beside a wider one's
+    flank (:func:`_flank_streaks`), their masks and the indices in ``candidates`` of the
+    streaks flagged; ``limits``: the widest defect (mm around the pipe), the detection
+    limit (mm) and the light section's resolution (mm)."""
+    max_width, limit, resolution = limits
+    defects, masks, widths, source = _accepted(samples, sc, candidates, fits, max_width, limit, warnings)
+    keep = _flank_streaks(defects, widths, resolution, samples.circumference_mm, warnings)
+    pick = np.flatnonzero(keep)
+    return [defects[i] for i in pick], [masks[i] for i in pick], {source[i] for i in np.flatnonzero(~keep)}
+
+
+def streak_candidates(
+    samples: WallSamples, candidates: Sequence[tuple[np.ndarray, Defect]], resolution_mm: float
+) -> list[int]:
+    """Indices of the candidates (sample indices, rough measurement :func:`_rough`) that
+    are streaks beside a wider one's flank, told before any fit: the arc their samples
+    span around the pipe (:func:`_extent_around`) is below ``resolution_mm`` (the light
+    section's), and their rough centre lies beside a same-kind candidate spanning at
+    least that (:func:`_beside`, on the rough measurements), as :func:`_flank_streaks`
+    tells them after the fits. Nothing pins such a streak's width, height and flanks:
+    its fit does not converge."""
+    if resolution_mm <= 0 or len(candidates) < 2:
+        return []
+    circ = samples.circumference_mm
+    spans = [_extent_around(samples, m) for m, _ in candidates]
+    wide = [j for j, span in enumerate(spans) if span >= resolution_mm]
+    return [
+        i
+        for i, (_, d) in enumerate(candidates)
+        if spans[i] < resolution_mm and any(candidates[j][1].kind == d.kind and _beside(d, candidates[j][1], circ) for j in wide)
+    ]
+
+
+def _beside(d: Defect, e: Defect, circ: float) -> bool:
+    """Whether ``d``'s centre lies beside ``e`` (on a ``circ`` mm circumference): within
+    1.5 x e's width around the pipe and along its length (from half its length before its
+    start to half after its end)."""
+    zc, uc = d.axial_start_mm + 0.5 * d.length_mm, d.angle_deg / 360.0 * circ
+    du = abs((e.angle_deg / 360.0 * circ - uc + 0.5 * circ) % circ - 0.5 * circ)
+    return du <= 1.5 * e.width_mm and e.axial_start_mm - 0.5 * e.length_mm <= zc <= e.axial_start_mm + 1.5 * e.length_mm
 
 
 def _unfitted_warnings(defects: Sequence[Defect]) -> list[str]:
@@ -323,15 +418,16 @@ def _accepted(
     max_width_mm: float,
     limit: float,
     warnings: list[str],
-) -> tuple[list[Defect], list[np.ndarray], list[float]]:
+) -> tuple[list[Defect], list[np.ndarray], list[float], list[int]]:
     """The fitted candidates that are reported (truncation flagged, travel added), their
-    masks and how wide each is around the pipe (mm: the fitted width, or the arc its
-    samples span without a fit); a line is appended to ``warnings`` for each rejected or
-    truncated one."""
+    masks, how wide each is around the pipe (mm: the fitted width, or the arc its
+    samples span without a fit) and its index in ``candidates``; a line is appended to
+    ``warnings`` for each rejected or truncated one."""
     defects: list[Defect] = []
     masks: list[np.ndarray] = []
     widths: list[float] = []
-    for (_, kind, members, d0), (d, mask) in zip(candidates, fits, strict=True):
+    source: list[int] = []
+    for i, ((_, kind, members, d0), (d, mask)) in enumerate(zip(candidates, fits, strict=True)):
         d, cut_by = _truncation(samples, d, d0.height_mm, members, sc)
         rejected = _rejection(d, kind, max_width_mm, limit)
         if rejected:
@@ -341,12 +437,13 @@ def _accepted(
         defects.append(replace(d, points=len(members), travel_mm=travel))
         masks.append(mask)
         widths.append(d.width_mm if d.fitted else _extent_around(samples, members))
+        source.append(i)
         if cut_by:
             warnings.append(
                 f"{kind} at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg runs past "
                 f"{cut_by}: truncated, its sizes are those of the measured part (lower bounds)"
             )
-    return defects, masks, widths
+    return defects, masks, widths, source
 
 
 def measured_only(defects: Sequence[Defect]) -> tuple[list[Defect], list[str]]:
@@ -380,12 +477,12 @@ def _extent_around(s: WallSamples, members: np.ndarray) -> float:
 
 
 def _flank_streaks(
-    defects: list[Defect], masks: list[np.ndarray], widths: list[float], resolution_mm: float,
+    defects: list[Defect], widths: list[float], resolution_mm: float,
     circ: float, warnings: list[str],
-) -> tuple[list[Defect], list[np.ndarray]]:
-    """The defects without the streaks beside another one's flank: a detection narrower
+) -> np.ndarray:
+    """(D,) False for the streaks beside another defect's flank: a detection narrower
     around the pipe (``widths``, mm) than the light section resolves (``resolution_mm``:
-    the ring blur's full width at half height) whose centre lies within one width of a
+    the ring blur's full width at half height) whose centre lies within 1.5 widths of a
     wider defect of the same kind, beside it, and along its length. Such streaks (one or
     two samples per ring, the wider defect's depth, at the same angle over several
     rings) are extraction artefacts of the steep flank (the continuous run's two false
@@ -394,13 +491,10 @@ def _flank_streaks(
     for i, d in enumerate(defects):
         if widths[i] >= resolution_mm:
             continue
-        zc, uc = d.axial_start_mm + 0.5 * d.length_mm, d.angle_deg / 360.0 * circ
         for j, e in enumerate(defects):
             if j == i or e.kind != d.kind or widths[j] < resolution_mm:
                 continue
-            du = abs((e.angle_deg / 360.0 * circ - uc + 0.5 * circ) % circ - 0.5 * circ)
-            along = e.axial_start_mm - 0.5 * e.length_mm <= zc <= e.axial_start_mm + 1.5 * e.length_mm
-            if du <= 1.5 * e.width_mm and along:
+            if _beside(d, e, circ):
                 keep[i] = False
                 warnings.append(
                     f"{d.kind} candidate at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg ({d.points} samples "
@@ -410,7 +504,7 @@ def _flank_streaks(
                     "sized, flagged here, not reported as a defect"
                 )
                 break
-    return [d for d, k in zip(defects, keep, strict=True) if k], [m for m, k in zip(masks, keep, strict=True) if k]
+    return keep
 
 
 def _fit_job(
@@ -688,6 +782,29 @@ def _rough(
     )
 
 
+def _window(
+    s: WallSamples, d0: Defect, sample_spacing: float, ring_spacing: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,) every sample's arc (mm, unwrapped) and axial position (mm) about the roughly
+    measured defect ``d0``'s centre, and (N,) True inside its fit's window."""
+    circ = s.circumference_mm
+    w0, l0 = max(d0.width_mm, sample_spacing), max(d0.length_mm, 0.5 * ring_spacing)
+    u = (s.arc_mm - d0.angle_deg / 360.0 * circ + 0.5 * circ) % circ - 0.5 * circ
+    z = s.sigma_mm - (d0.axial_start_mm + 0.5 * l0)
+    hu = min(max(1.5 * w0, 0.5 * w0 + 10.0 * sample_spacing, 6.0), 0.45 * circ)
+    hz = max(1.5 * l0, 0.5 * l0 + 3.0 * ring_spacing, 6.0)
+    return u, z, (np.abs(u) <= hu) & (np.abs(z) <= hz)
+
+
+def _unfitted(
+    s: WallSamples, d0: Defect, sign: float, sample_spacing: float, ring_spacing: float
+) -> tuple[Defect, np.ndarray]:
+    """A candidate left unfitted: ``d0`` and its samples in the fit's window above half
+    its height (as :func:`_fit` when the fit fails)."""
+    _, _, win = _window(s, d0, sample_spacing, ring_spacing)
+    return d0, win & (sign * s.deviation_mm > 0.5 * d0.height_mm)
+
+
 def _fit(
     s: WallSamples, d0: Defect, sign: float, sample_spacing: float, ring_spacing: float,
     blur_u_mm: float = 0.0,
@@ -700,11 +817,7 @@ def _fit(
     w0, l0 = max(d0.width_mm, sample_spacing), max(d0.length_mm, 0.5 * ring_spacing)
     uc = d0.angle_deg / 360.0 * circ
     zc = d0.axial_start_mm + 0.5 * l0
-    u = (s.arc_mm - uc + 0.5 * circ) % circ - 0.5 * circ
-    z = s.sigma_mm - zc
-    hu = min(max(1.5 * w0, 0.5 * w0 + 10.0 * sample_spacing, 6.0), 0.45 * circ)
-    hz = max(1.5 * l0, 0.5 * l0 + 3.0 * ring_spacing, 6.0)
-    win = (np.abs(u) <= hu) & (np.abs(z) <= hz)
+    u, z, win = _window(s, d0, sample_spacing, ring_spacing)
     value = sign * s.deviation_mm
     fit = fit_bump(
         u[win],

@@ -102,9 +102,13 @@ def ring_deviations(
     a gap takes its neighbours' mean radius), (R,) the rings' axial positions and (R,)
     True for rings raised above their neighbours (lying in a gap)."""
     coefs, ring_sigma = [], []
-    for k in rings:
-        on = frame == k
-        order = 2 if on.sum() >= 20 else 0
+    # Each ring's points (ascending, as frame == k selects them) from one sort: linear in the run.
+    by_frame = np.argsort(frame, kind="stable")
+    sorted_frame = frame[by_frame]
+    starts = np.searchsorted(sorted_frame, rings, side="left")
+    groups = [by_frame[a:b] for a, b in zip(starts, np.searchsorted(sorted_frame, rings, side="right"), strict=True)]
+    for on in groups:
+        order = 2 if len(on) >= 20 else 0
         c = fit_wall_profile(theta[on], rho[on], order, 0.5)
         coefs.append(np.pad(c, (0, 5 - len(c))))
         ring_sigma.append(float(np.median(sigma[on])))
@@ -122,8 +126,7 @@ def ring_deviations(
     # A running median lags a taper by up to a ring spacing's drop: a ring counts as
     # raised only above the lines both sides' rings give it too.
     _, hi = _wall_level(coef[:, 0], rs, config.window_mm)
-    for i, k in enumerate(rings):
-        on = frame == k
+    for i, on in enumerate(groups):
         c = coef[i].copy()
         off = abs(c[0] - c0[i]) > max(config.min_depth_mm, config.noise_factor * noise0)
         if peak[i] is not None:

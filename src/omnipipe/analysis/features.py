@@ -28,7 +28,13 @@ from scipy.spatial import cKDTree
 
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.defects import FeatureZone
-from omnipipe.analysis.feature_rings import FeatureConfig, Rings, raised_blocks, ring_deviations
+from omnipipe.analysis.feature_rings import (
+    FeatureConfig,
+    Rings,
+    raised_blocks,
+    ring_deviations,
+    robust_sine_fit,
+)
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
 from omnipipe.analysis.joints import gap_joints, offset_joints, offset_joints_kept
 from omnipipe.analysis.openings import (
@@ -192,7 +198,8 @@ def _laterals(
         holes.append((members, list(cluster)))
     stops = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
              for f in joints if isinstance(f, Joint)]
-    out = [_lateral(config, r, m, radius, spacing, thr, g, stops) for m, g in holes]
+    planes = _ring_planes(r, thr)  # once for every hole (each ring's fit): linear in the run
+    out = [_lateral(config, r, m, radius, spacing, thr, g, stops, planes) for m, g in holes]
     # Pieces of one hole (the branch wall lit in parts, the light lost between them)
     # whose openings overlap: one lateral from them all.
     merged = True
@@ -203,7 +210,7 @@ def _laterals(
             if j is not None:
                 holes[i] = (np.union1d(holes[i][0], holes[j][0]), [*holes[i][1], *holes[j][1]])
                 del holes[j], out[j]
-                out[i] = _lateral(config, r, holes[i][0], radius, spacing, thr, holes[i][1], stops)
+                out[i] = _lateral(config, r, holes[i][0], radius, spacing, thr, holes[i][1], stops, planes)
                 merged = True
                 break
     return out, stray
@@ -506,6 +513,7 @@ def _lateral(
     thr: float,
     gaps: Sequence[ReturnGap] = (),
     stops: Sequence[tuple[float, float]] = (),
+    planes: dict[int, np.ndarray] | None = None,
 ) -> tuple[Lateral, np.ndarray, FeatureZone]:
     """A lateral's opening from its cluster of deep samples ``members`` and the rings'
     stretches without returns across it (``gaps``; either may be empty, not both):
@@ -539,7 +547,8 @@ def _lateral(
     s_z = math.hypot(float(jk[0]), spacing / math.sqrt(12.0))
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
-    ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops)
+    planes = _ring_planes(r, thr) if planes is None else planes
+    ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops, planes)
     reach = (zc - a, zc + a)
     if ext is not None and all(ext.closed):
         zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
@@ -572,20 +581,30 @@ def _lateral(
 
 def _extent(
     r: Rings, u: np.ndarray, ch: np.ndarray, at: float, half: float, thr: float,
-    stops: Sequence[tuple[float, float]],
+    stops: Sequence[tuple[float, float]], planes: dict[int, np.ndarray],
 ) -> HoleExtent | None:
     """The hole's reach along the axis (:func:`.openings.hole_extent`) from its chords
     ``ch`` (M, 4): each ring's axial position at the hole's angle ``at`` (rad) from its
-    wall samples, disturbance beyond half the feature threshold ``thr`` within ``half``
-    arc mm of the centre (``u``: the samples' arc about it)."""
-    wall = np.abs(r.dev) <= thr
-    ring_z = {}
-    for k in np.unique(r.frame):
-        on = (r.frame == k) & wall
-        if on.sum() >= 8:
-            ring_z[int(k)] = ring_axial(r.sigma[on], r.theta[on], at)
+    wall samples (``planes``: :func:`_ring_planes`), disturbance beyond half the feature
+    threshold ``thr`` within ``half`` arc mm of the centre (``u``: the samples' arc about it)."""
+    ring_z = {k: float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at)) for k, p in planes.items()}
     inside = {int(k) for k in ch[:, 3]} & set(ring_z)
     return hole_extent(ring_z, u, r.dev, r.frame, inside, half, 0.5 * thr, list(stops))
+
+
+def _ring_planes(r: Rings, thr: float) -> dict[int, np.ndarray]:
+    """Each ring's plane sigma = p0 + p1 cos theta + p2 sin theta (mm; (3,) p) through its
+    wall samples (deviation within ``thr``; rings with at least 8 of them): the fit of
+    :func:`.openings.ring_axial`, whose value at an angle is p's there. Made once for all
+    the holes (a ring at a time over its own samples: linear in the run)."""
+    wall = np.flatnonzero(np.abs(r.dev) <= thr)
+    order = wall[np.argsort(r.frame[wall], kind="stable")]
+    ids, starts = np.unique(r.frame[order], return_index=True)
+    out = {}
+    for k, on in zip(ids, np.split(order, starts[1:]), strict=True):
+        if len(on) >= 8:
+            out[int(k)] = robust_sine_fit(r.sigma[on], r.theta[on], 2, 3.0, 0.5)[0]
+    return out
 
 
 def _main_block(ch: np.ndarray, link_mm: float) -> np.ndarray:

@@ -86,8 +86,7 @@ def return_gaps(
     than ``max_gaps`` of them, or spread along the axis over ``max_spread_rel`` x
     ``radius_mm``."""
     out: list[ReturnGap] = []
-    for k in np.unique(frame):
-        on = np.flatnonzero(frame == k)
+    for k, on in ring_points(frame, np.unique(frame)).items():
         if len(on) < 12 or np.ptp(sigma[on]) > max_spread_rel * radius_mm:
             continue
         o = np.argsort(np.mod(theta[on], 2.0 * math.pi))
@@ -119,17 +118,19 @@ def local_gaps(
     rings = sorted(ring_axial, key=lambda k: ring_axial[k])
     if len(rings) < 3:
         return []
-    by_ring = {k: theta[frame == k] for k in rings}
+    by_ring = {k: theta[on] for k, on in ring_points(frame, np.array(rings)).items()}
+    slot = {k: i for i, k in enumerate(rings)}
     out = []
     for g in gaps:
-        seen = np.array([bool(g.covers(by_ring[k]).any()) for k in rings])
-        i = rings.index(g.ring)
-        seen[i] = False
+        # The block's rings, walked out from the gap's ring only while they do not sample
+        # its angles and the block stays short enough (each gap looks at its neighbours:
+        # linear in the run).
+        i = slot[g.ring]
         lo = i
-        while lo > 0 and not seen[lo - 1]:
+        while lo > 0 and not g.covers(by_ring[rings[lo - 1]]).any() and ring_axial[rings[i]] - ring_axial[rings[lo]] <= max_length_mm:
             lo -= 1
         hi = i
-        while hi < len(rings) - 1 and not seen[hi + 1]:
+        while hi < len(rings) - 1 and not g.covers(by_ring[rings[hi + 1]]).any() and ring_axial[rings[hi]] - ring_axial[rings[lo]] <= max_length_mm:
             hi += 1
         if lo == 0 or hi == len(rings) - 1:
             continue  # not seen to close on both sides: water, a shadow, the run's end
@@ -137,6 +138,16 @@ def local_gaps(
             continue
         out.append(g)
     return out
+
+
+def ring_points(frame: np.ndarray, rings: np.ndarray) -> dict[int, np.ndarray]:
+    """For each ring index in ``rings``, the indices of its points (``frame == k``,
+    ascending) from one sort of ``frame``: linear in the run, not one pass over every
+    point per ring."""
+    order = np.argsort(frame, kind="stable")
+    sf = frame[order]
+    lo, hi = np.searchsorted(sf, rings, side="left"), np.searchsorted(sf, rings, side="right")
+    return {int(k): order[a:b] for k, a, b in zip(rings, lo, hi, strict=True)}
 
 
 def closes_both_sides(

@@ -606,9 +606,8 @@ def _section_centres(
     the order-1 terms of its wall profile (0 for a ring too sparse to fit)."""
     out = np.zeros((k, 2))
     sec_config = section_config(config)
-    for i in range(k):
-        on = frame == i
-        if on.sum() < 12:
+    for i, on in enumerate(ring_groups(frame, k)):
+        if len(on) < 12:
             continue
         cut, coverage = ring_cut(theta[on], sec_config)
         order = section_order(cut, coverage, config.profile_order, sec_config)
