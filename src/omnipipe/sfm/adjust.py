@@ -34,6 +34,7 @@ from omnipipe.sfm.bundle import (
     LengthPrior,
     build_problem,
     bundle_adjust,
+    epipolar_rows,
     keyframe_windows,
     resect_rays,
     set_priors,
@@ -225,20 +226,19 @@ def _adjust_window(
     anchors. ``steps_done(k)`` after its first adjustment (1) and its far anchors (2)."""
     s, e, fixed = window
     features = obs.kf.features[s:e]
+    anchors = [q for q in obs.anchors if q.a >= s and q.b < e]
     problem = build_problem(
         ctx.camera,
         init,
         [f.pixels for f in features],
         [f.rays_in_rig for f in features],
         [(p.a - s, p.b - s, p.matches) for p in obs.pair_matches if p.a >= s and p.b < e],
-        [
-            (q.a - s, q.b - s, q.points_in_a, q.pixels_b)
-            for q in obs.anchors
-            if q.a >= s and q.b < e
-        ],
+        [(q.a - s, q.b - s, q.points_in_a, q.pixels_b) for q in anchors],
         config,
     )
     problem.fixed = fixed
+    if config.epipolar_anchors:
+        problem.anchor_rows = _anchor_rows(ctx, init, problem, [replace(q, a=q.a - s, b=q.b - s) for q in anchors])
     set_priors(problem, [replace(p, a=p.a - s, b=p.b - s) for p in obs.priors if p.a >= s and p.b < e])
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
@@ -248,6 +248,9 @@ def _adjust_window(
     steps_done(2)
     if extra:
         problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
+        if problem.anchor_rows is not None:  # matched along the adjusted motion's curves
+            extra_rows = _anchor_rows(ctx, ba.world_from_rig, None, extra)
+            problem.anchor_rows = np.concatenate([problem.anchor_rows, extra_rows])
         _append_anchors(problem, extra)
         ba = bundle_adjust(ctx.camera, problem, config)
     if obs.centres:
@@ -285,6 +288,27 @@ def _held_to_rings(
         f"({z[worst] * rows.sigma_mm[worst]:.2f} mm) off the pipe's axis; now {after[worst]:.1f} sigma)"
     )
     return held
+
+
+def _anchor_rows(
+    ctx: SfmContext, world_from_rig: np.ndarray, problem: BundleProblem | None, anchors: list[Anchor]
+) -> np.ndarray:
+    """(L, 2, 2) the rows of ``anchors`` (keyframes counted from the window's first;
+    :func:`omnipipe.sfm.bundle.epipolar_rows`): a laser match measures its pixel only
+    along the epipolar curve of the poses ``world_from_rig`` ((W, 4, 4), the motion it
+    was searched along), a wall-placed feature in 2-D. ``problem``: its stacked anchors
+    are ``anchors`` (None: stack them here)."""
+    if problem is None:
+        a = np.concatenate([np.full(len(q.points_in_a), q.a) for q in anchors]) if anchors else np.zeros(0, int)
+        b = np.concatenate([np.full(len(q.points_in_a), q.b) for q in anchors]) if anchors else np.zeros(0, int)
+        pts = np.concatenate([q.points_in_a for q in anchors]) if anchors else np.zeros((0, 3))
+    else:
+        a, b, pts = problem.anchor_a, problem.anchor_b, problem.anchor_points_in_a
+    along = (
+        np.concatenate([np.full(len(q.points_in_a), q.epipolar) for q in anchors])
+        if anchors else np.zeros(0, bool)
+    )
+    return epipolar_rows(ctx.camera, world_from_rig, a.astype(int), b.astype(int), pts, along)
 
 
 def _append_anchors(problem: BundleProblem, extra: list[Anchor]) -> None:
@@ -360,7 +384,7 @@ def _far_anchors(
     out = []
     for p, lm in zip(pairs, ordered_map(ctx.executor, _laser_job, jobs), strict=True):
         if len(lm.index):
-            out.append(Anchor(p.a, p.b, p.points_in_a[lm.index], lm.pixels_b))
+            out.append(Anchor(p.a, p.b, p.points_in_a[lm.index], lm.pixels_b, epipolar=True))
     return out
 
 

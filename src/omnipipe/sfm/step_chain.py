@@ -123,7 +123,10 @@ def chain_steps(
         elif step.laser is not None and len(step.laser.index):
             lm = step.laser
             anchors.append(
-                Anchor(k, k + 1, kf.ring_points[k][lm.index], lm.pixels_b, np.log(lm.scale_mm))
+                Anchor(
+                    k, k + 1, kf.ring_points[k][lm.index], lm.pixels_b, np.log(lm.scale_mm),
+                    epipolar=True,
+                )
             )
         elif step.check.reliable and length > 0:
             # Trusted on its feature depths alone (the laser's peaks ambiguous): its
