@@ -9,7 +9,8 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
   metric in a's rig frame (Eq. 5); its template match in keyframe b is an
   observation of that fixed point, ``project(rig_b_from_world @ world_from_rig_a @
   laser_point_in_a) - pixel_b``. These tie the translation lengths to millimetres, so
-  the scale cannot drift along the run.
+  the scale cannot drift along the run. The match was searched along an epipolar
+  curve: only the residual's component along it counts (``anchor_rows``).
 * step-length priors (optional): a keyframe step a -> b whose length an independent
   source measured (the wall's own shift, :mod:`omnipipe.sfm.step_priors`),
   ``weight (|C_b - C_a| - length) / sigma`` with C_k the rig's centre in the world.
