@@ -47,7 +47,7 @@ from omnipipe.sfm.ring_axis import (
     fit_ring_centre,
     ring_offsets,
 )
-from omnipipe.sfm.scale_check import UnreliableStretch
+from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES, UnreliableStretch
 from omnipipe.sfm.tasks import laser_matches
 from omnipipe.sfm.types import (
     Anchor,
@@ -238,7 +238,8 @@ def _adjust_window(
     )
     problem.fixed = fixed
     if config.epipolar_anchors:
-        problem.anchor_rows = _anchor_rows(ctx, init, problem, [replace(q, a=q.a - s, b=q.b - s) for q in anchors])
+        local = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(anchors, obs.pair_matches)]
+        problem.anchor_rows = _anchor_rows(ctx, init, problem, local)
     set_priors(problem, [replace(p, a=p.a - s, b=p.b - s) for p in obs.priors if p.a >= s and p.b < e])
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
@@ -249,6 +250,8 @@ def _adjust_window(
     if extra:
         problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
         if problem.anchor_rows is not None:  # matched along the adjusted motion's curves
+            shifted = [replace(q, a=q.a + s, b=q.b + s) for q in extra]
+            extra = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(shifted, obs.pair_matches)]
             extra_rows = _anchor_rows(ctx, ba.world_from_rig, None, extra)
             problem.anchor_rows = np.concatenate([problem.anchor_rows, extra_rows])
         _append_anchors(problem, extra)
@@ -288,6 +291,25 @@ def _held_to_rings(
         f"({z[worst] * rows.sigma_mm[worst]:.2f} mm) off the pipe's axis; now {after[worst]:.1f} sigma)"
     )
     return held
+
+
+def _along_only(anchors: list[Anchor], pair_matches: list[PairMatches]) -> list[Anchor]:
+    """``anchors`` with ``epipolar`` kept only where every keyframe step between a and b
+    had at least :data:`~omnipipe.sfm.scale_check.TRACKED_MIN_MATCHES` RANSAC inliers
+    (a textured wall whose feature tracks fix the steps' directions); across fewer the
+    across-curve component stays, holding the step near its RANSAC motion (plain walls:
+    random-wide seed 25's 42 matches a step, whose adjustment turned keyframes 1.3 deg
+    off without it; benchmarks/RESULTS.md)."""
+    count: dict[int, int] = {}
+    for p in pair_matches:
+        if p.b == p.a + 1:
+            count[p.a] = len(p.matches)
+    return [
+        replace(q, epipolar=q.epipolar and all(
+            count.get(k, 0) >= TRACKED_MIN_MATCHES for k in range(q.a, q.b)
+        ))
+        for q in anchors
+    ]
 
 
 def _anchor_rows(
