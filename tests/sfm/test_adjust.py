@@ -64,14 +64,14 @@ def test_bridged_step_keeps_a_resection_only_within_the_step_sigma() -> None:
 
 def test_anchors_measured_along_their_curve_only_across_well_matched_steps() -> None:
     """A laser anchor keeps only its along-curve component where every step it spans
-    had >= 100 RANSAC inliers (the features fix the steps' directions); across a step
+    had >= 50 RANSAC inliers (ALONG_MIN_MATCHES) (the features fix the steps' directions); across a step
     with fewer (a plain wall) the across component stays. Wall-placed features (not
     epipolar) stay 2-D."""
-    pairs = [PairMatches(k, k + 1, np.zeros((n, 2), int)) for k, n in enumerate([400, 120, 42, 300])]
+    pairs = [PairMatches(k, k + 1, np.zeros((n, 2), int)) for k, n in enumerate([400, 50, 42, 300])]
     pts, px = np.zeros((3, 3)), np.zeros((3, 2))
     anchors = [
         Anchor(0, 1, pts, px, epipolar=True),
-        Anchor(0, 2, pts, px, epipolar=True),  # 400 and 120
+        Anchor(0, 2, pts, px, epipolar=True),  # 400 and 50
         Anchor(1, 3, pts, px, epipolar=True),  # spans the 42-match step
         Anchor(2, 3, pts, px, epipolar=True),
         Anchor(3, 4, pts, px, epipolar=True),

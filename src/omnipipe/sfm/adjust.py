@@ -47,7 +47,7 @@ from omnipipe.sfm.ring_axis import (
     fit_ring_centre,
     ring_offsets,
 )
-from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES, UnreliableStretch
+from omnipipe.sfm.scale_check import UnreliableStretch
 from omnipipe.sfm.tasks import laser_matches
 from omnipipe.sfm.types import (
     Anchor,
@@ -61,6 +61,11 @@ from omnipipe.sfm.types import (
 # Fewest tracked points to resect a frame, in all and on its keyframe's side.
 MIN_RESECTION_POINTS = 12
 MIN_RESECTION_POINTS_OWN_SIDE = 6
+# Fewest RANSAC inliers of every step a laser anchor spans for its residual to be its
+# along-curve component only: the random-wide family's plain walls had 7-48 matches a
+# step, and there the adjustment's few tracks turned keyframes off that the anchors'
+# across component (the RANSAC motion) had held.
+ALONG_MIN_MATCHES = 50
 
 
 @dataclass(frozen=True)
@@ -295,18 +300,16 @@ def _held_to_rings(
 
 def _along_only(anchors: list[Anchor], pair_matches: list[PairMatches]) -> list[Anchor]:
     """``anchors`` with ``epipolar`` kept only where every keyframe step between a and b
-    had at least :data:`~omnipipe.sfm.scale_check.TRACKED_MIN_MATCHES` RANSAC inliers
-    (a textured wall whose feature tracks fix the steps' directions); across fewer the
-    across-curve component stays, holding the step near its RANSAC motion (plain walls:
-    random-wide seed 25's 42 matches a step, whose adjustment turned keyframes 1.3 deg
-    off without it; benchmarks/RESULTS.md)."""
+    had at least :data:`ALONG_MIN_MATCHES` RANSAC inliers (a wall whose feature tracks
+    fix the steps' directions); across fewer the across-curve component stays, holding
+    the step near its RANSAC motion (benchmarks/RESULTS.md)."""
     count: dict[int, int] = {}
     for p in pair_matches:
         if p.b == p.a + 1:
             count[p.a] = len(p.matches)
     return [
         replace(q, epipolar=q.epipolar and all(
-            count.get(k, 0) >= TRACKED_MIN_MATCHES for k in range(q.a, q.b)
+            count.get(k, 0) >= ALONG_MIN_MATCHES for k in range(q.a, q.b)
         ))
         for q in anchors
     ]
