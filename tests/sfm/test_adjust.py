@@ -6,8 +6,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from omnipipe.executor import InlineExecutor
-from omnipipe.sfm.adjust import Adjusted, _BridgedPlacement, resect_pending
-from omnipipe.sfm.types import Keyframes, PendingFrame, SfmConfig, SfmContext
+from omnipipe.sfm.adjust import Adjusted, _along_only, _BridgedPlacement, resect_pending
+from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, PendingFrame, SfmConfig, SfmContext
 
 
 def _bridged_step(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
@@ -60,3 +60,24 @@ def test_bridged_step_keeps_a_resection_only_within_the_step_sigma() -> None:
     assert place.place(0, 3, near) is near
     assert _BridgedPlacement(world_from_kf, frames, odometry, {}).place(0, 3, wrong) is wrong
     assert _BridgedPlacement(world_from_kf, frames, None, {0: 1.0}).place(0, 3, wrong) is wrong
+
+
+def test_anchors_measured_along_their_curve_only_across_well_matched_steps() -> None:
+    """A laser anchor keeps only its along-curve component where every step it spans
+    had >= 50 RANSAC inliers (ALONG_MIN_MATCHES) (the features fix the steps' directions); across a step
+    with fewer (a plain wall) the across component stays. Wall-placed features (not
+    epipolar) stay 2-D."""
+    pairs = [PairMatches(k, k + 1, np.zeros((n, 2), int)) for k, n in enumerate([400, 50, 42, 300])]
+    pts, px = np.zeros((3, 3)), np.zeros((3, 2))
+    anchors = [
+        Anchor(0, 1, pts, px, epipolar=True),
+        Anchor(0, 2, pts, px, epipolar=True),  # 400 and 50
+        Anchor(1, 3, pts, px, epipolar=True),  # spans the 42-match step
+        Anchor(2, 3, pts, px, epipolar=True),
+        Anchor(3, 4, pts, px, epipolar=True),
+        Anchor(3, 4, pts, px),  # a wall-placed feature
+        Anchor(4, 5, pts, px, epipolar=True),  # no step recorded
+    ]
+    out = _along_only(anchors, pairs)
+    assert [q.epipolar for q in out] == [True, True, False, False, True, False, False]
+    assert all(q.a == a.a and q.b == a.b and q.points_in_a is a.points_in_a for q, a in zip(out, anchors, strict=True))

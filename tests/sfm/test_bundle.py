@@ -13,6 +13,7 @@ from omnipipe.sfm.bundle import (
     _select_tracks,
     build_problem,
     bundle_adjust,
+    epipolar_rows,
     resect_rays,
 )
 from omnipipe.sfm.geometry import triangulate_pairs
@@ -177,3 +178,68 @@ def test_build_problem_triangulates_tracks_as_one_at_a_time(pipe_scene) -> None:
     np.testing.assert_array_equal(problem.obs_pixels, np.concatenate(ref_px))
     for got, want in zip(problem.feature_point, ref_fp, strict=True):
         np.testing.assert_array_equal(got, want)
+
+
+def _matched_along(camera, start_b_from_a, true_b_from_a, q_a, rng):
+    """Pixels of laser points ``q_a`` (L, 3) found in b by a search along the epipolar
+    curves of ``start_b_from_a`` (as Eq. 17's template match): per point the curve's
+    pixel nearest its true image, plus 0.1 px along the curve."""
+    true_px, _ = camera.project(apply(true_b_from_a, q_a))
+    d = start_b_from_a[:3, 3] / np.linalg.norm(start_b_from_a[:3, 3])
+    s = np.linspace(2.0, 30.0, 2801)
+    out = np.empty((len(q_a), 2))
+    for i, q in enumerate(q_a):
+        curve, _ = camera.project((start_b_from_a[:3, :3] @ q)[None] + s[:, None] * d)
+        j = int(np.nanargmin(np.linalg.norm(curve - true_px[i], axis=1)))
+        t = curve[min(j + 1, len(s) - 1)] - curve[max(j - 1, 0)]
+        out[i] = curve[j] + rng.normal(0, 0.1) * t / np.linalg.norm(t)
+    return out
+
+
+def _along_anchors(camera, poses, start, rng):
+    """Ring points of each keyframe (z = -82 mm in its rig) found in the next along the
+    epipolar curves of the ``start`` poses: (a, b, points in a, pixels in b)."""
+    ring_th = np.linspace(-np.pi, np.pi, 120, endpoint=False)
+    q_a = np.column_stack([101 * np.cos(ring_th), 101 * np.sin(ring_th), np.full(120, -82.0)])
+    aa, ab, aq, apx = [], [], [], []
+    for k in range(len(poses) - 1):
+        true_ba, start_ba = invert(poses[k + 1]) @ poses[k], invert(start[k + 1]) @ start[k]
+        pix = _matched_along(camera, start_ba, true_ba, q_a, rng)
+        ok = np.isfinite(pix).all(axis=1)
+        aa += [k] * int(ok.sum())
+        ab += [k + 1] * int(ok.sum())
+        aq.append(q_a[ok])
+        apx.append(pix[ok])
+    return np.array(aa), np.array(ab), np.concatenate(aq), np.concatenate(apx)
+
+
+def test_laser_anchors_measured_along_their_curve_do_not_hold_the_search_motion(pipe_scene) -> None:
+    """Laser matches searched along the epipolar curves of a motion whose steps turned
+    0.3 or 1.0 deg too far (about x, across the pipe): with both pixel components as
+    residuals the adjustment's optimum moves towards that motion (the across component
+    is the search's assumption, not a measurement), the more the further it was off;
+    with only the component along the curve (:func:`epipolar_rows`) it stays where the
+    features put it, whatever the search assumed. Adjusted from the true poses, so
+    that only the optimum's place is compared."""
+    rng, camera, poses, pts, (f, p, px), _ = _scene(pipe_scene, 4)
+    errors = {}
+    for deg in (0.3, 1.0):
+        start = poses.copy()
+        for k in range(1, len(poses)):
+            turn = make_transform(Rotation.from_rotvec([np.radians(deg), 0, 0]).as_matrix(), np.zeros(3))
+            start[k] = start[k - 1] @ turn @ invert(poses[k - 1]) @ poses[k]
+        aa, ab, aq, apx = _along_anchors(camera, poses, start, rng)
+        rows = epipolar_rows(camera, start, aa, ab, aq, np.ones(len(aa), bool))
+        assert np.allclose(np.linalg.norm(rows[:, 0], axis=1), 1.0) and np.all(rows[:, 1] == 0)
+        for name, r in (("both", None), ("along", rows)):
+            problem = BundleProblem(poses, pts, f, p, px, aa, ab, aq, apx, anchor_rows=r)
+            res = bundle_adjust(camera, problem, BundleConfig(max_evaluations=100))
+            errors[name, deg] = max(
+                np.degrees(np.linalg.norm(Rotation.from_matrix(T[:3, :3].T @ G[:3, :3]).as_rotvec()))
+                for T, G in zip(res.world_from_rig, poses, strict=True)
+            )
+    assert errors["both", 1.0] > 0.12 and errors["both", 1.0] > 2 * errors["both", 0.3], errors
+    assert errors["along", 1.0] < 0.05 and errors["along", 0.3] < 0.05, errors
+    assert abs(errors["along", 1.0] - errors["along", 0.3]) < 0.005, errors
+    # A 2-D anchor (a wall-placed feature) keeps both components.
+    assert np.all(epipolar_rows(camera, poses, aa, ab, aq, np.zeros(len(aa), bool)) == np.eye(2))

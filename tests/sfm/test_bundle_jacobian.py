@@ -96,3 +96,31 @@ def test_step_length_prior_jacobian_matches_finite_differences(bundle_problem, c
     C = problem.world_from_rig[:, :3, 3]
     want = 7.0 * (np.linalg.norm(C[problem.prior_b] - C[problem.prior_a], axis=1) - problem.prior_mm) / problem.prior_sigma_mm
     assert np.allclose(r[-S:], want, atol=1e-6)
+
+
+def test_anchor_rows_jacobian_matches_finite_differences(bundle_problem, central_differences) -> None:
+    """Anchors measured along one image direction (rows (t, 0)) and in 2-D (identity),
+    mixed: their rows against central differences, and the residual is the rows times
+    the pixel error."""
+    camera, problem = bundle_problem(5, 1)
+    L = len(problem.anchor_a)
+    rng = np.random.default_rng(5)
+    th = rng.uniform(0, 2 * np.pi, L)
+    rows = np.broadcast_to(np.eye(2), (L, 2, 2)).copy()
+    rows[::2] = 0.0
+    rows[::2, 0] = np.column_stack([np.cos(th), np.sin(th)])[::2]
+    M = len(problem.obs_frame)
+    anc = slice(2 * M, 2 * M + 2 * L)
+    plain = BundleObjective(camera, problem, 1.5)
+    r_plain = plain.residuals(plain.x0)[anc].reshape(L, 2)
+    problem.anchor_rows = rows
+    objective = BundleObjective(camera, problem, 1.5)
+    x0 = objective.x0
+    r = objective.residuals(x0)[anc].reshape(L, 2)
+    assert np.allclose(r, np.einsum("nij,nj->ni", rows, r_plain))
+    assert np.all(r[::2, 1] == 0) and np.abs(r[::2, 0]).max() > 0
+    J = objective.jacobian(x0).toarray()[anc]
+    h = 1e-6 * np.maximum(1.0, np.abs(x0))
+    fd = central_differences(lambda x: objective.residuals(x)[anc], x0, h)
+    ok = np.abs(objective.residuals(x0)[anc]) > 0  # rows of invalid projections are zero
+    assert np.abs(J[ok] - fd[ok]).max() < 1e-5 * np.abs(fd).max()

@@ -34,6 +34,7 @@ from omnipipe.sfm.bundle import (
     LengthPrior,
     build_problem,
     bundle_adjust,
+    epipolar_rows,
     keyframe_windows,
     resect_rays,
     set_priors,
@@ -60,6 +61,11 @@ from omnipipe.sfm.types import (
 # Fewest tracked points to resect a frame, in all and on its keyframe's side.
 MIN_RESECTION_POINTS = 12
 MIN_RESECTION_POINTS_OWN_SIDE = 6
+# Fewest RANSAC inliers of every step a laser anchor spans for its residual to be its
+# along-curve component only: the random-wide family's plain walls had 7-48 matches a
+# step, and there the adjustment's few tracks turned keyframes off that the anchors'
+# across component (the RANSAC motion) had held.
+ALONG_MIN_MATCHES = 50
 
 
 @dataclass(frozen=True)
@@ -225,20 +231,20 @@ def _adjust_window(
     anchors. ``steps_done(k)`` after its first adjustment (1) and its far anchors (2)."""
     s, e, fixed = window
     features = obs.kf.features[s:e]
+    anchors = [q for q in obs.anchors if q.a >= s and q.b < e]
     problem = build_problem(
         ctx.camera,
         init,
         [f.pixels for f in features],
         [f.rays_in_rig for f in features],
         [(p.a - s, p.b - s, p.matches) for p in obs.pair_matches if p.a >= s and p.b < e],
-        [
-            (q.a - s, q.b - s, q.points_in_a, q.pixels_b)
-            for q in obs.anchors
-            if q.a >= s and q.b < e
-        ],
+        [(q.a - s, q.b - s, q.points_in_a, q.pixels_b) for q in anchors],
         config,
     )
     problem.fixed = fixed
+    if config.epipolar_anchors:
+        local = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(anchors, obs.pair_matches)]
+        problem.anchor_rows = _anchor_rows(ctx, init, problem, local)
     set_priors(problem, [replace(p, a=p.a - s, b=p.b - s) for p in obs.priors if p.a >= s and p.b < e])
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
         return None, problem
@@ -248,6 +254,11 @@ def _adjust_window(
     steps_done(2)
     if extra:
         problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
+        if problem.anchor_rows is not None:  # matched along the adjusted motion's curves
+            shifted = [replace(q, a=q.a + s, b=q.b + s) for q in extra]
+            extra = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(shifted, obs.pair_matches)]
+            extra_rows = _anchor_rows(ctx, ba.world_from_rig, None, extra)
+            problem.anchor_rows = np.concatenate([problem.anchor_rows, extra_rows])
         _append_anchors(problem, extra)
         ba = bundle_adjust(ctx.camera, problem, config)
     if obs.centres:
@@ -285,6 +296,44 @@ def _held_to_rings(
         f"({z[worst] * rows.sigma_mm[worst]:.2f} mm) off the pipe's axis; now {after[worst]:.1f} sigma)"
     )
     return held
+
+
+def _along_only(anchors: list[Anchor], pair_matches: list[PairMatches]) -> list[Anchor]:
+    """``anchors`` with ``epipolar`` kept only where every keyframe step between a and b
+    had at least :data:`ALONG_MIN_MATCHES` RANSAC inliers (a wall whose feature tracks
+    fix the steps' directions); across fewer the across-curve component stays, holding
+    the step near its RANSAC motion (benchmarks/RESULTS.md)."""
+    count: dict[int, int] = {}
+    for p in pair_matches:
+        if p.b == p.a + 1:
+            count[p.a] = len(p.matches)
+    return [
+        replace(q, epipolar=q.epipolar and all(
+            count.get(k, 0) >= ALONG_MIN_MATCHES for k in range(q.a, q.b)
+        ))
+        for q in anchors
+    ]
+
+
+def _anchor_rows(
+    ctx: SfmContext, world_from_rig: np.ndarray, problem: BundleProblem | None, anchors: list[Anchor]
+) -> np.ndarray:
+    """(L, 2, 2) the rows of ``anchors`` (keyframes counted from the window's first;
+    :func:`omnipipe.sfm.bundle.epipolar_rows`): a laser match measures its pixel only
+    along the epipolar curve of the poses ``world_from_rig`` ((W, 4, 4), the motion it
+    was searched along), a wall-placed feature in 2-D. ``problem``: its stacked anchors
+    are ``anchors`` (None: stack them here)."""
+    if problem is None:
+        a = np.concatenate([np.full(len(q.points_in_a), q.a) for q in anchors]) if anchors else np.zeros(0, int)
+        b = np.concatenate([np.full(len(q.points_in_a), q.b) for q in anchors]) if anchors else np.zeros(0, int)
+        pts = np.concatenate([q.points_in_a for q in anchors]) if anchors else np.zeros((0, 3))
+    else:
+        a, b, pts = problem.anchor_a, problem.anchor_b, problem.anchor_points_in_a
+    along = (
+        np.concatenate([np.full(len(q.points_in_a), q.epipolar) for q in anchors])
+        if anchors else np.zeros(0, bool)
+    )
+    return epipolar_rows(ctx.camera, world_from_rig, a.astype(int), b.astype(int), pts, along)
 
 
 def _append_anchors(problem: BundleProblem, extra: list[Anchor]) -> None:
@@ -360,7 +409,7 @@ def _far_anchors(
     out = []
     for p, lm in zip(pairs, ordered_map(ctx.executor, _laser_job, jobs), strict=True):
         if len(lm.index):
-            out.append(Anchor(p.a, p.b, p.points_in_a[lm.index], lm.pixels_b))
+            out.append(Anchor(p.a, p.b, p.points_in_a[lm.index], lm.pixels_b, epipolar=True))
     return out
 
 

@@ -9,7 +9,8 @@ the world. Residuals, in image pixels through the hyperboloid camera (Eq. 1-3):
   metric in a's rig frame (Eq. 5); its template match in keyframe b is an
   observation of that fixed point, ``project(rig_b_from_world @ world_from_rig_a @
   laser_point_in_a) - pixel_b``. These tie the translation lengths to millimetres, so
-  the scale cannot drift along the run.
+  the scale cannot drift along the run. The match was searched along an epipolar
+  curve: only the residual's component along it counts (``anchor_rows``).
 * step-length priors (optional): a keyframe step a -> b whose length an independent
   source measured (the wall's own shift, :mod:`omnipipe.sfm.step_priors`),
   ``weight (|C_b - C_a| - length) / sigma`` with C_k the rig's centre in the world.
@@ -85,6 +86,9 @@ class BundleConfig:
             start far off, tests/sfm/test_bundle.py's 5 % scale error, LM settles in a
             worse local minimum: cost 0.7 % higher, poses 0.45 against 0.23 mm off; on
             paper-small, bend-small and other-rig-small the two agree within 0.001 mm).
+        epipolar_anchors: a laser anchor's residual is only its component along the
+            epipolar curve it was searched on (:func:`epipolar_rows`); off: both
+            components, which hold each step to the motion the search assumed.
     """
 
     enabled: bool = True
@@ -99,6 +103,7 @@ class BundleConfig:
     window_keyframes: int = bounded(64, ge=3)
     window_overlap: int = bounded(8, ge=1)
     solver: str = "auto"
+    epipolar_anchors: bool = True
 
     def __post_init__(self) -> None:
         if self.solver not in ("auto", "trf", "schur"):
@@ -124,6 +129,12 @@ class BundleProblem:
         prior_a, prior_b: (S,) keyframes of each step-length prior.
         prior_mm, prior_sigma_mm: (S,) each prior's length and its 1-sigma, mm.
         rings: the ring rows (:class:`omnipipe.sfm.ring_axis.AxisRows`).
+        anchor_rows: (L, 2, 2) or None: each anchor's residual (px) is ``anchor_rows[i]
+            @ (projection - pixel)``; None: the identity (a pixel measured in 2-D). A
+            laser match searched only along an epipolar curve measured its pixel along
+            that curve alone: its rows are (the curve's unit tangent, 0)
+            (:func:`epipolar_rows`), so the adjustment is not held to the motion the
+            search assumed.
     """
 
     world_from_rig: np.ndarray
@@ -142,6 +153,7 @@ class BundleProblem:
     prior_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     prior_sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rings: AxisRows = field(default_factory=AxisRows.empty)
+    anchor_rows: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -224,6 +236,41 @@ def _masked_projection_jacobian(camera: CameraModel, q: np.ndarray) -> np.ndarra
     return J
 
 
+def epipolar_rows(
+    camera: CameraModel,
+    world_from_rig: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    points_in_a: np.ndarray,
+    along: np.ndarray,
+) -> np.ndarray:
+    """(L, 2, 2) anchor rows (:class:`BundleProblem`'s ``anchor_rows``): for the anchors
+    ``along`` ((L,) bool) measured only along their epipolar curve, (t, 0) with t the
+    curve's unit tangent in keyframe b's image at the point (the image direction in
+    which the point of rig a moves as the step a -> b lengthens, under the poses
+    ``world_from_rig`` (K, 4, 4) the search assumed); the identity for the others and
+    where the tangent is undefined (no translation, no projection).
+
+    Args:
+        a, b: (L,) keyframes of each anchor.
+        points_in_a: (L, 3) the anchors' points in rig a, mm.
+    """
+    L = len(a)
+    rows = np.broadcast_to(np.eye(2), (L, 2, 2)).copy()
+    if not np.any(along):
+        return rows
+    b_from_a = np.linalg.inv(world_from_rig[b]) @ world_from_rig[a]
+    q = np.einsum("nij,nj->ni", b_from_a[:, :3, :3], points_in_a) + b_from_a[:, :3, 3]
+    d = b_from_a[:, :3, 3]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    tangent = np.einsum("nij,nj->ni", camera.project_jacobian(q), d)
+    norm = np.linalg.norm(tangent, axis=1)
+    ok = along & np.isfinite(norm) & (norm > 1e-12) & camera.project(q)[1]
+    rows[ok] = 0.0
+    rows[ok, 0, :] = tangent[ok] / norm[ok, None]
+    return rows
+
+
 def _check_shapes(problem: BundleProblem) -> None:
     """Raises ShapeError on observation or anchor arrays of inconsistent shapes, or a bad ``fixed``."""
     K = len(problem.world_from_rig)
@@ -232,6 +279,8 @@ def _check_shapes(problem: BundleProblem) -> None:
         raise ShapeError(f"bundle_adjust: observations of inconsistent shapes {problem.obs_pixels.shape}")
     if problem.anchor_points_in_a.shape != (L, 3) or problem.anchor_pixels_b.shape != (L, 2):
         raise ShapeError(f"bundle_adjust: anchors of inconsistent shapes {problem.anchor_points_in_a.shape}")
+    if problem.anchor_rows is not None and problem.anchor_rows.shape != (L, 2, 2):
+        raise ShapeError(f"bundle_adjust: anchor rows of shape {problem.anchor_rows.shape}, want ({L}, 2, 2)")
     if not 1 <= int(problem.fixed) <= K:
         raise ShapeError(f"bundle_adjust: fixed must be 1..{K} keyframes, got {int(problem.fixed)}")
     S = len(problem.prior_a)
@@ -348,6 +397,8 @@ class BundleObjective:
         qb = np.einsum("nij,nj->ni", R[b], w) + t[b]
         pxb, vb = camera.project(qb)
         r_anc = np.where(vb[:, None], pxb - pr.anchor_pixels_b, 0.0) * self.w_laser
+        if pr.anchor_rows is not None:
+            r_anc = np.einsum("nij,nj->ni", pr.anchor_rows, r_anc)
         C = -np.einsum("nji,nj->ni", R, t)  # the rigs' centres in the world
         length = np.linalg.norm(C[pr.prior_b] - C[pr.prior_a], axis=1)
         r_len = self.w_prior * (length - pr.prior_mm) / pr.prior_sigma_mm
@@ -436,6 +487,8 @@ class BundleObjective:
         w = np.einsum("nji,nj->ni", R[a], y)  # R_a^T (q_a - t_a)
         Rw = np.einsum("nij,nj->ni", R[b], w)
         Jb = _masked_projection_jacobian(self.camera, Rw + t[b]) * self.w_laser
+        if pr.anchor_rows is not None:
+            Jb = pr.anchor_rows @ Jb
         # Pose b as an observation of w; pose a through w: d w / d t_a = -R_a^T,
         # d w / d omega_a = R_a^T [y]x Jl(omega_a).
         Ja, Jbb = Jb[a_free], Jb[b_free]

@@ -121,10 +121,8 @@ def chain_steps(
             if wall is not None:
                 anchors.append(wall)
         elif step.laser is not None and len(step.laser.index):
-            lm = step.laser
-            anchors.append(
-                Anchor(k, k + 1, kf.ring_points[k][lm.index], lm.pixels_b, np.log(lm.scale_mm))
-            )
+            lm, pts = step.laser, kf.ring_points[k][step.laser.index]
+            anchors.append(Anchor(k, k + 1, pts, lm.pixels_b, np.log(lm.scale_mm), epipolar=True))
         elif step.check.reliable and length > 0:
             # Trusted on its feature depths alone (the laser's peaks ambiguous): its
             # wall-placed features anchor it, else the adjustment has no metric anchor

@@ -347,6 +347,8 @@ class Anchor:
         pixels_b: (L, 2) their omni pixels in keyframe b.
         log_lengths: (L,) the step length each point alone gives (log mm); empty when
             not measured (anchors between keyframes further apart).
+        epipolar: the pixels were searched along the epipolar curve of an assumed
+            motion (laser matches): only their position along it is measured.
     """
 
     a: int
@@ -354,6 +356,7 @@ class Anchor:
     points_in_a: np.ndarray
     pixels_b: np.ndarray
     log_lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    epipolar: bool = False
 
 
 @dataclass(frozen=True)
