@@ -371,7 +371,7 @@ def test_keyframes_found_ahead_in_workers_give_the_loops_own_result(short_run, m
         monkeypatch.setattr(keyframes, "_predicted_keyframe", rule)
         taken.clear()
         with open_executor(workers=2) as pool:
-            runs[name] = sfm_run(SfmConfig(), inputs, executor=pool)
+            runs[name] = sfm_run(SfmConfig(tracking=TrackConfig(look_ahead=2)), inputs, executor=pool)
         runs[name].taken = sum(taken)
     taken.clear()
     with open_executor(workers=2) as pool:  # and the loop alone (look_ahead 0)

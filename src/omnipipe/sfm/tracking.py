@@ -81,7 +81,9 @@ class TrackConfig:
         look_ahead: the frame loop sees this many moving frames before their turn, and
             the one of them predicted to become the next keyframe gets its features
             and descriptor matches in a worker (:mod:`omnipipe.sfm.keyframes`; the
-            same result, taken only when it does; 0: found in the loop only).
+            same result, taken only when it does; 0, the default: found in the loop
+            only, since on 2 busy cores the wrong guesses cost more than the wait saves:
+            benchmarks/RESULTS.md).
         back_beyond: ... or when its rays turned at least this share of the next
             keyframe's parallax from its own keyframe (the far part of a long step,
             where its own keyframe's tracks alone let it drift; robustness seed 1, a
@@ -103,7 +105,7 @@ class TrackConfig:
     renew_ratio: float = bounded(0.3, ge=0, le=1)
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
-    look_ahead: int = bounded(2, ge=0)
+    look_ahead: int = bounded(0, ge=0)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
