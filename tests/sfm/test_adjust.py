@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from omnipipe.executor import InlineExecutor
 from omnipipe.sfm.adjust import Adjusted, _along_only, _BridgedPlacement, resect_pending
+from omnipipe.sfm.bundle import BundleConfig
 from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, PendingFrame, SfmConfig, SfmContext
 
 
@@ -64,7 +65,7 @@ def test_bridged_step_keeps_a_resection_only_within_the_step_sigma() -> None:
 
 def test_anchors_measured_along_their_curve_only_across_well_matched_steps() -> None:
     """A laser anchor keeps only its along-curve component where every step it spans
-    had >= 50 RANSAC inliers (ALONG_MIN_MATCHES) (the features fix the steps' directions); across a step
+    had >= along_min_matches (50) RANSAC inliers (the features fix the steps' directions); across a step
     with fewer (a plain wall) the across component stays. Wall-placed features (not
     epipolar) stay 2-D."""
     pairs = [PairMatches(k, k + 1, np.zeros((n, 2), int)) for k, n in enumerate([400, 50, 42, 300])]
@@ -78,6 +79,8 @@ def test_anchors_measured_along_their_curve_only_across_well_matched_steps() -> 
         Anchor(3, 4, pts, px),  # a wall-placed feature
         Anchor(4, 5, pts, px, epipolar=True),  # no step recorded
     ]
-    out = _along_only(anchors, pairs)
+    out = _along_only(anchors, pairs, BundleConfig().along_min_matches)
     assert [q.epipolar for q in out] == [True, True, False, False, True, False, False]
+    assert [q.epipolar for q in _along_only(anchors, pairs, 0)] == [True] * 5 + [False, True]
+    assert [q.epipolar for q in _along_only(anchors, pairs, 51)] == [True, False, False, False, True, False, False]
     assert all(q.a == a.a and q.b == a.b and q.points_in_a is a.points_in_a for q, a in zip(out, anchors, strict=True))

@@ -61,11 +61,6 @@ from omnipipe.sfm.types import (
 # Fewest tracked points to resect a frame, in all and on its keyframe's side.
 MIN_RESECTION_POINTS = 12
 MIN_RESECTION_POINTS_OWN_SIDE = 6
-# Fewest RANSAC inliers of every step a laser anchor spans for its residual to be its
-# along-curve component only: the random-wide family's plain walls had 7-48 matches a
-# step, and there the adjustment's few tracks turned keyframes off that the anchors'
-# across component (the RANSAC motion) had held.
-ALONG_MIN_MATCHES = 50
 
 
 @dataclass(frozen=True)
@@ -243,7 +238,7 @@ def _adjust_window(
     )
     problem.fixed = fixed
     if config.epipolar_anchors:
-        local = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(anchors, obs.pair_matches)]
+        local = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(anchors, obs.pair_matches, config.along_min_matches)]
         problem.anchor_rows = _anchor_rows(ctx, init, problem, local)
     set_priors(problem, [replace(p, a=p.a - s, b=p.b - s) for p in obs.priors if p.a >= s and p.b < e])
     if len(problem.points_in_world) < 10 or not len(problem.anchor_a):
@@ -256,7 +251,7 @@ def _adjust_window(
         problem.world_from_rig, problem.points_in_world = ba.world_from_rig, ba.points_in_world
         if problem.anchor_rows is not None:  # matched along the adjusted motion's curves
             shifted = [replace(q, a=q.a + s, b=q.b + s) for q in extra]
-            extra = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(shifted, obs.pair_matches)]
+            extra = [replace(q, a=q.a - s, b=q.b - s) for q in _along_only(shifted, obs.pair_matches, config.along_min_matches)]
             extra_rows = _anchor_rows(ctx, ba.world_from_rig, None, extra)
             problem.anchor_rows = np.concatenate([problem.anchor_rows, extra_rows])
         _append_anchors(problem, extra)
@@ -298,9 +293,9 @@ def _held_to_rings(
     return held
 
 
-def _along_only(anchors: list[Anchor], pair_matches: list[PairMatches]) -> list[Anchor]:
+def _along_only(anchors: list[Anchor], pair_matches: list[PairMatches], min_matches: int) -> list[Anchor]:
     """``anchors`` with ``epipolar`` kept only where every keyframe step between a and b
-    had at least :data:`ALONG_MIN_MATCHES` RANSAC inliers (a wall whose feature tracks
+    had at least ``min_matches`` RANSAC inliers (``BundleConfig.along_min_matches``) (a wall whose feature tracks
     fix the steps' directions); across fewer the across-curve component stays, holding
     the step near its RANSAC motion (benchmarks/RESULTS.md)."""
     count: dict[int, int] = {}
@@ -309,7 +304,7 @@ def _along_only(anchors: list[Anchor], pair_matches: list[PairMatches]) -> list[
             count[p.a] = len(p.matches)
     return [
         replace(q, epipolar=q.epipolar and all(
-            count.get(k, 0) >= ALONG_MIN_MATCHES for k in range(q.a, q.b)
+            count.get(k, 0) >= min_matches for k in range(q.a, q.b)
         ))
         for q in anchors
     ]

@@ -74,7 +74,7 @@ from omnipipe.sfm.stations import (
     texture_gain,
     unverified_stations,
 )
-from omnipipe.sfm.step_priors import WallPriors, wall_priors
+from omnipipe.sfm.step_priors import WallPriors, bridged_priors, wall_priors
 from omnipipe.sfm.step_scale import (
     ChainedSteps,
     RunLength,
@@ -239,14 +239,17 @@ def _adjusted_and_checked(
     and the chain's checks with the steps it moved away from their sources flagged (in a
     wall-anchored run, where the feature depths are the anchors, the gait judges such
     steps too); the wall's readings on the returned poses."""
+    # A bridged step is held to its estimate (odometry, gait): nothing else measures it.
+    bridged = bridged_priors(chain.checks)
     adjusted = adjust_keyframes(
-        ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored
+        ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored, bridged
     )
     # Where the adjustment left the wall's own shift, the wall's step lengths hold it.
     walls = wall_priors(ctx, kf, adjusted.world_from_kf, chain.checks) if config.scale_from_wall else WallPriors()
     if walls.priors:
+        held = walls.priors + bridged_priors(chain.checks, {p.a for p in walls.priors})
         adjusted = adjust_keyframes(
-            ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored, walls.priors
+            ctx, chain.world_from_kf, kf, chain.pair_matches, chain.anchors, scale.wall_anchored, held
         )
         ctx.warnings.append(
             f"bundle adjustment held to the wall's own shift on {len(walls.priors)} steps (it "

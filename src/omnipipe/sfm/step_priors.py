@@ -109,6 +109,26 @@ def wall_priors(
     return WallPriors(tuple(priors), readings)
 
 
+def bridged_priors(checks: list[StepCheck], skip: set[int] = frozenset()) -> tuple[LengthPrior, ...]:
+    """Each bridged keyframe step's length (odometry, gait: :attr:`StepCheck.bridged_mm`
+    with its 1-sigma) as a prior of the adjustment, but the steps in ``skip`` (read off
+    the wall). A bridged step has no metric anchor of its own (no laser match, no
+    wall-placed feature) and few feature tracks, so without it the adjustment left its
+    length to chance: random-features seed 26's first two steps, bridged 10.5 / 10.2 +-
+    0.8 mm (true 11.9 / 11.7), came out 15.3 / 4.0 mm with the laser anchors measured
+    along their curves and 20.4 / 6.7 mm with both components (benchmarks/RESULTS.md)."""
+    return tuple(
+        LengthPrior(k, k + 1, c.bridged_mm, c.bridged_sigma_mm)
+        for k, c in enumerate(checks)
+        if c.bridged_from
+        and k not in skip
+        and math.isfinite(c.bridged_mm)
+        and c.bridged_mm > 0
+        and math.isfinite(c.bridged_sigma_mm)
+        and c.bridged_sigma_mm > 0
+    )
+
+
 def _read_all(
     ctx: SfmContext, kf: Keyframes, steps: list[tuple[int, np.ndarray, float, StepCheck]]
 ) -> dict[int, tuple[float, float]]:
