@@ -12,9 +12,12 @@ from test_shift_scale import _run
 from test_wall_shift import _context
 
 from omnipipe.camera import OmniCamera
-from omnipipe.sfm.bundle import BundleConfig, LengthPrior, bundle_adjust, set_priors
-from omnipipe.sfm.step_priors import wall_priors
+from omnipipe.geometry import apply, invert
+from omnipipe.sfm.bundle import BundleConfig, BundleProblem, LengthPrior, bundle_adjust, set_priors
+from omnipipe.sfm.scale_check import StepCheck
+from omnipipe.sfm.step_priors import bridged_priors, wall_priors
 from omnipipe.sfm.types import Keyframes
+from omnipipe.sim.scenarios import paper_rig
 
 
 def _unevenly_shortened(world_from_kf: np.ndarray, gains: list[float]) -> np.ndarray:
@@ -87,3 +90,56 @@ def test_a_run_too_short_for_a_run_wide_ratio_is_held_where_the_wall_disagrees(
     assert bool(got.priors) == held
     for p in got.priors:
         assert abs(p.length_mm - true[p.a]) <= 2 * p.sigma_mm
+
+
+def _check(bridged_mm: float = math.nan, sigma_mm: float = math.nan, source: str = "") -> StepCheck:
+    """A flagged step's check, bridged from ``source`` when given."""
+    return StepCheck(0, 1, math.nan, 0.0, math.nan, 0, math.nan, "none", "relative motion not found",
+                     (), bridged_mm, sigma_mm, source)
+
+
+def test_bridged_steps_become_priors_but_where_the_wall_was_read() -> None:
+    checks = [_check(10.5, 0.8, "odometry"), _check(), _check(7.2, 2.5, "gait"), _check(9.0, 0.8, "odometry"),
+              _check(0.0, 0.8, "odometry")]
+    got = bridged_priors(checks)
+    assert [(p.a, p.b, p.length_mm, p.sigma_mm) for p in got] == [(0, 1, 10.5, 0.8), (2, 3, 7.2, 2.5), (3, 4, 9.0, 0.8)]
+    assert [p.a for p in bridged_priors(checks, {2})] == [0, 3]
+
+
+def test_a_bridged_step_without_anchors_is_held_to_its_estimate(pipe_scene) -> None:
+    """Keyframe step 0 -> 1 has no laser anchor and only 12 tracks into keyframe 0, and
+    those were matched on a wall 3 mm further (random-features seed 26: a bridged step's
+    few matches pulled it 30-90 % off while the others' anchors held them): without a
+    prior the adjustment follows them, with the step's bridged length (the true 12 mm,
+    1-sigma 0.5) as a prior it stays within 1 sigma; the anchored steps stay right either way."""
+    rng = np.random.default_rng(26)
+    camera = OmniCamera.from_rig(paper_rig(800, 600))
+    poses, th, pts = pipe_scene(rng, 5, 0.005, 0.5, 600, (-200.0, 150.0))
+    shifted = poses.copy()
+    shifted[0, 2, 3] -= 3.0  # keyframe 0's tracks seen from 3 mm further back
+    f, p, px = [], [], []
+    for k in range(5):
+        seen = np.arange(len(pts)) if k else rng.choice(len(pts), 12, replace=False)
+        uv, ok = camera.project(apply(invert(shifted[k]), pts[seen]))
+        f += [k] * int(ok.sum())
+        p += list(seen[ok])
+        px.append(uv[ok] + rng.normal(0, 0.3, (int(ok.sum()), 2)))
+    q_a = np.column_stack([101 * np.cos(th[:60]), 101 * np.sin(th[:60]), np.full(60, -82.0)])
+    aa, ab, aq, apx = [], [], [], []
+    for k in range(1, 4):  # no anchor on step 0
+        uv, ok = camera.project(apply(invert(poses[k + 1]) @ poses[k], q_a))
+        aa += [k] * int(ok.sum())
+        ab += [k + 1] * int(ok.sum())
+        aq.append(q_a[ok])
+        apx.append(uv[ok] + rng.normal(0, 0.3, (int(ok.sum()), 2)))
+    lengths = {}
+    for held in (False, True):
+        problem = BundleProblem(poses.copy(), pts.copy(), np.array(f), np.array(p), np.concatenate(px),
+                                np.array(aa), np.array(ab), np.concatenate(aq), np.concatenate(apx))
+        set_priors(problem, [LengthPrior(0, 1, 12.0, 0.5)] if held else [])
+        res = bundle_adjust(camera, problem, BundleConfig(max_evaluations=100))
+        lengths[held] = np.linalg.norm(np.diff(res.world_from_rig[:, :3, 3], axis=0), axis=1)
+    assert abs(lengths[False][0] - 12.0) > 2.0, lengths  # the few tracks' wall (15.0 mm)
+    assert abs(lengths[True][0] - 12.0) < 0.5, lengths
+    for held in (False, True):
+        assert np.all(np.abs(lengths[held][1:] - 12.0) < 0.3), lengths
