@@ -71,6 +71,7 @@ from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
+from omnipipe.spill import drop_pages
 
 
 @dataclass(frozen=True)
@@ -273,8 +274,12 @@ def run(
         ReconstructionError: too few rings to fit the pipe.
     """
     pts, frame, poses = _checked(inputs)
+    # The run's scratch arrays' pages (the points just written there, among them) are
+    # read back when needed, not held resident under the analysis (omnipipe.spill).
+    drop_pages()
     line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor)
     line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, ())
+    drop_pages()
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
     # Joint gaps and lateral openings are not wall: out of the profiles and the defects.
@@ -285,6 +290,7 @@ def run(
         # cylinder across the step tilts, and the wall beside the joint reads as a ramp).
         line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor, breaks)
         line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, breaks)
+        drop_pages()
         feats = with_offset_joints_kept(feats, find_features(config.features, line, sigma, rho, theta, frame, radius))
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
@@ -319,7 +325,7 @@ def run(
         centreline=line,
         point_sigma_mm=sigma,
         point_theta_rad=theta,
-        point_deviation_mm=np.nan_to_num(stations.deviation),
+        point_deviation_mm=np.nan_to_num(stations.deviation, copy=False),
         radius_mm=float(radius),
         warnings=warnings,
         inner_diameter_sigma_mm=head.sigma_mm,
@@ -683,6 +689,8 @@ def _measure_wall(
             zones=zones,
             executor=executor,
         )
+        del samples  # the next pass' samples are built without these (32 bytes a point)
+        drop_pages()  # their copies the workers read
         tick(done)
         if not search.defects:
             break
