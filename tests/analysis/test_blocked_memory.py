@@ -81,3 +81,45 @@ def test_ring_points_gathered_when_indexed_fit_the_same_centreline(run) -> None:
         assert np.array_equal(r, pts[ring == k])
     lazy = fit_centreline(rings, axes, np.eye(4), window_mm=30.0, loss_scale_mm=0.3)
     assert np.array_equal(lazy.centre, line.centre) and np.array_equal(lazy.radius_mm, line.radius_mm)
+
+
+def _whole_supported(samples, value, sc):
+    """The whole-array neighbour test (the block code's reference)."""
+    arc, circ = samples.arc_mm, samples.circumference_mm
+    order = np.lexsort((arc, samples.ring))
+    prev_i, next_i = np.roll(order, 1), np.roll(order, -1)
+    out = np.zeros(len(value), bool)
+    for nb in (prev_i, next_i):
+        close = (samples.ring[nb] == samples.ring[order]) & (
+            np.abs((arc[nb] - arc[order] + 0.5 * circ) % circ - 0.5 * circ) <= 2.5 * sc.du / 3.0
+        )
+        out[order] |= close & (value[nb] > 0.5 * sc.threshold)
+    return out
+
+
+@pytest.mark.parametrize("rings", [1, 40])
+def test_supported_in_blocks_equals_the_whole_array(monkeypatch, rings: int) -> None:
+    """Rings of 360 samples (shuffled, 0.1 mm noise) with lone spikes and a 3-sample bump
+    each: blocks of 1,000 samples give the whole array's answer, and a spike without a
+    raised neighbour is unsupported while the bump's samples are."""
+    from omnipipe.analysis import defects
+
+    rng = np.random.default_rng(3)
+    circ = 2 * np.pi * 100.0
+    arc = np.tile(np.arange(360) * circ / 360, rings) + rng.uniform(0, 0.1, 360 * rings)
+    ring = np.repeat(np.arange(rings), 360)
+    dev = rng.normal(0, 0.1, arc.size)
+    spikes = np.arange(rings) * 360 + 50
+    bump = (np.arange(rings) * 360 + 200)[:, None] + np.arange(3)
+    dev[spikes] = 3.0
+    dev[bump.ravel()] = 3.0
+    order = rng.permutation(arc.size)
+    samples = defects.WallSamples(np.repeat(np.arange(rings) * 5.0, 360)[order], arc[order] % circ, dev[order], ring[order], circ)
+    sc = defects._scales(samples, 1.0, 6.0)
+    value = samples.deviation_mm
+    whole = _whole_supported(samples, value, sc)
+    monkeypatch.setattr(defects, "SUPPORT_BLOCK", 1000)
+    blocked = defects._supported(samples, value, sc)
+    assert np.array_equal(blocked, whole)
+    where = np.argsort(order)  # the shuffled position of each original sample
+    assert not blocked[where[spikes]].any() and blocked[where[bump.ravel()]].all()
