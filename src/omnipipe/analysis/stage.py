@@ -279,7 +279,6 @@ def run(
     drop_pages()
     line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor)
     line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, ())
-    drop_pages()
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
     # Joint gaps and lateral openings are not wall: out of the profiles and the defects.
@@ -290,7 +289,6 @@ def run(
         # cylinder across the step tilts, and the wall beside the joint reads as a ramp).
         line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor, breaks)
         line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, breaks)
-        drop_pages()
         feats = with_offset_joints_kept(feats, find_features(config.features, line, sigma, rho, theta, frame, radius))
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = _measure_wall(
@@ -541,7 +539,9 @@ def _recentred_line(
     centres = _section_centres(config, line, pts, frame)
     prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
     line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
-    return line, line.coordinates(pts, frame)
+    coordinates = line.coordinates(pts, frame)
+    drop_pages()  # the points' pages, read again when needed (omnipipe.spill)
+    return line, coordinates
 
 
 def _offset_breaks(features: Sequence[PointFeature], line: Centreline) -> list[tuple[np.ndarray, np.ndarray]]:
