@@ -71,7 +71,9 @@ class Centreline:
     def coordinates(
         self, points_in_world: np.ndarray, station: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Pipe coordinates of points measured at known stations.
+        """Pipe coordinates of points measured at known stations, computed
+        :data:`COORDINATE_BLOCK` points at a time (each point's numbers are those of the
+        whole-array formula: the temporaries stay a block's, not the run's).
 
         Args:
             points_in_world: (N, 3) mm.
@@ -82,6 +84,19 @@ class Centreline:
             rho_mm: (N,) distance from the axis.
             theta_rad: (N,) angle around the axis in [-pi, pi), from N towards B.
         """
+        station = np.asarray(station)
+        n = len(station)
+        out = (np.empty(n), np.empty(n), np.empty(n))
+        for a in range(0, n, COORDINATE_BLOCK):
+            b = min(a + COORDINATE_BLOCK, n)
+            for whole, part in zip(out, self._coordinates_block(points_in_world[a:b], station[a:b]), strict=True):
+                whole[a:b] = part
+        return out
+
+    def _coordinates_block(
+        self, points_in_world: np.ndarray, station: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`coordinates` of one block of points, whole."""
         q = points_in_world - self.centre[station]
         t = self.tangent[station]
         along = np.einsum("ij,ij->i", q, t)
@@ -92,6 +107,11 @@ class Centreline:
             np.einsum("ij,ij->i", perp, self.normal[station]),
         )
         return self.arc_mm[station] + along, rho, theta
+
+
+COORDINATE_BLOCK = 1 << 16
+"""Points per block of :meth:`Centreline.coordinates` (its temporaries, about 150 bytes a
+point, are a block's: 10 MB)."""
 
 
 def recentred(
@@ -166,7 +186,7 @@ def _nearest_usable(usable: list[int], full: int) -> np.ndarray:
 
 
 def fit_centreline(
-    rings_in_world: list[np.ndarray],
+    rings_in_world: Sequence[np.ndarray],
     axis_guess: np.ndarray,
     reference_from_world: np.ndarray,
     *,
@@ -234,7 +254,7 @@ def fit_centreline(
 
 
 def _windows(
-    rings_in_world: list[np.ndarray],
+    rings_in_world: Sequence[np.ndarray],
     usable: list[int],
     centroid: np.ndarray,
     axes: np.ndarray,

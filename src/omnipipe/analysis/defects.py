@@ -699,19 +699,27 @@ def _one_sided(
 def _supported(samples: WallSamples, value: np.ndarray, sc: _Scales) -> np.ndarray:
     """(N,) bool: a neighbour on the sample's ring (within about 2.5 sample spacings) is at
     least half the threshold out. A lone sample beyond the threshold without one is an
-    extraction outlier (a blurred peak where the ring runs steeply), not wall."""
-    arc, circ = samples.arc_mm, samples.circumference_mm
+    extraction outlier (a blurred peak where the ring runs steeply), not wall. Taken
+    :data:`SUPPORT_BLOCK` samples at a time (the temporaries a block's, not the run's)."""
+    arc, circ, ring = samples.arc_mm, samples.circumference_mm, samples.ring
     # Neighbours along each ring (sorted by ring, then arc).
-    order = np.lexsort((arc, samples.ring))
-    prev_i, next_i = np.roll(order, 1), np.roll(order, -1)
-    same_prev = samples.ring[prev_i] == samples.ring[order]
-    same_next = samples.ring[next_i] == samples.ring[order]
+    order = np.lexsort((arc, ring))
+    n = len(order)
     near_gap = 2.5 * sc.du / 3.0  # about 2.5 sample spacings along the ring
     supported = np.zeros(len(value), bool)
-    for nb, same in ((prev_i, same_prev), (next_i, same_next)):
-        close = same & (np.abs((arc[nb] - arc[order] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap)
-        supported[order] |= close & (value[nb] > 0.5 * sc.threshold)
+    for a in range(0, n, SUPPORT_BLOCK):
+        pos = np.arange(a, min(a + SUPPORT_BLOCK, n))
+        here = order[pos]
+        for nb in (order[(pos - 1) % n], order[(pos + 1) % n]):  # the one before and after, cyclic
+            close = (ring[nb] == ring[here]) & (
+                np.abs((arc[nb] - arc[here] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap
+            )
+            supported[here] |= close & (value[nb] > 0.5 * sc.threshold)
     return supported
+
+
+SUPPORT_BLOCK = 1 << 16
+"""Samples per block of :func:`_supported`."""
 
 
 def _merge_overlapping(

@@ -46,6 +46,7 @@ from omnipipe.analysis.openings import (
     local_gaps,
     return_gaps,
     ring_axial,
+    ring_points,
 )
 
 
@@ -231,7 +232,8 @@ def _closed_openings(
     rings = np.unique(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
     wall = (np.abs(r.dev) <= thr) & ~not_wall
-    wall_theta = {int(k): r.theta[(r.frame == k) & wall] for k in rings}
+    on_ring = ring_points(r.frame, rings)  # one sort, not a pass over every point per ring
+    wall_theta = {k: r.theta[on[wall[on]]] for k, on in on_ring.items()}
     kept, cuts = [], []
     for m in deep:
         c = math.atan2(float(np.mean(np.sin(r.theta[m]))), float(np.mean(np.cos(r.theta[m]))))
@@ -248,7 +250,8 @@ def _closed_openings(
         stray[m] = True
         for k in inside:
             dk = d[m[r.frame[m] == k]]
-            stray |= (r.frame == k) & (d >= dk.min()) & (d <= dk.max()) & (r.dev > thr)
+            on = on_ring[k]
+            stray[on] |= (d[on] >= dk.min()) & (d[on] <= dk.max()) & (r.dev[on] > thr)
     return kept, stray, cuts
 
 

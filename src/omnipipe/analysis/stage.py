@@ -71,6 +71,7 @@ from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
+from omnipipe.spill import drop_pages
 
 
 @dataclass(frozen=True)
@@ -273,6 +274,9 @@ def run(
         ReconstructionError: too few rings to fit the pipe.
     """
     pts, frame, poses = _checked(inputs)
+    # The run's scratch arrays' pages (the points just written there, among them) are
+    # read back when needed, not held resident under the analysis (omnipipe.spill).
+    drop_pages()
     line, whole, window = _fit_axis(config, inputs, pts, frame, poses, executor)
     line, (sigma, rho, theta) = _recentred_line(config, inputs, line, pts, frame, window, ())
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
@@ -319,7 +323,7 @@ def run(
         centreline=line,
         point_sigma_mm=sigma,
         point_theta_rad=theta,
-        point_deviation_mm=np.nan_to_num(stations.deviation),
+        point_deviation_mm=np.nan_to_num(stations.deviation, copy=False),
         radius_mm=float(radius),
         warnings=warnings,
         inner_diameter_sigma_mm=head.sigma_mm,
@@ -532,11 +536,12 @@ def _recentred_line(
 ) -> tuple[Centreline, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The centreline re-centred on each station's own section, and the points' (N,)
     pipe coordinates (sigma, rho, theta) about it."""
-    _, rho, theta = line.coordinates(pts, frame)
-    centres = _section_centres(config, frame, theta, rho, len(line.arc_mm))
+    centres = _section_centres(config, line, pts, frame)
     prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
     line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
-    return line, line.coordinates(pts, frame)
+    coordinates = line.coordinates(pts, frame)
+    drop_pages()  # the points' pages, read again when needed (omnipipe.spill)
+    return line, coordinates
 
 
 def _offset_breaks(features: Sequence[PointFeature], line: Centreline) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -566,8 +571,7 @@ def _fit_axis(
     """The piecewise centreline (no window across a break plane: :func:`.fit_centreline`),
     the single cylinder of the whole run when the centreline is straight (None: it
     bends) and the window of the piecewise fits (mm)."""
-    groups = ring_groups(frame, len(poses))
-    rings = [pts[g] for g in groups]
+    rings = _RingPoints(pts, ring_groups(frame, len(poses)))
     axis_guess = poses[:, :3, 2]
     # A first whole-run fit gives the scale for the window.
     sample = pts[np.linspace(0, len(pts) - 1, min(len(pts), 6000)).astype(int)]
@@ -599,20 +603,36 @@ def _fit_axis(
     return line, whole, window
 
 
-def _section_centres(
-    config: AnalysisConfig, frame: np.ndarray, theta: np.ndarray, rho: np.ndarray, k: int
-) -> np.ndarray:
-    """(K, 2) each ring's section centre in its station's (normal, binormal) plane:
-    the order-1 terms of its wall profile (0 for a ring too sparse to fit)."""
+class _RingPoints(Sequence[np.ndarray]):
+    """Each ring's (M_k, 3) points of the run's (N, 3) ``pts``, gathered when indexed
+    (the same arrays as ``[pts[g] for g in groups]``, not held: a copy of every point)."""
+
+    def __init__(self, pts: np.ndarray, groups: list[np.ndarray]) -> None:
+        self.pts, self.groups = pts, groups
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def __getitem__(self, k: int) -> np.ndarray:  # type: ignore[override]
+        return self.pts[self.groups[k]]
+
+
+def _section_centres(config: AnalysisConfig, line: Centreline, pts: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(K, 2) each ring's section centre in its station's (normal, binormal) plane of
+    ``line``: the order-1 terms of its wall profile (0 for a ring too sparse to fit).
+    Each ring's coordinates are taken on their own (the same numbers as the whole run's):
+    no (N,) array is held."""
+    k = len(line.arc_mm)
     out = np.zeros((k, 2))
     sec_config = section_config(config)
     for i, on in enumerate(ring_groups(frame, k)):
         if len(on) < 12:
             continue
-        cut, coverage = ring_cut(theta[on], sec_config)
+        _, rho, theta = line.coordinates(pts[on], frame[on])
+        cut, coverage = ring_cut(theta, sec_config)
         order = section_order(cut, coverage, config.profile_order, sec_config)
         if order >= 1:
-            coef = fit_wall_profile(theta[on], rho[on], order, config.loss_scale_mm)
+            coef = fit_wall_profile(theta, rho, order, config.loss_scale_mm)
             out[i] = coef[1:3]
     return out
 
@@ -669,6 +689,8 @@ def _measure_wall(
             zones=zones,
             executor=executor,
         )
+        del samples  # the next pass' samples are built without these (32 bytes a point)
+        drop_pages()  # their copies the workers read
         tick(done)
         if not search.defects:
             break
