@@ -169,6 +169,9 @@ def run(
     Raises:
         OmnipipeError: bad input (named file or field) or a stage that cannot proceed.
     """
+    from omnipipe.memory import return_large_blocks
+
+    return_large_blocks()  # before the pool forks: its workers too
     if executor is None:
         from omnipipe.executor import open_executor
 
