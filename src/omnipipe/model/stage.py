@@ -527,6 +527,7 @@ def _run(
     atlas: np.ndarray | None = None
     if config.texture and len(faces):
         unrolled, atlas = _texture(config, inputs, rings, ticks, points, faces, (arc, axial, circ), executor)
+        release_freed_memory()  # the flat field's estimate (its cells' arrays) not under the seam split
     # The rings of the keyframes that textured no cell.
     rest = [None if (ring := rings.to_sample(k)) is None else _FrameWork(ring, ()) for k in range(n_k)]
     for _ in rings.sample(rest):

@@ -95,7 +95,8 @@ def flat_field(
     if len(lum) < 4 * FLAT_FIELD_BINS:
         return unrolled
     irr_ref = float(np.median(irr))
-    ratio = lum / (irr / irr_ref)
+    # lum / (irr / irr_ref), float32, in place: no third array of the cells.
+    ratio = np.divide(lum, np.divide(irr, irr_ref, out=irr), out=lum)
     del lum, irr
     edges = np.unique(np.quantile(r_ok, np.linspace(0.0, 1.0, FLAT_FIELD_BINS + 1)))
     which = np.empty(len(r_ok), np.min_scalar_type(len(edges)))
@@ -117,7 +118,7 @@ def flat_field(
     corrected = np.concatenate(
         [lum_c[seen] / gain(light_c[seen]) for lum_c, light_c, seen in samples.chunks()]
     )
-    scale = FLAT_FIELD_LEVEL / max(float(np.median(corrected)), 1e-6)
+    scale = FLAT_FIELD_LEVEL / max(float(np.median(corrected, overwrite_input=True)), 1e-6)
     del corrected
     out = img if in_place else np.empty_like(img)
     for r0 in range(0, h, STRIP_ROWS):  # float32 intermediates a strip of rows at a time

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from omnipipe.config import dataclass_from_dict, deep_merge, load_yaml_mapping
 from omnipipe.errors import ReconstructionError
-from omnipipe.memory import release_freed_memory
+from omnipipe.memory import release_freed_memory, return_large_blocks
 from omnipipe.progress import ProgressFactory
 
 if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
@@ -380,6 +380,11 @@ def _stages_handing_on(
     if motion is None:
         motion = _camera_motion(config, dataset, frames(), executor, progress, log, folder)
         _keep(cp, "sfm", motion, log)
+    # From here on this process's large freed arrays leave its memory at once (the
+    # analysis', the model's and the writers' per-point and per-cell arrays); not during
+    # the frame-by-frame stages, where mapping each image's arrays afresh cost 38 % more
+    # CPU at 1600x1200 (benchmarks/RESULTS.md).
+    return_large_blocks()
     found = _restore(cp, "analysis", log)
     if found is None:
         found = _analyse(config, dataset, frames(), motion, executor, progress, log)

@@ -1,0 +1,39 @@
+"""omnipipe.memory: large freed blocks go back to the system at once."""
+
+import ctypes
+import sys
+
+import numpy as np
+import pytest
+
+from omnipipe.memory import return_large_blocks
+
+
+def _anon_mb() -> float:
+    with open("/proc/self/status", encoding="ascii") as fh:
+        for line in fh:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) / 1024.0
+    raise AssertionError("no RssAnon")
+
+
+def _has_mallopt() -> bool:
+    try:
+        ctypes.CDLL(None).mallopt  # noqa: B018
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not _has_mallopt(), reason="glibc on Linux")
+def test_large_freed_blocks_leave_the_resident_memory():
+    return_large_blocks()
+    return_large_blocks()  # idempotent
+    # glibc's default raises its mapping threshold to a freed mapped block's size: the
+    # second array would then be made in the heap and stay resident once freed.
+    for _ in range(3):
+        before = _anon_mb()
+        a = np.ones(3 << 20)  # 24 MB, every page touched
+        assert _anon_mb() > before + 20
+        del a
+        assert _anon_mb() < before + 4
