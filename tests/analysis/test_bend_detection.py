@@ -109,3 +109,38 @@ def test_bend_found_on_a_simulated_run_whose_taper_swings_the_tangents() -> None
     assert abs(bend.radius_mm - 455.8) <= 3.0 * bend.radius_sigma_mm
     assert bend.axial_from_mm < 104.0 and bend.axial_to_mm > -59.2
     assert bend.turn_deg >= 10.0
+
+
+
+
+# random-features-small seed 16 (a 346 mm pipe, an R 873 mm bend from -85 mm on, two
+# missed joints at -96 and -71 mm, one offset 6.3 mm): the stations' arc (mm) and their
+# tangents from the estimated camera motion, as two angles (deg) off the mean tangent.
+SEED16_ARC = [-110.3, -103.6, -90.6, -77.2, -72.4, -66.3, -52.6, -40.6, -36.2, -31.8, -20.8, -9.8, -5.5, -0.8,
+              11.0, 22.6, 26.4, 31.1, 43.9, 55.9, 61.1, 66.2, 76.2, 88.3, 92.0, 97.2, 110.4, 123.9, 128.4, 133.5,
+              147.0, 160.8, 166.6, 171.0]
+SEED16_A = [8.9, 7.9, 3.28, -0.12, -0.58, -2.5, -4.34, -5.31, -5.31, -4.93, -2.96, -2.2, -2.32, -2.32, -1.88,
+            -1.04, -1.37, -1.37, -1.57, -1.47, -1.47, -1.45, -0.63, 0.72, 0.98, 0.98, 2.27, 2.89, 2.7, 2.81, 2.92,
+            3.04, 3.04, 2.74]
+SEED16_B = [-0.32, -1.46, -5.09, -6.63, -6.74, -8.19, -6.97, -6.83, -6.83, -5.58, -2.5, -1.31, -1.15, -1.15,
+            -0.32, 0.55, 0.29, 0.29, 0.25, 0.65, 0.65, 0.73, 1.81, 2.39, 2.51, 2.51, 3.29, 4.94, 5.19, 5.31, 6.41,
+            7.68, 7.68, 7.93]
+
+
+def test_bend_found_past_a_turn_the_other_way_before_it() -> None:
+    """Seed 16's centreline: the tangents turn 12.6 deg one way over the first 70 mm (the
+    missed offset joint pulling the recentred centreline), then 17 deg the other way to
+    the run's end (the bend, R 873 mm). The fit from the guess spanning both sank into a
+    degenerate minimum (a 6 mm radius, refused: no bend); started from the stations'
+    quartiles too, the lowest robust cost is the bend: radius within 10 % of the truth,
+    turning from -45 mm on; with seeded noise of 0.3 deg on the angles as well."""
+    arc = np.array(SEED16_ARC)
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        a, b = (np.radians(x) + (rng.normal(0.0, math.radians(0.3), len(arc)) if seed else 0.0)
+                for x in (np.array(SEED16_A), np.array(SEED16_B)))
+        t = np.stack([np.cos(b) * np.sin(a), np.sin(b), np.cos(b) * np.cos(a)], axis=1)
+        bends = _bends(_line(arc, t), 345.9, SectionConfig())
+        assert len(bends) == 1
+        assert abs(bends[0].radius_mm - 873.0) <= 0.1 * 873.0
+        assert -60.0 <= bends[0].axial_from_mm <= -25.0

@@ -183,3 +183,53 @@ def test_joint_on_a_reducers_ramp_is_found_and_the_ramp_alone_is_none(seed: int)
     line, sigma, rho, theta, frame = _reducer(seed, gap=False)
     plain = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 125.0)
     assert not [f for f in plain.features if isinstance(f, Joint)], plain.features
+
+
+def _crossed(seed: int, gap: bool, arc_deg: float = 360.0) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Bench seed 10's geometry: 19 rings over 44 mm of a 543 mm pipe (R 271.5), each
+    tilted 7.7 deg (spanning 73 mm along the axis), so every ring crosses a 3.8 mm gap
+    at -191 mm along a slant, the rings' crossings sweeping 50-130 deg; water hides the
+    wall at 200-320 deg (no samples), the other crossing reads shallow (near the water
+    line, 150-200 deg), the deep run a ring sees
+    blurred over 16 deg of its arc to 3-5 mm (400x300: 5.6 mm of wall a pixel), wall
+    noise 0.9 mm, the gap read 13 mm further along the axis by the last ring than by
+    the first (the camera motion's axial placement). ``arc_deg``: the gap deep over only this arc about 90 deg (a groove
+    around part of the pipe, no joint) instead of wherever the rings cross it."""
+    rng = np.random.default_rng(seed)
+    r0, gap_at = 271.5, -191.2
+    centres = np.linspace(-201.0, -157.0, 19) + rng.uniform(-0.5, 0.5, 19)
+    theta = np.radians(np.r_[np.arange(0.0, 200.0, 0.67), np.arange(320.0, 360.0, 0.67)])
+    slant = r0 * np.tan(np.radians(7.7)) * np.cos(theta + np.radians(24.0))  # crossings sweep 50-130 deg
+    sig, rho, th, frame = [], [], [], []
+    for k, c in enumerate(centres):
+        s = c + slant + rng.normal(0.0, 0.3, theta.size)
+        r = r0 + rng.normal(0.0, 0.9, theta.size)
+        if gap:
+            # The crossing's blur (a 10 mm run along the axis), where the camera motion's
+            # axial placement puts it: 0.3 mm further a mm of the rings' travel.
+            seen = np.abs(s - gap_at - 0.3 * (c - gap_at)) <= 5.0
+            seen &= np.abs(np.degrees(theta) - 90.0) <= 0.5 * arc_deg
+            r += np.where(seen & (theta < np.radians(150.0)), rng.uniform(3.0, 5.0, theta.size), 0.0)
+        sig.append(s)
+        rho.append(r)
+        th.append(theta)
+        frame.append(np.full(theta.size, k))
+    return _line(centres), *(np.concatenate(a) for a in (sig, rho, th, frame))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_gap_every_ring_crosses_along_a_slant_is_a_joint(seed: int) -> None:
+    """Seen deep on 60-150 deg only (6-9 of the ~20 sectors the rings sample in its
+    band: under joint_coverage), but by every ring along one plane: a joint, within 3
+    mm of the truth; its offset unmeasured (no ring lies wholly on a side). The same
+    rings without the gap: nothing; a groove over 40 deg only: no joint."""
+    line, sigma, rho, theta, frame = _crossed(seed, gap=True)
+    found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 271.5)
+    joints = [f for f in found.features if isinstance(f, Joint)]
+    assert len(joints) == 1, found.features
+    assert abs(joints[0].axial_mm + 191.2) <= 3.0, joints[0]
+    assert joints[0].offset_mm is None
+    for gap, arc in ((False, 360.0), (True, 40.0)):
+        line, sigma, rho, theta, frame = _crossed(seed, gap=gap, arc_deg=arc)
+        found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 271.5)
+        assert not [f for f in found.features if isinstance(f, Joint)], found.features

@@ -400,17 +400,22 @@ def fit_bend(
     if b0 - a0 < 1e-3:
         return None
     inside = (s >= a0) & (s <= b0)
-    x0 = np.array([a0, b0, phi[s <= a0].mean() if np.any(s <= a0) else phi[0], 0.0])
-    x0[3] = (phi[s >= b0].mean() if np.any(s >= b0) else phi[-1]) - x0[2]
-    if not inside.any() or abs(x0[3]) < 1e-6:
+    if not inside.any() or abs(_start(s, phi, a0, b0)[3]) < 1e-6:
         return None
     noise = max(float(np.std(np.diff(phi[~inside]))) / math.sqrt(2.0) if (~inside).sum() > 2 else 0.0, 1e-4)
-    sol = least_squares(
-        lambda x: (model(x) - phi) / noise, x0, loss="soft_l1",
-        bounds=([lo, lo, -np.inf, -np.inf], [hi, hi, np.inf, np.inf]),
-        x_scale=[10.0, 10.0, 0.01, 0.01],
-    )
-    if not sol.success:
+    # From the guess and from the stations' quartiles (a kink the guess spans, such as
+    # a missed joint's offset swinging the tangents, can hold the fit from one start in
+    # a degenerate minimum): the lowest robust cost.
+    sol = None
+    for a_i, b_i in _bend_starts(s, (a0, b0)):
+        got = least_squares(
+            lambda x: (model(x) - phi) / noise, _start(s, phi, a_i, b_i), loss="soft_l1",
+            bounds=([lo, lo, -np.inf, -np.inf], [hi, hi, np.inf, np.inf]),
+            x_scale=[10.0, 10.0, 0.01, 0.01],
+        )
+        if got.success and got.x[1] - got.x[0] > 0 and (sol is None or got.cost < sol.cost - 1e-9):
+            sol = got
+    if sol is None:
         return None
     a, b, _, turn = sol.x
     if b - a <= 0 or abs(turn) < 1e-6:
@@ -432,6 +437,25 @@ def fit_bend(
         radius_mm=float(radius), radius_sigma_mm=sr,
         truncated=bool(a <= lo + edge or b >= hi - edge),
     )
+
+
+def _start(s: np.ndarray, phi: np.ndarray, a: float, b: float) -> np.ndarray:
+    """(a, b, phi0, turn) to start the bend fit from: the angle's mean before ``a`` and
+    after ``b`` (mm; the first / last station's when none lies there)."""
+    phi0 = phi[s <= a].mean() if np.any(s <= a) else phi[0]
+    return np.array([a, b, phi0, (phi[s >= b].mean() if np.any(s >= b) else phi[-1]) - phi0])
+
+
+def _bend_starts(s: np.ndarray, guess: tuple[float, float]) -> list[tuple[float, float]]:
+    """Starts (a, b) mm for the bend fit: ``guess`` first, then every ordered pair of the
+    stations' quartile positions (0, 25, 50, 75, 100 %) at least two stations apart."""
+    q = np.clip(np.percentile(s, [0.0, 25.0, 50.0, 75.0, 100.0]), s[0], s[-1])  # the fit's bounds
+    out = [guess]
+    for i in range(len(q)):
+        for j in range(i + 1, len(q)):
+            if q[j] > q[i] and int(np.sum((s >= q[i]) & (s <= q[j]))) >= 2 and (q[i], q[j]) != guess:
+                out.append((float(q[i]), float(q[j])))
+    return out
 
 
 def _pinv_cov(jac: np.ndarray, var: float) -> np.ndarray:

@@ -28,6 +28,8 @@ class FeatureConfig:
             the circumference: noise does not).
         joint_coverage: a group deep over this fraction of the angles at which rings
             sample its axial band is a joint.
+        joint_min_rings: a gap seen on part of the circumference only (every ring
+            crossing it along a slant) needs its candidates on this many rings.
         joint_link_mm: candidates further apart along the axis (and than 1.5 ring
             spacings) belong to different joints.
         joint_max_gap_mm: a wider deep band is not a joint's gap.
@@ -61,6 +63,7 @@ class FeatureConfig:
     noise_factor: float = bounded(6.0, gt=0)
     joint_noise_factor: float = bounded(3.5, gt=0)
     joint_coverage: float = bounded(0.6, gt=0, le=1)
+    joint_min_rings: int = bounded(5, ge=2)
     joint_link_mm: float = bounded(3.0, gt=0)
     joint_max_gap_mm: float = bounded(30.0, gt=0)
     joint_offset_min_mm: float = bounded(3.0, gt=0)

@@ -214,7 +214,7 @@ def _laterals(
                 out[i] = _lateral(config, r, holes[i][0], radius, spacing, thr, holes[i][1], stops, planes)
                 merged = True
                 break
-    return out, stray
+    return [o[:3] for o in out if o[3]], stray
 
 
 def _closed_openings(
@@ -517,7 +517,7 @@ def _lateral(
     gaps: Sequence[ReturnGap] = (),
     stops: Sequence[tuple[float, float]] = (),
     planes: dict[int, np.ndarray] | None = None,
-) -> tuple[Lateral, np.ndarray, FeatureZone]:
+) -> tuple[Lateral, np.ndarray, FeatureZone, bool]:
     """A lateral's opening from its cluster of deep samples ``members`` and the rings'
     stretches without returns across it (``gaps``; either may be empty, not both):
     centre, angle and diameter (jackknife sigmas). Where the rings disturbed at its
@@ -525,7 +525,9 @@ def _lateral(
     ``stops``: the joints' bands, which end that growth), the centre is the middle of
     that reach, 1-sigma from the rings' spacing at its ends; where it runs to the run's
     end (or a joint), the fitted centre stays and the reach is not wall. Returns the lateral, its
-    not-wall mask (the outline plus the margin) and its zone for the defect search."""
+    not-wall mask (the outline plus the margin), its zone for the defect search, and
+    whether it can be a round branch's hole (an opening of lost returns alone that
+    closes shorter than it is wide cannot: :func:`_shorter_than_wide`)."""
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
@@ -560,6 +562,7 @@ def _lateral(
     elif ext is not None:  # seen to the run's end (or a joint): the grown rings not wall
         reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
+    round_hole = len(members) > 0 or not _shorter_than_wide(ext, diameter)
     f = Lateral(
         axial_mm=zc,
         axial_sigma_mm=s_z,
@@ -579,7 +582,19 @@ def _lateral(
         zr - along, zr + along, f"the lateral at {zc:.1f} mm",
         arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
     )
-    return f, inside, zone
+    return f, inside, zone, round_hole
+
+
+def _shorter_than_wide(ext: HoleExtent | None, diameter: float) -> bool:
+    """Whether a hole seen closing on both sides is shorter along the axis, even between
+    the clean rings either side (each end at most ``sqrt(12)`` x its sigma / 2 further
+    out), than it is wide (``diameter`` mm): no round branch's (its hole is D / sin of
+    its angle long, at least D), but the returns lost on a ring or two across a seam or
+    a shadow (bench seeds 4 and 15: 43 mm wide, 36 mm between the clean rings)."""
+    if ext is None or not all(ext.closed):
+        return False
+    half = 0.5 * math.sqrt(12.0)
+    return (ext.hi_mm + half * ext.hi_sigma_mm) - (ext.lo_mm - half * ext.lo_sigma_mm) < diameter
 
 
 def _extent(
