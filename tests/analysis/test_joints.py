@@ -229,6 +229,8 @@ def test_gap_every_ring_crosses_along_a_slant_is_a_joint(seed: int) -> None:
     assert len(joints) == 1, found.features
     assert abs(joints[0].axial_mm + 191.2) <= 3.0, joints[0]
     assert joints[0].offset_mm is None
+    # The rings blur the 3.8 mm gap over their slant: its sigma covers the truth.
+    assert abs(joints[0].gap_mm - 3.8) <= 3.0 * joints[0].gap_sigma_mm, joints[0]
     for gap, arc in ((False, 360.0), (True, 40.0)):
         line, sigma, rho, theta, frame = _crossed(seed, gap=gap, arc_deg=arc)
         found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 271.5)

@@ -396,7 +396,9 @@ def _joint(
     The edges are found along the straight local axis of the wall either side (the
     fitted centreline tilts through an offset joint: its axial coordinate would slant
     the gap across the rings); a slanted band's along its own plane (the candidates
-    showed the gap's plane; the wall either side is then cleared by the slant too)."""
+    showed the gap's plane; the wall either side is then cleared by the slant too).
+    A gap every ring crosses along a slant (``band.crossed``) is read over each ring's
+    blur: only 0 < gap <= the reading is known, whose uniform sigma is added."""
     coord, lo, hi = band.coordinate(r), band.lo, band.hi
     inband = cand & (coord >= lo) & (coord <= hi)
     depth = float(np.percentile(r.dev[inband], 90))
@@ -416,6 +418,9 @@ def _joint(
     e_lo, s_lo = _edge(r, s, lower, 0.5 * depth, True)
     e_hi, s_hi = _edge(r, s, upper, 0.5 * depth, False)
     axial, gap = mid + 0.5 * (e_lo + e_hi), e_hi - e_lo
+    gap_sigma = math.hypot(s_lo, s_hi)
+    if band.crossed:  # each ring blurs the gap over its slant: only 0 < gap <= read is known
+        gap_sigma = math.hypot(gap_sigma, gap / math.sqrt(12.0))
     off: tuple[float | None, ...] = (None, None, None, None)
     if local is not None and not band.crossed:  # rings crossing the gap: no wall either side
         off = local.offset()
@@ -423,7 +428,7 @@ def _joint(
         axial_mm=axial,
         axial_sigma_mm=0.5 * math.hypot(s_lo, s_hi),
         gap_mm=gap,
-        gap_sigma_mm=math.hypot(s_lo, s_hi),
+        gap_sigma_mm=gap_sigma,
         offset_mm=off[0],
         offset_sigma_mm=off[1],
         offset_angle_deg=off[2],
