@@ -339,3 +339,31 @@ def test_a_frame_without_a_ring_reads_the_nearest_frames_wall() -> None:
     radii = [read(i).radius_mm for i in range(5)]
     assert np.allclose(radii, [100.0, 100.0, 110.0, 110.0, 110.0], atol=1e-9)
     assert nearest_wall([empty, empty])(1) is None
+
+
+@pytest.mark.slow  # two sfm runs of 20 moving frames at 640x480
+def test_following_back_only_the_matched_features_gives_the_poses_of_following_all(short_run, monkeypatch) -> None:
+    """The next keyframe's features followed back through the pending frames are only
+    those its steps matched (the adjustment's tracks are made of them): fewer features
+    followed, and the run's poses those of following every one within the budget, bit
+    for bit."""
+    from omnipipe.sfm import keyframes
+
+    scenario, _, _, frames, rings = short_run("continuous")  # every frame moves
+    inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
+    followed: list[int] = []
+    track_back = keyframes.track_back
+
+    def counted(rig, config, views, features, which, pending, tracking):
+        followed.append(len(which) * len(pending))
+        return track_back(rig, config, views, features, which, pending, tracking)
+
+    monkeypatch.setattr(keyframes, "track_back", counted)
+    narrowed = sfm_run(SfmConfig(), inputs)
+    n_narrowed = sum(followed)
+    followed.clear()
+    monkeypatch.setattr(keyframes, "matched_only", lambda which, matched: which)
+    every = sfm_run(SfmConfig(), inputs)
+    assert 0 < n_narrowed < sum(followed)
+    assert np.array_equal(narrowed.world_from_rig, every.world_from_rig)
+    assert np.array_equal(narrowed.registered, every.registered)

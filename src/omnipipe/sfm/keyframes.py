@@ -132,6 +132,26 @@ class _Keyframe:
 
 
 @dataclass(frozen=True)
+class _BackJob:
+    """A keyframe's features to follow back through the frames pending before it
+    (:func:`omnipipe.sfm.tasks.track_back`), held until the step after it is matched.
+
+    Attributes:
+        k: the keyframe's index.
+        views: its views; features: its features (no descriptors).
+        followed: (F,) the features within the budget (indices into ``features``).
+        pending_views: the pending frames' views, latest first; frames: their indices.
+    """
+
+    k: int
+    views: FrameViews
+    features: FrameFeatures
+    followed: np.ndarray
+    pending_views: list[FrameViews]
+    frames: list[int]
+
+
+@dataclass(frozen=True)
 class _EvidenceJob:
     """A step's evidence, completed by the worker's ``future`` when there is one."""
 
@@ -223,6 +243,7 @@ class KeyframeLoop:
         # pending frames once nothing more is matched to them): in the run's scratch.
         self._pack = Pack()
         self._in_flight: deque[Future] = deque()
+        self._back: _BackJob | None = None  # the last keyframe's, until its next step
         self._last: _Keyframe | None = None
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
         self._step_inliers = 0  # verified matches of the last keyframe step
@@ -425,6 +446,7 @@ class KeyframeLoop:
 
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
+        self._follow_back()
         rings = self.inputs.rings.rings
         keyframes = Keyframes(
             self.frames,
@@ -442,6 +464,40 @@ class KeyframeLoop:
             self.lost,
             self.tracked,
         )
+
+    def _follow_back(self) -> None:
+        """The held :class:`_BackJob` submitted to the workers, its features narrowed to
+        those a keyframe step matched (its inliers to the keyframes before and after it):
+        the resection reads a frame's rays only of features in the adjustment's tracks,
+        which are made of these matches, so the poses are those of following them all
+        (each track's flow is its own), for a part of the work (where the chained tracks
+        carry the steps, few of the new features are matched on)."""
+        job, self._back = self._back, None
+        if job is None:
+            return
+        steps = [(self._step(job.k - 1), 1), (self._step(job.k), 0)]
+        matched = [e.inliers[:, side] for e, side in steps if e is not None and e.inliers is not None]
+        followed = matched_only(job.followed, matched)
+        if len(followed) == 0:
+            for f in job.frames:
+                self.next_matches[f] = _done(KeyframeRays(np.zeros(0, int), np.zeros((0, 3))))
+            return
+        whole = self.ctx.executor.submit(
+            track_back,
+            self.inputs.rig,
+            self.ctx.config.features,
+            job.views,
+            job.features,
+            followed,
+            job.pending_views,
+            self.ctx.config.tracking,
+        )
+        for f, part in zip(job.frames, _split(whole, len(job.frames)), strict=True):
+            self.next_matches[f] = part
+
+    def _step(self, k: int) -> StepEvidence | None:
+        """Keyframe step k -> k + 1's evidence as measured so far (None: not yet)."""
+        return self._jobs[k].evidence if 0 <= k < len(self._jobs) else None
 
     def _defer(self, frame: MovingFrame, features: FrameFeatures, inliers: np.ndarray, parallax: float) -> None:
         """``frame`` pending, with its ``inliers`` to the last keyframe and the
@@ -547,22 +603,20 @@ class KeyframeLoop:
                 config.tracking,
             )
         ]
+        self._follow_back()  # the keyframe before: its steps to either side are matched now
         if back and frame.views is not None:
-            whole = self.ctx.executor.submit(
-                track_back,
-                self.inputs.rig,
-                config.features,
+            self._back = _BackJob(
+                k_new,
                 frame.views,
                 _slim(features),
                 fresh[_budget(0, len(fresh), config.tracking.max_points)],
                 [self._pending_views[self.pending[j].frame] for j in back],
-                config.tracking,
+                [self.pending[j].frame for j in back],
             )
-            for j, part in zip(back, _split(whole, len(back)), strict=True):
-                self.next_matches[self.pending[j].frame] = part
+        waiting = set(self._back.frames) if self._back is not None else set()
         for j in since:
             p = self.pending[j]
-            if p.frame not in self.next_matches and len(p.features.descriptors):
+            if p.frame not in self.next_matches and p.frame not in waiting and len(p.features.descriptors):
                 self.next_matches[p.frame] = self.ctx.executor.submit(
                     matched_rays, features, p.features, config.features.ratio
                 )
@@ -631,6 +685,19 @@ def _split(whole: Future[list[KeyframeRays]], n: int) -> list[Future[KeyframeRay
 
     whole.add_done_callback(done)
     return parts
+
+
+def matched_only(followed: np.ndarray, matched: list[np.ndarray]) -> np.ndarray:
+    """The features of ``followed`` (F,) that appear in any of ``matched`` (arrays of
+    feature indices), in ``followed``'s order."""
+    return followed[np.isin(followed, np.concatenate(matched))] if matched else followed[:0]
+
+
+def _done(value: KeyframeRays) -> Future[KeyframeRays]:
+    """A future already holding ``value``."""
+    future: Future[KeyframeRays] = Future()
+    future.set_result(value)
+    return future
 
 
 def _subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:
