@@ -48,9 +48,7 @@ def eight_point(
     U = (r2[:, :, None] * r1[:, None, :]).reshape(-1, 9)
     if weights is not None:
         U = U * np.asarray(weights, float)[:, None]
-    # All nine right singular vectors: of a minimal sample's 8 x 9 U the reduced SVD
-    # keeps only eight, the last of them not the null vector (5 deg off on exact rays).
-    _, _, vt = np.linalg.svd(U, full_matrices=len(U) < 9)
+    _, _, vt = np.linalg.svd(U, full_matrices=False)
     E = vt[-1].reshape(3, 3)  # Eq. (13)-(14)
     u, _, vt2 = np.linalg.svd(E)
     return u @ np.diag([1.0, 1.0, 0.0]) @ vt2
