@@ -127,14 +127,3 @@ def test_compiled_inlier_test_is_the_angular_epipolar_error_below_the_threshold(
     zero = np.zeros((3, 3))
     assert not epipolar_inliers(zero, r1[:5], r2[:5], math.sin(math.radians(0.2))).any()
     assert not (epipolar_angle(zero, r1[:5], r2[:5]) < math.radians(0.2)).any()
-
-
-@pytest.mark.parametrize("seed", range(3))
-def test_a_minimal_sample_of_eight_exact_pairs_gives_the_true_essential_matrix(seed: int) -> None:
-    """Eight exact ray pairs (RANSAC's minimal sample) determine E: every other pair of
-    the scene lies on its epipolar planes (the null vector of the 8 x 9 system, not the
-    reduced SVD's last of eight)."""
-    rng = np.random.default_rng(seed)
-    r1, r2, _, _ = _scene(rng, 40, np.array([0.3, -0.2, 1.0]))
-    E = eight_point(r1[:8], r2[:8])
-    assert np.degrees(epipolar_angle(E, r1, r2)).max() < 1e-6
