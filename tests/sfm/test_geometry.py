@@ -100,3 +100,30 @@ def test_too_few_correspondences() -> None:
     r1, r2, _, _ = _scene(rng, 6, np.array([0.0, 0.0, 10.0]))
     with pytest.raises(ReconstructionError, match="correspondences"):
         estimate_relative_motion(r1, r2)
+
+
+def test_compiled_inlier_test_is_the_angular_epipolar_error_below_the_threshold() -> None:
+    """RANSAC's compiled inlier test (:func:`omnipipe.sfm._kernels.epipolar_inliers`)
+    against its NumPy reference, :func:`epipolar_angle` below the threshold: the same
+    pairs on noisy inliers and outliers, pairs within 1e-9 rad of the threshold aside;
+    a zero epipolar normal is no inlier in either."""
+    from omnipipe.sfm._kernels import epipolar_inliers
+
+    rng = np.random.default_rng(4)
+    r1 = rng.normal(size=(2000, 3))
+    r1 /= np.linalg.norm(r1, axis=1)[:, None]
+    t = np.array([0.2, -0.1, 1.0])
+    r2 = r1 * rng.uniform(50.0, 150.0, len(r1))[:, None] - 4.0 * t
+    r2[:500] = rng.normal(size=(500, 3))  # outliers
+    r2 += rng.normal(scale=0.003, size=r2.shape) * np.linalg.norm(r2, axis=1)[:, None]
+    r2 /= np.linalg.norm(r2, axis=1)[:, None]
+    E = eight_point(r1[500:], r2[500:])
+    for threshold in (math.radians(0.05), math.radians(0.2), math.radians(2.0)):
+        angle = epipolar_angle(E, r1, r2)
+        got = epipolar_inliers(E, r1, r2, math.sin(threshold))
+        clear = np.abs(angle - threshold) > 1e-9
+        assert 0 < np.count_nonzero(got) < len(got)
+        assert np.array_equal(got[clear], (angle < threshold)[clear])
+    zero = np.zeros((3, 3))
+    assert not epipolar_inliers(zero, r1[:5], r2[:5], math.sin(math.radians(0.2))).any()
+    assert not (epipolar_angle(zero, r1[:5], r2[:5]) < math.radians(0.2)).any()

@@ -341,44 +341,29 @@ def test_a_frame_without_a_ring_reads_the_nearest_frames_wall() -> None:
     assert nearest_wall([empty, empty])(1) is None
 
 
-@pytest.mark.slow  # four sfm runs of 20 frames at 640x480 with two workers
-def test_keyframes_found_ahead_in_workers_give_the_loops_own_result(short_run, monkeypatch) -> None:
-    """The next keyframe's SIFT features and matches started in a worker ahead of the
-    frame loop (as predicted; for every upcoming frame, most of them mispredicted; for
-    none) give the run the loop's own poses, bit for bit, and the predicted ones are
-    taken."""
-    from omnipipe.executor import open_executor
+@pytest.mark.slow  # two sfm runs of 20 moving frames at 640x480
+def test_following_back_only_the_matched_features_gives_the_poses_of_following_all(short_run, monkeypatch) -> None:
+    """The next keyframe's features followed back through the pending frames are only
+    those its steps matched (the adjustment's tracks are made of them): fewer features
+    followed, and the run's poses those of following every one within the budget, bit
+    for bit."""
     from omnipipe.sfm import keyframes
 
-    scenario, _, _, frames, rings = short_run("paper-small")
+    scenario, _, _, frames, rings = short_run("continuous")  # every frame moves
     inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
-    taken: list[bool] = []
-    candidate = keyframes.KeyframeLoop._candidate
+    followed: list[int] = []
+    track_back = keyframes.track_back
 
-    def counted(self, last, frame):
-        got = candidate(self, last, frame)
-        taken.append(got is not None)
-        return got
+    def counted(rig, config, views, features, which, pending, tracking):
+        followed.append(len(which) * len(pending))
+        return track_back(rig, config, views, features, which, pending, tracking)
 
-    monkeypatch.setattr(keyframes.KeyframeLoop, "_candidate", counted)
-    predicted = keyframes._predicted_keyframe
-    runs = {}
-    for name, rule in (
-        ("predicted", predicted),
-        ("every frame", lambda frames, *_: frames),
-        ("none", lambda *_: []),
-    ):
-        monkeypatch.setattr(keyframes, "_predicted_keyframe", rule)
-        taken.clear()
-        with open_executor(workers=2) as pool:
-            runs[name] = sfm_run(SfmConfig(tracking=TrackConfig(look_ahead=2)), inputs, executor=pool)
-        runs[name].taken = sum(taken)
-    taken.clear()
-    with open_executor(workers=2) as pool:  # and the loop alone (look_ahead 0)
-        runs["off"] = sfm_run(SfmConfig(tracking=TrackConfig(look_ahead=0)), inputs, executor=pool)
-    runs["off"].taken = sum(taken)
-    assert runs["predicted"].taken >= 2 and runs["every frame"].taken >= 2 and runs["none"].taken == 0
-    assert runs["off"].taken == 0
-    for name in ("every frame", "none", "off"):
-        assert np.array_equal(runs[name].world_from_rig, runs["predicted"].world_from_rig), name
-        assert np.array_equal(runs[name].registered, runs["predicted"].registered), name
+    monkeypatch.setattr(keyframes, "track_back", counted)
+    narrowed = sfm_run(SfmConfig(), inputs)
+    n_narrowed = sum(followed)
+    followed.clear()
+    monkeypatch.setattr(keyframes, "matched_only", lambda which, matched: which)
+    every = sfm_run(SfmConfig(), inputs)
+    assert 0 < n_narrowed < sum(followed)
+    assert np.array_equal(narrowed.world_from_rig, every.world_from_rig)
+    assert np.array_equal(narrowed.registered, every.registered)

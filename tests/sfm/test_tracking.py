@@ -89,7 +89,7 @@ def test_nothing_is_tracked_into_a_blank_frame(two_frames) -> None:
 @pytest.mark.parametrize(
     ("field", "value"),
     [("window_px", 4), ("window_px", 20), ("levels", -1), ("max_forward_backward_px", 0.0),
-     ("min_tracks", 7), ("max_points", 3), ("renew_ratio", 1.5), ("look_ahead", -1)],
+     ("min_tracks", 7), ("max_points", 3), ("renew_ratio", 1.5)],
 )
 def test_bad_settings_name_their_field(field: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"sfm.tracking.{field}"):

@@ -9,6 +9,9 @@ one block per candidate length (:mod:`omnipipe.sfm.laser_scale`).
 :func:`two_smallest_columns`: the backward nearest-descriptor search read off the
 forward search's product (:func:`omnipipe.sfm.features.match_features`).
 
+:func:`epipolar_inliers`: RANSAC's inlier test on the angular epipolar error
+(:mod:`omnipipe.sfm.ransac`), one pass over the ray pairs without temporaries.
+
 :func:`robust_blocks`: the blocks of the bundle adjustment's ``H = Js^T Js`` and
 ``g = Js^T rs`` read straight off the Jacobian's rows, without ``Js`` or ``H``
 (:mod:`omnipipe.sfm.schur`); :func:`hessian_times`: ``H dx`` from those blocks, in the
@@ -16,6 +19,8 @@ order of SciPy's CSR product.
 """
 
 from __future__ import annotations
+
+import math
 
 import numba
 import numpy as np
@@ -133,6 +138,31 @@ def two_smallest_columns(qq, tt, dot, cols):  # pragma: no cover - compiled
         b0[i] = max(b0[i], zero)
         b1[i] = max(b1[i], zero)
     return best, b0, b1
+
+
+@numba.njit(cache=True, nogil=True)
+def epipolar_inliers(E, r1, r2, sin_threshold):  # pragma: no cover - compiled
+    """(N,) bool: ray pairs ``r1``, ``r2`` (N, 3) unit rays whose angular epipolar error
+    under ``E`` (3, 3) is below the angle whose sine is ``sin_threshold``: both rays
+    closer than that to the other's epipolar plane, ``|r2 . E r1| < s |E r1|`` and
+    ``|r1 . E^T r2| < s |E^T r2|``. :func:`omnipipe.sfm.geometry.epipolar_angle` below
+    ``arcsin(sin_threshold)`` (a pair with a zero normal is not an inlier there either),
+    up to rounding at the threshold itself."""
+    n = r1.shape[0]
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        x1, y1, z1 = r1[i, 0], r1[i, 1], r1[i, 2]
+        x2, y2, z2 = r2[i, 0], r2[i, 1], r2[i, 2]
+        a0 = E[0, 0] * x1 + E[0, 1] * y1 + E[0, 2] * z1  # E r1: the plane's normal in view 2
+        a1 = E[1, 0] * x1 + E[1, 1] * y1 + E[1, 2] * z1
+        a2 = E[2, 0] * x1 + E[2, 1] * y1 + E[2, 2] * z1
+        b0 = E[0, 0] * x2 + E[1, 0] * y2 + E[2, 0] * z2  # E^T r2: in view 1
+        b1 = E[0, 1] * x2 + E[1, 1] * y2 + E[2, 1] * z2
+        b2 = E[0, 2] * x2 + E[1, 2] * y2 + E[2, 2] * z2
+        near2 = abs(x2 * a0 + y2 * a1 + z2 * a2) < sin_threshold * math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        near1 = abs(x1 * b0 + y1 * b1 + z1 * b2) < sin_threshold * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+        out[i] = near2 and near1
+    return out
 
 
 @numba.njit(cache=True)

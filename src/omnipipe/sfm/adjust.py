@@ -16,6 +16,7 @@ steps 5 and 6).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
@@ -23,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import ordered_map, shares_files
+from omnipipe.executor import ordered_map, parallelism, shares_files
 from omnipipe.geometry import interpolated_pose, invert
 from omnipipe.memory import release_freed_memory
 from omnipipe.progress import phase
@@ -451,8 +452,15 @@ def resect_pending(
     ``travel_mm`` with the rotation slerped between the keyframes
     (:func:`omnipipe.geometry.interpolated_pose`): the wall points they would be resected against
     follow vision's wrong period. The resected pose is kept only where it agrees with
-    that placement within the step's sigma. The step itself is flagged already."""
-    jobs = []
+    that placement within the step's sigma. The step itself is flagged already.
+
+    At most a few resections wait in the executor at a time (each holds its rays and
+    points): what is held does not grow with the run's pending frames."""
+    placed: dict[int, np.ndarray] = {}
+    stretches: list[UnreliableStretch] = []
+    inside = _BridgedPlacement(adjusted.world_from_kf, kf.frames, travel_mm, bridged_sigma_mm)
+    jobs: deque[tuple[PendingFrame, Future | None]] = deque()
+    most = 2 * parallelism(ctx.executor) + 2
     for p in pending:
         # The next keyframe's tracks too: points on both sides of the frame fix its
         # position better than the few tracks of one keyframe (a joints wall: 0.5-0.9 mm
@@ -468,23 +476,38 @@ def resect_pending(
         nxt = next_matches[p.frame].result() if t is not None and p.frame in next_matches else None
         job = None if t is None else _submit_resection(ctx, p, t, adjusted.world_from_kf, nxt)
         jobs.append((p, job))
-    placed: dict[int, np.ndarray] = {}
-    stretches = []
-    inside = _BridgedPlacement(adjusted.world_from_kf, kf.frames, travel_mm, bridged_sigma_mm)
-    for p, job in jobs:
-        pose = inside.place(p.keyframe, p.frame, _resection_result(ctx, p.frame, job))
-        if pose is None:
-            k = p.keyframe
-            pose, how = _unresected_pose(
-                adjusted.world_from_kf, kf.frames, k, p.frame, travel_mm, travel_source
-            )
-            ctx.warnings.append(f"frame {p.frame}: too few tracked points to resect; {how}")
-            # The steps into and out of it are both estimates.
-            end = kf.frames[k + 1] if k + 1 < len(kf.frames) else n_frames - 1
-            stretches.append(UnreliableStretch(kf.frames[k], end, "frame could not be resected"))
-        placed[p.frame] = pose
+        while len(jobs) > most:
+            _place_pending(ctx, kf, *jobs.popleft(), inside, travel_mm, travel_source, n_frames, placed, stretches)
+    while jobs:
+        _place_pending(ctx, kf, *jobs.popleft(), inside, travel_mm, travel_source, n_frames, placed, stretches)
     ctx.warnings.extend(inside.summary(travel_source))
     return Resected(placed, stretches)
+
+
+def _place_pending(
+    ctx: SfmContext,
+    kf: Keyframes,
+    p: PendingFrame,
+    job: Future | None,
+    inside: _BridgedPlacement,
+    travel_mm: np.ndarray | None,
+    travel_source: str,
+    n_frames: int,
+    placed: dict[int, np.ndarray],
+    stretches: list[UnreliableStretch],
+) -> None:
+    """Pending frame ``p``'s pose into ``placed``: its resection (``job``), or, when it
+    could not be resected, placed between its keyframes (:func:`resect_pending`), its
+    stretch into ``stretches``."""
+    pose = inside.place(p.keyframe, p.frame, _resection_result(ctx, p.frame, job))
+    if pose is None:
+        k = p.keyframe
+        pose, how = _unresected_pose(inside.world_from_kf, kf.frames, k, p.frame, travel_mm, travel_source)
+        ctx.warnings.append(f"frame {p.frame}: too few tracked points to resect; {how}")
+        # The steps into and out of it are both estimates.
+        end = kf.frames[k + 1] if k + 1 < len(kf.frames) else n_frames - 1
+        stretches.append(UnreliableStretch(kf.frames[k], end, "frame could not be resected"))
+    placed[p.frame] = pose
 
 
 class _BridgedPlacement:

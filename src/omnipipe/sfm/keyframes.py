@@ -14,12 +14,6 @@ frame:
   removed: under ``keyframe_min_parallax_deg`` the frame is *pending* (resected after
   the bundle adjustment), else it becomes the next keyframe; when its tracks are running
   out (``tracking.renew_ratio``), from half that angle on;
-- the frame predicted to cross that parallax next (its rays turning at the rate of the
-  frames before it) gets its SIFT features and descriptor matches to the last keyframe
-  in a worker, ``tracking.look_ahead`` frames ahead of the loop
-  (:func:`omnipipe.sfm.tasks.keyframe_candidate`): the loop takes them when the frame
-  does become the keyframe, the same values it would compute itself; a frame predicted
-  wrongly costs only the worker's time;
 - each keyframe step's two scale measurements (laser template matches, Eq. 17; feature
   depths on the light-section wall) are submitted to the executor's workers, a bounded
   number at a time.
@@ -29,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, replace
 
@@ -56,7 +50,6 @@ from omnipipe.sfm.stations import StationTracker
 from omnipipe.sfm.tasks import (
     FeatureTask,
     handed_gray,
-    keyframe_candidate,
     matched_rays,
     step_evidence,
     track_back,
@@ -64,7 +57,6 @@ from omnipipe.sfm.tasks import (
 )
 from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, keyframe_detection
 from omnipipe.sfm.types import (
-    KeyframeCandidate,
     KeyframeRays,
     Keyframes,
     PendingFrame,
@@ -140,6 +132,26 @@ class _Keyframe:
 
 
 @dataclass(frozen=True)
+class _BackJob:
+    """A keyframe's features to follow back through the frames pending before it
+    (:func:`omnipipe.sfm.tasks.track_back`), held until the step after it is matched.
+
+    Attributes:
+        k: the keyframe's index.
+        views: its views; features: its features (no descriptors).
+        followed: (F,) the features within the budget (indices into ``features``).
+        pending_views: the pending frames' views, latest first; frames: their indices.
+    """
+
+    k: int
+    views: FrameViews
+    features: FrameFeatures
+    followed: np.ndarray
+    pending_views: list[FrameViews]
+    frames: list[int]
+
+
+@dataclass(frozen=True)
 class _EvidenceJob:
     """A step's evidence, completed by the worker's ``future`` when there is one."""
 
@@ -195,13 +207,8 @@ def follow_keyframes(
     keyframes' grey images; ``progress`` is told the frames done, over all N; ``ratio``
     (N,) receives the stationary test's ratios when it runs here (:func:`moving_frames`)."""
     loop = KeyframeLoop(ctx, inputs, grays)
-    ahead: deque[MovingFrame] = deque()  # the next moving frames, seen before their turn
     for frame in moving_frames(ctx, inputs, loop.extractor, loop.moved, progress, ratio):
-        ahead.append(frame)
-        if len(ahead) > ctx.config.tracking.look_ahead:
-            loop.add(ahead.popleft(), upcoming=list(ahead))
-    while ahead:
-        loop.add(ahead.popleft(), upcoming=list(ahead))
+        loop.add(frame)
     loop.finish()
     return loop.result()
 
@@ -236,6 +243,7 @@ class KeyframeLoop:
         # pending frames once nothing more is matched to them): in the run's scratch.
         self._pack = Pack()
         self._in_flight: deque[Future] = deque()
+        self._back: _BackJob | None = None  # the last keyframe's, until its next step
         self._last: _Keyframe | None = None
         self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
         self._step_inliers = 0  # verified matches of the last keyframe step
@@ -247,26 +255,10 @@ class KeyframeLoop:
         self._direct = False
         # A new feature this close (rad) to a track carried on is that track.
         self._near = 2.0 * ctx.camera.angular_resolution()
-        # Frames predicted to become the next keyframe -> their features being found
-        # in a worker (:meth:`_look_ahead`).
-        self._ahead: dict[int, Future[KeyframeCandidate]] = {}
-        # The last keyframe step's parallax (rad) and moving frames; the parallax of
-        # the frames pending since the last keyframe, in order.
-        self._step_turn = (math.nan, 0)
-        self._turns: list[float] = []
-        self._least = self._min_parallax  # the last frame's keyframe parallax (rad)
 
-    def add(self, frame: MovingFrame, closing: bool = False, upcoming: Sequence[MovingFrame] = ()) -> None:
+    def add(self, frame: MovingFrame, closing: bool = False) -> None:
         """One moving frame: pending (too little parallax) or the next keyframe (always
-        with ``closing``). ``upcoming``: the moving frames after it, as far as they are
-        known (:meth:`_look_ahead`)."""
-        self._add(frame, closing)
-        for f in [f for f in self._ahead if f <= frame.frame]:  # not taken: wasted work
-            self._ahead.pop(f).cancel()
-        self._look_ahead(upcoming)
-
-    def _add(self, frame: MovingFrame, closing: bool) -> None:
-        """:meth:`add` of ``frame`` alone."""
+        with ``closing``)."""
         self._latest = frame
         last = self._last
         features = frame.features
@@ -277,7 +269,7 @@ class KeyframeLoop:
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
         step = self._chained_step(last, frame)
-        self._least = least = self._least_parallax(step)
+        least = self._least_parallax(step)
         if step is not None and step.parallax_rad < least and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
             self._defer(frame, step.tracks.features, step.inliers, step.parallax_rad)
@@ -288,11 +280,10 @@ class KeyframeLoop:
             tracked = not self._direct  # chained tracks, or descriptors they verified
         else:
             tracked = False
-            got = self._candidate(last, frame) if features is None else None
             if features is None:
-                features = got.features if got is not None else self._keyframe_features(frame, None)
+                features = self._keyframe_features(frame, None)
             n_continued = 0
-            m = got.matches if got is not None else match_features(last.features, features, self.ctx.config.features.ratio)
+            m = match_features(last.features, features, self.ctx.config.features.ratio)
         pair = StepPair(last.frame, frame.frame, last.features, features, m)
         motion = _relative(self.ctx, pair)
         if motion is None:
@@ -309,47 +300,6 @@ class KeyframeLoop:
         self._measure(pair, motion, last.gray, gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued, gray, parallax)
-
-    def _look_ahead(self, upcoming: Sequence[MovingFrame]) -> None:
-        """Start the features of the frame of ``upcoming`` (the next moving frames, in
-        order) predicted to become the next keyframe in a worker
-        (:func:`omnipipe.sfm.tasks.keyframe_candidate`), when not started yet: the
-        first whose rays will have turned the last frame's keyframe parallax, at the
-        rate of the last two frames (of the last keyframe step's average right after a
-        keyframe); every one of them once SIFT runs on every moving frame. One started
-        for a frame no longer predicted is cancelled when it has not started. Only with
-        workers, and with views (tracking)."""
-        last = self._last
-        if last is None or not self.ctx.parallel or not self.ctx.config.tracking.enabled:
-            return
-        frames = [f for f in upcoming if f.views is not None and f.features is None]
-        if not self._direct:
-            frames = _predicted_keyframe(frames, self._turns, self._step_turn, self._least)
-        chosen = {f.frame for f in frames}
-        for f in [f.frame for f in upcoming if f.frame in self._ahead and f.frame not in chosen]:
-            if self._ahead[f].cancel():  # no longer predicted, and not started: dropped
-                del self._ahead[f]
-        config = self.ctx.config
-        for f in frames:
-            if f.frame not in self._ahead:
-                self._ahead[f.frame] = self.ctx.executor.submit(
-                    keyframe_candidate, self.inputs.rig, config.features, config.tracking, self.ctx.ransac,
-                    f.frame, last.frame, f.views, last.features,
-                )
-
-    def _candidate(self, last: _Keyframe, frame: MovingFrame) -> KeyframeCandidate | None:
-        """``frame``'s features and descriptor matches to ``last`` found ahead
-        (:meth:`_look_ahead`; the matches found here again when they were to an earlier
-        keyframe), or None when they were not started, or not yet (then cancelled: the
-        loop finds them itself)."""
-        future = self._ahead.pop(frame.frame, None)
-        if future is None or future.cancel():
-            return None
-        got = future.result()
-        if got.keyframe != last.frame:
-            m = match_features(last.features, got.features, self.ctx.config.features.ratio)
-            got = replace(got, keyframe=last.frame, matches=m, verified=_verified(self.ctx, last.features, got.features, m))
-        return got
 
     def _least_parallax(self, step: TrackedStep | None) -> float:
         """The parallax (rad) from which the frame of ``step`` (its tracks; None: none)
@@ -383,16 +333,13 @@ class KeyframeLoop:
         config = self.ctx.config.tracking
         ratio = self.ctx.config.features.ratio
         inl = step.inliers
-        got = self._candidate(last, frame)  # found ahead in a worker, or None
-        detected = got.features if got is not None else self._keyframe_features(frame, None)
+        detected = self._keyframe_features(frame, None)
         radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
         track_rays = step.tracks.features.rays_in_rig[inl[:, 1]]
         everywhere, guided = thread_map(  # the two candidates at once (independent)
             lambda verify: verify(),
             [
-                lambda: got.verified if got is not None else _verified(
-                    self.ctx, last.features, detected, match_features(last.features, detected, ratio)
-                ),
+                lambda: _verified(self.ctx, last.features, detected, match_features(last.features, detected, ratio)),
                 lambda: _verified(
                     self.ctx, last.features, detected,
                     guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
@@ -499,6 +446,7 @@ class KeyframeLoop:
 
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
+        self._follow_back()
         rings = self.inputs.rings.rings
         keyframes = Keyframes(
             self.frames,
@@ -517,12 +465,45 @@ class KeyframeLoop:
             self.tracked,
         )
 
+    def _follow_back(self) -> None:
+        """The held :class:`_BackJob` submitted to the workers, its features narrowed to
+        those a keyframe step matched (its inliers to the keyframes before and after it):
+        the resection reads a frame's rays only of features in the adjustment's tracks,
+        which are made of these matches, so the poses are those of following them all
+        (each track's flow is its own), for a part of the work (where the chained tracks
+        carry the steps, few of the new features are matched on)."""
+        job, self._back = self._back, None
+        if job is None:
+            return
+        steps = [(self._step(job.k - 1), 1), (self._step(job.k), 0)]
+        matched = [e.inliers[:, side] for e, side in steps if e is not None and e.inliers is not None]
+        followed = matched_only(job.followed, matched)
+        if len(followed) == 0:
+            for f in job.frames:
+                self.next_matches[f] = _done(KeyframeRays(np.zeros(0, int), np.zeros((0, 3))))
+            return
+        whole = self.ctx.executor.submit(
+            track_back,
+            self.inputs.rig,
+            self.ctx.config.features,
+            job.views,
+            job.features,
+            followed,
+            job.pending_views,
+            self.ctx.config.tracking,
+        )
+        for f, part in zip(job.frames, _split(whole, len(job.frames)), strict=True):
+            self.next_matches[f] = part
+
+    def _step(self, k: int) -> StepEvidence | None:
+        """Keyframe step k -> k + 1's evidence as measured so far (None: not yet)."""
+        return self._jobs[k].evidence if 0 <= k < len(self._jobs) else None
+
     def _defer(self, frame: MovingFrame, features: FrameFeatures, inliers: np.ndarray, parallax: float) -> None:
         """``frame`` pending, with its ``inliers`` to the last keyframe and the
         ``parallax`` (rad) of its rays from it."""
         self.pending.append(PendingFrame(frame.frame, len(self.features) - 1, features, inliers))
         self._pending_parallax[frame.frame] = parallax
-        self._turns.append(parallax)
         if frame.views is not None:
             self._pending_views[frame.frame] = frame.views
 
@@ -601,7 +582,6 @@ class KeyframeLoop:
         self.features.append(features)
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
-        self._step_turn, self._turns = (parallax, len(self._turns) + 1), []
         self._last = _Keyframe(frame.frame, features, gray, frame.views)
         config = self.ctx.config
         fresh = np.arange(n_continued, len(features.view))
@@ -623,22 +603,20 @@ class KeyframeLoop:
                 config.tracking,
             )
         ]
+        self._follow_back()  # the keyframe before: its steps to either side are matched now
         if back and frame.views is not None:
-            whole = self.ctx.executor.submit(
-                track_back,
-                self.inputs.rig,
-                config.features,
+            self._back = _BackJob(
+                k_new,
                 frame.views,
                 _slim(features),
                 fresh[_budget(0, len(fresh), config.tracking.max_points)],
                 [self._pending_views[self.pending[j].frame] for j in back],
-                config.tracking,
+                [self.pending[j].frame for j in back],
             )
-            for j, part in zip(back, _split(whole, len(back)), strict=True):
-                self.next_matches[self.pending[j].frame] = part
+        waiting = set(self._back.frames) if self._back is not None else set()
         for j in since:
             p = self.pending[j]
-            if p.frame not in self.next_matches and len(p.features.descriptors):
+            if p.frame not in self.next_matches and p.frame not in waiting and len(p.features.descriptors):
                 self.next_matches[p.frame] = self.ctx.executor.submit(
                     matched_rays, features, p.features, config.features.ratio
                 )
@@ -649,29 +627,6 @@ class KeyframeLoop:
         self._pending_parallax.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _held(self._pack, self.features[k_new - 1])
-
-
-def _predicted_keyframe(
-    frames: list[MovingFrame], turns: list[float], step_turn: tuple[float, int], least: float
-) -> list[MovingFrame]:
-    """The first of ``frames`` (the moving frames after the last one added, in order)
-    predicted to turn ``least`` (rad) from the last keyframe, as a list (empty: none).
-    ``turns``: the parallax (rad) of the frames pending since the last keyframe, in
-    order; the next ones turn on by the last increment (the first: its own). Right
-    after a keyframe (``turns`` empty) at the average rate of its step, ``step_turn``
-    (parallax rad, moving frames; NaN: not known)."""
-    if turns:
-        now = turns[-1]
-        rate = turns[-1] - turns[-2] if len(turns) >= 2 else turns[-1]
-    else:
-        turn, n = step_turn
-        now, rate = 0.0, turn / n if n > 0 else math.nan
-    if not rate > 0 or not math.isfinite(now):
-        return []
-    for j, f in enumerate(frames, 1):
-        if now + j * rate >= least:
-            return [f]
-    return []
 
 
 def gray_for_worker(
@@ -730,6 +685,19 @@ def _split(whole: Future[list[KeyframeRays]], n: int) -> list[Future[KeyframeRay
 
     whole.add_done_callback(done)
     return parts
+
+
+def matched_only(followed: np.ndarray, matched: list[np.ndarray]) -> np.ndarray:
+    """The features of ``followed`` (F,) that appear in any of ``matched`` (arrays of
+    feature indices), in ``followed``'s order."""
+    return followed[np.isin(followed, np.concatenate(matched))] if matched else followed[:0]
+
+
+def _done(value: KeyframeRays) -> Future[KeyframeRays]:
+    """A future already holding ``value``."""
+    future: Future[KeyframeRays] = Future()
+    future.set_result(value)
+    return future
 
 
 def _subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:

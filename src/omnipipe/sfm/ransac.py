@@ -19,11 +19,11 @@ import numpy as np
 from omnipipe.config import bounded
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import make_transform
+from omnipipe.sfm._kernels import epipolar_inliers
 from omnipipe.sfm.geometry import (
     _check_pairs,
     decompose_essential,
     eight_point,
-    epipolar_angle,
     rotation_from_rays,
 )
 
@@ -85,6 +85,8 @@ def estimate_relative_motion(
             f"relative motion: only {n} correspondences (need {max(8, cfg.min_inliers)})"
         )
     rng = np.random.default_rng(cfg.seed)
+    # Inliers: angular epipolar error below the threshold (compiled, one pass).
+    sin_thr = math.sin(min(cfg.threshold_rad, 0.5 * math.pi))
     best_inl = np.zeros(n, bool)
     best_count = 0
     it, needed = 0, cfg.max_iterations
@@ -92,13 +94,13 @@ def estimate_relative_motion(
         it += 1
         sample = rng.choice(n, 8, replace=False)
         E = eight_point(r1[sample], r2[sample])
-        inl = epipolar_angle(E, r1, r2) < cfg.threshold_rad
+        inl = epipolar_inliers(E, r1, r2, sin_thr)
         count = int(inl.sum())
         if count > best_count and count >= 8:
             # Local optimisation (LO-RANSAC): refit on the inliers while they grow.
             for _ in range(5):
                 E_lo = eight_point(r1[inl], r2[inl])
-                inl_lo = epipolar_angle(E_lo, r1, r2) < cfg.threshold_rad
+                inl_lo = epipolar_inliers(E_lo, r1, r2, sin_thr)
                 if inl_lo.sum() <= count:
                     break
                 inl, count = inl_lo, int(inl_lo.sum())
@@ -119,7 +121,7 @@ def estimate_relative_motion(
     inl = best_inl
     for _ in range(2):
         E = eight_point(r1[inl], r2[inl])
-        inl = epipolar_angle(E, r1, r2) < cfg.threshold_rad
+        inl = epipolar_inliers(E, r1, r2, sin_thr)
         if inl.sum() < cfg.min_inliers:
             inl = best_inl
             E = eight_point(r1[inl], r2[inl])

@@ -7,8 +7,6 @@ where it ran:
   as the decoding pass left it, :mod:`omnipipe.handoff`): its perspective views (:mod:`omnipipe.sfm.features`; SIFT on them too when nothing is
   tracked between keyframes) and its grey image (for the later template matching,
   Eq. 17);
-- :func:`keyframe_candidate`: a frame predicted to become the next keyframe, its SIFT
-  features and descriptor matches to the last keyframe found ahead of the frame loop;
 - :func:`track_back` and :func:`matched_rays`: the pending frames' correspondences with
   the next keyframe's features (optical flow back frame by frame through their views,
   :mod:`omnipipe.sfm.tracking`, or descriptor matches), for their resection;
@@ -50,8 +48,8 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, keyframe_detection
-from omnipipe.sfm.types import KeyframeCandidate, KeyframeRays, StepScales
+from omnipipe.sfm.tracking import TrackChain, TrackConfig
+from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
     from omnipipe.executor import FrameSource
@@ -151,28 +149,6 @@ def handed_gray(folder: str, frame: int, channel: str) -> np.ndarray:
     if image is None:
         raise ReconstructionError(f"frame {frame}: no longer in the run's hand-off folder {folder}")
     return frame_gray(image, channel)
-
-
-def keyframe_candidate(
-    rig: Rig,
-    features_config: FeatureConfig,
-    tracking: TrackConfig,
-    ransac: RansacConfig,
-    frame: int,
-    keyframe: int,
-    views: FrameViews,
-    key_features: FrameFeatures,
-) -> KeyframeCandidate:
-    """Frame ``frame`` (its ``views``) as the next keyframe after ``keyframe`` (its
-    ``key_features``, with descriptors): its own features
-    (:func:`omnipipe.sfm.tracking.keyframe_detection`), their descriptor matches to the
-    keyframe's over the whole frame (Lowe's ratio ``features_config.ratio``) and those
-    RANSAC verifies (:func:`verified_matches`): what the frame loop computes should
-    the frame become the keyframe, the same values."""
-    features = keyframe_detection(_extractor(rig, features_config), views, tracking)
-    matches = match_features(key_features, features, features_config.ratio)
-    verified = verified_matches(key_features, features, matches, ransac)
-    return KeyframeCandidate(frame, keyframe, features, matches, verified)
 
 
 def verified_matches(fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray, ransac: RansacConfig) -> np.ndarray:

@@ -78,12 +78,6 @@ class TrackConfig:
             from both sides; the frames after it back to the next keyframe are followed
             through on the way); 0: never by count, a large number (the default): always
             (why always: benchmarks/RESULTS.md).
-        look_ahead: the frame loop sees this many moving frames before their turn, and
-            the one of them predicted to become the next keyframe gets its features
-            and descriptor matches in a worker (:mod:`omnipipe.sfm.keyframes`; the
-            same result, taken only when it does; 0, the default: found in the loop
-            only, since on 2 busy cores the wrong guesses cost more than the wait saves:
-            benchmarks/RESULTS.md).
         back_beyond: ... or when its rays turned at least this share of the next
             keyframe's parallax from its own keyframe (the far part of a long step,
             where its own keyframe's tracks alone let it drift; robustness seed 1, a
@@ -105,7 +99,6 @@ class TrackConfig:
     renew_ratio: float = bounded(0.3, ge=0, le=1)
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
-    look_ahead: int = bounded(0, ge=0)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -438,8 +431,7 @@ def _inherited_steps(prior: TrackChain, view: np.ndarray, view_pixels: np.ndarra
 def keyframe_detection(extractor: FeatureExtractor, views: FrameViews, config: TrackConfig) -> FrameFeatures:
     """A keyframe's own features on its ``views``: SIFT (``extractor.detect``), then,
     with ``config.enabled``, Shi-Tomasi corners where SIFT found few
-    (:func:`corner_features`). The same wherever it runs (this process or a worker:
-    :func:`omnipipe.sfm.tasks.keyframe_candidate`)."""
+    (:func:`corner_features`)."""
     features = extractor.detect(views)
     if config.enabled:
         corners = corner_features(extractor, views, features, config)

@@ -299,29 +299,6 @@ class StepScales:
 
 
 @dataclass(frozen=True)
-class KeyframeCandidate:
-    """A frame's features as the next keyframe, found ahead of the frame loop (in a
-    worker, :func:`omnipipe.sfm.tasks.keyframe_candidate`).
-
-    Attributes:
-        frame: the frame.
-        keyframe: the frame index of the keyframe ``matches`` are to.
-        features: its own features (SIFT, corners where few;
-            :func:`omnipipe.sfm.tracking.keyframe_detection`).
-        matches: (M, 2) (keyframe feature, feature) descriptor matches over the whole
-            frame (:func:`omnipipe.sfm.features.match_features`).
-        verified: the rows of ``matches`` one relative motion explains (RANSAC inliers;
-            none when no motion fits).
-    """
-
-    frame: int
-    keyframe: int
-    features: FrameFeatures
-    matches: np.ndarray
-    verified: np.ndarray
-
-
-@dataclass(frozen=True)
 class PairMatches:
     """RANSAC inlier matches of one keyframe step, the bundle adjustment's tracks.
 
