@@ -19,12 +19,7 @@ GAP_AT, GAP_MM, DEPTH_MM = -190.0, 10.0, 11.5
 
 def _line(arc: np.ndarray) -> Centreline:
     """A straight centreline along world z through the rings' stations."""
-    k = len(arc)
-    z = np.tile([0.0, 0.0, 1.0], (k, 1))
-    return Centreline(
-        arc, arc[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)), np.tile([0.0, 1.0, 0.0], (k, 1)),
-        np.full(k, R), [],
-    )
+    return Centreline.straight(arc, R)
 
 
 def _scene(seed: int, gap: bool) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -18,12 +18,8 @@ R = 75.0
 
 
 def _line(arc: np.ndarray) -> Centreline:
-    k = len(arc)
-    z = np.tile([0.0, 0.0, 1.0], (k, 1))
-    return Centreline(
-        arc, arc[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)), np.tile([0.0, 1.0, 0.0], (k, 1)),
-        np.full(k, R), [],
-    )
+    """A straight centreline along world z through the rings' stations."""
+    return Centreline.straight(arc, R)
 
 
 def _rings(seed: int, lost: list[float], width_mm: float, hole_mm: float | None = None):

@@ -60,6 +60,17 @@ class Centreline:
     radius_mm: np.ndarray
     cylinders: list[Cylinder]
 
+    @classmethod
+    def straight(cls, arc_mm: np.ndarray, radius_mm: float) -> Centreline:
+        """A straight centreline along world z through the stations ``arc_mm`` (K,) mm
+        (normal x, binormal y), of constant radius ``radius_mm``: a synthetic pipe's."""
+        k = len(arc_mm)
+        z = np.tile([0.0, 0.0, 1.0], (k, 1))
+        return cls(
+            arc_mm, arc_mm[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)),
+            np.tile([0.0, 1.0, 0.0], (k, 1)), np.full(k, radius_mm), [],
+        )
+
     def straightness_mm(self) -> float:
         """Largest distance of a station centre from the best straight line through them."""
         c = self.centre - self.centre.mean(axis=0)
