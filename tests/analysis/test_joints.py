@@ -22,6 +22,17 @@ def _line(arc: np.ndarray) -> Centreline:
     return Centreline.straight(arc, R)
 
 
+def _stacked(
+    line: Centreline, theta: np.ndarray, rings: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each ring's (axial mm, radius mm) samples at the angles ``theta`` (rad), stacked
+    as find_features takes them: ``line``, sigma, rho, theta, frame (the ring's index)."""
+    sig = np.concatenate([a for a, _ in rings])
+    rho = np.concatenate([b for _, b in rings])
+    frame = np.repeat(np.arange(len(rings)), theta.size)
+    return line, sig, rho, np.tile(theta, len(rings)), frame
+
+
 def _scene(seed: int, gap: bool) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Ten rings 3-8 mm apart over 50 mm, 540 samples each, wall noise 2 mm. Each ring
     strays +-12 mm along the axial coordinate (its plane tilted 2.6 deg to the fitted
@@ -32,17 +43,14 @@ def _scene(seed: int, gap: bool) -> tuple[Centreline, np.ndarray, np.ndarray, np
     theta = np.linspace(-np.pi, np.pi, 540, endpoint=False)
     ring_slant = R * np.tan(np.radians(2.6)) * np.cos(theta)
     gap_slant = R * np.tan(np.radians(1.8)) * np.cos(theta - 0.3)
-    sig, rho, th, frame = [], [], [], []
-    for k, c in enumerate(centres):
+    rings: list[tuple[np.ndarray, np.ndarray]] = []
+    for c in centres:
         s = c + ring_slant + rng.normal(0.0, 0.3, theta.size)
         r = R + rng.normal(0.0, 2.0, theta.size)
         if gap:
             r += DEPTH_MM * (np.abs(s - gap_slant - GAP_AT) <= 0.5 * GAP_MM)
-        sig.append(s)
-        rho.append(r)
-        th.append(theta)
-        frame.append(np.full(theta.size, k))
-    return _line(centres), *(np.concatenate(a) for a in (sig, rho, th, frame))
+        rings.append((s, r))
+    return _stacked(_line(centres), theta, rings)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -77,20 +85,13 @@ def _two_gaps(seed: int) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray
     centres = -150.0 + np.cumsum(rng.uniform(5.0, 7.0, 34))
     theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
     spread = radius * np.tan(np.radians(5.0)) * np.cos(theta - 0.4)
-    sig, rho, th, frame = [], [], [], []
-    for k, c in enumerate(centres):
+    rings: list[tuple[np.ndarray, np.ndarray]] = []
+    for c in centres:
         r = radius + rng.normal(0.0, 0.8, theta.size) + 6.0 * (rng.random(theta.size) < 0.01)
         for (g, w), depth in zip(gaps, (13.0, 9.0), strict=True):
             r += depth * (abs(c - g) <= 0.5 * w)
-        sig.append(c + spread)
-        rho.append(r)
-        th.append(theta)
-        frame.append(np.full(theta.size, k))
-    k = len(centres)
-    z = np.tile([0.0, 0.0, 1.0], (k, 1))
-    line = Centreline(centres, centres[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)),
-                      np.tile([0.0, 1.0, 0.0], (k, 1)), np.full(k, radius), [])
-    return line, *(np.concatenate(a) for a in (sig, rho, th, frame)), gaps
+        rings.append((c + spread, r))
+    return *_stacked(Centreline.straight(centres, radius), theta, rings), gaps
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -153,18 +154,11 @@ def _reducer(seed: int, gap: bool) -> tuple[Centreline, np.ndarray, np.ndarray, 
     centres = np.array([-103.4, -91.5, -79.3, -66.8, -54.3, -42.0, -29.9]) + rng.uniform(-0.5, 0.5, 7)
     theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
     radius = np.interp(centres, [-88.0, -47.0], [137.5, 111.0])
-    sig, rho, th, frame = [], [], [], []
-    for k, (c, r0) in enumerate(zip(centres, radius, strict=True)):
+    rings: list[tuple[np.ndarray, np.ndarray]] = []
+    for c, r0 in zip(centres, radius, strict=True):
         r = r0 + rng.normal(0.0, 0.5, theta.size) + (5.0 if gap and abs(c + 75.3) <= 5.5 else 0.0)
-        sig.append(np.full(theta.size, c))
-        rho.append(r)
-        th.append(theta)
-        frame.append(np.full(theta.size, k))
-    k = len(centres)
-    z = np.tile([0.0, 0.0, 1.0], (k, 1))
-    line = Centreline(centres, centres[:, None] * z, z, np.tile([1.0, 0.0, 0.0], (k, 1)),
-                      np.tile([0.0, 1.0, 0.0], (k, 1)), radius, [])
-    return line, *(np.concatenate(a) for a in (sig, rho, th, frame))
+        rings.append((np.full(theta.size, c), r))
+    return _stacked(Centreline.straight(centres, radius), theta, rings)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -195,8 +189,8 @@ def _crossed(seed: int, gap: bool, arc_deg: float = 360.0) -> tuple[Centreline, 
     centres = np.linspace(-201.0, -157.0, 19) + rng.uniform(-0.5, 0.5, 19)
     theta = np.radians(np.r_[np.arange(0.0, 200.0, 0.67), np.arange(320.0, 360.0, 0.67)])
     slant = r0 * np.tan(np.radians(7.7)) * np.cos(theta + np.radians(24.0))  # crossings sweep 50-130 deg
-    sig, rho, th, frame = [], [], [], []
-    for k, c in enumerate(centres):
+    rings: list[tuple[np.ndarray, np.ndarray]] = []
+    for c in centres:
         s = c + slant + rng.normal(0.0, 0.3, theta.size)
         r = r0 + rng.normal(0.0, 0.9, theta.size)
         if gap:
@@ -205,11 +199,8 @@ def _crossed(seed: int, gap: bool, arc_deg: float = 360.0) -> tuple[Centreline, 
             seen = np.abs(s - gap_at - 0.3 * (c - gap_at)) <= 5.0
             seen &= np.abs(np.degrees(theta) - 90.0) <= 0.5 * arc_deg
             r += np.where(seen & (theta < np.radians(150.0)), rng.uniform(3.0, 5.0, theta.size), 0.0)
-        sig.append(s)
-        rho.append(r)
-        th.append(theta)
-        frame.append(np.full(theta.size, k))
-    return _line(centres), *(np.concatenate(a) for a in (sig, rho, th, frame))
+        rings.append((s, r))
+    return _stacked(_line(centres), theta, rings)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

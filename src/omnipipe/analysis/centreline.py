@@ -61,9 +61,10 @@ class Centreline:
     cylinders: list[Cylinder]
 
     @classmethod
-    def straight(cls, arc_mm: np.ndarray, radius_mm: float) -> Centreline:
+    def straight(cls, arc_mm: np.ndarray, radius_mm: float | np.ndarray) -> Centreline:
         """A straight centreline along world z through the stations ``arc_mm`` (K,) mm
-        (normal x, binormal y), of constant radius ``radius_mm``: a synthetic pipe's."""
+        (normal x, binormal y), of radius ``radius_mm`` (a number or (K,) mm): a
+        synthetic pipe's."""
         k = len(arc_mm)
         z = np.tile([0.0, 0.0, 1.0], (k, 1))
         return cls(
