@@ -140,3 +140,29 @@ def test_laterals_own_zones_replace_the_circular_estimate() -> None:
     zones = feature_zones([j, lat], RADIUS, 3.0, [own])
     assert own in zones and len(zones) == 2
     assert next(z for z in zones if z.arc_mm is None).axial_from_mm < 50.0
+
+
+def test_one_ring_streak_reaching_into_a_joints_band_is_a_warning_three_rings_a_dent() -> None:
+    """A ring tilted across a joint lies on both sections (random-features-small seed 30):
+    a 3 mm streak on that one ring whose samples reach into the joint's band (some
+    inside, most beside it) is a warning, not a defect; without the joint it is a
+    defect, and the same streak seen by three rings beside the joint stays a dent."""
+    sig, arc, dev, ring = _wall(19)
+    tilted = ring == 20  # the ring at 100 mm, tilted: 100 + 8 sin(theta) mm
+    sig = sig.copy()
+    sig[tilted] = 100.0 + 8.0 * np.sin(arc[tilted] / RADIUS)
+    joint = FeatureZone(104.0, 124.0, "the joint at 114.0 mm")
+    du = (arc - math.radians(30.0) * RADIUS + CIRC / 2) % CIRC - CIRC / 2
+    streak = 3.0 * plateau(du, 20.0, 5.0)
+    one = dev + streak * tilted
+    z = sig[tilted & (np.abs(du) < 10.0)]
+    assert z.min() < 104.0 < z.max()  # the streak's samples straddle the band's edge
+    res = _search(sig, arc, one, ring, zones=[joint])
+    assert res.defects == [], res.defects
+    assert any("band of the joint at 114.0 mm" in w for w in res.warnings), res.warnings
+    plain = _search(sig, arc, one, ring)
+    assert len(plain.defects) == 1 and plain.defects[0].kind == "dent"
+    three = dev + streak * np.isin(ring, [18, 19, 20])
+    beside = _search(sig, arc, three, ring, zones=[joint])
+    assert len(beside.defects) == 1 and beside.defects[0].kind == "dent", beside.defects
+    assert abs(beside.defects[0].angle_deg - 30.0) < 3.0

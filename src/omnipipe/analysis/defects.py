@@ -657,7 +657,12 @@ def _one_sided(
     opening's rim (the wall around it lit by the branch, the rim's stray light), not a
     deformation of the wall (random-features-small seeds 6, 9, 14, 20, 31: bulges and
     dents 4-90 mm high at the holes' rims); a dent beside the opening, clear of its
-    zone, stays a defect, and so does one seen by several rings in a joint's zone."""
+    zone, stays a defect, and so does one seen by several rings in a joint's zone. A
+    candidate seen by one ring whose samples reach into a joint's band (not all inside
+    it) is also a warning: a ring tilted across the joint lies on both sections, and
+    its one profile cannot follow the step (random-features-small seed 30: a 12 mm
+    "dent" on the ring crossing a 5 mm offset joint at a taper's start, peaking 20 mm
+    from the band on the far side of the ring)."""
     circ = s.circumference_mm
     zs, arc = s.sigma_mm[members], s.arc_mm[members]
     rim = next((q for q in zones if q.arc_mm is not None and q.inside(zs, arc, circ).any()), None)
@@ -683,9 +688,13 @@ def _one_sided(
         why = f"one ring, with no measured wall {'before' if not before.any() else 'after'} it along the pipe"
     else:
         zone = next((q for q in zones if q.holds(zs, arc, circ)), None)
-        if zone is None:
+        band = next((q for q in zones if q.arc_mm is None and q.inside(zs, arc, circ).any()), None)
+        if zone is not None:
+            why = f"one ring inside the reach of {zone.label}"
+        elif band is not None:
+            why = f"one ring reaching into the band of {band.label} (the ring mixes the sections either side)"
+        else:
             return False
-        why = f"one ring inside the reach of {zone.label}"
     dev = np.abs(s.deviation_mm[members])
     angle = (ref + float(np.median(du))) % circ / circ * 360.0
     warnings.append(
