@@ -657,12 +657,8 @@ def _one_sided(
     opening's rim (the wall around it lit by the branch, the rim's stray light), not a
     deformation of the wall (random-features-small seeds 6, 9, 14, 20, 31: bulges and
     dents 4-90 mm high at the holes' rims); a dent beside the opening, clear of its
-    zone, stays a defect, and so does one seen by several rings in a joint's zone. A
-    candidate seen by one ring whose samples reach into a joint's band (not all inside
-    it) is also a warning: a ring tilted across the joint lies on both sections, and
-    its one profile cannot follow the step (random-features-small seed 30: a 12 mm
-    "dent" on the ring crossing a 5 mm offset joint at a taper's start, peaking 20 mm
-    from the band on the far side of the ring)."""
+    zone, stays a defect, and so does one seen by several rings in a joint's zone. Other
+    candidates seen by one ring mid-run: :func:`_mid_run_reason`."""
     circ = s.circumference_mm
     zs, arc = s.sigma_mm[members], s.arc_mm[members]
     rim = next((q for q in zones if q.arc_mm is not None and q.inside(zs, arc, circ).any()), None)
@@ -687,22 +683,55 @@ def _one_sided(
     if not before.any() or not after.any():
         why = f"one ring, with no measured wall {'before' if not before.any() else 'after'} it along the pipe"
     else:
-        zone = next((q for q in zones if q.holds(zs, arc, circ)), None)
-        band = next((q for q in zones if q.arc_mm is None and q.inside(zs, arc, circ).any()), None)
-        if zone is not None:
-            why = f"one ring inside the reach of {zone.label}"
-        elif band is not None:
-            why = f"one ring reaching into the band of {band.label} (the ring mixes the sections either side)"
-        else:
+        why = _mid_run_reason(s, members, zones, before, after)
+        if why is None:
             return False
     dev = np.abs(s.deviation_mm[members])
     angle = (ref + float(np.median(du))) % circ / circ * 360.0
+    head = f"{kind} candidate at {float(np.median(zs)):.0f} mm, {angle:.0f} deg ({len(members)} samples up to {float(dev.max()):.2f} mm)"
+    if why.startswith("steep:"):
+        warnings.append(f"{head} {why[6:]}: a streak of stray peaks along one ring, not reported as a defect")
+        return True
     warnings.append(
-        f"{kind} candidate at {float(np.median(zs)):.0f} mm, {angle:.0f} deg ({len(members)} samples up to "
-        f"{float(dev.max()):.2f} mm) seen by {why}: one-sided, it cannot be told from the run's end or "
+        f"{head} seen by {why}: one-sided, it cannot be told from the run's end or "
         "a feature's rim and cannot be sized; flagged here, not reported as a defect"
     )
     return True
+
+
+STEEP_RATIO = 0.5
+"""A defect candidate on one ring whose height exceeds this fraction of the distance
+between the clean rings either side (at its angles) rises steeper than any dent:
+the simulator's 100 defects (random-features and robustness scenes) have height over
+length at most 0.50, a real dent seen by one ring lies between its neighbours, so its
+height over that distance is at most about that."""
+
+
+def _mid_run_reason(
+    s: WallSamples, members: np.ndarray, zones: Sequence[FeatureZone], before: np.ndarray, after: np.ndarray
+) -> str | None:
+    """Why a candidate seen by one ring mid-run (wall measured on both sides, ``before``
+    and ``after`` (N,) masks of the other rings' samples at its angles) is no defect, or
+    None: it lies wholly inside a feature's zone; it reaches into a joint's band (a ring
+    tilted across the joint lies on both sections, and its one profile cannot follow the
+    step: random-features-small seed 30, a 12 mm "dent" on the ring crossing a 5 mm
+    offset joint at a taper's start, peaking 20 mm from the band on the ring's far
+    side); or it is steeper than a dent (:data:`STEEP_RATIO`; seeds 14 and 31: 7-10 mm
+    over 12 samples of one ring, the clean rings 10-11 mm apart around it, texture taken
+    for the laser peak along the ring)."""
+    circ = s.circumference_mm
+    zs, arc = s.sigma_mm[members], s.arc_mm[members]
+    zone = next((q for q in zones if q.holds(zs, arc, circ)), None)
+    if zone is not None:
+        return f"one ring inside the reach of {zone.label}"
+    band = next((q for q in zones if q.arc_mm is None and q.inside(zs, arc, circ).any()), None)
+    if band is not None:
+        return f"one ring reaching into the band of {band.label} (the ring mixes the sections either side)"
+    height = float(np.max(np.abs(s.deviation_mm[members])))
+    between = float(s.sigma_mm[after].min() - s.sigma_mm[before].max())
+    if height > STEEP_RATIO * between:
+        return f"steep:rises {height:.1f} mm between rings {between:.1f} mm apart that measured the wall there"
+    return None
 
 
 def _supported(samples: WallSamples, value: np.ndarray, sc: _Scales) -> np.ndarray:
