@@ -166,3 +166,18 @@ def test_one_ring_streak_reaching_into_a_joints_band_is_a_warning_three_rings_a_
     beside = _search(sig, arc, three, ring, zones=[joint])
     assert len(beside.defects) == 1 and beside.defects[0].kind == "dent", beside.defects
     assert abs(beside.defects[0].angle_deg - 30.0) < 3.0
+
+
+def test_one_ring_streak_steeper_than_a_dent_is_stray_peaks() -> None:
+    """Mid-run, rings every 5 mm: a 7 mm streak on one ring (random-features-small seeds
+    14 and 31: 7-10 mm over a dozen samples of one ring, the rings either side clean) rises
+    more than half the 10 mm between its clean neighbours, steeper than any dent: a
+    warning, no defect. The same streak on three rings (a 20 mm long dent) is a defect."""
+    sig, arc, dev, ring = _wall(23)
+    steep = _search(sig, arc, dev + _streak(sig, arc, 100.0, 150.0, 7.0), ring)
+    assert steep.defects == [], steep.defects
+    assert any("stray peaks along one ring" in w for w in steep.warnings), steep.warnings
+    du = (arc - math.radians(150.0) * RADIUS + CIRC / 2) % CIRC - CIRC / 2
+    three = dev + 7.0 * plateau(du, 20.0, 5.0) * np.isin(ring, [19, 20, 21])
+    res = _search(sig, arc, three, ring)
+    assert len(res.defects) == 1 and res.defects[0].kind == "dent", res.defects
