@@ -356,7 +356,11 @@ class BundleObjective:
         int32 where the entries allow. Only the few other rows (anchors, priors, rings)
         are sorted, as entries of their blocks. ``_indices``, ``_place`` and ``_indptr``
         are those of sorting every entry by (row, column) (``_place``: where each entry of
-        :meth:`jacobian`'s blocks, concatenated, goes in CSR order)."""
+        :meth:`jacobian`'s blocks, concatenated, goes in CSR order). The freed pages are
+        handed back to the system before the solve
+        (:func:`omnipipe.memory.release_freed_memory`)."""
+        from omnipipe.memory import release_freed_memory
+
         pr, F = self.problem, self._F
         M, L = len(pr.obs_frame), len(pr.anchor_a)
         self._obs_free = np.flatnonzero(pr.obs_frame >= F)
@@ -395,6 +399,10 @@ class BundleObjective:
         self._place[len(self._obs_free) * 12 + 6 * M + order] = n_obs + np.arange(len(order))
         self._indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
         self._shape = (self._n_rows, len(self.x0))
+        del blocks, rest_rows, rest_cols, order, counts
+        # The pages freed since (this structure's work, a previous window's adjustment)
+        # back to the system: not under this window's solve.
+        release_freed_memory()
 
     def _observation_places(self) -> None:
         """The observation entries' columns (the first of ``_indices``) and CSR places (the
