@@ -358,7 +358,7 @@ def png_filter_rows(rows, above, bpp, out):  # pragma: no cover - compiled
     (n, 1 + L) uint8 ``out``, each row filtered as PIL's encoder does it: the first of
     None (0), Up (2), Sub (1), Paeth (4), in that order, whose sum of the filtered bytes'
     distances from zero (as signed bytes) is smallest, a later one only when strictly
-    smaller (Average never). ``tests/model/test_png.py``'s ``filter_rows`` is its
+    smaller (Average never). ``tests/model/test_png_writer.py``'s ``filter_rows`` is its
     reference, byte for byte."""
     n, width = rows.shape
     cand = np.empty((3, width), np.uint8)  # Up, Sub, Paeth
