@@ -18,6 +18,7 @@ import numpy as np
 import pye57
 import pytest
 import trimesh
+from PIL import Image
 
 from omnipipe.model import (
     ModelResult,
@@ -302,10 +303,13 @@ def test_glb_streamed_is_trimeshs_file_byte_for_byte(
     """write_glb streams the binary chunk after a JSON header built from counts and
     extents: the file is trimesh's export_glb of the same mesh, byte for byte, whether
     its arrays go in one chunk or in chunks of 997 rows (a pipe mesh with degenerate
-    faces and unused vertices; a texture whose PNG is not a multiple of 4 bytes)."""
+    faces and unused vertices; a texture whose PNG is not a multiple of 4 bytes). The
+    texture's PNG is PIL's here (trimesh encodes it so); omnipipe's own streamed PNG,
+    which decodes to the same pixels, is embedded as it is."""
     from omnipipe.model import export
 
     monkeypatch.setattr(export, "WRITE_CHUNK", chunk)
+    monkeypatch.setattr(export, "texture_png", pil_texture_png)
     rng = np.random.default_rng(3)
     cols, rows = 90, 40
     theta, z = np.meshgrid(np.linspace(0, 2 * np.pi, cols, endpoint=False), np.arange(rows) * 2.0)
@@ -332,24 +336,55 @@ def test_glb_streamed_is_trimeshs_file_byte_for_byte(
     export.write_obj(tmp_path / "m.obj", v, f, uv, tmp_path / "t.png")
     for name in ("m.obj", "m.mtl", export.OBJ_TEXTURE):
         assert (tmp_path / name).read_bytes() == (tmp_path / "a" / name).read_bytes(), name
+    monkeypatch.undo()
+    export.write_glb(tmp_path / "s.glb", v, f, uv, tex)  # the streamed PNG inside
+    export.texture_png(tmp_path / "s.png", tex)
+    (tree, views), (pil_tree, pil_views) = _glb_parts(tmp_path / "s.glb"), _glb_parts(tmp_path / "m.glb")
+    image_view = tree["images"][0]["bufferView"]
+    png_bytes = (tmp_path / "s.png").read_bytes()  # in its view, padded to 4 bytes
+    assert views[image_view] == png_bytes + bytes(len(views[image_view]) - len(png_bytes))
+    assert len(views[image_view]) - len(png_bytes) < 4
+    assert [b for k, b in enumerate(views) if k != image_view] == [
+        b for k, b in enumerate(pil_views) if k != image_view
+    ]
+    for t in (tree, pil_tree):
+        for view in t["bufferViews"]:
+            view.pop("byteOffset", None), view.pop("byteLength")
+        t["buffers"][0].pop("byteLength")
+    assert tree == pil_tree
+    with Image.open(tmp_path / "s.png") as im:
+        assert np.array_equal(np.asarray(im), tex)
 
 
-def test_unrolled_png_from_the_scratch_is_the_png_of_the_stacked_image(monkeypatch, tmp_path: Path) -> None:
-    """unrolled.png's RGBA is made in the run's scratch a band of rows at a time and
-    encoded in place: the same pixels and the same file as PIL's of ``np.dstack``."""
+def _glb_parts(path: Path) -> tuple[dict, list[bytes]]:
+    """A GLB file's JSON tree and each of its buffer views' bytes."""
+    data = path.read_bytes()
+    (n,) = struct.unpack("<I", data[12:16])
+    tree = json.loads(data[20 : 20 + n])
+    binary = data[20 + n + 8 :]
+    return tree, [binary[v.get("byteOffset", 0) : v.get("byteOffset", 0) + v["byteLength"]] for v in tree["bufferViews"]]
+
+
+def pil_texture_png(dst, texture: np.ndarray) -> None:
+    """PIL's PNG of ``texture`` (the bytes trimesh embeds)."""
+    from omnipipe.image import PNG_COMPRESS_LEVEL
+
+    Image.fromarray(np.ascontiguousarray(texture)).save(dst, format="png", compress_level=PNG_COMPRESS_LEVEL)
+
+
+def test_unrolled_png_from_the_scratch_decodes_to_the_stacked_image(monkeypatch, tmp_path: Path) -> None:
+    """unrolled.png is made and encoded a band of rows at a time from an image and a
+    mask in the run's scratch: it decodes to the pixels of ``np.dstack`` of the two."""
     from PIL import Image
 
     import omnipipe.model.export as export
-    from omnipipe.image import PNG_COMPRESS_LEVEL
-    from omnipipe.spill import is_on_disk
+    from omnipipe.spill import on_disk
 
     monkeypatch.setattr(export, "_RGBA_ROWS", 7)  # many bands, a ragged last one
     rng = np.random.default_rng(14)
     image = rng.integers(0, 256, (45, 33, 3), dtype=np.uint8)
     alpha = rng.random((45, 33)) < 0.8
-    rgba = export._rgba_on_disk(image, alpha)
+    export._write_rgba_png(tmp_path / "a.png", on_disk(image), on_disk(alpha))
     want = np.dstack([image, np.where(alpha, 255, 0).astype(np.uint8)])
-    assert is_on_disk(rgba) and rgba.dtype == np.uint8 and np.array_equal(rgba, want)
-    Image.fromarray(rgba).save(tmp_path / "a.png", compress_level=PNG_COMPRESS_LEVEL)
-    Image.fromarray(want).save(tmp_path / "b.png", compress_level=PNG_COMPRESS_LEVEL)
-    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+    with Image.open(tmp_path / "a.png") as im:
+        assert im.mode == "RGBA" and np.array_equal(np.asarray(im), want)

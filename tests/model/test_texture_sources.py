@@ -330,6 +330,21 @@ def test_magnification_table_bounds_the_projection() -> None:
 
 
 
+@pytest.mark.parametrize("model", ["hyperboloid", "unified"])
+def test_magnification_table_by_blocks_of_elevations_equals_the_whole(monkeypatch, model: str) -> None:
+    """The table sampled a few elevations at a time (blocks of 7: many, a ragged last
+    one) is the one sampled at once (every elevation in one block), entry for entry."""
+    from omnipipe.model import texture_sources
+
+    camera = camera_from_rig(_rig(model))
+    tables = []
+    for rows in (7, 100_000):
+        monkeypatch.setattr(texture_sources, "MAG_ROWS", rows)
+        monkeypatch.setattr(texture_sources, "_MAGNIFICATION", {})
+        tables.append(magnification_table(camera))
+    assert np.array_equal(tables[0], tables[1]) and np.isfinite(tables[0]).sum() > 10
+
+
 def test_largest_singular_value_in_closed_form_equals_the_svd() -> None:
     """The table's px per radian: the closed form of a 2 x 3 matrix's largest singular
     value against NumPy's SVD norm (random, rank-one, zero and infinite matrices)."""

@@ -124,3 +124,61 @@ def test_anchor_rows_jacobian_matches_finite_differences(bundle_problem, central
     fd = central_differences(lambda x: objective.residuals(x)[anc], x0, h)
     ok = np.abs(objective.residuals(x0)[anc]) > 0  # rows of invalid projections are zero
     assert np.abs(J[ok] - fd[ok]).max() < 1e-5 * np.abs(fd).max()
+
+
+def _sorted_sparsity(objective: BundleObjective) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference of :meth:`BundleObjective._sparsity`: (indices, place, indptr) from every
+    entry of the Jacobian's blocks (in :meth:`jacobian`'s order) sorted by (row, column)."""
+    from omnipipe.sfm.bundle import _block_entries
+
+    pr, F, o = objective.problem, objective._F, objective
+    M, L, S = len(pr.obs_frame), len(pr.anchor_a), len(pr.prior_a)
+    blocks = [
+        _block_entries(o._obs_free, 6 * (pr.obs_frame[o._obs_free] - F), 6),
+        _block_entries(np.arange(M), o.n_pose + 3 * pr.obs_point, 3),
+        _block_entries(M + o._a_free, 6 * (pr.anchor_a[o._a_free] - F), 6),
+        _block_entries(M + o._b_free, 6 * (pr.anchor_b[o._b_free] - F), 6),
+    ]
+    for free, k in ((o._pa_free, pr.prior_a), (o._pb_free, pr.prior_b)):
+        blocks.append((np.repeat(2 * M + 2 * L + free, 6), ((6 * (k[free] - F))[:, None] + np.arange(6)).ravel()))
+    for j, free in enumerate(o._ring_free):
+        r, c = _block_entries(free, 6 * (pr.rings.kf[free, j] - F), 6)
+        blocks.append((r + 2 * M + 2 * L + S, c))
+    rows = np.concatenate([r for r, _ in blocks])
+    cols = np.concatenate([c for _, c in blocks])
+    order = np.lexsort((cols, rows))
+    place = np.empty(len(order), np.int64)
+    place[order] = np.arange(len(order))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=o._n_rows))])
+    return cols[order], place, indptr
+
+
+def test_sparsity_is_the_sorted_entries(bundle_problem, monkeypatch) -> None:
+    """The Jacobian's CSR structure, counted for the observation rows a block at a time
+    (blocks of 7 observations: many, a ragged last one; observations in any order, some
+    on fixed keyframes) and sorted for the anchor, prior and ring rows (a ring with a
+    keyframe twice), is every entry sorted by (row, column), in int32."""
+    from omnipipe.sfm import bundle
+    from omnipipe.sfm.ring_axis import AxisRows
+
+    monkeypatch.setattr(bundle, "SPARSITY_BLOCK", 7)
+    for seed, fixed in [(4, 1), (5, 2), (6, 3)]:
+        camera, problem = bundle_problem(seed, fixed)
+        rng = np.random.default_rng(seed)
+        perm = rng.permutation(len(problem.obs_frame))
+        problem.obs_frame, problem.obs_point = problem.obs_frame[perm], problem.obs_point[perm]
+        problem.obs_pixels = problem.obs_pixels[perm]
+        problem.prior_a, problem.prior_b = np.array([0, 1, 3, 2]), np.array([1, 2, 4, 2])
+        problem.prior_mm, problem.prior_sigma_mm = np.full(4, 20.0), np.full(4, 0.5)
+        kf = np.array([[0, 1, 2], [1, 2, 4], [2, 2, 3]])
+        problem.rings = AxisRows(kf, rng.normal(0, 1, (3, 3, 3)), np.full(3, 0.5), rng.normal(0, 1, (3, 2, 3)),
+                                 np.ones(3))
+        objective = BundleObjective(camera, problem, 2.0, w_prior=3.0, w_ring=1.5)
+        indices, place, indptr = _sorted_sparsity(objective)
+        assert objective._indices.dtype == np.int32 and objective._place.dtype == np.int32
+        assert np.array_equal(objective._indices, indices)
+        assert np.array_equal(objective._place, place)
+        assert np.array_equal(objective._indptr, indptr) and objective._indptr.dtype == np.int32
+        J = objective.jacobian(objective.x0)
+        J.sum_duplicates()  # the ring with keyframe 2 twice: its entries summed
+        assert J.shape == (len(objective.residuals(objective.x0)), len(objective.x0)) and J.has_sorted_indices

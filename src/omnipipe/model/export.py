@@ -41,7 +41,6 @@ from unittest import mock
 import numpy as np
 
 from omnipipe.errors import OutputError
-from omnipipe.image import PNG_COMPRESS_LEVEL
 
 if TYPE_CHECKING:
     from omnipipe.model import ModelResult
@@ -409,14 +408,11 @@ def write_glb(
 
 def texture_png(dst: Path | BinaryIO, texture: np.ndarray) -> None:
     """The (H, W, 3) uint8 ``texture`` as PNG into ``dst`` (a path or a binary file):
-    the bytes model.glb embeds and model_texture.png holds."""
-    from PIL import Image
+    the bytes model.glb embeds and model_texture.png holds. Encoded a band of rows at a
+    time (:func:`omnipipe.model.png.write_png`): no copy of the atlas is held."""
+    from omnipipe.model.png import write_png
 
-    from omnipipe.spill import drop_pages
-
-    copy = Image.fromarray(np.ascontiguousarray(texture))
-    drop_pages()  # PIL's own copy made: an atlas in the scratch (omnipipe.spill) not mapped
-    copy.save(dst, format="png", compress_level=PNG_COMPRESS_LEVEL)
+    write_png(dst, texture)
 
 
 def _file_parts(path: Path, size: int = 1 << 20) -> Iterator[memoryview]:
@@ -661,25 +657,32 @@ def write_obj(
         raise _fail(path, exc) from None
 
 
-def _rgba_on_disk(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """(H, W, 4) uint8: the (H, W, 3) ``image`` with the (H, W) bool ``alpha`` as 255 / 0,
-    as ``np.dstack`` gives it, made in the run's scratch (:mod:`omnipipe.spill`) a band of
-    rows at a time: PIL encodes an RGBA array in place (no copy), so neither the image nor
-    its copy is held in memory whole."""
-    from omnipipe.spill import drop_pages, zeros_on_disk
+def _write_rgba_png(path: Path, image: np.ndarray, alpha: np.ndarray) -> None:
+    """The (H, W, 3) uint8 ``image`` with the (H, W) bool ``alpha`` as 255 / 0 (the
+    (H, W, 4) ``np.dstack`` of the two) as a PNG at ``path``, made and encoded a band of
+    :data:`_RGBA_ROWS` rows at a time (:class:`omnipipe.model.png.PngWriter`): neither
+    the image nor its RGBA copy is held whole; an image in the run's scratch
+    (:mod:`omnipipe.spill`) has its pages dropped after each band."""
+    from omnipipe.model.png import PngWriter
+    from omnipipe.spill import drop_pages, is_on_disk
 
     h, w = alpha.shape
-    rgba = zeros_on_disk((h, w, 4), np.uint8)
-    for top in range(0, h, _RGBA_ROWS):
-        rows = slice(top, top + _RGBA_ROWS)
-        rgba[rows, :, :3] = image[rows]
-        rgba[rows, :, 3] = np.where(alpha[rows], 255, 0)
-        drop_pages()
-    return rgba
+    spilled = is_on_disk(image) or is_on_disk(alpha)
+    band = np.empty((_RGBA_ROWS, w, 4), np.uint8)
+    with open(path, "wb") as fh:
+        writer = PngWriter(fh, w, h, 4)
+        for top in range(0, h, _RGBA_ROWS):
+            rows = band[: min(_RGBA_ROWS, h - top)]
+            rows[..., :3] = image[top : top + len(rows)]
+            rows[..., 3] = np.where(alpha[top : top + len(rows)], 255, 0)
+            writer.write_rows(rows)
+            if spilled:
+                drop_pages()
+        writer.close()
 
 
 _RGBA_ROWS = 256
-"""Rows of the unrolled image :func:`_rgba_on_disk` copies at a time."""
+"""Rows of the unrolled image :func:`_write_rgba_png` makes and encodes at a time."""
 
 
 def write_outputs(result: ModelResult, out_dir: Path) -> None:
@@ -698,11 +701,8 @@ def write_outputs(result: ModelResult, out_dir: Path) -> None:
         write_e57(out_dir / "points.e57", result.points_in_world, result.colours)
     release_freed_memory()  # each writer's chunks: not under the next one's
     if result.unrolled is not None:
-        from PIL import Image
-
-        rgba = _rgba_on_disk(result.unrolled.image, result.unrolled.alpha)
         try:
-            Image.fromarray(rgba).save(out_dir / "unrolled.png", compress_level=PNG_COMPRESS_LEVEL)
+            _write_rgba_png(out_dir / "unrolled.png", result.unrolled.image, result.unrolled.alpha)
         except OSError as exc:
             raise _fail(out_dir / "unrolled.png", exc) from None
     if (

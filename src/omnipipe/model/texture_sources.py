@@ -171,12 +171,9 @@ def magnification_table(camera: CameraModel, factor: float = 1.25) -> np.ndarray
     first = max(int((lo + 0.5 * np.pi - STEP_RAD) / MAG_BIN_RAD) - 1, 0)
     stop = min(int((hi + 0.5 * np.pi + STEP_RAD) / MAG_BIN_RAD) + 2, n_bins)
     elev = -0.5 * np.pi + (np.arange(4 * first, 4 * stop) + 0.5) * (MAG_BIN_RAD / 4)
-    azim = np.radians(np.arange(360.0))
-    e, a = (g.ravel() for g in np.meshgrid(elev, azim, indexing="ij"))
-    rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        jac = camera.project_jacobian(rays).reshape(len(elev), len(azim), 2, 3)
-        sampled = _largest_singular_2x3(np.nan_to_num(jac, nan=np.inf)).max(axis=1)
+    sampled = np.concatenate([
+        _sampled_magnification(camera, elev[i : i + MAG_ROWS]) for i in range(0, len(elev), MAG_ROWS)
+    ])
     fine = np.full(n_bins, np.inf)
     fine[first:stop] = np.where(np.isfinite(sampled), sampled, np.inf).reshape(-1, 4).max(axis=1)
     reach = int(np.ceil(STEP_RAD / MAG_BIN_RAD)) + 1  # bins a step may turn the ray across
@@ -188,6 +185,21 @@ def magnification_table(camera: CameraModel, factor: float = 1.25) -> np.ndarray
 
 
 _MAGNIFICATION: dict[tuple, np.ndarray] = {}
+
+MAG_ROWS = 64
+"""Elevations :func:`magnification_table` samples at a time (each at 360 azimuths): its
+temporaries are a block's (about 2 MB), not the whole table's rays (49 MB)."""
+
+
+def _sampled_magnification(camera: CameraModel, elev: np.ndarray) -> np.ndarray:
+    """(len(elev),) the largest singular value of the projection's Jacobian over 360
+    azimuths (one a degree) at each elevation ``elev`` (rad); inf where not finite."""
+    azim = np.radians(np.arange(360.0))
+    e, a = (g.ravel() for g in np.meshgrid(elev, azim, indexing="ij"))
+    rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        jac = camera.project_jacobian(rays).reshape(len(elev), len(azim), 2, 3)
+        return _largest_singular_2x3(np.nan_to_num(jac, nan=np.inf)).max(axis=1)
 
 
 def _largest_singular_2x3(jac: np.ndarray) -> np.ndarray:

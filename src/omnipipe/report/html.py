@@ -125,28 +125,24 @@ _PNG_URI_HEAD = "data:image/png;base64,"
 
 
 def _png_bytes(image: np.ndarray) -> bytes:
-    from PIL import Image
+    """``image`` (uint8) as PNG bytes, encoded a band of rows at a time
+    (:func:`omnipipe.model.png.write_png`: no copy of the image)."""
+    from omnipipe.model.png import write_png
 
     buf = io.BytesIO()
-    copy = Image.fromarray(np.ascontiguousarray(image))
-    drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
-    copy.save(buf, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
+    write_png(buf, image)
     return buf.getvalue()
 
 
 def _png_file(image: np.ndarray) -> IO[bytes]:
     """:func:`_png_bytes` of ``image`` in an unnamed file of the run's scratch
     (:func:`omnipipe.scratch.scratch_dir`; gone when closed), positioned at its start:
-    the encoded bytes are not held in memory (nor copied out of a growing buffer)."""
-    from PIL import Image
-
+    neither a copy of the image nor the encoded bytes are held in memory."""
+    from omnipipe.model.png import write_png
     from omnipipe.scratch import scratch_dir
 
     fh = tempfile.TemporaryFile(prefix="omnipipe-png-", dir=scratch_dir())
-    copy = Image.fromarray(np.ascontiguousarray(image))
-    drop_pages()  # PIL's own copy made: an image in the scratch (omnipipe.spill) not mapped
-    copy.save(fh, format="PNG", optimize=False, compress_level=PNG_COMPRESS_LEVEL)
-    del copy
+    write_png(fh, image)
     fh.seek(0)
     return fh
 

@@ -302,6 +302,10 @@ def _block_entries(rows: np.ndarray, col0: np.ndarray, width: int) -> tuple[np.n
     return r.ravel(), c.ravel()
 
 
+SPARSITY_BLOCK = 1 << 16
+"""Observations whose Jacobian entries :meth:`BundleObjective._sparsity` places at a time."""
+
+
 class BundleObjective:
     """A bundle adjustment's parameters, residuals and analytic sparse Jacobian.
 
@@ -344,42 +348,86 @@ class BundleObjective:
     def _sparsity(self) -> None:
         """The Jacobian's structure (row-major CSR, computed once): observation rows touch
         their pose (unless fixed) and point; anchor rows two poses (unless fixed; an anchor
-        within one keyframe is constant: no entries)."""
+        within one keyframe is constant: no entries).
+
+        The observation rows come first and each holds its pose's 6 columns (if free) and
+        then its point's 3 (point columns follow every pose column): their CSR places are
+        counted, not sorted, a block of :data:`SPARSITY_BLOCK` observations at a time, in
+        int32 where the entries allow. Only the few other rows (anchors, priors, rings)
+        are sorted, as entries of their blocks. ``_indices``, ``_place`` and ``_indptr``
+        are those of sorting every entry by (row, column) (``_place``: where each entry of
+        :meth:`jacobian`'s blocks, concatenated, goes in CSR order). The freed pages are
+        handed back to the system before the solve
+        (:func:`omnipipe.memory.release_freed_memory`)."""
+        from omnipipe.memory import release_freed_memory
+
         pr, F = self.problem, self._F
         M, L = len(pr.obs_frame), len(pr.anchor_a)
         self._obs_free = np.flatnonzero(pr.obs_frame >= F)
         self._a_free = np.flatnonzero((pr.anchor_a >= F) & (pr.anchor_a != pr.anchor_b))
         self._b_free = np.flatnonzero((pr.anchor_b >= F) & (pr.anchor_a != pr.anchor_b))
+        S, T = len(pr.prior_a), len(pr.rings)
+        self._pa_free = np.flatnonzero(pr.prior_a >= F)
+        self._pb_free = np.flatnonzero(pr.prior_b >= F)
+        self._ring_free = [np.flatnonzero(pr.rings.kf[:, j] >= F) for j in range(3)]
         blocks = [
-            _block_entries(self._obs_free, 6 * (pr.obs_frame[self._obs_free] - F), 6),
-            _block_entries(np.arange(M), self.n_pose + 3 * pr.obs_point, 3),
             _block_entries(M + self._a_free, 6 * (pr.anchor_a[self._a_free] - F), 6),
             _block_entries(M + self._b_free, 6 * (pr.anchor_b[self._b_free] - F), 6),
         ]
         # A prior row touches its two poses (unless fixed).
-        S = len(pr.prior_a)
-        self._pa_free = np.flatnonzero(pr.prior_a >= F)
-        self._pb_free = np.flatnonzero(pr.prior_b >= F)
         for free, k in ((self._pa_free, pr.prior_a), (self._pb_free, pr.prior_b)):
             rows = np.repeat(2 * M + 2 * L + free, 6)
             cols = (6 * (k[free] - F))[:, None] + np.arange(6)[None, :]
             blocks.append((rows, cols.ravel()))
         # A ring row pair touches its three poses (unless fixed).
-        T = len(pr.rings)
-        self._ring_free = [np.flatnonzero(pr.rings.kf[:, j] >= F) for j in range(3)]
         for j, free in enumerate(self._ring_free):
             r, c = _block_entries(free, 6 * (pr.rings.kf[free, j] - F), 6)
             blocks.append((r + 2 * M + 2 * L + S, c))
-        jac_rows = np.concatenate([r for r, _ in blocks])
-        jac_cols = np.concatenate([c for _, c in blocks])
-        order = np.lexsort((jac_cols, jac_rows))
-        self._indices = jac_cols[order].astype(np.int32)
-        # Where each entry of the blocks (concatenated in jacobian's order) goes in CSR order.
-        self._place = np.empty(len(order), np.int32 if len(order) < 2**31 else np.int64)
-        self._place[order] = np.arange(len(order))
+        rest_rows = np.concatenate([r for r, _ in blocks])
+        rest_cols = np.concatenate([c for _, c in blocks])
+        order = np.lexsort((rest_cols, rest_rows))
         self._n_rows = 2 * M + 2 * L + S + 2 * T
-        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(jac_rows, minlength=self._n_rows))]).astype(np.int32)
+        counts = np.zeros(self._n_rows, np.int64)
+        counts[: 2 * M] = np.repeat(np.where(pr.obs_frame >= F, 9, 3), 2)
+        counts[2 * M :] = np.bincount(rest_rows - 2 * M, minlength=self._n_rows - 2 * M)
+        n_obs = int(counts[: 2 * M].sum())
+        n = n_obs + len(order)
+        self._indices = np.empty(n, np.int32)
+        self._place = np.empty(n, np.int32 if n < 2**31 else np.int64)
+        self._observation_places()
+        self._indices[n_obs:] = rest_cols[order]
+        self._place[len(self._obs_free) * 12 + 6 * M + order] = n_obs + np.arange(len(order))
+        self._indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
         self._shape = (self._n_rows, len(self.x0))
+        del blocks, rest_rows, rest_cols, order, counts
+        # The pages freed since (this structure's work, a previous window's adjustment)
+        # back to the system: not under this window's solve.
+        release_freed_memory()
+
+    def _observation_places(self) -> None:
+        """The observation entries' columns (the first of ``_indices``) and CSR places (the
+        first ``12 x free observations + 6 M`` of ``_place``: the free observations' (2, 6)
+        pose blocks, then every observation's (2, 3) point block), a block of
+        :data:`SPARSITY_BLOCK` observations at a time."""
+        pr, F, M = self.problem, self._F, len(self.problem.obs_frame)
+        dtype = self._place.dtype
+        free = pr.obs_frame >= F
+        first_pose = np.concatenate([[0], np.cumsum(free)])  # free observations before each
+        start = 0  # the CSR place of the block's first observation
+        for a in range(0, M, SPARSITY_BLOCK):
+            b = min(a + SPARSITY_BLOCK, M)
+            f = free[a:b]
+            width = np.where(f, 9, 3).astype(dtype)  # entries in each of its two rows
+            at = start + 2 * (np.cumsum(width, dtype=dtype) - width)  # its first row's place
+            row = np.arange(2, dtype=dtype)[None, :, None]
+            pose = (at[f][:, None, None] + row * 9 + np.arange(6, dtype=dtype)[None, None, :]).ravel()
+            point = (at[:, None, None] + row * width[:, None, None] + (6 * f).astype(dtype)[:, None, None]
+                     + np.arange(3, dtype=dtype)[None, None, :]).ravel()
+            self._place[12 * first_pose[a] : 12 * first_pose[b]] = pose
+            self._place[12 * first_pose[-1] + 6 * a : 12 * first_pose[-1] + 6 * b] = point
+            self._indices[pose] = np.repeat(6 * (pr.obs_frame[a:b][f] - F), 12) + np.tile(np.arange(6), 2 * int(f.sum()))
+            self._indices[point] = np.repeat(self.n_pose + 3 * pr.obs_point[a:b], 6) + np.tile(np.arange(3), 2 * (b - a))
+            start += 2 * int(width.sum())
 
     def _poses(self, x: np.ndarray) -> np.ndarray:
         """(K, 6) every keyframe's (rotation vector, translation) of rig_from_world."""
