@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.sfm._kernels import wall_maps
 from omnipipe.sfm.scale_check import WallCylinder
 
 # Angular sectors whose shifts are measured separately: their spread is the sigma.
@@ -156,6 +157,38 @@ def unrolled_wall(
     image, (R, C) bool valid), rows within :data:`RING_MASK_MM` of the ring plane
     invalid. The cylinder is ``wall``'s (its axis parallel to rig z through its
     centre), so the rig's offset from the pipe axis in each keyframe is its own."""
+    shape = (len(grid.z_mm), len(grid.theta))
+    compiled = camera.compiled_projection()
+    if compiled is not None:
+        map_col = np.empty(shape, np.float32)
+        map_row = np.empty(shape, np.float32)
+        ok = np.empty(shape, bool)
+        wall_maps(
+            compiled.kind, compiled.params,
+            wall.centre_xy[0] + wall.radius_mm * np.cos(grid.theta),
+            wall.centre_xy[1] + wall.radius_mm * np.sin(grid.theta),
+            np.ascontiguousarray(grid.z_mm, float), map_col, map_row, ok,
+        )
+    else:
+        map_col, map_row, ok = _wall_maps(camera, wall, grid)
+    image = cv2.remap(
+        np.asarray(gray, np.float32),
+        map_col,
+        map_row,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0.0,
+    )
+    valid = ok & (np.abs(grid.z_mm - wall.ring_z_mm) > RING_MASK_MM)[:, None]
+    return image, valid & (image > 0)
+
+
+def _wall_maps(
+    camera: CameraModel, wall: WallCylinder, grid: WallGrid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, C) float32 column and row maps (-10 where not valid) and (R, C) valid of the
+    wall samples at ``grid`` through :meth:`CameraModel.project` (a camera without a
+    compiled projection; :func:`omnipipe.sfm._kernels.wall_maps` gives the same)."""
     z, th = np.meshgrid(grid.z_mm, grid.theta, indexing="ij")
     pts = np.stack(
         [
@@ -167,17 +200,7 @@ def unrolled_wall(
     ).reshape(-1, 3)
     px, ok = camera.project(pts)
     px = np.where(ok[:, None], px, -10.0).astype(np.float32)
-    shape = z.shape
-    image = cv2.remap(
-        np.asarray(gray, np.float32),
-        px[:, 0].reshape(shape),
-        px[:, 1].reshape(shape),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0.0,
-    )
-    valid = ok.reshape(shape) & (np.abs(grid.z_mm - wall.ring_z_mm) > RING_MASK_MM)[:, None]
-    return image, valid & (image > 0)
+    return px[:, 0].reshape(z.shape), px[:, 1].reshape(z.shape), ok.reshape(z.shape)
 
 
 def axial_band_pass(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
