@@ -1,15 +1,24 @@
 """The unrolled wall's sample maps compiled (:func:`omnipipe.sfm._kernels.wall_maps`)
-against the NumPy reference through ``CameraModel.project`` (``wall_shift._wall_maps``)."""
+against the NumPy reference through ``CameraModel.project`` (``wall_shift._wall_maps``),
+and its band-pass against four Gaussian blurs."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from omnipipe.camera import OmniCamera
 from omnipipe.rig import CameraIntrinsics, Mirror
 from omnipipe.sfm._kernels import wall_maps
 from omnipipe.sfm.scale_check import WallCylinder
-from omnipipe.sfm.wall_shift import _wall_maps, unrolled_wall, wall_grid
+from omnipipe.sfm.wall_shift import (
+    ANGULAR_BLUR_SAMPLES,
+    BAND_SAMPLES,
+    _wall_maps,
+    axial_band_pass,
+    unrolled_wall,
+    wall_grid,
+)
 
 
 class _NotCompiled:
@@ -67,3 +76,30 @@ def test_the_unrolled_wall_is_the_same_with_and_without_the_compiled_maps() -> N
     np.testing.assert_array_equal(valid, ref_valid)
     np.testing.assert_array_equal(image, ref_image)
     assert valid.mean() > 0.3
+
+
+def _band_pass_reference(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``axial_band_pass`` as four ``cv2.GaussianBlur`` calls (the reference)."""
+    v = valid.astype(np.float32)
+    u = np.where(valid, np.log(np.maximum(image, 1.0)), 0.0).astype(np.float32)
+
+    def blur(x: np.ndarray, s_z: float) -> np.ndarray:
+        return cv2.GaussianBlur(x, (0, 0), sigmaX=ANGULAR_BLUR_SAMPLES, sigmaY=s_z)
+
+    fine, wide = BAND_SAMPLES
+    w_fine, w_wide = blur(v, fine), blur(v, wide)
+    band = blur(u, fine) / np.maximum(w_fine, 1e-6) - blur(u, wide) / np.maximum(w_wide, 1e-6)
+    return np.where(valid & (w_wide > 0.9), band, 0.0).astype(np.float32)
+
+
+def test_the_band_pass_sharing_its_angular_pass_is_bit_identical_to_four_gaussian_blurs() -> None:
+    rng = np.random.default_rng(3)
+    for shape in ((567, 2010), (120, 181), (301, 644), (40, 2048)):
+        image = rng.uniform(0, 300, shape).astype(np.float32)
+        valid = rng.random(shape) > 0.01
+        valid[: shape[0] // 5] = False  # beyond the mirror's view
+        image[~valid & (rng.random(shape) > 0.5)] = 0.0
+        got = axial_band_pass(image, valid)
+        ref = _band_pass_reference(image, valid)
+        assert np.count_nonzero(ref) > 0.2 * ref.size
+        np.testing.assert_array_equal(got, ref)

@@ -211,14 +211,27 @@ def axial_band_pass(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     streaks (constant along z) vanish with it."""
     v = valid.astype(np.float32)
     u = np.where(valid, np.log(np.maximum(image, 1.0)), 0.0).astype(np.float32)
+    # cv2.GaussianBlur(x, (0, 0), ANGULAR_BLUR_SAMPLES, s_z) bit for bit, its angular
+    # (row) pass shared by both axial blurs: the same kernels, border and float32
+    # buffer, each pass on its own (a one-tap pass of 1 is exact).
+    along = _gaussian_kernel(ANGULAR_BLUR_SAMPLES)
+    one = np.ones((1, 1), np.float32)
+    rows_v = cv2.sepFilter2D(v, -1, along, one)
+    rows_u = cv2.sepFilter2D(u, -1, along, one)
 
-    def blur(x: np.ndarray, s_z: float) -> np.ndarray:
-        return cv2.GaussianBlur(x, (0, 0), sigmaX=ANGULAR_BLUR_SAMPLES, sigmaY=s_z)
+    def blur(rows: np.ndarray, s_z: float) -> np.ndarray:
+        return cv2.sepFilter2D(rows, -1, one, _gaussian_kernel(s_z))
 
     fine, wide = BAND_SAMPLES
-    w_fine, w_wide = blur(v, fine), blur(v, wide)
-    band = blur(u, fine) / np.maximum(w_fine, 1e-6) - blur(u, wide) / np.maximum(w_wide, 1e-6)
+    w_fine, w_wide = blur(rows_v, fine), blur(rows_v, wide)
+    band = blur(rows_u, fine) / np.maximum(w_fine, 1e-6) - blur(rows_u, wide) / np.maximum(w_wide, 1e-6)
     return np.where(valid & (w_wide > 0.9), band, 0.0).astype(np.float32)
+
+
+def _gaussian_kernel(sigma: float) -> np.ndarray:
+    """(k, 1) float32 Gaussian of ``sigma`` samples as :func:`cv2.GaussianBlur` builds it
+    for a float32 image (k = round(8 sigma + 1), odd)."""
+    return cv2.getGaussianKernel(int(round(sigma * 8 + 1)) | 1, sigma, cv2.CV_32F)
 
 
 @dataclass(frozen=True)
