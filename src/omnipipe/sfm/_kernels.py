@@ -338,3 +338,27 @@ def hessian_times(U, w_indptr, w_indices, w_data, V, dx):  # pragma: no cover - 
                 s += V[p, c, c2] * dx[n_pose + 3 * p + c2]
         y[n_pose + col] = s
     return y
+
+
+# --- wall15: the unrolled wall's sample maps (omnipipe.sfm.wall_shift) ---
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def wall_maps(kind, params, x, y, z, map_col, map_row, seen):  # pragma: no cover - compiled
+    """The pixels of the wall samples (``x[c]``, ``y[c]``, ``z[r]``) (mm, rig frame; (C,),
+    (C,), (R,)): (R, C) float32 ``map_col``, ``map_row`` (-10 where not valid, the value
+    :func:`cv2.remap` reads as outside) and (R, C) ``seen`` (valid), each
+    :func:`~omnipipe.camera._kernels.project_point` bit for bit, a row at a time through
+    :func:`~omnipipe.camera._kernels.project_block` (:func:`omnipipe.sfm.wall_shift.unrolled_wall`)."""
+    n = x.shape[0]
+    zs = np.empty(n)
+    col, row = np.empty(n), np.empty(n)
+    ok = np.empty(n, np.bool_)
+    for r in range(z.shape[0]):
+        for c in range(n):
+            zs[c] = z[r]
+        project_block(kind, params, x, y, zs, (0.0, 0.0, 0.0), n, col, row, ok)
+        for c in range(n):
+            seen[r, c] = ok[c]
+            map_col[r, c] = np.float32(col[c]) if ok[c] else np.float32(-10.0)
+            map_row[r, c] = np.float32(row[c]) if ok[c] else np.float32(-10.0)

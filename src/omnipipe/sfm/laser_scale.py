@@ -327,8 +327,11 @@ def _candidate_patches(
     n_pts, n_s, k_len = plane_b0.shape[0], scales.shape[1], plane_b0.shape[1]
     total = n_pts * n_s * k_len
     rows = max(-(-total // 4096), 1)
-    map_x = np.full(rows * 4096, -1.0, np.float32)
-    map_y = np.full(rows * 4096, -1.0, np.float32)
+    # candidate_maps writes every one of the first ``total`` entries: only the tail filled.
+    map_x = np.empty(rows * 4096, np.float32)
+    map_y = np.empty(rows * 4096, np.float32)
+    map_x[total:] = -1.0
+    map_y[total:] = -1.0
     with_sheet = sheet_n is not None
     w = np.empty((n_pts, n_s, k_len)) if with_sheet else np.empty((0, 0, 0))
     normal = np.asarray(sheet_n if with_sheet else np.zeros(3), float)

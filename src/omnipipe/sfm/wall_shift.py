@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.sfm._kernels import wall_maps
 from omnipipe.sfm.scale_check import WallCylinder
 
 # Angular sectors whose shifts are measured separately: their spread is the sigma.
@@ -156,6 +157,38 @@ def unrolled_wall(
     image, (R, C) bool valid), rows within :data:`RING_MASK_MM` of the ring plane
     invalid. The cylinder is ``wall``'s (its axis parallel to rig z through its
     centre), so the rig's offset from the pipe axis in each keyframe is its own."""
+    shape = (len(grid.z_mm), len(grid.theta))
+    compiled = camera.compiled_projection()
+    if compiled is not None:
+        map_col = np.empty(shape, np.float32)
+        map_row = np.empty(shape, np.float32)
+        ok = np.empty(shape, bool)
+        wall_maps(
+            compiled.kind, compiled.params,
+            wall.centre_xy[0] + wall.radius_mm * np.cos(grid.theta),
+            wall.centre_xy[1] + wall.radius_mm * np.sin(grid.theta),
+            np.ascontiguousarray(grid.z_mm, float), map_col, map_row, ok,
+        )
+    else:
+        map_col, map_row, ok = _wall_maps(camera, wall, grid)
+    image = cv2.remap(
+        np.asarray(gray, np.float32),
+        map_col,
+        map_row,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0.0,
+    )
+    valid = ok & (np.abs(grid.z_mm - wall.ring_z_mm) > RING_MASK_MM)[:, None]
+    return image, valid & (image > 0)
+
+
+def _wall_maps(
+    camera: CameraModel, wall: WallCylinder, grid: WallGrid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, C) float32 column and row maps (-10 where not valid) and (R, C) valid of the
+    wall samples at ``grid`` through :meth:`CameraModel.project` (a camera without a
+    compiled projection; :func:`omnipipe.sfm._kernels.wall_maps` gives the same)."""
     z, th = np.meshgrid(grid.z_mm, grid.theta, indexing="ij")
     pts = np.stack(
         [
@@ -167,17 +200,7 @@ def unrolled_wall(
     ).reshape(-1, 3)
     px, ok = camera.project(pts)
     px = np.where(ok[:, None], px, -10.0).astype(np.float32)
-    shape = z.shape
-    image = cv2.remap(
-        np.asarray(gray, np.float32),
-        px[:, 0].reshape(shape),
-        px[:, 1].reshape(shape),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0.0,
-    )
-    valid = ok.reshape(shape) & (np.abs(grid.z_mm - wall.ring_z_mm) > RING_MASK_MM)[:, None]
-    return image, valid & (image > 0)
+    return px[:, 0].reshape(z.shape), px[:, 1].reshape(z.shape), ok.reshape(z.shape)
 
 
 def axial_band_pass(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -188,14 +211,27 @@ def axial_band_pass(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     streaks (constant along z) vanish with it."""
     v = valid.astype(np.float32)
     u = np.where(valid, np.log(np.maximum(image, 1.0)), 0.0).astype(np.float32)
+    # cv2.GaussianBlur(x, (0, 0), ANGULAR_BLUR_SAMPLES, s_z) bit for bit, its angular
+    # (row) pass shared by both axial blurs: the same kernels, border and float32
+    # buffer, each pass on its own (a one-tap pass of 1 is exact).
+    along = _gaussian_kernel(ANGULAR_BLUR_SAMPLES)
+    one = np.ones((1, 1), np.float32)
+    rows_v = cv2.sepFilter2D(v, -1, along, one)
+    rows_u = cv2.sepFilter2D(u, -1, along, one)
 
-    def blur(x: np.ndarray, s_z: float) -> np.ndarray:
-        return cv2.GaussianBlur(x, (0, 0), sigmaX=ANGULAR_BLUR_SAMPLES, sigmaY=s_z)
+    def blur(rows: np.ndarray, s_z: float) -> np.ndarray:
+        return cv2.sepFilter2D(rows, -1, one, _gaussian_kernel(s_z))
 
     fine, wide = BAND_SAMPLES
-    w_fine, w_wide = blur(v, fine), blur(v, wide)
-    band = blur(u, fine) / np.maximum(w_fine, 1e-6) - blur(u, wide) / np.maximum(w_wide, 1e-6)
+    w_fine, w_wide = blur(rows_v, fine), blur(rows_v, wide)
+    band = blur(rows_u, fine) / np.maximum(w_fine, 1e-6) - blur(rows_u, wide) / np.maximum(w_wide, 1e-6)
     return np.where(valid & (w_wide > 0.9), band, 0.0).astype(np.float32)
+
+
+def _gaussian_kernel(sigma: float) -> np.ndarray:
+    """(k, 1) float32 Gaussian of ``sigma`` samples as :func:`cv2.GaussianBlur` builds it
+    for a float32 image (k = round(8 sigma + 1), odd)."""
+    return cv2.getGaussianKernel(int(round(sigma * 8 + 1)) | 1, sigma, cv2.CV_32F)
 
 
 @dataclass(frozen=True)
