@@ -127,3 +127,29 @@ def test_compiled_inlier_test_is_the_angular_epipolar_error_below_the_threshold(
     zero = np.zeros((3, 3))
     assert not epipolar_inliers(zero, r1[:5], r2[:5], math.sin(math.radians(0.2))).any()
     assert not (epipolar_angle(zero, r1[:5], r2[:5]) < math.radians(0.2)).any()
+
+
+@pytest.mark.parametrize("size", [8, 9, 40, 600])
+def test_compiled_sample_hypothesis_is_eight_point_and_its_inliers(size: int) -> None:
+    """RANSAC's compiled hypothesis (:func:`omnipipe.sfm._kernels.sample_hypothesis`)
+    against its NumPy reference: :func:`eight_point` on the sample's rays and
+    :func:`epipolar_angle` below the threshold, on samples of minimal and LO-refit size
+    from noisy inliers and outliers (E equal up to sign within 1e-12; the same inliers,
+    pairs within 1e-9 rad of the threshold aside)."""
+    from omnipipe.sfm._kernels import sample_hypothesis
+
+    rng = np.random.default_rng(7)
+    r1, r2, _, _ = _scene(rng, 1200, np.array([3.0, -1.0, 10.0]))
+    r2 = _noisy(r2, rng, math.radians(0.05))
+    r2[:300] = _noisy(rng.normal(size=(300, 3)), rng, 0.0)  # outliers
+    threshold = math.radians(0.2)
+    for _ in range(20):
+        sample = rng.choice(len(r1), size, replace=False)
+        E, inl = sample_hypothesis(r1, r2, sample, math.sin(threshold))
+        ref = eight_point(r1[sample], r2[sample])
+        assert min(np.abs(E - ref).max(), np.abs(E + ref).max()) < 1e-12
+        angle = epipolar_angle(ref, r1, r2)
+        clear = np.abs(angle - threshold) > 1e-9
+        assert np.array_equal(inl[clear], (angle < threshold)[clear])
+    _, inl = sample_hypothesis(r1, r2, np.arange(300, len(r1)), math.sin(threshold))
+    assert np.count_nonzero(inl[300:]) > 850 and np.count_nonzero(inl[:300]) < 30  # the motion

@@ -10,7 +10,9 @@ one block per candidate length (:mod:`omnipipe.sfm.laser_scale`).
 forward search's product (:func:`omnipipe.sfm.features.match_features`).
 
 :func:`epipolar_inliers`: RANSAC's inlier test on the angular epipolar error
-(:mod:`omnipipe.sfm.ransac`), one pass over the ray pairs without temporaries.
+(:mod:`omnipipe.sfm.ransac`), one pass over the ray pairs without temporaries;
+:func:`sample_hypothesis`: one RANSAC iteration's hypothesis (the eight-point algorithm
+of :func:`omnipipe.sfm.geometry.eight_point` on a minimal sample) and its inliers.
 
 :func:`robust_blocks`: the blocks of the bundle adjustment's ``H = Js^T Js`` and
 ``g = Js^T rs`` read straight off the Jacobian's rows, without ``Js`` or ``H``
@@ -163,6 +165,28 @@ def epipolar_inliers(E, r1, r2, sin_threshold):  # pragma: no cover - compiled
         near1 = abs(x1 * b0 + y1 * b1 + z1 * b2) < sin_threshold * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
         out[i] = near2 and near1
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def sample_hypothesis(r1, r2, sample, sin_threshold):  # pragma: no cover - compiled
+    """One RANSAC hypothesis: the essential matrix of the ray pairs ``sample`` (K,)
+    (indices into ``r1``, ``r2`` (N, 3) unit rays, K >= 8) by the same operations as
+    :func:`omnipipe.sfm.geometry.eight_point` (the Kronecker rows of Eq. (12), the
+    last right singular vector of their reduced SVD, projected onto singular values
+    (1, 1, 0)), and its (N,) inliers (:func:`epipolar_inliers` at ``sin_threshold``):
+    (3, 3) E and the mask, without the per-call overhead of NumPy's small SVDs."""
+    m = sample.shape[0]
+    U = np.empty((m, 9))
+    for k in range(m):
+        i = sample[k]
+        for a in range(3):
+            for b in range(3):
+                U[k, 3 * a + b] = r2[i, a] * r1[i, b]
+    _, _, vt = np.linalg.svd(U, full_matrices=False)
+    e = np.ascontiguousarray(vt[vt.shape[0] - 1]).reshape(3, 3)
+    u, _, vt2 = np.linalg.svd(e)
+    E = u @ np.diag(np.array([1.0, 1.0, 0.0])) @ vt2
+    return E, epipolar_inliers(E, r1, r2, sin_threshold)
 
 
 @numba.njit(cache=True)

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import default_workers, iter_frames, parallelism, shares_files, thread_map
+from omnipipe.executor import default_workers, iter_frames, parallelism, shares_files
 from omnipipe.image import gray_without_laser
 from omnipipe.sfm.features import (
     FeatureExtractor,
@@ -321,7 +321,7 @@ class KeyframeLoop:
         """The next keyframe's features, its (last keyframe feature, feature) matches
         and how many of its features are tracks carried on.
 
-        Three candidates, each verified by RANSAC: its SIFT features matched to the last
+        Three candidates, verified by RANSAC: its SIFT features matched to the last
         keyframe's by descriptor over the whole frame (Lowe's ratio test), or guided by
         the chained tracks (:func:`omnipipe.sfm.features.guided_matches`: only within
         ``tracking.guided_radius_px`` of where each track went, so no period of a
@@ -329,24 +329,21 @@ class KeyframeLoop:
         carries them on as its first features). Descriptor matches are the more precise
         where the wall's descriptors tell its points apart: the one with more inliers is
         taken, unless the chained tracks have ``tracking.chain_over_descriptors`` times
-        as many (periodic walls, brick faces, plain walls)."""
+        as many (periodic walls, brick faces, plain walls). The guided matches are
+        verified only when they could be taken (more than the global ones' inliers, and
+        enough against the tracks'): RANSAC keeps a subset of them."""
         config = self.ctx.config.tracking
         ratio = self.ctx.config.features.ratio
         inl = step.inliers
         detected = self._keyframe_features(frame, None)
         radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
         track_rays = step.tracks.features.rays_in_rig[inl[:, 1]]
-        everywhere, guided = thread_map(  # the two candidates at once (independent)
-            lambda verify: verify(),
-            [
-                lambda: _verified(self.ctx, last.features, detected, match_features(last.features, detected, ratio)),
-                lambda: _verified(
-                    self.ctx, last.features, detected,
-                    guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio),
-                ),
-            ],
-            threads=self.extractor.threads,
-        )
+        everywhere = _verified(self.ctx, last.features, detected, match_features(last.features, detected, ratio))
+        guided = guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio)
+        if len(guided) > len(everywhere) and config.chain_over_descriptors * len(guided) >= len(inl):
+            guided = _verified(self.ctx, last.features, detected, guided)
+        else:  # RANSAC keeps a subset: these could be taken neither way
+            guided = guided[:0]
         best = everywhere if len(everywhere) >= len(guided) else guided
         if not self._direct and _skipped_period(inl[:, 0], track_rays, everywhere, detected, 2 * radius, config):
             # The wall moved more than half its period between two frames somewhere: SIFT

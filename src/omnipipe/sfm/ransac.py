@@ -19,7 +19,7 @@ import numpy as np
 from omnipipe.config import bounded
 from omnipipe.errors import ReconstructionError
 from omnipipe.geometry import make_transform
-from omnipipe.sfm._kernels import epipolar_inliers
+from omnipipe.sfm._kernels import sample_hypothesis
 from omnipipe.sfm.geometry import (
     _check_pairs,
     decompose_essential,
@@ -93,14 +93,13 @@ def estimate_relative_motion(
     while it < min(needed, cfg.max_iterations):
         it += 1
         sample = rng.choice(n, 8, replace=False)
-        E = eight_point(r1[sample], r2[sample])
-        inl = epipolar_inliers(E, r1, r2, sin_thr)
+        # eight_point on the sample and the inlier test, compiled (the same values).
+        _, inl = sample_hypothesis(r1, r2, sample, sin_thr)
         count = int(inl.sum())
         if count > best_count and count >= 8:
             # Local optimisation (LO-RANSAC): refit on the inliers while they grow.
             for _ in range(5):
-                E_lo = eight_point(r1[inl], r2[inl])
-                inl_lo = epipolar_inliers(E_lo, r1, r2, sin_thr)
+                _, inl_lo = sample_hypothesis(r1, r2, np.flatnonzero(inl), sin_thr)
                 if inl_lo.sum() <= count:
                     break
                 inl, count = inl_lo, int(inl_lo.sum())
@@ -120,8 +119,7 @@ def estimate_relative_motion(
     # Refit on the inliers, twice (the inlier set may grow).
     inl = best_inl
     for _ in range(2):
-        E = eight_point(r1[inl], r2[inl])
-        inl = epipolar_inliers(E, r1, r2, sin_thr)
+        E, inl = sample_hypothesis(r1, r2, np.flatnonzero(inl), sin_thr)
         if inl.sum() < cfg.min_inliers:
             inl = best_inl
             E = eight_point(r1[inl], r2[inl])
