@@ -107,10 +107,14 @@ class FrameViews:
         images: per view, (height, width) uint8 grey image after CLAHE.
         masks: per view, (height, width) uint8, 255 where features may be (inside the
             mirror's annulus, off the laser band, eroded by 2 px).
+        plain: per view, the grey image before CLAHE (None: not kept), which the
+            tracker's finest flow levels read with ``sfm.tracking.fine_plain``: CLAHE's
+            tiles are fixed in the view, so its gains move with the rig like its light.
     """
 
     images: list[np.ndarray]
     masks: list[np.ndarray]
+    plain: list[np.ndarray] | None = None
 
 
 class FeatureExtractor:
@@ -177,13 +181,14 @@ class FeatureExtractor:
             cv2.polylines(
                 mask, [pts], False, 0, thickness=int(2 * cfg.laser_margin_px + 1), shift=2
             )
-        images, masks = [], []
+        images, masks, plain = [], [], []
         for mx, my, valid in self.maps:
-            images.append(self.clahe.apply(cv2.remap(gray, mx, my, cv2.INTER_LINEAR)))
+            plain.append(cv2.remap(gray, mx, my, cv2.INTER_LINEAR))
+            images.append(self.clahe.apply(plain[-1]))
             vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
             vmask[~valid] = 0
             masks.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
-        return FrameViews(images, masks)
+        return FrameViews(images, masks, plain)
 
     def detect(self, views: FrameViews) -> FrameFeatures:
         """SIFT features of one frame's :meth:`frame_views`, as rays (with view pixels)."""
