@@ -52,12 +52,6 @@ class TrackConfig:
         highpass_px: the flow's two finest pyramid levels are refined on views
             high-passed at this Gaussian sigma (view px; 0: on the views as they are),
             :func:`flow_images`.
-        fine_plain: the finest levels high-pass the views before CLAHE
-            (:attr:`~omnipipe.sfm.features.FrameViews.plain`; False: after). CLAHE's
-            tiles are fixed in the view and, like the rig's light, hold a smooth
-            pattern's tracks back (random-wide seed 18, corrugated: every keyframe
-            step's tracks 5 % short with the true motion); with ``highpass_px`` 4 they
-            follow it (benchmarks/RESULTS.md: other seeds gained and lost, so off).
         min_tracks: a frame where fewer of the keyframe's tracks are left than this is
             matched by SIFT descriptors instead (its tracks lost: blur, a jump).
         max_points: at most this many of the keyframe's features are followed (the
@@ -95,7 +89,6 @@ class TrackConfig:
     levels: int = bounded(3, ge=0)
     max_forward_backward_px: float = bounded(0.5, gt=0)
     highpass_px: float = bounded(8.0, ge=0)
-    fine_plain: bool = False
     min_tracks: int = bounded(40, ge=8)
     max_points: int = bounded(1000, ge=8)
     guided_radius_px: float = bounded(3.0, gt=0)
@@ -283,7 +276,7 @@ def _checked_flow(
     return p1.reshape(-1, 2), ok
 
 
-def flow_images(views: FrameViews, sigma_px: float, levels: int = 3, plain: bool = False) -> list[FlowImage]:
+def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[FlowImage]:
     """The images the flow runs on: each view as it is and high-passed,
     ``2 (I - B * I) + 128`` (uint8), B two box filters of about a Gaussian of
     ``sigma_px`` (a tenth of the cost of the Gaussian itself at this width).
@@ -299,14 +292,14 @@ def flow_images(views: FrameViews, sigma_px: float, levels: int = 3, plain: bool
     views as they are, reduced (``levels``: the pyramid's levels above the view's;
     :func:`_coarse_fine`). The tracks they lose get a second try on coarse levels
     high-passed at :data:`COARSE_HIGHPASS_FACTOR` times ``sigma_px``
-    (:attr:`FlowImage.coarse_band`, :func:`_flow`). With ``plain`` the fine levels,
-    which place each track, high-pass the views before CLAHE (``views.plain`` when
-    given): CLAHE's gains, fixed in the view like the rig's light, held a smooth
-    pattern's tracks back (a corrugated wall: every keyframe step's tracks 5 % short,
-    their depths 5 % deep; :attr:`TrackConfig.fine_plain`)."""
+    (:attr:`FlowImage.coarse_band`, :func:`_flow`). Where the views kept their images
+    before CLAHE (``views.plain``, ``sfm.features.flow_plain``) the fine levels, which
+    place each track, high-pass those: CLAHE's gains, fixed in the view like the rig's
+    light, held a smooth pattern's tracks back (a corrugated wall: every keyframe step's
+    tracks 5 % short, their depths 5 % deep)."""
     if sigma_px <= 0:
         return [FlowImage(im, None) for im in views.images]
-    fines = views.plain if plain and views.plain is not None else views.images
+    fines = views.images if views.plain is None else views.plain
     out = []
     for im, fine in zip(views.images, fines, strict=True):
         coarse = None
@@ -395,7 +388,7 @@ class TrackChain:
         if prior is not None and prior.views is key_views and prior.config == config:
             self.images = prior.images  # the prior chain advanced into these views
         else:
-            self.images = flow_images(key_views, config.highpass_px, config.levels, config.fine_plain)
+            self.images = flow_images(key_views, config.highpass_px, config.levels)
         self.views = key_views  # the views the next flow starts from
         # Each track's last step (view px), where the next flow starts from.
         self.step = np.zeros_like(self.view_pixels)
@@ -405,7 +398,7 @@ class TrackChain:
     def advance(self, views: FrameViews) -> Tracks:
         """The tracks followed on into ``views`` (the next frame's), which become the
         frame the next call starts from."""
-        images = flow_images(views, self.config.highpass_px, self.config.levels, self.config.fine_plain)
+        images = flow_images(views, self.config.highpass_px, self.config.levels)
         keep = np.zeros(len(self.feature), bool)
         moved = self.view_pixels.copy()
         ks = np.unique(self.view)
