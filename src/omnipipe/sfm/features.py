@@ -48,6 +48,13 @@ class FeatureConfig:
             error no worse); other-rig's (285x398) and smaller ones keep every pixel
             (at half size other-rig's ATE rose 0.054 -> 0.072 mm, 640x480's median
             ATE per 300 mm 0.65 -> 0.72 mm).
+        flow_plain: each frame's views also keep their images before CLAHE
+            (:attr:`FrameViews.plain`), where the tracker's finest flow levels then read
+            (:func:`~omnipipe.sfm.tracking.flow_images`). CLAHE's tiles are fixed in the
+            view and, like the rig's light, hold a smooth pattern's tracks back
+            (random-wide seed 18, corrugated: every keyframe step's tracks 5 % short
+            with the true motion; with ``sfm.tracking.highpass_px`` 4 they follow it).
+            Off: other seeds gained and lost (benchmarks/RESULTS.md).
     """
 
     views: int = bounded(8, ge=1)
@@ -58,6 +65,7 @@ class FeatureConfig:
     contrast_threshold: float = bounded(0.01, ge=0)
     detect_scale: float = bounded(0.5, gt=0, le=1)
     detect_min_side_px: int = bounded(160, ge=1)
+    flow_plain: bool = False
 
     def __post_init__(self) -> None:
         if self.views < 1:
@@ -107,10 +115,13 @@ class FrameViews:
         images: per view, (height, width) uint8 grey image after CLAHE.
         masks: per view, (height, width) uint8, 255 where features may be (inside the
             mirror's annulus, off the laser band, eroded by 2 px).
+        plain: per view, the grey image before CLAHE, where the tracker's finest flow
+            levels read (None: not kept; :attr:`FeatureConfig.flow_plain`).
     """
 
     images: list[np.ndarray]
     masks: list[np.ndarray]
+    plain: list[np.ndarray] | None = None
 
 
 class FeatureExtractor:
@@ -177,13 +188,16 @@ class FeatureExtractor:
             cv2.polylines(
                 mask, [pts], False, 0, thickness=int(2 * cfg.laser_margin_px + 1), shift=2
             )
-        images, masks = [], []
+        images, masks, plain = [], [], []
         for mx, my, valid in self.maps:
-            images.append(self.clahe.apply(cv2.remap(gray, mx, my, cv2.INTER_LINEAR)))
+            plain.append(cv2.remap(gray, mx, my, cv2.INTER_LINEAR))
+            images.append(self.clahe.apply(plain[-1]))
+            if not cfg.flow_plain:
+                plain.pop()
             vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
             vmask[~valid] = 0
             masks.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
-        return FrameViews(images, masks)
+        return FrameViews(images, masks, plain if cfg.flow_plain else None)
 
     def detect(self, views: FrameViews) -> FrameFeatures:
         """SIFT features of one frame's :meth:`frame_views`, as rays (with view pixels)."""
