@@ -190,10 +190,10 @@ class FeatureExtractor:
             )
         images, masks, plain = [], [], []
         for mx, my, valid in self.maps:
-            plain.append(cv2.remap(gray, mx, my, cv2.INTER_LINEAR))
-            images.append(self.clahe.apply(plain[-1]))
-            if not cfg.flow_plain:
-                plain.pop()
+            view = cv2.remap(gray, mx, my, cv2.INTER_LINEAR)
+            images.append(self.clahe.apply(view))
+            if cfg.flow_plain:
+                plain.append(view)
             vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
             vmask[~valid] = 0
             masks.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
