@@ -261,3 +261,41 @@ def test_shared_fields_are_equal_and_by_reference_only_on_a_local_pool() -> None
         assert list(ordered_map(pool, _length, [sent.z, sent.ring])) == [500, 500]
     assert sent.scale == 2.5 and np.array_equal(sent.z, s.z) and np.array_equal(sent.ring, s.ring)
     assert is_on_disk(sent.z) and not sent.z.flags.writeable and not is_on_disk(s.z)
+
+
+def _half_a_result_then_wait(marker: str) -> int:
+    """In a pool worker: write the start of a result message (a length header and a few of
+    its bytes) into the pool's result pipe, as a worker killed mid-write leaves it, then
+    wait to be killed."""
+    import struct
+
+    frame = sys._getframe()
+    while frame is not None and frame.f_code.co_name != "_process_worker":
+        frame = frame.f_back
+    assert frame is not None, "not running in a ProcessPoolExecutor worker"
+    writer = frame.f_locals["result_queue"]._writer
+    writer._send(struct.pack("!i", 1 << 20) + b"\0" * 16)
+    Path(marker).touch()
+    time.sleep(120)
+    return 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked local pool")
+def test_a_worker_killed_mid_result_does_not_hang_the_pool(tmp_path: Path) -> None:
+    """A run that stops while a worker is writing its result ends the pool at once: the
+    manager thread does not wait for the rest of a message nobody will write."""
+    marker = tmp_path / "written"
+    manager = None
+    with pytest.raises(KeyboardInterrupt):
+        with open_executor(workers=2) as pool:
+            pool.submit(_half_a_result_then_wait, str(marker))
+            deadline = time.monotonic() + 30
+            while not marker.exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert marker.exists()
+            time.sleep(0.2)  # the manager is now inside recv(), waiting for the rest
+            manager = pool._executor_manager_thread
+            raise KeyboardInterrupt
+    assert manager is not None
+    manager.join(timeout=10)
+    assert not manager.is_alive()

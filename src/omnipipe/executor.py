@@ -348,10 +348,30 @@ def kill_workers(pool: ProcessPoolExecutor) -> None:
             proc.join(timeout=5)
         except (OSError, ValueError, AssertionError):
             pass
+    _close_result_writer(pool)
     manager = getattr(pool, "_executor_manager_thread", None)
     pool.shutdown(wait=False, cancel_futures=True)
     if manager is not None:
         manager.join(timeout=5)
+
+
+def _close_result_writer(pool: ProcessPoolExecutor) -> None:
+    """Close this process's end of ``pool``'s result pipe once its workers are dead.
+
+    A worker killed while it was writing a result leaves half a message in the pipe; the
+    pool's manager thread then waits in ``recv`` for the rest, and nothing else would
+    ever write it (the parent held the pipe's other end, so no end-of-file came): the
+    interpreter hung at exit. With every writer closed the read ends at once (EOFError),
+    the manager marks the pool broken and ends.
+    """
+    result_queue = getattr(pool, "_result_queue", None)
+    writer = getattr(result_queue, "_writer", None)
+    if writer is None:
+        return
+    try:
+        writer.close()
+    except OSError:
+        pass
 
 
 # Seconds between a worker's checks that its parent is still alive (the fallback of
