@@ -11,7 +11,7 @@ import pytest
 from test_wall_shift import _bricks, _context, _faint, _forward, _render, _ring
 
 from omnipipe.camera import OmniCamera
-from omnipipe.sfm.run_length import SOURCES_BIAS_SIGMA, combine_shift, laser_say
+from omnipipe.sfm.run_length import SOURCES_BIAS_SIGMA, combine_shift
 from omnipipe.sfm.scale_check import StepCheck
 from omnipipe.sfm.shift_scale import MIN_SHIFT_STEPS, ShiftScale, shift_scale
 from omnipipe.sfm.types import Keyframes, StepEvidence
@@ -87,14 +87,3 @@ def test_a_disagreeing_shift_overrules_with_a_sigma_that_spans_both() -> None:
     assert sigma == pytest.approx((w1 + w2) ** -0.5)
     # No other source: the shift alone.
     assert combine_shift(math.nan, math.nan, ShiftScale(0.02, 0.01, 5)) == (0.02, 0.01)
-
-
-def test_the_laser_corrects_the_adjusted_run_only_beyond_its_sigma_and_its_floor() -> None:
-    """The laser's decided lengths correct the adjusted run only beyond 2 of its sigmas,
-    its sigma taken as at least 1 %: a run-wide laser bias its spread does not show."""
-    assert laser_say(0.03, 0.005) == 0.03  # beyond 2 % and 2 sigma
-    assert laser_say(-0.05, 0.02) == -0.05
-    assert laser_say(0.015, 0.005) == 0.0  # beyond 2 sigma, within the floor's 2 %
-    assert laser_say(-0.015, 0.01) == 0.0
-    assert laser_say(0.03, 0.02) == 0.0  # within 2 sigma
-    assert laser_say(math.nan, 0.01) == 0.0

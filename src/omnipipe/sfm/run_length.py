@@ -64,10 +64,6 @@ BIAS_SHOWN_CHI2 = 1.0
 # adjustment's pixel-weighted fit of the laser points reads them as well as their
 # lengths' median (measured on bench_robustness: benchmarks/RESULTS.md, depth5).
 DECIDED_SIGMAS = 2.0
-# The laser's sigma in that test is at least this (relative): its decided lengths carry
-# the laser's own run-wide bias, which neither its anchors' spread nor its gap to the
-# feature depths shows once the relative motion is right (benchmarks/RESULTS.md, ransac16).
-DECIDED_SIGMA_FLOOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -122,12 +118,10 @@ def run_length(
         decided = decided_log(
             chain.checks, chain.scales_mm, world_from_kf, config.scale_check.adjusted_agree_log
         )
+        if not abs(decided) > DECIDED_SIGMAS * sigma:
+            decided = 0.0  # within the laser's sigma the adjusted run reads its anchors as well
         applied, sigma = combine_scales(
-            wall[0],
-            math.hypot(wall[1], WALL_SCALE_SIGMA_FLOOR),
-            sigma,
-            scale.wall_anchored,
-            laser_say(decided, sigma),
+            wall[0], math.hypot(wall[1], WALL_SCALE_SIGMA_FLOOR), sigma, scale.wall_anchored, decided
         )
         if scale.wall_anchored:
             sigma = math.hypot(sigma, abs(scale.offset_log) / 2)  # as scale_sigma's
@@ -140,15 +134,6 @@ def run_length(
             source = f"{source}, and the wall's own shift ({shift.steps} steps)"
     wall_log = math.nan if wall is None else wall[0]
     return RunLength(applied, math.hypot(sigma, SHARED_SCALE_SIGMA), wall_log, source)
-
-
-def laser_say(decided: float, sigma: float) -> float:
-    """The laser's log correction of the adjusted run: its decided lengths over the
-    adjusted ones (``decided``, :func:`decided_log`) when they differ by more than
-    :data:`DECIDED_SIGMAS` of the laser's relative ``sigma`` (at least
-    :data:`DECIDED_SIGMA_FLOOR`); else 0: within it the adjustment's pixel-weighted fit
-    of the laser points reads them as well as their lengths' median."""
-    return decided if abs(decided) > DECIDED_SIGMAS * max(sigma, DECIDED_SIGMA_FLOOR) else 0.0
 
 
 def combine_shift(applied_log: float, sigma: float, shift: ShiftScale) -> tuple[float, float]:
