@@ -704,6 +704,9 @@ def match_laser_points(
 # the window to at most this fraction of its peak: the peak is then the curve's own, not
 # the slope of a stronger one outside.
 WINDOW_EDGE_RATIO = 0.5
+# ... and when at least this share of the points with a usable template match inside it
+# (NCC above ``min_ncc`` at an inner candidate): a stray local peak matches few.
+WINDOW_MIN_MATCHED = 0.5
 # Fewest candidates a window holds (else the full search runs).
 WINDOW_MIN_CANDIDATES = 5
 
@@ -724,8 +727,9 @@ def match_laser_points_near(
 
     The window is the full search's candidates within a factor
     ``exp(config.prior_window_log)`` of ``expected_mm``. Its answer stands when its
-    Eq. (17) length agrees with ``expected_mm`` within ``agree_log`` (|log ratio|) and
-    its points' consensus peaks inside the window and falls at both ends to at most
+    Eq. (17) length agrees with ``expected_mm`` within ``agree_log`` (|log ratio|), at
+    least :data:`WINDOW_MIN_MATCHED` of the points with a usable template match, and
+    their consensus peaks inside the window and falls at both ends to at most
     :data:`WINDOW_EDGE_RATIO` of that peak. Otherwise the remaining candidates are
     scored too and the answer is the full search's, bit for bit. The consensus peaks of
     a window's answer are those inside it (a course off beyond it is not seen: the
@@ -752,7 +756,11 @@ def match_laser_points_near(
     lm = _matches(search, camera, full[lo:hi], ncc_w, cfg, window=True)
     tp = search.tp
     rows = ncc_w[tp.ok_a & (tp.std > cfg.min_template_std)]
-    if rows.size and math.isfinite(lm.scale) and abs(math.log(lm.scale / expected_mm)) <= agree_log:
+    if (
+        len(rows)
+        and len(lm.index) >= WINDOW_MIN_MATCHED * len(rows)
+        and abs(math.log(lm.scale / expected_mm)) <= agree_log
+    ):
         c = np.mean(np.clip(rows, 0.0, 1.0) ** 2, axis=0)
         top = int(np.argmax(c))
         if 0 < top < len(c) - 1 and max(c[0], c[-1]) <= WINDOW_EDGE_RATIO * c[top]:
