@@ -130,3 +130,43 @@ def test_fused_candidates_equal_the_generic_path() -> None:
     for name in ("index", "scale_mm", "pixels_b", "ncc", "peak_scales_mm", "peak_scores"):
         assert np.array_equal(getattr(fused, name), getattr(generic, name), equal_nan=True), name
     assert fused.scale == generic.scale
+
+
+def _same(m1, m2) -> bool:
+    """Every field of two LaserMatches equal, bit for bit."""
+    return all(
+        np.array_equal(np.asarray(getattr(m1, f)), np.asarray(getattr(m2, f)), equal_nan=True)
+        for f in ("index", "scale_mm", "pixels_b", "ncc", "scale", "peak_scales_mm", "peak_scores")
+    )
+
+
+def test_search_near_an_expected_length_stands_or_is_the_full_search(paper_800) -> None:
+    """A keyframe step's laser searched near the feature-depth length: the window's answer
+    stands when it agrees with that length and its consensus peaks inside the window;
+    an expected length the laser does not confirm (or none) gets the full search, bit for
+    bit."""
+    from omnipipe.sfm.laser_scale import LaserScaleConfig, match_laser_points_near
+
+    scenario, renderer, poses, moving = paper_800
+    a, b = 0, int(np.flatnonzero(moving)[: scenario.motion.frames_per_cycle // scenario.motion.n_units][-1])
+    img_a, img_b, ring, b_from_a, length = _pair(renderer, poses, a, b)
+    args = (
+        img_a[..., 1].astype(np.float32), img_b[..., 1].astype(np.float32), renderer.camera,
+        ring, b_from_a[:3, :3], b_from_a[:3, 3] / length,
+    )
+    cfg = LaserScaleConfig()
+    full = match_laser_points(*args, cfg)
+    near, windowed = match_laser_points_near(*args, cfg, 1.05 * length, 0.12)
+    assert windowed
+    assert abs(near.scale / length - 1.0) < 0.01, (near.scale, length)
+    assert abs(near.scale / full.scale - 1.0) < 0.002, (near.scale, full.scale)
+    assert len(near.index) >= 0.9 * len(full.index)
+    assert len(near.peak_scales_mm) >= 1 and abs(near.peak_scales_mm[0] / length - 1) < 0.1
+    # 40 % off: inside the window, but the laser does not confirm it -> the full search.
+    off, windowed = match_laser_points_near(*args, cfg, 1.4 * length, 0.12)
+    assert not windowed and _same(off, full)
+    for expected in (np.nan, 0.0, 1e6):
+        m, windowed = match_laser_points_near(*args, cfg, expected, 0.12)
+        assert not windowed and _same(m, full)
+    m, windowed = match_laser_points_near(*args, LaserScaleConfig(prior_window_log=0.0), length, 0.12)
+    assert not windowed and _same(m, full)

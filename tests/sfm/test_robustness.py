@@ -38,30 +38,49 @@ def brick_rings(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def _motion(ds_dir: Path, monkeypatch: pytest.MonkeyPatch | None = None, trap: bool = False):
+def _alias(lm: LaserMatches) -> LaserMatches:
+    """``lm`` as if the next course along the pipe scored best."""
+    if not np.isfinite(lm.scale):
+        return lm
+    alias = lm.scale + COURSE_MM
+    return replace(
+        lm,
+        scale=alias,
+        peak_scales_mm=np.concatenate([[alias], lm.peak_scales_mm]),
+        peak_scores=np.concatenate([[1.0], lm.peak_scores]),
+    )
+
+
+def _motion(
+    ds_dir: Path, monkeypatch: pytest.MonkeyPatch | None = None, trap: bool = False, window: bool = True
+):
+    """The run's camera motion; ``trap``: every full-range laser search (Eq. 17) answers
+    the next course; ``window``: a step's laser searched near its feature length first
+    (``sfm.laser_scale.prior_window_log``, the default) or over the full range only."""
     ds = open_dataset(ds_dir)
-    cfg = ReconstructConfig.from_yaml(None, {"sfm": {"keyframe_min_parallax_deg": 0.0}})
+    sfm_yaml: dict = {"keyframe_min_parallax_deg": 0.0}
+    if not window:
+        sfm_yaml["laser_scale"] = {"prior_window_log": 0.0}
+    cfg = ReconstructConfig.from_yaml(None, {"sfm": sfm_yaml})
     frames = [ds.read_frame(i) for i in range(len(ds))]
     rings = laser.run(cfg.laser, ds.rig, iter(frames))
     if trap and monkeypatch is not None:
         original = step_decide.match_laser_points
+        original_near = sfm_tasks.match_laser_points_near
 
         def wrong_course_scores_best(*args, **kwargs) -> LaserMatches:
             lm = original(*args, **kwargs)
             window = args[7] if len(args) > 7 else kwargs.get("scale_window_mm")
-            if window is not None or not np.isfinite(lm.scale):
-                return lm  # a search around a known length: left alone
-            alias = lm.scale + COURSE_MM  # the next course along the pipe
-            return replace(
-                lm,
-                scale=alias,
-                peak_scales_mm=np.concatenate([[alias], lm.peak_scales_mm]),
-                peak_scores=np.concatenate([[1.0], lm.peak_scores]),
-            )
+            return lm if window is not None else _alias(lm)  # around a known length: left alone
+
+        def near_wrong_course(*args, **kwargs) -> tuple[LaserMatches, bool]:
+            lm, windowed = original_near(*args, **kwargs)
+            return (lm if windowed else _alias(lm)), windowed  # the full search's answer
 
         monkeypatch.setattr(step_decide, "match_laser_points", wrong_course_scores_best)
-        # The steps' first, unwindowed matches run as executor tasks (inline here).
+        # The steps' first matches run as executor tasks (inline here).
         monkeypatch.setattr(sfm_tasks, "match_laser_points", wrong_course_scores_best)
+        monkeypatch.setattr(sfm_tasks, "match_laser_points_near", near_wrong_course)
     result = sfm.run(
         cfg.sfm, sfm.SfmInputs(rig=ds.rig, read_frame=lambda i: frames[i], n_frames=len(ds), rings=rings)
     )
@@ -94,13 +113,22 @@ def test_periodic_wall_steps_are_right_or_flagged(brick_rings: Path) -> None:
 def test_wrong_course_scoring_best_is_resolved_or_flagged(
     brick_rings: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Inject the field failure: at every step the wrong course scores best."""
-    result, true = _motion(brick_rings, monkeypatch, trap=True)
+    """Inject the field failure: at every step the wrong course scores best (the full
+    range searched). With the search near the feature length first, a step whose
+    window stands never sees the wrong course; the others get the trapped full search:
+    every step right or flagged either way."""
+    result, true = _motion(brick_rings, monkeypatch, trap=True, window=False)
     moving = [c for c in result.step_checks if np.isfinite(c.laser_scale_mm)]
     assert moving and all(c.confidence != "high" for c in moving)  # never trusted blindly
     ok = _right_or_flagged(result, true)
     assert ok.all(), f"silent wrong steps at {np.flatnonzero(~ok)}"
     assert any(c.confidence == "resolved" for c in moving)  # the features found the course
+    result, true = _motion(brick_rings, monkeypatch, trap=True, window=True)
+    ok = _right_or_flagged(result, true)
+    assert ok.all(), f"silent wrong steps at {np.flatnonzero(~ok)} (window first)"
+    for c in result.step_checks:  # a trusted step's laser length is the right course's
+        if c.confidence == "high":
+            assert c.laser_scale_mm < 0.5 * COURSE_MM, c
 
 
 def test_wall_without_texture_is_refused_in_one_line(

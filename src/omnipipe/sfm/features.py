@@ -10,7 +10,6 @@ Rays seen by two overlapping views are kept once.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -208,13 +207,12 @@ class FeatureExtractor:
             lambda sift, img, vmask: _sift_view(sift, img, vmask, scale),
             self.sifts, views.images, views.masks, threads=self.threads,
         )
-        for k, (view, (kps, desc)) in enumerate(zip(self.views, found, strict=True)):
-            if desc is None or not kps:
+        for k, (view, (pts, desc)) in enumerate(zip(self.views, found, strict=True)):
+            if desc is None or not len(pts):
                 continue
-            pts = np.array([kp.pt for kp in kps], float)
             rays.append(view.rays(pts))
             descs.append(desc)
-            vidx.append(np.full(len(kps), k))
+            vidx.append(np.full(len(pts), k))
             vpx.append(pts.astype(np.float32))
         if not rays:
             return FrameFeatures.empty()
@@ -263,25 +261,27 @@ def detection_scale(config: FeatureConfig, width: int, height: int) -> float:
 
 def _sift_view(
     sift: cv2.SIFT, image: np.ndarray, mask: np.ndarray, scale: float = 1.0
-) -> tuple[Sequence[cv2.KeyPoint], np.ndarray | None]:
+) -> tuple[np.ndarray, np.ndarray | None]:
     """``sift.detectAndCompute`` of ``image`` (H, W) uint8 and its ``mask`` resized by
-    ``scale`` (area average; the mask's nearest pixel), the keypoints' positions and
-    sizes divided by ``scale`` back into ``image``'s pixels (OpenCV places a keypoint a
-    quarter pixel of its doubled first octave off; divided so, that offset and the
-    resize's half-pixel shift cancel)."""
+    ``scale`` (area average; the mask's nearest pixel): the (N, 2) keypoint positions
+    (float64 of OpenCV's float32) divided by ``scale`` back into ``image``'s pixels
+    (OpenCV places a keypoint a quarter pixel of its doubled first octave off; divided
+    so, that offset and the resize's half-pixel shift cancel), and their descriptors.
+    The positions are read in one call (``cv2.KeyPoint_convert``) and rounded to
+    float32 as a scaled ``cv2.KeyPoint`` holds them."""
+    h, w = image.shape[:2]
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    if scale != 1.0:
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+    kps, desc = sift.detectAndCompute(image, mask)
+    if not kps:
+        return np.zeros((0, 2)), desc
+    pts = np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2).astype(np.float64)
     if scale == 1.0:
-        return sift.detectAndCompute(image, mask)
-    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
-    kps, desc = sift.detectAndCompute(
-        cv2.resize(image, size, interpolation=cv2.INTER_AREA),
-        cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST),
-    )
-    fx, fy = image.shape[1] / size[0], image.shape[0] / size[1]
-    back = [
-        cv2.KeyPoint(kp.pt[0] * fx, kp.pt[1] * fy, kp.size * fx, kp.angle, kp.response, kp.octave)
-        for kp in kps
-    ]
-    return back, desc
+        return pts, desc
+    back = pts * np.array([w / size[0], h / size[1]])  # as kp.pt[i] * f in double
+    return back.astype(np.float32).astype(np.float64), desc
 
 
 def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:

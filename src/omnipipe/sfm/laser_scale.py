@@ -48,6 +48,10 @@ class LaserScaleConfig:
             Measured on two 580 mm random pipes: the consensus peaks become much
             sharper (second/best 0.95 -> 0.2), but the 3-16 % over-length of the laser
             scale there stays, so it is not the cause; off until measured on paper/bend.
+        prior_window_log: a keyframe step's laser search (:func:`match_laser_points_near`)
+            first tries only the candidates within this factor (log) of the step's
+            feature-depth length; the full range when that answer is weak. 0: always
+            the full range.
     """
 
     patch_radius: int = bounded(6, ge=1)
@@ -59,6 +63,7 @@ class LaserScaleConfig:
     min_template_std: float = bounded(2.0, ge=0)
     max_points: int = bounded(120, ge=1)
     detrend: bool = False
+    prior_window_log: float = bounded(0.5, ge=0)
 
 
 @dataclass
@@ -563,6 +568,98 @@ def _combined_scale(s_pt: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.exp(np.median(log_ratio[inlier]))), inlier
 
 
+class _Search(NamedTuple):
+    """One frame pair's Eq. (17) search: frame a's templates and frame b's scorer."""
+
+    score: _Scorer
+    tp: _Templates
+    pts_idx: np.ndarray  # (N,) indices of the points tried into the caller's points
+    rotation: np.ndarray  # (3, 3) b_from_a rotation
+    direction: np.ndarray  # (3,) unit b_from_a translation direction
+
+
+def _search(
+    gray_a: np.ndarray,
+    gray_b: np.ndarray,
+    camera: CameraModel,
+    laser_points_in_a: np.ndarray,
+    b_from_a_rotation: np.ndarray,
+    b_from_a_direction: np.ndarray,
+    cfg: LaserScaleConfig,
+) -> _Search | None:
+    """The templates of at most ``cfg.max_points`` laser points (evenly around the ring)
+    and the scorer of their candidates in frame b; None without points."""
+    pts = np.asarray(laser_points_in_a, float)
+    if len(pts) == 0:
+        return None
+    if len(pts) > cfg.max_points:
+        pts_idx = np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)
+    else:
+        pts_idx = np.arange(len(pts))
+    tp = _templates(gray_a, camera, pts[pts_idx], cfg)
+    R = np.asarray(b_from_a_rotation, float)
+    d = np.asarray(b_from_a_direction, float) / np.linalg.norm(b_from_a_direction)
+    plane_b0 = tp.plane @ R.T  # (N, K, 3) rotated into rig b, before the translation
+    # Frame b's own stripe: the laser sheet moved with the robot, so in rig b it lies
+    # where it lay in rig a. Its light leaks into the grey image (colour crosstalk, blur)
+    # and, left in the patches, pulls every match towards zero motion (measured on a
+    # 585 mm random rig: -9 % with true motion). Samples near the sheet in rig b are
+    # left out of each candidate's correlation as they are out of the template.
+    sheet_n, sheet_o = _sheet(pts)
+    projection = camera.compiled_projection()
+    score = _Scorer(gray_b, camera, projection, plane_b0, d, sheet_n, sheet_o, tp)
+    return _Search(score, tp, pts_idx, R, d)
+
+
+def _empty(peak_s: np.ndarray | None = None, peak_c: np.ndarray | None = None) -> LaserMatches:
+    """No matches (the consensus peaks, if any, kept)."""
+    z = np.zeros(0)
+    return LaserMatches(
+        np.zeros(0, int), z, np.zeros((0, 2)), z, math.nan,
+        z if peak_s is None else peak_s, z if peak_c is None else peak_c,
+    )
+
+
+def _matches(
+    search: _Search,
+    camera: CameraModel,
+    coarse: np.ndarray,
+    ncc: np.ndarray,
+    cfg: LaserScaleConfig,
+    window: bool = False,
+) -> LaserMatches:
+    """The consensus peaks, each point's refined length and Eq. (17) from the (N, S)
+    NCC of the (S,) ``coarse`` candidates. ``window``: the candidates are a window of
+    the full search, whose first and last are not peaks (the curve goes on beyond them):
+    no consensus peak and no point's best is taken there."""
+    tp = search.tp
+    tmpl_ok = tp.std > cfg.min_template_std
+    peak_s, peak_c = consensus_peaks(coarse, ncc[tp.ok_a & tmpl_ok])
+    if window:
+        inner = (peak_s > coarse[0]) & (peak_s < coarse[-1])
+        peak_s, peak_c = peak_s[inner], peak_c[inner]
+    log_s, best_ncc = _refine(coarse, ncc, search.score)
+    good = tp.ok_a & (best_ncc > cfg.min_ncc) & tmpl_ok & np.isfinite(log_s)
+    if window:
+        best = np.argmax(ncc, axis=1)
+        good &= (best > 0) & (best < len(coarse) - 1)
+    if not good.any():
+        return _empty(peak_s, peak_c)
+    s_pt = np.exp(log_s[good])
+    R, d = search.rotation, search.direction
+    pix_b, _ = camera.project(tp.points[good] @ R.T + s_pt[:, None] * d)
+    scale, inlier = _combined_scale(s_pt)
+    return LaserMatches(
+        index=search.pts_idx[good][inlier],
+        scale_mm=s_pt[inlier],
+        pixels_b=pix_b[inlier],
+        ncc=best_ncc[good][inlier],
+        scale=scale,
+        peak_scales_mm=peak_s,
+        peak_scores=peak_c,
+    )
+
+
 def match_laser_points(
     gray_a: np.ndarray,
     gray_b: np.ndarray,
@@ -591,52 +688,86 @@ def match_laser_points(
         The matches and the combined scale (translation length, mm).
     """
     cfg = config or LaserScaleConfig()
-    pts = np.asarray(laser_points_in_a, float)
-    empty = LaserMatches(np.zeros(0, int), np.zeros(0), np.zeros((0, 2)), np.zeros(0), math.nan)
-    if len(pts) == 0:
-        return empty
-    if len(pts) > cfg.max_points:
-        pts_idx = np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)
-    else:
-        pts_idx = np.arange(len(pts))
-    tp = _templates(gray_a, camera, pts[pts_idx], cfg)
-    P = tp.points
-    # Candidate translation lengths: log-spaced, then a finer pass around each best.
     s_lo, s_hi = cfg.scale_range_mm if scale_window_mm is None else scale_window_mm
-    if not (0 < s_lo < s_hi):
-        return empty
-    R = np.asarray(b_from_a_rotation, float)
-    d = np.asarray(b_from_a_direction, float) / np.linalg.norm(b_from_a_direction)
-    plane_b0 = tp.plane @ R.T  # (N, K, 3) rotated into rig b, before the translation
-
-    # Frame b's own stripe: the laser sheet moved with the robot, so in rig b it lies
-    # where it lay in rig a. Its light leaks into the grey image (colour crosstalk, blur)
-    # and, left in the patches, pulls every match towards zero motion (measured on a
-    # 585 mm random rig: -9 % with true motion). Samples near the sheet in rig b are
-    # left out of each candidate's correlation as they are out of the template.
-    sheet_n, sheet_o = _sheet(pts)
-    projection = camera.compiled_projection()
-    score = _Scorer(gray_b, camera, projection, plane_b0, d, sheet_n, sheet_o, tp)
-
-    coarse = _coarse_scales(cfg, s_lo, s_hi, scale_window_mm is not None)
-    ncc = score(np.tile(coarse, (len(P), 1)))
-    tmpl_ok = tp.std > cfg.min_template_std
-    peak_s, peak_c = consensus_peaks(coarse, ncc[tp.ok_a & tmpl_ok])
-    log_s, best_ncc = _refine(coarse, ncc, score)
-    good = tp.ok_a & (best_ncc > cfg.min_ncc) & tmpl_ok & np.isfinite(log_s)
-    if not good.any():
-        return LaserMatches(
-            empty.index, empty.scale_mm, empty.pixels_b, empty.ncc, math.nan, peak_s, peak_c
-        )
-    s_pt = np.exp(log_s[good])
-    pix_b, _ = camera.project(P[good] @ R.T + s_pt[:, None] * d)
-    scale, inlier = _combined_scale(s_pt)
-    return LaserMatches(
-        index=pts_idx[good][inlier],
-        scale_mm=s_pt[inlier],
-        pixels_b=pix_b[inlier],
-        ncc=best_ncc[good][inlier],
-        scale=scale,
-        peak_scales_mm=peak_s,
-        peak_scores=peak_c,
+    search = _search(
+        gray_a, gray_b, camera, laser_points_in_a, b_from_a_rotation, b_from_a_direction, cfg
     )
+    if search is None or not (0 < s_lo < s_hi):
+        return _empty()
+    # Candidate translation lengths: log-spaced, then a finer pass around each best.
+    coarse = _coarse_scales(cfg, s_lo, s_hi, scale_window_mm is not None)
+    ncc = search.score(np.tile(coarse, (len(search.tp.points), 1)))
+    return _matches(search, camera, coarse, ncc, cfg)
+
+
+# A windowed answer stands only when the consensus of its points falls at both ends of
+# the window to at most this fraction of its peak: the peak is then the curve's own, not
+# the slope of a stronger one outside.
+WINDOW_EDGE_RATIO = 0.5
+# ... and when at least this share of the points with a usable template match inside it
+# (NCC above ``min_ncc`` at an inner candidate): a stray local peak matches few.
+WINDOW_MIN_MATCHED = 0.5
+# Fewest candidates a window holds (else the full search runs).
+WINDOW_MIN_CANDIDATES = 5
+
+
+def match_laser_points_near(
+    gray_a: np.ndarray,
+    gray_b: np.ndarray,
+    camera: CameraModel,
+    laser_points_in_a: np.ndarray,
+    b_from_a_rotation: np.ndarray,
+    b_from_a_direction: np.ndarray,
+    config: LaserScaleConfig,
+    expected_mm: float,
+    agree_log: float,
+) -> tuple[LaserMatches, bool]:
+    """:func:`match_laser_points` over the full range, searched first only near an
+    independent estimate of the length.
+
+    The window is the full search's candidates within a factor
+    ``exp(config.prior_window_log)`` of ``expected_mm``. Its answer stands when its
+    Eq. (17) length agrees with ``expected_mm`` within ``agree_log`` (|log ratio|), at
+    least :data:`WINDOW_MIN_MATCHED` of the points with a usable template match, and
+    their consensus peaks inside the window and falls at both ends to at most
+    :data:`WINDOW_EDGE_RATIO` of that peak. Otherwise the remaining candidates are
+    scored too and the answer is the full search's, bit for bit. The consensus peaks of
+    a window's answer are those inside it (a course off beyond it is not seen: the
+    expected length, measured without the laser, chose the course).
+
+    Returns:
+        The matches and whether they are the window's (True) or the full search's.
+    """
+    cfg = config
+    search = _search(
+        gray_a, gray_b, camera, laser_points_in_a, b_from_a_rotation, b_from_a_direction, cfg
+    )
+    if search is None:
+        return _empty(), False
+    full = _coarse_scales(cfg, *cfg.scale_range_mm, False)
+    n = len(search.tp.points)
+    lo, hi = 0, len(full)
+    if math.isfinite(expected_mm) and expected_mm > 0 and cfg.prior_window_log > 0:
+        lo = int(np.searchsorted(full, expected_mm * math.exp(-cfg.prior_window_log)))
+        hi = int(np.searchsorted(full, expected_mm * math.exp(cfg.prior_window_log), "right"))
+    if hi - lo < WINDOW_MIN_CANDIDATES or hi - lo == len(full):
+        return _matches(search, camera, full, search.score(np.tile(full, (n, 1))), cfg), False
+    ncc_w = search.score(np.tile(full[lo:hi], (n, 1)))
+    lm = _matches(search, camera, full[lo:hi], ncc_w, cfg, window=True)
+    tp = search.tp
+    rows = ncc_w[tp.ok_a & (tp.std > cfg.min_template_std)]
+    if (
+        len(rows)
+        and len(lm.index) >= WINDOW_MIN_MATCHED * len(rows)
+        and abs(math.log(lm.scale / expected_mm)) <= agree_log
+    ):
+        c = np.mean(np.clip(rows, 0.0, 1.0) ** 2, axis=0)
+        top = int(np.argmax(c))
+        if 0 < top < len(c) - 1 and max(c[0], c[-1]) <= WINDOW_EDGE_RATIO * c[top]:
+            return lm, True
+    parts = [
+        ncc_w if part is None else search.score(np.tile(part, (n, 1)))
+        for part in (full[:lo], None, full[hi:])
+        if part is None or len(part)
+    ]
+    return _matches(search, camera, full, np.concatenate(parts, axis=1), cfg), False

@@ -40,7 +40,12 @@ from omnipipe.sfm.features import (
     match_features,
 )
 from omnipipe.sfm.image_store import StoredImage, load_image
-from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig, match_laser_points
+from omnipipe.sfm.laser_scale import (
+    LaserMatches,
+    LaserScaleConfig,
+    match_laser_points,
+    match_laser_points_near,
+)
 from omnipipe.sfm.ransac import RansacConfig, estimate_relative_motion
 from omnipipe.sfm.scale_check import (
     ScaleCheckConfig,
@@ -238,12 +243,17 @@ def step_evidence(
         the laser's template matches (Eq. 17), each match's feature-depth log length,
         and the step's feature-depth length with its count.
     """
-    lm = laser_matches(
-        gray_a, gray_b, camera, laser_points_a, b_from_a_rotation, b_from_a_direction, laser_scale
-    )
     log_s = feature_log_scales(
         rays_a, rays_b, b_from_a_rotation, b_from_a_direction, wall_cylinder(laser_points_a),
         scale_check,
     )
     s_feat, n_feat = feature_scale(log_s, scale_check)
+    # The laser searched first near the feature-depth length (the full range when that
+    # answer is weak or there is none): the decision needs only where the two agree.
+    lm, _ = match_laser_points_near(
+        np.asarray(load_image(gray_a), np.float32),
+        np.asarray(load_image(gray_b), np.float32),
+        camera, laser_points_a, b_from_a_rotation, b_from_a_direction, laser_scale,
+        s_feat, scale_check.agree_log,
+    )
     return StepScales(lm, log_s, s_feat, n_feat)
