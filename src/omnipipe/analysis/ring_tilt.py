@@ -60,12 +60,17 @@ class TiltCheck:
         direction_rad: (S,) the tilt's direction around the axis (the station angle
             convention: from the centreline's normal towards its binormal).
         square_weight: (S,) 1: the ring is square to the pipe (the centreline is off
-            it); 0: an oblique cut (the station stands); 0.5: not decided.
+            it); 0: an oblique cut (the station stands). A station the test does not
+            decide takes its nearest decided station's (the cause changes smoothly along
+            the run: a drifting motion, a rig leaning through a bend), 0.5 when the run
+            decides none.
+        undecided: (S,) the stations the test did not decide themselves.
     """
 
     tilt_rad: np.ndarray
     direction_rad: np.ndarray
     square_weight: np.ndarray
+    undecided: np.ndarray
 
     def shrink_mm(self, diameters: np.ndarray) -> np.ndarray:
         """(S,) the mean diameter (mm) a ring square to the pipe loses across the
@@ -75,11 +80,10 @@ class TiltCheck:
 
     def ambiguity_mm(self, diameters: np.ndarray) -> float:
         """The run's diameter sigma (mm) from the undecided stations: the stations' mean
-        of sqrt(w (1 - w)) x their shrink (half of it where not decided, 0 where
-        decided); shared by neighbours, so it does not average down."""
+        of half their shrink where not decided (0 where decided); shared by neighbours,
+        so it does not average down."""
         s = self.shrink_mm(diameters)
-        w = self.square_weight
-        return float(np.mean(np.sqrt(w * (1.0 - w)) * s)) if len(s) else 0.0
+        return float(np.mean(np.where(self.undecided, 0.5 * s, 0.0))) if len(s) else 0.0
 
 
 def ring_tilts(
@@ -137,7 +141,8 @@ def tilt_check(
     chi-squares of their ovality vectors against zero (oblique cuts of a round pipe) and
     against :func:`tilt_vectors` (square rings); one wins by :data:`DECISIVE_CHI2` when
     its residuals stay within :data:`FIT_RESIDUAL_SIGMA` (median); otherwise (an oval
-    pipe, or no signal) the weight is 0.5.
+    pipe, or no signal) the station is undecided and takes its nearest decided
+    station's weight (0.5 when none is decided).
     """
     m, sig = _vectors(stations)
     ok = np.isfinite(m).all(axis=1) & np.isfinite(sig)
@@ -156,39 +161,44 @@ def tilt_check(
             w[j] = 1.0
         elif chi_ob + DECISIVE_CHI2 <= chi_sq and np.median(oblique[near]) <= FIT_RESIDUAL_SIGMA:
             w[j] = 0.0
-    return TiltCheck(tilt, direction, w)
+    undecided = w == 0.5
+    decided = np.flatnonzero(~undecided)
+    if len(decided):
+        nearest = decided[np.argmin(np.abs(np.arange(len(w))[:, None] - decided[None, :]), axis=1)]
+        w = w[nearest]
+    return TiltCheck(tilt, direction, w, undecided)
 
 
 def with_tilt(stations: list[Station], check: TiltCheck) -> list[Station]:
     """The stations measured as the check decided: square rings (weight 1) gain their
-    shrink and lose the tilt's ovality; undecided ones (0.5) gain half the shrink, with
-    sqrt(w (1 - w)) x the shrink in their diameter sigma and half the tilt's ovality in
-    their ovality sigma; oblique cuts (0) stand."""
+    shrink and lose the tilt's ovality, oblique cuts (0) stand, 0.5 gain half the
+    shrink; undecided stations hold half the shrink in their diameter sigma and half the
+    tilt's ovality in their ovality sigma."""
     d = np.array([s.diameter_mm for s in stations], float)
     shrink = check.shrink_mm(d)
     extra = tilt_vectors(check.tilt_rad, check.direction_rad)
     m, _ = _vectors(stations)
     out = []
-    for st, ds, p, mv, w in zip(stations, shrink, extra, m, check.square_weight, strict=True):
-        if w == 0.0:
-            out.append(st)
-            continue
+    rows = zip(stations, shrink, extra, m, check.square_weight, check.undecided, strict=True)
+    for st, ds, p, mv, w, open_ in rows:
         new = replace(
             st,
             diameter_mm=st.diameter_mm + w * ds,
-            diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, math.sqrt(w * (1.0 - w)) * ds),
+            diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 0.5 * ds if open_ else 0.0),
             diameter_min_mm=st.diameter_min_mm + w * ds,
             diameter_max_mm=st.diameter_max_mm + w * ds,
         )
-        out.append(_ovality_less(new, mv, p, w) if np.isfinite(mv).all() else new)
+        out.append(_ovality_less(new, mv, p, w, open_) if np.isfinite(mv).all() else new)
     return out
 
 
-def _ovality_less(st: Station, m: np.ndarray, p: np.ndarray, w: float) -> Station:
-    """``st`` with ``w`` x the tilt's ovality vector ``p`` taken out of its own ``m``
-    when decided (w 1), else its ovality sigma widened by half |p|."""
+def _ovality_less(st: Station, m: np.ndarray, p: np.ndarray, w: float, undecided: bool) -> Station:
+    """``st`` with the tilt's ovality vector ``p`` taken out of its own ``m`` when square
+    (w 1); its ovality sigma widened by half |p| when ``undecided``."""
+    if undecided:
+        st = replace(st, ovality_sigma=math.hypot(st.ovality_sigma, 0.5 * float(np.linalg.norm(p))))
     if w < 1.0:
-        return replace(st, ovality_sigma=math.hypot(st.ovality_sigma, 0.5 * float(np.linalg.norm(p))))
+        return st
     v = m - p
     ov = float(np.linalg.norm(v))
     half = 0.5 * ov * st.diameter_mm
