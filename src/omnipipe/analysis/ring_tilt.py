@@ -16,9 +16,11 @@ runs at an angle e to that plane's normal, one of two things is true:
 
 A round pipe tells them apart from the rings: the stations' ovality (magnitude and
 direction) either is that extra ovality or is not. :func:`tilt_check` compares the two
-explanations over the run's stations; when neither is decided (an oval pipe, noise as
-large as the tilt's signal) the stations take half the correction and the sigma of the
-choice (half the correction), so the headline's sigma covers either truth.
+explanations station by station over a few neighbours; a station neither explanation
+decides (an oval pipe, noise as large as the tilt's signal) takes its nearest decided
+station's, and half the correction goes into its sigma and the headline's, so the stated
+sigma covers either truth. An oval pipe whose ovality across the centreline happens to
+equal the extra ovality in size and axis is taken for square rings.
 """
 
 from __future__ import annotations
@@ -41,8 +43,8 @@ decided."""
 
 OVALITY_FLOOR = 0.002
 """The smallest sigma (a fraction) of a station's ovality vector in the test: the ring
-shapes' scatter that no fit sigma holds (random-features seed 1's round, untilted
-stretch: 0.0-0.5 % against fit sigmas of 0.05 %)."""
+shapes' scatter that no fit sigma holds (random-features seed 1's round stretch read
+through rings 7 deg oblique: 0.0-0.5 % against fit sigmas of 0.05 %)."""
 
 NEIGHBOURS = 2
 """The test pools each station with this many stations either side (the camera motion's
