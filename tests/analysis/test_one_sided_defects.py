@@ -181,3 +181,24 @@ def test_one_ring_streak_steeper_than_a_dent_is_stray_peaks() -> None:
     three = dev + 7.0 * plateau(du, 20.0, 5.0) * np.isin(ring, [19, 20, 21])
     res = _search(sig, arc, three, ring)
     assert len(res.defects) == 1 and res.defects[0].kind == "dent", res.defects
+
+
+@pytest.mark.parametrize("slant_mm", [40.0, 0.0])
+def test_rings_slanted_across_a_joint_mix_its_sections(slant_mm: float) -> None:
+    """Rings every 5 mm, each slanted +-``slant_mm`` along the pipe (rings tilted against
+    the centreline: random-features-small seed 1, 14-18 deg), a found joint's band at
+    95..105 mm and a 3 mm streak on four rings, 40 mm before the band at 270 deg. Every
+    one of those rings also runs through the band: it lies on both sections and its one
+    profile cannot follow the step: flagged, not a defect. On square rings (slant 0) the
+    same streak is a dent beside the joint, kept."""
+    sig, arc, dev, ring = _wall(21)
+    sig = sig + slant_mm * np.sin(arc / RADIUS)
+    du = (arc - math.radians(270.0) * RADIUS + CIRC / 2) % CIRC - CIRC / 2
+    streak = 3.0 * plateau(du, 40.0, 8.0) * ((ring >= 20) & (ring <= 23))
+    joint = FeatureZone(95.0, 105.0, "the joint at 100.0 mm")
+    res = _search(sig, arc, dev + streak, ring, zones=[joint])
+    if slant_mm:
+        assert res.defects == []
+        assert any("slanted across the band of the joint at 100.0 mm" in w for w in res.warnings)
+    else:
+        assert len(res.defects) == 1 and abs(res.defects[0].angle_deg - 270.0) < 3.0

@@ -52,6 +52,7 @@ from omnipipe.analysis.features import (
     with_offset_joints_kept,
 )
 from omnipipe.analysis.footprint import footprint_mm, footprint_terms, with_footprint_terms
+from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tilt
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
     EdgeReach,
@@ -308,17 +309,18 @@ def run(
     mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
     reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
+    st_list, shared = _tilt_corrected(st_list, shared, line, pts, frame, measured, radial_sys)
     st_list, features, head = _sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = _run_water(st_list) if wet else (None, None)
-    finite = stations.ovality[np.isfinite(stations.ovality)]
+    ovality = np.array([st.ovality for st in st_list])  # as measured (ring_tilt)
     return AnalysisResult(
         inner_diameter_mm=head.diameter_mm,
         straight=bool(straight),
-        ovality_max=float(finite.max()) if len(finite) else float("nan"),
+        ovality_max=float(np.nanmax(ovality)) if np.isfinite(ovality).any() else float("nan"),
         stations_axial_mm=stations.axial,
-        stations_diameter_mm=stations.diameter,
-        stations_ovality=stations.ovality,
+        stations_diameter_mm=np.array([st.diameter_mm for st in st_list]),
+        stations_ovality=ovality,
         defects=defects,
         centreline=line,
         point_sigma_mm=sigma,
@@ -391,6 +393,30 @@ def _with_ring_terms(
         for st, pk in zip(_station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
     ]
     return st_list, shared
+
+
+def _tilt_corrected(
+    st_list: list[Station],
+    shared: float,
+    line: Centreline,
+    pts: np.ndarray,
+    frame: np.ndarray,
+    measured: np.ndarray,
+    radial_sys: float,
+) -> tuple[list[Station], float]:
+    """The stations and the headline's shared term (mm) after :func:`.ring_tilt.tilt_check`:
+    rings square to the pipe under a centreline drawn off it measured in their own
+    plane; an undecided tilt's ambiguity added to the shared term."""
+    rings = np.flatnonzero(measured)
+    if len(rings) != len(st_list) or not len(rings):
+        return st_list, shared
+    groups = ring_groups(frame, len(measured))
+    tilt, direction = ring_tilts(
+        pts, [groups[k] for k in rings], line.tangent[rings], line.normal[rings], line.binormal[rings]
+    )
+    d = np.array([st.diameter_mm for st in st_list])
+    check = tilt_check(st_list, tilt, direction, 4.0 * radial_sys / max(float(np.median(d)), 1e-9))
+    return with_tilt(st_list, check), math.hypot(shared, check.ambiguity_mm(d))
 
 
 def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndarray, k: int) -> np.ndarray:
