@@ -377,12 +377,15 @@ def write_glb(
         png_parts = lambda: iter([png.getbuffer()])  # noqa: E731 - the PNG's bytes in place
     normals = _vertex_normals(vertices, np.asarray(faces), gltf_from_world_mm)
     # trimesh's buffers in its order: indices, positions, the texture, UVs, normals.
+    # Each pass drops the scratch's pages after each chunk (omnipipe.spill: the mesh
+    # and the normals are mapped files; a pass reads them faster than the run's dropping
+    # thread unmaps them).
     streams: list[Callable[[], Iterator[np.ndarray | memoryview]]] = [
-        lambda: (np.asarray(faces[a:b]).astype(np.uint32).ravel() for a, b in _chunks(len(faces))),
-        lambda: (gltf_from_world_mm(vertices[a:b]).astype(np.float32) for a, b in _chunks(len(vertices))),
+        lambda: _dropping(np.asarray(faces[a:b]).astype(np.uint32).ravel() for a, b in _chunks(len(faces))),
+        lambda: _dropping(gltf_from_world_mm(vertices[a:b]).astype(np.float32) for a, b in _chunks(len(vertices))),
         png_parts,
-        lambda: (_gltf_uv(uvs[a:b]) for a, b in _chunks(len(uvs))),
-        lambda: (_unitized(normals[a:b]).astype(np.float32) for a, b in _chunks(len(normals))),
+        lambda: _dropping(_gltf_uv(uvs[a:b]) for a, b in _chunks(len(uvs))),
+        lambda: _dropping(_unitized(normals[a:b]).astype(np.float32) for a, b in _chunks(len(normals))),
     ]
     stats = [_GlbStats.of(stream()) for stream in streams]
     views, view_of = _glb_views(stats)
@@ -404,6 +407,15 @@ def write_glb(
                 fh.write(bytes(-stats[k].length % 4))
     except OSError as exc:
         raise _fail(path, exc) from None
+
+
+def _dropping(parts: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
+    """``parts`` as they come, :func:`omnipipe.spill.drop_pages` after each is used."""
+    from omnipipe.spill import drop_pages
+
+    for part in parts:
+        yield part
+        drop_pages()
 
 
 def texture_png(dst: Path | BinaryIO, texture: np.ndarray) -> None:
@@ -548,7 +560,7 @@ def _vertex_normals(
     scratch (:mod:`omnipipe.spill`)."""
     from trimesh import triangles, util
 
-    from omnipipe.spill import zeros_on_disk
+    from omnipipe.spill import drop_pages, zeros_on_disk
 
     # (V, 3) float64, held through the GLB's writing: in the run's scratch (omnipipe.spill).
     summed = zeros_on_disk((len(vertices), 3), np.float64)
@@ -562,8 +574,10 @@ def _vertex_normals(
         ok = (normals**2).sum(axis=1) > 0.5  # trimesh's test of a face's normal
         corners = triangles.angles(tri)[ok][:, :, None] * normals[ok][:, None, :]
         np.add.at(summed, idx[ok].ravel(), corners.reshape(-1, 3))
+        drop_pages()  # this chunk's faces, vertices and sums (omnipipe.spill) unmapped
     for a, b in _chunks(len(summed)):  # row by row: in place, not a second (V, 3) array
         summed[a:b] = util.unitize(summed[a:b])
+        drop_pages()
     return summed
 
 

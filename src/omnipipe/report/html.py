@@ -773,6 +773,11 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
     """The report page in pieces: the template filled in, with the 3-D view's JSON
     (the page's longest part) written a chunk at a time into it."""
     s = inputs.summary
+    # The 3-D view first, into the run's scratch: the mesh's thinning and the texture's
+    # PNG (a long run's largest temporaries here) not on top of what drawing the figures
+    # leaves resident (matplotlib, its fonts and caches).
+    view = _model_view_file(inputs, config)
+    release_freed_memory()
     plots = _plots(inputs)
     template = resources.files("omnipipe.report").joinpath("templates", "report.html")
     page = Template(template.read_text(encoding="utf-8"))
@@ -796,8 +801,33 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
     del filled
     yield before
     del before
-    yield from _model_view_parts(_model_json_parts(inputs, config))
+    yield from _text_file_parts(view)
     yield after
+
+
+def _model_view_file(inputs: ReportInputs, config: ReportConfig) -> IO[str]:
+    """The 3-D view's HTML (:func:`_model_view_parts` of :func:`_model_json_parts`)
+    written a piece at a time into an unnamed text file of the run's scratch
+    (:func:`omnipipe.scratch.scratch_dir`; gone when closed), positioned at its start."""
+    from omnipipe.scratch import scratch_dir
+
+    fh = tempfile.TemporaryFile("w+", encoding="utf-8", newline="", prefix="omnipipe-view-", dir=scratch_dir())
+    for part in _model_view_parts(_model_json_parts(inputs, config)):
+        fh.write(part)
+    fh.seek(0)
+    return fh
+
+
+_TEXT_PIECE = 1 << 20
+"""Characters :func:`_text_file_parts` reads at a time."""
+
+
+def _text_file_parts(fh: IO[str]) -> Iterator[str]:
+    """The rest of the text file ``fh`` in pieces of :data:`_TEXT_PIECE` characters; the
+    file closed after the last."""
+    with fh:
+        while piece := fh.read(_TEXT_PIECE):
+            yield piece
 
 
 def _summary_rows(s: dict[str, Any]) -> str:
