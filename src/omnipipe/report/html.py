@@ -179,12 +179,16 @@ def _figure_data_uri(fig: Figure) -> str:
         pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
     )
     plt.close(fig)
-    del fig
-    # A closed figure is a cycle of objects (its canvas's pixel buffer among them):
-    # collected now, not under the next figure when the collector next runs (10-15 MB
-    # for a 12-inch figure).
-    gc.collect()
     return "data:image/png;base64," + base64.b64encode(buf.getbuffer()).decode("ascii")
+
+
+def _collected(uri: str) -> str:
+    """``uri``, once the figure it was drawn from is collected: a closed figure is a
+    cycle of objects (its canvas's pixel buffer among them) that the collector would
+    otherwise free only when it next runs, under the next figures (10-15 MB for a
+    12-inch figure). Call it on a plot function's result, after its frame is gone."""
+    gc.collect()
+    return uri
 
 
 def _plots(inputs: ReportInputs) -> dict[str, str]:
@@ -194,20 +198,20 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     matplotlib.use("Agg")
     out: dict[str, str] = {}
     if inputs.stations_axial_mm is not None and len(inputs.stations_axial_mm):
-        out["profile"] = _profile_plot(inputs)
+        out["profile"] = _collected(_profile_plot(inputs))
     poses = np.asarray(inputs.world_from_rig)
     if poses.ndim == 3 and len(poses):
-        out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
+        out["trajectory"] = _collected(_trajectory_plot(inputs, poses[:, :3, 3]))
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         # Hatched and rolled to 12:00 in one pass (the report's one copy of the wall).
         w = min(np.asarray(inputs.unrolled).shape[1], UNROLLED_MAX_COLUMNS)
         shift, extent = _twelve_shift(w, inputs.unrolled_extent, _clock_deg(inputs))
         shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha, shift)
-        out["unrolled"] = _unrolled_plot(inputs, shown, extent)
+        out["unrolled"] = _collected(_unrolled_plot(inputs, shown, extent))
         del shown
         release_freed_memory()  # the wall's pages (omnipipe.spill) not under the next plot
     if inputs.wall is not None and len(inputs.wall.axial_mm):
-        out["relief"] = _relief_plot(inputs, inputs.wall)
+        out["relief"] = _collected(_relief_plot(inputs, inputs.wall))
         release_freed_memory()
     return out
 
@@ -740,7 +744,7 @@ def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
     views = []
     if inputs.wall is not None:
         views.append(
-            _figure_html(_defect_relief(inputs, d, k), "relief map: deviation from the fitted wall (mm)")
+            _figure_html(_collected(_defect_relief(inputs, d, k)), "relief map: deviation from the fitted wall (mm)")
         )
     if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
         from omnipipe.report.deliverable import crop_unrolled
