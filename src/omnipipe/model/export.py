@@ -123,10 +123,16 @@ NORMALS_CHUNK = 1 << 14
 
 def _chunks(n: int, size: int | None = None) -> Iterator[tuple[int, int]]:
     """``(a, b)``: consecutive slices of ``range(n)``, ``size`` (default
-    :data:`WRITE_CHUNK`) long, the last fewer."""
+    :data:`WRITE_CHUNK`) long, the last fewer. After each slice is used the scratch's
+    pages are dropped (:func:`omnipipe.spill.drop_pages`): the model's arrays are mapped
+    files there, and a writer reads them faster than the run's dropping thread unmaps
+    them (model.glb at 10,000 frames: 40 MB of them resident at once)."""
+    from omnipipe.spill import drop_pages
+
     size = size or WRITE_CHUNK
     for a in range(0, n, size):
         yield a, min(a + size, n)
+        drop_pages()
 
 
 def _extent(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -377,15 +383,12 @@ def write_glb(
         png_parts = lambda: iter([png.getbuffer()])  # noqa: E731 - the PNG's bytes in place
     normals = _vertex_normals(vertices, np.asarray(faces), gltf_from_world_mm)
     # trimesh's buffers in its order: indices, positions, the texture, UVs, normals.
-    # Each pass drops the scratch's pages after each chunk (omnipipe.spill: the mesh
-    # and the normals are mapped files; a pass reads them faster than the run's dropping
-    # thread unmaps them).
     streams: list[Callable[[], Iterator[np.ndarray | memoryview]]] = [
-        lambda: _dropping(np.asarray(faces[a:b]).astype(np.uint32).ravel() for a, b in _chunks(len(faces))),
-        lambda: _dropping(gltf_from_world_mm(vertices[a:b]).astype(np.float32) for a, b in _chunks(len(vertices))),
+        lambda: (np.asarray(faces[a:b]).astype(np.uint32).ravel() for a, b in _chunks(len(faces))),
+        lambda: (gltf_from_world_mm(vertices[a:b]).astype(np.float32) for a, b in _chunks(len(vertices))),
         png_parts,
-        lambda: _dropping(_gltf_uv(uvs[a:b]) for a, b in _chunks(len(uvs))),
-        lambda: _dropping(_unitized(normals[a:b]).astype(np.float32) for a, b in _chunks(len(normals))),
+        lambda: (_gltf_uv(uvs[a:b]) for a, b in _chunks(len(uvs))),
+        lambda: (_unitized(normals[a:b]).astype(np.float32) for a, b in _chunks(len(normals))),
     ]
     stats = [_GlbStats.of(stream()) for stream in streams]
     views, view_of = _glb_views(stats)
@@ -407,15 +410,6 @@ def write_glb(
                 fh.write(bytes(-stats[k].length % 4))
     except OSError as exc:
         raise _fail(path, exc) from None
-
-
-def _dropping(parts: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
-    """``parts`` as they come, :func:`omnipipe.spill.drop_pages` after each is used."""
-    from omnipipe.spill import drop_pages
-
-    for part in parts:
-        yield part
-        drop_pages()
 
 
 def texture_png(dst: Path | BinaryIO, texture: np.ndarray) -> None:
@@ -560,7 +554,7 @@ def _vertex_normals(
     scratch (:mod:`omnipipe.spill`)."""
     from trimesh import triangles, util
 
-    from omnipipe.spill import drop_pages, zeros_on_disk
+    from omnipipe.spill import zeros_on_disk
 
     # (V, 3) float64, held through the GLB's writing: in the run's scratch (omnipipe.spill).
     summed = zeros_on_disk((len(vertices), 3), np.float64)
@@ -574,10 +568,8 @@ def _vertex_normals(
         ok = (normals**2).sum(axis=1) > 0.5  # trimesh's test of a face's normal
         corners = triangles.angles(tri)[ok][:, :, None] * normals[ok][:, None, :]
         np.add.at(summed, idx[ok].ravel(), corners.reshape(-1, 3))
-        drop_pages()  # this chunk's faces, vertices and sums (omnipipe.spill) unmapped
     for a, b in _chunks(len(summed)):  # row by row: in place, not a second (V, 3) array
         summed[a:b] = util.unitize(summed[a:b])
-        drop_pages()
     return summed
 
 
@@ -599,10 +591,10 @@ def _write_rows(
 ) -> None:
     """Write :func:`_rows` of ``convert(chunk)`` for each chunk of rows of ``values`` to
     ``fh`` (a converted copy of a chunk only, never of all rows)."""
-    for a in range(0, len(values), _ROWS_CHUNK):
+    for a, b in _chunks(len(values), _ROWS_CHUNK):
         if a:
             fh.write("\n")
-        fh.write(_rows(fmt, np.asarray(convert(values[a : a + _ROWS_CHUNK]), float)))
+        fh.write(_rows(fmt, np.asarray(convert(values[a:b]), float)))
 
 
 def _obj_face_rows(faces: np.ndarray) -> np.ndarray:
