@@ -571,7 +571,7 @@ def _analyse(
     from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
-    from omnipipe.spill import Pack, on_disk, pieces_on_disk
+    from omnipipe.spill import Pack, drop_pages, on_disk, pieces_on_disk
 
     rig, stations, sfm_result = dataset.rig, motion.stations, motion.result
     t0 = time.perf_counter()
@@ -590,13 +590,14 @@ def _analyse(
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
     station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
     points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings])
+    points, point_frame = on_disk(points), on_disk(point_frame)  # not in memory under the rest
     reach, reach_sigma = edge_reach_mm(station_rings)
     blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
     mm_per_px = np.array([radial_mm_per_px(r) for r in station_rings])
+    drop_pages()  # every ring's pages were read (omnipipe.spill): not under the copy below
     # What the model stage reads of the rings waits in the run's scratch (omnipipe.spill):
     # not resident under the analysis.
     pixels = pieces_on_disk([r.pixels for r in station_rings])
-    points, point_frame = on_disk(points), on_disk(point_frame)
     # The rings' other per-sample arrays (64 of their 80 bytes a sample: 29 MB at 10,000
     # frames) not held under the analysis: its inputs are the integrated points.
     del station_rings, pack
