@@ -115,3 +115,36 @@ def test_gravity_direction_from_a_noisy_tilted_accelerometer(tmp_path: Path) -> 
     assert np.isnan(g[3]).all() and np.isinf(sigma[3])  # its window starts before the recording
     no_gyro = make_imu("x", t[:3], f[:3], None, str)
     assert no_gyro.gyro is None
+
+
+def test_imu_read_a_block_of_lines_at_a_time_is_the_file_read_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """imu.txt parsed a few lines at a time (its Python numbers a block's, not the
+    file's): the same readings as the whole file's lines (blank and comment lines, CRLF
+    and a lone CR ending a line), and a bad line named by its own line number however
+    the blocks fall."""
+    from omnipipe.inputs import sensors
+
+    rng = np.random.default_rng(4)
+    values = rng.normal(size=(40, 7))
+    values[:, 0] = np.arange(40) * 0.01
+    lines = ["# t ax ay az wx wy wz"]
+    for i, row in enumerate(values):
+        lines += [""] * (i % 7 == 0) + ["# c"] * (i % 11 == 0) + [" ".join(f"{v:.6f}" for v in row)]
+    text = "\r\n".join(lines[:-1]) + "\r" + lines[-1] + "\n"
+    path = tmp_path / "imu.txt"
+    path.write_bytes(text.encode())
+    whole = read_imu(path)
+    assert np.allclose(whole.accel, values[:, 1:4], atol=1e-6) and np.allclose(whole.gyro, values[:, 4:], atol=1e-6)
+    bad_line = len(lines) - 3
+    lines[bad_line - 1] = "0.5 1 2"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    for block in (3, 5, 1 << 13):
+        monkeypatch.setattr(sensors, "TABLE_BLOCK_LINES", block)
+        path.write_bytes(text.encode())
+        imu = read_imu(path)
+        assert np.array_equal(imu.timestamps, whole.timestamps) and np.array_equal(imu.gyro, whole.gyro)
+        path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        with pytest.raises(DatasetError, match=rf"imu.txt:{bad_line}: expected"):
+            read_imu(path)

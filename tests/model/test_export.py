@@ -262,6 +262,34 @@ def test_files_written_a_chunk_at_a_time_equal_those_written_whole(
     assert np.array_equal(ours, mesh.vertex_normals)
 
 
+def test_writers_of_a_model_in_the_scratch_drop_its_pages_after_each_chunk(
+    written, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The model's arrays in the run's scratch (as the pipeline hands them to the
+    writers): each writer drops the scratch's pages after each chunk it used (not only
+    when the run's dropping thread next wakes), and every file is the one written from
+    the arrays in memory, byte for byte."""
+    from omnipipe import spill
+    from omnipipe.model import export
+    from omnipipe.pipeline.reconstruct import model_on_disk
+
+    res, whole, _ = written
+    monkeypatch.setattr(export, "WRITE_CHUNK", 999)
+    monkeypatch.setattr(export, "_ROWS_CHUNK", 333)
+    drops = []
+    real = spill.drop_pages
+    monkeypatch.setattr(spill, "drop_pages", lambda: (drops.append(1), real())[1])
+    on_disk = model_on_disk(res)
+    assert spill.is_on_disk(on_disk.textured_faces) and spill.is_on_disk(on_disk.points_in_world)
+    write_outputs(on_disk, tmp_path)
+    for name in sorted(p.name for p in whole.iterdir()):
+        assert (tmp_path / name).read_bytes() == (whole / name).read_bytes(), name
+    n_v, n_f = len(res.textured_vertices), len(res.textured_faces)
+    glb = 2 * (-(-n_f // 999) + 3 * -(-n_v // 999))  # two passes over faces, positions, UVs, normals
+    obj = -(-n_v // 333) * 2 + -(-n_f // 333)
+    assert len(drops) >= glb + obj
+
+
 def trimesh_glb(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray) -> bytes:
     """The GLB trimesh's own ``export_glb`` writes of the same textured mesh (vertex
     normals, material and ``asset.extras`` as :func:`write_glb` documents them)."""

@@ -242,3 +242,50 @@ def test_report_is_written_a_piece_at_a_time_as_the_page(tmp_path: Path, monkeyp
     alpha = rng.uniform(size=(600, 90)) < 0.7
     rolled, _ = _from_twelve(marked_unrolled(img, alpha), (0.0, 360.0, 0.0, 300.0), 100.0)
     assert np.array_equal(marked_unrolled(img, alpha, 25), rolled)  # 100 deg = 25 columns
+
+
+def test_the_3d_view_made_first_into_a_file_is_written_into_the_page_as_made(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The 3-D view is made before the figures into a scratch text file, then copied into
+    the page a piece at a time: its text is the view's own (pieces that split the page's
+    non-ASCII characters' neighbourhood too), and the page is the template's with that
+    view in its slot."""
+    from omnipipe.report import html as report_html
+
+    inputs = _inputs()
+    config = ReportConfig()
+    made = "".join(report_html._model_view_parts(report_html._model_json_parts(inputs, config)))
+    assert "…" in made  # non-ASCII text passes through the file unchanged
+    with report_html._model_view_file(inputs, config) as fh:
+        assert fh.read() == made
+    whole = render_html(inputs)
+    monkeypatch.setattr(report_html, "_TEXT_PIECE", 7)
+    parts = list(report_html._text_file_parts(report_html._model_view_file(inputs, config)))
+    assert "".join(parts) == made and max(map(len, parts)) == 7
+    assert render_html(inputs) == whole
+    assert whole.count(made) == 1 and whole.index(made) < whole.index("id='unrolled'")
+
+
+def test_a_figure_is_collected_once_its_data_uri_is_made() -> None:
+    """A plot's figure (closed by _figure_data_uri) is collected by _collected: no
+    Figure (nor its canvas) is left for the collector to find under the next figure."""
+    import gc
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from omnipipe.report.html import _collected, _profile_plot
+
+    gc.collect()
+    gc.disable()  # only _collected's own collection may find the cycle
+    try:
+        uri = _collected(_profile_plot(_inputs()))
+        alive = sum(isinstance(o, Figure) for o in gc.get_objects())
+        _profile_plot(_inputs())
+        left = sum(isinstance(o, Figure) for o in gc.get_objects())
+    finally:
+        gc.enable()
+    assert uri.startswith("data:image/png;base64,") and alive == 0 and left == 1

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from matplotlib.image import AxesImage
 
 
-BAND_ROWS = 128
+BAND_ROWS = 32
 """Image rows :func:`imshow_in_bands` draws at a time."""
 
 BAND_PAD = 8

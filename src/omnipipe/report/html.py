@@ -14,6 +14,7 @@ and never splits tables and figures across pages.
 from __future__ import annotations
 
 import base64
+import gc
 import html
 import io
 import json
@@ -178,7 +179,16 @@ def _figure_data_uri(fig: Figure) -> str:
         pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
     )
     plt.close(fig)
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    return "data:image/png;base64," + base64.b64encode(buf.getbuffer()).decode("ascii")
+
+
+def _collected(uri: str) -> str:
+    """``uri``, once the figure it was drawn from is collected: a closed figure is a
+    cycle of objects (its canvas's pixel buffer among them) that the collector would
+    otherwise free only when it next runs, under the next figures (10-15 MB for a
+    12-inch figure). Call it on a plot function's result, after its frame is gone."""
+    gc.collect()
+    return uri
 
 
 def _plots(inputs: ReportInputs) -> dict[str, str]:
@@ -188,20 +198,20 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     matplotlib.use("Agg")
     out: dict[str, str] = {}
     if inputs.stations_axial_mm is not None and len(inputs.stations_axial_mm):
-        out["profile"] = _profile_plot(inputs)
+        out["profile"] = _collected(_profile_plot(inputs))
     poses = np.asarray(inputs.world_from_rig)
     if poses.ndim == 3 and len(poses):
-        out["trajectory"] = _trajectory_plot(inputs, poses[:, :3, 3])
+        out["trajectory"] = _collected(_trajectory_plot(inputs, poses[:, :3, 3]))
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         # Hatched and rolled to 12:00 in one pass (the report's one copy of the wall).
         w = min(np.asarray(inputs.unrolled).shape[1], UNROLLED_MAX_COLUMNS)
         shift, extent = _twelve_shift(w, inputs.unrolled_extent, _clock_deg(inputs))
         shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha, shift)
-        out["unrolled"] = _unrolled_plot(inputs, shown, extent)
+        out["unrolled"] = _collected(_unrolled_plot(inputs, shown, extent))
         del shown
         release_freed_memory()  # the wall's pages (omnipipe.spill) not under the next plot
     if inputs.wall is not None and len(inputs.wall.axial_mm):
-        out["relief"] = _relief_plot(inputs, inputs.wall)
+        out["relief"] = _collected(_relief_plot(inputs, inputs.wall))
         release_freed_memory()
     return out
 
@@ -734,7 +744,7 @@ def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
     views = []
     if inputs.wall is not None:
         views.append(
-            _figure_html(_defect_relief(inputs, d, k), "relief map: deviation from the fitted wall (mm)")
+            _figure_html(_collected(_defect_relief(inputs, d, k)), "relief map: deviation from the fitted wall (mm)")
         )
     if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
         from omnipipe.report.deliverable import crop_unrolled
@@ -773,6 +783,11 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
     """The report page in pieces: the template filled in, with the 3-D view's JSON
     (the page's longest part) written a chunk at a time into it."""
     s = inputs.summary
+    # The 3-D view first, into the run's scratch: the mesh's thinning and the texture's
+    # PNG (a long run's largest temporaries here) not on top of what drawing the figures
+    # leaves resident (matplotlib, its fonts and caches).
+    view = _model_view_file(inputs, config)
+    release_freed_memory()
     plots = _plots(inputs)
     template = resources.files("omnipipe.report").joinpath("templates", "report.html")
     page = Template(template.read_text(encoding="utf-8"))
@@ -796,8 +811,33 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
     del filled
     yield before
     del before
-    yield from _model_view_parts(_model_json_parts(inputs, config))
+    yield from _text_file_parts(view)
     yield after
+
+
+def _model_view_file(inputs: ReportInputs, config: ReportConfig) -> IO[str]:
+    """The 3-D view's HTML (:func:`_model_view_parts` of :func:`_model_json_parts`)
+    written a piece at a time into an unnamed text file of the run's scratch
+    (:func:`omnipipe.scratch.scratch_dir`; gone when closed), positioned at its start."""
+    from omnipipe.scratch import scratch_dir
+
+    fh = tempfile.TemporaryFile("w+", encoding="utf-8", newline="", prefix="omnipipe-view-", dir=scratch_dir())
+    for part in _model_view_parts(_model_json_parts(inputs, config)):
+        fh.write(part)
+    fh.seek(0)
+    return fh
+
+
+_TEXT_PIECE = 1 << 20
+"""Characters :func:`_text_file_parts` reads at a time."""
+
+
+def _text_file_parts(fh: IO[str]) -> Iterator[str]:
+    """The rest of the text file ``fh`` in pieces of :data:`_TEXT_PIECE` characters; the
+    file closed after the last."""
+    with fh:
+        while piece := fh.read(_TEXT_PIECE):
+            yield piece
 
 
 def _summary_rows(s: dict[str, Any]) -> str:

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from omnipipe.report.bands import imshow_in_bands
+from omnipipe.spill import drop_pages
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -106,6 +107,7 @@ def _binned(
         flat = r[keep] * cols + c[keep]
         np.add.at(total, flat, dev[keep].astype(np.float64))
         count += np.bincount(flat, None, rows * cols)
+        drop_pages()  # this chunk's points read (omnipipe.spill): a chunk's pages resident
     return total, count
 
 

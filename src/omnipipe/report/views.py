@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from omnipipe.spill import drop_pages
+
 if TYPE_CHECKING:
     from omnipipe.camera.base import CameraModel
     from omnipipe.contract import Defect
@@ -74,6 +76,7 @@ def nearest_wall_point(
             break
         if d2[i] < best or a == 0:
             best, k = float(d2[i]), a + i
+        drop_pages()  # this chunk's points read (omnipipe.spill): a chunk's pages resident
     if on_wall_mm is not None and not finite:
         return None
     return np.asarray(points_in_world[k], float)
