@@ -10,6 +10,16 @@ from omnipipe.memory import return_large_blocks
 
 
 def _anon_mb() -> float:
+    """The process's resident anonymous memory (MB), counted exactly: smaps_rollup walks
+    the page tables, while status's RssAnon is the kernel's per-CPU-batched counter,
+    which was seen not to move at all over a 24 MB array in a long test process."""
+    try:
+        with open("/proc/self/smaps_rollup", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Anonymous:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     with open("/proc/self/status", encoding="ascii") as fh:
         for line in fh:
             if line.startswith("RssAnon:"):
