@@ -84,8 +84,7 @@ def _read_table(path: Path, columns: tuple[int, ...], form: str) -> tuple[np.nda
     """Rows of numbers of a text file (every row with the same count, one of
     ``columns``) and (rows,) each row's line number. Refuses bad lines with file:line.
     Read :data:`TABLE_BLOCK_LINES` lines at a time: the Python numbers of a block are
-    held, not the file's (a 10,000-frame run's imu.txt, 125,000 lines, cost 72 MB read
-    whole)."""
+    held, not the whole file's (which grows with the run)."""
     blocks: list[np.ndarray] = []
     numbers: list[np.ndarray] = []
     first: tuple[int, int] | None = None  # (line, columns) of the first row

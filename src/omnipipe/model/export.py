@@ -126,7 +126,7 @@ def _chunks(n: int, size: int | None = None) -> Iterator[tuple[int, int]]:
     :data:`WRITE_CHUNK`) long, the last fewer. After each slice is used the scratch's
     pages are dropped (:func:`omnipipe.spill.drop_pages`): the model's arrays are mapped
     files there, and a writer reads them faster than the run's dropping thread unmaps
-    them (model.glb at 10,000 frames: 40 MB of them resident at once)."""
+    them."""
     from omnipipe.spill import drop_pages
 
     size = size or WRITE_CHUNK

@@ -845,7 +845,7 @@ def write(
     from omnipipe.report.features_csv import write_features
 
     # The run's cyclic garbage (freed only when the collector next runs) and the pages
-    # it held, not under the writers (4 MB at 10,000 MJPG frames).
+    # it held, not under the writers.
     gc.collect()
     release_freed_memory()
     out = Path(out)

@@ -185,8 +185,7 @@ def _figure_data_uri(fig: Figure) -> str:
 def _collected(uri: str) -> str:
     """``uri``, once the figure it was drawn from is collected: a closed figure is a
     cycle of objects (its canvas's pixel buffer among them) that the collector would
-    otherwise free only when it next runs, under the next figures (10-15 MB for a
-    12-inch figure). Call it on a plot function's result, after its frame is gone."""
+    otherwise free only when it next runs, under the next figures. Call it on a plot function's result, after its frame is gone."""
     gc.collect()
     return uri
 
