@@ -722,7 +722,7 @@ def _measure_wall(
             break
         cover = np.zeros(int(ok.sum()), bool)
         for m in search.masks or []:
-            cover |= m
+            cover[m] = True
         new_exclude = not_wall.copy()
         new_exclude[np.flatnonzero(ok)[cover]] = True
         if np.array_equal(new_exclude, exclude):
