@@ -694,9 +694,12 @@ def _measure_wall(
     for done in range(1, 3):
         stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
         ok = np.isfinite(stations.deviation) & ~not_wall
+        arc = theta[ok]  # then in place: (theta % 2 pi) x radius
+        np.remainder(arc, 2 * np.pi, out=arc)
+        arc *= radius
         samples = WallSamples(
             sigma_mm=sigma[ok],
-            arc_mm=(theta[ok] % (2 * np.pi)) * radius,
+            arc_mm=arc,
             deviation_mm=stations.deviation[ok],
             ring=frame[ok],
             circumference_mm=circ,
@@ -715,7 +718,7 @@ def _measure_wall(
             zones=zones,
             executor=executor,
         )
-        del samples  # the next pass' samples are built without these (32 bytes a point)
+        del samples, arc  # the next pass' samples are built without these (32 bytes a point)
         drop_pages()  # their copies the workers read
         tick(done)
         if not search.defects:
@@ -728,6 +731,8 @@ def _measure_wall(
         if np.array_equal(new_exclude, exclude):
             break
         exclude = new_exclude
+        if done < 2:  # the next pass' profiles replace these: not held both at once
+            del stations, search, cover, new_exclude
     tick(2)
     return stations, search
 
