@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 from omnipipe.analysis.sizing import BumpFit, detection_limit, fit_bump, plateau
 from omnipipe.contract import Defect
 from omnipipe.executor import InlineExecutor, ordered_map, shared_fields
+from omnipipe.spill import is_on_disk, on_disk
 
 
 @dataclass(frozen=True)
@@ -66,11 +67,13 @@ class WallSamples:
 
 
 def with_axial_order(samples: WallSamples) -> WallSamples:
-    """``samples`` with :attr:`WallSamples.axial_order` (int32 indices below 2^31 samples)."""
+    """``samples`` with :attr:`WallSamples.axial_order` (intp: ``np.searchsorted`` copies
+    any other index type whole at each call; in the run's scratch when the axial
+    positions are, :mod:`omnipipe.spill`)."""
     if samples.axial_order is not None:
         return samples
     order = np.argsort(samples.sigma_mm, kind="stable")
-    return replace(samples, axial_order=order.astype(np.int32) if len(order) < 2**31 else order)
+    return replace(samples, axial_order=on_disk(order) if is_on_disk(samples.sigma_mm) else order)
 
 
 def _axial_range(s: WallSamples, lo: float, hi: float) -> np.ndarray:
@@ -83,7 +86,7 @@ def _axial_range(s: WallSamples, lo: float, hi: float) -> np.ndarray:
     pad = 1e-9 * (1.0 + abs(lo) + abs(hi))
     a = int(np.searchsorted(s.sigma_mm, lo - pad, side="left", sorter=order))
     b = int(np.searchsorted(s.sigma_mm, hi + pad, side="right", sorter=order))
-    return np.sort(order[a:b]).astype(np.intp)
+    return np.sort(order[a:b])
 
 
 def fit_wall_profile(
