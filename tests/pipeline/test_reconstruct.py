@@ -153,18 +153,18 @@ def test_the_stations_rings_wait_in_the_scratch_until_integrated(
 ) -> None:
     """Before the analysis the stations' rings are integrated from the run's scratch
     (omnipipe.spill), not held in memory all at once; the result is the same."""
-    from omnipipe import model
+    from omnipipe.pipeline import reconstruct
     from omnipipe.pipeline.reconstruct import ring_on_disk
     from omnipipe.spill import Pack, is_on_disk
 
-    integrate = model.integrate
+    integrate = reconstruct.integrated_on_disk
     seen: list[bool] = []
 
     def checked(poses: np.ndarray, points: list[np.ndarray]) -> object:
         seen.extend(is_on_disk(p) for p in points if len(p))
         return integrate(poses, points)
 
-    monkeypatch.setattr(model, "integrate", checked)
+    monkeypatch.setattr(reconstruct, "integrated_on_disk", checked)
     assert main(["reconstruct", str(small_dataset), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert seen and all(seen)
     ring = LaserRing(

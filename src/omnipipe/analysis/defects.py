@@ -33,9 +33,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from omnipipe.analysis.sizing import detection_limit, fit_bump, plateau
+from omnipipe.analysis.sizing import BumpFit, detection_limit, fit_bump, plateau
 from omnipipe.contract import Defect
 from omnipipe.executor import InlineExecutor, ordered_map, shared_fields
+from omnipipe.spill import is_on_disk, on_disk
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,9 @@ class WallSamples:
         ring_travel_mm: (R,) distance the robot travelled from the first frame to the
             frame of ring r (indexed by ring), or None: the axial position's distance from
             the origin stands in. Position errors of the camera motion grow with it.
+        axial_order: (N,) the sample indices sorting ``sigma_mm`` (stable), or None:
+            :func:`find_defects` sorts them once (:func:`with_axial_order`), and each
+            candidate's window is then a slice of that order (:func:`_axial_range`).
     """
 
     sigma_mm: np.ndarray
@@ -59,6 +63,30 @@ class WallSamples:
     ring: np.ndarray
     circumference_mm: float
     ring_travel_mm: np.ndarray | None = None
+    axial_order: np.ndarray | None = None
+
+
+def with_axial_order(samples: WallSamples) -> WallSamples:
+    """``samples`` with :attr:`WallSamples.axial_order` (intp: ``np.searchsorted`` copies
+    any other index type whole at each call; in the run's scratch when the axial
+    positions are, :mod:`omnipipe.spill`)."""
+    if samples.axial_order is not None:
+        return samples
+    order = np.argsort(samples.sigma_mm, kind="stable")
+    return replace(samples, axial_order=on_disk(order) if is_on_disk(samples.sigma_mm) else order)
+
+
+def _axial_range(s: WallSamples, lo: float, hi: float) -> np.ndarray:
+    """Ascending indices of the samples whose axial position lies in [lo, hi] (mm),
+    widened by a margin far above rounding (a superset: each caller applies its own exact
+    test to these samples only); every sample's without :attr:`WallSamples.axial_order`."""
+    order = s.axial_order
+    if order is None:
+        return np.arange(len(s.sigma_mm))
+    pad = 1e-9 * (1.0 + abs(lo) + abs(hi))
+    a = int(np.searchsorted(s.sigma_mm, lo - pad, side="left", sorter=order))
+    b = int(np.searchsorted(s.sigma_mm, hi + pad, side="right", sorter=order))
+    return np.sort(order[a:b])
 
 
 def fit_wall_profile(
@@ -150,8 +178,8 @@ class DefectSearch:
             probability (:func:`.sizing.detection_limit`); no reported defect is lower.
         ring_spacing_mm: median axial distance between consecutive rings.
         sample_spacing_mm: median arc length between samples along a ring.
-        masks: (N,) bool per reported defect: the samples its fitted bump covers
-            (model above 1 % of its height), for refitting the wall without it.
+        masks: per reported defect, the ascending indices of the samples its fitted bump
+            covers (model above 1 % of its height), for refitting the wall without it.
     """
 
     defects: list[Defect]
@@ -260,6 +288,7 @@ def find_defects(
     warnings: list[str] = []
     if len(samples.deviation_mm) < 10:
         return DefectSearch([], warnings, masks=[])
+    samples = with_axial_order(samples)
     sc = _scales(samples, min_height_mm, noise_factor)
     limit = detection_limit(
         noise_mm=sc.noise,
@@ -341,7 +370,7 @@ def _fits(
     sent = shared_fields(samples, ex) if todo else samples
     jobs = ((sent, candidates[i][3], candidates[i][0], sc.sample_spacing, sc.typical_spacing, *blur) for i in todo)
     out: list[tuple[Defect, np.ndarray]] = [
-        _unfitted(samples, d0, sign, sc.sample_spacing, sc.typical_spacing) if i in streaks else (d0, np.zeros(0, bool))
+        _unfitted(samples, d0, sign, sc.sample_spacing, sc.typical_spacing) if i in streaks else (d0, np.zeros(0, np.intp))
         for i, (sign, _, _, d0) in enumerate(candidates)
     ]
     for i, fit in zip(todo, ordered_map(ex, _fit_job, jobs), strict=True):
@@ -683,13 +712,16 @@ def _one_sided(
         return False
     ref = float(arc[0])
     du = (arc - ref + 0.5 * circ) % circ - 0.5 * circ
-    u_all = (s.arc_mm - ref + 0.5 * circ) % circ - 0.5 * circ
     wide = max(3.0 * sc.spacing, 5.0)
-    near = (s.ring != rings[0]) & (u_all >= du.min() - sc.du) & (u_all <= du.max() + sc.du)
-    before = near & (s.sigma_mm < zs.min()) & (s.sigma_mm >= zs.min() - wide)
-    after = near & (s.sigma_mm > zs.max()) & (s.sigma_mm <= zs.max() + wide)
-    if not before.any() or not after.any():
-        why = f"one ring, with no measured wall {'before' if not before.any() else 'after'} it along the pipe"
+    lo, hi = zs.min(), zs.max()
+    idx = _axial_range(s, lo - wide, hi + wide)  # the other rings' samples within reach only
+    u_all = (s.arc_mm[idx] - ref + 0.5 * circ) % circ - 0.5 * circ
+    sig = s.sigma_mm[idx]
+    near = (s.ring[idx] != rings[0]) & (u_all >= du.min() - sc.du) & (u_all <= du.max() + sc.du)
+    before = idx[near & (sig < lo) & (sig >= lo - wide)]
+    after = idx[near & (sig > hi) & (sig <= hi + wide)]
+    if not len(before) or not len(after):
+        why = f"one ring, with no measured wall {'before' if not len(before) else 'after'} it along the pipe"
     else:
         why = _mid_run_reason(s, members, zones, before, after)
         if why is None:
@@ -748,7 +780,7 @@ def _mid_run_reason(
     s: WallSamples, members: np.ndarray, zones: Sequence[FeatureZone], before: np.ndarray, after: np.ndarray
 ) -> str | None:
     """Why a candidate seen by one ring mid-run (wall measured on both sides, ``before``
-    and ``after`` (N,) masks of the other rings' samples at its angles) is no defect, or
+    and ``after`` the indices of the other rings' samples at its angles) is no defect, or
     None: it lies wholly inside a feature's zone; it reaches into a joint's band (a ring
     tilted across the joint lies on both sections, and its one profile cannot follow the
     step: random-features-small seed 30, a 12 mm "dent" on the ring crossing a 5 mm
@@ -803,9 +835,9 @@ def _merge_overlapping(
     """One defect per bump: a detection whose centre lies inside the half-height extent of
     another of the same kind supported by more samples is a piece of it (a short, wide
     defect between two rings can fall apart into several candidate clusters); it is
-    dropped and its samples join the larger one's mask."""
+    dropped and its samples join the larger one's mask (sample indices, ascending)."""
     keep = np.ones(len(defects), bool)
-    masks = [np.array(m, bool) for m in masks]
+    masks = [np.asarray(m) for m in masks]
     order = sorted(range(len(defects)), key=lambda i: -defects[i].points)
     for rank, i in enumerate(order):
         if not keep[i]:
@@ -821,7 +853,7 @@ def _merge_overlapping(
             du = abs((b.angle_deg / 360.0 * circ - ua + 0.5 * circ) % circ - 0.5 * circ)
             if dz <= 0.5 * a.length_mm and du <= 0.5 * a.width_mm:
                 keep[j] = False
-                masks[i] = masks[i] | masks[j]
+                masks[i] = np.union1d(masks[i], masks[j])
     return [d for d, k in zip(defects, keep, strict=True) if k], [
         m for m, k in zip(masks, keep, strict=True) if k
     ]
@@ -868,24 +900,45 @@ def _rough(
 def _window(
     s: WallSamples, d0: Defect, sample_spacing: float, ring_spacing: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N,) every sample's arc (mm, unwrapped) and axial position (mm) about the roughly
-    measured defect ``d0``'s centre, and (N,) True inside its fit's window."""
+    """The samples inside the fit's window about the roughly measured defect ``d0``'s
+    centre: (M,) their indices (ascending), their arcs (mm, unwrapped) and axial
+    positions (mm) about that centre. Only the window's axial slice of the samples is
+    read (:func:`_axial_range`): the temporaries are the window's, not the run's."""
     circ = s.circumference_mm
     w0, l0 = max(d0.width_mm, sample_spacing), max(d0.length_mm, 0.5 * ring_spacing)
-    u = (s.arc_mm - d0.angle_deg / 360.0 * circ + 0.5 * circ) % circ - 0.5 * circ
-    z = s.sigma_mm - (d0.axial_start_mm + 0.5 * l0)
+    zc = d0.axial_start_mm + 0.5 * l0
     hu = min(max(1.5 * w0, 0.5 * w0 + 10.0 * sample_spacing, 6.0), 0.45 * circ)
     hz = max(1.5 * l0, 0.5 * l0 + 3.0 * ring_spacing, 6.0)
-    return u, z, (np.abs(u) <= hu) & (np.abs(z) <= hz)
+    idx = _axial_range(s, zc - hz, zc + hz)
+    u = (s.arc_mm[idx] - d0.angle_deg / 360.0 * circ + 0.5 * circ) % circ - 0.5 * circ
+    z = s.sigma_mm[idx] - zc
+    win = (np.abs(u) <= hu) & (np.abs(z) <= hz)
+    return idx[win], u[win], z[win]
 
 
 def _unfitted(
     s: WallSamples, d0: Defect, sign: float, sample_spacing: float, ring_spacing: float
 ) -> tuple[Defect, np.ndarray]:
     """A candidate left unfitted: ``d0`` and its samples in the fit's window above half
-    its height (as :func:`_fit` when the fit fails)."""
-    _, _, win = _window(s, d0, sample_spacing, ring_spacing)
-    return d0, win & (sign * s.deviation_mm > 0.5 * d0.height_mm)
+    its height (as :func:`_fit` when the fit fails; sample indices, ascending)."""
+    idx, _, _ = _window(s, d0, sample_spacing, ring_spacing)
+    return d0, idx[sign * s.deviation_mm[idx] > 0.5 * d0.height_mm]
+
+
+def _covered(s: WallSamples, fit: BumpFit, uc: float, zc: float) -> np.ndarray:
+    """Ascending indices of the samples the fitted bump covers (model above 1 % of its
+    height; ``uc``, ``zc``: the fit's origin, mm around and along the pipe). A plateau is
+    0 beyond half its full width plus half its ramp: only that axial slice is read."""
+    circ = s.circumference_mm
+    reach = 0.5 * (abs(fit.length) + abs(fit.ramp_z * fit.length)) + 1e-6
+    idx = _axial_range(s, zc + fit.z0 - reach, zc + fit.z0 + reach)
+    u = (s.arc_mm[idx] - uc + 0.5 * circ) % circ - 0.5 * circ
+    z = s.sigma_mm[idx] - zc
+    cover = (
+        plateau(u - fit.u0, fit.width, fit.ramp_u * fit.width)
+        * plateau(z - fit.z0, fit.length, fit.ramp_z * fit.length)
+    ) > 0.01
+    return idx[cover]
 
 
 def _fit(
@@ -894,36 +947,33 @@ def _fit(
     blur_z_mm: float = 0.0,
 ) -> tuple[Defect, np.ndarray]:
     """Model fit around a roughly measured defect ``d0``: the reported defect and its mask
-    (without a usable fit: ``d0``, without uncertainties, and its samples above half its
-    height)."""
+    (sample indices, ascending; without a usable fit: ``d0``, without uncertainties, and
+    its samples above half its height)."""
     circ = s.circumference_mm
     w0, l0 = max(d0.width_mm, sample_spacing), max(d0.length_mm, 0.5 * ring_spacing)
     uc = d0.angle_deg / 360.0 * circ
     zc = d0.axial_start_mm + 0.5 * l0
-    u, z, win = _window(s, d0, sample_spacing, ring_spacing)
-    value = sign * s.deviation_mm
+    idx, u, z = _window(s, d0, sample_spacing, ring_spacing)
+    value = sign * s.deviation_mm[idx]
     fit = fit_bump(
-        u[win],
-        z[win],
-        value[win],
-        s.ring[win],
+        u,
+        z,
+        value,
+        s.ring[idx],
         (d0.height_mm, 0.0, 0.0, w0, l0),
         bounds_u=(-0.5 * w0 - 2 * sample_spacing, 0.5 * w0 + 2 * sample_spacing),
         bounds_z=(-0.5 * l0 - ring_spacing, 0.5 * l0 + ring_spacing),
         blur_u_mm=blur_u_mm,
         blur_z_mm=blur_z_mm,
     )
-    top = float(np.max(value[win])) if win.any() else 0.0
+    top = float(np.max(value)) if len(value) else 0.0
     if fit is not None and fit.height > top + 3.0 * fit.noise + 0.25 * top:
         # The bump rises far above every sample (a crest extrapolated between rings from a
         # few points): not a measurement. The rough one is reported instead.
         fit = None
     if fit is None:
-        return d0, win & (value > 0.5 * d0.height_mm)
-    cover = (
-        plateau(u - fit.u0, fit.width, fit.ramp_u * fit.width)
-        * plateau(z - fit.z0, fit.length, fit.ramp_z * fit.length)
-    ) > 0.01
+        return d0, idx[value > 0.5 * d0.height_mm]
+    cover = _covered(s, fit, uc, zc)
     angle = ((uc + fit.u0) % circ) / circ * 360.0
     return Defect(
         kind=d0.kind,

@@ -96,8 +96,11 @@ def find_features(
     # by tilted rings: each ring's wall samples stand off its neighbours' level by the
     # gap's share of its circumference, a large share of the run's samples).
     wall = ~raised_blocks(raised, ring_sigma)[ring_of]
-    wall = wall if wall.any() else np.ones(len(dev), bool)
-    noise = 1.4826 * float(np.median(np.abs(dev[wall] - np.median(dev[wall]))))
+    spread = dev[wall] if wall.any() else dev.copy()  # one copy, its deviations in place
+    del wall
+    spread -= np.median(spread)
+    noise = 1.4826 * float(np.median(np.abs(spread, out=spread)))
+    del spread
     thr = max(config.min_depth_mm, config.noise_factor * noise)
     r = Rings(sigma, rho, theta, frame, ring_of, ring_sigma, dev, noise)
     # Joint candidates: beyond a lower threshold (a gap must also cover most of the

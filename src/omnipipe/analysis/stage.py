@@ -72,7 +72,7 @@ from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
-from omnipipe.spill import drop_pages
+from omnipipe.spill import drop_pages, on_disk, zeros_on_disk
 
 
 @dataclass(frozen=True)
@@ -565,9 +565,10 @@ def _recentred_line(
     centres = _section_centres(config, line, pts, frame)
     prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
     line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
-    coordinates = line.coordinates(pts, frame)
+    # The coordinates wait in the run's scratch, read when needed (24 bytes a point).
+    sigma, rho, theta = (on_disk(c) for c in line.coordinates(pts, frame))
     drop_pages()  # the points' pages, read again when needed (omnipipe.spill)
-    return line, coordinates
+    return line, (sigma, rho, theta)
 
 
 def _offset_breaks(features: Sequence[PointFeature], line: Centreline) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -683,7 +684,6 @@ def _measure_wall(
     found (so a wide defect does not pull its ring's wall profile), and so on until the
     excluded samples stop changing (at most two passes).
     """
-    groups = ring_groups(frame, len(poses))
     ok_station = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
     circ = 2 * np.pi * radius
     exclude = not_wall.copy()
@@ -692,16 +692,24 @@ def _measure_wall(
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     tick = phase("defects", 2)
     for done in range(1, 3):
+        # Each ring's indices made per pass: not held under the defect search (8 bytes a point).
+        groups = ring_groups(frame, len(poses))
         stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
+        del groups
         ok = np.isfinite(stations.deviation) & ~not_wall
+        arc = theta[ok]  # then in place: (theta % 2 pi) x radius
+        np.remainder(arc, 2 * np.pi, out=arc)
+        arc *= radius
+        # In the run's scratch (read when needed; a local pool's workers share the files).
         samples = WallSamples(
-            sigma_mm=sigma[ok],
-            arc_mm=(theta[ok] % (2 * np.pi)) * radius,
-            deviation_mm=stations.deviation[ok],
-            ring=frame[ok],
+            sigma_mm=on_disk(sigma[ok]),
+            arc_mm=on_disk(arc),
+            deviation_mm=on_disk(stations.deviation[ok]),
+            ring=on_disk(frame[ok]),
             circumference_mm=circ,
             ring_travel_mm=travel,
         )
+        del arc
         search = find_defects(
             samples,
             min_height_mm=config.min_height_mm,
@@ -715,19 +723,21 @@ def _measure_wall(
             zones=zones,
             executor=executor,
         )
-        del samples  # the next pass' samples are built without these (32 bytes a point)
+        del samples  # the next pass' samples are built without these
         drop_pages()  # their copies the workers read
         tick(done)
         if not search.defects:
             break
         cover = np.zeros(int(ok.sum()), bool)
         for m in search.masks or []:
-            cover |= m
+            cover[m] = True
         new_exclude = not_wall.copy()
         new_exclude[np.flatnonzero(ok)[cover]] = True
         if np.array_equal(new_exclude, exclude):
             break
         exclude = new_exclude
+        if done < 2:  # the next pass' profiles replace these: not held both at once
+            del stations, search, cover, new_exclude
     tick(2)
     return stations, search
 
@@ -845,7 +855,8 @@ def _station_profiles(
     the light lost in the branch is not a water line; ``stray`` samples (off the wall
     in a cut: :attr:`.features.FeatureSearch.stray`) do not close a cut.
     """
-    deviation = np.full(len(exclude), np.nan)
+    deviation = zeros_on_disk((len(exclude),), float)  # in the run's scratch (omnipipe.spill)
+    deviation.fill(np.nan)
     sec_config = section_config(config)
     axial, sections = [], []
     for k in np.flatnonzero(ok_station):

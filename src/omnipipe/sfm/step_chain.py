@@ -37,6 +37,7 @@ from omnipipe.sfm.step_decide import RunScale, decide_step
 from omnipipe.sfm.step_resolve import confirm_by_gait, contradict_trusted, resolve_by_prior
 from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, SfmContext, StepEvidence
 from omnipipe.sfm.wall_resolve import resolve_by_wall
+from omnipipe.spill import drop_pages
 
 # Most wall-placed features per step used as anchors (evenly over the step's matches).
 WALL_ANCHORS_PER_STEP = 120
@@ -108,6 +109,8 @@ def chain_steps(
     pair_matches: list[PairMatches] = []
     anchors: list[Anchor] = []
     for k, step in enumerate(decided):
+        if k % DROP_EVERY_STEPS == DROP_EVERY_STEPS - 1:
+            drop_pages()  # the steps' rings and features read so far (omnipipe.spill)
         length = float(lengths[k])
         scales.append(length)
         b_from_a = step.b_from_a.copy()
@@ -138,6 +141,12 @@ def chain_steps(
     for b_from_a in steps_b_from_a:
         world_from_kf.append(world_from_kf[-1] @ invert(b_from_a))
     return ChainedSteps(np.array(world_from_kf), scales, pair_matches, anchors, checks)
+
+
+DROP_EVERY_STEPS = 32
+"""Steps :func:`chain_steps` anchors between two :func:`omnipipe.spill.drop_pages`: the
+pages of the keyframes' rings and features it reads are resident for that many steps,
+not for the whole pass (which can take less than the dropping thread's interval)."""
 
 
 def bridge_steps(
