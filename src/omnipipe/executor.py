@@ -596,8 +596,10 @@ class FrameSource:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def read(self, k: int) -> Any:
-        """The k-th frame of this source (0-based within it) as an array.
+    def read(self, k: int, planar: bool = False) -> Any:
+        """The k-th frame of this source (0-based within it) as an array; with ``planar``
+        a frame handed on planar as its :class:`~omnipipe.handoff.PlanarFrame` (for a
+        reader that samples it at some pixels only).
 
         Raises:
             DatasetError: unreadable image or wrong size, naming the file.
@@ -605,9 +607,10 @@ class FrameSource:
         if self.arrays is not None:
             return self.arrays[k]
         if self.handoff is not None:
-            from omnipipe.handoff import handed
+            from omnipipe.handoff import handed, handed_frame
 
-            image = handed(self.handoff, int(self.frames[k]))
+            i = int(self.frames[k])
+            image = handed_frame(self.handoff, i) if planar else handed(self.handoff, i)
             if image is not None:
                 return image
         from omnipipe.dataset import read_image

@@ -36,6 +36,7 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
+from omnipipe.handoff import PlanarFrame
 from omnipipe.memory import release_freed_memory
 from omnipipe.model.mesh import (
     atlas_margin,
@@ -207,10 +208,13 @@ class _FrameWork:
     colour_px: np.ndarray
     texture_px: tuple[np.ndarray, ...]
 
-    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``."""
-        colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
+    def __call__(self, image: np.ndarray | PlanarFrame) -> tuple[np.ndarray, np.ndarray]:
+        """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``
+        (a frame handed on planar sampled where asked: :meth:`PlanarFrame.sample`)."""
         pixels = np.concatenate(self.texture_px) if self.texture_px else np.zeros((0, 2), np.float32)
+        if isinstance(image, PlanarFrame):
+            return image.sample(self.colour_px), image.sample(pixels)
+        colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
         samples = texture_samples(image, pixels) if len(pixels) else np.zeros((0, 3), np.uint8)
         return colours, samples
 
@@ -240,7 +244,7 @@ class _FramesTask:
         self, chunk: tuple[FrameSource, tuple[_FrameWork, ...]]
     ) -> list[tuple[np.ndarray, np.ndarray]]:
         source, work = chunk
-        return [w(source.read(i)) for i, w in enumerate(work)]
+        return [w(source.read(i, planar=True)) for i, w in enumerate(work)]
 
 
 def _sample_frames(
