@@ -27,7 +27,8 @@ import numpy as np
 
 from omnipipe.scratch import ScratchStore
 
-# Scratch bytes a run may hand on (2 GiB: about 370 frames of 1600x1200 RGB).
+# Scratch bytes a run may hand on (2 GiB: about 370 frames of 1600x1200 RGB as decoded,
+# 745 planar).
 HANDOFF_BUDGET_BYTES = 2 * 2**30
 
 _FULL = "FULL"
