@@ -139,3 +139,28 @@ def test_a_red_laser_colour_frame_is_handed_on_planar() -> None:
             hand_on(handoff.folder, 1, other, channel)  # not planar: as decoded
             assert np.array_equal(handed(handoff.folder, 1), other)
             assert type(handed_frame(handoff.folder, 1)) is np.ndarray
+
+
+def test_the_model_samples_the_same_colours_handed_on_or_decoded() -> None:
+    """The model's colours of a red laser's frame come from its planar form whether the
+    frame was handed on or decoded (the same outputs with or without a hand-off, inline
+    or on a pool); a green laser's frame is sampled as decoded."""
+    from omnipipe.handoff import handed_frame
+    from omnipipe.model.stage import _FrameWork
+
+    image = _smooth_rgb(24, 32, 9)
+    rng = np.random.default_rng(10)
+    work = _FrameWork(
+        rng.integers(0, [32, 24], (15, 2)), (rng.uniform(0, [31, 23], (40, 2)).astype(np.float32),)
+    )
+    with FrameHandoff(2) as handoff:
+        hand_on(handoff.folder, 0, image, "red")
+        frame = handed_frame(handoff.folder, 0)
+        assert frame is not None
+        via_handoff = work(frame, "red")
+    decoded = work(image, "red")
+    for a, b in zip(via_handoff, decoded, strict=True):
+        assert a.shape == b.shape and np.array_equal(a, b)
+    colours, _ = work(image, "green")
+    assert np.array_equal(colours, image[work.colour_px[:, 1], work.colour_px[:, 0]])
+    assert np.abs(decoded[0].astype(int) - colours.astype(int)).max() <= 6
