@@ -193,7 +193,7 @@ def _decode_hand_on(ex, dataset, summary: dict) -> float | None:
     with FrameHandoff(len(dataset)) as handoff:
         # The pass hands frames on up to its budget of bytes (the first ones).
         cam = dataset.rig.camera
-        per_frame = cam.width * cam.height * 3
+        per_frame = cam.width * cam.height * (3 if dataset.rig.laser.channel != "red" else 1.5)  # planar
         moving[np.flatnonzero(moving)[int(-(-handoff.budget_bytes // per_frame)) :]] = False
         t0 = time.perf_counter()
         map_frames(ex, DecodeHandOn(handoff.folder, moving), dataset)

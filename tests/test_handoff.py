@@ -89,3 +89,78 @@ def test_decode_hand_on_writes_the_moving_frames_as_decoded(tmp_path: Path) -> N
         assert np.array_equal(handed(handoff.folder, 0), images[0])
         assert handed(handoff.folder, 1) is None
         assert np.array_equal(handed(handoff.folder, 2), images[2])
+
+
+def _smooth_rgb(h: int, w: int, seed: int) -> np.ndarray:
+    """An (h, w, 3) uint8 frame of smooth colour (a wall under LEDs, no edges)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    out = np.empty((h, w, 3))
+    for c in range(3):
+        a, b, p = rng.uniform(0.02, 0.08, 3)
+        out[..., c] = 128 + 90 * np.sin(a * xx + p) * np.cos(b * yy)
+    return np.round(out).astype(np.uint8)
+
+
+def test_a_red_laser_colour_frame_is_handed_on_planar() -> None:
+    """Green whole (the grey image the camera motion reads: the same array), red and blue
+    at half resolution (2x2 means): about half the bytes; the colour read back within a
+    few levels of the frame's on a smooth wall, sampled where the model asks."""
+    import cv2
+
+    from omnipipe.handoff import PlanarFrame, handed_frame
+    from omnipipe.sfm.tasks import frame_gray, handed_gray
+
+    image = _smooth_rgb(30, 41, 5)  # an odd width: the last half column covers one pixel
+    with FrameHandoff(3) as handoff:
+        written = hand_on(handoff.folder, 0, image, "red")
+        assert image.nbytes // 2 <= written < image.nbytes // 2 + 400
+        mapped = handed(handoff.folder, 0, mapped=True)
+        assert mapped is not None and mapped.shape == (30, 41)
+        assert np.array_equal(mapped, frame_gray(image, "red"))
+        assert np.array_equal(handed_gray(handoff.folder, 0, "red"), frame_gray(image, "red"))
+        frame = handed_frame(handoff.folder, 0)
+        assert isinstance(frame, PlanarFrame) and frame.red_blue.shape == (15, 21, 2)
+        assert np.array_equal(frame.green, image[..., 1])
+        block = image[:2, :2, 0].astype(float).mean()
+        assert abs(int(frame.red_blue[0, 0, 0]) - block) <= 0.5
+        back = handed(handoff.folder, 0)  # the whole frame: red and blue interpolated
+        assert back is not None and back.shape == image.shape and np.array_equal(back[..., 1], image[..., 1])
+        err = np.abs(back.astype(int) - image.astype(int))
+        assert err[1:-1, 1:-1].max() <= 6 and err.mean() < 1.5
+        rng = np.random.default_rng(6)
+        px = rng.uniform(0, [40, 29], (200, 2)).astype(np.float32)
+        want = cv2.remap(image, px[None, :, 0].copy(), px[None, :, 1].copy(), cv2.INTER_LINEAR)[0]
+        got = frame.sample(px)
+        assert np.array_equal(got[:, 1], want[:, 1])  # green bilinear in the whole channel
+        assert np.abs(got.astype(int) - want.astype(int)).max() <= 6
+        assert frame.sample(np.zeros((0, 2))).shape == (0, 3)
+        for channel, other in (("green", image), ("red", image.astype(np.uint16)), ("red", image[..., 0])):
+            hand_on(handoff.folder, 1, other, channel)  # not planar: as decoded
+            assert np.array_equal(handed(handoff.folder, 1), other)
+            assert type(handed_frame(handoff.folder, 1)) is np.ndarray
+
+
+def test_the_model_samples_the_same_colours_handed_on_or_decoded() -> None:
+    """The model's colours of a red laser's frame come from its planar form whether the
+    frame was handed on or decoded (the same outputs with or without a hand-off, inline
+    or on a pool); a green laser's frame is sampled as decoded."""
+    from omnipipe.handoff import handed_frame
+    from omnipipe.model.stage import _FrameWork
+
+    image = _smooth_rgb(24, 32, 9)
+    rng = np.random.default_rng(10)
+    work = _FrameWork(
+        rng.integers(0, [32, 24], (15, 2)), (rng.uniform(0, [31, 23], (40, 2)).astype(np.float32),)
+    )
+    with FrameHandoff(2) as handoff:
+        hand_on(handoff.folder, 0, image, "red")
+        frame = handed_frame(handoff.folder, 0)
+        assert frame is not None
+        via_handoff = work(frame, "red")
+    decoded = work(image, "red")
+    for a, b in zip(via_handoff, decoded, strict=True):
+        assert a.shape == b.shape and np.array_equal(a, b)
+    colours, _ = work(image, "green")
+    assert np.array_equal(colours, image[work.colour_px[:, 1], work.colour_px[:, 0]])
+    assert np.abs(decoded[0].astype(int) - colours.astype(int)).max() <= 6

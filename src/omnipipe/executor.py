@@ -583,21 +583,26 @@ class FrameSource:
         frames: Sequence[int],
         payload: Sequence[Any] | None = None,
         handoff: str | None = None,
+        planar: bool = False,
     ) -> FrameSource:
         """The ``frames`` of an opened :class:`omnipipe.dataset.Dataset` (``payload``:
-        one item per frame, carried to the task; ``handoff``: see the attribute)."""
+        one item per frame, carried to the task; ``handoff``: see the attribute;
+        ``planar``: a video's or bag's frame handed on planar is carried as its
+        :class:`~omnipipe.handoff.PlanarFrame`, as :meth:`read` gives it with ``planar``)."""
         extra = None if payload is None else tuple(payload)
         if dataset.video is None and dataset.source is None:
             paths = tuple(dataset.frame_paths[i] for i in frames)
             return FrameSource(dataset.rig, frames, paths=paths, payload=extra, handoff=handoff)
-        arrays = tuple(_read_here(dataset, i, handoff) for i in frames)
+        arrays = tuple(_read_here(dataset, i, handoff, planar) for i in frames)
         return FrameSource(dataset.rig, frames, arrays=arrays, payload=extra)
 
     def __len__(self) -> int:
         return len(self.frames)
 
-    def read(self, k: int) -> Any:
-        """The k-th frame of this source (0-based within it) as an array.
+    def read(self, k: int, planar: bool = False) -> Any:
+        """The k-th frame of this source (0-based within it) as an array; with ``planar``
+        a frame handed on planar as its :class:`~omnipipe.handoff.PlanarFrame` (for a
+        reader that samples it at some pixels only).
 
         Raises:
             DatasetError: unreadable image or wrong size, naming the file.
@@ -605,9 +610,10 @@ class FrameSource:
         if self.arrays is not None:
             return self.arrays[k]
         if self.handoff is not None:
-            from omnipipe.handoff import handed
+            from omnipipe.handoff import handed, handed_frame
 
-            image = handed(self.handoff, int(self.frames[k]))
+            i = int(self.frames[k])
+            image = handed_frame(self.handoff, i) if planar else handed(self.handoff, i)
             if image is not None:
                 return image
         from omnipipe.dataset import read_image
@@ -616,13 +622,14 @@ class FrameSource:
         return read_image(self.paths[k], self.rig)
 
 
-def _read_here(dataset: Any, i: int, handoff: str | None) -> Any:
+def _read_here(dataset: Any, i: int, handoff: str | None, planar: bool = False) -> Any:
     """Frame ``i`` of a video or bag, read in this process: from ``handoff`` where the
-    decoding pass left it (no seek and decode), else decoded."""
+    decoding pass left it (no seek and decode; ``planar``: as :meth:`FrameSource.read`),
+    else decoded."""
     if handoff is not None:
-        from omnipipe.handoff import handed
+        from omnipipe.handoff import handed, handed_frame
 
-        image = handed(handoff, i)
+        image = handed_frame(handoff, i) if planar else handed(handoff, i)
         if image is not None:
             return image
     return dataset.read_frame(i)

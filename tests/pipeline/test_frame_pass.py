@@ -125,9 +125,9 @@ def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
 
 
 def test_handed_on_frames_give_the_same_motion(stop_and_go: Path, tmp_path: Path) -> None:
-    """The pass leaves each moving frame as decoded for the later stages' workers,
-    which read it from there: with the moving frames' files gone from the dataset after
-    the pass, the same motion."""
+    """The pass leaves each moving frame for the later stages' workers (a red laser's
+    colour frame planar: its green channel as decoded first), which read it from there:
+    with the moving frames' files gone from the dataset after the pass, the same motion."""
     import shutil
 
     from omnipipe.handoff import FrameHandoff
@@ -143,8 +143,10 @@ def test_handed_on_frames_give_the_same_motion(stop_and_go: Path, tmp_path: Path
         handed = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex, handoff=handoff)
         left = sorted(int(p.stem) for p in Path(handoff.folder).glob("*.npy"))
         assert left == np.flatnonzero(handed.moved).tolist()  # stationary frames' removed
-        for i in left:  # as decoded; then not readable from the dataset any more
-            assert np.array_equal(np.load(Path(handoff.folder) / f"{i:07d}.npy"), dataset.read_frame(i))
+        for i in left:  # its grey channel as decoded; then not readable from the dataset
+            decoded = dataset.read_frame(i)
+            first = np.load(Path(handoff.folder) / f"{i:07d}.npy", mmap_mode="r")
+            assert np.array_equal(first, decoded[..., 1] if dataset.rig.laser.channel == "red" else decoded)
             dataset.frame_paths[i].write_bytes(b"")
         inputs = sfm.SfmInputs.of_dataset(dataset, handed.rings, handed.moved)
         inputs.handoff = handoff.folder

@@ -146,6 +146,7 @@ class DecodeHandOn:
         for k in range(len(source)):
             image = source.read(k)
             if self.moving[int(source.frames[k])]:
-                hand_on(self.folder, int(source.frames[k]), image)
+                channel = None if source.rig is None else source.rig.laser.channel
+                hand_on(self.folder, int(source.frames[k]), image, channel)
             out.append(tuple(image.shape))
         return out

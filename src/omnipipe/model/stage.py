@@ -36,6 +36,7 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import FrameSource, InlineExecutor, chunks, ordered_map
+from omnipipe.handoff import PlanarFrame, plane_split
 from omnipipe.memory import release_freed_memory
 from omnipipe.model.mesh import (
     atlas_margin,
@@ -207,10 +208,20 @@ class _FrameWork:
     colour_px: np.ndarray
     texture_px: tuple[np.ndarray, ...]
 
-    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``."""
-        colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
+    def __call__(self, image: np.ndarray | PlanarFrame, laser_channel: str) -> tuple[np.ndarray, np.ndarray]:
+        """((M, 3), (n, 3)) uint8: the ring colours and the texture samples in ``image``.
+
+        An 8-bit colour frame of a red laser is sampled in its planar form
+        (:meth:`PlanarFrame.sample`: red and blue from their half-resolution planes), as
+        the decoding pass hands it on (:func:`~omnipipe.handoff.plane_split`), whether
+        it came from there or was decoded: the same colours with or without a hand-off.
+        """
         pixels = np.concatenate(self.texture_px) if self.texture_px else np.zeros((0, 2), np.float32)
+        if not isinstance(image, PlanarFrame) and plane_split(image, laser_channel):
+            image = PlanarFrame.of(image)
+        if isinstance(image, PlanarFrame):
+            return image.sample(self.colour_px), image.sample(pixels)
+        colours = colours_at(image, self.colour_px) if len(self.colour_px) else np.zeros((0, 3), np.uint8)
         samples = texture_samples(image, pixels) if len(pixels) else np.zeros((0, 3), np.uint8)
         return colours, samples
 
@@ -240,7 +251,8 @@ class _FramesTask:
         self, chunk: tuple[FrameSource, tuple[_FrameWork, ...]]
     ) -> list[tuple[np.ndarray, np.ndarray]]:
         source, work = chunk
-        return [w(source.read(i)) for i, w in enumerate(work)]
+        channel = source.rig.laser.channel
+        return [w(source.read(i, planar=True), channel) for i, w in enumerate(work)]
 
 
 def _sample_frames(
@@ -275,7 +287,7 @@ def _sample_frames(
             (
                 FrameSource.take(
                     dataset, [int(frame_index[k]) for k in todo[part.start : part.stop]],
-                    handoff=inputs.handoff,
+                    handoff=inputs.handoff, planar=True,
                 ),
                 tuple(work[k] for k in todo[part.start : part.stop]),
             )
@@ -283,7 +295,8 @@ def _sample_frames(
         )
         results = chain.from_iterable(ordered_map(ex, _FramesTask(), items))
     else:
-        results = (work[k](inputs.read_frame(k)) for k in todo)  # type: ignore[misc]
+        channel = inputs.camera_rig.laser.channel
+        results = (work[k](inputs.read_frame(k), channel) for k in todo)  # type: ignore[misc]
     for k in range(len(work)):
         if work[k] is not None:
             yield k, next(results)

@@ -9,7 +9,8 @@ need of it that is small:
 - its :class:`~omnipipe.sfm.stations.StationSignature` (a box-averaged copy and the
   sensor noise), from which the parent decides, in frame order, which frames were
   taken while the robot stood still (:class:`~omnipipe.sfm.stations.StationTracker`);
-- with a :class:`~omnipipe.handoff.FrameHandoff`, a moving frame as decoded, written
+- with a :class:`~omnipipe.handoff.FrameHandoff`, a moving frame as decoded (a red
+  laser's colour frame planar: :class:`~omnipipe.handoff.PlanarFrame`), written
   to the run's scratch folder for the camera motion's and the model's workers, which
   then do not decode it again.
 
@@ -129,8 +130,7 @@ class _FrameTask:
     (``None``). The parent fetches the rare ring the run's tracker needs after all
     (:func:`run`), so the result never depends on where chunks begin. With
     ``handoff`` (a :class:`~omnipipe.handoff.FrameHandoff`'s folder), each frame with a
-    ring is written there as decoded (:func:`~omnipipe.handoff.hand_on`; 0 bytes: not
-    written).
+    ring is written there (:func:`~omnipipe.handoff.hand_on`; 0 bytes: not written).
     """
 
     def __init__(self, laser: LaserConfig, stations: StationConfig, handoff: str | None = None) -> None:
@@ -155,7 +155,7 @@ class _FrameTask:
             )
             written = 0
             if ring is not None and self.handoff is not None:
-                written = hand_on(self.handoff, int(source.frames[k]), image)
+                written = hand_on(self.handoff, int(source.frames[k]), image, rig.laser.channel)
             out.append((ring, signature, written))
         return out
 

@@ -23,7 +23,7 @@ from omnipipe.camera import CameraModel, PerspectiveView
 from omnipipe.config import bounded
 from omnipipe.errors import ConfigError
 from omnipipe.executor import thread_map
-from omnipipe.image import gray_without_laser
+from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 from omnipipe.sfm._kernels import two_smallest_columns
 
 
@@ -285,7 +285,11 @@ def _sift_view(
 
 
 def _gray(image: np.ndarray, laser_channel: str) -> np.ndarray:
-    """8-bit grey image without the laser's channel."""
+    """8-bit grey image without the laser's channel (an 8-bit frame whose grey image is
+    one channel, a red laser's green or a grey frame, read as that channel directly:
+    the same values without two float32 copies of the frame)."""
+    if image.dtype == np.uint8 and (image.ndim == 2 or CHANNEL_INDEX.get(laser_channel) == 0):
+        return np.ascontiguousarray(image if image.ndim == 2 else cv2.extractChannel(image, 1))
     g = gray_without_laser(image, laser_channel)
     if image.dtype != np.uint8:
         g = cv2.normalize(g, None, 0, 255, cv2.NORM_MINMAX)

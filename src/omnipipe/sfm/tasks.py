@@ -153,7 +153,8 @@ def handed_gray(folder: str, frame: int, channel: str) -> np.ndarray:
     image = handed(folder, frame, mapped=True)  # mapped, not copied: one channel is taken
     if image is None:
         raise ReconstructionError(f"frame {frame}: no longer in the run's hand-off folder {folder}")
-    return frame_gray(image, channel)
+    gray = frame_gray(image, channel)
+    return np.array(gray) if gray is image else gray  # a copy, not the file's pages
 
 
 def verified_matches(fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray, ransac: RansacConfig) -> np.ndarray:
