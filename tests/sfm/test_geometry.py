@@ -153,18 +153,3 @@ def test_compiled_sample_hypothesis_is_eight_point_and_its_inliers(size: int) ->
         assert np.array_equal(inl[clear], (angle < threshold)[clear])
     _, inl = sample_hypothesis(r1, r2, np.arange(300, len(r1)), math.sin(threshold))
     assert np.count_nonzero(inl[300:]) > 850 and np.count_nonzero(inl[:300]) < 30  # the motion
-
-
-@pytest.mark.parametrize("seed", range(3))
-def test_a_minimal_sample_of_eight_exact_pairs_gives_the_true_essential_matrix(seed: int) -> None:
-    """Eight exact ray pairs (RANSAC's minimal sample) determine E: every other pair of
-    the scene lies on its epipolar planes (the null vector of the 8 x 9 system, not the
-    reduced SVD's last of eight), in NumPy and in RANSAC's compiled hypothesis."""
-    from omnipipe.sfm._kernels import sample_hypothesis
-
-    rng = np.random.default_rng(seed)
-    r1, r2, _, _ = _scene(rng, 40, np.array([0.3, -0.2, 1.0]))
-    E = eight_point(r1[:8], r2[:8])
-    assert np.degrees(epipolar_angle(E, r1, r2)).max() < 1e-6
-    E_k, inl = sample_hypothesis(r1, r2, np.arange(8), math.sin(math.radians(1e-6)))
-    assert np.degrees(epipolar_angle(E_k, r1, r2)).max() < 1e-6 and inl.all()

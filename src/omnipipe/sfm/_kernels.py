@@ -172,12 +172,11 @@ def sample_hypothesis(r1, r2, sample, sin_threshold):  # pragma: no cover - comp
     """One RANSAC hypothesis: the essential matrix of the ray pairs ``sample`` (K,)
     (indices into ``r1``, ``r2`` (N, 3) unit rays, K >= 8) by the same operations as
     :func:`omnipipe.sfm.geometry.eight_point` (the Kronecker rows of Eq. (12), the
-    last right singular vector of their reduced SVD (a zero row added to a minimal
-    sample's 8 x 9 system, so that it is the null vector), projected onto singular values
+    last right singular vector of their reduced SVD, projected onto singular values
     (1, 1, 0)), and its (N,) inliers (:func:`epipolar_inliers` at ``sin_threshold``):
     (3, 3) E and the mask, without the per-call overhead of NumPy's small SVDs."""
     m = sample.shape[0]
-    U = np.zeros((max(m, 9), 9))  # a minimal sample's zero ninth row: all nine vectors
+    U = np.empty((m, 9))
     for k in range(m):
         i = sample[k]
         for a in range(3):

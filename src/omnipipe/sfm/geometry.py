@@ -48,10 +48,6 @@ def eight_point(
     U = (r2[:, :, None] * r1[:, None, :]).reshape(-1, 9)
     if weights is not None:
         U = U * np.asarray(weights, float)[:, None]
-    if len(U) < 9:
-        # A minimal sample's 8 x 9 U: a zero row so that the SVD returns all nine right
-        # singular vectors, the last the null vector (the reduced SVD keeps only eight).
-        U = np.vstack([U, np.zeros((9 - len(U), 9))])
     _, _, vt = np.linalg.svd(U, full_matrices=False)
     E = vt[-1].reshape(3, 3)  # Eq. (13)-(14)
     u, _, vt2 = np.linalg.svd(E)
