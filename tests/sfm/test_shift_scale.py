@@ -75,9 +75,9 @@ def test_a_disagreeing_shift_overrules_with_a_sigma_that_spans_both() -> None:
     assert abs(mean - 0.003) <= 2 * sigma
     # Sources within their own sigmas (a full-size clean run: no bias shown): the
     # inverse-variance mean of their own sigmas, between them, below either's sigma.
-    mean, sigma = combine_shift(0.010, 0.004, ShiftScale(0.016, 0.008, 10))
+    mean, sigma = combine_shift(0.010, 0.004, ShiftScale(0.013, 0.008, 10))
     w1, w2 = 0.004**-2, 0.008**-2
-    assert mean == pytest.approx((w1 * 0.010 + w2 * 0.016) / (w1 + w2))
+    assert mean == pytest.approx((w1 * 0.010 + w2 * 0.013) / (w1 + w2))
     assert sigma == pytest.approx((w1 + w2) ** -0.5)
     # A gap beyond their own sigmas (1.5 sigma) but within the widened ones: the
     # others widened by their shared bias, then the inverse-variance mean.
