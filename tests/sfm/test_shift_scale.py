@@ -62,10 +62,11 @@ def test_untrusted_steps_are_not_read(small_camera: OmniCamera) -> None:
 
 def test_a_disagreeing_shift_overrules_with_a_sigma_that_spans_both() -> None:
     # Laser and features say +0.3 % +- 0.9 %, the wall's shift +6.9 % +- 0.8 % (seed 32):
-    # their shared bias (3 %) leaves the shift most of the weight.
+    # their shared bias (3 %) leaves the shift most of the weight (the gap 2 of the widened
+    # sigmas: barely any of the shift-alone reading mixed in).
     mean, sigma = combine_shift(0.003, 0.009, ShiftScale(0.069, 0.008, 10))
     w1, w2 = 1 / (0.009**2 + SOURCES_BIAS_SIGMA**2), 0.008**-2
-    assert mean == pytest.approx((w1 * 0.003 + w2 * 0.069) / (w1 + w2))
+    assert mean == pytest.approx((w1 * 0.003 + w2 * 0.069) / (w1 + w2), abs=5e-4)
     assert abs(mean - 0.069) <= 0.005 and sigma >= 0.008
     # Further apart than even the shared bias explains: the shift, with half the gap
     # in its sigma (the other stays within 2 sigma).
@@ -74,9 +75,9 @@ def test_a_disagreeing_shift_overrules_with_a_sigma_that_spans_both() -> None:
     assert abs(mean - 0.003) <= 2 * sigma
     # Sources within their own sigmas (a full-size clean run: no bias shown): the
     # inverse-variance mean of their own sigmas, between them, below either's sigma.
-    mean, sigma = combine_shift(0.010, 0.004, ShiftScale(0.016, 0.008, 10))
+    mean, sigma = combine_shift(0.010, 0.004, ShiftScale(0.013, 0.008, 10))
     w1, w2 = 0.004**-2, 0.008**-2
-    assert mean == pytest.approx((w1 * 0.010 + w2 * 0.016) / (w1 + w2))
+    assert mean == pytest.approx((w1 * 0.010 + w2 * 0.013) / (w1 + w2))
     assert sigma == pytest.approx((w1 + w2) ** -0.5)
     # A gap beyond their own sigmas (1.5 sigma) but within the widened ones: the
     # others widened by their shared bias, then the inverse-variance mean.

@@ -40,12 +40,14 @@ from omnipipe.sfm.types import Anchor, Keyframes, SfmContext
 # cover every run with at most 10 % of its steps flagged (worst 1.6 sigma).
 SHARED_SCALE_SIGMA = 0.0035
 
-# When the laser and wall-placed features' correction and the wall's own shift disagree
-# by more than this chi-square (3 sigma), the shift is taken: on the random-wide runs
+# The wall's own shift overrules the laser and wall-placed features' correction as their
+# disagreement grows: its weight rises from 0 at this many sigmas of the gap to 1 at
+# :data:`SHIFT_OVERRULES_SIGMAS`'s second value (linear in the gap's sigmas; the hard
+# switch at 3 sigma it replaces flipped on 0.1 % input changes). On the random-wide runs
 # where the laser and feature depths ran short together (tiles, seeds 32 and 35: their
 # step lengths' medians 5-6 % and 2-5 % short) the shift's steps' median was within
 # 0.7 % of the truth on every seed read (benchmarks/RESULTS.md, scale32).
-SHIFT_OVERRULES_CHI2 = 9.0
+SHIFT_OVERRULES_SIGMAS = (2.0, 4.0)
 
 # Relative 1-sigma of a bias the laser and the wall-placed features share, which their
 # agreement and spread do not show, when a third source can see it: on the random-wide
@@ -55,15 +57,26 @@ SHIFT_OVERRULES_CHI2 = 9.0
 # (benchmarks/RESULTS.md, scale32). At 1 % the combination kept 1.2-1.3 % of their bias
 # on seeds 0, 8, 18, 35 where the wall's shift read within 0.3-0.8 % (scale33).
 SOURCES_BIAS_SIGMA = 0.03
-# The (log gap)^2 between the run's scale and the wall shift's, over their variances,
-# beyond which the shared bias above is assumed (a gap within one sigma shows none).
-BIAS_SHOWN_CHI2 = 1.0
+# The weight of the shared bias above grows linearly with the chi-square of the gap
+# between the run's scale and the wall shift's (over their own variances) from 0 at the
+# first value to 1 at the second (a gap well within their sigmas shows none; on full-size
+# clean runs the laser's 0.25 % would otherwise weigh as little as the shift's 1 %:
+# bend's scale error 0.04 -> 0.18 %). Chosen over (0.5, 1.5) and (0, 1) on bench_robustness
+# replays (two RANSAC seeds; benchmarks/RESULTS.md, ransac17).
+BIAS_SHOWN_CHI2 = (0.25, 1.25)
 
-# The laser's decided lengths replace the adjusted run as its reading of the laser only
-# when they differ by more than this many of the laser's sigmas: within it, the
+# The laser's decided lengths replace the adjusted run as its reading of the laser in
+# proportion to how many of the laser's sigmas they differ by: not at all within the
+# first value, fully beyond the second, linearly between (within its sigma the
 # adjustment's pixel-weighted fit of the laser points reads them as well as their
-# lengths' median (measured on bench_robustness: benchmarks/RESULTS.md, depth5).
-DECIDED_SIGMAS = 2.0
+# lengths' median: measured on bench_robustness, benchmarks/RESULTS.md, depth5). The
+# laser's sigma in this test is at least :data:`DECIDED_SIGMA_FLOOR`: a laser whose
+# matches agree within 0.1-0.5 % still reads the run's length no better than about 1 %
+# (random-wide seeds 9 and 31 at 640x480: decided corrections of 0.36 and 1.8 % at 2.8
+# and 3.7 of their sigmas made the scale error 0.04 -> 0.17 % and 0.22 -> 0.71 %;
+# benchmarks/RESULTS.md, ransac16).
+DECIDED_SIGMAS = (1.0, 3.0)
+DECIDED_SIGMA_FLOOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -118,10 +131,10 @@ def run_length(
         decided = decided_log(
             chain.checks, chain.scales_mm, world_from_kf, config.scale_check.adjusted_agree_log
         )
-        if not abs(decided) > DECIDED_SIGMAS * sigma:
-            decided = 0.0  # within the laser's sigma the adjusted run reads its anchors as well
+        laser_log, laser_sigma = laser_say(decided, sigma)
         applied, sigma = combine_scales(
-            wall[0], math.hypot(wall[1], WALL_SCALE_SIGMA_FLOOR), sigma, scale.wall_anchored, decided
+            wall[0], math.hypot(wall[1], WALL_SCALE_SIGMA_FLOOR), laser_sigma, scale.wall_anchored,
+            laser_log,
         )
         if scale.wall_anchored:
             sigma = math.hypot(sigma, abs(scale.offset_log) / 2)  # as scale_sigma's
@@ -136,14 +149,41 @@ def run_length(
     return RunLength(applied, math.hypot(sigma, SHARED_SCALE_SIGMA), wall_log, source)
 
 
+def ramp(x: float, lo: float, hi: float) -> float:
+    """0 at ``x <= lo``, 1 at ``x >= hi``, linear between (continuous in ``x``)."""
+    return min(1.0, max(0.0, (x - lo) / (hi - lo)))
+
+
+def mix(p: float, a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
+    """Two readings (log, relative 1-sigma) mixed with weight ``p`` on ``b``: the mean
+    ``(1 - p) a + p b`` and the mixture's sigma (both variances weighted, plus the
+    spread ``p (1 - p) (b - a)^2`` between the two): the combination's own uncertainty
+    is carried into the sigma rather than hidden."""
+    mean = (1.0 - p) * a[0] + p * b[0]
+    var = (1.0 - p) * a[1] ** 2 + p * b[1] ** 2 + p * (1.0 - p) * (b[0] - a[0]) ** 2
+    return mean, math.sqrt(var)
+
+
+def laser_say(decided_log: float, sigma: float) -> tuple[float, float]:
+    """The laser's correction of the adjusted run and its relative 1-sigma: the decided
+    lengths' log correction ``decided_log`` (:func:`decided_log`) weighted by its
+    significance against the laser's ``sigma`` (:data:`DECIDED_SIGMAS`, a ramp), the
+    rest the adjusted run's own (0); the two mixed (:func:`mix`). A non-finite
+    ``sigma``: (0, sigma)."""
+    if not (math.isfinite(sigma) and sigma > 0):
+        return 0.0, sigma
+    z = abs(decided_log) / max(sigma, DECIDED_SIGMA_FLOOR)
+    return mix(ramp(z, *DECIDED_SIGMAS), (0.0, sigma), (decided_log, sigma))
+
+
 def combine_shift(applied_log: float, sigma: float, shift: ShiftScale) -> tuple[float, float]:
     """The run's log correction ``applied_log`` (NaN: none, the adjusted run as it is)
     with relative 1-sigma ``sigma`` (laser and wall-placed features) combined with the
-    wall's own shift (:func:`omnipipe.sfm.shift_scale.shift_scale`), ``sigma`` widened by
-    :data:`SOURCES_BIAS_SIGMA`: inverse-variance
-    mean, its sigma scaled by sqrt(chi-square) when the two disagree beyond their sigmas
-    (as :func:`combine_scales`); beyond :data:`SHIFT_OVERRULES_CHI2` the shift alone,
-    half the gap added to its sigma. Without a finite ``sigma`` the shift alone.
+    wall's own shift (:func:`omnipipe.sfm.shift_scale.shift_scale`): two combinations,
+    ``sigma`` as it is and widened by :data:`SOURCES_BIAS_SIGMA` (their shared bias),
+    mixed (:func:`mix`) with the bias's weight growing with the gap's chi-square
+    (:data:`BIAS_SHOWN_CHI2`). Each is :func:`_with_shift`. Without a finite ``sigma``
+    the shift alone. Continuous in every input.
 
     Returns:
         (log correction to apply to every length, relative 1-sigma).
@@ -151,19 +191,26 @@ def combine_shift(applied_log: float, sigma: float, shift: ShiftScale) -> tuple[
     if not (math.isfinite(sigma) and sigma > 0):
         return shift.log, shift.sigma
     base = 0.0 if math.isnan(applied_log) else applied_log
-    if (base - shift.log) ** 2 > BIAS_SHOWN_CHI2 * (sigma**2 + shift.sigma**2):
-        # Only where the two disagree beyond their own sigmas is their shared bias
-        # assumed (on full-size clean runs the laser's 0.25 % would otherwise weigh as
-        # little as the shift's 1 %: bend's scale error 0.04 -> 0.18 %).
-        sigma = math.hypot(sigma, SOURCES_BIAS_SIGMA)
     chi2 = (base - shift.log) ** 2 / (sigma**2 + shift.sigma**2)
-    if chi2 > SHIFT_OVERRULES_CHI2:
-        # Both can't be right: the shift, with half the gap in its sigma (the other
-        # value stays within 2 sigma).
-        return shift.log, math.hypot(shift.sigma, abs(base - shift.log) / 2)
+    q = ramp(chi2, *BIAS_SHOWN_CHI2)
+    return mix(
+        q, _with_shift(base, sigma, shift), _with_shift(base, math.hypot(sigma, SOURCES_BIAS_SIGMA), shift)
+    )
+
+
+def _with_shift(base: float, sigma: float, shift: ShiftScale) -> tuple[float, float]:
+    """``base`` +- ``sigma`` (relative) and the wall's shift: the inverse-variance mean,
+    its sigma scaled by sqrt(chi-square) when the two disagree beyond their sigmas (as
+    :func:`combine_scales`), mixed (:func:`mix`) with the shift alone (half the gap added
+    to its sigma: the other value stays within 2 sigma) by a weight rising with the gap's
+    sigmas (:data:`SHIFT_OVERRULES_SIGMAS`)."""
+    gap2 = (base - shift.log) ** 2
+    chi2 = gap2 / (sigma**2 + shift.sigma**2)
     w_base, w_shift = 1.0 / sigma**2, 1.0 / shift.sigma**2
     mean = (w_base * base + w_shift * shift.log) / (w_base + w_shift)
-    return mean, math.sqrt(max(chi2, 1.0) / (w_base + w_shift))
+    both = (mean, math.sqrt(max(chi2, 1.0) / (w_base + w_shift)))
+    alone = (shift.log, math.sqrt(shift.sigma**2 + gap2 / 4))
+    return mix(ramp(math.sqrt(chi2), *SHIFT_OVERRULES_SIGMAS), both, alone)
 
 
 def decided_log(
