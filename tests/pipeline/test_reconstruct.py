@@ -153,18 +153,19 @@ def test_the_stations_rings_wait_in_the_scratch_until_integrated(
 ) -> None:
     """Before the analysis the stations' rings are integrated from the run's scratch
     (omnipipe.spill), not held in memory all at once; the result is the same."""
-    from omnipipe.pipeline import reconstruct
+    from omnipipe import model
     from omnipipe.pipeline.reconstruct import ring_on_disk
     from omnipipe.spill import Pack, is_on_disk
 
-    integrate = reconstruct.integrated_on_disk
+    integrate = model.integrate
     seen: list[bool] = []
 
-    def checked(poses: np.ndarray, points: list[np.ndarray]) -> object:
+    def checked(poses: np.ndarray, points: list[np.ndarray], in_scratch: bool = False) -> object:
         seen.extend(is_on_disk(p) for p in points if len(p))
-        return integrate(poses, points)
+        assert in_scratch
+        return integrate(poses, points, in_scratch)
 
-    monkeypatch.setattr(reconstruct, "integrated_on_disk", checked)
+    monkeypatch.setattr(model, "integrate", checked)
     assert main(["reconstruct", str(small_dataset), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert seen and all(seen)
     ring = LaserRing(

@@ -38,14 +38,21 @@ from omnipipe.spill import drop_pages, on_disk, shared_on_disk, zeros_on_disk
 
 
 def integrate(
-    world_from_rig: np.ndarray, ring_points_in_rig: list[np.ndarray]
+    world_from_rig: np.ndarray, ring_points_in_rig: list[np.ndarray], in_scratch: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Ring points into the world: (N, 3) points and (N,) keyframe index of each."""
-    pts = [apply(T, r) for T, r in zip(world_from_rig, ring_points_in_rig, strict=True) if len(r)]
-    idx = [np.full(len(r), k) for k, r in enumerate(ring_points_in_rig) if len(r)]
-    if not pts:
-        return np.zeros((0, 3)), np.zeros(0, int)
-    return np.concatenate(pts), np.concatenate(idx)
+    """Ring points into the world: (N, 3) points (mm) and (N,) keyframe index of each,
+    each ring moved and written in place (no list of moved rings and their concatenation
+    in memory); ``in_scratch``: both arrays in the run's scratch (:mod:`omnipipe.spill`)."""
+    n = sum(len(r) for r in ring_points_in_rig)
+    new = zeros_on_disk if in_scratch and n else np.zeros
+    points, frame = new((n, 3), float), new((n,), int)
+    at = 0
+    for k, (world_from_k, ring) in enumerate(zip(world_from_rig, ring_points_in_rig, strict=True)):
+        if len(ring):
+            points[at : at + len(ring)] = apply(world_from_k, ring)
+            frame[at : at + len(ring)] = k
+            at += len(ring)
+    return points, frame
 
 
 def unrolled_coordinates(

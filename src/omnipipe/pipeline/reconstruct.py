@@ -565,7 +565,7 @@ def _analyse(
     mesh and the texture; and the camera motion check's report."""
     import numpy as np
 
-    from omnipipe import analysis
+    from omnipipe import analysis, model
     from omnipipe.camera import camera_from_rig
     from omnipipe.laser.extract import axial_blur_mm, edge_reach_mm, ring_blur_mm
     from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px
@@ -590,7 +590,7 @@ def _analyse(
     # Stray laser peaks (isolated points far off the wall) out before anything uses them.
     station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
     # Not in memory under the rest: written into the run's scratch ring by ring.
-    points, point_frame = integrated_on_disk(station_poses, [r.points_in_rig for r in station_rings])
+    points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings], in_scratch=True)
     reach, reach_sigma = edge_reach_mm(station_rings)
     blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
     mm_per_px = np.array([radial_mm_per_px(r) for r in station_rings])
@@ -625,28 +625,6 @@ def _analyse(
     )
     feed = _ModelFeed(points, point_frame, pixels)
     return _analysis_on_disk(_Measured(res, traj_quality, stations, station_poses, outliers_removed), feed)
-
-
-def integrated_on_disk(world_from_rig: np.ndarray, rings_in_rig: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`omnipipe.model.integrate`'s (N, 3) world points and (N,) keyframe indices,
-    each ring written into the run's scratch as it is moved (:mod:`omnipipe.spill`): no
-    list of the moved rings and their concatenation in memory (twice 32 bytes a point)."""
-    import numpy as np
-
-    from omnipipe.geometry import apply
-    from omnipipe.spill import zeros_on_disk
-
-    n = sum(len(r) for r in rings_in_rig)
-    if n == 0:
-        return np.zeros((0, 3)), np.zeros(0, int)
-    points, frame = zeros_on_disk((n, 3), float), zeros_on_disk((n,), int)
-    at = 0
-    for k, (world_from_k, ring) in enumerate(zip(world_from_rig, rings_in_rig, strict=True)):
-        if len(ring):
-            points[at : at + len(ring)] = apply(world_from_k, ring)
-            frame[at : at + len(ring)] = k
-            at += len(ring)
-    return points, frame
 
 
 def ring_on_disk(pack: Pack, ring: LaserRing) -> LaserRing:
