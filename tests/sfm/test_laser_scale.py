@@ -101,6 +101,67 @@ def test_compiled_ncc_is_bit_identical_to_numpy() -> None:
             assert np.array_equal(got, _ncc_numpy(template, patches, w), equal_nan=True)
 
 
+def test_compiled_plane_ncc_equals_numpy() -> None:
+    """The detrended NCC (a plane fitted and removed from template and patch) of the
+    compiled closed form equals the NumPy least squares within rounding, with missing
+    samples, zero weights and per-candidate weights."""
+    from omnipipe.sfm.laser_scale import _ncc, _ncc_numpy
+
+    rng = np.random.default_rng(4)
+    g = np.arange(-6, 7, dtype=float)
+    gu, gv = np.meshgrid(g, g)
+    basis = np.vstack([gu.ravel(), gv.ravel()]) / 6.0
+    for trial in range(6):
+        n, s = int(rng.integers(1, 20)), int(rng.integers(1, 30))
+        dtype = np.float32 if trial % 2 == 0 else np.float64
+        template = (rng.normal(size=(n, 169)) * 30 + 100).astype(dtype)
+        patches = (rng.normal(size=(n, s, 169)) * 30 + 100).astype(dtype)
+        template[rng.random(template.shape) < 0.05] = np.nan
+        patches[rng.random(patches.shape) < 0.1 * (trial % 3)] = np.nan
+        # Correlated up to a brightness plane: detrended NCC 1.
+        patches[:, : s // 2] = template[:, None, :] * 1.5 + 3.0 + 40.0 * basis[1] - 9.0 * basis[0]
+        weight = (rng.random((n, 169)) > 0.3).astype(float)
+        weight[0] = 0.0
+        for w in (weight, weight[:, None, :] * (rng.random((n, s, 169)) > 0.2)):
+            got = _ncc(template, patches, w, basis)
+            want = _ncc_numpy(template, patches, w, basis)
+            assert np.allclose(got, want, rtol=0, atol=1e-7, equal_nan=True)
+        assert np.all(got[1:, : s // 2][got[1:, : s // 2] > -1] > 0.999)
+
+
+def test_detrend_takes_the_brightness_falloff_out_of_the_length() -> None:
+    """The LEDs' fall-off moves with the robot: on a weakly textured wall far out in the
+    mirror (random-features-small seed 8: 449 mm tiles at 400x300, the ring near the
+    blind centre) it dominated the templates and pulled every length 19-35 % short under
+    the true motion. With ``detrend`` template and patches lose their brightness plane
+    (off by default: on the robustness bench's textured walls it moved seed 3's scale
+    0.01 -> 2.8 %, benchmarks/RESULTS.md)."""
+    from omnipipe.image import gray_without_laser
+    from omnipipe.laser.extract import RingExtractor
+    from omnipipe.laser.stage import LaserConfig
+    from omnipipe.laser.triangulate import triangulate_ring
+    from omnipipe.sfm.laser_scale import LaserScaleConfig
+    from omnipipe.sim.scenarios import make_feature_scenario
+
+    scenario = make_feature_scenario("random-features-small", 20, None, 8)
+    renderer, poses, _, _ = build_renderer(scenario)
+    extractor = RingExtractor(renderer.camera, LaserConfig().extraction, scenario.rig.laser)
+    logs = []
+    for a, b in ((0, 3), (3, 6), (17, 19)):
+        img_a, _ = renderer.render(poses[a], seed=1)
+        img_b, _ = renderer.render(poses[b], seed=2)
+        ring = triangulate_ring(extractor.extract(img_a, "red"), renderer.camera, scenario.rig.laser)
+        b_from_a = invert(poses[b]) @ poses[a]
+        length = float(np.linalg.norm(b_from_a[:3, 3]))
+        m = match_laser_points(
+            gray_without_laser(img_a, "red"), gray_without_laser(img_b, "red"), renderer.camera,
+            ring.points_in_rig, b_from_a[:3, :3], b_from_a[:3, 3] / length, LaserScaleConfig(detrend=True),
+        )
+        assert len(m.index) >= 8
+        logs.append(np.log(m.scale / length))
+    assert abs(np.median(logs)) < 0.1, np.exp(logs) - 1
+
+
 def test_fused_candidates_equal_the_generic_path() -> None:
     """A camera's compiled projection (the hyperboloid's) gives, in the one-pass
     candidates (:func:`_candidate_patches`), the same matches bit for bit as

@@ -44,10 +44,13 @@ class LaserScaleConfig:
         min_ncc: a point's match counts when its best NCC exceeds this.
         min_template_std: templates flatter than this (grey levels) are skipped.
         max_points: laser points tried per frame pair (evenly spread around the ring).
-        detrend: remove a brightness plane from template and patches before the NCC.
-            Measured on two 580 mm random pipes: the consensus peaks become much
-            sharper (second/best 0.95 -> 0.2), but the 3-16 % over-length of the laser
-            scale there stays, so it is not the cause; off until measured on paper/bend.
+        detrend: remove a brightness plane from template and patches before the NCC
+            (a compiled closed form). The LEDs' fall-off and the mirror's vignetting move
+            with the robot; where the wall's own texture is weak beside them (a ring
+            near the blind centre, a plain or large-tiled wall at low resolution) a
+            patch's variance is mostly that gradient, the same at every candidate, and
+            the correlation follows it instead of the wall. Off: on textured walls the
+            plane carries some of the wall's own signal (benchmarks/RESULTS.md).
         prior_window_log: a keyframe step's laser search (:func:`match_laser_points_near`)
             first tries only the candidates within this factor (log) of the step's
             feature-depth length; the full range when that answer is weak. 0: always
@@ -143,17 +146,19 @@ def _ncc(
 
     Without ``basis`` a compiled kernel computes it (bit-identical to
     :func:`_ncc_numpy`, NumPy's pairwise sums included; one pass instead of a dozen
-    (N, S, K) temporaries).
+    (N, S, K) temporaries); with a (2, K) basis (a plane) another one, equal to it
+    within rounding.
     """
     w = weight[:, None, :] if weight.ndim == 2 else weight
+    out = np.empty(patches.shape[:2])
+    args = (np.ascontiguousarray(template), np.ascontiguousarray(patches), np.ascontiguousarray(w, dtype=float))
     if basis is None:
-        out = np.empty(patches.shape[:2])
-        _ncc_kernel(
-            np.ascontiguousarray(template), np.ascontiguousarray(patches),
-            np.ascontiguousarray(w, dtype=float), out,
-        )
-        return out
-    return _ncc_numpy(template, patches, w, basis)
+        _ncc_kernel(*args, out)
+    elif basis.shape[0] == 2:
+        _ncc_plane_kernel(*args, np.ascontiguousarray(basis, dtype=float), out)
+    else:
+        return _ncc_numpy(template, patches, w, basis)
+    return out
 
 
 def _ncc_numpy(
@@ -304,6 +309,94 @@ def _ncc_kernel(template, patches, weight, out):  # pragma: no cover - compiled
             if den < 1e-9:  # np.maximum(den, 1e-9); NaN stays NaN
                 den = 1e-9
             out[i, j] = num / den if n_valid / k_len > 0.8 else -1.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _solve3(m, b, x):  # pragma: no cover - compiled
+    """x = m^-1 b for a (3, 3) symmetric positive definite ``m`` (Cramer's rule)."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+    c11 = m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]
+    c12 = m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]
+    c22 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    x[0] = (c00 * b[0] + c01 * b[1] + c02 * b[2]) / det
+    x[1] = (c01 * b[0] + c11 * b[1] + c12 * b[2]) / det
+    x[2] = (c02 * b[0] + c12 * b[1] + c22 * b[2]) / det
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _ncc_plane_kernel(template, patches, weight, basis, out):  # pragma: no cover - compiled
+    """:func:`_ncc_numpy` with a (2, K) ``basis`` (u, v): each of template and patch
+    loses its weighted least-squares plane a + b u + c v, in closed form. From the
+    weighted sums (moments) M of (1, u, v), b_p and b_t of p and t against them:
+    cov = S_pt - b_p' M^-1 b_t, var_p = S_pp - b_p' M^-1 b_p (likewise t); NCC =
+    cov / sqrt(var_p var_t). (N, K), (N, S, K), (N, 1 or S, K) -> (N, S) ``out``."""
+    n_pts, n_s, k_len = patches.shape
+    m = np.empty((3, 3))
+    bp = np.empty(3)
+    bt = np.empty(3)
+    xp = np.empty(3)
+    xt = np.empty(3)
+    for i in range(n_pts):
+        t0 = 0.0  # centre the grey levels on the template's first value: smaller sums
+        for k in range(k_len):
+            if np.isfinite(template[i, k]):
+                t0 = template[i, k]
+                break
+        for j in range(n_s):
+            jw = j if weight.shape[1] > 1 else 0
+            n_valid = 0
+            m[:, :] = 0.0
+            bp[:] = 0.0
+            bt[:] = 0.0
+            spp = 0.0
+            stt = 0.0
+            spt = 0.0
+            for k in range(k_len):
+                pv = patches[i, j, k]
+                tv = template[i, k]
+                if not (np.isfinite(pv) and np.isfinite(tv)):
+                    continue
+                n_valid += 1
+                w = weight[i, jw, k]
+                u = basis[0, k]
+                v = basis[1, k]
+                pv -= t0
+                tv -= t0
+                m[0, 0] += w
+                m[0, 1] += w * u
+                m[0, 2] += w * v
+                m[1, 1] += w * u * u
+                m[1, 2] += w * u * v
+                m[2, 2] += w * v * v
+                bp[0] += w * pv
+                bp[1] += w * pv * u
+                bp[2] += w * pv * v
+                bt[0] += w * tv
+                bt[1] += w * tv * u
+                bt[2] += w * tv * v
+                spp += w * pv * pv
+                stt += w * tv * tv
+                spt += w * pv * tv
+            if not n_valid / k_len > 0.8:
+                out[i, j] = -1.0
+                continue
+            m[1, 0] = m[0, 1]
+            m[2, 0] = m[0, 2]
+            m[2, 1] = m[1, 2]
+            for d in range(3):
+                m[d, d] += 1e-9
+            _solve3(m, bp, xp)
+            _solve3(m, bt, xt)
+            cov = spt - (bp[0] * xt[0] + bp[1] * xt[1] + bp[2] * xt[2])
+            vp = spp - (bp[0] * xp[0] + bp[1] * xp[1] + bp[2] * xp[2])
+            vt = stt - (bt[0] * xt[0] + bt[1] * xt[1] + bt[2] * xt[2])
+            den = math.sqrt(max(vp, 0.0) * max(vt, 0.0))
+            if den < 1e-9:
+                den = 1e-9
+            out[i, j] = cov / den
 
 
 def _candidate_patches(
