@@ -205,3 +205,34 @@ def test_rows_leave_out_a_step_of_the_pipe_axis() -> None:
     assert len(rows) == 5
     z = np.linalg.norm(ring_offsets(kinked, rows), axis=1) / rows.sigma_mm
     assert z[rows.kf[:, 1] == 3][0] > 3.0
+
+
+def test_rows_cannot_see_a_keyframe_turned_about_its_ring_centre() -> None:
+    """Seeded: 7 keyframes 12 mm apart along a straight pipe (0.05 mm / 0.02 deg wobble),
+    keyframe 3 turned 1.5 deg about the point where the axis pierces its laser plane
+    (82 mm from the rig's origin: the rig swings 2.1 mm across the axis). Every centre stays where it was in the world, so the rows'
+    offsets do not change (within 1e-9 mm) and stay within 3 sigma: the ring rows hold
+    the pierce points, not the rigs' turn about them (that is left to the features).
+    The same 2.1 mm moved sideways without the turn: beyond 3 sigma."""
+    rng = np.random.default_rng(5)
+    truth = np.array([
+        make_transform(Rotation.from_rotvec(np.r_[rng.normal(0, np.radians(0.02), 2), 0.0]).as_matrix(),
+                       np.r_[rng.normal(0, 0.05, 2), 12.0 * k])
+        for k in range(7)
+    ])
+    centres = [RingCentre(_axis_centre(T) + np.r_[rng.normal(0, 0.01, 2), 0.0], 0.02) for T in truth]
+    pierce = apply(truth[3], centres[3].centre_in_rig[None])[0]
+    turn = Rotation.from_rotvec([np.radians(1.5), 0.0, 0.0]).as_matrix()
+    turned = truth.copy()
+    turned[3] = make_transform(turn @ truth[3, :3, :3], turn @ (truth[3, :3, 3] - pierce) + pierce)
+    swing = np.linalg.norm(turned[3, :2, 3] - truth[3, :2, 3])
+    assert 2.0 < swing < 2.3
+    rows = axis_rows(truth, centres)
+    before = ring_offsets(truth, rows)
+    after = ring_offsets(turned, rows)
+    assert np.abs(after - before).max() < 1e-9
+    assert (np.linalg.norm(after, axis=1) / rows.sigma_mm).max() < 3.0
+    shifted = truth.copy()
+    shifted[3, :3, 3] = turned[3, :3, 3]
+    z = np.linalg.norm(ring_offsets(shifted, rows), axis=1) / rows.sigma_mm
+    assert z[rows.kf[:, 1] == 3][0] > 3.0

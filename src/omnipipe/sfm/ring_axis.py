@@ -10,7 +10,13 @@ a < k < b: the part of ``X_k - ((1 - f) X_a + f X_b)`` across the axis, per its 
 (f: k's fraction of the way from a to b along the axis). Sideways drift and a turn
 of the rig that the features leave loose (a few dozen matches, a large pipe's far
 wall) then cannot accumulate: Hansen et al. (IJRR 2015) found pipe-shape constraints
-essential for visual odometry in pipes.
+essential for visual odometry in pipes. The rows hold the points where the axis pierces
+the keyframes' laser planes, not the rigs' turn about them: a keyframe turned by an
+angle about its ring's centre swings its rig across the axis by the plane's distance
+times the angle (90 mm and 1.5 deg: 2.4 mm) and leaves every centre, and so every row,
+where it was. That turn is left to the features; the ellipse's shape is too weak to
+hold it (a tilt changes the ratio of its axes by 1 / cos, second order, and the pipe's
+own ovality adds to that ratio).
 
 Sigmas are measured, not assumed: a centre's 1-sigma is :data:`CENTRE_SIGMA_GAIN`
 times the robust scatter of its ring's points about the fitted ellipse (per point,
