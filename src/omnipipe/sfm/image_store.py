@@ -2,8 +2,8 @@
 
 The scale decisions (Eq. 17 re-matching around a chosen length) and the longer-baseline
 laser anchors need every keyframe's grey image after the whole run's evidence is in.
-Holding them costs 3.8 MB per keyframe at 1600x1200 (uint16), gigabytes over a long
-run; :class:`ImageStore` writes each to a private temporary folder as it comes and reads
+Holding them costs 1.9 MB per keyframe at 1600x1200 (8-bit frames' grey as uint8; 3.8
+MB as uint16), gigabytes over a long run; :class:`ImageStore` writes each to a private temporary folder as it comes and reads
 it back when asked (from the page cache, about 1 ms). A local process pool's workers read
 them there too, by :class:`StoredImage` (the file's path through the pipe, not the pixels).
 """

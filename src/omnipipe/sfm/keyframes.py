@@ -558,8 +558,10 @@ class KeyframeLoop:
         return handed_gray(self.inputs.handoff, frame.frame, self.inputs.rig.laser.channel)
 
     def _keep_gray(self, gray: np.ndarray) -> None:
-        """The next keyframe's grey image into ``grays`` (uint16)."""
-        self.grays.append(np.clip(gray, 0, 65535).astype(np.uint16))
+        """The next keyframe's grey image into ``grays``: an 8-bit one as it is (its
+        readers take it as float32: the same values in half the bytes of uint16), any
+        other as uint16."""
+        self.grays.append(gray if gray.dtype == np.uint8 else np.clip(gray, 0, 65535).astype(np.uint16))
 
     def _add_keyframe(
         self,
@@ -631,7 +633,7 @@ def gray_for_worker(
 ) -> np.ndarray | StoredImage:
     """Keyframe ``k``'s grey image ``gray`` (H, W) as sent to ``executor``'s worker: a
     reference to its file in ``grays`` (the keyframe store, ``k`` an index into it) for
-    a local pool's worker when the stored uint16 copy holds the same values (an 8- or
+    a local pool's worker when the stored copy holds the same values (an 8- or
     16-bit grey image), else the array itself (inline, a Dask cluster, a float image)."""
     exact = gray.dtype in (np.uint8, np.uint16)
     return grays.ref(k) if exact and shares_files(executor) else gray

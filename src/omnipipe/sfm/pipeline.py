@@ -42,7 +42,7 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import InlineExecutor
+from omnipipe.executor import InlineExecutor, opencv_threads
 from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.memory import release_freed_memory
@@ -125,8 +125,9 @@ def run(
     # distances, RANSAC's eight-point fits); a second OpenBLAS thread mostly spins, on
     # cores the workers and this process's SIFT and flow threads need (a descriptor
     # match 15 CPU-ms with one thread, 33 with two), and the motion does not depend on
-    # the machine's core count.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # the machine's core count. OpenCV likewise: its calls here run on the views' threads
+    # (:func:`~omnipipe.executor.thread_map`), its own pool would split them again.
+    with threadpool_limits(limits=1, user_api="blas"), opencv_threads(1):
         return _run(config, inputs, progress, executor)
 
 
