@@ -207,6 +207,40 @@ def test_thread_map_keeps_the_order_of_the_serial_loop() -> None:
     assert thread_map(lambda a: a, [], threads=2) == []
 
 
+def test_opencv_threads_limits_the_block_and_restores_the_count() -> None:
+    import cv2
+
+    from omnipipe.executor import opencv_threads
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(2)
+        with opencv_threads(1):
+            assert cv2.getNumThreads() == 1
+        assert cv2.getNumThreads() == 2
+        with pytest.raises(RuntimeError), opencv_threads(1):
+            raise RuntimeError("inside")
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
+
+
+def _threads_inside_a_limit() -> tuple[int, int]:
+    import cv2
+
+    from omnipipe.executor import opencv_threads
+
+    outside = cv2.getNumThreads()
+    with opencv_threads(outside + 1):
+        return outside, cv2.getNumThreads()
+
+
+def test_opencv_threads_leaves_a_forked_worker_alone() -> None:
+    with open_executor(2, None) as pool:
+        outside, inside = pool.submit(_threads_inside_a_limit).result(timeout=60)
+    assert inside == outside
+
+
 def _length(a: np.ndarray) -> int:
     return len(a)
 

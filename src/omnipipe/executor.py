@@ -395,6 +395,8 @@ def worker_init(parent: int) -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")
+    global _FORKED_WORKER
+    _FORKED_WORKER = True
     _die_with_parent()
     if os.getppid() != parent:  # the parent died before the line above took effect
         os.kill(os.getpid(), signal.SIGKILL)
@@ -423,6 +425,35 @@ def _watch_parent(parent: int) -> None:
 
 
 _THREADS: tuple[int, int, ThreadPoolExecutor] | None = None  # (pid, threads, pool)
+# True in a local pool's worker (:func:`worker_init`), forked from a parent with threads.
+_FORKED_WORKER = False
+
+
+@contextmanager
+def opencv_threads(threads: int) -> Iterator[None]:
+    """OpenCV's own thread pool limited to ``threads`` inside the block (restored after).
+
+    For a process that runs OpenCV's calls on threads of its own (:func:`thread_map`):
+    OpenCV's internal pool then splits each call's few hundred points or rows again,
+    and its synchronisation costs CPU the other threads and processes need (the
+    tracker's pyramidal flow on 1600x1200's views: 41-46 CPU-ms a frame with OpenCV's
+    two threads, 37 with one). The results do not depend on it.
+
+    A no-op in a local pool's worker (a run of ``omnipipe batch``): forked from a parent
+    whose OpenCV pool had threads, ``cv2.setNumThreads`` there can wait for ever on a lock
+    one of those threads held at the fork (seen once in a worker's initializer).
+    """
+    if _FORKED_WORKER:
+        yield
+        return
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(threads)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def thread_map(fn: Callable[..., R], *iterables: Iterable[Any], threads: int = 1) -> list[R]:

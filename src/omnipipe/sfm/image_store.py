@@ -2,10 +2,12 @@
 
 The scale decisions (Eq. 17 re-matching around a chosen length) and the longer-baseline
 laser anchors need every keyframe's grey image after the whole run's evidence is in.
-Holding them costs 3.8 MB per keyframe at 1600x1200 (uint16), gigabytes over a long
-run; :class:`ImageStore` writes each to a private temporary folder as it comes and reads
+Holding them costs 1.9 MB per keyframe at 1600x1200 (8-bit frames' grey as uint8; 3.8
+MB as uint16), gigabytes over a long run; :class:`ImageStore` writes each to a private temporary folder as it comes and reads
 it back when asked (from the page cache, about 1 ms). A local process pool's workers read
 them there too, by :class:`StoredImage` (the file's path through the pipe, not the pixels).
+A keyframe whose grey image is already on disk as it is (the run's hand-off folder: a
+red laser's 8-bit frame, its green plane first) is referred to there, not written again.
 """
 
 from __future__ import annotations
@@ -49,10 +51,21 @@ class ImageStore(ScratchStore):
     def __init__(self) -> None:
         super().__init__("omnipipe-keyframes-")
         self._n = 0
+        # Items already on disk elsewhere (:meth:`append_file`): item -> that file.
+        self._elsewhere: dict[int, str] = {}
 
     def append(self, image: np.ndarray) -> None:
         """Store ``image`` as the next item."""
         np.save(self._path(self._n), np.ascontiguousarray(image), allow_pickle=False)
+        self._n += 1
+
+    def append_file(self, path: str) -> None:
+        """The next item is the first array of the ``.npy`` file ``path`` (what
+        ``np.load`` reads there; a file that holds more arrays after it too), left where
+        it is, unwritten and not removed by this store: it must stay until the store is
+        read no more (a frame in the run's hand-off folder, whose grey image is its first
+        array: :func:`omnipipe.sfm.tasks.handed_gray_file`)."""
+        self._elsewhere[self._n] = path
         self._n += 1
 
     def __getitem__(self, k: int) -> np.ndarray:
@@ -70,4 +83,6 @@ class ImageStore(ScratchStore):
         return self._n
 
     def _path(self, k: int) -> Path:
+        if k in self._elsewhere:
+            return Path(self._elsewhere[k])
         return Path(self._dir.name) / f"{k:06d}.npy"

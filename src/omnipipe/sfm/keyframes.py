@@ -50,6 +50,7 @@ from omnipipe.sfm.stations import StationTracker
 from omnipipe.sfm.tasks import (
     FeatureTask,
     handed_gray,
+    handed_gray_file,
     matched_rays,
     step_evidence,
     track_back,
@@ -264,7 +265,7 @@ class KeyframeLoop:
         features = frame.features
         if last is None:
             gray = self._gray_of(frame)
-            self._keep_gray(gray)
+            self._keep_gray(gray, frame)
             self._add_keyframe(frame, self._keyframe_features(frame, features), 0, gray)
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
@@ -296,7 +297,7 @@ class KeyframeLoop:
         gray = self._gray_of(frame)  # a keyframe: its grey image is needed now
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
             motion = _refine(self.ctx, pair, motion, last.gray, gray)
-        self._keep_gray(gray)  # before the step's evidence, which may read it from there
+        self._keep_gray(gray, frame)  # before the step's evidence, which may read it from there
         self._measure(pair, motion, last.gray, gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued, gray, parallax)
@@ -557,9 +558,18 @@ class KeyframeLoop:
             raise ReconstructionError(f"frame {frame.frame}: no grey image and no hand-off folder")
         return handed_gray(self.inputs.handoff, frame.frame, self.inputs.rig.laser.channel)
 
-    def _keep_gray(self, gray: np.ndarray) -> None:
-        """The next keyframe's grey image into ``grays`` (uint16)."""
-        self.grays.append(np.clip(gray, 0, 65535).astype(np.uint16))
+    def _keep_gray(self, gray: np.ndarray, frame: MovingFrame) -> None:
+        """The next keyframe's grey image (``frame``'s, ``gray``) into ``grays``: its file in
+        the run's hand-off folder where that holds it as it is (no copy written:
+        :func:`omnipipe.sfm.tasks.handed_gray_file`; the folder outlives the camera
+        motion), else an 8-bit one as it is (its readers take it as float32: the same
+        values in half the bytes of uint16), any other as uint16."""
+        handed = self.inputs.handoff
+        path = None if frame.gray is not None or handed is None else handed_gray_file(handed, frame.frame)
+        if path is not None:
+            self.grays.append_file(path)
+        else:
+            self.grays.append(gray if gray.dtype == np.uint8 else np.clip(gray, 0, 65535).astype(np.uint16))
 
     def _add_keyframe(
         self,
@@ -631,7 +641,7 @@ def gray_for_worker(
 ) -> np.ndarray | StoredImage:
     """Keyframe ``k``'s grey image ``gray`` (H, W) as sent to ``executor``'s worker: a
     reference to its file in ``grays`` (the keyframe store, ``k`` an index into it) for
-    a local pool's worker when the stored uint16 copy holds the same values (an 8- or
+    a local pool's worker when the stored copy holds the same values (an 8- or
     16-bit grey image), else the array itself (inline, a Dask cluster, a float image)."""
     exact = gray.dtype in (np.uint8, np.uint16)
     return grays.ref(k) if exact and shares_files(executor) else gray

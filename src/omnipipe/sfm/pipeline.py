@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -42,7 +43,7 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.errors import ReconstructionError
-from omnipipe.executor import InlineExecutor
+from omnipipe.executor import InlineExecutor, opencv_threads
 from omnipipe.image import gray_without_laser
 from omnipipe.inputs.sensors import odometry_at
 from omnipipe.memory import release_freed_memory
@@ -125,8 +126,11 @@ def run(
     # distances, RANSAC's eight-point fits); a second OpenBLAS thread mostly spins, on
     # cores the workers and this process's SIFT and flow threads need (a descriptor
     # match 15 CPU-ms with one thread, 33 with two), and the motion does not depend on
-    # the machine's core count.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # the machine's core count. OpenCV likewise beside workers: its calls here then run
+    # on the views' threads (:func:`~omnipipe.executor.thread_map`), its own pool would
+    # split them again (inline, one thread takes the views: OpenCV keeps its pool).
+    parallel = executor is not None and not isinstance(executor, InlineExecutor)
+    with threadpool_limits(limits=1, user_api="blas"), opencv_threads(1) if parallel else nullcontext():
         return _run(config, inputs, progress, executor)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import worker_cached
-from omnipipe.handoff import handed
+from omnipipe.handoff import handed, handoff_path
 from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 from omnipipe.rig import Rig
 from omnipipe.sfm.features import (
@@ -155,6 +155,18 @@ def handed_gray(folder: str, frame: int, channel: str) -> np.ndarray:
         raise ReconstructionError(f"frame {frame}: no longer in the run's hand-off folder {folder}")
     gray = frame_gray(image, channel)
     return np.array(gray) if gray is image else gray  # a copy, not the file's pages
+
+
+def handed_gray_file(folder: str, frame: int) -> str | None:
+    """The file of ``frame`` in the hand-off ``folder`` when its first array is the
+    frame's grey image as :func:`handed_gray` reads it (a red laser's planar 8-bit frame:
+    its green plane; an 8-bit grey frame), so that the keyframe store can refer to it
+    rather than write a copy (:meth:`~omnipipe.sfm.image_store.ImageStore.append_file`);
+    else None (a colour frame handed on whole, another dtype, not handed on)."""
+    image = handed(folder, frame, mapped=True)
+    if image is None or image.ndim != 2 or image.dtype != np.uint8:
+        return None
+    return handoff_path(folder, frame)
 
 
 def verified_matches(fa: FrameFeatures, fb: FrameFeatures, m: np.ndarray, ransac: RansacConfig) -> np.ndarray:

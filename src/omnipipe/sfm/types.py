@@ -357,7 +357,7 @@ class Keyframes:
         frames: (K,) frame index of each keyframe, increasing.
         features: per keyframe, its features (rays, pixels; descriptors dropped once
             nothing more is matched to them).
-        grays: per keyframe, the (H, W) uint16 grey image without the laser (the
+        grays: per keyframe, the (H, W) uint8 or uint16 grey image without the laser (the
             template matching of Eq. 17 reads them).
         ring_points: per keyframe, (N_k, 3) its laser-ring points in its rig, mm.
         evidence: (K-1,) each step's evidence, in order.
