@@ -41,6 +41,7 @@ from omnipipe.sfm.features import (
     guided_matches,
     match_features,
 )
+from omnipipe.sfm.flat_field import FlatWindow
 from omnipipe.sfm.image_store import ImageStore, StoredImage
 from omnipipe.sfm.planes import refine_matches
 from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
@@ -226,6 +227,7 @@ class KeyframeLoop:
         # chain waits for them; the workers are often idle then).
         self.extractor.threads = default_workers() if ctx.parallel else 1
         self.grays = grays
+        self._flat = FlatWindow(ctx.camera, ctx.config.laser_scale.flat_field_keyframes)
         self.moved = np.zeros(n, bool)  # filled by moving_frames
         self.keyframe = np.zeros(n, bool)
         self.lost = np.zeros(n, bool)
@@ -264,7 +266,7 @@ class KeyframeLoop:
         features = frame.features
         if last is None:
             gray = self._gray_of(frame)
-            self._keep_gray(gray)
+            self._keep_gray(gray, frame.frame)
             self._add_keyframe(frame, self._keyframe_features(frame, features), 0, gray)
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
@@ -296,7 +298,7 @@ class KeyframeLoop:
         gray = self._gray_of(frame)  # a keyframe: its grey image is needed now
         if self.ctx.config.planes.enabled and motion is not None and motion.translation_reliable:
             motion = _refine(self.ctx, pair, motion, last.gray, gray)
-        self._keep_gray(gray)  # before the step's evidence, which may read it from there
+        self._keep_gray(gray, frame.frame)  # before the step's evidence, which may read it from there
         self._measure(pair, motion, last.gray, gray, tracked)
         self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued, gray, parallax)
@@ -444,6 +446,7 @@ class KeyframeLoop:
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
         self._follow_back()
+        self._throttle(self._flat.finish())
         rings = self.inputs.rings.rings
         keyframes = Keyframes(
             self.frames,
@@ -528,11 +531,9 @@ class KeyframeLoop:
                 _EvidenceJob(StepEvidence.unmeasured(a, b, b_from_a, inl, "rotation"))
             )
             return
-        config = self.ctx.config
-        future = self.ctx.executor.submit(
-            step_evidence,
-            gray_for_worker(self.grays, -2, gray_a, self.ctx.executor),
-            gray_for_worker(self.grays, -1, gray_b, self.ctx.executor),
+        config, ex, k = self.ctx.config, self.ctx.executor, len(self.grays) - 2
+        held_a, held_b = gray_for_worker(self.grays, k, gray_a, ex), gray_for_worker(self.grays, k + 1, gray_b, ex)
+        args = (
             self.ctx.camera,
             self.inputs.rings.rings[a].points_in_rig,
             b_from_a[:3, :3],
@@ -542,9 +543,15 @@ class KeyframeLoop:
             config.laser_scale,
             config.scale_check,
         )
+        # Submitted once the keyframes around it give its flat field (sfm.flat_field).
+        future, sent = self._flat.submit(k, lambda flat: ex.submit(step_evidence, held_a, held_b, *args, flat))
         evidence = replace(StepEvidence.unmeasured(a, b, b_from_a, inl, "ok"), tracked=tracked)
         self._jobs.append(_EvidenceJob(evidence, future))
-        self._in_flight.append(future)
+        self._throttle(sent)
+
+    def _throttle(self, sent: list[Future]) -> None:
+        """At most twice the executor's parallelism of evidence jobs in flight."""
+        self._in_flight.extend(sent)
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):
             self._in_flight.popleft().result()
 
@@ -557,9 +564,10 @@ class KeyframeLoop:
             raise ReconstructionError(f"frame {frame.frame}: no grey image and no hand-off folder")
         return handed_gray(self.inputs.handoff, frame.frame, self.inputs.rig.laser.channel)
 
-    def _keep_gray(self, gray: np.ndarray) -> None:
-        """The next keyframe's grey image into ``grays`` (uint16)."""
+    def _keep_gray(self, gray: np.ndarray, frame: int) -> None:
+        """The next keyframe's (``frame``) grey image into ``grays`` (uint16)."""
         self.grays.append(np.clip(gray, 0, 65535).astype(np.uint16))
+        self._throttle(self._flat.add_keyframe(gray, self.inputs.rings.rings[frame].pixels))
 
     def _add_keyframe(
         self,
