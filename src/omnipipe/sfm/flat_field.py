@@ -35,8 +35,6 @@ BAND_SHARE = 0.04
 BAND_PX = 8.0
 # The field is clipped from below at this fraction of its median (dark corners).
 FLOOR = 0.1
-# A field is built every this many keyframes (the steps released in between wait).
-EVERY = 4
 
 
 @dataclass(frozen=True)
@@ -102,14 +100,16 @@ class FlatWindow:
 
     Step k (keyframes k -> k + 1) is released once keyframe k + size // 2 has come
     (and at least ``size`` keyframes) at the next keyframe whose count is a multiple of
-    :data:`EVERY`, or at the end of the run: its field is the median of the last
-    ``size`` keyframes then (all of them in a shorter run). The
+    ``max(1, size // 4)`` (one field serves that many steps), or at the end of the run:
+    its field is the median of the last ``size`` keyframes then (all of them in a
+    shorter run), which hold keyframes k and k + 1. The
     keyframes it uses are a function of k and the run's length only, never of when a
     worker finished. ``size`` 0: no flat field, each step submitted at once.
     """
 
     def __init__(self, camera: CameraModel, size: int) -> None:
         self.size = size
+        self.every = max(1, size // 4)
         self.camera = camera
         self._kept: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(size, 1))
         self._n = 0
@@ -155,7 +155,7 @@ class FlatWindow:
         while self._waiting:
             k, submit, later = self._waiting[0]
             if not final and (
-                self._n < k + 1 + self.size // 2 or self._n < self.size or self._n % EVERY
+                self._n < k + 1 + self.size // 2 or self._n < self.size or self._n % self.every
             ):
                 break
             if not built:
