@@ -11,10 +11,12 @@ The laser's own light in the grey image (colour crosstalk, blur beside the strip
 rig-fixed too where the wall's distance does not change, and is divided out with it.
 
 The field is the per-pixel median of up to ``LaserScaleConfig.flat_field_keyframes``
-keyframes around each step (:class:`FlatWindow`), at full resolution (the stripe's
-light is a few pixels wide) and only in the band of image radii the steps' laser
-points and their matches can reach (the rings' radii widened by :data:`BAND_SHARE` of
-the image's size); 1 elsewhere.
+keyframes around each step (:class:`FlatWindow`), only in the band of image radii the
+steps' laser points and their matches can reach (the rings' radii widened by
+:data:`BAND_SHARE` of the image's size; 1 elsewhere), smoothed by a Gaussian of
+:data:`SIGMA_PX`: with a few keyframes, regular steps and a periodic wall (tiles,
+bricks, corrugations) the median keeps some of the wall's pattern, which the
+smoothing takes out with the stripe's own narrow light; the LEDs' fall-off stays.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
@@ -33,6 +36,8 @@ from omnipipe.camera import CameraModel
 # the rings' radii: the template's patch and the step's motion in the image.
 BAND_SHARE = 0.04
 BAND_PX = 8.0
+# Smoothing of the median (Gaussian sigma, px).
+SIGMA_PX = 3.0
 # The field is clipped from below at this fraction of its median (dark corners).
 FLOOR = 0.1
 
@@ -55,8 +60,9 @@ class FlatField:
 
 def flat_field(stack: np.ndarray, band: np.ndarray) -> FlatField | None:
     """The flat field of (K, H, W) grey images: their per-pixel median in the (H, W)
-    ``band`` over its median there, 1 elsewhere. None with fewer than three images or
-    an empty band (no robust statistic)."""
+    ``band`` over its median there, 1 elsewhere, smoothed (Gaussian, sigma
+    :data:`SIGMA_PX`). None with fewer than three images or an empty band (no robust
+    statistic)."""
     if len(stack) < 3 or not band.any():
         return None
     idx = np.flatnonzero(band)
@@ -66,7 +72,8 @@ def flat_field(stack: np.ndarray, band: np.ndarray) -> FlatField | None:
         return None
     field = np.ones(band.size, np.float32)
     field[idx] = np.maximum(med / norm, FLOOR)
-    return FlatField(field.reshape(band.shape))
+    smooth = cv2.GaussianBlur(field.reshape(band.shape), (0, 0), SIGMA_PX, borderType=cv2.BORDER_REFLECT)
+    return FlatField(smooth)
 
 
 def ring_band(camera: CameraModel, radii: np.ndarray) -> np.ndarray:
