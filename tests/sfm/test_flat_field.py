@@ -141,4 +141,4 @@ def test_steps_are_released_with_the_keyframes_around_them(wall_rig) -> None:
         count = min(max(k + 5, 8) + max(k + 5, 8) % 2, n)
         assert level == pytest.approx(count - 8 + 3.5, abs=0.05), k
         assert count - 8 <= k and k + 1 < count
-    assert flat_field(np.ones((2, 4, 4)), np.ones((4, 4), bool)) is None  # too few
+    assert flat_field(np.ones((7, 4, 4)), np.ones((4, 4), bool)) is None  # too few

@@ -36,6 +36,9 @@ from omnipipe.camera import CameraModel
 # the rings' radii: the template's patch and the step's motion in the image.
 BAND_SHARE = 0.04
 BAND_PX = 8.0
+# Fewest keyframes a field is built from: the median of fewer keeps too much of the
+# wall (random-wide seed 3, three keyframes: its laser lengths -24 -> -85 %).
+MIN_KEYFRAMES = 8
 # Smoothing of the median (Gaussian sigma, px).
 SIGMA_PX = 3.0
 # The field is clipped from below at this fraction of its median (dark corners).
@@ -61,9 +64,9 @@ class FlatField:
 def flat_field(stack: np.ndarray, band: np.ndarray) -> FlatField | None:
     """The flat field of (K, H, W) grey images: their per-pixel median in the (H, W)
     ``band`` over its median there, 1 elsewhere, smoothed (Gaussian, sigma
-    :data:`SIGMA_PX`). None with fewer than three images or an empty band (no robust
-    statistic)."""
-    if len(stack) < 3 or not band.any():
+    :data:`SIGMA_PX`). None with fewer than :data:`MIN_KEYFRAMES` images or an empty band
+    (no robust statistic)."""
+    if len(stack) < MIN_KEYFRAMES or not band.any():
         return None
     idx = np.flatnonzero(band)
     med = np.median(stack.reshape(len(stack), -1)[:, idx], axis=0).astype(np.float32)
