@@ -8,7 +8,8 @@ pixels leaves the templates of the laser-point matching (:mod:`omnipipe.sfm.lase
 dominated by that fall-off, which is the same at every candidate length and pulls the
 match short; divided by the flat field, the templates keep the wall's own texture.
 The laser's own light in the grey image (colour crosstalk, blur beside the stripe) is
-rig-fixed too where the wall's distance does not change, and is divided out with it.
+rig-fixed too where the wall's distance does not change; the smoothing below keeps
+only its broad part.
 
 The field is the per-pixel median of up to ``LaserScaleConfig.flat_field_keyframes``
 keyframes around each step (:class:`FlatWindow`), only in the band of image radii the
@@ -16,7 +17,8 @@ steps' laser points and their matches can reach (the rings' radii widened by
 :data:`BAND_SHARE` of the image's size; 1 elsewhere), smoothed by a Gaussian of
 :data:`SIGMA_PX`: with a few keyframes, regular steps and a periodic wall (tiles,
 bricks, corrugations) the median keeps some of the wall's pattern, which the
-smoothing takes out with the stripe's own narrow light; the LEDs' fall-off stays.
+smoothing takes out (with the stripe's narrow light); the LEDs' fall-off stays. With
+fewer than :data:`MIN_KEYFRAMES` keyframes there is no field.
 """
 
 from __future__ import annotations
