@@ -41,6 +41,7 @@ from omnipipe.sfm.features import (
     guided_matches,
     match_features,
 )
+from omnipipe.sfm.flat_field import FlatWindow
 from omnipipe.sfm.image_store import ImageStore, StoredImage
 from omnipipe.sfm.planes import refine_matches
 from omnipipe.sfm.ransac import RelativeMotion, estimate_relative_motion
@@ -227,6 +228,7 @@ class KeyframeLoop:
         # chain waits for them; the workers are often idle then).
         self.extractor.threads = default_workers() if ctx.parallel else 1
         self.grays = grays
+        self._flat = FlatWindow(ctx.camera, ctx.config.laser_scale.flat_field_keyframes)
         self.moved = np.zeros(n, bool)  # filled by moving_frames
         self.keyframe = np.zeros(n, bool)
         self.lost = np.zeros(n, bool)
@@ -445,6 +447,7 @@ class KeyframeLoop:
     def result(self) -> Followed:
         """The keyframes with their steps' complete evidence, and the pending frames."""
         self._follow_back()
+        self._throttle(self._flat.finish())
         rings = self.inputs.rings.rings
         keyframes = Keyframes(
             self.frames,
@@ -529,11 +532,9 @@ class KeyframeLoop:
                 _EvidenceJob(StepEvidence.unmeasured(a, b, b_from_a, inl, "rotation"))
             )
             return
-        config = self.ctx.config
-        future = self.ctx.executor.submit(
-            step_evidence,
-            gray_for_worker(self.grays, -2, gray_a, self.ctx.executor),
-            gray_for_worker(self.grays, -1, gray_b, self.ctx.executor),
+        config, ex, k = self.ctx.config, self.ctx.executor, len(self.grays) - 2
+        held_a, held_b = gray_for_worker(self.grays, k, gray_a, ex), gray_for_worker(self.grays, k + 1, gray_b, ex)
+        args = (
             self.ctx.camera,
             self.inputs.rings.rings[a].points_in_rig,
             b_from_a[:3, :3],
@@ -543,9 +544,15 @@ class KeyframeLoop:
             config.laser_scale,
             config.scale_check,
         )
+        # Submitted once the keyframes around it give its flat field (sfm.flat_field).
+        future, sent = self._flat.submit(k, lambda flat: ex.submit(step_evidence, held_a, held_b, *args, flat))
         evidence = replace(StepEvidence.unmeasured(a, b, b_from_a, inl, "ok"), tracked=tracked)
         self._jobs.append(_EvidenceJob(evidence, future))
-        self._in_flight.append(future)
+        self._throttle(sent)
+
+    def _throttle(self, sent: list[Future]) -> None:
+        """At most twice the executor's parallelism of evidence jobs in flight."""
+        self._in_flight.extend(sent)
         while len(self._in_flight) > 2 * parallelism(self.ctx.executor):
             self._in_flight.popleft().result()
 
@@ -563,13 +570,15 @@ class KeyframeLoop:
         the run's hand-off folder where that holds it as it is (no copy written:
         :func:`omnipipe.sfm.tasks.handed_gray_file`; the folder outlives the camera
         motion), else an 8-bit one as it is (its readers take it as float32: the same
-        values in half the bytes of uint16), any other as uint16."""
+        values in half the bytes of uint16), any other as uint16; and to the flat
+        field's window (:mod:`omnipipe.sfm.flat_field`) with its ring's pixels."""
         handed = self.inputs.handoff
         path = None if frame.gray is not None or handed is None else handed_gray_file(handed, frame.frame)
         if path is not None:
             self.grays.append_file(path)
         else:
             self.grays.append(gray if gray.dtype == np.uint8 else np.clip(gray, 0, 65535).astype(np.uint16))
+        self._throttle(self._flat.add_keyframe(gray, self.inputs.rings.rings[frame.frame].pixels))
 
     def _add_keyframe(
         self,

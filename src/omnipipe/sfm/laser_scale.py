@@ -55,6 +55,11 @@ class LaserScaleConfig:
             first tries only the candidates within this factor (log) of the step's
             feature-depth length; the full range when that answer is weak. 0: always
             the full range.
+        flat_field_keyframes: a keyframe step's frames are divided by the rig-fixed
+            illumination, the per-pixel median of this many keyframes around the step
+            (:mod:`omnipipe.sfm.flat_field`: the LEDs' fall-off and the laser's own
+            light move with the robot, the wall does not), before its Eq. 17 matching;
+            0: off (the frames as they are).
     """
 
     patch_radius: int = bounded(6, ge=1)
@@ -67,6 +72,7 @@ class LaserScaleConfig:
     max_points: int = bounded(120, ge=1)
     detrend: bool = False
     prior_window_log: float = bounded(0.5, ge=0)
+    flat_field_keyframes: int = bounded(0, ge=0)
 
 
 @dataclass
