@@ -119,6 +119,25 @@ def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     return np.frombuffer(_mapped(size * dt.itemsize, None), dt, count=size).reshape(shape)
 
 
+def compressed_on_disk(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``a[keep]`` of a 1-D ``a`` and (N,) bool ``keep`` in a scratch file (as
+    :func:`on_disk` of it), gathered about :data:`_COPY_BYTES` of ``a`` at a time: no
+    whole copy in memory (nor of ``keep``'s indices)."""
+    a, keep = np.asarray(a), np.asarray(keep, bool)
+    if a.ndim != 1 or keep.shape != a.shape:
+        raise ValueError(f"compressed_on_disk: 1-D array and mask of its shape expected, got {a.shape}, {keep.shape}")
+    n = int(np.count_nonzero(keep))
+    if a.dtype.hasobject or n * a.itemsize == 0:
+        return a[keep]
+    out = zeros_on_disk((n,), a.dtype)
+    step, at = max(1, _COPY_BYTES // max(a.itemsize, 1)), 0
+    for i in range(0, len(a), step):
+        piece = a[i : i + step][keep[i : i + step]]
+        out[at : at + len(piece)] = piece
+        at += len(piece)
+    return out
+
+
 def pieces_on_disk(pieces: list[np.ndarray]) -> list[np.ndarray]:
     """Arrays of equal trailing shape and dtype (e.g. each ring's (M_k, 2) pixels) in one
     scratch file (as :func:`on_disk` of their concatenation, written piece by piece: no

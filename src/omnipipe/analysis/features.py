@@ -357,14 +357,13 @@ def _lost_openings(
     the joints' gaps (a groove's edge hides a tilted ring's samples), linked into
     openings over ``lateral_gap_rings`` rings or more; the ``stray`` samples
     (:func:`_closed_openings`) are no returns."""
-    lit = np.flatnonzero(~stray) if stray is not None and stray.any() else np.arange(len(r.dev))
-    sigma, theta, frame = r.sigma[lit], r.theta[lit], r.frame[lit]
-    gaps = return_gaps(sigma, theta, frame, radius, config.lateral_gap_mm)
+    lit = ~stray if stray is not None and stray.any() else None  # (the run's arrays not copied)
+    gaps = return_gaps(r.sigma, r.theta, r.frame, radius, config.lateral_gap_mm, lit=lit)
     if not gaps:
         return []
     rings = np.unique(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
-    gaps = local_gaps(gaps, theta, frame, axial, config.lateral_max_length_rel * 2.0 * radius)
+    gaps = local_gaps(gaps, r.theta, r.frame, axial, config.lateral_max_length_rel * 2.0 * radius, lit=lit)
     clear = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
              for f in joints if isinstance(f, Joint)]
     gaps = [g for g in gaps if not any(a <= g.axial_mm <= b for a, b in clear)]
