@@ -48,6 +48,7 @@ from omnipipe.analysis.openings import (
     ring_axial,
     ring_points,
 )
+from omnipipe.analysis.ring_spans import RingSpans, ring_ids
 
 
 @dataclass(frozen=True)
@@ -89,7 +90,7 @@ def find_features(
     """Joints and laterals among (N,) points in pipe coordinates (sigma, rho mm; theta
     rad from the centreline's normal towards its binormal; frame: ring index), ``radius``
     the nominal wall radius (mm)."""
-    rings = np.unique(frame)
+    rings = ring_ids(frame)  # np.unique's, without a sorted copy of a ring-ordered frame
     dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings)
     ring_of = np.searchsorted(rings, frame)
     # The wall's noise without the rings raised together in a block (a wide gap crossed
@@ -467,7 +468,12 @@ def _unseen_gap(sigma: np.ndarray) -> float:
     """The widest axial stretch (mm) between consecutive samples (sorted along the axis)."""
     if len(sigma) < 2:
         return 0.0
-    return float(np.max(np.diff(np.sort(sigma))))
+    s = np.sort(sigma)  # (its differences a block at a time: not a second whole array)
+    return float(np.max([np.max(np.diff(s[a : a + _GAP_BLOCK + 1])) for a in range(0, len(s) - 1, _GAP_BLOCK)]))
+
+
+_GAP_BLOCK = 1 << 16
+"""Samples per block of :func:`_unseen_gap`'s differences."""
 
 
 def _chords(
@@ -617,11 +623,11 @@ def _ring_planes(r: Rings, thr: float) -> dict[int, np.ndarray]:
     wall samples (deviation within ``thr``; rings with at least 8 of them): the fit of
     :func:`.openings.ring_axial`, whose value at an angle is p's there. Made once for all
     the holes (a ring at a time over its own samples: linear in the run)."""
-    wall = np.flatnonzero(np.abs(r.dev) <= thr)
-    order = wall[np.argsort(r.frame[wall], kind="stable")]
-    ids, starts = np.unique(r.frame[order], return_index=True)
+    spans = RingSpans(r.frame)  # each ring's samples on their own (no index of every wall sample)
     out = {}
-    for k, on in zip(ids, np.split(order, starts[1:]), strict=True):
+    for i, k in enumerate(spans.rings):
+        on = spans.indices(i)
+        on = on[np.abs(r.dev[on]) <= thr]
         if len(on) >= 8:
             out[int(k)] = robust_sine_fit(r.sigma[on], r.theta[on], 2, 3.0, 0.5)[0]
     return out

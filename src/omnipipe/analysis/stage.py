@@ -33,7 +33,13 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred, rig_axis_prior
+from omnipipe.analysis.centreline import (
+    COORDINATE_BLOCK,
+    Centreline,
+    fit_centreline,
+    recentred,
+    rig_axis_prior,
+)
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
     DefectSearch,
@@ -73,7 +79,7 @@ from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
-from omnipipe.spill import compressed_on_disk, drop_pages, on_disk, zeros_on_disk
+from omnipipe.spill import ScratchWriter, compressed_on_disk, drop_pages, zeros_on_disk
 
 
 @dataclass(frozen=True)
@@ -565,8 +571,13 @@ def _recentred_line(
     centres = _section_centres(config, line, pts, frame)
     prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
     line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
-    # The coordinates wait in the run's scratch, read when needed (24 bytes a point).
-    sigma, rho, theta = (on_disk(c) for c in line.coordinates(pts, frame))
+    # The coordinates wait in the run's scratch, read when needed (24 bytes a point),
+    # written there a block at a time (each point's numbers those of the whole run's).
+    out = [ScratchWriter(len(frame), float) for _ in range(3)]
+    for a in range(0, len(frame), COORDINATE_BLOCK):
+        for w, part in zip(out, line.coordinates(pts[a : a + COORDINATE_BLOCK], frame[a : a + COORDINATE_BLOCK]), strict=True):
+            w.write(part)
+    sigma, rho, theta = (w.array() for w in out)
     drop_pages()  # the points' pages, read again when needed (omnipipe.spill)
     return line, (sigma, rho, theta)
 
@@ -701,7 +712,7 @@ def _measure_wall(
         # pool's workers share the files).
         samples = WallSamples(
             sigma_mm=compressed_on_disk(sigma, ok),
-            arc_mm=_arcs(compressed_on_disk(theta, ok), radius),
+            arc_mm=compressed_on_disk(theta, ok, lambda t: _arcs(t, radius)),
             deviation_mm=compressed_on_disk(stations.deviation, ok),
             ring=compressed_on_disk(frame, ok),
             circumference_mm=circ,
@@ -740,16 +751,10 @@ def _measure_wall(
 
 
 def _arcs(theta: np.ndarray, radius: float) -> np.ndarray:
-    """``theta`` (rad) made arcs in place, a block at a time: (theta % 2 pi) x ``radius`` (mm)."""
-    for a in range(0, len(theta), _ARC_BLOCK):
-        part = theta[a : a + _ARC_BLOCK]
-        np.remainder(part, 2 * np.pi, out=part)
-        part *= radius
+    """``theta`` (rad) made arcs in place: (theta % 2 pi) x ``radius`` (mm)."""
+    np.remainder(theta, 2 * np.pi, out=theta)
+    theta *= radius
     return theta
-
-
-_ARC_BLOCK = 1 << 18
-"""Samples made arcs at a time by :func:`_arcs` (2 MB)."""
 
 
 def blur_height_sigma(height: float, width: float, length: float, blur: tuple[float, float], rel: float) -> float:
