@@ -165,3 +165,40 @@ def test_return_and_local_gaps_equal_the_whole_run_reference(seed: int, shuffle:
     assert local_gaps(got_lit, theta, frame, axial, 2 * RADIUS, lit=lit) == _local_gaps_reference(
         ref_lit, t, f, axial, 2 * RADIUS
     )
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_ring_angles_equal_the_whole_run_dict(shuffle: bool) -> None:
+    """_closed_openings' wall angles per ring, read when asked, equal the dict of them."""
+    from omnipipe.analysis.openings import ring_angles
+
+    sigma, theta, frame = _wall(6, shuffle=shuffle)
+    wall = np.abs(sigma - 5.0 * frame) <= 0.2
+    rings = np.unique(frame)
+    ref = {k: theta[on[wall[on]]] for k, on in _ring_points_reference(frame, rings).items()}
+    got = ring_angles(frame, rings, theta, wall)
+    assert list(got) == list(ref)
+    assert all(np.array_equal(got[k], ref[k]) for k in ref) and sum(len(v) for v in ref.values()) < len(theta)
+
+
+def test_straightness_takes_no_square_factor() -> None:
+    """The thin SVD's line equals the full SVD's to the last digit, and 4,000 stations'
+    straightness allocates under 1 MB (the full SVD's (K, K) factor: 128 MB)."""
+    import tracemalloc
+
+    from omnipipe.analysis.centreline import Centreline
+
+    rng = np.random.default_rng(7)
+    for k in (3, 5, 40, 900):
+        centre = np.outer(np.linspace(0, 900, k), [0.3, 0.1, 1.0]) + rng.normal(0, 0.5, (k, 3))
+        line = Centreline.straight(np.linspace(0, 900, k), 80.0)
+        line = type(line)(**{**line.__dict__, "centre": centre})
+        c = centre - centre.mean(axis=0)
+        vt = np.linalg.svd(c)[2]
+        assert line.straightness_mm() == float(np.max(np.linalg.norm(c - np.outer(c @ vt[0], vt[0]), axis=1)))
+    big = type(line)(**{**line.__dict__, "centre": rng.normal(0, 1, (4000, 3))})
+    tracemalloc.start()
+    big.straightness_mm()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 1 << 20

@@ -45,6 +45,7 @@ from omnipipe.analysis.openings import (
     hole_extent,
     local_gaps,
     return_gaps,
+    ring_angles,
     ring_axial,
     ring_points,
 )
@@ -233,11 +234,11 @@ def _closed_openings(
     45-270 mm out), not wall, and no wall missing there either (the stations' water
     cut); and those other clusters."""
     stray = np.zeros(len(r.dev), bool)
-    rings = np.unique(r.frame)
+    rings = ring_ids(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
     wall = (np.abs(r.dev) <= thr) & ~not_wall
-    on_ring = ring_points(r.frame, rings)  # one sort, not a pass over every point per ring
-    wall_theta = {k: r.theta[on[wall[on]]] for k, on in on_ring.items()}
+    on_ring = ring_points(r.frame, rings)  # each ring's indices when asked (no whole-run index)
+    wall_theta = ring_angles(r.frame, rings, r.theta, wall)  # each ring's when asked
     kept, cuts = [], []
     for m in deep:
         c = math.atan2(float(np.mean(np.sin(r.theta[m]))), float(np.mean(np.cos(r.theta[m]))))
@@ -362,7 +363,7 @@ def _lost_openings(
     gaps = return_gaps(r.sigma, r.theta, r.frame, radius, config.lateral_gap_mm, lit=lit)
     if not gaps:
         return []
-    rings = np.unique(r.frame)
+    rings = ring_ids(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
     gaps = local_gaps(gaps, r.theta, r.frame, axial, config.lateral_max_length_rel * 2.0 * radius, lit=lit)
     clear = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)

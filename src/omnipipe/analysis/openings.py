@@ -177,6 +177,13 @@ def ring_points(frame: np.ndarray, rings: np.ndarray) -> Mapping[int, np.ndarray
     return RingIndices(RingSpans(frame, np.asarray(rings)))
 
 
+def ring_angles(frame: np.ndarray, rings: np.ndarray, theta: np.ndarray, lit: np.ndarray | None = None) -> Mapping[int, np.ndarray]:
+    """For each ring index in ``rings``, its points' angles ``theta`` (only the ``lit``
+    ones: (N,) bool; None: all) in ascending index order, each read when asked (equal to
+    a dict of ``theta[on[lit[on]]]`` per ring, without holding them)."""
+    return _RingAngles(RingSpans(frame, np.asarray(rings)), theta, lit)
+
+
 class _RingAngles(Mapping[int, np.ndarray]):
     """{ring: its ``lit`` samples' angles (rad, ascending index order)} of ``spans``'
     rings, each read when asked."""
