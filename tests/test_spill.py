@@ -251,3 +251,31 @@ def test_pieces_on_disk_written_piece_by_piece_equal_the_concatenation(monkeypat
     assert np.array_equal(np.concatenate(got), whole) and all(g.base is not None for g in got)
     assert [g.shape for g in got] == [p.shape for p in pieces] and is_on_disk(got[0])
     assert [g.shape for g in pieces_on_disk([np.zeros((0, 2)), np.zeros((0, 2))])] == [(0, 2), (0, 2)]
+
+
+def test_compressed_and_written_arrays_equal_the_whole_copies() -> None:
+    """compressed_on_disk (with an in-place transform) and ScratchWriter's pieces equal the
+    in-memory arrays, in the scratch; a writer given too few values refuses."""
+    from omnipipe import spill
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=3 * (spill._COPY_BYTES // 8) + 17)
+    keep = rng.random(len(a)) < 0.7
+
+    def twice(x: np.ndarray) -> np.ndarray:
+        x *= 2.0
+        return x
+
+    got = spill.compressed_on_disk(a, keep, twice)
+    assert spill.is_on_disk(got) and np.array_equal(got, a[keep] * 2.0)
+    assert np.array_equal(spill.compressed_on_disk(a, keep), a[keep])  # a itself untouched
+    assert len(spill.compressed_on_disk(a, np.zeros(len(a), bool))) == 0
+    w = spill.ScratchWriter(10, np.int64)
+    w.write(np.arange(4))
+    w.write(np.arange(4, 10))
+    out = w.array()
+    assert spill.is_on_disk(out) and np.array_equal(out, np.arange(10))
+    short = spill.ScratchWriter(5, float)
+    short.write(np.ones(3))
+    with pytest.raises(ValueError):
+        short.array()

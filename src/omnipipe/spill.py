@@ -32,7 +32,7 @@ import pickle
 import tempfile
 import threading
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -74,13 +74,48 @@ def _mapped(nbytes: int, fill: np.ndarray | None) -> mmap.mmap:
             for piece in _c_order_pieces(fill):
                 fh.write(memoryview(piece).cast("B"))
             fh.flush()
-        mapping = mmap.mmap(fh.fileno(), nbytes)  # holds its own copy of the descriptor
-        fd = os.dup(fh.fileno())  # for the workers that map it too (closed with the mapping)
+        return _map_file(fh, nbytes)
+
+
+def _map_file(fh: Any, nbytes: int) -> mmap.mmap:
+    """The shared, writable mapping of the open scratch file ``fh``'s ``nbytes`` bytes,
+    registered (:data:`_MAPS`, :data:`_FILES`); ``fh`` may be closed after."""
+    mapping = mmap.mmap(fh.fileno(), nbytes)  # holds its own copy of the descriptor
+    fd = os.dup(fh.fileno())  # for the workers that map it too (closed with the mapping)
     with _MAPS_LOCK:
         _MAPS.add(mapping)
     _FILES[mapping] = (os.getpid(), fd, np.frombuffer(mapping, np.uint8, count=1).ctypes.data)
     weakref.finalize(mapping, os.close, fd)
     return mapping
+
+
+class ScratchWriter:
+    """An (n,) array of ``dtype`` written into a new scratch file a piece at a time, in
+    order, through the file (none of its pages mapped into the process while it is
+    written: a whole-run result made a block at a time never sits in memory whole), then
+    :meth:`array`: the file mapped, as :func:`on_disk`'s arrays are."""
+
+    def __init__(self, n: int, dtype: np.dtype | type) -> None:
+        self.n, self.dtype, self._done = int(n), np.dtype(dtype), 0
+        self._fh = tempfile.TemporaryFile(prefix="omnipipe-spill-", dir=scratch_dir())
+
+    def write(self, piece: np.ndarray) -> None:
+        """Append ``piece``'s values (1-D, cast to the writer's dtype)."""
+        piece = np.ascontiguousarray(piece, self.dtype).reshape(-1)
+        if self._done + len(piece) > self.n:
+            raise ValueError(f"ScratchWriter: more than {self.n} values written")
+        self._fh.write(memoryview(piece).cast("B"))
+        self._done += len(piece)
+
+    def array(self) -> np.ndarray:
+        """The (n,) array written (every value must have been)."""
+        with self._fh as fh:
+            if self._done != self.n:
+                raise ValueError(f"ScratchWriter: {self._done} of {self.n} values written")
+            if self.n * self.dtype.itemsize == 0:
+                return np.zeros(self.n, self.dtype)
+            fh.flush()
+            return np.frombuffer(_map_file(fh, self.n * self.dtype.itemsize), self.dtype, count=self.n)
 
 
 def _c_order_pieces(a: np.ndarray) -> Iterator[np.ndarray]:
@@ -117,6 +152,26 @@ def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     if size * dt.itemsize == 0:
         return np.zeros(shape, dt)
     return np.frombuffer(_mapped(size * dt.itemsize, None), dt, count=size).reshape(shape)
+
+
+def compressed_on_disk(
+    a: np.ndarray, keep: np.ndarray, transform: Callable[[np.ndarray], np.ndarray] | None = None
+) -> np.ndarray:
+    """``a[keep]`` of a 1-D ``a`` and (N,) bool ``keep`` (``transform``: an elementwise
+    function applied to it, which may work in place) in a scratch file (as :func:`on_disk`
+    of it), gathered and written about :data:`_COPY_BYTES` of ``a`` at a time
+    (:class:`ScratchWriter`): no whole copy in memory, nor of ``keep``'s indices."""
+    a, keep = np.asarray(a), np.asarray(keep, bool)
+    if a.ndim != 1 or keep.shape != a.shape:
+        raise ValueError(f"compressed_on_disk: 1-D array and mask of its shape expected, got {a.shape}, {keep.shape}")
+    if a.dtype.hasobject:
+        return a[keep] if transform is None else transform(a[keep])
+    out = ScratchWriter(int(np.count_nonzero(keep)), a.dtype)
+    step = max(1, _COPY_BYTES // max(a.itemsize, 1))
+    for i in range(0, len(a), step):
+        piece = a[i : i + step][keep[i : i + step]]
+        out.write(piece if transform is None else transform(piece))
+    return out.array()
 
 
 def pieces_on_disk(pieces: list[np.ndarray]) -> list[np.ndarray]:

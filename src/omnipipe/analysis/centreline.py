@@ -73,11 +73,13 @@ class Centreline:
         )
 
     def straightness_mm(self) -> float:
-        """Largest distance of a station centre from the best straight line through them."""
+        """Largest distance of a station centre from the best straight line through them
+        (the line's direction from the centres' thin SVD: no (K, K) factor, 46 MB at 2,400
+        stations)."""
         c = self.centre - self.centre.mean(axis=0)
         if len(c) < 3:
             return 0.0
-        _, _, vt = np.linalg.svd(c)
+        _, _, vt = np.linalg.svd(c, full_matrices=False)
         return float(np.max(np.linalg.norm(c - np.outer(c @ vt[0], vt[0]), axis=1)))
 
     def coordinates(

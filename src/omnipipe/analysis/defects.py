@@ -26,13 +26,13 @@ import math
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
-from itertools import pairwise
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from omnipipe.analysis.ring_spans import RingSpans
 from omnipipe.analysis.sizing import BumpFit, detection_limit, fit_bump, plateau
 from omnipipe.contract import Defect
 from omnipipe.executor import InlineExecutor, ordered_map, shared_fields
@@ -225,12 +225,14 @@ def _scales(samples: WallSamples, min_height_mm: float, noise_factor: float) -> 
     """Noise, threshold and link scales of ``samples``: along the ring a few sample
     spacings, across rings 1.5 (wide) ring spacings."""
     dev, sigma = samples.deviation_mm, samples.sigma_mm
-    noise = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
+    spread = dev - np.median(dev)  # one whole-run temporary, then in place
+    noise = 1.4826 * float(np.median(np.abs(spread, out=spread), overwrite_input=True))
+    del spread
     threshold = max(min_height_mm, noise_factor * noise)
-    ring_ids = np.unique(samples.ring)
-    order = np.argsort(samples.ring, kind="stable")
-    bounds = np.append(np.searchsorted(samples.ring[order], ring_ids), len(order))
-    ring_sigma = np.array([np.median(sigma[order[a:b]]) for a, b in pairwise(bounds)])
+    # Each ring's samples on their own (no index of every sample held).
+    spans = RingSpans(samples.ring)
+    ring_ids = spans.rings
+    ring_sigma = np.array([np.median(spans.values(i, sigma)) for i in range(len(spans))])
     # Ring spacing varies with the gait (slow start and stop): link across the wide gaps too.
     gaps = np.diff(np.sort(ring_sigma))
     spacing = float(np.percentile(gaps, 90)) if len(ring_ids) > 1 else 10.0

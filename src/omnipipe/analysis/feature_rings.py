@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from omnipipe.analysis.defects import fit_wall_profile, fourier_design
+from omnipipe.analysis.ring_spans import RingGroups
 from omnipipe.config import bounded
 
 
@@ -105,11 +106,9 @@ def ring_deviations(
     a gap takes its neighbours' mean radius), (R,) the rings' axial positions and (R,)
     True for rings raised above their neighbours (lying in a gap)."""
     coefs, ring_sigma = [], []
-    # Each ring's points (ascending, as frame == k selects them) from one sort: linear in the run.
-    by_frame = np.argsort(frame, kind="stable")
-    sorted_frame = frame[by_frame]
-    starts = np.searchsorted(sorted_frame, rings, side="left")
-    groups = [by_frame[a:b] for a, b in zip(starts, np.searchsorted(sorted_frame, rings, side="right"), strict=True)]
+    # Each ring's points (ascending, as frame == k selects them), made when needed: no
+    # index of every point held (omnipipe.analysis.ring_spans).
+    groups = RingGroups(frame, rings)
     for on in groups:
         order = 2 if len(on) >= 20 else 0
         c = fit_wall_profile(theta[on], rho[on], order, 0.5)

@@ -45,9 +45,11 @@ from omnipipe.analysis.openings import (
     hole_extent,
     local_gaps,
     return_gaps,
+    ring_angles,
     ring_axial,
     ring_points,
 )
+from omnipipe.analysis.ring_spans import RingSpans, ring_ids
 
 
 @dataclass(frozen=True)
@@ -89,7 +91,7 @@ def find_features(
     """Joints and laterals among (N,) points in pipe coordinates (sigma, rho mm; theta
     rad from the centreline's normal towards its binormal; frame: ring index), ``radius``
     the nominal wall radius (mm)."""
-    rings = np.unique(frame)
+    rings = ring_ids(frame)  # np.unique's, without a sorted copy of a ring-ordered frame
     dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings)
     ring_of = np.searchsorted(rings, frame)
     # The wall's noise without the rings raised together in a block (a wide gap crossed
@@ -232,11 +234,11 @@ def _closed_openings(
     45-270 mm out), not wall, and no wall missing there either (the stations' water
     cut); and those other clusters."""
     stray = np.zeros(len(r.dev), bool)
-    rings = np.unique(r.frame)
+    rings = ring_ids(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
     wall = (np.abs(r.dev) <= thr) & ~not_wall
-    on_ring = ring_points(r.frame, rings)  # one sort, not a pass over every point per ring
-    wall_theta = {k: r.theta[on[wall[on]]] for k, on in on_ring.items()}
+    on_ring = ring_points(r.frame, rings)  # each ring's indices when asked (no whole-run index)
+    wall_theta = ring_angles(r.frame, rings, r.theta, wall)  # each ring's when asked
     kept, cuts = [], []
     for m in deep:
         c = math.atan2(float(np.mean(np.sin(r.theta[m]))), float(np.mean(np.cos(r.theta[m]))))
@@ -357,14 +359,13 @@ def _lost_openings(
     the joints' gaps (a groove's edge hides a tilted ring's samples), linked into
     openings over ``lateral_gap_rings`` rings or more; the ``stray`` samples
     (:func:`_closed_openings`) are no returns."""
-    lit = np.flatnonzero(~stray) if stray is not None and stray.any() else np.arange(len(r.dev))
-    sigma, theta, frame = r.sigma[lit], r.theta[lit], r.frame[lit]
-    gaps = return_gaps(sigma, theta, frame, radius, config.lateral_gap_mm)
+    lit = ~stray if stray is not None and stray.any() else None  # (the run's arrays not copied)
+    gaps = return_gaps(r.sigma, r.theta, r.frame, radius, config.lateral_gap_mm, lit=lit)
     if not gaps:
         return []
-    rings = np.unique(r.frame)
+    rings = ring_ids(r.frame)
     axial = {int(k): float(s) for k, s in zip(rings, r.ring_sigma, strict=True)}
-    gaps = local_gaps(gaps, theta, frame, axial, config.lateral_max_length_rel * 2.0 * radius)
+    gaps = local_gaps(gaps, r.theta, r.frame, axial, config.lateral_max_length_rel * 2.0 * radius, lit=lit)
     clear = [(f.axial_mm - 0.5 * f.gap_mm - config.margin_mm, f.axial_mm + 0.5 * f.gap_mm + config.margin_mm)
              for f in joints if isinstance(f, Joint)]
     gaps = [g for g in gaps if not any(a <= g.axial_mm <= b for a, b in clear)]
@@ -468,7 +469,12 @@ def _unseen_gap(sigma: np.ndarray) -> float:
     """The widest axial stretch (mm) between consecutive samples (sorted along the axis)."""
     if len(sigma) < 2:
         return 0.0
-    return float(np.max(np.diff(np.sort(sigma))))
+    s = np.sort(sigma)  # (its differences a block at a time: not a second whole array)
+    return float(np.max([np.max(np.diff(s[a : a + _GAP_BLOCK + 1])) for a in range(0, len(s) - 1, _GAP_BLOCK)]))
+
+
+_GAP_BLOCK = 1 << 16
+"""Samples per block of :func:`_unseen_gap`'s differences."""
 
 
 def _chords(
@@ -618,11 +624,11 @@ def _ring_planes(r: Rings, thr: float) -> dict[int, np.ndarray]:
     wall samples (deviation within ``thr``; rings with at least 8 of them): the fit of
     :func:`.openings.ring_axial`, whose value at an angle is p's there. Made once for all
     the holes (a ring at a time over its own samples: linear in the run)."""
-    wall = np.flatnonzero(np.abs(r.dev) <= thr)
-    order = wall[np.argsort(r.frame[wall], kind="stable")]
-    ids, starts = np.unique(r.frame[order], return_index=True)
+    spans = RingSpans(r.frame)  # each ring's samples on their own (no index of every wall sample)
     out = {}
-    for k, on in zip(ids, np.split(order, starts[1:]), strict=True):
+    for i, k in enumerate(spans.rings):
+        on = spans.indices(i)
+        on = on[np.abs(r.dev[on]) <= thr]
         if len(on) >= 8:
             out[int(k)] = robust_sine_fit(r.sigma[on], r.theta[on], 2, 3.0, 0.5)[0]
     return out

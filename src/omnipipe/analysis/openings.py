@@ -34,11 +34,13 @@ axial positions mm.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from omnipipe.analysis.feature_rings import robust_sine_fit
+from omnipipe.analysis.ring_spans import RingIndices, RingSpans
 
 
 @dataclass(frozen=True)
@@ -79,27 +81,52 @@ def return_gaps(
     min_steps: float = 4.0,
     max_gaps: int = 3,
     max_spread_rel: float = 0.5,
+    lit: np.ndarray | None = None,
 ) -> list[ReturnGap]:
     """Every ring's gaps between consecutive samples (sorted by angle, around the seam)
     at least ``min_steps`` x its median sample step and ``min_arc_mm`` of wall wide
     (``radius_mm``: the wall radius the arc is taken at); none of a ring with more
     than ``max_gaps`` of them, or spread along the axis over ``max_spread_rel`` x
-    ``radius_mm``."""
+    ``radius_mm``. ``lit``: (N,) bool, the samples that count (None: all; the others are
+    no returns). Each ring's samples are read on their own (:class:`.ring_spans.RingSpans`:
+    the run's arrays are not copied)."""
     out: list[ReturnGap] = []
-    for k, on in ring_points(frame, np.unique(frame)).items():
-        if len(on) < 12 or np.ptp(sigma[on]) > max_spread_rel * radius_mm:
-            continue
-        o = np.argsort(np.mod(theta[on], 2.0 * math.pi))
-        t = np.mod(theta[on], 2.0 * math.pi)[o]
-        s = sigma[on][o]
-        gaps = np.diff(np.concatenate([t, [t[0] + 2.0 * math.pi]]))
-        step = float(np.median(gaps))
-        wide = np.flatnonzero(gaps >= max(min_steps * step, min_arc_mm / radius_mm))
-        if len(wide) > max_gaps:
-            continue
-        for i in wide:
-            j = (i + 1) % len(t)
-            out.append(ReturnGap(int(k), 0.5 * float(s[i] + s[j]), float(t[i]), float(gaps[i]), step))
+    spans = RingSpans(frame)
+    for i, k in enumerate(spans.rings):
+        s_k, t_k = spans.values(i, sigma), spans.values(i, theta)
+        if lit is not None:
+            keep = spans.values(i, lit)
+            s_k, t_k = s_k[keep], t_k[keep]
+        out += _ring_gaps(int(k), s_k, t_k, radius_mm, min_arc_mm, min_steps, max_gaps, max_spread_rel)
+    return out
+
+
+def _ring_gaps(
+    k: int,
+    sigma: np.ndarray,
+    theta: np.ndarray,
+    radius_mm: float,
+    min_arc_mm: float,
+    min_steps: float,
+    max_gaps: int,
+    max_spread_rel: float,
+) -> list[ReturnGap]:
+    """:func:`return_gaps` of ring ``k``'s (M,) samples (sigma mm, theta rad, ascending
+    index order)."""
+    if len(sigma) < 12 or np.ptp(sigma) > max_spread_rel * radius_mm:
+        return []
+    o = np.argsort(np.mod(theta, 2.0 * math.pi))
+    t = np.mod(theta, 2.0 * math.pi)[o]
+    s = sigma[o]
+    gaps = np.diff(np.concatenate([t, [t[0] + 2.0 * math.pi]]))
+    step = float(np.median(gaps))
+    wide = np.flatnonzero(gaps >= max(min_steps * step, min_arc_mm / radius_mm))
+    if len(wide) > max_gaps:
+        return []
+    out = []
+    for i in wide:
+        j = (i + 1) % len(t)
+        out.append(ReturnGap(k, 0.5 * float(s[i] + s[j]), float(t[i]), float(gaps[i]), step))
     return out
 
 
@@ -109,16 +136,18 @@ def local_gaps(
     frame: np.ndarray,
     ring_axial: dict[int, float],
     max_length_mm: float,
+    lit: np.ndarray | None = None,
 ) -> list[ReturnGap]:
     """The gaps whose angles other rings of the run sample (see the module's
     docstring): the rings (ordered along the axis, ``ring_axial``: each ring's axial
     position) without a sample in the gap's middle half form a block around the gap's
     ring at most ``max_length_mm`` long, and a ring on either side of the block samples
-    there."""
+    there. ``lit``: as for :func:`return_gaps`. A ring's angles are read when a gap's
+    block reaches it (not the run's held)."""
     rings = sorted(ring_axial, key=lambda k: ring_axial[k])
     if len(rings) < 3:
         return []
-    by_ring = {k: theta[on] for k, on in ring_points(frame, np.array(rings)).items()}
+    by_ring = _RingAngles(RingSpans(frame, np.array(rings)), theta, lit)
     slot = {k: i for i, k in enumerate(rings)}
     out = []
     for g in gaps:
@@ -140,14 +169,39 @@ def local_gaps(
     return out
 
 
-def ring_points(frame: np.ndarray, rings: np.ndarray) -> dict[int, np.ndarray]:
+def ring_points(frame: np.ndarray, rings: np.ndarray) -> Mapping[int, np.ndarray]:
     """For each ring index in ``rings``, the indices of its points (``frame == k``,
-    ascending) from one sort of ``frame``: linear in the run, not one pass over every
-    point per ring."""
-    order = np.argsort(frame, kind="stable")
-    sf = frame[order]
-    lo, hi = np.searchsorted(sf, rings, side="left"), np.searchsorted(sf, rings, side="right")
-    return {int(k): order[a:b] for k, a, b in zip(rings, lo, hi, strict=True)}
+    ascending), each made when asked (:class:`.ring_spans.RingIndices`: a binary search
+    of the integrated run's ring-ordered ``frame``, one stable sort of any other): linear
+    in the run, not one pass over every point per ring, and no index of every point held."""
+    return RingIndices(RingSpans(frame, np.asarray(rings)))
+
+
+def ring_angles(frame: np.ndarray, rings: np.ndarray, theta: np.ndarray, lit: np.ndarray | None = None) -> Mapping[int, np.ndarray]:
+    """For each ring index in ``rings``, its points' angles ``theta`` (only the ``lit``
+    ones: (N,) bool; None: all) in ascending index order, each read when asked (equal to
+    a dict of ``theta[on[lit[on]]]`` per ring, without holding them)."""
+    return _RingAngles(RingSpans(frame, np.asarray(rings)), theta, lit)
+
+
+class _RingAngles(Mapping[int, np.ndarray]):
+    """{ring: its ``lit`` samples' angles (rad, ascending index order)} of ``spans``'
+    rings, each read when asked."""
+
+    def __init__(self, spans: RingSpans, theta: np.ndarray, lit: np.ndarray | None) -> None:
+        self.spans, self.theta, self.lit = spans, theta, lit
+        self._slot = {int(k): i for i, k in enumerate(spans.rings)}
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        i = self._slot[int(k)]
+        t = self.spans.values(i, self.theta)
+        return t if self.lit is None else t[self.spans.values(i, self.lit)]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._slot)
+
+    def __len__(self) -> int:
+        return len(self._slot)
 
 
 def closes_both_sides(

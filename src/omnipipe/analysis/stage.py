@@ -33,7 +33,13 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline, fit_centreline, recentred, rig_axis_prior
+from omnipipe.analysis.centreline import (
+    COORDINATE_BLOCK,
+    Centreline,
+    fit_centreline,
+    recentred,
+    rig_axis_prior,
+)
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
 from omnipipe.analysis.defects import (
     DefectSearch,
@@ -52,6 +58,7 @@ from omnipipe.analysis.features import (
     with_offset_joints_kept,
 )
 from omnipipe.analysis.footprint import footprint_mm, footprint_terms, with_footprint_terms
+from omnipipe.analysis.ring_spans import RingGroups
 from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tilt
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.stations import (
@@ -72,7 +79,7 @@ from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
-from omnipipe.spill import drop_pages, on_disk, zeros_on_disk
+from omnipipe.spill import ScratchWriter, compressed_on_disk, drop_pages, zeros_on_disk
 
 
 @dataclass(frozen=True)
@@ -410,9 +417,8 @@ def _tilt_corrected(
     rings = np.flatnonzero(measured)
     if len(rings) != len(st_list) or not len(rings):
         return st_list, shared
-    groups = ring_groups(frame, len(measured))
     tilt, direction = ring_tilts(
-        pts, [groups[k] for k in rings], line.tangent[rings], line.normal[rings], line.binormal[rings]
+        pts, RingGroups(frame, rings), line.tangent[rings], line.normal[rings], line.binormal[rings]
     )
     d = np.array([st.diameter_mm for st in st_list])
     check = tilt_check(st_list, tilt, direction, 4.0 * radial_sys / max(float(np.median(d)), 1e-9))
@@ -565,8 +571,13 @@ def _recentred_line(
     centres = _section_centres(config, line, pts, frame)
     prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
     line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
-    # The coordinates wait in the run's scratch, read when needed (24 bytes a point).
-    sigma, rho, theta = (on_disk(c) for c in line.coordinates(pts, frame))
+    # The coordinates wait in the run's scratch, read when needed (24 bytes a point),
+    # written there a block at a time (each point's numbers those of the whole run's).
+    out = [ScratchWriter(len(frame), float) for _ in range(3)]
+    for a in range(0, len(frame), COORDINATE_BLOCK):
+        for w, part in zip(out, line.coordinates(pts[a : a + COORDINATE_BLOCK], frame[a : a + COORDINATE_BLOCK]), strict=True):
+            w.write(part)
+    sigma, rho, theta = (w.array() for w in out)
     drop_pages()  # the points' pages, read again when needed (omnipipe.spill)
     return line, (sigma, rho, theta)
 
@@ -697,19 +708,16 @@ def _measure_wall(
         stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
         del groups
         ok = np.isfinite(stations.deviation) & ~not_wall
-        arc = theta[ok]  # then in place: (theta % 2 pi) x radius
-        np.remainder(arc, 2 * np.pi, out=arc)
-        arc *= radius
-        # In the run's scratch (read when needed; a local pool's workers share the files).
+        # In the run's scratch, gathered a block at a time (read when needed; a local
+        # pool's workers share the files).
         samples = WallSamples(
-            sigma_mm=on_disk(sigma[ok]),
-            arc_mm=on_disk(arc),
-            deviation_mm=on_disk(stations.deviation[ok]),
-            ring=on_disk(frame[ok]),
+            sigma_mm=compressed_on_disk(sigma, ok),
+            arc_mm=compressed_on_disk(theta, ok, lambda t: _arcs(t, radius)),
+            deviation_mm=compressed_on_disk(stations.deviation, ok),
+            ring=compressed_on_disk(frame, ok),
             circumference_mm=circ,
             ring_travel_mm=travel,
         )
-        del arc
         search = find_defects(
             samples,
             min_height_mm=config.min_height_mm,
@@ -740,6 +748,13 @@ def _measure_wall(
             del stations, search, cover, new_exclude
     tick(2)
     return stations, search
+
+
+def _arcs(theta: np.ndarray, radius: float) -> np.ndarray:
+    """``theta`` (rad) made arcs in place: (theta % 2 pi) x ``radius`` (mm)."""
+    np.remainder(theta, 2 * np.pi, out=theta)
+    theta *= radius
+    return theta
 
 
 def blur_height_sigma(height: float, width: float, length: float, blur: tuple[float, float], rel: float) -> float:
@@ -824,12 +839,12 @@ def _with_openings(theta: np.ndarray, axial: float, zones: Sequence[FeatureZone]
     return np.concatenate(fill) if len(fill) > 1 else theta
 
 
-def ring_groups(frame: np.ndarray, n_rings: int) -> list[np.ndarray]:
-    """(n_rings,) the indices of each ring's points, ascending (``frame == k`` for every k
-    in one stable sort instead of one pass over the points per ring)."""
-    order = np.argsort(frame, kind="stable")
-    bounds = np.searchsorted(frame[order], np.arange(n_rings + 1))
-    return [order[bounds[k] : bounds[k + 1]] for k in range(n_rings)]
+def ring_groups(frame: np.ndarray, n_rings: int) -> Sequence[np.ndarray]:
+    """(n_rings,) the indices of each ring's points, ascending (``frame == k`` for every k,
+    each made when indexed: :class:`.ring_spans.RingGroups`, a binary search of the
+    integrated run's ring-ordered ``frame`` or one stable sort of any other; no index of
+    every point held)."""
+    return RingGroups(frame, np.arange(n_rings))
 
 
 def _station_profiles(
