@@ -68,7 +68,7 @@ def unrolled_coordinates(
     origins = world_from_rig[:, :3, 3]
     axis = world_from_rig[0, :3, 2]
     if len(origins) > 2 and np.linalg.norm(origins[-1] - origins[0]) > 1.0:
-        _, _, vt = np.linalg.svd(origins - origins.mean(axis=0))
+        _, _, vt = np.linalg.svd(origins - origins.mean(axis=0), full_matrices=False)
         axis = vt[0] * np.sign(vt[0] @ (origins[-1] - origins[0]))
     x0 = world_from_rig[0, :3, 0] - (world_from_rig[0, :3, 0] @ axis) * axis
     x0 /= np.linalg.norm(x0)
