@@ -67,9 +67,10 @@ def test_every_run_listed_and_the_failure_does_not_stop_the_others(
         assert row["inner_diameter_mm"] == report["inner_diameter_mm"]
         assert row["defects"] == len(report["defects"]) and row["warnings"] == len(report["warnings"])
         # Every stage's frames/s; startup (input checks, the pool's tables) is no stage.
+        # Both are rounded to 3 decimals: a slow run's 0.019 frames/s is 0.0187 +- 0.0005.
         assert set(report["frames_per_s"]) == set(report["timings_s"]) - {"startup"}
         assert report["frames_per_s"]["total"] == pytest.approx(
-            report["frames"] / report["timings_s"]["total"], rel=0.01
+            report["frames"] / report["timings_s"]["total"], rel=0.01, abs=1e-3
         )
         for name in ("report.html", "mesh.ply", "trajectory.txt", MANIFEST_NAME):
             assert (out / row["name"] / name).is_file(), name
