@@ -44,6 +44,10 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.spill import Pack
     from omnipipe.survey import Survey
 
+RING_PASS_DROP_S = 0.02
+"""Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) while the
+station rings are integrated: those passes map every ring within a second."""
+
 
 def _no_progress(stage: str, total: int) -> Callable[[int], None]:
     return lambda done: None
@@ -571,7 +575,7 @@ def _analyse(
     from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
-    from omnipipe.spill import Pack, drop_pages, pieces_on_disk
+    from omnipipe.spill import Pack, drop_pages, dropping_pages, pieces_on_disk
 
     rig, stations, sfm_result = dataset.rig, motion.stations, motion.result
     t0 = time.perf_counter()
@@ -582,18 +586,20 @@ def _analyse(
     # three-point fit's).
     camera = camera_from_rig(rig)
     # Every station's ring waits in the run's scratch (omnipipe.spill) until integrated:
-    # not held in memory at once (80 bytes a sample: 38 MB at 10,000 frames).
-    pack = Pack()
-    station_rings = [
-        ring_on_disk(pack, centroid_ring(frames.rings.rings[i], camera, rig.laser)) for i in stations
-    ]
-    # Stray laser peaks (isolated points far off the wall) out before anything uses them.
-    station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
-    # Not in memory under the rest: written into the run's scratch ring by ring.
-    points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings], in_scratch=True)
-    reach, reach_sigma = edge_reach_mm(station_rings)
-    blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
-    mm_per_px = np.array([radial_mm_per_px(r) for r in station_rings])
+    # not held in memory at once (80 bytes a sample: 38 MB at 10,000 frames). The passes
+    # below read every ring within a second: their pages dropped every few tens of ms.
+    with dropping_pages(RING_PASS_DROP_S):
+        pack = Pack()
+        station_rings = [
+            ring_on_disk(pack, centroid_ring(frames.rings.rings[i], camera, rig.laser)) for i in stations
+        ]
+        # Stray laser peaks (isolated points far off the wall) out before anything uses them.
+        station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
+        # Not in memory under the rest: written into the run's scratch ring by ring.
+        points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings], in_scratch=True)
+        reach, reach_sigma = edge_reach_mm(station_rings)
+        blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
+        mm_per_px = np.array([radial_mm_per_px(r) for r in station_rings])
     drop_pages()  # every ring's pages were read (omnipipe.spill): not under the copy below
     # What the model stage reads of the rings waits in the run's scratch (omnipipe.spill):
     # not resident under the analysis.
