@@ -67,12 +67,14 @@ def test_lost_returns_on_every_ring_or_in_pieces_are_no_opening() -> None:
     assert return_gaps(sig[~ragged], th[~ragged], fr[~ragged], RADIUS, 6.0) == []
 
 
-def _holed_rings(seed: int, strays: int):
+def _holed_rings(seed: int, strays: int, stray_z: tuple[float, ...] = (125.0,), lost_deep: bool = False):
     """Rings every 5 mm over 0-200 mm (720 samples over the circumference at RADIUS,
     wall noise 0.2 mm) with a 40 mm round hole centred at 102.5 mm (its rim 82.5-122.5
-    mm): the samples inside it lost; the first ring past its upper rim (125 mm) keeps
-    ``strays`` consecutive samples 3 mm deep at the hole's angle (light scattered at the
-    rim). Returns (ring_z, u, dev, frame, rings inside)."""
+    mm): the samples inside it lost (``lost_deep``: the ring at 120 mm keeps its lost
+    stretch's middle 8 samples 6 mm deep, the branch wall lit); the rings at ``stray_z``
+    (past the rim) keep ``strays`` consecutive samples 3 mm deep at the hole's angle
+    (the rim's image beside them, or light scattered there). Returns (ring_z, u, dev,
+    frame, rings inside)."""
     rng = np.random.default_rng(seed)
     us, devs, frs, ring_z, inside = [], [], [], {}, set()
     for k, z in enumerate(np.arange(0.0, 200.0, 5.0)):
@@ -81,24 +83,76 @@ def _holed_rings(seed: int, strays: int):
         keep = (u / 20.0) ** 2 + ((z - 102.5) / 20.0) ** 2 >= 1.0
         if not keep.all():
             inside.add(k)
-        if z == 125.0:
+        if lost_deep and z == 120.0:
+            lit = np.argsort(np.abs(u))[:8]
+            keep[lit], dev[lit] = True, 6.0
+        if z in stray_z:
             dev[np.argsort(np.abs(u))[:strays]] = 3.0
         us.append(u[keep]), devs.append(dev[keep]), frs.append(np.full(keep.sum(), k))
         ring_z[k] = float(z)
     return ring_z, np.concatenate(us), np.concatenate(devs), np.concatenate(frs), inside
 
 
-def test_hole_growth_stops_at_the_rim_despite_a_few_scattered_samples() -> None:
+def test_hole_growth_stops_at_the_rim_despite_scattered_samples() -> None:
+    """A ring past the rim whose samples there stray off the wall (a few: light
+    scattered at the rim; many: the rim's image biasing its peaks) but none lost lies
+    outside the hole: the ends stay halfway between the last ring in the hole and it."""
     from omnipipe.analysis.openings import hole_extent
 
     for seed in range(3):
-        ring_z, u, dev, fr, inside = _holed_rings(seed, 3)
-        ext = hole_extent(ring_z, u, dev, fr, {min(inside), max(inside)}, 22.0, 1.0, [])
+        for strays in (3, 8, 30):
+            ring_z, u, dev, fr, inside = _holed_rings(seed, strays)
+            ext = hole_extent(ring_z, u, dev, fr, {min(inside), max(inside)}, 22.0, 1.0, [])
+            assert ext is not None and all(ext.closed)
+            # The true rim at 82.5 / 122.5 mm (main: 127.5 with 8 or 30 strays, one ring past).
+            assert abs(ext.lo_mm - 82.5) < 1e-6 and abs(ext.hi_mm - 122.5) < 1e-6
+
+
+def test_rings_that_lost_their_returns_count_when_the_rim_is_seen_beyond_them() -> None:
+    """Grown from the hole's middle ring: the rings that only lost their returns are the
+    hole's when a ring beyond them shows the rim (stray samples, none lost); ending on a
+    clean ring instead, they could be a shadow past the rim and stay out. A ring with a
+    lost stretch and deep samples in it is the hole's by itself."""
+    from omnipipe.analysis.openings import hole_extent
+
+    for seed in range(3):
+        ring_z, u, dev, fr, _ = _holed_rings(seed, 8, stray_z=(80.0, 125.0))
+        ext = hole_extent(ring_z, u, dev, fr, {20}, 22.0, 1.0, [])
+        assert ext is not None and abs(ext.lo_mm - 82.5) < 1e-6 and abs(ext.hi_mm - 122.5) < 1e-6
+        ring_z, u, dev, fr, _ = _holed_rings(seed, 8, stray_z=())
+        ext = hole_extent(ring_z, u, dev, fr, {20}, 22.0, 1.0, [])
+        assert ext is not None and abs(ext.lo_mm - 97.5) < 1e-6 and abs(ext.hi_mm - 102.5) < 1e-6
+        ring_z, u, dev, fr, _ = _holed_rings(seed, 8, stray_z=(), lost_deep=True)
+        ext = hole_extent(ring_z, u, dev, fr, {20}, 22.0, 1.0, [])
+        assert ext is not None and abs(ext.hi_mm - 122.5) < 1e-6
+
+
+def test_sparse_rings_place_the_hole_ends_by_their_last_chords() -> None:
+    """Rings 10 mm apart over a 40 mm round hole centred at 103 mm (rim 83-123 mm, not
+    halfway between rings): with the rings' chords given, each end lies where the
+    outline closes beyond the last ring's chord (within 2 mm), not halfway to the clean
+    ring beyond (85 and 125 mm: 2 mm out each). The centre is the truth's within 0.5
+    mm for hole centres anywhere between two rings."""
+    from omnipipe.analysis.openings import hole_extent
+
+    for seed, centre in enumerate((103.0, 105.0, 107.5, 100.0)):
+        rng = np.random.default_rng(seed)
+        us, devs, frs, ring_z, chords = [], [], [], {}, {}
+        for k, z in enumerate(np.arange(0.0, 200.0, 10.0)):
+            u = (np.linspace(-np.pi, np.pi, 720, endpoint=False) + np.radians(rng.normal(0, 0.05, 720))) * RADIUS
+            dev = rng.normal(0, 0.2, 720)
+            keep = (u / 20.0) ** 2 + ((z - centre) / 20.0) ** 2 >= 1.0
+            if not keep.all():
+                lost = u[~keep]
+                step = 2 * np.pi / 720 * RADIUS
+                chords[k] = (0.5 * float(lost.max() + lost.min()), 0.5 * float(np.ptp(lost)) + 0.5 * step)
+            us.append(u[keep]), devs.append(dev[keep]), frs.append(np.full(keep.sum(), k))
+            ring_z[k] = float(z)
+        u, dev, fr = np.concatenate(us), np.concatenate(devs), np.concatenate(frs)
+        ext = hole_extent(ring_z, u, dev, fr, set(chords), 22.0, 1.0, [], inside_chords=chords)
         assert ext is not None and all(ext.closed)
-        # The true rim at 82.5 / 122.5 mm; the ends halfway between the last ring in the
-        # hole and the first clean one: 82.5 and 122.5 (main: 127.5, one ring past).
-        assert abs(ext.lo_mm - 82.5) < 1e-6 and abs(ext.hi_mm - 122.5) < 1e-6
-        # A ring with as many deep samples as a lit branch wall's is still the hole's.
-        ring_z, u, dev, fr, inside = _holed_rings(seed, 8)
-        ext = hole_extent(ring_z, u, dev, fr, {min(inside), max(inside)}, 22.0, 1.0, [])
-        assert ext is not None and abs(ext.hi_mm - 127.5) < 1e-6
+        assert abs(ext.lo_mm - (centre - 20.0)) < 2.0 and abs(ext.hi_mm - (centre + 20.0)) < 2.0
+        assert abs(0.5 * (ext.lo_mm + ext.hi_mm) - centre) < 0.5
+        # Without the chords: halfway between the rings.
+        mid = hole_extent(ring_z, u, dev, fr, set(chords), 22.0, 1.0, [])
+        assert mid is not None and abs(mid.lo_mm - 5.0 * round((centre - 20.0) / 5.0)) <= 5.0

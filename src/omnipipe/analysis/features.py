@@ -562,7 +562,8 @@ def _lateral(
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
     planes = _ring_planes(r, thr) if planes is None else planes
-    ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops, planes)
+    ext = _extent(r, u - uc, ch, (float(th0 + uc / radius), radius, uc), float(np.max(ch[:, 2])) + sample,
+                  thr, stops, planes)
     reach = (zc - a, zc + a)
     if ext is not None and all(ext.closed):
         zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
@@ -607,16 +608,27 @@ def _shorter_than_wide(ext: HoleExtent | None, diameter: float) -> bool:
 
 
 def _extent(
-    r: Rings, u: np.ndarray, ch: np.ndarray, at: float, half: float, thr: float,
+    r: Rings, u: np.ndarray, ch: np.ndarray, centre: tuple[float, float, float], half: float, thr: float,
     stops: Sequence[tuple[float, float]], planes: dict[int, np.ndarray],
 ) -> HoleExtent | None:
     """The hole's reach along the axis (:func:`.openings.hole_extent`) from its chords
-    ``ch`` (M, 4): each ring's axial position at the hole's angle ``at`` (rad) from its
-    wall samples (``planes``: :func:`_ring_planes`), disturbance beyond half the feature
-    threshold ``thr`` within ``half`` arc mm of the centre (``u``: the samples' arc about it)."""
-    ring_z = {k: float(p[0] + p[1] * math.cos(at) + p[2] * math.sin(at)) for k, p in planes.items()}
+    ``ch`` (M, 4: axial, centre arc mm about the angle the arcs of ``_lateral`` start
+    from, half-width, ring): each ring's axial position from its wall samples
+    (``planes``: :func:`_ring_planes`) at the hole's angle, or where it meets the hole
+    (a chord's centre), disturbance beyond half the feature threshold ``thr`` within
+    ``half`` arc mm of the centre (``u``: the samples' arc about it). ``centre``: the
+    hole's angle (rad), the wall radius (mm) and the hole's centre arc in ``ch``'s
+    terms (mm)."""
+    at, radius, uc = centre
+
+    def z_at(k: int, c: float) -> float:
+        p, a = planes[k], at + c / radius
+        return float(p[0] + p[1] * math.cos(a) + p[2] * math.sin(a))
+
+    ring_z = {k: z_at(k, 0.0) for k in planes}
     inside = {int(k) for k in ch[:, 3]} & set(ring_z)
-    return hole_extent(ring_z, u, r.dev, r.frame, inside, half, 0.5 * thr, list(stops))
+    chords = {int(k): (float(c) - uc, float(h)) for c, h, k in ch[:, 1:4] if int(k) in inside}
+    return hole_extent(ring_z, u, r.dev, r.frame, inside, half, 0.5 * thr, list(stops), z_at, chords)
 
 
 def _ring_planes(r: Rings, thr: float) -> dict[int, np.ndarray]:

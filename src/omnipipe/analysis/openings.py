@@ -34,7 +34,7 @@ axial positions mm.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -303,18 +303,17 @@ def ring_axial(sigma: np.ndarray, phi: np.ndarray, at: float) -> float:
 
 def _disturbed_chord(
     u: np.ndarray, dev: np.ndarray, half: float, step: float, low: float, min_stray: int = 4
-) -> tuple[float, float, bool] | None:
-    """(centre, half-width arc mm, whether samples stray) of what disturbs one ring
-    within ``half`` of the hole's centre (``u``: its samples' arc about it, ``dev``:
-    their deviations): its stretches without samples wider than 2.5 sample ``step`` s,
-    and its samples beyond ``low`` either way with a neighbour that is too (then the
-    flag is set); None if nothing does. A ring without such a stretch and fewer than
-    ``min_stray`` of those samples is clean there: light scattered at the rim by a ring
-    just past it (random-features-small seed 16: 3 of 75 samples, the hole grown 4.9 mm
-    past its end)."""
+) -> tuple[float, float, bool, bool] | None:
+    """(centre, half-width arc mm, whether samples stray, whether returns are lost) of
+    what disturbs one ring within ``half`` of the hole's centre (``u``: its samples' arc
+    about it, ``dev``: their deviations): its stretches without samples wider than 2.5
+    sample ``step`` s (lost returns), and its samples beyond ``low`` either way with a
+    neighbour that is too (stray); None if nothing does. Without lost returns the
+    chord is empty (0, 0): such a ring's light section lies beside the rim, outside
+    the hole, its peaks biased by the rim's image or light scattered there."""
     inw = np.abs(u) <= half + step
     if not inw.any():
-        return 0.0, half, False  # the whole window dark: the light lost in the hole
+        return 0.0, half, False, True  # the whole window dark: the light lost in the hole
     o = np.argsort(u[inw])
     uu, dd = u[inw][o], dev[inw][o]
     ends: list[float] = []
@@ -326,13 +325,11 @@ def _disturbed_chord(
     nb[1:] |= off[:-1]
     nb[:-1] |= off[1:]
     stray = off & nb
-    if stray.sum() < min_stray and len(ends) == 0:
-        stray[:] = False  # a few stray samples on an unbroken ring: the rim's scatter
+    if not ends:  # a few stray samples: light scattered at the rim, nothing
+        return (0.0, 0.0, True, False) if stray.sum() >= min_stray else None
     ends += [float(x) for x in uu[stray]]
-    if not ends:
-        return None
     lo, hi = max(min(ends), -half), min(max(ends), half)
-    return 0.5 * (lo + hi), 0.5 * max(hi - lo, step), bool(stray.any())
+    return 0.5 * (lo + hi), 0.5 * max(hi - lo, step), bool(stray.any()), True
 
 
 def hole_extent(
@@ -344,23 +341,39 @@ def hole_extent(
     half_width: float,
     low: float,
     stops: list[tuple[float, float]],
+    z_at: Callable[[int, float], float] | None = None,
+    inside_chords: Mapping[int, tuple[float, float]] | None = None,
 ) -> HoleExtent | None:
     """Grow a hole seen by the rings ``inside`` along the axis over the rings next to it
     that are disturbed at its angles (:func:`_disturbed_chord`, within ``half_width`` arc
     mm of its centre; ``u``: every sample's arc about it, ``dev`` its deviation, ``low``
     the deviation that counts): on the side where the branch wall meets the main wall at
-    an obtuse angle, it stays within the feature threshold, or the rings keep a few
-    samples in the hole, and the deep samples and the rings' lost stretches see only
-    part of it. ``ring_z``: each ring's axial position at the hole's angle. Rings in
+    an obtuse angle, it stays within the feature threshold, and the deep samples and the
+    rings' lost stretches see only part of it. A ring there keeps lost returns; one
+    with samples off the wall and none lost lies beside the rim, outside the hole. ``ring_z``: each ring's axial position at the hole's angle. Rings in
     ``stops`` (axial bands: the joints' gaps) end the growth: a side reaching one or
-    the run's end is open (:attr:`HoleExtent.closed`). None without a ring inside."""
+    the run's end is open (:attr:`HoleExtent.closed`). None without a ring inside.
+
+    ``z_at(k, c)``: ring k's axial position at arc ``c`` mm about the hole's centre (a
+    ring tilted to the axis meets the hole off its meridian somewhere else along the
+    axis): each end lies between the last ring in the hole, at its chord's centre
+    (``inside_chords``: the rings ``inside``'s chord centre and half-width, arc mm;
+    ``ring_z`` where none is given), and the first ring beyond it at the meridian, where
+    the hole reaches furthest: halfway, or with the chords given where the outline
+    closes beyond the last ring's chord (:func:`_tip`)."""
     order = sorted(ring_z, key=lambda k: ring_z[k])
     pos = [i for i, k in enumerate(order) if k in inside]
     if not pos:
         return None
-    ends, sig, rows, closed = [], [], [], []
+
+    def at(k: int, c: float | None) -> float:
+        return ring_z[k] if z_at is None or c is None else z_at(k, c)
+
+    chords = {} if inside_chords is None else dict(inside_chords)
+    ends, sig, rows, closed, last = [], [], [], [], []
     for direction, start in ((-1, min(pos)), (1, max(pos))):
         i, j, dark = start, start + direction, []
+        z_last = at(order[start], chords[order[start]][0] if order[start] in chords else None)
         while 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops):
             k = order[j]
             on = frame == k
@@ -370,17 +383,53 @@ def hole_extent(
             if got is None:
                 break
             # Rings only missing samples there count when a ring beyond them shows
-            # stray samples (the hole's light lost, not a shadow past its rim).
-            dark.append((ring_z[k], got[0], got[1], float(k)))
+            # stray samples (the hole's light lost, not a shadow past its rim); a ring
+            # with stray samples and no lost returns is that ring, beside the rim.
+            if not got[3]:
+                if dark:
+                    rows += dark
+                    z_last, i = dark[-1][0], j - direction
+                break
+            dark.append((at(k, got[0]), got[0], got[1], float(k)))
             if got[2]:
                 rows += dark
+                z_last = dark[-1][0]
                 dark, i = [], j
             j += direction
         j = i + direction
         shut = 0 <= j < len(order) and not any(a <= ring_z[order[j]] <= b for a, b in stops)
-        z_in = ring_z[order[i]]
+        z_in = z_last
         z_out = ring_z[order[j]] if shut else z_in
         ends.append(0.5 * (z_in + z_out))
         sig.append(abs(z_out - z_in) / math.sqrt(12.0))
         closed.append(shut)
-    return HoleExtent(ends[0], ends[1], sig[0], sig[1], np.array(rows).reshape(-1, 4), (closed[0], closed[1]))
+        last.append((z_in, z_out, order[i]))
+    grown = np.array(rows).reshape(-1, 4)
+    if inside_chords is not None:
+        chords.update({int(k): (float(c), float(h)) for _, c, h, k in grown})
+        ends = _tip(ends, [(z_in, z_out, chords.get(k, (0.0, 0.0))[1]) for z_in, z_out, k in last],
+                    max((h for _, h in chords.values()), default=0.0))
+    return HoleExtent(ends[0], ends[1], sig[0], sig[1], grown, (closed[0], closed[1]))
+
+
+def _tip(ends: list[float], last: list[tuple[float, float, float]], widest: float) -> list[float]:
+    """The hole's (lower, upper) ends moved from halfway between the last ring in the
+    hole and the first one beyond it (``last``: per end that ring's axial position, the
+    other's, and the last one's chord half-width, arc mm) to where its outline closes: an
+    ellipse of axial semi-axis a and circumferential semi-axis ``widest`` (its widest
+    chord's half-width) ends a (1 - sqrt(1 - (h / widest)^2)) beyond a chord of
+    half-width h, at most at the ring beyond; a is half the span of the ends so placed
+    (iterated from the halfway ones). Rings spaced more than
+    the hole's ends are sharp read the end off the last chord's width, not the spacing
+    (random-features-small seed 4: rings 10 mm apart, the end 9 mm off halfway)."""
+    if widest <= 0.0:
+        return ends
+    out = list(ends)
+    for _ in range(8):  # a from the ends it places (halfway ends shorten it by up to a spacing)
+        a = 0.5 * (out[1] - out[0])
+        for i, (z_in, z_out, h) in enumerate(last):
+            q = min(h / widest, 1.0)
+            reach = a * (1.0 - math.sqrt(1.0 - q * q))
+            room = z_out - z_in
+            out[i] = ends[i] if room == 0.0 else z_in + math.copysign(min(reach, abs(room)), room)
+    return out
