@@ -87,10 +87,9 @@ class TrackConfig:
             31-frame step); 0: every pending frame.
         retry_lost_share: the tracks the first flow lost in a view get the second try
             (coarse levels high-passed, :func:`_flow`) only when they are at least this
-            share of the view's tracks (0: always). A view that lost a few tracks keeps
-            the rest (the second try's pyramids cost about as much as a few hundred
-            tracks); one whose coarse levels lost most of them (a dim, fine-grained
-            wall) gets it.
+            share of the view's tracks (0: always, the default; at 0.1 continuous keeps
+            its tracks for a quarter less flow, but a robustness seed's step went wrong
+            unflagged: benchmarks/RESULTS.md).
     """
 
     enabled: bool = True
@@ -109,7 +108,7 @@ class TrackConfig:
     renew_ratio: float = bounded(0.3, ge=0, le=1)
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
-    retry_lost_share: float = bounded(0.1, ge=0, le=1)
+    retry_lost_share: float = bounded(0.0, ge=0, le=1)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
