@@ -15,7 +15,14 @@ from omnipipe.geometry import invert
 from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews
 from omnipipe.sfm.geometry import triangulate_pairs
 from omnipipe.sfm.ransac import estimate_relative_motion
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, corner_features, track_features
+from omnipipe.sfm.tracking import (
+    TrackChain,
+    TrackConfig,
+    Tracks,
+    corner_features,
+    spread_order,
+    track_features,
+)
 from omnipipe.sim import make_scenario
 from omnipipe.sim.render import Renderer
 from omnipipe.sim.scenarios import Scenario
@@ -89,7 +96,8 @@ def test_nothing_is_tracked_into_a_blank_frame(two_frames) -> None:
 @pytest.mark.parametrize(
     ("field", "value"),
     [("window_px", 4), ("window_px", 20), ("levels", -1), ("max_forward_backward_px", 0.0),
-     ("min_tracks", 7), ("max_points", 3), ("renew_ratio", 1.5)],
+     ("min_tracks", 7), ("max_points", 3), ("renew_ratio", 1.5), ("retry_lost_share", -0.1),
+     ("retry_lost_share", 1.5)],
 )
 def test_bad_settings_name_their_field(field: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"sfm.tracking.{field}"):
@@ -354,6 +362,46 @@ def test_lost_tracks_get_a_second_try_on_band_passed_coarse_levels(dim_concrete,
     assert np.median(errors[second]) < 1.0
 
 
+def test_second_try_only_where_a_view_lost_a_share_of_its_tracks(two_frames, dim_concrete, monkeypatch) -> None:
+    """A view that lost a few tracks in the first flow keeps the rest without the second
+    try; on the dim wall, where the first flow loses most, every view still gets it."""
+    import omnipipe.sfm.tracking as tracking
+
+    calls = []
+    checked = tracking._checked_flow
+
+    def counted(a, b, q0, v, config, coarse_highpassed=False):
+        calls.append((coarse_highpassed, len(q0)))
+        return checked(a, b, q0, v, config, coarse_highpassed)
+
+    monkeypatch.setattr(tracking, "_checked_flow", counted)
+    extractor, views_a, views_b, _ = two_frames
+    key = extractor.detect(views_a)
+    tracks, tries = {}, {}
+    for share in (0.0, 0.25):
+        calls.clear()
+        tracks[share] = track_features(extractor, views_a, key, views_b, TrackConfig(retry_lost_share=share))
+        tries[share] = [n for second, n in calls if second]
+    # Here 12-42 of each view's ~125 tracks are lost: the views that lost fewer than a
+    # quarter keep their first flow's tracks, the same as with every view retried.
+    assert 0 < len(tries[0.25]) < len(tries[0.0])
+    same = np.isin(tracks[0.0].feature, tracks[0.25].feature)
+    assert np.all(np.isin(tracks[0.25].feature, tracks[0.0].feature))
+    assert np.array_equal(
+        tracks[0.0].features.view_pixels[same],
+        tracks[0.25].features.view_pixels[np.searchsorted(tracks[0.25].feature, tracks[0.0].feature[same])],
+    )
+    assert len(tracks[0.25].feature) >= 0.95 * len(tracks[0.0].feature)
+
+    _, _, extractor, views = dim_concrete
+    key = extractor.detect(views[0])
+    calls.clear()
+    TrackChain(extractor, views[0], key, TrackConfig(retry_lost_share=0.1)).advance(views[1])
+    firsts = [n for second, n in calls if not second]
+    seconds = [n for second, n in calls if second]
+    assert len(seconds) == len(firsts)  # every view lost at least a tenth
+
+
 def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() -> None:
     """The new keyframe's features are followed back (latest pending frame first) only
     as far as the earliest pending frame with fewer than ``back_below`` verified tracks
@@ -377,3 +425,39 @@ def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() 
     assert followed_back([800, 150, 420], [0.2, 0.3, 0.4], by_share) == [2, 1]
     assert followed_back([800, 650, 420], [float("nan"), 0.3, 0.4], by_share) == [2, 1, 0]
     assert followed_back([800, 650], [0.1, 0.2], TrackConfig(back_below=0, back_beyond=0.0)) == [1, 0]
+
+
+def test_spread_order_takes_one_feature_per_square_before_a_second() -> None:
+    rng = np.random.default_rng(4)
+    # 300 features crowded into one corner of view 0, 30 spread over view 1 and 10 over view 2.
+    view = np.concatenate([np.zeros(300, int), np.ones(30, int), np.full(10, 2)])
+    px = np.concatenate([rng.uniform(0, 30, (300, 2)), rng.uniform(0, 320, (30, 2)), rng.uniform(0, 320, (10, 2))])
+    order = spread_order(view, px.astype(np.float32), 32.0)
+    assert np.array_equal(np.sort(order), np.arange(len(view)))
+    squares = {(int(v), int(x // 32), int(y // 32)) for v, (x, y) in zip(view, px, strict=True)}
+    first = order[: len(squares)]
+    # The first picks cover every occupied square once, in list order within a rank.
+    assert {(int(view[i]), int(px[i, 0] // 32), int(px[i, 1] // 32)) for i in first} == squares
+    assert np.all(np.diff(first) > 0)
+    # Evenly over the list, a budget of 40 would take 35 of view 0's crowded corner.
+    assert np.sum(view[order[:40]] == 0) <= 1 + 40 - len(squares)
+
+
+def test_the_budget_keeps_the_carried_tracks_then_spreads_the_new_features() -> None:
+    from omnipipe.sfm.keyframes import _budget
+
+    rng = np.random.default_rng(5)
+    n = 500
+    view = rng.integers(0, 4, n)
+    px = rng.uniform(0, 200, (n, 2)).astype(np.float32)
+    features = FrameFeatures(np.zeros((n, 3)), np.zeros((n, 2)), np.zeros((n, 128), np.float32), view, px)
+    even = _budget(120, features, TrackConfig(max_points=200))
+    assert np.array_equal(even[:120], np.arange(120))
+    assert np.array_equal(even[120:], np.unique(np.linspace(120, n - 1, 80).round().astype(int)))
+    spread = _budget(120, features, TrackConfig(max_points=200, spread_px=50.0))
+    assert np.array_equal(spread[:120], np.arange(120))
+    assert len(spread) == 200 and np.all(spread[120:] >= 120) and np.all(np.diff(spread[120:]) > 0)
+    # The new ones cover as many squares as 80 picks can (64 squares of 50 px in 4 views).
+    squares = {(int(view[i]), int(px[i, 0] // 50), int(px[i, 1] // 50)) for i in spread[120:]}
+    assert len(squares) == 64
+    assert np.array_equal(_budget(300, features, TrackConfig(max_points=200)), np.unique(np.linspace(0, 299, 200).round().astype(int)))

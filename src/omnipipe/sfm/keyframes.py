@@ -57,7 +57,7 @@ from omnipipe.sfm.tasks import (
     track_back,
     verified_matches,
 )
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, keyframe_detection
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, keyframe_detection, spread_order
 from omnipipe.sfm.types import (
     KeyframeRays,
     Keyframes,
@@ -604,7 +604,7 @@ class KeyframeLoop:
         prior, self._chain = self._chain, None
         if frame.views is not None and config.tracking.enabled:
             # The tracks carried on first, then the new features evenly, up to the budget.
-            followed = _budget(n_continued, len(features.view), config.tracking.max_points)
+            followed = _budget(n_continued, features, config.tracking)
             self._chain = TrackChain(
                 self.extractor, frame.views, features, config.tracking, followed, prior=prior
             )
@@ -625,7 +625,7 @@ class KeyframeLoop:
                 k_new,
                 frame.views,
                 _slim(features),
-                fresh[_budget(0, len(fresh), config.tracking.max_points)],
+                fresh[_budget(0, _subset(features, fresh), config.tracking)],
                 [self._pending_views[self.pending[j].frame] for j in back],
                 [self.pending[j].frame for j in back],
             )
@@ -677,14 +677,25 @@ def _share(part: float, whole: float) -> float:
     return part / whole if whole > 0 else math.nan
 
 
-def _budget(n_first: int, n: int, most: int) -> np.ndarray:
-    """Indices of ``n`` features to follow, at most ``most``: the first ``n_first``
-    (evenly when they alone are too many), then the rest evenly."""
-    if n_first >= most:
-        return np.unique(np.linspace(0, n_first - 1, most).round().astype(int))
-    rest = min(n - n_first, most - n_first)
-    tail = np.unique(np.linspace(n_first, n - 1, rest).round().astype(int)) if rest > 0 else np.zeros(0, int)
-    return np.concatenate([np.arange(n_first), tail])
+def _budget(n_first: int, features: FrameFeatures, config: TrackConfig) -> np.ndarray:
+    """Indices of ``features`` to follow, at most ``config.max_points``: the first
+    ``n_first``, then the rest; of a part too large for what is left, evenly over the
+    list, or with ``config.spread_px`` spread over the views
+    (:func:`~omnipipe.sfm.tracking.spread_order`)."""
+    n, most = len(features.view), config.max_points
+
+    def part(lo: int, hi: int, k: int) -> np.ndarray:
+        if k <= 0 or hi <= lo:
+            return np.zeros(0, int)
+        if k >= hi - lo:
+            return np.arange(lo, hi)
+        if config.spread_px > 0 and features.view_pixels is not None:
+            order = spread_order(features.view[lo:hi], features.view_pixels[lo:hi], config.spread_px)
+            return lo + np.sort(order[:k])
+        return np.unique(np.linspace(lo, hi - 1, k).round().astype(int))
+
+    head = part(0, n_first, most)
+    return np.concatenate([head, part(n_first, n, most - len(head))])
 
 
 def _split(whole: Future[list[KeyframeRays]], n: int) -> list[Future[KeyframeRays]]:

@@ -56,6 +56,9 @@ class TrackConfig:
             matched by SIFT descriptors instead (its tracks lost: blur, a jump).
         max_points: at most this many of the keyframe's features are followed (the
             flow's cost is proportional to their number).
+        spread_px: the keyframe's features followed within ``max_points`` are spread
+            over its views: the first feature in each square of this side (view px),
+            then the second, and so on (:func:`spread_order`); 0: evenly over the list.
         guided_radius_px: at a keyframe, SIFT features are matched only within this
             distance of where their tracks went (view px; under half a periodic wall's
             texture period).
@@ -82,6 +85,11 @@ class TrackConfig:
             keyframe's parallax from its own keyframe (the far part of a long step,
             where its own keyframe's tracks alone let it drift; robustness seed 1, a
             31-frame step); 0: every pending frame.
+        retry_lost_share: the tracks the first flow lost in a view get the second try
+            (coarse levels high-passed, :func:`_flow`) only when they are at least this
+            share of the view's tracks (0: always, the default; at 0.1 continuous keeps
+            its tracks for a quarter less flow, but a robustness seed's step went wrong
+            unflagged: benchmarks/RESULTS.md).
     """
 
     enabled: bool = True
@@ -91,6 +99,7 @@ class TrackConfig:
     highpass_px: float = bounded(8.0, ge=0)
     min_tracks: int = bounded(40, ge=8)
     max_points: int = bounded(1000, ge=8)
+    spread_px: float = bounded(0.0, ge=0)
     guided_radius_px: float = bounded(3.0, gt=0)
     chain_over_descriptors: float = bounded(2.0, ge=1)
     min_corner_points: int = bounded(400, ge=0)
@@ -99,6 +108,7 @@ class TrackConfig:
     renew_ratio: float = bounded(0.3, ge=0, le=1)
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
+    retry_lost_share: float = bounded(0.0, ge=0, le=1)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -180,6 +190,25 @@ def _followed(n: int, config: TrackConfig) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(n, config.max_points)).round().astype(int))
 
 
+def spread_order(view: np.ndarray, view_pixels: np.ndarray, cell_px: float) -> np.ndarray:
+    """(N,) the order in which features (``view`` (N,), ``view_pixels`` (N, 2) view px)
+    fill a budget: by their rank among the features before them in the list that fall
+    in the same ``cell_px`` square of the same view, then by their place in the list
+    (the first feature of every square, then the second, ...)."""
+    if len(view) == 0:
+        return np.zeros(0, int)
+    cell = np.floor(np.asarray(view_pixels, float) / cell_px).astype(np.int64)
+    _, square = np.unique(np.column_stack([np.asarray(view, np.int64), cell]), axis=0, return_inverse=True)
+    square = square.ravel()
+    by_square = np.argsort(square, kind="stable")  # list order within a square
+    first = np.ones(len(by_square), bool)
+    first[1:] = square[by_square][1:] != square[by_square][:-1]
+    starts = np.maximum.accumulate(np.where(first, np.arange(len(by_square)), 0))
+    rank = np.empty(len(by_square), np.int64)
+    rank[by_square] = np.arange(len(by_square)) - starts
+    return np.lexsort((np.arange(len(view)), rank))
+
+
 def _lk(
     a: np.ndarray, b: np.ndarray, q0: np.ndarray, start: np.ndarray | None, levels: int, config: TrackConfig
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -246,7 +275,7 @@ def _flow(
     v = np.zeros_like(q0) if shift is None else np.ascontiguousarray(shift, np.float32).reshape(-1, 1, 2)
     p1, ok = _checked_flow(a, b, q0, v, config)
     retry = np.flatnonzero(~ok)
-    if len(retry) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
+    if len(retry) and len(retry) >= config.retry_lost_share * len(ok) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
         p2, ok2 = _checked_flow(a, b, q0[retry], v[retry], config, coarse_highpassed=True)
         p1[retry[ok2]] = p2[ok2]
         ok[retry[ok2]] = True
