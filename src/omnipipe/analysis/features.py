@@ -50,6 +50,7 @@ from omnipipe.analysis.openings import (
     ring_points,
 )
 from omnipipe.analysis.ring_spans import RingSpans, ring_ids
+from omnipipe.analysis.sample_arcs import SampleArcs, within_ellipses
 
 
 @dataclass(frozen=True)
@@ -478,24 +479,28 @@ _GAP_BLOCK = 1 << 16
 
 
 def _chords(
-    sigma: np.ndarray, u: np.ndarray, frame: np.ndarray, members: np.ndarray, sample: float, radius: float
+    sigma: np.ndarray, u: SampleArcs, spans: RingSpans, members: np.ndarray, sample: float, radius: float
 ) -> np.ndarray:
     """(M, 4) per ring crossing the hole: axial position, chord centre and half-width
     (arc mm; half a sample added: the edges lie between samples), ring index. The axial
     position is the ring's own at the chord's centre (:func:`.openings.ring_axial`), not its deep
     samples': those lie out in the branch, where the pipe coordinates of a ring tilted
     to the axis, or of a centreline through a bend, stray along the axis by their depth
-    (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm)."""
+    (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm). ``u``: the
+    samples' arcs about the hole; ``spans``: where the members' rings lie (each ring's
+    samples read on their own)."""
     rows = []
-    for k in np.unique(frame[members]):
-        m = members[frame[members] == k]
+    ring = spans.frame[members]
+    for k in np.unique(ring):
+        m = members[ring == k]
         if len(m) < 2:
             continue
-        c = 0.5 * (u[m].max() + u[m].min())
-        on = np.flatnonzero(frame == k)
+        um = u[m]
+        c = 0.5 * (um.max() + um.min())
+        on = spans.indices(int(np.searchsorted(spans.rings, k)))
         wall = on[~np.isin(on, m)]
         z = ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
-        rows.append((z, c, 0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
+        rows.append((z, c, 0.5 * (um.max() - um.min()) + 0.5 * sample, float(k)))
     return np.array(rows).reshape(-1, 4)
 
 
@@ -540,14 +545,15 @@ def _lateral(
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
-    u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
+    u = SampleArcs(theta, th0, radius)  # each sample's arc about th0, made where read
     rings = np.unique(np.concatenate([frame[members], [g.ring for g in gaps]]).astype(int))
+    spans = RingSpans(frame, rings)  # the hole's rings' samples, a ring at a time
     steps = []
-    for k in rings:
-        d_u = np.diff(np.sort(u[frame == k]))
+    for i in range(len(spans)):
+        d_u = np.diff(np.sort(u[spans.indices(i)]))
         steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
     sample = float(np.median(steps))
-    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))
+    ch = _merged_chords(_chords(sigma, u, spans, members, sample, radius), _gap_chords(gaps, th0, radius))
     ch = _main_block(ch, max(3.0 * spacing, 10.0))
     zc, uc, b, a = _ellipse(ch[:, :3])
     est = [(zc, uc, b)]
@@ -562,7 +568,7 @@ def _lateral(
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
     planes = _ring_planes(r, thr) if planes is None else planes
-    ext = _extent(r, u - uc, ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops, planes)
+    ext = _extent(r, u.minus(uc), ch, float(th0 + uc / radius), float(np.max(ch[:, 2])) + sample, thr, stops, planes)
     reach = (zc - a, zc + a)
     if ext is not None and all(ext.closed):
         zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
@@ -583,8 +589,7 @@ def _lateral(
     )
     m = config.margin_mm
     zr, ar = 0.5 * (reach[0] + reach[1]), 0.5 * (reach[1] - reach[0])
-    inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
-    inside |= ((sigma - zr) / (ar + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
+    inside = within_ellipses(sigma, u, [(zc, a + m, uc, b + m), (zr, ar + m, uc, b + m)])
     inside[members] = True
     along, around = ar + m + 3.0 * math.hypot(s_z, s_b), b + m + 3.0 * math.hypot(s_u, s_b)
     zone = FeatureZone(
