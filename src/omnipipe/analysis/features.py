@@ -49,8 +49,10 @@ from omnipipe.analysis.openings import (
     ring_axial,
     ring_points,
 )
+from omnipipe.analysis.ring_spans import BLOCK as POINT_BLOCK
 from omnipipe.analysis.ring_spans import RingSpans, ring_ids
 from omnipipe.analysis.sample_arcs import SampleArcs, within_ellipses
+from omnipipe.spill import ScratchWriter, on_disk
 
 
 @dataclass(frozen=True)
@@ -94,7 +96,12 @@ def find_features(
     the nominal wall radius (mm)."""
     rings = ring_ids(frame)  # np.unique's, without a sorted copy of a ring-ordered frame
     dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings)
-    ring_of = np.searchsorted(rings, frame)
+    # Each point's deviation and ring in the run's scratch (read when needed, :mod:`omnipipe.spill`).
+    dev = on_disk(dev)
+    writer = ScratchWriter(len(frame), np.intp)
+    for a in range(0, len(frame), POINT_BLOCK):
+        writer.write(np.searchsorted(rings, frame[a : a + POINT_BLOCK]))
+    ring_of = writer.array()
     # The wall's noise without the rings raised together in a block (a wide gap crossed
     # by tilted rings: each ring's wall samples stand off its neighbours' level by the
     # gap's share of its circumference, a large share of the run's samples).
