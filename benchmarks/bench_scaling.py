@@ -69,7 +69,10 @@ class _StepPeaks:
     """Peak VmRSS (MiB) of this process while each of :data:`STEPS` runs (a step inside
     another counts for both; between the outermost ones as ``after STEP``), sampled every
     10 ms by a daemon thread, the part of it that was file-backed pages (RssFile: the
-    run's scratch mapped) at that peak, and where the main thread was then."""
+    run's scratch mapped) at that peak, and where the main thread was then; and the steps
+    running when the process's high-water mark (VmHWM) was last seen to rise (a peak
+    shorter than a sample's interval, or while the sampler waited for the GIL, is caught
+    there; the step is the one running at the next sample)."""
 
     def __init__(self, held: tuple[str, ...] = ()) -> None:
         import functools
@@ -79,6 +82,8 @@ class _StepPeaks:
         self.peaks: dict[str, float] = {}
         self.files: dict[str, float] = {}
         self.where: dict[str, str] = {}
+        self.hwm: dict[str, float] = {}  # the process's high-water mark (VmHWM) when it last rose within the step
+        self._last_hwm = 0.0
         self.held_at = held
         self.held: dict[str, list[str]] = {}
         self.tag = "start"
@@ -108,8 +113,13 @@ class _StepPeaks:
     def _sample(self) -> None:
         while True:
             with open("/proc/self/status", encoding="ascii") as fh:
-                kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in fh) if k in ("VmRSS", "RssFile")}
+                kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in fh) if k in ("VmRSS", "RssFile", "VmHWM")}
             tags, rss = self.active or (self.tag,), kb["VmRSS"] / 1024.0
+            hwm = kb.get("VmHWM", 0) / 1024.0
+            if hwm > self._last_hwm:  # risen since the last sample (a peak between two samples too)
+                self._last_hwm = hwm
+                for tag in tags:
+                    self.hwm[tag] = hwm
             for tag in tags:
                 if rss > self.peaks.get(tag, 0.0):
                     self.peaks[tag], self.files[tag] = rss, kb.get("RssFile", 0) / 1024.0
@@ -194,6 +204,7 @@ def _child(
                 "steps": None if peaks is None else dict(peaks.peaks),
                 "steps_file": None if peaks is None else dict(peaks.files),
                 "steps_where": None if peaks is None else dict(peaks.where),
+                "steps_hwm": None if peaks is None else dict(peaks.hwm),
                 "held": None if peaks is None else dict(peaks.held),
             }
         )
@@ -343,6 +354,11 @@ def _print_steps(kind: str, done: list[dict]) -> None:
         print(f"{kind}: arrays in memory when {step} began ({done[-1]['frames']} frames)")
         for line in lines:
             print(f"  {line}")
+    hwm = done[-1].get("steps_hwm") or {}
+    if hwm:  # VmHWM rises within a step between two samples too (a short peak the samples miss)
+        top = sorted(hwm.items(), key=lambda kv: -kv[1])[:6]
+        print(f"{kind}: steps running when the high-water mark last rose ({done[-1]['frames']} frames): "
+              + ", ".join(f"{k} {v:.0f}" for k, v in top))
     where = done[-1].get("steps_where") or {}
     if where:
         print(f"{kind}: where each step peaked ({done[-1]['frames']} frames; innermost omnipipe lines)")

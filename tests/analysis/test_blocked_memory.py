@@ -98,10 +98,14 @@ def _whole_supported(samples, value, sc):
 
 
 @pytest.mark.parametrize("rings", [1, 40])
-def test_supported_in_blocks_equals_the_whole_array(monkeypatch, rings: int) -> None:
-    """Rings of 360 samples (shuffled, 0.1 mm noise) with lone spikes and a 3-sample bump
-    each: blocks of 1,000 samples give the whole array's answer, and a spike without a
-    raised neighbour is unsupported while the bump's samples are."""
+@pytest.mark.parametrize("shuffled", [True, False])
+@pytest.mark.parametrize("block", [1000, 100, 1 << 16])
+def test_supported_in_blocks_equals_the_whole_array(monkeypatch, rings: int, shuffled: bool, block: int) -> None:
+    """Rings of 360 samples (shuffled, or in ring order as a run's; 0.1 mm noise) with
+    lone spikes and a 3-sample bump each: blocks of whole rings (about 1,000 samples;
+    100: a ring each; one block) give the whole array's answer for both signs, and a
+    spike without a raised neighbour is unsupported while the bump's samples are (and
+    the samples either side of arc 0 only on a run of one ring)."""
     from omnipipe.analysis import defects
 
     rng = np.random.default_rng(3)
@@ -113,13 +117,21 @@ def test_supported_in_blocks_equals_the_whole_array(monkeypatch, rings: int) -> 
     bump = (np.arange(rings) * 360 + 200)[:, None] + np.arange(3)
     dev[spikes] = 3.0
     dev[bump.ravel()] = 3.0
-    order = rng.permutation(arc.size)
+    seam = np.arange(rings)[:, None] * 360 + [0, 359]  # raised either side of a ring's arc 0
+    dev[seam.ravel()] = 3.0
+    dev[rng.choice(arc.size, 40, replace=False)] = -3.0  # bulge spikes, some beside each other
+    order = rng.permutation(arc.size) if shuffled else np.arange(arc.size)
     samples = defects.WallSamples(np.repeat(np.arange(rings) * 5.0, 360)[order], arc[order] % circ, dev[order], ring[order], circ)
     sc = defects._scales(samples, 1.0, 6.0)
-    value = samples.deviation_mm
-    whole = _whole_supported(samples, value, sc)
-    monkeypatch.setattr(defects, "SUPPORT_BLOCK", 1000)
-    blocked = defects._supported(samples, value, sc)
-    assert np.array_equal(blocked, whole)
+    monkeypatch.setattr(defects, "SUPPORT_BLOCK", block)
+    for sign in (1.0, -1.0):
+        value = sign * samples.deviation_mm
+        whole = np.flatnonzero((value > sc.threshold) & _whole_supported(samples, value, sc))
+        blocked = defects._supported_beyond(samples, sign, sc)
+        assert np.array_equal(blocked, whole)
     where = np.argsort(order)  # the shuffled position of each original sample
-    assert not blocked[where[spikes]].any() and blocked[where[bump.ravel()]].all()
+    got = np.zeros(arc.size, bool)
+    got[defects._supported_beyond(samples, 1.0, sc)] = True
+    assert not got[where[spikes]].any() and got[where[bump.ravel()]].all()
+    # Across arc 0 only a run of one ring's first and last samples are neighbours.
+    assert got[where[seam.ravel()]].all() if rings == 1 else not got[where[seam.ravel()]].any()

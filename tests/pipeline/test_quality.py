@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from omnipipe.analysis.feature_types import Joint, Ovality
@@ -216,3 +217,26 @@ def test_a_measured_run_on_a_wall_without_texture_warns() -> None:
     bridged = SimpleNamespace(step_checks=[step(39, "odometry"), step(42)], stationary=moving)
     assert weak_texture_warnings(bridged) == []
     assert weak_texture_warnings(SimpleNamespace(step_checks=[], stationary=moving)) == []
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_station_axial_from_each_stations_points_equals_the_whole_run_sort(shuffled: bool) -> None:
+    """Stations of 1-300 points (some without any), in ring order as a run's or shuffled:
+    each station's median equals the whole-run stable sort and split's; NaN without points."""
+    from omnipipe.pipeline.quality import station_axial_mm
+
+    rng = np.random.default_rng(5)
+    station = np.repeat(np.arange(0, 60, 2), rng.integers(1, 300, 30))
+    axial = 3.0 * station + rng.normal(0.0, 1.0, len(station))
+    if shuffled:
+        order = rng.permutation(len(station))
+        station, axial = station[order], axial[order]
+    expected = np.full(61, np.nan)
+    order = np.argsort(station, kind="stable")
+    ids, starts = np.unique(station[order], return_index=True)
+    for k, chunk in zip(ids, np.split(axial[order], starts[1:]), strict=True):
+        expected[k] = np.median(chunk)
+    got = station_axial_mm(axial, station, 61)
+    assert np.array_equal(got, expected, equal_nan=True)
+    assert np.isnan(got[1::2]).all() and np.isnan(got[60])
+    assert np.all(np.abs(got[0:60:2] - 3.0 * np.arange(0, 60, 2)) < 2.0)

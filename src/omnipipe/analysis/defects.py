@@ -647,14 +647,8 @@ def _clusters(
 ) -> Iterator[np.ndarray]:
     """Sample indices of each candidate of one sign (-1: bulges, +1: dents): connected
     groups of supported samples beyond the threshold, at least ``min_points`` strong."""
-    dev, arc, sigma, circ = (
-        samples.deviation_mm,
-        samples.arc_mm,
-        samples.sigma_mm,
-        samples.circumference_mm,
-    )
-    value = sign * dev
-    cand = np.flatnonzero((value > sc.threshold) & _supported(samples, value, sc))
+    arc, sigma, circ = samples.arc_mm, samples.sigma_mm, samples.circumference_mm
+    cand = _supported_beyond(samples, sign, sc)
     if len(cand) < min_points:
         return
     ds, du = sc.ds, sc.du
@@ -805,30 +799,48 @@ def _mid_run_reason(
     return None
 
 
-def _supported(samples: WallSamples, value: np.ndarray, sc: _Scales) -> np.ndarray:
-    """(N,) bool: a neighbour on the sample's ring (within about 2.5 sample spacings) is at
-    least half the threshold out. A lone sample beyond the threshold without one is an
-    extraction outlier (a blurred peak where the ring runs steeply), not wall. Taken
-    :data:`SUPPORT_BLOCK` samples at a time (the temporaries a block's, not the run's)."""
-    arc, circ, ring = samples.arc_mm, samples.circumference_mm, samples.ring
-    # Neighbours along each ring (sorted by ring, then arc).
+def _supported_beyond(samples: WallSamples, sign: float, sc: _Scales) -> np.ndarray:
+    """Ascending indices of the samples beyond the threshold (``sign`` x deviation, -1:
+    bulges, +1: dents) with a neighbour on their ring (within about 2.5 sample spacings)
+    at least half the threshold out. A lone sample beyond the threshold without one is
+    an extraction outlier (a blurred peak where the ring runs steeply), not wall. Taken
+    about :data:`SUPPORT_BLOCK` samples (whole rings) at a time: the temporaries a
+    block's, not the run's (:meth:`.ring_spans.RingSpans.blocks`)."""
+    spans = RingSpans(samples.ring)
+    out = []
+    for sel in spans.blocks(SUPPORT_BLOCK):
+        value = sign * samples.deviation_mm[sel]
+        arc, ring = samples.arc_mm[sel], samples.ring[sel]
+        whole = len(value) == len(samples.ring)  # one block: the neighbours wrap (a run of one ring)
+        hit = np.flatnonzero((value > sc.threshold) & _supported(arc, ring, value, samples.circumference_mm, sc, whole))
+        out.append(hit + sel.start if isinstance(sel, slice) else sel[hit])
+    cand = np.concatenate(out) if out else np.zeros(0, np.intp)
+    return cand if spans.order is None else np.sort(cand)
+
+
+def _supported(
+    arc: np.ndarray, ring: np.ndarray, value: np.ndarray, circ: float, sc: _Scales, wrap: bool
+) -> np.ndarray:
+    """(M,) bool for M samples of whole rings (``arc`` mm, ``ring``, ``value`` the signed
+    deviation): the sample's neighbour before or after it along its ring (sorted by ring,
+    then arc) lies within about 2.5 sample spacings and is at least half the threshold
+    out. ``wrap``: the first and last samples are neighbours too (the whole run)."""
     order = np.lexsort((arc, ring))
-    n = len(order)
     near_gap = 2.5 * sc.du / 3.0  # about 2.5 sample spacings along the ring
     supported = np.zeros(len(value), bool)
-    for a in range(0, n, SUPPORT_BLOCK):
-        pos = np.arange(a, min(a + SUPPORT_BLOCK, n))
-        here = order[pos]
-        for nb in (order[(pos - 1) % n], order[(pos + 1) % n]):  # the one before and after, cyclic
-            close = (ring[nb] == ring[here]) & (
-                np.abs((arc[nb] - arc[here] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap
-            )
-            supported[here] |= close & (value[nb] > 0.5 * sc.threshold)
+    for shift in (1, -1):  # the one before and after
+        nb = np.roll(order, shift)
+        close = (ring[nb] == ring[order]) & (
+            np.abs((arc[nb] - arc[order] + 0.5 * circ) % circ - 0.5 * circ) <= near_gap
+        )
+        if not wrap and len(order):
+            close[0 if shift == 1 else -1] = False  # its neighbour lies in another block's ring
+        supported[order] |= close & (value[nb] > 0.5 * sc.threshold)
     return supported
 
 
 SUPPORT_BLOCK = 1 << 16
-"""Samples per block of :func:`_supported`."""
+"""Samples (whole rings) per block of :func:`_supported_beyond`."""
 
 
 def _merge_overlapping(

@@ -49,7 +49,10 @@ from omnipipe.analysis.openings import (
     ring_axial,
     ring_points,
 )
+from omnipipe.analysis.ring_spans import BLOCK as POINT_BLOCK
 from omnipipe.analysis.ring_spans import RingSpans, ring_ids
+from omnipipe.analysis.sample_arcs import SampleArcs, within_ellipses
+from omnipipe.spill import ScratchWriter, on_disk
 
 
 @dataclass(frozen=True)
@@ -93,7 +96,12 @@ def find_features(
     the nominal wall radius (mm)."""
     rings = ring_ids(frame)  # np.unique's, without a sorted copy of a ring-ordered frame
     dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings)
-    ring_of = np.searchsorted(rings, frame)
+    # Each point's deviation and ring in the run's scratch (read when needed, :mod:`omnipipe.spill`).
+    dev = on_disk(dev)
+    writer = ScratchWriter(len(frame), np.intp)
+    for a in range(0, len(frame), POINT_BLOCK):
+        writer.write(np.searchsorted(rings, frame[a : a + POINT_BLOCK]))
+    ring_of = writer.array()
     # The wall's noise without the rings raised together in a block (a wide gap crossed
     # by tilted rings: each ring's wall samples stand off its neighbours' level by the
     # gap's share of its circumference, a large share of the run's samples).
@@ -478,24 +486,28 @@ _GAP_BLOCK = 1 << 16
 
 
 def _chords(
-    sigma: np.ndarray, u: np.ndarray, frame: np.ndarray, members: np.ndarray, sample: float, radius: float
+    sigma: np.ndarray, u: SampleArcs, spans: RingSpans, members: np.ndarray, sample: float, radius: float
 ) -> np.ndarray:
     """(M, 4) per ring crossing the hole: axial position, chord centre and half-width
     (arc mm; half a sample added: the edges lie between samples), ring index. The axial
     position is the ring's own at the chord's centre (:func:`.openings.ring_axial`), not its deep
     samples': those lie out in the branch, where the pipe coordinates of a ring tilted
     to the axis, or of a centreline through a bend, stray along the axis by their depth
-    (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm)."""
+    (random-features-small seed 1, a 132 mm branch in an elbow: 20-80 mm). ``u``: the
+    samples' arcs about the hole; ``spans``: where the members' rings lie (each ring's
+    samples read on their own)."""
     rows = []
-    for k in np.unique(frame[members]):
-        m = members[frame[members] == k]
+    ring = spans.frame[members]
+    for k in np.unique(ring):
+        m = members[ring == k]
         if len(m) < 2:
             continue
-        c = 0.5 * (u[m].max() + u[m].min())
-        on = np.flatnonzero(frame == k)
+        um = u[m]
+        c = 0.5 * (um.max() + um.min())
+        on = spans.indices(int(np.searchsorted(spans.rings, k)))
         wall = on[~np.isin(on, m)]
         z = ring_axial(sigma[wall], u[wall] / radius, c / radius) if len(wall) >= 8 else float(np.median(sigma[m]))
-        rows.append((z, c, 0.5 * (u[m].max() - u[m].min()) + 0.5 * sample, float(k)))
+        rows.append((z, c, 0.5 * (um.max() - um.min()) + 0.5 * sample, float(k)))
     return np.array(rows).reshape(-1, 4)
 
 
@@ -540,14 +552,15 @@ def _lateral(
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
-    u = ((theta - th0 + np.pi) % (2 * np.pi) - np.pi) * radius
+    u = SampleArcs(theta, th0, radius)  # each sample's arc about th0, made where read
     rings = np.unique(np.concatenate([frame[members], [g.ring for g in gaps]]).astype(int))
+    spans = RingSpans(frame, rings)  # the hole's rings' samples, a ring at a time
     steps = []
-    for k in rings:
-        d_u = np.diff(np.sort(u[frame == k]))
+    for i in range(len(spans)):
+        d_u = np.diff(np.sort(u[spans.indices(i)]))
         steps.append(float(np.median(d_u[d_u > 0])) if (d_u > 0).any() else 1.0)
     sample = float(np.median(steps))
-    ch = _merged_chords(_chords(sigma, u, frame, members, sample, radius), _gap_chords(gaps, th0, radius))
+    ch = _merged_chords(_chords(sigma, u, spans, members, sample, radius), _gap_chords(gaps, th0, radius))
     ch = _main_block(ch, max(3.0 * spacing, 10.0))
     zc, uc, b, a = _ellipse(ch[:, :3])
     est = [(zc, uc, b)]
@@ -562,7 +575,7 @@ def _lateral(
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
     planes = _ring_planes(r, thr) if planes is None else planes
-    ext = _extent(r, u - uc, ch, (float(th0 + uc / radius), radius, uc), float(np.max(ch[:, 2])) + sample,
+    ext = _extent(r, u.minus(uc), ch, (float(th0 + uc / radius), radius, uc), float(np.max(ch[:, 2])) + sample,
                   thr, stops, planes)
     reach = (zc - a, zc + a)
     if ext is not None and all(ext.closed):
@@ -584,8 +597,7 @@ def _lateral(
     )
     m = config.margin_mm
     zr, ar = 0.5 * (reach[0] + reach[1]), 0.5 * (reach[1] - reach[0])
-    inside = ((sigma - zc) / (a + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
-    inside |= ((sigma - zr) / (ar + m)) ** 2 + ((u - uc) / (b + m)) ** 2 <= 1.0
+    inside = within_ellipses(sigma, u, [(zc, a + m, uc, b + m), (zr, ar + m, uc, b + m)])
     inside[members] = True
     along, around = ar + m + 3.0 * math.hypot(s_z, s_b), b + m + 3.0 * math.hypot(s_u, s_b)
     zone = FeatureZone(
@@ -608,7 +620,7 @@ def _shorter_than_wide(ext: HoleExtent | None, diameter: float) -> bool:
 
 
 def _extent(
-    r: Rings, u: np.ndarray, ch: np.ndarray, centre: tuple[float, float, float], half: float, thr: float,
+    r: Rings, u: SampleArcs, ch: np.ndarray, centre: tuple[float, float, float], half: float, thr: float,
     stops: Sequence[tuple[float, float]], planes: dict[int, np.ndarray],
 ) -> HoleExtent | None:
     """The hole's reach along the axis (:func:`.openings.hole_extent`) from its chords

@@ -41,6 +41,7 @@ import numpy as np
 
 from omnipipe.analysis.feature_rings import robust_sine_fit
 from omnipipe.analysis.ring_spans import RingIndices, RingSpans
+from omnipipe.analysis.sample_arcs import SampleArcs
 
 
 @dataclass(frozen=True)
@@ -334,7 +335,7 @@ def _disturbed_chord(
 
 def hole_extent(
     ring_z: dict[int, float],
-    u: np.ndarray,
+    u: np.ndarray | SampleArcs,
     dev: np.ndarray,
     frame: np.ndarray,
     inside: set[int],

@@ -82,6 +82,18 @@ class RingSpans:
         a, b = int(self.start[i]), int(self.stop[i])
         return np.arange(a, b, dtype=np.intp) if self.order is None else self.order[a:b]
 
+    def blocks(self, size: int) -> Iterator[slice | np.ndarray]:
+        """The points of consecutive whole rings, about ``size`` at a time (a ring of more
+        than ``size`` points alone): a slice of them when ``frame`` never decreases,
+        else their indices (ring after ring, ascending within each). Made with the
+        default ``rings`` (every ring), they cover every point once, in ring order."""
+        i, n = 0, len(self.rings)
+        while i < n:
+            j = max(int(np.searchsorted(self.stop, self.start[i] + size, side="right")), i + 1)
+            a, b = int(self.start[i]), int(self.stop[j - 1])
+            yield slice(a, b) if self.order is None else self.order[a:b]
+            i = j
+
     def values(self, i: int, a: np.ndarray) -> np.ndarray:
         """(M_i, ...) ``a``'s rows of ring ``rings[i]``'s points, ascending: a view of ``a``
         when ``frame`` never decreases (no copy), else gathered."""

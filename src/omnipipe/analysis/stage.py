@@ -79,7 +79,13 @@ from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
-from omnipipe.spill import ScratchWriter, compressed_on_disk, drop_pages, zeros_on_disk
+from omnipipe.spill import (
+    ScratchWriter,
+    compressed_on_disk,
+    drop_pages,
+    dropping_pages,
+    zeros_on_disk,
+)
 
 
 @dataclass(frozen=True)
@@ -281,6 +287,19 @@ def run(
         ShapeError: malformed inputs.
         ReconstructionError: too few rings to fit the pipe.
     """
+    # The analysis passes over the run's per-point arrays in the scratch (the points, their
+    # pipe coordinates, the defect samples) one after the other: their pages dropped often.
+    with dropping_pages(ANALYSIS_DROP_S):
+        return _run(config, inputs, executor)
+
+
+ANALYSIS_DROP_S = 0.02
+"""Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) within
+:func:`run`: a pass over every point maps its arrays' pages within a fraction of a second."""
+
+
+def _run(config: AnalysisConfig, inputs: AnalysisInputs, executor: Executor | None) -> AnalysisResult:
+    """:func:`run`'s work."""
     pts, frame, poses = _checked(inputs)
     # The run's scratch arrays' pages (the points just written there, among them) are
     # read back when needed, not held resident under the analysis (omnipipe.spill).

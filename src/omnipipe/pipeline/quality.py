@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from omnipipe.analysis.feature_types import Feature, PointFeature, Stretch
+from omnipipe.analysis.ring_spans import RingSpans
 from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
 from omnipipe.sfm import SfmResult
@@ -31,14 +32,14 @@ from omnipipe.sfm.types import ODOMETRY_ONLY
 def station_axial_mm(
     point_axial_mm: np.ndarray, point_station: np.ndarray, n_stations: int
 ) -> np.ndarray:
-    """(K,) axial position (mm) of each station: the median of its ring points' positions."""
+    """(K,) axial position (mm) of each station: the median of its ring points' positions
+    (each station's points read on their own: :class:`omnipipe.analysis.ring_spans.RingSpans`)."""
     out = np.full(n_stations, np.nan)
     if len(point_station) == 0:
         return out
-    order = np.argsort(point_station, kind="stable")
-    ids, starts = np.unique(point_station[order], return_index=True)
-    for k, chunk in zip(ids, np.split(point_axial_mm[order], starts[1:]), strict=True):
-        out[int(k)] = float(np.median(chunk))
+    spans = RingSpans(point_station)
+    for i, k in enumerate(spans.rings):
+        out[int(k)] = float(np.median(spans.values(i, point_axial_mm)))
     return out
 
 

@@ -27,6 +27,7 @@ from omnipipe.sfm.shift_scale import ShiftScale, shift_scale
 from omnipipe.sfm.step_chain import ChainedSteps
 from omnipipe.sfm.step_decide import RunScale
 from omnipipe.sfm.types import Anchor, Keyframes, SfmContext
+from omnipipe.spill import dropping_pages
 
 # Relative 1-sigma both scale sources share, added to every run's: the laser (Eq. 17)
 # and the wall-placed features both rest on the light-section ring and the relative
@@ -98,7 +99,27 @@ class RunLength:
     source: str
 
 
+RUN_LENGTH_DROP_S = 0.02
+"""Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) within
+:func:`run_length`: its passes read every keyframe's features and ring from the scratch
+within a second or two."""
+
+
 def run_length(
+    ctx: SfmContext,
+    world_from_kf: np.ndarray,
+    chain: ChainedSteps,
+    kf: Keyframes,
+    scale: RunScale,
+    readings: dict[int, tuple[float, float]] | None = None,
+) -> RunLength:
+    """:func:`_run_length`, the scratch's pages dropped every :data:`RUN_LENGTH_DROP_S`
+    (the same result)."""
+    with dropping_pages(RUN_LENGTH_DROP_S):
+        return _run_length(ctx, world_from_kf, chain, kf, scale, readings)
+
+
+def _run_length(
     ctx: SfmContext,
     world_from_kf: np.ndarray,
     chain: ChainedSteps,
