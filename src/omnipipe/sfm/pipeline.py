@@ -180,6 +180,8 @@ def _run(
             # Inside a bridged step the frames follow the travel, not the wall points.
             {k: c.bridged_sigma_mm for k, c in enumerate(chain.checks) if c.bridged_from},
         )
+        if kf.flats is not None:
+            kf.flats.close()  # the steps' flat fields (sfm.flat_field): read no more
     if not chain.checks and with_odometry:
         # No keyframe step (a plain wall): the odometry placed the moving frames.
         length = replace(length, source=ODOMETRY_ONLY)
