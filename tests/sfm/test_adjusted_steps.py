@@ -79,7 +79,8 @@ def test_a_step_held_to_the_wall_s_reading_is_not_flagged() -> None:
 def test_the_odometry_confirms_a_move_it_agrees_with() -> None:
     """Features seed 12's case (17 mm steps, odometry with a 2 % slip): the adjustment
     moved two steps off their sources (both 6 % short) to their true length; the
-    odometry, its run-wide ratio removed, lies within 0.3 mm: not flagged. A move the
+    odometry, its run-wide ratio removed, lies within 0.3 mm: resolved, the odometry
+    named in the reason, not flagged. A move the
     odometry does not share (2 mm beyond it, 4 of its sigmas), or a run with too few
     steps to measure its ratio, stays flagged."""
     cfg = ScaleCheckConfig()
@@ -97,6 +98,8 @@ def test_the_odometry_confirms_a_move_it_agrees_with() -> None:
     assert [k for k, c in enumerate(check_adjusted(checks, world, cfg)) if not c.reliable] == [3, 6, 8]
     got = check_adjusted(checks, world, cfg, odometry=odo)
     assert [k for k, c in enumerate(got) if not c.reliable] == [8]
-    assert got[8].reason.startswith(MOVED)
+    assert got[8].reason.startswith(MOVED) and got[8].confidence == "none"
+    assert [got[k].confidence for k in (3, 6)] == ["resolved"] * 2
+    assert all(got[k].reason.startswith(MOVED) and "odometry" in got[k].reason for k in (3, 6))
     few = check_adjusted(checks[:4], _poses(list(adjusted[:4])), cfg, odometry=odo)
     assert [k for k, c in enumerate(few) if not c.reliable] == [3]

@@ -127,10 +127,8 @@ def check_adjusted(
     measured length; a step within :data:`WALL_CONFIRM_SIGMAS` of it, the reading
     itself within :data:`WALL_SOURCE_LOG` of one of the other sources, is not flagged.
 
-    ``odometry``: the robot's travel per step (stated sigmas), an independent witness: a
-    step within ``adjusted_agree_mm`` and :data:`ODOMETRY_CONFIRM_SIGMAS` of it (its
-    run-wide ratio removed, measured over :data:`ADJUSTED_OFFSET_MIN_STEPS` steps or
-    more, else no witness) is not flagged.
+    ``odometry``: the robot's travel per step, an independent witness
+    (:func:`_odometry_confirms`): a step it confirms is ``resolved``, not flagged.
     """
     lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
     ok = [
@@ -164,11 +162,12 @@ def check_adjusted(
         if feature_unit is not None and _feature_confirms(r_feat[j] - m_unit, c, length, config):
             continue
         reason = _moved(devs, length, config)
-        witnessed = _wall_confirms((wall_mm or {}).get(k), length, [length * math.exp(-d) for _, d in devs]) or (
-            odo is not None and _odometry_confirms(odo[0][j], odo[1][k], length, config)
-        )
-        if reason and not witnessed:
-            out[k] = replace(c, confidence="none", reason=f"{MOVED} to {length:.1f} mm, {reason}")
+        if not reason or _wall_confirms((wall_mm or {}).get(k), length, [length * math.exp(-d) for _, d in devs]):
+            continue
+        reason = f"{MOVED} to {length:.1f} mm, {reason}"
+        if odo is not None and _odometry_confirms(odo[0][j], odo[1][k], length, config):
+            reason += f"; the odometry's {length * math.exp(-odo[0][j]):.1f} mm confirms it"
+        out[k] = replace(c, confidence="resolved" if reason.endswith("confirms it") else "none", reason=reason)
     return out
 
 
@@ -247,7 +246,9 @@ def _odometry_witness(
 
 def _odometry_confirms(dev_log: float, sigma_mm: float, length: float, config: ScaleCheckConfig) -> bool:
     """Whether the odometry (``dev_log``: the adjusted ``length`` (mm) over its length in
-    the same units, log; ``sigma_mm`` its stated 1-sigma there) confirms the step."""
+    the same units, log, its run-wide ratio removed, measured over at least
+    :data:`ADJUSTED_OFFSET_MIN_STEPS` steps; ``sigma_mm`` its stated 1-sigma there)
+    confirms the step: within ``adjusted_agree_mm`` and :data:`ODOMETRY_CONFIRM_SIGMAS`."""
     if not (math.isfinite(dev_log) and math.isfinite(sigma_mm) and sigma_mm > 0):
         return False
     gap = abs(length - length * math.exp(-dev_log))
