@@ -100,6 +100,6 @@ def test_the_odometry_confirms_a_move_it_agrees_with() -> None:
     assert [k for k, c in enumerate(got) if not c.reliable] == [8]
     assert got[8].reason.startswith(MOVED) and got[8].confidence == "none"
     assert [got[k].confidence for k in (3, 6)] == ["resolved"] * 2
-    assert all(got[k].reason.startswith(MOVED) and "odometry" in got[k].reason for k in (3, 6))
+    assert all(got[k].reason.startswith(MOVED) and "odometry" in got[k].reason and not got[k].measures_scale for k in (3, 6))
     few = check_adjusted(checks[:4], _poses(list(adjusted[:4])), cfg, odometry=odo)
     assert [k for k, c in enumerate(few) if not c.reliable] == [3]

@@ -24,7 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from omnipipe.sfm.robot_sensors import OdometrySteps
-from omnipipe.sfm.scale_check import ScaleCheckConfig, StepCheck
+from omnipipe.sfm.scale_check import ODOMETRY_WITNESS, ScaleCheckConfig, StepCheck
 from omnipipe.sfm.step_window import gait_agrees
 
 # The reason check_adjusted gives a step it flagged.
@@ -128,7 +128,8 @@ def check_adjusted(
     itself within :data:`WALL_SOURCE_LOG` of one of the other sources, is not flagged.
 
     ``odometry``: the robot's travel per step, an independent witness
-    (:func:`_odometry_confirms`): a step it confirms is ``resolved``, not flagged.
+    (:func:`_odometry_confirms`): a step it confirms is ``resolved`` (not flagged, and
+    not counted for the run's scale: ``StepCheck.measures_scale``).
     """
     lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
     ok = [
@@ -166,8 +167,8 @@ def check_adjusted(
             continue
         reason = f"{MOVED} to {length:.1f} mm, {reason}"
         if odo is not None and _odometry_confirms(odo[0][j], odo[1][k], length, config):
-            reason += f"; the odometry's {length * math.exp(-odo[0][j]):.1f} mm confirms it"
-        out[k] = replace(c, confidence="resolved" if reason.endswith("confirms it") else "none", reason=reason)
+            reason += f"{ODOMETRY_WITNESS} {length * math.exp(-odo[0][j]):.1f} mm"
+        out[k] = replace(c, confidence="resolved" if ODOMETRY_WITNESS in reason else "none", reason=reason)
     return out
 
 
