@@ -127,9 +127,8 @@ def check_adjusted(
     measured length; a step within :data:`WALL_CONFIRM_SIGMAS` of it, the reading
     itself within :data:`WALL_SOURCE_LOG` of one of the other sources, is not flagged.
 
-    ``odometry``: the robot's travel per step, an independent witness
-    (:func:`_odometry_confirms`): a step it confirms is ``resolved`` (not flagged, and
-    not counted for the run's scale: ``StepCheck.measures_scale``).
+    ``odometry``: the robot's travel per step, a witness (:func:`_odometry_confirms`): a
+    step it confirms, unless :func:`confirm_adjusted` may, is ``resolved`` (not for the scale).
     """
     lengths = np.linalg.norm(np.diff(world_from_kf[:, :3, 3], axis=0), axis=1)
     ok = [
@@ -166,7 +165,8 @@ def check_adjusted(
         if not reason or _wall_confirms((wall_mm or {}).get(k), length, [length * math.exp(-d) for _, d in devs]):
             continue
         reason = f"{MOVED} to {length:.1f} mm, {reason}"
-        if odo is not None and _odometry_confirms(odo[0][j], odo[1][k], length, config):
+        later = feature_unit is None and _features_agree(c, length, config)  # confirm_adjusted's
+        if odo is not None and not later and _odometry_confirms(odo[0][j], odo[1][k], length, config):
             reason += f"{ODOMETRY_WITNESS} {length * math.exp(-odo[0][j]):.1f} mm"
         out[k] = replace(c, confidence="resolved" if ODOMETRY_WITNESS in reason else "none", reason=reason)
     return out
