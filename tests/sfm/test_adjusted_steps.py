@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from omnipipe.sfm.adjusted_steps import MOVED, check_adjusted, confirm_adjusted
+from omnipipe.sfm.robot_sensors import OdometrySteps
 from omnipipe.sfm.scale_check import ScaleCheckConfig, StepCheck
 
 
@@ -73,3 +74,32 @@ def test_a_step_held_to_the_wall_s_reading_is_not_flagged() -> None:
     off[3] = (walls[3][0] + 1.5, 0.37)  # the step left the reading by 4 sigma
     flagged = [k for k, c in enumerate(check_adjusted(checks, world, cfg, wall_mm=off)) if not c.reliable]
     assert flagged == [2, 3]
+
+
+def test_the_odometry_confirms_a_move_it_agrees_with() -> None:
+    """Features seed 12's case (17 mm steps, odometry with a 2 % slip): the adjustment
+    moved two steps off their sources (both 6 % short) to their true length; the
+    odometry, its run-wide ratio removed, lies within 0.3 mm: resolved, the odometry
+    named in the reason, not flagged. A move the
+    odometry does not share (2 mm beyond it, 4 of its sigmas), or a run with too few
+    steps to measure its ratio, stays flagged."""
+    cfg = ScaleCheckConfig()
+    rng = np.random.default_rng(12)
+    truth = rng.uniform(15.0, 19.0, 10)
+    measured = truth * (1 + rng.normal(0, 0.003, 10))
+    measured[[3, 6]] = truth[[3, 6]] * 0.94
+    checks = [StepCheck(k, k + 1, v, 0.1, v, 150, v, "high") for k, v in enumerate(measured)]
+    adjusted = truth.copy()
+    adjusted[8] = truth[8] + 2.0  # a move the odometry does not share
+    measured[8] = truth[8]
+    checks[8] = StepCheck(8, 9, truth[8], 0.1, truth[8], 150, truth[8], "high")
+    world = _poses(list(adjusted))
+    odo = OdometrySteps(truth * 1.02 * (1 + rng.normal(0, 0.005, 10)), 0.02 * truth * 1.02 + 0.1, 0.03)
+    assert [k for k, c in enumerate(check_adjusted(checks, world, cfg)) if not c.reliable] == [3, 6, 8]
+    got = check_adjusted(checks, world, cfg, odometry=odo)
+    assert [k for k, c in enumerate(got) if not c.reliable] == [8]
+    assert got[8].reason.startswith(MOVED) and got[8].confidence == "none"
+    assert [got[k].confidence for k in (3, 6)] == ["resolved"] * 2
+    assert all(got[k].reason.startswith(MOVED) and "odometry" in got[k].reason and not got[k].measures_scale for k in (3, 6))
+    few = check_adjusted(checks[:4], _poses(list(adjusted[:4])), cfg, odometry=odo)
+    assert [k for k, c in enumerate(few) if not c.reliable] == [3]

@@ -40,6 +40,7 @@ from omnipipe.sfm.bundle import (
     resect_rays,
     set_priors,
 )
+from omnipipe.sfm.flat_field import FlatFields, as_field, divided
 from omnipipe.sfm.laser_scale import LaserMatches
 from omnipipe.sfm.ring_axis import (
     RING_TRIGGER_SIGMAS,
@@ -366,7 +367,9 @@ def _far_anchors(
 ) -> list[Anchor]:
     """Laser matches from keyframe k to k + 2 .. k + anchor_reach (adjusted relative
     poses), matched in the executor's workers, a bounded number at a time (each task
-    holds two images, or for a local pool their files' paths); in (k, k + j) order.
+    holds two images, or for a local pool their files' paths); in (k, k + j) order. Both
+    images of a pair (a, b) are divided by step a's flat field where the run has one
+    (:mod:`omnipipe.sfm.flat_field`), as the steps' own Eq. 17 readings are.
 
     ``world_from_kf``: (W, 4, 4) the poses of keyframes ``first .. first + W - 1`` (an
     adjustment window; ``kf`` counts from keyframe 0); pairs of two of its first
@@ -388,7 +391,9 @@ def _far_anchors(
     # periodic wall cannot offer the next course.
     w = math.exp(config.scale_check.agree_log)
     # A local pool's workers read the images themselves (the files' paths, not the pixels).
-    gray = kf.grays.ref if shares_files(ctx.executor) else kf.grays.__getitem__
+    shares = shares_files(ctx.executor)
+    gray = kf.grays.ref if shares else kf.grays.__getitem__
+    flats = kf.flats if kf.flats is not None else FlatFields()  # pair (a, b): step a's field
     jobs = (
         (
             gray(first + p.a),
@@ -399,6 +404,7 @@ def _far_anchors(
             p.b_from_a[:3, 3] / p.length,
             config.laser_scale,
             (p.length / w, p.length * w),
+            flats.for_worker(first + p.a, shares),
         )
         for p in pairs
     )
@@ -410,8 +416,14 @@ def _far_anchors(
 
 
 def _laser_job(job: tuple) -> LaserMatches:
-    """Executor task: :func:`omnipipe.sfm.tasks.laser_matches` of one argument tuple."""
-    return laser_matches(*job)
+    """Executor task: :func:`omnipipe.sfm.tasks.laser_matches` of one argument tuple,
+    whose last item is the flat field both images are divided by first (or a reference
+    to its file; None: none, :mod:`omnipipe.sfm.flat_field`)."""
+    *args, flat = job
+    field = as_field(flat)
+    if field is None:
+        return laser_matches(*args)
+    return laser_matches(divided(args[0], field), divided(args[1], field), *args[2:])
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,12 @@ steps' laser points and their matches can reach (the rings' radii widened by
 bricks, corrugations) the median keeps some of the wall's pattern, which the
 smoothing takes out (with the stripe's narrow light); the LEDs' fall-off stays. With
 fewer than :data:`MIN_KEYFRAMES` keyframes there is no field.
+
+Every Eq. 17 reading of a step uses the same field: the step's evidence in a worker,
+the re-match around a chosen length (:func:`omnipipe.sfm.step_decide.laser_around`) and
+the adjustment's far laser anchors (:mod:`omnipipe.sfm.adjust`, a pair (a, b) with step
+a's field). The fields are built once, in the keyframe loop, and kept on disk
+(:class:`FlatFields`); a local pool's workers read them by path.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.sfm.image_store import ImageStore, StoredImage, load_image
 
 # The band reaches this share of the image's longer side (px), plus BAND_PX, beyond
 # the rings' radii: the template's patch and the step's motion in the image.
@@ -61,6 +68,81 @@ class FlatField:
     def apply(self, gray: np.ndarray) -> np.ndarray:
         """(H, W) ``gray`` divided by the field, float32."""
         return np.asarray(gray, np.float32) / self.field
+
+
+def as_field(flat: FlatField | StoredImage | None) -> FlatField | None:
+    """``flat`` as a :class:`FlatField` (a stored field read from its file); None: none."""
+    if flat is None or isinstance(flat, FlatField):
+        return flat
+    return FlatField(np.asarray(load_image(flat), np.float32))
+
+
+def divided(gray: np.ndarray | StoredImage, flat: FlatField | StoredImage | None) -> np.ndarray:
+    """(H, W) ``gray`` (an array or a stored one) as float32, divided by ``flat`` (none:
+    as it is)."""
+    g = np.asarray(load_image(gray), np.float32)
+    field = as_field(flat)
+    return g if field is None else field.apply(g)
+
+
+class FlatFields:
+    """A run's flat fields, on disk, and which one each keyframe step uses.
+
+    Step k's field is the one :class:`FlatWindow` released it with; a keyframe index
+    without one of its own (a lost step, the last keyframe) takes the nearest step's
+    that has one (the lower on a tie). No field at all (too few keyframes, or off):
+    every lookup gives None.
+    """
+
+    def __init__(self) -> None:
+        self._store: ImageStore | None = None
+        self._of_step: dict[int, int] = {}
+        self._steps: np.ndarray = np.zeros(0, int)  # sorted keys of _of_step, rebuilt lazily
+
+    def add(self, field: FlatField) -> int:
+        """Store ``field``; its index."""
+        if self._store is None:
+            self._store = ImageStore()
+        self._store.append(field.field)
+        return len(self._store) - 1
+
+    def stored(self, index: int) -> StoredImage:
+        """Stored field ``index``'s file, for a worker on this file system."""
+        assert self._store is not None, "no field stored"
+        return self._store.ref(index)
+
+    def assign(self, k: int, index: int) -> None:
+        """Step ``k`` uses stored field ``index``."""
+        self._of_step[k] = index
+        self._steps = np.zeros(0, int)
+
+    def _index(self, k: int) -> int | None:
+        if not self._of_step:
+            return None
+        if k in self._of_step:
+            return self._of_step[k]
+        if len(self._steps) != len(self._of_step):
+            self._steps = np.array(sorted(self._of_step), int)
+        near = int(self._steps[np.argmin(np.abs(self._steps - k))])  # argmin: the lower on a tie
+        return self._of_step[near]
+
+    def get(self, k: int) -> FlatField | None:
+        """Keyframe ``k``'s step's field, read from disk (None: no field)."""
+        i = self._index(k)
+        return None if i is None or self._store is None else FlatField(self._store[i])
+
+    def for_worker(self, k: int, shares_files: bool) -> FlatField | StoredImage | None:
+        """Keyframe ``k``'s step's field as sent to a task: a reference to its file for a
+        worker on this file system (``shares_files``), else the field itself."""
+        i = self._index(k)
+        if i is None or self._store is None:
+            return None
+        return self.stored(i) if shares_files else FlatField(self._store[i])
+
+    def close(self) -> None:
+        """Remove the stored fields' files."""
+        if self._store is not None:
+            self._store.close()
 
 
 def flat_field(stack: np.ndarray, band: np.ndarray) -> FlatField | None:
@@ -117,15 +199,21 @@ class FlatWindow:
     shorter run), which hold keyframes k and k + 1. The
     keyframes it uses are a function of k and the run's length only, never of when a
     worker finished. ``size`` 0: no flat field, each step submitted at once.
+
+    Each field built is kept in :attr:`fields` (with the steps it serves) and handed to
+    ``submit`` as a reference to its file when ``shares_files`` (a local pool's workers
+    read it themselves), else as the field.
     """
 
-    def __init__(self, camera: CameraModel, size: int) -> None:
+    def __init__(self, camera: CameraModel, size: int, shares_files: bool = False) -> None:
         self.size = size
+        self.shares_files = shares_files
+        self.fields = FlatFields()
         self.every = max(1, size // 4)
         self.camera = camera
         self._kept: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(size, 1))
         self._n = 0
-        self._waiting: deque[tuple[int, Callable[[FlatField | None], Future], _Later]] = deque()
+        self._waiting: deque[tuple[int, Callable[[FlatField | StoredImage | None], Future], _Later]] = deque()
 
     def add_keyframe(self, gray: np.ndarray, ring_pixels: np.ndarray) -> list[Future]:
         """The next keyframe's (H, W) grey image and its laser ring's (N, 2) pixels
@@ -139,7 +227,7 @@ class FlatWindow:
         self._kept.append((g, np.hypot(px[:, 0] - self.camera.cx, px[:, 1] - self.camera.cy)))
         return self._release(final=False)
 
-    def submit(self, k: int, submit: Callable[[FlatField | None], Future]) -> tuple[_Later, list[Future]]:
+    def submit(self, k: int, submit: Callable[[FlatField | StoredImage | None], Future]) -> tuple[_Later, list[Future]]:
         """Step k's ``submit(flat field)``, now or when its keyframes are known: its
         handle (``.result()``) and the futures submitted by this call."""
         later = _Later()
@@ -162,7 +250,8 @@ class FlatWindow:
 
     def _release(self, final: bool) -> list[Future]:
         out: list[Future] = []
-        field: FlatField | None = None
+        sent: FlatField | StoredImage | None = None
+        index: int | None = None
         built = False
         while self._waiting:
             k, submit, later = self._waiting[0]
@@ -172,7 +261,12 @@ class FlatWindow:
                 break
             if not built:
                 field, built = self.current(), True
+                if field is not None:
+                    index = self.fields.add(field)
+                    sent = self.fields.stored(index) if self.shares_files else field
             self._waiting.popleft()
-            later.future = submit(field)
+            if index is not None:
+                self.fields.assign(k, index)
+            later.future = submit(sent)
             out.append(later.future)
         return out

@@ -228,7 +228,9 @@ class KeyframeLoop:
         # chain waits for them; the workers are often idle then).
         self.extractor.threads = default_workers() if ctx.parallel else 1
         self.grays = grays
-        self._flat = FlatWindow(ctx.camera, ctx.config.laser_scale.flat_field_keyframes)
+        self._flat = FlatWindow(
+            ctx.camera, ctx.config.laser_scale.flat_field_keyframes, shares_files(ctx.executor)
+        )
         self.moved = np.zeros(n, bool)  # filled by moving_frames
         self.keyframe = np.zeros(n, bool)
         self.lost = np.zeros(n, bool)
@@ -455,6 +457,7 @@ class KeyframeLoop:
             self.grays,
             [self._pack.put(rings[f].points_in_rig) for f in self.frames],
             [_evidence_held(self._pack, job.result()) for job in self._jobs],
+            self._flat.fields,
         )
         return Followed(
             keyframes,

@@ -58,6 +58,7 @@ from omnipipe.sfm.path_smooth import smooth_path
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.ring_follow import add_ring_follow
 from omnipipe.sfm.robot_sensors import (
+    OdometrySteps,
     gravity_world,
     odometry_steps,
     rotation_linked,
@@ -162,7 +163,7 @@ def _run(
         release_freed_memory()
         # Step 5: bundle adjustment; steps it moved away from their sources are flagged,
         # and the run's scale is combined with the wall's (one similarity of the run).
-        adjusted, chain, walls = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved)
+        adjusted, chain, walls = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved, odometry)
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale, walls.readings)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))
@@ -180,6 +181,8 @@ def _run(
             # Inside a bridged step the frames follow the travel, not the wall points.
             {k: c.bridged_sigma_mm for k, c in enumerate(chain.checks) if c.bridged_from},
         )
+        if kf.flats is not None:
+            kf.flats.close()  # the steps' flat fields (sfm.flat_field): read no more
     if not chain.checks and with_odometry:
         # No keyframe step (a plain wall): the odometry placed the moving frames.
         length = replace(length, source=ODOMETRY_ONLY)
@@ -237,12 +240,14 @@ def _adjusted_and_checked(
     chain: ChainedSteps,
     scale: RunScale,
     moved: np.ndarray,
+    odometry: OdometrySteps | None = None,
 ) -> tuple[Adjusted, ChainedSteps, WallPriors]:
     """Step 5: the bundle adjustment of the chained keyframes (again with the wall's step
     lengths as priors where it left them: :func:`omnipipe.sfm.step_priors.wall_priors`),
     and the chain's checks with the steps it moved away from their sources flagged (in a
     wall-anchored run, where the feature depths are the anchors, the gait judges such
-    steps too); the wall's readings on the returned poses."""
+    steps too; the robot's ``odometry`` per step, where it has one, confirms moves too);
+    the wall's readings on the returned poses."""
     # A bridged step is held to its estimate (odometry, gait): nothing else measures it.
     bridged = bridged_priors(chain.checks)
     adjusted = adjust_keyframes(
@@ -268,6 +273,7 @@ def _adjusted_and_checked(
         offset if scale.wall_anchored else 1.0,
         None if scale.wall_anchored else offset,
         {p.a: (p.length_mm, p.sigma_mm) for p in walls.priors},
+        odometry,
     )
     if scale.wall_anchored:
         checks = confirm_adjusted(

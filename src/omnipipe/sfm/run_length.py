@@ -248,7 +248,7 @@ def decided_log(
     lengths = np.linalg.norm(np.diff(np.asarray(world_from_kf)[:, :3, 3], axis=0), axis=1)
     logs, weights = [], []
     for k, c in enumerate(checks):
-        if k >= min(len(lengths), len(scales_mm)) or not c.reliable or c.bridged_from:
+        if k >= min(len(lengths), len(scales_mm)) or not c.measures_scale:
             continue
         if not (scales_mm[k] > 0) or lengths[k] <= 1e-9:
             continue

@@ -42,6 +42,10 @@ CONFIDENCE = ("high", "resolved", "low", "none")
 #: consensus peaks ambiguous); the window of steps around it may confirm it
 #: (:func:`omnipipe.sfm.step_window.confirm_by_gait`).
 FEATURE_ONLY = "feature depth scale alone:"
+# How a step's reason says that only the robot's odometry confirmed the length the bundle
+# adjustment moved it to (omnipipe.sfm.adjusted_steps): its own sources missed it, so it
+# adds nothing to the run's scale (StepCheck.measures_scale).
+ODOMETRY_WITNESS = "; the odometry confirms it:"
 #: How the reason of a step resolved to another laser consensus peak begins.
 PEAK_CHOSEN = "laser peak "
 
@@ -164,6 +168,12 @@ class StepCheck:
     def reliable(self) -> bool:
         """True when the step's length rests on agreeing evidence."""
         return self.confidence in ("high", "resolved")
+
+    @property
+    def measures_scale(self) -> bool:
+        """True when the step's own sources may speak for the run's scale: reliable, not
+        bridged, and not trusted on the odometry's word alone (:data:`ODOMETRY_WITNESS`)."""
+        return self.reliable and not self.bridged_from and ODOMETRY_WITNESS not in self.reason
 
     def to_dict(self) -> dict:
         """JSON-ready form (lengths rounded to 0.01 mm)."""
@@ -616,7 +626,7 @@ def wall_scale_correction(
     logs = []
     bend = steady_turn(world_from_kf)
     for k, k1, inl in pair_matches:
-        if k >= len(checks) or not checks[k].reliable or inl is None or len(inl) == 0:
+        if k >= len(checks) or not checks[k].measures_scale or inl is None or len(inl) == 0:
             continue
         b_from_a = np.linalg.inv(world_from_kf[k1]) @ world_from_kf[k]
         length = float(np.linalg.norm(b_from_a[:3, 3]))

@@ -140,7 +140,7 @@ def _candidate_steps(
     n = min(len(checks), len(world_from_kf) - 1, len(kf.evidence))
     for k in range(n):
         c = checks[k]
-        if not c.reliable or c.bridged_from or kf.evidence[k].status != "ok":
+        if not c.measures_scale or kf.evidence[k].status != "ok":
             continue
         b_from_a = np.linalg.inv(world_from_kf[k + 1]) @ world_from_kf[k]
         length = float(np.linalg.norm(b_from_a[:3, 3]))

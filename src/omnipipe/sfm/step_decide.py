@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from omnipipe.sfm.flat_field import divided
 from omnipipe.sfm.laser_scale import LaserMatches, match_laser_points
 from omnipipe.sfm.scale_check import FEATURE_ONLY, ScaleCheckConfig, StepCheck, decide
 from omnipipe.sfm.types import Keyframes, SfmContext, StepEvidence
@@ -179,12 +180,14 @@ def _unmeasured_step(ev: StepEvidence) -> DecidedStep:
 
 def laser_around(ctx: SfmContext, kf: Keyframes, k: int, length_mm: float) -> LaserMatches:
     """Step k's laser points matched again (Eq. 17), searched only within
-    ``scale_check.agree_log`` of ``length_mm``."""
+    ``scale_check.agree_log`` of ``length_mm``; both images divided by the step's flat
+    field where the run has one (:mod:`omnipipe.sfm.flat_field`), as its evidence was."""
     ev, config = kf.evidence[k], ctx.config
     w = math.exp(config.scale_check.agree_log)
+    field = kf.flats.get(k) if kf.flats is not None else None
     return match_laser_points(
-        kf.grays[k].astype(np.float32),
-        kf.grays[k + 1].astype(np.float32),
+        divided(kf.grays[k], field),
+        divided(kf.grays[k + 1], field),
         ctx.camera,
         kf.ring_points[k],
         ev.b_from_a[:3, :3],

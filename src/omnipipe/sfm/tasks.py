@@ -39,7 +39,7 @@ from omnipipe.sfm.features import (
     FrameViews,
     match_features,
 )
-from omnipipe.sfm.flat_field import FlatField
+from omnipipe.sfm.flat_field import FlatField, as_field, divided
 from omnipipe.sfm.image_store import StoredImage, load_image
 from omnipipe.sfm.laser_scale import (
     LaserMatches,
@@ -241,7 +241,7 @@ def step_evidence(
     rays_b: np.ndarray,
     laser_scale: LaserScaleConfig,
     scale_check: ScaleCheckConfig,
-    flat: FlatField | None = None,
+    flat: FlatField | StoredImage | None = None,
 ) -> StepScales:
     """Both scale measurements of one keyframe step a -> b.
 
@@ -254,7 +254,7 @@ def step_evidence(
             rig_b_from_rig_a from the relative motion (Eq. 10-16).
         rays_a, rays_b: (M, 2 x 3) the inlier matches' unit rays in rigs a and b.
         flat: the rig-fixed illumination both images are divided by before Eq. 17
-            (:mod:`omnipipe.sfm.flat_field`); None: as they are.
+            (:mod:`omnipipe.sfm.flat_field`; or a reference to its file); None: as they are.
 
     Returns:
         the laser's template matches (Eq. 17), each match's feature-depth log length,
@@ -267,9 +267,8 @@ def step_evidence(
     s_feat, n_feat = feature_scale(log_s, scale_check)
     # The laser searched first near the feature-depth length (the full range when that
     # answer is weak or there is none): the decision needs only where the two agree.
-    ga, gb = (np.asarray(load_image(g), np.float32) for g in (gray_a, gray_b))
-    if flat is not None:
-        ga, gb = flat.apply(ga), flat.apply(gb)
+    field = as_field(flat)  # read once for both images
+    ga, gb = (divided(g, field) for g in (gray_a, gray_b))
     lm, _ = match_laser_points_near(
         ga, gb, camera, laser_points_a, b_from_a_rotation, b_from_a_direction, laser_scale,
         s_feat, scale_check.agree_log,

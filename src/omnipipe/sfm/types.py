@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
     from omnipipe.inputs.sensors import Imu, Odometry
     from omnipipe.laser import LaserResult
+    from omnipipe.sfm.flat_field import FlatFields
 
 
 @dataclass(frozen=True)
@@ -361,6 +362,8 @@ class Keyframes:
             template matching of Eq. 17 reads them).
         ring_points: per keyframe, (N_k, 3) its laser-ring points in its rig, mm.
         evidence: (K-1,) each step's evidence, in order.
+        flats: the flat fields the steps' Eq. 17 readings divide by
+            (:mod:`omnipipe.sfm.flat_field`); None or empty: none.
     """
 
     frames: list[int]
@@ -368,6 +371,7 @@ class Keyframes:
     grays: ImageStore
     ring_points: list[np.ndarray]
     evidence: list[StepEvidence]
+    flats: FlatFields | None = None
 
 
 @dataclass(frozen=True)
