@@ -105,21 +105,8 @@ RUN_LENGTH_DROP_S = 0.02
 within a second or two."""
 
 
+@dropping_pages(RUN_LENGTH_DROP_S)  # the scratch's pages dropped while it reads (the same result)
 def run_length(
-    ctx: SfmContext,
-    world_from_kf: np.ndarray,
-    chain: ChainedSteps,
-    kf: Keyframes,
-    scale: RunScale,
-    readings: dict[int, tuple[float, float]] | None = None,
-) -> RunLength:
-    """:func:`_run_length`, the scratch's pages dropped every :data:`RUN_LENGTH_DROP_S`
-    (the same result)."""
-    with dropping_pages(RUN_LENGTH_DROP_S):
-        return _run_length(ctx, world_from_kf, chain, kf, scale, readings)
-
-
-def _run_length(
     ctx: SfmContext,
     world_from_kf: np.ndarray,
     chain: ChainedSteps,
