@@ -156,3 +156,20 @@ def test_sparse_rings_place_the_hole_ends_by_their_last_chords() -> None:
         # Without the chords: halfway between the rings.
         mid = hole_extent(ring_z, u, dev, fr, set(chords), 22.0, 1.0, [])
         assert mid is not None and abs(mid.lo_mm - 5.0 * round((centre - 20.0) / 5.0)) <= 5.0
+
+
+def test_a_wider_dark_band_past_the_rim_is_not_the_hole() -> None:
+    """Rings past the rim that lost a stretch wider than the hole's last chord (18 mm
+    either side on the rings at 125-150 mm; the hole's last ring, at 120 mm, lost 9.7
+    with its branch wall lit) with no stray samples lost their light to something else:
+    the growth ends at the rim, though a ring beyond them (155 mm) shows stray samples.
+    A band no wider than the hole's last chord counts (the rim seen beyond it)."""
+    from omnipipe.analysis.openings import hole_extent
+
+    for seed in range(3):
+        for band, hi in ((18.0, 122.5), (8.0, 152.5)):
+            ring_z, u, dev, fr, _ = _holed_rings(seed, 8, stray_z=(80.0, 155.0), lost_deep=True)
+            z = np.array([ring_z[k] for k in fr])
+            dark = (z >= 125.0) & (z <= 150.0) & (np.abs(u) < band)
+            ext = hole_extent(ring_z, u[~dark], dev[~dark], fr[~dark], {20}, 22.0, 1.0, [])
+            assert ext is not None and abs(ext.lo_mm - 82.5) < 1e-6 and abs(ext.hi_mm - hi) < 1e-6
