@@ -12,7 +12,7 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.model import mesh_unrolled
 from omnipipe.model._kernels import faces_by_row, rasterise_faces
-from omnipipe.model.mesh import longest_edges, orient_towards_axis
+from omnipipe.model.mesh import longest_edge, longest_edges, orient_towards_axis
 from omnipipe.model.texture_grid import MeshGrid, WallGrid, rows_of_faces
 from omnipipe.spill import is_on_disk
 
@@ -140,6 +140,20 @@ def test_points_within_a_window_read_by_blocks_are_the_whole_scan(order: str) ->
                 ref = np.flatnonzero((z >= lo) & (z <= hi))
             got = _within(z, bounds, block, lo, hi)
             assert got.dtype == ref.dtype and np.array_equal(got, ref)
+
+
+def test_the_longest_edge_a_chunk_at_a_time_is_the_whole_maximum(monkeypatch) -> None:
+    """The texture's gap from the mesh's longest edge, a chunk of triangles at a time:
+    the whole-run maximum, bit for bit, with chunks of 1, 7 and all triangles."""
+    import omnipipe.model.mesh as mesh
+
+    arc, axial = _rings(30, 40, seed=2)
+    pts = _tube(arc, axial) + np.random.default_rng(3).normal(0.0, 0.2, (len(arc), 3))
+    faces = _mesh(arc, axial, pts, RING_CIRC)
+    ref = float(longest_edges(pts, faces).max())
+    for chunk in (1, 7, 1 << 16):
+        monkeypatch.setattr(mesh, "FACE_CHUNK", chunk)
+        assert longest_edge(pts, faces) == ref
 
 
 def _both(arc, axial, pts, circ, mm, gap, hole=None, chunk=None):
