@@ -12,8 +12,9 @@ from threadpoolctl import threadpool_limits
 
 from omnipipe.model import mesh_unrolled
 from omnipipe.model._kernels import faces_by_row, rasterise_faces
-from omnipipe.model.mesh import longest_edges, orient_towards_axis
-from omnipipe.model.texture_grid import MeshGrid, WallGrid
+from omnipipe.model.mesh import longest_edge, longest_edges, orient_towards_axis
+from omnipipe.model.texture_grid import MeshGrid, WallGrid, rows_of_faces
+from omnipipe.spill import is_on_disk
 
 RING_CIRC = 2 * np.pi * 20.0  # test_chunks' tube
 
@@ -99,6 +100,60 @@ def test_faces_by_row_orders_every_triangle_by_its_first_row() -> None:
     for r in (0, h // 3, h - 1):
         assert np.array_equal(np.sort(order[start[r] : start[r + 1]]), np.flatnonzero(first == r))
     assert span == int((last - first).max()) + 1
+
+
+@pytest.mark.parametrize("block", [1, 7, 500, 1 << 16])
+def test_rows_of_faces_a_block_at_a_time_is_faces_by_row(block: int) -> None:
+    """The blocked counting sort (the texture's MeshGrid) against the whole-run kernel on
+    seeded rings, the triangles shuffled (rows in no order): the same order, starts and
+    span, bit for bit, the order in the run's scratch."""
+    arc, axial = _rings(30, 40, seed=3)
+    faces = _mesh(arc, axial, _tube(arc, axial), RING_CIRC)
+    faces = faces[np.random.default_rng(5).permutation(len(faces))]
+    z0, mm = float(np.floor(axial.min())), 0.5
+    h = int(np.ceil((axial.max() - z0) / mm)) + 1
+    order, start, span = faces_by_row(faces, axial, z0, mm, h)
+    got = rows_of_faces(faces, axial, z0, mm, h, block=block)
+    assert got[0].dtype == order.dtype and is_on_disk(got[0])
+    assert np.array_equal(got[0], order) and np.array_equal(got[1], start) and got[2] == span
+    none = rows_of_faces(faces[:0], axial, z0, mm, h, block=block)
+    assert len(none[0]) == 0 and not none[1].any() and none[2] == 0
+
+
+@pytest.mark.parametrize("order", ["rings", "shuffled"])
+def test_points_within_a_window_read_by_blocks_are_the_whole_scan(order: str) -> None:
+    """MeshGrid's points near a strip, found from blocks' bounds: the same indices, in
+    the same order, as the whole-run comparison, for rings in order and shuffled, with
+    NaN values and windows at the ends, in the middle and outside."""
+    from omnipipe.model.texture_grid import _block_bounds, _within
+
+    rng = np.random.default_rng(7)
+    z = np.repeat(np.arange(300.0) * 0.8, 37) + rng.normal(0.0, 0.3, 300 * 37)
+    if order == "shuffled":
+        z = z[rng.permutation(len(z))]
+    z[rng.choice(len(z), 50, replace=False)] = np.nan
+    z[:100] = np.nan  # a block of NaN only
+    for block in (1, 64, 4096, 1 << 20):
+        bounds = _block_bounds(z, block)
+        for lo, hi in ((-5.0, 3.0), (100.2, 131.7), (230.0, 250.0), (400.0, 500.0), (-1e9, 1e9)):
+            with np.errstate(invalid="ignore"):
+                ref = np.flatnonzero((z >= lo) & (z <= hi))
+            got = _within(z, bounds, block, lo, hi)
+            assert got.dtype == ref.dtype and np.array_equal(got, ref)
+
+
+def test_the_longest_edge_a_chunk_at_a_time_is_the_whole_maximum(monkeypatch) -> None:
+    """The texture's gap from the mesh's longest edge, a chunk of triangles at a time:
+    the whole-run maximum, bit for bit, with chunks of 1, 7 and all triangles."""
+    import omnipipe.model.mesh as mesh
+
+    arc, axial = _rings(30, 40, seed=2)
+    pts = _tube(arc, axial) + np.random.default_rng(3).normal(0.0, 0.2, (len(arc), 3))
+    faces = _mesh(arc, axial, pts, RING_CIRC)
+    ref = float(longest_edges(pts, faces).max())
+    for chunk in (1, 7, 1 << 16):
+        monkeypatch.setattr(mesh, "FACE_CHUNK", chunk)
+        assert longest_edge(pts, faces) == ref
 
 
 def _both(arc, axial, pts, circ, mm, gap, hole=None, chunk=None):

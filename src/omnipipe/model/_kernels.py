@@ -290,6 +290,35 @@ def faces_by_row(faces, axial, z0, mm_per_px, height):  # pragma: no cover - com
 
 
 @numba.njit(cache=True, error_model="numpy")
+def face_first_rows(faces, axial, z0, mm_per_px, height):  # pragma: no cover - compiled
+    """(F,) int64 the first grid row each of the (F, 3) triangles may cover and the most
+    rows one of them spans: :func:`faces_by_row`'s rows, the same arithmetic (a block
+    of a long run's triangles at a time: ``omnipipe.model.texture_grid.rows_of_faces``)."""
+    n = len(faces)
+    first = np.empty(n, np.int64)
+    span = 0
+    for f in range(n):
+        lo = min(axial[faces[f, 0]], axial[faces[f, 1]], axial[faces[f, 2]])
+        hi = max(axial[faces[f, 0]], axial[faces[f, 1]], axial[faces[f, 2]])
+        r0 = min(max(int(math.floor((lo - z0) / mm_per_px)) - 1, 0), height - 1)
+        r1 = min(max(int(math.ceil((hi - z0) / mm_per_px)) + 1, 0), height - 1)
+        first[f] = r0
+        span = max(span, r1 - r0 + 1)
+    return first, span
+
+
+@numba.njit(cache=True)
+def place_by_row(first, at, order, base):  # pragma: no cover - compiled
+    """Triangle ``base + i`` written at ``order[at[first[i]]]`` for each i in turn,
+    ``at[first[i]]`` then advanced: :func:`faces_by_row`'s counting sort's placing, for a
+    block of triangles numbered from ``base``."""
+    for i in range(len(first)):
+        r = first[i]
+        order[at[r]] = base + i
+        at[r] += 1
+
+
+@numba.njit(cache=True, error_model="numpy")
 def rasterise_faces(
     faces, order, arc, axial, points, circ, z0, mm_per_px, first, max_gap_mm, grid, far
 ):  # pragma: no cover - compiled

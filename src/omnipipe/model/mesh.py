@@ -162,6 +162,15 @@ def mesh_unrolled(
     return faces[longest <= max_edge_factor * float(np.median(longest))]
 
 
+def longest_edge(points_in_world: np.ndarray, faces: np.ndarray) -> float:
+    """The longest edge of the (F, 3) triangles (F > 0), mm: ``longest_edges(...).max()``,
+    a chunk of triangles at a time (no (F,) array of the run's edges)."""
+    return max(
+        float(longest_edges(points_in_world, faces[a : a + FACE_CHUNK]).max())
+        for a in range(0, len(faces), FACE_CHUNK)
+    )
+
+
 def _joined_on_disk(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.concatenate([a, b])`` of two 1-D arrays, made in the run's scratch
     (:func:`~omnipipe.spill.zeros_on_disk`) a chunk at a time (no copy in memory)."""

@@ -41,7 +41,7 @@ from omnipipe.memory import release_freed_memory
 from omnipipe.model.mesh import (
     atlas_margin,
     integrate,
-    longest_edges,
+    longest_edge,
     mesh_unrolled,
     orient_towards_axis,
     textured_mesh,
@@ -390,7 +390,7 @@ def _texture(
     arc, axial, circ = unrolled_at
     # Holes stay holes: a cell counts as wall when it is no farther from a point than
     # the inside of the largest kept triangle (0.6 x its longest edge).
-    longest = float(longest_edges(points, faces).max())
+    longest = longest_edge(points, faces)
     gap = 0.6 * longest
     # The grid is evaluated and scored a strip of rows at a time (never held whole), on
     # the mesh's own triangles: the ones it drops (a lateral's opening, a joint's gap, an

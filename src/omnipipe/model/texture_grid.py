@@ -261,6 +261,44 @@ _COPY_ROWS = 1 << 16
 """Rows :func:`_contiguous_on_disk` copies at a time."""
 
 
+FACE_BLOCK = 1 << 16
+"""Triangles :func:`rows_of_faces` reads at a time."""
+
+
+def rows_of_faces(
+    faces: np.ndarray, axial: np.ndarray, z0: float, mm_per_px: float, height: int,
+    block: int = FACE_BLOCK,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`~omnipipe.model._kernels.faces_by_row` of the (F, 3) ``faces`` (vertex
+    indices into the (N,) ``axial``, mm): ``(order, start, span)``, the same values, with
+    ``order`` in the run's scratch (:func:`~omnipipe.spill.zeros_on_disk`).
+
+    The same counting sort, a block of ``block`` triangles at a time: one pass counts
+    each first row's triangles, a second places them (each block's rows computed again);
+    the scratch's pages are dropped after each block. In memory a block's rows, never the
+    run's (its int64 rows and the order were 12 bytes a triangle, held at once with every
+    triangle's and point's pages: a long run's texture stage peaked there).
+    """
+    from omnipipe.model._kernels import face_first_rows, place_by_row
+
+    n = len(faces)
+    counts = np.zeros(height + 1, np.int64)
+    span = 0
+    for a in range(0, n, block):
+        first, s = face_first_rows(faces[a : a + block], axial, z0, mm_per_px, height)
+        span = max(span, int(s))
+        counts[1:] += np.bincount(first, minlength=height)
+        drop_pages()
+    start = np.cumsum(counts)
+    at = start[:-1].copy()
+    order = zeros_on_disk((n,), faces.dtype)
+    for a in range(0, n, block):
+        first, _ = face_first_rows(faces[a : a + block], axial, z0, mm_per_px, height)
+        place_by_row(first, at, order, a)
+        drop_pages()
+    return order, start, span
+
+
 class MeshGrid:
     """The unrolled grid's wall points interpolated over the wall mesh's own triangles (the
     model stage's: :func:`~omnipipe.model.mesh.mesh_unrolled`, one triangulation for the
@@ -295,8 +333,6 @@ class MeshGrid:
     ) -> None:
         """Order the (F, 3) ``faces`` (vertex indices into the (N,) ``arc_mm``,
         ``axial_mm``, (N, 3) ``points_in_world``; mm) by their rows."""
-        from omnipipe.model._kernels import faces_by_row
-
         circ = float(circumference_mm)
         width = int(np.ceil(circ / mm_per_px))
         z0 = float(np.floor(np.min(axial_mm)))
@@ -310,8 +346,8 @@ class MeshGrid:
             _contiguous_on_disk(a, dt)
             for a, dt in ((faces, None), (arc_mm, float), (axial_mm, float), (points_in_world, float))
         )
-        order, self._start, self._span = faces_by_row(self._faces, self._axial, z0, self._mm, height)
-        self._order = on_disk(order)
+        self._order, self._start, self._span = rows_of_faces(self._faces, self._axial, z0, self._mm, height)
+        self._axial_bounds = _block_bounds(self._axial, NEAR_BLOCK)
 
     def rows(self, first: int, stop: int) -> np.ndarray:
         """(stop - first, W, 3) wall points of rows [first, stop), mm (NaN: no wall)."""
@@ -339,9 +375,7 @@ class MeshGrid:
         rr, cc = np.nonzero(far)
         z = self.axial_min_mm + (first + rr) * self._mm
         u = (cc + 0.5) * (self._circ / self.shape[1])
-        near = np.flatnonzero(
-            (self._axial >= z.min() - self._gap) & (self._axial <= z.max() + self._gap)
-        )
+        near = _within(self._axial, self._axial_bounds, NEAR_BLOCK, z.min() - self._gap, z.max() + self._gap)
         pu, pz = self._arc[near], self._axial[near]
         margin = 0.1 * self._circ
         lo, hi = pu < margin, pu > self._circ - margin
@@ -352,6 +386,33 @@ class MeshGrid:
         dist = cKDTree(uz).query(np.column_stack([u, z]))[0] if len(uz) else np.full(len(u), np.inf)
         out = dist > self._gap
         grid[rr[out], cc[out]] = np.nan
+
+
+NEAR_BLOCK = 1 << 12
+"""Points per block of :class:`MeshGrid`'s axial bounds (:func:`_block_bounds`)."""
+
+
+def _block_bounds(values: np.ndarray, block: int) -> np.ndarray:
+    """(B, 2) NaN-ignoring (min, max) of each block of ``block`` consecutive values of
+    the (N,) ``values`` (NaN: a block of NaN only), read a block at a time."""
+    out = np.empty((-(-len(values) // block), 2))
+    for i, a in enumerate(range(0, len(values), block)):
+        v = np.asarray(values[a : a + block], float)
+        out[i] = np.fmin.reduce(v), np.fmax.reduce(v)
+    drop_pages()
+    return out
+
+
+def _within(values: np.ndarray, bounds: np.ndarray, block: int, lo: float, hi: float) -> np.ndarray:
+    """``np.flatnonzero((values >= lo) & (values <= hi))`` of the (N,) ``values``, reading
+    only the blocks (``bounds``: :func:`_block_bounds`) that can hold one: the points near
+    a strip of the grid, not a pass over the run's (the points come ring after ring)."""
+    hits = np.flatnonzero((bounds[:, 1] >= lo) & (bounds[:, 0] <= hi))
+    parts = []
+    for b in hits.tolist():
+        v = values[b * block : (b + 1) * block]
+        parts.append(b * block + np.flatnonzero((v >= lo) & (v <= hi)))
+    return np.concatenate(parts) if parts else np.zeros(0, np.intp)
 
 
 @dataclass(frozen=True)
