@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from omnipipe.errors import ConfigError, OmnipipeError, one_line
+from omnipipe.errors import ConfigError, DatasetError, OmnipipeError, one_line
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -649,7 +649,8 @@ class FrameSource:
                 return image
         from omnipipe.dataset import read_image
 
-        assert self.paths is not None  # one of paths/arrays is always set by take()
+        if self.paths is None:  # take() always sets one of paths / arrays
+            raise DatasetError(f"frame {int(self.frames[k])}: neither an image nor its path was handed over")
         return read_image(self.paths[k], self.rig)
 
 

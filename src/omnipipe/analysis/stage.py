@@ -276,6 +276,14 @@ class AnalysisResult:
     point_not_wall: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
+ANALYSIS_DROP_S = 0.02
+"""Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) within
+:func:`run`: a pass over every point maps its arrays' pages within a fraction of a second."""
+
+
+# The analysis passes over the run's per-point arrays in the scratch (the points, their
+# pipe coordinates, the defect samples) one after the other: their pages dropped often.
+@dropping_pages(ANALYSIS_DROP_S)
 def run(
     config: AnalysisConfig, inputs: AnalysisInputs, executor: Executor | None = None
 ) -> AnalysisResult:
@@ -287,19 +295,6 @@ def run(
         ShapeError: malformed inputs.
         ReconstructionError: too few rings to fit the pipe.
     """
-    # The analysis passes over the run's per-point arrays in the scratch (the points, their
-    # pipe coordinates, the defect samples) one after the other: their pages dropped often.
-    with dropping_pages(ANALYSIS_DROP_S):
-        return _run(config, inputs, executor)
-
-
-ANALYSIS_DROP_S = 0.02
-"""Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) within
-:func:`run`: a pass over every point maps its arrays' pages within a fraction of a second."""
-
-
-def _run(config: AnalysisConfig, inputs: AnalysisInputs, executor: Executor | None) -> AnalysisResult:
-    """:func:`run`'s work."""
     pts, frame, poses = _checked(inputs)
     # The run's scratch arrays' pages (the points just written there, among them) are
     # read back when needed, not held resident under the analysis (omnipipe.spill).

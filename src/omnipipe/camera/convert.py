@@ -16,6 +16,7 @@ from omnipipe.camera.base import CameraModel
 from omnipipe.camera.factory import camera_from_rig
 from omnipipe.camera.ocam import OcamCamera
 from omnipipe.camera.unified import unified_project
+from omnipipe.errors import ConfigError
 from omnipipe.rig import OcamParams, Rig, UnifiedParams
 
 
@@ -54,7 +55,11 @@ def fit_unified(camera: CameraModel, distortion: bool = False) -> tuple[UnifiedP
         err = float(np.sum((f * m[good] - rho[good]) ** 2) + 1e6 * (~good).sum())
         if best is None or err < best[0]:
             best = (err, xi, f)
-    assert best is not None
+    if best is None:
+        raise ConfigError(
+            "camera: fewer than 10 of its valid pixels' rays fit a unified model at any xi; "
+            "it cannot be converted"
+        )
     n_dist = 4 if distortion else 0
     x0 = np.array([best[1], best[2], best[2], camera.cx, camera.cy] + [0.0] * n_dist)
 
@@ -121,7 +126,7 @@ def rig_in_model(rig: Rig, model: str, **kwargs: object) -> tuple[Rig, float]:
     elif model == "ocam":
         params, cx, cy, rms = fit_ocam(camera, **kwargs)  # type: ignore[arg-type]
     else:
-        raise ValueError(f"unknown target model {model!r}")
+        raise ConfigError(f"unknown target model {model!r}")
     f = 0.5 * (params.fx + params.fy) if model == "unified" else abs(params.polynomial[0])  # type: ignore[union-attr]
     cam = replace(rig.camera, cx=cx, cy=cy, f=float(f))
     return Rig(camera=cam, mirror=None, laser=rig.laser, model=params), rms

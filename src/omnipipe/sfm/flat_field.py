@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from omnipipe.camera import CameraModel
+from omnipipe.errors import ReconstructionError
 from omnipipe.sfm.image_store import ImageStore, StoredImage, load_image
 
 # The band reaches this share of the image's longer side (px), plus BAND_PX, beyond
@@ -108,7 +109,8 @@ class FlatFields:
 
     def stored(self, index: int) -> StoredImage:
         """Stored field ``index``'s file, for a worker on this file system."""
-        assert self._store is not None, "no field stored"
+        if self._store is None:
+            raise ReconstructionError(f"flat field {index} asked for before any was stored")
         return self._store.ref(index)
 
     def assign(self, k: int, index: int) -> None:
@@ -184,7 +186,8 @@ class _Later:
 
     def result(self) -> Any:
         """The worker's result (the step must have been released)."""
-        assert self.future is not None, "a deferred step was never released"
+        if self.future is None:
+            raise ReconstructionError("a flat-fielded step's evidence asked for before it was released")
         return self.future.result()
 
 
