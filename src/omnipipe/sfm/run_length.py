@@ -85,7 +85,9 @@ DECIDED_SIGMA_FLOOR = 0.01
 # (:data:`omnipipe.sfm.scale_check.FEATURE_DEPTH_SIGMA_FLOOR`, the wall model and the
 # relative motion's direction) is one bias over the run's steps, which their matches'
 # spread does not show (random-wide seed 3s, joints: both steps' feature depths 2.0 %
-# short, the run 2.3 % short at 0.77 % stated).
+# short, the run 2.3 % short at 0.77 % stated). Added to the stated sigma only, after the
+# combination: weighing the wall's shift by it moved seed 6 from 0.16 to 0.27 % of scale
+# error (benchmarks/RESULTS.md, feat21).
 FEATURE_ANCHOR_SIGMA = 0.01
 
 
@@ -163,7 +165,10 @@ def run_length(
             applied, sigma = combine_shift(applied, sigma, shift)
             source = f"{source}, and the wall's own shift ({shift.steps} steps)"
     wall_log = math.nan if wall is None else wall[0]
-    sigma = with_bridged(math.hypot(sigma, SHARED_SCALE_SIGMA), chain.checks, chain.scales_mm)
+    sigma = math.hypot(sigma, SHARED_SCALE_SIGMA)
+    if not scale.wall_anchored:  # (a wall-anchored run's sigma carries half the sources' gap)
+        sigma = math.hypot(sigma, FEATURE_ANCHOR_SIGMA * feature_share(chain.anchors, chain.scales_mm))
+    sigma = with_bridged(sigma, chain.checks, chain.scales_mm)
     return RunLength(applied, sigma, wall_log, source)
 
 
@@ -309,7 +314,7 @@ def scale_sigma(
         return stat
     if wall_anchored:
         return math.hypot(stat, 0.001, abs(offset_log) / 2)
-    return math.hypot(stat, abs(offset_log), FEATURE_ANCHOR_SIGMA * feature_share(anchors, scales_mm))
+    return math.hypot(stat, abs(offset_log))
 
 
 def feature_share(anchors: list[Anchor], scales_mm: list[float]) -> float:
