@@ -219,3 +219,32 @@ def test_odometry_contradicts_a_weak_step_beyond_two_sigma_not_a_strong_one() ->
     assert odometry_contradicts(steps, 2, short, weak=True)
     assert not odometry_contradicts(steps, 2, short, weak=False)
     assert not odometry_contradicts(steps, 2, truth[2] * 0.99, weak=True)
+
+
+def test_a_short_run_s_odometry_disagreement_is_said_and_decides_nothing() -> None:
+    """Good vision (0.3 % noise) and an odometry slipping 3 % over runs of 2-4 keyframe
+    steps (too few to calibrate): the ratio over the trusted steps is said within 1 %
+    of the slip, with the odometry's stated sigma, and no "off vision" line, since the
+    slip is within its sigma; vision's lengths are left as they were. An odometry 20 %
+    long (a broken count) gets the second line."""
+    from omnipipe.sfm.robot_sensors import calibrate_odometry, odometry_disagreement, odometry_steps
+
+    for seed in range(6):
+        times, travel, odo = _simulated_odometry(40 + seed, slip=0.03)
+        frames = [0, 9, 18, 27, 36][: 3 + seed % 3]
+        truth = np.diff(travel[frames])
+        rng = np.random.default_rng(seed)
+        vision = truth * (1 + rng.normal(0, 0.003, len(truth)))
+        kept = vision.copy()
+        trusted = np.ones(len(truth), bool)
+        steps = calibrate_odometry(odometry_steps(odo, times, frames), vision, trusted)
+        assert not steps.calibrated
+        lines = odometry_disagreement(steps, vision, trusted, frames)
+        assert np.array_equal(vision, kept)
+        assert len(lines) == 1 and "too few to calibrate" in lines[0], lines
+        said = float(lines[0].split("ratio ")[1].split()[0])
+        true_ratio = steps.length_mm.sum() / truth.sum()
+        assert abs(said - true_ratio) < 0.01
+        broken = replace(steps, length_mm=steps.length_mm * 1.2)
+        lines = odometry_disagreement(broken, vision, trusted, frames)
+        assert len(lines) == 2 and "off vision" in lines[1], lines
