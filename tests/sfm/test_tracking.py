@@ -20,6 +20,7 @@ from omnipipe.sfm.tracking import (
     TrackConfig,
     Tracks,
     corner_features,
+    flow_images,
     spread_order,
     track_features,
 )
@@ -247,6 +248,29 @@ def test_views_on_threads_give_the_serial_features_and_tracks(two_frames) -> Non
     for a, b in ((k1.rays_in_rig, k2.rays_in_rig), (k1.descriptors, k2.descriptors), (k1.view, k2.view),
                  (t1.feature, t2.feature), (t1.features.view_pixels, t2.features.view_pixels)):
         assert np.array_equal(a, b)
+
+
+def test_a_chain_given_the_flow_images_tracks_as_one_that_makes_them(two_frames, monkeypatch) -> None:
+    """The flow images a chain made (their second-try coarse levels too) handed to another
+    chain (``key_images``, ``advance(views, images)``: the workers' ``track_back``) are
+    not made again, and its tracks are the same to the bit."""
+    import omnipipe.sfm.tracking as tracking
+
+    extractor, views_a, views_b, _ = two_frames
+    key = extractor.detect(views_a)
+    config = TrackConfig()
+    made = TrackChain(extractor, views_a, key, config).advance(views_b)
+    images = [flow_images(v, config.highpass_px, config.levels) for v in (views_a, views_b)]
+    for im in images[0] + images[1]:
+        assert im.coarse_band is not None  # as a chain whose tracks took a second try holds them
+    calls = []
+    monkeypatch.setattr(tracking, "flow_images", lambda *a, **k: calls.append(a) or flow_images(*a, **k))
+    given = TrackChain(extractor, views_a, key, config, key_images=images[0]).advance(views_b, images[1])
+    assert calls == []
+    assert len(made.feature) > 100
+    assert np.array_equal(made.feature, given.feature)
+    assert np.array_equal(made.features.view_pixels, given.features.view_pixels)
+    assert np.array_equal(made.features.rays_in_rig, given.features.rays_in_rig)
 
 
 def _true_view_pixels(renderer, extractor, pose_a, pose_b, rays_a, view):

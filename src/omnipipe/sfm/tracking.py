@@ -382,7 +382,8 @@ class TrackChain:
     pair of consecutive frames' views); the tracks lost on the way stay lost.
 
     ``followed``: the indices of the keyframe features to follow (default: at most
-    ``config.max_points``, evenly over the list).
+    ``config.max_points``, evenly over the list). ``key_images``: :func:`flow_images`
+    of ``key_views`` when the caller has them already (the same arrays it would make).
 
     Each flow starts where the track's last step would take it again (constant
     velocity; ``prior``: the chain of the keyframe before, advanced into this
@@ -404,6 +405,7 @@ class TrackChain:
         config: TrackConfig,
         followed: np.ndarray | None = None,
         prior: TrackChain | None = None,
+        key_images: list[FlowImage] | None = None,
     ) -> None:
         if key_features.view_pixels is None:
             raise ShapeError("key_features.view_pixels: missing (features from FeatureExtractor.detect have them)")
@@ -416,6 +418,8 @@ class TrackChain:
         self.view_pixels = np.asarray(key_features.view_pixels, np.float32)[sel].reshape(-1, 2)
         if prior is not None and prior.views is key_views and prior.config == config:
             self.images = prior.images  # the prior chain advanced into these views
+        elif key_images is not None:
+            self.images = key_images
         else:
             self.images = flow_images(key_views, config.highpass_px, config.levels)
         self.views = key_views  # the views the next flow starts from
@@ -424,10 +428,12 @@ class TrackChain:
         if prior is not None:
             self.step = _inherited_steps(prior, self.view, self.view_pixels)
 
-    def advance(self, views: FrameViews) -> Tracks:
+    def advance(self, views: FrameViews, images: list[FlowImage] | None = None) -> Tracks:
         """The tracks followed on into ``views`` (the next frame's), which become the
-        frame the next call starts from."""
-        images = flow_images(views, self.config.highpass_px, self.config.levels)
+        frame the next call starts from; ``images``: their :func:`flow_images` when the
+        caller has them already (None: made here)."""
+        if images is None:
+            images = flow_images(views, self.config.highpass_px, self.config.levels)
         keep = np.zeros(len(self.feature), bool)
         moved = self.view_pixels.copy()
         ks = np.unique(self.view)
