@@ -90,6 +90,9 @@ class TrackConfig:
             share of the view's tracks (0: always, the default; at 0.1 continuous keeps
             its tracks for a quarter less flow, but a robustness seed's step went wrong
             unflagged: benchmarks/RESULTS.md).
+        retry_large_side_px: views whose shorter side is at least this (view px) take
+            ``retry_lost_share_large`` instead of ``retry_lost_share`` (0: never).
+        retry_lost_share_large: ``retry_lost_share`` of such large views.
     """
 
     enabled: bool = True
@@ -109,6 +112,8 @@ class TrackConfig:
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
     retry_lost_share: float = bounded(0.0, ge=0, le=1)
+    retry_large_side_px: int = bounded(300, ge=0)
+    retry_lost_share_large: float = bounded(0.1, ge=0, le=1)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -275,7 +280,8 @@ def _flow(
     v = np.zeros_like(q0) if shift is None else np.ascontiguousarray(shift, np.float32).reshape(-1, 1, 2)
     p1, ok = _checked_flow(a, b, q0, v, config)
     retry = np.flatnonzero(~ok)
-    if len(retry) and len(retry) >= config.retry_lost_share * len(ok) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
+    share = _retry_share(mask.shape, config)
+    if len(retry) and len(retry) >= share * len(ok) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
         p2, ok2 = _checked_flow(a, b, q0[retry], v[retry], config, coarse_highpassed=True)
         p1[retry[ok2]] = p2[ok2]
         ok[retry[ok2]] = True
@@ -285,6 +291,15 @@ def _flow(
     inside = np.zeros(len(p1), bool)
     inside[ok] = mask[row[ok].astype(int), col[ok].astype(int)] > 0
     return p1, ok & inside
+
+
+def _retry_share(shape: tuple[int, ...], config: TrackConfig) -> float:
+    """The share of a view's tracks the first flow must lose for the second try
+    (:func:`_flow`): ``config.retry_lost_share_large`` in a view of ``shape`` (height,
+    width) px whose shorter side is at least ``config.retry_large_side_px`` (> 0), else
+    ``config.retry_lost_share``."""
+    large = config.retry_large_side_px > 0 and min(shape[:2]) >= config.retry_large_side_px
+    return config.retry_lost_share_large if large else config.retry_lost_share
 
 
 def _checked_flow(
