@@ -13,6 +13,7 @@ from omnipipe.sfm.bundle import (
     _select_tracks,
     build_problem,
     bundle_adjust,
+    cross_rows,
     epipolar_rows,
     resect_rays,
 )
@@ -243,3 +244,11 @@ def test_laser_anchors_measured_along_their_curve_do_not_hold_the_search_motion(
     assert abs(errors["along", 1.0] - errors["along", 0.3]) < 0.005, errors
     # A 2-D anchor (a wall-placed feature) keeps both components.
     assert np.all(epipolar_rows(camera, poses, aa, ab, aq, np.zeros(len(aa), bool)) == np.eye(2))
+
+
+def test_cross_rows_is_numpys_cross_to_the_bit() -> None:
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(1000, 3)) * rng.uniform(1e-6, 1e3, (1000, 1))
+    r = rng.normal(size=(1000, 3))
+    got = cross_rows(q, *(np.ascontiguousarray(r[:, i]) for i in range(3)))
+    assert np.array_equal(got, np.cross(q, r))

@@ -342,6 +342,31 @@ def test_a_frame_without_a_ring_reads_the_nearest_frames_wall() -> None:
 
 
 @pytest.mark.slow  # two sfm runs of 20 moving frames at 640x480
+def test_the_frames_followed_back_get_the_chains_flow_images_and_the_same_poses(short_run, monkeypatch) -> None:
+    """The frames followed back are sent with the flow images the frame loop's chain
+    made of them (not made again in the worker): every frame has them, and the run's
+    poses are those of a worker making its own, bit for bit."""
+    from omnipipe.sfm import keyframes
+
+    scenario, _, _, frames, rings = short_run("continuous")  # every frame moves
+    inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
+    track_back = keyframes.track_back
+    given: list[bool] = []
+
+    def own(rig, config, views, features, which, pending, tracking, key_images, images):
+        given.extend([key_images is not None] + [i is not None for i in images])
+        return track_back(rig, config, views, features, which, pending, tracking)
+
+    monkeypatch.setattr(keyframes, "track_back", own)
+    made = sfm_run(SfmConfig(), inputs)
+    monkeypatch.undo()
+    sent = sfm_run(SfmConfig(), inputs)
+    assert given and all(given)
+    assert np.array_equal(made.world_from_rig, sent.world_from_rig)
+    assert np.array_equal(made.registered, sent.registered)
+
+
+@pytest.mark.slow  # two sfm runs of 20 moving frames at 640x480
 def test_following_back_only_the_matched_features_gives_the_poses_of_following_all(short_run, monkeypatch) -> None:
     """The next keyframe's features followed back through the pending frames are only
     those its steps matched (the adjustment's tracks are made of them): fewer features
@@ -354,9 +379,9 @@ def test_following_back_only_the_matched_features_gives_the_poses_of_following_a
     followed: list[int] = []
     track_back = keyframes.track_back
 
-    def counted(rig, config, views, features, which, pending, tracking):
+    def counted(rig, config, views, features, which, pending, tracking, *images):
         followed.append(len(which) * len(pending))
-        return track_back(rig, config, views, features, which, pending, tracking)
+        return track_back(rig, config, views, features, which, pending, tracking, *images)
 
     monkeypatch.setattr(keyframes, "track_back", counted)
     narrowed = sfm_run(SfmConfig(), inputs)

@@ -20,6 +20,7 @@ from omnipipe.sfm.tracking import (
     TrackConfig,
     Tracks,
     corner_features,
+    flow_images,
     spread_order,
     track_features,
 )
@@ -97,7 +98,7 @@ def test_nothing_is_tracked_into_a_blank_frame(two_frames) -> None:
     ("field", "value"),
     [("window_px", 4), ("window_px", 20), ("levels", -1), ("max_forward_backward_px", 0.0),
      ("min_tracks", 7), ("max_points", 3), ("renew_ratio", 1.5), ("retry_lost_share", -0.1),
-     ("retry_lost_share", 1.5)],
+     ("retry_lost_share", 1.5), ("retry_lost_share_large", 1.5), ("retry_large_side_px", -1)],
 )
 def test_bad_settings_name_their_field(field: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"sfm.tracking.{field}"):
@@ -247,6 +248,29 @@ def test_views_on_threads_give_the_serial_features_and_tracks(two_frames) -> Non
     for a, b in ((k1.rays_in_rig, k2.rays_in_rig), (k1.descriptors, k2.descriptors), (k1.view, k2.view),
                  (t1.feature, t2.feature), (t1.features.view_pixels, t2.features.view_pixels)):
         assert np.array_equal(a, b)
+
+
+def test_a_chain_given_the_flow_images_tracks_as_one_that_makes_them(two_frames, monkeypatch) -> None:
+    """The flow images a chain made (their second-try coarse levels too) handed to another
+    chain (``key_images``, ``advance(views, images)``: the workers' ``track_back``) are
+    not made again, and its tracks are the same to the bit."""
+    import omnipipe.sfm.tracking as tracking
+
+    extractor, views_a, views_b, _ = two_frames
+    key = extractor.detect(views_a)
+    config = TrackConfig()
+    made = TrackChain(extractor, views_a, key, config).advance(views_b)
+    images = [flow_images(v, config.highpass_px, config.levels) for v in (views_a, views_b)]
+    for im in images[0] + images[1]:
+        assert im.coarse_band is not None  # as a chain whose tracks took a second try holds them
+    calls = []
+    monkeypatch.setattr(tracking, "flow_images", lambda *a, **k: calls.append(a) or flow_images(*a, **k))
+    given = TrackChain(extractor, views_a, key, config, key_images=images[0]).advance(views_b, images[1])
+    assert calls == []
+    assert len(made.feature) > 100
+    assert np.array_equal(made.feature, given.feature)
+    assert np.array_equal(made.features.view_pixels, given.features.view_pixels)
+    assert np.array_equal(made.features.rays_in_rig, given.features.rays_in_rig)
 
 
 def _true_view_pixels(renderer, extractor, pose_a, pose_b, rays_a, view):
@@ -400,6 +424,35 @@ def test_second_try_only_where_a_view_lost_a_share_of_its_tracks(two_frames, dim
     firsts = [n for second, n in calls if not second]
     seconds = [n for second, n in calls if second]
     assert len(seconds) == len(firsts)  # every view lost at least a tenth
+
+
+def test_large_views_take_their_own_share_for_the_second_try(two_frames) -> None:
+    """Views whose shorter side reaches ``retry_large_side_px`` follow
+    ``retry_lost_share_large``, smaller ones ``retry_lost_share``: the 640x480 views here
+    (131 px) are small by default (every view retried, as with the share 0), large at a
+    100 px bound (as with the share itself)."""
+    from omnipipe.sfm.tracking import _retry_share
+
+    default = TrackConfig()
+    assert _retry_share((335, 484), default) == default.retry_lost_share_large == 0.1
+    assert _retry_share((285, 398), default) == default.retry_lost_share == 0.0
+    assert _retry_share((335, 484), replace(default, retry_large_side_px=0)) == 0.0
+    extractor, views_a, views_b, _ = two_frames
+    assert min(views_a.images[0].shape) < default.retry_large_side_px
+    key = extractor.detect(views_a)
+
+    def tracks(config: TrackConfig) -> Tracks:
+        return track_features(extractor, views_a, key, views_b, config)
+
+    for got, want in (
+        (tracks(default), tracks(TrackConfig(retry_lost_share=0.0, retry_large_side_px=0))),
+        (
+            tracks(TrackConfig(retry_large_side_px=100, retry_lost_share_large=0.25)),
+            tracks(TrackConfig(retry_lost_share=0.25, retry_large_side_px=0)),
+        ),
+    ):
+        assert np.array_equal(got.feature, want.feature)
+        assert np.array_equal(got.features.view_pixels, want.features.view_pixels)
 
 
 def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() -> None:

@@ -57,7 +57,14 @@ from omnipipe.sfm.tasks import (
     track_back,
     verified_matches,
 )
-from omnipipe.sfm.tracking import TrackChain, TrackConfig, Tracks, keyframe_detection, spread_order
+from omnipipe.sfm.tracking import (
+    FlowImage,
+    TrackChain,
+    TrackConfig,
+    Tracks,
+    keyframe_detection,
+    spread_order,
+)
 from omnipipe.sfm.types import (
     KeyframeRays,
     Keyframes,
@@ -143,6 +150,8 @@ class _BackJob:
         views: its views; features: its features (no descriptors).
         followed: (F,) the features within the budget (indices into ``features``).
         pending_views: the pending frames' views, latest first; frames: their indices.
+        key_images, pending_images: the flow images of ``views`` and of each pending
+            frame's views as this process's chain made them (None where it did not).
     """
 
     k: int
@@ -151,6 +160,8 @@ class _BackJob:
     followed: np.ndarray
     pending_views: list[FrameViews]
     frames: list[int]
+    key_images: list[FlowImage] | None = None
+    pending_images: list[list[FlowImage] | None] | None = None
 
 
 @dataclass(frozen=True)
@@ -241,6 +252,8 @@ class KeyframeLoop:
         self.next_matches: dict[int, Future[KeyframeRays]] = {}
         # The tracked pending frames' views, until the next keyframe.
         self._pending_views: dict[int, FrameViews] = {}
+        # Their flow images as the chain made them (sent with the views to be followed back).
+        self._pending_images: dict[int, list[FlowImage]] = {}
         # The pending frames' parallax (rad) from their keyframe, until the next keyframe.
         self._pending_parallax: dict[int, float] = {}
         self._jobs: list[_EvidenceJob] = []
@@ -392,6 +405,7 @@ class KeyframeLoop:
         ratio = self.ctx.config.features.ratio
         for j, p in enumerate(self.pending):
             views = self._pending_views.pop(p.frame, None)
+            self._pending_images.pop(p.frame, None)
             if p.keyframe != k or views is None:
                 continue
             features = self.extractor.detect(views)
@@ -443,6 +457,7 @@ class KeyframeLoop:
             return
         self.pending.pop()
         self._pending_views.pop(frame.frame, None)
+        self._pending_images.pop(frame.frame, None)
         self.tracked[frame.frame] = False
         self.add(frame, closing=True)
 
@@ -495,6 +510,8 @@ class KeyframeLoop:
             followed,
             job.pending_views,
             self.ctx.config.tracking,
+            job.key_images,
+            job.pending_images,
         )
         for f, part in zip(job.frames, _split(whole, len(job.frames)), strict=True):
             self.next_matches[f] = part
@@ -510,6 +527,8 @@ class KeyframeLoop:
         self._pending_parallax[frame.frame] = parallax
         if frame.views is not None:
             self._pending_views[frame.frame] = frame.views
+            if self._chain is not None and self._chain.views is frame.views:
+                self._pending_images[frame.frame] = self._chain.images
 
     def _measure(
         self,
@@ -631,6 +650,8 @@ class KeyframeLoop:
                 fresh[_budget(0, _subset(features, fresh), config.tracking)],
                 [self._pending_views[self.pending[j].frame] for j in back],
                 [self.pending[j].frame for j in back],
+                self._chain.images if self._chain is not None and self._chain.views is frame.views else None,
+                [self._pending_images.get(self.pending[j].frame) for j in back],
             )
         waiting = set(self._back.frames) if self._back is not None else set()
         for j in since:
@@ -643,6 +664,7 @@ class KeyframeLoop:
                 p, features=_held(self._pack, p.features), inliers=self._pack.put(p.inliers)
             )
         self._pending_views.clear()
+        self._pending_images.clear()
         self._pending_parallax.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _held(self._pack, self.features[k_new - 1])

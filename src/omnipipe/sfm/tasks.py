@@ -54,7 +54,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import TrackChain, TrackConfig
+from omnipipe.sfm.tracking import FlowImage, TrackChain, TrackConfig
 from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
@@ -189,14 +189,19 @@ def track_back(
     followed: np.ndarray,
     views: list[FrameViews],
     config: TrackConfig,
+    key_images: list[FlowImage] | None = None,
+    images: list[list[FlowImage] | None] | None = None,
 ) -> list[KeyframeRays]:
     """The keyframe's features ``followed`` (indices) tracked frame by frame into each
     of ``views`` in turn (:class:`omnipipe.sfm.tracking.TrackChain`; the frames before
-    the keyframe, latest first): per frame, the tracked features and their rays."""
-    chain = TrackChain(_extractor(rig, features_config), key_views, key_features, config, followed)
+    the keyframe, latest first): per frame, the tracked features and their rays.
+    ``key_images`` and ``images`` (per frame, None where not given): the views'
+    :func:`~omnipipe.sfm.tracking.flow_images` as the caller's own chain made them (the
+    same arrays, not made again here)."""
+    chain = TrackChain(_extractor(rig, features_config), key_views, key_features, config, followed, key_images=key_images)
     out = []
-    for v in views:
-        tracks = chain.advance(v)
+    for i, v in enumerate(views):
+        tracks = chain.advance(v, None if images is None else images[i])
         out.append(KeyframeRays(tracks.feature, tracks.features.rays_in_rig))
     return out
 

@@ -90,6 +90,9 @@ class TrackConfig:
             share of the view's tracks (0: always, the default; at 0.1 continuous keeps
             its tracks for a quarter less flow, but a robustness seed's step went wrong
             unflagged: benchmarks/RESULTS.md).
+        retry_large_side_px: views whose shorter side is at least this (view px) take
+            ``retry_lost_share_large`` instead of ``retry_lost_share`` (0: never).
+        retry_lost_share_large: ``retry_lost_share`` of such large views.
     """
 
     enabled: bool = True
@@ -109,6 +112,8 @@ class TrackConfig:
     back_below: int = bounded(1_000_000, ge=0)
     back_beyond: float = bounded(0.5, ge=0, le=1)
     retry_lost_share: float = bounded(0.0, ge=0, le=1)
+    retry_large_side_px: int = bounded(300, ge=0)
+    retry_lost_share_large: float = bounded(0.1, ge=0, le=1)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -275,7 +280,8 @@ def _flow(
     v = np.zeros_like(q0) if shift is None else np.ascontiguousarray(shift, np.float32).reshape(-1, 1, 2)
     p1, ok = _checked_flow(a, b, q0, v, config)
     retry = np.flatnonzero(~ok)
-    if len(retry) and len(retry) >= config.retry_lost_share * len(ok) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
+    share = _retry_share(mask.shape, config)
+    if len(retry) and len(retry) >= share * len(ok) and a.band_px > 0 and b.band_px > 0 and a.coarse is not None and b.coarse is not None:
         p2, ok2 = _checked_flow(a, b, q0[retry], v[retry], config, coarse_highpassed=True)
         p1[retry[ok2]] = p2[ok2]
         ok[retry[ok2]] = True
@@ -285,6 +291,15 @@ def _flow(
     inside = np.zeros(len(p1), bool)
     inside[ok] = mask[row[ok].astype(int), col[ok].astype(int)] > 0
     return p1, ok & inside
+
+
+def _retry_share(shape: tuple[int, ...], config: TrackConfig) -> float:
+    """The share of a view's tracks the first flow must lose for the second try
+    (:func:`_flow`): ``config.retry_lost_share_large`` in a view of ``shape`` (height,
+    width) px whose shorter side is at least ``config.retry_large_side_px`` (> 0), else
+    ``config.retry_lost_share``."""
+    large = config.retry_large_side_px > 0 and min(shape[:2]) >= config.retry_large_side_px
+    return config.retry_lost_share_large if large else config.retry_lost_share
 
 
 def _checked_flow(
@@ -382,7 +397,8 @@ class TrackChain:
     pair of consecutive frames' views); the tracks lost on the way stay lost.
 
     ``followed``: the indices of the keyframe features to follow (default: at most
-    ``config.max_points``, evenly over the list).
+    ``config.max_points``, evenly over the list). ``key_images``: :func:`flow_images`
+    of ``key_views`` when the caller has them already (the same arrays it would make).
 
     Each flow starts where the track's last step would take it again (constant
     velocity; ``prior``: the chain of the keyframe before, advanced into this
@@ -404,6 +420,7 @@ class TrackChain:
         config: TrackConfig,
         followed: np.ndarray | None = None,
         prior: TrackChain | None = None,
+        key_images: list[FlowImage] | None = None,
     ) -> None:
         if key_features.view_pixels is None:
             raise ShapeError("key_features.view_pixels: missing (features from FeatureExtractor.detect have them)")
@@ -416,6 +433,8 @@ class TrackChain:
         self.view_pixels = np.asarray(key_features.view_pixels, np.float32)[sel].reshape(-1, 2)
         if prior is not None and prior.views is key_views and prior.config == config:
             self.images = prior.images  # the prior chain advanced into these views
+        elif key_images is not None:
+            self.images = key_images
         else:
             self.images = flow_images(key_views, config.highpass_px, config.levels)
         self.views = key_views  # the views the next flow starts from
@@ -424,10 +443,12 @@ class TrackChain:
         if prior is not None:
             self.step = _inherited_steps(prior, self.view, self.view_pixels)
 
-    def advance(self, views: FrameViews) -> Tracks:
+    def advance(self, views: FrameViews, images: list[FlowImage] | None = None) -> Tracks:
         """The tracks followed on into ``views`` (the next frame's), which become the
-        frame the next call starts from."""
-        images = flow_images(views, self.config.highpass_px, self.config.levels)
+        frame the next call starts from; ``images``: their :func:`flow_images` when the
+        caller has them already (None: made here)."""
+        if images is None:
+            images = flow_images(views, self.config.highpass_px, self.config.levels)
         keep = np.zeros(len(self.feature), bool)
         moved = self.view_pixels.copy()
         ks = np.unique(self.view)
