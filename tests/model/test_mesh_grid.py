@@ -11,7 +11,7 @@ from test_texture_holes import CIRC, _wall_with_features
 from threadpoolctl import threadpool_limits
 
 from omnipipe.model import mesh_unrolled
-from omnipipe.model._kernels import faces_by_row, rasterise_faces
+from omnipipe.model._kernels import rasterise_faces
 from omnipipe.model.mesh import longest_edge, longest_edges, orient_towards_axis
 from omnipipe.model.texture_grid import MeshGrid, WallGrid, rows_of_faces
 from omnipipe.spill import is_on_disk
@@ -85,12 +85,23 @@ def test_the_rasteriser_is_its_cell_by_cell_reference_bit_for_bit() -> None:
     assert np.isfinite(g1).mean() > 0.8 and 0 < f1.sum() < f1.size
 
 
-def test_faces_by_row_orders_every_triangle_by_its_first_row() -> None:
+def faces_by_row(faces, axial, z0, mm, h):
+    """NumPy reference of the texture's row order: each triangle's first row (one early),
+    a stable sort by it, the rows' starts and the most rows a triangle spans."""
+    zf = axial[faces]
+    first = np.clip(np.floor((zf.min(axis=1) - z0) / mm).astype(np.int64) - 1, 0, h - 1)
+    last = np.clip(np.ceil((zf.max(axis=1) - z0) / mm).astype(np.int64) + 1, 0, h - 1)
+    order = np.argsort(first, kind="stable").astype(faces.dtype)
+    start = np.concatenate([[0], np.cumsum(np.bincount(first, minlength=h))])
+    return order, start, int((last - first).max()) + 1 if len(faces) else 0
+
+
+def test_rows_of_faces_orders_every_triangle_by_its_first_row() -> None:
     arc, axial = _rings(30, 40, seed=1)
     faces = _mesh(arc, axial, _tube(arc, axial), RING_CIRC)
     z0, mm = float(np.floor(axial.min())), 0.5
     h = int(np.ceil((axial.max() - z0) / mm)) + 1
-    order, start, span = faces_by_row(faces, axial, z0, mm, h)
+    order, start, span = rows_of_faces(faces, axial, z0, mm, h)
     assert np.array_equal(np.sort(order), np.arange(len(faces)))
     zf = axial[faces]
     first = np.clip(np.floor((zf.min(axis=1) - z0) / mm).astype(int) - 1, 0, h - 1)
@@ -104,7 +115,7 @@ def test_faces_by_row_orders_every_triangle_by_its_first_row() -> None:
 
 @pytest.mark.parametrize("block", [1, 7, 500, 1 << 16])
 def test_rows_of_faces_a_block_at_a_time_is_faces_by_row(block: int) -> None:
-    """The blocked counting sort (the texture's MeshGrid) against the whole-run kernel on
+    """The blocked counting sort (the texture's MeshGrid) against the NumPy reference on
     seeded rings, the triangles shuffled (rows in no order): the same order, starts and
     span, bit for bit, the order in the run's scratch."""
     arc, axial = _rings(30, 40, seed=3)

@@ -259,41 +259,12 @@ def _take_block(
         best_light[i, 1] = math.sqrt((col - centre[0]) ** 2 + (row - centre[1]) ** 2)
 
 
-@numba.njit(cache=True)
-def faces_by_row(faces, axial, z0, mm_per_px, height):  # pragma: no cover - compiled
-    """The (F, 3) triangles (vertex indices into the (N,) ``axial`` positions, mm) in
-    order of the first grid row they may cover (row r at ``z0 + r * mm_per_px``; one
-    row early to spare for rounding): (F,) ``order``, (height + 1,) ``start`` (the
-    triangles of first row r are ``order[start[r]:start[r + 1]]``) and the most rows
-    one triangle spans. A counting sort: linear in triangles and rows."""
-    n = len(faces)
-    first = np.empty(n, np.int64)
-    span = 0
-    for f in range(n):
-        lo = min(axial[faces[f, 0]], axial[faces[f, 1]], axial[faces[f, 2]])
-        hi = max(axial[faces[f, 0]], axial[faces[f, 1]], axial[faces[f, 2]])
-        r0 = min(max(int(math.floor((lo - z0) / mm_per_px)) - 1, 0), height - 1)
-        r1 = min(max(int(math.ceil((hi - z0) / mm_per_px)) + 1, 0), height - 1)
-        first[f] = r0
-        span = max(span, r1 - r0 + 1)
-    start = np.zeros(height + 1, np.int64)
-    for f in range(n):
-        start[first[f] + 1] += 1
-    for r in range(height):
-        start[r + 1] += start[r]
-    at = start[:-1].copy()
-    order = np.empty(n, faces.dtype)
-    for f in range(n):
-        order[at[first[f]]] = f
-        at[first[f]] += 1
-    return order, start, span
-
-
 @numba.njit(cache=True, error_model="numpy")
 def face_first_rows(faces, axial, z0, mm_per_px, height):  # pragma: no cover - compiled
-    """(F,) int64 the first grid row each of the (F, 3) triangles may cover and the most
-    rows one of them spans: :func:`faces_by_row`'s rows, the same arithmetic (a block
-    of a long run's triangles at a time: ``omnipipe.model.texture_grid.rows_of_faces``)."""
+    """(F,) int64 the first grid row each of the (F, 3) triangles (vertex indices into the
+    (N,) ``axial`` positions, mm) may cover (row r at ``z0 + r * mm_per_px``; one row
+    early to spare for rounding) and the most rows one of them spans (a block of a long
+    run's triangles at a time: ``omnipipe.model.texture_grid.rows_of_faces``)."""
     n = len(faces)
     first = np.empty(n, np.int64)
     span = 0
@@ -310,8 +281,8 @@ def face_first_rows(faces, axial, z0, mm_per_px, height):  # pragma: no cover - 
 @numba.njit(cache=True)
 def place_by_row(first, at, order, base):  # pragma: no cover - compiled
     """Triangle ``base + i`` written at ``order[at[first[i]]]`` for each i in turn,
-    ``at[first[i]]`` then advanced: :func:`faces_by_row`'s counting sort's placing, for a
-    block of triangles numbered from ``base``."""
+    ``at[first[i]]`` then advanced: a counting sort's placing, for a block of triangles
+    numbered from ``base``."""
     for i in range(len(first)):
         r = first[i]
         order[at[r]] = base + i

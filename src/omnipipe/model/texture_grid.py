@@ -269,11 +269,13 @@ def rows_of_faces(
     faces: np.ndarray, axial: np.ndarray, z0: float, mm_per_px: float, height: int,
     block: int = FACE_BLOCK,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """:func:`~omnipipe.model._kernels.faces_by_row` of the (F, 3) ``faces`` (vertex
-    indices into the (N,) ``axial``, mm): ``(order, start, span)``, the same values, with
-    ``order`` in the run's scratch (:func:`~omnipipe.spill.zeros_on_disk`).
+    """The (F, 3) ``faces`` (vertex indices into the (N,) ``axial``, mm) in order of the
+    first grid row they may cover (:func:`~omnipipe.model._kernels.face_first_rows`):
+    (F,) ``order`` in the run's scratch (:func:`~omnipipe.spill.zeros_on_disk`), (height
+    + 1,) ``start`` (the triangles of first row r are ``order[start[r]:start[r + 1]]``)
+    and the most rows one triangle spans.
 
-    The same counting sort, a block of ``block`` triangles at a time: one pass counts
+    A stable counting sort, a block of ``block`` triangles at a time: one pass counts
     each first row's triangles, a second places them (each block's rows computed again);
     the scratch's pages are dropped after each block. In memory a block's rows, never the
     run's (its int64 rows and the order were 12 bytes a triangle, held at once with every
@@ -311,7 +313,7 @@ class MeshGrid:
     unrolled cell, :func:`~omnipipe.model._kernels.rasterise_faces`); a cell in no
     triangle, or farther than ``max_gap_mm`` from every point (unrolled, the arc's wrap
     included), is NaN. Each strip draws only the triangles over its rows (the triangles
-    in order of their rows, :func:`~omnipipe.model._kernels.faces_by_row`: 4 or 8 bytes
+    in order of their rows, :func:`rows_of_faces`: 4 or 8 bytes
     a triangle, in the run's scratch), so a strip costs its cells and triangles, and
     nothing of the grid is triangulated again.
 
