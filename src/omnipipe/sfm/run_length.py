@@ -84,10 +84,8 @@ DECIDED_SIGMA_FLOOR = 0.01
 # (:func:`feature_share`): the per-step floor of a feature-depth length
 # (:data:`omnipipe.sfm.scale_check.FEATURE_DEPTH_SIGMA_FLOOR`, the wall model and the
 # relative motion's direction) is one bias over the run's steps, which their matches'
-# spread does not show (random-wide seed 3s, joints: both steps' feature depths 2.0 %
-# short, the run 2.3 % short at 0.77 % stated). Added to the stated sigma only, after the
-# combination: weighing the wall's shift by it moved seed 6 from 0.16 to 0.27 % of scale
-# error (benchmarks/RESULTS.md, feat21).
+# spread does not show. Added to the stated sigma only, after the combination, not to its
+# weights (why: benchmarks/RESULTS.md, feat21).
 FEATURE_ANCHOR_SIGMA = 0.01
 
 
@@ -333,8 +331,7 @@ def with_bridged(sigma: float, checks: list[StepCheck], scales_mm: list[float]) 
     whole run's length: their sigmas add linearly (an odometry's slip, a gait's pace is
     one bias over the run), the measured part's in quadrature with them. A run of
     bridged steps only (a plain wall with odometry) states its bridges' sigma, not the
-    analysis' assumed fallback (random-wide seeds 19s, 25s: 5.4 and 4.6 % off the truth
-    where 1 % was assumed). NaN when neither is known."""
+    analysis' assumed fallback. NaN when neither is known."""
     bridged = [(c.bridged_mm, c.bridged_sigma_mm) for c in checks if c.bridged_from]
     bridged = [(b, s) for b, s in bridged if math.isfinite(b) and b > 0 and math.isfinite(s)]
     if not bridged:

@@ -87,9 +87,8 @@ class TrackConfig:
             31-frame step); 0: every pending frame.
         retry_lost_share: the tracks the first flow lost in a view get the second try
             (coarse levels high-passed, :func:`_flow`) only when they are at least this
-            share of the view's tracks (0: always, the default; at 0.1 continuous keeps
-            its tracks for a quarter less flow, but a robustness seed's step went wrong
-            unflagged: benchmarks/RESULTS.md).
+            share of the view's tracks (0: always, the default in small views, where
+            a looser rule let a step go wrong: benchmarks/RESULTS.md).
         retry_large_side_px: views whose shorter side is at least this (view px) take
             ``retry_lost_share_large`` instead of ``retry_lost_share`` (0: never).
         retry_lost_share_large: ``retry_lost_share`` of such large views.
