@@ -336,9 +336,8 @@ def _disturbed_chord(
 DARK_WIDENING = 1.25
 """Growing a hole outwards its outline narrows: a ring with lost returns only (no stray
 samples showing the rim) whose lost stretch is more than this times the last grown
-ring's (plus a sample step) lost its light to something else (random-features-small
-seed 26 under the estimated motion: ten rings 5-25 mm past the rim, 18-25 mm
-half-widths after a 14 mm one, closed the hole 31 mm beyond its end)."""
+ring's (plus a sample step) lost its light to something else (a dark band past the
+rim), not to the hole."""
 
 
 def hole_extent(

@@ -278,8 +278,7 @@ def rows_of_faces(
     A stable counting sort, a block of ``block`` triangles at a time: one pass counts
     each first row's triangles, a second places them (each block's rows computed again);
     the scratch's pages are dropped after each block. In memory a block's rows, never the
-    run's (its int64 rows and the order were 12 bytes a triangle, held at once with every
-    triangle's and point's pages: a long run's texture stage peaked there).
+    run's.
     """
     from omnipipe.model._kernels import face_first_rows, place_by_row
 
