@@ -80,7 +80,8 @@ def test_camera_view_of_a_defect_through_the_camera_model() -> None:
 
 def test_3d_view_has_a_marker_per_defect() -> None:
     from omnipipe.report import ReportConfig
-    from omnipipe.report.html import ReportInputs, _model_json
+    from omnipipe.report.html import _model_json
+    from omnipipe.report.inputs import ReportInputs
 
     wall, world = _wall()
     faces = np.array([[0, 1, 2]])
@@ -136,7 +137,8 @@ def test_3d_view_thinned_to_max_faces_keeps_only_their_vertices() -> None:
     from dataclasses import replace
 
     from omnipipe.report import ReportConfig
-    from omnipipe.report.html import ReportInputs, _model_json
+    from omnipipe.report.html import _model_json
+    from omnipipe.report.inputs import ReportInputs
 
     rng = np.random.default_rng(2)
     verts = rng.normal(0.0, 100.0, (400, 3))
@@ -161,7 +163,8 @@ def test_joints_and_laterals_are_marked_in_3d_and_on_the_unrolled_wall() -> None
     (Their labels on the unrolled wall are pixels: the page renders with them, the
     screenshots of issue 31's closing note show them.)"""
     from omnipipe.report import ReportConfig
-    from omnipipe.report.html import ReportInputs, _model_json, render_html
+    from omnipipe.report.html import _model_json, render_html
+    from omnipipe.report.inputs import ReportInputs
 
     wall, world = _wall()
     feats = [
@@ -227,12 +230,12 @@ def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) ->
     (never held whole, nor copied by the JSON's escaping): the same text as the whole
     URI in the JSON, "</" in a label still escaped."""
     import omnipipe.report.html as H
-    from omnipipe.report import ReportConfig
+    from omnipipe.report import ReportConfig, ReportInputs
 
     rng = np.random.default_rng(3)
     texture = rng.integers(0, 256, (61, 47, 3), dtype=np.uint8)  # noisy: a PNG of many pieces
     verts = rng.normal(0.0, 10.0, (5, 3))
-    inputs = H.ReportInputs(
+    inputs = ReportInputs(
         summary={"features": [{"kind": "joint", "axial_mm": 1.0, "gap_mm": 1.0, "offset_mm": 0.1,
                                "offset_sigma_mm": 0.1}]},
         world_from_rig=np.eye(4)[None], mesh_vertices=verts, mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]),
@@ -294,13 +297,13 @@ def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) ->
     import cv2
 
     import omnipipe.report.html as H
-    from omnipipe.report import ReportConfig
+    from omnipipe.report import ReportConfig, ReportInputs
 
     rng = np.random.default_rng(16)
     from omnipipe.spill import on_disk
 
     texture = on_disk(rng.integers(0, 256, (61, 47, 3), dtype=np.uint8))
-    inputs = H.ReportInputs(
+    inputs = ReportInputs(
         summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=rng.normal(0.0, 10.0, (5, 3)),
         mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]), mesh_uvs=rng.random((5, 2)), texture=texture,
     )

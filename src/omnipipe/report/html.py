@@ -21,7 +21,6 @@ import json
 import math
 import tempfile
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from string import Template
@@ -29,10 +28,17 @@ from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
-from omnipipe.config import bounded
 from omnipipe.image import PNG_COMPRESS_LEVEL
 from omnipipe.memory import release_freed_memory
 from omnipipe.report.bands import imshow_in_bands
+from omnipipe.report.inputs import (
+    ReportConfig,
+    ReportInputs,
+    clock_deg,
+    point_features,
+    survey_of,
+    travel_sign,
+)
 from omnipipe.spill import drop_pages, dropping_pages, zeros_on_disk
 
 if TYPE_CHECKING:
@@ -43,79 +49,6 @@ if TYPE_CHECKING:
 
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.report.relief import WallPoints
-    from omnipipe.report.views import DefectView
-    from omnipipe.survey import Survey
-
-
-@dataclass(frozen=True)
-class ReportConfig:
-    """Report knobs.
-
-    Attributes:
-        max_faces: the 3-D view keeps at most this many triangles (the rest are thinned).
-        texture_max_px: longest side of the texture sent to the viewer (px).
-        title: page title.
-    """
-
-    max_faces: int = bounded(250_000, ge=1)
-    texture_max_px: int = bounded(4096, ge=16)
-    title: str = "omnipipe inspection report"
-
-
-@dataclass
-class ReportInputs:
-    """What the report shows.
-
-    Attributes:
-        summary: the report.json content (frames, inner_diameter_mm, stations, ...).
-        world_from_rig: (N, 4, 4) estimated poses (mm).
-        mesh_vertices: (V, 3) mm, world frame; None when there is no mesh.
-        mesh_faces: (F, 3) vertex indices.
-        mesh_uvs: (V, 2) texture coordinates in [0, 1] (v up), or None.
-        texture: (H, W, 3) uint8 texture image, or None.
-        unrolled: (H, W, 3) uint8 unrolled wall image (rows: along the pipe, columns: angle).
-        unrolled_extent: (angle_min_deg, angle_max_deg, axial_min_mm, axial_max_mm) of it.
-        unrolled_alpha: (H, W) bool, True where the wall was measured and textured; the
-            other cells (a joint's gap, a lateral's opening, the unseen) are drawn
-            hatched grey, not as dark wall. None: every cell shown as it is.
-        stations_axial_mm, stations_diameter_mm, stations_ovality: per-station profile.
-        radius_mm: fitted wall radius, for drawing defect outlines on the unrolled image.
-        truth: rows of the measured-vs-true table: (name, measured, 1-sigma, true, unit)
-            (or without the sigma), or None.
-        evaluation: the evaluate result dict, when ground truth exists.
-        frame_index: (N,) 0-based frame index of each pose in ``world_from_rig`` (to
-            mark the unreliable stretches on the trajectory), or None.
-        defects: the reported defects, in report.json's order.
-        trajectory_quality: the camera motion check (unreliable stretches are marked on
-            the unrolled wall and the trajectory), or None.
-        wall: the measured wall points and their deviations (the relief maps), or None.
-        defect_views: each defect's camera view (None where no frame sees it), in the
-            defects' order; may be empty.
-        wall_points_in_world: (N, 3) world positions (mm) of ``wall``'s points (the 3-D
-            view's defect markers), or None.
-    """
-
-    summary: dict[str, Any]
-    world_from_rig: np.ndarray
-    mesh_vertices: np.ndarray | None = None
-    mesh_faces: np.ndarray | None = None
-    mesh_uvs: np.ndarray | None = None
-    texture: np.ndarray | None = None
-    unrolled: np.ndarray | None = None
-    unrolled_extent: tuple[float, float, float, float] | None = None
-    unrolled_alpha: np.ndarray | None = None
-    stations_axial_mm: np.ndarray | None = None
-    stations_diameter_mm: np.ndarray | None = None
-    stations_ovality: np.ndarray | None = None
-    radius_mm: float | None = None
-    truth: Sequence[tuple[Any, ...]] | None = None
-    evaluation: dict[str, Any] | None = field(default=None)
-    frame_index: np.ndarray | None = None
-    defects: Sequence[Defect] = ()
-    trajectory_quality: TrajectoryQuality | None = None
-    wall: WallPoints | None = None
-    defect_views: Sequence[DefectView | None] = ()
-    wall_points_in_world: np.ndarray | None = None
 
 
 def _png_data_uri(image: np.ndarray) -> str:
@@ -204,7 +137,7 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         # Hatched and rolled to 12:00 in one pass (the report's one copy of the wall).
         w = min(np.asarray(inputs.unrolled).shape[1], UNROLLED_MAX_COLUMNS)
-        shift, extent = _twelve_shift(w, inputs.unrolled_extent, _clock_deg(inputs))
+        shift, extent = _twelve_shift(w, inputs.unrolled_extent, clock_deg(inputs))
         shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha, shift)
         out["unrolled"] = _collected(_unrolled_plot(inputs, shown, extent))
         del shown
@@ -286,13 +219,6 @@ def _from_twelve(
     return np.roll(image, -shift, axis=1), rolled
 
 
-def _clock_deg(inputs: ReportInputs) -> float:
-    """The omnipipe angle that is 12:00 in this report."""
-    from omnipipe.report.deliverable import run_clock
-
-    return run_clock(inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs)).angle_deg
-
-
 def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
     """The unrolled wall's deviation map (mm, colour scale) with the defects outlined."""
     import matplotlib.pyplot as plt
@@ -300,7 +226,7 @@ def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
     from omnipipe.report import relief
 
     z0, z1 = float(np.min(wall.axial_mm)), float(np.max(wall.axial_mm))
-    ref = _clock_deg(inputs)
+    ref = clock_deg(inputs)
     a0 = ref  # 12:00 at the left edge: columns run clockwise through a full turn
     cell = max(1.0, (z1 - z0) / 400.0)
     grid = relief.deviation_grid(wall, (z0, z1), (a0, a0 + 360.0), cell)
@@ -326,7 +252,7 @@ def _distance_axis(ax: Axes, inputs: ReportInputs) -> None:
     from omnipipe.report.deliverable import distance_origin
     from omnipipe.report.relief import distance_axis
 
-    origin = distance_origin(inputs.summary, _survey_of(inputs.summary))
+    origin = distance_origin(inputs.summary, survey_of(inputs.summary))
     distance_axis(ax, origin.offset_m, origin.name)
 
 
@@ -355,7 +281,7 @@ def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
     im = relief.draw_relief(ax, grid, (a0, a1, z0, z1), vmax)
     relief.outline(ax, d, wall.radius_mm)
     span_h = (a1 - a0) / 30.0
-    relief.clock_ticks(ax, a0, a1, _clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
+    relief.clock_ticks(ax, a0, a1, clock_deg(inputs), step_h=0.25 if span_h < 2 else 0.5 if span_h < 4 else 1.0)
     ax.set_xlabel("clock", fontsize=9)
     _distance_axis(ax, inputs)
     ax.set_ylabel("distance (m)", fontsize=9)  # from where: the card's heading says
@@ -392,7 +318,7 @@ def _profile_plot(inputs: ReportInputs) -> str:
     from omnipipe.report.deliverable import distance_origin
 
     # A second axis: the inspector's distance (from the start node or the first ring), m.
-    origin = distance_origin(inputs.summary, _survey_of(inputs.summary))
+    origin = distance_origin(inputs.summary, survey_of(inputs.summary))
     off = origin.offset_m
     top = ax1.secondary_xaxis("top", functions=(lambda x: off + x / 1000.0, lambda m: (m - off) * 1000.0))
     top.set_xlabel(f"distance (m) from the {origin.name}")
@@ -473,7 +399,7 @@ def _unrolled_plot(
         ax.add_patch(rect)
         rect.set_linestyle("--" if d.truncated else "-")
         ax.text(d.angle_deg + half_w + 2, d.axial_start_mm, f"#{k + 1} {d.kind}", color="white", fontsize=8)
-    for kind, axial, angle in _point_features(inputs.summary):
+    for kind, axial, angle in point_features(inputs.summary):
         if angle is None:  # a joint all round: a line across the wall
             ax.axhline(axial, color="white", lw=0.8, ls=":")
             ax.text(a1 - 2, axial, kind, color="white", fontsize=7, ha="right", va="bottom", bbox=_LABEL_BOX)
@@ -488,7 +414,7 @@ def _unrolled_plot(
             ax.text(a0 + 2, u.axial_start_mm, "unreliable motion", color="white", fontsize=7, va="top")
     from omnipipe.report.relief import clock_ticks
 
-    clock_ticks(ax, a0, a1, _clock_deg(inputs))
+    clock_ticks(ax, a0, a1, clock_deg(inputs))
     ax.set_xlabel("clock position (looking in the direction of travel)")
     _distance_axis(ax, inputs)
     return _figure_data_uri(fig)
@@ -578,22 +504,6 @@ _TEXTURE_SLOT = "\x00omnipipe-texture\x00"
 """Stands for the texture's data URI in the 3-D view's JSON until it is written out."""
 
 
-def _point_features(summary: dict[str, Any]) -> list[tuple[str, float, float | None]]:
-    """(label, axial mm, omnipipe angle deg or None) of report.json's point features (joints,
-    laterals): the angle is a lateral's hole centre or a joint's significant offset."""
-    out = []
-    for f in summary.get("features") or []:
-        axial = f.get("axial_mm")
-        if not isinstance(axial, int | float):
-            continue
-        angle = f.get("angle_deg")
-        if f.get("kind") == "joint":
-            off, osig = f.get("offset_mm") or 0.0, f.get("offset_sigma_mm") or 0.0
-            angle = f.get("offset_angle_deg") if off > 2.0 * osig else None
-        out.append((str(f.get("kind")), float(axial), float(angle) if isinstance(angle, int | float) else None))
-    return out
-
-
 def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
     """The 3-D view's labels: each defect's measured centre and each joint's and lateral's
     position (world, mm; a joint without an offset direction at 12:00)."""
@@ -603,9 +513,9 @@ def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
         return []
     out = []
     twelve = None
-    for kind, axial, angle in _point_features(inputs.summary):
+    for kind, axial, angle in point_features(inputs.summary):
         if angle is None:
-            twelve = _clock_deg(inputs) if twelve is None else twelve
+            twelve = clock_deg(inputs) if twelve is None else twelve
         at = twelve if angle is None else angle
         # On the wall at the opening's rim or the joint, not on the branch behind it.
         p = nearest_wall_point(axial, at, inputs.wall, inputs.wall_points_in_world, on_wall_mm=2.0)
@@ -690,28 +600,12 @@ def _survey_html(survey: dict[str, Any] | None) -> str:
     return "<h2>Survey</h2><table class='survey'>" + "".join(rows) + "</table>" if rows else ""
 
 
-def _survey_of(summary: dict[str, Any]) -> Survey | None:
-    from omnipipe.survey import FIELDS, Survey
-
-    data = summary.get("survey")
-    if not data:
-        return None
-    return Survey(**{k: v for k, v in data.items() if k in FIELDS})
-
-
-def _travel_sign(inputs: ReportInputs) -> float:
-    poses = np.asarray(inputs.world_from_rig)
-    if poses.ndim != 3 or len(poses) < 2:
-        return 1.0
-    return float(poses[-1][2, 3] - poses[0][2, 3])
-
-
 def _defect_extras(inputs: ReportInputs) -> tuple[list[list[str]], list[str]]:
     """Per defect: the table's cells (clock, distance, grade, link to its views) and its
     views' card (relief map, wall texture, camera view; each enlarges when clicked)."""
     from omnipipe.report.deliverable import defect_rows
 
-    rows = defect_rows(inputs.defects, inputs.summary, _survey_of(inputs.summary), _travel_sign(inputs))
+    rows = defect_rows(inputs.defects, inputs.summary, survey_of(inputs.summary), travel_sign(inputs))
     cells, cards = [], []
     for k, row in enumerate(rows):
         v = row.values
@@ -798,7 +692,7 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
         truth=_truth_table(inputs.truth),
         trajectory_note=_trajectory_note(inputs.evaluation),
         model_view=_MODEL_SLOT,
-        defects=_defects_section(inputs) + _features_section(s, _travel_sign(inputs)),
+        defects=_defects_section(inputs) + _features_section(s, travel_sign(inputs)),
         figures=_figures(
             plots, inputs.unrolled_alpha is not None and not np.asarray(inputs.unrolled_alpha).all()
         ),
@@ -1026,7 +920,7 @@ def _features_section(s: dict[str, Any], travel_along_rig_z: float = 1.0) -> str
     feats = s.get("features") or []
     if not feats:
         return ""
-    survey = _survey_of(s)
+    survey = survey_of(s)
     reference = run_clock(s, survey, travel_along_rig_z).angle_deg
     origin = distance_origin(s, survey)
     rows = "".join(
@@ -1078,8 +972,8 @@ def _defects_section(inputs: ReportInputs) -> str:
     parts.append("</table>")
     from omnipipe.report.deliverable import distance_origin, run_clock
 
-    clock = run_clock(s, _survey_of(s), _travel_sign(inputs))
-    origin = distance_origin(s, _survey_of(s))
+    clock = run_clock(s, survey_of(s), travel_sign(inputs))
+    origin = distance_origin(s, survey_of(s))
     parts.append(
         "<p class='note'>clock: looking in the direction of travel, clockwise; 12:00 = "
         + (
