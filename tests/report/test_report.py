@@ -229,10 +229,10 @@ def test_report_is_written_a_piece_at_a_time_as_the_page(tmp_path: Path, monkeyp
     """run() writes the page in pieces (the 3-D view's number lists a chunk at a time,
     never the whole page held): the same bytes as render_html's page; the unrolled wall
     hatched and rolled to 12:00 in one pass is the hatched wall rolled."""
-    from omnipipe.report import html as report_html
+    from omnipipe.report import encode
     from omnipipe.report.html import _from_twelve, marked_unrolled
 
-    monkeypatch.setattr(report_html, "_NUMBERS_CHUNK", 101)
+    monkeypatch.setattr(encode, "_NUMBERS_CHUNK", 101)
     inputs = _inputs()
     page = render_html(inputs)
     assert run(ReportConfig(), inputs, tmp_path / "report.html").read_text(encoding="utf-8") == page
@@ -251,6 +251,7 @@ def test_the_3d_view_made_first_into_a_file_is_written_into_the_page_as_made(
     the page a piece at a time: its text is the view's own (pieces that split the page's
     non-ASCII characters' neighbourhood too), and the page is the template's with that
     view in its slot."""
+    from omnipipe.report import encode
     from omnipipe.report import html as report_html
 
     inputs = _inputs()
@@ -260,15 +261,15 @@ def test_the_3d_view_made_first_into_a_file_is_written_into_the_page_as_made(
     with report_html._model_view_file(inputs, config) as fh:
         assert fh.read() == made
     whole = render_html(inputs)
-    monkeypatch.setattr(report_html, "_TEXT_PIECE", 7)
-    parts = list(report_html._text_file_parts(report_html._model_view_file(inputs, config)))
+    monkeypatch.setattr(encode, "_TEXT_PIECE", 7)
+    parts = list(encode.text_file_parts(report_html._model_view_file(inputs, config)))
     assert "".join(parts) == made and max(map(len, parts)) == 7
     assert render_html(inputs) == whole
     assert whole.count(made) == 1 and whole.index(made) < whole.index("id='unrolled'")
 
 
 def test_a_figure_is_collected_once_its_data_uri_is_made() -> None:
-    """A plot's figure (closed by _figure_data_uri) is collected by _collected: no
+    """A plot's figure (closed by figure_data_uri) is collected by collected: no
     Figure (nor its canvas) is left for the collector to find under the next figure."""
     import gc
 
@@ -277,12 +278,13 @@ def test_a_figure_is_collected_once_its_data_uri_is_made() -> None:
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from omnipipe.report.html import _collected, _profile_plot
+    from omnipipe.report.encode import collected
+    from omnipipe.report.html import _profile_plot
 
     gc.collect()
-    gc.disable()  # only _collected's own collection may find the cycle
+    gc.disable()  # only collected's own collection may find the cycle
     try:
-        uri = _collected(_profile_plot(_inputs()))
+        uri = collected(_profile_plot(_inputs()))
         alive = sum(isinstance(o, Figure) for o in gc.get_objects())
         _profile_plot(_inputs())
         left = sum(isinstance(o, Figure) for o in gc.get_objects())

@@ -229,6 +229,7 @@ def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) ->
     """The texture's data URI goes into the 3-D view's JSON a piece of base64 at a time
     (never held whole, nor copied by the JSON's escaping): the same text as the whole
     URI in the JSON, "</" in a label still escaped."""
+    import omnipipe.report.encode as E
     import omnipipe.report.html as H
     from omnipipe.report import ReportConfig, ReportInputs
 
@@ -241,11 +242,11 @@ def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) ->
         world_from_rig=np.eye(4)[None], mesh_vertices=verts, mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]),
         mesh_uvs=rng.random((5, 2)), texture=texture,
     )
-    monkeypatch.setattr(H, "_BASE64_PIECE", 3 * 11)
+    monkeypatch.setattr(E, "_BASE64_PIECE", 3 * 11)
     parts = list(H._model_json_parts(inputs, ReportConfig()))
     text = "".join(parts)
     assert len(parts) > 100  # the URI in pieces
-    uri = H._png_data_uri(texture)
+    uri = E.png_data_uri(texture)
     model = json.loads(text)
     assert model["texture"] == uri
     # Byte for byte the JSON of the whole URI (json.dumps as before, "</" escaped).
@@ -296,6 +297,7 @@ def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) ->
     run's scratch: the same PNG as cv2's resize into a new array."""
     import cv2
 
+    import omnipipe.report.encode as E
     import omnipipe.report.html as H
     from omnipipe.report import ReportConfig, ReportInputs
 
@@ -310,4 +312,4 @@ def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) ->
     model = json.loads("".join(H._model_json_parts(inputs, ReportConfig(texture_max_px=max_px))))
     scale = max_px / 61
     want = texture if scale >= 1 else cv2.resize(np.array(texture), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    assert model["texture"] == H._png_data_uri(want)
+    assert model["texture"] == E.png_data_uri(want)

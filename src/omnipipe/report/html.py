@@ -13,10 +13,7 @@ and never splits tables and figures across pages.
 
 from __future__ import annotations
 
-import base64
-import gc
 import html
-import io
 import json
 import math
 import tempfile
@@ -28,9 +25,20 @@ from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
-from omnipipe.image import PNG_COMPRESS_LEVEL
 from omnipipe.memory import release_freed_memory
 from omnipipe.report.bands import imshow_in_bands
+from omnipipe.report.encode import (
+    FIGURE_DPI,
+    PNG_URI_HEAD,
+    RESIZE_DROP_S,
+    base64_file_parts,
+    collected,
+    figure_data_uri,
+    number_chunks,
+    png_data_uri,
+    png_file,
+    text_file_parts,
+)
 from omnipipe.report.inputs import (
     ReportConfig,
     ReportInputs,
@@ -45,82 +53,9 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from matplotlib.axes import Axes
-    from matplotlib.figure import Figure
 
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.report.relief import WallPoints
-
-
-def _png_data_uri(image: np.ndarray) -> str:
-    return _PNG_URI_HEAD + base64.b64encode(_png_bytes(image)).decode("ascii")
-
-
-_PNG_URI_HEAD = "data:image/png;base64,"
-
-
-def _png_bytes(image: np.ndarray) -> bytes:
-    """``image`` (uint8) as PNG bytes, encoded a band of rows at a time
-    (:func:`omnipipe.model.png.write_png`: no copy of the image)."""
-    from omnipipe.model.png import write_png
-
-    buf = io.BytesIO()
-    write_png(buf, image)
-    return buf.getvalue()
-
-
-def _png_file(image: np.ndarray) -> IO[bytes]:
-    """:func:`_png_bytes` of ``image`` in an unnamed file of the run's scratch
-    (:func:`omnipipe.scratch.scratch_dir`; gone when closed), positioned at its start:
-    neither a copy of the image nor the encoded bytes are held in memory."""
-    from omnipipe.model.png import write_png
-    from omnipipe.scratch import scratch_dir
-
-    fh = tempfile.TemporaryFile(prefix="omnipipe-png-", dir=scratch_dir())
-    write_png(fh, image)
-    fh.seek(0)
-    return fh
-
-
-def _base64_file_parts(fh: IO[bytes]) -> Iterator[str]:
-    """:func:`_base64_parts` of the rest of the file ``fh``, read a piece at a time."""
-    while piece := fh.read(_BASE64_PIECE):
-        yield base64.b64encode(piece).decode("ascii")
-
-
-_BASE64_PIECE = 3 << 18
-"""Bytes encoded at a time by :func:`_base64_parts` (a multiple of 3: the pieces' text
-joins to the whole's)."""
-
-
-def _base64_parts(data: bytes) -> Iterator[str]:
-    """``base64.b64encode(data)`` as text in pieces (a long page text not held whole)."""
-    view = memoryview(data)
-    for a in range(0, len(view), _BASE64_PIECE):
-        yield base64.b64encode(view[a : a + _BASE64_PIECE]).decode("ascii")
-
-
-_FIGURE_DPI = 110
-"""Pixels per inch of the report's figures."""
-
-
-def _figure_data_uri(fig: Figure) -> str:
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(
-        buf, format="png", dpi=_FIGURE_DPI, bbox_inches="tight",
-        pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
-    )
-    plt.close(fig)
-    return "data:image/png;base64," + base64.b64encode(buf.getbuffer()).decode("ascii")
-
-
-def _collected(uri: str) -> str:
-    """``uri``, once the figure it was drawn from is collected: a closed figure is a
-    cycle of objects (its canvas's pixel buffer among them) that the collector would
-    otherwise free only when it next runs, under the next figures. Call it on a plot function's result, after its frame is gone."""
-    gc.collect()
-    return uri
 
 
 def _plots(inputs: ReportInputs) -> dict[str, str]:
@@ -130,28 +65,22 @@ def _plots(inputs: ReportInputs) -> dict[str, str]:
     matplotlib.use("Agg")
     out: dict[str, str] = {}
     if inputs.stations_axial_mm is not None and len(inputs.stations_axial_mm):
-        out["profile"] = _collected(_profile_plot(inputs))
+        out["profile"] = collected(_profile_plot(inputs))
     poses = np.asarray(inputs.world_from_rig)
     if poses.ndim == 3 and len(poses):
-        out["trajectory"] = _collected(_trajectory_plot(inputs, poses[:, :3, 3]))
+        out["trajectory"] = collected(_trajectory_plot(inputs, poses[:, :3, 3]))
     if inputs.unrolled is not None and inputs.unrolled_extent is not None:
         # Hatched and rolled to 12:00 in one pass (the report's one copy of the wall).
         w = min(np.asarray(inputs.unrolled).shape[1], UNROLLED_MAX_COLUMNS)
         shift, extent = _twelve_shift(w, inputs.unrolled_extent, clock_deg(inputs))
         shown = marked_unrolled(inputs.unrolled, inputs.unrolled_alpha, shift)
-        out["unrolled"] = _collected(_unrolled_plot(inputs, shown, extent))
+        out["unrolled"] = collected(_unrolled_plot(inputs, shown, extent))
         del shown
         release_freed_memory()  # the wall's pages (omnipipe.spill) not under the next plot
     if inputs.wall is not None and len(inputs.wall.axial_mm):
-        out["relief"] = _collected(_relief_plot(inputs, inputs.wall))
+        out["relief"] = collected(_relief_plot(inputs, inputs.wall))
         release_freed_memory()
     return out
-
-
-RESIZE_DROP_S = 0.005
-"""Seconds between two drops of the scratch's pages (:func:`omnipipe.spill.dropping_pages`)
-while one call reads a whole image kept there (the atlas, the unrolled wall): the pages
-it read in the last few milliseconds resident, not the image's."""
 
 
 UNROLLED_MAX_COLUMNS = 1800
@@ -243,7 +172,7 @@ def _relief_plot(inputs: ReportInputs, wall: WallPoints) -> str:
     ax.set_xlabel("clock position (looking in the direction of travel)")
     _distance_axis(ax, inputs)
     fig.colorbar(im, ax=ax, label="deviation from the wall (mm): − bulge, + dent", shrink=0.8)
-    return _figure_data_uri(fig)
+    return figure_data_uri(fig)
 
 
 def _distance_axis(ax: Axes, inputs: ReportInputs) -> None:
@@ -290,7 +219,7 @@ def _defect_relief(inputs: ReportInputs, d: Defect, k: int) -> str:
     bar = fig.colorbar(im, ax=ax, shrink=0.85)
     bar.set_label("deviation (mm)", fontsize=9)
     bar.ax.tick_params(labelsize=8)
-    return _figure_data_uri(fig)
+    return figure_data_uri(fig)
 
 
 def _profile_plot(inputs: ReportInputs) -> str:
@@ -331,7 +260,7 @@ def _profile_plot(inputs: ReportInputs) -> str:
         ax2.plot(axial, 100 * np.asarray(inputs.stations_ovality), "s-", color="#d62728", ms=3)
         ax2.set_ylabel("ovality (%)", color="#d62728")
     ax1.grid(alpha=0.3)
-    return _figure_data_uri(fig)
+    return figure_data_uri(fig)
 
 
 def _trajectory_plot(inputs: ReportInputs, p: np.ndarray) -> str:
@@ -354,7 +283,7 @@ def _trajectory_plot(inputs: ReportInputs, p: np.ndarray) -> str:
         ax.set_ylabel(f"{name} (mm)")
         ax.grid(alpha=0.3)
     fig.suptitle("estimated rig trajectory (world = first rig frame)")
-    return _figure_data_uri(fig)
+    return figure_data_uri(fig)
 
 
 _LABEL_BOX = {"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55, "lw": 0}
@@ -375,7 +304,7 @@ def _unrolled_plot(
     fig, ax = plt.subplots(figsize=(9, height))
     # Area-averaged to at most the figure's pixels first: matplotlib's resampling costs
     # about 40 bytes a pixel of the image it is given (60 MB for 3,000 frames' wall).
-    rows, cols = (int(round(v * _FIGURE_DPI)) for v in (height, 9.0))
+    rows, cols = (int(round(v * FIGURE_DPI)) for v in (height, 9.0))
     if image.shape[0] > rows or image.shape[1] > cols:
         import cv2
 
@@ -417,7 +346,7 @@ def _unrolled_plot(
     clock_ticks(ax, a0, a1, clock_deg(inputs))
     ax.set_xlabel("clock position (looking in the direction of travel)")
     _distance_axis(ax, inputs)
-    return _figure_data_uri(fig)
+    return figure_data_uri(fig)
 
 
 def _unreliable_frames(inputs: ReportInputs) -> list[tuple[int, int]]:
@@ -465,7 +394,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             with dropping_pages(RESIZE_DROP_S):
                 tex = cv2.resize(tex, None, dst=dst, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             drop_pages()  # the atlas's (omnipipe.spill): not under the PNG's encoding
-        png = _png_file(tex)
+        png = png_file(tex)
         del tex
         release_freed_memory()  # the atlas's pages
     lo, hi = verts.min(axis=0), verts.max(axis=0)
@@ -483,7 +412,7 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         # lists of Python floats through json.dumps; the viewer reads the same values).
         for name, fmt, values in (("positions", "%.2f", verts), ("uvs", "%.5f", uv_rows), ("indices", "%d", faces)):
             yield f'{"{" if name == "positions" else ""}"{name}":['
-            yield from _number_chunks(fmt, values)
+            yield from number_chunks(fmt, values)
             yield "],"
         # Only the JSON part can hold "</" (the number lists and base64 cannot): escaped
         # alone. The texture's URI (JSON needs no escapes in it) goes in where its slot is.
@@ -492,9 +421,9 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
             yield text
             return
         head, tail = text.split(json.dumps(_TEXTURE_SLOT), 1)
-        yield f'{head}"{_PNG_URI_HEAD}'
+        yield f'{head}"{PNG_URI_HEAD}'
         with png:
-            yield from _base64_file_parts(png)
+            yield from base64_file_parts(png)
         yield f'"{tail}'
 
     return parts()
@@ -532,26 +461,6 @@ def _markers(inputs: ReportInputs) -> list[dict[str, Any]]:
                 }
             )
     return out
-
-
-_NUMBERS_CHUNK = 1 << 16
-"""Values formatted at once by :func:`_numbers` (their Python floats, about 100 bytes
-each, are a chunk's, not the mesh's)."""
-
-
-def _numbers(fmt: str, values: np.ndarray) -> str:
-    """The values of ``values`` (any shape, row-major) in ``fmt``, comma-separated."""
-    return "".join(_number_chunks(fmt, values))
-
-
-def _number_chunks(fmt: str, values: np.ndarray) -> Iterator[str]:
-    """:func:`_numbers` in pieces of :data:`_NUMBERS_CHUNK` values (a comma between
-    pieces, none after the last)."""
-    flat = np.asarray(values).ravel()
-    for a in range(0, len(flat), _NUMBERS_CHUNK):
-        chunk = flat[a : a + _NUMBERS_CHUNK]
-        text = (fmt + ",") * len(chunk) % tuple(chunk.tolist())
-        yield text if a + _NUMBERS_CHUNK < len(flat) else text[:-1]
 
 
 def value_pm(value: float | None, sigma: float | None, *, plain: str = "±", digits: int = 2) -> str:
@@ -637,7 +546,7 @@ def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
     views = []
     if inputs.wall is not None:
         views.append(
-            _figure_html(_collected(_defect_relief(inputs, d, k)), "relief map: deviation from the fitted wall (mm)")
+            _figure_html(collected(_defect_relief(inputs, d, k)), "relief map: deviation from the fitted wall (mm)")
         )
     if inputs.unrolled is not None and inputs.unrolled_extent is not None and inputs.radius_mm:
         from omnipipe.report.deliverable import crop_unrolled
@@ -647,10 +556,10 @@ def _defect_views_html(inputs: ReportInputs, d: Defect, k: int) -> list[str]:
             inputs.unrolled, inputs.unrolled_alpha, ext[2], (ext[3] - ext[2]) / inputs.unrolled.shape[0], d,
             2 * math.pi * inputs.radius_mm,
         )
-        views.append(_figure_html(_png_data_uri(crop), "wall texture (unrolled)"))
+        views.append(_figure_html(png_data_uri(crop), "wall texture (unrolled)"))
     view = inputs.defect_views[k] if k < len(inputs.defect_views) else None
     if view is not None:
-        views.append(_figure_html(_png_data_uri(view.image), f"camera view, frame {view.frame}"))
+        views.append(_figure_html(png_data_uri(view.image), f"camera view, frame {view.frame}"))
     return views
 
 
@@ -704,7 +613,7 @@ def _page_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[str]:
     del filled
     yield before
     del before
-    yield from _text_file_parts(view)
+    yield from text_file_parts(view)
     yield after
 
 
@@ -719,18 +628,6 @@ def _model_view_file(inputs: ReportInputs, config: ReportConfig) -> IO[str]:
         fh.write(part)
     fh.seek(0)
     return fh
-
-
-_TEXT_PIECE = 1 << 20
-"""Characters :func:`_text_file_parts` reads at a time."""
-
-
-def _text_file_parts(fh: IO[str]) -> Iterator[str]:
-    """The rest of the text file ``fh`` in pieces of :data:`_TEXT_PIECE` characters; the
-    file closed after the last."""
-    with fh:
-        while piece := fh.read(_TEXT_PIECE):
-            yield piece
 
 
 def _summary_rows(s: dict[str, Any]) -> str:
