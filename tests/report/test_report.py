@@ -181,7 +181,7 @@ def test_unrolled_wall_marks_missing_wall_instead_of_dark_wall() -> None:
     """Cells with no wall (alpha False: a lateral's opening) are hatched grey in the
     report's unrolled wall, the wall cells unchanged; a wide image is area-averaged to
     the figure's width; the caller's image is not drawn on."""
-    from omnipipe.report.html import UNROLLED_MAX_COLUMNS, marked_unrolled
+    from omnipipe.report.plots import UNROLLED_MAX_COLUMNS, marked_unrolled
 
     rng = np.random.default_rng(1)
     img = rng.integers(0, 60, (100, 200, 3), dtype=np.uint8)  # a dark wall
@@ -214,7 +214,7 @@ def replace_unrolled(inputs: ReportInputs, img: np.ndarray, alpha: np.ndarray) -
 def test_unrolled_texture_starts_at_twelve_like_the_deviation_map() -> None:
     """The texture's columns are rolled so that 12:00 is its left edge (the deviation
     map's convention): a mark at the 12:00 angle lands in the first column."""
-    from omnipipe.report.html import _from_twelve
+    from omnipipe.report.plots import _from_twelve
 
     img = np.zeros((4, 360, 3), np.uint8)
     img[:, 270] = 255  # omnipipe angle 270.5 deg: image up for travel along +z
@@ -230,7 +230,7 @@ def test_report_is_written_a_piece_at_a_time_as_the_page(tmp_path: Path, monkeyp
     never the whole page held): the same bytes as render_html's page; the unrolled wall
     hatched and rolled to 12:00 in one pass is the hatched wall rolled."""
     from omnipipe.report import encode
-    from omnipipe.report.html import _from_twelve, marked_unrolled
+    from omnipipe.report.plots import _from_twelve, marked_unrolled
 
     monkeypatch.setattr(encode, "_NUMBERS_CHUNK", 101)
     inputs = _inputs()
@@ -279,7 +279,7 @@ def test_a_figure_is_collected_once_its_data_uri_is_made() -> None:
     from matplotlib.figure import Figure
 
     from omnipipe.report.encode import collected
-    from omnipipe.report.html import _profile_plot
+    from omnipipe.report.plots import _profile_plot
 
     gc.collect()
     gc.disable()  # only collected's own collection may find the cycle
