@@ -251,18 +251,17 @@ def test_the_3d_view_made_first_into_a_file_is_written_into_the_page_as_made(
     the page a piece at a time: its text is the view's own (pieces that split the page's
     non-ASCII characters' neighbourhood too), and the page is the template's with that
     view in its slot."""
-    from omnipipe.report import encode
-    from omnipipe.report import html as report_html
+    from omnipipe.report import encode, model_view
 
     inputs = _inputs()
     config = ReportConfig()
-    made = "".join(report_html._model_view_parts(report_html._model_json_parts(inputs, config)))
+    made = "".join(model_view._model_view_parts(model_view._model_json_parts(inputs, config)))
     assert "…" in made  # non-ASCII text passes through the file unchanged
-    with report_html._model_view_file(inputs, config) as fh:
+    with model_view.model_view_file(inputs, config) as fh:
         assert fh.read() == made
     whole = render_html(inputs)
     monkeypatch.setattr(encode, "_TEXT_PIECE", 7)
-    parts = list(encode.text_file_parts(report_html._model_view_file(inputs, config)))
+    parts = list(encode.text_file_parts(model_view.model_view_file(inputs, config)))
     assert "".join(parts) == made and max(map(len, parts)) == 7
     assert render_html(inputs) == whole
     assert whole.count(made) == 1 and whole.index(made) < whole.index("id='unrolled'")

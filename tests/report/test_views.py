@@ -80,8 +80,8 @@ def test_camera_view_of_a_defect_through_the_camera_model() -> None:
 
 def test_3d_view_has_a_marker_per_defect() -> None:
     from omnipipe.report import ReportConfig
-    from omnipipe.report.html import _model_json
     from omnipipe.report.inputs import ReportInputs
+    from omnipipe.report.model_view import _model_json
 
     wall, world = _wall()
     faces = np.array([[0, 1, 2]])
@@ -137,8 +137,8 @@ def test_3d_view_thinned_to_max_faces_keeps_only_their_vertices() -> None:
     from dataclasses import replace
 
     from omnipipe.report import ReportConfig
-    from omnipipe.report.html import _model_json
     from omnipipe.report.inputs import ReportInputs
+    from omnipipe.report.model_view import _model_json
 
     rng = np.random.default_rng(2)
     verts = rng.normal(0.0, 100.0, (400, 3))
@@ -163,8 +163,9 @@ def test_joints_and_laterals_are_marked_in_3d_and_on_the_unrolled_wall() -> None
     (Their labels on the unrolled wall are pixels: the page renders with them, the
     screenshots of issue 31's closing note show them.)"""
     from omnipipe.report import ReportConfig
-    from omnipipe.report.html import _model_json, render_html
+    from omnipipe.report.html import render_html
     from omnipipe.report.inputs import ReportInputs
+    from omnipipe.report.model_view import _model_json
 
     wall, world = _wall()
     feats = [
@@ -230,7 +231,7 @@ def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) ->
     (never held whole, nor copied by the JSON's escaping): the same text as the whole
     URI in the JSON, "</" in a label still escaped."""
     import omnipipe.report.encode as E
-    import omnipipe.report.html as H
+    import omnipipe.report.model_view as M
     from omnipipe.report import ReportConfig, ReportInputs
 
     rng = np.random.default_rng(3)
@@ -243,7 +244,7 @@ def test_3d_view_texture_written_in_pieces_is_the_whole_data_uri(monkeypatch) ->
         mesh_uvs=rng.random((5, 2)), texture=texture,
     )
     monkeypatch.setattr(E, "_BASE64_PIECE", 3 * 11)
-    parts = list(H._model_json_parts(inputs, ReportConfig()))
+    parts = list(M._model_json_parts(inputs, ReportConfig()))
     text = "".join(parts)
     assert len(parts) > 100  # the URI in pieces
     uri = E.png_data_uri(texture)
@@ -298,7 +299,7 @@ def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) ->
     import cv2
 
     import omnipipe.report.encode as E
-    import omnipipe.report.html as H
+    import omnipipe.report.model_view as M
     from omnipipe.report import ReportConfig, ReportInputs
 
     rng = np.random.default_rng(16)
@@ -309,7 +310,7 @@ def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) ->
         summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=rng.normal(0.0, 10.0, (5, 3)),
         mesh_faces=np.array([[0, 1, 2], [2, 3, 4]]), mesh_uvs=rng.random((5, 2)), texture=texture,
     )
-    model = json.loads("".join(H._model_json_parts(inputs, ReportConfig(texture_max_px=max_px))))
+    model = json.loads("".join(M._model_json_parts(inputs, ReportConfig(texture_max_px=max_px))))
     scale = max_px / 61
     want = texture if scale >= 1 else cv2.resize(np.array(texture), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     assert model["texture"] == E.png_data_uri(want)
