@@ -2,6 +2,8 @@
 scratch file (a band of rows at a time), base64 text and data URIs a piece at a time,
 matplotlib figures as PNG data URIs (collected once drawn), JSON number lists a chunk at a
 time and a text file read back in pieces: none holds a long run's image or page text whole.
+:data:`RESIZE_DROP_S` paces the page drops while a whole image kept in the scratch is
+resized (the figures' and the 3-D view's).
 """
 
 from __future__ import annotations
