@@ -54,21 +54,15 @@ def png_file(image: np.ndarray) -> IO[bytes]:
 
 
 def base64_file_parts(fh: IO[bytes]) -> Iterator[str]:
-    """:func:`_base64_parts` of the rest of the file ``fh``, read a piece at a time."""
+    """``base64.b64encode`` of the rest of the file ``fh`` as text, read and encoded a piece
+    at a time (the pieces join to the whole's encoding)."""
     while piece := fh.read(_BASE64_PIECE):
         yield base64.b64encode(piece).decode("ascii")
 
 
 _BASE64_PIECE = 3 << 18
-"""Bytes encoded at a time by :func:`_base64_parts` (a multiple of 3: the pieces' text
+"""Bytes encoded at a time by :func:`base64_file_parts` (a multiple of 3: the pieces' text
 joins to the whole's)."""
-
-
-def _base64_parts(data: bytes) -> Iterator[str]:
-    """``base64.b64encode(data)`` as text in pieces (a long page text not held whole)."""
-    view = memoryview(data)
-    for a in range(0, len(view), _BASE64_PIECE):
-        yield base64.b64encode(view[a : a + _BASE64_PIECE]).decode("ascii")
 
 
 FIGURE_DPI = 110
@@ -102,18 +96,13 @@ it read in the last few milliseconds resident, not the image's."""
 
 
 _NUMBERS_CHUNK = 1 << 16
-"""Values formatted at once by :func:`_numbers` (their Python floats, about 100 bytes
+"""Values formatted at once by :func:`number_chunks` (their Python floats, about 100 bytes
 each, are a chunk's, not the mesh's)."""
 
 
-def _numbers(fmt: str, values: np.ndarray) -> str:
-    """The values of ``values`` (any shape, row-major) in ``fmt``, comma-separated."""
-    return "".join(number_chunks(fmt, values))
-
-
 def number_chunks(fmt: str, values: np.ndarray) -> Iterator[str]:
-    """:func:`_numbers` in pieces of :data:`_NUMBERS_CHUNK` values (a comma between
-    pieces, none after the last)."""
+    """The values of ``values`` (any shape, row-major) in ``fmt``, comma-separated, in
+    pieces of :data:`_NUMBERS_CHUNK` values (a comma between pieces, none after the last)."""
     flat = np.asarray(values).ravel()
     for a in range(0, len(flat), _NUMBERS_CHUNK):
         chunk = flat[a : a + _NUMBERS_CHUNK]

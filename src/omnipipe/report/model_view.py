@@ -145,13 +145,9 @@ def model_view_file(inputs: ReportInputs, config: ReportConfig) -> IO[str]:
     return fh
 
 
-def _model_view(model: str | None) -> str:
-    """The 3-D view: the model's JSON and the viewer (viewer.js), or a note without a mesh."""
-    return "".join(_model_view_parts(None if model is None else iter([model])))
-
-
 def _model_view_parts(model: Iterator[str] | None) -> Iterator[str]:
-    """:func:`_model_view` in pieces, the model's JSON as its pieces come."""
+    """The 3-D view in pieces: the model's JSON as its pieces come and the viewer
+    (viewer.js), or a note without a mesh."""
     if model is None:
         yield "<p class='note'>No mesh was built.</p>"
         return
