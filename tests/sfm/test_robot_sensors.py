@@ -84,7 +84,8 @@ def _simulated_odometry(seed: int, walk_mm: float = 0.1, slip: float = 0.02):
     random walk ``walk_mm`` per sqrt(mm), 0.1 mm counts); the stated sigma is the
     simulator's (walk 0.1). Returns (frame times, true travel at frames, Odometry)."""
     from omnipipe.inputs.sensors import make_odometry
-    from omnipipe.sim.sensors import SensorConfig, _odometry
+    from omnipipe.sim.sensor_config import SensorConfig
+    from omnipipe.sim.sensors import _odometry
 
     rng = np.random.default_rng(seed)
     stroke = np.array([0.5, 1.4, 2.0, 2.35, 2.0, 1.4, 0.5, 0.0, 0.0])

@@ -43,7 +43,7 @@ import numpy as np
 from omnipipe.errors import OutputError
 
 if TYPE_CHECKING:
-    from omnipipe.model import ModelResult
+    from omnipipe.model.stage import ModelResult
 
 #: Millimetres to metres.
 M_PER_MM = 1e-3

@@ -23,7 +23,7 @@ from omnipipe.sim.features import Joint, Lateral, Ovality, PipeFeatures, Taper, 
 from omnipipe.sim.motion import MotionConfig
 from omnipipe.sim.render import RenderConfig, blind_radius_px
 from omnipipe.sim.scene import Centreline, Defect, Pipe
-from omnipipe.sim.sensors import SensorConfig
+from omnipipe.sim.sensor_config import SensorConfig
 from omnipipe.sim.texture import TextureConfig
 
 # Hyper70-like mirror: a published parameter set of the maker's hyperboloid mirror.
