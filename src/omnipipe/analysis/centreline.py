@@ -351,9 +351,9 @@ def _curved_direction(rel: np.ndarray, line: np.ndarray) -> np.ndarray:
     station of a quadratic fitted across the line (x(s) = x0 + x1 s + x2 s^2, s along
     it). Around a station with centres on both sides alike it is the line's; at a run's
     end (centres on one side only) a line through a bend's centres is their chord,
-    half the turn over the span behind the curve's tangent there (bench seeds 12 and
-    27: 1.2-3.3 deg at the last stations, read as the turn ending before the run's end).
-    The line's direction where the centres span fewer than three distinct positions."""
+    half the turn over the span behind the curve's tangent there (read as the turn
+    ending before the run's end: benchmarks/RESULTS.md, ana22). The line's direction
+    where the centres span fewer than three distinct positions."""
     s = rel @ line
     if len(np.unique(np.round(s, 3))) < 3:
         return line
@@ -484,12 +484,12 @@ def _ramp_noise(s: np.ndarray, phi: np.ndarray) -> float:
     """Robust 1-sigma (rad) of tangent angles ``phi`` (K,) at arcs ``s`` (K,) mm
     (ascending) about a line through their neighbours: each station's angle against the
     straight interpolation between the stations either side (the stations at one arc,
-    a rest's, within ``_SAME_ARC_MM``, taken once), 1.4826 x the median absolute difference over its sigma in
-    units of the noise (sqrt(1 + w1^2 + w2^2)). A bend's steady turn is such a line; its
+    a rest's, within ``_SAME_ARC_MM``, taken once), 1.4826 x the median absolute
+    difference over its sigma in units of the noise (sqrt(1 + w1^2 + w2^2)). A bend's steady turn is such a line; its
     two kinks weigh nothing in the median. The noise of a bend fit whose stretch has no
     two straight stations to measure it on (the turning spans it, both ends truncated):
     with the tiny floor in its place the soft-L1 loss held every station an outlier and
-    the fit's covariance went singular (turn sigmas of 40-900 deg)."""
+    the fit's covariance went singular."""
     first = _places(s)
     u, p = s[first], phi[first]
     if len(u) < 3:

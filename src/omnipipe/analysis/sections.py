@@ -313,9 +313,8 @@ def _end_tangents(line: Centreline, diameter_mm: float) -> np.ndarray:
     station spacings) of the run's first or last station the slope at the station of a
     quadratic through the centres within that span (:func:`.centreline.local_tangents`):
     there the centres lie on one side only and their line is a bend's chord, half the
-    turn over the span behind its tangent (bench seeds 12 and 27 with the true motion:
-    1.2-3.3 deg at the last stations, the turn read as ending 33-35 mm before the run's
-    end: 11.8 of 16.7 and 7.9 of 10.9 deg)."""
+    turn over the span behind its tangent: the turn read as ending before the run's end
+    (benchmarks/RESULTS.md, ana22)."""
     arc = np.asarray(line.arc_mm, float)
     steps = np.abs(np.diff(arc))
     moved = steps[steps > 0.1]
