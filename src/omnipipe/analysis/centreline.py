@@ -147,7 +147,7 @@ def recentred(
             centres within this distance (on its side of every break).
         breaks: planes (point, normal; world mm) between separately fitted sections.
         axis_prior: the prior of the tangents (:func:`rig_axis_prior`,
-            :func:`_local_tangents`); None: the centres' line alone.
+            :func:`local_tangents`); None: the centres' line alone.
 
     A short window's cylinder can tilt to mimic an oval section (an oblique cut of a
     circular cylinder is an ellipse: 6 % ovality ~ 20 deg), which shifts its station's
@@ -156,7 +156,7 @@ def recentred(
     off = np.asarray(offsets, float)
     centre = line.centre + off[:, :1] * line.normal + off[:, 1:2] * line.binormal
     side = np.array([np.sign((line.centre - p) @ n) for p, n in breaks]).reshape(len(breaks), len(centre))
-    tangent = _local_tangents(centre, line.tangent, half_span_mm, side, prior=axis_prior)
+    tangent = local_tangents(centre, line.tangent, half_span_mm, side, prior=axis_prior)
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.maximum(np.linalg.norm(tangent[1:] + tangent[:-1], axis=1), 1e-12)
     arc = np.concatenate([[0.0], np.cumsum(steps)])
@@ -252,7 +252,7 @@ def fit_centreline(
     # In a bend a window's cylinder axis is a chord; the tangent at a station is better
     # the direction of the station centres around it (a short line fit, on its side of
     # every break).
-    tangent = _local_tangents(centre, np.array(tangents), 0.25 * window_mm, side)
+    tangent = local_tangents(centre, np.array(tangents), 0.25 * window_mm, side)
     # Arc length through the centres, each step measured along the mean tangent.
     steps = np.einsum("ij,ij->i", np.diff(centre, axis=0), tangent[1:] + tangent[:-1])
     steps /= np.linalg.norm(tangent[1:] + tangent[:-1], axis=1)
@@ -304,15 +304,18 @@ def _fit_window(window: tuple[np.ndarray, np.ndarray, float]) -> Cylinder:
 _NONE = np.zeros(0)
 
 
-def _local_tangents(
+def local_tangents(
     centre: np.ndarray,
     fallback: np.ndarray,
     half_span_mm: float,
     side: np.ndarray | None = None,
     prior: AxisPrior | None = None,
+    curved: bool = False,
 ) -> np.ndarray:
     """(K, 3) unit directions of the centres within ``half_span_mm`` of each station (and,
-    with ``side`` ((B, K) signs), on its side of every break).
+    with ``side`` ((B, K) signs), on its side of every break); ``curved``: each the slope
+    at its station of a quadratic through those centres (:func:`_curved_direction`), not
+    their line's.
 
     With a ``prior`` at most ``_WEAK_PRIOR_RAD`` wide at a station, its direction is the
     line fit of the centres with that Gaussian prior on its slope
@@ -337,9 +340,28 @@ def _local_tangents(
         _, sv, vt = np.linalg.svd(c, full_matrices=False)
         if sv[0] < 1e-6 or (len(sv) > 1 and sv[1] > 0.5 * sv[0]):
             continue  # no clear direction: the stations are too close together
-        d = vt[0] if vt[0] @ fallback[i] > 0 else -vt[0]
-        out[i] = d
+        d = _curved_direction(centre[near] - centre[i], vt[0]) if curved else vt[0]
+        out[i] = d if d @ fallback[i] > 0 else -d
     return out
+
+
+def _curved_direction(rel: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """(3,) unit tangent at the station of centres ``rel`` (M, 3) (mm, relative to the
+    station's own) whose line fit runs along the unit ``line`` (3,): the slope at the
+    station of a quadratic fitted across the line (x(s) = x0 + x1 s + x2 s^2, s along
+    it). Around a station with centres on both sides alike it is the line's; at a run's
+    end (centres on one side only) a line through a bend's centres is their chord,
+    half the turn over the span behind the curve's tangent there (read as the turn
+    ending before the run's end: benchmarks/RESULTS.md, ana22). The line's direction
+    where the centres span fewer than three distinct positions."""
+    s = rel @ line
+    if len(np.unique(np.round(s, 3))) < 3:
+        return line
+    perp = rel - np.outer(s, line)
+    A = np.column_stack([np.ones_like(s), s, s * s])
+    coef, *_ = np.linalg.lstsq(A, perp, rcond=None)
+    d = line + coef[1]
+    return d / np.linalg.norm(d)
 
 
 @dataclass(frozen=True)
@@ -416,7 +438,7 @@ def fit_bend(
     inside = (s >= a0) & (s <= b0)
     if not inside.any() or abs(_start(s, phi, a0, b0)[3]) < 1e-6:
         return None
-    noise = max(float(np.std(np.diff(phi[~inside]))) / math.sqrt(2.0) if (~inside).sum() > 2 else 0.0, 1e-4)
+    noise = max(float(np.std(np.diff(phi[~inside]))) / math.sqrt(2.0) if (~inside).sum() > 2 else _ramp_noise(s, phi), 1e-4)
     # From the guess and from the stations' quartiles (a kink the guess spans, such as
     # a missed joint's offset swinging the tangents, can hold the fit from one start in
     # a degenerate minimum): the lowest robust cost.
@@ -437,20 +459,62 @@ def fit_bend(
     res = (model(sol.x) - phi) / noise
     dof = max(len(s) - 4, 1)
     var = float(res @ res) / dof * noise**2 * max(correlated, 1.0)
-    cov = _pinv_cov(sol.jac * noise, var)
+    edge = 0.5 * _spacing(s)
+    # An end at the first / last station (the turning may go on past it) is no parameter
+    # the stations measure: with none beyond it, it trades against phi0 / the turn. The
+    # covariance is the others' with it held there (the turn: the run's part).
+    free = np.array([a > lo + edge, b < hi - edge, True, True])
+    cov = np.zeros((4, 4))
+    cov[np.ix_(free, free)] = _pinv_cov(sol.jac[:, free] * noise, var)
     turn = abs(float(turn))
     sa, sb, st = (math.sqrt(max(cov[i, i], 0.0)) for i in (0, 1, 3))
     radius = (b - a) / turn
     # d radius = (db - da) / turn - radius dturn / turn
     g = np.array([-1.0 / turn, 1.0 / turn, 0.0, -math.copysign(radius / turn, sol.x[3])])
     sr = math.sqrt(max(float(g @ cov @ g), 0.0))
-    edge = 0.5 * float(np.median(np.diff(s)))
     return BendFit(
         start_mm=float(a), start_sigma_mm=math.hypot(sa, edge), end_mm=float(b),
         end_sigma_mm=math.hypot(sb, edge), turn_rad=turn, turn_sigma_rad=st,
         radius_mm=float(radius), radius_sigma_mm=sr,
         truncated=bool(a <= lo + edge or b >= hi - edge),
     )
+
+
+def _ramp_noise(s: np.ndarray, phi: np.ndarray) -> float:
+    """Robust 1-sigma (rad) of tangent angles ``phi`` (K,) at arcs ``s`` (K,) mm
+    (ascending) about a line through their neighbours: each station's angle against the
+    straight interpolation between the stations either side (the stations at one arc,
+    a rest's, within ``_SAME_ARC_MM``, taken once), 1.4826 x the median absolute
+    difference over its sigma in units of the noise (sqrt(1 + w1^2 + w2^2)). A bend's steady turn is such a line; its
+    two kinks weigh nothing in the median. The noise of a bend fit whose stretch has no
+    two straight stations to measure it on (the turning spans it, both ends truncated):
+    with the tiny floor in its place the soft-L1 loss held every station an outlier and
+    the fit's covariance went singular."""
+    first = _places(s)
+    u, p = s[first], phi[first]
+    if len(u) < 3:
+        return 0.0
+    w2 = (u[1:-1] - u[:-2]) / (u[2:] - u[:-2])
+    w1 = 1.0 - w2
+    dev = (p[1:-1] - (w1 * p[:-2] + w2 * p[2:])) / np.sqrt(1.0 + w1**2 + w2**2)
+    return 1.4826 * float(np.median(np.abs(dev)))
+
+
+_SAME_ARC_MM = 0.1
+"""Stations closer along the arc (mm) stand at one place (a rest's frames)."""
+
+
+def _places(s: np.ndarray) -> np.ndarray:
+    """Indices of the first station at each place along the ascending arcs ``s`` (K,) mm
+    (the stations of a rest's frames stand within ``_SAME_ARC_MM``)."""
+    return np.concatenate([[0], np.flatnonzero(np.diff(s) > _SAME_ARC_MM) + 1])
+
+
+def _spacing(s: np.ndarray) -> float:
+    """Median spacing (mm) of the places along the ascending arcs ``s`` (K,) (a rest's
+    stations, at one place, counted once: else half the steps are 0)."""
+    d = np.diff(s[_places(s)])
+    return float(np.median(d)) if len(d) else 0.0
 
 
 def _start(s: np.ndarray, phi: np.ndarray, a: float, b: float) -> np.ndarray:

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from omnipipe.analysis.centreline import Centreline, fit_bend
+from omnipipe.analysis.centreline import Centreline, fit_bend, local_tangents
 from omnipipe.analysis.feature_types import Bend, Ovality, Stretch, Taper, Water
 from omnipipe.analysis.stations import Headline, SectionConfig, Station
 
@@ -307,6 +307,25 @@ def _tapers(stations: list[Station], config: SectionConfig, mixing_mm: np.ndarra
     ]
 
 
+def _end_tangents(line: Centreline, diameter_mm: float) -> np.ndarray:
+    """(K, 3) the stations' tangents for the bend fit: ``line``'s, but within a tangent's
+    half span (half the piecewise fits' window: a quarter diameter, at least three
+    station spacings) of the run's first or last station the slope at the station of a
+    quadratic through the centres within that span (:func:`.centreline.local_tangents`):
+    there the centres lie on one side only and their line is a bend's chord, half the
+    turn over the span behind its tangent: the turn read as ending before the run's end
+    (benchmarks/RESULTS.md, ana22)."""
+    arc = np.asarray(line.arc_mm, float)
+    steps = np.abs(np.diff(arc))
+    moved = steps[steps > 0.1]
+    half = 0.5 * max(0.25 * diameter_mm, 3.0 * (float(np.median(moved)) if len(moved) else 0.0))
+    t = np.array(line.tangent, float)
+    ends = (arc - arc.min() < half) | (arc.max() - arc < half)
+    if ends.any():
+        t[ends] = local_tangents(np.asarray(line.centre, float), t, half, curved=True)[ends]
+    return t
+
+
 def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[Stretch]:
     """Stretches where the centreline turns faster than ``config.bend_min_curvature`` /
     diameter: runs of steps whose curvature over a diameter of centreline
@@ -336,13 +355,14 @@ def _bends(line: Centreline, diameter_mm: float, config: SectionConfig) -> list[
         and math.acos(float(np.clip(t[max(i0 - 1, 0)] @ t[min(i1 + 2, len(t) - 1)], -1.0, 1.0))) >= half_turn
     ]
     out = []
+    fit_t = _end_tangents(line, diameter_mm) if runs else t
     for j, (i0, i1) in enumerate(runs):
         # The stretch to fit: from midway to the previous bend to midway to the next.
         k0 = 0 if j == 0 else (runs[j - 1][1] + 1 + i0) // 2
         k1 = len(t) - 1 if j == len(runs) - 1 else (i1 + 1 + runs[j + 1][0]) // 2
         sel = slice(k0, k1 + 1)
         # The tangents are lines through the centres within a quarter diameter either side.
-        fit = fit_bend(arc[sel], t[sel], (float(arc[i0]), float(arc[i1 + 1])), 0.5 * diameter_mm / spacing)
+        fit = fit_bend(arc[sel], fit_t[sel], (float(arc[i0]), float(arc[i1 + 1])), 0.5 * diameter_mm / spacing)
         # A turn tighter than the pipe's own radius is a kink (a joint's offset, a
         # lateral's edge tilting the tangents), not a bend a pipe can make.
         if fit is None or math.degrees(fit.turn_rad) < config.bend_min_turn_deg or fit.radius_mm < 0.5 * diameter_mm:
