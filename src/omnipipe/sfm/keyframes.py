@@ -423,7 +423,7 @@ class KeyframeLoop:
         if self._direct:
             return None  # the chain skipped a period once: descriptors from here on
         least = max(config.min_tracks, self.ctx.ransac.min_inliers)
-        tracks = self._chain.advance(frame.views)
+        tracks = self._chain.advance(frame.views, frame.views.flow)
         if len(tracks.feature) < least:
             return None
         m = tracks.matches
@@ -628,7 +628,8 @@ class KeyframeLoop:
             # The tracks carried on first, then the new features evenly, up to the budget.
             followed = _budget(n_continued, features, config.tracking)
             self._chain = TrackChain(
-                self.extractor, frame.views, features, config.tracking, followed, prior=prior
+                self.extractor, frame.views, features, config.tracking, followed, prior=prior,
+                key_images=frame.views.flow,
             )
         k_new = len(self.features) - 1
         since = [j for j, p in enumerate(self.pending) if p.keyframe == k_new - 1]
@@ -894,7 +895,11 @@ def moving_frames(
         moved[:] = inputs.moved | by_odometry
         stream = iter_frames(
             ctx.executor,
-            FeatureTask(config.features, detect=not config.tracking.enabled),
+            FeatureTask(
+                config.features,
+                detect=not config.tracking.enabled,
+                flow=config.tracking if config.tracking.enabled else None,
+            ),
             inputs.dataset,
             np.flatnonzero(moved),
             most=4,
