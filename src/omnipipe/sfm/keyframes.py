@@ -895,11 +895,7 @@ def moving_frames(
         moved[:] = inputs.moved | by_odometry
         stream = iter_frames(
             ctx.executor,
-            FeatureTask(
-                config.features,
-                detect=not config.tracking.enabled,
-                flow=config.tracking if config.tracking.enabled else None,
-            ),
+            FeatureTask(config.features, not config.tracking.enabled, config.tracking if config.tracking.enabled else None),
             inputs.dataset,
             np.flatnonzero(moved),
             most=4,
