@@ -872,8 +872,8 @@ def moving_frames(
 ) -> Iterator[MovingFrame]:
     """Every frame where the rig moved, in order; fills ``moved`` (N,) (and ``ratios``
     (N,), the stationary test's, when it runs here) and reports progress over all N
-    frames. With ``config.tracking`` their views (features None:
-    detected on the keyframes), else their features (views None).
+    frames. With ``config.tracking`` their views (features None: detected on the
+    keyframes; from a local pool's workers with their flow images), else their features.
 
     With ``inputs.moved``, ``inputs.dataset`` and a parallel executor, they come from
     workers that decode the frames themselves (:class:`omnipipe.sfm.tasks.FeatureTask`;
@@ -893,9 +893,10 @@ def moving_frames(
     )
     if inputs.moved is not None and inputs.dataset is not None and ctx.parallel:
         moved[:] = inputs.moved | by_odometry
+        flow = config.tracking if config.tracking.enabled and shares_files(ctx.executor) else None
         stream = iter_frames(
             ctx.executor,
-            FeatureTask(config.features, not config.tracking.enabled, config.tracking if config.tracking.enabled else None),
+            FeatureTask(config.features, not config.tracking.enabled, flow),
             inputs.dataset,
             np.flatnonzero(moved),
             most=4,
