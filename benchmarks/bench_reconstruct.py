@@ -19,8 +19,9 @@ Each stage is also reported per moving frame (``continuous``: every frame moves;
 has 245 stationary frames of 330, which cost little), and the cores the reconstruction
 kept busy on average (CPU seconds of this process and its workers over the wall time),
 and each stage's CPU seconds (this process and its workers, sampled from /proc every
-0.2 s on Linux): on a machine shared with other work they, unlike the times, hardly
-depend on that work.
+0.2 s on Linux; this process's own share beside them: the frame-by-frame chain of the
+camera motion runs there, the rest in the workers): on a machine shared with other work
+they, unlike the times, hardly depend on that work.
 Nothing is tuned here: the defaults of ``omnipipe reconstruct``.
 
 Several scenarios (``--scenario continuous,bend``, ``--random-seeds 0 1 2`` for members
@@ -201,11 +202,12 @@ def _decode_hand_on(ex, dataset, summary: dict) -> float | None:
 
 
 class _TreeCpu:
-    """CPU seconds of this process and its child processes (live and finished), sampled
-    every 0.2 s on a thread while the block runs (Linux /proc; elsewhere nothing)."""
+    """CPU seconds of this process and its child processes (live and finished), and of
+    this process alone, sampled every 0.2 s on a thread while the block runs (Linux
+    /proc; elsewhere nothing)."""
 
     def __init__(self) -> None:
-        self.samples: list[tuple[float, float]] = []
+        self.samples: list[tuple[float, float, float]] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
         self._tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
@@ -222,14 +224,15 @@ class _TreeCpu:
 
     def _loop(self) -> None:
         while True:
-            self.samples.append((time.perf_counter(), self._now()))
+            self.samples.append((time.perf_counter(), *self._now()))
             if self._stop.wait(0.2):
-                self.samples.append((time.perf_counter(), self._now()))
+                self.samples.append((time.perf_counter(), *self._now()))
                 return
 
-    def _now(self) -> float:
+    def _now(self) -> tuple[float, float]:
+        """(CPU s of the tree, CPU s of this process alone)."""
         me = os.getpid()
-        ticks = 0
+        ticks = own = 0
         for entry in os.scandir("/proc"):
             if not entry.name.isdigit():
                 continue
@@ -239,19 +242,22 @@ class _TreeCpu:
                 continue
             if int(entry.name) == me or int(fields[1]) == me:  # fields[1]: the parent's id
                 ticks += int(fields[11]) + int(fields[12])  # utime, stime
+                own += (int(fields[11]) + int(fields[12])) if int(entry.name) == me else 0
         kids = resource.getrusage(resource.RUSAGE_CHILDREN)  # children already gone
-        return ticks / self._tick + kids.ru_utime + kids.ru_stime
+        return ticks / self._tick + kids.ru_utime + kids.ru_stime, own / self._tick
 
-    def at(self, t: float) -> float:
-        """CPU seconds at time ``t`` (perf_counter), interpolated between samples."""
+    def at(self, t: float, parent: bool = False) -> float:
+        """CPU seconds (of this process alone with ``parent``) at time ``t``
+        (perf_counter), interpolated between samples."""
         import numpy as np
 
-        ts, cpu = zip(*self.samples, strict=True)
-        return float(np.interp(t, ts, cpu))
+        ts, cpu, own = zip(*self.samples, strict=True)
+        return float(np.interp(t, ts, own if parent else cpu))
 
     def per_stage(self, t0: float, timings: dict[str, float]) -> str:
-        """One line: each stage's CPU seconds, its start taken as the run's start
-        (``t0``) plus the stages' times before it (report.json's ``timings_s``)."""
+        """One line: each stage's CPU seconds (and this process's share of them, the
+        rest being the workers'), its start taken as the run's start (``t0``) plus the
+        stages' times before it (report.json's ``timings_s``)."""
         if len(self.samples) < 2:
             return "CPU seconds per stage: not measured (no /proc)"
         t = t0 + timings.get("startup", 0.0)
@@ -259,10 +265,15 @@ class _TreeCpu:
         for stage in ("laser", "sfm", "analysis", "model"):
             dt = timings.get(stage, 0.0)
             cpu = self.at(t + dt) - self.at(t)
-            parts.append(f"{stage} {cpu:.1f} ({cpu / max(dt, 1e-9):.2f} cores)")
+            own = self.at(t + dt, parent=True) - self.at(t, parent=True)
+            parts.append(f"{stage} {cpu:.1f} ({cpu / max(dt, 1e-9):.2f} cores, this process {own:.1f})")
             t += dt
         total = self.at(t0 + timings["total"]) - self.at(t0)
-        return "CPU seconds per stage (this process and its workers): " + ", ".join(parts) + f"; total {total:.1f}"
+        own = self.at(t0 + timings["total"], parent=True) - self.at(t0, parent=True)
+        return (
+            "CPU seconds per stage (this process and its workers): " + ", ".join(parts)
+            + f"; total {total:.1f} (this process {own:.1f})"
+        )
 
 
 def _cpu_s() -> float:

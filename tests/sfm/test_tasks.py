@@ -111,3 +111,28 @@ def test_feature_task_leaves_handed_frames_grey_images_in_the_handoff(tiny_datas
     for (views, _, _), (views0, _, _) in zip(got, plain, strict=True):
         for a, b in zip(views.images + views.masks, views0.images + views0.masks, strict=True):
             assert np.array_equal(a, b)
+
+
+def test_feature_task_with_flow_sends_the_trackers_own_flow_images(tiny_dataset) -> None:
+    """With ``flow`` the worker's views carry the flow images the tracker would make of
+    them itself (:func:`omnipipe.sfm.tracking.flow_images` at that configuration), array
+    for array; without it they carry none."""
+    from omnipipe.dataset import open_dataset
+    from omnipipe.executor import FrameSource
+    from omnipipe.sfm.features import FeatureConfig
+    from omnipipe.sfm.tasks import FeatureTask
+    from omnipipe.sfm.tracking import TrackConfig, flow_images
+
+    dataset = open_dataset(tiny_dataset)
+    config = TrackConfig(highpass_px=5.0, levels=3)
+    got = FeatureTask(FeatureConfig(), detect=False, flow=config)(FrameSource.take(dataset, [1, 2]))
+    plain = FeatureTask(FeatureConfig(), detect=False)(FrameSource.take(dataset, [1, 2]))
+    for (views, _, _), (views0, _, _) in zip(got, plain, strict=True):
+        assert views0.flow is None and views.flow is not None
+        want = flow_images(views0, config.highpass_px, config.levels)
+        assert len(views.flow) == len(want)
+        for f, w in zip(views.flow, want, strict=True):
+            for name in ("raw", "highpassed", "coarse"):
+                assert np.array_equal(getattr(f, name), getattr(w, name)), name
+            assert f.band_px == w.band_px
+            assert np.array_equal(f.coarse_band, w.coarse_band)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numba
@@ -25,6 +26,9 @@ from omnipipe.errors import ConfigError
 from omnipipe.executor import thread_map
 from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 from omnipipe.sfm._kernels import two_smallest_columns
+
+if TYPE_CHECKING:
+    from omnipipe.sfm.tracking import FlowImage
 
 
 @dataclass(frozen=True)
@@ -116,11 +120,16 @@ class FrameViews:
             mirror's annulus, off the laser band, eroded by 2 px).
         plain: per view, the grey image before CLAHE, where the tracker's finest flow
             levels read (None: not kept; :attr:`FeatureConfig.flow_plain`).
+        flow: per view, the tracker's :class:`~omnipipe.sfm.tracking.FlowImage` of it
+            (:func:`~omnipipe.sfm.tracking.flow_images`), made where the views were made
+            (a worker, :class:`omnipipe.sfm.tasks.FeatureTask`); None: made by the
+            tracker when it needs them.
     """
 
     images: list[np.ndarray]
     masks: list[np.ndarray]
     plain: list[np.ndarray] | None = None
+    flow: list[FlowImage] | None = None
 
 
 class FeatureExtractor:

@@ -423,7 +423,7 @@ class KeyframeLoop:
         if self._direct:
             return None  # the chain skipped a period once: descriptors from here on
         least = max(config.min_tracks, self.ctx.ransac.min_inliers)
-        tracks = self._chain.advance(frame.views)
+        tracks = self._chain.advance(frame.views, frame.views.flow)
         if len(tracks.feature) < least:
             return None
         m = tracks.matches
@@ -628,7 +628,8 @@ class KeyframeLoop:
             # The tracks carried on first, then the new features evenly, up to the budget.
             followed = _budget(n_continued, features, config.tracking)
             self._chain = TrackChain(
-                self.extractor, frame.views, features, config.tracking, followed, prior=prior
+                self.extractor, frame.views, features, config.tracking, followed, prior=prior,
+                key_images=frame.views.flow,
             )
         k_new = len(self.features) - 1
         since = [j for j, p in enumerate(self.pending) if p.keyframe == k_new - 1]
@@ -871,8 +872,8 @@ def moving_frames(
 ) -> Iterator[MovingFrame]:
     """Every frame where the rig moved, in order; fills ``moved`` (N,) (and ``ratios``
     (N,), the stationary test's, when it runs here) and reports progress over all N
-    frames. With ``config.tracking`` their views (features None:
-    detected on the keyframes), else their features (views None).
+    frames. With ``config.tracking`` their views (features None: detected on the
+    keyframes; from a local pool's workers with their flow images), else their features.
 
     With ``inputs.moved``, ``inputs.dataset`` and a parallel executor, they come from
     workers that decode the frames themselves (:class:`omnipipe.sfm.tasks.FeatureTask`;
@@ -892,9 +893,10 @@ def moving_frames(
     )
     if inputs.moved is not None and inputs.dataset is not None and ctx.parallel:
         moved[:] = inputs.moved | by_odometry
+        flow = config.tracking if config.tracking.enabled and shares_files(ctx.executor) else None
         stream = iter_frames(
             ctx.executor,
-            FeatureTask(config.features, detect=not config.tracking.enabled),
+            FeatureTask(config.features, not config.tracking.enabled, flow),
             inputs.dataset,
             np.flatnonzero(moved),
             most=4,

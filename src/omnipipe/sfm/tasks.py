@@ -21,6 +21,7 @@ references to the run's keyframe image store, read by the worker itself.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -54,7 +55,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import FlowImage, TrackChain, TrackConfig
+from omnipipe.sfm.tracking import FlowImage, TrackChain, TrackConfig, flow_images
 from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:
@@ -102,7 +103,10 @@ class FeatureTask:
 
     With ``detect`` the frame's SIFT features (views None: nothing more is read from
     them), else its :class:`~omnipipe.sfm.features.FrameViews` (features None: the
-    caller tracks into them, and detects on the keyframes). The chunk's ``payload``
+    caller tracks into them, and detects on the keyframes; with ``flow``, the tracker's
+    :func:`~omnipipe.sfm.tracking.flow_images` of them at that configuration's
+    ``highpass_px`` and ``levels`` too, :attr:`FrameViews.flow`: made beside the views,
+    off the caller's frame-by-frame chain). The chunk's ``payload``
     holds each frame's laser-ring pixels (N, 2), masked out of the features. The grey
     image is :func:`frame_gray`; None for a frame read from the chunk's
     :attr:`~omnipipe.executor.FrameSource.handoff` (the caller, which needs the grey
@@ -110,9 +114,10 @@ class FeatureTask:
     frame's 2 MB grey image goes through the pipe for nothing.
     """
 
-    def __init__(self, config: FeatureConfig, detect: bool = True) -> None:
+    def __init__(self, config: FeatureConfig, detect: bool = True, flow: TrackConfig | None = None) -> None:
         self.config = config
         self.detect = detect
+        self.flow = flow
 
     def __call__(
         self, source: FrameSource
@@ -129,6 +134,8 @@ class FeatureTask:
             if self.detect:
                 out.append((None, extractor.detect(views), gray))
             else:
+                if self.flow is not None:  # the tracker's images of them, made here
+                    views = replace(views, flow=flow_images(views, self.flow.highpass_px, self.flow.levels))
                 out.append((views, None, gray))
         return out
 
