@@ -18,8 +18,8 @@ from omnipipe.geometry import apply
 from omnipipe.sim import make_scenario
 from omnipipe.sim.motion import head_travel
 from omnipipe.sim.random_family import ring_band
-from omnipipe.sim.scenarios import WIDE_FAMILIES, WIDE_PERIODIC, WIDE_SENSORS
 from omnipipe.sim.texture import WallTexture
+from omnipipe.sim.wide_family import WIDE_FAMILIES, WIDE_PERIODIC, WIDE_SENSORS
 from omnipipe.sim.writer import build_renderer
 
 
