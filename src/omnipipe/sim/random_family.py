@@ -36,6 +36,7 @@ SMOOTH_COLOURS = ((0.60, 0.58, 0.55), (0.70, 0.70, 0.66), (0.52, 0.56, 0.62), (0
 
 
 def log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    """One draw, uniform in log between ``lo`` and ``hi`` (both > 0, same unit)."""
     return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
 
