@@ -15,10 +15,10 @@ from scipy.optimize import brentq
 from omnipipe.errors import ConfigError
 from omnipipe.geometry import apply, rotate
 from omnipipe.sim import make_scenario, paper_rig
+from omnipipe.sim.feature_scenarios import clock_to_angle_deg
 from omnipipe.sim.features import Joint, Lateral, Ovality, PipeFeatures, Taper, Water
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import SURFACE_WALL, SURFACE_WATER, Renderer
-from omnipipe.sim.scenarios import clock_to_angle_deg
 from omnipipe.sim.scene import Pipe
 from omnipipe.sim.texture import TextureConfig, WallTexture
 from omnipipe.sim.writer import build_renderer, scene_description

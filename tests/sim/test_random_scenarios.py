@@ -17,7 +17,7 @@ from omnipipe.errors import ConfigError
 from omnipipe.geometry import apply
 from omnipipe.sim import make_scenario
 from omnipipe.sim.motion import MotionConfig, head_travel, simulate_trajectory
-from omnipipe.sim.scenarios import PERIODIC_FAMILIES, RANDOM_FAMILIES
+from omnipipe.sim.random_family import PERIODIC_FAMILIES, RANDOM_FAMILIES
 from omnipipe.sim.texture import WallTexture
 from omnipipe.sim.writer import build_renderer, scene_description
 

@@ -17,8 +17,9 @@ from omnipipe.errors import ConfigError
 from omnipipe.geometry import apply
 from omnipipe.sim import make_scenario
 from omnipipe.sim.motion import head_travel
-from omnipipe.sim.scenarios import WIDE_FAMILIES, WIDE_PERIODIC, WIDE_SENSORS, _ring_band
+from omnipipe.sim.random_family import ring_band
 from omnipipe.sim.texture import WallTexture
+from omnipipe.sim.wide_family import WIDE_FAMILIES, WIDE_PERIODIC, WIDE_SENSORS
 from omnipipe.sim.writer import build_renderer
 
 
@@ -35,7 +36,7 @@ def _check_wide(sc) -> None:
     assert 3.0 <= g["stroke_mm"] <= 60.0 and 0 <= g["rest_frames"] <= 3
     # The laser ring lies in the mirror's useful band of the drawn sensor.
     native = make_scenario("random-wide", seed=sc.seed, frames=1)
-    r_ring, lo, hi = _ring_band(native.rig, native.render, 0.5 * d)
+    r_ring, lo, hi = ring_band(native.rig, native.render, 0.5 * d)
     assert lo <= r_ring <= hi
 
 

@@ -8,7 +8,8 @@ at ``out_dir`` only when complete. ``render_sequence`` gives the same frames in 
 
 from omnipipe.sim.motion import MotionConfig, simulate_trajectory
 from omnipipe.sim.render import RenderConfig, Renderer
-from omnipipe.sim.scenarios import SCENARIOS, Scenario, make_scenario, paper_rig
+from omnipipe.sim.scenario import Scenario, paper_rig
+from omnipipe.sim.scenarios import SCENARIOS, make_scenario
 from omnipipe.sim.scene import Centreline, Defect, Pipe
 from omnipipe.sim.texture import TextureConfig, WallTexture
 from omnipipe.sim.writer import SimResult, build_renderer, render_sequence, run

@@ -92,7 +92,7 @@ def draw_truth(
     at the focus, no tilt, laser plane z = -82 mm), the rig of ``simulate --scenario
     paper``; only the board poses are random (the same draws as without it).
     """
-    from omnipipe.sim.scenarios import paper_rig
+    from omnipipe.sim.scenario import paper_rig
 
     if seed < 0:
         raise ConfigError("--seed", f"must be >= 0, got {seed}")

@@ -10,7 +10,8 @@ from omnipipe import cli_values
 from omnipipe.executor import check_workers
 from omnipipe.output import prepare_output_dir
 from omnipipe.progress import HonestBar
-from omnipipe.sim.scenarios import SCENARIOS, Scenario, make_scenario
+from omnipipe.sim.scenario import Scenario
+from omnipipe.sim.scenarios import SCENARIOS, make_scenario
 from omnipipe.sim.writer import run
 
 

@@ -35,7 +35,7 @@ from omnipipe.sim.motion import poses_at_travel, travel_at_times
 from omnipipe.sim.sensor_config import SensorConfig
 
 if TYPE_CHECKING:
-    from omnipipe.sim.scenarios import Scenario
+    from omnipipe.sim.scenario import Scenario
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 _SENSOR_SEED_TAG = 0x53454E53  # "SENS"

@@ -17,7 +17,7 @@ from omnipipe.output import atomic_output_dir
 from omnipipe.rig_yaml import save_rig
 from omnipipe.sim.motion import simulate_trajectory
 from omnipipe.sim.render import Renderer
-from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.scenario import Scenario
 from omnipipe.sim.scene import Pipe
 from omnipipe.sim.sensors import simulate_sensors, write_sensor_files
 from omnipipe.sim.texture import WallTexture
