@@ -14,7 +14,7 @@ from omnipipe.laser import LaserConfig, LaserResult
 from omnipipe.laser import run as laser_run
 from omnipipe.sim import make_scenario
 from omnipipe.sim.render import Renderer
-from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.scenario import Scenario
 from omnipipe.sim.writer import build_renderer
 
 

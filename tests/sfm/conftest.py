@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply, invert, make_transform
 from omnipipe.sfm.bundle import BundleProblem
-from omnipipe.sim.scenarios import paper_rig
+from omnipipe.sim.scenario import paper_rig
 
 
 def _pipe_scene(

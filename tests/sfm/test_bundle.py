@@ -18,7 +18,7 @@ from omnipipe.sfm.bundle import (
     resect_rays,
 )
 from omnipipe.sfm.geometry import triangulate_pairs
-from omnipipe.sim.scenarios import paper_rig
+from omnipipe.sim.scenario import paper_rig
 
 
 def _scene(pipe_scene, seed: int):

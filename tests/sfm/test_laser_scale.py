@@ -9,7 +9,7 @@ from omnipipe.geometry import invert
 from omnipipe.sfm.laser_scale import match_laser_points
 from omnipipe.sim import make_scenario
 from omnipipe.sim.render import Renderer
-from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.scenario import Scenario
 from omnipipe.sim.writer import build_renderer
 
 
@@ -141,7 +141,7 @@ def test_detrend_takes_the_brightness_falloff_out_of_the_length() -> None:
     from omnipipe.laser.stage import LaserConfig
     from omnipipe.laser.triangulate import triangulate_ring
     from omnipipe.sfm.laser_scale import LaserScaleConfig
-    from omnipipe.sim.scenarios import make_feature_scenario
+    from omnipipe.sim.feature_scenarios import make_feature_scenario
 
     scenario = make_feature_scenario("random-features-small", 20, None, 8)
     renderer, poses, _, _ = build_renderer(scenario)

@@ -19,7 +19,7 @@ from omnipipe.sfm.step_scale import bridge_lost_steps, bridge_steps, confirmed_c
 from omnipipe.sfm.tracking import TrackConfig
 from omnipipe.sfm.types import StepEvidence
 from omnipipe.sim import make_scenario
-from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.scenario import Scenario
 from omnipipe.sim.writer import build_renderer
 
 

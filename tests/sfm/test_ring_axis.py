@@ -18,7 +18,7 @@ from omnipipe.sfm.bundle import (
     bundle_adjust,
 )
 from omnipipe.sfm.ring_axis import AxisRows, RingCentre, axis_rows, fit_ring_centre, ring_offsets
-from omnipipe.sim.scenarios import paper_rig
+from omnipipe.sim.scenario import paper_rig
 
 LASER_Z = -82.0
 

@@ -17,7 +17,7 @@ from omnipipe.sfm.bundle import BundleConfig, BundleProblem, LengthPrior, bundle
 from omnipipe.sfm.scale_check import StepCheck
 from omnipipe.sfm.step_priors import bridged_priors, wall_priors
 from omnipipe.sfm.types import Keyframes
-from omnipipe.sim.scenarios import paper_rig
+from omnipipe.sim.scenario import paper_rig
 
 
 def _unevenly_shortened(world_from_kf: np.ndarray, gains: list[float]) -> np.ndarray:

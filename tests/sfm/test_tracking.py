@@ -26,7 +26,7 @@ from omnipipe.sfm.tracking import (
 )
 from omnipipe.sim import make_scenario
 from omnipipe.sim.render import Renderer
-from omnipipe.sim.scenarios import Scenario
+from omnipipe.sim.scenario import Scenario
 from omnipipe.sim.writer import build_renderer
 
 
