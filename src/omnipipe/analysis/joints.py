@@ -29,6 +29,7 @@ import numpy as np
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.feature_rings import FeatureConfig, Rings, robust_sine_fit
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
+from omnipipe.analysis.ring_spans import RingSpans
 
 
 def gap_joints(
@@ -311,19 +312,25 @@ def _without_sector_rings(
     lying along the axis beyond ``margin_mm`` of the candidates of the rings deep all round,
     reaching as far out as a lateral's (``lateral_reach_rel``). Rings crossing a gap obliquely also hold a sector each, but inside the gap, where a
     ring lying in it is deep all round: they stay."""
-    bins = (np.degrees(r.theta) % 360 // 10).astype(int)
+    # Each ring's sectors from its own points (:class:`~omnipipe.analysis.ring_spans.RingSpans`:
+    # no whole-run array of every point's sector, nor a mask of the run's points per ring).
+    def _sector_bins(theta: np.ndarray) -> np.ndarray:
+        return (np.degrees(theta) % 360 // 10).astype(int)  # 10-degree sectors, 0..35
+
     rings = r.frame[members]
-    narrow = []
-    for k in np.unique(rings):
-        seen_k = np.unique(bins[r.frame == k])
-        have_k = np.unique(bins[members[rings == k]])
-        if len(have_k) < 0.5 * config.joint_coverage * len(seen_k):
-            narrow.append(k)
-    if not narrow or len(narrow) == len(np.unique(rings)):
+    have = _sector_bins(r.theta[members])
+    ids = np.unique(rings)
+    spans = RingSpans(r.frame, ids)
+    seen_of = [np.unique(_sector_bins(spans.values(i, r.theta))) for i in range(len(ids))]
+    narrow = [
+        k for k, seen_k in zip(ids, seen_of, strict=True)
+        if len(np.unique(have[rings == k])) < 0.5 * config.joint_coverage * len(seen_k)
+    ]
+    if not narrow or len(narrow) == len(ids):
         return group
     is_narrow = np.isin(rings, narrow)
-    sector = np.unique(bins[members[is_narrow]])
-    seen = np.unique(bins[np.isin(r.frame, np.unique(rings))])
+    sector = np.unique(have[is_narrow])
+    seen = np.unique(np.concatenate(seen_of))
     if len(sector) > (1.0 - config.joint_coverage) * len(seen):
         return group
     lo, hi = np.percentile(r.sigma[members[~is_narrow]], [2.0, 98.0])

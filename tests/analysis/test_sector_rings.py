@@ -1,0 +1,90 @@
+"""``joints._without_sector_rings`` with each ring's sectors taken from its own points
+(:class:`~omnipipe.analysis.ring_spans.RingSpans`) keeps the candidates the whole-run
+code kept: rings in run order and shuffled, with and without a lateral's opening beside
+a joint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnipipe.analysis.feature_rings import FeatureConfig, Rings
+from omnipipe.analysis.joints import _without_sector_rings
+
+
+def _whole_run(config: FeatureConfig, r: Rings, members: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """The whole-run code (every point's sector, a mask of the run's points per ring): the
+    reference."""
+    bins = (np.degrees(r.theta) % 360 // 10).astype(int)
+    rings = r.frame[members]
+    narrow = []
+    for k in np.unique(rings):
+        seen_k = np.unique(bins[r.frame == k])
+        have_k = np.unique(bins[members[rings == k]])
+        if len(have_k) < 0.5 * config.joint_coverage * len(seen_k):
+            narrow.append(k)
+    if not narrow or len(narrow) == len(np.unique(rings)):
+        return group
+    is_narrow = np.isin(rings, narrow)
+    sector = np.unique(bins[members[is_narrow]])
+    seen = np.unique(bins[np.isin(r.frame, np.unique(rings))])
+    if len(sector) > (1.0 - config.joint_coverage) * len(seen):
+        return group
+    lo, hi = np.percentile(r.sigma[members[~is_narrow]], [2.0, 98.0])
+    s = r.sigma[members]
+    beyond = is_narrow & ((s < lo - config.margin_mm) | (s > hi + config.margin_mm))
+    reach = config.lateral_reach_rel * 2.0 * float(np.median(r.rho))
+    if not beyond.any() or float(np.max(r.dev[members[beyond]])) < reach:
+        return group
+    return group[~beyond]
+
+
+def _run(rng: np.random.Generator, shuffle: bool, opening_dev: float) -> tuple[Rings, np.ndarray]:
+    """40 rings 2 mm apart of a 50 mm radius wall (theta over the whole circle; a few rings
+    see only part of it), and the candidates of a joint (rings 10-12, deep all round) and
+    of an opening (rings 16-20, a 40-degree sector, ``opening_dev`` mm out)."""
+    n_rings, per = 40, 360
+    frame = np.repeat(np.arange(n_rings), per)
+    theta = rng.uniform(-np.pi, np.pi, len(frame))
+    theta[frame == 30] = rng.uniform(0.0, 2.0, per)  # a ring that sees part of the wall
+    sigma = 2.0 * frame + rng.normal(0, 0.2, len(frame))
+    rho = 50.0 + rng.normal(0, 0.05, len(frame))
+    dev = rng.normal(0, 0.05, len(frame))
+    joint = (frame >= 10) & (frame <= 12)
+    opening = (frame >= 16) & (frame <= 20) & (theta > 0.5) & (theta < 0.5 + np.radians(40))
+    dev[joint] += 2.0
+    dev[opening] += opening_dev
+    if shuffle:
+        order = rng.permutation(len(frame))
+        frame, theta, sigma, rho, dev = frame[order], theta[order], sigma[order], rho[order], dev[order]
+    r = Rings(sigma, rho, theta, frame, frame.copy(), 2.0 * np.arange(n_rings), dev, 0.05)
+    return r, np.flatnonzero(dev > 1.0)
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+@pytest.mark.parametrize("opening_dev", [12.0, 3.0])  # reaching as a lateral's, or not
+def test_sector_rings_as_the_whole_run_code(shuffle: bool, opening_dev: float) -> None:
+    config = FeatureConfig()
+    for seed in range(4):
+        r, members = _run(np.random.default_rng(seed), shuffle, opening_dev)
+        group = np.arange(len(members)) + 100  # positions, as _joint_bands passes them
+        want = _whole_run(config, r, members, group)
+        got = _without_sector_rings(config, r, members, group)
+        np.testing.assert_array_equal(got, want)
+        if opening_dev > 10:  # the opening's candidates dropped, the joint's kept
+            assert len(got) < len(group)
+            assert np.all(r.frame[members[got - 100]] <= 12)
+        else:
+            assert len(got) == len(group)
+
+
+def test_sector_rings_of_random_subsets_as_the_whole_run_code() -> None:
+    config = FeatureConfig()
+    rng = np.random.default_rng(7)
+    r, _ = _run(rng, True, 12.0)
+    for _ in range(20):
+        members = np.sort(rng.choice(len(r.frame), rng.integers(1, 3000), replace=False))
+        group = np.arange(len(members))
+        np.testing.assert_array_equal(
+            _without_sector_rings(config, r, members, group), _whole_run(config, r, members, group)
+        )
