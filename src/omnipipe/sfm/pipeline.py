@@ -95,6 +95,7 @@ from omnipipe.sfm.types import (
     SfmInputs,
     SfmResult,
 )
+from omnipipe.spill import Pack
 
 if TYPE_CHECKING:
     from omnipipe.laser.ring import LaserRing
@@ -217,10 +218,16 @@ def nearest_wall(rings: Sequence[LaserRing]) -> Callable[[int], WallCylinder | N
     the rig (a creep moves it by a few mm: robustness seeds 3 and 24, joints walls,
     every frame step flagged by the stationary test without it)."""
     cache: dict[int, WallCylinder | None] = {}
+    # Each cylinder's ring points in the run's scratch (the same values): a ring read back
+    # is its whole record (every per-sample array), which a cylinder kept per frame held.
+    pack = Pack()
 
     def own(i: int) -> WallCylinder | None:
         if i not in cache:
-            cache[i] = wall_cylinder(rings[i].points_in_rig)
+            wall = wall_cylinder(rings[i].points_in_rig)
+            if wall is not None and wall.ring_points is not None:
+                wall = replace(wall, ring_points=pack.put(wall.ring_points))
+            cache[i] = wall
         return cache[i]
 
     def read(i: int) -> WallCylinder | None:
