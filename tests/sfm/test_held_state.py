@@ -76,3 +76,17 @@ def test_only_futures_holding_a_result_count_as_finished() -> None:
     assert [_finished(f) for f in (waiting, done, failed, cancelled, later, released)] == [
         False, True, False, False, False, True,
     ]
+
+
+def test_scaled_tracks_on_disk_with_the_whole_products() -> None:
+    from omnipipe.sfm.adjust import Adjusted, WindowTracks
+
+    rng = np.random.default_rng(11)
+    tracks = [WindowTracks(0, [rng.integers(-1, 50, 40)], rng.normal(size=(50, 3)) * 100), None]
+    adj = Adjusted(rng.normal(size=(3, 4, 4)), tracks, np.zeros(3, int), [])
+    got = adj.scaled(1.0137)
+    np.testing.assert_array_equal(got.tracks[0].points_in_world, tracks[0].points_in_world * 1.0137)
+    assert is_on_disk(got.tracks[0].points_in_world) and got.tracks[1] is None
+    want = adj.world_from_kf.copy()
+    want[:, :3, 3] *= 1.0137
+    np.testing.assert_array_equal(got.world_from_kf, want)
