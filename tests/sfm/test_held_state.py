@@ -90,3 +90,27 @@ def test_scaled_tracks_on_disk_with_the_whole_products() -> None:
     want = adj.world_from_kf.copy()
     want[:, :3, 3] *= 1.0137
     np.testing.assert_array_equal(got.world_from_kf, want)
+
+
+def test_chain_held_on_disk_with_its_values() -> None:
+    from omnipipe.sfm.pipeline import _chain_held
+    from omnipipe.sfm.step_chain import ChainedSteps
+    from omnipipe.sfm.types import Anchor, PairMatches
+
+    rng = np.random.default_rng(13)
+    pairs = [PairMatches(k, k + 1, rng.integers(0, 300, (40 + k, 2))) for k in range(3)]
+    anchors = [
+        Anchor(0, 1, rng.normal(size=(20, 3)), rng.uniform(0, 400, (20, 2)), rng.normal(2, 0.1, 20), True),
+        Anchor(1, 2, rng.normal(size=(9, 3)), rng.uniform(0, 400, (9, 2))),
+    ]
+    chain = ChainedSteps(rng.normal(size=(4, 4, 4)), [1.0, 2.0, 3.0], pairs, anchors, [])
+    held = _chain_held(chain)
+    for p, q in zip(held.pair_matches, pairs, strict=True):
+        assert (p.a, p.b) == (q.a, q.b) and is_on_disk(p.matches)
+        np.testing.assert_array_equal(p.matches, q.matches)
+    for p, q in zip(held.anchors, anchors, strict=True):
+        assert (p.a, p.b, p.epipolar) == (q.a, q.b, q.epipolar) and is_on_disk(p.points_in_a)
+        for x, y in ((p.points_in_a, q.points_in_a), (p.pixels_b, q.pixels_b), (p.log_lengths, q.log_lengths)):
+            np.testing.assert_array_equal(x, y)
+            assert x.dtype == y.dtype
+    assert held.world_from_kf is chain.world_from_kf and held.scales_mm == chain.scales_mm

@@ -158,7 +158,7 @@ def _run(
             if inputs.odometry is not None and inputs.timestamps is not None
             else None
         )
-        chain = chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames))
+        chain = _chain_held(chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames)))
         # The frame loop's freed blocks and the keyframes' arrays the chain read (pages of
         # the run's scratch) handed back before the adjustment: they grew with the keyframes.
         release_freed_memory()
@@ -287,6 +287,25 @@ def _adjusted_and_checked(
             checks, adjusted.world_from_kf, moving_counts(moved, kf.frames), config.scale_check, ctx.warnings
         )
     return adjusted, replace(chain, checks=checks), walls
+
+
+def _chain_held(chain: ChainedSteps) -> ChainedSteps:
+    """``chain`` with each step's inlier matches and its anchors' arrays in the run's
+    scratch (:class:`omnipipe.spill.Pack`: the same values, resident only while read):
+    they wait for the adjustment and the resection, and held in memory they grew the
+    camera motion's memory with the run."""
+    pack = Pack()
+    return replace(
+        chain,
+        pair_matches=[replace(p, matches=pack.put(p.matches)) for p in chain.pair_matches],
+        anchors=[
+            replace(
+                q, points_in_a=pack.put(q.points_in_a), pixels_b=pack.put(q.pixels_b),
+                log_lengths=pack.put(q.log_lengths),
+            )
+            for q in chain.anchors
+        ],
+    )
 
 
 def _station_ratio(inputs: SfmInputs) -> np.ndarray:
