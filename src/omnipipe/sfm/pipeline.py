@@ -366,6 +366,7 @@ def _result(
     ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`,
     and the wall's shift (``read_wall``: a frame's wall cylinder) measure and place their
     frames: :func:`omnipipe.sfm.creep.place_creeps`), merged."""
+    release_freed_memory()  # the adjustment's and the resection's freed blocks: not under the creeps
     moved = followed.moved
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
