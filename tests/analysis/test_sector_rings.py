@@ -1,9 +1,11 @@
-"""``joints._without_sector_rings`` with each ring's sectors taken from its own points
-(:class:`~omnipipe.analysis.ring_spans.RingSpans`) keeps the candidates the whole-run
-code kept: rings in run order and shuffled, with and without a lateral's opening beside
-a joint."""
+"""``joints._without_sector_rings`` and ``features._one_hole`` reading each ring's own points
+(:class:`~omnipipe.analysis.ring_spans.RingSpans`) decide as the whole-run code did: rings
+in run order and shuffled, with and without a lateral's opening beside a joint, pieces of
+an opening with and without wall between them."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -88,3 +90,53 @@ def test_sector_rings_of_random_subsets_as_the_whole_run_code() -> None:
         np.testing.assert_array_equal(
             _without_sector_rings(config, r, members, group), _whole_run(config, r, members, group)
         )
+
+
+def _one_hole_whole_run(r: Rings, a: np.ndarray, b: np.ndarray, low: float) -> bool:
+    """``features._one_hole`` on whole-run arrays (every point's arc, a mask of the run's
+    points per ring): the reference."""
+    if (a & b).any():
+        return True
+    za, zb = r.sigma[a], r.sigma[b]
+    over = min(za.max(), zb.max()) - max(za.min(), zb.min())
+    if over < 0.5 * min(np.ptp(za), np.ptp(zb)):
+        return False
+    ca = math.atan2(float(np.mean(np.sin(r.theta[a]))), float(np.mean(np.cos(r.theta[a]))))
+    u = (r.theta - ca + np.pi) % (2 * np.pi) - np.pi
+    shared = np.intersect1d(r.frame[a], r.frame[b])
+    if not len(shared):
+        return False
+    walled = 0
+    for k in shared:
+        ua, ub = u[a & (r.frame == k)], u[b & (r.frame == k)]
+        lo, hi = (ua.max(), ub.min()) if np.median(ua) < np.median(ub) else (ub.max(), ua.min())
+        between = (r.frame == k) & (u > lo) & (u < hi) & ~a & ~b
+        walled += bool(np.any(between & (np.abs(r.dev) <= low)))
+    return 2 * walled < len(shared)
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_one_hole_ring_by_ring_as_the_whole_run_code(shuffle: bool) -> None:
+    from omnipipe.analysis.features import _one_hole
+
+    rng = np.random.default_rng(21 + shuffle)
+    outcomes = set()
+    for trial in range(60):
+        r, _ = _run(rng, shuffle, 12.0)
+        k0 = int(rng.integers(0, 30))
+        rings = (r.frame >= k0) & (r.frame < k0 + int(rng.integers(2, 9)))
+        c = rng.uniform(-np.pi, np.pi)
+        d = (r.theta - c + np.pi) % (2 * np.pi) - np.pi
+        gap = rng.uniform(0.0, 0.6) if trial % 3 else 0.0  # a gap between the pieces, or none
+        a = rings & (d > -0.8) & (d < -gap / 2)
+        b = rings & (d > gap / 2) & (d < 0.8)
+        if trial % 4 == 0:  # lit inside: no wall between the pieces on some rings
+            r.dev[rings & (np.abs(d) < gap / 2) & (r.frame % 2 == 0)] += 5.0
+        if trial % 5 == 0:
+            b = b & (r.frame > k0 + 1)  # partly other rings
+        if not a.any() or not b.any():
+            continue
+        got = _one_hole(r, a, b, 0.5)
+        assert got == _one_hole_whole_run(r, a, b, 0.5)
+        outcomes.add(got)
+    assert outcomes == {True, False}  # both answers reached

@@ -281,16 +281,19 @@ def _one_hole(r: Rings, a: np.ndarray, b: np.ndarray, low: float) -> bool:
     if over < 0.5 * min(np.ptp(za), np.ptp(zb)):
         return False
     ca = math.atan2(float(np.mean(np.sin(r.theta[a]))), float(np.mean(np.cos(r.theta[a]))))
-    u = (r.theta - ca + np.pi) % (2 * np.pi) - np.pi
     shared = np.intersect1d(r.frame[a], r.frame[b])
     if not len(shared):
         return False
     walled = 0
-    for k in shared:
-        ua, ub = u[a & (r.frame == k)], u[b & (r.frame == k)]
+    spans = RingSpans(r.frame, shared)  # each shared ring's own points: no whole-run arc
+    for i in range(len(shared)):
+        on = spans.indices(i)
+        u = (r.theta[on] - ca + np.pi) % (2 * np.pi) - np.pi
+        in_a, in_b = a[on], b[on]
+        ua, ub = u[in_a], u[in_b]
         lo, hi = (ua.max(), ub.min()) if np.median(ua) < np.median(ub) else (ub.max(), ua.min())
-        between = (r.frame == k) & (u > lo) & (u < hi) & ~a & ~b
-        walled += bool(np.any(between & (np.abs(r.dev) <= low)))
+        between = (u > lo) & (u < hi) & ~in_a & ~in_b
+        walled += bool(np.any(between & (np.abs(r.dev[on]) <= low)))
     return 2 * walled < len(shared)
 
 
