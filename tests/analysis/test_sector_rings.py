@@ -140,3 +140,35 @@ def test_one_hole_ring_by_ring_as_the_whole_run_code(shuffle: bool) -> None:
         assert got == _one_hole_whole_run(r, a, b, 0.5)
         outcomes.add(got)
     assert outcomes == {True, False}  # both answers reached
+
+
+def _unseen_gap_whole(sigma: np.ndarray, block: int) -> float:
+    """``features._unseen_gap`` through the whole sorted copy: the reference."""
+    if len(sigma) < 2:
+        return 0.0
+    s = np.sort(sigma)
+    return float(np.max([np.max(np.diff(s[a : a + block + 1])) for a in range(0, len(s) - 1, block)]))
+
+
+@pytest.mark.parametrize("block", [7, 64, 1 << 16])
+def test_unseen_gap_by_value_ranges_as_the_sorted_run(monkeypatch: pytest.MonkeyPatch, block: int) -> None:
+    from omnipipe.analysis import features
+
+    monkeypatch.setattr(features, "_GAP_BLOCK", block)
+    rng = np.random.default_rng(block)
+    runs = [
+        rng.normal(0, 50, 5000),
+        np.repeat(rng.uniform(0, 100, 300), 7),  # ties
+        np.concatenate([rng.uniform(0, 10, 3000), rng.uniform(40, 41, 50), [200.0]]),  # a gap, clusters
+        np.round(rng.uniform(-5, 5, 4000), 1),
+        np.full(500, 3.0),
+        rng.normal(0, 1, 2),
+    ]
+    with_nan = rng.normal(0, 1, 300)
+    with_nan[17] = np.nan
+    with_inf = rng.normal(0, 1, 300)
+    with_inf[5] = np.inf
+    for sigma in [*runs, with_nan, with_inf]:
+        sigma = rng.permutation(sigma)
+        want, got = _unseen_gap_whole(sigma, block), features._unseen_gap(sigma)
+        assert got == want or (np.isnan(got) and np.isnan(want))

@@ -477,11 +477,51 @@ def _opening(
 
 
 def _unseen_gap(sigma: np.ndarray) -> float:
-    """The widest axial stretch (mm) between consecutive samples (sorted along the axis)."""
-    if len(sigma) < 2:
+    """The widest axial stretch (mm) between consecutive samples (sorted along the axis).
+
+    Without a sorted copy of the run's samples: they are taken a range of values at a
+    time (about :data:`_GAP_BLOCK` samples each, from a histogram of them), each range's
+    sorted on its own; the sorted run is those ranges one after the other, so its
+    consecutive differences are each range's and the steps from one range's last sample
+    to the next one's first (the same subtractions, the same maximum). Samples that are
+    not all finite: the whole sort."""
+    n = len(sigma)
+    if n < 2:
         return 0.0
-    s = np.sort(sigma)  # (its differences a block at a time: not a second whole array)
-    return float(np.max([np.max(np.diff(s[a : a + _GAP_BLOCK + 1])) for a in range(0, len(s) - 1, _GAP_BLOCK)]))
+    lo, hi, finite = math.inf, -math.inf, True
+    for a in range(0, n, _GAP_BLOCK):
+        blk = sigma[a : a + _GAP_BLOCK]
+        finite = finite and bool(np.isfinite(blk).all())
+        lo, hi = min(lo, float(blk.min())), max(hi, float(blk.max()))
+    if not finite or n <= _GAP_BLOCK or hi <= lo:
+        s = np.sort(sigma)
+        return float(np.max([np.max(np.diff(s[a : a + _GAP_BLOCK + 1])) for a in range(0, n - 1, _GAP_BLOCK)]))
+    edges = np.linspace(lo, hi, 4 * (n // _GAP_BLOCK) + 2)
+    counts = np.zeros(len(edges) - 1, np.int64)
+    for a in range(0, n, _GAP_BLOCK):
+        counts += np.bincount(_value_bin(sigma[a : a + _GAP_BLOCK], edges), minlength=len(counts))
+    widest, last = -math.inf, None
+    b0 = 0
+    while b0 < len(counts):  # ranges of bins holding about _GAP_BLOCK samples
+        b1 = max(int(np.searchsorted(np.cumsum(counts[b0:]), _GAP_BLOCK, side="right")) + b0, b0 + 1)
+        part = np.sort(np.concatenate([
+            blk[(k >= b0) & (k < b1)]
+            for blk, k in ((sigma[a : a + _GAP_BLOCK], _value_bin(sigma[a : a + _GAP_BLOCK], edges)) for a in range(0, n, _GAP_BLOCK))
+        ]))
+        if len(part):
+            if last is not None:
+                widest = max(widest, float(part[0] - last))
+            if len(part) > 1:
+                widest = max(widest, float(np.max(np.diff(part))))
+            last = part[-1]
+        b0 = b1
+    return widest
+
+
+def _value_bin(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(n,) the bin of ``edges`` (ascending, B + 1) each value lies in (the last bin
+    holding the highest edge too)."""
+    return np.minimum(np.searchsorted(edges, values, side="right") - 1, len(edges) - 2)
 
 
 _GAP_BLOCK = 1 << 16
