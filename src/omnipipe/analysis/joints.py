@@ -230,8 +230,15 @@ def _crossed_band(config: FeatureConfig, r: Rings, members: np.ndarray) -> _Band
     if float(np.percentile(r.dev[members], 90)) >= config.lateral_reach_rel * 2.0 * float(np.median(r.rho)):
         return None
     plane = _Band(float(lo), float(hi), float(p[1]), float(p[2]))
-    coord = plane.coordinate(r)
-    band = (coord >= plane.lo - 0.25) & (coord <= plane.hi + 0.25)
+    # The band's samples found a block of the run at a time (no whole-run coordinate).
+    band = np.concatenate([
+        a + np.flatnonzero((c >= plane.lo - 0.25) & (c <= plane.hi + 0.25))
+        for a in range(0, len(r.sigma), 1 << 16)
+        for c in (plane.coordinate(Rings(
+            r.sigma[a : a + (1 << 16)], r.rho, r.theta[a : a + (1 << 16)], r.frame, r.ring_of, r.ring_sigma,
+            r.dev, r.noise,
+        )),)
+    ] or [np.zeros(0, np.intp)])
     sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
     seen = np.unique(sect)
     if len(seen) < 9:
