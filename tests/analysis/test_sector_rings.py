@@ -172,3 +172,62 @@ def test_unseen_gap_by_value_ranges_as_the_sorted_run(monkeypatch: pytest.Monkey
         sigma = rng.permutation(sigma)
         want, got = _unseen_gap_whole(sigma, block), features._unseen_gap(sigma)
         assert got == want or (np.isnan(got) and np.isnan(want))
+
+
+def _crossed_band_whole_run(config: FeatureConfig, r: Rings, members: np.ndarray):
+    """``joints._crossed_band`` with the band from the whole run's plane coordinate: the
+    reference."""
+    from dataclasses import replace
+
+    from omnipipe.analysis.feature_rings import robust_sine_fit
+    from omnipipe.analysis.joints import _Band
+
+    held = np.bincount(r.ring_of[members])
+    if np.count_nonzero(held) < config.joint_min_rings or held.max() > 0.5 * len(members):
+        return None
+    p, res, keep = robust_sine_fit(r.sigma[members], r.theta[members], 3, 2.5, 1.0)
+    lo, hi = np.percentile(res[keep], [2.0, 98.0]) + p[0]
+    if hi - lo > config.joint_max_gap_mm:
+        return None
+    if float(np.percentile(r.dev[members], 90)) >= config.lateral_reach_rel * 2.0 * float(np.median(r.rho)):
+        return None
+    plane = _Band(float(lo), float(hi), float(p[1]), float(p[2]))
+    coord = plane.coordinate(r)
+    band = (coord >= plane.lo - 0.25) & (coord <= plane.hi + 0.25)
+    sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
+    seen = np.unique(sect)
+    if len(seen) < 9:
+        return None
+    thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
+    deep = np.mean([np.median(r.dev[band][sect == q]) > thr for q in seen])
+    if deep < 0.5:
+        return None
+    if plane.slant_mm > config.joint_link_mm:
+        return replace(plane, crossed=True)
+    return _Band(float(lo), float(hi), crossed=True)
+
+
+@pytest.mark.parametrize("slant", [0.0, 1.0, 6.0])
+def test_crossed_band_blockwise_as_the_whole_run_code(monkeypatch: pytest.MonkeyPatch, slant: float) -> None:
+    from omnipipe.analysis.joints import _crossed_band
+
+    config = FeatureConfig()
+    rng = np.random.default_rng(int(10 * slant) + 1)
+    got_any = False
+    for trial in range(6):
+        n_rings, per = 40, 1800  # 72,000 samples: more than one block of the band's search
+        frame = np.repeat(np.arange(n_rings), per)
+        theta = rng.uniform(-np.pi, np.pi, len(frame))
+        sigma = 2.0 * frame + 3.0 * np.sin(theta + trial) + rng.normal(0, 0.2, len(frame))  # tilted rings
+        gap = 40.0 + slant * np.cos(theta)
+        dev = rng.normal(0, 0.05, len(frame))
+        inside = np.abs(sigma - gap) < 1.0 + 0.3 * trial
+        dev[inside] += 1.5 if trial % 3 else 0.2  # deep, or hardly (the deep share fails)
+        r = Rings(sigma, 50.0 + dev, theta, frame, frame.copy(), 2.0 * np.arange(n_rings), dev, 0.05)
+        members = np.flatnonzero(dev > 0.5) if trial % 3 else np.flatnonzero(inside)
+        if not len(members):
+            continue
+        got, want = _crossed_band(config, r, members), _crossed_band_whole_run(config, r, members)
+        assert got == want
+        got_any |= got is not None
+    assert got_any or slant == 0.0  # a band was found (not only refusals compared)
