@@ -52,7 +52,7 @@ from omnipipe.analysis.openings import (
 from omnipipe.analysis.ring_spans import BLOCK as POINT_BLOCK
 from omnipipe.analysis.ring_spans import RingSpans, ring_ids
 from omnipipe.analysis.sample_arcs import SampleArcs, within_ellipses
-from omnipipe.spill import ScratchWriter, on_disk
+from omnipipe.spill import ScratchWriter, on_disk, zeros_on_disk
 
 
 @dataclass(frozen=True)
@@ -479,9 +479,9 @@ def _opening(
 def _unseen_gap(sigma: np.ndarray) -> float:
     """The widest axial stretch (mm) between consecutive samples (sorted along the axis).
 
-    Without a sorted copy of the run's samples: they are taken a range of values at a
-    time (about :data:`_GAP_BLOCK` samples each, from a histogram of them), each range's
-    sorted on its own; the sorted run is those ranges one after the other, so its
+    Without a sorted copy of the run's samples in memory: they are placed range of values
+    after range (about :data:`_GAP_BLOCK` samples each, from a histogram of them) in the
+    run's scratch in one pass, each range then sorted on its own; the sorted run is those ranges one after the other, so its
     consecutive differences are each range's and the steps from one range's last sample
     to the next one's first (the same subtractions, the same maximum). Samples that are
     not all finite: the whole sort."""
@@ -500,21 +500,35 @@ def _unseen_gap(sigma: np.ndarray) -> float:
     counts = np.zeros(len(edges) - 1, np.int64)
     for a in range(0, n, _GAP_BLOCK):
         counts += np.bincount(_value_bin(sigma[a : a + _GAP_BLOCK], edges), minlength=len(counts))
+    cuts = [0]  # ranges of consecutive bins holding about _GAP_BLOCK samples each
+    while cuts[-1] < len(counts):
+        b0 = cuts[-1]
+        cuts.append(max(int(np.searchsorted(np.cumsum(counts[b0:]), _GAP_BLOCK, side="right")) + b0, b0 + 1))
+    range_of = np.repeat(np.arange(len(cuts) - 1), np.diff(cuts))
+    sizes = np.add.reduceat(counts, cuts[:-1])
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    # The samples placed range after range in the run's scratch (one pass), each range's
+    # then sorted on its own.
+    placed, fill = zeros_on_disk((n,), sigma.dtype), starts.copy()
+    for a in range(0, n, _GAP_BLOCK):
+        blk = sigma[a : a + _GAP_BLOCK]
+        rg = range_of[_value_bin(blk, edges)]
+        order = np.argsort(rg, kind="stable")
+        per = np.bincount(rg, minlength=len(sizes))
+        at = 0
+        for g in np.flatnonzero(per):
+            placed[fill[g] : fill[g] + per[g]] = blk[order[at : at + per[g]]]
+            fill[g] += per[g]
+            at += per[g]
     widest, last = -math.inf, None
-    b0 = 0
-    while b0 < len(counts):  # ranges of bins holding about _GAP_BLOCK samples
-        b1 = max(int(np.searchsorted(np.cumsum(counts[b0:]), _GAP_BLOCK, side="right")) + b0, b0 + 1)
-        part = np.sort(np.concatenate([
-            blk[(k >= b0) & (k < b1)]
-            for blk, k in ((sigma[a : a + _GAP_BLOCK], _value_bin(sigma[a : a + _GAP_BLOCK], edges)) for a in range(0, n, _GAP_BLOCK))
-        ]))
+    for g in range(len(sizes)):
+        part = np.sort(placed[starts[g] : starts[g] + sizes[g]])
         if len(part):
             if last is not None:
                 widest = max(widest, float(part[0] - last))
             if len(part) > 1:
                 widest = max(widest, float(np.max(np.diff(part))))
             last = part[-1]
-        b0 = b1
     return widest
 
 
