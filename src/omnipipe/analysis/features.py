@@ -52,7 +52,7 @@ from omnipipe.analysis.openings import (
 from omnipipe.analysis.ring_spans import BLOCK as POINT_BLOCK
 from omnipipe.analysis.ring_spans import RingSpans, ring_ids
 from omnipipe.analysis.sample_arcs import SampleArcs, within_ellipses
-from omnipipe.spill import ScratchWriter, on_disk
+from omnipipe.spill import ScratchWriter, on_disk, zeros_on_disk
 
 
 @dataclass(frozen=True)
@@ -281,16 +281,19 @@ def _one_hole(r: Rings, a: np.ndarray, b: np.ndarray, low: float) -> bool:
     if over < 0.5 * min(np.ptp(za), np.ptp(zb)):
         return False
     ca = math.atan2(float(np.mean(np.sin(r.theta[a]))), float(np.mean(np.cos(r.theta[a]))))
-    u = (r.theta - ca + np.pi) % (2 * np.pi) - np.pi
     shared = np.intersect1d(r.frame[a], r.frame[b])
     if not len(shared):
         return False
     walled = 0
-    for k in shared:
-        ua, ub = u[a & (r.frame == k)], u[b & (r.frame == k)]
+    spans = RingSpans(r.frame, shared)  # each shared ring's own points: no whole-run arc
+    for i in range(len(shared)):
+        on = spans.indices(i)
+        u = (r.theta[on] - ca + np.pi) % (2 * np.pi) - np.pi
+        in_a, in_b = a[on], b[on]
+        ua, ub = u[in_a], u[in_b]
         lo, hi = (ua.max(), ub.min()) if np.median(ua) < np.median(ub) else (ub.max(), ua.min())
-        between = (r.frame == k) & (u > lo) & (u < hi) & ~a & ~b
-        walled += bool(np.any(between & (np.abs(r.dev) <= low)))
+        between = (u > lo) & (u < hi) & ~in_a & ~in_b
+        walled += bool(np.any(between & (np.abs(r.dev[on]) <= low)))
     return 2 * walled < len(shared)
 
 
@@ -474,11 +477,65 @@ def _opening(
 
 
 def _unseen_gap(sigma: np.ndarray) -> float:
-    """The widest axial stretch (mm) between consecutive samples (sorted along the axis)."""
-    if len(sigma) < 2:
+    """The widest axial stretch (mm) between consecutive samples (sorted along the axis).
+
+    Without a sorted copy of the run's samples in memory: they are placed range of values
+    after range (about :data:`_GAP_BLOCK` samples each, from a histogram of them) in the
+    run's scratch in one pass, each range then sorted on its own; the sorted run is those ranges one after the other, so its
+    consecutive differences are each range's and the steps from one range's last sample
+    to the next one's first (the same subtractions, the same maximum). Samples that are
+    not all finite: the whole sort."""
+    n = len(sigma)
+    if n < 2:
         return 0.0
-    s = np.sort(sigma)  # (its differences a block at a time: not a second whole array)
-    return float(np.max([np.max(np.diff(s[a : a + _GAP_BLOCK + 1])) for a in range(0, len(s) - 1, _GAP_BLOCK)]))
+    lo, hi, finite = math.inf, -math.inf, True
+    for a in range(0, n, _GAP_BLOCK):
+        blk = sigma[a : a + _GAP_BLOCK]
+        finite = finite and bool(np.isfinite(blk).all())
+        lo, hi = min(lo, float(blk.min())), max(hi, float(blk.max()))
+    if not finite or n <= _GAP_BLOCK or hi <= lo:
+        s = np.sort(sigma)
+        return float(np.max([np.max(np.diff(s[a : a + _GAP_BLOCK + 1])) for a in range(0, n - 1, _GAP_BLOCK)]))
+    edges = np.linspace(lo, hi, 4 * (n // _GAP_BLOCK) + 2)
+    counts = np.zeros(len(edges) - 1, np.int64)
+    for a in range(0, n, _GAP_BLOCK):
+        counts += np.bincount(_value_bin(sigma[a : a + _GAP_BLOCK], edges), minlength=len(counts))
+    cuts = [0]  # ranges of consecutive bins holding about _GAP_BLOCK samples each
+    while cuts[-1] < len(counts):
+        b0 = cuts[-1]
+        cuts.append(max(int(np.searchsorted(np.cumsum(counts[b0:]), _GAP_BLOCK, side="right")) + b0, b0 + 1))
+    range_of = np.repeat(np.arange(len(cuts) - 1), np.diff(cuts))
+    sizes = np.add.reduceat(counts, cuts[:-1])
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    # The samples placed range after range in the run's scratch (one pass), each range's
+    # then sorted on its own.
+    placed, fill = zeros_on_disk((n,), sigma.dtype), starts.copy()
+    for a in range(0, n, _GAP_BLOCK):
+        blk = sigma[a : a + _GAP_BLOCK]
+        rg = range_of[_value_bin(blk, edges)]
+        order = np.argsort(rg, kind="stable")
+        per = np.bincount(rg, minlength=len(sizes))
+        at = 0
+        for g in np.flatnonzero(per):
+            placed[fill[g] : fill[g] + per[g]] = blk[order[at : at + per[g]]]
+            fill[g] += per[g]
+            at += per[g]
+    widest, last = -math.inf, None
+    for g in range(len(sizes)):
+        part = np.sort(placed[starts[g] : starts[g] + sizes[g]])
+        if len(part):
+            if last is not None:
+                widest = max(widest, float(part[0] - last))
+            if len(part) > 1:
+                widest = max(widest, float(np.max(np.diff(part))))
+            last = part[-1]
+    return widest
+
+
+def _value_bin(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(n,) the bin of ``edges`` (ascending, B + 1) each value lies in (the last bin
+    holding the highest edge too)."""
+    return np.minimum(np.searchsorted(edges, values, side="right") - 1, len(edges) - 2)
 
 
 _GAP_BLOCK = 1 << 16

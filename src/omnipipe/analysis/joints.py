@@ -29,6 +29,7 @@ import numpy as np
 from omnipipe.analysis.centreline import Centreline
 from omnipipe.analysis.feature_rings import FeatureConfig, Rings, robust_sine_fit
 from omnipipe.analysis.feature_types import Joint, Lateral, PointFeature
+from omnipipe.analysis.ring_spans import RingSpans
 
 
 def gap_joints(
@@ -229,8 +230,15 @@ def _crossed_band(config: FeatureConfig, r: Rings, members: np.ndarray) -> _Band
     if float(np.percentile(r.dev[members], 90)) >= config.lateral_reach_rel * 2.0 * float(np.median(r.rho)):
         return None
     plane = _Band(float(lo), float(hi), float(p[1]), float(p[2]))
-    coord = plane.coordinate(r)
-    band = (coord >= plane.lo - 0.25) & (coord <= plane.hi + 0.25)
+    # The band's samples found a block of the run at a time (no whole-run coordinate).
+    band = np.concatenate([
+        a + np.flatnonzero((c >= plane.lo - 0.25) & (c <= plane.hi + 0.25))
+        for a in range(0, len(r.sigma), 1 << 16)
+        for c in (plane.coordinate(Rings(
+            r.sigma[a : a + (1 << 16)], r.rho, r.theta[a : a + (1 << 16)], r.frame, r.ring_of, r.ring_sigma,
+            r.dev, r.noise,
+        )),)
+    ] or [np.zeros(0, np.intp)])
     sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
     seen = np.unique(sect)
     if len(seen) < 9:
@@ -311,19 +319,25 @@ def _without_sector_rings(
     lying along the axis beyond ``margin_mm`` of the candidates of the rings deep all round,
     reaching as far out as a lateral's (``lateral_reach_rel``). Rings crossing a gap obliquely also hold a sector each, but inside the gap, where a
     ring lying in it is deep all round: they stay."""
-    bins = (np.degrees(r.theta) % 360 // 10).astype(int)
+    # Each ring's sectors from its own points (:class:`~omnipipe.analysis.ring_spans.RingSpans`:
+    # no whole-run array of every point's sector, nor a mask of the run's points per ring).
+    def _sector_bins(theta: np.ndarray) -> np.ndarray:
+        return (np.degrees(theta) % 360 // 10).astype(int)  # 10-degree sectors, 0..35
+
     rings = r.frame[members]
-    narrow = []
-    for k in np.unique(rings):
-        seen_k = np.unique(bins[r.frame == k])
-        have_k = np.unique(bins[members[rings == k]])
-        if len(have_k) < 0.5 * config.joint_coverage * len(seen_k):
-            narrow.append(k)
-    if not narrow or len(narrow) == len(np.unique(rings)):
+    have = _sector_bins(r.theta[members])
+    ids = np.unique(rings)
+    spans = RingSpans(r.frame, ids)
+    seen_of = [np.unique(_sector_bins(spans.values(i, r.theta))) for i in range(len(ids))]
+    narrow = [
+        k for k, seen_k in zip(ids, seen_of, strict=True)
+        if len(np.unique(have[rings == k])) < 0.5 * config.joint_coverage * len(seen_k)
+    ]
+    if not narrow or len(narrow) == len(ids):
         return group
     is_narrow = np.isin(rings, narrow)
-    sector = np.unique(bins[members[is_narrow]])
-    seen = np.unique(bins[np.isin(r.frame, np.unique(rings))])
+    sector = np.unique(have[is_narrow])
+    seen = np.unique(np.concatenate(seen_of))
     if len(sector) > (1.0 - config.joint_coverage) * len(seen):
         return group
     lo, hi = np.percentile(r.sigma[members[~is_narrow]], [2.0, 98.0])

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from omnipipe.errors import ShapeError
-from omnipipe.spill import on_disk
+from omnipipe.spill import drop_pages, on_disk
 
 CHUNK_POINTS = 1 << 16
 """Points per axial chunk of the unrolled triangulations (:class:`AxialChunks`). A set of
@@ -29,6 +29,12 @@ median longest edge of a sample's Delaunay, about one ring spacing): the empty c
 the wall's triangles span a ring spacing or two, so a few spacings hold them all; where
 they reach farther (a hole, the gap between two rings far apart) the chunk's margin is
 widened until they fit (:meth:`AxialChunks.triangulate`)."""
+
+
+HULL_DROP_BLOCKS = 8
+"""Blocks of the sorted points whose convex hulls :class:`AxialChunks` finds between two
+page drops (:func:`omnipipe.spill.drop_pages`): a pass over the run's points maps a few MB
+of them at a time, not all."""
 
 
 _PILOT_POINTS = 1 << 14
@@ -81,19 +87,30 @@ class AxialChunks:
             raise ShapeError(f"u, z: expected two (n,) arrays, got {u.shape} and {z.shape}")
         self.chunk_points = max(3, int(chunk_points))
         # Kept in the run's scratch (omnipipe.spill: read a chunk at a time), each made
-        # in turn: one array of the points' length in memory at a time.
+        # in turn: one array of the points' length in memory at a time, and the pages
+        # each pass mapped (u, z and the order read whole) dropped after it.
         self.order = on_disk(np.argsort(z, kind="stable"))
+        drop_pages()
         self.u = on_disk(np.asarray(u, float)[self.order])
+        drop_pages()
         self.z = on_disk(np.asarray(z, float)[self.order])
+        drop_pages()
         n = len(self.z)
         block = self.chunk_points
-        cand = np.concatenate(
-            [a + _hull_or_all(self.u[a : a + block], self.z[a : a + block]) for a in range(0, n, block)]
-            or [np.zeros(0, int)]
-        )
+        cand = np.concatenate([self._block_hull(a) for a in range(0, n, block)] or [np.zeros(0, int)])
+        drop_pages()
         self.hull = cand[_hull_or_all(self.u[cand], self.z[cand])]
         self.margin_mm = MARGIN_EDGES * self._typical_edge()
         self.u_range = (float(self.u.min()), float(self.u.max())) if n else (0.0, 0.0)
+
+    def _block_hull(self, a: int) -> np.ndarray:
+        """Sorted indices of the hull vertices (or all, :func:`_hull_or_all`) of the points
+        ``a`` to ``a + chunk_points``; every :data:`HULL_DROP_BLOCKS` blocks the pages read
+        so far dropped (:func:`omnipipe.spill.drop_pages`)."""
+        block = self.chunk_points
+        if a and (a // block) % HULL_DROP_BLOCKS == 0:
+            drop_pages()
+        return a + _hull_or_all(self.u[a : a + block], self.z[a : a + block])
 
     def to_disk(self) -> None:
         """Keep :attr:`order`, :attr:`u` and :attr:`z` in the run's scratch

@@ -138,6 +138,7 @@ def mesh_unrolled(
     margin = 0.1 * circ
     wrap = np.flatnonzero(arc_mm < margin)
     if n + len(wrap) > chunk_points:
+        drop_pages()  # the arcs' pages the search for the wrapped copies read (omnipipe.spill)
         # The unrolled points with their wrapped copies in the run's scratch
         # (omnipipe.spill), each chunk's triangles filtered as it comes and kept there;
         # then sorted a block of first vertices at a time (_sorted_wall_faces).
@@ -180,6 +181,7 @@ def _joined_on_disk(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         out[i:j] = a[i:j]
         drop_pages()
     out[len(a) :] = b
+    drop_pages()
     return out
 
 

@@ -59,6 +59,7 @@ from omnipipe.sfm.types import (
     PendingFrame,
     SfmContext,
 )
+from omnipipe.spill import Pack
 
 # Fewest tracked points to resect a frame, in all and on its keyframe's side.
 MIN_RESECTION_POINTS = 12
@@ -102,8 +103,9 @@ class Adjusted:
         points alike: one similarity)."""
         world_from_kf = self.world_from_kf.copy()
         world_from_kf[:, :3, 3] *= gain
+        pack = Pack()  # the scaled track points in the run's scratch, as the adjustment's
         tracks = [
-            None if t is None else replace(t, points_in_world=t.points_in_world * gain)
+            None if t is None else replace(t, points_in_world=pack.put(t.points_in_world * gain))
             for t in self.tracks
         ]
         return replace(self, world_from_kf=world_from_kf, tracks=tracks)
@@ -180,6 +182,7 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
     tracks: list[WindowTracks | None] = []
     window_of = np.zeros(K, int)
     stats: list[BundleResult] = []
+    pack = Pack()
     windows = keyframe_windows(K, config.window_keyframes, config.window_overlap)
     # Progress: three steps a window (adjust, far laser anchors, adjust again).
     tick = phase("bundle", 3 * len(windows))
@@ -209,8 +212,11 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
             tracks.append(None)
             continue
         adjusted[s:e] = ba.world_from_rig
-        stats.append(ba)
-        tracks.append(WindowTracks(s, problem.feature_point, ba.points_in_world))
+        # The window's tracks wait for the resection in the run's scratch (the same
+        # values): held in memory, every window's grew the run's memory with its length.
+        points = pack.put(ba.points_in_world)
+        stats.append(replace(ba, points_in_world=points))
+        tracks.append(WindowTracks(s, [pack.put(f) for f in problem.feature_point], points))
     tick(3 * len(windows))
     return Adjusted(adjusted, tracks, window_of, stats)
 

@@ -26,6 +26,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -257,6 +258,12 @@ class KeyframeLoop:
         # The pending frames' parallax (rad) from their keyframe, until the next keyframe.
         self._pending_parallax: dict[int, float] = {}
         self._jobs: list[_EvidenceJob] = []
+        # The steps' evidence jobs and the pending frames' correspondences whose arrays
+        # are not in the scratch yet (indices into _jobs, frames of next_matches):
+        # moved there once the worker has finished (:meth:`_settle`).
+        self._open_jobs: list[int] = []
+        self._jobs_seen = 0
+        self._open_matches: list[int] = []
         # What waits for the adjustment and the resection (features of the keyframes and
         # pending frames once nothing more is matched to them): in the run's scratch.
         self._pack = Pack()
@@ -515,6 +522,7 @@ class KeyframeLoop:
         )
         for f, part in zip(job.frames, _split(whole, len(job.frames)), strict=True):
             self.next_matches[f] = part
+            self._open_matches.append(f)
 
     def _step(self, k: int) -> StepEvidence | None:
         """Keyframe step k -> k + 1's evidence as measured so far (None: not yet)."""
@@ -661,6 +669,7 @@ class KeyframeLoop:
                 self.next_matches[p.frame] = self.ctx.executor.submit(
                     matched_rays, features, p.features, config.features.ratio
                 )
+                self._open_matches.append(p.frame)
             self.pending[j] = replace(
                 p, features=_held(self._pack, p.features), inliers=self._pack.put(p.inliers)
             )
@@ -669,6 +678,32 @@ class KeyframeLoop:
         self._pending_parallax.clear()
         if k_new >= 1:
             self.features[k_new - 1] = _held(self._pack, self.features[k_new - 1])
+        self._settle()
+
+    def _settle(self) -> None:
+        """The steps' evidence and the pending frames' correspondences whose workers have
+        finished (or that had none): their arrays into the run's scratch
+        (:func:`_evidence_held`, :func:`_rays_held`; the same values), so that what the
+        loop holds in memory does not grow with the keyframes. A worker's exception is
+        left in its future, raised where the result is asked for."""
+        self._open_jobs += range(self._jobs_seen, len(self._jobs))
+        self._jobs_seen = len(self._jobs)
+        open_jobs = []
+        for k in self._open_jobs:
+            job = self._jobs[k]
+            if job.future is None or _finished(job.future):
+                self._jobs[k] = _EvidenceJob(_evidence_held(self._pack, job.result()))
+            else:
+                open_jobs.append(k)
+        self._open_jobs = open_jobs
+        open_matches = []
+        for f in self._open_matches:
+            future = self.next_matches[f]
+            if _finished(future):
+                self.next_matches[f] = _done(_rays_held(self._pack, future.result()))
+            else:
+                open_matches.append(f)
+        self._open_matches = open_matches
 
 
 def gray_for_worker(
@@ -774,6 +809,21 @@ def _held(pack: Pack, features: FrameFeatures) -> FrameFeatures:
         pack.put(features.rays_in_rig), pack.put(features.pixels), np.zeros((0, 128), np.float32),
         pack.put(features.view), vpx,
     )
+
+
+def _finished(future: Future | Any) -> bool:
+    """True when ``future`` (a :class:`~concurrent.futures.Future`, or a flat-fielded
+    step's handle holding one once released: :mod:`omnipipe.sfm.flat_field`) holds its
+    result: done, neither cancelled nor failed."""
+    future = getattr(future, "future", future)
+    return (
+        isinstance(future, Future) and future.done() and not future.cancelled() and future.exception() is None
+    )
+
+
+def _rays_held(pack: Pack, rays: KeyframeRays) -> KeyframeRays:
+    """``rays`` with its arrays in ``pack`` (as :func:`_held`)."""
+    return KeyframeRays(pack.put(rays.feature), pack.put(rays.rays_in_rig))
 
 
 def _evidence_held(pack: Pack, evidence: StepEvidence) -> StepEvidence:

@@ -95,6 +95,7 @@ from omnipipe.sfm.types import (
     SfmInputs,
     SfmResult,
 )
+from omnipipe.spill import Pack
 
 if TYPE_CHECKING:
     from omnipipe.laser.ring import LaserRing
@@ -157,7 +158,7 @@ def _run(
             if inputs.odometry is not None and inputs.timestamps is not None
             else None
         )
-        chain = chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames))
+        chain = _chain_held(chain_steps(ctx, kf, scale, odometry, moving_counts(followed.moved, kf.frames)))
         # The frame loop's freed blocks and the keyframes' arrays the chain read (pages of
         # the run's scratch) handed back before the adjustment: they grew with the keyframes.
         release_freed_memory()
@@ -217,10 +218,16 @@ def nearest_wall(rings: Sequence[LaserRing]) -> Callable[[int], WallCylinder | N
     the rig (a creep moves it by a few mm: robustness seeds 3 and 24, joints walls,
     every frame step flagged by the stationary test without it)."""
     cache: dict[int, WallCylinder | None] = {}
+    # Each cylinder's ring points in the run's scratch (the same values): a ring read back
+    # is its whole record (every per-sample array), which a cylinder kept per frame held.
+    pack = Pack()
 
     def own(i: int) -> WallCylinder | None:
         if i not in cache:
-            cache[i] = wall_cylinder(rings[i].points_in_rig)
+            wall = wall_cylinder(rings[i].points_in_rig)
+            if wall is not None and wall.ring_points is not None:
+                wall = replace(wall, ring_points=pack.put(wall.ring_points))
+            cache[i] = wall
         return cache[i]
 
     def read(i: int) -> WallCylinder | None:
@@ -282,6 +289,25 @@ def _adjusted_and_checked(
     return adjusted, replace(chain, checks=checks), walls
 
 
+def _chain_held(chain: ChainedSteps) -> ChainedSteps:
+    """``chain`` with each step's inlier matches and its anchors' arrays in the run's
+    scratch (:class:`omnipipe.spill.Pack`: the same values, resident only while read):
+    they wait for the adjustment and the resection, and held in memory they grew the
+    camera motion's memory with the run."""
+    pack = Pack()
+    return replace(
+        chain,
+        pair_matches=[replace(p, matches=pack.put(p.matches)) for p in chain.pair_matches],
+        anchors=[
+            replace(
+                q, points_in_a=pack.put(q.points_in_a), pixels_b=pack.put(q.pixels_b),
+                log_lengths=pack.put(q.log_lengths),
+            )
+            for q in chain.anchors
+        ],
+    )
+
+
 def _station_ratio(inputs: SfmInputs) -> np.ndarray:
     """(N,) the stationary test's ratio of each frame; NaN where it was not recorded."""
     if inputs.station_ratio is not None:
@@ -340,6 +366,7 @@ def _result(
     ``read_gray``'s grey images may verify them: :func:`omnipipe.sfm.stations.flow_hidden_steps`,
     and the wall's shift (``read_wall``: a frame's wall cylinder) measure and place their
     frames: :func:`omnipipe.sfm.creep.place_creeps`), merged."""
+    release_freed_memory()  # the adjustment's and the resection's freed blocks: not under the creeps
     moved = followed.moved
     station = np.cumsum(moved) - 1
     first = np.flatnonzero(moved)
