@@ -19,7 +19,7 @@ from omnipipe.sim.features import Joint, Lateral, Ovality, PipeFeatures, Taper, 
 from omnipipe.sim.motion import MotionConfig
 from omnipipe.sim.random_family import draw_random, log_uniform
 from omnipipe.sim.render import RenderConfig
-from omnipipe.sim.scenario import HYPER70_A_MM, HYPER70_B_MM, Scenario, paper_rig
+from omnipipe.sim.scenario import HYPER70_A_MM, HYPER70_B_MM, Scenario, check_size_frames, paper_rig
 from omnipipe.sim.scene import Centreline, Defect, Pipe
 from omnipipe.sim.texture import TextureConfig
 
@@ -162,12 +162,9 @@ def make_feature_scenario(
         builder, width, height, n_default = _FEATURE_BUILDERS[base]
         if small:
             width, height = 400, int(round(400 * height / width))
+    check_size_frames(size, frames)
     if size is not None:
         width, height = size
-        if width < 64 or height < 48:
-            raise ConfigError("size", f"must be at least 64x48, got {width}x{height}")
-    if frames is not None and frames < 1:
-        raise ConfigError("frames", f"must be >= 1, got {frames}")
     if base == "random-features":
         if seed < 0:
             raise ConfigError("seed", f"must be >= 0 for {name}, got {seed}")

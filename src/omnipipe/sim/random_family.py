@@ -17,7 +17,7 @@ from omnipipe.errors import ConfigError
 from omnipipe.rig import Mirror, Rig
 from omnipipe.sim.motion import MotionConfig
 from omnipipe.sim.render import RenderConfig
-from omnipipe.sim.scenario import Scenario, paper_rig
+from omnipipe.sim.scenario import Scenario, check_size_frames, paper_rig
 from omnipipe.sim.scene import Centreline, Defect, Pipe
 from omnipipe.sim.texture import TextureConfig
 
@@ -297,12 +297,9 @@ def make_random_scenario(
     name: str, frames: int | None, size: tuple[int, int] | None, seed: int
 ) -> Scenario:
     width, height = (400, 300) if name.endswith("-small") else (1600, 1200)
+    check_size_frames(size, frames)
     if size is not None:
         width, height = size
-        if width < 64 or height < 48:
-            raise ConfigError("size", f"must be at least 64x48, got {width}x{height}")
-    if frames is not None and frames < 1:
-        raise ConfigError("frames", f"must be >= 1, got {frames}")
     if seed < 0:
         raise ConfigError("seed", f"must be >= 0 for {name}, got {seed}")
     if frames is None and name.endswith("-small"):

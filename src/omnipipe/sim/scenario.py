@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from omnipipe.errors import ConfigError
 from omnipipe.rig import CameraIntrinsics, LaserPlane, Mirror, Rig
 from omnipipe.sim.motion import MotionConfig
 from omnipipe.sim.render import RenderConfig, blind_radius_px
@@ -21,6 +22,15 @@ from omnipipe.sim.texture import TextureConfig
 HYPER70_A_MM = 21.57
 HYPER70_B_MM = 32.49
 HYPER70_RIM_RADIUS_MM = 35.0
+
+
+def check_size_frames(size: tuple[int, int] | None, frames: int | None) -> None:
+    """Refuse an image ``size`` (width, height px) under 64x48 or a frame count under 1
+    (None: the scenario's own), naming the option."""
+    if size is not None and (size[0] < 64 or size[1] < 48):
+        raise ConfigError("size", f"must be at least 64x48, got {size[0]}x{size[1]}")
+    if frames is not None and frames < 1:
+        raise ConfigError("frames", f"must be >= 1, got {frames}")
 
 
 def rim_focal_px(mirror: Mirror, rim_radius_mm: float, rim_image_radius_px: float) -> float:

@@ -20,7 +20,7 @@ from omnipipe.rig import Mirror
 from omnipipe.sim.feature_scenarios import FEATURE_SCENARIOS, make_feature_scenario
 from omnipipe.sim.motion import MotionConfig
 from omnipipe.sim.random_family import make_random_scenario
-from omnipipe.sim.scenario import Scenario, paper_rig
+from omnipipe.sim.scenario import Scenario, check_size_frames, paper_rig
 from omnipipe.sim.scene import Centreline, Defect, Pipe
 from omnipipe.sim.wide_family import NAMED_WIDE, make_wide_scenario
 
@@ -190,13 +190,10 @@ def make_scenario(
     builder, width, height, n = _BUILDERS[base]
     if name.endswith("-small"):
         width, height, n = 400, int(round(400 * height / width)), 24
+    check_size_frames(size, frames)
     if size is not None:
         width, height = size
-        if width < 64 or height < 48:
-            raise ConfigError("size", f"must be at least 64x48, got {width}x{height}")
     if frames is not None:
-        if frames < 1:
-            raise ConfigError("frames", f"must be >= 1, got {frames}")
         n = frames
     scenario = builder(width, height, n)
     if name.endswith("-small"):

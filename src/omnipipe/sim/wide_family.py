@@ -25,7 +25,7 @@ from omnipipe.sim.random_family import (
     ring_band,
 )
 from omnipipe.sim.render import RenderConfig
-from omnipipe.sim.scenario import Scenario, paper_rig
+from omnipipe.sim.scenario import Scenario, check_size_frames, paper_rig
 from omnipipe.sim.scene import Centreline, Pipe
 from omnipipe.sim.texture import TextureConfig
 
@@ -274,10 +274,7 @@ def make_wide_scenario(
     override; the scene never depends on them)."""
     small = name.endswith("-small")
     base = name.removesuffix("-small")
-    if size is not None and (size[0] < 64 or size[1] < 48):
-        raise ConfigError("size", f"must be at least 64x48, got {size[0]}x{size[1]}")
-    if frames is not None and frames < 1:
-        raise ConfigError("frames", f"must be >= 1, got {frames}")
+    check_size_frames(size, frames)
     if frames is None and small:
         frames = 24
     if base == "random-wide":
