@@ -15,10 +15,10 @@ from __future__ import annotations
 import math
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
+from omnipipe.executor import Pending
 from omnipipe.sfm.features import FrameFeatures, FrameViews
 from omnipipe.sfm.tracking import FlowImage, TrackConfig, spread_order
 from omnipipe.sfm.types import KeyframeRays, StepEvidence, StepScales
@@ -54,7 +54,7 @@ class EvidenceJob:
     """A step's evidence, completed by the worker's ``future`` when there is one."""
 
     evidence: StepEvidence
-    future: Future[StepScales] | None = None
+    future: Pending[StepScales] | None = None
 
     def result(self) -> StepEvidence:
         """The complete evidence (waits for the worker)."""
@@ -164,7 +164,7 @@ def held(pack: Pack, features: FrameFeatures) -> FrameFeatures:
     )
 
 
-def finished(future: Future | Any) -> bool:
+def finished(future: Pending[object]) -> bool:
     """True when ``future`` (a :class:`~concurrent.futures.Future`, or a flat-fielded
     step's handle holding one once released: :mod:`omnipipe.sfm.flat_field`) holds its
     result: done, neither cancelled nor failed."""
