@@ -313,24 +313,24 @@ def test_a_keyframe_is_renewed_when_its_tracks_run_out() -> None:
     from types import SimpleNamespace
 
     from omnipipe.sfm import SfmConfig
-    from omnipipe.sfm.keyframe_loop import KeyframeLoop
+    from omnipipe.sfm.keyframe_tracks import KeyframeTracks
     from omnipipe.sfm.step_records import TrackedStep
 
-    def loop(config: SfmConfig, inliers: int) -> KeyframeLoop:
-        out = object.__new__(KeyframeLoop)  # only what the rule reads
+    def loop(config: SfmConfig, inliers: int) -> KeyframeTracks:
+        out = object.__new__(KeyframeTracks)  # only what the rule reads
         out.ctx = SimpleNamespace(config=config)
-        out._step_inliers = inliers
+        out.step_inliers = inliers
         return out
 
     def step(n: int) -> TrackedStep:
         return TrackedStep(Tracks(np.arange(n), None), np.zeros((n, 2), int), math.radians(3.0))
 
     config = SfmConfig()
-    assert loop(config, 511)._running_out(step(80))
-    assert not loop(config, 511)._running_out(step(400))
-    assert not loop(config, 0)._running_out(step(80))  # no keyframe step yet
+    assert loop(config, 511).running_out(step(80))
+    assert not loop(config, 511).running_out(step(400))
+    assert not loop(config, 0).running_out(step(80))  # no keyframe step yet
     off = replace(config, tracking=replace(config.tracking, renew_ratio=0.0))
-    assert not loop(off, 511)._running_out(step(80))
+    assert not loop(off, 511).running_out(step(80))
 
 
 @pytest.fixture(scope="module")

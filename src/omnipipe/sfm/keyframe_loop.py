@@ -15,7 +15,6 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from omnipipe.errors import ReconstructionError
 from omnipipe.executor import default_workers
@@ -24,8 +23,6 @@ from omnipipe.sfm.features import (
     FeatureExtractor,
     FrameFeatures,
     FrameViews,
-    concat_features,
-    guided_matches,
     match_features,
 )
 from omnipipe.sfm.image_store import ImageStore
@@ -38,19 +35,18 @@ from omnipipe.sfm.keyframe_jobs import (
     slim,
     subset,
 )
+from omnipipe.sfm.keyframe_tracks import KeyframeTracks
 from omnipipe.sfm.pair_geometry import (
     pair_parallax,
     refined_motion,
     relative_motion,
-    skipped_period,
     verified,
 )
 from omnipipe.sfm.pending_matches import PendingMatches
-from omnipipe.sfm.ransac import estimate_relative_motion
 from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES
-from omnipipe.sfm.step_records import Followed, LastKeyframe, MovingFrame, StepPair, TrackedStep
+from omnipipe.sfm.step_records import Followed, LastKeyframe, MovingFrame, StepPair
 from omnipipe.sfm.tasks import handed_gray, handed_gray_file
-from omnipipe.sfm.tracking import FlowImage, TrackChain, keyframe_detection
+from omnipipe.sfm.tracking import FlowImage
 from omnipipe.sfm.types import Keyframes, PendingFrame, SfmContext, SfmInputs
 from omnipipe.spill import Pack
 
@@ -67,6 +63,8 @@ class KeyframeLoop:
         # With workers, this process's SIFT and flow run the views on every core (the
         # chain waits for them; the workers are often idle then).
         self.extractor.threads = default_workers() if ctx.parallel else 1
+        # The last keyframe's tracks and the keyframe decision.
+        self._tracks = KeyframeTracks(ctx, self.extractor)
         self.grays = grays
         self.moved = np.zeros(n, bool)  # filled by moving_frames
         self.keyframe = np.zeros(n, bool)
@@ -89,16 +87,7 @@ class KeyframeLoop:
         # pending frames once nothing more is matched to them): in the run's scratch.
         self._pack = Pack()
         self._last: LastKeyframe | None = None
-        self._min_parallax = math.radians(ctx.config.keyframe_min_parallax_deg)
-        self._step_inliers = 0  # verified matches of the last keyframe step
-        # The last keyframe's tracks, followed frame to frame (None: tracking off).
-        self._chain: TrackChain | None = None
         self._latest: MovingFrame | None = None  # the last moving frame added
-        # SIFT on every moving frame (once the chained tracks were found to skip a
-        # period of the wall).
-        self._direct = False
-        # A new feature this close (rad) to a track carried on is that track.
-        self._near = 2.0 * ctx.camera.angular_resolution()
 
     def add(self, frame: MovingFrame, closing: bool = False) -> None:
         """One moving frame: pending (too little parallax) or the next keyframe (always
@@ -109,23 +98,23 @@ class KeyframeLoop:
         if last is None:
             gray = self._gray_of(frame)
             self._keep_gray(gray, frame)
-            self._add_keyframe(frame, self._keyframe_features(frame, features), 0, gray)
+            self._add_keyframe(frame, self._tracks.keyframe_features(frame, features), 0, gray)
             return
         closing = closing or frame.frame == self.inputs.n_frames - 1  # always a keyframe
-        step = self._chained_step(last, frame)
-        least = self._least_parallax(step)
+        step = self._tracks.step(last, frame)
+        least = self._tracks.least_parallax(step)
         if step is not None and step.parallax_rad < least and not closing:
             # Too little baseline, followed without SIFT: resected after the adjustment.
             self._defer(frame, step.tracks.features, step.inliers, step.parallax_rad)
             self.tracked[frame.frame] = True
             return
         if step is not None:
-            features, m, n_continued = self._chained_matches(last, frame, step)
-            tracked = not self._direct  # chained tracks, or descriptors they verified
+            features, m, n_continued = self._tracks.matches(last, frame, step, self._redo_pending)
+            tracked = not self._tracks.direct  # chained tracks, or descriptors they verified
         else:
             tracked = False
             if features is None:
-                features = self._keyframe_features(frame, None)
+                features = self._tracks.keyframe_features(frame, None)
             n_continued = 0
             m = match_features(last.features, features, self.ctx.config.features.ratio)
         pair = StepPair(last.frame, frame.frame, last.features, features, m)
@@ -142,86 +131,8 @@ class KeyframeLoop:
             motion = refined_motion(self.ctx, pair, motion, last.gray, gray)
         self._keep_gray(gray, frame)  # before the step's evidence, which may read it from there
         self.evidence.measure(pair, motion, last.gray, gray, tracked)
-        self._step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
+        self._tracks.step_inliers = int(np.count_nonzero(motion.inliers)) if motion is not None else 0
         self._add_keyframe(frame, features, n_continued, gray, parallax)
-
-    def _least_parallax(self, step: TrackedStep | None) -> float:
-        """The parallax (rad) from which the frame of ``step`` (its tracks; None: none)
-        becomes a keyframe: ``keyframe_min_parallax_deg``, half that when its tracks
-        are running out (:meth:`_running_out`)."""
-        if step is not None and self._running_out(step):
-            return self._min_parallax / 2
-        return self._min_parallax
-
-    def _running_out(self, step: TrackedStep) -> bool:
-        """True when ``step``'s verified tracks fell below ``tracking.renew_ratio`` of
-        the last keyframe step's inliers (none yet: False)."""
-        ratio = self.ctx.config.tracking.renew_ratio
-        return ratio > 0 and len(step.inliers) < ratio * self._step_inliers
-
-    def _chained_matches(
-        self, last: LastKeyframe, frame: MovingFrame, step: TrackedStep
-    ) -> tuple[FrameFeatures, np.ndarray, int]:
-        """The next keyframe's features, its (last keyframe feature, feature) matches
-        and how many of its features are tracks carried on.
-
-        Three candidates, verified by RANSAC: its SIFT features matched to the last
-        keyframe's by descriptor over the whole frame (Lowe's ratio test), or guided by
-        the chained tracks (:func:`omnipipe.sfm.features.guided_matches`: only within
-        ``tracking.guided_radius_px`` of where each track went, so no period of a
-        periodic wall is skipped); or the chained tracks themselves (the keyframe then
-        carries them on as its first features). Descriptor matches are the more precise
-        where the wall's descriptors tell its points apart: the one with more inliers is
-        taken, unless the chained tracks have ``tracking.chain_over_descriptors`` times
-        as many (periodic walls, brick faces, plain walls). The guided matches are
-        verified only when they could be taken (more than the global ones' inliers, and
-        enough against the tracks'): RANSAC keeps a subset of them."""
-        config = self.ctx.config.tracking
-        ratio = self.ctx.config.features.ratio
-        inl = step.inliers
-        detected = self._keyframe_features(frame, None)
-        radius = config.guided_radius_px * self.ctx.camera.angular_resolution()
-        track_rays = step.tracks.features.rays_in_rig[inl[:, 1]]
-        everywhere = verified(self.ctx, last.features, detected, match_features(last.features, detected, ratio))
-        guided = guided_matches(last.features, detected, inl[:, 0], track_rays, radius, ratio)
-        if len(guided) > len(everywhere) and config.chain_over_descriptors * len(guided) >= len(inl):
-            guided = verified(self.ctx, last.features, detected, guided)
-        else:  # RANSAC keeps a subset: these could be taken neither way
-            guided = guided[:0]
-        best = everywhere if len(everywhere) >= len(guided) else guided
-        if not self._direct and skipped_period(inl[:, 0], track_rays, everywhere, detected, 2 * radius, config):
-            # The wall moved more than half its period between two frames somewhere: SIFT
-            # on every moving frame from here on, and this step's frames are redone.
-            self.ctx.warnings.append(
-                f"frames {last.frame}->{frame.frame}: the tracks followed frame to frame disagree with "
-                "the descriptor matches (a periodic wall moved more than half its period between "
-                "two frames): matched by SIFT descriptors from here on"
-            )
-            self._direct = True
-            self._redo_pending(last)
-            return detected, everywhere, 0
-        if len(best) and config.chain_over_descriptors * len(best) >= len(inl):
-            return detected, best, 0
-        continued = subset(step.tracks.features, inl[:, 1])
-        features = self._keyframe_features(frame, detected, continued)
-        return features, np.stack([inl[:, 0], np.arange(len(inl))], axis=1), len(inl)
-
-    def _keyframe_features(
-        self,
-        frame: MovingFrame,
-        features: FrameFeatures | None,
-        continued: FrameFeatures | None = None,
-    ) -> FrameFeatures:
-        """A keyframe's features: ``continued`` (tracks carried on from the last
-        keyframe) first, then its SIFT features (``features``, or detected on its views)
-        that are not where a continued track is, then Shi-Tomasi corners where SIFT
-        found few (:func:`omnipipe.sfm.tracking.corner_features`; with views only)."""
-        if features is None:
-            features = keyframe_detection(self.extractor, frame.views, self.ctx.config.tracking)
-        if continued is not None and len(continued.view):
-            near = cKDTree(continued.rays_in_rig).query(features.rays_in_rig, distance_upper_bound=self._near)[0]
-            features = concat_features([continued, subset(features, np.flatnonzero(~np.isfinite(near)))])
-        return features
 
     def _redo_pending(self, last: LastKeyframe) -> None:
         """The frames pending since ``last`` (with views) matched to it again by SIFT
@@ -238,29 +149,6 @@ class KeyframeLoop:
             inliers = verified(self.ctx, last.features, features, match_features(last.features, features, ratio))
             self.pending[j] = replace(p, features=features, inliers=inliers)
             self.tracked[p.frame] = False
-
-    def _chained_step(self, key: LastKeyframe, frame: MovingFrame) -> TrackedStep | None:
-        """The last keyframe's tracks followed on into ``frame``'s views, or None when
-        there is no chain (tracking off), too few were tracked or no relative motion fits
-        them (the frame then gets SIFT)."""
-        if self._chain is None or frame.views is None:
-            return None
-        config = self.ctx.config.tracking
-        if self._direct:
-            return None  # the chain skipped a period once: descriptors from here on
-        least = max(config.min_tracks, self.ctx.ransac.min_inliers)
-        tracks = self._chain.advance(frame.views, frame.views.flow)
-        if len(tracks.feature) < least:
-            return None
-        m = tracks.matches
-        try:
-            motion = estimate_relative_motion(
-                key.features.rays_in_rig[m[:, 0]], tracks.features.rays_in_rig, self.ctx.ransac
-            )
-        except ReconstructionError:
-            return None
-        pair = StepPair(key.frame, frame.frame, key.features, tracks.features, m)
-        return TrackedStep(tracks, m[motion.inliers], pair_parallax(pair, motion))
 
     def finish(self) -> None:
         """After the last moving frame: when it was left pending (the robot stood still
@@ -317,8 +205,8 @@ class KeyframeLoop:
         self._pending_parallax[frame.frame] = parallax
         if frame.views is not None:
             self._pending_views[frame.frame] = frame.views
-            if self._chain is not None and self._chain.views is frame.views:
-                self._pending_images[frame.frame] = self._chain.images
+            if self._tracks.chain is not None and self._tracks.chain.views is frame.views:
+                self._pending_images[frame.frame] = self._tracks.chain.images
 
     def _gray_of(self, frame: MovingFrame) -> np.ndarray:
         """``frame``'s grey image: as it came, or read from the run's hand-off folder
@@ -363,7 +251,7 @@ class KeyframeLoop:
         self.frames.append(frame.frame)
         self.keyframe[frame.frame] = True
         self._last = LastKeyframe(frame.frame, features, gray, frame.views)
-        self._start_chain(frame, features, n_continued)
+        self._tracks.start(frame, features, n_continued)
         k_new = len(self.features) - 1
         since = [j for j, p in enumerate(self.pending) if p.keyframe == k_new - 1]
         back = self._back_frames(since, parallax)
@@ -375,20 +263,6 @@ class KeyframeLoop:
             self.features[k_new - 1] = held(self._pack, self.features[k_new - 1])
         self.evidence.settle(self._pack)
         self.matches.settle(self._pack)
-
-    def _start_chain(self, frame: MovingFrame, features: FrameFeatures, n_continued: int) -> None:
-        """The new keyframe's features followed on from it (with views and tracking on;
-        else no chain): the tracks carried on first (its first ``n_continued``), then the
-        new features evenly, up to the budget."""
-        config = self.ctx.config
-        prior, self._chain = self._chain, None
-        if frame.views is not None and config.tracking.enabled:
-            # The tracks carried on first, then the new features evenly, up to the budget.
-            followed = budget(n_continued, features, config.tracking)
-            self._chain = TrackChain(
-                self.extractor, frame.views, features, config.tracking, followed, prior=prior,
-                key_images=frame.views.flow,
-            )
 
     def _back_frames(self, since: list[int], parallax: float) -> list[int]:
         """Which of the pending frames ``since`` (positions in :attr:`pending`) the new
@@ -418,7 +292,7 @@ class KeyframeLoop:
             fresh[budget(0, subset(features, fresh), self.ctx.config.tracking)],
             [self._pending_views[self.pending[j].frame] for j in back],
             [self.pending[j].frame for j in back],
-            self._chain.images if self._chain is not None and self._chain.views is views else None,
+            self._tracks.chain.images if self._tracks.chain is not None and self._tracks.chain.views is views else None,
             [self._pending_images.get(self.pending[j].frame) for j in back],
         )
 
