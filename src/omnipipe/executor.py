@@ -36,12 +36,24 @@ from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from omnipipe.errors import ConfigError, DatasetError, OmnipipeError, one_line
 
 T = TypeVar("T")
 R = TypeVar("R")
+T_co = TypeVar("T_co", covariant=True)
+
+
+class Pending(Protocol[T_co]):
+    """A result that may still be being computed: what ``submit`` returns (a
+    :class:`concurrent.futures.Future` of a local pool or of :class:`InlineExecutor`,
+    a Dask future) or a handle that holds one (``done()``: it finished, was cancelled or
+    failed; ``result()``: the result, waited for, or the task's exception raised)."""
+
+    def done(self) -> bool: ...
+
+    def result(self) -> T_co: ...
 
 
 class SchedulerError(OmnipipeError):

@@ -1,7 +1,7 @@
 """What the camera motion keeps per frame and per keyframe goes to the run's scratch with
 the same values: the wall cylinders :func:`omnipipe.sfm.pipeline.nearest_wall` caches, a
 finished step's evidence and a pending frame's correspondences
-(:mod:`omnipipe.sfm.keyframes`)."""
+(:mod:`omnipipe.sfm.keyframe_jobs`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 
 from omnipipe.laser.ring import LaserRing
 from omnipipe.sfm.flat_field import _Later
-from omnipipe.sfm.keyframes import _evidence_held, _finished, _rays_held
+from omnipipe.sfm.keyframe_jobs import evidence_held, finished, rays_held
 from omnipipe.sfm.laser_scale import LaserMatches
 from omnipipe.sfm.pipeline import nearest_wall
 from omnipipe.sfm.scale_check import wall_cylinder
@@ -51,7 +51,7 @@ def test_finished_evidence_and_rays_held_with_their_values() -> None:
         rng.integers(0, 500, L), rng.normal(10, 1, L), rng.uniform(0, 400, (L, 2)), rng.uniform(0, 1, L), 10.2
     )
     ev = StepEvidence(3, 7, np.eye(4), rng.integers(0, 300, (m, 2)), laser, rng.normal(2.3, 0.1, m), 9.8, m, "ok")
-    held = _evidence_held(Pack(), ev)
+    held = evidence_held(Pack(), ev)
     for got, want in (
         (held.inliers, ev.inliers), (held.log_scales, ev.log_scales), (held.laser.index, laser.index),
         (held.laser.scale_mm, laser.scale_mm), (held.laser.pixels_b, laser.pixels_b), (held.laser.ncc, laser.ncc),
@@ -60,7 +60,7 @@ def test_finished_evidence_and_rays_held_with_their_values() -> None:
         assert got.dtype == want.dtype and is_on_disk(got)
     assert (held.a, held.b, held.feature_scale_mm, held.status) == (3, 7, 9.8, "ok")
     rays = KeyframeRays(rng.integers(0, 300, m), rng.normal(size=(m, 3)))
-    kept = _rays_held(Pack(), rays)
+    kept = rays_held(Pack(), rays)
     np.testing.assert_array_equal(kept.feature, rays.feature)
     np.testing.assert_array_equal(kept.rays_in_rig, rays.rays_in_rig)
     assert is_on_disk(kept.feature) and is_on_disk(kept.rays_in_rig)
@@ -73,7 +73,7 @@ def test_only_futures_holding_a_result_count_as_finished() -> None:
     cancelled.cancel()
     later, released = _Later(), _Later()
     released.future = done
-    assert [_finished(f) for f in (waiting, done, failed, cancelled, later, released)] == [
+    assert [finished(f) for f in (waiting, done, failed, cancelled, later, released)] == [
         False, True, False, False, False, True,
     ]
 

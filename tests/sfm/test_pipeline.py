@@ -195,7 +195,7 @@ def test_bridged_step_from_odometry_covers_the_truth() -> None:
 def test_run_ending_mid_stroke_on_stationary_frames_closes_on_the_last_moving_frame(with_odometry: bool) -> None:
     """The robot stops after 4 moving frames (frame 4 too little parallax after keyframe
     3 to be a keyframe by itself) and stands for 3 frames: the last *moving* frame is
-    the closing keyframe (sfm.keyframes.KeyframeLoop.finish), the stationary frames
+    the closing keyframe (sfm.keyframe_loop.KeyframeLoop.finish), the stationary frames
     share its pose, and no stretch is left unresected (without the closing keyframe:
     2 keyframes, no adjustment, frame 4 placed by the gait, flagged, ATE 3.7 mm).
     With the robot's odometry too: the wall has texture there (random-wide seed 1s, a
@@ -286,7 +286,7 @@ def test_keyframe_arrays_wait_on_disk_with_the_same_result(short_run, monkeypatc
     matches, the keyframes' ring points) waits in the run's scratch
     (:class:`omnipipe.spill.Pack`), and the run's poses are those of a run that keeps
     them in memory, bit for bit."""
-    from omnipipe.sfm import keyframes, pipeline
+    from omnipipe.sfm import keyframe_loop, keyframes, pipeline
     from omnipipe.spill import is_on_disk
 
     scenario, _, _, frames, rings = short_run("paper-small")
@@ -312,7 +312,7 @@ def test_keyframe_arrays_wait_on_disk_with_the_same_result(short_run, monkeypatc
         def put(self, a: np.ndarray) -> np.ndarray:
             return np.array(a)
 
-    monkeypatch.setattr(keyframes, "Pack", InMemory)
+    monkeypatch.setattr(keyframe_loop, "Pack", InMemory)
     in_memory = sfm_run(SfmConfig(), inputs)
     assert np.array_equal(on_disk.world_from_rig, in_memory.world_from_rig)
     assert np.array_equal(on_disk.registered, in_memory.registered)
@@ -346,18 +346,18 @@ def test_the_frames_followed_back_get_the_chains_flow_images_and_the_same_poses(
     """The frames followed back are sent with the flow images the frame loop's chain
     made of them (not made again in the worker): every frame has them, and the run's
     poses are those of a worker making its own, bit for bit."""
-    from omnipipe.sfm import keyframes
+    from omnipipe.sfm import pending_matches
 
     scenario, _, _, frames, rings = short_run("continuous")  # every frame moves
     inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
-    track_back = keyframes.track_back
+    track_back = pending_matches.track_back
     given: list[bool] = []
 
     def own(rig, config, views, features, which, pending, tracking, key_images, images):
         given.extend([key_images is not None] + [i is not None for i in images])
         return track_back(rig, config, views, features, which, pending, tracking)
 
-    monkeypatch.setattr(keyframes, "track_back", own)
+    monkeypatch.setattr(pending_matches, "track_back", own)
     made = sfm_run(SfmConfig(), inputs)
     monkeypatch.undo()
     sent = sfm_run(SfmConfig(), inputs)
@@ -372,22 +372,22 @@ def test_following_back_only_the_matched_features_gives_the_poses_of_following_a
     those its steps matched (the adjustment's tracks are made of them): fewer features
     followed, and the run's poses those of following every one within the budget, bit
     for bit."""
-    from omnipipe.sfm import keyframes
+    from omnipipe.sfm import pending_matches
 
     scenario, _, _, frames, rings = short_run("continuous")  # every frame moves
     inputs = SfmInputs(scenario.rig, lambda i: frames[i], len(frames), rings)
     followed: list[int] = []
-    track_back = keyframes.track_back
+    track_back = pending_matches.track_back
 
     def counted(rig, config, views, features, which, pending, tracking, *images):
         followed.append(len(which) * len(pending))
         return track_back(rig, config, views, features, which, pending, tracking, *images)
 
-    monkeypatch.setattr(keyframes, "track_back", counted)
+    monkeypatch.setattr(pending_matches, "track_back", counted)
     narrowed = sfm_run(SfmConfig(), inputs)
     n_narrowed = sum(followed)
     followed.clear()
-    monkeypatch.setattr(keyframes, "matched_only", lambda which, matched: which)
+    monkeypatch.setattr(pending_matches, "matched_only", lambda which, matched: which)
     every = sfm_run(SfmConfig(), inputs)
     assert 0 < n_narrowed < sum(followed)
     assert np.array_equal(narrowed.world_from_rig, every.world_from_rig)

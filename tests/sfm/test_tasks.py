@@ -38,8 +38,8 @@ def test_gray_for_worker_sends_a_reference_only_where_the_store_holds_the_same_v
     store when its uint16 copy is exact (8- or 16-bit); the pixels themselves inline
     (nothing to send), to other executors, and for a float grey image (fallback)."""
     from omnipipe.executor import InlineExecutor, open_executor
+    from omnipipe.sfm.evidence_queue import gray_for_worker
     from omnipipe.sfm.image_store import ImageStore, StoredImage
-    from omnipipe.sfm.keyframes import gray_for_worker
 
     rng = np.random.default_rng(6)
     eight = rng.integers(0, 256, (24, 32)).astype(np.uint8)

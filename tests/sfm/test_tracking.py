@@ -313,23 +313,24 @@ def test_a_keyframe_is_renewed_when_its_tracks_run_out() -> None:
     from types import SimpleNamespace
 
     from omnipipe.sfm import SfmConfig
-    from omnipipe.sfm.keyframes import KeyframeLoop, TrackedStep
+    from omnipipe.sfm.keyframe_tracks import KeyframeTracks
+    from omnipipe.sfm.step_records import TrackedStep
 
-    def loop(config: SfmConfig, inliers: int) -> KeyframeLoop:
-        out = object.__new__(KeyframeLoop)  # only what the rule reads
+    def loop(config: SfmConfig, inliers: int) -> KeyframeTracks:
+        out = object.__new__(KeyframeTracks)  # only what the rule reads
         out.ctx = SimpleNamespace(config=config)
-        out._step_inliers = inliers
+        out.step_inliers = inliers
         return out
 
     def step(n: int) -> TrackedStep:
         return TrackedStep(Tracks(np.arange(n), None), np.zeros((n, 2), int), math.radians(3.0))
 
     config = SfmConfig()
-    assert loop(config, 511)._running_out(step(80))
-    assert not loop(config, 511)._running_out(step(400))
-    assert not loop(config, 0)._running_out(step(80))  # no keyframe step yet
+    assert loop(config, 511).running_out(step(80))
+    assert not loop(config, 511).running_out(step(400))
+    assert not loop(config, 0).running_out(step(80))  # no keyframe step yet
     off = replace(config, tracking=replace(config.tracking, renew_ratio=0.0))
-    assert not loop(off, 511)._running_out(step(80))
+    assert not loop(off, 511).running_out(step(80))
 
 
 @pytest.fixture(scope="module")
@@ -461,7 +462,7 @@ def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() 
     of its own keyframe, or whose rays turned ``back_beyond`` of the step's parallax or
     more (or an unknown share); none when every frame has enough tracks and is near its
     own keyframe."""
-    from omnipipe.sfm.keyframes import followed_back
+    from omnipipe.sfm.keyframe_jobs import followed_back
 
     near = [0.1, 0.2, 0.3, 0.4]
     by_count = TrackConfig(back_below=200, back_beyond=1.0)
@@ -497,20 +498,20 @@ def test_spread_order_takes_one_feature_per_square_before_a_second() -> None:
 
 
 def test_the_budget_keeps_the_carried_tracks_then_spreads_the_new_features() -> None:
-    from omnipipe.sfm.keyframes import _budget
+    from omnipipe.sfm.keyframe_jobs import budget
 
     rng = np.random.default_rng(5)
     n = 500
     view = rng.integers(0, 4, n)
     px = rng.uniform(0, 200, (n, 2)).astype(np.float32)
     features = FrameFeatures(np.zeros((n, 3)), np.zeros((n, 2)), np.zeros((n, 128), np.float32), view, px)
-    even = _budget(120, features, TrackConfig(max_points=200))
+    even = budget(120, features, TrackConfig(max_points=200))
     assert np.array_equal(even[:120], np.arange(120))
     assert np.array_equal(even[120:], np.unique(np.linspace(120, n - 1, 80).round().astype(int)))
-    spread = _budget(120, features, TrackConfig(max_points=200, spread_px=50.0))
+    spread = budget(120, features, TrackConfig(max_points=200, spread_px=50.0))
     assert np.array_equal(spread[:120], np.arange(120))
     assert len(spread) == 200 and np.all(spread[120:] >= 120) and np.all(np.diff(spread[120:]) > 0)
     # The new ones cover as many squares as 80 picks can (64 squares of 50 px in 4 views).
     squares = {(int(view[i]), int(px[i, 0] // 50), int(px[i, 1] // 50)) for i in spread[120:]}
     assert len(squares) == 64
-    assert np.array_equal(_budget(300, features, TrackConfig(max_points=200)), np.unique(np.linspace(0, 299, 200).round().astype(int)))
+    assert np.array_equal(budget(300, features, TrackConfig(max_points=200)), np.unique(np.linspace(0, 299, 200).round().astype(int)))

@@ -33,7 +33,7 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any
+from typing import Generic, TypeVar
 
 import cv2
 import numpy as np
@@ -179,12 +179,20 @@ def ring_band(camera: CameraModel, radii: np.ndarray) -> np.ndarray:
     return (r >= lo - m) & (r <= hi + m)
 
 
-class _Later:
-    """A step's evidence future, submitted once its flat field is known."""
+T = TypeVar("T")
 
-    future: Future | None = None
 
-    def result(self) -> Any:
+class _Later(Generic[T]):
+    """A step's evidence future, submitted once its flat field is known (an
+    :class:`omnipipe.executor.Pending`)."""
+
+    future: Future[T] | None = None
+
+    def done(self) -> bool:
+        """True once the step was released and its worker is done."""
+        return self.future is not None and self.future.done()
+
+    def result(self) -> T:
         """The worker's result (the step must have been released)."""
         if self.future is None:
             raise ReconstructionError("a flat-fielded step's evidence asked for before it was released")

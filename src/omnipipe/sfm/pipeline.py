@@ -53,7 +53,7 @@ from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_fra
 from omnipipe.sfm.creep_odometry import place_odometry_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.image_store import ImageStore
-from omnipipe.sfm.keyframes import Followed, follow_keyframes
+from omnipipe.sfm.keyframes import follow_keyframes
 from omnipipe.sfm.path_smooth import smooth_path
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.ring_follow import add_ring_follow
@@ -77,6 +77,7 @@ from omnipipe.sfm.stations import (
     unverified_stations,
 )
 from omnipipe.sfm.step_priors import WallPriors, bridged_priors, wall_priors
+from omnipipe.sfm.step_records import Followed
 from omnipipe.sfm.step_scale import (
     ChainedSteps,
     RunLength,
