@@ -7,13 +7,13 @@ batches: :mod:`.batch`; the command line: :mod:`.cli`.
 
 from omnipipe.pipeline.reconstruct import (
     ProgressFactory,
-    ReconstructConfig,
     Reconstruction,
     report_inputs,
     run,
     table_one,
     write,
 )
+from omnipipe.pipeline.run_config import ReconstructConfig
 
 __all__ = [
     "ProgressFactory",

@@ -6,6 +6,9 @@ section: metric ring points per frame), ``sfm`` (camera motion, metric by the la
 ovality, defects) and ``report``. Outputs are written to a temporary directory next
 to OUT and moved into place at the end, so a failed or interrupted run never leaves
 OUT looking complete.
+
+Here: :func:`run` (every stage on a dataset) and its result :class:`Reconstruction`. In
+modules of their own: the settings and the run's log (:mod:`.run_config`).
 """
 
 from __future__ import annotations
@@ -18,9 +21,9 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from omnipipe.config import dataclass_from_dict, deep_merge, load_yaml_mapping
 from omnipipe.errors import ReconstructionError
 from omnipipe.memory import release_freed_memory, return_large_blocks
+from omnipipe.pipeline.run_config import RunLog, no_progress
 from omnipipe.progress import ProgressFactory
 
 if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
@@ -28,93 +31,26 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
 
     import numpy as np
 
-    from omnipipe.analysis import AnalysisConfig, AnalysisResult
+    from omnipipe.analysis import AnalysisResult
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.dataset import Dataset
     from omnipipe.handoff import FrameHandoff
-    from omnipipe.laser import LaserConfig
     from omnipipe.laser.ring import LaserRing
-    from omnipipe.model import ModelConfig, ModelResult
+    from omnipipe.model import ModelResult
     from omnipipe.pipeline.checkpoint import Checkpoints
     from omnipipe.pipeline.frame_pass import FramePassResult
+    from omnipipe.pipeline.run_config import ReconstructConfig
     from omnipipe.report import ReportConfig, ReportInputs
     from omnipipe.report.relief import WallPoints
     from omnipipe.report.views import DefectView
-    from omnipipe.sfm import SfmConfig, SfmResult
+    from omnipipe.sfm import SfmResult
     from omnipipe.spill import Pack
     from omnipipe.survey import Survey
+
 
 RING_PASS_DROP_S = 0.02
 """Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) while the
 station rings are integrated: those passes map every ring within a second."""
-
-
-def _no_progress(stage: str, total: int) -> Callable[[int], None]:
-    return lambda done: None
-
-
-@dataclass(frozen=True)
-class ReconstructConfig:
-    """Settings of every stage; ``--config FILE.yaml`` overrides any of them by section.
-
-    ``workers`` (local processes, None: every core, 1: serial) and ``scheduler`` (a Dask
-    scheduler address ``tcp://HOST:PORT``, or None) choose the executor of the
-    frame-parallel work (:mod:`omnipipe.executor`; ``--workers``, ``--scheduler``).
-    """
-
-    laser: LaserConfig
-    sfm: SfmConfig
-    model: ModelConfig
-    analysis: AnalysisConfig
-    report: ReportConfig
-    workers: int | None = None
-    scheduler: str | None = None
-
-    @staticmethod
-    def default() -> ReconstructConfig:
-        from omnipipe.analysis import AnalysisConfig
-        from omnipipe.laser import LaserConfig
-        from omnipipe.model import ModelConfig
-        from omnipipe.report import ReportConfig
-        from omnipipe.sfm import SfmConfig
-
-        return ReconstructConfig(
-            LaserConfig(), SfmConfig(), ModelConfig(), AnalysisConfig(), ReportConfig()
-        )
-
-    @staticmethod
-    def from_yaml(
-        path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None
-    ) -> ReconstructConfig:
-        """Defaults, then the YAML file's sections, then ``overrides`` (CLI options)."""
-        base = ReconstructConfig.default()
-        data = load_yaml_mapping(path) if path is not None else {}
-        source = None if path is None else str(path)
-        merged: dict[str, dict[str, Any]] = {}
-        for section, values in data.items():
-            if section not in ("laser", "sfm", "model", "analysis", "report"):
-                from omnipipe.errors import ConfigError
-
-                raise ConfigError(
-                    str(section),
-                    "unknown section (known: laser, sfm, model, analysis, report)",
-                    source,
-                )
-            merged[section] = dict(values or {})
-        merged = deep_merge(merged, overrides or {})
-        parts: dict[str, Any] = {}
-        for section in ("laser", "sfm", "model", "analysis", "report"):
-            default = getattr(base, section)
-            values = merged.get(section)
-            if values:
-                from dataclasses import asdict
-
-                combined = deep_merge(asdict(default), values)
-                # Nested dataclasses come back as dicts from asdict: rebuild the whole section.
-                parts[section] = dataclass_from_dict(type(default), combined, section, source)
-            else:
-                parts[section] = default
-        return ReconstructConfig(**parts)
 
 
 @dataclass
@@ -158,7 +94,7 @@ class Reconstruction:
 def run(
     config: ReconstructConfig,
     dataset: Dataset,
-    progress: ProgressFactory = _no_progress,
+    progress: ProgressFactory = no_progress,
     executor: Executor | None = None,
     checkpoints: Checkpoints | None = None,
 ) -> Reconstruction:
@@ -203,7 +139,7 @@ def _run(
     from omnipipe.inputs.lossy import assess_input
     from omnipipe.pipeline import frame_pass
 
-    log = _RunLog(t_start=time.perf_counter())
+    log = RunLog(t_start=time.perf_counter())
     validate_frames(dataset)
     log.warnings.extend(dataset.warnings)  # e.g. a truncated video
     input_quality = assess_input(dataset)  # lossy (JPEG/MPEG) input degrades everything
@@ -288,15 +224,6 @@ def wall_points(res: AnalysisResult) -> WallPoints | None:
     )
 
 
-@dataclass
-class _RunLog:
-    """What a run notes as it goes: stage times (s) and warnings."""
-
-    t_start: float
-    timings: dict[str, float] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-
-
 @dataclass(frozen=True)
 class _Saved:
     """A stage's checkpoint: its result and the run's notes when it ended.
@@ -312,7 +239,7 @@ class _Saved:
     warnings: list[str]
 
 
-def _restore(checkpoints: Checkpoints | None, stage: str, log: _RunLog) -> Any | None:
+def _restore(checkpoints: Checkpoints | None, stage: str, log: RunLog) -> Any | None:
     """The result of ``stage`` loaded from ``checkpoints`` (the run's notes as they were
     when it was saved), or None."""
     saved = None if checkpoints is None else checkpoints.load(stage)
@@ -323,7 +250,7 @@ def _restore(checkpoints: Checkpoints | None, stage: str, log: _RunLog) -> Any |
     return saved.result
 
 
-def _keep(checkpoints: Checkpoints | None, stage: str, result: Any, log: _RunLog) -> None:
+def _keep(checkpoints: Checkpoints | None, stage: str, result: Any, log: RunLog) -> None:
     if checkpoints is not None:
         checkpoints.save(stage, _Saved(result, dict(log.timings), list(log.warnings)))
 
@@ -333,7 +260,7 @@ def _stages(
     dataset: Dataset,
     executor: Executor,
     progress: ProgressFactory,
-    log: _RunLog,
+    log: RunLog,
     checkpoints: Checkpoints | None,
 ) -> tuple[_Motion, _Measured, ModelResult]:
     """The frame pass, camera motion, analysis and model, each loaded from its
@@ -358,7 +285,7 @@ def _stages_handing_on(
     dataset: Dataset,
     executor: Executor,
     progress: ProgressFactory,
-    log: _RunLog,
+    log: RunLog,
     checkpoints: Checkpoints | None,
     handoff: FrameHandoff | None,
 ) -> tuple[_Motion, _Measured, ModelResult]:
@@ -370,7 +297,7 @@ def _stages_handing_on(
     def frames() -> FramePassResult:
         # Needed after the camera motion was loaded: the pass's notes are in the loaded
         # ones already, so it notes into a log of its own.
-        own = log if motion is None else _RunLog(log.t_start)
+        own = log if motion is None else RunLog(log.t_start)
         if not frames_box:
             got = _restore(cp, "frames", own)
             if got is None:
@@ -412,7 +339,7 @@ def _decode(
     dataset: Dataset,
     executor: Executor,
     progress: ProgressFactory,
-    log: _RunLog,
+    log: RunLog,
     checkpoints: Checkpoints | None = None,
     handoff: FrameHandoff | None = None,
 ) -> FramePassResult:
@@ -474,7 +401,7 @@ def _camera_motion(
     frames: FramePassResult,
     executor: Executor,
     progress: ProgressFactory,
-    log: _RunLog,
+    log: RunLog,
     handoff: str | None = None,
 ) -> _Motion:
     """The sfm stage, refused when its motion cannot be trusted or nothing registered.
@@ -563,7 +490,7 @@ def _analyse(
     motion: _Motion,
     executor: Executor,
     progress: ProgressFactory,
-    log: _RunLog,
+    log: RunLog,
 ) -> tuple[_Measured, _ModelFeed]:
     """Integration and the analysis stage, first: its centreline coordinates unroll the
     mesh and the texture; and the camera motion check's report."""
@@ -668,7 +595,7 @@ def _model(
     feed: _ModelFeed,
     executor: Executor,
     progress: ProgressFactory,
-    log: _RunLog,
+    log: RunLog,
     handoff: str | None = None,
 ) -> ModelResult:
     """The model stage on the stations, unrolled by the analysis' centreline (``handoff``:
@@ -755,7 +682,7 @@ def _summary(
     measured: _Measured,
     mdl: ModelResult,
     executor: Executor,
-    log: _RunLog,
+    log: RunLog,
 ) -> tuple[dict[str, Any], list[Defect]]:
     """report.json's content (without ``input_quality``) and the reported defects."""
     import numpy as np
@@ -827,7 +754,7 @@ def write(
     force: bool = False,
     evaluation: dict[str, Any] | None = None,
     protect: Sequence[str | Path] = (),
-    progress: ProgressFactory = _no_progress,
+    progress: ProgressFactory = no_progress,
 ) -> Path:
     """Write the contract outputs of ``rec`` to ``out`` atomically, with a manifest.
 
