@@ -46,7 +46,7 @@ def _peak_rss_mb() -> float:
 
 
 STEPS = (
-    ("omnipipe.pipeline.reconstruct", ("decode", "camera_motion", "analyse", "build_model")),
+    ("omnipipe.pipeline.run_state", ("decode", "camera_motion", "analyse", "build_model")),
     ("omnipipe.pipeline.reconstruct", ("_summary", "_defect_views")),
     (
         "omnipipe.sfm.pipeline",

@@ -9,7 +9,7 @@ OUT looking complete.
 
 Here: :func:`run` (every stage on a dataset) and its result :class:`Reconstruction`. In
 modules of their own: the settings and the run's log (:mod:`.run_config`), each stage's
-call (:mod:`.stage_calls`).
+call (:mod:`.stage_calls`), the stage sequence with its checkpoints (:mod:`.run_state`).
 """
 
 from __future__ import annotations
@@ -22,16 +22,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from omnipipe.errors import ReconstructionError
-from omnipipe.memory import release_freed_memory, return_large_blocks
+from omnipipe.memory import release_freed_memory
 from omnipipe.pipeline.run_config import RunLog, no_progress
-from omnipipe.pipeline.stage_calls import (
-    analyse,
-    analysis_on_disk,
-    build_model,
-    camera_motion,
-    decode,
-    model_on_disk,
-)
+from omnipipe.pipeline.run_state import stages
 from omnipipe.progress import ProgressFactory
 
 if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
@@ -42,10 +35,8 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.analysis import AnalysisResult
     from omnipipe.contract import Defect, TrajectoryQuality
     from omnipipe.dataset import Dataset
-    from omnipipe.handoff import FrameHandoff
     from omnipipe.model import ModelResult
     from omnipipe.pipeline.checkpoint import Checkpoints
-    from omnipipe.pipeline.frame_pass import FramePassResult
     from omnipipe.pipeline.run_config import ReconstructConfig
     from omnipipe.pipeline.stage_calls import Measured, Motion
     from omnipipe.report import ReportConfig, ReportInputs
@@ -153,7 +144,7 @@ def _run(
     from omnipipe.progress import reporting
 
     with reporting(progress):  # the stages' inner steps draw bars of their own
-        motion, measured, mdl = _stages(config, dataset, executor, progress, log, checkpoints)
+        motion, measured, mdl = stages(config, dataset, executor, progress, log, checkpoints)
     log.timings["total"] = time.perf_counter() - log.t_start
     summary, defects = _summary(config, dataset, motion, measured, mdl, executor, log)
     summary["input_quality"] = input_quality.to_dict()
@@ -223,116 +214,6 @@ def wall_points(res: AnalysisResult) -> WallPoints | None:
         deviation_mm=res.point_deviation_mm,
         radius_mm=res.radius_mm,
     )
-
-
-@dataclass(frozen=True)
-class _Saved:
-    """A stage's checkpoint: its result and the run's notes when it ended.
-
-    Attributes:
-        result: the stage's result.
-        timings: the stage times (s) so far.
-        warnings: the run's warnings so far.
-    """
-
-    result: Any
-    timings: dict[str, float]
-    warnings: list[str]
-
-
-def _restore(checkpoints: Checkpoints | None, stage: str, log: RunLog) -> Any | None:
-    """The result of ``stage`` loaded from ``checkpoints`` (the run's notes as they were
-    when it was saved), or None."""
-    saved = None if checkpoints is None else checkpoints.load(stage)
-    if not isinstance(saved, _Saved):
-        return None
-    log.timings = dict(saved.timings)
-    log.warnings = list(saved.warnings)
-    return saved.result
-
-
-def _keep(checkpoints: Checkpoints | None, stage: str, result: Any, log: RunLog) -> None:
-    if checkpoints is not None:
-        checkpoints.save(stage, _Saved(result, dict(log.timings), list(log.warnings)))
-
-
-def _stages(
-    config: ReconstructConfig,
-    dataset: Dataset,
-    executor: Executor,
-    progress: ProgressFactory,
-    log: RunLog,
-    checkpoints: Checkpoints | None,
-) -> tuple[Motion, Measured, ModelResult]:
-    """The frame pass, camera motion, analysis and model, each loaded from its
-    checkpoint when there is one (then the frame pass is done only if a later stage
-    still needs it), otherwise computed and saved."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    from omnipipe.handoff import FrameHandoff
-
-    # The moving frames as decoded, from the decoding pass to the motion's and the
-    # model's workers (a local pool's workers share this file system).
-    handoff = FrameHandoff(len(dataset)) if isinstance(executor, ProcessPoolExecutor) else None
-    try:
-        return _stages_handing_on(config, dataset, executor, progress, log, checkpoints, handoff)
-    finally:
-        if handoff is not None:
-            handoff.close()
-
-
-def _stages_handing_on(
-    config: ReconstructConfig,
-    dataset: Dataset,
-    executor: Executor,
-    progress: ProgressFactory,
-    log: RunLog,
-    checkpoints: Checkpoints | None,
-    handoff: FrameHandoff | None,
-) -> tuple[Motion, Measured, ModelResult]:
-    """:func:`_stages`, the decoding pass leaving the moving frames in ``handoff``."""
-    cp = checkpoints
-    frames_box: list[FramePassResult] = []
-    folder = None if handoff is None else handoff.folder
-
-    def frames() -> FramePassResult:
-        # Needed after the camera motion was loaded: the pass's notes are in the loaded
-        # ones already, so it notes into a log of its own.
-        own = log if motion is None else RunLog(log.t_start)
-        if not frames_box:
-            got = _restore(cp, "frames", own)
-            if got is None:
-                got = decode(config, dataset, executor, progress, own, cp, handoff)
-                _keep(cp, "frames", got, own)
-            frames_box.append(got)
-        return frames_box[0]
-
-    motion: Motion | None = None
-    motion = _restore(cp, "sfm", log)
-    if motion is None:
-        motion = camera_motion(config, dataset, frames(), executor, progress, log, folder)
-        _keep(cp, "sfm", motion, log)
-    # From here on this process's large freed arrays leave its memory at once (the
-    # analysis', the model's and the writers' per-point and per-cell arrays); not during
-    # the frame-by-frame stages, where mapping each image's arrays afresh cost 38 % more
-    # CPU at 1600x1200 (benchmarks/RESULTS.md).
-    return_large_blocks()
-    found = _restore(cp, "analysis", log)
-    if found is None:
-        found = analyse(config, dataset, frames(), motion, executor, progress, log)
-        _keep(cp, "analysis", found, log)
-    # What grows with the run waits in its scratch (omnipipe.spill), also when loaded.
-    measured, feed = analysis_on_disk(*found)
-    del found
-    frames_box.clear()
-    release_freed_memory()
-    mdl = _restore(cp, "model", log)
-    if mdl is None:
-        mdl = build_model(config, dataset, measured, feed, executor, progress, log, folder)
-        _keep(cp, "model", mdl, log)
-    mdl = model_on_disk(mdl)
-    release_freed_memory()
-    return motion, measured, mdl
 
 
 def _summary(
@@ -432,7 +313,6 @@ def write(
     from omnipipe import model as model_stage
     from omnipipe import report
     from omnipipe.dataset import atomic_output_dir, write_tum
-    from omnipipe.memory import release_freed_memory
     from omnipipe.report.clock import clock_reference
     from omnipipe.report.deliverable import write_deliverable
     from omnipipe.report.features_csv import write_features
