@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from omnipipe.memory import release_freed_memory
 from omnipipe.pipeline.run_config import no_progress
 from omnipipe.pipeline.summary import wall_points
 from omnipipe.progress import ProgressFactory
@@ -50,6 +49,7 @@ def write(
     from omnipipe import model as model_stage
     from omnipipe import report
     from omnipipe.dataset import atomic_output_dir, write_tum
+    from omnipipe.memory import release_freed_memory
     from omnipipe.report.clock import clock_reference
     from omnipipe.report.deliverable import write_deliverable
     from omnipipe.report.features_csv import write_features
