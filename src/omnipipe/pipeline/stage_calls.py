@@ -4,8 +4,8 @@
 :func:`camera_motion` (the sfm stage -> :class:`Motion`), :func:`analyse` (integration of
 the stations' rings and the analysis stage -> :class:`Measured` and the model's
 :class:`ModelFeed`) and :func:`build_model` (the model stage). Each notes its time
-(seconds) and warnings in the run's :class:`~.run_config.RunLog` and refuses what cannot
-go on (:class:`~omnipipe.errors.ReconstructionError`).
+(seconds) and its warnings in the run's :class:`~.run_config.RunLog`; the frame pass and
+the camera motion refuse what cannot go on (:class:`~omnipipe.errors.ReconstructionError`).
 
 The ``*_on_disk`` helpers put what grows with the run (per-point and per-sample arrays,
 the model's arrays) in the run's scratch (:mod:`omnipipe.spill`): equal values, dtypes
