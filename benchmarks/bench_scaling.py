@@ -46,7 +46,8 @@ def _peak_rss_mb() -> float:
 
 
 STEPS = (
-    ("omnipipe.pipeline.reconstruct", ("_decode", "_camera_motion", "_analyse", "_model", "_summary", "_defect_views")),
+    ("omnipipe.pipeline.run_state", ("decode", "camera_motion", "analyse", "build_model")),
+    ("omnipipe.pipeline.reconstruct", ("report_summary", "_defect_views")),
     (
         "omnipipe.sfm.pipeline",
         ("follow_keyframes", "chain_steps", "_adjusted_and_checked", "run_length", "resect_pending", "_result"),

@@ -170,7 +170,7 @@ def test_every_default_lies_inside_its_bounds() -> None:
 def test_reconstruct_yaml_outside_bounds_is_refused_at_load(
     tmp_path: Path, text: str, field_name: str
 ) -> None:
-    from omnipipe.pipeline.reconstruct import ReconstructConfig
+    from omnipipe.pipeline.run_config import ReconstructConfig
 
     path = tmp_path / "bad.yaml"
     path.write_text(text)
@@ -181,7 +181,7 @@ def test_reconstruct_yaml_outside_bounds_is_refused_at_load(
 
 
 def test_model_outliers_are_read_from_yaml(tmp_path: Path) -> None:
-    from omnipipe.pipeline.reconstruct import ReconstructConfig
+    from omnipipe.pipeline.run_config import ReconstructConfig
 
     path = tmp_path / "outliers.yaml"
     path.write_text("model: {outliers: {k_mad: 8.5, max_run: 3}}\n")

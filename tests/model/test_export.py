@@ -271,7 +271,7 @@ def test_writers_of_a_model_in_the_scratch_drop_its_pages_after_each_chunk(
     the arrays in memory, byte for byte."""
     from omnipipe import spill
     from omnipipe.model import export
-    from omnipipe.pipeline.reconstruct import model_on_disk
+    from omnipipe.pipeline.stage_calls import model_on_disk
 
     res, whole, _ = written
     monkeypatch.setattr(export, "WRITE_CHUNK", 999)

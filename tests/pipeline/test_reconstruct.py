@@ -154,7 +154,7 @@ def test_the_stations_rings_wait_in_the_scratch_until_integrated(
     """Before the analysis the stations' rings are integrated from the run's scratch
     (omnipipe.spill), not held in memory all at once; the result is the same."""
     from omnipipe import model
-    from omnipipe.pipeline.reconstruct import ring_on_disk
+    from omnipipe.pipeline.stage_calls import ring_on_disk
     from omnipipe.spill import Pack, is_on_disk
 
     integrate = model.integrate

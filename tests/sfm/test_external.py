@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from omnipipe import sfm
 from omnipipe.dataset import write_tum
 from omnipipe.errors import ConfigError, ReconstructionError
-from omnipipe.pipeline.reconstruct import ReconstructConfig
+from omnipipe.pipeline.run_config import ReconstructConfig
 from omnipipe.sfm.types import SfmConfig, SfmInputs
 
 
