@@ -7,12 +7,8 @@ water features) and :mod:`.feature_types` (:class:`Feature`).
 """
 
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
-from omnipipe.analysis.stage import (
-    AnalysisConfig,
-    AnalysisInputs,
-    AnalysisResult,
-    run,
-)
+from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs, AnalysisResult
+from omnipipe.analysis.stage import run
 from omnipipe.analysis.uncertainty import report_fields, scaled_defects
 from omnipipe.contract import Defect
 
