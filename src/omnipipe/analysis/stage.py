@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from concurrent.futures import Executor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -46,7 +46,6 @@ from omnipipe.analysis.defects import (
     WallSamples,
     find_defects,
     fit_wall_profile,
-    fourier_design,
     measured_only,
 )
 from omnipipe.analysis.feature_types import Joint, Ovality, PointFeature, Stretch, Taper
@@ -56,30 +55,28 @@ from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs, AnalysisRe
 from omnipipe.analysis.ring_spans import RingGroups
 from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tilt
 from omnipipe.analysis.sections import section_features
+from omnipipe.analysis.station_profiles import (
+    StationProfiles,
+    ring_groups,
+    station_list,
+    station_profiles,
+)
 from omnipipe.analysis.stations import (
     EdgeReach,
     Headline,
-    Section,
     SectionConfig,
     Station,
     headline,
     headline_of_a_section,
     ring_cut,
     section_order,
-    station_from_section,
     with_deformation,
     with_water,
 )
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.progress import phase
-from omnipipe.spill import (
-    ScratchWriter,
-    compressed_on_disk,
-    drop_pages,
-    dropping_pages,
-    zeros_on_disk,
-)
+from omnipipe.spill import ScratchWriter, compressed_on_disk, drop_pages, dropping_pages
 
 ANALYSIS_DROP_S = 0.02
 """Seconds between two page drops (:func:`omnipipe.spill.dropping_pages`) within
@@ -200,7 +197,7 @@ def _with_ring_terms(
     inputs: AnalysisInputs,
     frame: np.ndarray,
     k: int,
-    stations: _Stations,
+    stations: StationProfiles,
     radial_sys: float,
     diameter: float,
 ) -> tuple[list[Station], float]:
@@ -216,7 +213,7 @@ def _with_ring_terms(
             st,
             diameter_sigma_mm=math.hypot(st.diameter_sigma_mm, 2.0 * radial_sys, cal * st.diameter_mm, 2.0 * pk),
         )
-        for st, pk in zip(_station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
+        for st, pk in zip(station_list(stations), _or_zeros(peak_mm, len(stations.axial)), strict=True)
     ]
     return st_list, shared
 
@@ -248,7 +245,7 @@ def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndar
     """(S,) each measured station's radius error (mm) from the peaks' shared sub-pixel
     bias (``config.systematic_peak_px`` x its ring's radial pixel scale; a ring of unknown
     scale takes the run's median), in the order of the stations with enough points
-    (:func:`_station_profiles`); empty when the inputs state no scale."""
+    (:func:`station_profiles`); empty when the inputs state no scale."""
     scale = np.asarray(inputs.radial_mm_per_px, float)
     if len(scale) != k or not np.isfinite(scale).any():
         return np.zeros(0)
@@ -317,13 +314,6 @@ def _with_shared_terms(
 
 def _hypot_or_none(sigma: float | None, *terms: float) -> float | None:
     return None if sigma is None else math.hypot(sigma, *terms)
-
-
-def _station_list(stations: _Stations) -> list[Station]:
-    return [
-        station_from_section(a, sec, 0.0, 0.0)
-        for a, sec in zip(stations.axial, stations.sections, strict=True)
-    ]
 
 
 def _run_water(stations: list[Station]) -> tuple[float, float]:
@@ -507,7 +497,7 @@ def _measure_wall(
     executor: Executor | None = None,
     zones: Sequence[FeatureZone] = (),
     stray: np.ndarray | None = None,
-) -> tuple[_Stations, DefectSearch]:
+) -> tuple[StationProfiles, DefectSearch]:
     """The stations' wall profiles and the defects in the deviations from them.
 
     Pass 1 fits the profiles to all points; pass 2 without the samples of the defects
@@ -524,7 +514,7 @@ def _measure_wall(
     for done in range(1, 3):
         # Each ring's indices made per pass: not held under the defect search (8 bytes a point).
         groups = ring_groups(frame, len(poses))
-        stations = _station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
+        stations = station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
         del groups
         ok = np.isfinite(stations.deviation) & ~not_wall
         # In the run's scratch, gathered a block at a time (read when needed; a local
@@ -625,102 +615,3 @@ def _with_systematics(
             )
         out.append(d)
     return out
-
-
-@dataclass(frozen=True)
-class _Stations:
-    """Each station's wall profile (:func:`_station_profiles`).
-
-    Attributes:
-        axial, diameter, diameter_sigma, ovality, ovality_sigma: (K,) per station with
-            enough points (mm; ovality a fraction, NaN below the profile order 2).
-        deviation: (N,) every point's deviation from its station's profile (mm; NaN on
-            stations without enough points).
-    """
-
-    axial: np.ndarray
-    diameter: np.ndarray
-    diameter_sigma: np.ndarray
-    ovality: np.ndarray
-    ovality_sigma: np.ndarray
-    deviation: np.ndarray
-    sections: tuple[Section, ...] = ()
-
-
-def _with_openings(theta: np.ndarray, axial: float, zones: Sequence[FeatureZone], radius: float) -> np.ndarray:
-    """A ring's angles (rad) with the lateral openings it crosses filled in (at 0.5 deg
-    steps): where the ring lost its light in a branch it is not cut by water."""
-    fill = [theta]
-    for z in zones:
-        if z.arc_mm is not None and z.axial_from_mm <= axial <= z.axial_to_mm:
-            c, h = z.arc_mm / radius, z.half_arc_mm / radius
-            fill.append(np.linspace(c - h, c + h, max(int(np.degrees(2 * h) / 0.5), 2)))
-    return np.concatenate(fill) if len(fill) > 1 else theta
-
-
-def ring_groups(frame: np.ndarray, n_rings: int) -> Sequence[np.ndarray]:
-    """(n_rings,) the indices of each ring's points, ascending (``frame == k`` for every k,
-    each made when indexed: :class:`.ring_spans.RingGroups`, a binary search of the
-    integrated run's ring-ordered ``frame`` or one stable sort of any other; no index of
-    every point held)."""
-    return RingGroups(frame, np.arange(n_rings))
-
-
-def _station_profiles(
-    config: AnalysisConfig,
-    groups: list[np.ndarray],
-    theta: np.ndarray,
-    rho: np.ndarray,
-    sigma: np.ndarray,
-    ok_station: np.ndarray,
-    exclude: np.ndarray,
-    zones: Sequence[FeatureZone] = (),
-    radius: float = 1.0,
-    stray: np.ndarray | None = None,
-) -> _Stations:
-    """Each station's wall profile (fitted without the ``exclude`` points) and every
-    point's deviation from it.
-
-    The diameter's sigma is the fit's (A^T A)^-1 scaled by the ring's robust residual
-    spread. A ring cut off by water (one gap) keeps the order while the wall above it
-    covers ``cut_min_coverage_deg`` (:func:`.stations.section_order`). Ovality is
-    2 |(a2, b2)| / c0, bias-corrected (:func:`.stations.station_from_section`).
-    A lateral's opening (``zones`` with an arc, on the ``radius`` mm wall) is no cut:
-    the light lost in the branch is not a water line; ``stray`` samples (off the wall
-    in a cut: :attr:`.features.FeatureSearch.stray`) do not close a cut.
-    """
-    deviation = zeros_on_disk((len(exclude),), float)  # in the run's scratch (omnipipe.spill)
-    deviation.fill(np.nan)
-    sec_config = section_config(config)
-    axial, sections = [], []
-    for k in np.flatnonzero(ok_station):
-        on = groups[k]
-        use = on[~exclude[on]]
-        if len(use) < 12:
-            use = on
-        th = theta[use]
-        # The cut (water) is where the ring has no points at all; the coverage for the
-        # order is that of the points fitted (a defect's samples left out open a gap).
-        lit = on if stray is None or not len(stray) else on[~stray[on]]
-        cut, coverage = ring_cut(_with_openings(theta[lit], float(np.median(sigma[on])), zones, radius), sec_config)
-        _, fitted_coverage = ring_cut(th, sec_config)
-        order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
-        coef = fit_wall_profile(th, rho[use], order, config.loss_scale_mm)
-        A = fourier_design(th, order)
-        res = rho[use] - A @ coef
-        spread = 1.4826 * float(np.median(np.abs(res)))
-        inlier = np.abs(res) <= 4.0 * max(spread, 1e-6)
-        cov = np.linalg.pinv(A[inlier].T @ A[inlier]) * spread**2
-        deviation[on] = rho[on] - fourier_design(theta[on], order) @ coef
-        axial.append(float(np.median(sigma[on])))
-        sections.append(Section(coef, cov, order, cut, coverage))
-    stations = [station_from_section(a, sec, 0.0, 0.0) for a, sec in zip(axial, sections, strict=True)]
-    return _Stations(
-        axial=np.array([st.axial_mm for st in stations]),
-        diameter=np.array([st.diameter_mm for st in stations]),
-        diameter_sigma=np.array([st.diameter_sigma_mm for st in stations]),
-        ovality=np.array([st.ovality for st in stations]),
-        ovality_sigma=np.array([st.ovality_sigma for st in stations]),
-        deviation=deviation,
-        sections=tuple(sections),
-    )
