@@ -111,7 +111,7 @@ def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndar
     """(S,) each measured station's radius error (mm) from the peaks' shared sub-pixel
     bias (``config.systematic_peak_px`` x its ring's radial pixel scale; a ring of unknown
     scale takes the run's median), in the order of the stations with enough points
-    (:func:`station_profiles`); empty when the inputs state no scale."""
+    (:func:`.station_profiles.station_profiles`); empty when the inputs state no scale."""
     scale = np.asarray(inputs.radial_mm_per_px, float)
     if len(scale) != k or not np.isfinite(scale).any():
         return np.zeros(0)

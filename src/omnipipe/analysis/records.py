@@ -61,7 +61,7 @@ class AnalysisConfig:
             the ring (the imaged ring is blurred over about a sample): added to widths.
         blur_sigma_rel: relative 1-sigma of the light section's blur the defect fits
             model (``ring_blur_mm``, ``axial_blur_mm``): a narrow defect's height depends
-            on it (:func:`blur_height_sigma`; the quick demo's 5 mm wide bulge, true
+            on it (:func:`.wall_measure.blur_height_sigma`; the quick demo's 5 mm wide bulge, true
             5 mm, read 4.71 +- 0.11 mm without it; refitted with the blur x 1.25, 5.65 mm).
         water_min_pct: a ring's cut is standing water only from this depth (percent of
             the diameter) and 3 sigma (:class:`.stations.SectionConfig`).

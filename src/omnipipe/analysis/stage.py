@@ -1,25 +1,26 @@
 """Analysis stage: inner diameter, ovality and defects of the measured pipe (Table I).
 
 ``run(config, inputs)`` takes the integrated ring points (world frame) and the poses
-of the rings' frames and returns:
+of the rings' frames (:mod:`.records`: the stage's config, inputs and result) and returns:
 
-* the centreline by piecewise robust cylinder fitting (:mod:`.centreline`); the inner
-  diameter is the single cylinder fitted to the whole run when the pipe is straight
-  (the paper's cylinder fitting, Table I) and the median of the piecewise fits when it
-  bends;
+* the centreline by piecewise robust cylinder fitting (:mod:`.centreline`,
+  :mod:`.axis_fit`); the inner diameter is the single cylinder fitted to the whole run
+  when the pipe is straight (the paper's cylinder fitting, Table I) and the median of the
+  piecewise fits when it bends;
 * each station re-centred on its own section (:func:`.centreline.recentred`), then per
   station (ring) a robust Fourier fit of the radius around the axis: mean diameter
   (Dmax + Dmin) / 2, ovality (Dmax - Dmin) / D and its axis, standing water from the
-  ring's cut-off chord (:mod:`.stations`); the headline inner diameter is the stations'
-  mean (:func:`.stations.headline`), on a reducing run that of the section most stations
-  measured (:func:`.stations.headline_of_a_section`), and the section features (taper,
-  bend, ovality, water) follow from the stations and the centreline (:mod:`.sections`);
+  ring's cut-off chord (:mod:`.station_profiles`, :mod:`.stations`); the headline inner
+  diameter is the stations' mean (:mod:`.headline`, :func:`.stations.headline`), on a
+  reducing run that of the section most stations measured
+  (:func:`.stations.headline_of_a_section`), and the section features (taper, bend,
+  ovality, water) follow from the stations and the centreline (:mod:`.sections`);
 * the radial deviation of every point from that wall, and the bulges and dents found
   in it (:mod:`.defects`, sized by a model fit, :mod:`.sizing`), in the data contract's
   convention (axial position along the centreline from the first frame's origin, angle
   from its x axis towards y). The rings crossing a defect are then refitted without the
   defect's samples (so a wide defect does not pull its ring's wall profile) and the
-  defects measured again on the corrected deviations;
+  defects measured again on the corrected deviations (:mod:`.wall_measure`);
 * a standard uncertainty for each number (:func:`.uncertainty.report_fields` adds the camera
   motion's scale uncertainty to everything measured along the pipe).
 """

@@ -26,6 +26,8 @@ from omnipipe.spill import zeros_on_disk
 
 
 def station_list(stations: StationProfiles) -> list[Station]:
+    """The stations of ``stations`` as :class:`.stations.Station` records (bias-corrected
+    ovality; no shared terms, no water)."""
     return [
         station_from_section(a, sec, 0.0, 0.0)
         for a, sec in zip(stations.axial, stations.sections, strict=True)
