@@ -55,8 +55,8 @@ STEPS = (
     ("omnipipe.analysis", ("run",)),
     (
         "omnipipe.analysis.stage",
-        ("_fit_axis", "_recentred_line", "find_features", "_measure_wall", "_with_ring_terms", "with_water",
-         "_sections_and_headline"),
+        ("fit_axis", "recentred_line", "find_features", "measure_wall", "with_ring_terms", "with_water",
+         "sections_and_headline"),
     ),
     ("omnipipe.model.stage", ("mesh_unrolled", "orient_towards_axis", "choose_sources", "flat_field", "textured_mesh")),
     ("omnipipe.model.export", ("write_ply", "write_laz", "write_e57", "write_glb", "write_obj")),

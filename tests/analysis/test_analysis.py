@@ -250,7 +250,7 @@ def test_defect_at_an_unmeasured_band_is_truncated() -> None:
 
 
 def test_ring_groups_are_each_rings_indices() -> None:
-    from omnipipe.analysis.stage import ring_groups
+    from omnipipe.analysis.station_profiles import ring_groups
 
     frame = np.random.default_rng(4).integers(0, 9, size=400)
     groups = ring_groups(frame, 10)

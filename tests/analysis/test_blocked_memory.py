@@ -6,9 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnipipe.analysis import centreline, stage
+from omnipipe.analysis import centreline
+from omnipipe.analysis.axis_fit import _RingPoints, _section_centres
 from omnipipe.analysis.centreline import fit_centreline
-from omnipipe.analysis.stage import AnalysisConfig, _RingPoints, _section_centres, ring_groups
+from omnipipe.analysis.defects import fit_wall_profile
+from omnipipe.analysis.records import AnalysisConfig, section_config
+from omnipipe.analysis.station_profiles import ring_groups
+from omnipipe.analysis.stations import ring_cut, section_order
 
 
 def _bent_run(rng: np.random.Generator, k: int = 25, per_ring: int = 300):
@@ -64,10 +68,10 @@ def test_section_centres_ring_by_ring_equal_those_of_the_whole_run(run) -> None:
     _, rho, theta = _whole_coordinates(line, pts, ring)
     expected = np.zeros((len(line.arc_mm), 2))
     for i, on in enumerate(ring_groups(ring, len(line.arc_mm))):
-        cut, coverage = stage.ring_cut(theta[on], stage.section_config(config))
-        order = stage.section_order(cut, coverage, config.profile_order, stage.section_config(config))
+        cut, coverage = ring_cut(theta[on], section_config(config))
+        order = section_order(cut, coverage, config.profile_order, section_config(config))
         if order >= 1:
-            expected[i] = stage.fit_wall_profile(theta[on], rho[on], order, config.loss_scale_mm)[1:3]
+            expected[i] = fit_wall_profile(theta[on], rho[on], order, config.loss_scale_mm)[1:3]
     got = _section_centres(config, line, pts, ring)
     assert np.array_equal(got, expected)
     assert np.any(got != 0.0) and np.all(np.abs(got) < 0.5)  # centred on the fitted axis

@@ -175,7 +175,7 @@ def test_narrow_laser_dropout_at_a_common_angle_is_not_water() -> None:
 def test_section_settings_reach_the_section_measurements() -> None:
     """Every section setting of AnalysisConfig (YAML ``analysis.*``) is the one the
     section measurements use, the water threshold included."""
-    from omnipipe.analysis.stage import section_config
+    from omnipipe.analysis.records import section_config
 
     cfg = AnalysisConfig(water_min_pct=7.0, cut_min_deg=9.0, taper_min_mm=3.0)
     sec = section_config(cfg)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, run
-from omnipipe.analysis.stage import AnalysisResult
+from omnipipe.analysis.records import AnalysisResult
 from omnipipe.geometry import make_transform
 from omnipipe.sim.features import Joint, PipeFeatures, Taper
 from omnipipe.sim.scene import Defect, Pipe

@@ -18,7 +18,7 @@ from omnipipe.analysis.ring_spans import (
     ring_ids,
     sorted_unique,
 )
-from omnipipe.analysis.stage import ring_groups
+from omnipipe.analysis.station_profiles import ring_groups
 
 RADIUS = 150.0
 

@@ -89,7 +89,7 @@ def test_headline_on_a_taper_carries_the_run_scale_along_its_ramp() -> None:
     by the ramp's slope times that; a straight run gets nothing."""
     from omnipipe.analysis import report_fields
     from omnipipe.analysis.centreline import Centreline
-    from omnipipe.analysis.stage import AnalysisResult
+    from omnipipe.analysis.records import AnalysisResult
     from omnipipe.analysis.uncertainty import headline_position_sigma, position_sigma
 
     axial = np.linspace(-166.0, -36.0, 21)

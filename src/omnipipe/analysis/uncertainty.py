@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from omnipipe.analysis.stage import AnalysisConfig, AnalysisResult
+from omnipipe.analysis.records import AnalysisConfig, AnalysisResult
 from omnipipe.contract import Defect
 
 
