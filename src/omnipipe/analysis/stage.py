@@ -41,15 +41,9 @@ from omnipipe.analysis.centreline import (
     rig_axis_prior,
 )
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
-from omnipipe.analysis.defects import (
-    DefectSearch,
-    FeatureZone,
-    WallSamples,
-    find_defects,
-    fit_wall_profile,
-    fourier_design,
-    measured_only,
-)
+from omnipipe.analysis.defect_accept import measured_only
+from omnipipe.analysis.defect_search import FeatureZone
+from omnipipe.analysis.defects import DefectSearch, find_defects
 from omnipipe.analysis.feature_types import Feature, Joint, Ovality, PointFeature, Stretch, Taper
 from omnipipe.analysis.features import (
     FeatureConfig,
@@ -75,6 +69,7 @@ from omnipipe.analysis.stations import (
     with_deformation,
     with_water,
 )
+from omnipipe.analysis.wall_profile import WallSamples, fit_wall_profile, fourier_design
 from omnipipe.config import bounded
 from omnipipe.contract import Defect
 from omnipipe.errors import ReconstructionError, ShapeError
