@@ -71,8 +71,9 @@ def _near(a: dict, b: dict, ax_mm: float, ang_deg: float) -> bool:
 
 def main() -> None:
     from omnipipe.analysis import AnalysisConfig
-    from omnipipe.analysis.defects import WallSamples, find_defects
+    from omnipipe.analysis.defects import find_defects
     from omnipipe.analysis.sizing import plateau
+    from omnipipe.analysis.wall_profile import WallSamples
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cache", default=None, help="bench_metrology --cache directory")

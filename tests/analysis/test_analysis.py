@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, fit_cylinder, report_fields, run
-from omnipipe.analysis.defects import WallSamples, find_defects
+from omnipipe.analysis.defects import find_defects
 from omnipipe.analysis.sizing import plateau
+from omnipipe.analysis.wall_profile import WallSamples
 from omnipipe.geometry import make_transform
 from omnipipe.sim.scenarios import make_scenario
 

@@ -9,10 +9,10 @@ import pytest
 from omnipipe.analysis import centreline
 from omnipipe.analysis.axis_fit import _RingPoints, _section_centres
 from omnipipe.analysis.centreline import fit_centreline
-from omnipipe.analysis.defects import fit_wall_profile
 from omnipipe.analysis.records import AnalysisConfig, section_config
 from omnipipe.analysis.station_profiles import ring_groups
 from omnipipe.analysis.stations import ring_cut, section_order
+from omnipipe.analysis.wall_profile import fit_wall_profile
 
 
 def _bent_run(rng: np.random.Generator, k: int = 25, per_ring: int = 300):
@@ -110,7 +110,8 @@ def test_supported_in_blocks_equals_the_whole_array(monkeypatch, rings: int, shu
     100: a ring each; one block) give the whole array's answer for both signs, and a
     spike without a raised neighbour is unsupported while the bump's samples are (and
     the samples either side of arc 0 only on a run of one ring)."""
-    from omnipipe.analysis import defects
+    from omnipipe.analysis import defect_search
+    from omnipipe.analysis.wall_profile import WallSamples
 
     rng = np.random.default_rng(3)
     circ = 2 * np.pi * 100.0
@@ -125,17 +126,17 @@ def test_supported_in_blocks_equals_the_whole_array(monkeypatch, rings: int, shu
     dev[seam.ravel()] = 3.0
     dev[rng.choice(arc.size, 40, replace=False)] = -3.0  # bulge spikes, some beside each other
     order = rng.permutation(arc.size) if shuffled else np.arange(arc.size)
-    samples = defects.WallSamples(np.repeat(np.arange(rings) * 5.0, 360)[order], arc[order] % circ, dev[order], ring[order], circ)
-    sc = defects._scales(samples, 1.0, 6.0)
-    monkeypatch.setattr(defects, "SUPPORT_BLOCK", block)
+    samples = WallSamples(np.repeat(np.arange(rings) * 5.0, 360)[order], arc[order] % circ, dev[order], ring[order], circ)
+    sc = defect_search.scales(samples, 1.0, 6.0)
+    monkeypatch.setattr(defect_search, "SUPPORT_BLOCK", block)
     for sign in (1.0, -1.0):
         value = sign * samples.deviation_mm
         whole = np.flatnonzero((value > sc.threshold) & _whole_supported(samples, value, sc))
-        blocked = defects._supported_beyond(samples, sign, sc)
+        blocked = defect_search._supported_beyond(samples, sign, sc)
         assert np.array_equal(blocked, whole)
     where = np.argsort(order)  # the shuffled position of each original sample
     got = np.zeros(arc.size, bool)
-    got[defects._supported_beyond(samples, 1.0, sc)] = True
+    got[defect_search._supported_beyond(samples, 1.0, sc)] = True
     assert not got[where[spikes]].any() and got[where[bump.ravel()]].all()
     # Across arc 0 only a run of one ring's first and last samples are neighbours.
     assert got[where[seam.ravel()]].all() if rings == 1 else not got[where[seam.ravel()]].any()

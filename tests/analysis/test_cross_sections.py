@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from omnipipe.analysis import AnalysisConfig, AnalysisInputs, report_fields, run
-from omnipipe.analysis.defects import fit_wall_profile, fourier_design
 from omnipipe.analysis.feature_types import Feature
 from omnipipe.analysis.stations import (
     REACH_MODEL_REL,
@@ -18,6 +17,7 @@ from omnipipe.analysis.stations import (
     ring_cut,
     water_depth,
 )
+from omnipipe.analysis.wall_profile import fit_wall_profile, fourier_design
 from omnipipe.geometry import make_transform
 from omnipipe.sim.features import Ovality, PipeFeatures, Taper, Water
 from omnipipe.sim.scene import Centreline, Defect, Pipe

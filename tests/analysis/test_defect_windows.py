@@ -13,9 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from omnipipe.analysis import defects
-from omnipipe.analysis.defects import WallSamples, find_defects
+from omnipipe.analysis import defect_fit, defect_search, defects, wall_profile
+from omnipipe.analysis.defects import find_defects
 from omnipipe.analysis.sizing import fit_bump, plateau
+from omnipipe.analysis.wall_profile import WallSamples
 from omnipipe.contract import Defect
 
 RADIUS = 60.0
@@ -93,16 +94,16 @@ def _whole_run_fit(s: WallSamples, d0: Defect, sign: float, sample_spacing: floa
 
 @pytest.mark.parametrize("seed", [4])
 def test_each_candidates_fit_and_mask_equal_the_whole_run_reference(seed: int) -> None:
-    samples = defects.with_axial_order(_wall(seed))
-    sc = defects._scales(samples, KW["min_height_mm"], KW["noise_factor"])
+    samples = wall_profile.with_axial_order(_wall(seed))
+    sc = defect_search.scales(samples, KW["min_height_mm"], KW["noise_factor"])
     fitted = 0
     for sign, kind in ((-1.0, "bulge"), (1.0, "dent")):
-        for members in defects._clusters(samples, sc, sign, KW["min_points"]):
-            d0 = defects._rough(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing)
-            d, mask = defects._fit(samples, d0, sign, sc.sample_spacing, sc.typical_spacing)
+        for members in defect_search.clusters(samples, sc, sign, KW["min_points"]):
+            d0 = defect_fit.rough_measure(samples, members, sign, kind, sc.sample_spacing, sc.typical_spacing)
+            d, mask = defect_fit.fit_candidate(samples, d0, sign, sc.sample_spacing, sc.typical_spacing)
             ref, ref_mask = _whole_run_fit(samples, d0, sign, sc.sample_spacing, sc.typical_spacing)
             assert np.array_equal(mask, np.flatnonzero(ref_mask))
-            unfitted = defects._unfitted(samples, d0, sign, sc.sample_spacing, sc.typical_spacing)[1]
+            unfitted = defect_fit.unfitted(samples, d0, sign, sc.sample_spacing, sc.typical_spacing)[1]
             assert np.array_equal(unfitted, np.flatnonzero(_whole_run_unfitted(samples, d0, sign, sc)))
             if ref is None:
                 assert d == d0
@@ -131,9 +132,9 @@ def _whole_run_unfitted(s: WallSamples, d0: Defect, sign: float, sc) -> np.ndarr
 def test_axial_range_is_a_superset_of_the_exact_interval() -> None:
     rng = np.random.default_rng(9)
     sig = np.round(rng.uniform(-50, 50, 5000), 1)  # many ties, exactly on the bounds too
-    s = defects.with_axial_order(WallSamples(sig, np.zeros_like(sig), np.zeros_like(sig), np.zeros(5000, int), CIRC))
+    s = wall_profile.with_axial_order(WallSamples(sig, np.zeros_like(sig), np.zeros_like(sig), np.zeros(5000, int), CIRC))
     for lo, hi in [(-10.0, 10.0), (-50.0, -49.9), (3.3, 3.3), (60.0, 70.0)]:
-        got = defects._axial_range(s, lo, hi)
+        got = wall_profile.axial_range(s, lo, hi)
         assert np.all(np.diff(got) > 0)
         assert set(np.flatnonzero((sig >= lo) & (sig <= hi))) <= set(got.tolist())
         assert np.all((sig[got] >= lo - 1e-6) & (sig[got] <= hi + 1e-6))
@@ -146,7 +147,7 @@ def _long_wall(rings: int, per_ring: int = 300) -> tuple[WallSamples, Defect]:
     arc = np.tile(np.arange(per_ring) * CIRC / per_ring, rings)
     sig = np.repeat(np.arange(rings) * 5.0, per_ring)
     dev = rng.normal(0, 0.08, arc.size) + 3.0 * plateau(arc - 100.0, 20.0, 8.0) * plateau(sig - 40.0, 30.0, 12.0)
-    samples = defects.with_axial_order(WallSamples(sig, arc, dev, np.repeat(np.arange(rings), per_ring), CIRC))
+    samples = wall_profile.with_axial_order(WallSamples(sig, arc, dev, np.repeat(np.arange(rings), per_ring), CIRC))
     d0 = Defect(kind="dent", height_mm=3.0, width_mm=22.0, length_mm=32.0, axial_start_mm=24.0, angle_deg=100.0 / CIRC * 360.0)
     return samples, d0
 
@@ -158,13 +159,13 @@ def test_a_candidates_fit_holds_its_window_not_the_run() -> None:
     int32 axial order, copied whole by each ``np.searchsorted``, 0.9 MB)."""
     import tracemalloc
 
-    defects._fit(*_long_wall(40), 1.0, CIRC / 300, 5.0)  # the fit's first-call allocations
+    defect_fit.fit_candidate(*_long_wall(40), 1.0, CIRC / 300, 5.0)  # the fit's first-call allocations
     peaks, found = [], []
     for rings in (40, 400):
         samples, d0 = _long_wall(rings)
         tracemalloc.start()
         try:
-            d, mask = defects._fit(samples, d0, 1.0, CIRC / 300, 5.0)
+            d, mask = defect_fit.fit_candidate(samples, d0, 1.0, CIRC / 300, 5.0)
             peaks.append(tracemalloc.get_traced_memory()[1])
         finally:
             tracemalloc.stop()

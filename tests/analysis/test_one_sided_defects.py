@@ -8,10 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from omnipipe.analysis.defects import FeatureZone, WallSamples, find_defects
+from omnipipe.analysis.defect_search import FeatureZone
+from omnipipe.analysis.defects import find_defects
 from omnipipe.analysis.feature_types import Joint, Lateral
 from omnipipe.analysis.features import feature_zones
 from omnipipe.analysis.sizing import plateau
+from omnipipe.analysis.wall_profile import WallSamples
 
 RADIUS = 100.0
 CIRC = 2 * math.pi * RADIUS

@@ -12,8 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from omnipipe.analysis.defects import WallSamples, find_defects
+from omnipipe.analysis.defects import find_defects
 from omnipipe.analysis.sizing import detection_limit, plateau
+from omnipipe.analysis.wall_profile import WallSamples
 from omnipipe.contract import Defect
 
 RADIUS = 50.0
@@ -372,9 +373,9 @@ def test_axial_blur_is_fitted_not_read_as_a_lower_defect() -> None:
 def test_a_defect_the_model_cannot_fit_is_reported_with_a_warning(monkeypatch) -> None:
     """When the bump fit fails, the rough grid measurement is reported without sigmas, and a
     warning names the defect: never a size that looks measured but carries no uncertainty."""
-    import omnipipe.analysis.defects as defects_module
+    from omnipipe.analysis import defect_fit
 
-    monkeypatch.setattr(defects_module, "fit_bump", lambda *a, **k: None)
+    monkeypatch.setattr(defect_fit, "fit_bump", lambda *a, **k: None)
     rng = np.random.default_rng(3)
     t = _random_defect(rng, (4.0, 6.0), (30.0, 40.0))
     search = _search(_map(rng, [t]))
@@ -419,7 +420,7 @@ def test_flank_streaks_are_told_before_their_fit_and_the_dent_keeps_its_size(mon
     """The two streaks beside the dent's flank (as above) are recognised from their rough
     extent before any fit: the model is fitted once (the dent), the streaks' warnings stay
     and the dent's sizes and sigmas are those of a search that fits every candidate."""
-    from omnipipe.analysis import defects
+    from omnipipe.analysis import defect_accept, defect_fit
 
     rng = np.random.default_rng(41)
     t = {
@@ -436,13 +437,13 @@ def test_flank_streaks_are_told_before_their_fit_and_the_dent_keeps_its_size(mon
             dev[on[np.argsort(u)[:2]]] = rng.uniform(2.5, 3.0, 2)
     streaked = WallSamples(samples.sigma_mm, samples.arc_mm, dev, samples.ring, CIRC)
     fitted: list[int] = []
-    real = defects.fit_bump
+    real = defect_fit.fit_bump
 
     def counted(*args, **kwargs):
         fitted.append(len(args[0]))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(defects, "fit_bump", counted)
+    monkeypatch.setattr(defect_fit, "fit_bump", counted)
 
     def search():
         return find_defects(
@@ -451,7 +452,7 @@ def test_flank_streaks_are_told_before_their_fit_and_the_dent_keeps_its_size(mon
 
     told = search()
     assert len(fitted) == 1, fitted  # the dent only
-    monkeypatch.setattr(defects, "streak_candidates", lambda *a: [])
+    monkeypatch.setattr(defect_accept, "streak_candidates", lambda *a: [])
     every = search()
     assert len(fitted) == 1 + 3, fitted  # the dent and both streaks fitted
     (dent,) = told.defects

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnipipe.analysis.defects import fit_wall_profile
+from omnipipe.analysis.wall_profile import fit_wall_profile
 from omnipipe.camera import OmniCamera
 from omnipipe.geometry import apply
 from omnipipe.laser import LaserConfig, LaserRing, RingExtractor, intersect_plane, run

@@ -20,11 +20,11 @@ from omnipipe.analysis.centreline import (
     rig_axis_prior,
 )
 from omnipipe.analysis.cylinder import Cylinder, fit_cylinder
-from omnipipe.analysis.defects import fit_wall_profile
 from omnipipe.analysis.feature_types import Joint, PointFeature
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs, section_config
 from omnipipe.analysis.station_profiles import ring_groups
 from omnipipe.analysis.stations import ring_cut, section_order
+from omnipipe.analysis.wall_profile import fit_wall_profile
 from omnipipe.spill import ScratchWriter, drop_pages
 
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnipipe.analysis.defects import fit_wall_profile, fourier_design
 from omnipipe.analysis.ring_spans import RingGroups
+from omnipipe.analysis.wall_profile import fit_wall_profile, fourier_design
 from omnipipe.config import bounded
 
 

@@ -27,7 +27,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from omnipipe.analysis.centreline import Centreline
-from omnipipe.analysis.defects import FeatureZone
+from omnipipe.analysis.defect_search import FeatureZone
 from omnipipe.analysis.feature_rings import (
     FeatureConfig,
     Rings,
@@ -411,7 +411,7 @@ def feature_zones(
     features: list[PointFeature], radius: float, margin_mm: float, openings: Sequence[FeatureZone] = ()
 ) -> list[FeatureZone]:
     """Each joint's and lateral's reach with its uncertainty, for the defect search
-    (:class:`~omnipipe.analysis.defects.FeatureZone`): a joint all around the pipe, over
+    (:class:`~omnipipe.analysis.defect_search.FeatureZone`): a joint all around the pipe, over
     its gap plus ``margin_mm`` plus 3 sigma of its edges (centre and half-gap sigmas in
     quadrature) each side; a lateral over its opening's semi-axes (the circumferential
     one the arc of its chord on the ``radius`` mm wall) plus the margin plus 3 sigma of

@@ -33,7 +33,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from omnipipe.analysis.axis_fit import fit_axis, offset_breaks, recentred_line
-from omnipipe.analysis.defects import measured_only
+from omnipipe.analysis.defect_accept import measured_only
 from omnipipe.analysis.features import feature_zones, find_features, with_offset_joints_kept
 from omnipipe.analysis.footprint import footprint_mm, footprint_terms
 from omnipipe.analysis.headline import (

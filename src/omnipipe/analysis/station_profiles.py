@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnipipe.analysis.defects import FeatureZone, fit_wall_profile, fourier_design
+from omnipipe.analysis.defect_search import FeatureZone
 from omnipipe.analysis.records import AnalysisConfig, section_config
 from omnipipe.analysis.ring_spans import RingGroups
 from omnipipe.analysis.stations import (
@@ -22,6 +22,7 @@ from omnipipe.analysis.stations import (
     section_order,
     station_from_section,
 )
+from omnipipe.analysis.wall_profile import fit_wall_profile, fourier_design
 from omnipipe.spill import zeros_on_disk
 
 

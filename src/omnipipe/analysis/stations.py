@@ -4,7 +4,7 @@ run's headline diameter and the section features (taper, bend, ovality, water).
 Each station is one laser ring in the local pipe frame of the centreline (angle theta
 around the axis from the transported reference x axis, distance rho from the axis).
 Its wall profile is the robust Fourier fit rho(theta) = c0 + a1 cos + b1 sin + a2 cos 2
-theta + b2 sin 2 theta (:func:`.defects.fit_wall_profile`): c0 is half the mean diameter
+theta + b2 sin 2 theta (:func:`.wall_profile.fit_wall_profile`): c0 is half the mean diameter
 (Dmax + Dmin) / 2, |(a2, b2)| half the difference Dmax - Dmin, so the ovality is
 (Dmax - Dmin) / D = 2 |(a2, b2)| / c0 and the major axis lies at atan2(b2, a2) / 2.
 
@@ -89,7 +89,7 @@ class Section:
     """One ring's fitted wall profile.
 
     Attributes:
-        coef: [c0, a1, b1, a2, b2, ...] of :func:`.defects.fit_wall_profile` (mm).
+        coef: [c0, a1, b1, a2, b2, ...] of :func:`.wall_profile.fit_wall_profile` (mm).
         cov: its covariance (mm^2).
         order: the Fourier order fitted (0 or 2).
         cut: the ring's widest gap when it is a cut (water candidate), else None.

@@ -13,9 +13,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from omnipipe.analysis.defects import DefectSearch, FeatureZone, WallSamples, find_defects
+from omnipipe.analysis.defect_search import FeatureZone
+from omnipipe.analysis.defects import DefectSearch, find_defects
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs
 from omnipipe.analysis.station_profiles import StationProfiles, ring_groups, station_profiles
+from omnipipe.analysis.wall_profile import WallSamples
 from omnipipe.contract import Defect
 from omnipipe.progress import phase
 from omnipipe.spill import compressed_on_disk, drop_pages

@@ -1,10 +1,10 @@
-"""analysis.defects.measured_only: a defect whose height its 1-sigma covers is a warning."""
+"""analysis.defect_accept.measured_only: a defect whose height its 1-sigma covers is a warning."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from omnipipe.analysis.defects import measured_only
+from omnipipe.analysis.defect_accept import measured_only
 from omnipipe.contract import Defect
 
 
