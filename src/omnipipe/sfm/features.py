@@ -53,11 +53,11 @@ class FeatureConfig:
             ATE per 300 mm 0.65 -> 0.72 mm).
         flow_plain: each frame's views also keep their images before CLAHE
             (:attr:`FrameViews.plain`), where the tracker's finest flow levels then read
-            (:func:`~omnipipe.sfm.tracking.flow_images`). CLAHE's tiles are fixed in the
-            view and, like the rig's light, hold a smooth pattern's tracks back
+            their local contrast (:func:`~omnipipe.sfm.flow_contrast.local_contrast`,
+            :func:`~omnipipe.sfm.tracking.flow_images`). CLAHE's tiles are fixed in the
+            view and, like the rig's light, hold a broad pattern's tracks back
             (random-wide seed 18, corrugated: every keyframe step's tracks 5 % short
-            with the true motion; with ``sfm.tracking.highpass_px`` 4 they follow it).
-            Off: other seeds gained and lost (benchmarks/RESULTS.md).
+            with the true motion). False: those levels read the CLAHE'd views high-passed.
     """
 
     views: int = bounded(8, ge=1)
@@ -68,7 +68,7 @@ class FeatureConfig:
     contrast_threshold: float = bounded(0.01, ge=0)
     detect_scale: float = bounded(0.5, gt=0, le=1)
     detect_min_side_px: int = bounded(160, ge=1)
-    flow_plain: bool = False
+    flow_plain: bool = True
 
     def __post_init__(self) -> None:
         if self.views < 1:
