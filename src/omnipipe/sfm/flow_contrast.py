@@ -35,7 +35,7 @@ LOG_OFFSET = 4.0
 MIN_SPREAD = 1.0
 GAIN = 40.0
 
-_LOG = (LOG_SCALE * np.log(np.arange(256, dtype=np.float64) + LOG_OFFSET)).astype(np.float32)
+_LOG = (LOG_SCALE * np.log(np.arange(256, dtype=np.float64) + LOG_OFFSET)).astype(np.float32).reshape(1, 256)
 
 
 def _box_width(sigma_px: float) -> int:
@@ -64,8 +64,7 @@ def local_contrast(view: np.ndarray, sigma_px: float) -> np.ndarray:
         ShapeError: ``view`` is not a 2-D uint8 image."""
     if view.dtype != np.uint8 or view.ndim != 2:
         raise ShapeError(f"view: (height, width) uint8 expected, got {view.dtype} {view.shape}")
-    log = _LOG[view]
-    h = log - _smooth(log, sigma_px)
-    spread = cv2.sqrt(_smooth(h * h, 2.0 * sigma_px) + MIN_SPREAD**2)
-    out = 128.0 + GAIN * h / spread
-    return np.clip(out, 0.0, 255.0, out=out).astype(np.uint8)
+    log = cv2.LUT(view, _LOG)
+    h = cv2.subtract(log, _smooth(log, sigma_px))
+    spread = cv2.sqrt(cv2.add(_smooth(cv2.multiply(h, h), 2.0 * sigma_px), MIN_SPREAD**2))
+    return cv2.add(cv2.divide(h, spread, scale=GAIN), 128.0, dtype=cv2.CV_8U)
