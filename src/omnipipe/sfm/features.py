@@ -57,7 +57,11 @@ class FeatureConfig:
             :func:`~omnipipe.sfm.tracking.flow_images`). CLAHE's tiles are fixed in the
             view and, like the rig's light, hold a broad pattern's tracks back
             (random-wide seed 18, corrugated: every keyframe step's tracks 5 % short
-            with the true motion). False: those levels read the CLAHE'd views high-passed.
+            with the true motion; 0.0-0.4 % with the local contrast). False (the
+            default): those levels read the CLAHE'd views high-passed. Off because the
+            run's scale decisions downstream were tuned on the lagging tracks: on, the
+            robustness bench gained on 11 seeds and lost on 11 (benchmarks/RESULTS.md,
+            feat23's entry).
     """
 
     views: int = bounded(8, ge=1)
@@ -68,7 +72,7 @@ class FeatureConfig:
     contrast_threshold: float = bounded(0.01, ge=0)
     detect_scale: float = bounded(0.5, gt=0, le=1)
     detect_min_side_px: int = bounded(160, ge=1)
-    flow_plain: bool = True
+    flow_plain: bool = False
 
     def __post_init__(self) -> None:
         if self.views < 1:

@@ -337,7 +337,7 @@ def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[Flo
     :func:`_coarse_fine`). The tracks they lose get a second try on coarse levels
     high-passed at :data:`COARSE_HIGHPASS_FACTOR` times ``sigma_px``
     (:attr:`FlowImage.coarse_band`, :func:`_flow`). Where the views kept their images
-    before CLAHE (``views.plain``, ``sfm.features.flow_plain``, the default) the fine
+    before CLAHE (``views.plain``, ``sfm.features.flow_plain``, off by default) the fine
     levels, which place each track, read those images' local contrast
     (:func:`~omnipipe.sfm.flow_contrast.local_contrast`: log, the same high-pass,
     divided by its local spread) instead: CLAHE's gains, fixed in the view like the
