@@ -73,7 +73,7 @@ def test_flow_on_a_broad_textured_wall_is_its_true_shift(corrugation: float, blo
         old.append(_flow_ratio(va, vb, plain=False))
     # The finest levels on the views' local contrast: every pair within 1 % of the
     # true shift, most corners tracked.
-    assert all(abs(r - 1.0) < 0.01 and kept >= 0.7 for r, kept in new)
+    assert all(abs(r - 1.0) < 0.01 and kept >= 0.6 for r, kept in new)
     # On the CLAHE'd views (tiles and light fixed in the view) the flow is off by more
     # than 3 % (short on the blotches, long on the corrugation) or lost.
     assert np.median([abs(r - 1.0) if kept >= 0.7 else 1.0 for r, kept in old]) > 0.03
