@@ -53,11 +53,15 @@ class FeatureConfig:
             ATE per 300 mm 0.65 -> 0.72 mm).
         flow_plain: each frame's views also keep their images before CLAHE
             (:attr:`FrameViews.plain`), where the tracker's finest flow levels then read
-            (:func:`~omnipipe.sfm.tracking.flow_images`). CLAHE's tiles are fixed in the
-            view and, like the rig's light, hold a smooth pattern's tracks back
+            their local contrast (:func:`~omnipipe.sfm.flow_contrast.local_contrast`,
+            :func:`~omnipipe.sfm.tracking.flow_images`). CLAHE's tiles are fixed in the
+            view and, like the rig's light, hold a broad pattern's tracks back
             (random-wide seed 18, corrugated: every keyframe step's tracks 5 % short
-            with the true motion; with ``sfm.tracking.highpass_px`` 4 they follow it).
-            Off: other seeds gained and lost (benchmarks/RESULTS.md).
+            with the true motion; 0.0-0.4 % with the local contrast). False (the
+            default): those levels read the CLAHE'd views high-passed. Off because the
+            run's scale decisions downstream were tuned on the lagging tracks: on, the
+            robustness bench gained on 11 seeds and lost on 11 (benchmarks/RESULTS.md,
+            feat23's entry).
     """
 
     views: int = bounded(8, ge=1)

@@ -36,6 +36,7 @@ from omnipipe.config import bounded
 from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import thread_map
 from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews, concat_features
+from omnipipe.sfm.flow_contrast import local_contrast
 
 
 @dataclass(frozen=True)
@@ -336,21 +337,23 @@ def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[Flo
     :func:`_coarse_fine`). The tracks they lose get a second try on coarse levels
     high-passed at :data:`COARSE_HIGHPASS_FACTOR` times ``sigma_px``
     (:attr:`FlowImage.coarse_band`, :func:`_flow`). Where the views kept their images
-    before CLAHE (``views.plain``, ``sfm.features.flow_plain``) the fine levels, which
-    place each track, high-pass those: CLAHE's gains, fixed in the view like the rig's
-    light, held a smooth pattern's tracks back (a corrugated wall: every keyframe step's
-    tracks 5 % short, their depths 5 % deep)."""
+    before CLAHE (``views.plain``, ``sfm.features.flow_plain``, off by default) the fine
+    levels, which place each track, read those images' local contrast
+    (:func:`~omnipipe.sfm.flow_contrast.local_contrast`: log, the same high-pass,
+    divided by its local spread) instead: CLAHE's gains, fixed in the view like the
+    rig's light, held a broad pattern's tracks back (a corrugated wall: every keyframe
+    step's tracks 5 % short, their depths 5 % deep)."""
     if sigma_px <= 0:
         return [FlowImage(im, None) for im in views.images]
-    fines = views.images if views.plain is None else views.plain
     out = []
-    for im, fine in zip(views.images, fines, strict=True):
+    for k, im in enumerate(views.images):
         coarse = None
         if levels >= _FINE_LEVELS:
             coarse = im
             for _ in range(_FINE_LEVELS):
                 coarse = cv2.pyrDown(coarse)
-        out.append(FlowImage(im, _highpass(fine, sigma_px), coarse, COARSE_HIGHPASS_FACTOR * sigma_px))
+        fine = _highpass(im, sigma_px) if views.plain is None else local_contrast(views.plain[k], sigma_px)
+        out.append(FlowImage(im, fine, coarse, COARSE_HIGHPASS_FACTOR * sigma_px))
     return out
 
 
