@@ -225,6 +225,28 @@ def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
     assert np.array_equal(z, np.arange(len(z), dtype=np.float64))
 
 
+@linux_only
+def test_dropping_pages_drops_a_pass_that_maps_faster_than_its_interval() -> None:
+    from omnipipe.spill import Pack, dropping_pages
+
+    pack = Pack()
+    rng = np.random.default_rng(11)
+    chunks = [rng.random(2**20 // 8) for _ in range(48)]  # 48 MB in 1 MB arrays
+    want = sum(float(c.sum()) for c in chunks)
+    got = [pack.put(c) for c in chunks]
+    del chunks
+    drop_pages()
+    low = _rss_mb()
+    # An interval longer than the pass: only the growth of the resident pages drops them.
+    with dropping_pages(interval_s=1000.0):
+        total, most = _pass_over(got, low)
+    assert total == want and most < 16
+    drop_pages()
+    low = _rss_mb()
+    total, most = _pass_over(got, low)  # without the thread: every array stays mapped
+    assert total == want and most > 40
+
+
 def test_on_disk_writes_a_strided_array_a_block_at_a_time_in_c_order(monkeypatch) -> None:
     """A column, a transpose, a strided 1-D and a 3-D view go into the file a block of
     their first axis (or of values) at a time: the same values in C order."""
