@@ -166,6 +166,20 @@ def test_a_pack_holds_many_arrays_equal_in_few_files() -> None:
     assert is_on_disk(g) and np.array_equal(g, big) and _file_of(g) is not _file_of(got[-1])
 
 
+def test_a_packs_arrays_are_one_object_each_on_the_mapping_and_pickle_by_value() -> None:
+    import mmap
+
+    from omnipipe.spill import Pack
+
+    pack = Pack(1 << 16)
+    rng = np.random.default_rng(12)
+    for a in (rng.random(9), rng.random((4, 3)).astype(np.float32), np.array(2.5), rng.integers(0, 9, (2, 2, 2))):
+        g = pack.put(a)
+        assert isinstance(g.base, mmap.mmap) and is_on_disk(g) and g.flags.c_contiguous and g.flags.aligned
+        back = pickle.loads(pickle.dumps(g))
+        assert back.shape == a.shape and back.dtype == a.dtype and np.array_equal(back, a) and not is_on_disk(back)
+
+
 @linux_only
 def test_putting_into_a_pack_maps_none_of_its_pages() -> None:
     from omnipipe.spill import Pack

@@ -231,7 +231,9 @@ class Pack:
         while done < len(data):
             done += os.pwrite(fd, data[done:], start + done)
         self._used = start + a.nbytes
-        return np.frombuffer(self._map, a.dtype, count=a.size, offset=start).reshape(a.shape)
+        # One array object on the mapping (no memoryview, no reshaped view of a flat
+        # array: a loop puts thousands, held to the run's end; 120 bytes each, not 550).
+        return np.ndarray(a.shape, a.dtype, buffer=self._map, offset=start)
 
 
 SEGMENT_BYTES = 1 << 24
