@@ -116,7 +116,7 @@ class ScratchWriter:
             if self.n * self.dtype.itemsize == 0:
                 return np.zeros(self.n, self.dtype)
             fh.flush()
-            return np.frombuffer(_map_file(fh, self.n * self.dtype.itemsize), self.dtype, count=self.n)
+            return np.ndarray((self.n,), self.dtype, buffer=_map_file(fh, self.n * self.dtype.itemsize))
 
 
 def _c_order_pieces(a: np.ndarray) -> Iterator[np.ndarray]:
@@ -143,7 +143,7 @@ def on_disk(a: np.ndarray) -> np.ndarray:
     if a.nbytes == 0 or a.dtype.hasobject or is_on_disk(a):
         return a
     mapping = _mapped(a.nbytes, a)
-    return np.frombuffer(mapping, a.dtype, count=a.size).reshape(a.shape)
+    return np.ndarray(a.shape, a.dtype, buffer=mapping)  # one array object on the mapping
 
 
 def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
@@ -152,7 +152,7 @@ def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     size = int(np.prod(shape, dtype=np.int64))
     if size * dt.itemsize == 0:
         return np.zeros(shape, dt)
-    return np.frombuffer(_mapped(size * dt.itemsize, None), dt, count=size).reshape(shape)
+    return np.ndarray(shape, dt, buffer=_mapped(size * dt.itemsize, None))
 
 
 def compressed_on_disk(
