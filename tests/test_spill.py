@@ -166,6 +166,20 @@ def test_a_pack_holds_many_arrays_equal_in_few_files() -> None:
     assert is_on_disk(g) and np.array_equal(g, big) and _file_of(g) is not _file_of(got[-1])
 
 
+def test_a_packs_arrays_are_one_object_each_on_the_mapping_and_pickle_by_value() -> None:
+    import mmap
+
+    from omnipipe.spill import Pack
+
+    pack = Pack(1 << 16)
+    rng = np.random.default_rng(12)
+    for a in (rng.random(9), rng.random((4, 3)).astype(np.float32), np.array(2.5), rng.integers(0, 9, (2, 2, 2))):
+        g = pack.put(a)
+        assert isinstance(g.base, mmap.mmap) and is_on_disk(g) and g.flags.c_contiguous and g.flags.aligned
+        back = pickle.loads(pickle.dumps(g))
+        assert back.shape == a.shape and back.dtype == a.dtype and np.array_equal(back, a) and not is_on_disk(back)
+
+
 @linux_only
 def test_putting_into_a_pack_maps_none_of_its_pages() -> None:
     from omnipipe.spill import Pack
@@ -223,6 +237,28 @@ def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
     assert total == want and most < 16
     drop_pages()
     assert np.array_equal(z, np.arange(len(z), dtype=np.float64))
+
+
+@linux_only
+def test_dropping_pages_drops_a_pass_that_maps_faster_than_its_interval() -> None:
+    from omnipipe.spill import Pack, dropping_pages
+
+    pack = Pack()
+    rng = np.random.default_rng(11)
+    chunks = [rng.random(2**20 // 8) for _ in range(48)]  # 48 MB in 1 MB arrays
+    want = sum(float(c.sum()) for c in chunks)
+    got = [pack.put(c) for c in chunks]
+    del chunks
+    drop_pages()
+    low = _rss_mb()
+    # An interval longer than the pass: only the growth of the resident pages drops them.
+    with dropping_pages(interval_s=1000.0):
+        total, most = _pass_over(got, low)
+    assert total == want and most < 16
+    drop_pages()
+    low = _rss_mb()
+    total, most = _pass_over(got, low)  # without the thread: every array stays mapped
+    assert total == want and most > 40
 
 
 def test_on_disk_writes_a_strided_array_a_block_at_a_time_in_c_order(monkeypatch) -> None:

@@ -31,6 +31,7 @@ import os
 import pickle
 import tempfile
 import threading
+import time
 import weakref
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -115,7 +116,7 @@ class ScratchWriter:
             if self.n * self.dtype.itemsize == 0:
                 return np.zeros(self.n, self.dtype)
             fh.flush()
-            return np.frombuffer(_map_file(fh, self.n * self.dtype.itemsize), self.dtype, count=self.n)
+            return np.ndarray((self.n,), self.dtype, buffer=_map_file(fh, self.n * self.dtype.itemsize))
 
 
 def _c_order_pieces(a: np.ndarray) -> Iterator[np.ndarray]:
@@ -142,7 +143,7 @@ def on_disk(a: np.ndarray) -> np.ndarray:
     if a.nbytes == 0 or a.dtype.hasobject or is_on_disk(a):
         return a
     mapping = _mapped(a.nbytes, a)
-    return np.frombuffer(mapping, a.dtype, count=a.size).reshape(a.shape)
+    return np.ndarray(a.shape, a.dtype, buffer=mapping)  # one array object on the mapping
 
 
 def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
@@ -151,7 +152,7 @@ def zeros_on_disk(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     size = int(np.prod(shape, dtype=np.int64))
     if size * dt.itemsize == 0:
         return np.zeros(shape, dt)
-    return np.frombuffer(_mapped(size * dt.itemsize, None), dt, count=size).reshape(shape)
+    return np.ndarray(shape, dt, buffer=_mapped(size * dt.itemsize, None))
 
 
 def compressed_on_disk(
@@ -230,7 +231,9 @@ class Pack:
         while done < len(data):
             done += os.pwrite(fd, data[done:], start + done)
         self._used = start + a.nbytes
-        return np.frombuffer(self._map, a.dtype, count=a.size, offset=start).reshape(a.shape)
+        # One array object on the mapping (no memoryview, no reshaped view of a flat
+        # array: a loop puts thousands, held to the run's end; 120 bytes each, not 550).
+        return np.ndarray(a.shape, a.dtype, buffer=self._map, offset=start)
 
 
 SEGMENT_BYTES = 1 << 24
@@ -256,22 +259,56 @@ def drop_pages() -> None:
 
 
 DROP_INTERVAL_S = 0.25
-"""Seconds between two :func:`drop_pages` of :func:`dropping_pages`' thread."""
+"""Seconds between two :func:`drop_pages` of :func:`dropping_pages`' thread at most."""
+
+DROP_POLL_S = 0.01
+"""Seconds between two looks of :func:`dropping_pages`' thread at the process's resident
+file pages (:func:`_resident_file_bytes`)."""
+
+DROP_GROWTH_BYTES = 4 << 20
+"""Resident file pages gained since the last drop beyond which :func:`dropping_pages`'
+thread drops them at once (a pass over the whole run's arrays, e.g. one NumPy expression
+over every point, maps them faster than one drop per :data:`DROP_INTERVAL_S`)."""
+
+
+def _resident_file_bytes(fd: int) -> int | None:
+    """The process's resident file-backed and shared pages (bytes; ``/proc/self/statm``
+    read through its open descriptor ``fd``), or None when it cannot be read."""
+    try:
+        return int(os.pread(fd, 256, 0).split()[2]) * mmap.PAGESIZE
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 @contextlib.contextmanager
 def dropping_pages(interval_s: float = DROP_INTERVAL_S) -> Iterator[None]:
     """Within the block, a daemon thread calls :func:`drop_pages` every ``interval_s``
-    seconds: the pages of the scratch's arrays a pass over the whole run maps (every
-    keyframe's features, every frame's ring) are resident for at most about that long
-    after their last read. No value changes (a dropped page is read again from the page
-    cache or the file); the mappings are this process's shared ones only (a worker's
-    copy-on-write mappings, :func:`shared_on_disk`, are never dropped)."""
+    seconds, and at once when the process's resident file pages have grown by
+    :data:`DROP_GROWTH_BYTES` since the last drop (looked at every :data:`DROP_POLL_S`;
+    where ``/proc/self/statm`` cannot be read, on the interval alone): the pages of the
+    scratch's arrays a pass over the whole run maps (every keyframe's features, every
+    frame's ring, every point) are resident for at most about that long after their last
+    read, or that much of them. No value changes (a dropped page is read again from the
+    page cache or the file); the mappings are this process's shared ones only (a
+    worker's copy-on-write mappings, :func:`shared_on_disk`, are never dropped)."""
     stop = threading.Event()
+    try:
+        fd: int | None = os.open("/proc/self/statm", os.O_RDONLY)
+    except OSError:
+        fd = None
 
     def drop_until_stopped() -> None:
-        while not stop.wait(interval_s):
-            drop_pages()
+        poll = interval_s if fd is None else min(interval_s, DROP_POLL_S)
+        level = None if fd is None else _resident_file_bytes(fd)
+        last = time.monotonic()
+        while not stop.wait(poll):
+            now = None if fd is None else _resident_file_bytes(fd)
+            grown = now is not None and level is not None and now - level >= DROP_GROWTH_BYTES
+            if grown or time.monotonic() - last >= interval_s:
+                drop_pages()
+                level, last = (None if fd is None else _resident_file_bytes(fd)), time.monotonic()
+            elif now is not None and (level is None or now < level):
+                level = now  # pages dropped meanwhile (by the run's own drops)
 
     thread = threading.Thread(target=drop_until_stopped, name="omnipipe-drop-pages", daemon=True)
     thread.start()
@@ -280,6 +317,8 @@ def dropping_pages(interval_s: float = DROP_INTERVAL_S) -> Iterator[None]:
     finally:
         stop.set()
         thread.join()
+        if fd is not None:
+            os.close(fd)
 
 
 def is_on_disk(a: np.ndarray) -> bool:

@@ -231,3 +231,78 @@ def test_crossed_band_blockwise_as_the_whole_run_code(monkeypatch: pytest.Monkey
         assert got == want
         got_any |= got is not None
     assert got_any or slant == 0.0  # a band was found (not only refusals compared)
+
+
+def _deep_share_whole_run(config: FeatureConfig, r: Rings, members: np.ndarray, lo: float, hi: float, raised: np.ndarray):
+    """``joints._deep_share`` with each band from the whole run's coordinate and mask: the
+    reference."""
+    from dataclasses import replace
+
+    from omnipipe.analysis.feature_rings import robust_sine_fit
+    from omnipipe.analysis.joints import _Band
+
+    thr = 0.5 * max(config.min_depth_mm, config.joint_noise_factor * r.noise)
+    p, res, keep = robust_sine_fit(r.sigma[members], r.theta[members], 3, 2.5, 1.0)
+    out = []
+    lo_p, hi_p = np.percentile(res[keep], [2.0, 98.0]) + p[0]
+    plane = _Band(float(lo_p), float(hi_p), float(p[1]), float(p[2]))
+    for coord, a, b in ((r.sigma, lo, hi), (plane.coordinate(r), plane.lo, plane.hi)):
+        band = (coord >= a - 0.25) & (coord <= b + 0.25)
+        sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
+        med = np.array([np.median(r.dev[band][sect == q]) for q in np.unique(sect)])
+        out.append(float(np.mean(med > thr)) if len(med) else 0.0)
+    held = np.flatnonzero(np.bincount(r.ring_of[members[keep]]) >= 0.1 * keep.sum())
+    if len(held) >= 2:
+        return out[0], out[1], plane
+    inner = len(held) == 1 and r.ring_sigma.min() < r.ring_sigma[held[0]] < r.ring_sigma.max()
+    return out[0], out[1], replace(plane, ring_plane=True) if inner and raised[held].all() else None
+
+
+@pytest.mark.parametrize("block", [1, 7, 1000, 1 << 16])
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_deep_share_blockwise_as_the_whole_run_code(monkeypatch: pytest.MonkeyPatch, block: int, shuffle: bool) -> None:
+    from omnipipe.analysis import joints
+
+    monkeypatch.setattr(joints, "BAND_BLOCK", block)
+    config = FeatureConfig()
+    rng = np.random.default_rng(20 + block + int(shuffle))
+    n_rings, per = 40, 300 if block < 1000 else 1800  # 72,000 samples: more than one block of 65,536
+    seen_planes = 0
+    for trial in range(5):
+        frame = np.repeat(np.arange(n_rings), per)
+        theta = rng.uniform(-np.pi, np.pi, len(frame))
+        sigma = 2.0 * frame + 1.5 * trial * np.sin(theta + trial) + rng.normal(0, 0.2, len(frame))
+        dev = rng.normal(0, 0.05, len(frame))
+        theta[(frame == 3) & (theta > 0)] = np.nan  # NaN angles: in no sector
+        inside = np.abs(sigma - 40.0 - trial * np.cos(theta)) < 1.0
+        dev[inside] += 1.5 if trial != 2 else 0.1  # deep, or hardly
+        if shuffle:
+            order = rng.permutation(len(frame))
+            frame, theta, sigma, dev, inside = frame[order], theta[order], sigma[order], dev[order], inside[order]
+        r = Rings(sigma, 50.0 + dev, theta, frame, frame.copy(), 2.0 * np.arange(n_rings), dev, 0.05)
+        members = np.flatnonzero(inside & np.isfinite(theta))
+        raised = rng.random(n_rings) < 0.3
+        lo, hi = float(np.percentile(sigma[members], 2)), float(np.percentile(sigma[members], 98))
+        got = joints._deep_share(config, r, members, lo, hi, raised)
+        want = _deep_share_whole_run(config, r, members, lo, hi, raised)
+        assert got == want
+        seen_planes += got[2] is not None and got[1] > 0
+    assert seen_planes  # some plane's share measured (not only refusals compared)
+
+
+def test_band_samples_as_the_whole_run_mask() -> None:
+    from omnipipe.analysis.joints import _Band, _band_samples
+
+    rng = np.random.default_rng(5)
+    n = 10_000
+    sigma, theta = rng.uniform(0, 100, n), rng.uniform(-np.pi, np.pi, n)
+    sigma[::97], theta[::89] = np.nan, np.inf
+    r = Rings(sigma, np.full(n, 50.0), theta, np.zeros(n, int), np.zeros(n, int), np.zeros(1), np.zeros(n), 0.05)
+    for plane in (_Band(40.0, 45.0), _Band(40.0, 45.0, 3.0, -2.0)):
+        coord = plane.coordinate(r)
+        want = np.flatnonzero((coord >= 39.75) & (coord <= 45.25))
+        for block in (1, 13, 4096, 1 << 16):
+            got = _band_samples(r, plane, 39.75, 45.25, block)
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+    empty = Rings(*(np.zeros(0) for _ in range(3)), np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0), 0.05)
+    assert len(_band_samples(empty, _Band(0.0, 1.0), 0.0, 1.0)) == 0

@@ -205,3 +205,32 @@ def test_a_long_runs_mesh_grid_is_the_chunked_delaunay_grid() -> None:
     nan_a, nan_b = np.isnan(a[..., 0]), np.isnan(b[..., 0])
     assert np.array_equal(nan_a, nan_b)
     assert np.allclose(a[~nan_a], b[~nan_b], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("block", [1, 7, 500, 1 << 16])
+def test_below_blockwise_equals_the_whole_flatnonzero(block: int) -> None:
+    from omnipipe.model.mesh import below
+    from omnipipe.spill import on_disk
+
+    rng = np.random.default_rng(block)
+    unrolled = rng.uniform(0, 600.0, (20_000, 2))
+    unrolled[::37, 0] = np.nan
+    unrolled[::41, 0] = -np.inf
+    for values in (unrolled[:, 0], on_disk(unrolled)[:, 0], unrolled[:0, 0], unrolled[:1, 0]):
+        want = np.flatnonzero(values < 60.0)
+        got = below(values, 60.0, block)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("block", [1, 7, 1 << 18])
+def test_keyframe_index_check_blockwise_equals_the_whole_min_max(block: int) -> None:
+    from omnipipe.model.stage import _all_within
+
+    rng = np.random.default_rng(3 + block)
+    for _ in range(20):
+        index = rng.integers(0, 50, 3000)
+        bad = rng.integers(0, 3)
+        if bad:
+            index[rng.integers(0, len(index))] = -1 if bad == 1 else 50
+        want = bool(index.min() >= 0 and index.max() < 50)
+        assert _all_within(index, 50, block) == want

@@ -290,8 +290,10 @@ def _deep_share(
     out = []
     lo_p, hi_p = np.percentile(res[keep], [2.0, 98.0]) + p[0]
     plane = _Band(float(lo_p), float(hi_p), float(p[1]), float(p[2]))
-    for coord, a, b in ((r.sigma, lo, hi), (plane.coordinate(r), plane.lo, plane.hi)):
-        band = (coord >= a - 0.25) & (coord <= b + 0.25)
+    # Each band's samples found a block of the run at a time (no whole-run coordinate
+    # nor mask: :func:`_band_samples`).
+    for along, a, b in ((_Band(lo, hi), lo, hi), (plane, plane.lo, plane.hi)):
+        band = _band_samples(r, along, a - 0.25, b + 0.25)
         sect = (np.degrees(r.theta[band]) % 360 // 10).astype(int)
         med = np.array([np.median(r.dev[band][sect == q]) for q in np.unique(sect)])
         out.append(float(np.mean(med > thr)) if len(med) else 0.0)
@@ -306,6 +308,23 @@ def _deep_share(
     # first ring in an elbow, 14 deg to the fitted axis).
     inner = len(held) == 1 and r.ring_sigma.min() < r.ring_sigma[held[0]] < r.ring_sigma.max()
     return out[0], out[1], replace(plane, ring_plane=True) if inner and raised[held].all() else None
+
+
+BAND_BLOCK = 1 << 16
+"""Samples whose coordinate across a band's plane :func:`_band_samples` computes at once."""
+
+
+def _band_samples(r: Rings, plane: _Band, lo: float, hi: float, block: int | None = None) -> np.ndarray:
+    """Ascending indices of the samples whose coordinate across ``plane``
+    (:meth:`_Band.coordinate`) lies in [lo, hi]: ``np.flatnonzero((c >= lo) & (c <= hi))``
+    of the whole run's coordinate ``c``, a block of samples (:data:`BAND_BLOCK`) at a time."""
+    block = block or BAND_BLOCK
+    parts = [
+        a + np.flatnonzero((c >= lo) & (c <= hi))
+        for a in range(0, len(r.sigma), block)
+        for c in (plane.coordinate(replace(r, sigma=r.sigma[a : a + block], theta=r.theta[a : a + block])),)
+    ]
+    return np.concatenate(parts) if parts else np.zeros(0, np.intp)
 
 
 def _without_sector_rings(

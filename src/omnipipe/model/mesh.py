@@ -136,9 +136,8 @@ def mesh_unrolled(
         return np.zeros((0, 3), index)
     circ = circumference_mm
     margin = 0.1 * circ
-    wrap = np.flatnonzero(arc_mm < margin)
+    wrap = below(arc_mm, margin)
     if n + len(wrap) > chunk_points:
-        drop_pages()  # the arcs' pages the search for the wrapped copies read (omnipipe.spill)
         # The unrolled points with their wrapped copies in the run's scratch
         # (omnipipe.spill), each chunk's triangles filtered as it comes and kept there;
         # then sorted a block of first vertices at a time (_sorted_wall_faces).
@@ -161,6 +160,18 @@ def mesh_unrolled(
     # A typical triangle's longest edge spans one ring spacing; much longer ones bridge gaps.
     longest = longest_edges(points_in_world, faces)
     return faces[longest <= max_edge_factor * float(np.median(longest))]
+
+
+def below(values: np.ndarray, limit: float, block: int = FACE_CHUNK) -> np.ndarray:
+    """``np.flatnonzero(values < limit)`` of the (N,) ``values`` (e.g. a column of an
+    array in the run's scratch), a block at a time, each block's pages dropped after it
+    (:func:`~omnipipe.spill.drop_pages`): a whole-run pass maps a block of the run."""
+    drop_pages()  # what the step before read (omnipipe.spill)
+    parts = []
+    for a in range(0, len(values), block):
+        parts.append(a + np.flatnonzero(values[a : a + block] < limit))
+        drop_pages()
+    return np.concatenate(parts) if parts else np.zeros(0, np.intp)
 
 
 def longest_edge(points_in_world: np.ndarray, faces: np.ndarray) -> float:

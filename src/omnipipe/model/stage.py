@@ -54,7 +54,7 @@ from omnipipe.model.texture_light import LightStore, flat_field
 from omnipipe.model.texture_sources import LIGHT_DTYPE, choose_sources
 from omnipipe.progress import phase
 from omnipipe.rig import Rig
-from omnipipe.spill import on_disk, zeros_on_disk
+from omnipipe.spill import drop_pages, on_disk, zeros_on_disk
 
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
@@ -317,27 +317,22 @@ def _integrated(inputs: ModelInputs) -> tuple[np.ndarray, np.ndarray]:
         raise ShapeError(f"model inputs: points_in_world must be (N, 3), got {points.shape}")
     if frame is None or frame.shape != (len(points),) or frame.dtype.kind not in "iu":
         raise ShapeError("model inputs: point_frame must be (N,) integers with points_in_world")
-    if len(frame) and (frame.min() < 0 or frame.max() >= len(inputs.world_from_rig)):
+    if len(frame) and not _all_within(frame, len(inputs.world_from_rig)):
         raise ShapeError("model inputs: point_frame must index world_from_rig's keyframes")
     return points, frame
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
+def _all_within(index: np.ndarray, k: int, block: int = 1 << 18) -> bool:
+    """True when every value of the (N,) integers ``index`` lies in [0, k): a block at a
+    time, each block's pages dropped after it (an array in the run's scratch,
+    :func:`~omnipipe.spill.drop_pages`: a whole-run pass maps a block of the run)."""
+    for a in range(0, len(index), block):
+        part = index[a : a + block]
+        ok = part.min() >= 0 and part.max() < k
+        drop_pages()
+        if not ok:
+            return False
+    return True
 
 
 class _RingColours:
