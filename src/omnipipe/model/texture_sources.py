@@ -513,19 +513,7 @@ def _choose_in_strip(
     """
     core = ext[offset : offset + n_rows]
     w = core.shape[1]
-    flat = core.reshape(-1, 3)
-    idx = np.flatnonzero(np.isfinite(flat).all(axis=1))
-    # The cells are scored in tiles within each band of TILE[0] rows (the windows'
-    # rows), in which the compiled blocks are compact patches of wall: the same cells
-    # in each window, returned in idx's (row-major) order.
-    tiles = tile_order(idx, w, TILE[0])
-    tiled = idx[tiles]
-    p = flat[tiled]
-    # Two small steps on the wall per cell (along the rows and columns) for the footprint.
-    gp = np.where(np.isfinite(ext), ext, 0.0)
-    step_u = np.gradient(gp[offset : offset + n_rows], axis=1).reshape(-1, 3)[tiled]
-    step_z = np.gradient(gp, axis=0)[offset : offset + n_rows].reshape(-1, 3)[tiled]
-    del gp
+    idx, tiles, p, step_u, step_z = _strip_cells(ext, offset, n_rows)
     n_k = len(rig_from_world)
     best = np.full(len(idx), -1)
     best_score = np.zeros(len(idx))
@@ -568,6 +556,26 @@ def _choose_in_strip(
             if sl.start < sl.stop:
                 _keep_better(rig, camera, rig_from_world[k], k, cells, sl, mm_per_px, bands, (best, best_score, best_px, best_light))
     return _row_major(tiles, best, best_px, best_light, idx)
+
+
+def _strip_cells(
+    ext: np.ndarray, offset: int, n_rows: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The wall cells of rows ``[offset, offset + n_rows)`` of ``ext`` ((h, W, 3), mm):
+    (n,) their flat indices in the strip (row-major), (n,) the order in which they are
+    scored (:func:`omnipipe.model._kernels.tile_order`: tiles within each band of
+    ``TILE[0]`` rows, the windows' rows, in which the compiled blocks are compact
+    patches of wall; each window holds the same cells) and, in that order, (n, 3) their
+    points and two small steps on the wall (along the rows and the columns, mm) for
+    the footprint."""
+    flat = ext[offset : offset + n_rows].reshape(-1, 3)
+    idx = np.flatnonzero(np.isfinite(flat).all(axis=1))
+    tiles = tile_order(idx, ext.shape[1], TILE[0])
+    tiled = idx[tiles]
+    gp = np.where(np.isfinite(ext), ext, 0.0)
+    step_u = np.gradient(gp[offset : offset + n_rows], axis=1).reshape(-1, 3)[tiled]
+    step_z = np.gradient(gp, axis=0)[offset : offset + n_rows].reshape(-1, 3)[tiled]
+    return idx, tiles, flat[tiled], step_u, step_z
 
 
 def _row_major(
