@@ -196,19 +196,25 @@ def score_strip(
     """Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
     is better than ``best_score`` (equal: the earlier keyframe wins), ``best``,
     ``best_score``, ``best_px`` and ``best_light`` (log2 of cos(incidence) / range^2 and
-    the pixel's distance from ``centre``) are updated in place. The keyframes are taken
-    in ``order`` (near ones first: a good view found early lets :func:`_bound` skip the
-    views that cannot beat it; the result does not depend on the order).
+    the pixel's distance from ``centre``) are updated in place. The result does not
+    depend on the order in which the keyframes are taken.
 
-    Bit for bit the cell-by-cell reference in tests/model/test_kernels.py, :data:`BLOCK` cells at a time: the cells
-    :func:`_bound` does not skip, their points and their two steps projected as blocks
-    (:func:`~omnipipe.camera._kernels.project_block`); the laser band's test only for a
-    view that would win (a cell in the band scores 0, which wins nothing).
+    Bit for bit the cell-by-cell reference in tests/model/test_kernels.py, :data:`BLOCK`
+    cells at a time (the cells in the order given: :func:`tile_order`): the cells
+    :func:`_bound` does not skip (:func:`_block_candidates`), their points and their two
+    steps projected as blocks (:func:`~omnipipe.camera._kernels.project_block`); the
+    laser band's test only for a view that would win (a cell in the band scores 0, which
+    wins nothing). Block by block, the keyframes that score it are taken best first by
+    the score of the block's middle cell (:func:`_middle_scores`; ties in ``order``): the
+    best view of a compact block's cells is then mostly found first, and the bounds skip
+    the views that cannot beat it (a continuous run's strip, 300 frames: 1.6 million
+    better views kept for 129,000 cells, one after the other, in the nearest-first order
+    of the whole strip; 0.18 million).
 
     Args:
         rig_from_world: (K, 4, 4) inverse keyframe poses (mm).
         spans: (K, 2) int64 cell ranges each keyframe scores.
-        order: (K,) int64 the keyframes in the order they are scored.
+        order: (K,) int64 the keyframes (ties of the blocks' orders in this order).
         mag: (N,) the camera's largest px per radian by elevation (:func:`_bound`;
             [inf]: no view skipped).
         kind, params: the camera's compiled projection.
@@ -231,9 +237,13 @@ def score_strip(
     b_centre, b_radius, b_steps = _block_geometry(p, step_u, step_z, len(p))
     lens = _step_lengths(step_u, step_z)
     by_sine = sine_table(mag) if len(mag) > 1 else mag
-    for k in order:
-        m = rig_from_world[k]
-        for b in range(spans[k, 0] // BLOCK, (spans[k, 1] + BLOCK - 1) // BLOCK):
+    views = np.empty(len(order), np.int64)
+    keys = np.empty(len(order))
+    for b in range(len(b_radius)):
+        n_views = _middle_scores(b, order, spans, rig_from_world, kind, params, p, step_u, step_z, mm_per_px, views, keys)
+        for v in np.argsort(keys[:n_views], kind="mergesort"):
+            k = views[v]
+            m = rig_from_world[k]
             lo, hi = max(b * BLOCK, spans[k, 0]), min(b * BLOCK + BLOCK, spans[k, 1])
             # The whole block skipped when no cell of it can win (the cells' own
             # bounds would skip each: the same choice).
@@ -254,6 +264,33 @@ def score_strip(
                 k, m, n, cand, q, cols, rows, seen, kind, params, p, normal, plane, bands, mm_per_px,
                 centre, best, best_score, best_px, best_light,
             )
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _middle_scores(b, order, spans, rig_from_world, kind, params, p, step_u, step_z, mm_per_px, views, keys):  # pragma: no cover - compiled
+    """The keyframes whose spans reach block ``b`` (in ``order``) into ``views`` and minus
+    the score of the block's middle cell from each into ``keys`` (the footprint of its
+    steps over the squared distance; 0 where not seen, the laser's bands not tested);
+    returns how many."""
+    lo, hi = b * BLOCK, min(b * BLOCK + BLOCK, len(p))
+    r = (lo + hi) // 2
+    n = 0
+    for k in order:
+        if spans[k, 0] < hi and spans[k, 1] > lo:
+            m = rig_from_world[k]
+            rx, ry, rz = _rotate(m, p[r, 0], p[r, 1], p[r, 2])
+            qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+            col, row, ok = project_point(kind, params, qx, qy, qz)
+            ux, uy, uz = _rotate(m, step_u[r, 0], step_u[r, 1], step_u[r, 2])
+            cu, ru, _ = project_point(kind, params, qx + ux, qy + uy, qz + uz)
+            zx, zy, zz = _rotate(m, step_z[r, 0], step_z[r, 1], step_z[r, 2])
+            cz, rz2, _ = project_point(kind, params, qx + zx, qy + zy, qz + zz)
+            area = abs((cu - col) * (rz2 - row) - (ru - row) * (cz - col))
+            score = math.sqrt(area) / mm_per_px / max(qx * qx + qy * qy + qz * qz, 1e-6)
+            views[n] = k
+            keys[n] = -score if ok and math.isfinite(score) else 0.0
+            n += 1
+    return n
 
 
 @numba.njit(cache=True, error_model="numpy")
