@@ -532,7 +532,7 @@ def _choose_in_strip(
     spans = np.ascontiguousarray(row_start[windows], np.int64)  # (K, 2) cells each keyframe scores
     projection = camera.compiled_projection() if compiled else None
     if projection is not None:
-        # Keyframes near the strip first: their good views let the far ones be skipped.
+        # Keyframes near the strip first (the kernel's order of equal views in a block).
         origins = -np.einsum("kji,kj->ki", rig_from_world[:, :3, :3], rig_from_world[:, :3, 3])
         near = np.linalg.norm(origins - p.mean(axis=0), axis=1) if len(p) else np.zeros(n_k)
         score_strip(
