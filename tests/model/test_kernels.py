@@ -3,6 +3,7 @@ against their cell-by-cell reference (``score_strip_by_cell`` below)."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from unittest import mock
 
@@ -36,6 +37,41 @@ def test_block_scores_are_bit_identical_to_cell_by_cell(bend_mm: float | None, s
     for a, b in zip(blocks, cells, strict=True):
         assert np.array_equal(a.view(np.uint8), b.view(np.uint8))
     assert (blocks[0] >= 0).mean() > 0.9 and len(np.unique(blocks[0])) > 10
+
+
+def test_sine_table_is_never_below_the_bin_the_cell_bound_reads() -> None:
+    """The table by sine that the blocks' cell bounds read is at least the entry of the
+    elevation bin ``_bound`` takes, for sines drawn at random and next to every bin edge
+    (so no view is skipped that the reference would score)."""
+    mag = magnification_table(camera_from_rig(_rig("hyperboloid")))
+    table = _kernels.sine_table(mag)
+    rng = np.random.default_rng(5)
+    edges = np.sin(np.arange(len(mag) + 1) * _kernels.MAG_BIN_RAD - 0.5 * np.pi)
+    sines = np.concatenate([rng.uniform(-1, 1, 200_000), edges, np.nextafter(edges, 2), np.nextafter(edges, -2), [-1.0, 1.0]])
+    sines = np.clip(sines, -1.0, 1.0)
+    elevation_bin = np.clip(((np.arcsin(sines) + 0.5 * np.pi) / _kernels.MAG_BIN_RAD).astype(int), 0, len(mag) - 1)
+    sine_bin = np.clip(((sines + 1.0) * (0.5 * _kernels.SINE_BINS)).astype(int), 0, _kernels.SINE_BINS)
+    assert np.all(table[sine_bin] >= mag[elevation_bin])
+    finite = np.isfinite(mag[elevation_bin])
+    assert np.median(table[sine_bin][finite] / mag[elevation_bin][finite]) == 1.0  # hardly looser
+
+
+def test_tile_order_keeps_every_band_s_cells_in_its_range() -> None:
+    """A strip's cells (some missing) in tile order: each band of 8 rows holds the same
+    cells at the same positions as in row-major order, a full band's first tile is its
+    first 8 rows x 4 columns, and every cell comes once."""
+    rng = np.random.default_rng(2)
+    h, w = 21, 37
+    idx = np.flatnonzero(rng.random(h * w) > 0.1)
+    full = np.arange(8 * w)  # band 0 complete
+    idx = np.union1d(full, idx)
+    order = _kernels.tile_order(idx, w, 8)
+    assert np.array_equal(np.sort(order), np.arange(len(idx)))
+    starts = np.searchsorted(idx, np.arange(0, h + 8, 8).clip(max=h) * w)
+    for a, b in itertools.pairwise(starts):
+        assert np.array_equal(np.sort(idx[order[a:b]]), idx[a:b])
+    first = idx[order[:32]]
+    assert np.array_equal(np.sort(first), np.sort((np.arange(8)[:, None] * w + np.arange(4)).ravel()))
 
 
 @numba.njit(cache=False, error_model="numpy")

@@ -10,6 +10,12 @@ the same arithmetic per cell through the camera's compiled projection
 cells that are not seen, and updates the best view in place. Scores agree with the
 NumPy ones to rounding (a few ulp: BLAS sums the rotations in its own order), so a
 choice can differ only between views whose scores tie to 1e-15.
+
+Its blocks of :data:`BLOCK` cells are the strip's cells in the order the caller gives;
+:func:`tile_order` orders a strip's cells by small tiles (8 rows x 4 columns) within
+each band of rows, so that a block is a compact patch of wall and its one bound
+(:func:`_block_bound`) skips the views that cannot win in more of the blocks than a
+block 32 cells long in one row (16 mm of wall at 0.5 mm cells) does.
 """
 
 from __future__ import annotations
@@ -27,6 +33,35 @@ STEP_RAD = 0.05
 MAG_BIN_RAD = float(np.radians(0.5))
 """Elevation bins of the magnification table :func:`_bound` reads (from -pi/2 up; each
 bin holds the camera's largest px per radian within :data:`STEP_RAD` of it)."""
+
+SINE_BINS = 4096
+"""Bins of :func:`sine_table` over the sine of the elevation, [-1, 1]."""
+
+
+@numba.njit(cache=True, error_model="numpy")
+def sine_table(mag):  # pragma: no cover - compiled
+    """(SINE_BINS + 1,) the magnification table ``mag`` (:func:`_bound`'s, by elevation
+    bin) read by the sine of the elevation instead: entry i covers sines in
+    [-1 + i h, -1 + (i + 1) h] (h = 2 / SINE_BINS) and holds the largest ``mag[j]`` over
+    the bins j that :func:`_bound` takes for any sine there (``int((asin(s) + pi/2) /
+    MAG_BIN_RAD)``, clipped; the ends widened by 1e-12, far more than the rounding of
+    the index ``int((s + 1) SINE_BINS / 2)`` that reads it). So the entry of a ray is
+    never below the bin :func:`_bound` reads for it: a bound from it is never lower (no
+    view skipped that :func:`_bound` would not skip), without an arcsine per cell. A
+    bin of the sine spans at most two of elevation (0.0005 of sine, 0.0087 rad)."""
+    out = np.empty(SINE_BINS + 1)
+    h = 2.0 / SINE_BINS
+    last = len(mag) - 1
+    for i in range(SINE_BINS + 1):
+        s0 = max(-1.0 + i * h - 1e-12, -1.0)
+        s1 = min(-1.0 + (i + 1) * h + 1e-12, 1.0)
+        j0 = min(max(int((math.asin(s0) + 0.5 * math.pi) / MAG_BIN_RAD), 0), last)
+        j1 = min(max(int((math.asin(s1) + 0.5 * math.pi) / MAG_BIN_RAD), 0), last)
+        top = mag[j0]
+        for j in range(j0, j1 + 1):
+            top = max(top, mag[j])
+        out[i] = top
+    return out
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -66,6 +101,23 @@ def _bound(p, su, sz, m, mag, mm_per_px):  # pragma: no cover - compiled
 
 BLOCK = 32
 """Cells :func:`score_strip` bounds and projects as one block."""
+
+TILE_COLUMNS = 4
+"""Columns of :func:`tile_order`'s tiles (with 8 rows: :data:`BLOCK` cells)."""
+
+
+def tile_order(idx: np.ndarray, width: int, band_rows: int, tile_columns: int = TILE_COLUMNS) -> np.ndarray:
+    """(n,) int64 the order of a strip's cells by tiles: ``idx`` (n,) ascending flat
+    indices of the cells into a (rows, ``width``) grid (row-major), taken band by band
+    of ``band_rows`` rows, in each band tile by tile of ``tile_columns`` columns (left
+    to right), row-major inside a tile.
+
+    Cells never leave their band: a range of the row-major cells that starts and ends on
+    a band's first row (a multiple of ``band_rows``, or the grid's end) holds the same
+    cells in this order, so spans of whole bands need no change."""
+    idx = np.asarray(idx, np.int64)
+    row, col = idx // width, idx % width
+    return np.lexsort((col, row, col // tile_columns, row // band_rows))
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -144,19 +196,23 @@ def score_strip(
     """Every keyframe k's view of the cells ``spans[k, 0]:spans[k, 1]`` of ``p``; where it
     is better than ``best_score`` (equal: the earlier keyframe wins), ``best``,
     ``best_score``, ``best_px`` and ``best_light`` (log2 of cos(incidence) / range^2 and
-    the pixel's distance from ``centre``) are updated in place. The keyframes are taken
-    in ``order`` (near ones first: a good view found early lets :func:`_bound` skip the
-    views that cannot beat it; the result does not depend on the order).
+    the pixel's distance from ``centre``) are updated in place. The result does not
+    depend on the order in which the keyframes are taken.
 
-    Bit for bit the cell-by-cell reference in tests/model/test_kernels.py, :data:`BLOCK` cells at a time: the cells
-    :func:`_bound` does not skip, their points and their two steps projected as blocks
-    (:func:`~omnipipe.camera._kernels.project_block`); the laser band's test only for a
-    view that would win (a cell in the band scores 0, which wins nothing).
+    Bit for bit the cell-by-cell reference in tests/model/test_kernels.py, :data:`BLOCK`
+    cells at a time (the cells in the order given: :func:`tile_order`): the cells
+    :func:`_bound` does not skip (:func:`_block_candidates`), their points and their two
+    steps projected as blocks (:func:`~omnipipe.camera._kernels.project_block`); the
+    laser band's test only for a view that would win (a cell in the band scores 0, which
+    wins nothing). Block by block, the keyframes that score it are taken best first by
+    the score of the block's middle cell (:func:`_middle_scores`; ties in ``order``): the
+    best view of a compact block's cells is then mostly found first (not kept again and
+    again as better ones come), and the bounds skip the views that cannot beat it.
 
     Args:
         rig_from_world: (K, 4, 4) inverse keyframe poses (mm).
         spans: (K, 2) int64 cell ranges each keyframe scores.
-        order: (K,) int64 the keyframes in the order they are scored.
+        order: (K,) int64 the keyframes (ties of the blocks' orders in this order).
         mag: (N,) the camera's largest px per radian by elevation (:func:`_bound`;
             [inf]: no view skipped).
         kind, params: the camera's compiled projection.
@@ -174,11 +230,18 @@ def score_strip(
     cols = np.empty((3, BLOCK))
     rows = np.empty((3, BLOCK))
     seen = np.empty((3, BLOCK), np.bool_)
+    bound = np.empty(BLOCK)
     no_shift = (0.0, 0.0, 0.0)
     b_centre, b_radius, b_steps = _block_geometry(p, step_u, step_z, len(p))
-    for k in order:
-        m = rig_from_world[k]
-        for b in range(spans[k, 0] // BLOCK, (spans[k, 1] + BLOCK - 1) // BLOCK):
+    lens = _step_lengths(step_u, step_z)
+    by_sine = sine_table(mag) if len(mag) > 1 else mag
+    views = np.empty(len(order), np.int64)
+    keys = np.empty(len(order))
+    for b in range(len(b_radius)):
+        n_views = _middle_scores(b, order, spans, rig_from_world, kind, params, p, step_u, step_z, mm_per_px, views, keys)
+        for v in np.argsort(keys[:n_views], kind="mergesort"):
+            k = views[v]
+            m = rig_from_world[k]
             lo, hi = max(b * BLOCK, spans[k, 0]), min(b * BLOCK + BLOCK, spans[k, 1])
             # The whole block skipped when no cell of it can win (the cells' own
             # bounds would skip each: the same choice).
@@ -187,7 +250,9 @@ def score_strip(
                 worst = min(worst, best_score[i] if best[i] >= 0 else -1.0)
             if worst > 0 and _block_bound(m, b_centre[b], b_radius[b], b_steps[b], mag, mm_per_px) < worst:
                 continue
-            n = _block_candidates(m, lo, hi, p, step_u, step_z, mag, mm_per_px, best, best_score, cand, q, u, z)
+            n = _block_candidates(
+                m, lo, hi, p, step_u, step_z, lens, by_sine, mm_per_px, best, best_score, bound, cand, q, u, z
+            )
             if n == 0:
                 continue
             project_block(kind, params, q[0], q[1], q[2], no_shift, n, cols[0], rows[0], seen[0])
@@ -200,15 +265,81 @@ def score_strip(
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _block_candidates(
-    m, lo, hi, p, step_u, step_z, mag, mm_per_px, best, best_score, cand, q, u, z
-):  # pragma: no cover - compiled
-    """The cells ``lo:hi`` view ``m`` (4, 4 rig_from_world) may win (:func:`_bound`) into
-    ``cand``, their points and the points one step along the rows/columns away in the
-    rig frame into ``q``, ``u``, ``z`` (3, BLOCK); returns how many."""
+def _middle_scores(b, order, spans, rig_from_world, kind, params, p, step_u, step_z, mm_per_px, views, keys):  # pragma: no cover - compiled
+    """The keyframes whose spans reach block ``b`` (in ``order``) into ``views`` and minus
+    the score of the block's middle cell from each into ``keys`` (the footprint of its
+    steps over the squared distance; 0 where not seen, the laser's bands not tested);
+    returns how many."""
+    lo, hi = b * BLOCK, min(b * BLOCK + BLOCK, len(p))
+    r = (lo + hi) // 2
     n = 0
-    for i in range(lo, hi):
-        if best[i] >= 0 and _bound(p[i], step_u[i], step_z[i], m, mag, mm_per_px) < best_score[i]:
+    for k in order:
+        if spans[k, 0] < hi and spans[k, 1] > lo:
+            m = rig_from_world[k]
+            rx, ry, rz = _rotate(m, p[r, 0], p[r, 1], p[r, 2])
+            qx, qy, qz = rx + m[0, 3], ry + m[1, 3], rz + m[2, 3]
+            col, row, ok = project_point(kind, params, qx, qy, qz)
+            ux, uy, uz = _rotate(m, step_u[r, 0], step_u[r, 1], step_u[r, 2])
+            cu, ru, _ = project_point(kind, params, qx + ux, qy + uy, qz + uz)
+            zx, zy, zz = _rotate(m, step_z[r, 0], step_z[r, 1], step_z[r, 2])
+            cz, rz2, _ = project_point(kind, params, qx + zx, qy + zy, qz + zz)
+            area = abs((cu - col) * (rz2 - row) - (ru - row) * (cz - col))
+            score = math.sqrt(area) / mm_per_px / max(qx * qx + qy * qy + qz * qz, 1e-6)
+            views[n] = k
+            keys[n] = -score if ok and math.isfinite(score) else 0.0
+            n += 1
+    return n
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _step_lengths(step_u, step_z):  # pragma: no cover - compiled
+    """(n, 2) the lengths of the cells' steps along the rows and the columns (mm), as
+    :func:`_bound` computes them."""
+    lens = np.empty((len(step_u), 2))
+    for i in range(len(step_u)):
+        su, sz = step_u[i], step_z[i]
+        lens[i, 0] = math.sqrt(su[0] * su[0] + su[1] * su[1] + su[2] * su[2])
+        lens[i, 1] = math.sqrt(sz[0] * sz[0] + sz[1] * sz[1] + sz[2] * sz[2])
+    return lens
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _block_candidates(
+    m, lo, hi, p, step_u, step_z, lens, by_sine, mm_per_px, best, best_score, bound, cand, q, u, z
+):  # pragma: no cover - compiled
+    """The cells ``lo:hi`` view ``m`` (4, 4 rig_from_world) may win into ``cand``, their
+    points and the points one step along the rows/columns away in the rig frame into
+    ``q``, ``u``, ``z`` (3, BLOCK); returns how many (``bound``: (BLOCK,) scratch).
+
+    A cell may win unless :func:`_bound` is below its best score, here with
+    :func:`_bound`'s arithmetic (steps' lengths from :func:`_step_lengths`) but for the
+    magnification, read from ``by_sine`` (:func:`sine_table`; one entry: the same
+    everywhere) by the sine of the elevation: never below :func:`_bound`'s entry, so no
+    cell is skipped that :func:`_bound` would keep (and one it keeps beyond those cannot
+    win: :func:`_bound` bounds its score), without an arcsine per cell."""
+    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
+    one = len(by_sine) == 1
+    for c in range(hi - lo):
+        i = lo + c
+        x, y, w = p[i, 0], p[i, 1], p[i, 2]
+        lu, lz = lens[i, 0], lens[i, 1]
+        qx = (m00 * x + m01 * y + m02 * w) + m03
+        qy = (m10 * x + m11 * y + m12 * w) + m13
+        qz = (m20 * x + m21 * y + m22 * w) + m23
+        d2 = qx * qx + qy * qy + qz * qz
+        d = math.sqrt(d2)
+        s = qz / d
+        s = 1.0 if s > 1.0 else (s if s > -1.0 else -1.0)  # NaN (d = 0): -1, then inf below
+        j = 0 if one else min(max(int((s + 1.0) * (0.5 * SINE_BINS)), 0), SINE_BINS)
+        value = by_sine[j] * math.sqrt(lu * lz / ((d - lu) * (d - lz))) / mm_per_px / max(d2, 1e-6)
+        near = (lu < STEP_RAD * (d - lu)) & (lz < STEP_RAD * (d - lz))
+        bound[c] = value if near else math.inf
+    n = 0
+    for c in range(hi - lo):
+        i = lo + c
+        if best[i] >= 0 and bound[c] < best_score[i]:
             continue
         cand[n] = i
         n += 1

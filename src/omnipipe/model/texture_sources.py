@@ -36,7 +36,7 @@ from omnipipe.camera import CameraModel, camera_from_rig
 from omnipipe.errors import ShapeError
 from omnipipe.executor import InlineExecutor, ordered_map
 from omnipipe.geometry import apply, invert
-from omnipipe.model._kernels import MAG_BIN_RAD, STEP_RAD, score_strip
+from omnipipe.model._kernels import MAG_BIN_RAD, STEP_RAD, score_strip, tile_order
 from omnipipe.model.texture_grid import STRIP_ROWS, MeshGrid, WallGrid
 from omnipipe.model.texture_light import LASER_BAND_PX, laser_line_px
 from omnipipe.rig import Rig
@@ -513,14 +513,7 @@ def _choose_in_strip(
     """
     core = ext[offset : offset + n_rows]
     w = core.shape[1]
-    flat = core.reshape(-1, 3)
-    idx = np.flatnonzero(np.isfinite(flat).all(axis=1))
-    p = flat[idx]
-    # Two small steps on the wall per cell (along the rows and columns) for the footprint.
-    gp = np.where(np.isfinite(ext), ext, 0.0)
-    step_u = np.gradient(gp[offset : offset + n_rows], axis=1).reshape(-1, 3)[idx]
-    step_z = np.gradient(gp, axis=0)[offset : offset + n_rows].reshape(-1, 3)[idx]
-    del gp
+    idx, tiles, p, step_u, step_z = _strip_cells(ext, offset, n_rows)
     n_k = len(rig_from_world)
     best = np.full(len(idx), -1)
     best_score = np.zeros(len(idx))
@@ -529,7 +522,8 @@ def _choose_in_strip(
     # The wall's normal at each cell (world frame), for the LEDs' incidence.
     normal = np.cross(step_u, step_z)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    # The wall cells of rows [r0, r1) are p[row_start[r0]:row_start[r1]] (idx is row-major).
+    # The wall cells of rows [r0, r1) are p[row_start[r0]:row_start[r1]] (r0, r1 on bands'
+    # first rows: the tiles keep each band's cells in its range).
     row_start = np.searchsorted(idx, np.arange(n_rows + 1) * w)
     if windowed:
         windows = _seen_rows(core, rig_from_world, bounds, TILE)
@@ -538,7 +532,7 @@ def _choose_in_strip(
     spans = np.ascontiguousarray(row_start[windows], np.int64)  # (K, 2) cells each keyframe scores
     projection = camera.compiled_projection() if compiled else None
     if projection is not None:
-        # Keyframes near the strip first: their good views let the far ones be skipped.
+        # Keyframes near the strip first (the kernel's order of equal views in a block).
         origins = -np.einsum("kji,kj->ki", rig_from_world[:, :3, :3], rig_from_world[:, :3, 3])
         near = np.linalg.norm(origins - p.mean(axis=0), axis=1) if len(p) else np.zeros(n_k)
         score_strip(
@@ -551,7 +545,7 @@ def _choose_in_strip(
             np.array([laser_band_mm, laser_band_px], float), float(mm_per_px),
             np.array([camera.cx, camera.cy], float), best, best_score, best_px, best_light,
         )
-        return best, best_px, idx, best_light
+        return _row_major(tiles, best, best_px, best_light, idx)
     cells = (p, step_u, step_z, normal)
     bands = (laser_band_mm, laser_band_px)
     # Products with 3 columns gain nothing from BLAS threads, which only contend with the
@@ -561,7 +555,37 @@ def _choose_in_strip(
             sl = slice(int(spans[k, 0]), int(spans[k, 1]))
             if sl.start < sl.stop:
                 _keep_better(rig, camera, rig_from_world[k], k, cells, sl, mm_per_px, bands, (best, best_score, best_px, best_light))
-    return best, best_px, idx, best_light
+    return _row_major(tiles, best, best_px, best_light, idx)
+
+
+def _strip_cells(
+    ext: np.ndarray, offset: int, n_rows: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The wall cells of rows ``[offset, offset + n_rows)`` of ``ext`` ((h, W, 3), mm):
+    (n,) their flat indices in the strip (row-major), (n,) the order in which they are
+    scored (:func:`omnipipe.model._kernels.tile_order`: tiles within each band of
+    ``TILE[0]`` rows, the windows' rows, in which the compiled blocks are compact
+    patches of wall; each window holds the same cells) and, in that order, (n, 3) their
+    points and two small steps on the wall (along the rows and the columns, mm) for
+    the footprint."""
+    flat = ext[offset : offset + n_rows].reshape(-1, 3)
+    idx = np.flatnonzero(np.isfinite(flat).all(axis=1))
+    tiles = tile_order(idx, ext.shape[1], TILE[0])
+    tiled = idx[tiles]
+    gp = np.where(np.isfinite(ext), ext, 0.0)
+    step_u = np.gradient(gp[offset : offset + n_rows], axis=1).reshape(-1, 3)[tiled]
+    step_z = np.gradient(gp, axis=0)[offset : offset + n_rows].reshape(-1, 3)[tiled]
+    return idx, tiles, flat[tiled], step_u, step_z
+
+
+def _row_major(
+    tiles: np.ndarray, best: np.ndarray, best_px: np.ndarray, best_light: np.ndarray, idx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_choose_in_strip`'s result from the cells in ``tiles`` order (``idx[tiles]``)
+    back in ``idx``'s order."""
+    back = np.empty_like(tiles)
+    back[tiles] = np.arange(len(tiles))
+    return best[back], best_px[back], idx, best_light[back]
 
 
 def _keep_better(
