@@ -28,7 +28,7 @@ from omnipipe.image import CHANNEL_INDEX, gray_without_laser
 from omnipipe.sfm._kernels import two_smallest_columns
 
 if TYPE_CHECKING:
-    from omnipipe.sfm.tracking import FlowImage
+    from omnipipe.sfm.flow_image import FlowImage
 
 
 @dataclass(frozen=True)
@@ -124,7 +124,7 @@ class FrameViews:
             mirror's annulus, off the laser band, eroded by 2 px).
         plain: per view, the grey image before CLAHE, where the tracker's finest flow
             levels read (None: not kept; :attr:`FeatureConfig.flow_plain`).
-        flow: per view, the tracker's :class:`~omnipipe.sfm.tracking.FlowImage` of it
+        flow: per view, the tracker's :class:`~omnipipe.sfm.flow_image.FlowImage` of it
             (:func:`~omnipipe.sfm.tracking.flow_images`), made where the views were made
             (a worker, :class:`omnipipe.sfm.tasks.FeatureTask`); None: made by the
             tracker when it needs them.

@@ -20,7 +20,8 @@ import numpy as np
 
 from omnipipe.executor import Pending
 from omnipipe.sfm.features import FrameFeatures, FrameViews
-from omnipipe.sfm.tracking import FlowImage, TrackConfig, spread_order
+from omnipipe.sfm.flow_image import FlowImage
+from omnipipe.sfm.tracking import TrackConfig, spread_order
 from omnipipe.sfm.types import KeyframeRays, StepEvidence, StepScales
 from omnipipe.spill import Pack
 

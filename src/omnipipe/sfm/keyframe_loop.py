@@ -25,6 +25,7 @@ from omnipipe.sfm.features import (
     FrameViews,
     match_features,
 )
+from omnipipe.sfm.flow_image import FlowImage
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframe_jobs import (
     BackJob,
@@ -46,7 +47,6 @@ from omnipipe.sfm.pending_matches import PendingMatches
 from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES
 from omnipipe.sfm.step_records import Followed, LastKeyframe, MovingFrame, StepPair
 from omnipipe.sfm.tasks import handed_gray, handed_gray_file
-from omnipipe.sfm.tracking import FlowImage
 from omnipipe.sfm.types import Keyframes, PendingFrame, SfmContext, SfmInputs
 from omnipipe.spill import Pack
 

@@ -41,6 +41,7 @@ from omnipipe.sfm.features import (
     match_features,
 )
 from omnipipe.sfm.flat_field import FlatField, as_field, divided
+from omnipipe.sfm.flow_image import FlowImage
 from omnipipe.sfm.image_store import StoredImage, load_image
 from omnipipe.sfm.laser_scale import (
     LaserMatches,
@@ -55,7 +56,7 @@ from omnipipe.sfm.scale_check import (
     feature_scale,
     wall_cylinder,
 )
-from omnipipe.sfm.tracking import FlowImage, TrackChain, TrackConfig, flow_images
+from omnipipe.sfm.tracking import TrackChain, TrackConfig, flow_images
 from omnipipe.sfm.types import KeyframeRays, StepScales
 
 if TYPE_CHECKING:

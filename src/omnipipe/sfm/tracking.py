@@ -24,9 +24,7 @@ caller falls back to descriptor matching.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import cv2
 import numpy as np
@@ -37,6 +35,7 @@ from omnipipe.errors import ConfigError, ShapeError
 from omnipipe.executor import thread_map
 from omnipipe.sfm.features import FeatureExtractor, FrameFeatures, FrameViews, concat_features
 from omnipipe.sfm.flow_contrast import local_contrast
+from omnipipe.sfm.flow_image import FINE_LEVELS, FlowImage, highpass
 
 
 @dataclass(frozen=True)
@@ -139,54 +138,11 @@ class Tracks:
         return np.stack([self.feature, np.arange(len(self.feature))], axis=1)
 
 
-# Pyramid levels (the view's own included) that Lucas-Kanade reads high-passed.
-_FINE_LEVELS = 2
 # The second try's coarse levels are high-passed at this many times ``highpass_px``
 # (:func:`flow_images`): at 1 they lock the tracks they alone hold 25-80 px off on a
 # wall whose coarse structure is texture (other-rig); at 4 the near-field tracks of a
 # dim concrete wall two 6-9 mm frame steps on are held (random-wide seed 31).
 COARSE_HIGHPASS_FACTOR = 4.0
-
-
-@dataclass(frozen=True)
-class FlowImage:
-    """One view as the flow reads it.
-
-    Attributes:
-        raw: (height, width) uint8 the view as it is (CLAHE).
-        highpassed: the same high-passed (:func:`flow_images`), where the finest levels
-            of the pyramid are tracked; None when ``highpass_px`` is 0.
-        coarse: with ``highpassed``, ``raw`` reduced ``2 ** _FINE_LEVELS`` times
-            (``cv2.pyrDown``): the pyramid's coarse levels, which find displacements
-            larger than the window; None when there are no levels above the fine ones.
-        band_px: with ``coarse``, the high-pass sigma (view px) of the second try's
-            coarse levels (:attr:`coarse_band`).
-    """
-
-    raw: np.ndarray
-    highpassed: np.ndarray | None
-    coarse: np.ndarray | None = None
-    band_px: float = 0.0
-
-    @cached_property
-    def coarse_band(self) -> np.ndarray | None:
-        """``raw`` high-passed at ``band_px`` and reduced as ``coarse`` is: the coarse
-        levels of the second try for the tracks the first lost (:func:`_flow`); made
-        when first asked for. None without ``coarse``."""
-        if self.coarse is None or self.band_px <= 0:
-            return None
-        out = _highpass(self.raw, self.band_px)
-        for _ in range(_FINE_LEVELS):
-            out = cv2.pyrDown(out)
-        return out
-
-
-def _highpass(im: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``2 (I - B * I) + 128`` (uint8), B two box filters of about a Gaussian of
-    ``sigma_px``."""
-    # Two boxes of width k: variance 2 (k^2 - 1) / 12.
-    k = 2 * int(round(0.5 * (math.sqrt(6.0 * sigma_px**2 + 1.0) - 1.0))) + 1
-    return cv2.addWeighted(im, 2.0, cv2.blur(cv2.blur(im, (k, k)), (k, k)), -2.0, 128.0)
 
 
 def _followed(n: int, config: TrackConfig) -> np.ndarray:
@@ -247,10 +203,10 @@ def _coarse_fine(
         return _lk(a.raw, b.raw, q0, start, config.levels, config)
     if a.coarse is None or b.coarse is None:
         return _lk(a.highpassed, b.highpassed, q0, start, config.levels, config)
-    f = float(1 << _FINE_LEVELS)
+    f = float(1 << FINE_LEVELS)
     ca, cb = (a.coarse_band, b.coarse_band) if coarse_highpassed else (a.coarse, b.coarse)
-    p1, ok = _lk(ca, cb, q0 / f, start / f, config.levels - _FINE_LEVELS, config)
-    p1, fine = _lk(a.highpassed, b.highpassed, q0, p1 * f, _FINE_LEVELS - 1, config)
+    p1, ok = _lk(ca, cb, q0 / f, start / f, config.levels - FINE_LEVELS, config)
+    p1, fine = _lk(a.highpassed, b.highpassed, q0, p1 * f, FINE_LEVELS - 1, config)
     return p1, ok & fine
 
 
@@ -348,11 +304,11 @@ def flow_images(views: FrameViews, sigma_px: float, levels: int = 3) -> list[Flo
     out = []
     for k, im in enumerate(views.images):
         coarse = None
-        if levels >= _FINE_LEVELS:
+        if levels >= FINE_LEVELS:
             coarse = im
-            for _ in range(_FINE_LEVELS):
+            for _ in range(FINE_LEVELS):
                 coarse = cv2.pyrDown(coarse)
-        fine = _highpass(im, sigma_px) if views.plain is None else local_contrast(views.plain[k], sigma_px)
+        fine = highpass(im, sigma_px) if views.plain is None else local_contrast(views.plain[k], sigma_px)
         out.append(FlowImage(im, fine, coarse, COARSE_HIGHPASS_FACTOR * sigma_px))
     return out
 
