@@ -664,3 +664,24 @@ def median_with_sigma(values: np.ndarray) -> tuple[float, float]:
     med = float(np.median(values))
     spread = 1.4826 * float(np.median(np.abs(values - med)))
     return med, 1.2533 * spread / math.sqrt(len(values))
+
+
+def wall_radius_change(ring_points: list[np.ndarray]) -> float:
+    """Half the relative range of the keyframes' wall radii: (max - min) / (max + min)
+    of the rings' circles (:func:`wall_cylinder`; rings too short for one are left out;
+    0 with fewer than two).
+
+    The feature depths and the wall's own shift place the features on the ring's
+    cylinder; the features lie up to a ring's distance from it along the pipe. Where the
+    wall's radius changes along the run (a reducer, an offset joint) the features' wall
+    differs from the ring's by up to this much, and so do those lengths (one bias over
+    the steps that cross the change, which their spread does not show).
+
+    Args:
+        ring_points: per keyframe, (N_k, 3) metric ring points in its rig frame (mm).
+    """
+    radii = [w.radius_mm for w in map(wall_cylinder, ring_points) if w is not None]
+    if len(radii) < 2:
+        return 0.0
+    lo, hi = min(radii), max(radii)
+    return (hi - lo) / (hi + lo)
