@@ -73,7 +73,7 @@ def test_images_that_follow_the_gyro_raise_nothing() -> None:
 
 def test_a_bend_s_turn_sigma_covers_the_truth_with_the_drift() -> None:
     rng = np.random.default_rng(16)
-    imu, times, poses, truth = _run(rng, 5.0)
+    imu, times, poses, _ = _run(rng, 5.0)
     registered = np.ones(len(times), bool)
     check = gyro_check(imu, times, poses, registered)
     assert check is not None
