@@ -95,3 +95,10 @@ def test_a_bend_s_turn_sigma_covers_the_truth_with_the_drift() -> None:
     true_radius = float(axial[-1]) / math.radians(true_turn)
     assert abs(widened.radius_mm - true_radius) < 2.0 * widened.radius_sigma_mm
     assert bend_with_rotation(bend, None) == bend
+    # Images that follow the gyro: the departure is its own drift, the sigmas stay.
+    imu, times, poses, _ = _run(np.random.default_rng(17), 0.0)
+    check = gyro_check(imu, times, poses, registered)
+    assert check is not None
+    rc = RotationCheck(0.0, 0, 0.0, check, np.arange(len(times)), axial)
+    same = bend_with_rotation(bend, rc)
+    assert same.turn_motion_sigma_deg == 0.0 and same.turn_sigma_deg == bend.turn_sigma_deg

@@ -6,7 +6,7 @@ drift of the images' rotation (tracks lagging a broad-textured wall, a kink at a
 lateral's rim) in the images' only. Between two frames the angle of the one relative
 rotation against the other is the images' rotation error there, to within the gyro's
 own drift (its bias over the time between them, :data:`GYRO_BIAS_SIGMA_RAD_S`); a bend's
-turn measured on the centreline carries it (:func:`omnipipe.pipeline.quality.flag_features`).
+turn measured on the centreline carries the part beyond that drift (:func:`omnipipe.pipeline.quality.flag_features`).
 
 Conventions: rotations rig_first_from_rig (the first checked frame's rig); angles rad;
 times s.
@@ -137,7 +137,7 @@ def gyro_warnings(check: GyroCheck | None) -> list[str]:
         f"the camera motion's rotation departs from the gyro's by {math.degrees(gap):.1f} deg "
         f"by frame {frame} (the gyro's own 1-sigma {math.degrees(sig):.1f} deg): turns and "
         "clock positions measured across it carry that error (bends' turn_sigma_deg include "
-        "the departure over their own stretch)"
+        "the departure over their own stretch beyond the gyro's drift)"
     ]
 
 
