@@ -33,7 +33,7 @@ GYRO_BIAS_SIGMA_RAD_S = 0.001
 GYRO_FLOOR_RAD = 0.005
 # The images' rotation departs from the gyro's by more than this many of its sigmas:
 # a warning says where (random-features seeds: the departure tracked the images' true
-# error within 0.5 deg on all 34, up to 14.8 deg on seed 26).
+# error within 0.6 deg on all 34, up to 14.8 deg on seed 26).
 GYRO_GAP_SIGMAS = 3.0
 
 # Largest gap (s) between a frame's time and the nearest gyro readings: outside them the
