@@ -18,6 +18,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from omnipipe.sfm.rotation_check import GyroCheck
     from omnipipe.sfm.scale_check import StepCheck
 
 CORE_KEYS = ("kind", "height_mm", "width_mm", "length_mm", "axial_start_mm", "angle_deg")
@@ -167,6 +170,38 @@ class UnreliableSpan:
 
 
 @dataclass(frozen=True)
+class RotationCheck:
+    """The camera motion's rotation against the IMU's gyro (omnipipe's addition to
+    ``trajectory_quality``: ``rotation_check``).
+
+    Attributes:
+        max_gap_deg: where the images' rotation since the first frame departs furthest
+            from the gyro's in the gyro's sigmas: the departure (deg) ...
+        max_gap_frame: ... at this frame ...
+        gyro_sigma_deg: ... and the gyro's own 1-sigma there (deg).
+        gyro: the frames' rotations by both (not in report.json).
+        station_frames: (K,) first frame of each station (not in report.json).
+        station_axial_mm: (K,) their axial positions, NaN unknown (not in report.json).
+    """
+
+    max_gap_deg: float
+    max_gap_frame: int
+    gyro_sigma_deg: float
+    gyro: GyroCheck
+    station_frames: np.ndarray
+    station_axial_mm: np.ndarray
+
+    def to_contract(self) -> dict[str, Any]:
+        """Its entry ``trajectory_quality.rotation_check``."""
+        return {
+            "source": "gyro",
+            "max_gap_deg": round(float(self.max_gap_deg), 3),
+            "max_gap_frame": int(self.max_gap_frame),
+            "gyro_sigma_deg": round(float(self.gyro_sigma_deg), 3),
+        }
+
+
+@dataclass(frozen=True)
 class TrajectoryQuality:
     """report.json's ``trajectory_quality``: what the user is told about the camera motion.
 
@@ -181,6 +216,7 @@ class TrajectoryQuality:
         scale_sigma_pct: 1-sigma of every length along the pipe (percent; None: unknown).
         keyframe_steps: every keyframe step's evidence (laser length and consensus
             peaks, feature depth length, confidence).
+        rotation_check: the rotation against the gyro, or None (no gyro).
     """
 
     steps_checked: int
@@ -191,10 +227,11 @@ class TrajectoryQuality:
     scale_correction_pct: float | None = None
     scale_sigma_pct: float | None = None
     keyframe_steps: tuple[StepCheck, ...] = ()
+    rotation_check: RotationCheck | None = None
 
     def to_contract(self) -> dict[str, Any]:
         """The report.json entry (the contract's keys, then omnipipe's)."""
-        return {
+        out = {
             "steps_checked": self.steps_checked,
             "scale_source": self.scale_source,
             "laser_offset_pct": self.laser_offset_pct,
@@ -204,4 +241,7 @@ class TrajectoryQuality:
             "unreliable": [u.to_contract() for u in self.unreliable],
             "keyframe_steps": [c.to_dict() for c in self.keyframe_steps],
         }
+        if self.rotation_check is not None:
+            out["rotation_check"] = self.rotation_check.to_contract()
+        return out
 

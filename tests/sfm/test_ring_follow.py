@@ -14,10 +14,10 @@ from omnipipe.sfm.ring_follow import (
     FOLLOWED,
     follow_rings,
     followed_reason,
-    gyro_rotations,
     ring_centre,
     unmeasured_stretches,
 )
+from omnipipe.sfm.rotation_check import gyro_rotations
 from omnipipe.sfm.scale_check import StepCheck
 from omnipipe.sfm.step_chain import LOST_DIRECTION
 

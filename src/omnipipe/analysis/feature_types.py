@@ -144,13 +144,18 @@ class Stretch(Feature):
 
 @dataclass(frozen=True, kw_only=True)
 class Bend(Stretch):
-    """A bend (elbow): the centreline turns by ``turn_deg`` at radius ``radius_mm``."""
+    """A bend (elbow): the centreline turns by ``turn_deg`` at radius ``radius_mm``.
+
+    ``turn_motion_sigma_deg``: the camera motion's rotation error over the bend as the
+    gyro shows it (omnipipe.pipeline.quality.bend_with_rotation), already in
+    ``turn_sigma_deg`` and ``radius_sigma_mm``; None without a gyro."""
 
     kind: ClassVar[str] = "bend"
     radius_mm: float
     radius_sigma_mm: float | None = None
     turn_deg: float
     turn_sigma_deg: float | None = None
+    turn_motion_sigma_deg: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)

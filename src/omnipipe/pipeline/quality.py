@@ -20,9 +20,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from omnipipe.analysis.feature_types import Feature, PointFeature, Stretch
+from omnipipe.analysis.feature_types import Bend, Feature, PointFeature, Stretch
 from omnipipe.analysis.ring_spans import RingSpans
-from omnipipe.contract import Defect, TrajectoryQuality, UnreliableSpan
+from omnipipe.contract import Defect, RotationCheck, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
 from omnipipe.sfm import SfmResult
 from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES, StepCheck, steps_checked
@@ -81,6 +81,53 @@ def trajectory_quality(
         scale_correction_pct=_pct(motion.scale_correction_log),
         scale_sigma_pct=_pct(math.log1p(motion.scale_sigma_rel)),
         keyframe_steps=tuple(motion.step_checks),
+        rotation_check=_rotation_check(motion, station_frames, station_axial),
+    )
+
+
+def _rotation_check(
+    motion: SfmResult, station_frames: np.ndarray, station_axial: np.ndarray
+) -> RotationCheck | None:
+    """The camera motion's rotation against the gyro (None without one), with the
+    stations' frames and axial positions to place a feature's ends."""
+    check = motion.gyro_check
+    if check is None:
+        return None
+    frame, gap, sig = check.worst()
+    return RotationCheck(
+        math.degrees(gap), frame, math.degrees(sig), check,
+        np.asarray(station_frames, int), np.asarray(station_axial, float),
+    )
+
+
+def bend_with_rotation(bend: Bend, rc: RotationCheck | None) -> Bend:
+    """``bend`` with the camera motion's rotation error over its stretch in its turn's
+    and radius' sigmas: the images' relative rotation between the stations at its two
+    ends against the gyro's (:meth:`omnipipe.sfm.rotation_check.GyroCheck.between`), less
+    the gyro's own sigma over that time in quadrature, added in quadrature
+    (``turn_motion_sigma_deg`` says how much, 0 when the gyro's drift explains the
+    departure; the radius (end - start) / turn by its relative share). Unchanged without
+    a check or with the ends' stations unknown."""
+    if rc is None or bend.turn_deg <= 0:
+        return bend
+    known = np.flatnonzero(np.isfinite(rc.station_axial_mm))
+    if len(known) == 0:
+        return bend
+    ends = [
+        int(rc.station_frames[known[np.argmin(np.abs(rc.station_axial_mm[known] - x))]])
+        for x in (bend.axial_from_mm, bend.axial_to_mm)
+    ]
+    err, gyro_sigma = rc.gyro.between(*ends)
+    # The images' error beyond what the gyro's own drift explains (a departure within it
+    # tells nothing: the tight elbow's 1.0 deg over 20 s, its gyro's 1-sigma 1.15 deg,
+    # for the images' true 0.1 deg).
+    extra = math.sqrt(max(err**2 - gyro_sigma**2, 0.0))
+    turn = math.radians(bend.turn_deg)
+    return replace(
+        bend,
+        turn_sigma_deg=math.hypot(bend.turn_sigma_deg or 0.0, math.degrees(extra)),
+        radius_sigma_mm=math.hypot(bend.radius_sigma_mm or 0.0, bend.radius_mm * extra / turn),
+        turn_motion_sigma_deg=math.degrees(extra),
     )
 
 
@@ -104,10 +151,13 @@ def flag_features(
 ) -> tuple[tuple[Feature, ...], list[str]]:
     """The pipe's features, those within 3 sigma of (point features) or overlapping
     (stretches) an unreliable stretch flagged ``motion_unreliable``; one warning per
-    flagged feature. Their positions and axial sizes rest on untrusted motion."""
+    flagged feature. Their positions and axial sizes rest on untrusted motion. Bends'
+    turns carry the motion's rotation error the gyro shows (:func:`bend_with_rotation`)."""
     out: list[Feature] = []
     warnings = []
     for f in features:
+        if isinstance(f, Bend):
+            f = bend_with_rotation(f, quality.rotation_check)
         if isinstance(f, Stretch):
             start, end = f.axial_from_mm, f.axial_to_mm
         elif isinstance(f, PointFeature):

@@ -284,6 +284,8 @@ def _feature_cells(f: dict[str, Any], reference_deg: float, offset_m: float) -> 
         f"{k} {pm(k)}" for k, v in f.items()
         if k not in skip and "_sigma" not in k and isinstance(v, (int, float)) and not isinstance(v, bool)
     ]
+    if isinstance(f.get("turn_motion_sigma_deg"), int | float):  # a bend's share of the motion's rotation
+        sizes.append(f"of the turn's sigma the camera motion's rotation (gyro) {float(f['turn_motion_sigma_deg']):.2f}°")
     return html.escape(where), html.escape(clock), html.escape(", ".join(sizes))
 
 

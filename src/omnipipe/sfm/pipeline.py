@@ -63,6 +63,7 @@ from omnipipe.sfm.robot_sensors import (
     odometry_steps,
     rotation_linked,
 )
+from omnipipe.sfm.rotation_check import gyro_check, gyro_warnings
 from omnipipe.sfm.scale_check import (
     StepCheck,
     UnreliableStretch,
@@ -208,6 +209,8 @@ def _run(
     smooth_path(result)  # the resected frames' scatter across the path
     untrusted = [c.first_frame for c in chain.checks if not c.reliable]
     _add_gravity(result, inputs, untrusted + [u.first_frame for u in resected.unreliable], kf.frames)
+    result.gyro_check = gyro_check(inputs.imu, inputs.timestamps, result.world_from_rig, result.registered)
+    result.warnings.extend(gyro_warnings(result.gyro_check))
     return result
 
 

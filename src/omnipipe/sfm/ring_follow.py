@@ -39,9 +39,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from omnipipe.inputs.sensors import Imu, odometry_at
+from omnipipe.inputs.sensors import odometry_at
 from omnipipe.sfm.ring_axis import robust_ellipse_centre
 from omnipipe.sfm.robot_sensors import CREEP_MIN_MM
+from omnipipe.sfm.rotation_check import gyro_rotations
 from omnipipe.sfm.scale_check import TRACKED_MIN_MATCHES, StepCheck, UnreliableStretch
 from omnipipe.sfm.step_chain import LOST_DIRECTION
 from omnipipe.sfm.types import SfmInputs, SfmResult
@@ -55,10 +56,6 @@ RING_OUTLIER_FLOOR_MM = 0.3
 # Fewest frames of a stretch with a ring centre of their own for the others' to be
 # interpolated.
 MIN_KNOWN_CENTRES = 3
-# Largest gap (s) between a frame's time and the nearest gyro readings: outside them the
-# rotation is not integrated.
-MAX_GYRO_GAP_S = 0.5
-
 # Smallest turn (deg) of the rig's z axes over an unmeasured stretch taken for the pipe
 # bending (:func:`axis_directions`): the robot's tilt wobbles by about a degree in
 # straight pipe (the simulator's 0.8 deg).
@@ -70,43 +67,6 @@ FOLLOWED = (
     "direction along the rig's axes where the gyro shows a bend, else along their mean: "
     "the robot's tilt in the pipe is not measured)"
 )
-
-
-def _rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrix (3, 3) of a rotation vector (3,) (rad)."""
-    theta = float(np.linalg.norm(v))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = v / theta
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(theta) * kx + (1.0 - math.cos(theta)) * (kx @ kx)
-
-
-def gyro_rotations(imu: Imu, timestamps: np.ndarray) -> np.ndarray | None:
-    """(N, 3, 3) rig_first_from_rig of every frame: the gyro's body rates integrated
-    (each reading interval one rotation of the intervals' mean rate; dR/dt = R [w]x with
-    R = world_from_rig), at the frame times (the rate held over the part interval).
-
-    Returns None without a gyro, or when a frame lies outside the readings by more than
-    :data:`MAX_GYRO_GAP_S`.
-    """
-    if imu.gyro is None or len(imu) < 2:
-        return None
-    t = np.asarray(imu.timestamps, float)
-    w = np.asarray(imu.gyro, float)
-    ts = np.asarray(timestamps, float)
-    if ts.min() < t[0] - MAX_GYRO_GAP_S or ts.max() > t[-1] + MAX_GYRO_GAP_S:
-        return None
-    rates = 0.5 * (w[1:] + w[:-1])
-    cum = np.empty((len(t), 3, 3))
-    cum[0] = np.eye(3)
-    for k in range(len(t) - 1):
-        cum[k + 1] = cum[k] @ _rotvec_to_matrix(rates[k] * (t[k + 1] - t[k]))
-    k = np.clip(np.searchsorted(t, ts, side="right") - 1, 0, len(t) - 2)
-    out = np.empty((len(ts), 3, 3))
-    for i, (ki, ti) in enumerate(zip(k, ts, strict=True)):
-        out[i] = cum[ki] @ _rotvec_to_matrix(rates[ki] * (ti - t[ki]))
-    return np.transpose(out[0])[None] @ out
 
 
 def ring_centre(points_in_rig: np.ndarray) -> np.ndarray | None:

@@ -5,7 +5,9 @@
 (:func:`decided_log`) and the wall-placed features'
 (:func:`omnipipe.sfm.scale_check.wall_scale_correction`), combined by inverse variance
 (:func:`combine_scales`); the sigma from the anchors' spread and the sources' gap
-(:func:`scale_sigma`) plus the part both sources share (:data:`SHARED_SCALE_SIGMA`).
+(:func:`scale_sigma`) plus the part both sources share (:data:`SHARED_SCALE_SIGMA`)
+and, where the wall placed lengths, its radius change along the run
+(:func:`with_radius_change`).
 
 Conventions: log ratios natural; sigmas relative.
 """
@@ -21,6 +23,7 @@ from omnipipe.sfm.scale_check import (
     WALL_SCALE_SIGMA_FLOOR,
     StepCheck,
     median_with_sigma,
+    wall_radius_change,
     wall_scale_correction,
 )
 from omnipipe.sfm.shift_scale import ShiftScale, shift_scale
@@ -88,6 +91,15 @@ DECIDED_SIGMA_FLOOR = 0.01
 # weights (why: benchmarks/RESULTS.md, feat21).
 FEATURE_ANCHOR_SIGMA = 0.01
 
+# The keyframe rings' own scatter of radius in a straight cylinder (half the relative
+# range; the ring's tilt, its fit on a partial ring), taken off the wall's radius change
+# in quadrature: on the 40 random-wide renders at 640x480 (cylinders) it reached 0.53 %
+# (seed 7), and with it in the sigma seed 7's rose 0.68 -> 0.86 %; random-features
+# seeds 30 and 19 (reducers) read 10.8 and 5.1 %.
+RADIUS_CHANGE_FLOOR = 0.01
+# The widening (the change beyond the floor) from which it is also a warning.
+RADIUS_CHANGE_WARN = 0.01
+
 
 @dataclass(frozen=True)
 class RunLength:
@@ -128,7 +140,8 @@ def run_length(
     sigma; with ``scale_from_wall`` it is combined with the features placed on the
     light-section wall (:func:`combine_scales`) and the wall's own shift
     (:func:`combine_shift`; ``readings``: steps already read off the wall on these poses,
-    :class:`omnipipe.sfm.step_priors.WallPriors`)."""
+    :class:`omnipipe.sfm.step_priors.WallPriors`). Where the wall placed lengths, the
+    sigma carries the wall's radius change along the run (:func:`with_radius_change`)."""
     config = ctx.config
     wall = wall_scale_correction(
         world_from_kf,
@@ -164,8 +177,11 @@ def run_length(
             source = f"{source}, and the wall's own shift ({shift.steps} steps)"
     wall_log = math.nan if wall is None else wall[0]
     sigma = math.hypot(sigma, SHARED_SCALE_SIGMA)
+    share = feature_share(chain.anchors, chain.scales_mm)
     if not scale.wall_anchored:  # (a wall-anchored run's sigma carries half the sources' gap)
-        sigma = math.hypot(sigma, FEATURE_ANCHOR_SIGMA * feature_share(chain.anchors, chain.scales_mm))
+        sigma = math.hypot(sigma, FEATURE_ANCHOR_SIGMA * share)
+    if scale.wall_anchored or share > 0 or math.isfinite(applied):  # lengths the wall placed
+        sigma = with_radius_change(sigma, wall_radius_change(kf.ring_points), ctx.warnings)
     sigma = with_bridged(sigma, chain.checks, chain.scales_mm)
     return RunLength(applied, sigma, wall_log, source)
 
@@ -313,6 +329,26 @@ def scale_sigma(
     if wall_anchored:
         return math.hypot(stat, 0.001, abs(offset_log) / 2)
     return math.hypot(stat, abs(offset_log))
+
+
+def with_radius_change(sigma: float, change: float, warnings: list[str]) -> float:
+    """The run's relative 1-sigma ``sigma`` with the wall's radius change along the run
+    (``change``, :func:`omnipipe.sfm.scale_check.wall_radius_change`, less the rings' own
+    scatter :data:`RADIUS_CHANGE_FLOOR` in quadrature) in quadrature: the feature depths
+    and the wall's own shift take the ring's radius for the features' wall, so a reducer
+    between them biases every length they give by up to that much (a warning says so
+    from :data:`RADIUS_CHANGE_WARN` on)."""
+    beyond = math.sqrt(max(change**2 - RADIUS_CHANGE_FLOOR**2, 0.0))
+    if not (math.isfinite(sigma) and beyond > 0):
+        return sigma
+    widened = math.hypot(sigma, beyond)
+    if beyond >= RADIUS_CHANGE_WARN:
+        warnings.append(
+            f"the wall's radius changes by +-{100 * change:.1f} % along the run (a reducer or an "
+            "offset): the feature depths and the wall's own shift take the ring's radius for the "
+            f"features' wall, so the scale sigma carries it: {100 * sigma:.2f} -> {100 * widened:.2f} %"
+        )
+    return widened
 
 
 def feature_share(anchors: list[Anchor], scales_mm: list[float]) -> float:

@@ -25,6 +25,7 @@ from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.laser_scale import LaserMatches, LaserScaleConfig
 from omnipipe.sfm.planes import PlaneRefineConfig
 from omnipipe.sfm.ransac import RansacConfig
+from omnipipe.sfm.rotation_check import GyroCheck
 from omnipipe.sfm.scale_check import ScaleCheckConfig, StepCheck, UnreliableStretch
 from omnipipe.sfm.stations import StationConfig
 from omnipipe.sfm.tracking import TrackConfig
@@ -197,6 +198,8 @@ class SfmResult:
         gravity_world: (3,) unit vector pointing down in the world frame (from the IMU,
             :func:`omnipipe.sfm.robot_sensors.gravity_world`), or None without one.
         gravity_sigma_rad: its 1-sigma angle (rad; NaN without one).
+        gyro_check: the final rotations beside the gyro's
+            (:func:`omnipipe.sfm.rotation_check.gyro_check`), or None without a gyro.
     """
 
     world_from_rig: np.ndarray
@@ -217,6 +220,7 @@ class SfmResult:
     tracked: np.ndarray | None = None
     gravity_world: np.ndarray | None = None
     gravity_sigma_rad: float = math.nan
+    gyro_check: GyroCheck | None = None
 
 
 @dataclass(frozen=True)
