@@ -151,7 +151,8 @@ class _Band:
         """(N,) each point's position along the axis across the band's plane (mm)."""
         if self.a == 0.0 and self.b == 0.0:
             return r.sigma
-        return r.sigma - self.a * np.cos(r.theta) - self.b * np.sin(r.theta)
+        with np.errstate(invalid="ignore"):  # a NaN angle (in no sector) stays NaN
+            return r.sigma - self.a * np.cos(r.theta) - self.b * np.sin(r.theta)
 
     @property
     def slant_mm(self) -> float:
