@@ -211,16 +211,21 @@ def _pass_over(arrays: list[np.ndarray], low: float) -> tuple[float, float]:
     return total, most
 
 
-@linux_only
-def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
-    from omnipipe.spill import Pack, dropping_pages
+def _packed_chunks(seed: int) -> tuple[float, list[np.ndarray]]:
+    """(sum of 48 random 1 MB arrays, the arrays as a :class:`~omnipipe.spill.Pack` holds them)."""
+    from omnipipe.spill import Pack
 
     pack = Pack()
-    rng = np.random.default_rng(10)
-    chunks = [rng.random(2**20 // 8) for _ in range(48)]  # 48 MB in 1 MB arrays
-    want = sum(float(c.sum()) for c in chunks)
-    got = [pack.put(c) for c in chunks]
-    del chunks
+    rng = np.random.default_rng(seed)
+    chunks = [rng.random(2**20 // 8) for _ in range(48)]
+    return sum(float(c.sum()) for c in chunks), [pack.put(c) for c in chunks]
+
+
+@linux_only
+def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
+    from omnipipe.spill import dropping_pages
+
+    want, got = _packed_chunks(10)
     drop_pages()
     low = _rss_mb()
     total, most = _pass_over(got, low)  # every keyframe's arrays read in turn
@@ -241,14 +246,9 @@ def test_a_pass_within_dropping_pages_holds_only_its_last_reads() -> None:
 
 @linux_only
 def test_dropping_pages_drops_a_pass_that_maps_faster_than_its_interval() -> None:
-    from omnipipe.spill import Pack, dropping_pages
+    from omnipipe.spill import dropping_pages
 
-    pack = Pack()
-    rng = np.random.default_rng(11)
-    chunks = [rng.random(2**20 // 8) for _ in range(48)]  # 48 MB in 1 MB arrays
-    want = sum(float(c.sum()) for c in chunks)
-    got = [pack.put(c) for c in chunks]
-    del chunks
+    want, got = _packed_chunks(11)
     drop_pages()
     low = _rss_mb()
     # An interval longer than the pass: only the growth of the resident pages drops them.
