@@ -10,7 +10,7 @@ import pytest
 
 from omnipipe.errors import ShapeError
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameViews
-from omnipipe.sfm.flow_contrast import local_contrast
+from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR, local_contrast, wall_texture
 from omnipipe.sfm.tasks import camera_from_rig
 from omnipipe.sfm.tracking import TrackConfig, _flow, flow_images
 from omnipipe.sim import make_scenario
@@ -108,3 +108,25 @@ def test_views_keep_their_plain_images_only_when_asked() -> None:
         if flow_plain:  # the same remapped view, before CLAHE
             assert all(p.shape == v.shape for p, v in zip(views.plain, views.images, strict=True))
             assert all(np.array_equal(extractor.clahe.apply(p), v) for p, v in zip(views.plain, views.images, strict=True))
+
+
+def test_wall_texture_tells_a_plain_wall_from_a_faint_pattern() -> None:
+    """Under a light fixed in the view (falling to 0.4 across it) and the sensor's noise
+    (1.5 grey levels), a plain wall (shading of 1 % over tens of px) measures below the
+    texture floor, a faint corrugation (6 %) or faint blotches (5 %), each with a 3 %
+    grain, above it: the run-level choice of the flow's images reads these numbers
+    (random-wide at 640x480: plain walls 0.25-0.39, the faintest pattern 0.63)."""
+    rows = np.arange(H, dtype=np.float32)[:, None]
+    light = (150.0 / (rows + 150.0)) ** 2
+    everywhere = [np.full((H, W), 255, np.uint8)]
+    plain, textured = [], []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        noise = rng.normal(0.0, 1.5, (H, W)).astype(np.float32)
+        shading = cv2.GaussianBlur(rng.normal(size=(H, W)).astype(np.float32), (0, 0), 25.0)
+        flat = 1.0 + 0.01 * shading / shading.std()
+        for albedo, out in ((flat, plain), (_wall(rng, 0.06, 0.0)[:H], textured), (_wall(rng, 0.0, 0.05)[:H], textured)):
+            view = np.clip(np.round(140.0 * albedo * light + noise), 0, 255).astype(np.uint8)
+            out.append(wall_texture([view], everywhere))
+    assert max(plain) < 0.8 * TEXTURE_FLOOR and min(textured) > 1.2 * TEXTURE_FLOOR
+    assert np.isnan(wall_texture([view], [np.zeros((H, W), np.uint8)]))  # no wall seen
