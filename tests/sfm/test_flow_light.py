@@ -8,12 +8,17 @@ import cv2
 import numpy as np
 import pytest
 
+from omnipipe import laser, sfm
+from omnipipe.dataset import open_dataset
 from omnipipe.errors import ShapeError
+from omnipipe.pipeline import ReconstructConfig
 from omnipipe.sfm.features import FeatureConfig, FeatureExtractor, FrameViews
-from omnipipe.sfm.flow_contrast import local_contrast
+from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR, local_contrast, wall_texture
+from omnipipe.sfm.pipeline import _flow_views
 from omnipipe.sfm.tasks import camera_from_rig
 from omnipipe.sfm.tracking import TrackConfig, _flow, flow_images
-from omnipipe.sim import make_scenario
+from omnipipe.sim import TextureConfig, make_scenario
+from omnipipe.sim import run as simulate
 
 H, W = 189, 131  # a 640x480 rig's perspective view (px)
 PERIOD_PX = 50.0  # the corrugation's period along the view's rows
@@ -108,3 +113,45 @@ def test_views_keep_their_plain_images_only_when_asked() -> None:
         if flow_plain:  # the same remapped view, before CLAHE
             assert all(p.shape == v.shape for p, v in zip(views.plain, views.images, strict=True))
             assert all(np.array_equal(extractor.clahe.apply(p), v) for p, v in zip(views.plain, views.images, strict=True))
+
+
+def test_wall_texture_tells_a_plain_wall_from_a_faint_pattern() -> None:
+    """Under a light fixed in the view (falling to 0.4 across it) and the sensor's noise
+    (1.5 grey levels), a plain wall (shading of 1 % over tens of px) measures below the
+    texture floor, a faint corrugation (6 %) or faint blotches (5 %), each with a 3 %
+    grain, above it: the run-level choice of the flow's images reads these numbers
+    (random-wide at 640x480: plain walls 0.25-0.39, the faintest pattern 0.63)."""
+    rows = np.arange(H, dtype=np.float32)[:, None]
+    light = (150.0 / (rows + 150.0)) ** 2
+    everywhere = [np.full((H, W), 255, np.uint8)]
+    plain, textured = [], []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        noise = rng.normal(0.0, 1.5, (H, W)).astype(np.float32)
+        shading = cv2.GaussianBlur(rng.normal(size=(H, W)).astype(np.float32), (0, 0), 25.0)
+        flat = 1.0 + 0.01 * shading / shading.std()
+        for albedo, out in ((flat, plain), (_wall(rng, 0.06, 0.0)[:H], textured), (_wall(rng, 0.0, 0.05)[:H], textured)):
+            view = np.clip(np.round(140.0 * albedo * light + noise), 0, 255).astype(np.uint8)
+            out.append(wall_texture([view], everywhere))
+    assert max(plain) < 0.8 * TEXTURE_FLOOR and min(textured) > 1.2 * TEXTURE_FLOOR
+    assert np.isnan(wall_texture([view], [np.zeros((H, W), np.uint8)]))  # no wall seen
+
+
+@pytest.mark.parametrize(("texture", "local"), [(None, True), (TextureConfig(family="smooth", variant="pvc", contrast=0.15), False)])
+def test_a_plain_wall_keeps_the_clahed_views_for_its_flow(tmp_path, texture, local: bool) -> None:
+    """With ``features.flow_plain`` on, a run whose wall is plain (paper-small's rig,
+    a pvc wall of contrast 0.15) keeps the CLAHE'd views for its flow; the paper's
+    textured wall reads the local contrast; with it off nothing is measured."""
+    sc = make_scenario("paper-small", frames=2, seed=1)
+    if texture is not None:
+        sc.texture = texture
+    sc.sensors = replace(sc.sensors, odometry=False, imu=False)
+    simulate(sc, tmp_path / "ds", workers=1)
+    ds = open_dataset(tmp_path / "ds")
+    cfg = ReconstructConfig.default()
+    frames = [ds.read_frame(i) for i in range(len(ds))]
+    inputs = sfm.SfmInputs.of_dataset(ds, laser.run(cfg.laser, ds.rig, iter(frames)))
+    on = replace(cfg.sfm, features=replace(cfg.sfm.features, flow_plain=True))
+    assert _flow_views(on, inputs).features.flow_plain == local
+    off = replace(cfg.sfm, features=replace(cfg.sfm.features, flow_plain=False))
+    assert _flow_views(off, replace(inputs, read_frame=None)) is off

@@ -61,7 +61,8 @@ class FeatureConfig:
             default): those levels read the CLAHE'd views high-passed. Off because the
             run's scale decisions downstream were tuned on the lagging tracks: on, the
             robustness bench gained on 11 seeds and lost on 11 (benchmarks/RESULTS.md,
-            feat23's entry).
+            feat23's and feat24's entries). On, a run whose wall is plain keeps the
+            CLAHE'd views (:func:`omnipipe.sfm.pipeline.run`, the texture floor).
     """
 
     views: int = bounded(8, ge=1)

@@ -52,6 +52,8 @@ from omnipipe.sfm.adjusted_steps import confirm_adjusted
 from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_frames, wall_resolved
 from omnipipe.sfm.creep_odometry import place_odometry_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
+from omnipipe.sfm.features import FeatureExtractor
+from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR, wall_texture
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import follow_keyframes
 from omnipipe.sfm.path_smooth import smooth_path
@@ -145,7 +147,7 @@ def _run(
     executor: Executor | None,
 ) -> SfmResult:
     """:func:`run` with the poses estimated here (not given)."""
-    ctx = _context(config, inputs, executor)
+    ctx = _context(_flow_views(config, inputs), inputs, executor)
     with ImageStore() as grays:  # keyframe grey images, on disk until the run is decided
         # Steps 1-3: stations, keyframes and their relative motions; each step's two
         # scale measurements (step 4) in the workers.
@@ -335,6 +337,28 @@ def _add_gravity(
     )
     if gravity is not None:
         result.gravity_world, result.gravity_sigma_rad = gravity
+
+
+def _flow_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
+    """``config`` with ``features.flow_plain`` off when the wall is plain: its views'
+    local contrast before CLAHE (:func:`~omnipipe.sfm.flow_contrast.wall_texture`, the
+    median over the first, middle and last frames) below
+    :data:`~omnipipe.sfm.flow_contrast.TEXTURE_FLOOR`. The local contrast would stretch
+    such a wall's shading and noise into tracks it cannot hold (robustness seeds 10, 19,
+    28: refused on CLAHE'd views, 5-79 mm per 300 mm on the local contrast); on CLAHE'd
+    views a plain wall is refused without odometry and bridged by it."""
+    if not config.features.flow_plain or not config.tracking.enabled:
+        return config
+    extractor = FeatureExtractor(camera_from_rig(inputs.rig), config.features)
+    rings, n = inputs.rings.rings, inputs.n_frames
+    spreads = []
+    for i in sorted({0, n // 2, n - 1}):
+        views = extractor.frame_views(inputs.read_frame(i), inputs.rig.laser.channel, rings[i].pixels)
+        spreads.append(wall_texture(views.plain, views.masks))
+    finite = [v for v in spreads if math.isfinite(v)]
+    if finite and float(np.median(finite)) >= TEXTURE_FLOOR:
+        return config
+    return replace(config, features=replace(config.features, flow_plain=False))
 
 
 def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) -> SfmContext:
