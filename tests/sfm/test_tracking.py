@@ -19,6 +19,7 @@ from omnipipe.sfm.tracking import (
     TrackChain,
     TrackConfig,
     Tracks,
+    _lk,
     corner_features,
     flow_images,
     spread_order,
@@ -515,3 +516,36 @@ def test_the_budget_keeps_the_carried_tracks_then_spreads_the_new_features() -> 
     squares = {(int(view[i]), int(px[i, 0] // 50), int(px[i, 1] // 50)) for i in spread[120:]}
     assert len(squares) == 64
     assert np.array_equal(budget(300, features, TrackConfig(max_points=200)), np.unique(np.linspace(0, 299, 200).round().astype(int)))
+
+
+def test_lucas_kanade_without_the_error_pass_is_opencvs_with_it() -> None:
+    """``_lk`` asks OpenCV for the windows' eigenvalues instead of their error (one pass
+    less) and redoes the error pass's bound check: positions and status as OpenCV's
+    plain call to the bit, also for tracks that end a window or more outside the image."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    config = TrackConfig()
+    win = (config.window_px, config.window_px)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    outside = 0
+    for _ in range(40):
+        h, w = (int(v) for v in rng.integers(40, 200, 2))
+        a = cv2.GaussianBlur(rng.integers(0, 255, (h, w), dtype=np.uint8), (0, 0), float(rng.uniform(0.8, 4)))
+        shift = np.float32([[1, 0, rng.uniform(-25, 25)], [0, 1, rng.uniform(-25, 25)]])
+        b = cv2.warpAffine(a, shift, (w, h), borderMode=cv2.BORDER_REFLECT)
+        q0 = np.column_stack([rng.uniform(-5, w + 5, 200), rng.uniform(-5, h + 5, 200)]).astype(np.float32).reshape(-1, 1, 2)
+        start = None if rng.integers(0, 2) else q0 + rng.uniform(-40, 40, q0.shape).astype(np.float32)
+        levels = int(rng.integers(0, 4))
+        flags = 0 if start is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+        ref, st, _ = cv2.calcOpticalFlowPyrLK(
+            a, b, q0, None if start is None else start.copy(), winSize=win, maxLevel=levels, criteria=criteria, flags=flags
+        )
+        p1, ok = _lk(a, b, q0, start, levels, config)
+        assert np.array_equal(p1, ref) and np.array_equal(ok, st.ravel() == 1)
+        _, st_eig, _ = cv2.calcOpticalFlowPyrLK(
+            a, b, q0, None if start is None else start.copy(), winSize=win, maxLevel=levels, criteria=criteria,
+            flags=flags | cv2.OPTFLOW_LK_GET_MIN_EIGENVALS,
+        )
+        outside += int(np.sum((st_eig.ravel() == 1) & (st.ravel() == 0)))
+    assert outside > 0  # OpenCV's flag alone keeps tracks the error pass fails: the check is needed
