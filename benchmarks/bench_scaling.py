@@ -18,7 +18,11 @@ acceptance: frames/s within 20 %, peak RSS within 30 % from 600 to 2400 frames; 
 27: within 20 % and 10 % from 1,000 to 10,000). ``--steps`` also prints the peak
 resident memory of the reconstructing process during each step (VmRSS sampled every
 10 ms by a thread; the steps are the functions of :data:`STEPS`, timed by wrapping them)
-per run length: where the memory that grows with the run is held. It only measures.
+per run length: where the memory that grows with the run is held. A run in which numba
+compiled omnipipe's kernels (its cache cold for them, as after a checkout or an edit of a
+kernels module) is measured again: the compiler's memory stays in the process (the
+windowed bundle adjustment of a long run, which a short run does not use, compiled its
+kernels at the camera motion's high-water mark). It only measures.
 """
 
 from __future__ import annotations
@@ -164,6 +168,24 @@ def _held_arrays(top: int = 12) -> list[str]:
     return [f"total {total:.1f} MB in {len(items)} arrays"] + [f"{n / 2**20:6.1f} MB {what}" for n, what in items[:top]]
 
 
+def _compiled() -> list[str]:
+    """omnipipe's numba kernels this process compiled rather than loaded from numba's
+    cache (``module.function``). A compile leaves LLVM's memory in the process (a
+    windowed bundle adjustment's first call compiling its kernels: ~60-80 MB more under
+    the camera motion's high-water mark, benchmarks/RESULTS.md): such a run's peak is the
+    cold cache's, not the run length's."""
+    from numba.core.registry import CPUDispatcher
+
+    out = set()
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("omnipipe"):
+            continue
+        for value in list(vars(mod).values()):
+            if isinstance(value, CPUDispatcher) and sum(value.stats.cache_misses.values()):
+                out.add(f"{value.py_func.__module__}.{value.py_func.__name__}")
+    return sorted(out)
+
+
 def _child(
     dataset: str, workers: int | None, write_to: str | None, steps: bool = False, held: tuple[str, ...] = ()
 ) -> None:
@@ -207,6 +229,7 @@ def _child(
                 "steps_where": None if peaks is None else dict(peaks.where),
                 "steps_hwm": None if peaks is None else dict(peaks.hwm),
                 "held": None if peaks is None else dict(peaks.held),
+                "compiled": _compiled(),
             }
         )
     )
@@ -297,6 +320,19 @@ def _measure(
         print(f"{path.name}: reconstruct failed: {done.stderr.strip().splitlines()[-1:]}")
         return None
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _measure_warm(
+    path: Path, workers: int | None, write: bool, steps: bool = False, held: tuple[str, ...] = ()
+) -> dict | None:
+    """:func:`_measure`, again when numba compiled kernels in that process (its cache was
+    cold for them: their compiler's memory is in its peak); the second run loads them."""
+    row = _measure(path, workers, write, steps, held)
+    if row is not None and row.get("compiled"):
+        print(f"{path.name}: numba compiled {len(row['compiled'])} kernels in this run (cold cache: "
+              f"peak RSS {row['rss_mb']:.0f} MB; {', '.join(row['compiled'][:4])}...): measured again", flush=True)
+        row = _measure(path, workers, write, steps, held)
+    return row
 
 
 def _print_row(kind: str, row: dict) -> None:
@@ -416,7 +452,7 @@ def main() -> None:
                 video, decoded = _video(path, args.decoded_png)
                 inputs += [("mjpg", video)] + ([("mjpg-png", decoded)] if args.decoded_png else [])
             for kind, source in inputs:
-                row = _measure(source, args.workers, args.write, args.steps, tuple(filter(None, args.held.split(","))))
+                row = _measure_warm(source, args.workers, args.write, args.steps, tuple(filter(None, args.held.split(","))))
                 if row is not None:
                     rows[kind].append(row)
                     _print_row(kind, row)

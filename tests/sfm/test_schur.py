@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ProcessPoolExecutor
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
+from omnipipe.executor import InlineExecutor
 from omnipipe.sfm.bundle import BundleObjective
-from omnipipe.sfm.schur import _damped_step, soft_l1_cost, solve
+from omnipipe.sfm.schur import _damped_step, soft_l1_cost, solve, warm_in_worker, warm_kernels
 
 
 def test_damped_step_solves_the_full_damped_system() -> None:
@@ -154,3 +157,35 @@ def test_reduced_system_from_the_jacobian_is_the_normal_matrix_split() -> None:
     ref = _Reduced.from_normal_matrix(*_robust_normal_equations(J2, r2, 1.5), n_pose)
     H2, _ = _robust_normal_equations(J2, r2, 1.5)
     assert np.array_equal(mixed.V, ref.V) and np.array_equal(mixed.times(dx), H2 @ dx)
+
+
+class _RecordingPool(ProcessPoolExecutor):
+    """A local pool that runs each submitted task here (no process started) and notes it."""
+
+    def __init__(self) -> None:
+        super().__init__(max_workers=1)
+        self.tasks: list[str] = []
+
+    def submit(self, fn, /, *args, **kwargs):  # type: ignore[override]
+        self.tasks.append(fn.__name__)
+        done: Future = Future()
+        done.set_result(fn(*args, **kwargs))
+        return done
+
+
+def test_the_kernels_are_warmed_by_a_local_pools_worker_only() -> None:
+    """A local pool is given the warm-up (its workers share this machine's numba cache);
+    inline and other executors are not (this process compiles as it did); the warm-up
+    solves its two-point problem with the bundle adjustment's argument types."""
+    pool = _RecordingPool()
+    warm_in_worker(pool)
+    assert pool.tasks == ["warm_kernels"]
+    pool.shutdown()
+    inline = InlineExecutor()
+    warm_in_worker(inline)  # nothing submitted: would run here
+    assert warm_kernels() >= 2
+    from omnipipe.sfm import _kernels
+
+    # The bundle's Jacobian has int32 indices (BundleObjective): the signature it loads.
+    assert any(str(sig[0].dtype) == "int32" for sig in _kernels.robust_blocks.signatures)
+    assert _kernels.schur_blocks.signatures and _kernels.hessian_times.signatures

@@ -50,6 +50,7 @@ from omnipipe.sfm.ring_axis import (
     ring_offsets,
 )
 from omnipipe.sfm.scale_check import UnreliableStretch
+from omnipipe.sfm.schur import warm_in_worker
 from omnipipe.sfm.tasks import laser_matches
 from omnipipe.sfm.types import (
     Anchor,
@@ -188,6 +189,8 @@ def _adjust_windows(ctx: SfmContext, world_from_kf: np.ndarray, obs: _Observatio
     tick = phase("bundle", 3 * len(windows))
     if len(windows) > 1 and config.solver == "auto":
         config = replace(config, solver="schur")  # see BundleConfig.solver
+    if config.solver == "schur":
+        warm_in_worker(ctx.executor)  # its kernels compiled by a worker, not here
     for w, (s, e, fixed) in enumerate(windows):
         init = adjusted[s:e].copy()
         if w > 0:

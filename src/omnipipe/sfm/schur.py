@@ -19,6 +19,7 @@ ratio of the actual to the predicted reduction (Nielsen 1999).
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from omnipipe.errors import ShapeError
+from omnipipe.executor import shares_files
 from omnipipe.sfm._kernels import hessian_times, robust_blocks, schur_blocks
 
 
@@ -100,6 +102,33 @@ def solve(
         if converged or not step_taken:  # done, or the cap was reached mid-search
             break
     return LmResult(state.x, state.r, state.cost, state.nfev, converged)
+
+
+def warm_kernels() -> int:
+    """Compile :func:`solve`'s numba kernels (or load them from numba's cache) by solving a
+    two-point problem with the argument types of a bundle adjustment's (CSR Jacobian with
+    int32 indices); the evaluations it took. Executor task of :func:`warm_in_worker`."""
+    n_pose, n_pts = 6, 2
+    cols = np.concatenate([np.tile(np.arange(6), (8, 1)), n_pose + 3 * (np.arange(8) // 4)[:, None] + np.arange(3)], 1)
+    data = np.cos(np.arange(cols.size, dtype=float)) + 2.0
+    J = sp.csr_matrix((data, cols.reshape(-1).astype(np.int32), np.arange(0, cols.size + 1, 9, dtype=np.int32)),
+                      shape=(8, n_pose + 3 * n_pts))
+    b = np.sin(np.arange(8, dtype=float))
+    return solve(lambda x: J @ x - b, lambda x: J, np.zeros(J.shape[1]), n_pose, max_nfev=3).nfev
+
+
+def warm_in_worker(executor: Executor) -> None:
+    """Have a worker of a local pool (``executor``) compile :func:`solve`'s kernels first
+    (:func:`warm_kernels`), so that this process loads them from numba's cache, which the
+    worker filled, instead of compiling them here: a compile leaves the compiler's
+    memory in the process (~90 MB at a long run's first window, at the camera motion's
+    high-water mark; benchmarks/RESULTS.md), a load ~15 MB. Only runs long enough for
+    windowed adjustments use these kernels, so a cold cache (after an install or an edit
+    of :mod:`omnipipe.sfm._kernels`) made a long run's peak higher than a short one's.
+    Nothing on other executors (inline: this process compiles; a cluster's workers may
+    not share this machine's cache). Results are unchanged (the same compiled code)."""
+    if shares_files(executor):
+        executor.submit(warm_kernels).result()
 
 
 @dataclass
