@@ -56,6 +56,10 @@ harmonic is fitted there)."""
 
 IRLS_PASSES = 6
 
+RING_POINTS = 720
+"""At most this many of a ring's points (every n-th along it) enter the field: half a
+degree apart, finer than any ovality's blend; full-size rings hold several thousand."""
+
 MIN_NODE_SHARE = 0.5
 """A node measures the wall with at least this share of the span's median points within
 half a node spacing of it (random-features seed 30's square rings 12 mm apart leave
@@ -121,6 +125,7 @@ def ovality_field(
         use = on[~exclude[on]]
         if len(use) < MIN_RING_POINTS:
             continue
+        use = use[:: -(-len(use) // RING_POINTS)]  # every n-th: at most RING_POINTS a ring
         reach_j = float(np.percentile(np.abs(sigma[use] - centres[j]), 95))
         # A ring reaching far along the axis is square to a pipe the centreline runs
         # obliquely through (:mod:`.ring_tilt`): about that axis the wall is no field of s.
@@ -182,20 +187,19 @@ def _window(
     vals = np.stack([1 - w1, w1, (1 - w1) * c2, w1 * c2, (1 - w1) * s2, w1 * s2, np.cos(th), np.sin(th)], axis=1).ravel()
     design = sparse.csr_matrix((vals, (rows, cols)), shape=(n, 3 * g + 2 * k))
     d2 = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(g - 2, g))
-    reg = sparse.block_diag([d2, d2, d2, sparse.csr_matrix((0, 2 * k))], format="csr")
+    reg = sparse.block_diag([d2, d2, d2], format="csr")
     penalty = (SMOOTHING**2) * (reg.T @ reg).toarray()
     w = np.ones(n)
     x = np.zeros(3 * g + 2 * k)
-    normal = penalty
+    reduced = penalty
     for _ in range(IRLS_PASSES):
         aw = design.multiply(w[:, None]).tocsr()
-        normal = (design.T @ aw).toarray() + penalty
-        x = np.linalg.lstsq(normal, aw.T @ r, rcond=None)[0]
+        x, reduced = _solve((design.T @ aw).tocsr(), aw.T @ r, penalty)
         z = (r - design @ x) / loss
         w = 1.0 / np.sqrt(1.0 + z * z)
     res = r - design @ x
     spread = 1.4826 * float(np.median(np.abs(res)))
-    cov = np.linalg.pinv(normal) * spread**2
+    cov = np.linalg.pinv(reduced, hermitian=True) * spread**2
     core_at = np.arange(n0, n0 + len(core))
     c0, a2, b2 = x[core_at], x[g + core_at], x[2 * g + core_at]
     var2 = 0.5 * (cov[g + core_at, g + core_at] + cov[2 * g + core_at, 2 * g + core_at])
@@ -207,6 +211,32 @@ def _window(
     asig = np.minimum(np.degrees(0.5 * np.sqrt(var2) / np.maximum(np.sqrt(raw2), 1e-9)), 180.0 / math.sqrt(12.0))
     near = np.abs(s[:, None] - core[None, :]) <= 0.5 * NODE_MM
     return ov, osig, angle, asig, near.sum(axis=0).astype(float)
+
+
+def _solve(normal: sparse.csr_matrix, rhs: np.ndarray, penalty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The window's normal equations (the field's 3G parameters, then two per ring; the
+    rings' 2 x 2 blocks apart from each other) with ``penalty`` on the field's: the rings'
+    parameters eliminated (Schur complement). Returns (every parameter, the field's
+    reduced normal matrix)."""
+    nf = penalty.shape[0]
+    aff = normal[:nf, :nf].toarray() + penalty
+    afr = normal[:nf, nf:].toarray()
+    rr = normal[nf:, nf:]
+    a, d, b = rr.diagonal()[0::2], rr.diagonal()[1::2], rr.diagonal(1)[0::2]
+    det = np.where(np.abs(a * d - b * b) > 1e-12, a * d - b * b, 1e-12)
+    m = np.empty_like(afr)  # afr times the rings' inverse blocks
+    m[:, 0::2] = (afr[:, 0::2] * d - afr[:, 1::2] * b) / det
+    m[:, 1::2] = (afr[:, 1::2] * a - afr[:, 0::2] * b) / det
+    reduced = aff - m @ afr.T
+    try:
+        xf = np.linalg.solve(reduced, rhs[:nf] - m @ rhs[nf:])
+    except np.linalg.LinAlgError:
+        xf = np.linalg.pinv(reduced, hermitian=True) @ (rhs[:nf] - m @ rhs[nf:])
+    t = rhs[nf:] - afr.T @ xf
+    xr = np.empty_like(t)
+    xr[0::2] = (d * t[0::2] - b * t[1::2]) / det
+    xr[1::2] = (a * t[1::2] - b * t[0::2]) / det
+    return np.concatenate([xf, xr]), reduced
 
 
 def field_stretches(
