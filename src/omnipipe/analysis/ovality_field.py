@@ -283,6 +283,7 @@ def field_stretches(
                     angle_deg=(0.5 * math.degrees(float(np.angle(np.mean(z))))) % 180.0,
                     angle_sigma_deg=float(np.median(field.angle_sigma_deg[sel])),
                     truncated=i == first or j == last,
+                    along_rings=True,
                 )
             )
         i = j + 1
