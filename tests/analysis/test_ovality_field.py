@@ -70,3 +70,24 @@ def test_round_pipe_has_no_stretch() -> None:
         inside = (field.axial_mm >= centres.min()) & (field.axial_mm <= centres.max())
         assert np.nanmax(field.ovality[inside]) < 0.005, (seed, np.round(100 * field.ovality, 2))
         assert field_stretches(field, (float(centres.min()), float(centres.max())), 2.0, 2) == []
+
+
+def test_stretches_read_along_the_rings_stay_out_of_tapers_water_and_station_stretches() -> None:
+    """A field stretch is added only where the stations report no ovality, taper or water
+    stretch over it; it says it was read along the rings."""
+    from omnipipe.analysis.feature_types import Ovality, Taper, Water
+    from omnipipe.analysis.ovality_field import OvalityField, with_field_ovality
+    from omnipipe.analysis.stations import SectionConfig
+
+    nodes = np.arange(-100.0, 1.0, 5.0)
+    ov = np.where((nodes >= -70) & (nodes <= -55), 0.04, 0.002)
+    ones = np.ones(len(nodes))
+    field = OvalityField(nodes, ov, 0.001 * ones, 4.0 * ones, 1.0 * ones, 500.0 * ones)
+    axial = np.arange(-100.0, 1.0, 8.0)
+    got = with_field_ovality([], field, axial, SectionConfig())
+    assert len(got) == 1 and got[0].along_rings and abs(got[0].percent - 4.0) < 1e-6, got
+    taper = Taper(axial_from_mm=-80.0, axial_to_mm=-60.0, diameter_from_mm=200.0, diameter_to_mm=190.0)
+    water = Water(axial_from_mm=-65.0, axial_to_mm=-20.0, depth_mm=20.0)
+    station = Ovality(axial_from_mm=-58.0, axial_to_mm=-40.0, percent=3.0, angle_deg=4.0)
+    for other in (taper, water, station):
+        assert with_field_ovality([other], field, axial, SectionConfig()) == [other]
