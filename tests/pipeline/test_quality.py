@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -90,22 +89,6 @@ def test_features_in_a_stretch_are_flagged() -> None:
     assert len(warnings) == 2 and "joint at 175 mm" in warnings[0]
     assert flagged[1].to_contract()["motion_unreliable"] is True
     assert "motion_unreliable" not in flagged[0].to_contract()
-
-
-def test_ovality_read_along_the_rings_in_a_stretch_is_dropped() -> None:
-    """An ovality stretch only the rings' axial placement shows (``along_rings``) is not
-    reported where that placement is untrusted; elsewhere it stands, and a station
-    stretch there is flagged as before."""
-    quality = TrajectoryQuality(
-        steps_checked=3, unreliable=(UnreliableSpan(10, 14, "x", axial_start_mm=160.0, axial_end_mm=170.0),)
-    )
-    inside = Ovality(axial_from_mm=158.0, axial_to_mm=163.0, percent=2.7, angle_deg=20.0, along_rings=True)
-    outside = Ovality(axial_from_mm=60.0, axial_to_mm=80.0, percent=4.0, angle_deg=20.0, along_rings=True)
-    station = Ovality(axial_from_mm=150.0, axial_to_mm=165.0, percent=4.0, angle_deg=30.0)
-    flagged, warnings = flag_features((outside, inside, station), quality)
-    assert flagged == (outside, replace(station, motion_unreliable=True))
-    assert len(warnings) == 2 and "2.7 % read along the rings at 158 mm" in warnings[0]
-    assert flagged[0].to_contract()["along_rings"] is True and "along_rings" not in flagged[1].to_contract()
 
 
 def test_collapsed_stretch_counts_its_expected_length() -> None:

@@ -172,17 +172,13 @@ class Taper(Stretch):
 @dataclass(frozen=True, kw_only=True)
 class Ovality(Stretch):
     """An out-of-round stretch: (Dmax - Dmin) / Dnominal x 100 = ``percent``, the major
-    axis at ``angle_deg`` (modulo 180); ``along_rings``: read from the rings' points at
-    their own axial positions only (:mod:`.ovality_field`: shorter than the rings'
-    footprint, no station's own section shows it), so it rests on the camera motion's
-    placement of neighbouring rings along the pipe."""
+    axis at ``angle_deg`` (modulo 180)."""
 
     kind: ClassVar[str] = "ovality"
     percent: float
     percent_sigma: float | None = None
     angle_deg: float
     angle_sigma_deg: float | None = None
-    along_rings: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)

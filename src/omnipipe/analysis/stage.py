@@ -42,7 +42,6 @@ from omnipipe.analysis.headline import (
     tilt_corrected,
     with_ring_terms,
 )
-from omnipipe.analysis.ovality_field import stage_field_ovality
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs, AnalysisResult, section_config
 from omnipipe.analysis.station_profiles import ring_groups
 from omnipipe.analysis.stations import EdgeReach, Station, with_water
@@ -94,7 +93,9 @@ def run(
     # Terms the fit cannot see: radial errors shared by whole rings, the ring's blur.
     radial_sys = config.systematic_radius_factor * search.noise_mm
     cal = float(inputs.calibration_sigma_rel)
-    defects, unmeasured = measured_only(with_systematics(config, search, cal, (inputs.ring_blur_mm, inputs.axial_blur_mm)))
+    defects, unmeasured = measured_only(
+        with_systematics(config, search, cal, (inputs.ring_blur_mm, inputs.axial_blur_mm))
+    )
     st_list, shared = with_ring_terms(config, inputs, frame, len(poses), stations, radial_sys, diameter)
     sec_config = section_config(config)
     # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
@@ -104,8 +105,6 @@ def run(
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
     st_list, shared = tilt_corrected(st_list, shared, line, pts, frame, measured, radial_sys)
     st_list, features, head = sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing)
-    # Ovality stretches the stations miss, each point at its own axial position (:mod:`.ovality_field`).
-    features = stage_field_ovality(features, (frame, measured, stations.axial), (theta, rho, sigma, feats.not_wall), config, sec_config)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = run_water(st_list) if wet else (None, None)
     ovality = np.array([st.ovality for st in st_list])  # as measured (ring_tilt)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from omnipipe.analysis.feature_types import Bend, Feature, Ovality, PointFeature, Stretch
+from omnipipe.analysis.feature_types import Bend, Feature, PointFeature, Stretch
 from omnipipe.analysis.ring_spans import RingSpans
 from omnipipe.contract import Defect, RotationCheck, TrajectoryQuality, UnreliableSpan
 from omnipipe.errors import ReconstructionError
@@ -152,9 +152,7 @@ def flag_features(
     """The pipe's features, those within 3 sigma of (point features) or overlapping
     (stretches) an unreliable stretch flagged ``motion_unreliable``; one warning per
     flagged feature. Their positions and axial sizes rest on untrusted motion. Bends'
-    turns carry the motion's rotation error the gyro shows (:func:`bend_with_rotation`).
-    An ovality stretch read along the rings only (``along_rings``) in such a stretch is
-    dropped (with a warning): it rests on the rings' untrusted axial placement."""
+    turns carry the motion's rotation error the gyro shows (:func:`bend_with_rotation`)."""
     out: list[Feature] = []
     warnings = []
     for f in features:
@@ -169,15 +167,6 @@ def flag_features(
             out.append(f)
             continue
         u = _overlaps_unreliable(start, end, quality)
-        if u is not None and isinstance(f, Ovality) and f.along_rings:
-            # Read from neighbouring rings at their axial positions only: with those
-            # positions untrusted it is no measurement (random-features seed 9's 2.7 %
-            # at 24-29 mm, a round pipe, read so under the estimated motion).
-            warnings.append(
-                f"an ovality of {f.percent:.1f} % read along the rings at {f.position_mm:.0f} mm lies in frames "
-                f"{u.first_frame}-{u.last_frame}, whose motion is unreliable: not reported"
-            )
-            continue
         if u is not None:
             f = replace(f, motion_unreliable=True)
             warnings.append(
