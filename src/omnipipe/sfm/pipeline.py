@@ -52,10 +52,10 @@ from omnipipe.sfm.adjusted_steps import confirm_adjusted
 from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_frames, wall_resolved
 from omnipipe.sfm.creep_odometry import place_odometry_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
-from omnipipe.sfm.features import FeatureExtractor
-from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR, wall_texture
+from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import follow_keyframes
+from omnipipe.sfm.motion_trust import run_texture, untrusted_motions
 from omnipipe.sfm.path_smooth import smooth_path
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.ring_follow import add_ring_follow
@@ -153,6 +153,9 @@ def _run(
         # scale measurements (step 4) in the workers.
         ratio = _station_ratio(inputs)
         followed = follow_keyframes(ctx, inputs, grays, progress, ratio)
+        # Steps whose relative motion a plain wall's few matches cannot hold: lost, with
+        # or without the robot's sensors (sfm.motion_trust).
+        untrusted_motions(ctx, inputs, followed)
         kf = followed.keyframes
         # Step 4: every step's length decided with the whole run's evidence (the two
         # sources' systematic offset), then chained.
@@ -349,14 +352,7 @@ def _flow_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
     views a plain wall is refused without odometry and bridged by it."""
     if not config.features.flow_plain or not config.tracking.enabled:
         return config
-    extractor = FeatureExtractor(camera_from_rig(inputs.rig), config.features)
-    rings, n = inputs.rings.rings, inputs.n_frames
-    spreads = []
-    for i in sorted({0, n // 2, n - 1}):
-        views = extractor.frame_views(inputs.read_frame(i), inputs.rig.laser.channel, rings[i].pixels)
-        spreads.append(wall_texture(views.plain, views.masks))
-    finite = [v for v in spreads if math.isfinite(v)]
-    if finite and float(np.median(finite)) >= TEXTURE_FLOOR:
+    if run_texture(config, inputs) >= TEXTURE_FLOOR:
         return config
     return replace(config, features=replace(config.features, flow_plain=False))
 

@@ -162,7 +162,8 @@ def decide_step(ctx: SfmContext, kf: Keyframes, k: int, offset_log: float) -> De
 
 
 def _unmeasured_step(ev: StepEvidence) -> DecidedStep:
-    """A rotation (trusted, no translation) or a lost step (no relative motion)."""
+    """A rotation (trusted, no translation) or a lost step (no relative motion, or one
+    not trusted: its ``lost_reason``)."""
     rotation = ev.status == "rotation"
     check = StepCheck(
         ev.a,
@@ -170,10 +171,10 @@ def _unmeasured_step(ev: StepEvidence) -> DecidedStep:
         math.nan,
         0.0,
         math.nan,
-        0,
+        ev.feature_matches,
         0.0 if rotation else math.nan,
         "high" if rotation else "none",
-        "" if rotation else "relative motion not found",
+        "" if rotation else ev.lost_reason or "relative motion not found",
     )
     return DecidedStep(ev.b_from_a.copy(), 0.0, ev.inliers, None, check)
 

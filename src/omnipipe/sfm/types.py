@@ -264,6 +264,8 @@ class StepEvidence:
             relative motion).
         tracked: True when the matches were verified by tracks followed frame to frame
             (:mod:`omnipipe.sfm.tracking`: no period of a periodic wall skipped).
+        lost_reason: why a ``"lost"`` step's relative motion is not used when one was
+            found (:func:`omnipipe.sfm.motion_trust.untrusted_motions`); empty: none found.
     """
 
     a: int
@@ -276,6 +278,7 @@ class StepEvidence:
     feature_matches: int
     status: str
     tracked: bool = False
+    lost_reason: str = ""
 
     @classmethod
     def unmeasured(
