@@ -215,3 +215,36 @@ def test_plain_wall_steps_the_stationary_test_misses_are_flagged(tmp_path: Path)
     wrong = (err > 1.0) | ((err > 0.2 * lt) & (lt >= 2.0))
     assert wrong.any() and not (wrong & ~flagged).any(), (le, lt, flagged)
     assert any("cannot rule out" in u.reason for u in result.unreliable)
+
+
+def test_a_faint_wall_s_few_match_steps_are_lost_with_and_without_sensors(tmp_path: Path) -> None:
+    """A faint smooth wall (contrast 0.3, local contrast 0.37 below the texture floor): a
+    keyframe step whose relative motion rests on fewer than 100 inliers is not trusted,
+    the same step with or without the robot's sensors (sfm.motion_trust). Without them it
+    is flagged; with them its length is bridged from the odometry, within 2 of its
+    sigmas of the truth."""
+    sc = make_scenario("paper-small", frames=12, seed=4)
+    sc.texture = TextureConfig(family="smooth", variant="pvc", contrast=0.3)
+    simulate(sc, tmp_path / "ds", workers=2)
+    ds = open_dataset(tmp_path / "ds")
+    assert ds.odometry is not None
+    cfg = ReconstructConfig.default()
+    frames = [ds.read_frame(i) for i in range(len(ds))]
+    rings = laser.run(cfg.laser, ds.rig, iter(frames))
+    _, true = read_tum(tmp_path / "ds" / "ground_truth" / "poses.txt")
+    lost = {}
+    for sensors in (False, True):
+        d = ds if sensors else replace(ds, odometry=None, imu=None)
+        result = sfm.run(cfg.sfm, replace(sfm.SfmInputs.of_dataset(d, rings), read_frame=lambda i: frames[i]))
+        untrusted = [c for c in result.step_checks if c.reason.startswith("relative motion not trusted")]
+        lost[sensors] = [(c.first_frame, c.last_frame) for c in untrusted]
+        flagged = np.zeros(len(ds), bool)  # step i -> i + 1
+        for u in result.unreliable:
+            flagged[u.first_frame : u.last_frame] = True
+        for c in untrusted:
+            assert not c.reliable and flagged[c.first_frame : c.last_frame].all(), c
+            if sensors:
+                step = np.linalg.norm(true[c.last_frame, :3, 3] - true[c.first_frame, :3, 3])
+                assert c.bridged_from == "odometry", c
+                assert abs(c.bridged_mm - step) <= 2 * c.bridged_sigma_mm, (c, step)
+    assert lost[False] and lost[False] == lost[True], lost
