@@ -27,6 +27,7 @@ from omnipipe.sfm.robot_sensors import (
     odometry_disagreement,
 )
 from omnipipe.sfm.scale_check import (
+    TRACKED_MIN_MATCHES,
     ScaleCheckConfig,
     StepCheck,
     bent_wall,
@@ -249,7 +250,7 @@ def bridge_lost_steps(
     direction = np.median(np.array(trusted), axis=0) if len(trusted) >= 3 else np.array([0, 0, -1.0])
     direction = direction / max(np.linalg.norm(direction), 1e-12)
     for k, ev in enumerate(evidence):
-        if ev.status == "lost" and math.isfinite(lengths[k]):
+        if _direction_unmeasured(ev, checks[k]) and math.isfinite(lengths[k]):
             step = np.eye(4)
             step[:3, 3] = direction * lengths[k]
             steps_b_from_a[k] = step
@@ -257,6 +258,17 @@ def bridge_lost_steps(
                 # Only the length is known (random-wide plain walls with odometry, e.g.
                 # seed 34s: ATE 2.0 mm, 1.2 / 1.6 mm across the axis, 0.4 mm along it).
                 checks[k] = replace(checks[k], reason=f"{checks[k].reason}{LOST_DIRECTION}")
+
+
+def _direction_unmeasured(ev: StepEvidence, check: StepCheck) -> bool:
+    """A step without relative motion, or one bridged whose relative motion rests on
+    fewer than :data:`~omnipipe.sfm.scale_check.TRACKED_MIN_MATCHES` feature matches (a
+    plain wall's few corners: random-wide seed 34s, steps from 14 and 24 matches whose
+    directions, chained, folded the path to 35 mm for 44 mm of odometry; the laser ring
+    follows such steps: :func:`omnipipe.sfm.ring_follow.unmeasured`)."""
+    if ev.status == "lost":
+        return True
+    return ev.status == "ok" and bool(check.bridged_from) and check.feature_matches < TRACKED_MIN_MATCHES
 
 
 # Said of a step without relative motion whose length was bridged: its direction and
