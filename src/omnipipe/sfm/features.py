@@ -136,6 +136,54 @@ class FrameViews:
     plain: list[np.ndarray] | None = None
     flow: list[FlowImage] | None = None
 
+    def __getstate__(self) -> dict[str, object]:
+        """Pickled with the masks one bit a pixel when they hold only 0 and 255
+        (:func:`pack_masks`): the views go between processes (a worker's views to the
+        frame loop, a pending frame's to the worker that follows it back), and a third
+        of their bytes were the masks."""
+        state = dict(self.__dict__)
+        state["masks"] = pack_masks(self.masks)
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        state = dict(state)
+        state["masks"] = unpack_masks(state["masks"])
+        self.__dict__.update(state)
+
+
+@dataclass(frozen=True)
+class PackedMasks:
+    """Masks of 0 and 255 only, one bit a pixel (:func:`pack_masks`).
+
+    Attributes:
+        shapes: per mask its (height, width).
+        bits: per mask ``np.packbits`` of its pixels > 0, row-major.
+    """
+
+    shapes: list[tuple[int, ...]]
+    bits: list[np.ndarray]
+
+
+def pack_masks(masks: list[np.ndarray]) -> list[np.ndarray] | PackedMasks:
+    """``masks`` (uint8 images) as :class:`PackedMasks` when every one holds only 0 and
+    255 (those of :meth:`FeatureExtractor.frame_views`), else as they are;
+    :func:`unpack_masks` gives back the same arrays, value for value."""
+    if not all(isinstance(m, np.ndarray) and m.dtype == np.uint8 for m in masks):
+        return masks
+    if not all(np.count_nonzero(m) == np.count_nonzero(m == 255) for m in masks):
+        return masks
+    return PackedMasks([m.shape for m in masks], [np.packbits(m, axis=None) for m in masks])
+
+
+def unpack_masks(packed: list[np.ndarray] | PackedMasks) -> list[np.ndarray]:
+    """The masks :func:`pack_masks` was given (uint8, 0 and 255)."""
+    if not isinstance(packed, PackedMasks):
+        return packed
+    return [
+        np.unpackbits(b, count=math.prod(shape)).reshape(shape) * np.uint8(255)
+        for shape, b in zip(packed.shapes, packed.bits, strict=True)
+    ]
+
 
 class FeatureExtractor:
     """Builds the perspective views of one camera once and extracts features per frame."""
