@@ -199,3 +199,48 @@ def test_views_pickle_their_masks_one_bit_a_pixel_and_come_back_the_same() -> No
     assert pack_masks(grey) is grey
     again = pickle.loads(pickle.dumps(FrameViews(images, grey)))
     assert all(np.array_equal(a, b) for a, b in zip(grey, again.masks, strict=True))
+
+
+def test_view_masks_resample_the_laser_band_only_where_it_reaches_and_equal_the_whole_view() -> None:
+    """frame_views resamples a frame's laser band only in the view rows whose omni radii
+    it can reach (ViewMask.with_band): the masks equal those of resampling and eroding
+    every view whole, for rings, rings with gaps (chords inside the ring), scattered
+    points, one point and none."""
+    from omnipipe.sfm.features import FeatureExtractor
+    from omnipipe.sfm.tasks import camera_from_rig
+    from omnipipe.sim import make_scenario
+
+    rig = make_scenario("paper-small", frames=2, seed=0).rig
+    extractor = FeatureExtractor(camera_from_rig(rig))
+    cam = extractor.camera
+    rng = np.random.default_rng(11)
+    image = rng.integers(0, 255, (cam.height, cam.width, 3), np.uint8)
+
+    def whole(laser_pixels: np.ndarray | None) -> list[np.ndarray]:
+        mask = extractor.annulus.copy()
+        if laser_pixels is not None and len(laser_pixels):
+            pts = np.round(laser_pixels * 4).astype(np.int32).reshape(-1, 1, 2)
+            cv2.polylines(mask, [pts], False, 0, thickness=int(2 * extractor.config.laser_margin_px + 1), shift=2)
+        out = []
+        for mx, my, valid in extractor.maps:
+            vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
+            vmask[~valid] = 0
+            out.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
+        return out
+
+    cases: list[np.ndarray | None] = [None, np.zeros((0, 2)), np.array([[cam.cx + 0.5 * cam.radius_max, cam.cy]])]
+    for j in range(24):
+        k = int(rng.integers(2, 80))
+        if j % 4 == 0:  # anywhere in the image
+            cases.append(rng.uniform([0, 0], [cam.width, cam.height], size=(k, 2)))
+        else:  # a ring at some radius, its samples with gaps
+            ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+            r = rng.uniform(cam.radius_min - 10, cam.radius_max + 10) + rng.normal(0, 2, k)
+            cases.append(np.column_stack([cam.cx + r * np.cos(ang), cam.cy + r * np.sin(ang)]))
+    reached = 0
+    for laser_pixels in cases:
+        masks = extractor.frame_views(image, rig.laser.channel, laser_pixels).masks
+        expected = whole(laser_pixels)
+        assert all(np.array_equal(m, e) for m, e in zip(masks, expected, strict=True))
+        reached += sum(not np.array_equal(e, b.eroded) for e, b in zip(expected, extractor.view_masks, strict=True))
+    assert reached > 20  # the bands did cut the views
