@@ -175,3 +175,72 @@ def test_detection_scale_keeps_small_views_at_full_size() -> None:
     assert detection_scale(cfg, 131, 189) == 1.0
     assert detection_scale(FeatureConfig(detect_scale=1.0), 335, 484) == 1.0
     assert detection_scale(FeatureConfig(detect_min_side_px=100), 285, 398) == 0.5
+
+
+def test_views_pickle_their_masks_one_bit_a_pixel_and_come_back_the_same() -> None:
+    """FrameViews go between processes with their 0/255 masks packed (a third of their
+    bytes before); any other mask is sent as it is. Both come back value for value."""
+    import pickle
+
+    from omnipipe.sfm.features import FrameViews, PackedMasks, pack_masks
+
+    rng = np.random.default_rng(3)
+    images = [rng.integers(0, 256, (37, 29), dtype=np.uint8) for _ in range(3)]
+    masks = [np.where(rng.random((37, 29)) < 0.7, 255, 0).astype(np.uint8) for _ in range(3)]
+    masks.append(np.zeros((0, 5), np.uint8))
+    images.append(np.zeros((0, 5), np.uint8))
+    views = FrameViews(images, masks)
+    assert isinstance(pack_masks(masks), PackedMasks)
+    back = pickle.loads(pickle.dumps(views))
+    assert all(b.dtype == np.uint8 and np.array_equal(a, b) for a, b in zip(masks, back.masks, strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(images, back.images, strict=True))
+    assert views.masks is masks  # pickling leaves the object's own masks alone
+    grey = [m // 255 * 7 for m in masks]  # not 0/255: sent unpacked
+    assert pack_masks(grey) is grey
+    again = pickle.loads(pickle.dumps(FrameViews(images, grey)))
+    assert all(np.array_equal(a, b) for a, b in zip(grey, again.masks, strict=True))
+
+
+def test_view_masks_resample_the_laser_band_only_where_it_reaches_and_equal_the_whole_view() -> None:
+    """frame_views resamples a frame's laser band only in the view rows whose omni radii
+    it can reach (ViewMask.with_band): the masks equal those of resampling and eroding
+    every view whole, for rings, rings with gaps (chords inside the ring), scattered
+    points, one point and none."""
+    from omnipipe.sfm.features import FeatureExtractor
+    from omnipipe.sfm.tasks import camera_from_rig
+    from omnipipe.sim import make_scenario
+
+    rig = make_scenario("paper-small", frames=2, seed=0).rig
+    extractor = FeatureExtractor(camera_from_rig(rig))
+    cam = extractor.camera
+    rng = np.random.default_rng(11)
+    image = rng.integers(0, 255, (cam.height, cam.width, 3), np.uint8)
+
+    def whole(laser_pixels: np.ndarray | None) -> list[np.ndarray]:
+        mask = extractor.annulus.copy()
+        if laser_pixels is not None and len(laser_pixels):
+            pts = np.round(laser_pixels * 4).astype(np.int32).reshape(-1, 1, 2)
+            cv2.polylines(mask, [pts], False, 0, thickness=int(2 * extractor.config.laser_margin_px + 1), shift=2)
+        out = []
+        for mx, my, valid in extractor.maps:
+            vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
+            vmask[~valid] = 0
+            out.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
+        return out
+
+    cases: list[np.ndarray | None] = [None, np.zeros((0, 2)), np.array([[cam.cx + 0.5 * cam.radius_max, cam.cy]])]
+    for j in range(24):
+        k = int(rng.integers(2, 80))
+        if j % 4 == 0:  # anywhere in the image
+            cases.append(rng.uniform([0, 0], [cam.width, cam.height], size=(k, 2)))
+        else:  # a ring at some radius, its samples with gaps
+            ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+            r = rng.uniform(cam.radius_min - 10, cam.radius_max + 10) + rng.normal(0, 2, k)
+            cases.append(np.column_stack([cam.cx + r * np.cos(ang), cam.cy + r * np.sin(ang)]))
+    reached = 0
+    for laser_pixels in cases:
+        masks = extractor.frame_views(image, rig.laser.channel, laser_pixels).masks
+        expected = whole(laser_pixels)
+        assert all(np.array_equal(m, e) for m, e in zip(masks, expected, strict=True))
+        reached += sum(not np.array_equal(e, b.eroded) for e, b in zip(expected, extractor.view_masks, strict=True))
+    assert reached > 20  # the bands did cut the views

@@ -136,6 +136,54 @@ class FrameViews:
     plain: list[np.ndarray] | None = None
     flow: list[FlowImage] | None = None
 
+    def __getstate__(self) -> dict[str, object]:
+        """Pickled with the masks one bit a pixel when they hold only 0 and 255
+        (:func:`pack_masks`): the views go between processes (a worker's views to the
+        frame loop, a pending frame's to the worker that follows it back), and a third
+        of their bytes were the masks."""
+        state = dict(self.__dict__)
+        state["masks"] = pack_masks(self.masks)
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        state = dict(state)
+        state["masks"] = unpack_masks(state["masks"])
+        self.__dict__.update(state)
+
+
+@dataclass(frozen=True)
+class PackedMasks:
+    """Masks of 0 and 255 only, one bit a pixel (:func:`pack_masks`).
+
+    Attributes:
+        shapes: per mask its (height, width).
+        bits: per mask ``np.packbits`` of its pixels > 0, row-major.
+    """
+
+    shapes: list[tuple[int, ...]]
+    bits: list[np.ndarray]
+
+
+def pack_masks(masks: list[np.ndarray]) -> list[np.ndarray] | PackedMasks:
+    """``masks`` (uint8 images) as :class:`PackedMasks` when every one holds only 0 and
+    255 (those of :meth:`FeatureExtractor.frame_views`), else as they are;
+    :func:`unpack_masks` gives back the same arrays, value for value."""
+    if not all(isinstance(m, np.ndarray) and m.dtype == np.uint8 for m in masks):
+        return masks
+    if not all(np.count_nonzero(m) == np.count_nonzero(m == 255) for m in masks):
+        return masks
+    return PackedMasks([m.shape for m in masks], [np.packbits(m, axis=None) for m in masks])
+
+
+def unpack_masks(packed: list[np.ndarray] | PackedMasks) -> list[np.ndarray]:
+    """The masks :func:`pack_masks` was given (uint8, 0 and 255)."""
+    if not isinstance(packed, PackedMasks):
+        return packed
+    return [
+        np.unpackbits(b, count=math.prod(shape)).reshape(shape) * np.uint8(255)
+        for shape, b in zip(packed.shapes, packed.bits, strict=True)
+    ]
+
 
 class FeatureExtractor:
     """Builds the perspective views of one camera once and extracts features per frame."""
@@ -181,6 +229,9 @@ class FeatureExtractor:
         self.clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
         # The mirror's annulus, once (45 ms per frame at 1600x1200 when rebuilt per frame).
         self.annulus = camera.valid_mask().astype(np.uint8) * 255
+        self.view_masks = [
+            ViewMask.of(self.annulus, mx, my, valid, (camera.cx, camera.cy)) for mx, my, valid in self.maps
+        ]
 
     def extract(
         self, image: np.ndarray, laser_channel: str, laser_pixels: np.ndarray | None = None
@@ -195,21 +246,20 @@ class FeatureExtractor:
         feature masks; ``laser_pixels`` (M, 2) omni pixels are masked out."""
         cfg = self.config
         gray = _gray(image, laser_channel)
-        mask = self.annulus.copy()
+        mask, band = self.annulus, None
         if laser_pixels is not None and len(laser_pixels):
+            mask = self.annulus.copy()
             pts = np.round(laser_pixels * 4).astype(np.int32).reshape(-1, 1, 2)
-            cv2.polylines(
-                mask, [pts], False, 0, thickness=int(2 * cfg.laser_margin_px + 1), shift=2
-            )
+            thickness = int(2 * cfg.laser_margin_px + 1)
+            cv2.polylines(mask, [pts], False, 0, thickness=thickness, shift=2)
+            band = band_radii(pts.reshape(-1, 2) / 4.0, (self.camera.cx, self.camera.cy), 0.5 * thickness)
         images, masks, plain = [], [], []
-        for mx, my, valid in self.maps:
+        for (mx, my, valid), base in zip(self.maps, self.view_masks, strict=True):
             view = cv2.remap(gray, mx, my, cv2.INTER_LINEAR)
             images.append(self.clahe.apply(view))
             if cfg.flow_plain:
                 plain.append(view)
-            vmask = cv2.remap(mask, mx, my, cv2.INTER_NEAREST)
-            vmask[~valid] = 0
-            masks.append(cv2.erode(vmask, np.ones((5, 5), np.uint8)))
+            masks.append(base.with_band(mask, mx, my, valid, band))
         return FrameViews(images, masks, plain if cfg.flow_plain else None)
 
     def detect(self, views: FrameViews) -> FrameFeatures:
@@ -242,6 +292,84 @@ class FeatureExtractor:
         r, d, v, p = r[keep], d[keep], v[keep], p[keep]
         px, _ = cam.project(r)
         return FrameFeatures(r, px, d, v, p)
+
+
+# The views' masks are eroded by this square (px): features keep off the mask's edges.
+_ERODE = np.ones((5, 5), np.uint8)
+
+
+@dataclass(frozen=True)
+class ViewMask:
+    """One view's feature mask without the laser band, and the omni radii each of its
+    rows reads, so that a frame's laser band is resampled only in the rows it can reach
+    (:meth:`with_band`; the ring lies in a fifth of the rows of 1600x1200's views).
+
+    Attributes:
+        base: (h, w) uint8 the annulus (0 / 255) resampled into the view (nearest
+            pixel), 0 where the view sees no valid pixel.
+        eroded: ``base`` eroded by :data:`_ERODE`.
+        row_lo, row_hi: (h,) the smallest and largest distance (omni px) from the
+            mirror's centre of the pixels a row's nearest-pixel samples can come from
+            (each widened by 1 px); +inf / -inf in a row without a finite sample.
+    """
+
+    base: np.ndarray
+    eroded: np.ndarray
+    row_lo: np.ndarray
+    row_hi: np.ndarray
+
+    @classmethod
+    def of(cls, annulus: np.ndarray, mx: np.ndarray, my: np.ndarray, valid: np.ndarray, centre: tuple[float, float]) -> ViewMask:
+        """The view of maps ``mx``, ``my`` (h, w) float32 omni px and ``valid`` (h, w) bool
+        over the ``annulus`` (H, W) uint8 mask; ``centre`` (col, row) omni px."""
+        base = cv2.remap(annulus, mx, my, cv2.INTER_NEAREST)
+        base[~valid] = 0
+        r = np.hypot(mx.astype(float) - centre[0], my.astype(float) - centre[1])
+        finite = np.isfinite(r)
+        lo = np.where(finite, r, np.inf).min(axis=1) - 1.0
+        hi = np.where(finite, r, -np.inf).max(axis=1) + 1.0
+        return cls(base, cv2.erode(base, _ERODE), lo, hi)
+
+    def with_band(
+        self, mask: np.ndarray, mx: np.ndarray, my: np.ndarray, valid: np.ndarray, band: tuple[float, float] | None
+    ) -> np.ndarray:
+        """(h, w) uint8 the omni ``mask`` (the annulus with the frame's laser band cut
+        out) resampled like :attr:`base` and eroded by :data:`_ERODE`, the same pixels
+        as resampling the whole view: rows whose radii miss ``band`` (lowest, highest
+        radius the cut reaches, omni px; None: no cut) read the annulus alone, so they
+        are :attr:`eroded`'s rows (those within the erosion's reach of a resampled row
+        eroded again)."""
+        rows = np.zeros(0, int) if band is None else np.flatnonzero((self.row_hi >= band[0]) & (self.row_lo <= band[1]))
+        if len(rows) == 0:
+            return self.eroded.copy()
+        h = len(self.base)
+        r0, r1 = int(rows[0]), int(rows[-1]) + 1
+        full = self.base.copy()
+        part = cv2.remap(mask, mx[r0:r1], my[r0:r1], cv2.INTER_NEAREST)
+        part[~valid[r0:r1]] = 0
+        full[r0:r1] = part
+        reach = _ERODE.shape[0] // 2
+        a, b = max(r0 - reach, 0), min(r1 + reach, h)  # the rows the new ones can change
+        s0, s1 = max(a - reach, 0), min(b + reach, h)  # and every row those read
+        out = self.eroded.copy()
+        out[a:b] = cv2.erode(full[s0:s1], _ERODE)[a - s0 : b - s0]
+        return out
+
+
+def band_radii(points: np.ndarray, centre: tuple[float, float], half_width: float) -> tuple[float, float]:
+    """(lowest, highest) distance (px) from ``centre`` (col, row) that a polyline through
+    ``points`` (N, 2) px drawn ``2 half_width`` px thick can reach, widened by 2 px (the
+    drawing's rounding): each segment's nearest point to the centre, the farthest vertex."""
+    d = points - np.asarray(centre, float)
+    r = np.hypot(d[:, 0], d[:, 1])
+    near = float(r.min())
+    if len(d) > 1:
+        a, e = d[:-1], np.diff(d, axis=0)
+        ee = np.einsum("ij,ij->i", e, e)
+        t = np.clip(-np.einsum("ij,ij->i", a, e) / np.where(ee > 0, ee, 1.0), 0.0, 1.0)
+        closest = a + t[:, None] * e
+        near = min(near, float(np.hypot(closest[:, 0], closest[:, 1]).min()))
+    return near - half_width - 2.0, float(r.max()) + half_width + 2.0
 
 
 def concat_features(parts: list[FrameFeatures]) -> FrameFeatures:
