@@ -30,6 +30,7 @@ from omnipipe.analysis.stations import (
     Station,
     headline,
     headline_of_a_section,
+    ovality_scatter,
     with_deformation,
 )
 
@@ -136,6 +137,8 @@ def _with_shared_terms(
     """The stations and section features (ovality, tapers, ...) with the terms averaging
     the stations cannot remove: a ring-shape error shared by the run (``radial_sys`` mm
     in cos 2 theta) moves every station's ovality alike, by up to 4 radial_sys / D; the
+    rings' shapes scatter from station to station by more than their fits say
+    (:func:`.stations.ovality_scatter`, added to each station's ovality sigma); the
     diameter's shared part (``shared_diameter_mm``: the systematic ring radius, the
     peaks' sub-pixel bias, the rig calibration; as in the headline's sigma) moves both
     ends of a taper with every station, as it moves the headline; the sections each ring
@@ -144,7 +147,8 @@ def _with_shared_terms(
     takes its stations' median of them whole. The features are found on the stations
     without the mixing terms (a taper's own ramp is no noise), which are then added."""
     oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
-    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
+    scatter = ovality_scatter(st_list)  # the ring shapes' own scatter, each station's alone
+    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys, scatter)) for st in st_list]
     axial = np.array([st.axial_mm for st in st_list])
     d_mix, o_mix = mixing
 
