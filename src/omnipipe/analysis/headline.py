@@ -21,7 +21,7 @@ from omnipipe.analysis.feature_types import Ovality, Stretch, Taper
 from omnipipe.analysis.footprint import with_footprint_terms
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs
 from omnipipe.analysis.ring_spans import RingGroups
-from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tilt
+from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tangent_sigma, with_tilt
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.station_profiles import StationProfiles, station_list
 from omnipipe.analysis.stations import (
@@ -96,7 +96,9 @@ def tilt_corrected(
 ) -> tuple[list[Station], float]:
     """The stations and the headline's shared term (mm) after :func:`.ring_tilt.tilt_check`:
     rings square to the pipe under a centreline drawn off it measured in their own
-    plane; an undecided tilt's ambiguity added to the shared term."""
+    plane; an undecided tilt's ambiguity added to the shared term; each station's
+    ovality sigma with the centreline direction's uncertainty through its ring's tilt
+    (:func:`.ring_tilt.with_tangent_sigma`)."""
     rings = np.flatnonzero(measured)
     if len(rings) != len(st_list) or not len(rings):
         return st_list, shared
@@ -105,7 +107,8 @@ def tilt_corrected(
     )
     d = np.array([st.diameter_mm for st in st_list])
     check = tilt_check(st_list, tilt, direction, 4.0 * radial_sys / max(float(np.median(d)), 1e-9))
-    return with_tilt(st_list, check), math.hypot(shared, check.ambiguity_mm(d))
+    st_list = with_tangent_sigma(with_tilt(st_list, check), check.tilt_rad)
+    return st_list, math.hypot(shared, check.ambiguity_mm(d))
 
 
 def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndarray, k: int) -> np.ndarray:
