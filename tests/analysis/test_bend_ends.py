@@ -58,3 +58,23 @@ def test_truncated_bend_spanning_the_stretch_has_finite_sigmas() -> None:
         assert fit.turn_sigma_rad < math.radians(3.0), fit
         assert abs(fit.turn_rad - turn) <= 3.0 * fit.turn_sigma_rad, (math.degrees(fit.turn_rad), fit)
         assert abs(fit.radius_mm - radius) <= 3.0 * fit.radius_sigma_mm, fit
+
+
+
+def test_truncated_bend_under_the_turn_threshold_is_reported() -> None:
+    """Random-features seed 27's elbow under the true motion: the run's stations see 10.8
+    deg of an R 958 mm bend running on past the run's end; its fit, truncated, reads 9.75
+    +- 1.42 deg (the tangents' lag at the run's end): a lower bound within two sigmas of
+    the 10 deg threshold, reported. The same fit complete (straight after it) is a bend of
+    9.75 deg, not; a truncated 6 +- 1 deg one neither."""
+    from omnipipe.analysis.centreline import BendFit
+    from omnipipe.analysis.sections import _turns_enough
+
+    def fit(turn_deg: float, sigma_deg: float, truncated: bool) -> BendFit:
+        turn = math.radians(turn_deg)
+        return BendFit(-110.9, 3.0, 56.9, 3.0, turn, math.radians(sigma_deg), 167.8 / turn, 155.0, truncated)
+
+    assert _turns_enough(fit(9.75, 1.42, True), 10.0)
+    assert not _turns_enough(fit(9.75, 1.42, False), 10.0)
+    assert not _turns_enough(fit(6.0, 1.0, True), 10.0)
+    assert _turns_enough(fit(12.0, 0.5, False), 10.0)

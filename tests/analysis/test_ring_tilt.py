@@ -98,3 +98,34 @@ def test_check_decides_station_by_station() -> None:
     stations += [_station(abs(rng.normal(0, 0.0005)), rng.uniform(0, 180)) for _ in range(5)]
     w = tilt_check(stations, tilt, direction).square_weight
     assert list(w[:3]) == [1.0] * 3 and list(w[-3:]) == [0.0] * 3
+
+
+def test_oblique_ring_about_an_axis_off_the_pipe_is_covered_by_the_tangent_sigma() -> None:
+    """A round 261 mm pipe cut by a ring oblique by 8 deg (random-features seed 24's rings
+    lean 7.5-8.9 deg), its wall above a 90 deg water cut, measured about an axis 3 deg off the
+    pipe's in the tilt's plane (1.5 sigma of ``TANGENT_SIGMA_RAD``): the section's fit
+    reads a false ovality of tan(e) d + d^2 / 2 (0.6-0.9 %) far outside its fit sigma
+    (none: no noise), inside 3 x the tangent term; a square ring gets nothing added."""
+    from omnipipe.analysis.ring_tilt import TANGENT_SIGMA_RAD, with_tangent_sigma
+    from omnipipe.analysis.stations import Section, station_from_section
+    from omnipipe.analysis.wall_profile import fit_wall_profile
+
+    r, e = 130.5, math.radians(8.0)
+    phi = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    phi = phi[(np.degrees(phi) < 225.0) | (np.degrees(phi) > 315.0)]
+    ring = np.stack([r * np.cos(phi), r * np.sin(phi), r * math.tan(e) * np.cos(phi)], axis=1)
+    for d_deg in (-3.0, 3.0):
+        d = math.radians(d_deg)
+        t = np.array([math.sin(d), 0.0, math.cos(d)])
+        n = np.array([math.cos(d), 0.0, -math.sin(d)])
+        perp = ring - np.outer(ring @ t, t)
+        theta = np.arctan2(perp @ np.cross(t, n), perp @ n)
+        coef = fit_wall_profile(theta, np.linalg.norm(perp, axis=1), 2, 1.0)
+        st = station_from_section(0.0, Section(coef, np.eye(5) * 1e-8, 2, None, 270.0), 0.0, 0.0)
+        assert st.ovality >= 0.005, st.ovality
+        assert st.ovality > 10.0 * st.ovality_sigma
+        (covered,) = with_tangent_sigma([st], np.array([e]))
+        assert st.ovality <= 3.0 * covered.ovality_sigma, (st.ovality, covered.ovality_sigma)
+        assert abs(covered.ovality_sigma - math.tan(e) * TANGENT_SIGMA_RAD) <= 1e-4
+    (square,) = with_tangent_sigma([st], np.array([0.0]))
+    assert square.ovality_sigma == st.ovality_sigma

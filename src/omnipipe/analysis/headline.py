@@ -21,7 +21,7 @@ from omnipipe.analysis.feature_types import Ovality, Stretch, Taper
 from omnipipe.analysis.footprint import with_footprint_terms
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs
 from omnipipe.analysis.ring_spans import RingGroups
-from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tilt
+from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tangent_sigma, with_tilt
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.station_profiles import StationProfiles, station_list
 from omnipipe.analysis.stations import (
@@ -30,6 +30,7 @@ from omnipipe.analysis.stations import (
     Station,
     headline,
     headline_of_a_section,
+    ovality_scatter,
     with_deformation,
 )
 
@@ -95,7 +96,9 @@ def tilt_corrected(
 ) -> tuple[list[Station], float]:
     """The stations and the headline's shared term (mm) after :func:`.ring_tilt.tilt_check`:
     rings square to the pipe under a centreline drawn off it measured in their own
-    plane; an undecided tilt's ambiguity added to the shared term."""
+    plane; an undecided tilt's ambiguity added to the shared term; each station's
+    ovality sigma with the centreline direction's uncertainty through its ring's tilt
+    (:func:`.ring_tilt.with_tangent_sigma`)."""
     rings = np.flatnonzero(measured)
     if len(rings) != len(st_list) or not len(rings):
         return st_list, shared
@@ -104,7 +107,8 @@ def tilt_corrected(
     )
     d = np.array([st.diameter_mm for st in st_list])
     check = tilt_check(st_list, tilt, direction, 4.0 * radial_sys / max(float(np.median(d)), 1e-9))
-    return with_tilt(st_list, check), math.hypot(shared, check.ambiguity_mm(d))
+    st_list = with_tangent_sigma(with_tilt(st_list, check), check.tilt_rad)
+    return st_list, math.hypot(shared, check.ambiguity_mm(d))
 
 
 def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndarray, k: int) -> np.ndarray:
@@ -136,6 +140,8 @@ def _with_shared_terms(
     """The stations and section features (ovality, tapers, ...) with the terms averaging
     the stations cannot remove: a ring-shape error shared by the run (``radial_sys`` mm
     in cos 2 theta) moves every station's ovality alike, by up to 4 radial_sys / D; the
+    rings' shapes scatter from station to station by more than their fits say
+    (:func:`.stations.ovality_scatter`, added to each station's ovality sigma); the
     diameter's shared part (``shared_diameter_mm``: the systematic ring radius, the
     peaks' sub-pixel bias, the rig calibration; as in the headline's sigma) moves both
     ends of a taper with every station, as it moves the headline; the sections each ring
@@ -144,7 +150,8 @@ def _with_shared_terms(
     takes its stations' median of them whole. The features are found on the stations
     without the mixing terms (a taper's own ramp is no noise), which are then added."""
     oval_sys = 4.0 * radial_sys / max(head.diameter_mm, 1e-9)
-    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys)) for st in st_list]
+    scatter = ovality_scatter(st_list)  # the ring shapes' own scatter, each station's alone
+    st_list = [replace(st, ovality_sigma=math.hypot(st.ovality_sigma, oval_sys, scatter)) for st in st_list]
     axial = np.array([st.axial_mm for st in st_list])
     d_mix, o_mix = mixing
 

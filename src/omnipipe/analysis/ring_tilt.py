@@ -52,6 +52,19 @@ drift changes along the run: seed 1's rings are oblique cuts over one stretch, s
 the pipe under a drifting centreline over the next)."""
 
 
+TANGENT_SIGMA_RAD = math.radians(2.0)
+"""1-sigma of the centreline's direction at a station against the pipe's axis, as a
+model: the tangents' own scatter (0.0-0.1 deg on the random-features runs) holds none
+of the camera motion's rotation error nor a section centre's pull. A ring oblique by e
+to the tangent, measured about an axis off the pipe's by d in the tilt's plane, reads an
+ovality of tan(e) d + d^2 / 2 (a round pipe, 270 deg of wall: 0.6-0.9 % at e = 8 deg,
+d = 3 deg); on the 34 random-features runs the stations' ovality errors grow with the
+rings' tilt (median 0.14, 0.25, 0.41, 1.84 pp at 0-2, 2-5, 5-10, 10-30 deg; seed 9 under
+the estimated motion 6 % for 4 % at 14 deg: d about 4.5 deg); with 2 deg 92 % of them
+lie within 3 sigma under the estimated motion (86 % without), 94 % under the true (90 %;
+benchmarks/RESULTS.md, ana27)."""
+
+
 @dataclass(frozen=True)
 class TiltCheck:
     """The rings' tilt against the centreline and which explanation holds at each station.
@@ -211,3 +224,14 @@ def _ovality_less(st: Station, m: np.ndarray, p: np.ndarray, w: float, undecided
         diameter_min_mm=st.diameter_mm - half,
         diameter_max_mm=st.diameter_mm + half,
     )
+
+
+def with_tangent_sigma(stations: list[Station], tilt_rad: np.ndarray) -> list[Station]:
+    """The stations with the centreline direction's uncertainty in their ovality sigma:
+    tan(e) x :data:`TANGENT_SIGMA_RAD` for a ring tilted e (radians, (S,)) to the
+    centreline (a fraction; stations without an ovality as they are)."""
+    return [
+        replace(st, ovality_sigma=math.hypot(st.ovality_sigma, math.tan(min(float(e), 1.4)) * TANGENT_SIGMA_RAD))
+        if math.isfinite(st.ovality) else st
+        for st, e in zip(stations, tilt_rad, strict=True)
+    ]

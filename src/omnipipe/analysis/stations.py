@@ -349,6 +349,35 @@ def station_from_section(
     )
 
 
+SCATTER_MIN_STATIONS = 5
+"""Stations with an ovality :func:`ovality_scatter` needs (three second differences)."""
+
+
+def ovality_scatter(stations: list[Station]) -> float:
+    """The ring-to-ring scatter of the stations' ovality (a fraction, 1-sigma per component
+    of the ovality vector ovality x (cos 2 phi, sin 2 phi), phi the major axis) that their
+    fit sigmas do not hold: from each station's difference to the mean of its neighbours
+    in axial order (a smooth change of the pipe's ovality along the run cancels; robust
+    MAD over both components, / sqrt(1.5) for the neighbours' own scatter), less the
+    stations' median fit sigma in quadrature; 0 with fewer than
+    :data:`SCATTER_MIN_STATIONS` stations with an ovality.
+
+    A ring's shape errs by more than its own fit says (the wall texture's peaks, the
+    stripe's blur along a tilted ring, the section a ring's footprint mixes): on the 34
+    random-features runs 20 % of the stations' ovalities lay more than 3 stated sigmas
+    from the truth (benchmarks/RESULTS.md, ana27), mostly in runs whose neighbouring
+    stations scatter by 2-5 times their sigma (seeds 2, 4, 8, 12)."""
+    ok = [s for s in stations if math.isfinite(s.ovality) and math.isfinite(s.ovality_angle_deg)]
+    if len(ok) < SCATTER_MIN_STATIONS:
+        return 0.0
+    ok.sort(key=lambda s: s.axial_mm)
+    v = np.array([s.ovality for s in ok]) * np.exp(2j * np.radians([s.ovality_angle_deg for s in ok]))
+    d = v[1:-1] - 0.5 * (v[:-2] + v[2:])
+    spread = 1.4826 * float(np.median(np.abs(np.concatenate([d.real, d.imag])))) / math.sqrt(1.5)
+    fit = float(np.median([s.ovality_sigma for s in ok]))
+    return math.sqrt(max(spread**2 - fit**2, 0.0))
+
+
 def with_water(
     stations: list[Station],
     sections: list[Section],
