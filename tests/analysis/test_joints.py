@@ -221,3 +221,35 @@ def test_gap_every_ring_crosses_along_a_slant_is_a_joint(seed: int) -> None:
         line, sigma, rho, theta, frame = _crossed(seed, gap=gap, arc_deg=arc)
         found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 271.5)
         assert not [f for f in found.features if isinstance(f, Joint)], found.features
+
+
+def _ring_in_gap(seed: int) -> tuple[Centreline, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rings square to a 300 mm pipe, ~10 mm apart, wall noise 0.3 mm; a joint 16 mm wide
+    (-10..+6 mm), 5 mm deep, holding one ring (at 0 mm, deep all round) whose neighbours
+    (-17 and +13 mm) lie beyond the gap by more than the band's own width (bench seeds 29
+    and 33: one ring in an 8-12 mm gap, the next rings 7-13 mm out)."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([-57.0, -47.0, -37.0, -27.0, -17.0, 0.0, 13.0, 23.0, 33.0, 43.0, 53.0])
+    centres = centres + rng.uniform(-0.3, 0.3, centres.size)
+    theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    rings: list[tuple[np.ndarray, np.ndarray]] = []
+    for c in centres:
+        s = c + rng.normal(0.0, 0.2, theta.size)
+        r = 150.0 + rng.normal(0.0, 0.3, theta.size) + 5.0 * ((s >= -10.0) & (s <= 6.0))
+        rings.append((s, r))
+    return _stacked(Centreline.straight(centres, 150.0), theta, rings)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_one_ring_in_a_gap_places_the_edges_between_it_and_its_neighbours(seed: int) -> None:
+    line, sigma, rho, theta, frame = _ring_in_gap(seed)
+    found = find_features(FeatureConfig(), line, sigma, rho, theta, frame, 150.0)
+    joints = [f for f in found.features if isinstance(f, Joint)]
+    assert len(joints) == 1, found.features
+    j = joints[0]
+    # Each edge lies somewhere between the deep ring and the next shallow one: the
+    # joint's centre and gap within 3 sigma of the truth (-2 mm, 16 mm), not the deep
+    # ring's own width (the edges at its samples' median).
+    assert abs(j.axial_mm + 2.0) <= 3.0 * j.axial_sigma_mm, j
+    assert abs(j.gap_mm - 16.0) <= 3.0 * j.gap_sigma_mm, j
+    assert j.gap_mm >= 8.0, j

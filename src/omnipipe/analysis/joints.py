@@ -442,13 +442,28 @@ def _joint(
     spacing = np.diff(np.sort(r.ring_sigma))
     between = 1.5 * float(np.median(spacing)) if band.ring_plane and len(spacing) else 0.0
     reach = max(hi - lo, 4.0, between)
+    # A side with no shallow sample within that reach (one ring lying in the gap, the
+    # next ring further out: bench seeds 29, 33) reaches on to the nearest shallow sample
+    # within ``window_mm``: its edge lies between the two rings (else it would be the deep
+    # samples' median, inside the gap), along a coordinate that follows the wall
+    # (:data:`REACH_TILT_DEG`).
     local = _local_axis(config, line, r, mid, half + config.margin_mm + band.slant_mm)
     near = np.abs(coord - mid) <= half + 2.0 * reach
+    wide = np.abs(coord - mid) <= half + max(2.0 * reach, config.window_mm)
     s = coord - mid
+    along = True  # the coordinate follows the wall's axis within REACH_TILT_DEG
     if local is not None and local.axis_from_both_sides and band.slant_mm == 0.0:
-        s[near] = (_world(line, r, near) - local.centre) @ local.tangent
+        s[wide] = (_world(line, r, wide) - local.centre) @ local.tangent
+        k0 = int(np.argmin(np.abs(line.arc_mm - mid)))
+        along = abs(float(local.tangent @ line.tangent[k0])) >= math.cos(math.radians(REACH_TILT_DEG))
+    shallow = wide & (r.dev <= 0.5 * depth)
     lower = near & (s <= 0.0) & (s >= -half - reach)
+    if along and not (lower & shallow).any() and (shallow & (s < 0.0)).any():
+        lower = wide & (s <= 0.0) & (s >= float(np.max(s[shallow & (s < 0.0)])) - 1.0)
     upper = near & (s >= 0.0) & (s <= half + reach)
+    if along and not (upper & shallow).any() and (shallow & (s > 0.0)).any():
+        upper = wide & (s >= 0.0) & (s <= float(np.min(s[shallow & (s > 0.0)])) + 1.0)
+    near = near | lower | upper
     e_lo, s_lo = _edge(r, s, lower, 0.5 * depth, True)
     e_hi, s_hi = _edge(r, s, upper, 0.5 * depth, False)
     axial, gap = mid + 0.5 * (e_lo + e_hi), e_hi - e_lo
@@ -488,6 +503,13 @@ def _world(line: Centreline, r: Rings, sel: np.ndarray) -> np.ndarray:
         + (r.rho[sel] * np.cos(r.theta[sel]))[:, None] * line.normal[k]
         + (r.rho[sel] * np.sin(r.theta[sel]))[:, None] * line.binormal[k]
     )
+
+
+REACH_TILT_DEG = 5.0
+"""A gap's edge is sought on past the band's reach (to the nearest shallow sample) only
+along a coordinate within this angle of the centreline's tangent (deg): a local axis
+tilted further (a fit that trades its drift for the step) would carry that search into
+another section's wall."""
 
 
 @dataclass(frozen=True)
