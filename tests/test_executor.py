@@ -180,29 +180,6 @@ def test_map_frames_on_a_subset_keeps_its_order(tiny_dataset: Path) -> None:
     assert everything == truth
 
 
-def test_iter_frames_takes_an_iterator_a_chunk_at_a_time(tiny_dataset: Path) -> None:
-    """Frames given as an iterator (known as the run goes): the same results in order,
-    and the iterator read only as far as the chunks submitted need."""
-    from omnipipe.dataset import open_dataset
-    from omnipipe.executor import iter_frames
-
-    dataset = open_dataset(tiny_dataset)
-    truth = [(i, int(dataset.read_frame(i).sum())) for i in range(len(dataset))]
-    asked: list[int] = []
-
-    def frames():
-        for i in (6, 1, 4, 5, 0):
-            asked.append(i)
-            yield i
-
-    with open_executor(workers=2) as ex:
-        stream = iter_frames(ex, _checksums, dataset, frames(), most=1)
-        first = next(stream)
-        assert len(asked) < 5  # at most 2 x 2 chunks of one frame in flight
-        rest = list(stream)
-    assert [first, *rest] == [(i, truth[i]) for i in (6, 1, 4, 5, 0)]
-
-
 def test_worker_cached_builds_once_per_key_and_keeps_the_last() -> None:
     from omnipipe.executor import worker_cached
 
