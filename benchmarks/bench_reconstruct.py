@@ -15,10 +15,6 @@ the later stages decoding them again). The frames'
 files are read once before either is timed, so that both find them in the OS's file
 cache: otherwise the laser stage, the first to read them, also paid for the disk
 (a reused dataset read after other work: 1.38 against 1.13-1.17 once cached).
-With workers the laser stage runs beside the camera motion's frame loop, and its time
-counts only the seconds the run waited for it (its first frames, and frames the loop
-asked for before they were decoded); its decoding beside the loop is in the sfm time
-(and the sfm stage's CPU seconds below): its ratio to decode-only is then below 1.
 Each stage is also reported per moving frame (``continuous``: every frame moves; bend
 has 245 stationary frames of 330, which cost little), and the cores the reconstruction
 kept busy on average (CPU seconds of this process and its workers over the wall time),
