@@ -187,14 +187,6 @@ class FramePassPart:
 # Frames between two parts handed to ``save_part`` (a few seconds of the pass).
 PART_FRAMES = 256
 
-# Frames a chunk of the pass holds at most (:func:`omnipipe.executor.iter_frames`), taken
-# at once (:func:`run`) and beside the camera motion's frame loop (:class:`FramePass`
-# with ``most``): there its chunks share the workers' queue with the loop's, and a
-# smaller one keeps the loop's frames waiting behind it for less (0.2 s of a worker
-# at 1600x1200) and lets the loop start sooner.
-CHUNK_FRAMES = 16
-CHUNK_FRAMES_BESIDE_LOOP = 8
-
 
 def run(
     laser: LaserConfig,
@@ -242,7 +234,7 @@ class FramePass:
     for stationary gets its ring decoded then (:class:`~omnipipe.laser.RingTask`). The
     results are those of the pass taken at once (:func:`run`), whenever it is asked.
     ``busy_s``: the seconds spent in :meth:`through` and :meth:`finish` (the pass's
-    own work here and the waits for its workers). ``most``: frames a chunk holds at most.
+    own work here and the waits for its workers).
     """
 
     def __init__(
@@ -255,7 +247,6 @@ class FramePass:
         parts: Iterable[FramePassPart] = (),
         save_part: Callable[[FramePassPart], None] | None = None,
         handoff: FrameHandoff | None = None,
-        most: int = CHUNK_FRAMES,
     ) -> None:
         from omnipipe.executor import iter_frames
 
@@ -276,7 +267,7 @@ class FramePass:
         if progress is not None and self._start:
             progress(self._start)
         task = _FrameTask(laser, stations, None if handoff is None else handoff.folder)
-        self._results = iter_frames(executor, task, dataset, frames=range(self._start, n), most=most)
+        self._results = iter_frames(executor, task, dataset, frames=range(self._start, n))
         self.busy_s = time.perf_counter() - t0
 
     @property

@@ -142,7 +142,7 @@ def _stages_handing_on(
         if got is not None:
             frames_box.append(got)
         ahead = None if frames_box or not _streams(executor) else start_decode(
-            config, dataset, executor, progress, cp, handoff, beside_loop=True
+            config, dataset, executor, None, cp, handoff
         )
         motion = camera_motion(
             config, dataset, ahead or frames(), executor, progress, log, folder, on_decoded=keep_frames

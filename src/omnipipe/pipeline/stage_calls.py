@@ -72,26 +72,23 @@ def start_decode(
     config: ReconstructConfig,
     dataset: Dataset,
     executor: Executor,
-    progress: ProgressFactory,
+    progress: ProgressFactory | None,
     checkpoints: Checkpoints | None = None,
     handoff: FrameHandoff | None = None,
-    beside_loop: bool = False,
 ) -> FramePass:
     """The decoding pass, started: its frames are decoded as they are asked for
     (:class:`~omnipipe.pipeline.frame_pass.FramePass`; :func:`decoded` ends it).
-    ``beside_loop``: the camera motion's frame loop asks for them (:func:`camera_motion`):
-    no bar of its own (the loop's follows it), smaller chunks."""
+    ``progress``: None draws no bar of its own (the camera motion's bar follows it)."""
     from omnipipe.pipeline import frame_pass
 
     n = len(dataset)
-    tick = None if beside_loop else progress("laser", n)
+    tick = None if progress is None else progress("laser", n)
     # Each frame decoded once, frame-parallel: its ring and the stationary test's input.
     parts = [] if checkpoints is None else checkpoints.load_parts("frames")
     return frame_pass.FramePass(
         config.laser, config.sfm.stations, dataset, executor, progress=tick, parts=parts,
         save_part=None if checkpoints is None else partial(checkpoints.save_part, "frames"),
         handoff=handoff,
-        most=frame_pass.CHUNK_FRAMES_BESIDE_LOOP if beside_loop else frame_pass.CHUNK_FRAMES,
     )
 
 
