@@ -23,7 +23,6 @@ is a pure function of its arguments, so the outputs do not depend on the executo
 
 from __future__ import annotations
 
-import itertools
 import os
 import pickle
 import re
@@ -684,7 +683,7 @@ def iter_frames(
     executor: Executor,
     fn: Callable[[FrameSource], list[R]],
     dataset: Any,
-    frames: Sequence[int] | Iterable[int] | None = None,
+    frames: Sequence[int] | None = None,
     *,
     most: int = 16,
     payload: Callable[[int], Any] | None = None,
@@ -697,8 +696,7 @@ def iter_frames(
     2 x :func:`parallelism` chunks are in flight and nothing is kept once yielded, so
     memory stays bounded however long the run (a consumer that keeps only what it
     needs holds only that). ``frames``: a subset of the dataset's indices (default:
-    all), e.g. only the moving frames; an iterator is taken a chunk at a time, as the
-    chunks are submitted (frames that become known as the run goes). ``payload(i)``: what the task needs of frame i
+    all), e.g. only the moving frames. ``payload(i)``: what the task needs of frame i
     besides its image (:attr:`FrameSource.payload`). ``handoff``: frames read from a
     :class:`~omnipipe.handoff.FrameHandoff`'s folder where there. Chunks are cut lazily, so a
     video's frames are decoded only as their chunk is submitted.
@@ -706,34 +704,19 @@ def iter_frames(
     Raises:
         RuntimeError: ``fn`` returned another number of results than it got frames.
     """
-    if frames is None or hasattr(frames, "__len__"):  # a list, a range, an array
-        order = list(range(len(dataset))) if frames is None else [int(i) for i in frames]
-        if not order:
-            return
-        size = min(len(chunks(len(order), executor, most=most)[0]), max(1, most))
-        parts: Iterable[list[int]] = [order[i : i + size] for i in range(0, len(order), size)]
-    else:  # frames as they become known: chunks sized as for the whole dataset
-        size = min(len(chunks(len(dataset), executor, most=most)[0]), max(1, most))
-        parts = _cut(iter(frames), size)
-    sent: deque[list[int]] = deque()
-
-    def sources() -> Iterator[FrameSource]:
-        for part in parts:
-            sent.append(part)
-            yield FrameSource.take(dataset, part, None if payload is None else [payload(i) for i in part], handoff)
-
-    for result in ordered_map(executor, fn, sources()):
-        part = sent.popleft()
+    order = list(range(len(dataset))) if frames is None else [int(i) for i in frames]
+    if not order:
+        return
+    size = min(len(chunks(len(order), executor, most=most)[0]), max(1, most))
+    parts = [order[i : i + size] for i in range(0, len(order), size)]
+    sources = (
+        FrameSource.take(dataset, part, None if payload is None else [payload(i) for i in part], handoff)
+        for part in parts
+    )
+    for part, result in zip(parts, ordered_map(executor, fn, sources), strict=True):
         if len(result) != len(part):
             raise RuntimeError(f"{fn!r} returned {len(result)} results for {len(part)} frames")
         yield from zip(part, result, strict=True)
-
-
-def _cut(frames: Iterator[int], size: int) -> Iterator[list[int]]:
-    """Consecutive lists of ``size`` frame indices of ``frames`` (the last shorter), each
-    taken from it only when asked for."""
-    while part := [int(i) for i in itertools.islice(frames, size)]:
-        yield part
 
 
 def map_frames(

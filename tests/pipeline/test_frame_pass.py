@@ -156,33 +156,3 @@ def test_handed_on_frames_give_the_same_motion(stop_and_go: Path, tmp_path: Path
     assert np.array_equal(motion.keyframe, plain.keyframe)
     assert np.array_equal(motion.world_from_rig, plain.world_from_rig)
     assert motion.warnings == plain.warnings
-
-
-def test_the_pass_taken_as_the_frame_loop_asks_gives_the_same(stop_and_go: Path) -> None:
-    """The frame loop started on the first frames decoded (:class:`frame_pass.FramePass`
-    as ``SfmInputs.arriving``): each frame's flag final when asked for, every frame
-    decided before the loop ends, and the same motion as after the whole pass."""
-    dataset = open_dataset(stop_and_go)
-    config = sfm.SfmConfig()
-    with open_executor(2) as ex:
-        whole = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
-        before = sfm.run(config, sfm.SfmInputs.of_dataset(dataset, whole.rings, whole.moved, whole.motion_ratio), executor=ex)
-        # Asked frame by frame: each flag, once asked for, is the whole pass's.
-        stepwise = frame_pass.FramePass(laser.LaserConfig(), StationConfig(), dataset, ex)
-        for i in range(len(dataset)):
-            stepwise.through(i)
-            assert stepwise.moved[i] == whole.moved[i]
-            assert len(stepwise.rings.rings[i].pixels) == len(whole.rings.rings[i].pixels)
-        assert np.array_equal(stepwise.finish().ring_samples, whole.ring_samples)
-        arriving = frame_pass.FramePass(laser.LaserConfig(), StationConfig(), dataset, ex)
-        inputs = sfm.SfmInputs.of_dataset(dataset, arriving.rings, arriving.moved, arriving.motion_ratio)
-        inputs.arriving = arriving
-        during = sfm.run(config, inputs, executor=ex)
-        assert arriving.decided == len(dataset)  # every frame decided by the camera motion
-        result = arriving.finish()
-    assert np.array_equal(result.moved, whole.moved)
-    assert np.array_equal(result.motion_ratio, whole.motion_ratio, equal_nan=True)
-    assert result.rings.warnings == whole.rings.warnings
-    assert np.array_equal(during.keyframe, before.keyframe)
-    assert np.array_equal(during.world_from_rig, before.world_from_rig)
-    assert during.warnings == before.warnings

@@ -28,7 +28,6 @@ frame by frame) for every frame where the rig moved, whatever the chunks.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -198,8 +197,7 @@ def run(
     save_part: Callable[[FramePassPart], None] | None = None,
     handoff: FrameHandoff | None = None,
 ) -> FramePassResult:
-    """Decode every frame of ``dataset`` once: its ring and whether the rig moved
-    (:class:`FramePass` taken to its end at once).
+    """Decode every frame of ``dataset`` once: its ring and whether the rig moved.
 
     Args:
         laser, stations: the light-section and stationary-test settings.
@@ -216,129 +214,48 @@ def run(
     Raises:
         DatasetError: an unreadable frame (naming its file).
     """
-    return FramePass(laser, stations, dataset, executor, progress, parts, save_part, handoff).finish()
+    from omnipipe.executor import iter_frames
 
-
-class FramePass:
-    """The decoding pass as a stream: frames decoded as a consumer asks for them.
-
-    :meth:`through` takes the workers' results in frame order until frames 0..i are
-    final (``moved`` (N,) and ``motion_ratio`` (N,) filled in place, each moving frame's
-    ring in ``rings``, each stationary one's emptied ring; the hand-off holds only
-    moving frames), so that the camera motion can start on the first frames while the
-    workers decode the later ones (:func:`omnipipe.pipeline.stage_calls.camera_motion`):
-    at most 2 x the executor's parallelism chunks of frames are decoded ahead of the
-    frame asked for. A frame's ``moved`` is final once the frame after it was tested
-    (a creep before a stroke makes the station's last frame a moving one:
-    :func:`~omnipipe.sfm.stations.promote_creep`); a moving frame whose chunk took it
-    for stationary gets its ring decoded then (:class:`~omnipipe.laser.RingTask`). The
-    results are those of the pass taken at once (:func:`run`), whenever it is asked.
-    ``busy_s``: the seconds spent in :meth:`through` and :meth:`finish` (the pass's
-    own work here and the waits for its workers).
-    """
-
-    def __init__(
-        self,
-        laser: LaserConfig,
-        stations: StationConfig,
-        dataset: Dataset,
-        executor: Executor,
-        progress: Callable[[int], None] | None = None,
-        parts: Iterable[FramePassPart] = (),
-        save_part: Callable[[FramePassPart], None] | None = None,
-        handoff: FrameHandoff | None = None,
-    ) -> None:
-        from omnipipe.executor import iter_frames
-
-        t0 = time.perf_counter()
-        self._laser, self._stations, self._dataset, self._executor = laser, stations, dataset, executor
-        self._progress, self._save_part, self._handoff = progress, save_part, handoff
-        self._tracker = StationTracker(_masks(dataset.rig, stations)[0], stations)  # built once (warm_up)
-        n = self.n = len(dataset)
-        self._kept = _Kept(n)
-        self.rings = LaserResult(self._kept.store, [])
-        self.moved = np.zeros(n, bool)  # final up to self._final
-        self.motion_ratio = np.full(n, math.nan)
-        self._raw = np.zeros(n, bool)  # the tracker's own test (before promote_creep)
-        self._station = np.zeros(n, int)  # each frame's station (its first frame) as tested
-        self._final_station = np.zeros(n, int)  # ... after promote_creep
-        self._start = self._taken = _restore(parts, self._tracker, self._kept, self._raw, self.motion_ratio, self._station)
-        self._final = 0  # frames 0 .. _final - 1 are final
-        if progress is not None and self._start:
-            progress(self._start)
-        task = _FrameTask(laser, stations, None if handoff is None else handoff.folder)
-        self._results = iter_frames(executor, task, dataset, frames=range(self._start, n))
-        self.busy_s = time.perf_counter() - t0
-
-    @property
-    def decided(self) -> int:
-        """How many frames, from frame 0, are final."""
-        return self._final
-
-    def through(self, i: int) -> None:
-        """Take results until frames 0..i (at most the last) are final."""
-        t0 = time.perf_counter()
-        last = min(i, self.n - 1)
-        while self._final <= last:
-            if self._final + 1 < self._taken or self._taken == self.n:
-                self._finalise(self._final)
-                self._final += 1
-            else:
-                self._take(*next(self._results))
-        self.busy_s += time.perf_counter() - t0
-
-    def finish(self) -> FramePassResult:
-        """Every frame final: the pass's result."""
-        self.through(self.n - 1)
-        t0 = time.perf_counter()
-        kept = self._kept
-        # A stationary frame shows its station's ring: it counts that ring's samples.
-        samples = kept.own[self._final_station]
-        self.rings.warnings[:] = [f"frame {i}: {w}" for i in sorted(kept.notes) for w in kept.notes[i]]
-        self.busy_s += time.perf_counter() - t0
-        return FramePassResult(self.rings, self.moved, self.motion_ratio, samples)
-
-    def _take(self, i: int, result: tuple[LaserRing | None, StationSignature, int]) -> None:
-        """Frame ``i``'s result from its worker (the next in frame order)."""
-        ring, signature, written = result
-        if written and self._handoff is not None:
-            self._handoff.note(i, written)
-        raw, station, ratio = self._raw, self._station, self.motion_ratio
-        raw[i], ratio[i] = self._tracker.update_signature(signature)
-        station[i] = i if raw[i] else station[i - 1]
-        if raw[i] and ring is not None:
-            self._kept.put(i, ring)
-        self._taken = i + 1
-        start = self._start
-        if self._save_part is not None and (i + 1 - start) % PART_FRAMES == 0 and i + 1 < self.n:
+    tracker = StationTracker(_masks(dataset.rig, stations)[0], stations)  # built once (warm_up)
+    n = len(dataset)
+    kept = _Kept(n)
+    moved = np.zeros(n, bool)
+    ratio = np.full(n, math.nan)
+    station = np.zeros(n, int)  # each frame's station: its first frame
+    start = _restore(parts, tracker, kept, moved, ratio, station)
+    if progress is not None and start:
+        progress(start)
+    task = _FrameTask(laser, stations, None if handoff is None else handoff.folder)
+    for i, (ring, signature, written) in iter_frames(executor, task, dataset, frames=range(start, n)):
+        if written and handoff is not None:
+            handoff.note(i, written)
+        moved[i], ratio[i] = tracker.update_signature(signature)
+        station[i] = i if moved[i] else station[i - 1]
+        if moved[i] and ring is not None:
+            kept.put(i, ring)
+        if save_part is not None and (i + 1 - start) % PART_FRAMES == 0 and i + 1 < n:
             a = i + 1 - PART_FRAMES
-            self._save_part(FramePassPart(a, self._kept.part(a, i + 1), raw[a : i + 1], ratio[a : i + 1],
-                                          station[a : i + 1], self._tracker.reference))
-        if self._progress is not None:
-            self._progress(i + 1)
-
-    def _finalise(self, i: int) -> None:
-        """Frame ``i``'s moved flag final (frame i + 1 tested, or i the last): its ring
-        decoded again if its chunk took it for stationary, an emptied one if it is."""
-        # The creep before a stroke makes the station's last frame a moving one (the
-        # frame after it decides).
-        window = slice(i, i + 2)
-        moved = bool(promote_creep(self._raw[window], self.motion_ratio[window], self._stations.creep_factor)[0])
-        self.moved[i] = moved
-        self._final_station[i] = i if moved else (self._final_station[i - 1] if i else 0)
-        kept = self._kept
-        if moved and not kept.has(i):
-            # A frame where the rig moved whose chunk took it for stationary (a slow creep
-            # that only the comparison with an earlier chunk's frame shows): its ring,
-            # decoded again.
-            from omnipipe.executor import iter_frames
-
-            for j, ring in iter_frames(self._executor, RingTask(self._laser), self._dataset, frames=[i]):
-                kept.put(j, ring)
-        if not moved:
-            kept.store.put(i, _emptied(int(kept.scanned[self._final_station[i]])))
-            if self._handoff is not None:
-                self._handoff.discard(i)
+            save_part(FramePassPart(a, kept.part(a, i + 1), moved[a : i + 1], ratio[a : i + 1],
+                                    station[a : i + 1], tracker.reference))
+        if progress is not None:
+            progress(i + 1)
+    # The creep before a stroke makes the station's last frame a moving one.
+    moved = promote_creep(moved, ratio, stations.creep_factor)
+    station = np.where(moved, np.arange(n), 0)
+    station = np.maximum.accumulate(station)
+    # A frame where the rig moved whose chunk took it for stationary (a slow creep that
+    # only the comparison with an earlier chunk's frame shows): its ring, decoded again.
+    missing = [i for i in range(n) if moved[i] and not kept.has(i)]
+    for i, ring in iter_frames(executor, RingTask(laser), dataset, frames=missing):
+        kept.put(i, ring)
+    for i in np.flatnonzero(~moved):
+        kept.store.put(int(i), _emptied(int(kept.scanned[station[i]])))
+        if handoff is not None:
+            handoff.discard(int(i))
+    # A stationary frame shows its station's ring: it counts that ring's samples.
+    samples = kept.own[station]
+    warnings = [f"frame {i}: {w}" for i in sorted(kept.notes) for w in kept.notes[i]]
+    return FramePassResult(LaserResult(kept.store, warnings), moved, ratio, samples)
 
 
 class _Kept:

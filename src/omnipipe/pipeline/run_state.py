@@ -23,7 +23,6 @@ from omnipipe.pipeline.stage_calls import (
     camera_motion,
     decode,
     model_on_disk,
-    start_decode,
 )
 from omnipipe.progress import ProgressFactory
 
@@ -63,14 +62,6 @@ def _restore(checkpoints: Checkpoints | None, stage: str, log: RunLog) -> Any | 
     log.timings = dict(saved.timings)
     log.warnings = list(saved.warnings)
     return saved.result
-
-
-def _streams(executor: Executor) -> bool:
-    """True when the decoding pass runs beside the camera motion's frame loop (workers
-    of their own: a local pool or a Dask cluster; inline, it is done first)."""
-    from omnipipe.executor import InlineExecutor
-
-    return not isinstance(executor, InlineExecutor)
 
 
 def _keep(checkpoints: Checkpoints | None, stage: str, result: Any, log: RunLog) -> None:
@@ -129,24 +120,10 @@ def _stages_handing_on(
             frames_box.append(got)
         return frames_box[0]
 
-    def keep_frames(got: FramePassResult) -> None:
-        frames_box.append(got)
-        _keep(cp, "frames", got, log)
-
     motion: Motion | None = None
     motion = _restore(cp, "sfm", log)
     if motion is None:
-        # The frame loop starts on the first frames decoded (a pass not begun or saved
-        # in parts only), beside the pass on the other frames.
-        got = _restore(cp, "frames", log) if _streams(executor) else None
-        if got is not None:
-            frames_box.append(got)
-        ahead = None if frames_box or not _streams(executor) else start_decode(
-            config, dataset, executor, None, cp, handoff
-        )
-        motion = camera_motion(
-            config, dataset, ahead or frames(), executor, progress, log, folder, on_decoded=keep_frames
-        )
+        motion = camera_motion(config, dataset, frames(), executor, progress, log, folder)
         _keep(cp, "sfm", motion, log)
     # From here on this process's large freed arrays leave its memory at once (the
     # analysis', the model's and the writers' per-point and per-cell arrays); not during

@@ -37,7 +37,7 @@ if TYPE_CHECKING:  # imported inside the functions: `omnipipe --help` stays fast
     from omnipipe.laser.ring import LaserRing
     from omnipipe.model import ModelResult
     from omnipipe.pipeline.checkpoint import Checkpoints
-    from omnipipe.pipeline.frame_pass import FramePass, FramePassResult
+    from omnipipe.pipeline.frame_pass import FramePassResult
     from omnipipe.pipeline.run_config import ReconstructConfig, RunLog
     from omnipipe.sfm import SfmResult
     from omnipipe.spill import Pack
@@ -65,47 +65,21 @@ def decode(
     Raises:
         ReconstructionError: no laser ring in any frame.
     """
-    return decoded(dataset, start_decode(config, dataset, executor, progress, checkpoints, handoff), log)
+    import numpy as np
 
-
-def start_decode(
-    config: ReconstructConfig,
-    dataset: Dataset,
-    executor: Executor,
-    progress: ProgressFactory | None,
-    checkpoints: Checkpoints | None = None,
-    handoff: FrameHandoff | None = None,
-) -> FramePass:
-    """The decoding pass, started: its frames are decoded as they are asked for
-    (:class:`~omnipipe.pipeline.frame_pass.FramePass`; :func:`decoded` ends it).
-    ``progress``: None draws no bar of its own (the camera motion's bar follows it)."""
     from omnipipe.pipeline import frame_pass
 
     n = len(dataset)
-    tick = None if progress is None else progress("laser", n)
+    t0 = time.perf_counter()
+    tick = progress("laser", n)
     # Each frame decoded once, frame-parallel: its ring and the stationary test's input.
     parts = [] if checkpoints is None else checkpoints.load_parts("frames")
-    return frame_pass.FramePass(
+    frames = frame_pass.run(
         config.laser, config.sfm.stations, dataset, executor, progress=tick, parts=parts,
         save_part=None if checkpoints is None else partial(checkpoints.save_part, "frames"),
         handoff=handoff,
     )
-
-
-def decoded(dataset: Dataset, started: FramePass, log: RunLog) -> FramePassResult:
-    """``started``'s result once every frame is decoded, refused without a ring; its time
-    in ``log.timings["laser"]``: the seconds this process spent in the pass (waiting
-    for its workers' frames and taking them), not those its workers decoded beside the
-    camera motion's frame loop (:func:`camera_motion`).
-
-    Raises:
-        ReconstructionError: no laser ring in any frame.
-    """
-    import numpy as np
-
-    frames = started.finish()
-    log.timings["laser"] = started.busy_s
-    n = len(dataset)
+    log.timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
     seen = int(np.sum(frames.ring_samples >= 20))
     if seen == 0:
@@ -138,51 +112,40 @@ class Motion:
 def camera_motion(
     config: ReconstructConfig,
     dataset: Dataset,
-    frames: FramePassResult | FramePass,
+    frames: FramePassResult,
     executor: Executor,
     progress: ProgressFactory,
     log: RunLog,
     handoff: str | None = None,
-    on_decoded: Callable[[FramePassResult], None] | None = None,
 ) -> Motion:
     """The sfm stage, refused when its motion cannot be trusted or nothing registered.
     ``handoff``: the folder where the decoding pass left the moving frames
-    (:class:`~omnipipe.handoff.FrameHandoff`), or None. ``frames``: the decoding pass's
-    result, or the pass under way (:func:`start_decode`): the frame loop takes its frames
-    as they are decoded, and the pass ends (:func:`decoded`, then ``on_decoded`` with
-    its result) before anything else is noted; the camera motion's time then leaves out
-    the seconds spent in the pass.
+    (:class:`~omnipipe.handoff.FrameHandoff`), or None.
 
     Raises:
-        ReconstructionError: no laser ring in any frame (:func:`decoded`); see
-            :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`; no frame registered.
+        ReconstructionError: see :func:`omnipipe.pipeline.quality.refuse_untrusted_motion`;
+            no frame registered.
     """
     import numpy as np
 
     from omnipipe import sfm
-    from omnipipe.errors import OmnipipeError
     from omnipipe.pipeline import quality
-    from omnipipe.pipeline.frame_pass import FramePass
 
     n = len(dataset)
     t0 = time.perf_counter()
     # After its last frame, sfm adjusts the bundle window by window: a bar of its own
     # (omnipipe.progress.phase).
     tick = progress("sfm", n)
-    streamed = frames if isinstance(frames, FramePass) else None
-    inputs = sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved, frames.motion_ratio)
-    try:
-        motion = sfm.run(config.sfm, replace(inputs, handoff=handoff, arriving=streamed), progress=tick, executor=executor)
-    except OmnipipeError as failed:
-        no_ring = None if streamed is None else _no_ring(dataset, streamed, log)
-        if no_ring is not None:  # said first, as when the pass ends before the motion
-            raise no_ring from failed
-        raise
-    if streamed is not None:
-        got = decoded(dataset, streamed, log)
-        if on_decoded is not None:
-            on_decoded(got)
-    log.timings["sfm"] = time.perf_counter() - t0 - (0.0 if streamed is None else streamed.busy_s)
+    motion = sfm.run(
+        config.sfm,
+        replace(
+            sfm.SfmInputs.of_dataset(dataset, frames.rings, frames.moved, frames.motion_ratio),
+            handoff=handoff,
+        ),
+        progress=tick,
+        executor=executor,
+    )
+    log.timings["sfm"] = time.perf_counter() - t0
     quality.refuse_untrusted_motion(motion)
     log.warnings.extend(motion.warnings)
     log.warnings.extend(quality.weak_texture_warnings(motion))
@@ -196,20 +159,6 @@ def camera_motion(
     stations = np.flatnonzero(motion.registered & ~motion.stationary)
     release_freed_memory()  # the features and matches of every frame
     return Motion(motion, reg, stations)
-
-
-def _no_ring(dataset: Dataset, started: FramePass, log: RunLog) -> ReconstructionError | None:
-    """:func:`decoded`'s refusal of a run without a laser ring, once ``started`` is taken
-    to its end, or None (a ring found, or the pass itself failed)."""
-    from omnipipe.pipeline.run_config import RunLog
-
-    try:
-        decoded(dataset, started, RunLog(log.t_start))
-    except ReconstructionError as refused:
-        return refused
-    except Exception:  # the pass's own failure: the camera motion's error stands
-        return None
-    return None
 
 
 @dataclass(frozen=True)

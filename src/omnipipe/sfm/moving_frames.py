@@ -52,12 +52,13 @@ def moving_frames(
         else np.zeros(n, bool)
     )
     if inputs.moved is not None and inputs.dataset is not None and ctx.parallel:
+        moved[:] = inputs.moved | by_odometry
         flow = config.tracking if config.tracking.enabled and shares_files(ctx.executor) else None
         stream = iter_frames(
             ctx.executor,
             FeatureTask(config.features, not config.tracking.enabled, flow),
             inputs.dataset,
-            _moving(inputs, moved, by_odometry),
+            np.flatnonzero(moved),
             most=4,
             payload=lambda i: rings[i].pixels,
             handoff=inputs.handoff,
@@ -69,7 +70,6 @@ def moving_frames(
         if progress:
             progress(n)
         return
-    inputs.all_arrived()
     channel = inputs.rig.laser.channel
     tracker = None
     if inputs.moved is None:
@@ -102,24 +102,3 @@ def moving_frames(
                 yield moving(i, img, gray)
         if progress:
             progress(i + 1)
-
-
-def _moving(inputs: SfmInputs, moved: np.ndarray, by_odometry: np.ndarray) -> np.ndarray | Iterator[int]:
-    """The moving frames' indices; fills ``moved`` (N,) (at once, or frame by frame as
-    the decoding pass still under way decides them: :func:`_arriving`)."""
-    if inputs.arriving is None:
-        moved[:] = inputs.moved | by_odometry
-        return np.flatnonzero(moved)
-    return _arriving(inputs, moved, by_odometry)
-
-
-def _arriving(inputs: SfmInputs, moved: np.ndarray, by_odometry: np.ndarray) -> Iterator[int]:
-    """Each moving frame's index once the decoding pass under way (``inputs.arriving``)
-    has decided it, taken as the loop's workers are handed their next chunk; fills
-    ``moved`` (N,) as it goes."""
-    assert inputs.arriving is not None and inputs.moved is not None
-    for i in range(inputs.n_frames):
-        inputs.arriving.through(i)
-        moved[i] = inputs.moved[i] | by_odometry[i]
-        if moved[i]:
-            yield i

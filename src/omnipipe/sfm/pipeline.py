@@ -126,9 +126,6 @@ def run(
     """
     if inputs.n_frames < 1:
         raise ReconstructionError("no frames")
-    parallel = executor is not None and not isinstance(executor, InlineExecutor)
-    if not (parallel and _streams(config, inputs)):
-        inputs.all_arrived()  # only the frame loop's workers take the frames as they arrive
     if config.trajectory_from:  # poses given (a total station, a simulator's truth)
         return external_motion(trajectory_path(config.trajectory_from, inputs), inputs)
     # Single-threaded BLAS: this process's products are small or short (descriptor
@@ -138,6 +135,7 @@ def run(
     # the machine's core count. OpenCV likewise beside workers: its calls here then run
     # on the views' threads (:func:`~omnipipe.executor.thread_map`), its own pool would
     # split them again (inline, one thread takes the views: OpenCV keeps its pool).
+    parallel = executor is not None and not isinstance(executor, InlineExecutor)
     with threadpool_limits(limits=1, user_api="blas"), opencv_threads(1) if parallel else nullcontext():
         return _run(config, inputs, progress, executor)
 
@@ -339,15 +337,6 @@ def _add_gravity(
     )
     if gravity is not None:
         result.gravity_world, result.gravity_sigma_rad = gravity
-
-
-def _streams(config: SfmConfig, inputs: SfmInputs) -> bool:
-    """True when the frame loop can start before the decoding pass ends
-    (``inputs.arriving``): its workers decode the moving frames as the pass finds them,
-    and nothing before the loop reads the frames' rings (:func:`_flow_views` reads three
-    frames', the last among them; given poses read every frame's flags)."""
-    plain = config.features.flow_plain and config.tracking.enabled
-    return inputs.moved is not None and inputs.dataset is not None and not plain and not config.trajectory_from
 
 
 def _flow_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -93,14 +93,6 @@ class SfmConfig:
     trajectory_from: str = ""
 
 
-class ArrivingFrames(Protocol):
-    """A decoding pass under way (:class:`omnipipe.pipeline.frame_pass.FramePass`)."""
-
-    def through(self, i: int) -> None:
-        """Return once frames 0..i have their final ``moved`` flag, stationary-test
-        ratio and ring (:class:`SfmInputs`' arrays, filled in place)."""
-
-
 @dataclass
 class SfmInputs:
     """What camera-motion estimation reads.
@@ -126,8 +118,6 @@ class SfmInputs:
             None: recorded here (with ``moved``).
         handoff: the folder of a :class:`~omnipipe.handoff.FrameHandoff` where the
             decoding pass left the moving frames (those are not decoded again), or None.
-        arriving: the decoding pass still under way (``moved``, ``station_ratio`` and
-            ``rings`` filled as it goes: :class:`ArrivingFrames`), or None: done.
     """
 
     rig: Rig
@@ -141,12 +131,6 @@ class SfmInputs:
     imu: Imu | None = None
     station_ratio: np.ndarray | None = None
     handoff: str | None = None
-    arriving: ArrivingFrames | None = None
-
-    def all_arrived(self) -> None:
-        """Wait for the decoding pass to end (nothing to wait for without one)."""
-        if self.arriving is not None:
-            self.arriving.through(self.n_frames - 1)
 
     @classmethod
     def of_dataset(
