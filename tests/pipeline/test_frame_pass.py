@@ -98,27 +98,6 @@ def test_a_creep_only_the_run_sees_gets_its_ring(
             assert np.array_equal(a.points_in_rig, b.points_in_rig)
 
 
-def test_frames_the_odometry_counted_moving_get_their_rings(stop_and_go: Path) -> None:
-    """Frames the stationary test took for standing but the robot's odometry counted
-    moving (``also_moved``): moving frames, each with its own ring (the serial light
-    section's), the others as before."""
-    dataset = open_dataset(stop_and_go)
-    with open_executor(1) as ex:
-        plain = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex)
-        standing = np.flatnonzero(~plain.moved)
-        also = np.zeros(len(dataset), bool)
-        also[standing[:2]] = True
-        result = frame_pass.run(laser.LaserConfig(), StationConfig(), dataset, ex, also_moved=also)
-    assert len(standing) >= 2
-    assert np.array_equal(result.moved, plain.moved | also)
-    serial = laser.run(laser.LaserConfig(), dataset.rig, (dataset.read_frame(i) for i in range(len(dataset))))
-    for i in standing[:2]:
-        assert len(result.rings.rings[i].pixels) > 0
-        assert np.array_equal(result.rings.rings[i].points_in_rig, serial.rings[i].points_in_rig)
-    for i in np.flatnonzero(plain.moved):
-        assert np.array_equal(result.rings.rings[i].points_in_rig, plain.rings.rings[i].points_in_rig)
-
-
 def test_frame_parallel_motion_equals_serial(stop_and_go: Path) -> None:
     dataset = open_dataset(stop_and_go)
     config = sfm.SfmConfig()

@@ -119,31 +119,6 @@ def test_a_step_without_relative_motion_takes_the_typical_step() -> None:
     assert steps[0][2, 3] != steps[3][2, 3]  # trusted steps untouched
 
 
-def test_a_bridged_step_from_few_matches_takes_the_travel_direction() -> None:
-    """A bridged step whose relative motion rests on a plain wall's few matches (14) is
-    chained along the robot's travel with no turn, as a lost one (its RANSAC direction,
-    40 deg off, would fold the path); one from 300 matches keeps its own."""
-    steps, evidence, checks = [], [], []
-    for k in range(5):
-        t = np.eye(4)
-        t[:3, 3] = [0.0, 0.0, -10.0]
-        matches, bridged = 300, k in (2, 3)
-        if bridged:
-            t[:3, 3] = [6.4, 0.0, -7.7]  # 40 deg off the travel, unit length irrelevant
-            matches = 14 if k == 2 else 300
-        steps.append(t)
-        evidence.append(StepEvidence.unmeasured(k, k + 1, t, None, "ok"))
-        checks.append(
-            StepCheck(k, k + 1, 10.0, 0.0, 10.0, matches, math.nan if bridged else 10.0,
-                      "none" if bridged else "high", "", (), 10.0 if bridged else math.nan,
-                      0.5 if bridged else math.nan, "odometry" if bridged else "")
-        )
-    lengths = np.full(5, 10.0)
-    bridge_lost_steps(steps, evidence, checks, lengths)
-    assert np.allclose(steps[2][:3, 3], [0.0, 0.0, -10.0]) and np.allclose(steps[2][:3, :3], np.eye(3))
-    assert np.allclose(steps[3][:3, 3], [6.4, 0.0, -7.7])  # 300 matches: its own direction
-
-
 @pytest.mark.slow  # 6 s: 40 frames at 640x480; tracking stays covered by the short runs above
 def test_frames_between_keyframes_are_tracked_and_placed_within_band() -> None:
     # The full gait (24 frames per cycle): several moving frames per keyframe step.

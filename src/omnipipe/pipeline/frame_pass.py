@@ -196,7 +196,6 @@ def run(
     parts: Iterable[FramePassPart] = (),
     save_part: Callable[[FramePassPart], None] | None = None,
     handoff: FrameHandoff | None = None,
-    also_moved: np.ndarray | None = None,
 ) -> FramePassResult:
     """Decode every frame of ``dataset`` once: its ring and whether the rig moved.
 
@@ -211,10 +210,6 @@ def run(
         handoff: where the moving frames are handed on to the later stages (a local
             process pool's; None: nowhere). Frames the pass finds stationary in the
             end are removed from it.
-        also_moved: (N,) frames that moved whatever the stationary test says (the
-            robot's odometry counted them: :func:`omnipipe.sfm.robot_sensors.odometry_moved`):
-            moving frames with rings of their own (without, a keyframe there had no wall
-            for the wall's shift: random-wide seed 3s).
 
     Raises:
         DatasetError: an unreadable frame (naming its file).
@@ -246,8 +241,6 @@ def run(
             progress(i + 1)
     # The creep before a stroke makes the station's last frame a moving one.
     moved = promote_creep(moved, ratio, stations.creep_factor)
-    if also_moved is not None:
-        moved |= np.asarray(also_moved, bool)
     station = np.where(moved, np.arange(n), 0)
     station = np.maximum.accumulate(station)
     # A frame where the rig moved whose chunk took it for stationary (a slow creep that

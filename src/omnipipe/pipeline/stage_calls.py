@@ -77,7 +77,7 @@ def decode(
     frames = frame_pass.run(
         config.laser, config.sfm.stations, dataset, executor, progress=tick, parts=parts,
         save_part=None if checkpoints is None else partial(checkpoints.save_part, "frames"),
-        handoff=handoff, also_moved=_odometry_moved(dataset),
+        handoff=handoff,
     )
     log.timings["laser"] = time.perf_counter() - t0
     # A ring of a handful of samples is noise, not the laser.
@@ -91,16 +91,6 @@ def decode(
         log.warnings.append(f"laser ring not found in {n - seen} of {n} frames")
     release_freed_memory()
     return frames
-
-
-def _odometry_moved(dataset: Dataset) -> np.ndarray | None:
-    """(N,) the frames the robot's odometry counted moving (the camera motion's own
-    rule: :func:`omnipipe.sfm.robot_sensors.odometry_moved`), None without odometry."""
-    if dataset.odometry is None or dataset.timestamps is None:
-        return None
-    from omnipipe.sfm.robot_sensors import odometry_moved
-
-    return odometry_moved(dataset.odometry, dataset.timestamps)
 
 
 @dataclass(frozen=True)

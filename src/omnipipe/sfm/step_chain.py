@@ -27,7 +27,6 @@ from omnipipe.sfm.robot_sensors import (
     odometry_disagreement,
 )
 from omnipipe.sfm.scale_check import (
-    TRACKED_MIN_MATCHES,
     ScaleCheckConfig,
     StepCheck,
     bent_wall,
@@ -37,7 +36,7 @@ from omnipipe.sfm.scale_check import (
 from omnipipe.sfm.step_decide import RunScale, decide_step
 from omnipipe.sfm.step_resolve import confirm_by_gait, contradict_trusted, resolve_by_prior
 from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, SfmContext, StepEvidence
-from omnipipe.sfm.wall_resolve import resolve_by_wall, wall_confirms_bridged
+from omnipipe.sfm.wall_resolve import resolve_by_wall
 from omnipipe.spill import drop_pages
 
 # Most wall-placed features per step used as anchors (evenly over the step's matches).
@@ -95,7 +94,7 @@ def chain_steps(
     # With odometry, only where it agrees with the wall's reading (alone, the wall took
     # creeps of 1-2 mm for rest on a plain wall: seed 25s, 4 silent frame steps); the
     # frames inside a step it decides are placed by the wall too (sfm.creep.wall_resolved).
-    agreed = resolve_by_wall(ctx, kf, decided, lengths, scale, counts, odometry)
+    resolve_by_wall(ctx, kf, decided, lengths, scale, counts, odometry)
     checks = [d.check for d in decided]
     if odometry is not None:
         trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
@@ -105,7 +104,6 @@ def chain_steps(
     resolve_by_prior(ctx, kf, decided, lengths, odometry, scale, counts)
     checks = [d.check for d in decided]
     lengths, checks, odometry = bridge_steps(lengths, checks, odometry, counts)
-    wall_confirms_bridged(ctx, checks, lengths, agreed)
     scales: list[float] = []
     steps_b_from_a: list[np.ndarray] = []
     pair_matches: list[PairMatches] = []
@@ -136,8 +134,8 @@ def chain_steps(
             if wall is not None:
                 anchors.append(wall)
     bridge_lost_steps(steps_b_from_a, kf.evidence, checks, lengths)
-    if odometry is not None:  # vision's trusted lengths (a bridged one is the odometry's)
-        trusted = np.array([c.reliable and not c.bridged_from for c in checks], bool)
+    if odometry is not None:
+        trusted = np.array([c.reliable for c in checks], bool)
         ctx.warnings.extend(odometry_disagreement(odometry, lengths, trusted, kf.frames))
     world_from_kf = [np.eye(4)] if kf.frames else []
     for b_from_a in steps_b_from_a:
@@ -250,7 +248,7 @@ def bridge_lost_steps(
     direction = np.median(np.array(trusted), axis=0) if len(trusted) >= 3 else np.array([0, 0, -1.0])
     direction = direction / max(np.linalg.norm(direction), 1e-12)
     for k, ev in enumerate(evidence):
-        if _direction_unmeasured(ev, checks[k]) and math.isfinite(lengths[k]):
+        if ev.status == "lost" and math.isfinite(lengths[k]):
             step = np.eye(4)
             step[:3, 3] = direction * lengths[k]
             steps_b_from_a[k] = step
@@ -258,17 +256,6 @@ def bridge_lost_steps(
                 # Only the length is known (random-wide plain walls with odometry, e.g.
                 # seed 34s: ATE 2.0 mm, 1.2 / 1.6 mm across the axis, 0.4 mm along it).
                 checks[k] = replace(checks[k], reason=f"{checks[k].reason}{LOST_DIRECTION}")
-
-
-def _direction_unmeasured(ev: StepEvidence, check: StepCheck) -> bool:
-    """A step without relative motion, or one bridged whose relative motion rests on
-    fewer than :data:`~omnipipe.sfm.scale_check.TRACKED_MIN_MATCHES` feature matches (a
-    plain wall's few corners: random-wide seed 34s, steps from 14 and 24 matches whose
-    directions, chained, folded the path to 35 mm for 44 mm of odometry; the laser ring
-    follows such steps: :func:`omnipipe.sfm.ring_follow.unmeasured`)."""
-    if ev.status == "lost":
-        return True
-    return ev.status == "ok" and bool(check.bridged_from) and check.feature_matches < TRACKED_MIN_MATCHES
 
 
 # Said of a step without relative motion whose length was bridged: its direction and
