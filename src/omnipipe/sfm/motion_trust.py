@@ -13,12 +13,7 @@ bridged (the odometry's length, the gyro's turn and the laser ring's centre with
 robot's sensors; the gait without) and flagged, and a run left without a trusted step
 is refused in one line (:func:`omnipipe.pipeline.quality.refuse_untrusted_motion`).
 
-Random-wide bench (640x480, 32 frames, without sensors), walls below the floor (0.24-0.39)
-against every other (0.52-4.96), RANSAC inliers per keyframe step and the final step's
-direction error against the truth: seed 25 (smooth, 218 mm) 46 / 21 / 46 inliers, 0.7 /
-4.1 / 10.2 deg (ATE 6.6 mm per 300 mm, nothing flagged); seed 29 (smooth, 462 mm) 124-276,
-0.2-1.6 deg (0.92); seeds 3 and 24 (joints) 214-784; the textured walls' fewest 60 (seed 31,
-joints, 108 mm: 0.4-1.2 deg), never judged here.
+The bar and the floor, measured on the random-wide bench: benchmarks/RESULTS.md (feat26).
 """
 
 from __future__ import annotations
