@@ -443,7 +443,7 @@ def _joint(
     between = 1.5 * float(np.median(spacing)) if band.ring_plane and len(spacing) else 0.0
     reach = max(hi - lo, 4.0, between)
     # A side with no shallow sample within that reach (one ring lying in the gap, the
-    # next ring further out: bench seeds 29, 33) reaches on to the nearest shallow sample
+    # next ring further out) reaches on to the nearest shallow sample
     # within ``window_mm``: its edge lies between the two rings (else it would be the deep
     # samples' median, inside the gap), along a coordinate that follows the wall
     # (:data:`REACH_TILT_DEG`).

@@ -58,11 +58,8 @@ model: the tangents' own scatter (0.0-0.1 deg on the random-features runs) holds
 of the camera motion's rotation error nor a section centre's pull. A ring oblique by e
 to the tangent, measured about an axis off the pipe's by d in the tilt's plane, reads an
 ovality of tan(e) d + d^2 / 2 (a round pipe, 270 deg of wall: 0.6-0.9 % at e = 8 deg,
-d = 3 deg); on the 34 random-features runs the stations' ovality errors grow with the
-rings' tilt (median 0.14, 0.25, 0.41, 1.84 pp at 0-2, 2-5, 5-10, 10-30 deg; seed 9 under
-the estimated motion 6 % for 4 % at 14 deg: d about 4.5 deg); with 2 deg 92 % of them
-lie within 3 sigma under the estimated motion (86 % without), 94 % under the true (90 %;
-benchmarks/RESULTS.md, ana27)."""
+d = 3 deg). The 2 deg and its coverage on the features bench: benchmarks/RESULTS.md
+(ana27)."""
 
 
 @dataclass(frozen=True)

@@ -387,8 +387,7 @@ def _turns_enough(fit: BendFit, min_turn_deg: float) -> bool:
     """The fitted bend turns at least ``min_turn_deg``; a truncated one (the turning runs
     on past the run's first or last station) within two of its sigmas of it: its turn is
     the run's part only, a lower bound, and read short by the tangents' lag at the run's
-    end (random-features seed 27 under the true motion: 9.75 +- 1.42 deg for the 10.8
-    its stations span of an R 958 mm bend, R read 986 +- 155)."""
+    end (benchmarks/RESULTS.md, ana25/ana27)."""
     turn = math.degrees(fit.turn_rad)
     if fit.truncated:
         turn += 2.0 * math.degrees(fit.turn_sigma_rad)

@@ -363,10 +363,8 @@ def ovality_scatter(stations: list[Station]) -> float:
     :data:`SCATTER_MIN_STATIONS` stations with an ovality.
 
     A ring's shape errs by more than its own fit says (the wall texture's peaks, the
-    stripe's blur along a tilted ring, the section a ring's footprint mixes): on the 34
-    random-features runs 20 % of the stations' ovalities lay more than 3 stated sigmas
-    from the truth (benchmarks/RESULTS.md, ana27), mostly in runs whose neighbouring
-    stations scatter by 2-5 times their sigma (seeds 2, 4, 8, 12)."""
+    stripe's blur along a tilted ring, the section a ring's footprint mixes); measured
+    in benchmarks/RESULTS.md (ana27)."""
     ok = [s for s in stations if math.isfinite(s.ovality) and math.isfinite(s.ovality_angle_deg)]
     if len(ok) < SCATTER_MIN_STATIONS:
         return 0.0
