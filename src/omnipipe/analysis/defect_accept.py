@@ -46,7 +46,7 @@ def reported(
     streaks = set(streak_candidates(samples, [(members, d0) for _, _, members, d0 in candidates], limits[2]))
     fits = _fits(samples, sc, candidates, streaks, blur, executor)
     told = len(warnings)
-    defects, masks, flagged = _accepted_unstreaked(samples, sc, candidates, fits, limits, warnings)
+    defects, masks, flagged = _accepted_unstreaked(samples, sc, candidates, fits, limits, warnings, streaks)
     if streaks - flagged:
         del warnings[told:]
         for i in sorted(streaks - flagged):
@@ -88,13 +88,17 @@ def _accepted_unstreaked(
     fits: list[tuple[Defect, np.ndarray]],
     limits: tuple[float, float, float],
     warnings: list[str],
+    unfitted_streaks: set[int] | frozenset[int] = frozenset(),
 ) -> tuple[list[Defect], list[np.ndarray], set[int]]:
     """The reported defects (:func:`_accepted`) without the streaks beside a wider one's
     flank (:func:`_flank_streaks`), their masks and the indices in ``candidates`` of the
     streaks flagged; ``limits``: the widest defect (mm around the pipe), the detection
-    limit (mm) and the light section's resolution (mm)."""
+    limit (mm) and the light section's resolution (mm); ``unfitted_streaks``: the
+    candidates not fitted on purpose (:func:`streak_candidates`)."""
     max_width, limit, resolution = limits
-    defects, masks, widths, source = _accepted(samples, sc, candidates, fits, max_width, limit, warnings)
+    defects, masks, widths, source = _accepted(
+        samples, sc, candidates, fits, (max_width, limit), warnings, unfitted_streaks
+    )
     keep = _flank_streaks(defects, widths, resolution, samples.circumference_mm, warnings)
     pick = np.flatnonzero(keep)
     return [defects[i] for i in pick], [masks[i] for i in pick], {source[i] for i in np.flatnonzero(~keep)}
@@ -147,14 +151,20 @@ def _accepted(
     sc: Scales,
     candidates: list[tuple[float, str, np.ndarray, Defect]],
     fits: Iterable[tuple[Defect, np.ndarray]],
-    max_width_mm: float,
-    limit: float,
+    limits: tuple[float, float],
     warnings: list[str],
+    unfitted_streaks: set[int] | frozenset[int] = frozenset(),
 ) -> tuple[list[Defect], list[np.ndarray], list[float], list[int]]:
     """The fitted candidates that are reported (truncation flagged, travel added), their
     masks, how wide each is around the pipe (mm: the fitted width, or the arc its
     samples span without a fit) and its index in ``candidates``; a line is appended to
-    ``warnings`` for each rejected or truncated one."""
+    ``warnings`` for each rejected or truncated one. ``limits``: the widest defect (mm
+    around the pipe) and the detection limit (mm). A candidate on one ring whose model
+    fit failed (not one of ``unfitted_streaks``, left unfitted on purpose) is rejected:
+    one ring gives no profile along the pipe, and without the fit nothing sizes it or
+    tells it from the ring's own error (random-features-small seed 16: an 11 mm "dent"
+    on one ring tilted into an unfound joint's gap)."""
+    max_width_mm, limit = limits
     defects: list[Defect] = []
     masks: list[np.ndarray] = []
     widths: list[float] = []
@@ -162,6 +172,12 @@ def _accepted(
     for i, ((_, kind, members, d0), (d, mask)) in enumerate(zip(candidates, fits, strict=True)):
         d, cut_by = truncation(samples, d, d0.height_mm, members, sc)
         rejected = _rejection(d, kind, max_width_mm, limit)
+        if rejected is None and not d.fitted and i not in unfitted_streaks and len(np.unique(samples.ring[members])) == 1:
+            rejected = (
+                f"{kind} candidate at {d.axial_start_mm:.0f} mm, {d.angle_deg:.0f} deg ({len(members)} samples "
+                f"up to {d.height_mm:.2f} mm) seen by one ring, and its model fit failed: nothing sizes it or "
+                "tells it from the ring's own error (a ring tilted into a gap, stray peaks); not reported as a defect"
+            )
         if rejected:
             warnings.append(rejected)
             continue
