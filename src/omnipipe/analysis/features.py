@@ -604,12 +604,7 @@ def _lateral(
     that reach, 1-sigma from the rings' spacing at its ends; where it runs to the run's
     end (or a joint), the fitted centre stays and the reach is not wall. Returns the lateral, its
     not-wall mask (the outline plus the margin), its zone for the defect search, and
-    whether it can be a round branch's hole (an opening of lost returns alone that
-    closes shorter than it is wide cannot: :func:`_shorter_than_wide`; nor can one
-    narrower than ``lateral_gap_rings`` wide ring spacings ``spacing``: the rings it
-    needs then straddle more than the hole, and returns lost that briefly are a
-    dropout's, random-features-small seed 15: 7 and 13 mm lost on two rings 9 mm apart
-    in a 188 mm pipe, an "opening" of 11.7 mm)."""
+    whether it can be a round branch's hole (:func:`_no_round_hole`)."""
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
@@ -646,9 +641,7 @@ def _lateral(
     elif ext is not None:  # seen to the run's end (or a joint): the grown rings not wall
         reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
-    round_hole = len(members) > 0 or not (
-        _shorter_than_wide(ext, diameter) or diameter < config.lateral_gap_rings * spacing
-    )
+    round_hole = len(members) > 0 or not _no_round_hole(ext, diameter, config.lateral_gap_rings * spacing)
     f = Lateral(
         axial_mm=zc,
         axial_sigma_mm=s_z,
@@ -668,6 +661,17 @@ def _lateral(
         arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
     )
     return f, inside, zone, round_hole
+
+
+def _no_round_hole(ext: HoleExtent | None, diameter: float, min_mm: float) -> bool:
+    """Whether an opening of lost returns alone (no deep sample), ``diameter`` mm wide,
+    cannot be a round branch's hole: it closes shorter than it is wide
+    (:func:`_shorter_than_wide`), or it is narrower than ``min_mm`` (``lateral_gap_rings``
+    wide ring spacings): the rings such an opening needs then straddle more than the
+    hole, and returns lost that briefly are a dropout's (a pit, a stain; random-features-
+    small seed 15: 7 and 13 mm lost on two rings 9 mm apart in a 188 mm pipe, an
+    "opening" 11.7 mm wide)."""
+    return _shorter_than_wide(ext, diameter) or diameter < min_mm
 
 
 def _shorter_than_wide(ext: HoleExtent | None, diameter: float) -> bool:
