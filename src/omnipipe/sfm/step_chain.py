@@ -36,7 +36,7 @@ from omnipipe.sfm.scale_check import (
 from omnipipe.sfm.step_decide import RunScale, decide_step
 from omnipipe.sfm.step_resolve import confirm_by_gait, contradict_trusted, resolve_by_prior
 from omnipipe.sfm.types import Anchor, Keyframes, PairMatches, SfmContext, StepEvidence
-from omnipipe.sfm.wall_resolve import resolve_by_wall
+from omnipipe.sfm.wall_resolve import resolve_by_wall, wall_confirms_bridged
 from omnipipe.spill import drop_pages
 
 # Most wall-placed features per step used as anchors (evenly over the step's matches).
@@ -94,7 +94,7 @@ def chain_steps(
     # With odometry, only where it agrees with the wall's reading (alone, the wall took
     # creeps of 1-2 mm for rest on a plain wall: seed 25s, 4 silent frame steps); the
     # frames inside a step it decides are placed by the wall too (sfm.creep.wall_resolved).
-    resolve_by_wall(ctx, kf, decided, lengths, scale, counts, odometry)
+    agreed = resolve_by_wall(ctx, kf, decided, lengths, scale, counts, odometry)
     checks = [d.check for d in decided]
     if odometry is not None:
         trusted = np.array([c.reliable for c in checks], bool) & np.isfinite(lengths)
@@ -104,6 +104,7 @@ def chain_steps(
     resolve_by_prior(ctx, kf, decided, lengths, odometry, scale, counts)
     checks = [d.check for d in decided]
     lengths, checks, odometry = bridge_steps(lengths, checks, odometry, counts)
+    wall_confirms_bridged(ctx, checks, lengths, agreed)
     scales: list[float] = []
     steps_b_from_a: list[np.ndarray] = []
     pair_matches: list[PairMatches] = []
@@ -134,8 +135,8 @@ def chain_steps(
             if wall is not None:
                 anchors.append(wall)
     bridge_lost_steps(steps_b_from_a, kf.evidence, checks, lengths)
-    if odometry is not None:
-        trusted = np.array([c.reliable for c in checks], bool)
+    if odometry is not None:  # vision's trusted lengths (a bridged one is the odometry's)
+        trusted = np.array([c.reliable and not c.bridged_from for c in checks], bool)
         ctx.warnings.extend(odometry_disagreement(odometry, lengths, trusted, kf.frames))
     world_from_kf = [np.eye(4)] if kf.frames else []
     for b_from_a in steps_b_from_a:

@@ -17,7 +17,13 @@ from dataclasses import replace
 import numpy as np
 
 from omnipipe.sfm.robot_sensors import OdometrySteps
-from omnipipe.sfm.scale_check import FEATURE_DEPTH_SIGMA_FLOOR, PEAK_CHOSEN, wall_cylinder
+from omnipipe.sfm.scale_check import (
+    FEATURE_DEPTH_SIGMA_FLOOR,
+    PEAK_CHOSEN,
+    ScaleCheckConfig,
+    StepCheck,
+    wall_cylinder,
+)
 from omnipipe.sfm.step_decide import DecidedStep, RunScale, resolve_to
 from omnipipe.sfm.step_resolve import ACCEPT_SIGMAS, confirmed_candidates
 from omnipipe.sfm.types import Keyframes, SfmContext
@@ -38,7 +44,7 @@ def resolve_by_wall(
     scale: RunScale,
     counts: np.ndarray | None = None,
     odometry: OdometrySteps | None = None,
-) -> None:
+) -> dict[int, tuple[float, float, float]]:
     """Flagged steps whose vision candidates (every laser consensus peak, the feature
     depth length) include exactly one the wall's own shift confirms
     (:func:`omnipipe.sfm.wall_shift.step_wall_length`: the unrolled walls of the two
@@ -49,31 +55,27 @@ def resolve_by_wall(
     of it over the step's ``counts[k]`` moving frames must stay within
     ``adjusted_agree_mm`` a frame (a frame step off by more is wrong). With the robot's
     ``odometry``, a reading it does not confirm (:func:`_odometry_confirms`) decides
-    nothing, nor does the wall alone (no candidate confirmed)."""
+    nothing, nor does the wall alone (no candidate confirmed): such a reading the
+    odometry confirms is returned, step k -> (length, 1-sigma in the chain's mm, the
+    shift's correlation), for :func:`wall_confirms_bridged`.
+
+    A trusted step whose laser and feature depths differ by more than
+    ``anchor_agree_log`` (:func:`omnipipe.sfm.step_decide.decide_step` took the feature
+    length without anchors: :func:`_laser_set_aside`) is judged by the wall likewise."""
+    agreed: dict[int, tuple[float, float, float]] = {}
     gain = math.exp(scale.offset_log)
     unit = gain if scale.wall_anchored else 1.0  # chain length = laser length / unit
     config = ctx.config.scale_check
     for k, (step, ev) in enumerate(zip(decided, kf.evidence, strict=True)):
         c = step.check
         peak_chosen = c.confidence == "resolved" and c.reason.startswith(PEAK_CHOSEN)
-        if (c.reliable and not peak_chosen) or ev.status != "ok":
+        set_aside = c.reliable and not peak_chosen and _laser_set_aside(step, gain, config)
+        if (c.reliable and not peak_chosen and not set_aside) or ev.status != "ok":
             continue
-        # (own mm, chain units, name) of every candidate
-        cand = [(p, p / unit, "laser peak") for p in c.laser_peaks_mm if p > 0]
-        if math.isfinite(c.feature_scale_mm) and c.feature_scale_mm > 0:
-            cand.append((c.feature_scale_mm, c.feature_scale_mm * gain / unit, "feature depth"))
+        cand = _candidates(c, set_aside, gain, unit)
         if not cand:
             continue
-        pair: StepImages = (
-            ctx.camera,
-            (kf.grays[k], kf.grays[k + 1]),
-            (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1])),
-            ev.b_from_a,
-        )
-        window = candidate_window(_plausible([v for v, _, _ in cand], c.feature_scale_mm))
-        if peak_chosen:  # the wall may find the step far below every candidate
-            window = (VETO_REACH_DOWN * window[0], window[1])
-        reading = step_wall_length(*pair, window)
+        pair, reading = _wall_reading(ctx, kf, k, [v for v, _, _ in cand], peak_chosen)
         if not reading.measured:
             continue
         wall_mm = reading.length_mm
@@ -90,6 +92,8 @@ def resolve_by_wall(
         near = confirmed_candidates(np.array([v for v, _, _ in cand]), wall_mm, sigma, config.agree_log)
         if near is not None:
             names = " and ".join(sorted({cand[i][2] for i in near}))
+            if set_aside:
+                decided[k] = replace(step, check=replace(c, reason=_set_aside_reason(c, gain)))
             resolve_to(
                 ctx, kf, decided, lengths, k, float(np.median([cand[i][1] for i in near])), scale,
                 f"the {names} length agrees with the wall's own shift {wall_mm:.1f} +- "
@@ -97,12 +101,76 @@ def resolve_by_wall(
                 "candidates do not",
                 (wall_mm, ACCEPT_SIGMAS * sigma),
             )
+        elif set_aside:
+            continue  # trusted on its feature depths, as decided
         elif odometry is None:
+            _wall_alone(ctx, decided, lengths, k, pair, reading, unit)
+        else:
             # With odometry the step is bridged from it instead: the frames inside then
             # follow its travel, not a resection on a wall whose features could not
             # measure the step (random-wide seed 24s, joints: 5 frame steps 0.25-0.5 mm
-            # off, unflagged, inside a step the wall alone resolved).
-            _wall_alone(ctx, decided, lengths, k, pair, reading, unit)
+            # off, unflagged, inside a step the wall alone resolved). The two agreeing
+            # measure its length (:func:`wall_confirms_bridged`).
+            agreed[k] = (wall_mm / unit, sigma / unit, reading.shift.ncc)
+    return agreed
+
+
+def _wall_reading(
+    ctx: SfmContext, kf: Keyframes, k: int, candidates_mm: list[float], peak_chosen: bool
+) -> tuple[StepImages, WallLength]:
+    """Step k's two keyframes (camera, grey images, walls, relative pose) and the wall's
+    shift read over the window its candidates span (down to :data:`VETO_REACH_DOWN` of
+    it for a ``peak_chosen`` step: the wall may find the step far below every one)."""
+    c = kf.evidence[k]
+    pair: StepImages = (
+        ctx.camera,
+        (kf.grays[k], kf.grays[k + 1]),
+        (wall_cylinder(kf.ring_points[k]), wall_cylinder(kf.ring_points[k + 1])),
+        c.b_from_a,
+    )
+    window = candidate_window(_plausible(candidates_mm, c.feature_scale_mm))
+    if peak_chosen:
+        window = (VETO_REACH_DOWN * window[0], window[1])
+    return pair, step_wall_length(*pair, window)
+
+
+def _candidates(c: StepCheck, set_aside: bool, gain: float, unit: float) -> list[tuple[float, float, str]]:
+    """(own mm, chain's mm, name) of every vision candidate of a step: its laser
+    consensus peaks (and, ``set_aside``, its laser length), its feature depth length."""
+    cand = [(p, p / unit, "laser peak") for p in c.laser_peaks_mm if p > 0]
+    if set_aside:
+        cand.append((c.laser_scale_mm, c.laser_scale_mm / unit, "laser"))
+    if math.isfinite(c.feature_scale_mm) and c.feature_scale_mm > 0:
+        cand.append((c.feature_scale_mm, c.feature_scale_mm * gain / unit, "feature depth"))
+    return cand
+
+
+def _laser_set_aside(step: DecidedStep, gain: float, config: ScaleCheckConfig) -> bool:
+    """A trusted step whose laser length (``gain``: the run's laser / feature-depth
+    offset) differs from its feature depths by more than ``anchor_agree_log`` (within
+    ``agree_log``): :func:`~omnipipe.sfm.step_decide.decide_step` took the feature length
+    and dropped the laser's anchors, so nothing measured it twice. The wall's shift may:
+    random-wide seed 3s (joints, 757 mm) laser 26.6 mm, feature depths 29.7 (2 % short,
+    the tracks' lag), the wall 30.1 +- 0.6, true 30.3."""
+    c = step.check
+    return (
+        c.confidence == "high"
+        and step.laser is None
+        and math.isfinite(c.laser_scale_mm)
+        and c.laser_scale_mm > 0
+        and math.isfinite(c.feature_scale_mm)
+        and c.feature_scale_mm > 0
+        and abs(math.log(c.laser_scale_mm / (gain * c.feature_scale_mm))) > config.anchor_agree_log
+    )
+
+
+def _set_aside_reason(c: StepCheck, gain: float) -> str:
+    """What a step :func:`_laser_set_aside` says before the wall resolves it."""
+    gap = 100 * (c.laser_scale_mm / (gain * c.feature_scale_mm) - 1)
+    return (
+        f"laser {c.laser_scale_mm:.1f} mm and feature depth {c.feature_scale_mm:.1f} mm "
+        f"lengths differ by {gap:+.0f} %"
+    )
 
 
 def _odometry_confirms(odometry: OdometrySteps, k: int, length: float, sigma: float) -> bool:
@@ -229,3 +297,38 @@ def _wall_alone(
         check=replace(c, scale_mm=chosen * unit, confidence="resolved", reason=reason),
     )
     lengths[k] = chosen
+
+
+def wall_confirms_bridged(
+    ctx: SfmContext,
+    checks: list[StepCheck],
+    lengths: np.ndarray,
+    agreed: dict[int, tuple[float, float, float]],
+) -> None:
+    """Steps bridged from the odometry whose wall reading it confirmed
+    (:func:`resolve_by_wall`'s ``agreed``: step k -> (length, 1-sigma mm, correlation))
+    made ``resolved`` in place: two independent measurements agree (the wall's own
+    shift, the robot's travel), so the length is their inverse-variance mean with its
+    1-sigma, not an estimate. The step stays bridged (its frames follow the odometry's
+    travel, the adjustment holds it to that length with that sigma, and it does not
+    speak for the run's scale: :attr:`~omnipipe.sfm.scale_check.StepCheck.measures_scale`).
+
+    Random-wide seed 24s (joints, 644 mm, one 13.04 mm keyframe step): laser peaks
+    ambiguous, 126 feature matches (no feature depth length); the wall 13.11 +- 0.37,
+    the odometry 12.95 +- 0.54: 13.06 +- 0.30, flagged on every frame step before."""
+    for k, (wall_mm, wall_sigma, ncc) in agreed.items():
+        c = checks[k]
+        if c.bridged_from != "odometry" or not (math.isfinite(c.bridged_mm) and c.bridged_sigma_mm > 0):
+            continue
+        w_wall, w_odo = wall_sigma**-2, c.bridged_sigma_mm**-2
+        length = (w_wall * wall_mm + w_odo * c.bridged_mm) / (w_wall + w_odo)
+        sigma = (w_wall + w_odo) ** -0.5
+        reason = (
+            f"{c.reason}; measured: the wall's shift {wall_mm:.1f} +- {wall_sigma:.1f} mm "
+            f"(unrolled wall, correlation {ncc:.2f}) agrees with it: {length:.1f} +- {sigma:.1f} mm"
+        )
+        ctx.warnings.append(f"frames {c.first_frame}->{c.last_frame}: {reason}")
+        checks[k] = replace(
+            c, confidence="resolved", reason=reason, bridged_mm=length, bridged_sigma_mm=sigma
+        )
+        lengths[k] = length
