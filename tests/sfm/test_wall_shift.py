@@ -231,3 +231,61 @@ def test_frames_at_rest_read_no_shift_whatever_the_window(small_camera: OmniCame
         assert abs(r.shift_mm) <= 2 * r.sigma_mm, r
     spread = lambda rs: max(r.shift_mm for r in rs) - min(r.shift_mm for r in rs)  # noqa: E731
     assert spread(trimmed) < 0.5 * spread(untrimmed)
+
+
+def test_a_trusted_step_whose_laser_was_set_aside_is_decided_by_the_wall(small_camera: OmniCamera) -> None:
+    """A ``high`` step whose laser (9.0 mm) and feature depths (10.2 mm, 2 % long)
+    differ by more than anchor_agree_log (random-wide seed 3s: 26.6 and 29.7 mm for
+    30.3): decide_step took the feature length without anchors. The wall's own shift (10 mm true) confirms the
+    feature depths and excludes the laser: the step is resolved, its reason says why."""
+    ctx, kf, decided, lengths = _one_step(small_camera, 15.0, 10.0, (9.0,), 10.2, 11)
+    high = StepCheck(0, 4, 9.0, 0.2, 10.2, 400, 9.0, "high", "", (9.0,))
+    decided[0] = DecidedStep(decided[0].b_from_a, 10.2, None, None, high)
+    lengths[0] = 10.2
+    resolve_by_wall(ctx, kf, decided, lengths, RunScale(0.0, False), np.array([4]))
+    c = decided[0].check
+    assert c.confidence == "resolved", c.reason
+    assert c.reason.startswith("laser 9.0 mm and feature depth 10.2 mm lengths differ by -12 %")
+    assert "the feature depth length agrees with the wall's own shift" in c.reason
+    assert lengths[0] == pytest.approx(10.0, abs=0.4)
+
+
+def test_a_high_step_whose_sources_agree_closely_is_not_read(small_camera: OmniCamera) -> None:
+    ctx, kf, decided, lengths = _one_step(small_camera, 15.0, 10.0, (10.1,), 10.3, 11)
+    high = StepCheck(0, 4, 10.1, 0.2, 10.3, 400, 10.1, "high", "", (10.1,))
+    decided[0] = DecidedStep(decided[0].b_from_a, 10.1, None, None, high)
+    lengths[0] = 10.1
+    resolve_by_wall(ctx, kf, decided, lengths, RunScale(0.0, False), np.array([4]))
+    assert decided[0].check == high and lengths[0] == 10.1
+
+
+def test_the_odometry_and_the_wall_agreeing_measure_a_bridged_step(small_camera: OmniCamera) -> None:
+    """No vision candidate near the 5 mm step (laser peaks 20 and 35 mm, no feature
+    depths): with the odometry counting 5.1 mm the wall's reading is returned, and once
+    the step is bridged from the odometry the two measure it: resolved (not flagged),
+    their inverse-variance mean within its sigma of the truth, still bridged (its frames
+    follow the travel). Counting 8 mm: nothing returned, the step stays flagged."""
+    from omnipipe.inputs.sensors import make_odometry
+    from omnipipe.sfm.robot_sensors import odometry_steps
+    from omnipipe.sfm.step_chain import bridge_steps
+    from omnipipe.sfm.wall_resolve import wall_confirms_bridged
+
+    for counted_mm, measured in ((5.1, True), (8.0, False)):
+        ctx, kf, decided, lengths = _one_step(small_camera, 15.0, 5.0, (7.5, 2.5), math.nan, 11)
+        times = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+        counted = np.linspace(0.0, counted_mm, 5)
+        odo = make_odometry("test", times, counted, np.hypot(0.03 * counted, 0.05), str)
+        steps = odometry_steps(odo, times, [0, 4])
+        agreed = resolve_by_wall(ctx, kf, decided, lengths, RunScale(0.0, False), np.array([4]), steps)
+        assert (0 in agreed) == measured
+        assert not decided[0].check.reliable and math.isnan(lengths[0])
+        lengths, checks, _ = bridge_steps(lengths, [d.check for d in decided], steps)
+        wall_confirms_bridged(ctx, checks, lengths, agreed)
+        c = checks[0]
+        assert c.bridged_from == "odometry"
+        assert c.reliable == measured, c.reason
+        if measured:
+            assert c.bridged_sigma_mm < min(agreed[0][1], math.hypot(0.03 * 5.1, 0.07))
+            assert abs(c.bridged_mm - 5.0) <= 2 * c.bridged_sigma_mm
+            assert lengths[0] == c.bridged_mm
+            assert "measured: the wall's shift" in c.reason
