@@ -101,6 +101,32 @@ def test_without_a_wall_reading_the_odometry_places_them_flagged(small_camera: O
     np.testing.assert_array_equal(result.station, np.cumsum(~result.stationary) - 1)
 
 
+def test_inside_a_flagged_keyframe_step_the_creep_is_said_not_flagged_again(small_camera: OmniCamera) -> None:
+    """The plain wall above, its one keyframe step already flagged (bridged from the
+    odometry: random-wide seed 34s): the frames are placed the same, the stretch keeps
+    only the step's own reason, and a warning says what the odometry counted."""
+    from omnipipe.sfm.scale_check import StepCheck
+
+    rng = np.random.default_rng(0)
+    z, moved = _creeping(rng)
+    step = StepCheck(0, 7, math.nan, 0.0, math.nan, 0, math.nan, "none", "relative motion not found")
+    runs = []
+    blank = np.zeros((small_camera.height, small_camera.width), np.float32)
+    for checks in ([], [step]):
+        result, warnings = _result(z, moved), []
+        result.step_checks = checks
+        result.unreliable = [UnreliableStretch(0, 7, step.reason)] if checks else []
+        place_odometry_creeps(
+            result, _odometry(z, np.random.default_rng(1)), np.arange(len(z)) / FPS, small_camera,
+            lambda i: blank, lambda i: None, warnings,
+        )
+        runs.append((result, warnings))
+    (alone, _), (inside, said) = runs
+    np.testing.assert_array_equal(inside.world_from_rig, alone.world_from_rig)
+    assert [u.reason for u in inside.unreliable] == ["relative motion not found"]
+    assert any(w.startswith("frames 0->7: the odometry counted") and BY_ODOMETRY in w for w in said)
+
+
 def test_widened_and_odometry_placed() -> None:
     keyframes = np.zeros(12, bool)
     keyframes[[0, 5, 9]] = True
