@@ -55,6 +55,7 @@ from omnipipe.sfm.external import external_motion, trajectory_path
 from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import follow_keyframes
+from omnipipe.sfm.lagging_tracks import kept, lags, plain_config
 from omnipipe.sfm.motion_trust import run_texture, untrusted_motions
 from omnipipe.sfm.path_smooth import smooth_path
 from omnipipe.sfm.ransac import RansacConfig
@@ -137,7 +138,13 @@ def run(
     # split them again (inline, one thread takes the views: OpenCV keeps its pool).
     parallel = executor is not None and not isinstance(executor, InlineExecutor)
     with threadpool_limits(limits=1, user_api="blas"), opencv_threads(1) if parallel else nullcontext():
-        return _run(config, inputs, progress, executor)
+        result = _run(config, inputs, progress, executor)
+        # Tracks held back by the views' contrast (sfm.lagging_tracks): once more on their
+        # local contrast, where the wall has the texture for it.
+        plain = plain_config(config)
+        if lags(config, result) and _flow_views(plain, inputs).features.flow_plain:
+            result = kept(config, result, _run(plain, inputs, None, executor))
+        return result
 
 
 def _run(
