@@ -101,7 +101,7 @@ def run(
     # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
     measured = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
     mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
-    reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
+    reach = _station_reaches(inputs, stations.rings)
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
     st_list, shared = tilt_corrected(st_list, shared, line, pts, frame, measured, radial_sys)
     st_list, features, head = sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing)
@@ -137,6 +137,22 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _station_reaches(inputs: AnalysisInputs, rings: np.ndarray) -> list[EdgeReach]:
+    """Each station's (of ``rings``, indices into the inputs' rings) reach past its cut's
+    ends: the one measured at its ring's cut (``inputs.edge_reach_rings_mm``) where there
+    is one, else the run's model (``inputs.edge_reach_mm``)."""
+    model = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
+    own = np.asarray(inputs.edge_reach_rings_mm, float)
+    own_sig = np.asarray(inputs.edge_reach_rings_sigma_mm, float)
+    out = []
+    for k in np.asarray(rings, int):
+        if k < len(own) and k < len(own_sig) and math.isfinite(own[k]) and math.isfinite(own_sig[k]):
+            out.append(EdgeReach(float(own[k]), float(own_sig[k]), measured=True))
+        else:
+            out.append(model)
+    return out
 
 
 def _unseen_gap_warning(unseen_gap_mm: float) -> list[str]:

@@ -23,6 +23,7 @@ ring that follows a taper and the oblique rings of a bend), never from one cylin
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -209,11 +210,16 @@ captures). On the 34 random-features runs the wet stations of a run err alike: s
 @dataclass(frozen=True)
 class EdgeReach:
     """How far (mm along the wall) a ring's samples run on past the end of its lit
-    stretch (the imaged stripe's blur above the extractor's threshold,
-    :func:`omnipipe.laser.extract.edge_reach_mm`), and one ring's 1-sigma about it."""
+    stretch, and its 1-sigma: the run's model (the imaged stripe's blur above the
+    extractor's threshold, :func:`omnipipe.laser.extract.edge_reach_mm`; ``sigma_mm``
+    one ring's spread about it, :data:`REACH_MODEL_REL` added, shared by the run's
+    rings) or, ``measured``, the ring's own at its cut's ends (the stripe's half-height
+    point there, :func:`omnipipe.laser.extract.station_edge_reach`: measured from the
+    last samples themselves, so no half sample step; its error is the ring's own)."""
 
     mm: float = 0.0
     sigma_mm: float = 0.0
+    measured: bool = False
 
 
 @dataclass(frozen=True)
@@ -232,6 +238,8 @@ class WaterDepth:
         reach_mm: the blur reach's 1-sigma (``EdgeReach.sigma_mm``) moving both ends
             back alike; shared by every station of the run (the water line meets each
             ring on the same wall, so its stripe fades alike), not averaged away.
+        own_reach_mm: the same of a reach measured at the ring's own cut
+            (``EdgeReach.measured``): that ring's alone.
     """
 
     depth_mm: float
@@ -239,10 +247,11 @@ class WaterDepth:
     fit_mm: float
     wall_mm: float
     reach_mm: float = 0.0
+    own_reach_mm: float = 0.0
 
     @property
     def sigma_mm(self) -> float:
-        return math.hypot(self.edge_mm, self.fit_mm, self.wall_mm, self.reach_mm)
+        return math.hypot(self.edge_mm, self.fit_mm, self.wall_mm, self.reach_mm, self.own_reach_mm)
 
     @property
     def shared_mm(self) -> float:
@@ -279,8 +288,10 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
     into the gap, uncertain by step / sqrt(12)); the stripe's blur carries the samples
     ``reach.mm`` past the water line itself, so each chord end is taken that far back
     towards the lit wall (``reach.sigma_mm`` its ring-to-ring 1-sigma, with the reach
-    model's own ``REACH_MODEL_REL``: both shared by the run's rings). An edge's error
-    moves the depth by the wall's slope across the chord; the fit's covariance is
+    model's own ``REACH_MODEL_REL``: both shared by the run's rings). A reach measured
+    at this ring's cut (``reach.measured``) is taken from the last samples themselves
+    (no half step, no step quantisation) with its own sigma (this ring's). An edge's
+    error moves the depth by the wall's slope across the chord; the fit's covariance is
     carried through the depth by its Jacobian in the coefficients.
     """
     cut = section.cut
@@ -291,8 +302,9 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
     ends = (cut.start, cut.start + cut.width)
     rho = [float(profile_radius(coef, np.array(e))) for e in ends]
     back = [reach.mm / max(r, 1e-9) for r in rho]
-    e1 = ends[0] + 0.5 * cut.step - back[0]
-    e2 = ends[1] - 0.5 * cut.step + back[1]
+    half = 0.0 if reach.measured else 0.5 * cut.step
+    e1 = ends[0] + half - back[0]
+    e2 = ends[1] - half + back[1]
     depth = _depth_below_chord(coef, e1, e2)
     # Each edge's depth error: the depth's change with the edge (mm / rad, signed towards
     # the gap) x its angle error.
@@ -301,9 +313,9 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
         (_depth_below_chord(coef, e1 + h, e2) - _depth_below_chord(coef, e1 - h, e2)) / (2 * h),
         (_depth_below_chord(coef, e1, e2 - h) - _depth_below_chord(coef, e1, e2 + h)) / (2 * h),
     ]
-    quant = cut.step / math.sqrt(12.0)
+    quant = 0.0 if reach.measured else cut.step / math.sqrt(12.0)
     edge = math.hypot(slopes[0] * quant, slopes[1] * quant)
-    reach_sig = math.hypot(reach.sigma_mm, REACH_MODEL_REL * reach.mm)
+    reach_sig = reach.sigma_mm if reach.measured else math.hypot(reach.sigma_mm, REACH_MODEL_REL * reach.mm)
     reach_err = abs(slopes[0] * reach_sig / max(rho[0], 1e-9) + slopes[1] * reach_sig / max(rho[1], 1e-9))
     jac = np.zeros(len(coef))
     for k in range(len(coef)):
@@ -312,6 +324,8 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
         jac[k] = (_depth_below_chord(coef + dc, e1, e2) - _depth_below_chord(coef - dc, e1, e2)) / 2e-3
     cov = np.asarray(section.cov, float)[: len(coef), : len(coef)]
     fit = math.sqrt(max(float(jac @ cov @ jac), 0.0))
+    if reach.measured:
+        return WaterDepth(max(depth, 0.0), edge, fit, radial_sigma_mm, 0.0, reach_err)
     return WaterDepth(max(depth, 0.0), edge, fit, radial_sigma_mm, reach_err)
 
 
@@ -381,20 +395,21 @@ def with_water(
     sections: list[Section],
     radial_sigma_mm: float,
     config: SectionConfig,
-    reach: EdgeReach | None = None,
+    reach: EdgeReach | Sequence[EdgeReach] | None = None,
 ) -> tuple[list[Station], bool]:
     """The stations with their water depths: cuts at the run's common cut angle, deep
     enough (``config.water_min_pct``, 3 sigma), on at least ``config.min_stations``
     stations are water (returns True then); the other stations are dry (depth 0, sigma
     the depth of the narrowest cut). ``reach``: the stripe's blur past a water line
-    (:func:`water_depth`)."""
+    (:func:`water_depth`), the run's or one per station."""
+    reaches = list(reach) if isinstance(reach, Sequence) else [reach] * len(stations)
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
     if len(centres) >= config.min_stations:
         z = np.exp(1j * np.radians(centres))
         common = math.degrees(float(np.angle(np.mean(z))))
     out, wet = [], 0
-    for st, sec in zip(stations, sections, strict=True):
+    for st, sec, st_reach in zip(stations, sections, reaches, strict=True):
         shallowest = 0.5 * st.diameter_mm * (1.0 - math.cos(0.5 * math.radians(config.cut_min_deg)))
         is_water = (
             common is not None
@@ -402,7 +417,7 @@ def with_water(
             and abs((st.cut_centre_deg - common + 180.0) % 360.0 - 180.0) <= config.water_angle_tol_deg
         )
         if is_water:
-            wd = water_depth(sec, radial_sigma_mm, reach)
+            wd = water_depth(sec, radial_sigma_mm, st_reach)
             depth, sig, shared = wd.depth_mm, wd.sigma_mm, wd.shared_mm
             is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
         if is_water:
