@@ -396,12 +396,17 @@ def with_water(
     radial_sigma_mm: float,
     config: SectionConfig,
     reach: EdgeReach | Sequence[EdgeReach] | None = None,
+    joints: Sequence[tuple[float, float, float]] = (),
 ) -> tuple[list[Station], bool]:
     """The stations with their water depths: cuts at the run's common cut angle, deep
     enough (``config.water_min_pct``, 3 sigma), on at least ``config.min_stations``
     stations are water (returns True then); the other stations are dry (depth 0, sigma
     the depth of the narrowest cut). ``reach``: the stripe's blur past a water line
-    (:func:`water_depth`), the run's or one per station."""
+    (:func:`water_depth`), the run's or one per station. ``joints``: found joints'
+    bands (axial from, to; mm) and the step (mm) their sections make at the wall (the
+    offset and the gap's depth in quadrature): a station there may ring both sections
+    and its cut the gap's recess, so its depth's sigma holds that step (a cut there is
+    water only when deeper than 3 such sigmas)."""
     reaches = list(reach) if isinstance(reach, Sequence) else [reach] * len(stations)
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
@@ -419,6 +424,9 @@ def with_water(
         if is_water:
             wd = water_depth(sec, radial_sigma_mm, st_reach)
             depth, sig, shared = wd.depth_mm, wd.sigma_mm, wd.shared_mm
+            for lo, hi, step in joints:
+                if lo <= st.axial_mm <= hi:
+                    sig = math.hypot(sig, step)
             is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
         if is_water:
             wet += 1
