@@ -390,6 +390,13 @@ def ovality_scatter(stations: list[Station]) -> float:
     return math.sqrt(max(spread**2 - fit**2, 0.0))
 
 
+JOINT_STEP_MAX_REL = 0.05
+"""The largest joint step (offset and gap depth, relative to the diameter) a water
+station's sigma takes (:func:`with_water`): a joint's offset read from a degenerate
+local axis can be tens of percent of the diameter (random-features seed 13: 127 mm in
+a 533 mm pipe, against 2.3 true); real joint offsets are a few percent."""
+
+
 def with_water(
     stations: list[Station],
     sections: list[Section],
@@ -405,8 +412,9 @@ def with_water(
     (:func:`water_depth`), the run's or one per station. ``joints``: found joints'
     bands (axial from, to; mm) and the step (mm) their sections make at the wall (the
     offset and the gap's depth in quadrature): a station there may ring both sections
-    and its cut the gap's recess, so its depth's sigma holds that step (a cut there is
-    water only when deeper than 3 such sigmas)."""
+    and its cut end lie in the gap's recess, so its depth's sigma holds that step (at
+    most :data:`JOINT_STEP_MAX_REL` of the diameter; and a stretch's split at a depth
+    step, ``sections._depth_steps``, with it)."""
     reaches = list(reach) if isinstance(reach, Sequence) else [reach] * len(stations)
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
@@ -424,10 +432,9 @@ def with_water(
         if is_water:
             wd = water_depth(sec, radial_sigma_mm, st_reach)
             depth, sig, shared = wd.depth_mm, wd.sigma_mm, wd.shared_mm
-            for lo, hi, step in joints:
-                if lo <= st.axial_mm <= hi:
-                    sig = math.hypot(sig, step)
             is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
+            step = max((step for lo, hi, step in joints if lo <= st.axial_mm <= hi), default=0.0)
+            sig = math.hypot(sig, min(step, JOINT_STEP_MAX_REL * st.diameter_mm))
         if is_water:
             wet += 1
             out.append(
