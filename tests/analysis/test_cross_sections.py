@@ -242,7 +242,8 @@ def test_water_line_read_back_by_each_rings_measured_reach() -> None:
     half-height point, ``edge_reach_rings_mm``: here the true distance of its last
     samples past the water line, both ends' mean, stated 0.3 mm): the chord ends are
     taken back by exactly that (no half sample step), every station within 3 sigma and
-    0.25 mm, and no reach term is shared by the run's stations."""
+    0.25 mm; the stated reach sigma is shared by the run's stations (their rings err
+    alike: benchmarks/RESULTS.md, wat28) and the stretch keeps it whole."""
     rings = _flooded(45.0, 4.0, seed=11)
     pipe = Pipe(inner_diameter_mm=300.0, features=PipeFeatures(water=Water(45.0)))
     centre, _, _, tangent = pipe.frame_at(rings.points_in_world[:, 2])
@@ -261,11 +262,12 @@ def test_water_line_read_back_by_each_rings_measured_reach() -> None:
     res = run(AnalysisConfig(), rings)
     wet = [s for s in res.stations if s.water_depth_mm > 0]
     assert len(wet) == n
+    shared = math.sin(line) * 0.3
     for s in wet:
         assert abs(s.water_depth_mm - 45.0) <= min(3 * s.water_depth_sigma_mm, 0.25)
-        assert s.water_depth_shared_sigma_mm == 0.0
+        assert abs(s.water_depth_shared_sigma_mm - shared) <= 0.2 * shared
     (water,) = _kinds(res.features, "water")
-    assert abs(water.depth_mm - 45.0) <= 3 * water.depth_sigma_mm
+    assert abs(water.depth_mm - 45.0) <= 3 * water.depth_sigma_mm and water.depth_sigma_mm >= shared
 
 
 def test_water_station_on_a_joint_holds_the_joints_step() -> None:

@@ -144,10 +144,15 @@ def run(
 def _station_reaches(inputs: AnalysisInputs, rings: np.ndarray) -> list[EdgeReach]:
     """Each station's (of ``rings``, indices into the inputs' rings) reach past its cut's
     ends: the one measured at its ring's cut (``inputs.edge_reach_rings_mm``) where there
-    is one, else the run's model (``inputs.edge_reach_mm``)."""
-    model = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
+    is one, else the median of the run's measured ones, else the run's model
+    (``inputs.edge_reach_mm``)."""
     own = np.asarray(inputs.edge_reach_rings_mm, float)
     own_sig = np.asarray(inputs.edge_reach_rings_sigma_mm, float)
+    ok = np.isfinite(own[: len(own_sig)]) & np.isfinite(own_sig[: len(own)])
+    if ok.any():
+        model = EdgeReach(float(np.median(own[ok])), float(np.median(own_sig[ok])), measured=True)
+    else:
+        model = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
     out = []
     for k in np.asarray(rings, int):
         if k < len(own) and k < len(own_sig) and math.isfinite(own[k]) and math.isfinite(own_sig[k]):

@@ -120,6 +120,9 @@ class Station:
             seen; its sigma then the shallowest depth a cut would show).
         water_depth_shared_sigma_mm: the part of that sigma every station of the run
             shares (:attr:`WaterDepth.shared_mm`): a stretch's average keeps it whole.
+        water_depth_joint_sigma_mm: the part of that sigma from a found joint's step
+            (:func:`with_water`'s ``joints``): no evidence of a depth step between
+            stations (``sections._depth_steps``).
         wall_coverage_deg: circumference covered by the ring's wall points.
         deformation_mm, deformation_sigma_mm: mean diameter minus the run's (headline).
     """
@@ -140,6 +143,7 @@ class Station:
     deformation_sigma_mm: float = 0.0
     cut_centre_deg: float | None = None
     water_depth_shared_sigma_mm: float = 0.0
+    water_depth_joint_sigma_mm: float = 0.0
 
     def to_contract(self) -> dict[str, Any]:
         """The report.json ``stations`` entry: the contract's keys with their sigma
@@ -215,7 +219,7 @@ class EdgeReach:
     one ring's spread about it, :data:`REACH_MODEL_REL` added, shared by the run's
     rings) or, ``measured``, the ring's own at its cut's ends (the stripe's half-height
     point there, :func:`omnipipe.laser.extract.station_edge_reach`: measured from the
-    last samples themselves, so no half sample step; its error is the ring's own)."""
+    last samples themselves, so no half sample step and no model term)."""
 
     mm: float = 0.0
     sigma_mm: float = 0.0
@@ -235,11 +239,10 @@ class WaterDepth:
         fit_mm: the section fit's covariance carried through the depth (the wall under
             the water is the fit's extrapolation across the cut).
         wall_mm: the wall noise of one sample at that range (the chord's ends sit on it).
-        reach_mm: the blur reach's 1-sigma (``EdgeReach.sigma_mm``) moving both ends
-            back alike; shared by every station of the run (the water line meets each
-            ring on the same wall, so its stripe fades alike), not averaged away.
-        own_reach_mm: the same of a reach measured at the ring's own cut
-            (``EdgeReach.measured``): that ring's alone.
+        reach_mm: the reach's 1-sigma (``EdgeReach.sigma_mm``) moving both ends back
+            alike; shared by every station of the run (the water line meets each ring on
+            the same wall, so its stripe fades alike; a reach measured at each ring's cut
+            errs alike over a run too), not averaged away.
     """
 
     depth_mm: float
@@ -247,11 +250,10 @@ class WaterDepth:
     fit_mm: float
     wall_mm: float
     reach_mm: float = 0.0
-    own_reach_mm: float = 0.0
 
     @property
     def sigma_mm(self) -> float:
-        return math.hypot(self.edge_mm, self.fit_mm, self.wall_mm, self.reach_mm, self.own_reach_mm)
+        return math.hypot(self.edge_mm, self.fit_mm, self.wall_mm, self.reach_mm)
 
     @property
     def shared_mm(self) -> float:
@@ -290,7 +292,7 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
     towards the lit wall (``reach.sigma_mm`` its ring-to-ring 1-sigma, with the reach
     model's own ``REACH_MODEL_REL``: both shared by the run's rings). A reach measured
     at this ring's cut (``reach.measured``) is taken from the last samples themselves
-    (no half step, no step quantisation) with its own sigma (this ring's). An edge's
+    (no half step, no step quantisation) with its stated sigma. An edge's
     error moves the depth by the wall's slope across the chord; the fit's covariance is
     carried through the depth by its Jacobian in the coefficients.
     """
@@ -324,8 +326,6 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
         jac[k] = (_depth_below_chord(coef + dc, e1, e2) - _depth_below_chord(coef - dc, e1, e2)) / 2e-3
     cov = np.asarray(section.cov, float)[: len(coef), : len(coef)]
     fit = math.sqrt(max(float(jac @ cov @ jac), 0.0))
-    if reach.measured:
-        return WaterDepth(max(depth, 0.0), edge, fit, radial_sigma_mm, 0.0, reach_err)
     return WaterDepth(max(depth, 0.0), edge, fit, radial_sigma_mm, reach_err)
 
 
@@ -413,8 +413,8 @@ def with_water(
     bands (axial from, to; mm) and the step (mm) their sections make at the wall (the
     offset and the gap's depth in quadrature): a station there may ring both sections
     and its cut end lie in the gap's recess, so its depth's sigma holds that step (at
-    most :data:`JOINT_STEP_MAX_REL` of the diameter; and a stretch's split at a depth
-    step, ``sections._depth_steps``, with it)."""
+    most :data:`JOINT_STEP_MAX_REL` of the diameter; kept apart in
+    ``water_depth_joint_sigma_mm``: no reason against a stretch's depth step)."""
     reaches = list(reach) if isinstance(reach, Sequence) else [reach] * len(stations)
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
@@ -434,11 +434,15 @@ def with_water(
             depth, sig, shared = wd.depth_mm, wd.sigma_mm, wd.shared_mm
             is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
             step = max((step for lo, hi, step in joints if lo <= st.axial_mm <= hi), default=0.0)
-            sig = math.hypot(sig, min(step, JOINT_STEP_MAX_REL * st.diameter_mm))
+            step = min(step, JOINT_STEP_MAX_REL * st.diameter_mm)
+            sig = math.hypot(sig, step)
         if is_water:
             wet += 1
             out.append(
-                replace(st, water_depth_mm=depth, water_depth_sigma_mm=sig, water_depth_shared_sigma_mm=shared)
+                replace(
+                    st, water_depth_mm=depth, water_depth_sigma_mm=sig, water_depth_shared_sigma_mm=shared,
+                    water_depth_joint_sigma_mm=step,
+                )
             )
         else:
             out.append(replace(st, water_depth_mm=0.0, water_depth_sigma_mm=shallowest))
