@@ -246,9 +246,10 @@ class RingExtractor:
         return _LinePeaks(ok, radius, snr, width, rad_sigma, run_len > 0, shift, peak, k, stats.background)
 
 
-EDGE_MIN_GAP_LINES = 8
-"""Scan lines without a peak a gap needs for :func:`_gap_edges` to locate the stripe's
-end at either side (a water line cuts tens to hundreds; texture drops one or two)."""
+EDGE_MIN_GAP_LINES = 16
+"""Scan lines without a peak the ring's widest gap needs for :func:`_gap_edges` to
+locate the stripe's end at either side (8 deg at 720 lines, the analysis' smallest cut;
+a water line cuts tens to hundreds; texture drops one or two)."""
 
 EDGE_PLATEAU_PX = (2.5, 6.0)
 """How far (px along the ring, from the last peak before a gap) the lit stripe's
@@ -260,9 +261,10 @@ EDGE_BEYOND_PX = 4.0
 
 
 def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> np.ndarray:
-    """(E, 3) float32 rows (end line, direction, offset) locating where the lit stripe
-    ends at each side of every gap of more than :data:`EDGE_MIN_GAP_LINES` scan lines
-    without an accepted peak: ``end line`` the last accepted line before the gap,
+    """(E, 3) float32 rows (end line, direction, offset), E <= 2, locating where the lit
+    stripe ends at each side of the ring's widest gap when it spans more than
+    :data:`EDGE_MIN_GAP_LINES` scan lines without an accepted peak (the only gap the
+    analysis takes for a water line's cut): ``end line`` the last accepted line before the gap,
     ``direction`` +1 when the gap lies at higher lines, -1 at lower, ``offset`` (scan
     lines, fractional, positive into the gap) where the stripe's height along the ring
     falls to half its plateau (:data:`EDGE_PLATEAU_PX`). An edge that stops the light
@@ -279,11 +281,15 @@ def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> 
     idx = np.flatnonzero(ok)
     if len(idx) < 2:
         return np.zeros((0, 3), np.float32)
-    gaps = np.diff(np.r_[idx, idx[0] + n])
+    gaps = np.diff(idx)
+    g = int(np.argmax(gaps))
+    width = int(gaps[g])
+    if n - (idx[-1] - idx[0]) > width:  # the gap across line 0
+        g, width = len(idx) - 1, int(n - (idx[-1] - idx[0]))
     rows = []
-    for g in np.flatnonzero(gaps > EDGE_MIN_GAP_LINES):
+    if width > EDGE_MIN_GAP_LINES:
         for end, d in ((int(idx[g]), 1), (int(idx[(g + 1) % len(idx)]), -1)):
-            row = _edge_offset(polar, peaks, end, d, int(gaps[g]) - 1, r0, step)
+            row = _edge_offset(polar, peaks, end, d, width - 1, r0, step)
             if row is not None:
                 rows.append((end, d, row))
     return np.array(rows, np.float32).reshape(-1, 3)
@@ -306,21 +312,17 @@ def _edge_offset(
     if lit.sum() < 3:
         return None
     plateau = float(np.median(peaks.height[lines[lit]]))
-    # The stripe's radius along the ring (px per line), from the plateau's peaks and the end.
-    j_fit = np.r_[-inside[lit], 0].astype(float)
-    r_fit = np.r_[peaks.radius[lines[lit]], peaks.radius[end]]
-    slope = float(np.polyfit(j_fit, r_fit, 1)[0]) if len(j_fit) >= 3 else 0.0
+    # The stripe's radius along the ring (px per line): from the plateau's peaks to the end's.
+    r_end = float(peaks.radius[end])
+    slope = (r_end - float(peaks.radius[lines[lit]].mean())) / float(inside[lit].mean())
+    j = np.arange(-p0, q + 1)
+    prof = (end + d * j) % n
+    k = np.rint((r_end + slope * j - r0) / step).astype(int)
     half = int(math.ceil(1.0 / step))
-    heights = []
-    for j in range(-p0, q + 1):
-        line = (end + d * j) % n
-        if j <= 0 and peaks.ok[line]:
-            heights.append(float(peaks.height[line]))
-            continue
-        k = int(round((float(peaks.radius[end]) + slope * j - r0) / step))
-        lo, hi = max(k - half, 0), min(k + half + 1, polar.shape[1])
-        heights.append(float(polar[line, lo:hi].max() - peaks.background[line]) if hi > lo else 0.0)
-    h = np.array(heights)
+    cols = np.clip(k[:, None] + np.arange(-half, half + 1)[None, :], 0, polar.shape[1] - 1)
+    h = polar[prof[:, None], cols].max(axis=1) - peaks.background[prof]
+    own = (j <= 0) & peaks.ok[prof]
+    h = np.where(own, peaks.height[prof], h).astype(float)
     thr = 0.5 * plateau
     below = np.flatnonzero(h < thr)
     if len(below) == 0 or below[0] == 0:
