@@ -14,8 +14,10 @@ from omnipipe.analysis.stations import (
     REACH_MODEL_REL,
     Section,
     SectionConfig,
+    Station,
     ring_cut,
     water_depth,
+    with_water,
 )
 from omnipipe.analysis.wall_profile import fit_wall_profile, fourier_design
 from omnipipe.geometry import make_transform
@@ -233,6 +235,63 @@ def test_water_line_read_back_by_the_stripe_blur_reach() -> None:
         assert abs(s.water_depth_shared_sigma_mm - shared) <= 0.2 * shared
     (water,) = _kinds(res.features, "water")
     assert water.depth_sigma_mm >= shared and abs(water.depth_mm - 45.0) <= 3 * water.depth_sigma_mm
+
+
+def test_water_line_read_back_by_each_rings_measured_reach() -> None:
+    """The same rings with each one's reach measured at its own cut (the stripe's
+    half-height point, ``edge_reach_rings_mm``: here the true distance of its last
+    samples past the water line, both ends' mean, stated 0.3 mm): the chord ends are
+    taken back by exactly that (no half sample step), every station within 3 sigma and
+    0.25 mm; the stated reach sigma is shared by the run's stations (their rings err
+    alike: benchmarks/RESULTS.md, wat28) and the stretch keeps it whole."""
+    rings = _flooded(45.0, 4.0, seed=11)
+    pipe = Pipe(inner_diameter_mm=300.0, features=PipeFeatures(water=Water(45.0)))
+    centre, _, _, tangent = pipe.frame_at(rings.points_in_world[:, 2])
+    down = -(pipe.up() - np.einsum("ij,j->i", tangent, pipe.up())[:, None] * tangent)
+    down /= np.linalg.norm(down, axis=1, keepdims=True)
+    rel = rings.points_in_world - centre
+    from_invert = np.arccos(np.clip(np.einsum("ij,ij->i", rel, down) / 150.0, -1, 1))
+    side = np.sign(np.cross(down, rel) @ np.array([0.0, 0.0, 1.0]))
+    line = math.acos(1.0 - 45.0 / 150.0)
+    n = len(rings.world_from_rig)
+    past = np.array([
+        0.5 * sum(150.0 * (line - from_invert[(rings.frame_index == k) & (side == sgn)].min()) for sgn in (-1, 1))
+        for k in range(n)
+    ])
+    rings.edge_reach_rings_mm, rings.edge_reach_rings_sigma_mm = past, np.full(n, 0.3)
+    res = run(AnalysisConfig(), rings)
+    wet = [s for s in res.stations if s.water_depth_mm > 0]
+    assert len(wet) == n
+    shared = math.sin(line) * 0.3
+    for s in wet:
+        assert abs(s.water_depth_mm - 45.0) <= min(3 * s.water_depth_sigma_mm, 0.25)
+        assert abs(s.water_depth_shared_sigma_mm - shared) <= 0.2 * shared
+    (water,) = _kinds(res.features, "water")
+    assert abs(water.depth_mm - 45.0) <= 3 * water.depth_sigma_mm and water.depth_sigma_mm >= shared
+
+
+def test_water_station_on_a_joint_holds_the_joints_step() -> None:
+    """A station on a found joint's band may ring both sections (the offset moves the
+    invert) and end its cut in the gap's recess: its depth's sigma holds the joint's
+    step (offset and gap depth in quadrature, here 5 and 3 mm) and it stays wet; the
+    others keep theirs."""
+    rng = np.random.default_rng(3)
+    stations = [
+        Station(axial_mm=float(a), diameter_mm=300.0, diameter_sigma_mm=0.1, diameter_min_mm=300.0,
+                diameter_max_mm=300.0, ovality=0.0, ovality_sigma=0.001, ovality_angle_deg=0.0,
+                ovality_angle_sigma_deg=1.0, wall_coverage_deg=300.0, cut_centre_deg=-90.0)
+        for a in (0.0, 7.5, 15.0, 22.5)
+    ]
+    sections = [_cut_section(30.0, 0.1, rng) for _ in stations]
+    plain, wet = with_water(stations, sections, 0.1, SectionConfig())
+    on, wet2 = with_water(stations, sections, 0.1, SectionConfig(), joints=[(5.0, 10.0, math.hypot(5.0, 3.0))])
+    assert wet and wet2
+    for a, b in zip(plain, on, strict=True):
+        assert b.water_depth_mm == a.water_depth_mm
+        if a.axial_mm == 7.5:
+            assert b.water_depth_sigma_mm >= math.hypot(5.0, 3.0)
+        else:
+            assert b.water_depth_sigma_mm == a.water_depth_sigma_mm
 
 
 @pytest.mark.slow

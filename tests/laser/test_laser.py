@@ -325,3 +325,37 @@ def test_edge_reach_is_how_far_samples_run_past_a_dark_stretch(small_rig: Rig) -
     blur = ring_blur_mm([ring])
     for p in past:
         assert reach - step <= p <= reach + step + 0.5 * blur
+
+
+def test_station_reach_is_measured_at_the_stripes_half_height(small_rig: Rig) -> None:
+    """The same dark stretch: :func:`station_edge_reach` finds where the stripe's fall-off
+    halves at both ends of the cut (the stop itself) from the ring's own peaks and the
+    signal in the gap, so the samples' measured reach past it is the true one (the mean
+    of both ends) within its stated sigma, wherever the extractor's tests stopped."""
+    from scipy.special import ndtr
+
+    from omnipipe.laser import triangulate_ring
+    from omnipipe.laser.extract import station_edge_reach
+
+    rng = np.random.default_rng(4)
+    sigma_px, half = 1.6, np.radians(40.0)
+    img, cam = _synthetic_ring(small_rig, 101.0, rng, sigma_px=sigma_px)
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
+    pa = np.arctan2(rows - cam.cy, cols - cam.cx)
+    pr = np.hypot(cols - cam.cx, rows - cam.cy)
+    centre = np.pi / 2
+    into = (half - np.abs((pa - centre + np.pi) % (2 * np.pi) - np.pi)) * pr
+    dark = img.astype(float)
+    tex = dark[..., 1]
+    stripe = np.clip(dark[..., 0] - tex, 0, None)
+    dark[..., 0] = tex + stripe * ndtr(-into / sigma_px)
+    ring = triangulate_ring(RingExtractor(cam).extract(np.clip(dark, 0, 255).astype(np.uint8), "red"), cam, small_rig.laser)
+    assert len(ring.gap_edges) == 2
+    reach, sigma = station_edge_reach([ring])
+    rel = (ring.angle_rad - centre + np.pi) % (2 * np.pi) - np.pi
+    past = [(half - np.min(rel[rel > 0])) * 101.0, (half - np.min(-rel[rel < 0])) * 101.0]
+    assert abs(reach[0] - np.mean(past)) <= sigma[0]
+    # A dry ring (no gap) has no measured reach.
+    full, _ = _synthetic_ring(small_rig, 101.0, rng, sigma_px=sigma_px)
+    dry = triangulate_ring(RingExtractor(cam).extract(full, "red"), cam, small_rig.laser)
+    assert len(dry.gap_edges) == 0 and np.isnan(station_edge_reach([dry])[0][0])

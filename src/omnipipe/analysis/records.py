@@ -129,6 +129,10 @@ class AnalysisInputs:
             end of a lit stretch (a water line) and one ring's 1-sigma about that
             (:func:`omnipipe.laser.extract.edge_reach_mm`); the water depth's chord
             ends are taken that far back. 0: none.
+        edge_reach_rings_mm, edge_reach_rings_sigma_mm: (K,) the same measured at each
+            ring's own cut (the stripe's half-height point at both ends,
+            :func:`omnipipe.laser.extract.station_edge_reach`) and its 1-sigma; NaN (or
+            empty: none measured) where a ring's takes the run's above.
     """
 
     points_in_world: np.ndarray
@@ -141,6 +145,8 @@ class AnalysisInputs:
     edge_reach_mm: float = 0.0
     edge_reach_sigma_mm: float = 0.0
     radial_mm_per_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    edge_reach_rings_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    edge_reach_rings_sigma_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass

@@ -105,6 +105,7 @@ def _depth_steps(
     runs: list[tuple[int, int]],
     min_len: int,
     moved: np.ndarray,
+    on_joint: np.ndarray | None = None,
 ) -> list[tuple[int, int]]:
     """``runs`` (first, last) of wet stations split where the depth steps between
     neighbours whose invert may have moved (``moved`` (S - 1,) bool, between station i
@@ -112,9 +113,12 @@ def _depth_steps(
     them, :func:`_section_moved`) by more than 4 sigma (their independent ``sigma`` in
     quadrature) and 5 % of the shallower: level water over a reducer, a different depth
     on each side (random-features seed 0: 65 mm above a 543 -> 477 mm reducer, 33 mm
-    below it). Each piece keeps ``min_len`` stations. Elsewhere the invert does not move
-    and a step is the stations' own error (sewer-small: 42 and 39 mm either side of a
-    lateral over 40 mm of water)."""
+    below it). Each piece keeps ``min_len`` stations off a found joint's band
+    (``on_joint`` (S,) bool: a ring there may span both sections, its depth no evidence
+    of a level of its own). Elsewhere the invert does not move and a step is the
+    stations' own error (sewer-small: 42 and 39 mm either side of a lateral over 40 mm
+    of water)."""
+    off = np.cumsum(np.r_[0, ~np.asarray(on_joint if on_joint is not None else np.zeros(len(depth), bool))])
     out = []
     for i0, i1 in runs:
         start = i0
@@ -122,7 +126,7 @@ def _depth_steps(
             jump = abs(depth[i + 1] - depth[i])
             big = jump > max(4.0 * math.hypot(sigma[i], sigma[i + 1]), 0.05 * min(depth[i], depth[i + 1]))
             big = big and bool(moved[i])
-            if big and i + 1 - start >= min_len and i1 - i >= min_len:
+            if big and off[i + 1] - off[start] >= min_len and off[i1 + 1] - off[i + 1] >= min_len:
                 out.append((start, i))
                 start = i + 1
         out.append((start, i1))
@@ -153,15 +157,18 @@ def _water_stretches(
     """Stretches of standing water (stations with a water depth; a step in the depth on
     one of the ``tapers`` starts another, :func:`_depth_steps`): the median depth; its
     sigma the stations' independent part (their spread or stated sigma) / sqrt(n) and
-    the part they share (``water_depth_shared_sigma_mm``) whole."""
+    the part they share (``water_depth_shared_sigma_mm``) whole. A joint's step in a
+    station's sigma (``water_depth_joint_sigma_mm``) is no reason against a depth step."""
     depth = np.array([s.water_depth_mm for s in stations])
     axial = np.array([s.axial_mm for s in stations])
     own = np.array([
-        math.sqrt(max(s.water_depth_sigma_mm**2 - s.water_depth_shared_sigma_mm**2, 0.0)) for s in stations
+        math.sqrt(max(s.water_depth_sigma_mm**2 - s.water_depth_shared_sigma_mm**2 - s.water_depth_joint_sigma_mm**2, 0.0))
+        for s in stations
     ])
     edge = _edge_sigma(axial)
     runs = _runs(depth > 0, config.min_stations)
-    runs = _depth_steps(depth, own, runs, config.min_stations, _section_moved(stations, config, tapers))
+    on_joint = np.array([s.water_depth_joint_sigma_mm > 0 for s in stations], bool)
+    runs = _depth_steps(depth, own, runs, config.min_stations, _section_moved(stations, config, tapers), on_joint)
     out = []
     for i0, i1 in runs:
         sel = slice(i0, i1 + 1)

@@ -28,12 +28,14 @@ of the rings' frames (:mod:`.records`: the stage's config, inputs and result) an
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from concurrent.futures import Executor
 
 import numpy as np
 
 from omnipipe.analysis.axis_fit import fit_axis, offset_breaks, recentred_line
 from omnipipe.analysis.defect_accept import measured_only
+from omnipipe.analysis.feature_types import Joint
 from omnipipe.analysis.features import feature_zones, find_features, with_offset_joints_kept
 from omnipipe.analysis.footprint import footprint_mm, footprint_terms
 from omnipipe.analysis.headline import (
@@ -101,8 +103,8 @@ def run(
     # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
     measured = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
     mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
-    reach = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
-    st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, reach)
+    water_terms = (_station_reaches(inputs, stations.rings), _joint_steps(feats.features))
+    st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, *water_terms)
     st_list, shared = tilt_corrected(st_list, shared, line, pts, frame, measured, radial_sys)
     st_list, features, head = sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *_unseen_gap_warning(feats.unseen_gap_mm)]
@@ -137,6 +139,39 @@ def run(
         water_depth_sigma_mm=water_sigma,
         point_not_wall=feats.not_wall,
     )
+
+
+def _station_reaches(inputs: AnalysisInputs, rings: np.ndarray) -> list[EdgeReach]:
+    """Each station's (of ``rings``, indices into the inputs' rings) reach past its cut's
+    ends: the one measured at its ring's cut (``inputs.edge_reach_rings_mm``) where there
+    is one, else the median of the run's measured ones, else the run's model
+    (``inputs.edge_reach_mm``)."""
+    own = np.asarray(inputs.edge_reach_rings_mm, float)
+    own_sig = np.asarray(inputs.edge_reach_rings_sigma_mm, float)
+    ok = np.isfinite(own[: len(own_sig)]) & np.isfinite(own_sig[: len(own)])
+    if ok.any():
+        model = EdgeReach(float(np.median(own[ok])), float(np.median(own_sig[ok])), measured=True)
+    else:
+        model = EdgeReach(float(inputs.edge_reach_mm), float(inputs.edge_reach_sigma_mm))
+    out = []
+    for k in np.asarray(rings, int):
+        if k < len(own) and k < len(own_sig) and math.isfinite(own[k]) and math.isfinite(own_sig[k]):
+            out.append(EdgeReach(float(own[k]), float(own_sig[k]), measured=True))
+        else:
+            out.append(model)
+    return out
+
+
+def _joint_steps(features: Sequence[object]) -> list[tuple[float, float, float]]:
+    """Each found joint's band (its gap and 3 sigma of its centre each side; axial mm)
+    and the step its sections make at the wall (offset and gap depth in quadrature, mm):
+    :func:`.stations.with_water`'s ``joints``."""
+    out = []
+    for f in features:
+        if isinstance(f, Joint):
+            half = 0.5 * f.gap_mm + 3.0 * float(f.axial_sigma_mm or 0.0)
+            out.append((f.axial_mm - half, f.axial_mm + half, math.hypot(f.offset_mm or 0.0, f.depth_mm or 0.0)))
+    return out
 
 
 def _unseen_gap_warning(unseen_gap_mm: float) -> list[str]:

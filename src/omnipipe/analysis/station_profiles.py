@@ -8,7 +8,7 @@ deviation from it (:class:`StationProfiles`), the rings' point indices
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -44,6 +44,7 @@ class StationProfiles:
             enough points (mm; ovality a fraction, NaN below the profile order 2).
         deviation: (N,) every point's deviation from its station's profile (mm; NaN on
             stations without enough points).
+        rings: (K,) each station's ring (index into the analysis' rings).
     """
 
     axial: np.ndarray
@@ -53,6 +54,7 @@ class StationProfiles:
     ovality_sigma: np.ndarray
     deviation: np.ndarray
     sections: tuple[Section, ...] = ()
+    rings: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
 
 def _with_openings(theta: np.ndarray, axial: float, zones: Sequence[FeatureZone], radius: float) -> np.ndarray:
@@ -131,4 +133,5 @@ def station_profiles(
         ovality_sigma=np.array([st.ovality_sigma for st in stations]),
         deviation=deviation,
         sections=tuple(sections),
+        rings=np.flatnonzero(ok_station),
     )

@@ -23,6 +23,7 @@ ring that follows a taper and the oblique rings of a bend), never from one cylin
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -119,6 +120,9 @@ class Station:
             seen; its sigma then the shallowest depth a cut would show).
         water_depth_shared_sigma_mm: the part of that sigma every station of the run
             shares (:attr:`WaterDepth.shared_mm`): a stretch's average keeps it whole.
+        water_depth_joint_sigma_mm: the part of that sigma from a found joint's step
+            (:func:`with_water`'s ``joints``): no evidence of a depth step between
+            stations (``sections._depth_steps``).
         wall_coverage_deg: circumference covered by the ring's wall points.
         deformation_mm, deformation_sigma_mm: mean diameter minus the run's (headline).
     """
@@ -139,6 +143,7 @@ class Station:
     deformation_sigma_mm: float = 0.0
     cut_centre_deg: float | None = None
     water_depth_shared_sigma_mm: float = 0.0
+    water_depth_joint_sigma_mm: float = 0.0
 
     def to_contract(self) -> dict[str, Any]:
         """The report.json ``stations`` entry: the contract's keys with their sigma
@@ -209,11 +214,16 @@ captures). On the 34 random-features runs the wet stations of a run err alike: s
 @dataclass(frozen=True)
 class EdgeReach:
     """How far (mm along the wall) a ring's samples run on past the end of its lit
-    stretch (the imaged stripe's blur above the extractor's threshold,
-    :func:`omnipipe.laser.extract.edge_reach_mm`), and one ring's 1-sigma about it."""
+    stretch, and its 1-sigma: the run's model (the imaged stripe's blur above the
+    extractor's threshold, :func:`omnipipe.laser.extract.edge_reach_mm`; ``sigma_mm``
+    one ring's spread about it, :data:`REACH_MODEL_REL` added, shared by the run's
+    rings) or, ``measured``, the ring's own at its cut's ends (the stripe's half-height
+    point there, :func:`omnipipe.laser.extract.station_edge_reach`: measured from the
+    last samples themselves, so no half sample step and no model term)."""
 
     mm: float = 0.0
     sigma_mm: float = 0.0
+    measured: bool = False
 
 
 @dataclass(frozen=True)
@@ -229,9 +239,10 @@ class WaterDepth:
         fit_mm: the section fit's covariance carried through the depth (the wall under
             the water is the fit's extrapolation across the cut).
         wall_mm: the wall noise of one sample at that range (the chord's ends sit on it).
-        reach_mm: the blur reach's 1-sigma (``EdgeReach.sigma_mm``) moving both ends
-            back alike; shared by every station of the run (the water line meets each
-            ring on the same wall, so its stripe fades alike), not averaged away.
+        reach_mm: the reach's 1-sigma (``EdgeReach.sigma_mm``) moving both ends back
+            alike; shared by every station of the run (the water line meets each ring on
+            the same wall, so its stripe fades alike; a reach measured at each ring's cut
+            errs alike over a run too), not averaged away.
     """
 
     depth_mm: float
@@ -279,8 +290,10 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
     into the gap, uncertain by step / sqrt(12)); the stripe's blur carries the samples
     ``reach.mm`` past the water line itself, so each chord end is taken that far back
     towards the lit wall (``reach.sigma_mm`` its ring-to-ring 1-sigma, with the reach
-    model's own ``REACH_MODEL_REL``: both shared by the run's rings). An edge's error
-    moves the depth by the wall's slope across the chord; the fit's covariance is
+    model's own ``REACH_MODEL_REL``: both shared by the run's rings). A reach measured
+    at this ring's cut (``reach.measured``) is taken from the last samples themselves
+    (no half step, no step quantisation) with its stated sigma. An edge's
+    error moves the depth by the wall's slope across the chord; the fit's covariance is
     carried through the depth by its Jacobian in the coefficients.
     """
     cut = section.cut
@@ -291,8 +304,9 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
     ends = (cut.start, cut.start + cut.width)
     rho = [float(profile_radius(coef, np.array(e))) for e in ends]
     back = [reach.mm / max(r, 1e-9) for r in rho]
-    e1 = ends[0] + 0.5 * cut.step - back[0]
-    e2 = ends[1] - 0.5 * cut.step + back[1]
+    half = 0.0 if reach.measured else 0.5 * cut.step
+    e1 = ends[0] + half - back[0]
+    e2 = ends[1] - half + back[1]
     depth = _depth_below_chord(coef, e1, e2)
     # Each edge's depth error: the depth's change with the edge (mm / rad, signed towards
     # the gap) x its angle error.
@@ -301,9 +315,9 @@ def water_depth(section: Section, radial_sigma_mm: float, reach: EdgeReach | Non
         (_depth_below_chord(coef, e1 + h, e2) - _depth_below_chord(coef, e1 - h, e2)) / (2 * h),
         (_depth_below_chord(coef, e1, e2 - h) - _depth_below_chord(coef, e1, e2 + h)) / (2 * h),
     ]
-    quant = cut.step / math.sqrt(12.0)
+    quant = 0.0 if reach.measured else cut.step / math.sqrt(12.0)
     edge = math.hypot(slopes[0] * quant, slopes[1] * quant)
-    reach_sig = math.hypot(reach.sigma_mm, REACH_MODEL_REL * reach.mm)
+    reach_sig = reach.sigma_mm if reach.measured else math.hypot(reach.sigma_mm, REACH_MODEL_REL * reach.mm)
     reach_err = abs(slopes[0] * reach_sig / max(rho[0], 1e-9) + slopes[1] * reach_sig / max(rho[1], 1e-9))
     jac = np.zeros(len(coef))
     for k in range(len(coef)):
@@ -376,25 +390,39 @@ def ovality_scatter(stations: list[Station]) -> float:
     return math.sqrt(max(spread**2 - fit**2, 0.0))
 
 
+JOINT_STEP_MAX_REL = 0.05
+"""The largest joint step (offset and gap depth, relative to the diameter) a water
+station's sigma takes (:func:`with_water`): a joint's offset read from a degenerate
+local axis can be tens of percent of the diameter (random-features seed 13: 127 mm in
+a 533 mm pipe, against 2.3 true); real joint offsets are a few percent."""
+
+
 def with_water(
     stations: list[Station],
     sections: list[Section],
     radial_sigma_mm: float,
     config: SectionConfig,
-    reach: EdgeReach | None = None,
+    reach: EdgeReach | Sequence[EdgeReach] | None = None,
+    joints: Sequence[tuple[float, float, float]] = (),
 ) -> tuple[list[Station], bool]:
     """The stations with their water depths: cuts at the run's common cut angle, deep
     enough (``config.water_min_pct``, 3 sigma), on at least ``config.min_stations``
     stations are water (returns True then); the other stations are dry (depth 0, sigma
     the depth of the narrowest cut). ``reach``: the stripe's blur past a water line
-    (:func:`water_depth`)."""
+    (:func:`water_depth`), the run's or one per station. ``joints``: found joints'
+    bands (axial from, to; mm) and the step (mm) their sections make at the wall (the
+    offset and the gap's depth in quadrature): a station there may ring both sections
+    and its cut end lie in the gap's recess, so its depth's sigma holds that step (at
+    most :data:`JOINT_STEP_MAX_REL` of the diameter; kept apart in
+    ``water_depth_joint_sigma_mm``: no reason against a stretch's depth step)."""
+    reaches = list(reach) if isinstance(reach, Sequence) else [reach] * len(stations)
     centres = np.array([s.cut_centre_deg for s in stations if s.cut_centre_deg is not None])
     common = None
     if len(centres) >= config.min_stations:
         z = np.exp(1j * np.radians(centres))
         common = math.degrees(float(np.angle(np.mean(z))))
     out, wet = [], 0
-    for st, sec in zip(stations, sections, strict=True):
+    for st, sec, st_reach in zip(stations, sections, reaches, strict=True):
         shallowest = 0.5 * st.diameter_mm * (1.0 - math.cos(0.5 * math.radians(config.cut_min_deg)))
         is_water = (
             common is not None
@@ -402,13 +430,19 @@ def with_water(
             and abs((st.cut_centre_deg - common + 180.0) % 360.0 - 180.0) <= config.water_angle_tol_deg
         )
         if is_water:
-            wd = water_depth(sec, radial_sigma_mm, reach)
+            wd = water_depth(sec, radial_sigma_mm, st_reach)
             depth, sig, shared = wd.depth_mm, wd.sigma_mm, wd.shared_mm
             is_water = depth >= max(3.0 * sig, 0.01 * config.water_min_pct * st.diameter_mm)
+            step = max((step for lo, hi, step in joints if lo <= st.axial_mm <= hi), default=0.0)
+            step = min(step, JOINT_STEP_MAX_REL * st.diameter_mm)
+            sig = math.hypot(sig, step)
         if is_water:
             wet += 1
             out.append(
-                replace(st, water_depth_mm=depth, water_depth_sigma_mm=sig, water_depth_shared_sigma_mm=shared)
+                replace(
+                    st, water_depth_mm=depth, water_depth_sigma_mm=sig, water_depth_shared_sigma_mm=shared,
+                    water_depth_joint_sigma_mm=step,
+                )
             )
         else:
             out.append(replace(st, water_depth_mm=0.0, water_depth_sigma_mm=shallowest))

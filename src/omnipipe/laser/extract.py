@@ -166,6 +166,7 @@ class RingExtractor:
             peak_width_px=peaks.width[ok],
             scanned=n_lines,
             centroid_shift_px=peaks.centroid_shift[ok] if peaks.centroid_shift.size else peaks.centroid_shift,
+            gap_edges=_gap_edges(polar, peaks, self.radii[0], cfg.radial_step_px),
         )
         if not ok.any():
             ring.warnings.append("no laser ring visible (no scan line with a clear peak)")
@@ -242,15 +243,101 @@ class RingExtractor:
             typical = float(np.nanmedian(width[ok]))
             ok &= width <= cfg.max_width_factor * typical
         ok &= radius <= self.camera.radius_max
-        return _LinePeaks(ok, radius, snr, width, rad_sigma, run_len > 0, shift)
+        return _LinePeaks(ok, radius, snr, width, rad_sigma, run_len > 0, shift, peak, k, stats.background)
+
+
+EDGE_MIN_GAP_LINES = 16
+"""Scan lines without a peak the ring's widest gap needs for :func:`_gap_edges` to
+locate the stripe's end at either side (8 deg at 720 lines, the analysis' smallest cut;
+a water line cuts tens to hundreds; texture drops one or two)."""
+
+EDGE_PLATEAU_PX = (2.5, 6.0)
+"""How far (px along the ring, from the last peak before a gap) the lit stripe's
+plateau is taken (:func:`_gap_edges`): beyond the blurred end's fall-off (the optics'
+blur about a pixel) and near enough to share the end's texture and range."""
+
+EDGE_BEYOND_PX = 4.0
+"""How far (px along the ring) :func:`_gap_edges` follows the stripe into a gap."""
+
+
+def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> np.ndarray:
+    """(E, 3) float32 rows (end line, direction, offset), E <= 2, locating where the lit
+    stripe ends at each side of the ring's widest gap when it spans more than
+    :data:`EDGE_MIN_GAP_LINES` scan lines without an accepted peak (the only gap the
+    analysis takes for a water line's cut): ``end line`` the last accepted line before the gap,
+    ``direction`` +1 when the gap lies at higher lines, -1 at lower, ``offset`` (scan
+    lines, fractional, positive into the gap) where the stripe's height along the ring
+    falls to half its plateau (:data:`EDGE_PLATEAU_PX`). An edge that stops the light
+    (a water line, a shadow) is a step blurred by the optics: its half height is the
+    edge itself, wherever the extractor's tests (SNR, a competing texture peak) stopped
+    accepting peaks. Heights: the accepted peaks', else the largest background-free
+    sample within one radial step of the stripe's radius (extrapolated along the ring
+    from the plateau's peaks) up to :data:`EDGE_BEYOND_PX` into the gap. An end with
+    no fall-off to half within that reach (or less than three plateau peaks) is left
+    out. ``polar`` (L, S) the line signal, ``r0`` / ``step`` its first radius and
+    radial step (px)."""
+    ok = peaks.ok
+    n = len(ok)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 2:
+        return np.zeros((0, 3), np.float32)
+    gaps = np.diff(idx)
+    g = int(np.argmax(gaps))
+    width = int(gaps[g])
+    if n - (idx[-1] - idx[0]) > width:  # the gap across line 0
+        g, width = len(idx) - 1, int(n - (idx[-1] - idx[0]))
+    rows = []
+    if width > EDGE_MIN_GAP_LINES:
+        for end, d in ((int(idx[g]), 1), (int(idx[(g + 1) % len(idx)]), -1)):
+            row = _edge_offset(polar, peaks, end, d, width - 1, r0, step)
+            if row is not None:
+                rows.append((end, d, row))
+    return np.array(rows, np.float32).reshape(-1, 3)
+
+
+def _edge_offset(
+    polar: np.ndarray, peaks: _LinePeaks, end: int, d: int, gap: int, r0: float, step: float
+) -> float | None:
+    """The offset (lines, + into the gap) of :func:`_gap_edges`' half-height point past
+    the accepted line ``end`` whose gap of ``gap`` lines lies in direction ``d``; None
+    where it is not found."""
+    n = len(peaks.ok)
+    px_line = max(float(peaks.radius[end]) * 2.0 * math.pi / n, 1e-3)
+    p0 = min(max(2, math.ceil(EDGE_PLATEAU_PX[0] / px_line)), 60)
+    p1 = min(max(p0 + 3, math.ceil(EDGE_PLATEAU_PX[1] / px_line)), 90)
+    q = min(max(3, math.ceil(EDGE_BEYOND_PX / px_line)), gap, 60)
+    inside = np.arange(p0, p1 + 1)
+    lines = (end - d * inside) % n
+    lit = peaks.ok[lines]
+    if lit.sum() < 3:
+        return None
+    plateau = float(np.median(peaks.height[lines[lit]]))
+    # The stripe's radius along the ring (px per line): from the plateau's peaks to the end's.
+    r_end = float(peaks.radius[end])
+    slope = (r_end - float(peaks.radius[lines[lit]].mean())) / float(inside[lit].mean())
+    j = np.arange(-p0, q + 1)
+    prof = (end + d * j) % n
+    k = np.rint((r_end + slope * j - r0) / step).astype(int)
+    half = int(math.ceil(1.0 / step))
+    cols = np.clip(k[:, None] + np.arange(-half, half + 1)[None, :], 0, polar.shape[1] - 1)
+    h = polar[prof[:, None], cols].max(axis=1) - peaks.background[prof]
+    own = (j <= 0) & peaks.ok[prof]
+    h = np.where(own, peaks.height[prof], h).astype(float)
+    thr = 0.5 * plateau
+    below = np.flatnonzero(h < thr)
+    if len(below) == 0 or below[0] == 0:
+        return None
+    b = int(below[0])
+    t = (h[b - 1] - thr) / max(h[b - 1] - h[b], 1e-9)
+    return float(b - 1 + t - p0)
 
 
 @dataclass(frozen=True)
 class _LinePeaks:
     """Per scan line (L,): accepted, peak radius (px), SNR, Gaussian sigma (px), radius
-    sigma (px, NaN where not accepted), whether the peak's top is clipped and the
+    sigma (px, NaN where not accepted), whether the peak's top is clipped, the
     move (px, float32) from the peak's centre to its clipped-peak centroid (empty: no
-    centroid asked for)."""
+    centroid asked for), the peak's background-free height, its sample index and the line's background."""
 
     ok: np.ndarray
     radius: np.ndarray
@@ -259,6 +346,9 @@ class _LinePeaks:
     radius_sigma: np.ndarray
     saturated: np.ndarray
     centroid_shift: np.ndarray
+    height: np.ndarray
+    index: np.ndarray
+    background: np.ndarray
 
 
 def _centroid_shift(
@@ -400,6 +490,67 @@ def edge_reach_mm(rings: list[LaserRing], max_rings: int = 50) -> tuple[float, f
         return 0.0, 0.0
     v = np.array(values)
     return float(np.median(v)), float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
+EDGE_SIGMA_PX = 0.5
+"""1-sigma (px of image along the ring) of a ring's reach (:func:`station_edge_reach`,
+both ends' mean) about the true one: the edge's image is resolved to its pixel (the
+renderer classifies each pixel by its centre ray: +-0.5 px across the water line's
+image, more along an oblique stripe), and the plateau's texture and speckle move the
+half-height point. Against the water line's true crossing on random-features runs
+(benchmarks/RESULTS.md, wat28) the rings of one run err alike, by -0.85 to +0.2 px:
+the analysis takes it as shared by the run's stations."""
+
+
+def station_edge_reach(rings: list[LaserRing]) -> tuple[np.ndarray, np.ndarray]:
+    """Each ring's reach past the ends of its largest gap (a water line's cut), measured
+    from the stripe's fall-off there (``LaserRing.gap_edges``): how far (mm along the
+    wall, + beyond the edge into the gap) the ring's last samples at both ends lie past
+    the stripe's half-height point, the two ends' mean, and its 1-sigma
+    (:data:`EDGE_SIGMA_PX` through the ring's mm per px at its ends). A ring's own
+    last sample at each end (after triangulation and outlier removal) is matched to the
+    extractor's end row on the same side of the gap.
+
+    Returns:
+        (K,) reach and (K,) 1-sigma, mm; NaN where a ring has no gap of more than
+        :data:`EDGE_MIN_GAP_LINES` lines or either end has no row.
+    """
+    reach, sigma = np.full(len(rings), np.nan), np.full(len(rings), np.nan)
+    for i, r in enumerate(rings):
+        edges = np.asarray(r.gap_edges, float).reshape(-1, 3)
+        if len(edges) < 2 or len(r.points_in_rig) < 20 or not r.scanned:
+            continue
+        n = int(r.scanned)
+        lines = np.round(np.asarray(r.angle_rad) * n / (2.0 * math.pi)).astype(int) % n
+        order = np.argsort(lines, kind="stable")
+        lines = lines[order]
+        gaps = np.diff(np.r_[lines, lines[0] + n])
+        g = int(np.argmax(gaps))
+        if gaps[g] <= EDGE_MIN_GAP_LINES:
+            continue
+        ends = []
+        for pos, d in ((g, 1), ((g + 1) % len(lines), -1)):
+            e = int(lines[pos])
+            cand = edges[edges[:, 1] == d]
+            c = (d * (cand[:, 0].astype(int) - e)) % n
+            cand, c = cand[c < gaps[g]], c[c < gaps[g]]
+            if not len(cand):
+                break
+            k = int(np.argmin(c))
+            near = order[[(pos - d * j) % len(lines) for j in range(10)]]
+            dl = np.abs(np.diff(lines[[(pos - d * j) % len(lines) for j in range(10)]]))
+            dl = np.minimum(dl, n - dl)
+            one = dl == 1
+            if one.sum() < 3:
+                break
+            mm = np.linalg.norm(np.diff(r.points_in_rig[near], axis=0), axis=1)[one]
+            px = np.linalg.norm(np.diff(r.pixels[near], axis=0), axis=1)[one]
+            mm_line, px_line = float(np.median(mm)), max(float(np.median(px)), 1e-6)
+            ends.append((-(c[k] + cand[k, 2]) * mm_line, EDGE_SIGMA_PX * mm_line / px_line))
+        if len(ends) == 2:
+            reach[i] = 0.5 * (ends[0][0] + ends[1][0])
+            sigma[i] = 0.5 * (ends[0][1] + ends[1][1])
+    return reach, sigma
 
 
 def axial_blur_mm(rings: list[LaserRing], camera: CameraModel, max_rings: int = 50) -> float:

@@ -27,6 +27,12 @@ class LaserRing:
             unclipped peaks), or empty: none. Camera motion uses ``pixels`` and
             ``points_in_rig``; the analysis the ring moved by it
             (:func:`~omnipipe.laser.triangulate.centroid_ring`).
+        gap_edges: (E, 3) float32, per ring (not per sample): where the lit stripe ends
+            at each side of the ring's long gaps (a water line's cut): the last accepted
+            scan line, the gap's direction (+1 / -1 in line order) and the stripe's
+            half-height point past that line (scan lines, + into the gap;
+            :func:`~omnipipe.laser.extract._gap_edges`). The analysis' water depth
+            takes its chord ends there (:func:`~omnipipe.laser.extract.station_edge_reach`).
     """
 
     pixels: np.ndarray
@@ -39,6 +45,7 @@ class LaserRing:
     scanned: int = 0
     warnings: list[str] = field(default_factory=list)
     centroid_shift_px: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    gap_edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
 
     @property
     def fraction(self) -> float:

@@ -45,7 +45,7 @@ from omnipipe.laser.store import RingStore
 if TYPE_CHECKING:
     from omnipipe.dataset import Dataset
 
-FORMAT = 3  # 2: rings hold centroid_shift_px (a RingStore record has one more array); 3: one header per RingStore record
+FORMAT = 4  # 2: rings hold centroid_shift_px (a RingStore record has one more array); 3: one header per RingStore record; 4: rings hold gap_edges (one more array)
 MARKER = "checkpoint.json"
 STAGES = ("frames", "sfm", "analysis", "model")
 

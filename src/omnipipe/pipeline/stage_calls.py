@@ -212,7 +212,7 @@ def analyse(
 
     from omnipipe import analysis, model
     from omnipipe.camera import camera_from_rig
-    from omnipipe.laser.extract import axial_blur_mm, edge_reach_mm, ring_blur_mm
+    from omnipipe.laser import extract
     from omnipipe.laser.triangulate import centroid_ring, radial_mm_per_px
     from omnipipe.model.outliers import reject_ring_outliers
     from omnipipe.pipeline import quality
@@ -238,8 +238,9 @@ def analyse(
         station_rings, outliers_removed = reject_ring_outliers(station_rings, config.model.outliers)
         # Not in memory under the rest: written into the run's scratch ring by ring.
         points, point_frame = model.integrate(station_poses, [r.points_in_rig for r in station_rings], in_scratch=True)
-        reach, reach_sigma = edge_reach_mm(station_rings)
-        blur, axial_blur = ring_blur_mm(station_rings), axial_blur_mm(station_rings, camera)
+        reach, reach_sigma = extract.edge_reach_mm(station_rings)
+        ring_reach = extract.station_edge_reach(station_rings)  # at each ring's own cut
+        blur, axial_blur = extract.ring_blur_mm(station_rings), extract.axial_blur_mm(station_rings, camera)
         mm_per_px = np.array([radial_mm_per_px(r) for r in station_rings])
     drop_pages()  # every ring's pages were read (omnipipe.spill): not under the copy below
     # What the model stage reads of the rings waits in the run's scratch (omnipipe.spill):
@@ -261,6 +262,8 @@ def analyse(
             axial_blur_mm=axial_blur,
             edge_reach_mm=reach,
             edge_reach_sigma_mm=reach_sigma,
+            edge_reach_rings_mm=ring_reach[0],
+            edge_reach_rings_sigma_mm=ring_reach[1],
             radial_mm_per_px=mm_per_px,
         ),
         executor,
