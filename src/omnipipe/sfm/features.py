@@ -191,16 +191,7 @@ class FeatureExtractor:
     def __init__(self, camera: CameraModel, config: FeatureConfig | None = None) -> None:
         self.camera = camera
         self.config = cfg = config or FeatureConfig()
-        lo, hi = (math.radians(v) for v in cfg.elevation_deg)
-        lo_cam, hi_cam = camera.elevation_range()
-        lo, hi = max(lo, lo_cam + 0.02), min(hi, hi_cam - 0.02)
-        mid = 0.5 * (lo + hi)
-        # Focal length matched to the omni image's angular resolution in the band.
-        focal = 1.0 / max(camera.angular_resolution(), 1e-4)
-        half_h = math.pi / cfg.views * 1.15  # overlap between neighbouring views
-        half_v = 0.5 * (hi - lo)
-        width = int(2 * focal * math.tan(half_h))
-        height = int(2 * focal * math.tan(half_v))
+        mid, focal, width, height = _view_geometry(camera, cfg)
         self.views = []
         self.maps = []
         for k in range(cfg.views):
@@ -390,6 +381,25 @@ def concat_features(parts: list[FrameFeatures]) -> FrameFeatures:
         np.concatenate([f.view for f in parts]),
         vpx,
     )
+
+
+def _view_geometry(camera: CameraModel, cfg: FeatureConfig) -> tuple[float, float, int, int]:
+    """The views' middle elevation (rad), focal length (px, matched to the omni image's
+    angular resolution in the band), width and height (px)."""
+    lo, hi = (math.radians(v) for v in cfg.elevation_deg)
+    lo_cam, hi_cam = camera.elevation_range()
+    lo, hi = max(lo, lo_cam + 0.02), min(hi, hi_cam - 0.02)
+    focal = 1.0 / max(camera.angular_resolution(), 1e-4)
+    half_h = math.pi / cfg.views * 1.15  # overlap between neighbouring views
+    half_v = 0.5 * (hi - lo)
+    return 0.5 * (lo + hi), focal, int(2 * focal * math.tan(half_h)), int(2 * focal * math.tan(half_v))
+
+
+def view_size(camera: CameraModel, config: FeatureConfig) -> tuple[int, int]:
+    """(height, width) px of the perspective views :class:`FeatureExtractor` makes of
+    ``camera``'s frames."""
+    _, _, width, height = _view_geometry(camera, config)
+    return height, width
 
 
 def detection_scale(config: FeatureConfig, width: int, height: int) -> float:
