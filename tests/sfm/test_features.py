@@ -116,9 +116,9 @@ def test_guided_matching_keeps_each_feature_in_its_own_period() -> None:
 
 
 def test_sift_on_a_reduced_view_reports_keypoints_in_the_views_pixels() -> None:
-    """``detect_scale`` 0.5: SIFT on the half-size view, keypoints back in the view's
-    pixels: each blob found where it is (within 0.25 px; OpenCV's own full-size
-    keypoints lie a quarter pixel off), at the size found on the full view."""
+    """SIFT on the view reduced (``detect_scale`` 0.5, 0.35, 0.3), keypoints back in the
+    view's pixels: each blob found where it is (within 0.25 px; OpenCV's own full-size
+    keypoints lie a quarter pixel off), with no common offset (under 0.05 px)."""
     from omnipipe.sfm.features import _sift_view
 
     rng = np.random.default_rng(11)
@@ -132,17 +132,21 @@ def test_sift_on_a_reduced_view_reports_keypoints_in_the_views_pixels() -> None:
     img = img.clip(0, 255).astype(np.uint8)
     mask = np.full((h, w), 255, np.uint8)
     sift = cv2.SIFT_create(nfeatures=500, contrastThreshold=0.01)
-    for scale, tol in ((1.0, 0.45), (0.5, 0.25)):
+    for scale, tol in ((1.0, 0.45), (0.5, 0.25), (0.35, 0.25), (0.3, 0.25)):
         pts, desc = _sift_view(sift, img, mask, scale)
         assert desc is not None and len(desc) == len(pts)
-        near = np.linalg.norm(pts[:, None] - centres[None], axis=2)
+        d = pts[:, None] - centres[None]
+        near = np.linalg.norm(d, axis=2)
         assert np.all(near.min(axis=0) < tol), (scale, near.min(axis=0))
-    # Bit for bit the positions of OpenCV's keypoints scaled as cv2.KeyPoint objects.
+        if scale < 1:
+            offset = d[near.argmin(axis=0), np.arange(len(centres))].mean(axis=0)
+            assert np.all(np.abs(offset) < 0.05), (scale, offset)
+    # Bit for bit OpenCV's keypoints on the reduced view, mapped to the view's pixels.
     small = cv2.resize(img, (130, 100), interpolation=cv2.INTER_AREA)
     kps, ref_desc = sift.detectAndCompute(small, cv2.resize(mask, (130, 100), interpolation=cv2.INTER_NEAREST))
-    ref = np.array([cv2.KeyPoint(k.pt[0] * 2.0, k.pt[1] * 2.0, k.size * 2.0).pt for k in kps], float)
+    ref = np.array([((k.pt[0] + 0.25) * 2.0 - 0.5, (k.pt[1] + 0.25) * 2.0 - 0.5) for k in kps], np.float32)
     pts, desc = _sift_view(sift, img, mask, 0.5)
-    assert np.array_equal(pts, ref) and np.array_equal(desc, ref_desc)
+    assert np.array_equal(pts, ref.astype(float)) and np.array_equal(desc, ref_desc)
 
 
 def test_sift_at_full_size_is_opencvs_detection() -> None:
@@ -161,20 +165,20 @@ def test_sift_at_full_size_is_opencvs_detection() -> None:
 
 
 def test_detection_scale_keeps_small_views_at_full_size() -> None:
-    """Half size where the half view's shorter side keeps ``detect_min_side_px`` (the
+    """0.3 where the reduced view's shorter side keeps ``detect_min_side_px`` (the
     1600x1200 views, 335x484 px); full size for other-rig's (285x398 px), 640x480's
     (131x189 px) and when off."""
     from omnipipe.sfm.features import FeatureConfig, detection_scale
 
     cfg = FeatureConfig()
-    assert cfg.detect_scale == 0.5 and cfg.detect_min_side_px == 160
-    assert detection_scale(cfg, 335, 484) == 0.5
-    assert detection_scale(cfg, 320, 400) == 0.5
+    assert cfg.detect_scale == 0.3 and cfg.detect_min_side_px == 96
+    assert detection_scale(cfg, 335, 484) == 0.3
+    assert detection_scale(cfg, 320, 400) == 0.3
     assert detection_scale(cfg, 319, 400) == 1.0
     assert detection_scale(cfg, 285, 398) == 1.0
     assert detection_scale(cfg, 131, 189) == 1.0
     assert detection_scale(FeatureConfig(detect_scale=1.0), 335, 484) == 1.0
-    assert detection_scale(FeatureConfig(detect_min_side_px=100), 285, 398) == 0.5
+    assert detection_scale(FeatureConfig(detect_min_side_px=80), 285, 398) == 0.3
 
 
 def test_views_pickle_their_masks_one_bit_a_pixel_and_come_back_the_same() -> None:

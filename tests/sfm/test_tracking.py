@@ -99,7 +99,8 @@ def test_nothing_is_tracked_into_a_blank_frame(two_frames) -> None:
     ("field", "value"),
     [("window_px", 4), ("window_px", 20), ("levels", -1), ("max_forward_backward_px", 0.0),
      ("min_tracks", 7), ("max_points", 3), ("renew_ratio", 1.5), ("retry_lost_share", -0.1),
-     ("retry_lost_share", 1.5), ("retry_lost_share_large", 1.5), ("retry_large_side_px", -1)],
+     ("retry_lost_share", 1.5), ("retry_lost_share_large", 1.5), ("retry_large_side_px", -1),
+     ("max_points_large", 3)],
 )
 def test_bad_settings_name_their_field(field: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"sfm.tracking.{field}"):
@@ -455,6 +456,26 @@ def test_large_views_take_their_own_share_for_the_second_try(two_frames) -> None
     ):
         assert np.array_equal(got.feature, want.feature)
         assert np.array_equal(got.features.view_pixels, want.features.view_pixels)
+
+
+def test_large_views_follow_their_own_number_of_points() -> None:
+    """A run's tracking config takes ``max_points_large`` in views whose shorter side
+    reaches ``retry_large_side_px`` (1600x1200's 335x484) and keeps ``max_points`` in
+    smaller ones (other-rig's 285x398, 640x480's 131x189) or with the bound at 0; the
+    run's views' size is the extractor's."""
+    from omnipipe.sfm.features import FeatureConfig, view_size
+    from omnipipe.sfm.tracking import sized_for_views
+
+    default = TrackConfig()
+    assert (default.max_points, default.max_points_large) == (1000, 600)
+    assert sized_for_views(default, (484, 335)) == replace(default, max_points=600)
+    assert sized_for_views(default, (398, 285)) == default
+    assert sized_for_views(default, (189, 131)) == default
+    assert sized_for_views(replace(default, retry_large_side_px=0), (484, 335)).max_points == 1000
+    rig = make_scenario("paper", frames=2, size=(640, 480)).rig
+    camera = camera_from_rig(rig)
+    extractor = FeatureExtractor(camera)
+    assert view_size(camera, FeatureConfig()) == (extractor.views[0].height, extractor.views[0].width)
 
 
 def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() -> None:

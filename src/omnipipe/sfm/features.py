@@ -42,15 +42,15 @@ class FeatureConfig:
         laser_margin_px: half width of the masked band around the laser ring (omni px).
         ratio: Lowe's ratio test for matching.
         contrast_threshold: SIFT's contrast threshold (OpenCV default 0.04).
-        detect_scale: SIFT runs on each view resized by this factor (0.5: half the
-            width and height, about 40 % of the detection's cost; 1: as it is); the
-            keypoints are scaled back to the view's pixels, where the tracking follows them.
+        detect_scale: SIFT runs on each view resized by this factor (1: as it is);
+            the keypoints are mapped back to the view's pixels, where the tracking
+            follows them. OpenCV doubles its input before the first octave, so at 0.3
+            the finest octave is 0.6 of the view: about as many keypoints a keyframe as
+            at half size for a bit over half the cost.
         detect_min_side_px: the views are detected at full size when ``detect_scale``
             would make their shorter side smaller than this (px). 1600x1200's views
-            (335x484 px) are detected at half size (bend and continuous: ATE and scale
-            error no worse); other-rig's (285x398) and smaller ones keep every pixel
-            (at half size other-rig's ATE rose 0.054 -> 0.072 mm, 640x480's median
-            ATE per 300 mm 0.65 -> 0.72 mm).
+            (335x484 px) are reduced; other-rig's (285x398) and smaller ones keep every
+            pixel (reduced, their runs lost accuracy: benchmarks/RESULTS.md).
         flow_plain: each frame's views also keep their images before CLAHE
             (:attr:`FrameViews.plain`), where the tracker's finest flow levels then read
             their local contrast (:func:`~omnipipe.sfm.flow_contrast.local_contrast`,
@@ -71,8 +71,8 @@ class FeatureConfig:
     laser_margin_px: float = bounded(6.0, ge=0)
     ratio: float = bounded(0.8, gt=0, le=1)
     contrast_threshold: float = bounded(0.01, ge=0)
-    detect_scale: float = bounded(0.5, gt=0, le=1)
-    detect_min_side_px: int = bounded(160, ge=1)
+    detect_scale: float = bounded(0.3, gt=0, le=1)
+    detect_min_side_px: int = bounded(96, ge=1)
     flow_plain: bool = False
 
     def __post_init__(self) -> None:
@@ -191,16 +191,7 @@ class FeatureExtractor:
     def __init__(self, camera: CameraModel, config: FeatureConfig | None = None) -> None:
         self.camera = camera
         self.config = cfg = config or FeatureConfig()
-        lo, hi = (math.radians(v) for v in cfg.elevation_deg)
-        lo_cam, hi_cam = camera.elevation_range()
-        lo, hi = max(lo, lo_cam + 0.02), min(hi, hi_cam - 0.02)
-        mid = 0.5 * (lo + hi)
-        # Focal length matched to the omni image's angular resolution in the band.
-        focal = 1.0 / max(camera.angular_resolution(), 1e-4)
-        half_h = math.pi / cfg.views * 1.15  # overlap between neighbouring views
-        half_v = 0.5 * (hi - lo)
-        width = int(2 * focal * math.tan(half_h))
-        height = int(2 * focal * math.tan(half_v))
+        mid, focal, width, height = _view_geometry(camera, cfg)
         self.views = []
         self.maps = []
         for k in range(cfg.views):
@@ -392,6 +383,25 @@ def concat_features(parts: list[FrameFeatures]) -> FrameFeatures:
     )
 
 
+def _view_geometry(camera: CameraModel, cfg: FeatureConfig) -> tuple[float, float, int, int]:
+    """The views' middle elevation (rad), focal length (px, matched to the omni image's
+    angular resolution in the band), width and height (px)."""
+    lo, hi = (math.radians(v) for v in cfg.elevation_deg)
+    lo_cam, hi_cam = camera.elevation_range()
+    lo, hi = max(lo, lo_cam + 0.02), min(hi, hi_cam - 0.02)
+    focal = 1.0 / max(camera.angular_resolution(), 1e-4)
+    half_h = math.pi / cfg.views * 1.15  # overlap between neighbouring views
+    half_v = 0.5 * (hi - lo)
+    return 0.5 * (lo + hi), focal, int(2 * focal * math.tan(half_h)), int(2 * focal * math.tan(half_v))
+
+
+def view_size(camera: CameraModel, config: FeatureConfig) -> tuple[int, int]:
+    """(height, width) px of the perspective views :class:`FeatureExtractor` makes of
+    ``camera``'s frames."""
+    _, _, width, height = _view_geometry(camera, config)
+    return height, width
+
+
 def detection_scale(config: FeatureConfig, width: int, height: int) -> float:
     """The factor SIFT resizes a ``width`` x ``height`` px view by: ``config.detect_scale``
     unless the resized view's shorter side would fall below ``config.detect_min_side_px``
@@ -406,11 +416,13 @@ def _sift_view(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """``sift.detectAndCompute`` of ``image`` (H, W) uint8 and its ``mask`` resized by
     ``scale`` (area average; the mask's nearest pixel): the (N, 2) keypoint positions
-    (float64 of OpenCV's float32) divided by ``scale`` back into ``image``'s pixels
-    (OpenCV places a keypoint a quarter pixel of its doubled first octave off; divided
-    so, that offset and the resize's half-pixel shift cancel), and their descriptors.
-    The positions are read in one call (``cv2.KeyPoint_convert``) and rounded to
-    float32 as a scaled ``cv2.KeyPoint`` holds them."""
+    (float64 of OpenCV's float32) back in ``image``'s pixels, and their descriptors.
+    OpenCV places a keypoint a quarter pixel of its input off (its doubled first
+    octave): ``(p + 1/4) f - 1/2`` maps it to ``image``'s pixel centres, ``f`` the
+    resize's factor per axis (at half size that is ``2 p``, where the two offsets
+    cancel; at 0.3 the plain ``p f`` lay a third of a pixel off). The positions are
+    read in one call (``cv2.KeyPoint_convert``) and rounded to float32 as a
+    ``cv2.KeyPoint`` holds them."""
     h, w = image.shape[:2]
     size = (max(1, round(w * scale)), max(1, round(h * scale)))
     if scale != 1.0:
@@ -422,7 +434,7 @@ def _sift_view(
     pts = np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2).astype(np.float64)
     if scale == 1.0:
         return pts, desc
-    back = pts * np.array([w / size[0], h / size[1]])  # as kp.pt[i] * f in double
+    back = (pts + 0.25) * np.array([w / size[0], h / size[1]]) - 0.5
     return back.astype(np.float32).astype(np.float64), desc
 
 

@@ -52,6 +52,7 @@ from omnipipe.sfm.adjusted_steps import confirm_adjusted
 from omnipipe.sfm.creep import WALL_FRAMES_REASON, place_creeps, verify_wall_frames, wall_resolved
 from omnipipe.sfm.creep_odometry import place_odometry_creeps
 from omnipipe.sfm.external import external_motion, trajectory_path
+from omnipipe.sfm.features import view_size
 from omnipipe.sfm.flow_contrast import TEXTURE_FLOOR
 from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import follow_keyframes
@@ -92,6 +93,7 @@ from omnipipe.sfm.step_scale import (
     run_scale,
 )
 from omnipipe.sfm.step_window import moving_counts
+from omnipipe.sfm.tracking import sized_for_views
 from omnipipe.sfm.types import (
     ODOMETRY_ONLY,
     Keyframes,
@@ -154,7 +156,7 @@ def _run(
     executor: Executor | None,
 ) -> SfmResult:
     """:func:`run` with the poses estimated here (not given)."""
-    ctx = _context(_flow_views(config, inputs), inputs, executor)
+    ctx = _context(_sized_views(_flow_views(config, inputs), inputs), inputs, executor)
     with ImageStore() as grays:  # keyframe grey images, on disk until the run is decided
         # Steps 1-3: stations, keyframes and their relative motions; each step's two
         # scale measurements (step 4) in the workers.
@@ -362,6 +364,13 @@ def _flow_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
     if run_texture(config, inputs) >= TEXTURE_FLOOR:
         return config
     return replace(config, features=replace(config.features, flow_plain=False))
+
+
+def _sized_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
+    """``config`` with the tracking's settings for the size of the run's views
+    (:func:`~omnipipe.sfm.tracking.sized_for_views`)."""
+    shape = view_size(camera_from_rig(inputs.rig), config.features)
+    return replace(config, tracking=sized_for_views(config.tracking, shape))
 
 
 def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) -> SfmContext:

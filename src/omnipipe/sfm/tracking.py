@@ -24,7 +24,7 @@ caller falls back to descriptor matching.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -92,6 +92,12 @@ class TrackConfig:
         retry_large_side_px: views whose shorter side is at least this (view px) take
             ``retry_lost_share_large`` instead of ``retry_lost_share`` (0: never).
         retry_lost_share_large: ``retry_lost_share`` of such large views.
+        max_points_large: ``max_points`` in such large views (:func:`sized_for_views`:
+            the run's config takes it before any track is followed). 1600x1200's views
+            cost the flow most per frame and hold the most keypoints; the accuracy with
+            the smaller number is in benchmarks/RESULTS.md (cpu28's entry). Other-rig's
+            and 640x480's views keep ``max_points``, where fewer tracks moved the
+            robustness bench's steps (cpu19's entry).
     """
 
     enabled: bool = True
@@ -113,6 +119,7 @@ class TrackConfig:
     retry_lost_share: float = bounded(0.0, ge=0, le=1)
     retry_large_side_px: int = bounded(300, ge=0)
     retry_lost_share_large: float = bounded(0.1, ge=0, le=1)
+    max_points_large: int = bounded(600, ge=8)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -258,6 +265,15 @@ def _flow(
     inside = np.zeros(len(p1), bool)
     inside[ok] = mask[row[ok].astype(int), col[ok].astype(int)] > 0
     return p1, ok & inside
+
+
+def sized_for_views(config: TrackConfig, shape: tuple[int, ...]) -> TrackConfig:
+    """``config`` for views of ``shape`` (height, width) px: with ``max_points_large`` as
+    ``max_points`` where their shorter side reaches ``retry_large_side_px`` (> 0), else
+    as it is."""
+    if config.retry_large_side_px > 0 and min(shape[:2]) >= config.retry_large_side_px:
+        return replace(config, max_points=config.max_points_large)
+    return config
 
 
 def _retry_share(shape: tuple[int, ...], config: TrackConfig) -> float:
