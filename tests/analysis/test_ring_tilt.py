@@ -5,6 +5,7 @@ pipes."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -129,3 +130,58 @@ def test_oblique_ring_about_an_axis_off_the_pipe_is_covered_by_the_tangent_sigma
         assert abs(covered.ovality_sigma - math.tan(e) * TANGENT_SIGMA_RAD) <= 1e-4
     (square,) = with_tangent_sigma([st], np.array([0.0]))
     assert square.ovality_sigma == st.ovality_sigma
+
+
+def test_a_ring_across_a_section_step_reads_ovality_along_its_tilt_axis_only() -> None:
+    """A ring leaning 15 deg (tilt along x) in a pipe whose radius steps 290 -> 265 mm
+    within its axial footprint (random-features seeds 1, 11: 585 mm pipes, the rings
+    past a taper's end): its section fit reads several percent of ovality, all of it
+    along the tilt axis (0 or 90 deg), none across it (45 deg): once the along
+    component is allowed its sigmas (``along_tilt_lower_bound``) nothing is left."""
+    from omnipipe.analysis.ring_tilt import along_tilt_lower_bound
+    from omnipipe.analysis.stations import Section, station_from_section
+    from omnipipe.analysis.wall_profile import fit_wall_profile
+
+    e, r1, r2 = math.radians(15.0), 290.0, 265.0
+    theta = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    z_step = 0.4 * r1 * math.tan(e)
+    rho = np.full(len(theta), r1)
+    for _ in range(20):  # the ring's plane z = -rho cos(theta) tan(e) meets the stepped wall
+        rho = np.where(-rho * np.cos(theta) * math.tan(e) < z_step, r1, r2)
+    noise = np.random.default_rng(3).normal(0.0, 0.1, len(theta))
+    coef = fit_wall_profile(theta, rho + noise, 2, 1.0)
+    st = station_from_section(0.0, Section(coef, np.eye(5) * 1e-6, 2, None, 360.0), 0.0, 0.0)
+    assert st.ovality >= 0.02, st.ovality
+    assert min(st.ovality_angle_deg % 90.0, 90.0 - st.ovality_angle_deg % 90.0) <= 1.0, st.ovality_angle_deg
+    (low,) = along_tilt_lower_bound([replace(st, ovality_sigma=0.0)], np.array([0.0]))
+    assert math.isclose(low, st.ovality, rel_tol=1e-9)
+    (low,) = along_tilt_lower_bound([replace(st, ovality_sigma=0.5 * st.ovality)], np.array([0.0]))
+    assert low <= 0.002, low
+
+
+def _stretch_stations(ov: float, angle_deg: float, sigma: float) -> list[Station]:
+    return [
+        Station(
+            axial_mm=float(z), diameter_mm=D, diameter_sigma_mm=0.1, diameter_min_mm=D, diameter_max_mm=D,
+            ovality=ov, ovality_sigma=sigma, ovality_angle_deg=angle_deg, ovality_angle_sigma_deg=2.0,
+        )
+        for z in range(0, 50, 5)
+    ]
+
+
+def test_an_ovality_stretch_its_rings_tilt_could_make_up_is_not_reported() -> None:
+    """A 5 % stretch on stations tilted along 20 deg: with 2 % station sigmas and its major
+    axis along the tilt (20 deg) or across it (110 deg) it is dropped with a warning; at
+    45 deg to the tilt axis (65 deg), or with 0.2 % sigmas, it is kept."""
+    from omnipipe.analysis.feature_types import Ovality, Taper
+    from omnipipe.analysis.ring_tilt import ovality_beyond_tilt
+
+    direction = np.full(10, math.radians(20.0))
+    taper = Taper(axial_from_mm=0.0, axial_to_mm=45.0, diameter_from_mm=D, diameter_to_mm=D - 10.0)
+    for angle, sigma, kept in ((20.0, 0.02, False), (110.0, 0.02, False), (65.0, 0.02, True), (20.0, 0.002, True)):
+        oval = Ovality(axial_from_mm=5.0, axial_to_mm=40.0, percent=5.0, angle_deg=angle)
+        out, warnings = ovality_beyond_tilt([taper, oval], _stretch_stations(0.05, angle, sigma), direction, 2.0)
+        assert (oval in out) == kept and taper in out
+        assert len(warnings) == (0 if kept else 1)
+        if warnings:
+            assert "5.0 %" in warnings[0] and "5..40 mm" in warnings[0] and "20 deg" in warnings[0]

@@ -21,7 +21,13 @@ from omnipipe.analysis.feature_types import Ovality, Stretch, Taper
 from omnipipe.analysis.footprint import with_footprint_terms
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs
 from omnipipe.analysis.ring_spans import RingGroups
-from omnipipe.analysis.ring_tilt import ring_tilts, tilt_check, with_tangent_sigma, with_tilt
+from omnipipe.analysis.ring_tilt import (
+    ovality_beyond_tilt,
+    ring_tilts,
+    tilt_check,
+    with_tangent_sigma,
+    with_tilt,
+)
 from omnipipe.analysis.sections import section_features
 from omnipipe.analysis.station_profiles import StationProfiles, station_list
 from omnipipe.analysis.stations import (
@@ -42,13 +48,20 @@ def sections_and_headline(
     radial_sys: float,
     shared: float,
     mixing: tuple[np.ndarray, np.ndarray],
-) -> tuple[list[Station], list[Stretch], Headline]:
+    tilt_direction_rad: np.ndarray | None = None,
+) -> tuple[list[Station], list[Stretch], Headline, list[str]]:
     """The stations with their deformation and shared terms, the section features
-    (taper, bend, ovality, water) and the headline diameter: the stations' mean diameter,
-    or on a reducer the section most stations measured, not the ramp."""
+    (taper, bend, ovality, water), the headline diameter (the stations' mean diameter,
+    or on a reducer the section most stations measured, not the ramp) and warnings: an
+    ovality stretch its rings' tilt could make up (``tilt_direction_rad`` (S,), the
+    stations' rings' tilt directions: :func:`.ring_tilt.ovality_beyond_tilt`) is not
+    reported."""
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
     st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
+    warnings: list[str] = []
+    if tilt_direction_rad is not None:
+        features, warnings = ovality_beyond_tilt(features, st_list, tilt_direction_rad, sec_config.ovality_feature_pct)
     tapers = [f for f in features if isinstance(f, Taper)]
     if tapers:
         t = tapers[0]
@@ -56,7 +69,7 @@ def sections_and_headline(
             head, st_list, (t.axial_from_mm, t.axial_to_mm), (t.diameter_from_mm, t.diameter_to_mm), shared
         )
         st_list = with_deformation(st_list, head)
-    return st_list, features, head
+    return st_list, features, head, warnings
 
 
 def with_ring_terms(
@@ -93,22 +106,23 @@ def tilt_corrected(
     frame: np.ndarray,
     measured: np.ndarray,
     radial_sys: float,
-) -> tuple[list[Station], float]:
+) -> tuple[list[Station], float, np.ndarray | None]:
     """The stations and the headline's shared term (mm) after :func:`.ring_tilt.tilt_check`:
     rings square to the pipe under a centreline drawn off it measured in their own
     plane; an undecided tilt's ambiguity added to the shared term; each station's
     ovality sigma with the centreline direction's uncertainty through its ring's tilt
-    (:func:`.ring_tilt.with_tangent_sigma`)."""
+    (:func:`.ring_tilt.with_tangent_sigma`); and (S,) the rings' tilt directions (rad;
+    None when the rings do not match the stations)."""
     rings = np.flatnonzero(measured)
     if len(rings) != len(st_list) or not len(rings):
-        return st_list, shared
+        return st_list, shared, None
     tilt, direction = ring_tilts(
         pts, RingGroups(frame, rings), line.tangent[rings], line.normal[rings], line.binormal[rings]
     )
     d = np.array([st.diameter_mm for st in st_list])
     check = tilt_check(st_list, tilt, direction, 4.0 * radial_sys / max(float(np.median(d)), 1e-9))
     st_list = with_tangent_sigma(with_tilt(st_list, check), check.tilt_rad)
-    return st_list, math.hypot(shared, check.ambiguity_mm(d))
+    return st_list, math.hypot(shared, check.ambiguity_mm(d)), direction
 
 
 def _peak_bias_mm(config: AnalysisConfig, inputs: AnalysisInputs, frame: np.ndarray, k: int) -> np.ndarray:

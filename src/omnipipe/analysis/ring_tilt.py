@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from omnipipe.analysis.feature_types import Ovality, Stretch
 from omnipipe.analysis.stations import Station
 
 DECISIVE_CHI2 = 9.0
@@ -232,3 +233,55 @@ def with_tangent_sigma(stations: list[Station], tilt_rad: np.ndarray) -> list[St
         if math.isfinite(st.ovality) else st
         for st, e in zip(stations, tilt_rad, strict=True)
     ]
+
+
+ALONG_TILT_SIGMAS = 2.0
+"""An ovality stretch's stations' component along their rings' tilt axis counts only
+beyond this many of each station's ovality sigmas (:func:`ovality_beyond_tilt`)."""
+
+
+def along_tilt_lower_bound(stations: list[Station], direction_rad: np.ndarray) -> np.ndarray:
+    """(S,) each station's ovality (a fraction) with its component along its ring's tilt
+    axis shrunk by :data:`ALONG_TILT_SIGMAS` of its ovality sigma (not below zero); NaN
+    where a station has no ovality.
+
+    A ring tilted to the centreline reads, besides the pipe's ovality, terms whose major
+    axis lies along or across the tilt's ``direction_rad`` (S,) only: the oblique cut
+    itself (1 - cos e, or the pipe's section stretched by 1 / cos e), the centreline's
+    direction error (tan(e) d), and the sections a long ring mixes (a taper's end or a
+    joint's step cut by a ring that spans them along the axis: a function of the angle
+    to the tilt alone). Their sizes are what the stations' sigmas state; the component
+    across the tilt axis (45 degrees to it) holds none of them."""
+    m, sig = _vectors(stations)
+    d = np.asarray(direction_rad, float)
+    along = m[:, 0] * np.cos(2 * d) + m[:, 1] * np.sin(2 * d)
+    across = -m[:, 0] * np.sin(2 * d) + m[:, 1] * np.cos(2 * d)
+    return np.hypot(np.maximum(np.abs(along) - ALONG_TILT_SIGMAS * sig, 0.0), across)
+
+
+def ovality_beyond_tilt(
+    features: list[Stretch], stations: list[Station], direction_rad: np.ndarray, min_pct: float
+) -> tuple[list[Stretch], list[str]]:
+    """The section features without the ovality stretches that their rings' tilt could
+    make up, and a warning for each: a stretch is kept when the median over its stations
+    of :func:`along_tilt_lower_bound` reaches ``min_pct`` (percent; the stretches'
+    threshold). ``stations`` carry their final ovality sigmas (fit, shared ring shape,
+    scatter, the centreline's direction, the sections each ring mixes)."""
+    if len(direction_rad) != len(stations):
+        return features, []
+    low = along_tilt_lower_bound(stations, direction_rad)
+    axial = np.array([s.axial_mm for s in stations])
+    tilt_axis = np.degrees(np.asarray(direction_rad, float)) % 180.0
+    kept, warnings = [], []
+    for f in features:
+        inside = (axial >= f.axial_from_mm) & (axial <= f.axial_to_mm) & np.isfinite(low)
+        if not isinstance(f, Ovality) or not inside.any() or 100.0 * float(np.median(low[inside])) >= min_pct:
+            kept.append(f)
+            continue
+        warnings.append(
+            f"an ovality of {f.percent:.1f} % at {f.axial_from_mm:.0f}..{f.axial_to_mm:.0f} mm lies along the "
+            f"rings' tilt axis ({float(np.median(tilt_axis[inside])):.0f} deg): under {min_pct:g} % once the "
+            "rings' oblique cut, the centreline's direction and the sections a ring mixes are allowed for, "
+            "so it is not reported"
+        )
+    return kept, warnings
