@@ -497,8 +497,7 @@ EDGE_SIGMA_PX = 0.5
 both ends' mean) about the true one: the edge's image is resolved to its pixel (the
 renderer classifies each pixel by its centre ray: +-0.5 px across the water line's
 image, more along an oblique stripe), and the plateau's texture and speckle move the
-half-height point. Against the water line's true crossing on random-features runs
-(benchmarks/RESULTS.md, wat28) the rings of one run err alike, by -0.85 to +0.2 px:
+half-height point. The rings of one run err alike (benchmarks/RESULTS.md, wat28):
 the analysis takes it as shared by the run's stations."""
 
 

@@ -37,10 +37,9 @@ import numpy as np
 from omnipipe.sfm.types import SfmConfig, SfmResult
 
 # Least share of the first estimate's offset (log) by which the second's feature depths
-# must have lengthened (:func:`feature_gain`) for the lag to be what the second undid:
-# random-wide seeds 18 and 12 (corrugated) 5.8 and 4.5 % of 7.6 and 6.3 %;
-# random-features seed 22 (brick, a 113 mm pipe at 400x300) 1.1 % of 11 %: its laser
-# ran long on its own, and with the better motion came nearer the feature depths.
+# must have lengthened (:func:`feature_gain`) for the lag to be what the second undid;
+# a laser that ran long on its own comes nearer the feature depths with a better motion
+# but barely lengthens them (benchmarks/RESULTS.md, mot28).
 LAG_SHARE = 0.5
 
 

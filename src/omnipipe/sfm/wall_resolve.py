@@ -149,9 +149,8 @@ def _laser_set_aside(step: DecidedStep, gain: float, config: ScaleCheckConfig) -
     """A trusted step whose laser length (``gain``: the run's laser / feature-depth
     offset) differs from its feature depths by more than ``anchor_agree_log`` (within
     ``agree_log``): :func:`~omnipipe.sfm.step_decide.decide_step` took the feature length
-    and dropped the laser's anchors, so nothing measured it twice. The wall's shift may:
-    random-wide seed 3s (joints, 757 mm) laser 26.6 mm, feature depths 29.7 (2 % short,
-    the tracks' lag), the wall 30.1 +- 0.6, true 30.3."""
+    and dropped the laser's anchors, so nothing measured it twice. The wall's shift may
+    (its cases: benchmarks/RESULTS.md, feat27)."""
     c = step.check
     return (
         c.confidence == "high"
@@ -311,11 +310,7 @@ def wall_confirms_bridged(
     shift, the robot's travel), so the length is their inverse-variance mean with its
     1-sigma, not an estimate. The step stays bridged (its frames follow the odometry's
     travel, the adjustment holds it to that length with that sigma, and it does not
-    speak for the run's scale: :attr:`~omnipipe.sfm.scale_check.StepCheck.measures_scale`).
-
-    Random-wide seed 24s (joints, 644 mm, one 13.04 mm keyframe step): laser peaks
-    ambiguous, 126 feature matches (no feature depth length); the wall 13.11 +- 0.37,
-    the odometry 12.95 +- 0.54: 13.06 +- 0.30, flagged on every frame step before."""
+    speak for the run's scale: :attr:`~omnipipe.sfm.scale_check.StepCheck.measures_scale`)."""
     for k, (wall_mm, wall_sigma, ncc) in agreed.items():
         c = checks[k]
         if c.bridged_from != "odometry" or not (math.isfinite(c.bridged_mm) and c.bridged_sigma_mm > 0):
