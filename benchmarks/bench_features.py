@@ -22,7 +22,8 @@ it by at least 10 mm, a bend whose part inside the span turns at least 10 degree
 piece of an R = 3 D bend turns a degree); truth beyond is listed as "outside", not as
 missed. A
 point feature matches within max(15 mm, 0.6 x a lateral's diameter) axially, a stretch
-by overlap. Sizes of a truncated stretch (it runs past the stations) are lower bounds:
+by an overlap of at least half the shorter of the two (``STRETCH_MATCH_SHARE``); a
+reported feature matching no true one of its kind is false. Sizes of a truncated stretch (it runs past the stations) are lower bounds:
 not scored. Ovality and water depth are compared with the truth stations' median over
 the reported stretch (depth varies along a taper; a stretch's median includes its
 blends), and per station with the truth there (stations dry in both not counted).
@@ -42,6 +43,8 @@ from pathlib import Path
 import numpy as np
 
 POINT_KINDS = ("joint", "lateral")
+STRETCH_MATCH_SHARE = 0.5
+"""Least overlap of a reported and a true stretch, as a share of the shorter one."""
 BEND_MIN_TURN_DEG = 10.0  # analysis.bend_min_turn_deg's default
 KINDS = ("joint", "lateral", "bend", "taper", "ovality", "water")
 SMALL_LATERAL = "lat<0.2D"  # laterals under the issue's class, tallied apart (not in its acceptance)
@@ -192,8 +195,15 @@ def _match(t: dict, found: list[dict]) -> dict | None:
         cand = [f for f in cand if abs(f["axial_mm"] - t["axial_mm"]) <= tol]
         return min(cand, key=lambda f: abs(f["axial_mm"] - t["axial_mm"])) if cand else None
     a, b = _extent(t)
-    cand = [f for f in cand if min(b, f["axial_to_mm"]) > max(a, f["axial_from_mm"])]
-    return max(cand, key=lambda f: min(b, f["axial_to_mm"]) - max(a, f["axial_from_mm"])) if cand else None
+
+    def overlap(f: dict) -> float:
+        return min(b, f["axial_to_mm"]) - max(a, f["axial_from_mm"])
+
+    # At least half the shorter of the two: a reported stretch beside the true one,
+    # touching it by a few mm, is a false stretch, not a detection.
+    cand = [f for f in cand if overlap(f) >= STRETCH_MATCH_SHARE * min(b - a, f["axial_to_mm"] - f["axial_from_mm"])
+            and overlap(f) > 0]
+    return max(cand, key=overlap) if cand else None
 
 
 def _truth_over(truth: dict, key: str, a: float, b: float) -> float | None:
@@ -319,8 +329,8 @@ def _score(
                     if key == "water_depth_mm" and true < 0.05 * d and not s[key]:
                         continue  # dry (or too shallow to count) and reported dry
                     counts.setdefault(key, []).append(abs(s[key] - true))
-    for f in found:  # a joint or lateral no true one of its kind (in or out of the run) matches
-        if f["kind"] in POINT_KINDS and not any(
+    for f in found:  # a feature no true one of its kind (in or out of the run) matches
+        if not any(
             _match(t, [f]) is not None for t in truth.get("features", []) if t["kind"] == f["kind"]
         ):
             counts.setdefault("false_features", {}).setdefault(f["kind"], 0)
@@ -361,7 +371,7 @@ def _table(title: str, rows: dict[str, Row], counts: dict, done: list[int], fail
         z = np.array([g[2] for g in got])
         print(f"headline inner_diameter_mm, {cls:8} runs: within 3 sigma {sum(g[0] for g in got)} of {len(got)}, "
               f"|error| median {np.median(e):.2f} mm, max {e.max():.2f} mm ({z.max():.1f} sigma)")
-    print(f"false joints/laterals (no true one within the match tolerance): {counts.get('false_features', {})}")
+    print(f"false features (no true one of the kind within the match tolerance / overlap): {counts.get('false_features', {})}")
     print(f"false defects: {counts['false_defects']} (within 10 mm of a joint or a hole: "
           f"{counts['feature_defects']}); runs with unreliable motion: {counts['unreliable_runs']}")
 

@@ -71,3 +71,14 @@ def test_the_true_headline_of_a_reducing_run_is_its_longer_section(tmp_path: Pat
     truth["features"] = []
     assert abs(bench._headline_truth(truth, spans) - 260.0) < 1e-6  # four of seven at 260
     assert abs(bench._headline_truth({"features": []}, spans[:3]) - 300.0) < 1e-6
+
+
+def test_a_stretch_beside_the_true_one_is_false_not_found() -> None:
+    """A reported stretch touching the true one by a few mm (ovality-bench seeds 1 and 11:
+    overlaps of 1-2 mm) matches nothing; one covering most of it matches."""
+    true = {"kind": "ovality", "axial_from_mm": -120.0, "axial_to_mm": -20.0}
+    beside = {"kind": "ovality", "axial_from_mm": -159.0, "axial_to_mm": -118.0}
+    inside = {"kind": "ovality", "axial_from_mm": -110.0, "axial_to_mm": -40.0}
+    assert bench._match(true, [beside]) is None
+    assert bench._match(true, [beside, inside]) is inside
+    assert bench._match(true, [{**inside, "kind": "water"}]) is None
