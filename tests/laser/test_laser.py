@@ -290,30 +290,35 @@ def test_scan_lines_cover_every_radius_that_meets_the_plane(small_rig: Rig) -> N
     assert np.median(np.linalg.norm(a.points_in_rig[ia] - b.points_in_rig[ib], axis=1)) < 0.01  # mm
 
 
+def _dark_stretch_image(rig: Rig, rng: np.random.Generator, sigma_px: float, half: float, centre: float):
+    """A synthetic ring image (radius 101 mm) whose stripe goes dark over ``centre`` +-
+    ``half`` (rad) with the optics' blur ``sigma_px`` along the ring, as at a water line."""
+    from scipy.special import ndtr
+
+    img, cam = _synthetic_ring(rig, 101.0, rng, sigma_px=sigma_px)
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
+    pa = np.arctan2(rows - cam.cy, cols - cam.cx)
+    pr = np.hypot(cols - cam.cx, rows - cam.cy)
+    into = (half - np.abs((pa - centre + np.pi) % (2 * np.pi) - np.pi)) * pr  # px into the dark
+    dark = img.astype(float)
+    tex = dark[..., 1]  # red is texture + stripe, green the texture (each with its noise)
+    stripe = np.clip(dark[..., 0] - tex, 0, None)
+    dark[..., 0] = tex + stripe * ndtr(-into / sigma_px)
+    return np.clip(dark, 0, 255).astype(np.uint8), cam
+
+
 def test_edge_reach_is_how_far_samples_run_past_a_dark_stretch(small_rig: Rig) -> None:
     """A ring whose stripe stops over a dark 80 deg stretch (standing water), the stop
     blurred along the ring like the stripe across it: the samples run on past the stop
     by at least what :func:`edge_reach_mm` states (less one sample step) and at most half
     a blur sigma more (the texture lifts the faintest peaks over the threshold: 6.2 and
     5.3 mm against 4.0 stated here, blur 4.4 mm)."""
-    from scipy.special import ndtr
-
     from omnipipe.laser import triangulate_ring
     from omnipipe.laser.extract import edge_reach_mm, ring_blur_mm
 
     rng = np.random.default_rng(4)
-    sigma_px, half = 1.6, np.radians(40.0)
-    img, cam = _synthetic_ring(small_rig, 101.0, rng, sigma_px=sigma_px)
-    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
-    pa = np.arctan2(rows - cam.cy, cols - cam.cx)
-    pr = np.hypot(cols - cam.cx, rows - cam.cy)
-    centre = np.pi / 2
-    into = (half - np.abs((pa - centre + np.pi) % (2 * np.pi) - np.pi)) * pr  # px into the dark
-    dark = img.astype(float)
-    tex = dark[..., 1]  # red is texture + stripe, green the texture (each with its noise)
-    stripe = np.clip(dark[..., 0] - tex, 0, None)
-    dark[..., 0] = tex + stripe * ndtr(-into / sigma_px)
-    image = np.clip(dark, 0, 255).astype(np.uint8)
+    sigma_px, half, centre = 1.6, np.radians(40.0), np.pi / 2
+    image, cam = _dark_stretch_image(small_rig, rng, sigma_px, half, centre)
     ring = triangulate_ring(RingExtractor(cam).extract(image, "red"), cam, small_rig.laser)
     reach, reach_sigma = edge_reach_mm([ring])
     assert reach > 0 and reach_sigma == 0.0
@@ -332,24 +337,13 @@ def test_station_reach_is_measured_at_the_stripes_half_height(small_rig: Rig) ->
     halves at both ends of the cut (the stop itself) from the ring's own peaks and the
     signal in the gap, so the samples' measured reach past it is the true one (the mean
     of both ends) within its stated sigma, wherever the extractor's tests stopped."""
-    from scipy.special import ndtr
-
     from omnipipe.laser import triangulate_ring
     from omnipipe.laser.extract import station_edge_reach
 
     rng = np.random.default_rng(4)
-    sigma_px, half = 1.6, np.radians(40.0)
-    img, cam = _synthetic_ring(small_rig, 101.0, rng, sigma_px=sigma_px)
-    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
-    pa = np.arctan2(rows - cam.cy, cols - cam.cx)
-    pr = np.hypot(cols - cam.cx, rows - cam.cy)
-    centre = np.pi / 2
-    into = (half - np.abs((pa - centre + np.pi) % (2 * np.pi) - np.pi)) * pr
-    dark = img.astype(float)
-    tex = dark[..., 1]
-    stripe = np.clip(dark[..., 0] - tex, 0, None)
-    dark[..., 0] = tex + stripe * ndtr(-into / sigma_px)
-    ring = triangulate_ring(RingExtractor(cam).extract(np.clip(dark, 0, 255).astype(np.uint8), "red"), cam, small_rig.laser)
+    sigma_px, half, centre = 1.6, np.radians(40.0), np.pi / 2
+    image, cam = _dark_stretch_image(small_rig, rng, sigma_px, half, centre)
+    ring = triangulate_ring(RingExtractor(cam).extract(image, "red"), cam, small_rig.laser)
     assert len(ring.gap_edges) == 2
     reach, sigma = station_edge_reach([ring])
     rel = (ring.angle_rad - centre + np.pi) % (2 * np.pi) - np.pi
