@@ -478,6 +478,32 @@ def test_large_views_follow_their_own_number_of_points() -> None:
     assert view_size(camera, FeatureConfig()) == (extractor.views[0].height, extractor.views[0].width)
 
 
+def test_large_views_take_their_own_keyframe_parallax_and_follow_back() -> None:
+    """A run's keyframe parallax and ``back_below`` are ``keyframe_min_parallax_large_deg``
+    and ``back_below_large`` where its views are large (1600x1200's) and the plain
+    settings in smaller ones (640x480's) or with the bound at 0; the CLI's
+    ``--keyframe-parallax`` sets both parallaxes."""
+    from types import SimpleNamespace
+
+    from omnipipe.pipeline.cli import _overrides
+    from omnipipe.sfm.pipeline import _sized_views
+    from omnipipe.sfm.types import SfmConfig
+
+    config = SfmConfig(
+        keyframe_min_parallax_large_deg=6.0, tracking=TrackConfig(back_below_large=200)
+    )
+    large = SimpleNamespace(rig=make_scenario("paper", frames=2, size=(1600, 1200)).rig)
+    small = SimpleNamespace(rig=make_scenario("paper", frames=2, size=(640, 480)).rig)
+    sized = _sized_views(config, large)
+    assert sized.keyframe_min_parallax_deg == 6.0
+    assert (sized.tracking.max_points, sized.tracking.back_below) == (600, 200)
+    assert _sized_views(config, small) == config
+    off = replace(config, tracking=replace(config.tracking, retry_large_side_px=0))
+    assert _sized_views(off, large) == off
+    args = SimpleNamespace(features=None, keyframe_parallax=3.0, mesher=None)
+    assert _overrides(args)["sfm"] == {"keyframe_min_parallax_deg": 3.0, "keyframe_min_parallax_large_deg": 3.0}
+
+
 def test_followed_back_only_down_to_the_earliest_frame_short_of_tracks_or_far() -> None:
     """The new keyframe's features are followed back (latest pending frame first) only
     as far as the earliest pending frame with fewer than ``back_below`` verified tracks

@@ -130,7 +130,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict]:
     if args.features is not None:
         out.setdefault("sfm", {})["features"] = {"max_features": args.features}
     if args.keyframe_parallax is not None:
-        out.setdefault("sfm", {})["keyframe_min_parallax_deg"] = args.keyframe_parallax
+        sfm = out.setdefault("sfm", {})  # the views' size chooses one of the two
+        sfm["keyframe_min_parallax_deg"] = sfm["keyframe_min_parallax_large_deg"] = args.keyframe_parallax
     if args.mesher is not None:
         out.setdefault("model", {})["mesher"] = args.mesher
     return out

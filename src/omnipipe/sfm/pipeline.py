@@ -93,7 +93,7 @@ from omnipipe.sfm.step_scale import (
     run_scale,
 )
 from omnipipe.sfm.step_window import moving_counts
-from omnipipe.sfm.tracking import sized_for_views
+from omnipipe.sfm.tracking import is_large_view, sized_for_views
 from omnipipe.sfm.types import (
     ODOMETRY_ONLY,
     Keyframes,
@@ -367,10 +367,14 @@ def _flow_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
 
 
 def _sized_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
-    """``config`` with the tracking's settings for the size of the run's views
-    (:func:`~omnipipe.sfm.tracking.sized_for_views`)."""
+    """``config`` with the tracking's settings and the keyframes' parallax for the size
+    of the run's views (:func:`~omnipipe.sfm.tracking.sized_for_views`,
+    ``keyframe_min_parallax_large_deg``)."""
     shape = view_size(camera_from_rig(inputs.rig), config.features)
-    return replace(config, tracking=sized_for_views(config.tracking, shape))
+    sized = replace(config, tracking=sized_for_views(config.tracking, shape))
+    if is_large_view(config.tracking, shape):
+        sized = replace(sized, keyframe_min_parallax_deg=config.keyframe_min_parallax_large_deg)
+    return sized
 
 
 def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) -> SfmContext:

@@ -98,6 +98,9 @@ class TrackConfig:
             the smaller number is in benchmarks/RESULTS.md (cpu28's entry). Other-rig's
             and 640x480's views keep ``max_points``, where fewer tracks moved the
             robustness bench's steps (cpu19's entry).
+        back_below_large: ``back_below`` in such large views (:func:`sized_for_views`).
+            Smaller views keep ``back_below``: the robustness bench's 640x480 runs lost
+            by 200 (seeds 20 and 37, benchmarks/RESULTS.md).
     """
 
     enabled: bool = True
@@ -120,6 +123,7 @@ class TrackConfig:
     retry_large_side_px: int = bounded(300, ge=0)
     retry_lost_share_large: float = bounded(0.1, ge=0, le=1)
     max_points_large: int = bounded(600, ge=8)
+    back_below_large: int = bounded(1_000_000, ge=0)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:
@@ -267,12 +271,18 @@ def _flow(
     return p1, ok & inside
 
 
+def is_large_view(config: TrackConfig, shape: tuple[int, ...]) -> bool:
+    """True for views of ``shape`` (height, width) px whose shorter side reaches
+    ``config.retry_large_side_px`` (> 0)."""
+    return config.retry_large_side_px > 0 and min(shape[:2]) >= config.retry_large_side_px
+
+
 def sized_for_views(config: TrackConfig, shape: tuple[int, ...]) -> TrackConfig:
     """``config`` for views of ``shape`` (height, width) px: with ``max_points_large`` as
-    ``max_points`` where their shorter side reaches ``retry_large_side_px`` (> 0), else
-    as it is."""
-    if config.retry_large_side_px > 0 and min(shape[:2]) >= config.retry_large_side_px:
-        return replace(config, max_points=config.max_points_large)
+    ``max_points`` and ``back_below_large`` as ``back_below`` in large views
+    (:func:`is_large_view`), else as it is."""
+    if is_large_view(config, shape):
+        return replace(config, max_points=config.max_points_large, back_below=config.back_below_large)
     return config
 
 
@@ -281,8 +291,7 @@ def _retry_share(shape: tuple[int, ...], config: TrackConfig) -> float:
     (:func:`_flow`): ``config.retry_lost_share_large`` in a view of ``shape`` (height,
     width) px whose shorter side is at least ``config.retry_large_side_px`` (> 0), else
     ``config.retry_lost_share``."""
-    large = config.retry_large_side_px > 0 and min(shape[:2]) >= config.retry_large_side_px
-    return config.retry_lost_share_large if large else config.retry_lost_share
+    return config.retry_lost_share_large if is_large_view(config, shape) else config.retry_lost_share
 
 
 def _checked_flow(

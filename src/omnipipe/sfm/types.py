@@ -58,6 +58,11 @@ class SfmConfig:
             turned at least this much (median, rotation removed) since the last keyframe;
             closer frames are resected against the adjusted tracks instead (short
             baselines give poor translation directions and laser scales).
+        keyframe_min_parallax_large_deg: ``keyframe_min_parallax_deg`` in views whose
+            shorter side reaches ``tracking.retry_large_side_px`` (1600x1200's; the run's
+            config takes it before the first frame, :func:`omnipipe.sfm.pipeline.run`);
+            smaller views keep ``keyframe_min_parallax_deg`` (the robustness bench's
+            short 640x480 runs lost steps at 6 deg: benchmarks/RESULTS.md).
         anchor_reach: laser points are also matched up to this many keyframes ahead for
             the bundle adjustment (1: consecutive keyframes only).
         scale_from_wall: after the bundle adjustment, the run's overall scale is set by
@@ -85,6 +90,7 @@ class SfmConfig:
     rotation_only_ratio: float = bounded(0.9, gt=0, le=1)
     seed: int = bounded(0, ge=0)
     keyframe_min_parallax_deg: float = bounded(4.0, ge=0, lt=180)
+    keyframe_min_parallax_large_deg: float = bounded(4.0, ge=0, lt=180)
     anchor_reach: int = bounded(3, ge=1)
     scale_from_wall: bool = True
     planes: PlaneRefineConfig = field(default_factory=PlaneRefineConfig)
