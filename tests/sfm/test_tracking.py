@@ -468,7 +468,7 @@ def test_large_views_follow_their_own_number_of_points() -> None:
 
     default = TrackConfig()
     assert (default.max_points, default.max_points_large) == (1000, 600)
-    assert sized_for_views(default, (484, 335)) == replace(default, max_points=600)
+    assert sized_for_views(default, (484, 335)) == replace(default, max_points=600, back_below=200)
     assert sized_for_views(default, (398, 285)) == default
     assert sized_for_views(default, (189, 131)) == default
     assert sized_for_views(replace(default, retry_large_side_px=0), (484, 335)).max_points == 1000
@@ -489,9 +489,8 @@ def test_large_views_take_their_own_keyframe_parallax_and_follow_back() -> None:
     from omnipipe.sfm.pipeline import _sized_views
     from omnipipe.sfm.types import SfmConfig
 
-    config = SfmConfig(
-        keyframe_min_parallax_large_deg=6.0, tracking=TrackConfig(back_below_large=200)
-    )
+    assert TrackConfig().back_below_large == 200
+    config = SfmConfig(keyframe_min_parallax_large_deg=6.0)
     large = SimpleNamespace(rig=make_scenario("paper", frames=2, size=(1600, 1200)).rig)
     small = SimpleNamespace(rig=make_scenario("paper", frames=2, size=(640, 480)).rig)
     sized = _sized_views(config, large)

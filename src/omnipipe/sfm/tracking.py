@@ -98,9 +98,13 @@ class TrackConfig:
             the smaller number is in benchmarks/RESULTS.md (cpu28's entry). Other-rig's
             and 640x480's views keep ``max_points``, where fewer tracks moved the
             robustness bench's steps (cpu19's entry).
-        back_below_large: ``back_below`` in such large views (:func:`sized_for_views`).
-            Smaller views keep ``back_below``: the robustness bench's 640x480 runs lost
-            by 200 (seeds 20 and 37, benchmarks/RESULTS.md).
+        back_below_large: ``back_below`` in such large views (:func:`sized_for_views`):
+            their pending frames keep hundreds of verified tracks of their own keyframe,
+            so only those short of tracks or in the far part of the step
+            (``back_beyond``) are followed back (continuous and bend: the same accuracy
+            for less CPU, benchmarks/RESULTS.md, cpu29's entry). Smaller views keep
+            ``back_below``: the robustness bench's 640x480 runs lost by 200 (seeds 20
+            and 37).
     """
 
     enabled: bool = True
@@ -123,7 +127,7 @@ class TrackConfig:
     retry_large_side_px: int = bounded(300, ge=0)
     retry_lost_share_large: float = bounded(0.1, ge=0, le=1)
     max_points_large: int = bounded(600, ge=8)
-    back_below_large: int = bounded(1_000_000, ge=0)
+    back_below_large: int = bounded(200, ge=0)
 
     def __post_init__(self) -> None:
         if self.window_px < 5 or self.window_px % 2 == 0:

@@ -62,7 +62,9 @@ class SfmConfig:
             shorter side reaches ``tracking.retry_large_side_px`` (1600x1200's; the run's
             config takes it before the first frame, :func:`omnipipe.sfm.pipeline.run`);
             smaller views keep ``keyframe_min_parallax_deg`` (the robustness bench's
-            short 640x480 runs lost steps at 6 deg: benchmarks/RESULTS.md).
+            short 640x480 runs lost steps at 6 deg). Both 4 deg by default: 6 deg in
+            1600x1200's views cost bend's trajectory 2.4 times its error
+            (benchmarks/RESULTS.md, cpu29's entry).
         anchor_reach: laser points are also matched up to this many keyframes ahead for
             the bundle adjustment (1: consecutive keyframes only).
         scale_from_wall: after the bundle adjustment, the run's overall scale is set by
