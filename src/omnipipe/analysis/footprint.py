@@ -58,6 +58,21 @@ def section_change_mm(axial: np.ndarray, diameter: np.ndarray, half_extent: np.n
     return out
 
 
+def independent_count(axial: np.ndarray, half_extent: np.ndarray) -> int:
+    """How many of the stations at ``axial`` (mm) read walls of their own: walking along
+    the axis, a station counts when its ring's footprint (+-``half_extent`` mm) clears
+    that of the last station counted (at least 1). Stations whose footprints overlap
+    read the same wall, and what the pipe's shape there does to their ovality (the
+    sections a ring mixes, its tilt) they share: they do not average it out."""
+    order = np.argsort(axial, kind="stable")
+    z, h = np.asarray(axial, float)[order], np.asarray(half_extent, float)[order]
+    count, last = min(len(z), 1), 0
+    for i in range(1, len(z)):
+        if z[i] - z[last] >= h[i] + h[last]:
+            count, last = count + 1, i
+    return count
+
+
 def footprint_terms(stations: list[Station], half_extent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(S,) 1-sigma of each station's mean diameter (mm) and of its ovality (fraction)
     from the sections its ring mixes: Delta D / sqrt(12) and sqrt(2) Delta D / (pi D)

@@ -28,7 +28,7 @@ from omnipipe.analysis.ring_tilt import (
     with_tangent_sigma,
     with_tilt,
 )
-from omnipipe.analysis.sections import section_features
+from omnipipe.analysis.sections import section_features, significant_ovality
 from omnipipe.analysis.station_profiles import StationProfiles, station_list
 from omnipipe.analysis.stations import (
     Headline,
@@ -49,19 +49,24 @@ def sections_and_headline(
     shared: float,
     mixing: tuple[np.ndarray, np.ndarray],
     tilt_direction_rad: np.ndarray | None = None,
+    footprint_mm: np.ndarray | None = None,
 ) -> tuple[list[Station], list[Stretch], Headline, list[str]]:
     """The stations with their deformation and shared terms, the section features
     (taper, bend, ovality, water), the headline diameter (the stations' mean diameter,
     or on a reducer the section most stations measured, not the ramp) and warnings: an
     ovality stretch its rings' tilt could make up (``tilt_direction_rad`` (S,), the
     stations' rings' tilt directions: :func:`.ring_tilt.ovality_beyond_tilt`) is not
-    reported."""
+    reported; nor one within :data:`~omnipipe.analysis.sections.OVALITY_MIN_SIGMAS` of
+    none (``footprint_mm`` (S,), half each station's ring's axial extent: stations whose
+    rings overlap count once in a stretch's sigma)."""
     head = headline(st_list, shared)
     st_list = with_deformation(st_list, head)
-    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing)
+    st_list, features = _with_shared_terms(st_list, line, head, sec_config, radial_sys, shared, mixing, footprint_mm)
     warnings: list[str] = []
     if tilt_direction_rad is not None:
         features, warnings = ovality_beyond_tilt(features, st_list, tilt_direction_rad, sec_config.ovality_feature_pct)
+    features, weak = significant_ovality(features)
+    warnings += weak
     tapers = [f for f in features if isinstance(f, Taper)]
     if tapers:
         t = tapers[0]
@@ -150,6 +155,7 @@ def _with_shared_terms(
     radial_sys: float,
     shared_diameter_mm: float,
     mixing: tuple[np.ndarray, np.ndarray],
+    footprint_mm: np.ndarray | None = None,
 ) -> tuple[list[Station], list[Stretch]]:
     """The stations and section features (ovality, tapers, ...) with the terms averaging
     the stations cannot remove: a ring-shape error shared by the run (``radial_sys`` mm
@@ -173,7 +179,7 @@ def _with_shared_terms(
         return float(np.median(term[sel])) if sel.any() else 0.0
 
     features: list[Stretch] = []
-    for f in section_features(st_list, line, head, sec_config, d_mix):
+    for f in section_features(st_list, line, head, sec_config, d_mix, footprint_mm):
         if isinstance(f, Ovality) and f.percent_sigma is not None:
             inside = (axial >= f.axial_from_mm) & (axial <= f.axial_to_mm)
             mix = 100.0 * median_over(o_mix, inside)

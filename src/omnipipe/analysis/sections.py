@@ -17,6 +17,7 @@ import numpy as np
 
 from omnipipe.analysis.centreline import BendFit, Centreline, fit_bend, local_tangents
 from omnipipe.analysis.feature_types import Bend, Ovality, Stretch, Taper, Water
+from omnipipe.analysis.footprint import independent_count
 from omnipipe.analysis.stations import Headline, SectionConfig, Station
 
 
@@ -26,18 +27,20 @@ def section_features(
     head: Headline,
     config: SectionConfig,
     mixing_mm: np.ndarray | None = None,
+    footprint_mm: np.ndarray | None = None,
 ) -> list[Stretch]:
     """Taper, bend, ovality and water features of the run, in axial order (a centreline
     turn lying mostly on a taper is not a bend: the cylinder fits tilt in a cone);
     ``mixing_mm`` (S,): the diameter term of the sections each station's ring mixes
-    (:func:`taper_weights`)."""
+    (:func:`taper_weights`); ``footprint_mm`` (S,): half each station's ring's axial
+    extent (:func:`.footprint.footprint_mm`; None: rings taken as square)."""
     if len(stations) < 3:
         return []
     tapers = _tapers(stations, config, mixing_mm)
     # The piecewise cylinder fits tilt their axes in a cone: no bend mostly inside a taper.
     bends = [b for b in _bends(line, head.diameter_mm, config) if not any(_within(b, t) for t in tapers)]
     out = tapers + bends
-    out += _ovality_stretches(stations, config) + _water_stretches(stations, config, tapers)
+    out += _ovality_stretches(stations, config, footprint_mm) + _water_stretches(stations, config, tapers)
     return sorted(out, key=lambda f: f.axial_from_mm)
 
 
@@ -65,13 +68,18 @@ def _edge_sigma(axial: np.ndarray) -> float:
     return 0.5 * float(np.median(np.diff(axial))) if len(axial) > 1 else math.nan
 
 
-def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[Stretch]:
+def _ovality_stretches(
+    stations: list[Station], config: SectionConfig, footprint_mm: np.ndarray | None = None
+) -> list[Stretch]:
     """Stretches whose ovality is at least ``config.ovality_feature_pct``; their size
     from the stations inside the first and last (those lie where the ovality blends in
     and out: random-features-small's stretches, 2-4 stations, read 0.8-0.9 pp low with
-    them)."""
+    them), its sigma over the stations whose rings read walls of their own
+    (:func:`.footprint.independent_count` with ``footprint_mm`` (S,), half each ring's
+    axial extent)."""
     ov = np.array([s.ovality for s in stations])
     axial = np.array([s.axial_mm for s in stations])
+    half = np.zeros(len(stations)) if footprint_mm is None or len(footprint_mm) != len(stations) else footprint_mm
     mask = np.nan_to_num(ov, nan=0.0) * 100.0 >= config.ovality_feature_pct
     edge = _edge_sigma(axial)
     out = []
@@ -83,6 +91,7 @@ def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[S
         osig = np.array([s.ovality_sigma for s in stations[sel]])
         asig = np.array([s.ovality_angle_sigma_deg for s in stations[sel]])
         spread = float(np.std(ov[sel])) if n > 2 else float(np.median(osig))
+        n = independent_count(axial[sel], half[sel])
         out.append(
             Ovality(
                 axial_from_mm=float(axial[i0]),
@@ -97,6 +106,28 @@ def _ovality_stretches(stations: list[Station], config: SectionConfig) -> list[S
             )
         )
     return out
+
+
+OVALITY_MIN_SIGMAS = 1.0
+"""An ovality stretch is reported when its percent is at least this many of its own
+sigma (:func:`significant_ovality`)."""
+
+
+def significant_ovality(features: list[Stretch]) -> tuple[list[Stretch], list[str]]:
+    """``features`` without the ovality stretches within :data:`OVALITY_MIN_SIGMAS` of
+    their own sigma of none (their stations' rings, overlapping along the axis, read one
+    wall whose shape they share), and a warning for each."""
+    kept, warnings = [], []
+    for f in features:
+        if isinstance(f, Ovality) and f.percent_sigma is not None and f.percent < OVALITY_MIN_SIGMAS * f.percent_sigma:
+            warnings.append(
+                f"an ovality of {f.percent:.1f} % at {f.axial_from_mm:.0f}..{f.axial_to_mm:.0f} mm is within "
+                f"{OVALITY_MIN_SIGMAS:g} sigma ({f.percent_sigma:.1f} %) of none: its stations' rings overlap "
+                "along the axis and read one wall, so it is not reported"
+            )
+            continue
+        kept.append(f)
+    return kept, warnings
 
 
 def _depth_steps(

@@ -102,11 +102,11 @@ def run(
     sec_config = section_config(config)
     # The rings' axial footprints: sections they mix (taper ends, joints, tilted rings).
     measured = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
-    mixing = footprint_terms(st_list, footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
+    mixing = footprint_terms(st_list, half := footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
     water_terms = (_station_reaches(inputs, stations.rings), _joint_steps(feats.features))
     st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, *water_terms)
     st_list, shared, tilt_dir = tilt_corrected(st_list, shared, line, pts, frame, measured, radial_sys)
-    st_list, features, head, tilt_warn = sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing, tilt_dir)
+    st_list, features, head, tilt_warn = sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing, tilt_dir, half)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *tilt_warn, *_unseen_gap_warning(feats.unseen_gap_mm)]
     water, water_sigma = run_water(st_list) if wet else (None, None)
     ovality = np.array([st.ovality for st in st_list])  # as measured (ring_tilt)
