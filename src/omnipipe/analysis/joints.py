@@ -447,7 +447,7 @@ def _joint(
     # within ``window_mm``: its edge lies between the two rings (else it would be the deep
     # samples' median, inside the gap), along a coordinate that follows the wall
     # (:data:`REACH_TILT_DEG`).
-    local = _local_axis(config, line, r, mid, half + config.margin_mm + band.slant_mm)
+    local = _wall_axis(config, line, r, mid, half + config.margin_mm + band.slant_mm)
     near = np.abs(coord - mid) <= half + 2.0 * reach
     wide = np.abs(coord - mid) <= half + max(2.0 * reach, config.window_mm)
     s = coord - mid
@@ -512,6 +512,30 @@ tilted further (a fit that trades its drift for the step) would carry that searc
 another section's wall."""
 
 
+LOCAL_AXIS_MAX_TILT_DEG = 20.0
+"""A joint's local axis whose fitted drift tilts it further than this from the
+centreline's tangent (deg) is a degenerate fit, not the wall's: few rings a side, or a
+neighbouring joint's step in the window, traded for the drift (bench seeds 13 and 31:
+54-68 deg, their offsets tens of mm for 2-7). The wall then is refitted along the
+centreline's tangent (no drift terms)."""
+
+
+def _wall_axis(
+    config: FeatureConfig, line: Centreline, r: Rings, axial: float, clear: float
+) -> _LocalAxis | None:
+    """The joint's local axis (:func:`_local_axis`); where its drift tilts it beyond
+    :data:`LOCAL_AXIS_MAX_TILT_DEG` from the centreline's tangent, the fit without drift
+    terms instead (the edges then are read along the centreline, as without a local
+    axis)."""
+    local = _local_axis(config, line, r, axial, clear)
+    if local is None:
+        return None
+    k0 = int(np.argmin(np.abs(line.arc_mm - axial)))
+    if abs(float(local.tangent @ line.tangent[k0])) >= math.cos(math.radians(LOCAL_AXIS_MAX_TILT_DEG)):
+        return local
+    return _local_axis(config, line, r, axial, clear, drift_terms=False)
+
+
 @dataclass(frozen=True)
 class _LocalAxis:
     """The straight wall axis through a joint and the downstream section's step.
@@ -543,11 +567,12 @@ class _LocalAxis:
 
 
 def _local_axis(
-    config: FeatureConfig, line: Centreline, r: Rings, axial: float, clear: float
+    config: FeatureConfig, line: Centreline, r: Rings, axial: float, clear: float, drift_terms: bool = True
 ) -> _LocalAxis | None:
     """The wall within ``config.window_mm`` either side of a joint at ``axial`` (``clear``
     of it left out) in the centreline's frame there: rho = per-ring radius + centre
-    drift (quadratic along the axis; linear with one ring on a side) + ovality + the
+    drift (quadratic along the axis; linear with one ring on a side; none without
+    ``drift_terms``: the axis then is the centreline's tangent) + ovality + the
     downstream centre's step. None without a ring on either side or with fewer than 3."""
     k0 = int(np.argmin(np.abs(line.arc_mm - axial)))
     t, n, b = line.tangent[k0], line.normal[k0], line.binormal[k0]
@@ -567,7 +592,7 @@ def _local_axis(
     rho, th = np.hypot(x, y), np.arctan2(y, x)
     u = s / config.window_mm
     cos, sin = np.cos(th), np.sin(th)
-    drift = [u * cos, u * sin] + ([u * u * cos, u * u * sin] if quad else [])
+    drift = ([u * cos, u * sin] + ([u * u * cos, u * u * sin] if quad else [])) if drift_terms else []
     cols = np.column_stack([cos, sin, *drift, np.cos(2 * th), np.sin(2 * th), down * cos, down * sin])
     nc = cols.shape[1]
     _, ring_col = np.unique(ring, return_inverse=True)
@@ -594,7 +619,7 @@ def _local_axis(
     cov = (m - 1) * np.cov(jack.T, bias=True) if m >= 3 else np.eye(2) * r.noise**2
     if not quad:
         cov = cov + ls_cov
-    tangent = t + (coef[2] * n + coef[3] * b) / config.window_mm
+    tangent = t + (coef[2] * n + coef[3] * b) / config.window_mm if drift_terms else t
     return _LocalAxis(
         c + coef[0] * n + coef[1] * b, tangent / np.linalg.norm(tangent), coef[nc - 2 : nc], cov, quad
     )
