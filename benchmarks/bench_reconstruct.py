@@ -8,7 +8,9 @@ Prints the trajectory errors, Table I (diameter, defects) against ground truth, 
 wall time and frames/s of each stage (report.json's ``timings_s``: the computation), the
 time writing the outputs takes on top (model files, report.html; what ``omnipipe
 reconstruct`` also does), and the time it takes merely to decode the same frames on the
-same workers (the floor of the laser stage, which decodes and extracts); and, on
+same workers (the floor of the laser stage, which decodes and extracts; the median of
+:data:`DECODE_REPEATS` runs, in wall time and in CPU seconds: the laser stage's CPU
+seconds over decode-only's is the ratio that does not move with the machine); and, on
 workers of its own, the time to decode them and hand the moving ones on as the laser
 stage does (:class:`omnipipe.laser.DecodeHandOn`: the writes that spare
 the later stages decoding them again). The frames'
@@ -68,6 +70,7 @@ class _Row:
     timings: dict[str, float]
     decode_s: float
     cores_busy: float
+    cpu_ratio: float | None
 
 
 def main() -> None:
@@ -119,11 +122,7 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         # and decode them and hand the moving ones on, as the laser stage does for the
         # later stages (which then decode none again).
         # Each on workers of its own, started as the run's were.
-        with open_executor(args.workers, args.scheduler) as ex:
-            t0 = time.perf_counter()
-            map_frames(ex, decode_only, dataset)
-            t_decode = time.perf_counter() - t0
-            where = describe(ex)
+        t_decode, cpu_decode, where = _decode_floor(args, dataset)
         with open_executor(args.workers, args.scheduler) as ex:
             t_handing = _decode_hand_on(ex, dataset, rec.summary)
         t0 = time.perf_counter()
@@ -157,10 +156,13 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         stationary = int(rec.summary.get("stationary_frames", 0))
         print(_per_stage(t, n, stationary))
         print(tree.per_stage(t_run, t))
+        cpu_laser = tree.stage_cpu(t_run, t).get("laser")
+        cpu_ratio = None if cpu_laser is None or cpu_decode is None else cpu_laser / cpu_decode
         print(
             f"laser stage {t['laser']:.2f} s ({n / t['laser']:.1f} frames/s) vs decode only "
-            f"{t_decode:.2f} s ({n / t_decode:.1f} frames/s) on the same workers: "
+            f"{t_decode:.2f} s ({n / t_decode:.1f} frames/s; median of {DECODE_REPEATS}) on the same workers: "
             f"ratio {t['laser'] / t_decode:.2f}"
+            + ("" if cpu_ratio is None else f", in CPU seconds {cpu_laser:.2f} / {cpu_decode:.2f} = {cpu_ratio:.2f}")
             + (
                 ""
                 if t_handing is None
@@ -170,10 +172,35 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         for w in rec.summary["warnings"][:10]:
             print("warning:", w)
         return _Row(f"{scenario.name}" + (f" (seed {seed})" if scenario.name.startswith("random") else ""),
-                    n, n - stationary, dict(t), t_decode, busy)
+                    n, n - stationary, dict(t), t_decode, busy, cpu_ratio)
     finally:
         if not keep:
             shutil.rmtree(root, ignore_errors=True)
+
+
+DECODE_REPEATS = 3
+"""Times the decode-only floor is measured, each on workers of its own: its wall time
+moves with the machine from run to run; the median wall time and the median CPU seconds
+are what the laser stage is compared with."""
+
+
+def _decode_floor(args: argparse.Namespace, dataset) -> tuple[float, float | None, dict]:
+    """Median wall seconds and median CPU seconds (this process and its workers, counted
+    once each pool has shut down; None on a Dask cluster, whose workers are not this
+    process's) of decoding every frame of ``dataset`` on a fresh executor, over
+    :data:`DECODE_REPEATS` runs; and the executor's description."""
+    import statistics
+
+    walls, cpus = [], []
+    for _ in range(DECODE_REPEATS):
+        cpu0 = _cpu_s()
+        with open_executor(args.workers, args.scheduler) as ex:
+            t0 = time.perf_counter()
+            map_frames(ex, decode_only, dataset)
+            walls.append(time.perf_counter() - t0)
+            where = describe(ex)
+        cpus.append(_cpu_s() - cpu0)
+    return statistics.median(walls), None if args.scheduler else statistics.median(cpus), where
 
 
 def _decode_hand_on(ex, dataset, summary: dict) -> float | None:
@@ -254,6 +281,18 @@ class _TreeCpu:
         ts, cpu, own = zip(*self.samples, strict=True)
         return float(np.interp(t, ts, own if parent else cpu))
 
+    def stage_cpu(self, t0: float, timings: dict[str, float]) -> dict[str, float]:
+        """Each stage's CPU seconds (this process and its workers), timed as
+        :meth:`per_stage` does; empty when not measured."""
+        if len(self.samples) < 2:
+            return {}
+        t, out = t0 + timings.get("startup", 0.0), {}
+        for stage in ("laser", "sfm", "analysis", "model"):
+            dt = timings.get(stage, 0.0)
+            out[stage] = self.at(t + dt) - self.at(t)
+            t += dt
+        return out
+
     def per_stage(self, t0: float, timings: dict[str, float]) -> str:
         """One line: each stage's CPU seconds (and this process's share of them, the
         rest being the workers'), its start taken as the run's start (``t0``) plus the
@@ -289,7 +328,7 @@ def _table(rows: list[_Row]) -> str:
     share of the total, the laser stage over decode-only, the cores kept busy."""
     head = (
         "| scenario | frames (moving) | total s | frames/s | moving frames/s | laser | sfm | "
-        "analysis | model | laser / decode | cores busy |"
+        "analysis | model | laser / decode (CPU) | cores busy |"
     )
     lines = [head, "|" + "---|" * 11]
     for r in rows:
@@ -298,7 +337,8 @@ def _table(rows: list[_Row]) -> str:
         lines.append(
             f"| {r.name} | {r.frames} ({r.moving}) | {t['total']:.1f} | {r.frames / t['total']:.2f} | "
             f"{r.moving / t['total']:.2f} | " + " | ".join(share)
-            + f" | {t['laser'] / r.decode_s:.2f} | {r.cores_busy:.2f} |"
+            + f" | {t['laser'] / r.decode_s:.2f} ({'-' if r.cpu_ratio is None else f'{r.cpu_ratio:.2f}'})"
+            + f" | {r.cores_busy:.2f} |"
         )
     return "\n".join(lines)
 

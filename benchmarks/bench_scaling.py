@@ -6,7 +6,9 @@
 
 Simulates one run per length (small images; ``--cache`` keeps them for the next call),
 reconstructs each in a fresh process (``omnipipe.pipeline.run``, nothing written) and
-prints, per run: frames, wall time, frames/s of the whole run and of each stage, and
+prints, per run: frames, wall time, frames/s of the whole run and of each stage, the
+CPU seconds of the reconstructing process and its workers (frames per CPU second: the
+comparison of the run lengths that a shared machine moves least), and
 the peak resident memory of the reconstructing process and of its largest worker.
 With ``--video`` each run is also made into an MJPG video (cv2.VideoWriter, from its
 PNG frames) and reconstructed too; ``--decoded-png`` adds the video's frames decoded
@@ -186,6 +188,13 @@ def _compiled() -> list[str]:
     return sorted(out)
 
 
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process and its finished child processes."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _child(
     dataset: str, workers: int | None, write_to: str | None, steps: bool = False, held: tuple[str, ...] = ()
 ) -> None:
@@ -202,6 +211,7 @@ def _child(
     t0 = time.perf_counter()
     rec = run(config, open_dataset(dataset))
     wall = time.perf_counter() - t0
+    cpu = _cpu_s()  # the run's pool has shut down: its workers are counted
     own = _peak_rss_mb()
     write_s = written = None
     if write_to is not None:
@@ -216,6 +226,7 @@ def _child(
             {
                 "frames": s["frames"],
                 "wall_s": wall,
+                "cpu_s": cpu,
                 "timings_s": s["timings_s"],
                 "frames_per_s": s["frames_per_s"],
                 "keyframes": s["keyframes"],
@@ -347,7 +358,8 @@ def _print_row(kind: str, row: dict) -> None:
             if row.get("write_s") is not None
             else "; "
         )
-        + f"{row['executor']}",
+        + f"{row['executor']}"
+        + (f"; {row['cpu_s']:.1f} CPU-s, {row['frames'] / row['cpu_s']:.2f} frames per CPU-s" if row.get("cpu_s") else ""),
         flush=True,
     )
 
@@ -364,6 +376,11 @@ def _compare(kind: str, a: dict, b: dict) -> None:
         f"peak RSS {100 * drss:+.0f} % ({a['rss_mb']:.0f} -> {b['rss_mb']:.0f} MB, "
         f"{(b['rss_mb'] - a['rss_mb']) / (b['frames'] - a['frames']) * 1024:.1f} KB per frame)"
     )
+    if a.get("cpu_s") and b.get("cpu_s"):
+        dcpu = (b["frames"] / b["cpu_s"]) / (a["frames"] / a["cpu_s"]) - 1
+        print(f"{kind}: {a['frames']} -> {b['frames']} frames: frames per CPU-s {100 * dcpu:+.0f} % "
+              f"({a['frames'] / a['cpu_s']:.2f} -> {b['frames'] / b['cpu_s']:.2f}; the wall's frames/s "
+              "moves with what else the machine runs, the CPU seconds hardly)")
     for stage in ("laser", "sfm", "analysis", "model"):
         fa, fb = a["frames_per_s"][stage], b["frames_per_s"][stage]
         print(f"  {stage:9s} frames/s {fa:8.2f} -> {fb:8.2f} ({100 * (fb / fa - 1):+.0f} %)")

@@ -12,7 +12,7 @@ import pytest
 
 from omnipipe.memory import release_freed_memory
 from omnipipe.scratch import scratch_beside
-from omnipipe.spill import drop_pages, is_on_disk, on_disk, pieces_on_disk, zeros_on_disk
+from omnipipe.spill import Pack, drop_pages, is_on_disk, on_disk, pieces_on_disk, zeros_on_disk
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self")
 
@@ -42,6 +42,10 @@ def test_on_disk_of_a_view_of_a_noncontiguous_array_and_edge_cases() -> None:
     assert np.array_equal(on_disk(a), a)
     empty = np.zeros((0, 3))
     assert on_disk(empty) is empty  # nothing to keep
+    record = np.zeros(1 << 16, np.uint8)  # e.g. a ring's record, its arrays views of it
+    view = record[:0].view(np.float32).reshape(0, 4)
+    for kept in (on_disk(view), Pack().put(view)):  # an empty view keeps not the buffer alive
+        assert kept.shape == (0, 4) and kept.dtype == np.float32 and kept.base is None
     objects = np.array([None, "x"], dtype=object)
     assert on_disk(objects) is objects  # Python objects cannot live in a file
     b = on_disk(np.ones(4))

@@ -135,12 +135,22 @@ def _c_order_pieces(a: np.ndarray) -> Iterator[np.ndarray]:
         yield np.ascontiguousarray(a[i : i + rows]).reshape(-1)
 
 
+def _empty_of(a: np.ndarray) -> np.ndarray:
+    """``a`` (holding no bytes) itself when it views no other array's buffer, else a new
+    empty array of its shape and dtype: an empty view kept would keep the whole buffer
+    it views alive (e.g. a record read back in one buffer) for nothing."""
+    return a if a.base is None else np.empty(a.shape, a.dtype)
+
+
 def on_disk(a: np.ndarray) -> np.ndarray:
     """``a``'s values in a scratch file (module docstring): an (C-ordered) array of the
-    same dtype, shape and values, writable; ``a`` itself when it holds no bytes, its
-    dtype holds Python objects or it is on disk already."""
+    same dtype, shape and values, writable; ``a`` itself when its dtype holds Python
+    objects or it is on disk already; when it holds no bytes, ``a`` or (a view)
+    :func:`_empty_of` it."""
     a = np.asarray(a)
-    if a.nbytes == 0 or a.dtype.hasobject or is_on_disk(a):
+    if a.nbytes == 0:
+        return _empty_of(a)
+    if a.dtype.hasobject or is_on_disk(a):
         return a
     mapping = _mapped(a.nbytes, a)
     return np.ndarray(a.shape, a.dtype, buffer=mapping)  # one array object on the mapping
@@ -215,10 +225,13 @@ class Pack:
 
     def put(self, a: np.ndarray) -> np.ndarray:
         """``a``'s values appended to the pack's file: an array on disk equal to ``a``
-        (``a`` itself when it holds no bytes or Python objects, or is on disk already;
-        a file of its own, :func:`on_disk`, when it would take over a quarter of one)."""
+        (``a`` itself when it holds Python objects or is on disk already; one holding no
+        bytes as :func:`on_disk` returns it; a file of its own, :func:`on_disk`, when it
+        would take over a quarter of one)."""
         a = np.asarray(a)
-        if a.nbytes == 0 or a.dtype.hasobject or is_on_disk(a):
+        if a.nbytes == 0:
+            return _empty_of(a)
+        if a.dtype.hasobject or is_on_disk(a):
             return a
         if 4 * a.nbytes > self._segment:
             return on_disk(a)

@@ -9,14 +9,13 @@ tens of microseconds). A ring without samples (a stationary frame's, a frame wit
 laser ring) stays in memory: it holds no array worth writing.
 
 A ring's record in the file: a header (:data:`_HEADER`: each array's dtype and shape)
-followed by the arrays' bytes in C order, written with one call and read with two (an
-``np.save`` per array parsed a text header for each: 2 ms a ring read back, 0.9 ms
-written).
+followed by the arrays' bytes in C order, written with one call and read with one for
+the header and one per array, each into an array of its own (an ``np.save`` per array
+parsed a text header for each: 2 ms a ring read back, 0.9 ms written).
 """
 
 from __future__ import annotations
 
-import math
 import shutil
 import threading
 from collections.abc import Iterator, Sequence
@@ -54,19 +53,18 @@ def _record(arrays: list[np.ndarray]) -> bytes:
 
 
 def _arrays(fh: BinaryIO) -> dict[str, np.ndarray]:
-    """The arrays of the ring record at ``fh``'s position, each writable and its own
-    (views of one buffer read for them)."""
+    """The arrays of the ring record at ``fh``'s position, each writable and its own:
+    each read into a buffer of its own, so an array kept holds its own bytes only (views
+    of one buffer for the record kept the whole record alive through any one of them,
+    e.g. a ring's empty ``gap_edges`` kept as it is where its other arrays went to the
+    run's scratch: the whole ring held per station through the analysis' ring pass)."""
     head = np.frombuffer(fh.read(len(_ARRAYS) * _HEADER.itemsize), _HEADER)
-    dtypes = [np.dtype(d.decode()) for d in head["dtype"]]
-    shapes = [tuple(int(x) for x in shape[:ndim]) for shape, ndim in zip(head["shape"], head["ndim"], strict=True)]
-    sizes = [dt.itemsize * math.prod(shape) for dt, shape in zip(dtypes, shapes, strict=True)]
-    data = bytearray(sum(sizes))
-    if fh.readinto(data) != len(data):
-        raise ValueError("ring record: the file ends inside it")
-    out, start = {}, 0
-    for name, dt, shape, size in zip(_ARRAYS, dtypes, shapes, sizes, strict=True):
-        out[name] = np.frombuffer(data, dt, math.prod(shape), start).reshape(shape)
-        start += size
+    out = {}
+    for name, d, shape, ndim in zip(_ARRAYS, head["dtype"], head["shape"], head["ndim"], strict=True):
+        a = np.empty(tuple(int(x) for x in shape[:ndim]), np.dtype(d.decode()))
+        if a.nbytes and fh.readinto(memoryview(a).cast("B")) != a.nbytes:
+            raise ValueError("ring record: the file ends inside it")
+        out[name] = a
     return out
 
 
