@@ -198,6 +198,7 @@ def place_creeps(
             s = _read(a, b, w, m, pose, g_of, read_wall, camera)
             if s is not None:
                 stretches.append(s)
+    gray.clear()  # the flow (_flow_refined) reads its stretch's frames again
     gains = np.array([s.gain() for s in stretches])
     ok = np.isfinite(gains) & (gains > 0)
     ok[ok] = np.abs(np.log(gains[ok])) <= MAX_GAIN_LOG
