@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from omnipipe.sfm import motion_trust
-from omnipipe.sfm.motion_trust import MOTION_MIN_INLIERS, untrusted_motions
+from omnipipe.sfm.motion_trust import DIRECTION_MIN_INLIERS, MOTION_MIN_INLIERS, untrusted_motions
 from omnipipe.sfm.step_decide import decide_step
 from omnipipe.sfm.step_records import Followed
 from omnipipe.sfm.types import Keyframes, StepEvidence
@@ -62,8 +62,8 @@ def test_few_inliers_on_a_plain_wall_are_lost_with_or_without_sensors(
     monkeypatch: pytest.MonkeyPatch, odometry
 ) -> None:
     """Random-wide seed 25 (smooth, local contrast 0.32): steps of 46 / 21 / 46 inliers,
-    their directions 0.7-10 deg off; seed 29 (0.28): 124-276 inliers, kept. The decision
-    does not look at the sensors."""
+    their directions 0.7-10 deg off; seed 29 (0.28): 124-276 inliers, kept, its direction
+    stated to 2 deg (0.3-1.7 deg off). The decision does not look at the sensors."""
     _texture(monkeypatch, 0.32)
     followed = _followed([46, 150, 21])
     ctx = _ctx()
@@ -75,7 +75,9 @@ def test_few_inliers_on_a_plain_wall_are_lost_with_or_without_sensors(
     assert lost.inliers is None and lost.laser is None and math.isnan(lost.feature_scale_mm)
     assert lost.feature_matches == 44  # the report's "at most N feature matches" still reads it
     assert "46 matches" in lost.lost_reason and "0.32" in lost.lost_reason
-    assert len(ctx.warnings) == 2 and ctx.warnings[0].startswith("frames 0->10: relative motion not trusted")
+    assert len(ctx.warnings) == 3 and ctx.warnings[0].startswith("frames 0->10: relative motion not trusted")
+    assert ctx.warnings[1].startswith("frames 10->20: the step's direction rests on 150 matches")
+    assert "+-2 deg" in ctx.warnings[1] and "3.5 % of the step's length" in ctx.warnings[1]
     # Decided as a step without relative motion, its reason saying why.
     step = decide_step(SimpleNamespace(config=None), followed.keyframes, 0, 0.0)  # type: ignore[arg-type]
     assert step.check.confidence == "none" and step.check.reason == lost.lost_reason
@@ -84,14 +86,22 @@ def test_few_inliers_on_a_plain_wall_are_lost_with_or_without_sensors(
 
 def test_a_textured_wall_or_enough_inliers_keep_the_vision(monkeypatch: pytest.MonkeyPatch) -> None:
     """A wall at or above the floor keeps every step (random-wide seed 31, joints at 0.82:
-    60-86 inliers, 0.3-1.2 deg); a run whose every step has the bar's inliers reads no
-    frame for its texture."""
+    60-86 inliers, 0.3-1.2 deg) and says nothing; a run whose every step has
+    DIRECTION_MIN_INLIERS reads no frame for its texture; one whose step has the lost
+    bar's inliers keeps it, its direction stated."""
     reads = _texture(monkeypatch, 0.82)
     followed = _followed([60, 86])
-    untrusted_motions(_ctx(), SimpleNamespace(), followed)  # type: ignore[arg-type]
+    ctx = _ctx()
+    untrusted_motions(ctx, SimpleNamespace(), followed)  # type: ignore[arg-type]
     assert [e.status for e in followed.keyframes.evidence] == ["ok", "ok"] and not followed.lost.any()
-    assert reads == [1]
+    assert reads == [1] and ctx.warnings == []
     reads = _texture(monkeypatch, 0.2)
-    followed = _followed([MOTION_MIN_INLIERS, 300])
-    untrusted_motions(_ctx(), SimpleNamespace(), followed)  # type: ignore[arg-type]
-    assert [e.status for e in followed.keyframes.evidence] == ["ok", "ok"] and reads == []
+    followed = _followed([DIRECTION_MIN_INLIERS, 400])
+    ctx = _ctx()
+    untrusted_motions(ctx, SimpleNamespace(), followed)  # type: ignore[arg-type]
+    assert [e.status for e in followed.keyframes.evidence] == ["ok", "ok"] and reads == [] and ctx.warnings == []
+    followed = _followed([MOTION_MIN_INLIERS, 400])
+    ctx = _ctx()
+    untrusted_motions(ctx, SimpleNamespace(), followed)  # type: ignore[arg-type]
+    assert [e.status for e in followed.keyframes.evidence] == ["ok", "ok"] and reads == [1]
+    assert len(ctx.warnings) == 1 and "rests on 100 matches" in ctx.warnings[0]

@@ -14,7 +14,7 @@ difference of frames at rest, found as three consecutive frames that differ alik
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import cv2
@@ -597,7 +597,7 @@ FLOW_CHECK_LOG = 0.25
 
 
 def flow_fraction(
-    before: np.ndarray, ref: np.ndarray, frames: list[np.ndarray], mask: np.ndarray
+    before: np.ndarray, ref: np.ndarray, frames: Iterable[np.ndarray], mask: np.ndarray
 ) -> list[tuple[float, float]]:
     """How far each of ``frames`` moved from ``ref`` as a fraction of the step
     ``before`` -> ``ref``, measured by the tracked flow of the wall's texture.
@@ -612,19 +612,20 @@ def flow_fraction(
     Args:
         before, ref: (H, W) grey images of the frame before the station and of the
             station's first frame.
-        frames: (H, W) grey images of the station's other frames.
+        frames: (H, W) grey images of the station's other frames (read one at a time:
+            an iterator need not hold them all).
         mask: (H, W) bool, the pixels that see the wall.
 
     Returns:
         per frame (median fraction, its standard error); (NaN, NaN) with fewer than
         :data:`FLOW_MIN_POINTS` points.
     """
+    frames = iter(frames)
     r8, b8 = _high_passed(ref), _high_passed(before)
     inner = cv2.erode(mask.astype(np.uint8), np.ones((15, 15), np.uint8))  # off the rim
     pts = cv2.goodFeaturesToTrack(r8, 2000, 0.01, 5, mask=inner)
-    nan = [(math.nan, math.nan)] * len(frames)
     if pts is None or len(pts) < FLOW_MIN_POINTS:
-        return nan
+        return [(math.nan, math.nan) for _ in frames]
     back_flow, ok = _tracked(r8, b8, pts)
     r = -back_flow  # before -> ref
     rn2 = np.sum(r * r, axis=1)
