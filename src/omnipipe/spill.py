@@ -334,13 +334,20 @@ def dropping_pages(interval_s: float = DROP_INTERVAL_S) -> Iterator[None]:
             os.close(fd)
 
 
-def is_on_disk(a: np.ndarray) -> bool:
-    """True when ``a`` (or the array it views) lies in a file :func:`on_disk` made."""
-    base = a
+def root_buffer(a: np.ndarray) -> object:
+    """The object that keeps ``a``'s values alive: the last array in its chain of views,
+    or the buffer (mmap, bytes) under it."""
+    base: object = a
     while isinstance(base, np.ndarray) and base.base is not None:
         base = base.base
     if isinstance(base, memoryview):
         base = base.obj
+    return base
+
+
+def is_on_disk(a: np.ndarray) -> bool:
+    """True when ``a`` (or the array it views) lies in a file :func:`on_disk` made."""
+    base = root_buffer(a)
     return isinstance(base, mmap.mmap) and base in _MAPS
 
 

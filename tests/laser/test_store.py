@@ -9,6 +9,7 @@ import pytest
 
 from omnipipe.laser.ring import LaserRing
 from omnipipe.laser.store import RingStore
+from omnipipe.spill import root_buffer
 
 
 def _ring(rng: np.random.Generator, n: int, widths: int | None = None) -> LaserRing:
@@ -104,11 +105,7 @@ def test_a_store_restored_from_its_index_and_file_holds_the_same_rings(tmp_path)
 
 def _held_bytes(a: np.ndarray) -> int:
     """Bytes of the buffer that keeps ``a``'s values alive (its own, or the object it views)."""
-    base = a
-    while isinstance(base, np.ndarray) and base.base is not None:
-        base = base.base
-    if isinstance(base, memoryview):
-        base = base.obj
+    base = root_buffer(a)
     return base.nbytes if isinstance(base, np.ndarray) else len(base)
 
 
