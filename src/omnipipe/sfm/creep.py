@@ -80,11 +80,9 @@ REST_SIGMAS = 2.0
 WINDOW_BACK_MM = 2.0
 WINDOW_AHEAD = 1.3
 # A frame's position from the tracked flow (:func:`_flow_refined`): its fraction's
-# 1-sigma floor as a share of the keyframe step (the flow's fraction reads 0.5 % RMS,
-# at most 0.85 % of the step off on random-wide seeds 3 and 24, 2-5 of its standard
-# errors; the floor is three of that RMS, as conservative as the wall's stated step
-# sigmas are on seed 3), and the largest disagreement with the wall's shift (sigmas of
-# both) for the two to be combined.
+# 1-sigma floor as a share of the keyframe step (three times the fraction's RMS error
+# measured on the robustness bench: benchmarks/RESULTS.md, mot32's entry), and the
+# largest disagreement with the wall's shift (sigmas of both) for the two to be combined.
 FLOW_FLOOR_REL = 0.015
 FLOW_AGREE_SIGMAS = 3.0
 
@@ -314,8 +312,7 @@ def _flow_refined(
     position's variance its step sigmas summed from both keyframes (a bridge), the
     flow's its standard error with :data:`FLOW_FLOOR_REL`. The wall's shift adds one
     reading's error a frame; the flow reads every frame against the same keyframe, its
-    error does not add up (random-wide seed 24: 30 frames within 0.13 mm where the
-    shift placed them 0.27 mm off). A frame whose two positions disagree beyond
+    error does not add up. A frame whose two positions disagree beyond
     :data:`FLOW_AGREE_SIGMAS` keeps the wall's; the step sigmas are kept (the bounds).
     The run's last stretch (no keyframe b) is not refined."""
     if not math.isfinite(s.travel_mm) or s.b - s.a < 2:

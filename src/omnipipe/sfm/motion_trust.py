@@ -36,9 +36,8 @@ from omnipipe.sfm.types import SfmConfig, SfmContext, SfmInputs, StepEvidence
 # (:func:`omnipipe.sfm.ring_follow.unmeasured`).
 MOTION_MIN_INLIERS = TRACKED_MIN_MATCHES
 # A trusted step on such a wall with fewer inliers than this has its direction stated
-# to DIRECTION_SIGMA_DEG only (:func:`untrusted_motions`' warning): the random-wide
-# bench's plain walls with 124-276 inliers a step (seeds 24, 29) had directions 0.3-1.7
-# deg off, with 723-797 (seed 3) 0.07-0.23 deg.
+# to DIRECTION_SIGMA_DEG only (:func:`untrusted_motions`' warning; the directions
+# measured against the inliers: benchmarks/RESULTS.md, mot32's entry).
 DIRECTION_MIN_INLIERS = 300
 DIRECTION_SIGMA_DEG = 2.0
 
