@@ -7,10 +7,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from omnipipe.analysis.feature_types import Taper
 from omnipipe.analysis.sections import _tapers, _water_stretches
 from omnipipe.analysis.stations import Headline, SectionConfig, Station, headline_on_a_taper
+from omnipipe.errors import ShapeError
 
 
 def _station(axial: float, diameter: float, depth: float, depth_sigma: float, shared: float) -> Station:
@@ -208,6 +210,8 @@ def test_ovality_stretch_sigma_counts_overlapping_rings_once() -> None:
     assert len(covered["footprint"]) >= 100
     assert np.mean(covered["footprint"]) >= 0.95
     assert np.mean(covered["square"]) < 0.5
+    with pytest.raises(ShapeError, match="footprint_mm: 11 values for 12 stations"):
+        _ovality_stretches(st, SectionConfig(), wide[:11])  # never silently square rings
 
 
 def test_ovality_stretch_within_one_sigma_of_none_is_not_reported() -> None:

@@ -19,6 +19,7 @@ from omnipipe.analysis.centreline import BendFit, Centreline, fit_bend, local_ta
 from omnipipe.analysis.feature_types import Bend, Ovality, Stretch, Taper, Water
 from omnipipe.analysis.footprint import independent_count
 from omnipipe.analysis.stations import Headline, SectionConfig, Station
+from omnipipe.errors import ShapeError
 
 
 def section_features(
@@ -76,10 +77,13 @@ def _ovality_stretches(
     and out: random-features-small's stretches, 2-4 stations, read 0.8-0.9 pp low with
     them), its sigma over the stations whose rings read walls of their own
     (:func:`.footprint.independent_count` with ``footprint_mm`` (S,), half each ring's
-    axial extent)."""
+    axial extent; one per station, else ShapeError)."""
     ov = np.array([s.ovality for s in stations])
     axial = np.array([s.axial_mm for s in stations])
-    half = np.zeros(len(stations)) if footprint_mm is None or len(footprint_mm) != len(stations) else footprint_mm
+    if footprint_mm is not None and len(footprint_mm) != len(stations):
+        # Zeros would count every station's ring as independent: a sigma too small, silently.
+        raise ShapeError(f"footprint_mm: {len(footprint_mm)} values for {len(stations)} stations")
+    half = np.zeros(len(stations)) if footprint_mm is None else footprint_mm
     mask = np.nan_to_num(ov, nan=0.0) * 100.0 >= config.ovality_feature_pct
     edge = _edge_sigma(axial)
     out = []
