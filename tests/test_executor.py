@@ -241,6 +241,38 @@ def test_opencv_threads_leaves_a_forked_worker_alone() -> None:
     assert inside == outside
 
 
+def _opencv_thread_count() -> int:
+    import cv2
+
+    return int(cv2.getNumThreads())
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked pools on Linux only")
+def test_forked_workers_run_opencv_serially_and_the_parent_keeps_its_threads() -> None:
+    """Forked with OpenCV's pool stopped: a worker's OpenCV calls never wait on a pool mutex
+    a parent's thread held at the fork; the parent's own setting is back after the fork."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    cv2.remap(  # the parent's pool threads have run just before the fork
+        np.zeros((64, 64), np.uint8),
+        np.zeros((64, 64), np.float32),
+        np.zeros((64, 64), np.float32),
+        cv2.INTER_LINEAR,
+    )
+    try:
+        with open_executor(2, None) as pool:
+            parent_inside = cv2.getNumThreads()
+            counts = [
+                f.result(timeout=60) for f in [pool.submit(_opencv_thread_count) for _ in range(4)]
+            ]
+    finally:
+        cv2.setNumThreads(before)
+    assert parent_inside == 2
+    assert counts == [1, 1, 1, 1]  # OpenCV reports 0 threads (serial) as 1
+
+
 def _length(a: np.ndarray) -> int:
     return len(a)
 

@@ -328,12 +328,37 @@ def open_executor(
         max_workers=n, mp_context=ctx, initializer=worker_init, initargs=(os.getpid(),)
     )
     try:
+        if ctx is not None:
+            _fork_workers_now(pool)
         yield pool
     except BaseException:
         kill_workers(pool)
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _fork_workers_now(pool: ProcessPoolExecutor) -> None:
+    """Fork ``pool``'s worker processes now, with OpenCV's thread pool stopped here.
+
+    A forked child inherits every lock as it was at the fork. One of OpenCV's pool
+    threads can hold its pool's mutex for a moment after a parallel call returned (going
+    back to sleep); a worker forked in that moment waited for ever on the mutex at its
+    first parallel OpenCV call (seen once: a benchmark's 53rd run, in ``cv2.remap``). With
+    OpenCV's threads at 0 during the fork the parent's pool threads are joined first, and
+    the workers inherit the setting: their OpenCV calls run on their own thread (the pool
+    already has a process per core) and never touch the inherited pool. The parent's
+    setting is restored after the fork. A forked local pool starts all its processes at
+    its first task (``concurrent.futures``), so an empty task is sent here.
+    """
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(0)
+    try:
+        pool.submit(_nothing).result()
+    finally:
+        cv2.setNumThreads(before)
 
 
 def kill_workers(pool: ProcessPoolExecutor) -> None:
