@@ -123,8 +123,11 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
         # later stages (which then decode none again).
         # Each on workers of its own, started as the run's were.
         t_decode, cpu_decode, where = _decode_floor(args, dataset)
+        cpu0 = _cpu_s()
         with open_executor(args.workers, args.scheduler) as ex:
             t_handing = _decode_hand_on(ex, dataset, rec.summary)
+        # Its CPU seconds, counted once the pool has shut down (as decode-only's).
+        cpu_handing = None if t_handing is None or args.scheduler else _cpu_s() - cpu0
         t0 = time.perf_counter()
         write(rec, root / "reconstruction", force=True)
         t_write = time.perf_counter() - t0
@@ -169,6 +172,8 @@ def _bench(args: argparse.Namespace, scenario, seed: int, dataset_dir: Path | No
                 else f"; vs decode and hand the moving frames on {t_handing:.2f} s: ratio {t['laser'] / t_handing:.2f}"
             )
         )
+        if cpu_ratio is not None and cpu_handing is not None:
+            print(_hand_on_share(cpu_laser, cpu_decode, cpu_handing))
         for w in rec.summary["warnings"][:10]:
             print("warning:", w)
         return _Row(f"{scenario.name}" + (f" (seed {seed})" if scenario.name.startswith("random") else ""),
@@ -313,6 +318,20 @@ class _TreeCpu:
             "CPU seconds per stage (this process and its workers): " + ", ".join(parts)
             + f"; total {total:.1f} (this process {own:.1f})"
         )
+
+
+def _hand_on_share(cpu_laser: float, cpu_decode: float, cpu_handing: float) -> str:
+    """The line that splits the laser stage's CPU seconds: the hand-on (the moving frames
+    written for the camera motion's and the model's workers, which then decode none
+    again: their input, done where the frame is decoded) measured as decoding and
+    handing on minus decoding alone, and the rest (decode, ring, station signature)
+    over decode-only. The stage's column keeps all of it."""
+    hand_on = cpu_handing - cpu_decode
+    return (
+        f"laser stage in CPU seconds {cpu_laser:.2f}: of it handing the moving frames on ~{hand_on:.2f} "
+        f"(decode and hand on {cpu_handing:.2f} - decode only {cpu_decode:.2f}); the rest "
+        f"{cpu_laser - hand_on:.2f} = {(cpu_laser - hand_on) / cpu_decode:.2f} x decode-only"
+    )
 
 
 def _cpu_s() -> float:
