@@ -18,7 +18,6 @@ frame is handed on as decoded.
 
 from __future__ import annotations
 
-import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -141,10 +140,7 @@ def hand_on(
     """Write frame ``i`` into a :class:`FrameHandoff`'s ``folder`` (in a worker): planar
     where :func:`plane_split` (the green channel's array first, then red and blue's; from
     ``planes``, ``cv2.split(image)``, when given), else as decoded; returns the bytes
-    written, 0 when the hand-off is full.
-
-    The file is a ``.npy`` file (a second array after the first when planar), written
-    in one system call."""
+    written, 0 when the hand-off is full."""
     if handoff_full(folder):
         return 0
     arrays = (
@@ -152,33 +148,10 @@ def hand_on(
         if plane_split(image, laser_channel)
         else (np.ascontiguousarray(image),)
     )
-    parts: list = []
-    for a in arrays:
-        header = io.BytesIO()
-        np.lib.format.write_array_header_1_0(header, np.lib.format.header_data_from_array_1_0(a))
-        parts += [header.getvalue(), a]
-    fd = os.open(handoff_path(folder, i), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
-    try:
-        return _write_all(fd, parts)
-    finally:
-        os.close(fd)
-
-
-def _write_all(fd: int, parts: list) -> int:
-    """Write the buffers ``parts`` (bytes, contiguous arrays) to ``fd`` in order (one
-    ``writev`` when it takes them all); returns the bytes written."""
-    views = [memoryview(p).cast("B") for p in parts]
-    total = sum(len(v) for v in views)
-    done = 0
-    while done < total:
-        n = os.writev(fd, views) if hasattr(os, "writev") else os.write(fd, views[0])
-        done += n
-        while views and n >= len(views[0]):
-            n -= len(views[0])
-            views.pop(0)
-        if views and n:
-            views[0] = views[0][n:]
-    return total
+    with open(handoff_path(folder, i), "wb") as fh:
+        for a in arrays:
+            np.lib.format.write_array(fh, a, allow_pickle=False)
+        return fh.tell()
 
 
 def handed(folder: str, i: int, mapped: bool = False) -> np.ndarray | None:
