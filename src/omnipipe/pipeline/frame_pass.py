@@ -145,9 +145,10 @@ class _FrameTask:
         valid, inner, runs = _masks(rig, self.stations)
         local = StationTracker(valid, self.stations)
         out: list[tuple[LaserRing | None, StationSignature, int]] = []
+        split: list[np.ndarray] = []  # the chunk's buffers of the split (fresh pages cost)
         for k in range(len(source)):
             image = source.read(k)
-            planes = self._planes(image, rig.laser.channel, inner)
+            planes = self._planes(image, rig.laser.channel, inner, split)
             # A red laser's grey image is the green channel: its signature is the same
             # bit for bit from the split's green plane as from the frame.
             grey_or_frame = image if planes is None else planes[1]
@@ -164,11 +165,15 @@ class _FrameTask:
             out.append((ring, signature, written))
         return out
 
-    def _planes(self, image: np.ndarray, channel: str, inner: np.ndarray) -> tuple[np.ndarray, ...] | None:
+    def _planes(
+        self, image: np.ndarray, channel: str, inner: np.ndarray, buffers: list[np.ndarray]
+    ) -> tuple[np.ndarray, ...] | None:
         """``cv2.split(image)`` when the frame would be handed on planar
         (:func:`~omnipipe.handoff.plane_split`, the hand-off not full) and its signature
         reads its green channel whole: one split serves both (it costs little more than
-        the signature's own extraction of that channel); else None."""
+        the signature's own extraction of that channel); else None. The planes are
+        written into ``buffers`` (made on first use, kept by the caller for its chunk's
+        frames: each plane is used before the next frame is split)."""
         if (
             self.handoff is None
             or not plane_split(image, channel)
@@ -176,7 +181,9 @@ class _FrameTask:
             or handoff_full(self.handoff)
         ):
             return None
-        return tuple(cv2.split(image))
+        if not buffers or buffers[0].shape != image.shape[:2]:
+            buffers[:] = [np.empty(image.shape[:2], image.dtype) for _ in range(3)]
+        return tuple(cv2.split(image, buffers))
 
 
 @dataclass
