@@ -334,8 +334,10 @@ def _hand_on_share(cpu_laser: float, cpu_decode: float, cpu_handing: float) -> s
     """The line that splits the laser stage's CPU seconds: the hand-on (the moving frames
     written for the camera motion's and the model's workers, which then decode none
     again: their input, done where the frame is decoded) measured as decoding and
-    handing on minus decoding alone, and the rest (decode, ring, station signature)
-    over decode-only. The stage's column keeps all of it."""
+    handing on minus decoding alone (a little more than the pass's own share: the pass
+    splits a red laser's frame once for its station signature and its hand-on), and the
+    rest (decode, ring, station signature) over decode-only. The stage's column keeps
+    all of it."""
     hand_on = cpu_handing - cpu_decode
     return (
         f"laser stage in CPU seconds {cpu_laser:.2f}: of it handing the moving frames on ~{hand_on:.2f} "
