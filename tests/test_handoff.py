@@ -164,3 +164,27 @@ def test_the_model_samples_the_same_colours_handed_on_or_decoded() -> None:
     colours, _ = work(image, "green")
     assert np.array_equal(colours, image[work.colour_px[:, 1], work.colour_px[:, 0]])
     assert np.abs(decoded[0].astype(int) - colours.astype(int)).max() <= 6
+
+
+def test_a_planar_frame_handed_on_from_its_split_is_the_same_file() -> None:
+    """The pass splits a red laser's frame once (its signature reads the green plane) and
+    hands the planes on: the same bytes as a frame split by :func:`hand_on` itself, a
+    ``.npy`` file of the green plane and then red and blue at half resolution."""
+    import io
+
+    import cv2
+
+    from omnipipe.handoff import PlanarFrame
+
+    rng = np.random.default_rng(8)
+    image = rng.integers(0, 256, (24, 34, 3)).astype(np.uint8)
+    planar = PlanarFrame.of(image)
+    want = io.BytesIO()
+    for a in (planar.green, planar.red_blue):
+        np.lib.format.write_array(want, a, allow_pickle=False)
+    with FrameHandoff(3) as handoff:
+        a = hand_on(handoff.folder, 0, image, "red")
+        b = hand_on(handoff.folder, 1, image, "red", tuple(cv2.split(image)))
+        assert a == b == len(want.getvalue())
+        for i in (0, 1):
+            assert Path(handoff_path(handoff.folder, i)).read_bytes() == want.getvalue()

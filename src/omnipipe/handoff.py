@@ -86,11 +86,13 @@ class PlanarFrame:
     red_blue: np.ndarray
 
     @staticmethod
-    def of(image: np.ndarray) -> PlanarFrame:
-        """The planar form of an (H, W, 3) uint8 RGB ``image``."""
+    def of(image: np.ndarray, planes: tuple[np.ndarray, ...] | None = None) -> PlanarFrame:
+        """The planar form of an (H, W, 3) uint8 RGB ``image``; ``planes``: its three
+        channels as ``cv2.split(image)`` gives them, when the caller has split it already
+        (the decoding pass: its station signature reads the green one)."""
         h, w = image.shape[:2]
         half = ((w + 1) // 2, (h + 1) // 2)
-        red, green, blue = cv2.split(image)  # one pass over the frame
+        red, green, blue = cv2.split(image) if planes is None else planes  # one pass over the frame
         return PlanarFrame(green, cv2.merge([cv2.resize(c, half, interpolation=cv2.INTER_AREA) for c in (red, blue)]))
 
     def rgb(self) -> np.ndarray:
@@ -122,14 +124,27 @@ def plane_split(image: np.ndarray, laser_channel: str | None) -> bool:
     )
 
 
-def hand_on(folder: str, i: int, image: np.ndarray, laser_channel: str | None = None) -> int:
+def handoff_full(folder: str) -> bool:
+    """Whether a :class:`FrameHandoff`'s ``folder`` takes no more frames (its budget is
+    spent: :meth:`FrameHandoff.note`)."""
+    return os.path.exists(os.path.join(folder, _FULL))
+
+
+def hand_on(
+    folder: str,
+    i: int,
+    image: np.ndarray,
+    laser_channel: str | None = None,
+    planes: tuple[np.ndarray, ...] | None = None,
+) -> int:
     """Write frame ``i`` into a :class:`FrameHandoff`'s ``folder`` (in a worker): planar
-    where :func:`plane_split` (the green channel's array first, then red and blue's),
-    else as decoded; returns the bytes written, 0 when the hand-off is full."""
-    if os.path.exists(os.path.join(folder, _FULL)):
+    where :func:`plane_split` (the green channel's array first, then red and blue's; from
+    ``planes``, ``cv2.split(image)``, when given), else as decoded; returns the bytes
+    written, 0 when the hand-off is full."""
+    if handoff_full(folder):
         return 0
     arrays = (
-        (lambda p: (p.green, p.red_blue))(PlanarFrame.of(image))
+        (lambda p: (p.green, p.red_blue))(PlanarFrame.of(image, planes))
         if plane_split(image, laser_channel)
         else (np.ascontiguousarray(image),)
     )

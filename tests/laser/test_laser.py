@@ -353,3 +353,44 @@ def test_station_reach_is_measured_at_the_stripes_half_height(small_rig: Rig) ->
     full, _ = _synthetic_ring(small_rig, 101.0, rng, sigma_px=sigma_px)
     dry = triangulate_ring(RingExtractor(cam).extract(full, "red"), cam, small_rig.laser)
     assert len(dry.gap_edges) == 0 and np.isnan(station_edge_reach([dry])[0][0])
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_scan_lines_sample_the_frames_part_they_reach_as_the_whole_frame(small_rig: Rig, dtype) -> None:
+    """The polar resampling from the frame's part the scan lines reach (an integer colour
+    frame as four channels) gives the values of OpenCV's bilinear remap of the whole frame."""
+    import copy
+
+    import cv2
+
+    rng = np.random.default_rng(11)
+    cam = OmniCamera.from_rig(small_rig)
+    integer = dtype != np.float32
+    top = np.iinfo(dtype).max if integer else 1.0
+
+    def frame(shape):
+        img = (rng.integers(0, top + 1, shape) if integer else rng.random(shape)).astype(dtype)
+        img[rng.random(shape[:2]) < 0.1] = top  # saturated pixels
+        return img
+
+    def whole(img, extractor):
+        return cv2.remap(img, extractor.map_x, extractor.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+    # Scan lines within the frame, with and without the plane's radii; and reaching past
+    # its edges (the mirror's centre near a corner): the constant border there as before.
+    extractors = [RingExtractor(cam), RingExtractor(cam, plane=small_rig.laser)]
+    for cx, cy in ((20.0, 15.0), (cam.width - 10.5, cam.height - 30.0)):
+        moved = copy.copy(cam)
+        moved.cx, moved.cy = cx, cy
+        extractors.append(RingExtractor(moved))
+        assert not extractors[-1].inside.all()
+    for extractor in extractors:
+        img = frame((cam.height, cam.width, 3))
+        want = whole(img, extractor)
+        for channel in ("red", "green", "blue"):
+            got = extractor._resample(img, channel)
+            assert got.shape == (*want.shape[:2], 4 if integer else 3)
+            assert np.array_equal(got[..., :3], want)
+        assert np.array_equal(extractor._resample(img, "gray"), want)
+        grey = frame((cam.height, cam.width))
+        assert np.array_equal(extractor._resample(grey, "red"), whole(grey, extractor))

@@ -136,6 +136,18 @@ class RingExtractor:
             & (self.map_y <= camera.height - 1)
         )
         self._outside = np.flatnonzero(~self.inside)  # flat indices, set to 0 in place
+        # The frame's part the scan lines sample (every bilinear tap; cut by the frame's
+        # edges, where the constant border begins as on the whole frame) and the maps
+        # moved to it (exactly: whole numbers off float32 values at least as large).
+        x0 = max(int(np.floor(self.map_x.min())) - 1, 0)
+        y0 = max(int(np.floor(self.map_y.min())) - 1, 0)
+        x1 = min(int(np.ceil(self.map_x.max())) + 2, camera.width)
+        y1 = min(int(np.ceil(self.map_y.max())) + 2, camera.height)
+        if x1 - x0 < 2 or y1 - y0 < 2:  # no scan line reaches into the frame: all of it
+            x0 = y0 = 0
+            x1, y1 = camera.width, camera.height
+        self._window = (slice(y0, y1), slice(x0, x1))
+        self._window_maps = (self.map_x - np.float32(x0), self.map_y - np.float32(y0))
 
     def extract(self, image: np.ndarray, channel: str) -> LaserRing:
         """The ring of one frame (never raises on odd images: returns an empty ring with a warning)."""
@@ -185,10 +197,8 @@ class RingExtractor:
         zero outside the image) and the raw laser channel, resampled along the scan lines."""
         cfg = self.config
         # Resample first (one remap of all channels), then suppress the texture in polar.
-        polar_img = cv2.remap(
-            img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
-        )
-        polar, _ = laser_signal(polar_img, channel)
+        polar_img = self._resample(img, channel)
+        polar, _ = laser_signal(polar_img, channel)  # of a 4-channel one: its first three
         if polar_img.ndim == 3 and channel in CHANNEL_INDEX:
             polar_raw = polar_img[..., CHANNEL_INDEX[channel]]
         else:
@@ -202,6 +212,17 @@ class RingExtractor:
             kernel = np.ones((1, 2 * int(cfg.tophat_px) + 1), np.uint8)
             polar = cv2.morphologyEx(polar, cv2.MORPH_TOPHAT, kernel)
         return polar, polar_raw
+
+    def _resample(self, img: np.ndarray, channel: str) -> np.ndarray:
+        """(lines, radii[, C]) the frame bilinearly resampled along the scan lines (zero
+        beyond its edges), from the part of it they reach (the same values as from the
+        whole frame). An 8- or 16-bit RGB frame of a colour laser comes back with a
+        fourth channel after its three, the same values (OpenCV's bilinear remap of four
+        channels is the faster one: benchmarks/RESULTS.md, las33)."""
+        part = img[self._window]
+        if img.ndim == 3 and img.shape[2] == 3 and img.dtype in (np.uint8, np.uint16) and channel in CHANNEL_INDEX:
+            part = cv2.cvtColor(part, cv2.COLOR_RGB2RGBA)
+        return cv2.remap(part, *self._window_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
     def _line_peaks(self, polar: np.ndarray, polar_raw: np.ndarray, full: float) -> _LinePeaks:
         """Each scan line's strongest peak, refined by the three-point Gaussian fit and

@@ -33,11 +33,12 @@ from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from omnipipe.camera import camera_from_rig
 from omnipipe.executor import worker_cached
-from omnipipe.handoff import FrameHandoff, hand_on
+from omnipipe.handoff import FrameHandoff, hand_on, handoff_full, plane_split
 from omnipipe.laser import (
     LaserConfig,
     LaserResult,
@@ -144,9 +145,14 @@ class _FrameTask:
         valid, inner, runs = _masks(rig, self.stations)
         local = StationTracker(valid, self.stations)
         out: list[tuple[LaserRing | None, StationSignature, int]] = []
+        split: list[np.ndarray] = []  # the chunk's buffers of the split (fresh pages cost)
         for k in range(len(source)):
             image = source.read(k)
-            signature = frame_signature(image, rig.laser.channel, inner, self.stations, runs)
+            planes = self._planes(image, rig.laser.channel, inner, split)
+            # A red laser's grey image is the green channel: its signature is the same
+            # bit for bit from the split's green plane as from the frame.
+            grey_or_frame = image if planes is None else planes[1]
+            signature = frame_signature(grey_or_frame, rig.laser.channel, inner, self.stations, runs)
             moved, _ = local.update_signature(signature)
             ring = (
                 triangulate_ring(extractor.extract(image, rig.laser.channel), camera, rig.laser)
@@ -155,9 +161,29 @@ class _FrameTask:
             )
             written = 0
             if ring is not None and self.handoff is not None:
-                written = hand_on(self.handoff, int(source.frames[k]), image, rig.laser.channel)
+                written = hand_on(self.handoff, int(source.frames[k]), image, rig.laser.channel, planes)
             out.append((ring, signature, written))
         return out
+
+    def _planes(
+        self, image: np.ndarray, channel: str, inner: np.ndarray, buffers: list[np.ndarray]
+    ) -> tuple[np.ndarray, ...] | None:
+        """``cv2.split(image)`` when the frame would be handed on planar
+        (:func:`~omnipipe.handoff.plane_split`, the hand-off not full) and its signature
+        reads its green channel whole: one split serves both (it costs little more than
+        the signature's own extraction of that channel); else None. The planes are
+        written into ``buffers`` (made on first use, kept by the caller for its chunk's
+        frames: each plane is used before the next frame is split)."""
+        if (
+            self.handoff is None
+            or not plane_split(image, channel)
+            or inner.shape != image.shape[:2]
+            or handoff_full(self.handoff)
+        ):
+            return None
+        if not buffers or buffers[0].shape != image.shape[:2]:
+            buffers[:] = [np.empty(image.shape[:2], image.dtype) for _ in range(3)]
+        return tuple(cv2.split(image, buffers))
 
 
 @dataclass

@@ -224,7 +224,10 @@ def frame_signature(
         # Whole f x f blocks: their sums (exact in float32) times 1 / f^2 are the area
         # resize's values bit for bit, without a float32 copy of the frame.
         sums = np.empty((h // f, w // f), np.int32)
-        _block_sums(channel, f, sums)
+        if f == 4:
+            _block_sums_4(channel, sums)
+        else:
+            _block_sums(channel, f, sums)
         small = sums.astype(np.float32) * np.float32(1.0 / (f * f))
     else:
         small = _small(channel, f)
@@ -306,6 +309,20 @@ def _block_sums(p, f, sums):  # pragma: no cover - compiled
             for i in range(f):
                 total += acc[bx * f + i]
             sums[by, bx] = total
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_sums_4(p, sums):  # pragma: no cover - compiled
+    """:func:`_block_sums` of 4 x 4 blocks (the default), its loops unrolled: each
+    block row's four rows added in one pass, then each block's four columns."""
+    bh, bw = sums.shape
+    acc = np.empty(bw * 4, np.int32)
+    for by in range(bh):
+        a, b, c, d = p[4 * by], p[4 * by + 1], p[4 * by + 2], p[4 * by + 3]
+        for x in range(bw * 4):
+            acc[x] = np.int32(a[x]) + np.int32(b[x]) + np.int32(c[x]) + np.int32(d[x])
+        for bx in range(bw):
+            sums[by, bx] = acc[4 * bx] + acc[4 * bx + 1] + acc[4 * bx + 2] + acc[4 * bx + 3]
 
 
 @dataclass(frozen=True)
