@@ -279,6 +279,39 @@ def test_defect_fits_are_the_same_on_an_executor() -> None:
     assert all(np.array_equal(a, b) for a, b in zip(here.masks, there.masks, strict=True))
 
 
+def test_station_profiles_are_the_same_on_an_executor() -> None:
+    """40 oval rings (one cut by water, one crossing a lateral's opening, some samples
+    left out, some stray) fitted on two worker processes: the very same profiles,
+    sections and deviations as here."""
+    from omnipipe.analysis.defect_search import FeatureZone
+    from omnipipe.analysis.station_profiles import ring_groups, station_profiles
+    from omnipipe.executor import open_executor
+
+    rng = np.random.default_rng(12)
+    theta = np.tile(np.radians(np.arange(0, 360, 1.0)), 40) + rng.normal(0, 1e-3, 40 * 360)
+    frame = np.repeat(np.arange(40), 360)
+    sigma = 5.0 * frame + rng.normal(0, 0.2, frame.size)
+    rho = 100.0 + 0.4 * np.cos(2 * theta) + rng.normal(0, 0.05, frame.size)
+    keep = ~((frame == 7) & (np.abs(theta - 1.5 * np.pi) < 0.6))  # a water cut
+    keep &= ~((frame == 20) & (np.abs(theta - 1.0) < 0.3))  # the light lost in a branch
+    theta, frame, sigma, rho = theta[keep], frame[keep], sigma[keep], rho[keep]
+    exclude = rng.random(frame.size) < 0.05
+    stray = rng.random(frame.size) < 0.01
+    ok = np.ones(41, bool)
+    ok[33], ok[40] = False, False  # stations not measured (the last ring has no points)
+    zones = (FeatureZone(95.0, 105.0, "a lateral", arc_mm=100.0, half_arc_mm=30.0),)
+    args = (AnalysisConfig(), ring_groups(frame, 41), theta, rho, sigma, ok, exclude, zones, 100.0, stray)
+    here = station_profiles(*args)
+    with open_executor(2) as ex:
+        there = station_profiles(*args, executor=ex)
+    assert len(here.sections) == 39 and any(s.cut is not None for s in here.sections)
+    for name in ("axial", "diameter", "diameter_sigma", "ovality", "ovality_sigma", "deviation", "rings"):
+        assert np.array_equal(getattr(here, name), getattr(there, name), equal_nan=True), name
+    for a, b in zip(here.sections, there.sections, strict=True):
+        assert np.array_equal(a.coef, b.coef) and np.array_equal(a.cov, b.cov)
+        assert (a.order, a.cut, a.coverage_deg) == (b.order, b.cut, b.coverage_deg)
+
+
 def test_peak_bias_term_covers_a_ring_radius_read_off_by_a_fraction_of_a_pixel() -> None:
     """Every ring read 0.06 px of image radius too far out (a sub-pixel bias of the laser
     peaks shared by the ring) at 3 mm per px: its radius 0.18 mm, its diameter 0.36 mm

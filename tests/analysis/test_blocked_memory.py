@@ -75,6 +75,10 @@ def test_section_centres_ring_by_ring_equal_those_of_the_whole_run(run) -> None:
     got = _section_centres(config, line, pts, ring)
     assert np.array_equal(got, expected)
     assert np.any(got != 0.0) and np.all(np.abs(got) < 0.5)  # centred on the fitted axis
+    from omnipipe.executor import open_executor
+
+    with open_executor(2) as ex:  # a few rings a task on two workers: the same numbers
+        assert np.array_equal(_section_centres(config, line, pts, ring, ex), expected)
 
 
 def test_ring_points_gathered_when_indexed_fit_the_same_centreline(run) -> None:

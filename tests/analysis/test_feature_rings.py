@@ -26,3 +26,26 @@ def test_robust_sine_fit_recovers_a_tilted_ring_past_its_stray_samples() -> None
     A = np.column_stack([np.ones(len(phi)), np.cos(phi), np.sin(phi)])
     plain, *_ = np.linalg.lstsq(A, sigma, rcond=None)
     assert np.abs(plain - truth).max() > 0.1
+
+
+def test_ring_deviations_are_the_same_on_an_executor() -> None:
+    """60 oval rings (three raised in a joint's gap, one too sparse for order 2) fitted on
+    two worker processes: the very same deviations, positions and raised rings as here."""
+    from omnipipe.analysis.feature_rings import FeatureConfig, ring_deviations
+    from omnipipe.executor import open_executor
+
+    rng = np.random.default_rng(5)
+    counts = np.full(60, 200)
+    counts[17] = 15
+    frame = np.repeat(np.arange(60), counts)
+    theta = rng.uniform(0, 2 * np.pi, frame.size)
+    sigma = 4.0 * frame + rng.normal(0, 0.3, frame.size)
+    rho = 80.0 + 0.3 * np.cos(2 * theta) + rng.normal(0, 0.05, frame.size)
+    rho[(frame >= 30) & (frame <= 32)] += 3.0  # the rings in a joint's gap
+    args = (FeatureConfig(), sigma, rho, theta, frame, np.arange(60))
+    here = ring_deviations(*args)
+    with open_executor(2) as ex:
+        there = ring_deviations(*args, ex)
+    assert here[2][30:33].all() and here[2].sum() == 3
+    for a, b in zip(here, there, strict=True):
+        assert np.array_equal(a, b)

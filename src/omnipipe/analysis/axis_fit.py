@@ -25,6 +25,7 @@ from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs, section_co
 from omnipipe.analysis.station_profiles import ring_groups
 from omnipipe.analysis.stations import ring_cut, section_order
 from omnipipe.analysis.wall_profile import fit_wall_profile
+from omnipipe.executor import InlineExecutor, chunks, ordered_map
 from omnipipe.spill import ScratchWriter, drop_pages
 
 
@@ -36,10 +37,12 @@ def recentred_line(
     frame: np.ndarray,
     window: float,
     breaks: Sequence[tuple[np.ndarray, np.ndarray]],
+    executor: Executor | None = None,
 ) -> tuple[Centreline, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The centreline re-centred on each station's own section, and the points' (N,)
-    pipe coordinates (sigma, rho, theta) about it."""
-    centres = _section_centres(config, line, pts, frame)
+    """The centreline re-centred on each station's own section (their fits on
+    ``executor``; None: here; the result is the same), and the points' (N,) pipe
+    coordinates (sigma, rho, theta) about it."""
+    centres = _section_centres(config, line, pts, frame, executor)
     prior = rig_axis_prior(np.asarray(inputs.world_from_rig, float)[: len(line.arc_mm)], line.centre)
     line = recentred(line, centres, inputs.reference_from_world, 0.5 * window, breaks, axis_prior=prior)
     # The coordinates wait in the run's scratch, read when needed (24 bytes a point),
@@ -126,21 +129,43 @@ class _RingPoints(Sequence[np.ndarray]):
         return self.pts[self.groups[k]]
 
 
-def _section_centres(config: AnalysisConfig, line: Centreline, pts: np.ndarray, frame: np.ndarray) -> np.ndarray:
+def _section_centres(
+    config: AnalysisConfig, line: Centreline, pts: np.ndarray, frame: np.ndarray, executor: Executor | None = None
+) -> np.ndarray:
     """(K, 2) each ring's section centre in its station's (normal, binormal) plane of
     ``line``: the order-1 terms of its wall profile (0 for a ring too sparse to fit).
     Each ring's coordinates are taken on their own (the same numbers as the whole run's):
-    no (N,) array is held."""
+    no (N,) array is held. The rings' fits on ``executor`` (:mod:`omnipipe.executor`, a
+    few rings a task; None: here; the result is the same)."""
     k = len(line.arc_mm)
     out = np.zeros((k, 2))
+    groups = ring_groups(frame, k)
+    fitted = [i for i in range(k) if len(groups[i]) >= 12]
+    ex = executor or InlineExecutor()
+    parts = chunks(len(fitted), ex)
+    # Each task's rings gathered only when it is sent (ordered_map keeps a few in flight).
+    sent = (
+        (config, line, [(pts[on], frame[on]) for on in (groups[fitted[j]] for j in part)]) for part in parts
+    )
+    for part, centres in zip(parts, ordered_map(ex, _centres_task, sent), strict=True):
+        for j, c in zip(part, centres, strict=True):
+            if c is not None:
+                out[fitted[j]] = c
+    return out
+
+
+def _centres_task(
+    sent: tuple[AnalysisConfig, Centreline, list[tuple[np.ndarray, np.ndarray]]],
+) -> list[np.ndarray | None]:
+    """One task of :func:`_section_centres`: each ring's ((M, 3) world points, (M,) its
+    ring index) section centre (the order-1 terms of its wall profile, mm), or None
+    where the ring supports no order 1."""
+    config, line, rings = sent
     sec_config = section_config(config)
-    for i, on in enumerate(ring_groups(frame, k)):
-        if len(on) < 12:
-            continue
-        _, rho, theta = line.coordinates(pts[on], frame[on])
+    out: list[np.ndarray | None] = []
+    for pts, frame in rings:
+        _, rho, theta = line.coordinates(pts, frame)
         cut, coverage = ring_cut(theta, sec_config)
         order = section_order(cut, coverage, config.profile_order, sec_config)
-        if order >= 1:
-            coef = fit_wall_profile(theta, rho, order, config.loss_scale_mm)
-            out[i] = coef[1:3]
+        out.append(fit_wall_profile(theta, rho, order, config.loss_scale_mm)[1:3] if order >= 1 else None)
     return out

@@ -9,6 +9,7 @@ a joint's gap) takes the neighbours' mean radius instead.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +17,7 @@ import numpy as np
 from omnipipe.analysis.ring_spans import RingGroups
 from omnipipe.analysis.wall_profile import fit_wall_profile, fourier_design
 from omnipipe.config import bounded
+from omnipipe.executor import InlineExecutor, chunks, ordered_map
 
 
 @dataclass(frozen=True)
@@ -101,21 +103,22 @@ def ring_deviations(
     theta: np.ndarray,
     frame: np.ndarray,
     rings: np.ndarray,
+    executor: Executor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N,) each point's outward deviation from its ring's wall profile (a ring lying in
     a gap takes its neighbours' mean radius), (R,) the rings' axial positions and (R,)
-    True for rings raised above their neighbours (lying in a gap)."""
-    coefs, ring_sigma = [], []
+    True for rings raised above their neighbours (lying in a gap). The rings' profile
+    fits on ``executor`` (:mod:`omnipipe.executor`, a few rings a task; None: here; the
+    result is the same)."""
     # Each ring's points (ascending, as frame == k selects them), made when needed: no
     # index of every point held (omnipipe.analysis.ring_spans).
     groups = RingGroups(frame, rings)
-    for on in groups:
-        order = 2 if len(on) >= 20 else 0
-        c = fit_wall_profile(theta[on], rho[on], order, 0.5)
-        coefs.append(np.pad(c, (0, 5 - len(c))))
-        ring_sigma.append(float(np.median(sigma[on])))
-    coef = np.array(coefs)
-    rs = np.array(ring_sigma)
+    ex = executor or InlineExecutor()
+    # Each task's rings gathered only when it is sent (ordered_map keeps a few in flight).
+    sent = ([(theta[on], rho[on], sigma[on]) for on in (groups[i] for i in part)] for part in chunks(len(rings), ex))
+    fits = [fit for task in ordered_map(ex, _ring_fits, sent) for fit in task]
+    coef = np.array([c for c, _ in fits]).reshape(len(fits), 5)
+    rs = np.array([s for _, s in fits])
     c0 = coef[:, 0].copy()
     for i in range(len(rings)):
         nb = np.abs(rs - rs[i]) <= config.window_mm
@@ -139,6 +142,17 @@ def ring_deviations(
             c[0] = c0[i]
         dev[on] = rho[on] - fourier_design(theta[on], 2) @ c
     return dev, rs, raised
+
+
+def _ring_fits(rings: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, float]]:
+    """Each ring's (theta rad, rho mm, sigma mm of its points) robust Fourier profile
+    (order 2 from 20 points, else 0; soft-L1 at 0.5 mm), as (5,) coefficients zero-padded,
+    and its axial position (the median sigma, mm): one task of :func:`ring_deviations`."""
+    out = []
+    for theta, rho, sigma in rings:
+        c = fit_wall_profile(theta, rho, 2 if len(theta) >= 20 else 0, 0.5)
+        out.append((np.pad(c, (0, 5 - len(c))), float(np.median(sigma))))
+    return out
 
 
 def robust_sine_fit(

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,12 +91,14 @@ def find_features(
     theta: np.ndarray,
     frame: np.ndarray,
     radius: float,
+    executor: Executor | None = None,
 ) -> FeatureSearch:
     """Joints and laterals among (N,) points in pipe coordinates (sigma, rho mm; theta
     rad from the centreline's normal towards its binormal; frame: ring index), ``radius``
-    the nominal wall radius (mm)."""
+    the nominal wall radius (mm); the rings' profile fits on ``executor``
+    (:func:`.feature_rings.ring_deviations`; None: here; the result is the same)."""
     rings = ring_ids(frame)  # np.unique's, without a sorted copy of a ring-ordered frame
-    dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings)
+    dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings, executor)
     # Each point's deviation and ring in the run's scratch (read when needed, :mod:`omnipipe.spill`).
     dev = on_disk(dev)
     writer = ScratchWriter(len(frame), np.intp)

@@ -8,6 +8,7 @@ deviation from it (:class:`StationProfiles`), the rings' point indices
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,12 +18,14 @@ from omnipipe.analysis.records import AnalysisConfig, section_config
 from omnipipe.analysis.ring_spans import RingGroups
 from omnipipe.analysis.stations import (
     Section,
+    SectionConfig,
     Station,
     ring_cut,
     section_order,
     station_from_section,
 )
 from omnipipe.analysis.wall_profile import fit_wall_profile, fourier_design
+from omnipipe.executor import InlineExecutor, chunks, ordered_map
 from omnipipe.spill import zeros_on_disk
 
 
@@ -76,9 +79,71 @@ def ring_groups(frame: np.ndarray, n_rings: int) -> Sequence[np.ndarray]:
     return RingGroups(frame, np.arange(n_rings))
 
 
+@dataclass(frozen=True)
+class _RingSamples:
+    """One station's ring for its profile fit (:func:`_fit_ring`): its points' arrays
+    (M,), in the ring's point order.
+
+    Attributes:
+        theta, rho, sigma: angle (rad), radius (mm) and axial coordinate (mm).
+        exclude: True where the point is left out of the fit.
+        lit: True where the point closes a cut (not stray), or None: every point.
+    """
+
+    theta: np.ndarray
+    rho: np.ndarray
+    sigma: np.ndarray
+    exclude: np.ndarray
+    lit: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class _ProfileTask:
+    """What every station's profile fit shares (:func:`_fit_task`): the settings, the
+    lateral openings' ``zones`` and the wall's ``radius`` (mm)."""
+
+    config: AnalysisConfig
+    zones: tuple[FeatureZone, ...]
+    radius: float
+
+
+def _fit_task(sent: tuple[_ProfileTask, list[_RingSamples]]) -> list[tuple[float, Section, np.ndarray]]:
+    """:func:`_fit_ring` of each ring of ``sent`` (one task on the executor)."""
+    task, rings = sent
+    sec_config = section_config(task.config)
+    return [_fit_ring(task, sec_config, r) for r in rings]
+
+
+def _fit_ring(
+    task: _ProfileTask, sec_config: SectionConfig, ring: _RingSamples
+) -> tuple[float, Section, np.ndarray]:
+    """One station's wall profile: its axial position (mm, the median of its points'),
+    its :class:`.stations.Section` and (M,) its points' deviations from it (mm)."""
+    config = task.config
+    use = np.flatnonzero(~ring.exclude)
+    if len(use) < 12:
+        use = np.arange(len(ring.exclude))
+    th = ring.theta[use]
+    axial = float(np.median(ring.sigma))
+    # The cut (water) is where the ring has no points at all; the coverage for the
+    # order is that of the points fitted (a defect's samples left out open a gap).
+    lit = ring.theta if ring.lit is None else ring.theta[ring.lit]
+    cut, coverage = ring_cut(_with_openings(lit, axial, task.zones, task.radius), sec_config)
+    _, fitted_coverage = ring_cut(th, sec_config)
+    order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
+    coef = fit_wall_profile(th, ring.rho[use], order, config.loss_scale_mm)
+    A = fourier_design(th, order)
+    res = ring.rho[use] - A @ coef
+    spread = 1.4826 * float(np.median(np.abs(res)))
+    inlier = np.abs(res) <= 4.0 * max(spread, 1e-6)
+    cov = np.linalg.pinv(A[inlier].T @ A[inlier]) * spread**2
+    deviation = ring.rho - fourier_design(ring.theta, order) @ coef
+    return axial, Section(coef, cov, order, cut, coverage), deviation
+
+
 def station_profiles(
     config: AnalysisConfig,
-    groups: list[np.ndarray],
+    groups: Sequence[np.ndarray],
     theta: np.ndarray,
     rho: np.ndarray,
     sigma: np.ndarray,
@@ -87,9 +152,11 @@ def station_profiles(
     zones: Sequence[FeatureZone] = (),
     radius: float = 1.0,
     stray: np.ndarray | None = None,
+    executor: Executor | None = None,
 ) -> StationProfiles:
     """Each station's wall profile (fitted without the ``exclude`` points) and every
-    point's deviation from it.
+    point's deviation from it; the stations' fits on ``executor``
+    (:mod:`omnipipe.executor`, a few stations a task; None: here; the result is the same).
 
     The diameter's sigma is the fit's (A^T A)^-1 scaled by the ring's robust residual
     spread. A ring cut off by water (one gap) keeps the order while the wall above it
@@ -101,29 +168,23 @@ def station_profiles(
     """
     deviation = zeros_on_disk((len(exclude),), float)  # in the run's scratch (omnipipe.spill)
     deviation.fill(np.nan)
-    sec_config = section_config(config)
-    axial, sections = [], []
-    for k in np.flatnonzero(ok_station):
+    ex = executor or InlineExecutor()
+    rings = np.flatnonzero(ok_station)
+    strays = stray is not None and len(stray) > 0
+
+    def ring(k: int) -> _RingSamples:
         on = groups[k]
-        use = on[~exclude[on]]
-        if len(use) < 12:
-            use = on
-        th = theta[use]
-        # The cut (water) is where the ring has no points at all; the coverage for the
-        # order is that of the points fitted (a defect's samples left out open a gap).
-        lit = on if stray is None or not len(stray) else on[~stray[on]]
-        cut, coverage = ring_cut(_with_openings(theta[lit], float(np.median(sigma[on])), zones, radius), sec_config)
-        _, fitted_coverage = ring_cut(th, sec_config)
-        order = section_order(cut, min(coverage, fitted_coverage), config.profile_order, sec_config)
-        coef = fit_wall_profile(th, rho[use], order, config.loss_scale_mm)
-        A = fourier_design(th, order)
-        res = rho[use] - A @ coef
-        spread = 1.4826 * float(np.median(np.abs(res)))
-        inlier = np.abs(res) <= 4.0 * max(spread, 1e-6)
-        cov = np.linalg.pinv(A[inlier].T @ A[inlier]) * spread**2
-        deviation[on] = rho[on] - fourier_design(theta[on], order) @ coef
-        axial.append(float(np.median(sigma[on])))
-        sections.append(Section(coef, cov, order, cut, coverage))
+        return _RingSamples(theta[on], rho[on], sigma[on], exclude[on], ~stray[on] if strays else None)
+
+    # Each task's rings gathered only when it is sent (ordered_map keeps a few in flight).
+    task, parts = _ProfileTask(config, tuple(zones), float(radius)), chunks(len(rings), ex)
+    sent = ((task, [ring(int(rings[i])) for i in part]) for part in parts)
+    axial, sections = [], []
+    for part, fits in zip(parts, ordered_map(ex, _fit_task, sent), strict=True):
+        for i, (a, sec, dev) in zip(part, fits, strict=True):
+            deviation[groups[int(rings[i])]] = dev
+            axial.append(a)
+            sections.append(sec)
     stations = [station_from_section(a, sec, 0.0, 0.0) for a, sec in zip(axial, sections, strict=True)]
     return StationProfiles(
         axial=np.array([st.axial_mm for st in stations]),

@@ -53,7 +53,9 @@ def measure_wall(
     for done in range(1, 3):
         # Each ring's indices made per pass: not held under the defect search (8 bytes a point).
         groups = ring_groups(frame, len(poses))
-        stations = station_profiles(config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray)
+        stations = station_profiles(
+            config, groups, theta, rho, sigma, ok_station, exclude, zones, radius, stray, executor
+        )
         del groups
         ok = np.isfinite(stations.deviation) & ~not_wall
         # In the run's scratch, gathered a block at a time (read when needed; a local
