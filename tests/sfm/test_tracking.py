@@ -479,9 +479,8 @@ def test_large_views_follow_their_own_number_of_points() -> None:
 
 
 def test_large_views_take_their_own_keyframe_parallax_and_follow_back() -> None:
-    """A run's keyframe parallax, ``back_below`` and RANSAC's minimal samples are
-    ``keyframe_min_parallax_large_deg``, ``back_below_large`` and
-    ``ransac_null_vector_large`` where its views are large (1600x1200's) and the plain
+    """A run's keyframe parallax and ``back_below`` are ``keyframe_min_parallax_large_deg``
+    and ``back_below_large`` where its views are large (1600x1200's) and the plain
     settings in smaller ones (640x480's) or with the bound at 0; the CLI's
     ``--keyframe-parallax`` sets both parallaxes."""
     from types import SimpleNamespace
@@ -496,7 +495,6 @@ def test_large_views_take_their_own_keyframe_parallax_and_follow_back() -> None:
     small = SimpleNamespace(rig=make_scenario("paper", frames=2, size=(640, 480)).rig)
     sized = _sized_views(config, large)
     assert sized.keyframe_min_parallax_deg == 6.0
-    assert sized.ransac_null_vector and not config.ransac_null_vector
     assert (sized.tracking.max_points, sized.tracking.back_below) == (600, 200)
     assert _sized_views(config, small) == config
     off = replace(config, tracking=replace(config.tracking, retry_large_side_px=0))

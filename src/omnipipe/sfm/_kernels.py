@@ -168,20 +168,13 @@ def epipolar_inliers(E, r1, r2, sin_threshold):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def sample_hypothesis(r1, r2, sample, sin_threshold, null_vector=False):  # pragma: no cover - compiled
+def sample_hypothesis(r1, r2, sample, sin_threshold):  # pragma: no cover - compiled
     """One RANSAC hypothesis: the essential matrix of the ray pairs ``sample`` (K,)
     (indices into ``r1``, ``r2`` (N, 3) unit rays, K >= 8) by the same operations as
     :func:`omnipipe.sfm.geometry.eight_point` (the Kronecker rows of Eq. (12), the
     last right singular vector of their reduced SVD, projected onto singular values
     (1, 1, 0)), and its (N,) inliers (:func:`epipolar_inliers` at ``sin_threshold``):
-    (3, 3) E and the mask, without the per-call overhead of NumPy's small SVDs.
-
-    With ``null_vector`` a sample of exactly eight pairs takes the last right singular
-    vector of the full SVD instead: the null vector of its 8 x 9 system, which every
-    pair of the sample satisfies. The reduced SVD of eight rows has only eight right
-    singular vectors, and its last is the smallest *non-zero* one, which the sample's
-    pairs do not satisfy (:class:`omnipipe.sfm.ransac.RansacConfig`). Larger samples
-    are the same either way."""
+    (3, 3) E and the mask, without the per-call overhead of NumPy's small SVDs."""
     m = sample.shape[0]
     U = np.empty((m, 9))
     for k in range(m):
@@ -189,10 +182,7 @@ def sample_hypothesis(r1, r2, sample, sin_threshold, null_vector=False):  # prag
         for a in range(3):
             for b in range(3):
                 U[k, 3 * a + b] = r2[i, a] * r1[i, b]
-    if null_vector and m < 9:
-        _, _, vt = np.linalg.svd(U, full_matrices=True)
-    else:
-        _, _, vt = np.linalg.svd(U, full_matrices=False)
+    _, _, vt = np.linalg.svd(U, full_matrices=False)
     e = np.ascontiguousarray(vt[vt.shape[0] - 1]).reshape(3, 3)
     u, _, vt2 = np.linalg.svd(e)
     E = u @ np.diag(np.array([1.0, 1.0, 0.0])) @ vt2

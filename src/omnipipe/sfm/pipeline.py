@@ -367,18 +367,13 @@ def _flow_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
 
 
 def _sized_views(config: SfmConfig, inputs: SfmInputs) -> SfmConfig:
-    """``config`` with the tracking's settings, the keyframes' parallax and RANSAC's
-    minimal samples for the size of the run's views
-    (:func:`~omnipipe.sfm.tracking.sized_for_views`, ``keyframe_min_parallax_large_deg``,
-    ``ransac_null_vector_large``)."""
+    """``config`` with the tracking's settings and the keyframes' parallax for the size
+    of the run's views (:func:`~omnipipe.sfm.tracking.sized_for_views`,
+    ``keyframe_min_parallax_large_deg``)."""
     shape = view_size(camera_from_rig(inputs.rig), config.features)
     sized = replace(config, tracking=sized_for_views(config.tracking, shape))
     if is_large_view(config.tracking, shape):
-        sized = replace(
-            sized,
-            keyframe_min_parallax_deg=config.keyframe_min_parallax_large_deg,
-            ransac_null_vector=config.ransac_null_vector_large,
-        )
+        sized = replace(sized, keyframe_min_parallax_deg=config.keyframe_min_parallax_large_deg)
     return sized
 
 
@@ -392,7 +387,6 @@ def _context(config: SfmConfig, inputs: SfmInputs, executor: Executor | None) ->
         min_inliers=config.min_inliers,
         rotation_only_ratio=config.rotation_only_ratio,
         seed=config.seed,
-        null_vector_sample=config.ransac_null_vector,
     )
     return SfmContext(config, camera, ransac, ex, not isinstance(ex, InlineExecutor), [])
 

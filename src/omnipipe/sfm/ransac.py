@@ -40,14 +40,6 @@ class RansacConfig:
         rotation_only_ratio: translation unreliable when the rotation-only model has at
             least this fraction of the essential matrix's inliers.
         seed: random seed.
-        null_vector_sample: a minimal sample's essential matrix from the null vector of
-            its 8 x 9 system (:func:`omnipipe.sfm._kernels.sample_hypothesis`); off, the
-            last of the reduced SVD's eight right singular vectors, which the sample's
-            pairs do not satisfy: such a hypothesis holds a few pairs by chance, and the
-            motion is found only once one of them reaches eight inliers and the refit
-            on its inliers (nine or more pairs) takes over, after many more
-            hypotheses. On by the run's config in large views only
-            (:attr:`omnipipe.sfm.types.SfmConfig.ransac_null_vector_large`).
     """
 
     threshold_rad: float = bounded(math.radians(0.2), gt=0, lt=math.pi)
@@ -56,7 +48,6 @@ class RansacConfig:
     min_inliers: int = bounded(15, ge=1)
     rotation_only_ratio: float = bounded(0.9, gt=0, le=1)
     seed: int = bounded(0, ge=0)
-    null_vector_sample: bool = False
 
 
 @dataclass
@@ -103,12 +94,12 @@ def estimate_relative_motion(
         it += 1
         sample = rng.choice(n, 8, replace=False)
         # eight_point on the sample and the inlier test, compiled (the same values).
-        _, inl = sample_hypothesis(r1, r2, sample, sin_thr, cfg.null_vector_sample)
+        _, inl = sample_hypothesis(r1, r2, sample, sin_thr)
         count = int(inl.sum())
         if count > best_count and count >= 8:
             # Local optimisation (LO-RANSAC): refit on the inliers while they grow.
             for _ in range(5):
-                _, inl_lo = sample_hypothesis(r1, r2, np.flatnonzero(inl), sin_thr, cfg.null_vector_sample)
+                _, inl_lo = sample_hypothesis(r1, r2, np.flatnonzero(inl), sin_thr)
                 if inl_lo.sum() <= count:
                     break
                 inl, count = inl_lo, int(inl_lo.sum())
@@ -128,7 +119,7 @@ def estimate_relative_motion(
     # Refit on the inliers, twice (the inlier set may grow).
     inl = best_inl
     for _ in range(2):
-        E, inl = sample_hypothesis(r1, r2, np.flatnonzero(inl), sin_thr, cfg.null_vector_sample)
+        E, inl = sample_hypothesis(r1, r2, np.flatnonzero(inl), sin_thr)
         if inl.sum() < cfg.min_inliers:
             inl = best_inl
             E = eight_point(r1[inl], r2[inl])

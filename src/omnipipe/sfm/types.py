@@ -54,14 +54,6 @@ class SfmConfig:
         rotation_only_ratio: a step is a pure rotation when the rotation-only model
             explains at least this fraction of the essential-matrix inliers.
         seed: random seed (RANSAC).
-        ransac_null_vector: RANSAC's minimal samples solved for the null vector of their
-            8 x 9 system (:attr:`omnipipe.sfm.ransac.RansacConfig.null_vector_sample`).
-        ransac_null_vector_large: ``ransac_null_vector`` in views whose shorter side
-            reaches ``tracking.retry_large_side_px`` (as ``keyframe_min_parallax_large_deg``):
-            on by default there, where every step has hundreds of matches and the
-            hypotheses the reduced SVD's vector needs were most of RANSAC's work; off in
-            smaller views, whose runs (the robustness bench's steps of 14-50 matches)
-            came out worse with it (benchmarks/RESULTS.md: ransac16-18, cpu33).
         keyframe_min_parallax_deg: a moving frame becomes a keyframe when its matched rays
             turned at least this much (median, rotation removed) since the last keyframe;
             closer frames are resected against the adjusted tracks instead (short
@@ -99,8 +91,6 @@ class SfmConfig:
     min_inliers: int = bounded(15, ge=1)
     rotation_only_ratio: float = bounded(0.9, gt=0, le=1)
     seed: int = bounded(0, ge=0)
-    ransac_null_vector: bool = False
-    ransac_null_vector_large: bool = True
     keyframe_min_parallax_deg: float = bounded(4.0, ge=0, lt=180)
     keyframe_min_parallax_large_deg: float = bounded(4.0, ge=0, lt=180)
     anchor_reach: int = bounded(3, ge=1)
