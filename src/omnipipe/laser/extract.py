@@ -259,6 +259,17 @@ blur about a pixel) and near enough to share the end's texture and range."""
 EDGE_BEYOND_PX = 4.0
 """How far (px along the ring) :func:`_gap_edges` follows the stripe into a gap."""
 
+EDGE_FLANK_PX = (1.0, 1.5, 2.0, 2.5, 3.0)
+"""Radial offsets (px, both sides of the stripe's centre) :func:`_gap_edges` reads the
+stripe's height along the ring at: the first whose plateau is at most
+:data:`EDGE_FLANK_SHARE` of the peaks' (below any clipping of the stripe's top)."""
+
+EDGE_FLANK_SHARE = 0.6
+"""Largest share of the peaks' plateau height the flank taken by :func:`_gap_edges` may
+hold: a stripe clipped at the sensor's full scale is clipped in its core only, and the
+half of a clipped plateau lies past the edge (the brighter the stripe, the further: 0.3-0.7
+px at 400x300 where half its peaks clip); its flanks keep the edge's true profile."""
+
 
 def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> np.ndarray:
     """(E, 3) float32 rows (end line, direction, offset), E <= 2, locating where the lit
@@ -270,12 +281,13 @@ def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> 
     falls to half its plateau (:data:`EDGE_PLATEAU_PX`). An edge that stops the light
     (a water line, a shadow) is a step blurred by the optics: its half height is the
     edge itself, wherever the extractor's tests (SNR, a competing texture peak) stopped
-    accepting peaks. Heights: the accepted peaks', else the largest background-free
-    sample within one radial step of the stripe's radius (extrapolated along the ring
-    from the plateau's peaks) up to :data:`EDGE_BEYOND_PX` into the gap. An end with
-    no fall-off to half within that reach (or less than three plateau peaks) is left
-    out. ``polar`` (L, S) the line signal, ``r0`` / ``step`` its first radius and
-    radial step (px)."""
+    accepting peaks. Heights: the background-free signal on both flanks of the stripe
+    (:data:`EDGE_FLANK_PX` from its radius: the accepted peaks', beyond them extrapolated
+    along the ring from the plateau's peaks; the two sides' mean, so an oblique edge's
+    shifts cancel) up to :data:`EDGE_BEYOND_PX` into the gap: a flank is not clipped
+    where the stripe's core is. An end with no fall-off to half within that reach (or
+    less than three plateau peaks) is left out. ``polar`` (L, S) the line signal,
+    ``r0`` / ``step`` its first radius and radial step (px)."""
     ok = peaks.ok
     n = len(ok)
     idx = np.flatnonzero(ok)
@@ -300,7 +312,7 @@ def _edge_offset(
 ) -> float | None:
     """The offset (lines, + into the gap) of :func:`_gap_edges`' half-height point past
     the accepted line ``end`` whose gap of ``gap`` lines lies in direction ``d``; None
-    where it is not found."""
+    where it is not found. Measured on the stripe's flanks (:data:`EDGE_FLANK_PX`)."""
     n = len(peaks.ok)
     px_line = max(float(peaks.radius[end]) * 2.0 * math.pi / n, 1e-3)
     p0 = min(max(2, math.ceil(EDGE_PLATEAU_PX[0] / px_line)), 60)
@@ -312,24 +324,33 @@ def _edge_offset(
     if lit.sum() < 3:
         return None
     plateau = float(np.median(peaks.height[lines[lit]]))
-    # The stripe's radius along the ring (px per line): from the plateau's peaks to the end's.
+    # The stripe's radius along the ring (px per line): from the plateau's peaks to the
+    # end's, each accepted line's own peak on the lit side.
     r_end = float(peaks.radius[end])
     slope = (r_end - float(peaks.radius[lines[lit]].mean())) / float(inside[lit].mean())
-    j = np.arange(-p0, q + 1)
+    j = np.arange(-p1, q + 1)
     prof = (end + d * j) % n
-    k = np.rint((r_end + slope * j - r0) / step).astype(int)
-    half = int(math.ceil(1.0 / step))
-    cols = np.clip(k[:, None] + np.arange(-half, half + 1)[None, :], 0, polar.shape[1] - 1)
-    h = polar[prof[:, None], cols].max(axis=1) - peaks.background[prof]
-    own = (j <= 0) & peaks.ok[prof]
-    h = np.where(own, peaks.height[prof], h).astype(float)
-    thr = 0.5 * plateau
-    below = np.flatnonzero(h < thr)
-    if len(below) == 0 or below[0] == 0:
+    radius = np.where((j <= 0) & peaks.ok[prof], peaks.radius[prof], r_end + slope * j)
+    in_plateau = (j <= -p0) & peaks.ok[prof]
+    for flank in EDGE_FLANK_PX:
+        h = np.zeros(len(j))
+        for side in (-flank, flank):
+            x = (radius + side - r0) / step
+            k = np.clip(np.floor(x).astype(int), 0, polar.shape[1] - 2)
+            t = np.clip(x - k, 0.0, 1.0)
+            h += 0.5 * ((1.0 - t) * polar[prof, k] + t * polar[prof, k + 1])
+        h -= peaks.background[prof]
+        level = float(np.median(h[in_plateau]))
+        if level <= EDGE_FLANK_SHARE * plateau:
+            break
+    thr = 0.5 * level
+    start = p1 - p0  # j == -p0
+    below = np.flatnonzero(h[start:] < thr)
+    if level <= 0.0 or len(below) == 0 or below[0] == 0:
         return None
-    b = int(below[0])
+    b = start + int(below[0])
     t = (h[b - 1] - thr) / max(h[b - 1] - h[b], 1e-9)
-    return float(b - 1 + t - p0)
+    return float(j[b - 1] + t)
 
 
 @dataclass(frozen=True)
