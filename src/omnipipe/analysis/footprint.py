@@ -15,10 +15,11 @@ sections, and no fit of the ring alone can see it:
   is sqrt(2) Delta D / (pi D).
 
 * its water depth (below the chord across its cut, against the section it fitted)
-  belongs to no one section either: with the depth's change Delta h across the
-  footprint, 1-sigma Delta h / sqrt(12). A ring that crosses a joint or a reducer's
-  end reads the deeper or the shallower section's water wherever its stations are
-  placed along the axis.
+  belongs to no one section either, and is compared with the water at the station's
+  own position, which is one of them: with the depth's change Delta h across the
+  footprint, the error is uniform in [0, Delta h], rms Delta h / sqrt(3). A ring that
+  crosses a joint or a reducer's end reads the deeper or the shallower section's water
+  wherever its station is placed along the axis.
 
 Delta D (and Delta h) is read off the stations' own mean diameters (depths) along the centreline: twice their
 largest departure, within each ring's footprint, from the chord across it (a step gives
@@ -106,7 +107,7 @@ def with_footprint_terms(stations: list[Station], d_term: np.ndarray, o_term: np
 
 def water_footprint_terms(stations: list[Station], half_extent: np.ndarray) -> np.ndarray:
     """(S,) 1-sigma (mm) of each wet station's water depth from the sections its ring
-    mixes: Delta h / sqrt(12), Delta h the water depths' :func:`section_change_mm` over
+    mixes: Delta h / sqrt(3), Delta h the water depths' :func:`section_change_mm` over
     the wet stations (depth > 0) within its footprint (``half_extent`` (S,) mm); 0 for
     dry stations and when it cannot be told (fewer than 2 wet stations)."""
     n = len(stations)
@@ -116,7 +117,7 @@ def water_footprint_terms(stations: list[Station], half_extent: np.ndarray) -> n
     if len(half_extent) != n or wet.sum() < 2:
         return out
     axial = np.array([s.axial_mm for s in stations], float)
-    out[wet] = section_change_mm(axial[wet], depth[wet], np.asarray(half_extent, float)[wet]) / math.sqrt(12.0)
+    out[wet] = section_change_mm(axial[wet], depth[wet], np.asarray(half_extent, float)[wet]) / math.sqrt(3.0)
     return out
 
 
