@@ -270,6 +270,8 @@ hold: a stripe clipped at the sensor's full scale is clipped in its core only, a
 half of a clipped plateau lies past the edge (the brighter the stripe, the further: 0.3-0.7
 px at 400x300 where half its peaks clip); its flanks keep the edge's true profile."""
 
+_FLANK_SIDES = np.array([(-f, f) for f in EDGE_FLANK_PX])
+
 
 def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> np.ndarray:
     """(E, 3) float32 rows (end line, direction, offset), E <= 2, locating where the lit
@@ -332,17 +334,16 @@ def _edge_offset(
     prof = (end + d * j) % n
     radius = np.where((j <= 0) & peaks.ok[prof], peaks.radius[prof], r_end + slope * j)
     in_plateau = (j <= -p0) & peaks.ok[prof]
-    for flank in EDGE_FLANK_PX:
-        h = np.zeros(len(j))
-        for side in (-flank, flank):
-            x = (radius + side - r0) / step
-            k = np.clip(np.floor(x).astype(int), 0, polar.shape[1] - 2)
-            t = np.clip(x - k, 0.0, 1.0)
-            h += 0.5 * ((1.0 - t) * polar[prof, k] + t * polar[prof, k + 1])
-        h -= peaks.background[prof]
-        level = float(np.median(h[in_plateau]))
-        if level <= EDGE_FLANK_SHARE * plateau:
-            break
+    # Every flank's two sides at once (F, 2, J): the first flank low enough, else the last.
+    x = (radius[None, None, :] + _FLANK_SIDES[:, :, None] - r0) / step
+    k = np.clip(np.floor(x).astype(int), 0, polar.shape[1] - 2)
+    t = np.clip(x - k, 0.0, 1.0)
+    v = 0.5 * ((1.0 - t) * polar[prof, k] + t * polar[prof, k + 1])
+    flanks = v[:, 0] + v[:, 1] - peaks.background[prof]
+    levels = np.median(flanks[:, in_plateau], axis=1)
+    low = np.flatnonzero(levels <= EDGE_FLANK_SHARE * plateau)
+    f = int(low[0]) if len(low) else len(levels) - 1
+    h, level = flanks[f], float(levels[f])
     thr = 0.5 * level
     start = p1 - p0  # j == -p0
     below = np.flatnonzero(h[start:] < thr)
