@@ -11,7 +11,9 @@ from omnipipe.analysis.footprint import (
     footprint_mm,
     footprint_terms,
     section_change_mm,
+    water_footprint_terms,
     with_footprint_terms,
+    with_water_footprint,
 )
 from omnipipe.analysis.stations import Station
 
@@ -64,3 +66,45 @@ def test_footprint_is_half_the_rings_axial_spread() -> None:
     fp = footprint_mm(sigma, groups, np.array([True, True, False]))
     assert fp[0] == pytest.approx(150 * math.tan(math.radians(10)) * math.cos(math.radians(9)), rel=0.02)  # 5-95 %: cos 9 deg
     assert fp[1] == 0.0 and len(fp) == 2
+
+
+def test_a_wet_rings_depth_sigma_holds_the_depth_change_across_its_footprint() -> None:
+    """A ring across a reducer's end (random-features seed 3: stations placed ~12 mm
+    upstream of the sections they read) measures a depth that belongs to no one section:
+    stations every 2 mm whose depth steps 40 -> 55 mm at 50 mm, footprints +-6 mm, each
+    measured as the section 6 mm upstream. The depth term is Delta h / sqrt(3) where the
+    footprint straddles the step (Delta h the chord's largest departure, twice: up to
+    2 x 15 mm where the step sits at the footprint's end; 0 elsewhere and on dry
+    stations); the station keeps it
+    apart; a stretch over the step holds the median whole, so a station's error of up to
+    Delta h stays within 3 sigma of its stretch; the depth-step test ignores it."""
+    from dataclasses import replace
+
+    from omnipipe.analysis.sections import SectionConfig, _water_stretches
+
+    axial = np.arange(0.0, 100.0, 2.0)
+    true = np.where(axial < 50, 40.0, 55.0)
+    measured = np.where(axial - 6.0 < 50, 40.0, 55.0)
+    sts = [
+        replace(s, water_depth_mm=float(h), water_depth_sigma_mm=1.0)
+        for s, h in zip(_stations(axial, np.full(len(axial), 300.0)), measured, strict=True)
+    ]
+    sts[-1] = replace(sts[-1], water_depth_mm=0.0, water_depth_sigma_mm=3.0)  # dry: untouched
+    term = water_footprint_terms(sts, np.full(len(axial), 6.0))
+    near = np.abs(axial - 55.0) <= 8.0
+    assert term[-1] == 0.0 and np.all(term[~near] == 0.0)
+    assert 15.0 / math.sqrt(3.0) <= term[near].max() <= 30.0 / math.sqrt(3.0)
+    out = with_water_footprint(sts, term)
+    assert out[-1] == sts[-1]
+    k = int(np.argmax(term))
+    assert out[k].water_depth_sigma_mm == pytest.approx(math.hypot(1.0, term[k]))
+    assert out[k].water_depth_footprint_sigma_mm == pytest.approx(term[k])
+    # The stations between the true step and the placed one (50 <= axial < 56) read the
+    # upstream depth: within 3 of their own sigmas.
+    wrong = (axial >= 50) & (axial < 56)
+    assert np.all(np.abs(measured - true)[wrong] <= 3.0 * np.array([s.water_depth_sigma_mm for s in out])[wrong])
+    cfg = SectionConfig()
+    three = _water_stretches(out[44:48], cfg)  # 88-94 mm: no term
+    assert len(three) == 1 and three[0].depth_sigma_mm == pytest.approx(1.0 / math.sqrt(4.0))
+    over = _water_stretches(out[26:29], cfg)  # 52-56 mm: on the step
+    assert over[0].depth_sigma_mm >= float(np.median(term[26:29]))

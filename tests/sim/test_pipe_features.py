@@ -18,7 +18,7 @@ from omnipipe.sim import make_scenario, paper_rig
 from omnipipe.sim.feature_scenarios import clock_to_angle_deg
 from omnipipe.sim.features import Joint, Lateral, Ovality, PipeFeatures, Taper, Water
 from omnipipe.sim.motion import simulate_trajectory
-from omnipipe.sim.render import SURFACE_WALL, SURFACE_WATER, Renderer
+from omnipipe.sim.render import SURFACE_WALL, SURFACE_WATER, RenderConfig, Renderer
 from omnipipe.sim.scene import Pipe
 from omnipipe.sim.texture import TextureConfig, WallTexture
 from omnipipe.sim.writer import build_renderer, scene_description
@@ -118,6 +118,39 @@ def test_water_hides_the_invert() -> None:
     # Away from the water line (the optics blur the wall's ring 0.7 px): no laser return.
     inner = cv2.erode(mask.reshape(image.shape[:2]), np.ones((7, 7), np.uint8)).astype(bool)
     assert inner.sum() > 500 and image[inner, 0].max() == 0
+
+
+def test_stripe_ends_at_the_water_line_as_a_sensor_integrates_it() -> None:
+    # The rendered stripe, sampled along the image of the sheet's centre on the wall,
+    # falls to half its lit height where that curve meets the water (the pixels the water
+    # line crosses lit over their wall part only). Rendering them whole by their centre
+    # ray, at the frame's median sheet gradient, put it 0.6-0.9 px off here.
+    from scipy.ndimage import map_coordinates
+
+    pipe = Pipe(300.0, features=PipeFeatures(water=Water(25.0)))
+    tex = WallTexture(math.pi * 300.0, (-200, 900), 1, TextureConfig(texel_mm=4.0))
+    r = Renderer(paper_rig(200, 150), pipe, tex, RenderConfig(speckle_contrast=0.0))
+    ang = np.linspace(-math.pi, math.pi, 200001)
+    z = -r.rig.laser.distance_mm
+    pts = np.stack([150.0 * np.cos(ang), 150.0 * np.sin(ang), np.full_like(ang, z)], axis=1)
+    px, _ = r.camera.project(pts)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(px, axis=0), axis=1))]
+    ends = []
+    for axial in (300.0, 317.3):
+        pose = np.eye(4)
+        pose[2, 3] = axial
+        image, _ = r.irradiance(pose, seed=0, led=False)
+        val = map_coordinates(image[..., 0], [px[:, 1], px[:, 0]], order=1)
+        height = apply(pose, pts)[:, 1] - pipe.water_level()
+        for j in np.flatnonzero(np.sign(height[:-1]) != np.sign(height[1:])):
+            s = (arc - arc[j]) * (1 if height[j + 1] < 0 else -1)  # px along, + into the water
+            o = np.argsort(s)
+            s, v = s[o], val[o]
+            plateau = np.median(v[(s > -6.0) & (s < -2.5)])
+            k = np.flatnonzero((s > -2.5) & (v < 0.5 * plateau))[0]
+            ends.append(s[k - 1] + (v[k - 1] - 0.5 * plateau) / (v[k - 1] - v[k]) * (s[k] - s[k - 1]))
+    assert len(ends) == 4
+    np.testing.assert_array_less(np.abs(ends), 0.3)
 
 
 def test_lateral_hole_shows_the_branch_wall() -> None:

@@ -14,7 +14,14 @@ sections, and no fit of the ring alone can see it:
   (Dmax - Dmin) / D = 2 Delta D |sin 2 theta0| / (pi D); over a uniform split its rms
   is sqrt(2) Delta D / (pi D).
 
-Delta D is read off the stations' own mean diameters along the centreline: twice their
+* its water depth (below the chord across its cut, against the section it fitted)
+  belongs to no one section either, and is compared with the water at the station's
+  own position, which is one of them: with the depth's change Delta h across the
+  footprint, the error is uniform in [0, Delta h], rms Delta h / sqrt(3). A ring that
+  crosses a joint or a reducer's end reads the deeper or the shallower section's water
+  wherever its station is placed along the axis.
+
+Delta D (and Delta h) is read off the stations' own mean diameters (depths) along the centreline: twice their
 largest departure, within each ring's footprint, from the chord across it (a step gives
 its height; a linear ramp, which a tilted ring sees as a first harmonic only, nothing);
 on straight, even pipe it is the stations' noise and the terms stay small.
@@ -95,4 +102,35 @@ def with_footprint_terms(stations: list[Station], d_term: np.ndarray, o_term: np
             ovality_sigma=math.hypot(st.ovality_sigma, float(o)) if math.isfinite(st.ovality_sigma) else st.ovality_sigma,
         )
         for st, d, o in zip(stations, d_term, o_term, strict=True)
+    ]
+
+
+def water_footprint_terms(stations: list[Station], half_extent: np.ndarray) -> np.ndarray:
+    """(S,) 1-sigma (mm) of each wet station's water depth from the sections its ring
+    mixes: Delta h / sqrt(3), Delta h the water depths' :func:`section_change_mm` over
+    the wet stations (depth > 0) within its footprint (``half_extent`` (S,) mm); 0 for
+    dry stations and when it cannot be told (fewer than 2 wet stations)."""
+    n = len(stations)
+    out = np.zeros(n)
+    depth = np.array([s.water_depth_mm for s in stations], float)
+    wet = depth > 0
+    if len(half_extent) != n or wet.sum() < 2:
+        return out
+    axial = np.array([s.axial_mm for s in stations], float)
+    out[wet] = section_change_mm(axial[wet], depth[wet], np.asarray(half_extent, float)[wet]) / math.sqrt(3.0)
+    return out
+
+
+def with_water_footprint(stations: list[Station], term: np.ndarray) -> list[Station]:
+    """The stations with :func:`water_footprint_terms` in their water depth's sigma (and
+    kept apart in ``water_depth_footprint_sigma_mm``)."""
+    return [
+        replace(
+            st,
+            water_depth_sigma_mm=math.hypot(st.water_depth_sigma_mm, float(t)),
+            water_depth_footprint_sigma_mm=float(t),
+        )
+        if st.water_depth_mm > 0 and t > 0
+        else st
+        for st, t in zip(stations, term, strict=True)
     ]

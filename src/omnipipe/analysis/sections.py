@@ -191,14 +191,17 @@ def _water_stretches(
 ) -> list[Stretch]:
     """Stretches of standing water (stations with a water depth; a step in the depth on
     one of the ``tapers`` starts another, :func:`_depth_steps`): the median depth; its
-    sigma the stations' independent part (their spread or stated sigma) / sqrt(n) and
-    the part they share (``water_depth_shared_sigma_mm``) whole. A joint's step in a
-    station's sigma (``water_depth_joint_sigma_mm``) is no reason against a depth step."""
+    sigma the stations' independent part (their spread or stated sigma) / sqrt(n), the
+    part they share (``water_depth_shared_sigma_mm``) and the sections their rings mix
+    (``water_depth_footprint_sigma_mm``, the median: overlapping footprints read the
+    same wall) whole. A joint's step or a footprint's mix in a station's sigma is no
+    reason against a depth step."""
     depth = np.array([s.water_depth_mm for s in stations])
     axial = np.array([s.axial_mm for s in stations])
+    foot = np.array([s.water_depth_footprint_sigma_mm for s in stations])
     own = np.array([
-        math.sqrt(max(s.water_depth_sigma_mm**2 - s.water_depth_shared_sigma_mm**2 - s.water_depth_joint_sigma_mm**2, 0.0))
-        for s in stations
+        math.sqrt(max(s.water_depth_sigma_mm**2 - s.water_depth_shared_sigma_mm**2 - s.water_depth_joint_sigma_mm**2 - f**2, 0.0))
+        for s, f in zip(stations, foot, strict=True)
     ])
     edge = _edge_sigma(axial)
     runs = _runs(depth > 0, config.min_stations)
@@ -209,7 +212,8 @@ def _water_stretches(
         sel = slice(i0, i1 + 1)
         shared = float(np.median([s.water_depth_shared_sigma_mm for s in stations[sel]]))
         total = np.array([s.water_depth_sigma_mm for s in stations[sel]])
-        dsig = np.sqrt(np.maximum(total**2 - shared**2, 0.0))
+        mix = float(np.median(foot[sel]))
+        dsig = np.sqrt(np.maximum(total**2 - shared**2 - foot[sel] ** 2, 0.0))
         n = i1 - i0 + 1
         spread = float(np.std(depth[sel])) if n > 2 else 0.0
         out.append(
@@ -219,7 +223,7 @@ def _water_stretches(
                 axial_to_mm=float(axial[i1]),
                 axial_to_sigma_mm=edge,
                 depth_mm=float(np.median(depth[sel])),
-                depth_sigma_mm=math.hypot(max(spread, float(np.median(dsig))) / math.sqrt(n), shared),
+                depth_sigma_mm=math.hypot(max(spread, float(np.median(dsig))) / math.sqrt(n), shared, mix),
                 truncated=i0 == 0 or i1 == len(stations) - 1,
             )
         )

@@ -37,7 +37,12 @@ from omnipipe.analysis.axis_fit import fit_axis, offset_breaks, recentred_line
 from omnipipe.analysis.defect_accept import measured_only
 from omnipipe.analysis.feature_types import Joint
 from omnipipe.analysis.features import feature_zones, find_features, with_offset_joints_kept
-from omnipipe.analysis.footprint import footprint_mm, footprint_terms
+from omnipipe.analysis.footprint import (
+    footprint_mm,
+    footprint_terms,
+    water_footprint_terms,
+    with_water_footprint,
+)
 from omnipipe.analysis.headline import (
     run_water,
     sections_and_headline,
@@ -104,7 +109,7 @@ def run(
     measured = np.bincount(frame, minlength=len(poses))[: len(poses)] >= 12
     mixing = footprint_terms(st_list, half := footprint_mm(sigma, ring_groups(frame, len(poses)), measured))
     water_terms = (_station_reaches(inputs, stations.rings), _joint_steps(feats.features))
-    st_list, wet = with_water(st_list, list(stations.sections), search.noise_mm, sec_config, *water_terms)
+    st_list, wet = _water(st_list, list(stations.sections), search.noise_mm, sec_config, water_terms, half)
     st_list, shared, tilt_dir = tilt_corrected(st_list, shared, line, pts, frame, measured, radial_sys)
     st_list, features, head, tilt_warn = sections_and_headline(st_list, line, sec_config, radial_sys, shared, mixing, tilt_dir, half)
     warnings = [*search.warnings, *unmeasured, *_section_warnings(st_list, wet), *tilt_warn, *_unseen_gap_warning(feats.unseen_gap_mm)]
@@ -160,6 +165,16 @@ def _station_reaches(inputs: AnalysisInputs, rings: np.ndarray) -> list[EdgeReac
         else:
             out.append(model)
     return out
+
+
+def _water(
+    st_list: list[Station], sections: list, noise_mm: float, sec_config: object, terms: tuple, half: np.ndarray
+) -> tuple[list[Station], bool]:
+    """:func:`.stations.with_water` (``terms``: reaches, joints' steps), then each wet
+    station's footprint term in its depth's sigma (:func:`.footprint.water_footprint_terms`
+    over ``half``, the rings' half axial extents): after the is-water test, not in it."""
+    st_list, wet = with_water(st_list, sections, noise_mm, sec_config, *terms)
+    return with_water_footprint(st_list, water_footprint_terms(st_list, half)), wet
 
 
 def _joint_steps(features: Sequence[object]) -> list[tuple[float, float, float]]:

@@ -123,6 +123,9 @@ class Station:
         water_depth_joint_sigma_mm: the part of that sigma from a found joint's step
             (:func:`with_water`'s ``joints``): no evidence of a depth step between
             stations (``sections._depth_steps``).
+        water_depth_footprint_sigma_mm: the part of that sigma from the sections the
+            station's ring mixes (:func:`.footprint.water_footprint_terms`): shared by
+            the stations whose footprints overlap, no evidence of a depth step either.
         wall_coverage_deg: circumference covered by the ring's wall points.
         deformation_mm, deformation_sigma_mm: mean diameter minus the run's (headline).
     """
@@ -144,6 +147,7 @@ class Station:
     cut_centre_deg: float | None = None
     water_depth_shared_sigma_mm: float = 0.0
     water_depth_joint_sigma_mm: float = 0.0
+    water_depth_footprint_sigma_mm: float = 0.0
 
     def to_contract(self) -> dict[str, Any]:
         """The report.json ``stations`` entry: the contract's keys with their sigma

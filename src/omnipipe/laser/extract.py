@@ -280,6 +280,30 @@ blur about a pixel) and near enough to share the end's texture and range."""
 EDGE_BEYOND_PX = 4.0
 """How far (px along the ring) :func:`_gap_edges` follows the stripe into a gap."""
 
+EDGE_FLANK_PX = (1.0, 1.5, 2.0, 2.5, 3.0)
+"""Radial offsets (px, both sides of the stripe's centre) :func:`_gap_edges` reads the
+stripe's height along the ring at: the first whose plateau is at most
+:data:`EDGE_FLANK_SHARE` of the peaks' (below any clipping of the stripe's top)."""
+
+EDGE_FLANK_SHARE = 0.6
+"""Largest share of the peaks' plateau height the flank taken by :func:`_gap_edges` may
+hold: a stripe clipped at the sensor's full scale is clipped in its core only, and the
+half of a clipped plateau lies past the edge (the brighter the stripe, the further: 0.3-0.7
+px at 400x300 where half its peaks clip); its flanks keep the edge's true profile."""
+
+EDGE_CLIPPED_SHARE = 0.25
+"""Share of an end's plateau peaks clipped above which :func:`_gap_edges` reads the
+stripe's flanks (the ring's "laser saturated" warning's share)."""
+
+EDGE_CLIP_SHIFT_PX = 1.0
+"""Largest move (px along the ring, towards the lit wall) of the flanks' reading from the
+core's that :func:`_gap_edges` takes as the clipping's: a clipped core's half height lies
+past the edge by less than the blurred step's width; a larger move is the stripe's
+profile changing along the ring (a lateral's rim, a grazing wall: random-features seed
+1's lateral read 17-59 mm of reach on its flanks), where the core's reading stands."""
+
+_FLANK_SIDES = np.array([(-f, f) for f in EDGE_FLANK_PX])
+
 
 def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> np.ndarray:
     """(E, 3) float32 rows (end line, direction, offset), E <= 2, locating where the lit
@@ -293,10 +317,12 @@ def _gap_edges(polar: np.ndarray, peaks: _LinePeaks, r0: float, step: float) -> 
     edge itself, wherever the extractor's tests (SNR, a competing texture peak) stopped
     accepting peaks. Heights: the accepted peaks', else the largest background-free
     sample within one radial step of the stripe's radius (extrapolated along the ring
-    from the plateau's peaks) up to :data:`EDGE_BEYOND_PX` into the gap. An end with
-    no fall-off to half within that reach (or less than three plateau peaks) is left
-    out. ``polar`` (L, S) the line signal, ``r0`` / ``step`` its first radius and
-    radial step (px)."""
+    from the plateau's peaks) up to :data:`EDGE_BEYOND_PX` into the gap; where the
+    plateau's peaks clip, the signal on both flanks of the stripe (:data:`EDGE_FLANK_PX`
+    from its radius, the two sides' mean, so an oblique edge's shifts cancel): a flank
+    is not clipped where the stripe's core is (:func:`_edge_offset`). An end with no
+    fall-off to half within that reach (or less than three plateau peaks) is left out. ``polar`` (L, S) the line signal,
+    ``r0`` / ``step`` its first radius and radial step (px)."""
     ok = peaks.ok
     n = len(ok)
     idx = np.flatnonzero(ok)
@@ -321,7 +347,10 @@ def _edge_offset(
 ) -> float | None:
     """The offset (lines, + into the gap) of :func:`_gap_edges`' half-height point past
     the accepted line ``end`` whose gap of ``gap`` lines lies in direction ``d``; None
-    where it is not found."""
+    where it is not found. Read on the stripe's core (its peaks' heights), or on its
+    flanks (:data:`EDGE_FLANK_PX`) where the plateau's peaks clip (more than
+    :data:`EDGE_CLIPPED_SHARE` of them) and the flanks put the edge before the core's
+    reading by at most :data:`EDGE_CLIP_SHIFT_PX`: what a clipped core can move it."""
     n = len(peaks.ok)
     px_line = max(float(peaks.radius[end]) * 2.0 * math.pi / n, 1e-3)
     p0 = min(max(2, math.ceil(EDGE_PLATEAU_PX[0] / px_line)), 60)
@@ -344,13 +373,57 @@ def _edge_offset(
     h = polar[prof[:, None], cols].max(axis=1) - peaks.background[prof]
     own = (j <= 0) & peaks.ok[prof]
     h = np.where(own, peaks.height[prof], h).astype(float)
-    thr = 0.5 * plateau
-    below = np.flatnonzero(h < thr)
-    if len(below) == 0 or below[0] == 0:
+    core = _half_crossing(j, h, 0.5 * plateau, 0)
+    if core is None or float(np.mean(peaks.saturated[lines[lit]])) <= EDGE_CLIPPED_SHARE:
+        return core
+    flank = _flank_offset(polar, peaks, end, d, (p0, p1, q), (r_end, slope), r0, step, plateau)
+    if flank is not None and 0.0 < (core - flank) * px_line <= EDGE_CLIP_SHIFT_PX:
+        return flank
+    return core
+
+
+def _half_crossing(j: np.ndarray, h: np.ndarray, thr: float, start: int) -> float | None:
+    """Where the profile ``h`` at offsets ``j`` (lines) first falls below ``thr`` from
+    index ``start`` on (linear between samples); None where it does not or at once."""
+    below = np.flatnonzero(h[start:] < thr)
+    if thr <= 0.0 or len(below) == 0 or below[0] == 0:
         return None
-    b = int(below[0])
+    b = start + int(below[0])
     t = (h[b - 1] - thr) / max(h[b - 1] - h[b], 1e-9)
-    return float(b - 1 + t - p0)
+    return float(j[b - 1] + t)
+
+
+def _flank_offset(
+    polar: np.ndarray,
+    peaks: _LinePeaks,
+    end: int,
+    d: int,
+    span: tuple[int, int, int],
+    ramp: tuple[float, float],
+    r0: float,
+    step: float,
+    plateau: float,
+) -> float | None:
+    """:func:`_edge_offset` read on the stripe's two flanks: the signal at
+    :data:`EDGE_FLANK_PX` either side of its radius (each accepted line's own peak, beyond
+    them ``ramp`` = (radius at ``end``, px per line)), the first offset whose plateau is at
+    most :data:`EDGE_FLANK_SHARE` of the peaks' ``plateau``; ``span`` = (p0, p1, q) lines."""
+    p0, p1, q = span
+    n = len(peaks.ok)
+    j = np.arange(-p1, q + 1)
+    prof = (end + d * j) % n
+    radius = np.where((j <= 0) & peaks.ok[prof], peaks.radius[prof], ramp[0] + ramp[1] * j)
+    in_plateau = (j <= -p0) & peaks.ok[prof]
+    # Every flank's two sides at once (F, 2, J): the first flank low enough, else the last.
+    x = (radius[None, None, :] + _FLANK_SIDES[:, :, None] - r0) / step
+    k = np.clip(np.floor(x).astype(int), 0, polar.shape[1] - 2)
+    t = np.clip(x - k, 0.0, 1.0)
+    v = 0.5 * ((1.0 - t) * polar[prof, k] + t * polar[prof, k + 1])
+    flanks = v[:, 0] + v[:, 1] - peaks.background[prof]
+    levels = np.median(flanks[:, in_plateau], axis=1)
+    low = np.flatnonzero(levels <= EDGE_FLANK_SHARE * plateau)
+    f = int(low[0]) if len(low) else len(levels) - 1
+    return _half_crossing(j, flanks[f], 0.5 * float(levels[f]), p1 - p0)
 
 
 @dataclass(frozen=True)

@@ -118,6 +118,68 @@ class WallHits:
 SURFACE_WALL = 0
 SURFACE_WATER = -1
 SURFACE_DARK = -2
+
+WATER_LINE_SUBPIXELS = 8
+"""Rays per pixel side cast again where the water line's image crosses a pixel near the
+laser sheet (:meth:`Renderer._water_line`): 64 sub-pixels, each a sheet-distance span of
+an eighth of the pixel's (the sheet sampled finer than its own sigma where a pixel spans
+up to a few mm of it)."""
+
+WATER_LINE_NEAR_MM = 60.0
+"""Pixels of the water line re-cast only within this distance (mm) of the sheet's plane
+(their centre ray's hit): beyond it the sheet's light is nil."""
+
+
+@dataclass(frozen=True)
+class WaterLine:
+    """Pixels the water line's image crosses near the sheet (:meth:`Renderer._water_line`).
+
+    Attributes:
+        index: (E,) indices into the wall-mask pixels.
+        share: (E,) share of each one's area on the wall.
+        wall_h: (E,) mean sheet distance (mm) of that wall part (the pixel's centre's if none).
+        sub: hits of the (E * S) sub-pixel rays, S = WATER_LINE_SUBPIXELS ^ 2, pixel-major.
+        on_wall: (E * S,) which sub-pixel rays met the wall.
+    """
+
+    index: np.ndarray
+    share: np.ndarray
+    wall_h: np.ndarray
+    sub: WallHits
+    on_wall: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> WaterLine:
+        """The pixels ``keep`` (E,) bool."""
+        rays = np.repeat(keep, len(self.on_wall) // max(len(keep), 1))
+        sub = WallHits(*(None if v is None else v[rays] for v in (
+            self.sub.points_in_rig, self.sub.points_in_world, self.sub.sigma, self.sub.theta,
+            self.sub.normals_in_world, self.sub.surface, self.sub.branch_coords)))
+        return WaterLine(self.index[keep], self.share[keep], self.wall_h[keep], sub, self.on_wall[rays])
+
+
+def _one_sided_gradient(
+    himg: np.ndarray, surface: np.ndarray, flat: np.ndarray, shape: tuple[int, int]
+) -> np.ndarray:
+    """(M,) |grad h| (mm/px) of the (H, W) image ``himg`` at the M pixels ``flat`` whose
+    ``surface`` (M,) is wall, from wall neighbours only: central differences where both
+    neighbours along an axis are wall, one-sided where one is; NaN where no axis has one."""
+    cls = np.zeros(shape[0] * shape[1], bool)
+    cls[flat] = surface == SURFACE_WALL
+    hv = np.where(cls.reshape(shape), himg, np.nan)
+    parts = []
+    for axis in (0, 1):
+        d = np.diff(hv, axis=axis)
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (0, 1)
+        fwd = np.pad(d, pad, constant_values=np.nan)
+        pad[axis] = (1, 0)
+        bwd = np.pad(d, pad, constant_values=np.nan)
+        with np.errstate(invalid="ignore"):
+            both = np.where(np.isfinite(fwd) & np.isfinite(bwd), 0.5 * (fwd + bwd), np.where(np.isfinite(fwd), fwd, bwd))
+        parts.append(both)
+    g = np.hypot(np.nan_to_num(parts[0]), np.nan_to_num(parts[1]))
+    g[~(np.isfinite(parts[0]) | np.isfinite(parts[1]))] = np.nan
+    return g.ravel()[flat]
 BRACKET_MARGIN_MM = 1.0
 """How far inside the smallest and outside the largest wall radius the shaped wall's ray
 casting starts and ends its samples (mm; :meth:`Renderer._intersect_shaped`)."""
@@ -569,8 +631,12 @@ class Renderer:
         laser_h = points_rig @ self.laser_normal + self.laser_offset
         if laser:
             extras = self._laser_extras(world_from_rig, hits, footprint, laser_h)
+            line = None
+            if self.pipe.features.water is not None and extras[2] is not None:
+                line = self._water_line(world_from_rig, extras[2], laser_h)
             image += self._laser_image(
-                points_rig, laser_h, hits.sigma, hits.theta, footprint, wall, rng, *extras
+                points_rig, laser_h, hits.sigma, hits.theta, footprint, wall, rng, *extras,
+                water_line=line,
             )
 
         truth = {
@@ -583,6 +649,92 @@ class Renderer:
         if hits.surface is not None:
             truth["surface"] = hits.surface
         return image, truth
+
+    def _sheet_gradient(
+        self, laser_h: np.ndarray, wall: np.ndarray, surface: np.ndarray | None, water_line: WaterLine | None
+    ) -> np.ndarray:
+        """(M,) |grad h| (mm/px) of the sheet distance ``laser_h`` (M,) across the image at
+        the wall-mask pixels ``wall``: central differences; beside another ``surface`` the
+        frame's median (:meth:`_grad_at_edges`), but on the water line's pixels the wall's
+        own, at their wall part's distance, one-sided from the wall where the water is."""
+        h, w = self.camera.height, self.camera.width
+        hfull = np.full(h * w, np.nan, np.float64)
+        hfull[self.index[wall]] = laser_h
+        if water_line is not None:
+            hfull[self.index[wall][water_line.index]] = water_line.wall_h
+            surface = surface.copy()
+            surface[water_line.index] = np.where(water_line.share > 0, SURFACE_WALL, surface[water_line.index])
+        himg = hfull.reshape(h, w)
+        gy, gx = np.gradient(himg)
+        grad = np.hypot(gx, gy).ravel()[self.index[wall]]
+        if surface is not None:
+            grad = self._grad_at_edges(grad, surface, wall)
+        if water_line is not None:
+            own = _one_sided_gradient(himg, surface, self.index[wall], (h, w))[water_line.index]
+            grad[water_line.index] = np.where(np.isfinite(own), own, grad[water_line.index])
+        return grad
+
+    def _water_line(
+        self, world_from_rig: np.ndarray, surface: np.ndarray, laser_h: np.ndarray
+    ) -> WaterLine | None:
+        """The pixels the water line's image crosses near the laser sheet, cast again with
+        :data:`WATER_LINE_SUBPIXELS` ^ 2 rays over each one's area (:class:`WaterLine`).
+
+        A pixel beside the water line (a wall pixel with a water neighbour or the reverse)
+        sees wall over part of its area only; a sensor integrates the sheet's light over
+        that part. Without it each pixel was wall or water by its centre ray (the stripe's
+        end up to half a pixel off the true water line, alike in every frame of a run: the
+        line's image stays where it is while the robot moves along the pipe). Only pixels
+        whose centre lies within :data:`WATER_LINE_NEAR_MM` of the sheet are cast again.
+        ``surface`` and ``laser_h`` (M,) of the wall-mask pixels."""
+        cam = self.camera
+        h, w = cam.height, cam.width
+        flat_all = self.index[~self.body]
+        full = np.full(h * w, 127, np.int16)
+        full[flat_all] = surface
+        img = full.reshape(h, w)
+        is_wall, is_water = img == SURFACE_WALL, img == SURFACE_WATER
+        near_water, near_wall = np.zeros((h, w), bool), np.zeros((h, w), bool)
+        for a, b in ((np.s_[:, 1:], np.s_[:, :-1]), (np.s_[1:], np.s_[:-1])):
+            near_water[a] |= is_water[b]
+            near_water[b] |= is_water[a]
+            near_wall[a] |= is_wall[b]
+            near_wall[b] |= is_wall[a]
+        crossed = ((is_wall & near_water) | (is_water & near_wall)).ravel()[flat_all]
+        sel = np.flatnonzero(crossed & (np.abs(laser_h) < WATER_LINE_NEAR_MM))
+        if len(sel) == 0:
+            return None
+        m = WATER_LINE_SUBPIXELS
+        flat = flat_all[sel]
+        offs = (np.arange(m) + 0.5) / m - 0.5
+        ox, oy = (v.ravel() for v in np.meshgrid(offs, offs))
+        px = np.stack([(flat % w)[:, None] + ox[None], (flat // w)[:, None] + oy[None]], axis=2)
+        sub = self.hit(world_from_rig, cam.unproject(px.reshape(-1, 2)))
+        on_wall = sub.surface == SURFACE_WALL
+        share = on_wall.reshape(len(sel), m * m).mean(axis=1)
+        count = np.maximum(on_wall.reshape(len(sel), m * m).sum(axis=1), 1)[:, None]
+        pts = sub.points_in_rig.reshape(len(sel), m * m, 3) * on_wall.reshape(len(sel), m * m, 1)
+        wall_h = np.where(share > 0, pts.sum(axis=1) / count @ self.laser_normal + self.laser_offset, laser_h[sel])
+        return WaterLine(sel, share, wall_h, sub, on_wall)
+
+    def _water_line_radiance(
+        self, line: WaterLine, grad: np.ndarray, footprint: np.ndarray, g_ref: float
+    ) -> np.ndarray:
+        """(E,) the sheet's radiance over the area of each of ``line``'s pixels: the mean
+        of its sub-rays' (:meth:`_sheet_radiance` at a sub-pixel's span of the sheet
+        distance, ``grad`` (E,) / :data:`WATER_LINE_SUBPIXELS`), 0 on the water's."""
+        mm = WATER_LINE_SUBPIXELS**2
+        sub = line.sub
+        lh = sub.points_in_rig @ self.laser_normal + self.laser_offset
+        g = np.repeat(np.maximum(grad, 1e-6) / WATER_LINE_SUBPIXELS, mm)
+        fp = np.repeat(footprint / WATER_LINE_SUBPIXELS, mm)
+        wall = line.on_wall
+        albedo = np.zeros((len(lh), 3), np.float32)
+        albedo[wall] = self.texture.sample(sub.sigma[wall], sub.theta[wall], fp[wall])
+        rad = self._sheet_radiance(
+            sub.points_in_rig, lh, g, (sub.sigma, sub.theta, fp), albedo, wall.astype(np.float64), g_ref
+        )
+        return rad.reshape(-1, mm).mean(axis=1)
 
     def _grad_at_edges(self, grad: np.ndarray, surface: np.ndarray, wall: np.ndarray) -> np.ndarray:
         """``grad`` with pixels beside another surface (or the body) set to the median."""
@@ -630,6 +782,7 @@ class Renderer:
         albedo_all: np.ndarray | None = None,
         lit: np.ndarray | None = None,
         surface: np.ndarray | None = None,
+        water_line: WaterLine | None = None,
     ) -> np.ndarray:
         """The laser line: the sheet's radiance on the wall, then the optics' blur.
 
@@ -637,7 +790,9 @@ class Renderer:
         ``lit`` (M,) scales the sheet's power reaching each (0: under water, a branch's
         dark end, a branch wall the hole hides from the emitter); None: the main wall.
         Pixels next to another ``surface`` (M,) straddle a jump in depth: their gradient
-        is not the sheet's across the pixel, so they take the frame's median.
+        is not the sheet's across the pixel, so they take the frame's median; the pixels
+        ``water_line`` crosses (:meth:`_water_line`) take their wall's and the sheet's
+        light over their area (:meth:`_water_line_radiance`).
 
         Each pixel sees the wall point on its ray at distance ``h`` (mm) from the sheet's
         centre plane; the sheet's radiance there is Gaussian in ``h`` (sigma
@@ -657,15 +812,12 @@ class Renderer:
         cfg = self.config
         cam = self.camera
         h, w = cam.height, cam.width
-        hfull = np.full(h * w, np.nan, np.float64)
-        hfull[self.index[wall]] = laser_h
-        himg = hfull.reshape(h, w)
-        # Gradient of the sheet distance across the image (mm per px), central differences.
-        gy, gx = np.gradient(himg)
-        grad = np.hypot(gx, gy).ravel()[self.index[wall]]
-        if surface is not None:
-            grad = self._grad_at_edges(grad, surface, wall)
-        near = np.isfinite(grad) & (np.abs(laser_h) < 8.0 * cfg.laser_sheet_sigma_mm + 8.0 * grad)
+        grad = self._sheet_gradient(laser_h, wall, surface, water_line)
+        dist = laser_h
+        if water_line is not None:
+            dist = laser_h.copy()
+            dist[water_line.index] = water_line.wall_h
+        near = np.isfinite(grad) & (np.abs(dist) < 8.0 * cfg.laser_sheet_sigma_mm + 8.0 * grad)
         sel = np.flatnonzero(near)
         out = np.zeros((h * w, 3), np.float32)
         if len(sel) == 0:
@@ -677,6 +829,15 @@ class Renderer:
             None if albedo_all is None else albedo_all[sel],
             None if lit is None else lit[sel],
         )
+        if water_line is not None:
+            at = np.full(len(laser_h), -1)
+            at[sel] = np.arange(len(sel))
+            k = at[water_line.index]
+            use = k >= 0
+            radiance[k[use]] = self._water_line_radiance(
+                water_line.subset(use), grad[water_line.index[use]], footprint[water_line.index[use]],
+                self._g_ref(grad[sel]),
+            )
         value = self._blur_and_speckle(radiance, flat, rng)
         chan = CHANNEL_INDEX.get(self.rig.laser.channel)
         if chan is None:
@@ -694,6 +855,7 @@ class Renderer:
         wall_coords: tuple[np.ndarray, np.ndarray, np.ndarray],
         albedo: np.ndarray | None,
         lit: np.ndarray | None,
+        g_ref: float | None = None,
     ) -> np.ndarray:
         """The sheet's radiance (K,) at K wall pixels near it (see :meth:`_laser_image`).
 
@@ -717,9 +879,14 @@ class Renderer:
             line = line * lit
         # laser_power is the line integral across the stripe (image value x px) at the
         # frame's median footprint: peak radiance = line / (sqrt(2 pi) sheet / g_ref).
-        g_ref = float(np.median(g))
+        g_ref = self._g_ref(g) if g_ref is None else g_ref
         peak = line * g_ref / (math.sqrt(2 * math.pi) * sheet)
         return peak * (sheet / sheet_in_pixel_mm) * np.exp(-0.5 * (laser_h / sheet_in_pixel_mm) ** 2)
+
+    @staticmethod
+    def _g_ref(g: np.ndarray) -> float:
+        """The frame's reference sheet gradient (mm/px): the median over its sheet pixels."""
+        return float(np.median(g))
 
     def _blur_and_speckle(
         self, radiance: np.ndarray, flat: np.ndarray, rng: np.random.Generator
