@@ -43,10 +43,11 @@ def odometry_reading(
     """The odometry's reading of the run's scale: log(odometry travel / vision's
     adjusted length) summed over the steps whose own sources measured them
     (:attr:`StepCheck.measures_scale`) and which the odometry covers, its relative
-    1-sigma (the steps' stated sigmas summed over the travel: the slip is one bias over
-    the run) and the number of steps; None without enough travel."""
+    1-sigma and the number of steps; None without enough travel. The sigma: the steps'
+    stated relative parts (the slip, one bias over the run) summed, their noise
+    (:attr:`OdometrySteps.noise_mm`: walk, resolution, interpolation) in quadrature."""
     pos = np.asarray(world_from_kf, float)[:, :3, 3]
-    vision = travel = sigma = 0.0
+    vision = travel = shared = noise2 = 0.0
     n = 0
     for k, c in enumerate(checks):
         d = float(odometry.length_mm[k])
@@ -56,11 +57,13 @@ def odometry_reading(
             continue
         vision += float(np.linalg.norm(pos[k + 1] - pos[k]))
         travel += d
-        sigma += float(odometry.sigma_mm[k])
+        noise = 0.0 if odometry.noise_mm is None else float(odometry.noise_mm[k])
+        shared += math.sqrt(max(float(odometry.sigma_mm[k]) ** 2 - noise**2, 0.0))
+        noise2 += noise**2
         n += 1
     if n == 0 or vision <= 0 or travel < MIN_TRAVEL_FLOORS * odometry.floor_mm:
         return None
-    return math.log(travel / vision), sigma / travel, n
+    return math.log(travel / vision), math.hypot(shared, math.sqrt(noise2)) / travel, n
 
 
 def with_odometry_scale(
