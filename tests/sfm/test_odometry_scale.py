@@ -75,3 +75,11 @@ def test_steps_vision_did_not_measure_do_not_read_the_scale() -> None:
     ]
     length = RunLength(math.nan, 0.10, math.nan, "laser")
     assert with_odometry_scale(length, poses, bridged, steps, []) == length
+
+
+def test_a_reading_over_too_few_steps_is_not_used() -> None:
+    """Three vision-measured steps (fewer than MIN_READING_STEPS): no reading, nothing moved."""
+    rng = np.random.default_rng(6)
+    _, poses, checks, steps = _run(rng, 0.10, 0.02, k=3)
+    length = RunLength(math.nan, 0.10, math.nan, "laser")
+    assert with_odometry_scale(length, poses, checks, steps, []) == length

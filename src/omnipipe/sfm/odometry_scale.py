@@ -35,6 +35,10 @@ VISION_BOUNDS_RATIO = (0.5, 1.0)
 
 # Least odometry travel over the steps vision measured, in multiples of its resolution.
 MIN_TRAVEL_FLOORS = 20.0
+# Fewest steps vision measured for the odometry's reading: over 1-3 steps its timing at
+# the keyframes (the interpolation at stops) reads 2-5 % beyond its slip (random-wide
+# 30s: +4.2 % over 3 steps with a 2.1 % slip; random-features 13, 24: 1 step each).
+MIN_READING_STEPS = 4
 
 
 def odometry_reading(
@@ -43,7 +47,8 @@ def odometry_reading(
     """The odometry's reading of the run's scale: log(odometry travel / vision's
     adjusted length) summed over the steps whose own sources measured them
     (:attr:`StepCheck.measures_scale`) and which the odometry covers, its relative
-    1-sigma and the number of steps; None without enough travel. The sigma: the steps'
+    1-sigma and the number of steps; None without enough travel or fewer than
+    :data:`MIN_READING_STEPS` steps. The sigma: the steps'
     stated relative parts (the slip, one bias over the run) summed, their noise
     (:attr:`OdometrySteps.noise_mm`: walk, resolution, interpolation) in quadrature."""
     pos = np.asarray(world_from_kf, float)[:, :3, 3]
@@ -61,7 +66,7 @@ def odometry_reading(
         shared += math.sqrt(max(float(odometry.sigma_mm[k]) ** 2 - noise**2, 0.0))
         noise2 += noise**2
         n += 1
-    if n == 0 or vision <= 0 or travel < MIN_TRAVEL_FLOORS * odometry.floor_mm:
+    if n < MIN_READING_STEPS or vision <= 0 or travel < MIN_TRAVEL_FLOORS * odometry.floor_mm:
         return None
     return math.log(travel / vision), math.hypot(shared, math.sqrt(noise2)) / travel, n
 
