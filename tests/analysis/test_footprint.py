@@ -16,6 +16,7 @@ from omnipipe.analysis.footprint import (
     with_water_footprint,
 )
 from omnipipe.analysis.stations import Station
+from omnipipe.errors import ShapeError
 
 
 def _stations(axial: np.ndarray, diameter: np.ndarray) -> list[Station]:
@@ -98,6 +99,8 @@ def test_a_wet_rings_depth_sigma_holds_the_depth_change_across_its_footprint() -
     assert out[-1] == sts[-1]
     k = int(np.argmax(term))
     assert out[k].water_depth_sigma_mm == pytest.approx(math.hypot(1.0, term[k]))
+    with pytest.raises(ShapeError, match="half_extent: 49 values for 50 stations"):
+        water_footprint_terms(sts, np.full(len(axial) - 1, 6.0))  # never a silent 0
     assert out[k].water_depth_footprint_sigma_mm == pytest.approx(term[k])
     # The stations between the true step and the placed one (50 <= axial < 56) read the
     # upstream depth: within 3 of their own sigmas.

@@ -35,6 +35,7 @@ from dataclasses import replace
 import numpy as np
 
 from omnipipe.analysis.stations import Station
+from omnipipe.errors import ShapeError
 
 
 def footprint_mm(sigma: np.ndarray, groups: list[np.ndarray], measured: np.ndarray) -> np.ndarray:
@@ -109,12 +110,15 @@ def water_footprint_terms(stations: list[Station], half_extent: np.ndarray) -> n
     """(S,) 1-sigma (mm) of each wet station's water depth from the sections its ring
     mixes: Delta h / sqrt(3), Delta h the water depths' :func:`section_change_mm` over
     the wet stations (depth > 0) within its footprint (``half_extent`` (S,) mm); 0 for
-    dry stations and when it cannot be told (fewer than 2 wet stations)."""
+    dry stations and when it cannot be told (fewer than 2 wet stations). A
+    ``half_extent`` of another length is a ShapeError (zeros would drop the term silently)."""
     n = len(stations)
+    if len(half_extent) != n:
+        raise ShapeError(f"half_extent: {len(half_extent)} values for {n} stations")
     out = np.zeros(n)
     depth = np.array([s.water_depth_mm for s in stations], float)
     wet = depth > 0
-    if len(half_extent) != n or wet.sum() < 2:
+    if wet.sum() < 2:
         return out
     axial = np.array([s.axial_mm for s in stations], float)
     out[wet] = section_change_mm(axial[wet], depth[wet], np.asarray(half_extent, float)[wet]) / math.sqrt(3.0)

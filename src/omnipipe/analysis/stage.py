@@ -51,7 +51,7 @@ from omnipipe.analysis.headline import (
 )
 from omnipipe.analysis.records import AnalysisConfig, AnalysisInputs, AnalysisResult, section_config
 from omnipipe.analysis.station_profiles import ring_groups
-from omnipipe.analysis.stations import EdgeReach, Station, with_water
+from omnipipe.analysis.stations import EdgeReach, Section, SectionConfig, Station, with_water
 from omnipipe.analysis.wall_measure import measure_wall, with_systematics
 from omnipipe.errors import ReconstructionError, ShapeError
 from omnipipe.spill import drop_pages, dropping_pages
@@ -168,7 +168,12 @@ def _station_reaches(inputs: AnalysisInputs, rings: np.ndarray) -> list[EdgeReac
 
 
 def _water(
-    st_list: list[Station], sections: list, noise_mm: float, sec_config: object, terms: tuple, half: np.ndarray
+    st_list: list[Station],
+    sections: list[Section],
+    noise_mm: float,
+    sec_config: SectionConfig,
+    terms: tuple[list[EdgeReach], list[tuple[float, float, float]]],
+    half: np.ndarray,
 ) -> tuple[list[Station], bool]:
     """:func:`.stations.with_water` (``terms``: reaches, joints' steps), then each wet
     station's footprint term in its depth's sigma (:func:`.footprint.water_footprint_terms`
