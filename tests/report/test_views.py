@@ -314,3 +314,33 @@ def test_3d_view_texture_resized_into_the_scratch_is_cv2s_resize(max_px: int) ->
     scale = max_px / 61
     want = texture if scale >= 1 else cv2.resize(np.array(texture), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     assert model["texture"] == E.png_data_uri(want)
+
+
+def test_3d_view_frames_the_meshed_wall_not_the_points_no_face_uses() -> None:
+    """The mesh's vertex array is the whole point cloud; points no face uses (a lateral's
+    branch, a stray point a metre off) neither reach the view nor move its camera: the
+    view's centre and radius are the faces' own."""
+    from omnipipe.report import ReportConfig
+    from omnipipe.report.inputs import ReportInputs
+    from omnipipe.report.model_view import _model_json
+
+    rng = np.random.default_rng(5)
+    angle = rng.uniform(0.0, 2.0 * math.pi, 60)
+    z = rng.uniform(0.0, 100.0, 60)
+    wall = np.column_stack([RADIUS * np.cos(angle), RADIUS * np.sin(angle), z])
+    stray = np.array([[1130.0, 808.0, -92.0], [1025.0, 746.0, -93.0]])
+    verts = np.concatenate([wall[:30], stray, wall[30:]])
+    used = np.delete(np.arange(len(verts)), [30, 31])
+    # Every wall point in some face, then random triangles.
+    faces = np.concatenate([used.reshape(-1, 3), used[rng.integers(0, len(used), (40, 3))]])
+    uvs = rng.random((len(verts), 2))
+    inputs = ReportInputs(summary={}, world_from_rig=np.eye(4)[None], mesh_vertices=verts,
+                          mesh_faces=faces, mesh_uvs=uvs)
+    model = json.loads(_model_json(inputs, ReportConfig()))
+    pos = np.array(model["positions"]).reshape(-1, 3)
+    tri = np.array(model["indices"]).reshape(-1, 3)
+    assert len(pos) == len(np.unique(faces)) and tri.max() == len(pos) - 1
+    # The same triangles, corner for corner.
+    assert np.allclose(pos[tri], verts[faces], atol=0.005)
+    lo, hi = verts[np.unique(faces)].min(axis=0), verts[np.unique(faces)].max(axis=0)
+    assert np.allclose(model["centre"], (lo + hi) / 2) and abs(model["radius"] - np.linalg.norm(hi - lo) / 2) < 1e-6

@@ -25,6 +25,19 @@ from omnipipe.report.inputs import ReportConfig, ReportInputs, clock_deg, point_
 from omnipipe.spill import drop_pages, dropping_pages, zeros_on_disk
 
 
+def referenced_only(
+    verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vertices (N, 3) and uvs (N, 2) some face of ``faces`` (F, 3) uses, in their
+    order, and the faces renumbered to them: the same triangles."""
+    used = np.zeros(len(verts), bool)
+    used[faces.ravel()] = True
+    if used.all():
+        return verts, faces, uvs
+    new_id = np.cumsum(used) - 1
+    return verts[used], new_id[faces].astype(faces.dtype), uvs[used]
+
+
 def _model_json(inputs: ReportInputs, config: ReportConfig) -> str | None:
     """The 3-D view's JSON (:func:`_model_json_parts` joined), or None without a mesh."""
     parts = _model_json_parts(inputs, config)
@@ -47,6 +60,10 @@ def _model_json_parts(inputs: ReportInputs, config: ReportConfig) -> Iterator[st
         shape = None if inputs.texture is None else np.asarray(inputs.texture).shape[:2]
         verts, faces, uvs = thin_mesh(verts, faces, uvs, config.max_faces, shape)
         release_freed_memory()  # the whole mesh's pages (omnipipe.spill) and temporaries
+    # The mesh's vertex array is the run's whole point cloud: points no face uses (inside a
+    # lateral's opening, a joint's gap, under water, an outlier) are left out of the view, so
+    # they neither frame the camera nor reach the page.
+    verts, faces, uvs = referenced_only(verts, faces, uvs)
     png = None  # the texture's PNG, its data URI's text written a piece at a time
     if inputs.texture is not None:
         import cv2
