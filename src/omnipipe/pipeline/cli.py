@@ -286,10 +286,30 @@ def closing_line(s: dict, out: Path) -> str:
         verdict = f"motion checked ({q.get('steps_checked', 0)} of {s['frames'] - 1} frame steps verified)"
     lines.append(
         f"wrote {out}: {s['frames_registered']}/{s['frames']} frames registered, inner diameter "
-        f"{s['inner_diameter_mm']:.2f} mm, {len(s['defects'])} defect(s), "
+        f"{_diameter(s)}, {len(s['defects'])} defect(s), {_features(s)}"
         f"{s['timings_s']['total']:.1f} s; {verdict}"
     )
     return "\n".join(lines)
+
+
+def _diameter(s: dict) -> str:
+    """The headline diameter with its 1-sigma, and its range where the run measured a
+    non-circular or changing section (report.json's min / max keys)."""
+    from omnipipe.report import value_pm
+
+    text = f"{value_pm(s['inner_diameter_mm'], s.get('inner_diameter_sigma_mm'), plain='+-')} mm"
+    lo, hi = s.get("inner_diameter_min_mm"), s.get("inner_diameter_max_mm")
+    return text if lo is None or hi is None else f"{text} (min {lo:.1f}, max {hi:.1f})"
+
+
+def _features(s: dict) -> str:
+    """The pipe's features by kind ("2 joint, 1 lateral; "), or nothing without any."""
+    from collections import Counter
+
+    kinds = Counter(f.get("kind", "?") for f in s.get("features") or [])
+    if not kinds:
+        return ""
+    return "features " + ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())) + "; "
 
 
 def format_table_one(rows) -> str:
