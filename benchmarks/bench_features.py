@@ -11,7 +11,8 @@ a seed with a lateral 48-188: the run lengthened until its ring sweeps the hole;
 datasets and reports already in --work are reused (``--fresh`` reconstructs again).
 ``--motion truth`` reconstructs with the simulator's trajectory
 (``sfm.trajectory_from: ground_truth/poses.txt``: the feature detection alone, not the
-camera motion), ``--motion both`` prints both tables.
+camera motion), ``--motion both`` prints both tables; ``--list`` then lists each true
+joint and lateral: found - true axial (mm), MISS, or why it is not counted.
 
 Counted (the issue's classes): joints with offset >= 1 mm or gap >= 3 mm, laterals >=
 0.2 x the diameter, bends of radius <= 3 x the diameter (the elbows), tapers, ovality >=
