@@ -11,7 +11,8 @@ a seed with a lateral 48-188: the run lengthened until its ring sweeps the hole;
 datasets and reports already in --work are reused (``--fresh`` reconstructs again).
 ``--motion truth`` reconstructs with the simulator's trajectory
 (``sfm.trajectory_from: ground_truth/poses.txt``: the feature detection alone, not the
-camera motion), ``--motion both`` prints both tables.
+camera motion), ``--motion both`` prints both tables; ``--list`` then lists each true
+joint and lateral: found - true axial (mm), MISS, or why it is not counted.
 
 Counted (the issue's classes): joints with offset >= 1 mm or gap >= 3 mm, laterals >=
 0.2 x the diameter, bends of radius <= 3 x the diameter (the elbows), tapers, ovality >=
@@ -345,6 +346,34 @@ def _score(
             counts["feature_defects"] += any(min(b, hi + 10) > max(a, lo - 10) for lo, hi in spots)
 
 
+def _listing(seed: int, report: dict, truth: dict, spans: list[tuple[float, float, float, float]] | None) -> list[str]:
+    """One line per true joint / lateral of the run (``--list``): found - true axial (mm;
+    a lateral's clock error too), MISS, or why it is not counted (under the issue's class,
+    outside the stations' span, a gap no true ring crossed); then the run's false ones."""
+    d = truth.get("inner_diameter_mm") or report.get("inner_diameter_mm", 200.0)
+    found = report.get("features") or []
+    st = report.get("stations") or []
+    span = (st[0]["axial_mm"], st[-1]["axial_mm"]) if st else (np.inf, -np.inf)
+    out = []
+    for t in truth.get("features", []):
+        if t["kind"] not in POINT_KINDS:
+            continue
+        a, b = _extent(t)
+        why = ("below the class" if not _eligible(t, d) else "outside" if not span[0] <= a <= b <= span[1]
+               else "unseen" if _unseen(t, spans) else "")
+        f = _match(t, found)
+        got = "MISS" if f is None else f"{f['axial_mm'] - t['axial_mm']:+.1f} mm"
+        if f is not None and t["kind"] == "lateral":
+            got += f", clock {(f['angle_deg'] - t['angle_deg'] + 180) % 360 - 180:+.1f} deg"
+        out.append(f"  s{seed} {t['kind']:7} at {t['axial_mm']:8.1f}: {got}" + (f" (not counted: {why})" if why else ""))
+    for f in found:
+        if f["kind"] in POINT_KINDS and not any(
+            _match(t, [f]) is not None for t in truth.get("features", []) if t["kind"] == f["kind"]
+        ):
+            out.append(f"  s{seed} {f['kind']:7} at {f['axial_mm']:8.1f}: FALSE")
+    return out
+
+
 def _table(title: str, rows: dict[str, Row], counts: dict, done: list[int], failed: list[int]) -> None:
     print(f"\n{title}: {len(done)} seeds scored: {done}; refused/failed: {failed}")
     print(f"{'kind':8} {'n':>4} {'outside':>7} {'recall':>7} {'ax<=3mm':>8} {'ax med':>7} "
@@ -384,13 +413,15 @@ def main() -> int:
     ap.add_argument("--fresh", action="store_true", help="reconstruct again even if a report exists")
     ap.add_argument("--motion", choices=("estimated", "truth", "both"), default="estimated",
                     help="camera motion: estimated (the product), truth (ground_truth/poses.txt), both")
+    ap.add_argument("--list", action="store_true",
+                    help="after the table, each true joint and lateral: found - true axial, MISS, or why not counted")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     motions = ("truth", "estimated") if args.motion == "both" else (args.motion,)
     for motion in motions:
         rows: dict[str, Row] = {}
         counts: dict = {"false_defects": 0, "feature_defects": 0, "unreliable_runs": 0}
-        done, failed = [], []
+        done, failed, listed = [], [], []
         for seed in _seeds(args.seeds):
             got = _run(seed, args.work, args.size, args.fresh, motion)
             if isinstance(got, str):
@@ -399,9 +430,13 @@ def main() -> int:
                 continue
             done.append(seed)
             counts["unreliable_runs"] += bool((got[0].get("trajectory_quality") or {}).get("unreliable"))
-            _score(*got, rows, counts, _ring_spans(args.work / f"s{seed}", got[1]))
+            spans = _ring_spans(args.work / f"s{seed}", got[1])
+            _score(*got, rows, counts, spans)
+            listed += _listing(seed, *got, spans) if args.list else []
             print(f"seed {seed} ({motion} motion): done ({len(done)} seeds)", flush=True)
         _table(f"{motion} camera motion", rows, counts, done, failed)
+        if listed:
+            print(f"joints and laterals, found - true ({motion} camera motion):", *listed, sep="\n")
     return 0
 
 

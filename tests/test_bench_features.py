@@ -82,3 +82,36 @@ def test_a_stretch_beside_the_true_one_is_false_not_found() -> None:
     assert bench._match(true, [beside]) is None
     assert bench._match(true, [beside, inside]) is inside
     assert bench._match(true, [{**inside, "kind": "water"}]) is None
+
+
+def test_the_listing_gives_each_joint_and_lateral_its_signed_error_or_why_not_counted(tmp_path: Path) -> None:
+    """``--list``: found - true axial (mm) and a lateral's clock error; a miss; a joint
+    under the issue's class, one outside the stations and one no true ring crossed are
+    listed as not counted; a reported joint matching no true one is FALSE."""
+    data, truth = _dataset(tmp_path, [0.0, 40.0], 1.0)
+    spans = bench._ring_spans(data, truth)
+    seen = {"kind": "joint", "axial_mm": 40.0 - LEAD, "gap_mm": 5.0, "offset_mm": 0.0}
+    truth["inner_diameter_mm"] = 2 * R
+    truth["features"] = [
+        seen,
+        {**seen, "axial_mm": 20.0 - LEAD},  # between the rings: unseen
+        {**seen, "axial_mm": -60.0, "gap_mm": 1.0},  # under the class
+        {"kind": "lateral", "axial_mm": -10.0, "angle_deg": 350.0, "diameter_mm": 80.0},
+        {**seen, "axial_mm": 300.0},  # beyond the stations
+    ]
+    report = {
+        "stations": [{"axial_mm": -100.0}, {"axial_mm": 100.0}],
+        "features": [
+            {"kind": "joint", "axial_mm": 40.0 - LEAD + 1.5},
+            {"kind": "lateral", "axial_mm": -12.0, "angle_deg": 5.0},
+            {"kind": "joint", "axial_mm": 80.0},
+        ],
+    }
+    lines = bench._listing(7, report, truth, spans)
+    assert lines[0].endswith("+1.5 mm")
+    assert lines[1].endswith("MISS (not counted: unseen)")
+    assert lines[2].endswith("MISS (not counted: below the class)")
+    assert lines[3].endswith("-2.0 mm, clock +15.0 deg")
+    assert lines[4].endswith("MISS (not counted: outside)")
+    assert lines[5] == "  s7 joint   at     80.0: FALSE"
+    assert len(lines) == 6
