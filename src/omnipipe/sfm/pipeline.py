@@ -58,6 +58,7 @@ from omnipipe.sfm.image_store import ImageStore
 from omnipipe.sfm.keyframes import follow_keyframes
 from omnipipe.sfm.lagging_tracks import kept, lags, plain_config
 from omnipipe.sfm.motion_trust import run_texture, untrusted_motions
+from omnipipe.sfm.odometry_scale import with_odometry_scale
 from omnipipe.sfm.path_smooth import smooth_path
 from omnipipe.sfm.ransac import RansacConfig
 from omnipipe.sfm.ring_follow import add_ring_follow
@@ -182,6 +183,7 @@ def _run(
         # and the run's scale is combined with the wall's (one similarity of the run).
         adjusted, chain, walls = _adjusted_and_checked(ctx, config, kf, chain, scale, followed.moved, odometry)
         length = run_length(ctx, adjusted.world_from_kf, chain, kf, scale, walls.readings)
+        length = with_odometry_scale(length, adjusted.world_from_kf, chain.checks, odometry, ctx.warnings)
         if not math.isnan(length.correction_log):
             adjusted = adjusted.scaled(math.exp(length.correction_log))
         # Step 6: the other moving frames, resected against the adjusted tracks; one that
