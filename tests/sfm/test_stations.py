@@ -95,6 +95,8 @@ def _frame_cases(rng: np.random.Generator) -> list[tuple[np.ndarray, str]]:
 
 
 def test_frame_signature_equals_the_grey_image_signature() -> None:
+    import pickle
+
     from omnipipe.image import gray_without_laser
     from omnipipe.sfm.stations import (
         StationConfig,
@@ -121,6 +123,10 @@ def test_frame_signature_equals_the_grey_image_signature() -> None:
                 case = (image.shape, image.dtype, channel, config.downsample, int(inner.sum()))
                 assert np.array_equal(got.small, want.small), case
                 assert got.noise_sigma == want.noise_sigma, case
+                # Pickled as the grey image's signature is (its block sums made once).
+                assert pickle.dumps(got) == pickle.dumps(want), case
+                back = pickle.loads(pickle.dumps(got))
+                assert np.array_equal(back.small, want.small) and back.small.dtype == np.float32
 
 
 def test_noise_mask_keeps_every_kth_row_of_the_interior() -> None:
