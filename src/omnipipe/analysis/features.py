@@ -645,9 +645,10 @@ def _lateral(
         reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     round_hole = len(members) > 0 or not _no_round_hole(ext, diameter, config.lateral_gap_rings * spacing)
+    seen = ch[:, 3] if ext is None else np.concatenate([ch[:, 3], ext.chords[:, 3]])
     f = Lateral(
         axial_mm=zc,
-        axial_sigma_mm=s_z,
+        axial_sigma_mm=math.hypot(s_z, _footprint_sigma(planes, seen, float(th0 + uc / radius))),
         angle_deg=math.degrees(th0 + uc / radius) % 360.0,
         angle_sigma_deg=math.degrees(s_u / radius),
         diameter_mm=diameter,
@@ -664,6 +665,22 @@ def _lateral(
         arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
     )
     return f, inside, zone, round_hole
+
+
+def _footprint_sigma(planes: dict[int, np.ndarray], rings: np.ndarray, angle: float) -> float:
+    """1-sigma (mm) of a hole's axial position in the pipe from its rings' footprint
+    along the axis: each ring (``planes``: :func:`_ring_planes`; ``rings``: the hole's
+    ring indices) lies ``p1 cos a + p2 sin a`` mm off its mean axial position at the
+    hole's angle ``a`` (rad), the median of them the hole's offset. The hole is read
+    there, right where that tilt is the rig's in the pipe (the laser plane leaning),
+    off by all of it where it is the coordinate's (the centreline's tangent off the
+    pipe's axis: a ring square to the pipe then looks tilted by as much); the run
+    cannot tell the two apart, so the hole lies anywhere over that offset: its spread
+    (uniform) |offset| / sqrt(12). Rings square to the coordinate, or a hole at the
+    angle their tilt is about (offset 0), add nothing."""
+    off = [float(planes[k][1] * math.cos(angle) + planes[k][2] * math.sin(angle))
+           for k in {int(k) for k in rings} if k in planes]
+    return abs(float(np.median(off))) / math.sqrt(12.0) if off else 0.0
 
 
 def _no_round_hole(ext: HoleExtent | None, diameter: float, min_mm: float) -> bool:
