@@ -71,8 +71,11 @@ def _whole_lateral(config, r, members, radius, spacing, thr, gaps=(), stops=(), 
         reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     round_hole = len(members) > 0 or not features._shorter_than_wide(ext, diameter)
+    seen = ch[:, 3] if ext is None else np.concatenate([ch[:, 3], ext.chords[:, 3]])
     f = Lateral(
-        axial_mm=zc, axial_sigma_mm=s_z, angle_deg=math.degrees(th0 + uc / radius) % 360.0,
+        axial_mm=zc,
+        axial_sigma_mm=math.hypot(s_z, features._footprint_sigma(planes, seen, float(th0 + uc / radius))),
+        angle_deg=math.degrees(th0 + uc / radius) % 360.0,
         angle_sigma_deg=math.degrees(s_u / radius), diameter_mm=diameter,
         diameter_sigma_mm=2.0 * s_b * abs(math.cos(min(b / radius, 0.5 * math.pi))), points=len(members),
     )

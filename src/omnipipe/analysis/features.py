@@ -675,12 +675,13 @@ def _footprint_sigma(planes: dict[int, np.ndarray], rings: np.ndarray, angle: fl
     there, right where that tilt is the rig's in the pipe (the laser plane leaning),
     off by all of it where it is the coordinate's (the centreline's tangent off the
     pipe's axis: a ring square to the pipe then looks tilted by as much); the run
-    cannot tell the two apart, so the hole lies anywhere over that offset: its spread
-    (uniform) |offset| / sqrt(12). Rings square to the coordinate, or a hole at the
-    angle their tilt is about (offset 0), add nothing."""
+    cannot tell the two apart, so the hole lies anywhere between the reading and the
+    offset back from it (uniform): about the reading, |offset| / sqrt(3) RMS. Rings
+    square to the coordinate, or a hole at the angle their tilt is about (offset 0),
+    add nothing."""
     off = [float(planes[k][1] * math.cos(angle) + planes[k][2] * math.sin(angle))
            for k in {int(k) for k in rings} if k in planes]
-    return abs(float(np.median(off))) / math.sqrt(12.0) if off else 0.0
+    return abs(float(np.median(off))) / math.sqrt(3.0) if off else 0.0
 
 
 def _no_round_hole(ext: HoleExtent | None, diameter: float, min_mm: float) -> bool:
