@@ -59,6 +59,7 @@ def _whole_lateral(config, r, members, radius, spacing, thr, gaps=(), stops=(), 
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
     planes = features._ring_planes(r, thr) if planes is None else planes
+    s_rep = s_z
     ext = features._extent(
         r, u - uc, ch, (float(th0 + uc / radius), radius, uc), float(np.max(ch[:, 2])) + sample, thr, stops, planes
     )
@@ -66,13 +67,16 @@ def _whole_lateral(config, r, members, radius, spacing, thr, gaps=(), stops=(), 
     if ext is not None and all(ext.closed):
         zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
         s_z = 0.5 * math.hypot(ext.lo_sigma_mm, ext.hi_sigma_mm)
+        s_rep = math.hypot(s_z, 0.5 * math.sqrt(2.0 / 12.0) * r.axial_blur_mm)
         reach = (zc - a, zc + a)
     elif ext is not None:
         reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
     diameter = 2.0 * radius * math.sin(min(b / radius, 0.5 * math.pi))
     round_hole = len(members) > 0 or not features._shorter_than_wide(ext, diameter)
     f = Lateral(
-        axial_mm=zc, axial_sigma_mm=s_z, angle_deg=math.degrees(th0 + uc / radius) % 360.0,
+        axial_mm=zc,
+        axial_sigma_mm=math.hypot(s_rep, features._footprint_sigma(planes, ch, ext, float(th0 + uc / radius))),
+        angle_deg=math.degrees(th0 + uc / radius) % 360.0,
         angle_sigma_deg=math.degrees(s_u / radius), diameter_mm=diameter,
         diameter_sigma_mm=2.0 * s_b * abs(math.cos(min(b / radius, 0.5 * math.pi))), points=len(members),
     )

@@ -94,6 +94,7 @@ class Rings:
     ring_sigma: np.ndarray
     dev: np.ndarray
     noise: float
+    axial_blur_mm: float = 0.0  # the light section's Gaussian sigma along the axis (mm; 0: none)
 
 
 def ring_deviations(

@@ -92,11 +92,15 @@ def find_features(
     frame: np.ndarray,
     radius: float,
     executor: Executor | None = None,
+    axial_blur_mm: float = 0.0,
 ) -> FeatureSearch:
     """Joints and laterals among (N,) points in pipe coordinates (sigma, rho mm; theta
     rad from the centreline's normal towards its binormal; frame: ring index), ``radius``
     the nominal wall radius (mm); the rings' profile fits on ``executor``
-    (:func:`.feature_rings.ring_deviations`; None: here; the result is the same)."""
+    (:func:`.feature_rings.ring_deviations`; None: here; the result is the same);
+    ``axial_blur_mm``: the light section's Gaussian sigma along the axis (mm; a hole's
+    ends read from the rings' disturbance lie up to about that far out: the laterals'
+    axial sigma, :func:`_lateral`)."""
     rings = ring_ids(frame)  # np.unique's, without a sorted copy of a ring-ordered frame
     dev, ring_sigma, raised = ring_deviations(config, sigma, rho, theta, frame, rings, executor)
     # Each point's deviation and ring in the run's scratch (read when needed, :mod:`omnipipe.spill`).
@@ -115,7 +119,7 @@ def find_features(
     noise = 1.4826 * float(np.median(np.abs(spread, out=spread)))
     del spread
     thr = max(config.min_depth_mm, config.noise_factor * noise)
-    r = Rings(sigma, rho, theta, frame, ring_of, ring_sigma, dev, noise)
+    r = Rings(sigma, rho, theta, frame, ring_of, ring_sigma, dev, noise, axial_blur_mm)
     # Joint candidates: beyond a lower threshold (a gap must also cover most of the
     # circumference), or half of it on a ring lying in a gap.
     thr_joint = max(config.min_depth_mm, config.joint_noise_factor * noise)
@@ -604,10 +608,12 @@ def _lateral(
     centre, angle and diameter (jackknife sigmas). Where the rings disturbed at its
     angles show it closing on both sides along the axis (:func:`.openings.hole_extent`;
     ``stops``: the joints' bands, which end that growth), the centre is the middle of
-    that reach, 1-sigma from the rings' spacing at its ends; where it runs to the run's
-    end (or a joint), the fitted centre stays and the reach is not wall. Returns the lateral, its
-    not-wall mask (the outline plus the margin), its zone for the defect search, and
-    whether it can be a round branch's hole (:func:`_no_round_hole`)."""
+    that reach, 1-sigma from the rings' spacing at its ends and the light's axial blur
+    (``r.axial_blur_mm``: a ring partly lit in the hole reads disturbed, each end 0..1 blur
+    sigma out, uniform), plus the rings' footprint (:func:`_footprint_sigma`; the zone keeps
+    the spacing's: the reach as read); where it runs to the run's end (or a joint), the
+    fitted centre stays and the reach is not wall. Returns the lateral, its not-wall mask,
+    its zone for the defect search, and whether it can be a round branch's hole."""
     sigma, theta, frame = r.sigma, r.theta, r.frame
     th = np.concatenate([theta[members], [g.centre for g in gaps]])
     th0 = math.atan2(float(np.mean(np.sin(th))), float(np.mean(np.cos(th))))
@@ -634,12 +640,14 @@ def _lateral(
     s_u = math.hypot(float(jk[1]), sample / math.sqrt(12.0))
     s_b = math.hypot(float(jk[2]), sample)
     planes = _ring_planes(r, thr) if planes is None else planes
+    s_rep = s_z  # the reported axial sigma; the zone's along the axis stays s_z (the reach as read)
     ext = _extent(r, u.minus(uc), ch, (float(th0 + uc / radius), radius, uc), float(np.max(ch[:, 2])) + sample,
                   thr, stops, planes)
     reach = (zc - a, zc + a)
     if ext is not None and all(ext.closed):
         zc, a = 0.5 * (ext.lo_mm + ext.hi_mm), 0.5 * (ext.hi_mm - ext.lo_mm)
         s_z = 0.5 * math.hypot(ext.lo_sigma_mm, ext.hi_sigma_mm)
+        s_rep = math.hypot(s_z, 0.5 * math.sqrt(2.0 / 12.0) * r.axial_blur_mm)  # each end 0..1 blur out
         reach = (zc - a, zc + a)
     elif ext is not None:  # seen to the run's end (or a joint): the grown rings not wall
         reach = (min(zc - a, ext.lo_mm), max(zc + a, ext.hi_mm))
@@ -647,7 +655,7 @@ def _lateral(
     round_hole = len(members) > 0 or not _no_round_hole(ext, diameter, config.lateral_gap_rings * spacing)
     f = Lateral(
         axial_mm=zc,
-        axial_sigma_mm=s_z,
+        axial_sigma_mm=math.hypot(s_rep, _footprint_sigma(planes, ch, ext, float(th0 + uc / radius))),
         angle_deg=math.degrees(th0 + uc / radius) % 360.0,
         angle_sigma_deg=math.degrees(s_u / radius),
         diameter_mm=diameter,
@@ -664,6 +672,27 @@ def _lateral(
         arc_mm=(math.radians(f.angle_deg) * radius), half_arc_mm=around,
     )
     return f, inside, zone, round_hole
+
+
+def _footprint_sigma(
+    planes: dict[int, np.ndarray], ch: np.ndarray, ext: HoleExtent | None, angle: float
+) -> float:
+    """1-sigma (mm) of a hole's axial position in the pipe from its rings' footprint
+    along the axis: each ring (``planes``: :func:`_ring_planes`) of the hole (its chords
+    ``ch``, (M, 4) ring in column 3, and the rings ``ext`` grew it over) lies
+    ``p1 cos a + p2 sin a`` mm off its mean axial position at the hole's angle ``a``
+    (rad), the median of them the hole's offset. The hole is read
+    there, right where that tilt is the rig's in the pipe (the laser plane leaning),
+    off by all of it where it is the coordinate's (the centreline's tangent off the
+    pipe's axis: a ring square to the pipe then looks tilted by as much); the run
+    cannot tell the two apart, so the hole lies anywhere between the reading and the
+    offset back from it (uniform): about the reading, |offset| / sqrt(3) RMS. Rings
+    square to the coordinate, or a hole at the angle their tilt is about (offset 0),
+    add nothing."""
+    rings = ch[:, 3] if ext is None else np.concatenate([ch[:, 3], ext.chords[:, 3]])
+    off = [float(planes[k][1] * math.cos(angle) + planes[k][2] * math.sin(angle))
+           for k in {int(k) for k in rings} if k in planes]
+    return abs(float(np.median(off))) / math.sqrt(3.0) if off else 0.0
 
 
 def _no_round_hole(ext: HoleExtent | None, diameter: float, min_mm: float) -> bool:
