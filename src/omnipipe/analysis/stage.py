@@ -84,14 +84,14 @@ def run(
     diameter = whole.diameter_mm if whole is not None else float(2.0 * np.median(line.radius_mm))
     radius = 0.5 * diameter
     # Joint gaps and lateral openings are not wall: out of the profiles and the defects.
-    feats = find_features(config.features, line, sigma, rho, theta, frame, radius, executor, inputs.axial_blur_mm)
+    feats = find_features(config.features, line, sigma, rho, theta, frame, radius, executor, axial_blur_mm=inputs.axial_blur_mm)
     breaks = offset_breaks(feats.features, line)
     if breaks:
         # The sections either side of an offset joint are fitted separately (one window's
         # cylinder across the step tilts, and the wall beside the joint reads as a ramp).
         line, whole, window = fit_axis(config, inputs, pts, frame, poses, executor, breaks)
         line, (sigma, rho, theta) = recentred_line(config, inputs, line, pts, frame, window, breaks, executor)
-        feats = with_offset_joints_kept(feats, find_features(config.features, line, sigma, rho, theta, frame, radius, executor, inputs.axial_blur_mm))
+        feats = with_offset_joints_kept(feats, find_features(config.features, line, sigma, rho, theta, frame, radius, executor, axial_blur_mm=inputs.axial_blur_mm))
     straight = whole is not None and line.straightness_mm() <= config.straight_tolerance_mm
     stations, search = measure_wall(
         config, inputs, frame, poses, sigma, rho, theta, radius, feats.not_wall, executor,
